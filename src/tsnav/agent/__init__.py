@@ -1,0 +1,1 @@
+"""agent stage of tsnav (see docs/ARCHITECTURE.md)."""

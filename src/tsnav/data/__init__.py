@@ -1,0 +1,1 @@
+"""data stage of tsnav (see docs/ARCHITECTURE.md)."""

@@ -1,0 +1,1 @@
+"""detect stage of tsnav (see docs/ARCHITECTURE.md)."""

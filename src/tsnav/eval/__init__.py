@@ -1,0 +1,1 @@
+"""eval stage of tsnav (see docs/ARCHITECTURE.md)."""

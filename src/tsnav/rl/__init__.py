@@ -1,0 +1,1 @@
+"""rl stage of tsnav (see docs/ARCHITECTURE.md)."""

@@ -1,0 +1,1 @@
+"""sim stage of tsnav (see docs/ARCHITECTURE.md)."""

@@ -1,0 +1,1 @@
+"""tsrm stage of tsnav (see docs/ARCHITECTURE.md)."""
