@@ -1,0 +1,70 @@
+"""The ``tsnav`` command: one entry point, one subcommand per stage of the data flow.
+
+Each subcommand lives in its own module exposing ``build_parser(parser)`` and ``run(args) -> int``; the
+module is imported only when its subcommand runs, so a missing optional dependency of one stage never
+breaks the others.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: subcommand -> (module, one-line help)
+COMMANDS = {
+    "world": ("tsnav.world.command", "build an offline dataset of procedurally generated houses"),
+    "show": ("tsnav.world.show", "draw a scene folder: top-down map and first-person views (PNG)"),
+    "eval": ("tsnav.eval.command", "evaluate a policy or a trained run on an episode list"),
+    "episodes": ("tsnav.sim.command", "write fixed validation / test episode lists (JSON)"),
+    "detect": ("tsnav.detect.command", "compute per-state detections (oracle or learned detector)"),
+    "pretrain": ("tsnav.pretrain.command", "pretrain a ViT encoder with DE-MAE / MAE"),
+    "features": ("tsnav.pretrain.features", "cache encoder features for every state of a dataset"),
+    "train": ("tsnav.rl.command", "train a navigation agent (A3C or batched A2C)"),
+    "experiment": ("tsnav.eval.experiment", "run one of the paper's experiments (ablation, pretraining, threshold)"),
+    "report": ("tsnav.eval.report", "write an HTML report for a run or experiment folder"),
+    "thor": ("tsnav.data.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),
+    "demo": ("tsnav.demo", "the main job: world, pretraining, detections, training, evaluation, report"),
+}
+
+
+class CommandError(Exception):
+    """An error the user can fix; printed as one line without a traceback."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="tsnav", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_) in COMMANDS.items():
+        sub.add_parser(name, help=help_, add_help=False)
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0
+    name = argv[0]
+    if name not in COMMANDS:
+        parser.error(f"unknown command {name!r} (choose from {', '.join(COMMANDS)})")
+    module_name, help_ = COMMANDS[name]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        if e.name and e.name.startswith("tsnav"):
+            print(f"tsnav {name}: not available in this version", file=sys.stderr)
+            return 2
+        raise
+    p = argparse.ArgumentParser(prog=f"tsnav {name}", description=help_)
+    module.build_parser(p)
+    args = p.parse_args(argv[1:])
+    try:
+        return int(module.run(args) or 0)
+    except (CommandError, FileNotFoundError, NotADirectoryError, PermissionError, ValueError, KeyError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        print(f"tsnav {name}: error: {msg}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"tsnav {name}: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
