@@ -14,14 +14,17 @@ UNREACHABLE = np.iinfo(np.int32).max
 
 
 def reverse_adjacency(next_state: np.ndarray) -> sparse.csr_matrix:
-    """Sparse matrix R with R[t, s] = 1 when some action moves s to t != s (the reversed graph)."""
+    """Sparse matrix M with M[s, t] = 1 when some action moves s to t != s.
+
+    ``M @ frontier`` marks the predecessors of a frontier: one backward BFS step on the reversed graph.
+    """
     next_state = np.asarray(next_state)
     n = next_state.shape[0]
     src = np.repeat(np.arange(n), next_state.shape[1])
     dst = next_state.reshape(-1)
     keep = dst != src
     data = np.ones(int(keep.sum()), dtype=np.int8)
-    return sparse.csr_matrix((data, (dst[keep], src[keep])), shape=(n, n))
+    return sparse.csr_matrix((data, (src[keep], dst[keep])), shape=(n, n))
 
 
 def multi_source_bfs(next_state: np.ndarray, sources: np.ndarray, reverse: sparse.csr_matrix | None = None) -> np.ndarray:
