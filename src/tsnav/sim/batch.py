@@ -1,0 +1,361 @@
+"""Batched object-navigation simulator over offline scenes (paper III-A; DESIGN.md "The offline dataset").
+
+Two pieces:
+
+* :class:`SceneBank` concatenates several :class:`~tsnav.data.reader.Scene` objects into one global state
+  space (scene ``i`` owns global ids ``offsets[i] .. offsets[i+1]-1``), so that a single ``next_state``
+  array ``(total_S, 6)`` serves every scene, plus per-state, per-category tables (success masks, optimal
+  distance fields, target-in-frame flags, detector confidences).
+* :class:`BatchEnv` steps ``B`` episodes at once with array operations only.
+
+Observations are global state ids and target category ids; callers gather features, detections or
+images for those ids themselves.
+
+Episode semantics (used by every stage of tsnav):
+
+* ``steps`` counts every action output, Done included; the episode is *truncated* when ``steps`` reaches
+  ``max_steps`` without a Done (paper: 100 at test time; the lineage trains with 30).
+* Done always ends the episode (*terminated*); it is a *success* when the state is a success state of the
+  target category (an instance in view and within ``success_distance``, 1.0 m in the paper).
+* A movement action whose target equals the current state failed: ``collided`` is set.
+* ``path_length`` counts the movement actions (every non-Done action, failed ones included), the same
+  quantity as the optimal length L* of :mod:`tsnav.sim.paths` (Done not counted).
+
+Reward plug-in (stable interface; the TSRM reward of :mod:`tsnav.tsrm` implements it)::
+
+    class RewardFn(Protocol):
+        def reset(self, mask, scene_idx, target, start_state) -> None: ...
+        def step(self, prev_state, action, new_state, collided, done, success)
+            -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
+
+* ``reset`` is called by :meth:`BatchEnv.reset` (``mask`` all True) and after every auto-reset (``mask``
+  marks the rows that start a new episode). All arguments are full ``(B,)`` arrays: ``mask`` bool,
+  ``scene_idx`` int64 index into ``bank.scenes``, ``target`` int64 category id, ``start_state`` int64 global
+  state id; only the rows where ``mask`` is True are new.
+* ``step`` is called once per :meth:`BatchEnv.step`, *before* auto-reset, with ``(B,)`` arrays:
+  ``prev_state`` / ``new_state`` int64 global ids, ``action`` int64, ``collided`` / ``done`` / ``success``
+  bool (``done`` = terminated or truncated at this step). It returns the reward ``(B,)`` float32 and named
+  terms ``{name: (B,) float32}`` (e.g. ``slack``, ``success``) that the env passes on in ``info``. Rows whose
+  episode had already finished before this step (only without auto-reset) are passed with
+  ``new_state == prev_state`` and ``done`` True; the env zeroes their reward and terms.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from ..constants import DONE, GRID_SIZE, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
+from ..data.reader import Scene
+from .paths import UNREACHABLE, distance_fields, scene_distance_fields
+
+
+@runtime_checkable
+class RewardFn(Protocol):
+    """Pluggable reward of :class:`BatchEnv` (see the module docstring for the exact contract)."""
+
+    def reset(self, mask: np.ndarray, scene_idx: np.ndarray, target: np.ndarray, start_state: np.ndarray) -> None:
+        ...
+
+    def step(self, prev_state: np.ndarray, action: np.ndarray, new_state: np.ndarray, collided: np.ndarray,
+             done: np.ndarray, success: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        ...
+
+
+@runtime_checkable
+class EpisodeSampler(Protocol):
+    """Draws new episodes for :class:`BatchEnv`: ``sample(n, rng) -> (scene_idx, target, start_state)``,
+    three ``(n,)`` int64 arrays (scene index into the bank, category id, global start state id)."""
+
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ...
+
+
+@dataclass
+class SparseReward:
+    """The plain reward of the lineage without shaping (paper III-D (iv), (v)): ``slack`` every step,
+    plus ``success`` when Done succeeds. Implements :class:`RewardFn`."""
+
+    slack: float = -0.01
+    """Reward added at every step (paper: -0.01)."""
+    success: float = 5.0
+    """Reward added when the episode succeeds (paper: +5)."""
+
+    def reset(self, mask, scene_idx, target, start_state) -> None:
+        return None
+
+    def step(self, prev_state, action, new_state, collided, done, success):
+        n = len(prev_state)
+        slack = np.full(n, self.slack, dtype=np.float32)
+        win = np.where(success, np.float32(self.success), np.float32(0.0)).astype(np.float32)
+        return slack + win, {"slack": slack, "success": win}
+
+
+class SceneBank:
+    """Several scenes as one global state space with per-state, per-category tables.
+
+    Attributes (``N`` scenes, ``S`` = total states, ``C`` = 22 target categories):
+        scenes: the :class:`Scene` objects; names, room_types: per scene.
+        offsets: ``(N+1,)`` int64; scene ``i`` owns global ids ``offsets[i]:offsets[i+1]``.
+        scene_of: ``(S,)`` int32 scene index of each global state.
+        next_state: ``(S, 6)`` int32 global successor per action (the state itself when it fails / Done).
+        keys, x, z, rotation, horizon: ``(S,)`` concatenated state descriptions (metres, degrees).
+        position: ``(S,)`` int32 global position id (same scene and grid cell, any rotation / horizon).
+        success: ``(S, C)`` bool, Done succeeds here for the category (paper III-A, ``success_distance``).
+        dist: ``(S, C)`` int32 optimal path length L* to the nearest success state (movement actions, Done
+            not counted); :data:`~tsnav.sim.paths.UNREACHABLE` when none can be reached.
+        in_frame: ``(S, C)`` bool, an instance of the category shows at least the scene's minimum number of
+            pixels in the frame (ground-truth visibility, any distance).
+        present: ``(N, C)`` bool, the category has an instance in the scene.
+        confidence: ``(S, C)`` float32 detector confidence of each target category, or None (filled by the
+            detector stage); :attr:`stage_confidence` falls back to ``in_frame`` as 1.0 / 0.0.
+        detections: ``(S, C, 6)`` float32 rows (score, label, x0, y0, x1, y1) or None.
+        c_target: the stage-switch threshold C_target (paper IV-A: 0.7).
+    """
+
+    def __init__(self, scenes: Sequence[Scene], success_distance: float = SUCCESS_DISTANCE,
+                 confidence: np.ndarray | None = None, detections: np.ndarray | None = None,
+                 c_target: float = 0.7, cache: bool = True):
+        if len(scenes) == 0:
+            raise ValueError("SceneBank needs at least one scene")
+        if not success_distance > 0:
+            raise ValueError(f"success_distance must be positive, got {success_distance}")
+        self.scenes = list(scenes)
+        self.success_distance = float(success_distance)
+        self.c_target = float(c_target)
+        sizes = np.array([s.num_states for s in self.scenes], dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        total = int(self.offsets[-1])
+        self.num_states = total
+        self.names = [s.name for s in self.scenes]
+        self.room_types = [s.room_type for s in self.scenes]
+        self.scene_of = np.repeat(np.arange(len(self.scenes), dtype=np.int32), sizes)
+        self.next_state = np.concatenate(
+            [s.next_state.astype(np.int64) + o for s, o in zip(self.scenes, self.offsets[:-1])]).astype(np.int32)
+        self.keys = np.concatenate([s.keys for s in self.scenes])
+        self.x = np.concatenate([s.x for s in self.scenes]).astype(np.float32)
+        self.z = np.concatenate([s.z for s in self.scenes]).astype(np.float32)
+        self.rotation = np.concatenate([s.rotation for s in self.scenes]).astype(np.int16)
+        self.horizon = np.concatenate([s.horizon for s in self.scenes]).astype(np.int16)
+        cells = np.stack([self.scene_of.astype(np.int64), np.round(self.x / GRID_SIZE).astype(np.int64),
+                          np.round(self.z / GRID_SIZE).astype(np.int64)], axis=1)
+        _, pos = np.unique(cells, axis=0, return_inverse=True)
+        self.position = pos.reshape(-1).astype(np.int32)
+        self.success = np.concatenate([s.category_visible_within(success_distance) for s in self.scenes])
+        self.dist = np.concatenate([scene_distance_fields(s, success_distance, cache=cache) for s in self.scenes])
+        self.in_frame = np.concatenate([_in_frame(s) for s in self.scenes])
+        self.present = np.zeros((len(self.scenes), NUM_CATEGORIES), dtype=bool)
+        for i, s in enumerate(self.scenes):
+            self.present[i, s.categories_present()] = True
+        self.confidence: np.ndarray | None = None
+        self.detections: np.ndarray | None = None
+        self._search_dist: np.ndarray | None = None
+        if confidence is not None:
+            self.set_confidence(confidence)
+        if detections is not None:
+            self.set_detections(detections)
+
+    @classmethod
+    def from_root(cls, root, split: str | None = None, **kwargs) -> "SceneBank":
+        """Load every complete scene folder of a dataset root (optionally one split) into a bank."""
+        from ..data.reader import list_scenes, load_scene
+
+        paths = list_scenes(root, split)
+        if not paths:
+            raise ValueError(f"{root}: no complete scenes" + (f" in split {split!r}" if split else ""))
+        return cls([load_scene(p) for p in paths], **kwargs)
+
+    @property
+    def num_scenes(self) -> int:
+        return len(self.scenes)
+
+    def set_confidence(self, confidence: np.ndarray) -> None:
+        """Install the ``(S, C)`` detector confidences (values in [0, 1]); clears the searching-length cache."""
+        conf = np.asarray(confidence, dtype=np.float32)
+        if conf.shape != (self.num_states, NUM_CATEGORIES):
+            raise ValueError(f"confidence must have shape ({self.num_states}, {NUM_CATEGORIES}), got {conf.shape}")
+        self.confidence = conf
+        self._search_dist = None
+
+    def set_detections(self, detections: np.ndarray) -> None:
+        """Install the ``(S, C, 6)`` per-class detection rows (score, label, x0, y0, x1, y1)."""
+        det = np.asarray(detections, dtype=np.float32)
+        if det.shape != (self.num_states, NUM_CATEGORIES, 6):
+            raise ValueError(f"detections must have shape ({self.num_states}, {NUM_CATEGORIES}, 6), got {det.shape}")
+        self.detections = det
+
+    @property
+    def stage_confidence(self) -> np.ndarray:
+        """``(S, C)`` float32 target confidence used for the stage switch (paper III-B, "Dividing point"):
+        the detector's when installed, else the ground-truth in-frame flag as 1.0 / 0.0."""
+        if self.confidence is not None:
+            return self.confidence
+        return self.in_frame.astype(np.float32)
+
+    @property
+    def stage_mask(self) -> np.ndarray:
+        """``(S, C)`` bool: the frame of this state switches the episode to the pathfinding stage
+        (confidence > C_target)."""
+        return self.stage_confidence > self.c_target
+
+    @property
+    def search_dist(self) -> np.ndarray:
+        """``(S, C)`` int32 optimal searching length L*^Search (paper IV-A, SSSPL): movement actions from each
+        state to the nearest state whose frame switches to the pathfinding stage. Computed on first use."""
+        if self._search_dist is None:
+            self._search_dist = distance_fields(self.next_state, self.stage_mask)
+        return self._search_dist
+
+    def global_state(self, scene_idx: int, key: str) -> int:
+        """Global state id of ``key`` in scene ``scene_idx``."""
+        return int(self.offsets[scene_idx]) + self.scenes[scene_idx].index(key)
+
+    def scene_index(self, name: str) -> int:
+        """Index of the scene called ``name``; ``KeyError`` naming it when absent."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"scene {name!r} is not in this bank") from None
+
+    def local_state(self, state: np.ndarray) -> np.ndarray:
+        """Scene-local state ids of global ids."""
+        state = np.asarray(state, dtype=np.int64)
+        return state - self.offsets[self.scene_of[state]]
+
+
+def _in_frame(scene: Scene) -> np.ndarray:
+    """``(S, C)`` bool: an instance of the category is visible in the frame (pixels >= the scene's minimum)."""
+    vis = scene.visible_at_any_range()
+    out = np.zeros((scene.num_states, NUM_CATEGORIES), dtype=bool)
+    tgt = scene.object_category >= 0
+    if tgt.any():
+        onehot = np.zeros((int(tgt.sum()), NUM_CATEGORIES), dtype=np.int32)
+        onehot[np.arange(int(tgt.sum())), scene.object_category[tgt]] = 1
+        out = (vis[:, tgt].astype(np.int32) @ onehot) > 0
+    return out
+
+
+class BatchEnv:
+    """``num_envs`` object-navigation episodes stepped together (paper III-A).
+
+    Observation (dict of ``(B,)`` arrays): ``state`` global state id (int64), ``target`` category id (int64),
+    ``scene`` scene index (int64), ``step`` actions taken so far in the episode (int32).
+
+    :meth:`step` returns ``(obs, reward, terminated, truncated, info)`` with ``info`` arrays (all ``(B,)``,
+    describing the step just taken, before any auto-reset): ``collided``, ``success``, ``steps``,
+    ``path_length``, ``final_state`` (the state reached), ``active`` (the row was in an episode), and
+    ``reward_terms`` (dict). With ``autoreset`` (default) finished rows immediately start a new episode from
+    ``sampler`` and ``obs`` shows its first state ("same-step" auto-reset); without it finished rows stay
+    frozen (``active`` False) until :meth:`reset`.
+    """
+
+    def __init__(self, bank: SceneBank, num_envs: int, sampler: EpisodeSampler | None = None,
+                 reward_fn: RewardFn | None = None, max_steps: int = 100, autoreset: bool = True,
+                 seed: int | None = None):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        self.bank = bank
+        self.num_envs = int(num_envs)
+        self.sampler = sampler
+        self.reward_fn = reward_fn
+        self.max_steps = int(max_steps)
+        self.autoreset = bool(autoreset)
+        self.np_random = np.random.default_rng(seed)
+        b = self.num_envs
+        self.state = np.zeros(b, dtype=np.int64)
+        self.start = np.zeros(b, dtype=np.int64)
+        self.target = np.zeros(b, dtype=np.int64)
+        self.scene = np.zeros(b, dtype=np.int64)
+        self.steps = np.zeros(b, dtype=np.int32)
+        self.path_length = np.zeros(b, dtype=np.int32)
+        self.active = np.zeros(b, dtype=bool)
+        self._ns = bank.next_state.astype(np.int64).reshape(-1)  # flat (S*6,)
+        self._succ = bank.success.reshape(-1)  # flat (S*C,)
+        self._arange = np.arange(b, dtype=np.int64)
+
+    # -- episodes -----------------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, episodes: tuple | None = None) -> dict[str, np.ndarray]:
+        """Start a new episode in every row and return the observation.
+
+        ``episodes`` = ``(scene_idx, target, start_state)`` (three ``(B,)`` arrays, global start ids) sets the
+        episodes explicitly (evaluation); otherwise they are drawn from ``sampler``. ``seed`` reseeds
+        :attr:`np_random`.
+        """
+        if seed is not None:
+            self.np_random = np.random.default_rng(seed)
+        mask = np.ones(self.num_envs, dtype=bool)
+        self._start_rows(mask, episodes)
+        return self._obs()
+
+    def _start_rows(self, mask: np.ndarray, episodes: tuple | None = None) -> None:
+        n = int(mask.sum())
+        if episodes is None:
+            if self.sampler is None:
+                raise ValueError("BatchEnv has no episode sampler: pass episodes= to reset()")
+            scene_idx, target, start = self.sampler.sample(n, self.np_random)
+        else:
+            scene_idx, target, start = (np.asarray(a, dtype=np.int64).reshape(-1) for a in episodes)
+            if not len(scene_idx) == len(target) == len(start) == n:
+                raise ValueError(f"episodes must be three arrays of length {n}")
+        scene_idx = np.asarray(scene_idx, dtype=np.int64)
+        target = np.asarray(target, dtype=np.int64)
+        start = np.asarray(start, dtype=np.int64)
+        if n and ((start < 0).any() or (start >= self.bank.num_states).any()
+                  or (self.bank.scene_of[start] != scene_idx).any()):
+            raise ValueError("episode start states must be global state ids of their scenes")
+        if n and ((target < 0).any() or (target >= NUM_CATEGORIES).any()):
+            raise ValueError(f"episode targets must be category ids in [0, {NUM_CATEGORIES})")
+        self.scene[mask] = scene_idx
+        self.target[mask] = target
+        self.state[mask] = start
+        self.start[mask] = start
+        self.steps[mask] = 0
+        self.path_length[mask] = 0
+        self.active[mask] = True
+        if self.reward_fn is not None:
+            self.reward_fn.reset(mask.copy(), self.scene.copy(), self.target.copy(), self.state.copy())
+
+    def _obs(self) -> dict[str, np.ndarray]:
+        return {"state": self.state.copy(), "target": self.target.copy(), "scene": self.scene.copy(),
+                "step": self.steps.copy()}
+
+    # -- stepping -----------------------------------------------------------------------------------------
+    def step(self, actions) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
+        """Apply one action per row (``(B,)`` ints in ``[0, 6)``, order of ``constants.ACTIONS``)."""
+        a = np.asarray(actions)
+        if a.shape != (self.num_envs,):
+            raise ValueError(f"actions must have shape ({self.num_envs},), got {a.shape}")
+        a = a.astype(np.int64, copy=False)
+        if a.size and (a.min() < 0 or a.max() >= NUM_ACTIONS):
+            raise ValueError(f"actions must be in [0, {NUM_ACTIONS})")
+        active = self.active
+        prev = self.state
+        moved = self._ns[prev * NUM_ACTIONS + a]
+        new = np.where(active, moved, prev)
+        is_done = a == DONE
+        collided = active & ~is_done & (moved == prev)
+        self.steps += active
+        self.path_length += active & ~is_done
+        terminated = active & is_done
+        success = terminated & self._succ[new * NUM_CATEGORIES + self.target]
+        truncated = active & ~terminated & (self.steps >= self.max_steps)
+        finished = terminated | truncated
+        if self.reward_fn is not None:
+            reward, terms = self.reward_fn.step(prev, a, new, collided, finished | ~active, success)
+            reward = np.where(active, np.asarray(reward, dtype=np.float32), np.float32(0.0))
+            terms = {k: np.where(active, np.asarray(v, dtype=np.float32), np.float32(0.0)) for k, v in terms.items()}
+        else:
+            reward = np.zeros(self.num_envs, dtype=np.float32)
+            terms = {}
+        info = {"collided": collided, "success": success, "steps": self.steps.copy(),
+                "path_length": self.path_length.copy(), "final_state": new, "active": active.copy(),
+                "reward_terms": terms}
+        self.state = new
+        self.active = active & ~finished
+        if self.autoreset and finished.any():
+            self._start_rows(finished)
+        return self._obs(), reward, terminated, truncated, info
