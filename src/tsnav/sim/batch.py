@@ -354,7 +354,7 @@ class BatchEnv:
         info = {"collided": collided, "success": success, "steps": self.steps.copy(),
                 "path_length": self.path_length.copy(), "final_state": new, "active": active.copy(),
                 "reward_terms": terms}
-        self.state = new
+        self.state = new.copy()  # auto-reset writes into self.state; info keeps the final states
         self.active = active & ~finished
         if self.autoreset and finished.any():
             self._start_rows(finished)

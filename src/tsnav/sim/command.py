@@ -1,0 +1,63 @@
+"""``tsnav episodes``: write a fixed validation / test episode list (JSON) for a dataset split."""
+
+from __future__ import annotations
+
+import argparse
+from collections import Counter
+from pathlib import Path
+
+from ..constants import SUCCESS_DISTANCE
+
+
+def build_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, help="dataset root (scene folders)")
+    parser.add_argument("--split", default="test", help="scene split to draw from (default: test)")
+    parser.add_argument("--per-room-type", type=int, default=250,
+                        help="episodes per room type; fewer when the split has fewer (default: 250)")
+    parser.add_argument("--out", required=True, help="output JSON file")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--success-distance", type=float, default=SUCCESS_DISTANCE,
+                        help="success distance in metres (paper: 1.0; lineage: 1.5)")
+    parser.add_argument("--start-horizon", type=int, default=0,
+                        help="camera horizon of start states in degrees; -1 for any (default: 0)")
+    parser.add_argument("--all-targets", action="store_true",
+                        help="allow every category present, not only the room type's target list")
+    parser.add_argument("--force", action="store_true", help="replace an existing, different episode list")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..cli import CommandError
+    from .batch import SceneBank
+    from .episodes import EpisodeConfig, make_episodes, read_episodes, write_episodes
+
+    out = Path(args.out)
+    if args.per_room_type < 1:
+        raise CommandError(f"--per-room-type must be >= 1, got {args.per_room_type}")
+    if not Path(args.data).is_dir():
+        raise CommandError(f"--data {args.data}: no such dataset folder")
+    bank = SceneBank.from_root(args.data, args.split, success_distance=args.success_distance)
+    config = EpisodeConfig(start_horizon=None if args.start_horizon < 0 else args.start_horizon,
+                           room_targets=not args.all_targets)
+    episodes = make_episodes(bank, args.per_room_type, args.seed, config)
+    if not episodes:
+        raise CommandError(f"{args.data}: no valid episode in split {args.split!r}")
+    meta = {"split": args.split, "seed": args.seed, "success_distance": args.success_distance,
+            "per_room_type": args.per_room_type, "start_horizon": config.start_horizon,
+            "room_targets": config.room_targets, "data": str(Path(args.data).resolve())}
+    if out.exists():
+        try:
+            old, _ = read_episodes(out)
+        except ValueError:
+            old = None
+        if old == episodes:
+            print(f"{out}: up to date ({len(episodes)} episodes)")
+            return 0
+        if not args.force:
+            raise CommandError(f"{out} exists with different episodes; pass --force to replace it")
+    write_episodes(out, episodes, **meta)
+    per_room = Counter(e.room_type for e in episodes)
+    mean_opt = sum(e.optimal_length for e in episodes) / len(episodes)
+    print(f"wrote {len(episodes)} episodes to {out} ({bank.num_scenes} scenes of split {args.split!r}; "
+          + ", ".join(f"{k}: {v}" for k, v in sorted(per_room.items()))
+          + f"; mean optimal length {mean_opt:.1f})")
+    return 0

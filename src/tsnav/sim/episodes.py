@@ -1,0 +1,232 @@
+"""Episodes: the training sampler and fixed validation / test episode lists (paper III-A, IV-A).
+
+An episode is (scene, target category, start state). A valid episode has the target present in the scene,
+a start state at the configured camera horizon (0 by default) from which a success state of the target can
+be reached, and a start that is not already a success state. The optimal length stored with fixed
+episodes is L* of :mod:`tsnav.sim.paths` (movement actions, Done not counted).
+
+Episode lists are JSON::
+
+    {"format": "tsnav-episodes", "version": 1, "split": "test", "success_distance": 1.0, "seed": 0,
+     "per_room_type": 250, "start_horizon": 0,
+     "episodes": [{"scene": "FloorPlan1", "target": "Bowl", "start": "0.50|3.50|315|0",
+                   "optimal_length": 7, "room_type": "kitchen"}, ...]}
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, ROOM_TARGETS, TARGET_CATEGORIES
+from .batch import SceneBank
+from .paths import UNREACHABLE
+
+EPISODES_FORMAT = "tsnav-episodes"
+EPISODES_VERSION = 1
+
+
+@dataclass
+class EpisodeConfig:
+    """How episodes are drawn (training sampler and fixed lists)."""
+
+    start_horizon: int | None = 0
+    """Camera horizon of start states in degrees (0 = level); None allows any horizon."""
+    room_targets: bool = True
+    """Restrict targets to the lineage's per-room-type target list (constants.ROOM_TARGETS) when the scene's
+    room type has one; other room types use every category present."""
+
+
+@dataclass
+class ValidStarts:
+    """CSR table of valid (scene, target, start) triples, grouped by (scene, target) pair.
+
+    ``pair_scene[p]``, ``pair_target[p]`` describe pair ``p``; its valid global start states are
+    ``starts[ptr[p]:ptr[p+1]]``. Pairs are sorted by scene then target; ``scene_ptr[i]:scene_ptr[i+1]`` are
+    the pairs of scene ``i``.
+    """
+
+    pair_scene: np.ndarray
+    pair_target: np.ndarray
+    ptr: np.ndarray
+    starts: np.ndarray
+    scene_ptr: np.ndarray
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.ptr)
+
+
+def allowed_targets(bank: SceneBank, config: EpisodeConfig) -> np.ndarray:
+    """``(N, C)`` bool: categories that may be targets in each scene (present, and in the room's list)."""
+    allowed = bank.present.copy()
+    if config.room_targets:
+        for i, rt in enumerate(bank.room_types):
+            if rt in ROOM_TARGETS:
+                keep = np.zeros(NUM_CATEGORIES, dtype=bool)
+                keep[[CATEGORY_INDEX[c] for c in ROOM_TARGETS[rt]]] = True
+                allowed[i] &= keep
+    return allowed
+
+
+def valid_starts(bank: SceneBank, config: EpisodeConfig | None = None) -> ValidStarts:
+    """All valid episodes of a bank as a :class:`ValidStarts` table (array operations, no loop over states)."""
+    config = config or EpisodeConfig()
+    ok = (bank.dist < UNREACHABLE) & ~bank.success
+    ok &= allowed_targets(bank, config)[bank.scene_of]
+    if config.start_horizon is not None:
+        ok &= (bank.horizon == config.start_horizon)[:, None]
+    s, c = np.nonzero(ok)  # sorted by state (hence scene), then category
+    pair_key = bank.scene_of[s].astype(np.int64) * NUM_CATEGORIES + c
+    order = np.argsort(pair_key, kind="stable")
+    s, pair_key = s[order], pair_key[order]
+    keys, first, counts = np.unique(pair_key, return_index=True, return_counts=True)
+    ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    pair_scene = (keys // NUM_CATEGORIES).astype(np.int64)
+    pair_target = (keys % NUM_CATEGORIES).astype(np.int64)
+    scene_ptr = np.searchsorted(pair_scene, np.arange(bank.num_scenes + 1)).astype(np.int64)
+    return ValidStarts(pair_scene, pair_target, ptr, s.astype(np.int64), scene_ptr)
+
+
+class TrainingSampler:
+    """Random training episodes (implements :class:`~tsnav.sim.batch.EpisodeSampler`).
+
+    A scene is drawn uniformly among the scenes with a valid episode, a target uniformly among its valid
+    categories, and a start uniformly among that target's valid start states. Fully vectorised.
+    """
+
+    def __init__(self, bank: SceneBank, config: EpisodeConfig | None = None):
+        self.bank = bank
+        self.config = config or EpisodeConfig()
+        self.table = valid_starts(bank, self.config)
+        if len(self.table.pair_scene) == 0:
+            raise ValueError("no valid episode in these scenes (no reachable target category)")
+        npairs = np.diff(self.table.scene_ptr)
+        self.scenes = np.flatnonzero(npairs > 0)
+        self._npairs = npairs
+
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        t = self.table
+        scene = self.scenes[rng.integers(0, len(self.scenes), size=n)]
+        pair = t.scene_ptr[scene] + np.floor(rng.random(n) * self._npairs[scene]).astype(np.int64)
+        cnt = t.counts[pair]
+        start = t.starts[t.ptr[pair] + np.floor(rng.random(n) * cnt).astype(np.int64)]
+        return scene.astype(np.int64), t.pair_target[pair], start
+
+
+@dataclass
+class Episode:
+    """One fixed evaluation episode."""
+
+    scene: str
+    target: str
+    start: str
+    """Start state key."""
+    optimal_length: int
+    """L*: movement actions to the nearest success state (Done not counted)."""
+    room_type: str = "unknown"
+
+
+def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
+                  config: EpisodeConfig | None = None) -> list[Episode]:
+    """Draw a fixed episode list: ``per_room_type`` distinct episodes for each room type (fewer when the room
+    type has fewer valid episodes), each (scene, target) pair of a room type equally likely, like the
+    lineage's 250 test episodes per room type. Deterministic for a given bank and ``seed``."""
+    if per_room_type < 1:
+        raise ValueError(f"per_room_type must be >= 1, got {per_room_type}")
+    config = config or EpisodeConfig()
+    t = valid_starts(bank, config)
+    rng = np.random.default_rng(seed)
+    rooms = np.array(bank.room_types)
+    pair_room = rooms[t.pair_scene] if len(t.pair_scene) else np.zeros(0, dtype=rooms.dtype)
+    npairs = np.diff(t.scene_ptr)
+    out: list[Episode] = []
+    for rt in sorted(set(bank.room_types)):
+        pairs = np.flatnonzero(pair_room == rt)
+        if len(pairs) == 0:
+            continue
+        scenes_rt = np.unique(t.pair_scene[pairs])
+        # weight of a triple: 1 / (scenes of the room type * pairs of its scene * starts of its pair)
+        cnt = t.counts[pairs]
+        w_pair = 1.0 / (len(scenes_rt) * npairs[t.pair_scene[pairs]])
+        idx = np.concatenate([np.arange(t.ptr[p], t.ptr[p + 1]) for p in pairs])
+        pair_of = np.repeat(pairs, cnt)
+        w = np.repeat(w_pair / cnt, cnt)
+        k = min(per_room_type, len(idx))
+        chosen = rng.choice(len(idx), size=k, replace=False, p=w / w.sum())
+        for j in chosen:
+            p, s = int(pair_of[j]), int(t.starts[idx[j]])
+            c = int(t.pair_target[p])
+            out.append(Episode(scene=bank.names[int(t.pair_scene[p])], target=TARGET_CATEGORIES[c],
+                               start=str(bank.keys[s]), optimal_length=int(bank.dist[s, c]), room_type=rt))
+    return out
+
+
+def episodes_to_arrays(bank: SceneBank, episodes: list[Episode], check: bool = True):
+    """``(scene_idx, target, start_state)`` int64 arrays (global start ids) for :meth:`BatchEnv.reset`.
+
+    With ``check``, each stored optimal length must equal the bank's (a mismatch means the dataset or the
+    success distance changed since the list was written): ``ValueError`` naming the first bad episode.
+    """
+    n = len(episodes)
+    scene_idx = np.zeros(n, dtype=np.int64)
+    target = np.zeros(n, dtype=np.int64)
+    start = np.zeros(n, dtype=np.int64)
+    for i, e in enumerate(episodes):
+        scene_idx[i] = bank.scene_index(e.scene)
+        if e.target not in CATEGORY_INDEX:
+            raise ValueError(f"episode {i}: unknown target category {e.target!r}")
+        target[i] = CATEGORY_INDEX[e.target]
+        start[i] = bank.global_state(int(scene_idx[i]), e.start)
+    if check and n:
+        opt = bank.dist[start, target]
+        stored = np.array([e.optimal_length for e in episodes])
+        bad = np.flatnonzero(opt != stored)
+        if len(bad):
+            i = int(bad[0])
+            e = episodes[i]
+            got = "unreachable" if opt[i] == UNREACHABLE else int(opt[i])
+            raise ValueError(f"episode {i} ({e.scene}, {e.target}, {e.start}): stored optimal length "
+                             f"{e.optimal_length} but the dataset gives {got}; regenerate the episode list")
+    return scene_idx, target, start
+
+
+def write_episodes(path: str | Path, episodes: list[Episode], **meta) -> None:
+    """Write an episode list as JSON, atomically; ``meta`` (split, seed, success_distance, ...) is stored."""
+    path = Path(path)
+    doc = {"format": EPISODES_FORMAT, "version": EPISODES_VERSION, **meta,
+           "episodes": [asdict(e) for e in episodes]}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(doc, f, indent=1)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_episodes(path: str | Path) -> tuple[list[Episode], dict]:
+    """Read an episode list: ``(episodes, meta)``; ``ValueError`` naming the file when malformed."""
+    path = Path(path)
+    try:
+        with open(path) as f:
+            doc = json.load(f)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    if not isinstance(doc, dict) or doc.get("format") != EPISODES_FORMAT:
+        raise ValueError(f"{path}: not a tsnav episode list (missing \"format\": \"{EPISODES_FORMAT}\")")
+    try:
+        eps = [Episode(**e) for e in doc["episodes"]]
+    except (KeyError, TypeError) as e:
+        raise ValueError(f"{path}: malformed episode ({e})") from None
+    meta = {k: v for k, v in doc.items() if k != "episodes"}
+    return eps, meta

@@ -1,0 +1,69 @@
+"""Shared fixtures-as-functions for the sim / eval tests: toy banks and a toy dataset written to disk."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from tsnav.data.toy import toy_scene
+
+
+def toy_scenes():
+    """Three small analytic scenes of two room types with blocked cells and several target categories."""
+    a = toy_scene(2.0, 1.5, {"Bowl|1": (2.0, 1.5), "Chair|1": (0.0, 0.75), "Vase|1": (1.0, 0.0)},
+                  blocked=[(1.0, 0.5), (1.0, 0.75), (1.0, 1.0)], name="ToyA")
+    b = toy_scene(1.5, 1.5, {"Sink|1": (0.75, 1.5), "GarbageCan|1": (0.0, 0.0)}, name="ToyB")
+    c = toy_scene(1.75, 1.0, {"Sink|1": (1.75, 0.5)}, blocked=[(0.75, 0.25)], name="ToyC")
+    a.meta["room_type"] = "kitchen"
+    b.meta["room_type"] = c.meta["room_type"] = "bathroom"
+    for s in (a, b, c):
+        s.meta["split"] = "test"
+    return [a, b, c]
+
+
+def write_scene_folder(scene, folder: Path, images: int | None = None) -> Path:
+    """Write ``scene`` in the lineage layout (graph.json, visible map, scene.json, states.hdf5, COMPLETE) and,
+    with ``images`` = side in pixels, images.hdf5 / depth.hdf5 with a per-state pattern."""
+    import h5py
+
+    folder.mkdir(parents=True, exist_ok=True)
+    keys = scene.keys.tolist()
+    src = np.repeat(np.arange(len(keys)), scene.next_state.shape[1])
+    dst = scene.next_state.reshape(-1)
+    keep = src != dst
+    graph = {"directed": True, "multigraph": False, "graph": {},
+             "nodes": [{"id": k} for k in keys],
+             "links": [{"source": keys[s], "target": keys[t]} for s, t in zip(src[keep], dst[keep])]}
+    (folder / "graph.json").write_text(json.dumps(graph))
+    (folder / "grid.json").write_text(json.dumps(
+        [{"x": float(x), "y": 0.9, "z": float(z)} for x, z in sorted(set(zip(scene.x.tolist(), scene.z.tolist())))]))
+    vis = {str(o): [keys[s] for s in np.flatnonzero(scene.visible[:, j])] for j, o in enumerate(scene.object_ids)}
+    (folder / "visible_object_map_1.5.json").write_text(json.dumps(vis))
+    meta = dict(scene.meta)
+    meta["floor"] = [p.tolist() for p in scene.floor]
+    meta["image_size"] = images or scene.image_size
+    (folder / "scene.json").write_text(json.dumps(meta))
+    with h5py.File(folder / "states.hdf5", "w") as f:
+        f["keys"] = np.array(keys, dtype="S")
+        f["object_ids"] = np.array(scene.object_ids.tolist(), dtype="S")
+        f["distance"] = scene.distance
+        f["pixels"] = scene.pixels
+        f["boxes"] = scene.boxes
+        f.attrs["image_size"] = images or scene.image_size
+    if images:
+        with h5py.File(folder / "images.hdf5", "w") as fi, h5py.File(folder / "depth.hdf5", "w") as fd:
+            for i, k in enumerate(keys):
+                fi[k] = np.full((images, images, 3), i % 251, dtype=np.uint8)
+                fd[k] = np.full((images, images), 0.5 + (i % 7), dtype=np.float32)
+    (folder / "COMPLETE").write_text("")
+    return folder
+
+
+def write_toy_dataset(root: Path, images: int | None = None) -> Path:
+    """The :func:`toy_scenes` as a dataset root (split ``test``)."""
+    root.mkdir(parents=True, exist_ok=True)
+    for s in toy_scenes():
+        write_scene_folder(s, root / s.name, images)
+    return root
