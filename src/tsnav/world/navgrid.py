@@ -1,0 +1,102 @@
+"""Reachable positions and the state graph, from geometry.
+
+A grid position (0.25 m lattice) is reachable when a disc of the agent's radius around it lies on the
+floor and touches no wall or blocking furniture/object footprint. MoveAhead between two neighbouring
+positions (8 headings; diagonal headings move one step in x and z) is allowed when the whole swept
+segment stays in free space. Only the largest connected set of positions is kept, so every reachable
+position can reach every other one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import shapely
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from shapely.geometry import Polygon, box
+from shapely.ops import unary_union
+
+from ..constants import GRID_SIZE, HORIZONS, ROTATIONS, state_key
+from .spec import SceneSpec, box_footprint
+
+AGENT_RADIUS = 0.2
+#: Headings (degrees) -> grid step (dx, dz) of MoveAhead.
+STEPS = {r: (int(round(np.sin(np.deg2rad(r)))), int(round(np.cos(np.deg2rad(r))))) for r in ROTATIONS}
+
+
+def free_space(spec: SceneSpec, radius: float = AGENT_RADIUS):
+    """Shapely geometry of the positions the agent's centre may occupy."""
+    floor = unary_union([Polygon(p) for p in spec.floor])
+    obstacles = []
+    wall_inst = {i for i, n in enumerate(spec.instances) if n == "Wall"}
+    for p in spec.parts:
+        if int(p.inst) in wall_inst:
+            obstacles.append(Polygon(box_footprint(p.center, p.size, p.yaw)))
+    for f in spec.furniture:
+        if f.blocks:
+            obstacles.append(Polygon(f.footprint()))
+    for o in spec.objects:
+        if o.support == "floor":
+            obstacles.append(Polygon(box_footprint(o.center, o.size, o.yaw)))
+    blocked = unary_union(obstacles).buffer(radius, quad_segs=4) if obstacles else Polygon()
+    return floor.buffer(-radius + 1e-6, quad_segs=4).difference(blocked)
+
+
+def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
+    """``(positions (P, 2) float, move (P, 8) int)``: reachable grid positions (largest connected set,
+    sorted by x then z) and, per rotation index, the neighbour reached by MoveAhead (-1 when blocked)."""
+    free = free_space(spec, radius)
+    minx, minz, maxx, maxz = free.bounds if not free.is_empty else (0, 0, 0, 0)
+    xs = np.arange(np.ceil(minx / GRID_SIZE), np.floor(maxx / GRID_SIZE) + 1) * GRID_SIZE
+    zs = np.arange(np.ceil(minz / GRID_SIZE), np.floor(maxz / GRID_SIZE) + 1) * GRID_SIZE
+    gx, gz = np.meshgrid(xs, zs, indexing="ij")
+    gx, gz = gx.ravel(), gz.ravel()
+    shapely.prepare(free)
+    ok = shapely.contains_xy(free, gx, gz)
+    pos = np.stack([gx[ok], gz[ok]], axis=1)
+    if len(pos) == 0:
+        raise ValueError(f"scene {spec.name}: no reachable position")
+    ij = np.round(pos / GRID_SIZE).astype(np.int64)
+    lookup = {(int(a), int(b)): n for n, (a, b) in enumerate(ij)}
+    move = np.full((len(pos), len(ROTATIONS)), -1, dtype=np.int64)
+    samples = np.linspace(0.0, 1.0, 6)[1:-1]
+    for k, r in enumerate(ROTATIONS):
+        dx, dz = STEPS[r]
+        tgt = np.array([lookup.get((int(a) + dx, int(b) + dz), -1) for a, b in ij])
+        has = tgt >= 0
+        # The swept segment must stay free (checked at interior sample points).
+        seg_ok = np.ones(len(pos), dtype=bool)
+        for t in samples:
+            sx = pos[:, 0] + t * dx * GRID_SIZE
+            sz = pos[:, 1] + t * dz * GRID_SIZE
+            seg_ok &= shapely.contains_xy(free, sx, sz)
+        move[:, k] = np.where(has & seg_ok, tgt, -1)
+    # Largest connected component of the MoveAhead graph (moves are symmetric: reverse heading).
+    src, kk = np.nonzero(move >= 0)
+    adj = coo_matrix((np.ones(len(src)), (src, move[src, kk])), shape=(len(pos), len(pos)))
+    ncomp, label = connected_components(adj, directed=True, connection="strong")
+    keep_label = np.bincount(label).argmax()
+    keep = label == keep_label
+    remap = np.full(len(pos), -1, dtype=np.int64)
+    remap[keep] = np.arange(keep.sum())
+    pos, move = pos[keep], move[keep]
+    move = np.where(move >= 0, remap[np.maximum(move, 0)], -1)
+    return pos, move
+
+
+def build_graph(positions: np.ndarray, move: np.ndarray) -> tuple[list[str], list[tuple[str, str]]]:
+    """State keys and directed edges (MoveAhead, RotateLeft/Right, LookDown/Up) of the state graph."""
+    nodes, edges = [], []
+    for p, (x, z) in enumerate(positions):
+        for k, r in enumerate(ROTATIONS):
+            for h in HORIZONS:
+                key = state_key(x, z, r, h)
+                nodes.append(key)
+                edges.append((key, state_key(x, z, (r + 45) % 360, h)))
+                edges.append((key, state_key(x, z, (r - 45) % 360, h)))
+                other = HORIZONS[1] if h == HORIZONS[0] else HORIZONS[0]
+                edges.append((key, state_key(x, z, r, other)))
+                if move[p, k] >= 0:
+                    nx, nz = positions[move[p, k]]
+                    edges.append((key, state_key(nx, nz, r, h)))
+    return nodes, edges
