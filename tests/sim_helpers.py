@@ -67,3 +67,10 @@ def write_toy_dataset(root: Path, images: int | None = None) -> Path:
     for s in toy_scenes():
         write_scene_folder(s, root / s.name, images)
     return root
+
+
+def oracle_factory(bank, seed=0, c_target=None):
+    """A ``module:factory`` policy for testing the learned-agent hook of ``tsnav eval``."""
+    from tsnav.eval.policies import OraclePolicy
+
+    return OraclePolicy(bank)
