@@ -1,0 +1,298 @@
+"""The Two-Stage Reward Mechanism and the rest of the paper's reward (paper sections III-B, III-D, IV-A).
+
+Per step ``t`` (the action taken in frame ``t-1`` leads to frame ``t``), the reward is the sum of the terms
+
+==============  ==============================================================================  =========
+term            value                                                                           variants
+==============  ==============================================================================  =========
+``explore``     ``K_e * (Area(RG_t) - Area(RG_{t-1}))`` if the step was taken in the searching  explore,
+                stage (eq. ExploreReward, K_e = 0.1; :mod:`tsnav.tsrm.area`)                     tsrm
+``distance``    ``K_d * (d(p_{t-1}, g) - d(p_t, g))`` if the step was taken in the pathfinding  distance,
+                stage (eq. DistanceReward, K_d = 0.15; :mod:`tsnav.tsrm.distance`)               tsrm
+``collision``   -0.1 when the action fails at a (position, rotation) where this episode already  all
+                had a failed action; the first failure there is free (III-D (iii))
+``slack``       -0.01 at every step, the final one included (III-D (iv))                         all
+``success``     +5 when Done succeeds (III-D (v))                                                all
+==============  ==============================================================================  =========
+
+Stages (III-B, "Dividing point"): an episode starts in the searching stage and enters the pathfinding stage,
+for good, at the first frame whose detector confidence for the target exceeds ``C_target = 0.7``; the start
+frame counts. A step is *taken in* the stage of the frame where its action was chosen, so the step that
+reaches the switching frame still earns the exploration reward (it is the searching action that found the
+target) and every later step earns the distance reward. An episode whose start frame already shows the
+target gets distance rewards from its first step.
+
+Searched region: ``RG`` starts as the start frame's trapezoid clipped to the floor, without reward (no
+action produced that view; the paper's "RG_0 is initially null" is the region before the first frame), and
+grows only during the searching stage. A step that leaves the state unchanged (a failed action, Done) adds
+nothing, because ``T_t = T_{t-1}`` is already in ``RG_{t-1}``.
+
+Variants (Table II of the paper): ``baseline`` keeps collision, slack and success - the paper's baseline is
+the lineage's reward with "the two-stage reward mechanism not applied", and the collision penalty is part of
+the common reward of III-D, not of TSRM; ``explore`` and ``distance`` add one TSRM term each; ``tsrm`` adds
+both. Stages are tracked in every variant (the SSR / SSSPL / NSNPL metrics need them). Every term is always
+returned (zeros when switched off) for logging.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..constants import NUM_CATEGORIES
+from .area import AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, floor_union
+from .distance import bank_pose_distance, distance_delta, pose_distance_reference, pose_nodes
+
+VARIANTS = ("baseline", "explore", "distance", "tsrm")
+TERMS = ("explore", "distance", "collision", "slack", "success")
+#: Terms each variant switches on.
+VARIANT_TERMS = {
+    "baseline": ("collision", "slack", "success"),
+    "explore": ("explore", "collision", "slack", "success"),
+    "distance": ("distance", "collision", "slack", "success"),
+    "tsrm": TERMS,
+}
+SEARCHING, PATHFINDING = 0, 1
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Reward of the paper (III-B, III-D) with the constants of IV-A as defaults."""
+
+    variant: str = "tsrm"
+    """Which terms are on: 'baseline' (collision, slack, success), 'explore' (+ exploration), 'distance'
+    (+ distance), 'tsrm' (all); the ablation of Table II."""
+    k_explore: float = 0.1
+    """K_e, reward per square metre of newly searched floor (eq. ExploreReward)."""
+    k_distance: float = 0.15
+    """K_d, reward per pose-graph action of progress towards the nearest success pose (eq. DistanceReward)."""
+    collision_penalty: float = -0.1
+    """Added when an action fails again at a (position, rotation) where one already failed (III-D (iii))."""
+    slack: float = -0.01
+    """Added at every step (III-D (iv))."""
+    success_reward: float = 5.0
+    """Added when Done succeeds (III-D (v))."""
+    c_target: float = 0.7
+    """C_target: the first frame with target confidence above it starts the pathfinding stage (IV-A)."""
+    area: AreaConfig = field(default_factory=AreaConfig)
+    """Observable trapezoid (1/4 m at horizon 0, 0.25/3 m at horizon 30) and the fast raster's sample size."""
+    exact_area: bool = False
+    """Measure the searched region with shapely polygons (exact, one episode at a time, slow) instead of the
+    packed raster (within 1% over an episode, batched)."""
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown reward variant {self.variant!r} (choose from {', '.join(VARIANTS)})")
+        if not 0.0 <= self.c_target <= 1.0:
+            raise ValueError(f"c_target must be in [0, 1], got {self.c_target}")
+        if isinstance(self.area, dict):  # from a saved JSON config
+            object.__setattr__(self, "area", AreaConfig(**self.area))
+
+    def uses(self, term: str) -> bool:
+        """Whether ``term`` is switched on in this variant."""
+        return term in VARIANT_TERMS[self.variant]
+
+
+class TSRMReward:
+    """Batched reward of :class:`RewardConfig` over a :class:`~tsnav.sim.batch.SceneBank`; implements the
+    ``RewardFn`` protocol of :mod:`tsnav.sim.batch` (``reset`` / ``step`` on ``(B,)`` arrays).
+
+    Per-episode state, readable for logging and pictures: :attr:`stage` ``(B,)`` (0 searching, 1
+    pathfinding), :attr:`switch_step` ``(B,)`` step index of the frame that started pathfinding (0 = start
+    frame, -1 = not yet), :attr:`steps`, :attr:`searched_area` (m^2), and :attr:`coverage` (the raster of
+    ``RG_t``, :meth:`~tsnav.tsrm.area.BatchCoverage.region_mask`) when the fast area is in use.
+    """
+
+    def __init__(self, bank, config: RewardConfig = RewardConfig(), confidence: np.ndarray | None = None):
+        """``confidence``: ``(total_S, 22)`` detector confidence per state and category (cached detector output);
+        defaults to ``bank.stage_confidence`` (the detector's when installed, else ground-truth in-frame)."""
+        self.bank = bank
+        self.config = config
+        conf = bank.stage_confidence if confidence is None else np.asarray(confidence, dtype=np.float32)
+        if conf.shape != (bank.num_states, NUM_CATEGORIES):
+            raise ValueError(f"confidence must have shape ({bank.num_states}, {NUM_CATEGORIES}), got {conf.shape}")
+        self.switches = conf > config.c_target  # (S, C): this frame starts the pathfinding stage
+        self.dist = bank_pose_distance(bank) if config.uses("distance") else None
+        node_of, _ = pose_nodes(bank.x, bank.z, bank.rotation, bank.scene_of)
+        # Pose nodes are numbered scene by scene; the collision memory indexes them per scene.
+        first = np.full(bank.num_scenes, np.iinfo(np.int64).max, dtype=np.int64)
+        np.minimum.at(first, bank.scene_of.astype(np.int64), node_of)
+        self.node_local = node_of - first[bank.scene_of]
+        self.nodes_per_scene = int(self.node_local.max()) + 1
+        self.area_index = None
+        self._floors: dict[int, object] = {}
+        if config.uses("explore") and not config.exact_area:
+            self.area_index = AreaIndex([s.floor for s in bank.scenes],
+                                        [(s.x, s.z) for s in bank.scenes], bank.rotation, bank.horizon, config.area)
+        self._alloc(0)
+
+    def _alloc(self, b: int) -> None:
+        self.batch_size = b
+        self.scene = np.zeros(b, dtype=np.int64)
+        self.target = np.zeros(b, dtype=np.int64)
+        self.stage = np.zeros(b, dtype=np.int8)
+        self.switch_step = np.full(b, -1, dtype=np.int64)
+        self.steps = np.zeros(b, dtype=np.int64)
+        self.collided_at = np.zeros((b, self.nodes_per_scene), dtype=bool)
+        self.coverage = BatchCoverage(self.area_index, b) if self.area_index is not None else None
+        self._exact: list[ExactSearchedRegion | None] = [None] * b
+
+    @property
+    def searched_area(self) -> np.ndarray:
+        """``Area(RG_t)`` of every episode, m^2 (zeros when the variant has no exploration term)."""
+        if self.coverage is not None:
+            return self.coverage.area()
+        return np.array([r.area if r is not None else 0.0 for r in self._exact])
+
+    def _exact_region(self, scene: int) -> ExactSearchedRegion:
+        if scene not in self._floors:
+            self._floors[scene] = floor_union(self.bank.scenes[scene].floor)
+        return ExactSearchedRegion(self._floors[scene], self.config.area)
+
+    def _add_views(self, rows: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """Add the trapezoids of ``states`` to episodes ``rows``; gained area per row, m^2."""
+        if self.coverage is not None:
+            return self.coverage.add(rows, states)
+        bank = self.bank
+        return np.array([self._exact[b].add(float(bank.x[s]), float(bank.z[s]), int(bank.rotation[s]),
+                                            int(bank.horizon[s])) for b, s in zip(rows, states)])
+
+    def reset(self, mask: np.ndarray, scene_idx: np.ndarray, target: np.ndarray, start_state: np.ndarray) -> None:
+        """Start episodes where ``mask`` is True (``(B,)`` arrays; global start state ids)."""
+        mask = np.asarray(mask, dtype=bool)
+        if len(mask) != self.batch_size:
+            self._alloc(len(mask))
+        rows = np.flatnonzero(mask)
+        scene_idx = np.asarray(scene_idx, dtype=np.int64)[rows]
+        target = np.asarray(target, dtype=np.int64)[rows]
+        start = np.asarray(start_state, dtype=np.int64)[rows]
+        self.scene[rows] = scene_idx
+        self.target[rows] = target
+        self.steps[rows] = 0
+        at_start = self.switches[start, target]
+        self.stage[rows] = np.where(at_start, PATHFINDING, SEARCHING)
+        self.switch_step[rows] = np.where(at_start, 0, -1)
+        self.collided_at[rows] = False
+        if self.config.uses("explore"):
+            if self.coverage is not None:
+                self.coverage.reset(mask, self.scene)
+            else:
+                for b, s in zip(rows, scene_idx):
+                    self._exact[b] = self._exact_region(int(s))
+            search = ~at_start
+            self._add_views(rows[search], start[search])  # the start view, without reward
+
+    def step(self, prev_state, action, new_state, collided, done, success) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Reward of one step of every episode: ``(reward (B,) float32, {term: (B,) float32})``."""
+        cfg = self.config
+        prev = np.asarray(prev_state, dtype=np.int64)
+        new = np.asarray(new_state, dtype=np.int64)
+        collided = np.asarray(collided, dtype=bool)
+        success = np.asarray(success, dtype=bool)
+        b = len(prev)
+        if b != self.batch_size:
+            raise ValueError(f"step got {b} episodes but reset was called with {self.batch_size}")
+        self.steps += 1
+        searching = self.stage == SEARCHING  # the stage in which this step's action was chosen
+        terms = {k: np.zeros(b, dtype=np.float64) for k in TERMS}
+        if cfg.uses("explore"):
+            rows = np.flatnonzero(searching & (new != prev))
+            terms["explore"][rows] = cfg.k_explore * self._add_views(rows, new[rows])
+        if cfg.uses("distance"):
+            rows = np.flatnonzero(~searching)
+            terms["distance"][rows] = cfg.k_distance * distance_delta(self.dist, prev[rows], new[rows],
+                                                                       self.target[rows])
+        switch = searching & self.switches[new, self.target]
+        self.stage[switch] = PATHFINDING
+        self.switch_step[switch] = self.steps[switch]
+        rows = np.flatnonzero(collided)
+        if len(rows):
+            nodes = self.node_local[prev[rows]]
+            repeat = self.collided_at[rows, nodes]
+            self.collided_at[rows, nodes] = True
+            terms["collision"][rows] = np.where(repeat, cfg.collision_penalty, 0.0)
+        terms["slack"][:] = cfg.slack
+        terms["success"][success] = cfg.success_reward
+        for k in TERMS:
+            if not cfg.uses(k):
+                terms[k][:] = 0.0
+        out = {k: v.astype(np.float32) for k, v in terms.items()}
+        reward = sum(terms.values()).astype(np.float32)
+        return reward, out
+
+
+class TSRMRewardReference:
+    """The reward of :class:`RewardConfig` written directly from the paper, one episode of one scene at a
+    time: shapely unions for ``RG_t``, a Python breadth-first search for ``d``, a Python set of collision
+    poses. Slow; the reference that :class:`TSRMReward` is tested against. State ids are scene-local."""
+
+    def __init__(self, scene, config: RewardConfig = RewardConfig(), confidence: np.ndarray | None = None,
+                 success_distance: float = 1.0):
+        """``confidence``: ``(S, 22)`` of this scene; defaults to 1.0 where the target category is in frame."""
+        self.scene = scene
+        self.config = config
+        if confidence is None:
+            seen = scene.visible_at_any_range()
+            confidence = np.zeros((scene.num_states, NUM_CATEGORIES), dtype=np.float32)
+            for o, c in enumerate(scene.object_category):
+                if c >= 0:
+                    confidence[seen[:, o], c] = 1.0
+        self.confidence = np.asarray(confidence)
+        self.success_distance = success_distance
+        self.floor = floor_union(scene.floor) if config.uses("explore") else None
+        self._dist_cache: dict[int, np.ndarray] = {}
+
+    def _pose(self, s: int) -> tuple[float, float, int]:
+        sc = self.scene
+        return round(float(sc.x[s]), 2), round(float(sc.z[s]), 2), int(sc.rotation[s]) % 360
+
+    def _d(self, s: int) -> int:
+        g = self.target
+        if g not in self._dist_cache:
+            sc = self.scene
+            self._dist_cache[g] = pose_distance_reference(
+                sc.next_state, sc.x, sc.z, sc.rotation, sc.success_mask(g, self.success_distance))
+        return int(self._dist_cache[g][s])
+
+    def reset(self, target: int, start_state: int) -> None:
+        self.target = int(target)
+        self.pathfinding = bool(self.confidence[start_state, self.target] > self.config.c_target)
+        self.switch_step = 0 if self.pathfinding else -1
+        self.steps = 0
+        self.collision_poses: set = set()
+        self.region = ExactSearchedRegion(self.floor, self.config.area) if self.floor is not None else None
+        if self.region is not None and not self.pathfinding:
+            sc = self.scene
+            self.region.add(sc.x[start_state], sc.z[start_state], sc.rotation[start_state], sc.horizon[start_state])
+
+    def step(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
+             ) -> tuple[float, dict[str, float]]:
+        from ..sim.paths import UNREACHABLE
+
+        cfg = self.config
+        sc = self.scene
+        self.steps += 1
+        terms = dict.fromkeys(TERMS, 0.0)
+        if not self.pathfinding:
+            if cfg.uses("explore"):
+                before = self.region.area
+                self.region.add(sc.x[new_state], sc.z[new_state], sc.rotation[new_state], sc.horizon[new_state])
+                terms["explore"] = cfg.k_explore * (self.region.area - before)
+            if self.confidence[new_state, self.target] > cfg.c_target:
+                self.pathfinding = True
+                self.switch_step = self.steps
+        elif cfg.uses("distance"):
+            d0, d1 = self._d(prev_state), self._d(new_state)
+            if d0 != UNREACHABLE and d1 != UNREACHABLE:
+                terms["distance"] = cfg.k_distance * (d0 - d1)
+        if collided:
+            pose = self._pose(prev_state)
+            if pose in self.collision_poses:
+                terms["collision"] = cfg.collision_penalty
+            self.collision_poses.add(pose)
+        terms["slack"] = cfg.slack
+        if success:
+            terms["success"] = cfg.success_reward
+        terms = {k: (v if cfg.uses(k) else 0.0) for k, v in terms.items()}
+        return float(sum(terms.values())), terms
