@@ -1,0 +1,257 @@
+"""Gymnasium interface: the single env ``tsnav/ObjectNav-v0`` and its native vector env over
+:class:`~tsnav.sim.batch.BatchEnv` (paper III-A).
+
+    import gymnasium as gym, tsnav.sim
+    env = gym.make("tsnav/ObjectNav-v0", data="out/world", split="train")
+    envs = gym.make_vec("tsnav/ObjectNav-v0", num_envs=64, data="out/world", split="train")
+
+Without ``data`` / ``scenes`` / ``bank`` the env runs on the analytic toy room of ``tsnav.data.toy``.
+
+| | |
+| --- | --- |
+| Action space | ``Discrete(6)``: 0 MoveAhead, 1 RotateLeft, 2 RotateRight, 3 LookDown, 4 LookUp, 5 Done |
+| Observation | ``Dict``: ``rgb`` ``(H, W, 3)`` uint8 from ``images.hdf5`` (zeros when absent); ``depth`` ``(H, W)`` float32 metres from ``depth.hdf5`` (zeros when absent); ``target`` ``Discrete(22)`` category id; ``detections`` ``(22, 6)`` float32 per-class rows (score, label, x0, y0, x1, y1) from the detector stage (zeros when absent) |
+| Reward | a :class:`~tsnav.sim.batch.RewardFn`; default :class:`~tsnav.sim.batch.SparseReward` (-0.01 per step, +5 on success) |
+| Start | a random training episode (scene, a reachable target present in it, a level start state that is not a success state), or ``reset(options={"episode": (scene_name, target_name, start_key)})`` |
+| Termination | the agent outputs Done (success when the target is in view within the success distance) |
+| Truncation | ``max_steps`` actions without Done (paper: 100 at test time; the lineage trains with 30) |
+
+``info`` carries ``state`` (global id), ``scene``, ``collided``, ``success``, ``steps``, ``path_length`` and
+the reward terms. The vector env auto-resets in the same step (``AutoresetMode.SAME_STEP``): the returned
+observation of a finished sub-env is its next episode's first one, and ``info["final_obs"]`` /
+``info["final_info"]`` hold the last ones, as Gymnasium's ``SyncVectorEnv`` does in that mode.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from ..constants import CATEGORY_INDEX, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE, TARGET_CATEGORIES
+from .batch import BatchEnv, RewardFn, SceneBank, SparseReward
+from .episodes import EpisodeConfig, TrainingSampler
+
+ENV_ID = "tsnav/ObjectNav-v0"
+DEFAULT_IMAGE_SIZE = 64
+#: Bounds of the Box spaces (finite, as Gymnasium's checker asks): depth in metres; detection rows hold a
+#: score in [0, 1], a label in [0, 22) and pixel coordinates (-1 for padding).
+MAX_DEPTH = 1000.0
+MAX_PIXEL = 10000.0
+
+
+def _make_bank(bank, scenes, data, split, success_distance) -> SceneBank:
+    if bank is not None:
+        return bank
+    if scenes is not None:
+        return SceneBank(list(scenes), success_distance=success_distance)
+    if data is not None:
+        return SceneBank.from_root(data, split, success_distance=success_distance)
+    from ..data.toy import toy_scene
+
+    return SceneBank([toy_scene()], success_distance=success_distance)
+
+
+class Observations:
+    """Gathers the Dict observation for global state ids: images and depth read per state key from each
+    scene's ``images.hdf5`` / ``depth.hdf5`` (datasets named by state key, the lineage layout), detections
+    from ``bank.detections``. HDF5 files are opened on first use and kept open."""
+
+    def __init__(self, bank: SceneBank, image_size: int | None = None):
+        self.bank = bank
+        self._files: dict[tuple[int, str], Any] = {}
+        self.height = self.width = None
+        for i, s in enumerate(bank.scenes):
+            if s.images_path() is not None:
+                f = self._file(i, "images")
+                first = next(iter(f.keys()), None)
+                if first is not None:
+                    self.height, self.width = f[first].shape[:2]
+                    break
+        if self.height is None:
+            side = image_size or max([s.image_size for s in bank.scenes] + [0]) or DEFAULT_IMAGE_SIZE
+            self.height = self.width = int(side)
+        self.space = spaces.Dict({
+            "rgb": spaces.Box(0, 255, (self.height, self.width, 3), np.uint8),
+            "depth": spaces.Box(0.0, MAX_DEPTH, (self.height, self.width), np.float32),
+            "target": spaces.Discrete(NUM_CATEGORIES),
+            "detections": spaces.Box(-1.0, MAX_PIXEL, (NUM_CATEGORIES, 6), np.float32),
+        })
+
+    def _file(self, scene: int, kind: str):
+        key = (scene, kind)
+        if key not in self._files:
+            s = self.bank.scenes[scene]
+            p = s.images_path() if kind == "images" else s.depth_path()
+            if p is None:
+                self._files[key] = None
+            else:
+                import h5py
+
+                self._files[key] = h5py.File(p, "r")
+        return self._files[key]
+
+    def gather(self, state: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
+        """Batched observation ``{"rgb": (B,H,W,3), "depth": (B,H,W), "target": (B,), "detections": (B,22,6)}``."""
+        state = np.asarray(state, dtype=np.int64)
+        n = len(state)
+        rgb = np.zeros((n, self.height, self.width, 3), dtype=np.uint8)
+        depth = np.zeros((n, self.height, self.width), dtype=np.float32)
+        scene = self.bank.scene_of[state]
+        # Per-key HDF5 reads are inherently one dataset per state; only rows with files are visited.
+        for kind, out in (("images", rgb), ("depth", depth)):
+            for j in range(n):
+                f = self._file(int(scene[j]), kind)
+                if f is not None:
+                    out[j] = f[str(self.bank.keys[state[j]])][()]
+        det = (self.bank.detections[state] if self.bank.detections is not None
+               else np.zeros((n, NUM_CATEGORIES, 6), dtype=np.float32))
+        return {"rgb": rgb, "depth": depth, "target": np.asarray(target, dtype=np.int64),
+                "detections": np.ascontiguousarray(det, dtype=np.float32)}
+
+    def close(self) -> None:
+        for f in self._files.values():
+            if f is not None:
+                f.close()
+        self._files.clear()
+
+
+def _episode_option(bank: SceneBank, ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    try:
+        scene_name, target, start_key = ep
+    except (TypeError, ValueError):
+        raise ValueError("options['episode'] must be (scene_name, target_name, start_key)") from None
+    i = bank.scene_index(scene_name)
+    if target not in CATEGORY_INDEX:
+        raise ValueError(f"unknown target category {target!r}")
+    return np.array([i]), np.array([CATEGORY_INDEX[target]]), np.array([bank.global_state(i, start_key)])
+
+
+class ObjectNavEnv(gym.Env):
+    """One object-navigation episode at a time (see the module docstring for the spaces and dynamics)."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+
+    def __init__(self, data: str | None = None, split: str | None = "train", scenes=None,
+                 bank: SceneBank | None = None, max_steps: int = 100, reward_fn: RewardFn | None = None,
+                 success_distance: float = SUCCESS_DISTANCE, image_size: int | None = None,
+                 episode_config: EpisodeConfig | None = None, render_mode: str | None = None):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.bank = _make_bank(bank, scenes, data, split, success_distance)
+        self.sampler = TrainingSampler(self.bank, episode_config)
+        self.batch = BatchEnv(self.bank, 1, sampler=self.sampler, reward_fn=reward_fn or SparseReward(),
+                              max_steps=max_steps, autoreset=False)
+        self.obs_source = Observations(self.bank, image_size)
+        self.observation_space = self.obs_source.space
+        self.action_space = spaces.Discrete(NUM_ACTIONS)
+        self._last_obs: dict | None = None
+
+    def _obs(self) -> dict[str, Any]:
+        o = self.obs_source.gather(self.batch.state, self.batch.target)
+        obs = {"rgb": o["rgb"][0], "depth": o["depth"][0], "target": int(o["target"][0]),
+               "detections": o["detections"][0]}
+        self._last_obs = obs
+        return obs
+
+    def _info(self) -> dict[str, Any]:
+        s = int(self.batch.state[0])
+        return {"state": s, "scene": self.bank.names[int(self.batch.scene[0])],
+                "target_name": TARGET_CATEGORIES[int(self.batch.target[0])],
+                "optimal_length": int(self.bank.dist[s, int(self.batch.target[0])])}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self.batch.np_random = self.np_random
+        episodes = None
+        if options and "episode" in options:
+            episodes = _episode_option(self.bank, options["episode"])
+        self.batch.reset(episodes=episodes)
+        return self._obs(), self._info()
+
+    def step(self, action):
+        if not self.action_space.contains(action):
+            raise ValueError(f"action must be an int in [0, {NUM_ACTIONS}), got {action!r}")
+        _, reward, term, trunc, info = self.batch.step(np.array([int(action)]))
+        out = {"state": int(info["final_state"][0]), "scene": self.bank.names[int(self.batch.scene[0])],
+               "collided": bool(info["collided"][0]), "success": bool(info["success"][0]),
+               "steps": int(info["steps"][0]), "path_length": int(info["path_length"][0])}
+        out.update({k: float(v[0]) for k, v in info["reward_terms"].items()})
+        return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), out
+
+    def render(self):
+        if self.render_mode == "rgb_array":
+            return None if self._last_obs is None else self._last_obs["rgb"].copy()
+        return None
+
+    def close(self):
+        self.obs_source.close()
+
+
+class ObjectNavVectorEnv(VectorEnv):
+    """``num_envs`` episodes stepped together by one :class:`BatchEnv` (same-step auto-reset)."""
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+
+    def __init__(self, num_envs: int = 1, data: str | None = None, split: str | None = "train", scenes=None,
+                 bank: SceneBank | None = None, max_steps: int = 100, reward_fn: RewardFn | None = None,
+                 success_distance: float = SUCCESS_DISTANCE, image_size: int | None = None,
+                 episode_config: EpisodeConfig | None = None):
+        self.bank = _make_bank(bank, scenes, data, split, success_distance)
+        self.num_envs = int(num_envs)
+        self.sampler = TrainingSampler(self.bank, episode_config)
+        self.batch = BatchEnv(self.bank, self.num_envs, sampler=self.sampler,
+                              reward_fn=reward_fn or SparseReward(), max_steps=max_steps, autoreset=True)
+        self.obs_source = Observations(self.bank, image_size)
+        self.single_observation_space = self.obs_source.space
+        self.single_action_space = spaces.Discrete(NUM_ACTIONS)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if self._np_random is None:
+            self._np_random, self._np_random_seed = gym.utils.seeding.np_random(None)
+        self.batch.np_random = self._np_random
+        self.batch.reset()
+        obs = self.obs_source.gather(self.batch.state, self.batch.target)
+        return obs, {"state": self.batch.state.copy(), "scene": self.batch.scene.copy()}
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        if actions.shape != (self.num_envs,) or not np.issubdtype(actions.dtype, np.integer):
+            raise ValueError(f"actions must be {self.num_envs} ints, got {actions.dtype} {actions.shape}")
+        target = self.batch.target.copy()  # auto-reset replaces the targets of finished rows
+        _, reward, term, trunc, info = self.batch.step(actions)
+        obs = self.obs_source.gather(self.batch.state, self.batch.target)
+        every = np.ones(self.num_envs, dtype=bool)
+        infos: dict[str, Any] = {}
+        for k, v in {"state": self.batch.state.copy(), "scene": self.batch.scene.copy(),
+                     "collided": info["collided"], "success": info["success"], "steps": info["steps"],
+                     "path_length": info["path_length"], **info["reward_terms"]}.items():
+            infos[k], infos[f"_{k}"] = v, every
+        fin = term | trunc
+        if fin.any():
+            # Gymnasium's SAME_STEP convention: final_obs is an object array of single observations,
+            # final_info a dict of arrays with "_key" masks.
+            rows = np.flatnonzero(fin)
+            last = self.obs_source.gather(info["final_state"][rows], target[rows])
+            final_obs = np.full(self.num_envs, None, dtype=object)
+            for k, j in enumerate(rows):
+                final_obs[j] = {"rgb": last["rgb"][k], "depth": last["depth"][k], "target": int(last["target"][k]),
+                                "detections": last["detections"][k]}
+            final_info: dict[str, Any] = {}
+            for k, v in {"state": info["final_state"], "success": info["success"], "steps": info["steps"],
+                         "path_length": info["path_length"]}.items():
+                final_info[k], final_info[f"_{k}"] = np.where(fin, v, 0).astype(v.dtype), fin.copy()
+            infos["final_obs"], infos["_final_obs"] = final_obs, fin.copy()
+            infos["final_info"], infos["_final_info"] = final_info, fin.copy()
+        return obs, reward.astype(np.float64), term, trunc, infos
+
+    def close_extras(self, **kwargs):
+        self.obs_source.close()
