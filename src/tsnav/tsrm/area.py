@@ -19,10 +19,12 @@ Two implementations:
   samples off the floor preset to 1, so the area a step gains is ``popcount(mask & ~coverage)`` summed
   over the stencil, times ``sample_size**2``. A batch of episodes is counted with one gather per profile.
 
-Samples sit at half-sample offsets from agent positions, so no sample lies on a base, and walls on the
-0.125 m lattice (the usual room bounds) fall between samples. The lateral edges at 0, 90, 180 and 270
-degrees pass through rows of samples; they are made half-open (right edge in, left edge out), which
-leaves the stencils of those headings exact (15 and 8.9375 m^2) and the diagonal ones within 1%.
+Samples sit at half-sample offsets from agent positions, so walls on the 0.125 m lattice (the usual room
+bounds) fall between samples. Trapezoid edges that run along rows of samples (the lateral edges of headings
+0/90/180/270 pass through sample centres; the bases of diagonal headings cut diagonal rows at a fixed
+fraction) would bias the area by up to half a sample row per metre of edge; their samples are dithered in
+proportion to the share of their row inside (:func:`stencil_weights`), which removes the bias even where a
+wall clips the opposite edge. Stencils of headings 0/90/180/270 have exactly 15 and 8.9375 m^2.
 """
 
 from __future__ import annotations
@@ -164,12 +166,15 @@ def stencil_reach(config: AreaConfig) -> int:
     return int(np.ceil(far * np.sqrt(2) / config.block_size)) + 1
 
 
-def stencil_samples(rotation: int, horizon: int, config: AreaConfig = AreaConfig()) -> tuple[np.ndarray, np.ndarray]:
-    """Samples inside the trapezoid of an agent at the origin: ``(du, dv)`` int arrays (x, z), in samples.
+def stencil_weights(rotation: int, horizon: int, config: AreaConfig = AreaConfig()):
+    """Fraction of each sample's share of the plane inside the trapezoid of an agent at the origin.
 
-    Sample ``(du, dv)`` sits at ``((du + 1/2) s, (dv + 1/2) s)`` metres from the agent (``s`` the sample
-    size). Point-in-trapezoid in the heading frame: ``near <= fwd < far`` and ``-fwd < lat <= fwd``, the
-    lateral test on exact integers (twice the offset against the integer heading vector).
+    Returns ``(du, dv, weight)`` over the stencil window: sample ``(du, dv)`` sits at
+    ``((du + 1/2) s, (dv + 1/2) s)`` metres from the agent (``s`` the sample size). Samples strictly inside
+    weigh 1. A trapezoid edge that runs along a row of samples gets the fraction of that row's band on the
+    inner side: the lateral edges of headings 0/90/180/270 pass through sample centres (weight 1/2, the
+    test is on exact integers), and the bases of the diagonal headings cut the diagonal rows of samples,
+    spaced ``s / sqrt(2)``, at a fixed fraction.
     """
     near, far = config.bases(horizon)
     s = config.sample_size
@@ -180,10 +185,34 @@ def stencil_samples(rotation: int, horizon: int, config: AreaConfig = AreaConfig
     rad = np.deg2rad(rotation)
     ex, ez = int(round(np.sin(rad))), int(round(np.cos(rad)))
     norm = np.hypot(ex, ez)
-    f2 = px2 * ex + pz2 * ez  # 2 * fwd * norm / s
-    l2 = px2 * ez - pz2 * ex  # 2 * lat * norm / s
-    inside = (f2 >= 2 * near * norm / s - 1e-9) & (f2 < 2 * far * norm / s - 1e-9) & (l2 <= f2) & (-l2 < f2)
-    return du[inside].astype(np.int64), dv[inside].astype(np.int64)
+    f2 = px2 * ex + pz2 * ez  # 2 * fwd * norm / s, exact
+    l2 = px2 * ez - pz2 * ex  # 2 * lat * norm / s, exact
+    lateral = np.where(np.abs(l2) < f2, 1.0, np.where(np.abs(l2) == f2, 0.5, 0.0))
+    fwd = f2 * s / (2 * norm)  # metres
+    half = s / (2 * norm)  # half the spacing of the sample rows across the bases
+    base = np.clip((np.minimum(far, fwd + half) - np.maximum(near, fwd - half)) / (2 * half), 0.0, 1.0)
+    w = lateral * base
+    keep = w > 0
+    return du[keep].astype(np.int64), dv[keep].astype(np.int64), w[keep]
+
+
+#: Dither of the edge samples: ``frac(DITHER[0] * du + DITHER[1] * dv)``. Along a diagonal row of samples it
+#: steps by the golden ratio 0.618..., along an anti-diagonal by 0.382..., so the included share of any run of
+#: partial samples follows their weight closely.
+DITHER = (0.5, 0.5 * (np.sqrt(5.0) - 1.0) - 0.5)
+
+
+def stencil_samples(rotation: int, horizon: int, config: AreaConfig = AreaConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Samples of the trapezoid of an agent at the origin: ``(du, dv)`` int arrays (x, z), in samples.
+
+    Samples of weight 1 (:func:`stencil_weights`) are in; a partial sample of weight ``w`` is in when its
+    dither value (:data:`DITHER`) is below ``w``, so the edges are unbiased in area: a whole trapezoid and
+    a trapezoid clipped by a wall both come out within a few samples of their exact area.
+    """
+    du, dv, w = stencil_weights(rotation, horizon, config)
+    dither = np.mod(DITHER[0] * du + DITHER[1] * dv, 1.0)
+    keep = dither < w
+    return du[keep], dv[keep]
 
 
 def _pack_blocks(inside: np.ndarray) -> np.ndarray:
