@@ -292,7 +292,7 @@ class BatchEnv:
         return self._obs()
 
     def _start_rows(self, mask: np.ndarray, episodes: tuple | None = None) -> None:
-        n = int(mask.sum())
+        n = int(np.count_nonzero(mask))
         if episodes is None:
             if self.sampler is None:
                 raise ValueError("BatchEnv has no episode sampler: pass episodes= to reset()")
@@ -301,21 +301,19 @@ class BatchEnv:
             scene_idx, target, start = (np.asarray(a, dtype=np.int64).reshape(-1) for a in episodes)
             if not len(scene_idx) == len(target) == len(start) == n:
                 raise ValueError(f"episodes must be three arrays of length {n}")
-        scene_idx = np.asarray(scene_idx, dtype=np.int64)
-        target = np.asarray(target, dtype=np.int64)
-        start = np.asarray(start, dtype=np.int64)
-        if n and ((start < 0).any() or (start >= self.bank.num_states).any()
-                  or (self.bank.scene_of[start] != scene_idx).any()):
-            raise ValueError("episode start states must be global state ids of their scenes")
-        if n and ((target < 0).any() or (target >= NUM_CATEGORIES).any()):
-            raise ValueError(f"episode targets must be category ids in [0, {NUM_CATEGORIES})")
-        self.scene[mask] = scene_idx
-        self.target[mask] = target
-        self.state[mask] = start
-        self.start[mask] = start
-        self.steps[mask] = 0
-        self.path_length[mask] = 0
-        self.active[mask] = True
+            if n and ((start < 0).any() or (start >= self.bank.num_states).any()
+                      or (self.bank.scene_of[start] != scene_idx).any()):
+                raise ValueError("episode start states must be global state ids of their scenes")
+            if n and ((target < 0).any() or (target >= NUM_CATEGORIES).any()):
+                raise ValueError(f"episode targets must be category ids in [0, {NUM_CATEGORIES})")
+        rows = np.flatnonzero(mask)
+        self.scene[rows] = scene_idx
+        self.target[rows] = target
+        self.state[rows] = start
+        self.start[rows] = start
+        self.steps[rows] = 0
+        self.path_length[rows] = 0
+        self.active[rows] = True
         if self.reward_fn is not None:
             self.reward_fn.reset(mask.copy(), self.scene.copy(), self.target.copy(), self.state.copy())
 
@@ -330,19 +328,20 @@ class BatchEnv:
         if a.shape != (self.num_envs,):
             raise ValueError(f"actions must have shape ({self.num_envs},), got {a.shape}")
         a = a.astype(np.int64, copy=False)
-        if a.size and (a.min() < 0 or a.max() >= NUM_ACTIONS):
+        if (a.view(np.uint64) >= NUM_ACTIONS).any():  # negative ids wrap to huge unsigned values
             raise ValueError(f"actions must be in [0, {NUM_ACTIONS})")
         active = self.active
         prev = self.state
         moved = self._ns[prev * NUM_ACTIONS + a]
         new = np.where(active, moved, prev)
         is_done = a == DONE
-        collided = active & ~is_done & (moved == prev)
+        moving = active & ~is_done
+        collided = moving & (moved == prev)
         self.steps += active
-        self.path_length += active & ~is_done
+        self.path_length += moving
         terminated = active & is_done
         success = terminated & self._succ[new * NUM_CATEGORIES + self.target]
-        truncated = active & ~terminated & (self.steps >= self.max_steps)
+        truncated = moving & (self.steps >= self.max_steps)
         finished = terminated | truncated
         if self.reward_fn is not None:
             reward, terms = self.reward_fn.step(prev, a, new, collided, finished | ~active, success)

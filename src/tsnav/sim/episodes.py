@@ -109,14 +109,15 @@ class TrainingSampler:
         npairs = np.diff(self.table.scene_ptr)
         self.scenes = np.flatnonzero(npairs > 0)
         self._npairs = npairs
+        self._counts = self.table.counts
 
     def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         t = self.table
         scene = self.scenes[rng.integers(0, len(self.scenes), size=n)]
-        pair = t.scene_ptr[scene] + np.floor(rng.random(n) * self._npairs[scene]).astype(np.int64)
-        cnt = t.counts[pair]
-        start = t.starts[t.ptr[pair] + np.floor(rng.random(n) * cnt).astype(np.int64)]
-        return scene.astype(np.int64), t.pair_target[pair], start
+        u = rng.random((2, n))
+        pair = t.scene_ptr[scene] + (u[0] * self._npairs[scene]).astype(np.int64)
+        start = t.starts[t.ptr[pair] + (u[1] * self._counts[pair]).astype(np.int64)]
+        return scene, t.pair_target[pair], start
 
 
 @dataclass
