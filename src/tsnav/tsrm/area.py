@@ -24,7 +24,7 @@ bounds) fall between samples. Trapezoid edges that run along rows of samples (th
 0/90/180/270 pass through sample centres; the bases of diagonal headings cut diagonal rows at a fixed
 fraction) would bias the area by up to half a sample row per metre of edge; their samples are dithered in
 proportion to the share of their row inside (:func:`stencil_weights`), which removes the bias even where a
-wall clips the opposite edge. Stencils of headings 0/90/180/270 have exactly 15 and 8.9375 m^2.
+wall clips the opposite edge. Every stencil is within 0.03% of 15 or 8.9375 m^2.
 """
 
 from __future__ import annotations
