@@ -176,3 +176,15 @@ def test_bad_input(bank):
         env.reset(episodes=([0, 1], [2, 18], [0, 5]))  # state 5 belongs to scene 0
     with pytest.raises(ValueError, match="confidence"):
         bank.set_confidence(np.zeros((3, 22)))
+
+
+def test_make_env_from_config():
+    from tsnav.sim.batch import SimConfig, make_env
+
+    env = make_env(toy_scenes(), 4, SimConfig(success_distance=1.5, max_steps=30), seed=0)
+    assert env.bank.success_distance == 1.5 and env.max_steps == 30 and env.autoreset
+    obs = env.reset()
+    assert (env.bank.horizon[obs["state"]] == 0).all()
+    # a larger success region: every 1.0 m success state is a 1.5 m one
+    b1 = SceneBank(toy_scenes(), cache=False)
+    assert (env.bank.success >= b1.success).all() and env.bank.success.sum() > b1.success.sum()

@@ -74,6 +74,36 @@ class EpisodeSampler(Protocol):
 
 
 @dataclass
+class SimConfig:
+    """Simulator settings in one place (paper III-A, IV-A); :func:`make_env` builds a bank and env from it."""
+
+    success_distance: float = SUCCESS_DISTANCE
+    """Done succeeds with an instance of the target in view within this many metres (paper: 1.0;
+    lineage: 1.5)."""
+    c_target: float = 0.7
+    """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
+    max_steps: int = 100
+    """Actions per episode before truncation (paper: 100 at test time; the lineage trains with 30)."""
+    autoreset: bool = True
+    """Finished rows immediately start a new episode from the sampler (training); off for evaluation."""
+
+
+def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sampler: EpisodeSampler | None = None,
+             reward_fn: RewardFn | None = None, seed: int | None = None) -> "BatchEnv":
+    """A :class:`BatchEnv` over ``scenes_or_bank`` (a :class:`SceneBank` or a list of scenes) configured by
+    ``config``; ``sampler`` defaults to the training sampler of :mod:`tsnav.sim.episodes`."""
+    config = config or SimConfig()
+    bank = scenes_or_bank if isinstance(scenes_or_bank, SceneBank) else SceneBank(
+        scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target)
+    if sampler is None:
+        from .episodes import TrainingSampler
+
+        sampler = TrainingSampler(bank)
+    return BatchEnv(bank, num_envs, sampler=sampler, reward_fn=reward_fn, max_steps=config.max_steps,
+                    autoreset=config.autoreset, seed=seed)
+
+
+@dataclass
 class SparseReward:
     """The plain reward of the lineage without shaping (paper III-D (iv), (v)): ``slack`` every step,
     plus ``success`` when Done succeeds. Implements :class:`RewardFn`."""
