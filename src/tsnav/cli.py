@@ -67,4 +67,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    # Run through the package module so that exception classes are the ones other modules import.
+    from tsnav.cli import main as _main
+
+    raise SystemExit(_main())

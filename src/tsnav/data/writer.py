@@ -36,7 +36,7 @@ class BuildConfig:
     image_size: int = 64  #: side of the square frames, pixels
     store_images: bool = True  #: write images.hdf5 and depth.hdf5 (needed for pretraining and features)
     depth_dtype: str = "float16"  #: dtype of depth.hdf5 (metres); float16 keeps datasets small
-    compression: str | None = "lzf"  #: HDF5 filter for images (None, "lzf" or "gzip")
+    compression: str | None = None  #: HDF5 filter for images (None or "gzip"; lzf output is not byte-reproducible)
     compact: bool = False  #: small rooms (the `tiny` preset)
     seed: int = 0  #: world seed; the same name and seed give the same scene
     tiles: int = 16  #: views rendered per framebuffer read

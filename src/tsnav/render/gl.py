@@ -154,7 +154,12 @@ class Renderer:
         except ImportError as e:  # pragma: no cover - moderngl is a dependency
             raise RendererUnavailable(f"moderngl is not installed ({e})") from None
         try:
-            self.ctx = moderngl.create_context(standalone=True, backend="egl", libgl="libGL.so.1", libegl="libEGL.so.1")
+            import os
+
+            # TSNAV_EGL_LIBRARY / TSNAV_GL_LIBRARY pick other library files (e.g. a vendor's EGL).
+            self.ctx = moderngl.create_context(standalone=True, backend="egl",
+                                               libgl=os.environ.get("TSNAV_GL_LIBRARY", "libGL.so.1"),
+                                               libegl=os.environ.get("TSNAV_EGL_LIBRARY", "libEGL.so.1"))
         except Exception as e:
             raise RendererUnavailable(
                 f"cannot create a headless OpenGL context via EGL ({str(e).splitlines()[0] if str(e) else type(e).__name__}); "

@@ -13,17 +13,24 @@ from .house import scene_info
 from .presets import PRESETS, preset_scenes
 
 _RENDERER = None
+_INIT_ERROR: Exception | None = None
 
 
 def _init_worker(size: int, tiles: int) -> None:
-    global _RENDERER
+    # An initializer that raises makes multiprocessing respawn workers forever: keep the error for the task.
+    global _RENDERER, _INIT_ERROR
     os.environ.setdefault("LP_NUM_THREADS", "1")
     from ..render.gl import Renderer
 
-    _RENDERER = Renderer(size, tiles)
+    try:
+        _RENDERER = Renderer(size, tiles)
+    except Exception as e:  # noqa: BLE001 - re-raised in _build_one
+        _INIT_ERROR = e
 
 
 def _build_one(args) -> SceneStats:
+    if _INIT_ERROR is not None:
+        raise _INIT_ERROR
     name, out, cfg = args
     return build_scene(name, out, cfg, renderer=_RENDERER)
 
@@ -72,6 +79,9 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
             finally:
                 renderer.release()
         else:
+            from ..render.gl import Renderer
+
+            Renderer(16, 1).release()  # fail fast, in this process, when EGL is missing
             ctx = mp.get_context("spawn")
             with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.image_size, cfg.tiles)) as pool:
                 for r in pool.imap_unordered(_build_one, todo):

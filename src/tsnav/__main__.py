@@ -1,0 +1,3 @@
+from tsnav.cli import main
+
+raise SystemExit(main())

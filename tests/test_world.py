@@ -1,0 +1,241 @@
+"""The embedded world: generator, renderer, dataset files and reader (issue: embedded world)."""
+
+from __future__ import annotations
+
+import filecmp
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import networkx as nx
+import numpy as np
+import pytest
+import shapely
+from shapely.geometry import Polygon
+from shapely.ops import unary_union
+
+from tsnav.constants import (ACTIONS, CAMERA_HEIGHT, GRID_SIZE, MOVE_AHEAD, parse_state_key, parse_state_keys,
+                             state_key)
+from tsnav.data.reader import SceneFormatError, edge_actions, load_scene
+from tsnav.data.writer import box_distance, object_stats, object_stats_reference
+from tsnav.world.house import generate, ithor_scenes, robothor_scenes, scene_info
+from tsnav.world.navgrid import AGENT_RADIUS
+
+
+def test_state_key_format():
+    assert state_key(0.5, 3.5, 315, 30) == "0.50|3.50|315|30"
+    assert state_key(-1.25, 0, -45, 0) == "-1.25|0.00|315|0"
+    assert parse_state_key("0.50|3.50|315|30") == (0.5, 3.5, 315, 30)
+    x, z, r, h = parse_state_keys(["0.50|3.50|315|30", "-1.00|2.25|0|0"])
+    assert x.tolist() == [0.5, -1.0] and z.tolist() == [3.5, 2.25] and r.tolist() == [315, 0] and h.tolist() == [30, 0]
+    with pytest.raises(ValueError, match="malformed"):
+        parse_state_key("0.5|3.5|90")
+
+
+def test_scene_names_and_splits():
+    assert len(ithor_scenes()) == 120 and len(robothor_scenes()) == 75
+    assert scene_info("FloorPlan20") == ("kitchen", "train")
+    assert scene_info("FloorPlan221") == ("living_room", "val")
+    assert scene_info("FloorPlan330") == ("bedroom", "test")
+    assert scene_info("FloorPlan_Val3_5") == ("apartment", "val")
+    assert len(ithor_scenes(split="val")) == 20 and len(ithor_scenes(split="test")) == 20
+    with pytest.raises(ValueError, match="unknown scene"):
+        scene_info("FloorPlan31")
+
+
+def test_generator_deterministic_and_varied():
+    a, b = generate("FloorPlan7").to_json(), generate("FloorPlan7").to_json()
+    assert json.dumps(a) == json.dumps(b)
+    c = generate("FloorPlan8").to_json()
+    assert a["parts"] != c["parts"]
+    apt = generate("FloorPlan_Train3_2")
+    assert len(apt.rooms) >= 3 and len(apt.doors) >= len(apt.rooms) - 1
+
+
+def test_graph_json_loads_with_networkx(tiny_world):
+    for scene in sorted(p for p in tiny_world.iterdir() if p.is_dir()):
+        data = json.loads((scene / "graph.json").read_text())
+        g = nx.node_link_graph(data, edges="links")
+        assert g.is_directed() and g.number_of_nodes() > 100
+        assert nx.is_strongly_connected(g), scene.name
+        for k in list(g.nodes)[:50]:
+            assert state_key(*parse_state_key(k)) == k
+
+
+def test_moves_never_cross_walls_or_furniture(tiny_scenes):
+    for s in tiny_scenes:
+        spec_obstacles = [Polygon(f["footprint"]) for f in s.meta["furniture"]]
+        spec_obstacles += [Polygon(_fp(o)) for o in s.meta["objects"] if o["support"] == "floor"]
+        blocked = unary_union(spec_obstacles).buffer(AGENT_RADIUS - 1e-3)
+        floor = unary_union([Polygon(p) for p in s.floor]).buffer(-(AGENT_RADIUS - 1e-3))
+        i = np.flatnonzero(s.next_state[:, MOVE_AHEAD] != np.arange(s.num_states))
+        j = s.next_state[i, MOVE_AHEAD]
+        for t in np.linspace(0, 1, 9):
+            px = s.x[i] + t * (s.x[j] - s.x[i])
+            pz = s.z[i] + t * (s.z[j] - s.z[i])
+            assert not shapely.intersects_xy(blocked, px, pz).any(), s.name
+            assert shapely.contains_xy(floor, px, pz).all(), s.name
+        # a move is one grid step along the heading
+        step = np.hypot(s.x[j] - s.x[i], s.z[j] - s.z[i])
+        assert np.allclose(step[s.rotation[i] % 90 == 0], GRID_SIZE)
+        assert np.allclose(step[s.rotation[i] % 90 == 45], GRID_SIZE * np.sqrt(2))
+
+
+def _fp(o):
+    from tsnav.world.spec import box_footprint
+
+    b = o["bbox"]
+    return box_footprint(b["center"], b["size"], b["yaw"])
+
+
+def test_visibility_map_matches_renders(tiny_world, tiny_scenes):
+    """Every state listed for an object really shows that object's id and is within range."""
+    from tsnav.world.show import render_views
+
+    rng = np.random.default_rng(0)
+    s = tiny_scenes[0]
+    vis = json.loads((s.path / "visible_object_map_1.5.json").read_text())
+    inst = {o["objectId"]: o["inst"] for o in s.meta["objects"]}
+    checked = 0
+    for oid, keys in vis.items():
+        if not keys:
+            continue
+        for k in rng.choice(keys, size=min(3, len(keys)), replace=False):
+            x, z, r, h = parse_state_key(str(k))
+            _, _, ids = render_views(s, np.array([[x, z, r, h]]), size=s.image_size)
+            assert (ids[0] == inst[oid]).sum() >= s.meta["visibility"]["min_pixels"]
+            o = next(o for o in s.meta["objects"] if o["objectId"] == oid)
+            d = box_distance(np.array([[x, CAMERA_HEIGHT, z]]), np.array([o["bbox"]["center"]]),
+                             np.array([o["bbox"]["size"]]), np.array([o["bbox"]["yaw"]]))[0, 0]
+            assert d <= 1.5 + 1e-6
+            checked += 1
+    assert checked >= 5
+
+
+def test_object_stats_fast_equals_reference():
+    rng = np.random.default_rng(1)
+    ids = rng.integers(0, 9, size=(5, 16, 16)).astype(np.int32)
+    lut = np.array([-1, -1, 0, 1, -1, 2, 3, 3, -1])
+    a = object_stats(ids, lut, 4)
+    b = object_stats_reference(ids, lut, 4)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+def test_render_depth_and_orientation(tiny_scenes):
+    """Depth is the distance along the view axis; rotation 90 looks along +x (AI2-THOR convention)."""
+    from tsnav.world.show import render_views
+
+    s = tiny_scenes[0]
+    x0, z0, x1, z1 = s.meta["rooms"][0]["rect"]
+    i = int(np.argmin(np.abs(s.x - (x0 + x1) / 2) + np.abs(s.z - (z0 + z1) / 2)))
+    x, z = float(s.x[i]), float(s.z[i])
+    rgb, depth, ids = render_views(s, np.array([[x, z, 90, 0], [x, z, 0, 0]]), size=64)
+    wall = s.meta["instances"].index("Wall")
+    # the centre pixel at horizon 0 looks straight ahead at camera height: the first thing hit on the ray.
+    for v, expect_far in ((0, x1 - 0.05 - x), (1, z1 - 0.05 - z)):
+        c = depth[v, 31:33, 31:33].mean()
+        assert c <= expect_far + 0.05
+        if ids[v, 32, 32] == wall:
+            assert abs(c - expect_far) < 0.05
+    assert rgb.dtype == np.uint8 and rgb.shape == (2, 64, 64, 3)
+
+
+def test_reader_arrays_agree_with_json(tiny_scenes):
+    for s in tiny_scenes:
+        graph = json.loads((s.path / "graph.json").read_text())
+        assert sorted(n["id"] for n in graph["nodes"]) == s.keys.tolist()
+        edges = {(e["source"], e["target"]) for e in graph["links"]}
+        a, b = np.nonzero(s.next_state != np.arange(s.num_states)[:, None])
+        from_arrays = {(s.keys[i], s.keys[s.next_state[i, k]]) for i, k in zip(a, b)}
+        assert from_arrays == edges
+        vis = json.loads((s.path / "visible_object_map_1.5.json").read_text())
+        for j, oid in enumerate(s.object_ids):
+            assert set(s.keys[s.visible[:, j]].tolist()) == set(vis.get(str(oid), []))
+        grid = json.loads((s.path / "grid.json").read_text())
+        assert {(round(p["x"], 2), round(p["z"], 2)) for p in grid} == set(zip(np.round(s.x, 2).tolist(), np.round(s.z, 2).tolist()))
+        with h5py.File(s.path / "images.hdf5", "r") as f:
+            k = s.keys[len(s.keys) // 2]
+            assert f[k].shape == (64, 64, 3) and f[k].dtype == np.uint8
+        # rotation edges are labelled correctly by geometry
+        acts = edge_actions(s.x, s.z, s.rotation, s.horizon, s.x, s.z, (s.rotation + 45) % 360, s.horizon)
+        assert (acts == ACTIONS.index("RotateRight")).all()
+
+
+def test_determinism_two_builds_identical(tmp_path):
+    from tsnav.data.writer import BuildConfig
+    from tsnav.world.build import build_dataset
+
+    cfg = BuildConfig(image_size=32, compact=True)
+    for d in ("a", "b"):
+        build_dataset(tmp_path / d, scenes=["FloorPlan401"], cfg=cfg, progress=False)
+    cmp = filecmp.dircmp(tmp_path / "a" / "FloorPlan401", tmp_path / "b" / "FloorPlan401")
+    assert cmp.left_only == [] and cmp.right_only == []
+    for f in cmp.common_files:
+        assert filecmp.cmp(tmp_path / "a" / "FloorPlan401" / f, tmp_path / "b" / "FloorPlan401" / f, shallow=False), f
+
+
+def test_interrupted_build_resumes(tmp_path):
+    """A build killed mid-way leaves no complete-looking partial scene; rerunning finishes the rest."""
+    out = tmp_path / "w"
+    code = ("import os, tsnav.data.writer as w\n"
+            "orig = w.build_scene\n"
+            "def boom(name, *a, **k):\n"
+            "    if name == 'FloorPlan402':\n"
+            "        (lambda: os._exit(3))()\n"
+            "    return orig(name, *a, **k)\n"
+            "import tsnav.world.build as b; b.build_scene = boom\n"
+            "from tsnav.data.writer import BuildConfig\n"
+            f"b.build_dataset({str(out)!r}, scenes=['FloorPlan401', 'FloorPlan402'], cfg=BuildConfig(image_size=32, compact=True), progress=False)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True)
+    assert r.returncode == 3
+    assert (out / "FloorPlan401" / "COMPLETE").exists() and not (out / "FloorPlan402").exists()
+    # a half-written temporary folder from a kill inside the writer is never taken for a scene
+    (out / ".FloorPlan402.partial-99").mkdir()
+    from tsnav.data.reader import list_scenes
+    from tsnav.data.writer import BuildConfig
+    from tsnav.world.build import build_dataset
+
+    assert [p.name for p in list_scenes(out)] == ["FloorPlan401"]
+    stats = build_dataset(out, scenes=["FloorPlan401", "FloorPlan402"], cfg=BuildConfig(image_size=32, compact=True), progress=False)
+    assert [s.skipped for s in stats] == [True, False]
+    assert [p.name for p in list_scenes(out)] == ["FloorPlan401", "FloorPlan402"]
+    assert not list(out.glob(".*partial*"))
+
+
+def test_cli_errors_are_one_line(tmp_path):
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "tsnav.cli", *args], capture_output=True, text=True)
+
+    r = run("world", "--preset", "nope", "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and "unknown preset 'nope'" in r.stderr and "Traceback" not in r.stderr
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    r = run("world", "--preset", "tiny", "--out", str(ro / "sub"))
+    ro.chmod(0o700)
+    import os
+
+    if os.geteuid() != 0:  # root can write anywhere
+        assert r.returncode == 2 and "cannot write" in r.stderr
+    r = run("world", "--preset", "tiny", "--out", "/proc/nonexistent/x")
+    assert r.returncode == 2 and "cannot write" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "tsnav.cli", "world", "--preset", "tiny", "--out", str(tmp_path / "y")],
+                       capture_output=True, text=True, env={"PATH": "/usr/bin:/bin", "LD_LIBRARY_PATH": str(tmp_path),
+                                                            "PYTHONPATH": str(Path(__file__).parents[1] / "src"),
+                                                            "TSNAV_EGL_LIBRARY": "libEGL_missing.so.1"})
+    assert r.returncode == 2 and "EGL" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_reader_malformed_input(tmp_path):
+    with pytest.raises(SceneFormatError, match="not a scene folder"):
+        load_scene(tmp_path / "missing")
+    d = tmp_path / "bad"
+    d.mkdir()
+    (d / "graph.json").write_text("{not json")
+    with pytest.raises(SceneFormatError, match="not valid JSON"):
+        load_scene(d)
+    (d / "graph.json").write_text(json.dumps({"nodes": [{"id": "0.00|0.00|0|0"}], "links": [{"source": "0.00|0.00|0|0", "target": "9.00|0.00|0|0"}]}))
+    with pytest.raises(SceneFormatError, match="is not a node"):
+        load_scene(d)
