@@ -97,8 +97,10 @@ class MAEConfig:
 
 
 #: Encoder sizes (width, depth, heads) and the smaller decoders used with them. ViT-Base and its decoder
-#: are the paper's / MAE's; tiny and small decoders are scaled down for CPU (this project's choice).
+#: are the paper's / MAE's; tiny and small decoders are scaled down for CPU (this project's choice);
+#: ``vit_micro`` exists for tests and smoke runs only.
 SIZES = {
+    "vit_micro": dict(embed_dim=64, depth=2, num_heads=2, decoder_embed_dim=32, decoder_depth=1, decoder_num_heads=2),
     "vit_tiny": dict(embed_dim=192, depth=12, num_heads=3, decoder_embed_dim=128, decoder_depth=2, decoder_num_heads=4),
     "vit_small": dict(embed_dim=384, depth=12, num_heads=6, decoder_embed_dim=256, decoder_depth=4, decoder_num_heads=8),
     "vit_base": dict(embed_dim=768, depth=12, num_heads=12, decoder_embed_dim=512, decoder_depth=8, decoder_num_heads=16),

@@ -1,0 +1,494 @@
+"""Pretraining loop for DE-MAE, standard MAE, DE-MAE w/ crop and the supervised ResNet18 baseline.
+
+Paper §III-C / Table III; recipe of MAE (He et al. 2022): AdamW (betas 0.9, 0.95; weight decay 0.05, none
+on biases, norms and tokens), ``lr = base_lr * effective_batch / 256``, linear warm-up then half-cosine
+decay per optimiser step, gradient accumulation, bf16 autocast on CUDA only.
+
+Distributed: launched under ``torchrun`` (``WORLD_SIZE > 1``) the loop joins a process group (gloo on CPU,
+nccl on GPU) and wraps the model in DDP. Every optimiser step consumes one *global* batch of
+``batch_size * world_size * accum_iter`` images taken from a per-epoch permutation seeded by ``(seed,
+epoch)``; process ``r`` takes every ``world_size``-th image of each micro-batch, and all randomness (flips,
+crops, masking noise) is drawn for the global batch from a generator seeded by ``(seed, step)`` and then
+sliced. Hence the result does not depend on how the work is split, and a resumed run continues exactly
+where the interrupted one stopped.
+
+Run folder::
+
+    config.json                       resolved PretrainConfig and model config
+    progress.json                     step, epoch, finished, checkpoint file names, RNG states
+    ckpt-<step>-model.safetensors     full model (latest checkpoint only)
+    ckpt-<step>-optim.safetensors     optimiser state (flattened; groups in progress.json)
+    model.safetensors                 final full model          (finished runs)
+    encoder.safetensors               final encoder weights, architecture in its metadata
+    recon.png                         reconstructions of a few val images (MAE methods)
+    tb/                               TensorBoard scalars
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn as nn
+import torch.nn.functional as F
+
+from ..constants import NUM_CATEGORIES
+from .checkpoint import (
+    atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors, save_tensors,
+)
+from .data import AugmentConfig, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
+from .model import SIZES, MaskedAutoencoderViT, make_config
+from .resnet import ResNet18
+
+METHODS = ("demae", "mae", "demae-crop", "resnet18-sup")
+#: Config fields that may change between an interrupted run and its resumption.
+RESUMABLE_FIELDS = {"checkpoint_every", "log_every", "num_workers", "preload", "device", "viz_images"}
+
+
+@dataclass
+class PretrainConfig:
+    """Everything that defines a pretraining run. Defaults: the paper's ViT-Base DE-MAE with MAE's recipe."""
+
+    method: str = "demae"
+    """``demae`` (RGB + depth heads, flip only), ``mae`` (no depth head), ``demae-crop`` (DE-MAE with
+    random resized crop, Table III's "w/ crop"), ``resnet18-sup`` (supervised ResNet18 baseline)."""
+    model: str = "vit_base"
+    """Encoder size: ``vit_tiny`` / ``vit_small`` / ``vit_base`` (ignored by ``resnet18-sup``)."""
+    patch_size: int = 16
+    """ViT patch side, pixels (8 or 16)."""
+    img_size: int = 224
+    """Square input side, pixels; frames are resized to it."""
+    mask_ratio: float = 0.75
+    """Share of masked patches (MAE)."""
+    norm_pix_loss: bool = False
+    """Per-patch normalised RGB targets (off: the paper's loss is plain pixel MSE)."""
+    depth_weight: float = 1.0
+    """Weight of the depth MSE ("identical weights", §III-C)."""
+    batch_size: int = 64
+    """Images per process per micro-step."""
+    accum_iter: int = 1
+    """Micro-steps accumulated per optimiser step."""
+    base_lr: float | None = None
+    """Learning rate per 256 images; None: 1.5e-4 (MAE) for MAE methods, 1e-3 for ``resnet18-sup``."""
+    min_lr: float = 0.0
+    """Floor of the cosine schedule."""
+    weight_decay: float = 0.05
+    """AdamW weight decay (MAE: 0.05)."""
+    betas: tuple[float, float] = (0.9, 0.95)
+    """AdamW betas (MAE: 0.9, 0.95)."""
+    epochs: int = 100
+    """Passes over the train images (used when ``steps`` is None)."""
+    steps: int | None = None
+    """Total optimiser steps; overrides ``epochs``."""
+    warmup_fraction: float = 0.05
+    """Share of the steps spent in linear warm-up (MAE: 40 of 800 epochs)."""
+    seed: int = 0
+    """Seed of the initial weights, the epoch permutations and all augmentation / masking noise."""
+    flip_prob: float = 0.5
+    """Horizontal-flip probability (the only augmentation of DE-MAE, §III-C)."""
+    crop_scale: tuple[float, float] = (0.2, 1.0)
+    """Area range of the random resized crop (``demae-crop`` only)."""
+    max_scenes: int | None = None
+    """Use only the first N train scenes (None: all)."""
+    preload: bool = True
+    """Read all frames into memory (uint8 / float16) instead of streaming them from HDF5."""
+    num_workers: int = 0
+    """DataLoader worker processes reading batches (0: read in the training process)."""
+    checkpoint_every: int = 500
+    """Optimiser steps between checkpoints (also written at the end and on Ctrl-C)."""
+    log_every: int = 10
+    """Optimiser steps between TensorBoard / progress-bar updates."""
+    viz_images: int = 6
+    """Val images in the final reconstruction picture (0: none)."""
+    device: str = "auto"
+    """``auto`` (CUDA when present), ``cpu`` or ``cuda``."""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r} (choose from {', '.join(METHODS)})")
+        if self.method != "resnet18-sup" and self.model not in SIZES:
+            raise ValueError(f"unknown model {self.model!r} (choose from {', '.join(SIZES)})")
+        if self.batch_size < 1 or self.accum_iter < 1:
+            raise ValueError("batch_size and accum_iter must be >= 1")
+        if self.steps is not None and self.steps < 1:
+            raise ValueError("steps must be >= 1")
+        if self.img_size % (32 if self.method == "resnet18-sup" else self.patch_size):
+            if self.method != "resnet18-sup":
+                raise ValueError(f"img_size {self.img_size} must be a multiple of patch {self.patch_size}")
+        self.betas = tuple(self.betas)
+        self.crop_scale = tuple(self.crop_scale)
+
+    @property
+    def resolved_base_lr(self) -> float:
+        if self.base_lr is not None:
+            return self.base_lr
+        return 1e-3 if self.method == "resnet18-sup" else 1.5e-4
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["betas"], d["crop_scale"] = list(self.betas), list(self.crop_scale)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PretrainConfig":
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Model construction and saved encoders
+# ---------------------------------------------------------------------------------------------------------
+
+
+def model_config(cfg: PretrainConfig):
+    """The :class:`MAEConfig` of a ViT method (None for ``resnet18-sup``)."""
+    if cfg.method == "resnet18-sup":
+        return None
+    return make_config(cfg.model, cfg.patch_size, cfg.img_size, mask_ratio=cfg.mask_ratio,
+                       norm_pix_loss=cfg.norm_pix_loss, use_depth=cfg.method in ("demae", "demae-crop"),
+                       depth_weight=cfg.depth_weight)
+
+
+def build_model(cfg: PretrainConfig) -> nn.Module:
+    """The network a method trains, initialised from ``torch.manual_seed(cfg.seed)``."""
+    torch.manual_seed(cfg.seed)
+    if cfg.method == "resnet18-sup":
+        return ResNet18(num_classes=NUM_CATEGORIES)
+    return MaskedAutoencoderViT(model_config(cfg))
+
+
+def encoder_metadata(model: nn.Module, method: str) -> dict[str, str]:
+    """safetensors metadata that lets :func:`tsnav.pretrain.features.load_encoder` rebuild the encoder."""
+    if isinstance(model, ResNet18):
+        return {"format": "tsnav-encoder", "arch": "resnet18", "method": method, "config": "{}"}
+    return {"format": "tsnav-encoder", "arch": "vit", "method": method,
+            "config": json.dumps(model.config.to_dict(), sort_keys=True)}
+
+
+def save_encoder(model: nn.Module, path: str | Path, method: str) -> None:
+    """Write the encoder's weights (no decoder / head) with its architecture in the metadata."""
+    save_tensors(path, model.encoder_state_dict(), encoder_metadata(model, method))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Schedule, sharding, distributed set-up
+# ---------------------------------------------------------------------------------------------------------
+
+
+def lr_at(step: int, total: int, peak: float, warmup: int, min_lr: float = 0.0) -> float:
+    """Learning rate of optimiser step ``step`` (0-based): linear warm-up to ``peak`` over ``warmup`` steps,
+    then half-cosine from ``peak`` to ``min_lr`` at step ``total``."""
+    if step < warmup:
+        return peak * (step + 1) / warmup
+    t = (step - warmup) / max(1, total - warmup)
+    return min_lr + (peak - min_lr) * 0.5 * (1.0 + math.cos(math.pi * t))
+
+
+def step_seed(seed: int, step: int) -> int:
+    return int(np.random.SeedSequence([seed, step, 17]).generate_state(1)[0])
+
+
+def epoch_permutation(n: int, seed: int, epoch: int) -> np.ndarray:
+    g = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, epoch, 29]).generate_state(1)[0]))
+    return torch.randperm(n, generator=g).numpy()
+
+
+@dataclass
+class DistInfo:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    owns_group: bool = False
+
+
+def setup_distributed(device: torch.device) -> DistInfo:
+    """Join the process group when launched by torchrun (``WORLD_SIZE > 1``) or when one exists already."""
+    if dist.is_available() and dist.is_initialized():
+        return DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), False)
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return DistInfo()
+    dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    return DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), True)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError("device 'cuda' requested but CUDA is not available")
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+    if name != "cpu":
+        raise ValueError(f"unknown device {name!r} (auto, cpu, cuda)")
+    return torch.device("cpu")
+
+
+def param_groups(model: nn.Module, weight_decay: float) -> tuple[list[dict], list[str]]:
+    """AdamW groups: decay on weights of rank >= 2, none on biases, norms and tokens. Also the names."""
+    decay, no_decay, dn, nn_ = [], [], [], []
+    for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue
+        if p.ndim <= 1 or name.endswith(("cls_token", "mask_token", "pos_embed")):
+            no_decay.append(p)
+            nn_.append(name)
+        else:
+            decay.append(p)
+            dn.append(name)
+    return ([{"params": no_decay, "weight_decay": 0.0}, {"params": decay, "weight_decay": weight_decay}],
+            nn_ + dn)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The loop
+# ---------------------------------------------------------------------------------------------------------
+
+
+def compute_loss(model: nn.Module, method: str, rgb: torch.Tensor, depth: torch.Tensor,
+                 labels: torch.Tensor | None, noise: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
+    """Loss of one micro-batch and its parts for logging."""
+    if method == "resnet18-sup":
+        logits = model(rgb)
+        loss = F.binary_cross_entropy_with_logits(logits.float(), labels)
+        return loss, {"bce": loss.detach()}
+    out = model(rgb, depth if method != "mae" else None, noise=noise)
+    parts = {"rgb": out.loss_rgb.detach()}
+    if method != "mae":
+        parts["depth"] = out.loss_depth.detach()
+    return out.loss, parts
+
+
+def _progress_path(out: Path) -> Path:
+    return out / "progress.json"
+
+
+def read_progress(out: str | Path) -> dict | None:
+    p = _progress_path(Path(out))
+    return json.loads(p.read_text()) if p.exists() else None
+
+
+def _check_config(out: Path, cfg: PretrainConfig, model_cfg: dict, write: bool) -> None:
+    p = out / "config.json"
+    new = {"pretrain": cfg.to_dict(), "model": model_cfg}
+    if p.exists():
+        old = json.loads(p.read_text())
+        diffs = [k for k in set(old.get("pretrain", {})) | set(new["pretrain"])
+                 if k not in RESUMABLE_FIELDS and old.get("pretrain", {}).get(k) != new["pretrain"].get(k)]
+        if diffs:
+            k = sorted(diffs)[0]
+            raise ValueError(f"{out} holds a run with another config ({k}: {old['pretrain'].get(k)!r} there, "
+                             f"{new['pretrain'].get(k)!r} now); use a new --out folder")
+    if write:
+        atomic_write_json(p, new)
+
+
+def train(cfg: PretrainConfig, data: str | Path | RGBDImages, out: str | Path, *, stop_at: int | None = None,
+          progress: bool = True) -> dict:
+    """Pretrain and return the summary only; see :func:`train_model`."""
+    return train_model(cfg, data, out, stop_at=stop_at, progress=progress)[0]
+
+
+def train_model(cfg: PretrainConfig, data: str | Path | RGBDImages, out: str | Path, *,
+                stop_at: int | None = None, progress: bool = True) -> tuple[dict, nn.Module | None]:
+    """Pretrain per ``cfg`` on the train images of ``data`` into the run folder ``out``; resume if present.
+
+    ``stop_at`` ends the call after that many optimiser steps (a simulated interruption; the checkpoint is
+    written). Returns a summary ``{"step", "total_steps", "finished", "loss"}`` and this process's replica of
+    the trained model (None when the run had already finished: a finished run is not retrained).
+    """
+    out = Path(out)
+    device = resolve_device(cfg.device)
+    di = setup_distributed(device)
+    try:
+        return _train(cfg, data, out, device, di, stop_at, progress)
+    finally:
+        if di.owns_group:
+            dist.destroy_process_group()
+
+
+def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
+    mc = model_config(cfg)
+    model_cfg = {} if mc is None else mc.to_dict()
+    _check_config(out, cfg, model_cfg, write=False)
+    prog = read_progress(out)
+    if prog and prog.get("finished"):
+        if di.rank == 0 and progress:
+            print(f"{out}: pretraining already finished ({prog['step']} steps); nothing to do")
+        return {"step": prog["step"], "total_steps": prog["total_steps"], "finished": True,
+                "loss": prog.get("loss")}, None
+    sup = cfg.method == "resnet18-sup"
+    images = data if isinstance(data, RGBDImages) else RGBDImages(
+        data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
+    if images.img_size != cfg.img_size or (sup and not images.with_labels):
+        raise ValueError("the given RGBDImages do not match the config (img_size / labels)")
+    model = build_model(cfg).to(device)
+    if di.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        _check_config(out, cfg, model_cfg, write=True)
+
+    B, W, A = cfg.batch_size, di.world, cfg.accum_iter
+    G = B * W * A  # images per optimiser step
+    n = len(images)
+    steps_per_epoch = n // G
+    if steps_per_epoch < 1:
+        raise ValueError(f"{n} train images are fewer than one global batch of {G} "
+                         f"(batch {B} x {W} processes x {A} accumulation)")
+    total = cfg.steps if cfg.steps is not None else cfg.epochs * steps_per_epoch
+    warmup = max(1, int(round(cfg.warmup_fraction * total)))
+    peak = cfg.resolved_base_lr * G / 256
+    groups, names = param_groups(model, cfg.weight_decay)
+    opt = torch.optim.AdamW(groups, lr=peak, betas=cfg.betas)
+    start = 0
+    if prog is not None:  # resume
+        sd, _ = load_tensors(out / prog["model_file"])
+        model.load_state_dict(sd)
+        ot, _ = load_tensors(out / prog["optim_file"])
+        optimizer_from_tensors(opt, names, {k: v.to(device) for k, v in ot.items()}, prog["optimizer"])
+        start = int(prog["step"])
+        torch.set_rng_state(torch.tensor(prog["rng"]["torch"], dtype=torch.uint8))
+    ddp = model
+    if W > 1:
+        ddp = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    aug_cfg = AugmentConfig(flip_prob=cfg.flip_prob, crop=cfg.method == "demae-crop", crop_scale=cfg.crop_scale)
+    L = 0 if sup else model.config.num_patches
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
+                else contextlib.nullcontext())
+
+    def micro_batches(first: int):
+        """Index arrays of this process, one per micro-step, from optimiser step ``first`` on."""
+        perm, perm_epoch = None, -1
+        for s in range(first, total):
+            epoch, k = divmod(s, steps_per_epoch)
+            if epoch != perm_epoch:
+                perm, perm_epoch = epoch_permutation(n, cfg.seed, epoch), epoch
+            block = perm[k * G:(k + 1) * G]
+            for m in range(A):
+                yield block[m * B * W:(m + 1) * B * W][di.rank::W]
+
+    if cfg.num_workers > 0:
+        from .data import BatchView
+
+        loader = iter(torch.utils.data.DataLoader(BatchView(images), sampler=micro_batches(start), batch_size=None,
+                                                  num_workers=cfg.num_workers, persistent_workers=False))
+    else:
+        loader = (images.get(idx) for idx in micro_batches(start))
+
+    writer = bar = None
+    if di.rank == 0:
+        from torch.utils.tensorboard import SummaryWriter
+        from tqdm import tqdm
+
+        writer = SummaryWriter(log_dir=str(out / "tb"), purge_step=start)
+        bar = tqdm(total=total, initial=start, desc=f"pretrain {cfg.method}", unit="step", disable=not progress,
+                   dynamic_ncols=True)
+
+    def save_checkpoint(step: int, finished: bool, loss_value: float | None) -> None:
+        if di.rank != 0:
+            return
+        tag = f"ckpt-{step:08d}"
+        save_tensors(out / f"{tag}-model.safetensors", model.state_dict(),
+                     {"config": json.dumps(model_cfg), "method": cfg.method, "step": str(step)})
+        ot, ometa = optimizer_to_tensors(opt, names)
+        save_tensors(out / f"{tag}-optim.safetensors", ot)
+        atomic_write_json(_progress_path(out), {
+            "step": step, "epoch": step // steps_per_epoch, "total_steps": total, "finished": finished,
+            "model_file": f"{tag}-model.safetensors", "optim_file": f"{tag}-optim.safetensors",
+            "optimizer": ometa, "loss": loss_value, "world_size": W, "global_batch": G,
+            "rng": {"torch": torch.get_rng_state().tolist()}})
+        for p in out.glob("ckpt-*.safetensors"):
+            if not p.name.startswith(tag):
+                p.unlink()
+
+    step, last_loss, t0, seen = start, None, time.perf_counter(), 0
+    end = total if stop_at is None else min(total, stop_at)
+    model.train()
+    try:
+        while step < end:
+            gen = torch.Generator().manual_seed(step_seed(cfg.seed, step))
+            aug = draw_augment(gen, G, aug_cfg)
+            noise = torch.rand(G, L, generator=gen) if L else None
+            for g in opt.param_groups:
+                g["lr"] = lr_at(step, total, peak, warmup, cfg.min_lr)
+            sums: dict[str, torch.Tensor] = {}
+            for m in range(A):
+                batch = next(loader)
+                pos = np.arange(m * B * W, (m + 1) * B * W)[di.rank::W]  # positions in the global batch
+                rgb, depth = prepare_batch(batch, slice_augment(aug, torch.from_numpy(pos)), device)
+                labels = batch["labels"].to(device) if sup else None
+                nz = noise[torch.from_numpy(pos)].to(device) if noise is not None else None
+                sync = contextlib.nullcontext() if (W == 1 or m == A - 1) else ddp.no_sync()
+                with sync:
+                    with autocast:
+                        loss, parts = compute_loss(ddp, cfg.method, rgb, depth, labels, nz)
+                    (loss / A).backward()
+                for k, v in {"total": loss.detach(), **parts}.items():
+                    sums[k] = sums.get(k, 0) + v.float() / A
+            if not all(torch.isfinite(v).all() for v in sums.values()):
+                raise FloatingPointError(f"non-finite loss at step {step}; lower --base-lr")
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+            step += 1
+            seen += G
+            if step % cfg.log_every == 0 or step == end:
+                vals = torch.stack([sums[k] for k in sorted(sums)]).to(device)
+                if W > 1:
+                    dist.all_reduce(vals)
+                    vals /= W
+                logged = dict(zip(sorted(sums), vals.tolist()))
+                last_loss = logged["total"]
+                if di.rank == 0:
+                    dt = time.perf_counter() - t0
+                    ips = seen / max(dt, 1e-9)
+                    for k, v in logged.items():
+                        writer.add_scalar(f"losses/{k}", v, step)
+                    writer.add_scalar("charts/lr", opt.param_groups[0]["lr"], step)
+                    writer.add_scalar("charts/images_per_s", ips, step)
+                    bar.set_postfix(loss=f"{last_loss:.4f}", img_s=f"{ips:.1f}")
+                t0, seen = time.perf_counter(), 0
+            if bar is not None:
+                bar.update(1)
+            if step % cfg.checkpoint_every == 0 and step < end:
+                save_checkpoint(step, False, last_loss)
+                if W > 1:
+                    dist.barrier()
+    except KeyboardInterrupt:
+        save_checkpoint(step, False, last_loss)
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+        if writer is not None:
+            writer.close()
+    finished = step >= total
+    if di.rank == 0:
+        if finished:
+            save_tensors(out / "model.safetensors", model.state_dict(),
+                         {"config": json.dumps(model_cfg), "method": cfg.method})
+            save_encoder(model, out / "encoder.safetensors", cfg.method)
+            if not sup and cfg.viz_images > 0:
+                write_reconstructions(model, cfg, out / "recon.png", images)
+        save_checkpoint(step, finished, last_loss)
+    if W > 1:
+        dist.barrier()
+    return {"step": step, "total_steps": total, "finished": finished, "loss": last_loss}, model
+
+
+def write_reconstructions(model: MaskedAutoencoderViT, cfg: PretrainConfig, path: Path,
+                          train_images: RGBDImages) -> None:
+    """Reconstruction grid of a few val images (train images when the dataset has no val split)."""
+    from .viz import reconstruction_grid
+
+    val = scene_split_images(train_images.root, "val", cfg.img_size, preload=False, max_scenes=1) or train_images
+    idx = np.linspace(0, len(val) - 1, num=min(cfg.viz_images, len(val))).round().astype(np.int64)
+    batch = val.get(idx)
+    rgb, depth = prepare_batch(batch, None, next(model.parameters()).device)
+    reconstruction_grid(model, rgb, depth, path, seed=cfg.seed)

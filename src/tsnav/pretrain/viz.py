@@ -1,0 +1,69 @@
+"""Pictures of what a (DE-)MAE learned: input, masked input, RGB reconstruction, predicted and true depth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .data import DEPTH_SCALE, MAX_DEPTH, denormalize_rgb
+from .model import MaskedAutoencoderViT
+
+
+def _depth_colors(d: np.ndarray) -> np.ndarray:
+    """``[..., H, W]`` metres -> ``[..., H, W, 3]`` float colours (matplotlib ``viridis``, near = dark)."""
+    from matplotlib import colormaps
+
+    return colormaps["viridis"](np.clip(d / (MAX_DEPTH / 2), 0, 1))[..., :3]
+
+
+@torch.no_grad()
+def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depths: torch.Tensor | None,
+                        path: str | Path, seed: int = 0, mask_ratio: float | None = None) -> np.ndarray:
+    """Write a PNG grid, one row per image: input, masked input, RGB reconstruction (visible patches pasted
+    back, as MAE shows it), predicted depth (DE-MAE; grey for MAE), true depth. Returns the grid as uint8.
+
+    images: normalised RGB ``[N, 3, S, S]``; depths: ``[N, 1, S, S]`` in metres / ``DEPTH_SCALE`` (or None).
+    """
+    from PIL import Image
+
+    was_training = model.training
+    model.eval()
+    g = torch.Generator().manual_seed(seed)
+    n, _, s, _ = images.shape
+    noise = torch.rand(n, model.config.num_patches, generator=g).to(images.device)
+    out = model(images, depths if model.config.use_depth else None, mask_ratio=mask_ratio, noise=noise)
+    model.train(was_training)
+    p = model.config.patch_size
+    mask = out.mask.unsqueeze(-1).expand(-1, -1, p * p * 3)
+    mask_img = model.unpatchify(mask.float(), 3)  # [N, 3, S, S], 1 = masked
+    pred = out.pred
+    if model.config.norm_pix_loss:  # undo the per-patch normalisation with the true patch statistics
+        t = model.patchify(images)
+        pred = pred * (t.var(-1, keepdim=True) + 1e-6) ** 0.5 + t.mean(-1, keepdim=True)
+    rec = model.unpatchify(pred.float(), 3)
+    cols = [denormalize_rgb(images), denormalize_rgb(images) * (1 - mask_img) + 0.5 * mask_img,
+            denormalize_rgb(images * (1 - mask_img) + rec * mask_img)]
+    cols = [c.permute(0, 2, 3, 1).cpu().numpy() for c in cols]
+    grey = np.full((n, s, s, 3), 0.5)
+    if out.pred_depth is not None:
+        pd = model.unpatchify(out.pred_depth.float(), 1)[:, 0].cpu().numpy() * DEPTH_SCALE
+        cols.append(_depth_colors(pd))
+    else:
+        cols.append(grey)
+    cols.append(_depth_colors(depths[:, 0].cpu().numpy() * DEPTH_SCALE) if depths is not None else grey)
+    pad = 2
+    grid = np.ones((n * (s + pad) + pad, len(cols) * (s + pad) + pad, 3))
+    for i in range(n):
+        for j, c in enumerate(cols):
+            grid[pad + i * (s + pad):pad + i * (s + pad) + s, pad + j * (s + pad):pad + j * (s + pad) + s] = c[i]
+    grid = (np.clip(grid, 0, 1) * 255).round().astype(np.uint8)
+    scale = max(1, 96 // s)  # small frames are enlarged so the picture can be read
+    img = Image.fromarray(grid).resize((grid.shape[1] * scale, grid.shape[0] * scale), Image.NEAREST)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    img.save(tmp, format="PNG")
+    tmp.replace(path)
+    return grid

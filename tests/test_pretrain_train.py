@@ -1,0 +1,117 @@
+"""Pretraining loop: resume equals an uninterrupted run; two gloo processes equal one process; outputs."""
+
+import json
+import socket
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from tsnav.pretrain.checkpoint import load_tensors
+from tsnav.pretrain.synthetic import write_synthetic_dataset
+from tsnav.pretrain.train import PretrainConfig, lr_at, train
+
+TINY = dict(model="vit_micro", patch_size=8, img_size=16, log_every=1, viz_images=0)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    return write_synthetic_dataset(tmp_path_factory.mktemp("synth"), size=16)
+
+
+def weights(run):
+    return load_tensors(run / "model.safetensors")[0]
+
+
+def test_lr_schedule_by_hand():
+    assert lr_at(0, 10, 1.0, 2) == 0.5 and lr_at(1, 10, 1.0, 2) == 1.0
+    assert lr_at(2, 10, 1.0, 2) == pytest.approx(1.0)
+    assert lr_at(6, 10, 1.0, 2, 0.0) == pytest.approx(0.5)  # half-way through the cosine
+
+
+@pytest.mark.parametrize("method", ["demae", "demae-crop"])
+def test_resume_reproduces_uninterrupted_run(data, tmp_path, method):
+    cfg = PretrainConfig(method=method, batch_size=4, steps=4, checkpoint_every=100, **TINY)
+    a = train(cfg, data, tmp_path / "a", progress=False)
+    part = train(cfg, data, tmp_path / "b", stop_at=2, progress=False)
+    assert part["finished"] is False and part["step"] == 2
+    assert json.loads((tmp_path / "b" / "progress.json").read_text())["step"] == 2
+    assert not (tmp_path / "b" / "encoder.safetensors").exists()
+    b = train(cfg, data, tmp_path / "b", progress=False)
+    assert a["finished"] and b["finished"] and b["step"] == 4
+    wa, wb = weights(tmp_path / "a"), weights(tmp_path / "b")
+    assert wa.keys() == wb.keys()
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    # the weights moved, and a finished run is not retrained
+    m0 = (tmp_path / "a" / "model.safetensors").stat().st_mtime_ns
+    assert train(cfg, data, tmp_path / "a", progress=False)["finished"]
+    assert (tmp_path / "a" / "model.safetensors").stat().st_mtime_ns == m0
+
+
+def test_accumulation_equals_larger_batch(data, tmp_path):
+    big = PretrainConfig(method="mae", batch_size=4, steps=2, **TINY)
+    acc = PretrainConfig(method="mae", batch_size=2, accum_iter=2, steps=2, **TINY)
+    train(big, data, tmp_path / "big", progress=False)
+    train(acc, data, tmp_path / "acc", progress=False)
+    wa, wb = weights(tmp_path / "big"), weights(tmp_path / "acc")
+    assert not any(k.startswith("decoder_pred_depth") for k in wa)
+    for k in wa:
+        torch.testing.assert_close(wa[k], wb[k], atol=1e-5, rtol=1e-4)
+
+
+def test_changed_config_is_refused_and_outputs_exist(data, tmp_path):
+    cfg = PretrainConfig(method="demae", batch_size=4, steps=2, **{**TINY, "viz_images": 3})
+    train(cfg, data, tmp_path / "r", progress=False)
+    for f in ("config.json", "progress.json", "model.safetensors", "encoder.safetensors", "recon.png"):
+        assert (tmp_path / "r" / f).exists(), f
+    enc, meta = load_tensors(tmp_path / "r" / "encoder.safetensors")
+    assert meta["arch"] == "vit" and json.loads(meta["config"])["img_size"] == 16
+    assert not any(k.startswith(("decoder", "mask_token")) for k in enc)
+    assert list((tmp_path / "r" / "tb").iterdir())
+    other = PretrainConfig(method="demae", batch_size=2, steps=2, **TINY)
+    with pytest.raises(ValueError, match="batch_size"):
+        train(other, data, tmp_path / "r", progress=False)
+    with pytest.raises(ValueError, match="fewer than one global batch"):
+        train(PretrainConfig(method="demae", batch_size=1000, steps=1, **TINY), data, tmp_path / "x", progress=False)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _replica_worker(rank, world, port, data, out):
+    import os
+
+    import torch.distributed as dist
+    from safetensors.torch import save_file
+
+    torch.set_num_threads(1)
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    dist.init_process_group("gloo", rank=rank, world_size=world)
+    from tsnav.pretrain.train import PretrainConfig, train_model
+
+    cfg = PretrainConfig(method="demae", batch_size=2, steps=3, **TINY)
+    _, model = train_model(cfg, data, out / "run", progress=False)
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out / f"replica{rank}.safetensors"))
+    dist.destroy_process_group()
+
+
+def test_two_gloo_processes_keep_replicas_identical_and_match_one_process(data, tmp_path):
+    mp.spawn(_replica_worker, args=(2, _free_port(), data, tmp_path), nprocs=2, join=True)
+    r0 = load_tensors(tmp_path / "replica0.safetensors")[0]
+    r1 = load_tensors(tmp_path / "replica1.safetensors")[0]
+    for k in r0:
+        assert torch.equal(r0[k], r1[k]), k
+    assert json.loads((tmp_path / "run" / "progress.json").read_text())["world_size"] == 2
+    # one process with the same global batch (2 x 2) learns the same weights up to float reordering
+    single = PretrainConfig(method="demae", batch_size=4, steps=3, **TINY)
+    train(single, data, tmp_path / "single", progress=False)
+    w = weights(tmp_path / "single")
+    for k in r0:
+        torch.testing.assert_close(r0[k], w[k], atol=2e-5, rtol=1e-4)
+    init = load_tensors(tmp_path / "run" / "model.safetensors")[0]
+    assert torch.equal(init["blocks.0.attn.qkv.weight"], r0["blocks.0.attn.qkv.weight"])
