@@ -1,0 +1,273 @@
+"""``tsnav features``: encode every state of every scene once and cache the feature maps (DESIGN.md data flow).
+
+Per scene folder this writes ``features_<name>.hdf5`` with
+
+* ``features``: ``(S, C, h, w)`` float16, the encoder's patch tokens as a grid (ViT: C = embed dim, h = w =
+  img_size / patch; ResNet18: the 512 x h x w map of ``layer4``), all patches visible (no masking), in the
+  order of ``Scene.keys`` (sorted state keys);
+* ``keys``: ``(S,)`` the state keys;
+* attributes: ``encoder`` (the spec), ``arch``, ``method``, ``img_size``, ``channels``, ``grid``,
+  ``fingerprint`` (hash of the weights), ``config`` (JSON).
+
+Each scene is written to a temp file and renamed, so a scene file that exists is complete; a rerun skips
+scenes whose file was made by the same encoder (same fingerprint) and refuses to overwrite one made by
+another encoder unless ``--overwrite``.
+
+Encoder specs (``--encoder``):
+
+* a pretraining run folder (``encoder.safetensors`` inside) or a ``tsnav`` encoder ``.safetensors`` file;
+* ``vit:PATH`` published ViT / MAE / VC-1 weights (timm layout, safetensors or .pth) with ``--model``,
+  ``--patch``, ``--img-size``;
+* ``resnet18:PATH`` a torchvision-layout ResNet18 state dict (e.g. ImageNet weights the user has locally);
+* ``untrained:vit_tiny`` (any ViT size) or ``untrained:resnet18``: random initialisation (seed 0), the
+  "no pretraining" reference of the probe.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from .data import normalize_rgb, resize_rgb
+from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
+from .resnet import ResNet18, load_resnet_weights
+
+
+@dataclass
+class Encoder:
+    """A frozen image encoder: normalised RGB ``[N, 3, S, S]`` -> feature map ``[N, C, h, w]``."""
+
+    module: nn.Module
+    spec: str
+    arch: str  # "vit" or "resnet18"
+    method: str  # how it was trained: demae / mae / demae-crop / resnet18-sup / torchvision / timm / untrained
+    img_size: int
+    fingerprint: str  # sha256 of the weights (identifies the encoder across reruns)
+    config: dict
+
+    @torch.no_grad()
+    def encode(self, rgb: torch.Tensor) -> torch.Tensor:
+        """Feature map of ImageNet-normalised RGB ``[N, 3, img_size, img_size]``."""
+        self.module.eval()
+        return self.module.feature_map(rgb)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.module.parameters()).device
+
+    def attrs(self) -> dict:
+        return {"encoder": self.spec, "arch": self.arch, "method": self.method, "img_size": self.img_size,
+                "fingerprint": self.fingerprint, "config": json.dumps(self.config, sort_keys=True)}
+
+
+def _fingerprint(module: nn.Module) -> str:
+    h = hashlib.sha256()
+    for k, v in sorted(module.state_dict().items()):
+        if k.startswith(("decoder", "mask_token", "fc.")):
+            continue
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def _vit_from_config(cfg: dict) -> MaskedAutoencoderViT:
+    c = MAEConfig.from_dict(cfg)
+    # the decoder is not needed for features: keep it tiny
+    c.decoder_embed_dim, c.decoder_depth, c.decoder_num_heads, c.use_depth = 16, 0, 1, False
+    return MaskedAutoencoderViT(c)
+
+
+def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_size: int = 224,
+                 device: str | torch.device = "cpu") -> Encoder:
+    """Build the frozen encoder named by ``spec`` (see the module docstring for the forms)."""
+    from .checkpoint import load_tensors
+
+    kind, _, rest = spec.partition(":")
+    if kind == "untrained" and rest:
+        torch.manual_seed(0)
+        if rest == "resnet18":
+            m, arch, cfg, size = ResNet18(), "resnet18", {}, img_size
+        elif rest in SIZES:
+            c = make_config(rest, patch_size, img_size)
+            m, arch, cfg, size = _vit_from_config(c.to_dict()), "vit", c.to_dict(), img_size
+        else:
+            raise ValueError(f"unknown encoder {spec!r}: untrained:resnet18 or untrained:<{'|'.join(SIZES)}>")
+        method = "untrained"
+    elif kind == "resnet18" and rest:
+        m = ResNet18()
+        load_resnet_weights(m, rest)
+        arch, method, cfg, size = "resnet18", "torchvision", {}, img_size
+    elif kind == "vit" and rest:
+        c = make_config(model, patch_size, img_size)
+        m = _vit_from_config(c.to_dict())
+        load_encoder_weights(m, rest)
+        arch, method, cfg, size = "vit", "timm", c.to_dict(), img_size
+    else:
+        path = Path(spec)
+        if path.is_dir():
+            path = path / "encoder.safetensors"
+            if not path.exists():
+                raise FileNotFoundError(f"{spec}: no encoder.safetensors (is the pretraining run finished?)")
+        if not path.is_file():
+            raise FileNotFoundError(f"{spec}: no such encoder (run folder, .safetensors file, vit:PATH, "
+                                    f"resnet18:PATH or untrained:NAME)")
+        sd, meta = load_tensors(path)
+        if meta.get("format") != "tsnav-encoder":
+            raise ValueError(f"{path}: not a tsnav encoder file (use vit:PATH or resnet18:PATH for other weights)")
+        arch, method = meta["arch"], meta.get("method", "?")
+        if arch == "resnet18":
+            m, cfg, size = ResNet18(), {}, img_size
+            missing = set(m.encoder_state_dict()) - set(sd)
+            if missing:
+                raise ValueError(f"{path}: missing keys {sorted(missing)[:5]}")
+            m.load_state_dict(sd, strict=False)
+        else:
+            cfg = json.loads(meta["config"])
+            m = _vit_from_config(cfg)
+            own = m.encoder_state_dict()
+            if set(own) != set(sd):
+                raise ValueError(f"{path}: keys do not match the ViT in its metadata")
+            m.load_state_dict(sd, strict=False)
+            size = int(cfg["img_size"])
+    m = m.to(device).eval()
+    for p in m.parameters():
+        p.requires_grad_(False)
+    return Encoder(m, spec, arch, method, int(size), _fingerprint(m), cfg)
+
+
+def default_name(spec: str) -> str:
+    """Feature-file name of an encoder spec: run folder name, file stem, or ``untrained_<size>``."""
+    kind, _, rest = spec.partition(":")
+    if kind in ("untrained", "vit", "resnet18") and rest:
+        base = rest if kind == "untrained" else Path(rest).stem
+        name = f"{kind}_{base}"
+    else:
+        p = Path(spec)
+        name = p.name if p.is_dir() else p.stem
+    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
+
+
+def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
+                   bar=None) -> np.ndarray:
+    """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order."""
+    import h5py
+
+    out = None
+    with h5py.File(scene_dir / "images.hdf5", "r") as fi:
+        missing = [k for k in keys[:] if k not in fi]
+        if missing:
+            raise ValueError(f"{scene_dir}: images.hdf5 lacks state {missing[0]!r} ({len(missing)} missing)")
+        for a in range(0, len(keys), batch_size):
+            rgb = torch.from_numpy(np.stack([fi[k][()] for k in keys[a:a + batch_size]])).permute(0, 3, 1, 2)
+            x = normalize_rgb(resize_rgb(rgb, encoder.img_size).to(encoder.device))
+            f = encoder.encode(x).float().cpu().numpy().astype(np.float16)  # [b, C, h, w]
+            if out is None:
+                out = np.empty((len(keys),) + f.shape[1:], dtype=np.float16)
+            out[a:a + len(f)] = f
+            if bar is not None:
+                bar.update(len(f))
+    return out
+
+
+def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: int = 64, split: str | None = None,
+                   overwrite: bool = False, progress: bool = True) -> list[Path]:
+    """Write ``features_<name>.hdf5`` into every complete scene of ``root`` (or of ``split``); resumable.
+
+    Returns the feature files (written or already present).
+    """
+    import h5py
+    from tqdm import tqdm
+
+    from ..data.reader import list_scenes, load_scene
+
+    scenes = [p for p in list_scenes(root, split=split)]
+    if not scenes:
+        raise ValueError(f"{root}: no complete scene folder" + (f" of split {split}" if split else ""))
+    no_img = [p.name for p in scenes if not (p / "images.hdf5").exists()]
+    if no_img:
+        raise ValueError(f"{root}: scene {no_img[0]} has no images.hdf5 (build the world with images)")
+    written = []
+    todo = []
+    for p in scenes:
+        f = p / f"features_{name}.hdf5"
+        if f.exists() and not overwrite:
+            with h5py.File(f, "r") as h:
+                fp = h.attrs.get("fingerprint")
+            if fp != encoder.fingerprint:
+                raise ValueError(f"{f} was made by another encoder ({h5py_str(fp)}); use another --name or "
+                                 f"--overwrite")
+            written.append(f)
+            continue
+        todo.append(p)
+    scenes_keys = [(p, load_scene(p).keys) for p in todo]
+    bar = tqdm(total=sum(len(k) for _, k in scenes_keys), desc=f"features {name}", unit="img",
+               disable=not progress, dynamic_ncols=True)
+    try:
+        for p, keys in scenes_keys:
+            feats = scene_features(encoder, p, keys, batch_size, bar)
+            f = p / f"features_{name}.hdf5"
+            tmp = p / f".features_{name}.hdf5.tmp"
+            with h5py.File(tmp, "w") as h:
+                h.create_dataset("features", data=feats)
+                h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
+                for k, v in encoder.attrs().items():
+                    h.attrs[k] = v
+                h.attrs["channels"], h.attrs["grid"] = int(feats.shape[1]), int(feats.shape[2])
+            os.replace(tmp, f)
+            written.append(f)
+    finally:
+        bar.close()
+        for p, _ in scenes_keys:
+            t = p / f".features_{name}.hdf5.tmp"
+            if t.exists():
+                t.unlink()
+    return sorted(written)
+
+
+def h5py_str(x) -> str:
+    return x.decode() if isinstance(x, bytes) else str(x)
+
+
+def read_features(scene_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``(features (S, C, h, w) float16, keys (S,) str, attrs)`` of a scene's feature cache."""
+    import h5py
+
+    f = Path(scene_dir) / f"features_{name}.hdf5"
+    if not f.exists():
+        raise FileNotFoundError(f"{f}: no feature cache (run `tsnav features`)")
+    with h5py.File(f, "r") as h:
+        return h["features"][()], h["keys"][()].astype(str), {k: h5py_str(v) if isinstance(v, (bytes, str)) else v
+                                                                for k, v in h.attrs.items()}
+
+
+def build_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--encoder", required=True,
+                        help="pretraining run folder, encoder .safetensors, vit:PATH, resnet18:PATH or untrained:NAME")
+    parser.add_argument("--data", required=True, help="dataset root")
+    parser.add_argument("--name", default=None, help="feature file name features_<name>.hdf5 (default: from --encoder)")
+    parser.add_argument("--split", default=None, help="only scenes of this split (default: all)")
+    parser.add_argument("--model", default="vit_base", choices=sorted(SIZES), help="ViT size for vit:/untrained:")
+    parser.add_argument("--patch", type=int, default=16, help="patch size for vit:/untrained:")
+    parser.add_argument("--img-size", type=int, default=224, help="input size for vit:/resnet18:/untrained:")
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument("--overwrite", action="store_true", help="recompute files made by another encoder")
+    parser.add_argument("--quiet", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    from .train import resolve_device
+
+    enc = load_encoder(args.encoder, args.model, args.patch, args.img_size, resolve_device(args.device))
+    name = args.name or default_name(args.encoder)
+    files = cache_features(enc, args.data, name, args.batch_size, args.split, args.overwrite, not args.quiet)
+    print(f"features_{name}.hdf5 in {len(files)} scenes ({enc.arch}, {enc.method}, input {enc.img_size}px)")
+    return 0
