@@ -265,7 +265,7 @@ class AreaIndex:
         anchor: ``(total_S,)`` int64 flat index of the block whose lower-left corner is the state's position.
         profile: ``(total_S,)`` int64 pose profile (:func:`profile_of`).
         offsets, masks: per profile, flat block offsets (int64) and sample bit masks (uint64) of the stencil.
-        off_floor: per scene, ``(row_len,)`` uint64 with the bits of samples outside the floor set.
+        off_floor: ``(num_scenes, row_len)`` uint64, the bits of samples outside the floor set.
         origin: ``(num_scenes, 2)`` (x, z) metres of the lower-left corner of block (0, 0).
         floor_area: ``(num_scenes,)`` floor area at raster resolution, square metres.
     """
@@ -321,6 +321,7 @@ class AreaIndex:
             self.off_floor.append(row)
         self.floor_area = np.array([(BLOCK * BLOCK * self.row_len - popcount(r).sum(dtype=np.int64)) * s * s
                                     for r in self.off_floor])
+        self.off_floor = np.stack(self.off_floor)
 
     @classmethod
     def from_scenes(cls, scenes: Sequence, config: AreaConfig = AreaConfig()) -> "AreaIndex":
@@ -355,8 +356,7 @@ class BatchCoverage:
         """Empty the searched region of the episodes where ``mask`` is True (``scene_idx``: their scenes)."""
         mask = np.asarray(mask, dtype=bool)
         scene_idx = np.broadcast_to(np.asarray(scene_idx, dtype=np.int64), mask.shape)
-        for b in np.flatnonzero(mask):  # one row copy per episode start, not per step
-            self.covered[b] = self.index.off_floor[int(scene_idx[b])]
+        self.covered[mask] = self.index.off_floor[scene_idx[mask]]
         self.scene[mask] = scene_idx[mask]
         self.samples[mask] = 0
 

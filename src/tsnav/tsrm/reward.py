@@ -120,6 +120,8 @@ class TSRMReward:
         np.minimum.at(first, bank.scene_of.astype(np.int64), node_of)
         self.node_local = node_of - first[bank.scene_of]
         self.nodes_per_scene = int(self.node_local.max()) + 1
+        self.state_local = np.arange(bank.num_states, dtype=np.int64) - bank.offsets[bank.scene_of]
+        self.states_per_scene = int(np.diff(bank.offsets).max())
         self.area_index = None
         self._floors: dict[int, object] = {}
         if config.uses("explore") and not config.exact_area:
@@ -135,6 +137,8 @@ class TSRMReward:
         self.switch_step = np.full(b, -1, dtype=np.int64)
         self.steps = np.zeros(b, dtype=np.int64)
         self.collided_at = np.zeros((b, self.nodes_per_scene), dtype=bool)
+        # States whose view is already in RG (exploration only): revisiting one adds no area, skip its stencil.
+        self.viewed = np.zeros((b, self.states_per_scene if self.config.uses("explore") else 0), dtype=bool)
         self.coverage = BatchCoverage(self.area_index, b) if self.area_index is not None else None
         self._exact: list[ExactSearchedRegion | None] = [None] * b
 
@@ -181,6 +185,8 @@ class TSRMReward:
                 for b, s in zip(rows, scene_idx):
                     self._exact[b] = self._exact_region(int(s))
             search = ~at_start
+            self.viewed[rows] = False
+            self.viewed[rows[search], self.state_local[start[search]]] = True
             self._add_views(rows[search], start[search])  # the start view, without reward
 
     def step(self, prev_state, action, new_state, collided, done, success) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -197,7 +203,10 @@ class TSRMReward:
         searching = self.stage == SEARCHING  # the stage in which this step's action was chosen
         terms = {k: np.zeros(b, dtype=np.float64) for k in TERMS}
         if cfg.uses("explore"):
-            rows = np.flatnonzero(searching & (new != prev))
+            fresh = np.zeros(b, dtype=bool)
+            fresh[searching] = ~self.viewed[np.flatnonzero(searching), self.state_local[new[searching]]]
+            rows = np.flatnonzero(fresh)
+            self.viewed[rows, self.state_local[new[rows]]] = True
             terms["explore"][rows] = cfg.k_explore * self._add_views(rows, new[rows])
         if cfg.uses("distance"):
             rows = np.flatnonzero(~searching)
@@ -248,15 +257,14 @@ class TSRMRewardReference:
         return round(float(sc.x[s]), 2), round(float(sc.z[s]), 2), int(sc.rotation[s]) % 360
 
     def _d(self, s: int) -> int:
-        g = self.target
-        if g not in self._dist_cache:
-            sc = self.scene
-            self._dist_cache[g] = pose_distance_reference(
-                sc.next_state, sc.x, sc.z, sc.rotation, sc.success_mask(g, self.success_distance))
-        return int(self._dist_cache[g][s])
+        return int(self._dist_cache[self.target][s])
 
     def reset(self, target: int, start_state: int) -> None:
         self.target = int(target)
+        if self.config.uses("distance") and self.target not in self._dist_cache:  # BFS once per target
+            sc = self.scene
+            self._dist_cache[self.target] = pose_distance_reference(
+                sc.next_state, sc.x, sc.z, sc.rotation, sc.success_mask(self.target, self.success_distance))
         self.pathfinding = bool(self.confidence[start_state, self.target] > self.config.c_target)
         self.switch_step = 0 if self.pathfinding else -1
         self.steps = 0
