@@ -1,1 +1,10 @@
-"""agent stage of tsnav (see docs/ARCHITECTURE.md)."""
+"""Agent stage of tsnav (paper III-D): observations from cached features and detections, the IOM target
+memory, and the LSTM actor-critic."""
+
+from .memory import MemoryState, TargetMemoryAggregator, relative_pose
+from .model import NO_ACTION, PRESETS, ActorCritic, AgentConfig, AgentState, agent_config
+from .observe import AgentObs, DetectionTable, Observer, ground_truth_boxes, load_bank_features, roi_pool
+
+__all__ = ["ActorCritic", "AgentConfig", "AgentObs", "AgentState", "DetectionTable", "MemoryState", "NO_ACTION",
+           "Observer", "PRESETS", "TargetMemoryAggregator", "agent_config", "ground_truth_boxes",
+           "load_bank_features", "relative_pose", "roi_pool"]

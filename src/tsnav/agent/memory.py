@@ -1,0 +1,127 @@
+"""IOM's non-local target memory aggregation (paper III-D, "Policy Network"): a FIFO memory of the frames in
+which the target was detected, attended with the target-category embedding as query.
+
+Each memory node keeps what was seen and where from: the detection box (fractions of the image), its
+confidence, its feature, and the absolute pose ``(x, z, rotation, horizon)`` of that frame. At read time the
+pose is expressed relative to the *current* pose - forward and rightward offsets in metres in the agent's
+frame, the relative yaw as sin / cos, and the horizon of that frame - so the aggregated feature F_t tells the
+policy where the target was seen from here. The aggregation has no positional encoding over slots, so it does
+not depend on the order of the memory. An empty memory gives a learned "nothing seen" vector.
+
+Memory writes are batched tensor operations (one-hot slot selection with ``torch.where``), no loop over
+episodes; the state tensors are never modified in place, so a state can be indexed, copied or kept.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+
+
+@dataclass
+class MemoryState:
+    """Target memory of ``B`` episodes with ``M`` slots.
+
+    Attributes:
+        box: ``(B, M, 4)`` detection boxes, fractions of the image side.
+        score: ``(B, M)`` detection confidences.
+        feat: ``(B, M, D)`` detection features.
+        pose: ``(B, M, 4)`` ``(x m, z m, rotation deg, horizon deg)`` of the frame of each detection.
+        valid: ``(B, M)`` bool, the slot holds a detection.
+        ptr: ``(B,)`` int64 slot that the next write goes to (the oldest node once the memory is full).
+    """
+
+    box: torch.Tensor
+    score: torch.Tensor
+    feat: torch.Tensor
+    pose: torch.Tensor
+    valid: torch.Tensor
+    ptr: torch.Tensor
+
+    @classmethod
+    def empty(cls, batch: int, slots: int, feat_dim: int, device=None) -> "MemoryState":
+        z = lambda *s: torch.zeros(*s, device=device)  # noqa: E731
+        return cls(box=z(batch, slots, 4), score=z(batch, slots), feat=z(batch, slots, feat_dim),
+                   pose=z(batch, slots, 4), valid=torch.zeros(batch, slots, dtype=torch.bool, device=device),
+                   ptr=torch.zeros(batch, dtype=torch.long, device=device))
+
+    def write(self, mask: torch.Tensor, box: torch.Tensor, score: torch.Tensor, feat: torch.Tensor,
+              pose: torch.Tensor) -> "MemoryState":
+        """Append one node to the rows where ``mask`` ``(B,)`` is True (FIFO: overwrites the oldest when full)."""
+        slots = self.valid.shape[1]
+        hot = (torch.arange(slots, device=self.ptr.device)[None, :] == self.ptr[:, None]) & mask[:, None]
+        h3 = hot[:, :, None]
+        return MemoryState(
+            box=torch.where(h3, box[:, None, :], self.box),
+            score=torch.where(hot, score[:, None], self.score),
+            feat=torch.where(h3, feat[:, None, :], self.feat),
+            pose=torch.where(h3, pose[:, None, :], self.pose),
+            valid=self.valid | hot,
+            ptr=torch.where(mask, (self.ptr + 1) % slots, self.ptr))
+
+    def clear(self, done: torch.Tensor) -> "MemoryState":
+        """Empty the memory of the rows where ``done`` ``(B,)`` is True (the episode ended)."""
+        keep = ~done
+        return MemoryState(box=self.box, score=self.score, feat=self.feat, pose=self.pose,
+                           valid=self.valid & keep[:, None], ptr=self.ptr * keep.long())
+
+    def index(self, rows) -> "MemoryState":
+        return MemoryState(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+    @staticmethod
+    def cat(states: list["MemoryState"]) -> "MemoryState":
+        return MemoryState(*(torch.cat([getattr(s, f) for s in states]) for f in MemoryState.__dataclass_fields__))
+
+
+def relative_pose(node_pose: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """Pose of memory nodes relative to the current pose, in the agent's frame.
+
+    ``node_pose (B, M, 4)`` and ``pose (B, 4)`` hold ``(x m, z m, rotation deg, horizon deg)`` (rotation 0 faces
+    +z, 90 faces +x). Returns ``(B, M, 5)``: forward offset (m), rightward offset (m), sin and cos of the
+    node's yaw minus the current yaw, and the node's horizon / 30 degrees.
+    """
+    dx = node_pose[..., 0] - pose[:, None, 0]
+    dz = node_pose[..., 1] - pose[:, None, 1]
+    yaw = pose[:, None, 2] * (math.pi / 180.0)
+    fwd = dx * torch.sin(yaw) + dz * torch.cos(yaw)
+    right = dx * torch.cos(yaw) - dz * torch.sin(yaw)
+    dyaw = (node_pose[..., 2] - pose[:, None, 2]) * (math.pi / 180.0)
+    return torch.stack([fwd, right, torch.sin(dyaw), torch.cos(dyaw), node_pose[..., 3] / 30.0], dim=-1)
+
+
+class TargetMemoryAggregator(nn.Module):
+    """Non-local target memory aggregation (IOM, used in paper III-D): ``F_t`` from the memory and the target.
+
+    Node embedding: ``ReLU(Linear(cat(box 4, score 1, relative pose 5, feature D)))`` of width ``dim``;
+    multi-head attention with the target-category embedding as the single query, a key-padding mask over
+    empty slots; an empty memory yields the learned ``nothing`` vector instead. Output:
+    ``ReLU(Linear(cat(attended, query)))`` of width ``out_dim`` (the query keeps the target identity in F_t,
+    which the searching stage needs while nothing has been seen).
+    """
+
+    def __init__(self, feat_dim: int, dim: int = 256, heads: int = 4, out_dim: int = 256,
+                 num_categories: int = 22):
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"memory dim {dim} must be divisible by the number of heads {heads}")
+        self.node = nn.Linear(4 + 1 + 5 + feat_dim, dim)
+        self.query = nn.Embedding(num_categories, dim)
+        self.attn = nn.MultiheadAttention(dim, heads, batch_first=True)
+        self.nothing = nn.Parameter(torch.zeros(dim))
+        self.out = nn.Linear(2 * dim, out_dim)
+
+    def forward(self, mem: MemoryState, pose: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``F_t`` ``(B, out_dim)`` from the memory, the current pose ``(B, 4)`` and target ids ``(B,)``."""
+        rel = relative_pose(mem.pose, pose)  # [B, M, 5]
+        nodes = torch.relu(self.node(torch.cat([mem.box, mem.score[..., None], rel, mem.feat], dim=-1)))  # [B, M, d]
+        q = self.query(target)  # [B, d]
+        empty = ~mem.valid.any(dim=1)  # [B]
+        # An all-masked row would give NaN: unmask slot 0 there and replace the result below.
+        pad = ~mem.valid
+        pad = pad & ~(empty[:, None] & (torch.arange(pad.shape[1], device=pad.device) == 0)[None, :])
+        att, _ = self.attn(q[:, None, :], nodes, nodes, key_padding_mask=pad, need_weights=False)  # [B, 1, d]
+        att = torch.where(empty[:, None], self.nothing[None, :].expand_as(q), att[:, 0])
+        return torch.relu(self.out(torch.cat([att, q], dim=-1)))

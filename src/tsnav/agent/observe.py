@@ -1,0 +1,180 @@
+"""What the agent sees (paper III-D): cached encoder features and the target's detection, gathered for a
+batch of global state ids of a :class:`~tsnav.sim.batch.SceneBank`.
+
+* :func:`load_bank_features` stacks the per-scene feature caches ``features_<name>.hdf5`` of
+  :mod:`tsnav.pretrain.features` into one ``(total_S, C, h, w)`` float16 tensor in the bank's global order.
+* :class:`DetectionTable` holds, per state and target category, the detector's confidence and box (the
+  lineage stores the best detection per class). When the bank has no detector output installed it falls back
+  to the oracle: confidence = ``bank.stage_confidence`` (ground-truth in-frame flag as 1.0 / 0.0) and the
+  ground-truth box of the instance with the most visible pixels (``Scene.boxes``).
+* :class:`Observer` turns ``(state, target)`` arrays into an :class:`AgentObs` with gathers only. The
+  detection feature of a box is the image feature map averaged over the box (area-weighted over the grid
+  cells it covers), standing in for DETR's 256-d decoder feature of the lineage; a bank attribute
+  ``detection_features`` ``(S, 22, D)`` is used instead when a detector provides one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..constants import NUM_CATEGORIES
+
+
+@dataclass
+class AgentObs:
+    """One observation batch for :class:`~tsnav.agent.model.ActorCritic` (``B`` rows).
+
+    Attributes:
+        image: ``(B, C, h, w)`` float32 encoder feature map of the current frame.
+        target: ``(B,)`` int64 target category id.
+        det_score: ``(B,)`` float32 detector confidence of the target in this frame, in [0, 1].
+        det_box: ``(B, 4)`` float32 box ``[x0, y0, x1, y1]`` of the target, as fractions of the image side
+            (zeros when nothing is detected).
+        det_feat: ``(B, D)`` float32 feature of that detection.
+        pose: ``(B, 4)`` float32 ``(x m, z m, rotation deg, horizon deg)`` of the agent (AI2-THOR conventions).
+    """
+
+    image: torch.Tensor
+    target: torch.Tensor
+    det_score: torch.Tensor
+    det_box: torch.Tensor
+    det_feat: torch.Tensor
+    pose: torch.Tensor
+
+    def index(self, rows) -> "AgentObs":
+        """The sub-batch ``rows`` (tensor / array of row ids or bool mask)."""
+        rows = torch.as_tensor(rows)
+        return AgentObs(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+
+def load_bank_features(bank, name: str) -> torch.Tensor:
+    """``(total_S, C, h, w)`` float16 tensor of the caches ``features_<name>.hdf5`` of every scene of ``bank``,
+    in global state order. Raises ``FileNotFoundError`` / ``ValueError`` naming the scene when a cache is
+    missing, was written for other states, or has another shape than the others."""
+    from ..pretrain.features import read_features
+
+    out = None
+    shape = None
+    for i, scene in enumerate(bank.scenes):
+        feats, keys, _ = read_features(scene.path, name)
+        if len(keys) != scene.num_states or not np.array_equal(keys, scene.keys):
+            raise ValueError(f"{scene.path}/features_{name}.hdf5 does not match the scene's states "
+                             f"(recompute it with `tsnav features --overwrite`)")
+        if shape is None:
+            shape = feats.shape[1:]
+            out = torch.empty((bank.num_states,) + tuple(shape), dtype=torch.float16)
+        elif feats.shape[1:] != shape:
+            raise ValueError(f"{scene.path}/features_{name}.hdf5 has feature shape {feats.shape[1:]}, "
+                             f"other scenes {shape}")
+        out[int(bank.offsets[i]):int(bank.offsets[i + 1])] = torch.from_numpy(np.ascontiguousarray(feats))
+    return out
+
+
+def ground_truth_boxes(bank) -> np.ndarray:
+    """``(S, 22, 4)`` float32 ground-truth box per state and category, fractions of the image side: the
+    visible part of the instance with the most pixels; zeros where no instance is visible."""
+    out = np.zeros((bank.num_states, NUM_CATEGORIES, 4), dtype=np.float32)
+    for i, scene in enumerate(bank.scenes):
+        lo = int(bank.offsets[i])
+        side = float(scene.image_size or 1)
+        seen = scene.visible_at_any_range()  # (S_i, O)
+        px = np.where(seen, np.maximum(scene.pixels, 1), 0)  # visible instances only
+        for c in np.unique(scene.object_category[scene.object_category >= 0]):
+            cols = np.flatnonzero(scene.object_category == c)
+            best = cols[np.argmax(px[:, cols], axis=1)]  # (S_i,)
+            rows = np.arange(scene.num_states)
+            any_seen = px[rows, best] > 0
+            box = scene.boxes[rows, best].astype(np.float32) / side
+            # boxes are inclusive pixel indices: the right / bottom edge is one pixel further
+            box[:, 2:] += 1.0 / side
+            box = np.clip(box, 0.0, 1.0)
+            out[lo + rows[any_seen], c] = box[any_seen]
+    return out
+
+
+class DetectionTable:
+    """Per-state, per-category detection of the target: ``score (S, 22)`` and ``box (S, 22, 4)`` (fractions).
+
+    From ``bank.detections`` (rows score, label, x0, y0, x1, y1 in pixels) when installed, else the oracle
+    fallback described in the module docstring. ``source`` is ``"detector"`` or ``"oracle"``.
+    """
+
+    def __init__(self, bank):
+        if bank.detections is not None:
+            det = bank.detections
+            side = np.array([s.image_size or 1 for s in bank.scenes], dtype=np.float32)[bank.scene_of]
+            self.score = det[..., 0].astype(np.float32)
+            self.box = np.clip(det[..., 2:6] / side[:, None, None], 0.0, 1.0).astype(np.float32)
+            self.source = "detector"
+        else:
+            self.score = bank.stage_confidence.astype(np.float32)
+            self.box = ground_truth_boxes(bank)
+            self.source = "oracle"
+        if bank.confidence is not None and bank.detections is None:
+            self.source = "detector-confidence+gt-boxes"
+        self.box[self.score <= 0] = 0.0
+        extra = getattr(bank, "detection_features", None)
+        self.features = None if extra is None else torch.as_tensor(np.asarray(extra, dtype=np.float16))
+
+
+def roi_pool(image: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
+    """Average of a feature map over a box: ``image (B, C, h, w)``, ``box (B, 4)`` fractions ``[x0, y0, x1,
+    y1]`` -> ``(B, C)``. Each grid cell is weighted by the area of its overlap with the box; a box of zero
+    area gives zeros."""
+    b, _, h, w = image.shape
+    cy = torch.arange(h, dtype=image.dtype, device=image.device) / h  # cell top edges
+    cx = torch.arange(w, dtype=image.dtype, device=image.device) / w
+    oy = (torch.minimum(box[:, 3:4], cy + 1.0 / h) - torch.maximum(box[:, 1:2], cy)).clamp(min=0)  # (B, h)
+    ox = (torch.minimum(box[:, 2:3], cx + 1.0 / w) - torch.maximum(box[:, 0:1], cx)).clamp(min=0)  # (B, w)
+    wgt = oy[:, :, None] * ox[:, None, :]  # (B, h, w)
+    tot = wgt.sum(dim=(1, 2), keepdim=True)
+    wgt = torch.where(tot > 0, wgt / tot.clamp(min=1e-12), torch.zeros_like(wgt))
+    return torch.einsum("bchw,bhw->bc", image, wgt)
+
+
+class Observer:
+    """Gathers :class:`AgentObs` for global state ids of ``bank`` (array operations only).
+
+    ``features`` is the ``(total_S, C, h, w)`` float16 tensor of :func:`load_bank_features` (may live in
+    shared memory for A3C workers); ``detections`` defaults to ``DetectionTable(bank)``.
+    """
+
+    def __init__(self, bank, features: torch.Tensor, detections: DetectionTable | None = None,
+                 device: str | torch.device = "cpu"):
+        if features.shape[0] != bank.num_states:
+            raise ValueError(f"features cover {features.shape[0]} states but the bank has {bank.num_states}")
+        self.bank = bank
+        self.features = features
+        self.detections = detections or DetectionTable(bank)
+        self.device = torch.device(device)
+        self._score = torch.from_numpy(self.detections.score)
+        self._box = torch.from_numpy(self.detections.box)
+        self._pose = torch.from_numpy(np.stack([bank.x, bank.z, bank.rotation.astype(np.float32),
+                                                bank.horizon.astype(np.float32)], axis=1).astype(np.float32))
+
+    @property
+    def feature_shape(self) -> tuple[int, int, int]:
+        """``(C, h, w)`` of the image features."""
+        return tuple(self.features.shape[1:])
+
+    @property
+    def det_dim(self) -> int:
+        """Size D of the detection feature."""
+        f = self.detections.features
+        return int(f.shape[-1]) if f is not None else int(self.features.shape[1])
+
+    def __call__(self, state: np.ndarray, target: np.ndarray) -> AgentObs:
+        s = torch.as_tensor(np.asarray(state, dtype=np.int64))
+        g = torch.as_tensor(np.asarray(target, dtype=np.int64))
+        image = self.features[s].to(self.device, torch.float32)
+        score = self._score[s, g].to(self.device)
+        box = self._box[s, g].to(self.device)
+        if self.detections.features is not None:
+            feat = self.detections.features[s, g].to(self.device, torch.float32)
+        else:
+            feat = roi_pool(image, box)
+        return AgentObs(image=image, target=g.to(self.device), det_score=score, det_box=box, det_feat=feat,
+                        pose=self._pose[s].to(self.device))

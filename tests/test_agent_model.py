@@ -1,0 +1,168 @@
+"""Policy network (paper III-D): target memory (FIFO writes, order invariance, empty memory), relative poses,
+hidden-state reset on done, RoI pooling, oracle detection table and observations on the tiny world."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tsnav.agent import (NO_ACTION, ActorCritic, AgentObs, DetectionTable, MemoryState, Observer,
+                         TargetMemoryAggregator, agent_config, ground_truth_boxes, relative_pose, roi_pool)
+from tsnav.sim.batch import SceneBank
+
+D = 6
+
+
+def _filled_memory(b=3, m=5, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    mem = MemoryState.empty(b, m, D)
+    for _ in range(4):
+        mask = torch.rand(b, generator=g) < 0.8
+        mem = mem.write(mask, torch.rand(b, 4, generator=g), torch.rand(b, generator=g),
+                        torch.randn(b, D, generator=g), torch.randn(b, 4, generator=g) * 30)
+    return mem
+
+
+def test_memory_fifo_write_and_clear():
+    b, m = 2, 3
+    mem = MemoryState.empty(b, m, D)
+    mask = torch.tensor([True, False])
+    for k in range(m + 2):  # five writes into three slots: nodes 2, 3, 4 remain in row 0
+        mem = mem.write(mask, torch.full((b, 4), float(k)), torch.full((b,), float(k)), torch.full((b, D), float(k)),
+                        torch.full((b, 4), float(k)))
+    assert mem.valid[0].all() and not mem.valid[1].any()
+    assert sorted(mem.score[0].tolist()) == [2.0, 3.0, 4.0]
+    assert int(mem.ptr[0]) == (m + 2) % m and int(mem.ptr[1]) == 0
+    cleared = mem.clear(torch.tensor([True, False]))
+    assert not cleared.valid.any() and int(cleared.ptr[0]) == 0
+    assert mem.valid[0].all()  # functional: the old state is untouched
+
+
+def test_aggregator_shapes_and_order_invariance():
+    torch.manual_seed(0)
+    agg = TargetMemoryAggregator(D, dim=16, heads=2, out_dim=12).eval()
+    mem = _filled_memory()
+    pose = torch.tensor([[0.5, 1.0, 90.0, 0.0], [0.0, 0.0, 0.0, 30.0], [1.0, -1.0, 315.0, 0.0]])
+    target = torch.tensor([1, 4, 21])
+    out = agg(mem, pose, target)
+    assert out.shape == (3, 12) and torch.isfinite(out).all()
+    perm = torch.tensor([3, 0, 4, 2, 1])
+    permuted = MemoryState(mem.box[:, perm], mem.score[:, perm], mem.feat[:, perm], mem.pose[:, perm],
+                           mem.valid[:, perm], mem.ptr)
+    torch.testing.assert_close(agg(permuted, pose, target), out, rtol=1e-5, atol=1e-6)
+    # the content of empty slots does not matter
+    junk = MemoryState(torch.where(mem.valid[..., None], mem.box, torch.full_like(mem.box, 7.0)), mem.score,
+                       torch.where(mem.valid[..., None], mem.feat, torch.full_like(mem.feat, -9.0)), mem.pose,
+                       mem.valid, mem.ptr)
+    torch.testing.assert_close(agg(junk, pose, target), out, rtol=1e-5, atol=1e-6)
+
+
+def test_empty_memory_gives_the_nothing_vector():
+    torch.manual_seed(0)
+    agg = TargetMemoryAggregator(D, dim=16, heads=2, out_dim=12).eval()
+    with torch.no_grad():
+        agg.nothing.normal_()
+    empty = _filled_memory(seed=1).clear(torch.ones(3, dtype=torch.bool))  # garbage in every slot, none valid
+    pose = torch.zeros(3, 4)
+    target = torch.tensor([2, 2, 5])
+    out = agg(empty, pose, target)
+    assert torch.isfinite(out).all()
+    q = agg.query(target)
+    want = torch.relu(agg.out(torch.cat([agg.nothing.expand_as(q), q], dim=1)))
+    torch.testing.assert_close(out, want)
+    # gradients flow to the nothing vector and stay finite
+    out.sum().backward()
+    assert agg.nothing.grad is not None and torch.isfinite(agg.nothing.grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in agg.parameters() if p.grad is not None)
+
+
+def test_relative_pose_by_hand():
+    node = torch.tensor([[[1.0, 0.0, 90.0, 30.0], [0.0, 2.0, 0.0, 0.0]]])
+    facing_x = relative_pose(node, torch.tensor([[0.0, 0.0, 90.0, 0.0]]))
+    # facing +x: a node 1 m along +x is 1 m ahead; one 2 m along +z is 2 m to the left
+    np.testing.assert_allclose(facing_x[0, 0, :2], [1.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(facing_x[0, 1, :2], [0.0, -2.0], atol=1e-6)
+    np.testing.assert_allclose(facing_x[0, 0, 2:], [0.0, 1.0, 1.0], atol=1e-6)  # same yaw, horizon 30
+    facing_z = relative_pose(node, torch.tensor([[0.0, 0.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(facing_z[0, 0, :2], [0.0, 1.0], atol=1e-6)  # +x is to the right of +z
+    np.testing.assert_allclose(facing_z[0, 0, 2:4], [1.0, 0.0], atol=1e-6)  # node yaw 90 = current + 90
+    assert math.isclose(float(facing_z[0, 1, 0]), 2.0, abs_tol=1e-6)
+
+
+def _obs(b, c=8, h=2, w=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    score = (torch.rand(b, generator=g) > 0.4).float()
+    return AgentObs(image=torch.randn(b, c, h, w, generator=g), target=torch.randint(0, 22, (b,), generator=g),
+                    det_score=score, det_box=torch.rand(b, 4, generator=g) * score[:, None],
+                    det_feat=torch.randn(b, c, generator=g), pose=torch.randn(b, 4, generator=g))
+
+
+def test_hidden_state_reset_on_done():
+    torch.manual_seed(0)
+    model = ActorCritic(agent_config("cpu", memory_slots=4), (8, 2, 2), det_dim=8).eval()
+    b = 4
+    state = model.initial_state(b)
+    for t in range(3):
+        _, _, state = model(_obs(b, seed=t), state)
+        state = state.with_action(torch.tensor([0, 1, 2, 3]))
+    assert state.h.abs().sum(1).min() > 0 and state.memory.valid.any(1).all()
+    done = np.array([True, False, True, False])
+    reset = state.reset(done)
+    assert (reset.h[[0, 2]] == 0).all() and (reset.c[[0, 2]] == 0).all()
+    torch.testing.assert_close(reset.h[[1, 3]], state.h[[1, 3]])
+    assert reset.prev_action.tolist() == [NO_ACTION, 1, NO_ACTION, 3]
+    assert not reset.memory.valid[[0, 2]].any() and (reset.memory.valid[[1, 3]] == state.memory.valid[[1, 3]]).all()
+    # a reset row behaves exactly like a fresh episode
+    obs = _obs(b, seed=9)
+    with torch.no_grad():
+        la, va, _ = model(obs, reset)
+        lb, vb, _ = model(obs, model.initial_state(b))
+    torch.testing.assert_close(la[[0, 2]], lb[[0, 2]])
+    torch.testing.assert_close(va[[0, 2]], vb[[0, 2]])
+    assert not torch.allclose(la[[1, 3]], lb[[1, 3]])
+
+
+def test_model_shapes_init_and_dropout():
+    torch.manual_seed(0)
+    model = ActorCritic(agent_config("cpu"), (8, 2, 2), det_dim=8)
+    logits, value, state = model(_obs(5), model.initial_state(5))
+    assert logits.shape == (5, 6) and value.shape == (5,)
+    assert logits.abs().max() < 0.5  # actor gain 0.01: near-uniform policy at the start
+    w = model.state.weight.detach()
+    q = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
+    torch.testing.assert_close(q / q.diagonal().mean(), torch.eye(q.shape[0]), atol=1e-4, rtol=0)
+    assert model.dropout.p == 0.45 and agent_config().dropout == 0.45
+    with pytest.raises(ValueError, match="dropout"):
+        agent_config("cpu", dropout=1.5)
+
+
+def test_roi_pool():
+    img = torch.arange(2 * 3 * 4 * 4, dtype=torch.float32).reshape(2, 3, 4, 4)
+    box = torch.tensor([[0.0, 0.0, 1.0, 1.0], [0.25, 0.5, 0.5, 0.75]])
+    out = roi_pool(img, box)
+    torch.testing.assert_close(out[0], img[0].mean(dim=(1, 2)))
+    torch.testing.assert_close(out[1], img[1, :, 2, 1])  # row 2 (y 0.5-0.75), column 1 (x 0.25-0.5)
+    assert (roi_pool(img, torch.zeros(2, 4)) == 0).all()
+
+
+def test_oracle_detections_and_observer(tiny_scenes):
+    bank = SceneBank(tiny_scenes)
+    det = DetectionTable(bank)
+    assert det.source == "oracle"
+    np.testing.assert_array_equal(det.score, bank.in_frame.astype(np.float32))
+    boxes = ground_truth_boxes(bank)
+    seen = bank.in_frame
+    assert (boxes[~seen] == 0).all()
+    b = boxes[seen]
+    assert (b >= 0).all() and (b <= 1).all() and (b[:, 2] > b[:, 0]).all() and (b[:, 3] > b[:, 1]).all()
+    feats = torch.randn(bank.num_states, 4, 2, 2).half()
+    obs_fn = Observer(bank, feats)
+    s, g = np.nonzero(seen)
+    rows = np.array([0, len(s) // 2, len(s) - 1])
+    obs = obs_fn(s[rows], g[rows])
+    assert obs.image.shape == (3, 4, 2, 2) and obs.det_feat.shape == (3, 4)
+    assert (obs.det_score == 1).all() and obs.image.dtype == torch.float32
+    np.testing.assert_allclose(obs.pose[:, 0].numpy(), bank.x[s[rows]])
+    with pytest.raises(ValueError, match="features cover"):
+        Observer(bank, feats[:-1])
