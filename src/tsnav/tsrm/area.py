@@ -382,8 +382,10 @@ class BatchCoverage:
                     continue
                 cells = base[sel, None] + idx.offsets[p][None, :]
                 old = flat[cells]
-                gained[sel] = popcount(idx.masks[p] & ~old).sum(axis=1, dtype=np.int64)
-                flat[cells] = old | idx.masks[p]
+                upd = old | idx.masks[p]
+                np.bitwise_xor(upd, old, out=old)  # the samples this view adds
+                gained[sel] = popcount(old).sum(axis=1, dtype=np.int64)
+                flat[cells] = upd
             self.samples[episodes] += gained
         return gained * self.index.config.sample_size ** 2
 
