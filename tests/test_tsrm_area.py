@@ -161,3 +161,15 @@ def test_batch_rows_are_independent_and_reset():
     cov.reset(np.array([True, False, False]), np.array([0, 1, 0]))
     assert cov.area()[0] == 0 and cov.area()[2] == g[2]
     assert cov.add(np.array([0]), np.array([s0]))[0] == g[0]
+
+
+def test_floor_falls_back_to_reachable_cells():
+    sc = toy_scene(2.0, 1.5, blocked=[(1.0, 0.75)])
+    sc.floor = []  # imported data without room bounds
+    from tsnav.tsrm.area import scene_floor
+
+    floor = scene_floor(sc)
+    # 9 x 7 positions minus one, each a 0.25 m square
+    assert floor.area == pytest.approx((9 * 7 - 1) * 0.0625)
+    idx = AreaIndex.from_scenes([sc])
+    assert idx.floor_area[0] == pytest.approx(floor.area)

@@ -122,6 +122,17 @@ def floor_union(floor: Sequence[np.ndarray]):
     return geom
 
 
+def scene_floor(scene):
+    """A scene's floor as one shapely geometry: its ``scene.json`` floor polygons, or, for imported data
+    without them (the paper's RoomBounds unavailable), the union of the 0.25 m grid cells centred on its
+    reachable positions."""
+    if len(scene.floor):
+        return floor_union(scene.floor)
+    pos = np.unique(np.stack([np.round(scene.x / GRID_SIZE), np.round(scene.z / GRID_SIZE)], 1), axis=0) * GRID_SIZE
+    h = GRID_SIZE / 2
+    return shapely.union_all(shapely.box(pos[:, 0] - h, pos[:, 1] - h, pos[:, 0] + h, pos[:, 1] + h))
+
+
 class ExactSearchedRegion:
     """Reference searched region of one episode with shapely: ``RG_t = (RG_{t-1} U T_t) n floor``."""
 
@@ -326,7 +337,7 @@ class AreaIndex:
     @classmethod
     def from_scenes(cls, scenes: Sequence, config: AreaConfig = AreaConfig()) -> "AreaIndex":
         """Index for a list of :class:`~tsnav.data.reader.Scene` whose state ids are concatenated in order."""
-        return cls([sc.floor for sc in scenes], [(sc.x, sc.z) for sc in scenes],
+        return cls([scene_floor(sc) for sc in scenes], [(sc.x, sc.z) for sc in scenes],
                    np.concatenate([sc.rotation for sc in scenes]), np.concatenate([sc.horizon for sc in scenes]),
                    config)
 

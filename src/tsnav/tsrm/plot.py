@@ -15,7 +15,7 @@ import numpy as np
 import shapely
 
 from ..constants import CATEGORY_INDEX, TARGET_CATEGORIES
-from .area import floor_union, trapezoid
+from .area import scene_floor, trapezoid
 from .reward import RewardConfig
 
 SEARCH_COLOR = "#1f77b4"
@@ -54,7 +54,7 @@ def searched_region(scene, states: Sequence[int], config: RewardConfig = RewardC
         return shapely.Polygon()
     traps = [trapezoid(float(scene.x[s]), float(scene.z[s]), int(scene.rotation[s]), int(scene.horizon[s]), config.area)
              for s in np.unique(states)]
-    return shapely.intersection(shapely.union_all(traps), floor_union(scene.floor))
+    return shapely.intersection(shapely.union_all(traps), scene_floor(scene))
 
 
 def _fill(ax, geom, **kw) -> None:
@@ -100,8 +100,8 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     fig = Figure(figsize=(7.5, 5.5), layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(111)
-    for poly in scene.floor:
-        ax.add_patch(MplPolygon(np.asarray(poly), closed=True, facecolor="#f3efe6", edgecolor="#444", lw=1.5, zorder=0))
+    floor = scene_floor(scene)
+    _fill(ax, floor, facecolor="#f3efe6", edgecolor="#444", lw=1.5, zorder=0)
     for f in scene.meta.get("furniture", []):
         if "footprint" in f:
             ax.add_patch(MplPolygon(np.asarray(f["footprint"]), closed=True, facecolor="#b9aa94",
@@ -127,8 +127,9 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
         ax.scatter([o["position"]["x"] for o in objs], [o["position"]["z"] for o in objs], marker="X", s=120,
                    color="#2ca02c", edgecolors="k", zorder=7, label=f"target: {name}")
 
-    xs = np.concatenate([np.asarray(p)[:, 0] for p in scene.floor] + [px])
-    zs = np.concatenate([np.asarray(p)[:, 1] for p in scene.floor] + [pz])
+    x0, z0, x1, z1 = floor.bounds
+    xs = np.concatenate([[x0, x1], px])
+    zs = np.concatenate([[z0, z1], pz])
     ax.set_xlim(xs.min() - 0.3, xs.max() + 0.3)
     ax.set_ylim(zs.min() - 0.3, zs.max() + 0.3)
     ax.set_aspect("equal")

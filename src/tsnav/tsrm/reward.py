@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..constants import NUM_CATEGORIES
-from .area import AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, floor_union
+from .area import AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, scene_floor
 from .distance import bank_pose_distance, distance_delta, pose_distance_reference, pose_nodes
 
 VARIANTS = ("baseline", "explore", "distance", "tsrm")
@@ -125,7 +125,7 @@ class TSRMReward:
         self.area_index = None
         self._floors: dict[int, object] = {}
         if config.uses("explore") and not config.exact_area:
-            self.area_index = AreaIndex([s.floor for s in bank.scenes],
+            self.area_index = AreaIndex([scene_floor(s) for s in bank.scenes],
                                         [(s.x, s.z) for s in bank.scenes], bank.rotation, bank.horizon, config.area)
         self._alloc(0)
 
@@ -151,7 +151,7 @@ class TSRMReward:
 
     def _exact_region(self, scene: int) -> ExactSearchedRegion:
         if scene not in self._floors:
-            self._floors[scene] = floor_union(self.bank.scenes[scene].floor)
+            self._floors[scene] = scene_floor(self.bank.scenes[scene])
         return ExactSearchedRegion(self._floors[scene], self.config.area)
 
     def _add_views(self, rows: np.ndarray, states: np.ndarray) -> np.ndarray:
@@ -249,7 +249,7 @@ class TSRMRewardReference:
                     confidence[seen[:, o], c] = 1.0
         self.confidence = np.asarray(confidence)
         self.success_distance = success_distance
-        self.floor = floor_union(scene.floor) if config.uses("explore") else None
+        self.floor = scene_floor(scene) if config.uses("explore") else None
         self._dist_cache: dict[int, np.ndarray] = {}
 
     def _pose(self, s: int) -> tuple[float, float, int]:
