@@ -1,0 +1,200 @@
+"""Ground truth and the oracle detector, from the renderer's instance ids (DESIGN.md "Detector").
+
+Ground truth per state and class (:func:`ground_truth`): the class is *present* when one of its instances
+shows at least the scene's ``min_pixels`` (``scene.json`` ``visibility.min_pixels``, the visibility rule of
+the dataset writer); the ground-truth *instance* is the visible one with the most pixels (ties: the nearer,
+then the lower object index) and the ground-truth *box* is that instance's pixel box ``Scene.boxes`` (the
+box of all its visible pixels, inclusive corners).
+
+The oracle detector (:func:`oracle_detections`) reports exactly that instance and box, with a confidence
+that stands in for a detector's score (paper III-B switches stage at confidence > C_target = 0.7):
+
+    conf = sigmoid(size_gain * ln(f / half_fraction) + distance_gain * (half_distance - d))
+
+where ``f`` is the instance's visible pixel fraction of the frame and ``d`` its distance in metres from the
+camera (``Scene.distance``; the distance term is 0 when unknown). conf = 0 when the class is not present.
+With the defaults a 10 %-of-frame object at 0.5 m scores 0.999, a 40-pixel (1 % of 64x64) object at 1.5 m
+0.91, and a 5-pixel sliver at 4 m 0.04. Deterministic.
+
+Oracle feature (64-d, :data:`ORACLE_FEATURE_DIM`), fixed, no learning:
+
+* ``[0:32)``  the category code (fixed random signs +-1/sqrt(32), seed ``OracleConfig.seed``) times conf;
+* ``[32:56)`` Fourier features of the box geometry ``g = (cx, cy, w, h) / image_size``:
+  ``sin(pi 2^k g), cos(pi 2^k g)`` for k = 0, 1, 2 (zero when not present);
+* ``[56:64)`` ``conf, present, sqrt(f), min(d, 5) / 5, x0 / W, y0 / H, (x1 + 1) / W, (y1 + 1) / H``
+  (zero when not present).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..constants import NUM_CATEGORIES
+from ..data.reader import Scene
+from .table import Detections
+
+#: Size of the oracle's per-class feature vector.
+ORACLE_FEATURE_DIM = 64
+_CODE_DIM = 32
+_FOURIER_OCTAVES = 3
+
+
+@dataclass
+class OracleConfig:
+    """Confidence model of the oracle detector (see the module docstring for the formula)."""
+
+    half_fraction: float = 0.004
+    """Visible pixel fraction of the frame at which the size term of the logit is zero (0.4 %: 16 px at 64x64)."""
+    size_gain: float = 1.5
+    """Logit added per e-fold of the visible pixel fraction."""
+    half_distance: float = 2.5
+    """Distance in metres at which the distance term of the logit is zero."""
+    distance_gain: float = 1.0
+    """Logit added per metre nearer than ``half_distance``."""
+    seed: int = 0
+    """Seed of the fixed random category code of the feature."""
+
+    def fingerprint(self) -> str:
+        return "oracle-" + hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]
+
+
+@dataclass
+class GroundTruth:
+    """Per state and class ground truth of a scene (``S`` states, 22 classes).
+
+    Attributes:
+        present: ``(S, 22)`` bool, an instance shows at least ``min_pixels``.
+        boxes: ``(S, 22, 4)`` float32 box of the ground-truth instance, inclusive pixel corners; -1 if absent.
+        pixels: ``(S, 22)`` int32 visible pixels of that instance (0 if absent).
+        distance: ``(S, 22)`` float32 its distance from the camera, metres (NaN if absent or unknown).
+        instance: ``(S, 22)`` int64 its object column in the scene, -1 if absent.
+    """
+
+    present: np.ndarray
+    boxes: np.ndarray
+    pixels: np.ndarray
+    distance: np.ndarray
+    instance: np.ndarray
+
+
+def min_pixels(scene: Scene) -> int:
+    """Pixels an instance must show to count as seen (the dataset's visibility rule; at least 1)."""
+    return max(1, int(scene.meta.get("visibility", {}).get("min_pixels", 1)))
+
+
+def ground_truth(scene: Scene) -> GroundTruth:
+    """Ground truth of every state of ``scene``: presence, instance and box per class (batched over states;
+    the loop runs over the 22 classes)."""
+    S = scene.num_states
+    present = np.zeros((S, NUM_CATEGORIES), bool)
+    boxes = np.full((S, NUM_CATEGORIES, 4), -1.0, np.float32)
+    pixels = np.zeros((S, NUM_CATEGORIES), np.int32)
+    distance = np.full((S, NUM_CATEGORIES), np.nan, np.float32)
+    instance = np.full((S, NUM_CATEGORIES), -1, np.int64)
+    if (scene.pixels < 0).all() and scene.pixels.size:
+        raise ValueError(f"scene {scene.name}: no per-state pixel counts (states.hdf5) for ground truth")
+    vis = scene.pixels >= min_pixels(scene)
+    rows = np.arange(S)
+    for c in range(NUM_CATEGORIES):
+        cols = np.flatnonzero(scene.object_category == c)
+        if cols.size == 0:
+            continue
+        px = np.where(vis[:, cols], scene.pixels[:, cols], -1)  # (S, k)
+        best_px = px.max(axis=1)
+        # Most pixels first, then the nearer (unknown distance counts as very far), then the first column.
+        dist = np.nan_to_num(scene.distance[:, cols].astype(np.float64), nan=1e30, posinf=1e30)
+        best = cols[np.argmin(np.where(px == best_px[:, None], dist, np.inf), axis=1)]
+        ok = best_px >= 0
+        present[:, c] = ok
+        instance[ok, c] = best[ok]
+        pixels[ok, c] = scene.pixels[rows[ok], best[ok]]
+        distance[ok, c] = scene.distance[rows[ok], best[ok]]
+        boxes[ok, c] = scene.boxes[rows[ok], best[ok]].astype(np.float32)
+    return GroundTruth(present, boxes, pixels, distance, instance)
+
+
+def ground_truth_reference(scene: Scene) -> GroundTruth:
+    """Slow reference for :func:`ground_truth`: loops over states and objects."""
+    S = scene.num_states
+    present = np.zeros((S, NUM_CATEGORIES), bool)
+    boxes = np.full((S, NUM_CATEGORIES, 4), -1.0, np.float32)
+    pixels = np.zeros((S, NUM_CATEGORIES), np.int32)
+    distance = np.full((S, NUM_CATEGORIES), np.nan, np.float32)
+    instance = np.full((S, NUM_CATEGORIES), -1, np.int64)
+    mp = min_pixels(scene)
+    for s in range(S):
+        best: dict[int, tuple] = {}
+        for o in range(len(scene.object_ids)):
+            c = int(scene.object_category[o])
+            px = int(scene.pixels[s, o])
+            if c < 0 or px < mp:
+                continue
+            d = float(scene.distance[s, o])
+            rank = (-px, d if np.isfinite(d) else np.inf, o)
+            if c not in best or rank < best[c]:
+                best[c] = rank
+        for c, (_, _, o) in best.items():
+            present[s, c] = True
+            instance[s, c] = o
+            pixels[s, c] = scene.pixels[s, o]
+            distance[s, c] = scene.distance[s, o]
+            boxes[s, c] = scene.boxes[s, o]
+    return GroundTruth(present, boxes, pixels, distance, instance)
+
+
+def oracle_confidence(pixels: np.ndarray, distance: np.ndarray, image_size: int,
+                      cfg: OracleConfig | None = None) -> np.ndarray:
+    """Oracle confidence (float32 in [0, 1]) of instances showing ``pixels`` pixels at ``distance`` metres in a
+    ``image_size``-square frame; 0 where ``pixels`` is 0. Formula in the module docstring."""
+    cfg = cfg or OracleConfig()
+    pixels = np.asarray(pixels, dtype=np.float64)
+    frac = pixels / float(image_size) ** 2
+    d = np.asarray(distance, dtype=np.float64)
+    dist_term = np.where(np.isfinite(d), cfg.distance_gain * (cfg.half_distance - np.nan_to_num(d)), 0.0)
+    with np.errstate(divide="ignore"):
+        logit = cfg.size_gain * np.log(np.maximum(frac, 1e-12) / cfg.half_fraction) + dist_term
+    conf = 1.0 / (1.0 + np.exp(-logit))
+    return np.where(pixels > 0, conf, 0.0).astype(np.float32)
+
+
+def category_code(seed: int = 0) -> np.ndarray:
+    """``(22, 32)`` fixed category code of the oracle feature: random signs scaled to unit norm."""
+    rng = np.random.default_rng(seed)
+    return (rng.integers(0, 2, size=(NUM_CATEGORIES, _CODE_DIM)) * 2 - 1).astype(np.float32) / np.sqrt(_CODE_DIM)
+
+
+def oracle_features(gt: GroundTruth, conf: np.ndarray, image_size: int, seed: int = 0) -> np.ndarray:
+    """``(S, 22, 64)`` float16 oracle feature (layout in the module docstring)."""
+    S = gt.present.shape[0]
+    W = float(image_size)
+    pres = gt.present[..., None].astype(np.float32)
+    code = category_code(seed)[None] * conf[..., None]  # (S, 22, 32)
+    b = gt.boxes.astype(np.float32)
+    x0, y0, x1, y1 = b[..., 0], b[..., 1], b[..., 2] + 1, b[..., 3] + 1
+    g = np.stack([(x0 + x1) / 2 / W, (y0 + y1) / 2 / W, (x1 - x0) / W, (y1 - y0) / W], axis=-1)  # (S, 22, 4)
+    ang = np.pi * g[..., None, :] * (2.0 ** np.arange(_FOURIER_OCTAVES, dtype=np.float32))[:, None]  # (S,22,3,4)
+    four = np.concatenate([np.sin(ang), np.cos(ang)], axis=-2).reshape(S, NUM_CATEGORIES, -1) * pres
+    frac = gt.pixels.astype(np.float32) / W ** 2
+    dist = np.minimum(np.nan_to_num(gt.distance, nan=5.0), 5.0) / 5.0
+    tail = np.stack([conf, gt.present.astype(np.float32), np.sqrt(frac), dist, x0 / W, y0 / W, x1 / W, y1 / W],
+                    axis=-1) * pres
+    out = np.concatenate([code, four, tail], axis=-1)
+    assert out.shape[-1] == ORACLE_FEATURE_DIM
+    return out.astype(np.float16)
+
+
+def oracle_detections(scene: Scene, cfg: OracleConfig | None = None) -> Detections:
+    """The oracle detector's table for every state of ``scene`` (module docstring)."""
+    cfg = cfg or OracleConfig()
+    if scene.image_size <= 0:
+        raise ValueError(f"scene {scene.name}: unknown image size (scene.json / states.hdf5)")
+    gt = ground_truth(scene)
+    conf = oracle_confidence(gt.pixels, gt.distance, scene.image_size, cfg)
+    labels = np.where(gt.present, np.arange(NUM_CATEGORIES, dtype=np.int16)[None, :], -1).astype(np.int16)
+    return Detections(keys=scene.keys, scores=conf, labels=labels, boxes=gt.boxes,
+                      features=oracle_features(gt, conf, scene.image_size, cfg.seed), detector="oracle",
+                      config=asdict(cfg), fingerprint=cfg.fingerprint(), image_size=scene.image_size)

@@ -1,0 +1,225 @@
+"""The per-state detection table stored with each scene (DESIGN.md "Detector").
+
+The lineage (SAVN -> ... -> IOM, the paper's Fig. 2 "DETR" box) caches, for every state of a scene, the
+best detection of each of the 22 target classes. This project stores it per scene folder as
+``detections_<name>.hdf5`` (``name`` = the detector, e.g. ``oracle`` or ``learned``):
+
+=============  =====================  ==================================================================
+dataset        shape / dtype          content
+=============  =====================  ==================================================================
+``keys``       ``(S,)`` bytes         state keys, sorted, the order of ``Scene.keys`` (row = state id)
+``scores``     ``(S, 22)`` float32    confidence in [0, 1] that the class is in view (paper III-B uses it
+                                      for the stage switch, C_target = 0.7)
+``labels``     ``(S, 22)`` int16      the category index ``c`` in column ``c`` when a detection is kept,
+                                      -1 when there is none
+``boxes``      ``(S, 22, 4)`` float32 ``[x0, y0, x1, y1]`` in pixels of the frame, inclusive corners (the
+                                      convention of ``Scene.boxes``); -1 where the label is -1
+``features``   ``(S, 22, F)`` float16 per-class feature vector (the lineage's DETR decoder feature is
+                                      256-d; this project's detectors give 64-d, see their modules)
+=============  =====================  ==================================================================
+
+File attributes: ``detector`` (kind, e.g. ``oracle``), ``name``, ``fingerprint`` (identifies the exact
+detector: config and weights), ``config`` (JSON of the detector's resolved configuration),
+``image_size``.
+
+Files are written to a temporary name and renamed, so a file that exists is complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..constants import NUM_CATEGORIES
+
+_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def check_name(name: str) -> str:
+    """Return ``name`` if it is usable in ``detections_<name>.hdf5``; ``ValueError`` otherwise."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ValueError(f"detector name {name!r} must use only letters, digits, '_', '-' and '.'")
+    return name
+
+
+def detections_path(scene_dir: str | Path, name: str) -> Path:
+    """Path of the detection table ``detections_<name>.hdf5`` of a scene folder."""
+    return Path(scene_dir) / f"detections_{check_name(name)}.hdf5"
+
+
+@dataclass
+class Detections:
+    """Best detection per class for every state of a scene (or of several scenes, concatenated).
+
+    Attributes (``S`` states, 22 classes, ``F`` feature size):
+        keys: ``(S,)`` str state keys (sorted per scene, the order of ``Scene.keys``).
+        scores: ``(S, 22)`` float32 confidence in [0, 1].
+        labels: ``(S, 22)`` int16 category index, -1 where no detection is kept.
+        boxes: ``(S, 22, 4)`` float32 ``[x0, y0, x1, y1]`` pixels, inclusive corners; -1 without detection.
+        features: ``(S, 22, F)`` float16 per-class feature.
+        detector: the detector kind (``oracle`` / ``learned``).
+        config: the detector's resolved configuration (JSON-able dict).
+        fingerprint: identifies the detector (config hash, plus the weights' hash for learned ones).
+        image_size: side of the square frames the boxes refer to, pixels.
+    """
+
+    keys: np.ndarray
+    scores: np.ndarray
+    labels: np.ndarray
+    boxes: np.ndarray
+    features: np.ndarray
+    detector: str = ""
+    config: dict = field(default_factory=dict)
+    fingerprint: str = ""
+    image_size: int = 0
+
+    def __post_init__(self) -> None:
+        self.keys = np.asarray(self.keys, dtype=str)
+        self.scores = np.asarray(self.scores, dtype=np.float32)
+        self.labels = np.asarray(self.labels, dtype=np.int16)
+        self.boxes = np.asarray(self.boxes, dtype=np.float32)
+        self.features = np.asarray(self.features, dtype=np.float16)
+        self.validate()
+
+    @property
+    def num_states(self) -> int:
+        return len(self.keys)
+
+    @property
+    def feature_dim(self) -> int:
+        return int(self.features.shape[-1])
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first array whose shape or values break the table contract."""
+        S, C = len(self.keys), NUM_CATEGORIES
+        for name, arr, shape in (("scores", self.scores, (S, C)), ("labels", self.labels, (S, C)),
+                                 ("boxes", self.boxes, (S, C, 4))):
+            if arr.shape != shape:
+                raise ValueError(f"detections: {name} must have shape {shape}, got {arr.shape}")
+        if self.features.ndim != 3 or self.features.shape[:2] != (S, C):
+            raise ValueError(f"detections: features must have shape ({S}, {C}, F), got {self.features.shape}")
+        if S and not (np.isfinite(self.scores).all() and self.scores.min() >= 0 and self.scores.max() <= 1):
+            raise ValueError("detections: scores must be finite and in [0, 1]")
+        ok = (self.labels == -1) | (self.labels == np.arange(C, dtype=np.int16)[None, :])
+        if not ok.all():
+            raise ValueError("detections: labels must be the column's category index or -1")
+
+    def rows(self) -> np.ndarray:
+        """``(S, 22, 6)`` float32 rows ``(score, label, x0, y0, x1, y1)`` (the form of
+        :meth:`tsnav.sim.batch.SceneBank.set_detections`)."""
+        return np.concatenate([self.scores[..., None], self.labels[..., None].astype(np.float32), self.boxes],
+                              axis=-1).astype(np.float32)
+
+    @classmethod
+    def concatenate(cls, parts: Sequence["Detections"]) -> "Detections":
+        """Stack the tables of several scenes (in the given order); they must share the feature size."""
+        if not parts:
+            raise ValueError("detections: nothing to concatenate")
+        dims = {p.feature_dim for p in parts}
+        if len(dims) > 1:
+            raise ValueError(f"detections: feature sizes differ between scenes ({sorted(dims)})")
+        p0 = parts[0]
+        return cls(keys=np.concatenate([p.keys for p in parts]),
+                   scores=np.concatenate([p.scores for p in parts]),
+                   labels=np.concatenate([p.labels for p in parts]),
+                   boxes=np.concatenate([p.boxes for p in parts]),
+                   features=np.concatenate([p.features for p in parts]),
+                   detector=p0.detector, config=p0.config, fingerprint=p0.fingerprint, image_size=p0.image_size)
+
+
+def _attr_str(x) -> str:
+    return x.decode() if isinstance(x, bytes) else str(x)
+
+
+def write_detections(scene_dir: str | Path, name: str, det: Detections) -> Path:
+    """Write ``det`` to ``scene_dir/detections_<name>.hdf5`` atomically (temp file + rename)."""
+    import h5py
+
+    det.validate()
+    if len(det.keys) > 1 and not (det.keys[:-1] < det.keys[1:]).all():
+        raise ValueError("detections: keys must be sorted and unique (the order of Scene.keys)")
+    path = detections_path(scene_dir, name)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset("keys", data=det.keys.astype("S"), track_times=False)
+            f.create_dataset("scores", data=det.scores, track_times=False)
+            f.create_dataset("labels", data=det.labels, track_times=False)
+            f.create_dataset("boxes", data=det.boxes, track_times=False)
+            f.create_dataset("features", data=det.features, track_times=False)
+            f.attrs["detector"] = det.detector
+            f.attrs["name"] = name
+            f.attrs["fingerprint"] = det.fingerprint
+            f.attrs["config"] = json.dumps(det.config, sort_keys=True)
+            f.attrs["image_size"] = int(det.image_size)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_fingerprint(scene_dir: str | Path, name: str) -> str | None:
+    """Fingerprint of the detector that wrote a scene's table, or None when the scene has no table."""
+    import h5py
+
+    path = detections_path(scene_dir, name)
+    if not path.exists():
+        return None
+    try:
+        with h5py.File(path, "r") as f:
+            return _attr_str(f.attrs.get("fingerprint", ""))
+    except OSError as e:
+        raise ValueError(f"{path}: unreadable ({e})") from None
+
+
+def load_detections(scene_dir: str | Path, name: str) -> Detections:
+    """Read ``scene_dir/detections_<name>.hdf5`` into a :class:`Detections` (one-line error when absent or
+    malformed)."""
+    import h5py
+
+    path = detections_path(scene_dir, name)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no detection table (run `tsnav detect --detector ...`)")
+    try:
+        with h5py.File(path, "r") as f:
+            cfg = _attr_str(f.attrs.get("config", "{}"))
+            return Detections(keys=f["keys"][()].astype(str), scores=f["scores"][()], labels=f["labels"][()],
+                              boxes=f["boxes"][()], features=f["features"][()],
+                              detector=_attr_str(f.attrs.get("detector", "")), config=json.loads(cfg),
+                              fingerprint=_attr_str(f.attrs.get("fingerprint", "")),
+                              image_size=int(f.attrs.get("image_size", 0)))
+    except (OSError, KeyError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: unreadable detection table ({e})") from None
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
+def load_scene_detections(scenes: Sequence, name: str) -> Detections:
+    """The tables of ``scenes`` (:class:`~tsnav.data.reader.Scene` objects) concatenated in that order,
+    each checked against its scene's state keys."""
+    parts = []
+    for s in scenes:
+        d = load_detections(s.path, name)
+        if len(d.keys) != len(s.keys) or not (d.keys == s.keys).all():
+            raise ValueError(f"{detections_path(s.path, name)}: its states do not match scene {s.name} "
+                             f"(rerun `tsnav detect`)")
+        parts.append(d)
+    return Detections.concatenate(parts)
+
+
+def install_detections(bank, name: str) -> Detections:
+    """Load ``detections_<name>.hdf5`` of every scene of ``bank`` (a :class:`~tsnav.sim.batch.SceneBank`) in
+    bank order and install them: ``bank.set_confidence(scores)`` (drives the stage switch, paper III-B) and
+    ``bank.set_detections(rows)``. Returns the concatenated table (its ``features`` are row-aligned with the
+    bank's global state ids)."""
+    det = load_scene_detections(bank.scenes, name)
+    bank.set_confidence(det.scores)
+    bank.set_detections(det.rows())
+    return det
