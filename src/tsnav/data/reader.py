@@ -47,7 +47,8 @@ class Scene:
         object_ids: ``(O,)`` AI2-THOR-style object ids; object_category: ``(O,)`` index into
             ``TARGET_CATEGORIES`` (-1 for non-target objects).
         visible: ``(S, O)`` bool, from ``visible_object_map_1.5.json`` (in view and within 1.5 m).
-        distance: ``(S, O)`` float32 metres from the camera to the nearest point of the object's 3-D box
+        distance: ``(S, O)`` float32 metres on the floor plane from the agent position to the nearest point of
+            the object's footprint (the success distance of paper III-A),
             (NaN when unknown, e.g. imported data without metadata).
         pixels: ``(S, O)`` int32 visible pixel count in the rendered frame (-1 when unknown).
         boxes: ``(S, O, 4)`` int16 ``[x0, y0, x1, y1]`` pixel box of the visible part (-1 when not visible).

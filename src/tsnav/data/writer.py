@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..constants import CAMERA_HEIGHT, HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
+from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
 from ..world.house import generate
 from ..world.navgrid import build_graph, reachable_positions
 from ..world.spec import SceneSpec
@@ -59,19 +59,26 @@ class SceneStats:
 
 
 def box_distance(points: np.ndarray, centers: np.ndarray, sizes: np.ndarray, yaws: np.ndarray) -> np.ndarray:
-    """Euclidean distance (P, O) from points (P, 3) to oriented boxes (base centre, size, yaw degrees)."""
+    """Horizontal distance (P, O), metres, from agent positions (P, 2: x, z) to oriented box footprints.
+
+    The paper's success rule ("the agent is within 1 meter of the target object", III-A) is measured on the
+    floor plane from the agent's position to the nearest point of the object's footprint, so that objects on
+    the floor and on a table are judged alike (a 3-D distance from a camera 1.5 m up would put every object
+    lower than about 0.5 m out of reach). Boxes: base centre (x, y, z), size (x, y, z), yaw in degrees.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape[-1] == 3:  # accept (x, y, z) rows; y is ignored
+        points = points[:, [0, 2]]
     c = np.cos(np.deg2rad(yaws))[None, :]
     s = np.sin(np.deg2rad(yaws))[None, :]
     dx = points[:, None, 0] - centers[None, :, 0]
-    dy = points[:, None, 1] - (centers[None, :, 1] + sizes[None, :, 1] / 2)
-    dz = points[:, None, 2] - centers[None, :, 2]
+    dz = points[:, None, 1] - centers[None, :, 2]
     # world -> local: inverse of (x = c lx + s lz, z = -s lx + c lz)
     lx = c * dx - s * dz
     lz = s * dx + c * dz
     ex = np.maximum(np.abs(lx) - sizes[None, :, 0] / 2, 0)
-    ey = np.maximum(np.abs(dy) - sizes[None, :, 1] / 2, 0)
     ez = np.maximum(np.abs(lz) - sizes[None, :, 2] / 2, 0)
-    return np.sqrt(ex ** 2 + ey ** 2 + ez ** 2)
+    return np.sqrt(ex ** 2 + ez ** 2)
 
 
 def object_stats(ids: np.ndarray, lut: np.ndarray, num_objects: int):
@@ -188,10 +195,9 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer=None)
             img_f.close()
             dep_f.close()
             img_f = dep_f = None
-        # Distances: camera (height 1.5 m) to the nearest point of each object's 3-D box; per position.
-        cams = np.stack([positions[:, 0], np.full(len(positions), CAMERA_HEIGHT), positions[:, 1]], axis=1)
+        # Distances: agent position to the nearest point of each object's footprint (floor plane); per position.
         if O:
-            dist_pos = box_distance(cams, np.array([o.center for o in objects]), np.array([o.size for o in objects]),
+            dist_pos = box_distance(positions, np.array([o.center for o in objects]), np.array([o.size for o in objects]),
                                     np.array([o.yaw for o in objects]))
         else:
             dist_pos = np.zeros((len(positions), 0))

@@ -22,7 +22,7 @@ from ..constants import ROOM_TARGETS, ROOM_TYPES
 from .catalog import FLOORS, FURNITURE_SIZES, OBJECT_SIZES, WALLS, build_parts, draw_size, jitter, material
 from .spec import Furniture, ObjectInstance, Part, SceneSpec, box_footprint
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 WALL_T = 0.1
 DOOR_W = 1.0
 
@@ -137,13 +137,13 @@ class RoomBuilder:
             # yaw: the front faces into the room. side 0: wall at z0 (front +z, yaw 0); 1: x1 (yaw 270);
             # 2: z1 (yaw 180); 3: x0 (yaw 90).
             if side == 0:
-                cx, cz, yaw = self.rng.uniform(x0 + w / 2, max(x0 + w / 2, x1 - w / 2)), z0 + d / 2 + 0.01, 0.0
+                cx, cz, yaw = self.rng.uniform(x0 + w / 2, max(x0 + w / 2, x1 - w / 2)), z0 + d / 2 + 0.06, 0.0
             elif side == 2:
-                cx, cz, yaw = self.rng.uniform(x0 + w / 2, max(x0 + w / 2, x1 - w / 2)), z1 - d / 2 - 0.01, 180.0
+                cx, cz, yaw = self.rng.uniform(x0 + w / 2, max(x0 + w / 2, x1 - w / 2)), z1 - d / 2 - 0.06, 180.0
             elif side == 1:
-                cx, cz, yaw = x1 - d / 2 - 0.01, self.rng.uniform(z0 + w / 2, max(z0 + w / 2, z1 - w / 2)), 270.0
+                cx, cz, yaw = x1 - d / 2 - 0.06, self.rng.uniform(z0 + w / 2, max(z0 + w / 2, z1 - w / 2)), 270.0
             else:
-                cx, cz, yaw = x0 + d / 2 + 0.01, self.rng.uniform(z0 + w / 2, max(z0 + w / 2, z1 - w / 2)), 90.0
+                cx, cz, yaw = x0 + d / 2 + 0.06, self.rng.uniform(z0 + w / 2, max(z0 + w / 2, z1 - w / 2)), 90.0
             poly = Polygon(box_footprint((cx, 0, cz), size, yaw))
             if self._free(poly):
                 return (round(cx, 3), 0.0, round(cz, 3)), yaw
@@ -193,8 +193,10 @@ class RoomBuilder:
             fx, _, fz = on.center
             fw, _, fd = on.size
             hx, hz = fw / 2 - inset - size[0] / 2, fd / 2 - inset - size[2] / 2
-            if hx < 0 or hz < 0:
-                return None
+            if hx < 0 or hz < 0:  # too big for the margin: centre it when it fits at all (a sink in a vanity)
+                if fw < size[0] or fd < size[2]:
+                    return None
+                hx, hz = max(hx, 0.0), max(hz, 0.0)
             for _ in range(20):
                 lx, lz = self.rng.uniform(-hx, hx), self.rng.uniform(-hz, hz)
                 if on.category == "Sofa":
@@ -260,13 +262,13 @@ class RoomBuilder:
             side = int(self.rng.integers(4))
             t = self.rng.uniform(0.3, 0.7)
             if side == 0:
-                c, yaw = (x0 + t * (x1 - x0), 1.2, z0 + 0.015), 0.0
+                c, yaw = (x0 + t * (x1 - x0), 1.2, z0 + 0.065), 0.0
             elif side == 2:
-                c, yaw = (x0 + t * (x1 - x0), 1.2, z1 - 0.015), 180.0
+                c, yaw = (x0 + t * (x1 - x0), 1.2, z1 - 0.065), 180.0
             elif side == 1:
-                c, yaw = (x1 - 0.015, 1.2, z0 + t * (z1 - z0)), 270.0
+                c, yaw = (x1 - 0.065, 1.2, z0 + t * (z1 - z0)), 270.0
             else:
-                c, yaw = (x0 + 0.015, 1.2, z0 + t * (z1 - z0)), 90.0
+                c, yaw = (x0 + 0.065, 1.2, z0 + t * (z1 - z0)), 90.0
             poly = Polygon(box_footprint(c, (0.3, 0, 0.3), yaw))
             if not any(poly.intersects(o) for o in self.occupied[1:]):
                 return self.add_object("LightSwitch", None, at=tuple(round(v, 3) for v in c), yaw=yaw)
@@ -280,7 +282,7 @@ class RoomBuilder:
         for category, where, p in TEMPLATES[self.type]:
             if self.rng.random() < p:
                 self.add_furniture(category, where)
-        present = [c for c in targets if self.rng.random() < 0.85]
+        present = [c for c in targets if self.rng.random() < (0.85 if len(targets) > 3 else 1.0)]
         if not present:
             present = [targets[int(self.rng.integers(len(targets)))]]
         for category in present:
