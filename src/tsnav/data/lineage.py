@@ -1,0 +1,251 @@
+"""What the SAVN / VTNet / DOA / IOM / DAT code expects of an ``AI2Thor_offline_data_2.0.2`` scene folder.
+
+The lineage's offline data is one folder per scene (``FloorPlan1`` ... or ``FloorPlan1_physics``) holding:
+
+=================================  ======================================================================
+``graph.json``                     networkx ``node_link_data`` of a ``DiGraph``: ``{"directed": true,
+                                   "multigraph": false, "graph": {}, "nodes": [{"id": key}], "links":
+                                   [{"source": key, "target": key}]}``; one edge per successful action
+``grid.json``                      reachable positions ``[{"x": float, "y": float, "z": float}]``
+``visible_object_map_1.5.json``    ``{objectId: [state key, ...]}`` (SAVN calls it ``visible_object_map.json``)
+``metadata.json`` (older sets)     ``{state key: event.metadata}`` (the raw AI2-THOR metadata of each state)
+``images.hdf5``                    one dataset per state key: RGB ``uint8 (H, W, 3)`` (300 x 300 in the lineage)
+``depth.hdf5`` (optional)          one dataset per state key: depth ``(H, W)`` float, metres
+``resnet18_featuremap.hdf5``       one dataset per state key: ``float32 (512, 7, 7)``
+``detr_features_22cls.hdf5`` /     one dataset per state key: ``float32 (R, 264)``, R = 22: columns 0-255 the
+``det_feature_categories.hdf5``    DETR decoder feature, 256 the score, 257 the label (category index + 1;
+                                   0 = padding, 23 = no object), 258-259 unused, 260-263 the box
+                                   ``[x0, y0, x1, y1]`` in pixels of the 300 x 300 frame
+=================================  ======================================================================
+
+State keys are ``"{x:.2f}|{z:.2f}|{rotation:d}|{horizon:d}"`` (``constants.state_key``); object ids
+are AI2-THOR's ``Type|x|y|z`` (e.g. ``Fridge|-02.10|+00.00|+01.07``).
+
+This module holds that format knowledge and the pieces shared by import and export: the floor polygon
+derived from the reachable grid, and the conversion between the lineage's 22 x 264 detection table and
+the detect stage's per-category table (:class:`tsnav.detect.table.Detections`).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..constants import GRID_SIZE, NUM_CATEGORIES
+from .reader import SceneFormatError
+
+GRAPH_FILE = "graph.json"
+GRID_FILE = "grid.json"
+VISIBLE_MAP_FILE = "visible_object_map_1.5.json"
+#: SAVN's name of the same map (the later papers renamed it after the 1.5 m visibility distance).
+VISIBLE_MAP_FILE_SAVN = "visible_object_map.json"
+METADATA_FILE = "metadata.json"
+IMAGES_FILE = "images.hdf5"
+DEPTH_FILE = "depth.hdf5"
+RESNET_FILE = "resnet18_featuremap.hdf5"
+#: Names under which the lineage stores the 22-class DETR table (DOA/IOM/DAT, then VTNet/HOZ).
+DETECTION_FILES = ("detr_features_22cls.hdf5", "det_feature_categories.hdf5")
+#: Name of the imported table in the detect stage's layout (``detections_<name>.hdf5``, tsnav.detect.table).
+DETECTIONS_LINEAGE_NAME = "lineage"
+DETECTIONS_LINEAGE_FILE = f"detections_{DETECTIONS_LINEAGE_NAME}.hdf5"
+#: Other per-state files of the lineage that the import carries over unchanged.
+EXTRA_FILES = (RESNET_FILE, "optimal_action.json")
+
+#: Columns of the lineage's detection table.
+FEATURE_DIM = 256
+SCORE_COL = 256
+LABEL_COL = 257
+BOX_COLS = slice(260, 264)
+TABLE_WIDTH = 264
+#: Label of DETR's "no object" class in the table (labels 1..22 are the target categories).
+NO_OBJECT_LABEL = NUM_CATEGORIES + 1
+#: Label of rows that hold no kept detection (the lineage's zero padding rows carry 0; never a target).
+EMPTY_LABEL = 0
+#: Frame size the lineage's boxes refer to, pixels.
+LINEAGE_IMAGE_SIZE = 300
+
+#: A state key written by ``ThorAgentState.__str__``: two decimals for x and z, integer degrees.
+KEY_PATTERN = re.compile(r"^-?\d+\.\d\d\|-?\d+\.\d\d\|\d+\|-?\d+$")
+
+
+def parse_object_id(object_id: str) -> tuple[str, np.ndarray | None]:
+    """``(objectType, position)`` of an AI2-THOR object id ``Type|x|y|z``; position ``(3,)`` metres or ``None``
+    when the id carries none (e.g. ids of sliced objects with a fifth part keep the parent's position)."""
+    parts = str(object_id).split("|")
+    if len(parts) < 4:
+        return parts[0], None
+    try:
+        return parts[0], np.array([float(parts[1]), float(parts[2]), float(parts[3])])
+    except ValueError:
+        return parts[0], None
+
+
+# ------------------------------------------------------------------------------------------- floor
+def derive_floor(grid_positions, cell: float = GRID_SIZE) -> list[np.ndarray]:
+    """Floor polygons from reachable positions: the union of ``cell`` x ``cell`` squares centred on them.
+
+    ``grid_positions``: ``(P, 2)`` array of (x, z) metres, or ``grid.json``'s list of ``{"x", "y", "z"}``.
+    Returns a list of ``(N, 2)`` (x, z) exterior rings (closed: last vertex = first), one per connected
+    part, largest first. Holes (where furniture stands) are filled: the floor continues under furniture and
+    the searched area of TSRM (paper section III-B) counts floor seen around it. Every reachable position
+    is the centre of its square, so the floor covers it with a margin of ``cell / 2``.
+    """
+    import shapely
+
+    if isinstance(grid_positions, (list, tuple)) and grid_positions and isinstance(grid_positions[0], dict):
+        pts = np.array([[p["x"], p["z"]] for p in grid_positions], dtype=np.float64)
+    else:
+        pts = np.asarray(grid_positions, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        raise ValueError("no reachable positions to derive a floor from")
+    h = cell / 2
+    cells = shapely.box(pts[:, 0] - h, pts[:, 1] - h, pts[:, 0] + h, pts[:, 1] + h)
+    union = shapely.union_all(cells, grid_size=1e-6)
+    parts = list(union.geoms) if hasattr(union, "geoms") else [union]
+    parts = sorted((p for p in parts if p.area > 0), key=lambda p: -p.area)
+    return [np.round(np.asarray(p.exterior.coords, dtype=np.float64), 6) for p in parts]
+
+
+# ------------------------------------------------------------------------------- detection tables
+def table_to_22x264(det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> np.ndarray:
+    """The lineage's ``(S, 22, 264)`` float32 rows from a tsnav detection table (row ``c`` = category ``c``).
+
+    ``det``: a :class:`tsnav.detect.table.Detections` with 256-d features. Label column: ``c + 1`` where
+    ``labels[s, c] == c``, :data:`EMPTY_LABEL` (0, the label of the lineage's zero padding rows, never a
+    target) where it is -1; score, box and feature are written as they are in both cases. Boxes are
+    rescaled from ``det.image_size`` to ``box_size`` pixels (kept as they are when ``box_size`` is None).
+    Raises ``ValueError`` when the features are not 256-d.
+    """
+    feats = np.asarray(det.features)
+    if feats.shape[2] != FEATURE_DIM:
+        raise ValueError(f"the lineage's table holds {FEATURE_DIM}-d features; this detection table has "
+                         f"{feats.shape[2]}-d (the lineage's layout needs DETR's 256-d decoder features)")
+    labels = np.asarray(det.labels).astype(np.int64)
+    out = np.zeros((len(det.keys), NUM_CATEGORIES, TABLE_WIDTH), np.float32)
+    out[:, :, :FEATURE_DIM] = feats.astype(np.float32)
+    out[:, :, SCORE_COL] = np.asarray(det.scores, np.float32)
+    out[:, :, LABEL_COL] = np.where(labels >= 0, labels + 1, EMPTY_LABEL)
+    boxes = np.asarray(det.boxes, np.float64)
+    if box_size is not None and det.image_size and int(box_size) != int(det.image_size):
+        boxes = boxes * (float(box_size) / float(det.image_size))
+    out[:, :, BOX_COLS] = boxes.astype(np.float32)
+    return out
+
+
+def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SIZE, out_size: int | None = None,
+                      source: str = ""):
+    """The best detection per category from the lineage's ``(S, R, 264)`` rows, as a
+    :class:`tsnav.detect.table.Detections` (the inverse of :func:`table_to_22x264`).
+
+    For each state and category ``c`` the row labelled ``c + 1`` with the highest score is taken (how the
+    lineage's agents read DETR's table). Where no row carries that label: if the table has 22 rows and row
+    ``c`` is labelled :data:`EMPTY_LABEL`, row ``c`` is kept as it is with label -1 (so a table written by
+    :func:`table_to_22x264` reads back exactly); otherwise score 0, box -1, feature 0, label -1 (rows of
+    DETR's "no object" class, 23, never count as a detection). Boxes are rescaled from ``image_size`` to
+    ``out_size`` pixels when ``out_size`` is given.
+    """
+    from ..detect.table import Detections
+
+    rows = np.asarray(rows, dtype=np.float32)
+    if rows.ndim != 3 or rows.shape[2] != TABLE_WIDTH:
+        raise ValueError(f"expected (S, R, {TABLE_WIDTH}) detection rows, got shape {rows.shape}")
+    S, R, _ = rows.shape
+    cats = np.arange(NUM_CATEGORIES)
+    lab = np.round(rows[:, :, LABEL_COL]).astype(np.int64)  # (S, R)
+    match = lab[:, :, None] == (cats + 1)[None, None, :]  # (S, R, 22)
+    best = np.argmax(np.where(match, rows[:, :, SCORE_COL][:, :, None], -np.inf), axis=1)  # (S, 22)
+    found = match.any(axis=1)
+    own = np.zeros_like(found)
+    if R == NUM_CATEGORIES:
+        own = ~found & (lab == EMPTY_LABEL)  # row c, unlabelled, stays in place
+    pick = np.where(found, best, cats[None, :])
+    sel = np.take_along_axis(rows, pick[:, :, None], axis=1)  # (S, 22, 264)
+    keep = found | own
+    boxes = np.where(keep[:, :, None], sel[:, :, BOX_COLS].astype(np.float64), -1.0)
+    size = int(image_size)
+    if out_size is not None and int(out_size) != size:
+        boxes = np.where(keep[:, :, None], boxes * (float(out_size) / float(size)), -1.0)
+        size = int(out_size)
+    return Detections(keys=np.asarray(keys, dtype=str),
+                      scores=np.where(keep, sel[:, :, SCORE_COL], 0).astype(np.float32),
+                      labels=np.where(found, cats[None, :], -1).astype(np.int16),
+                      boxes=boxes.astype(np.float32),
+                      features=np.where(keep[:, :, None], sel[:, :, :FEATURE_DIM], 0).astype(np.float16),
+                      detector="lineage", config={"source": source, "box_frame": size},
+                      fingerprint=_rows_fingerprint(rows), image_size=size)
+
+
+def _rows_fingerprint(rows: np.ndarray) -> str:
+    import hashlib
+
+    return "lineage-" + hashlib.sha256(np.ascontiguousarray(rows).tobytes()).hexdigest()[:16]
+
+
+def read_detections_22x264(path: str | Path, image_size: int = LINEAGE_IMAGE_SIZE, keys=None):
+    """Read a lineage detection file (one ``(R, 264)`` dataset per state key) as
+    :class:`tsnav.detect.table.Detections`.
+
+    ``keys``: the states to read, in order (default: every dataset of the file, sorted); a key the file lacks
+    gets an empty row (score 0, label -1, box -1). Boxes stay in pixels of the ``image_size`` frame they
+    were computed on (300 in the lineage). :class:`SceneFormatError` naming the file and the problem for a
+    missing or truncated file or a dataset of the wrong shape.
+    """
+    import h5py
+
+    path = Path(path)
+    if not path.exists():
+        raise SceneFormatError(f"{path}: missing file")
+    try:
+        with h5py.File(path, "r") as f:
+            names = sorted(f.keys()) if keys is None else [str(k) for k in keys]
+            if not names:
+                raise SceneFormatError(f"{path}: no state datasets")
+            stack, present = [], []
+            for k in names:
+                if k not in f:
+                    stack.append(None)
+                    continue
+                d = f[k]
+                if not isinstance(d, h5py.Dataset) or d.ndim != 2 or d.shape[1] != TABLE_WIDTH:
+                    shape = getattr(d, "shape", "a group")
+                    raise SceneFormatError(f"{path}: state {k!r} holds {shape}, expected an (R, {TABLE_WIDTH}) table")
+                stack.append(d[()])
+                present.append(len(stack) - 1)
+            counts = {stack[i].shape[0] for i in present}
+            if len(counts) > 1:
+                raise SceneFormatError(f"{path}: states hold tables with different row counts {sorted(counts)}")
+            if not present:
+                raise SceneFormatError(f"{path}: none of the requested states is in the file")
+    except OSError as e:
+        raise SceneFormatError(f"{path}: unreadable HDF5 ({' '.join(str(e).split())})") from None
+    R = counts.pop()
+    empty = np.zeros((R, TABLE_WIDTH), np.float32)
+    empty[:, LABEL_COL] = NO_OBJECT_LABEL
+    rows = np.stack([empty if a is None else a for a in stack]).astype(np.float32)
+    try:
+        return table_from_22x264(names, rows, image_size=image_size, source=path.name)
+    except ValueError as e:
+        raise SceneFormatError(f"{path}: {e}") from None
+
+
+def write_detections_22x264(path: str | Path, det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> Path:
+    """Write the lineage's file from a :class:`tsnav.detect.table.Detections`: one float32 ``(22, 264)``
+    dataset per state key (atomic: a temporary file renamed when complete)."""
+    import h5py
+
+    path = Path(path)
+    rows = table_to_22x264(det, box_size)
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w") as f:
+            for k, r in zip(np.asarray(det.keys, dtype=str).tolist(), rows):
+                f.create_dataset(k, data=r, track_times=False)
+            f.attrs["box_frame"] = int(box_size if box_size is not None else det.image_size)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path

@@ -1,0 +1,239 @@
+"""Export tsnav scenes to the lineage's layout, and check a folder against what the lineage's readers expect.
+
+tsnav scene folders already hold the lineage's files (``graph.json``, ``grid.json``,
+``visible_object_map_1.5.json``, ``images.hdf5``); what the lineage's agents additionally read is the
+22 x 264 DETR table, written here from a tsnav detection table (:mod:`tsnav.detect.table`).
+:func:`check_lineage_layout` lists every way a folder departs from the layout of
+:mod:`tsnav.data.lineage` (key formats, JSON shapes, HDF5 dataset names and dtypes), as SAVN's
+``OfflineControllerWithSmallRotation`` and the VTNet / DOA / IOM episode readers would meet it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..constants import HORIZONS, ROTATIONS
+from . import lineage as L
+from .reader import SceneFormatError, edge_actions
+
+#: At most this many problems are reported per check (a broken file would otherwise list every state).
+MAX_REPORTED = 5
+
+
+def _json(path: Path, problems: list[str]):
+    if not path.exists():
+        problems.append(f"{path.name}: missing file")
+        return None
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except json.JSONDecodeError as e:
+        problems.append(f"{path.name}: not valid JSON ({e.msg} at line {e.lineno})")
+    return None
+
+
+def _bad_keys(keys: list[str]) -> list[str]:
+    """Keys that are not ``x|z|rotation|horizon`` with 2 decimals and a rotation / horizon of the lineage."""
+    out = []
+    rot_ok, hor_ok = {str(r) for r in ROTATIONS}, {str(h) for h in HORIZONS}
+    for k in keys:
+        if not isinstance(k, str) or not L.KEY_PATTERN.match(k):
+            out.append(k)
+            continue
+        _, _, r, h = k.split("|")
+        if r not in rot_ok or h not in hor_ok:
+            out.append(k)
+    return out
+
+
+def _check_graph(d: Path, problems: list[str]) -> list[str] | None:
+    g = _json(d / L.GRAPH_FILE, problems)
+    if g is None:
+        return None
+    name = L.GRAPH_FILE
+    if not isinstance(g, dict) or not isinstance(g.get("nodes"), list) or not isinstance(g.get("links"), list):
+        problems.append(f"{name}: expected networkx node_link_data with 'nodes' and 'links' lists")
+        return None
+    if g.get("directed") is not True:
+        problems.append(f"{name}: 'directed' must be true (a DiGraph)")
+    if g.get("multigraph", False):
+        problems.append(f"{name}: 'multigraph' must be false")
+    try:
+        nodes = [n["id"] for n in g["nodes"]]
+        links = [(e["source"], e["target"]) for e in g["links"]]
+    except (TypeError, KeyError):
+        problems.append(f"{name}: nodes need 'id', links need 'source' and 'target'")
+        return None
+    bad = _bad_keys(nodes)
+    for k in bad[:MAX_REPORTED]:
+        problems.append(f"{name}: node {k!r} is not a state key 'x.xx|z.zz|rotation|horizon' of the lineage")
+    if len(set(nodes)) != len(nodes):
+        problems.append(f"{name}: duplicate nodes")
+    node_set = set(nodes)
+    off = [(a, b) for a, b in links if a not in node_set or b not in node_set]
+    for a, b in off[:MAX_REPORTED]:
+        problems.append(f"{name}: link {a!r} -> {b!r} joins a key that is not a node")
+    ok = [(a, b) for a, b in links if a in node_set and b in node_set and isinstance(a, str) and isinstance(b, str)
+          and L.KEY_PATTERN.match(a) and L.KEY_PATTERN.match(b)]
+    if ok:
+        from ..constants import parse_state_keys
+
+        x0, z0, r0, h0 = parse_state_keys([a for a, _ in ok])
+        x1, z1, r1, h1 = parse_state_keys([b for _, b in ok])
+        act = edge_actions(x0, z0, r0, h0, x1, z1, r1, h1)
+        for j in np.flatnonzero(act < 0)[:MAX_REPORTED]:
+            problems.append(f"{name}: link {ok[j][0]} -> {ok[j][1]} is not a single action")
+    return nodes
+
+
+def check_lineage_layout(scene_dir: str | Path) -> list[str]:
+    """Problems that keep ``scene_dir`` from being read by the lineage's code (empty list: none found).
+
+    Checks ``graph.json`` (node-link JSON of a directed graph; keys ``x.xx|z.zz|rotation|horizon`` with
+    rotations 0..315 by 45 and horizons 0 / 30; every link one action between nodes), ``grid.json`` (list of
+    ``{"x","y","z"}`` numbers; every state position in it), ``visible_object_map_1.5.json`` (objectId
+    ``Type|x|y|z`` -> list of state keys of the graph), and the HDF5 files when present: ``images.hdf5``
+    (a ``uint8 (H, W, 3)`` dataset for every state, nothing else), ``depth.hdf5`` (float ``(H, W)``),
+    ``resnet18_featuremap.hdf5`` (float32), the 22 x 264 detection tables (float32 ``(R, 264)``).
+    """
+    d = Path(scene_dir)
+    if not d.is_dir():
+        return [f"{d}: not a folder"]
+    problems: list[str] = []
+    nodes = _check_graph(d, problems)
+    node_set = set(nodes or [])
+
+    grid = _json(d / L.GRID_FILE, problems)
+    if grid is not None:
+        if not isinstance(grid, list) or not grid or not all(
+                isinstance(p, dict) and all(isinstance(p.get(a), (int, float)) and not isinstance(p.get(a), bool)
+                                            for a in "xyz") for p in grid):
+            problems.append(f"{L.GRID_FILE}: expected a non-empty list of {{\"x\", \"y\", \"z\"}} numbers")
+        elif nodes:
+            have = {(f"{p['x']:.2f}", f"{p['z']:.2f}") for p in grid}
+            missing = sorted({tuple(k.split("|")[:2]) for k in nodes if L.KEY_PATTERN.match(str(k))} - have)
+            for x, z in missing[:MAX_REPORTED]:
+                problems.append(f"{L.GRID_FILE}: state position ({x}, {z}) of graph.json is missing")
+
+    vis = _json(d / L.VISIBLE_MAP_FILE, problems)
+    if vis is not None:
+        if not isinstance(vis, dict) or not all(isinstance(v, list) for v in vis.values()):
+            problems.append(f"{L.VISIBLE_MAP_FILE}: expected {{objectId: [state key, ...]}}")
+        else:
+            n = 0
+            for oid, keys in vis.items():
+                if L.parse_object_id(oid)[1] is None and n < MAX_REPORTED:
+                    problems.append(f"{L.VISIBLE_MAP_FILE}: object id {oid!r} is not 'Type|x|y|z'")
+                    n += 1
+                for k in keys:
+                    if k not in node_set and nodes is not None and n < MAX_REPORTED:
+                        problems.append(f"{L.VISIBLE_MAP_FILE}: state {k!r} of {oid} is not a node of graph.json")
+                        n += 1
+                        break
+
+    _check_h5(d / L.IMAGES_FILE, nodes, problems, kind="image", required_all=True)
+    _check_h5(d / L.DEPTH_FILE, nodes, problems, kind="depth")
+    _check_h5(d / L.RESNET_FILE, nodes, problems, kind="resnet")
+    for name in L.DETECTION_FILES:
+        _check_h5(d / name, nodes, problems, kind="detection")
+    return problems
+
+
+def _check_h5(path: Path, nodes, problems: list[str], kind: str, required_all: bool = False) -> None:
+    import h5py
+
+    if not path.exists():
+        return
+    name = path.name
+    try:
+        with h5py.File(path, "r") as f:
+            keys = list(f.keys())
+            node_set = set(nodes or [])
+            extra = [k for k in keys if nodes is not None and k not in node_set]
+            for k in extra[:MAX_REPORTED]:
+                problems.append(f"{name}: dataset {k!r} is not a state of graph.json")
+            if required_all and nodes is not None:
+                missing = len(node_set - set(keys))
+                if missing:
+                    problems.append(f"{name}: no dataset for {missing} of {len(node_set)} states")
+            n = 0
+            shapes = set()
+            for k in keys:
+                if n >= MAX_REPORTED:
+                    break
+                ds = f[k]
+                if not isinstance(ds, h5py.Dataset):
+                    problems.append(f"{name}: {k!r} is a group, expected a dataset")
+                    n += 1
+                    continue
+                why = _dataset_problem(ds, kind)
+                if why:
+                    problems.append(f"{name}: {k!r} {why}")
+                    n += 1
+                shapes.add(ds.shape)
+            if len(shapes) > 1:
+                problems.append(f"{name}: datasets have different shapes {sorted(shapes)[:3]}")
+    except OSError as e:
+        problems.append(f"{name}: unreadable HDF5 ({' '.join(str(e).split())})")
+
+
+def _dataset_problem(ds, kind: str) -> str | None:
+    dt, sh = ds.dtype, ds.shape
+    if kind == "image" and (dt != np.uint8 or len(sh) != 3 or sh[2] != 3):
+        return f"holds {dt} {sh}, expected uint8 (H, W, 3)"
+    if kind == "depth" and (dt.kind != "f" or len(sh) != 2):
+        return f"holds {dt} {sh}, expected float (H, W) metres"
+    if kind == "resnet" and dt != np.float32:
+        return f"holds {dt} {sh}, expected float32 (512, 7, 7)"
+    if kind == "detection" and (dt != np.float32 or len(sh) != 2 or sh[1] != L.TABLE_WIDTH):
+        return f"holds {dt} {sh}, expected float32 (22, {L.TABLE_WIDTH})"
+    return None
+
+
+def export_detections_22x264(scene_dir: str | Path, detections_file: str | Path, out_path: str | Path | None = None,
+                             box_size: int | None = L.LINEAGE_IMAGE_SIZE) -> Path:
+    """Write the lineage's 22 x 264 table (float32 per state key) from a tsnav detection table.
+
+    ``detections_file``: a ``detections_<name>.hdf5`` of the detect stage (a path, or a name relative to
+    ``scene_dir``); its features must be 256-d (the lineage's DETR feature). ``out_path`` defaults to
+    ``scene_dir/detr_features_22cls.hdf5``. Boxes are rescaled to ``box_size`` pixels (the lineage's 300 x 300
+    frames; None keeps the table's pixels). Every key must be a state of the scene's ``graph.json``.
+    Read back with :func:`tsnav.data.lineage.read_detections_22x264`; the round trip is exact for scores,
+    labels and features, and for boxes whenever ``box_size / image_size`` is a power-of-two fraction (as
+    300 / 64) or 1.
+    """
+    from ..detect.table import Detections
+    from .reader import load_scene
+
+    import h5py
+
+    scene_dir = Path(scene_dir)
+    p = Path(detections_file)
+    if not p.is_absolute() and not p.exists():
+        p = scene_dir / p
+    if not p.exists():
+        raise SceneFormatError(f"{p}: missing file")
+    try:
+        with h5py.File(p, "r") as f:
+            det = Detections(keys=f["keys"][()].astype(str), scores=f["scores"][()], labels=f["labels"][()],
+                             boxes=f["boxes"][()], features=f["features"][()],
+                             image_size=int(f.attrs.get("image_size", 0)))
+    except (OSError, KeyError) as e:
+        raise SceneFormatError(f"{p}: not a readable detection table ({' '.join(str(e).split())})") from None
+    except ValueError as e:
+        raise SceneFormatError(f"{p}: {e}") from None
+    if box_size is not None and det.image_size <= 0:
+        raise SceneFormatError(f"{p}: no image_size attribute; cannot rescale boxes to {box_size} px")
+    scene = load_scene(scene_dir)
+    try:
+        scene.indices(det.keys)
+    except KeyError as e:
+        raise SceneFormatError(f"{p}: {e.args[0]}") from None
+    out = Path(out_path) if out_path is not None else scene_dir / L.DETECTION_FILES[0]
+    try:
+        return L.write_detections_22x264(out, det, box_size)
+    except ValueError as e:
+        raise SceneFormatError(f"{p}: {e}") from None
