@@ -161,7 +161,7 @@ def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SI
     own = np.zeros_like(found)
     if R == NUM_CATEGORIES:
         own = ~found & (lab == EMPTY_LABEL)  # row c, unlabelled, stays in place
-    pick = np.where(found, best, cats[None, :])
+    pick = np.where(found, best, np.minimum(cats, R - 1)[None, :])  # row c only matters when R == 22
     sel = np.take_along_axis(rows, pick[:, :, None], axis=1)  # (S, 22, 264)
     keep = found | own
     boxes = np.where(keep[:, :, None], sel[:, :, BOX_COLS].astype(np.float64), -1.0)

@@ -195,12 +195,13 @@ def load_scene(path: str | Path) -> Scene:
         raise SceneFormatError(f"{path / 'graph.json'}: {e}") from None
     n = len(keys)
 
-    def ids(k, what):
+    def ids(k, what, file="graph.json"):
         k = np.asarray(k, dtype=keys.dtype)
         i = np.minimum(np.searchsorted(keys, k), n - 1)
         bad = keys[i] != k
         if bad.any():
-            raise SceneFormatError(f"{path / 'graph.json'}: {what} {str(k[bad][0])!r} is not a node")
+            of = "" if file == "graph.json" else " of graph.json"
+            raise SceneFormatError(f"{path / file}: {what} {str(k[bad][0])!r} is not a node{of}")
         return i
 
     src = ids(src_keys, "edge source")
@@ -228,7 +229,7 @@ def load_scene(path: str | Path) -> Scene:
     col = {o: j for j, o in enumerate(object_ids.tolist())}
     for oid, state_list in vis_map.items():
         if state_list:
-            visible[ids(state_list, f"visible state of {oid}"), col[oid]] = True
+            visible[ids(state_list, f"visible state of {oid}", "visible_object_map_1.5.json"), col[oid]] = True
 
     distance = np.full((n, len(object_ids)), np.nan, dtype=np.float32)
     pixels = np.full((n, len(object_ids)), -1, dtype=np.int32)
@@ -242,7 +243,7 @@ def load_scene(path: str | Path) -> Scene:
             with h5py.File(st_path, "r") as f:
                 st_keys = f["keys"][()].astype(str)
                 st_objs = f["object_ids"][()].astype(str)
-                rows = ids(st_keys, "states.hdf5 key")
+                rows = ids(st_keys, "key", "states.hdf5")
                 cols = np.array([col[o] for o in st_objs], dtype=np.int64)
                 distance[np.ix_(rows, cols)] = f["distance"][()]
                 pixels[np.ix_(rows, cols)] = f["pixels"][()]

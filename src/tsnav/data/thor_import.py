@@ -323,8 +323,8 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
             shutil.copy2(src / name, tmp / name)
         if vis_path is not None and vis_path.name == L.VISIBLE_MAP_FILE:
             shutil.copy2(vis_path, tmp / L.VISIBLE_MAP_FILE)
-        else:  # written from SAVN's map or from the raw metadata's visible flags
-            vmap = {oid: base.keys[visible[:, j]].tolist() for j, oid in enumerate(order)}
+        else:  # SAVN's map under its new name, or the raw metadata's visible flags as a map
+            vmap = vis if vis is not None else {oid: base.keys[visible[:, j]].tolist() for j, oid in enumerate(order)}
             with open(tmp / L.VISIBLE_MAP_FILE, "w") as f:
                 json.dump(vmap, f, separators=(",", ":"))
         if distance is not None:
