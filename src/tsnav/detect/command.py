@@ -1,0 +1,155 @@
+"""``tsnav detect``: write the per-state detection table of every scene (DESIGN.md "Detector").
+
+    tsnav detect --data DIR --detector oracle
+    tsnav detect --data DIR --detector learned [--checkpoint CKPT] [--train-steps N]
+
+``oracle`` reads the renderer's instance statistics (:mod:`tsnav.detect.oracle`). ``learned`` trains the
+class-query detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/learned``) is missing or
+has fewer than ``--train-steps`` steps (resumable: rerun the command after an interruption), fits its
+temperature on the VAL scenes, then detects in every scene. Each scene gets ``detections_<name>.hdf5``
+(name: ``--name``, default the detector kind); scenes whose table was made by the same detector are
+skipped, a table made by another detector is only replaced with ``--overwrite``. Finally the detector is
+evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
+and saved as ``DIR/detectors/<name>_eval_<split>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+from ..cli import CommandError
+
+
+def build_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", required=True, help="dataset root (one folder per scene)")
+    p.add_argument("--detector", required=True, choices=("oracle", "learned"), help="which detector")
+    p.add_argument("--checkpoint", default=None,
+                   help="learned: checkpoint folder (default DATA/detectors/learned); trained there if needed")
+    p.add_argument("--train-steps", type=int, default=None,
+                   help="learned: train up to this many steps (default 1500 for a new checkpoint; an existing "
+                        "one is used as it is)")
+    p.add_argument("--batch-size", type=int, default=None, help="learned: frames per training step (default 64)")
+    p.add_argument("--max-states-per-scene", type=int, default=None,
+                   help="learned: train on at most this many random states per train scene")
+    p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
+    p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
+    p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
+    p.add_argument("--no-eval", action="store_true", help="skip the evaluation")
+    p.add_argument("--overwrite", action="store_true", help="replace tables made by another detector")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _oracle(args):
+    from .oracle import OracleConfig, oracle_detections
+
+    cfg = OracleConfig()
+    return cfg.fingerprint(), (lambda scene, bar: _tick(oracle_detections(scene, cfg), bar))
+
+
+def _tick(det, bar):
+    if bar is not None:
+        bar.update(det.num_states)
+    return det
+
+
+def _learned(args, root: Path):
+    from .learned import LearnedDetector
+    from .train import TrainConfig, calibrate, is_checkpoint, read_meta, train_detector
+
+    ckpt = Path(args.checkpoint) if args.checkpoint else root / "detectors" / "learned"
+    if args.train_steps is not None and args.train_steps < 1:
+        raise CommandError("--train-steps must be at least 1")
+    if args.batch_size is not None and args.batch_size < 1:
+        raise CommandError("--batch-size must be at least 1")
+    if ckpt.exists() and not ckpt.is_dir():
+        raise CommandError(f"--checkpoint {ckpt} is a file; give a checkpoint folder")
+    if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
+        raise CommandError(f"--checkpoint {ckpt} is a folder that holds no detector checkpoint")
+    steps = args.train_steps
+    if steps is None:
+        steps = int(read_meta(ckpt)["step"]) if is_checkpoint(ckpt) else TrainConfig.steps
+    tc = TrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene)
+    if args.batch_size:
+        tc.batch_size = args.batch_size
+    res = train_detector(root, ckpt, tc, progress=not args.quiet)
+    if res.step > res.start_step:
+        print(f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "
+              f"(last loss {res.last.get('loss', float('nan')):.3f}); checkpoint {ckpt}")
+    else:
+        print(f"detector checkpoint {ckpt} at step {res.step}")
+    try:
+        t = calibrate(root, ckpt, split="val", progress=not args.quiet)
+        print(f"temperature {t:.3f} (fitted on val scenes)")
+    except ValueError as e:
+        print(f"no calibration ({e}); temperature 1")
+    det = LearnedDetector.load(ckpt)
+    return det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+    from tqdm import tqdm
+
+    from ..data.reader import list_scenes, load_scene
+    from .table import check_name, read_fingerprint, write_detections
+
+    root = Path(args.data)
+    if not root.is_dir():
+        raise CommandError(f"--data {root}: no such dataset folder")
+    if args.threads < 1:
+        raise CommandError("--threads must be at least 1")
+    torch.set_num_threads(args.threads)
+    name = check_name(args.name or args.detector)
+    scenes = list_scenes(root, split=args.split)
+    if not scenes:
+        raise CommandError(f"{root}: no complete scene folder" + (f" of split {args.split}" if args.split else ""))
+    if args.detector == "oracle":
+        fingerprint, detect = _oracle(args)
+    else:
+        fingerprint, detect = _learned(args, root)
+
+    todo, done = [], 0
+    for p in scenes:
+        fp = read_fingerprint(p, name)
+        if fp == fingerprint:
+            done += 1
+        elif fp is not None and not args.overwrite:
+            raise CommandError(f"{p / f'detections_{name}.hdf5'} was made by another detector ({fp}); use "
+                               f"--overwrite or another --name")
+        else:
+            todo.append(p)
+    loaded = [load_scene(p) for p in todo]
+    bar = tqdm(total=sum(s.num_states for s in loaded), desc=f"detect {name}", unit="state",
+               disable=args.quiet, dynamic_ncols=True)
+    try:
+        for s in loaded:
+            write_detections(s.path, name, detect(s, bar))
+    finally:
+        bar.close()
+    print(f"detections_{name}.hdf5: {len(loaded)} scenes written, {done} already done "
+          f"({sum(s.num_states for s in loaded)} states)")
+
+    if not args.no_eval:
+        from .evaluate import evaluate_detections
+        from .table import load_detections
+
+        eval_scenes = [load_scene(p) for p in list_scenes(root, split=args.eval_split)]
+        eval_scenes = [s for s in eval_scenes if (s.path / f"detections_{name}.hdf5").exists()]
+        if not eval_scenes:
+            print(f"no {args.eval_split} scene with detections_{name}.hdf5: nothing to evaluate")
+            return 0
+        report = evaluate_detections(eval_scenes, [load_detections(s.path, name) for s in eval_scenes])
+        print(f"evaluation of {name} on {args.eval_split} scenes:")
+        print(report.format())
+        out = root / "detectors" / f"{name}_eval_{args.eval_split}.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps({"detector": args.detector, "name": name, "fingerprint": fingerprint,
+                                   **report.to_json()}, indent=1))
+        os.replace(tmp, out)
+        print(f"saved {out}")
+    return 0

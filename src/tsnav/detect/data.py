@@ -1,0 +1,124 @@
+"""Training data of the learned detector: rendered frames and their ground truth per class.
+
+Frames come from each scene's ``images.hdf5`` (one uint8 ``H x W x 3`` dataset per state key, the lineage
+layout); targets from :func:`tsnav.detect.oracle.ground_truth` (present when an instance shows at least
+``min_pixels``; the box of the visible instance with most pixels), boxes normalised to [0, 1] as continuous
+``[x0, y0, x1, y1]`` (:func:`tsnav.detect.model.pixel_to_unit`). The detector is trained on the TRAIN split
+only and calibrated on VAL.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..data.reader import Scene, SceneFormatError, list_scenes, load_scene
+from .model import pixel_to_unit
+from .oracle import ground_truth
+
+
+def read_images(scene_dir: str | Path, keys) -> np.ndarray:
+    """``(len(keys), H, W, 3)`` uint8 frames of ``keys`` from ``scene_dir/images.hdf5``, in that order."""
+    import h5py
+
+    path = Path(scene_dir) / "images.hdf5"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: missing (build the world with images)")
+    keys = [str(k) for k in keys]
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [k for k in keys if k not in f]
+            if missing:
+                raise SceneFormatError(f"{path}: lacks state {missing[0]!r} ({len(missing)} missing)")
+            if not keys:
+                return np.zeros((0, 0, 0, 3), np.uint8)
+            first = f[keys[0]]
+            out = np.empty((len(keys),) + first.shape, dtype=np.uint8)
+            for i, k in enumerate(keys):
+                f[k].read_direct(out, dest_sel=np.s_[i])
+    except OSError as e:
+        raise SceneFormatError(f"{path}: unreadable ({e})") from None
+    return out
+
+
+@dataclass
+class FrameSet:
+    """Frames and per-class targets of several scenes (``N`` frames).
+
+    Attributes:
+        images: ``(N, H, W, 3)`` uint8.
+        present: ``(N, 22)`` bool.
+        boxes: ``(N, 22, 4)`` float32 normalised continuous boxes (0 where not present).
+        scenes: scene names; offsets: ``(len(scenes)+1,)`` row ranges of each scene.
+    """
+
+    images: np.ndarray
+    present: np.ndarray
+    boxes: np.ndarray
+    scenes: list
+    offsets: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+
+def scene_targets(scene: Scene, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(present ``(n, 22)`` bool, normalised boxes ``(n, 22, 4)``) of ``scene`` for state ids ``rows``."""
+    gt = ground_truth(scene)
+    rows = np.arange(scene.num_states) if rows is None else np.asarray(rows)
+    present = gt.present[rows]
+    boxes = np.where(present[..., None], pixel_to_unit(gt.boxes[rows], scene.image_size), 0.0)
+    return present, boxes.astype(np.float32)
+
+
+def load_frames(root: str | Path, split: str, max_states_per_scene: int | None = None, seed: int = 0,
+                progress: bool = False) -> FrameSet:
+    """Frames and targets of every complete scene of ``split`` under ``root`` (optionally a random subset of
+    at most ``max_states_per_scene`` states per scene, drawn with ``seed``)."""
+    from tqdm import tqdm
+
+    paths = [p for p in list_scenes(root, split=split)]
+    if not paths:
+        raise ValueError(f"{root}: no complete scene of split {split!r}")
+    images, present, boxes, names, sizes = [], [], [], [], []
+    size = None
+    for p in tqdm(paths, desc=f"frames {split}", unit="scene", disable=not progress, dynamic_ncols=True):
+        s = load_scene(p)
+        if size is None:
+            size = s.image_size
+        elif s.image_size != size:
+            raise ValueError(f"scene {s.name} has {s.image_size}px frames, others {size}px")
+        rows = np.arange(s.num_states)
+        if max_states_per_scene is not None and s.num_states > max_states_per_scene:
+            rng = np.random.default_rng([seed, len(names)])
+            rows = np.sort(rng.choice(s.num_states, max_states_per_scene, replace=False))
+        images.append(read_images(p, s.keys[rows]))
+        pr, bx = scene_targets(s, rows)
+        present.append(pr)
+        boxes.append(bx)
+        names.append(s.name)
+        sizes.append(len(rows))
+    return FrameSet(np.concatenate(images), np.concatenate(present), np.concatenate(boxes), names,
+                    np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+
+
+def flip_boxes(boxes: torch.Tensor) -> torch.Tensor:
+    """Normalised continuous boxes under a horizontal flip of the frame: x0' = 1 - x1, x1' = 1 - x0."""
+    return torch.stack([1 - boxes[..., 2], boxes[..., 1], 1 - boxes[..., 0], boxes[..., 3]], dim=-1)
+
+
+def make_batch(frames: FrameSet, index: np.ndarray, flip: np.ndarray) -> tuple[torch.Tensor, torch.Tensor,
+                                                                                   torch.Tensor]:
+    """(uint8 images ``[B, H, W, 3]``, present ``[B, 22]`` bool, boxes ``[B, 22, 4]``) for rows ``index``, with
+    the frames where ``flip`` is True mirrored left-right (boxes mirrored with them)."""
+    img = torch.from_numpy(frames.images[index])
+    present = torch.from_numpy(frames.present[index])
+    boxes = torch.from_numpy(frames.boxes[index])
+    f = torch.from_numpy(np.asarray(flip, dtype=bool))
+    if f.any():
+        img[f] = img[f].flip(2)
+        boxes[f] = torch.where(present[f][..., None], flip_boxes(boxes[f]), boxes[f])
+    return img, present, boxes

@@ -1,0 +1,88 @@
+"""The learned detector's detection table (DESIGN.md "Detector"; stands in for the paper's DETR, Fig. 2).
+
+For every state of a scene: ``score = sigmoid(logit / T)`` of each class query (``T`` fitted on the VAL
+scenes by :func:`tsnav.detect.train.calibrate`), its box converted to inclusive pixel corners, and its
+``dim``-d decoder output (64-d by default) as the feature. A class's detection is kept (label = the class)
+when its score reaches ``min_score`` (0.05, the usual detector output threshold); otherwise label and box
+are -1. Scores are stored for every class either way, because the stage switch (paper III-B) and the
+calibration tables read them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..constants import NUM_CATEGORIES
+from ..data.reader import Scene
+from .data import read_images
+from .model import ClassQueryDetector, unit_to_pixel
+from .table import Detections
+from .train import load_model, predict, weights_fingerprint
+
+
+class LearnedDetector:
+    """A trained, calibrated :class:`~tsnav.detect.model.ClassQueryDetector` loaded from a checkpoint folder."""
+
+    def __init__(self, model: ClassQueryDetector, temperature: float = 1.0, min_score: float = 0.05,
+                 meta: dict | None = None):
+        if not temperature > 0:
+            raise ValueError(f"temperature must be positive, got {temperature}")
+        self.model = model.eval()
+        self.temperature = float(temperature)
+        self.min_score = float(min_score)
+        self.meta = meta or {}
+        self.fingerprint = weights_fingerprint(model, self.temperature)
+
+    @classmethod
+    def load(cls, ckpt: str | Path) -> "LearnedDetector":
+        model, meta = load_model(ckpt)
+        if meta.get("calibrated_step", -1) != meta.get("step"):
+            # Not (re)calibrated after the last training step: temperature 1 is the honest default.
+            meta = dict(meta, temperature=1.0)
+        return cls(model, float(meta.get("temperature", 1.0)), float(meta.get("min_score", 0.05)), meta)
+
+    @property
+    def image_size(self) -> int:
+        return self.model.cfg.image_size
+
+    def config(self) -> dict:
+        return {"model": self.model.cfg.to_dict(), "temperature": self.temperature, "min_score": self.min_score,
+                "step": self.meta.get("step"), "train": self.meta.get("train"),
+                "calibration_split": self.meta.get("calibration_split")}
+
+    def detect_images(self, images: np.ndarray, batch_size: int = 256
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(scores ``(N, 22)``, labels ``(N, 22)``, pixel boxes ``(N, 22, 4)``, features ``(N, 22, dim)``) of
+        uint8 frames ``(N, H, W, 3)``."""
+        if images.ndim != 4 or images.shape[1:] != (self.image_size, self.image_size, 3):
+            raise ValueError(f"frames must be (N, {self.image_size}, {self.image_size}, 3), got {images.shape}")
+        logits, unit, feats = predict(self.model, images, batch_size)
+        scores = 1.0 / (1.0 + np.exp(-logits.astype(np.float64) / self.temperature))
+        keep = scores >= self.min_score
+        labels = np.where(keep, np.arange(NUM_CATEGORIES, dtype=np.int16)[None, :], -1).astype(np.int16)
+        boxes = np.clip(unit_to_pixel(unit, self.image_size), 0, self.image_size - 1)
+        boxes = np.where(keep[..., None], boxes, -1.0).astype(np.float32)
+        return scores.astype(np.float32), labels, boxes, feats
+
+    def detect_scene(self, scene: Scene, batch_size: int = 256, chunk: int = 2048, bar=None) -> Detections:
+        """The detection table of every state of ``scene`` (frames read ``chunk`` at a time)."""
+        if scene.image_size != self.image_size:
+            raise ValueError(f"scene {scene.name} has {scene.image_size}px frames; the detector takes "
+                             f"{self.image_size}px")
+        S = scene.num_states
+        scores = np.empty((S, NUM_CATEGORIES), np.float32)
+        labels = np.empty((S, NUM_CATEGORIES), np.int16)
+        boxes = np.empty((S, NUM_CATEGORIES, 4), np.float32)
+        feats = np.empty((S, NUM_CATEGORIES, self.model.cfg.dim), np.float16)
+        for a in range(0, S, chunk):
+            img = read_images(scene.path, scene.keys[a:a + chunk])
+            sc, lb, bx, ft = self.detect_images(img, batch_size)
+            n = len(img)
+            scores[a:a + n], labels[a:a + n], boxes[a:a + n], feats[a:a + n] = sc, lb, bx, ft
+            if bar is not None:
+                bar.update(n)
+        return Detections(keys=scene.keys, scores=scores, labels=labels, boxes=boxes, features=feats,
+                          detector="learned", config=self.config(), fingerprint=self.fingerprint,
+                          image_size=self.image_size)

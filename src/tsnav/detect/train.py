@@ -1,0 +1,330 @@
+"""Train the learned detector on the world's own renders; resumable checkpoints; temperature scaling.
+
+Training uses the TRAIN scenes only; batches are drawn with a generator seeded by ``(seed, step)``, so a
+resumed run sees the same batches as an uninterrupted one. Optimiser: AdamW with linear warm-up and cosine
+decay to ``min_lr_ratio`` x ``lr`` at ``steps`` (extending a finished run with more steps re-stretches the
+remaining schedule). Augmentation: horizontal flip.
+
+Calibration: a single temperature ``T`` (Guo et al. 2017) divides the presence logits,
+``score = sigmoid(logit / T)``; ``T`` minimises the mean binary cross-entropy on the VAL scenes.
+
+Checkpoint folder (all files replaced atomically):
+
+* ``model.safetensors``: the model's state dict (BatchNorm statistics included);
+* ``optimizer.safetensors``: AdamW moment tensors (``state.<param index>.<name>``);
+* ``detector.json``: ``format``, ``model`` (:class:`~tsnav.detect.model.DetectorConfig`), ``train``
+  (:class:`TrainConfig`), ``step``, ``temperature``, ``calibrated_step``, ``min_score``, ``history`` (loss
+  terms every ``log_every`` steps), ``param_groups`` of the optimiser.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .data import FrameSet, load_frames, make_batch
+from .model import ClassQueryDetector, DetectorConfig, LossWeights, detection_loss
+
+FORMAT = "tsnav-detector"
+
+
+@dataclass
+class TrainConfig:
+    """Training of the learned detector (CPU-sized defaults: a few minutes on 2 cores for the demo world)."""
+
+    steps: int = 1500
+    """Optimiser steps."""
+    batch_size: int = 64
+    """Frames per step."""
+    lr: float = 2e-3
+    """Peak learning rate of AdamW."""
+    min_lr_ratio: float = 0.05
+    """Final learning rate as a share of ``lr`` (cosine decay)."""
+    warmup: int = 100
+    """Linear warm-up steps."""
+    weight_decay: float = 1e-4
+    """AdamW weight decay."""
+    flip_prob: float = 0.5
+    """Probability of a horizontal flip per frame."""
+    loss: LossWeights = field(default_factory=LossWeights)
+    """Weights of the loss terms."""
+    seed: int = 0
+    """Seed of initialisation, batches and flips."""
+    checkpoint_every: int = 250
+    """Steps between checkpoints (and always at the end or on interruption)."""
+    log_every: int = 50
+    """Steps between entries of the loss history."""
+    max_states_per_scene: int | None = None
+    """Use at most this many (random) states per train scene; None uses all."""
+    threads: int = 2
+    """torch CPU threads."""
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        if isinstance(d.get("loss"), dict):
+            d["loss"] = LossWeights(**d["loss"])
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown train config fields: {sorted(unknown)}")
+        return cls(**d)
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Learning rate of optimiser step ``step`` (0-based): warm-up, then cosine to ``min_lr_ratio * lr``."""
+    if step < cfg.warmup:
+        return cfg.lr * (step + 1) / cfg.warmup
+    span = max(cfg.steps - cfg.warmup, 1)
+    t = min((step - cfg.warmup) / span, 1.0)
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def batch_plan(step: int, n: int, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(row indices, flip flags) of step ``step``: a function of ``(seed, step)`` only (resumable)."""
+    rng = np.random.default_rng([cfg.seed, step])
+    return rng.integers(0, n, cfg.batch_size), rng.random(cfg.batch_size) < cfg.flip_prob
+
+
+# ---------------------------------------------------------------------------------------------- checkpoints
+def _atomic_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1)
+    os.replace(tmp, path)
+
+
+def _atomic_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict | None = None) -> None:
+    from safetensors.torch import save_file
+
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(tmp), metadata=metadata)
+    os.replace(tmp, path)
+
+
+def is_checkpoint(path: str | Path) -> bool:
+    p = Path(path)
+    return (p / "detector.json").exists() and (p / "model.safetensors").exists()
+
+
+def read_meta(path: str | Path) -> dict:
+    """The parsed ``detector.json`` of a checkpoint folder (one-line error when absent or malformed)."""
+    p = Path(path) / "detector.json"
+    if not p.exists():
+        raise FileNotFoundError(f"{Path(path)}: not a detector checkpoint (no detector.json)")
+    try:
+        meta = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{p}: not valid JSON ({e.msg})") from None
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{p}: not a {FORMAT} checkpoint")
+    return meta
+
+
+def save_checkpoint(path: str | Path, model: ClassQueryDetector, opt: torch.optim.Optimizer | None,
+                    meta: dict) -> None:
+    """Write model, optimiser state and ``detector.json`` into the folder ``path``, each file atomically and
+    the JSON last. A crash between the files can leave weights a little newer than the step the JSON
+    names; resuming then repeats at most ``checkpoint_every`` steps."""
+    p = Path(path)
+    p.mkdir(parents=True, exist_ok=True)
+    _atomic_safetensors(p / "model.safetensors", model.state_dict(), {"format": FORMAT})
+    meta = dict(meta)
+    if opt is not None:
+        sd = opt.state_dict()
+        tensors = {f"state.{i}.{k}": (v if torch.is_tensor(v) else torch.tensor(v))
+                   for i, st in sd["state"].items() for k, v in st.items()}
+        _atomic_safetensors(p / "optimizer.safetensors", tensors)
+        meta["param_groups"] = sd["param_groups"]
+    meta["fingerprint"] = weights_fingerprint(model, meta.get("temperature", 1.0))
+    _atomic_json(p / "detector.json", meta)
+
+
+def weights_fingerprint(model: ClassQueryDetector, temperature: float) -> str:
+    """Identifies a trained detector: sha256 of its weights and temperature (first 16 hex digits)."""
+    h = hashlib.sha256()
+    for k, v in sorted(model.state_dict().items()):
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    h.update(repr(float(temperature)).encode())
+    return "learned-" + h.hexdigest()[:16]
+
+
+def load_model(path: str | Path) -> tuple[ClassQueryDetector, dict]:
+    """(model in eval mode, ``detector.json``) of a checkpoint folder."""
+    from safetensors.torch import load_file
+
+    meta = read_meta(path)
+    model = ClassQueryDetector(DetectorConfig.from_dict(meta["model"]))
+    try:
+        state = load_file(str(Path(path) / "model.safetensors"))
+    except (OSError, FileNotFoundError) as e:
+        raise ValueError(f"{Path(path) / 'model.safetensors'}: unreadable ({e})") from None
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValueError(f"{Path(path) / 'model.safetensors'}: weights do not fit the config "
+                         f"(missing {missing[:2]}, unexpected {unexpected[:2]})")
+    return model.eval(), meta
+
+
+def _load_optimizer(path: Path, opt: torch.optim.Optimizer, meta: dict) -> None:
+    from safetensors.torch import load_file
+
+    f = path / "optimizer.safetensors"
+    if not f.exists() or "param_groups" not in meta:
+        return
+    flat = load_file(str(f))
+    state: dict[int, dict] = {}
+    for k, v in flat.items():
+        _, i, name = k.split(".", 2)
+        state.setdefault(int(i), {})[name] = v
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+# ---------------------------------------------------------------------------------------------- calibration
+def fit_temperature(logits: np.ndarray, present: np.ndarray, bounds: tuple[float, float] = (0.05, 20.0)) -> float:
+    """Temperature ``T`` minimising the mean binary cross-entropy of ``sigmoid(logits / T)`` against
+    ``present`` (Guo et al. 2017; one scalar for all classes), searched on log T within ``bounds``."""
+    from scipy.optimize import minimize_scalar
+
+    z = torch.as_tensor(np.asarray(logits, dtype=np.float64)).reshape(-1)
+    y = torch.as_tensor(np.asarray(present, dtype=np.float64)).reshape(-1)
+    if z.numel() == 0:
+        raise ValueError("cannot fit a temperature on no data")
+
+    def nll(log_t: float) -> float:
+        return float(torch.nn.functional.binary_cross_entropy_with_logits(z / math.exp(log_t), y))
+
+    res = minimize_scalar(nll, bounds=(math.log(bounds[0]), math.log(bounds[1])), method="bounded",
+                          options={"xatol": 1e-5})
+    return float(math.exp(res.x))
+
+
+@torch.no_grad()
+def predict(model: ClassQueryDetector, images: np.ndarray, batch_size: int = 256
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(logits ``(N, 22)`` float32, normalised boxes ``(N, 22, 4)`` float32, features ``(N, 22, dim)`` float32)
+    of uint8 frames ``(N, H, W, 3)``, in batches, in eval mode."""
+    model.eval()
+    n = len(images)
+    D = model.cfg.dim
+    logits = np.empty((n, model.cfg.num_classes), np.float32)
+    boxes = np.empty((n, model.cfg.num_classes, 4), np.float32)
+    feats = np.empty((n, model.cfg.num_classes, D), np.float32)
+    for a in range(0, n, batch_size):
+        x = model.normalize(torch.from_numpy(np.ascontiguousarray(images[a:a + batch_size])))
+        lg, bx, f = model(x)
+        logits[a:a + len(x)], boxes[a:a + len(x)], feats[a:a + len(x)] = lg.numpy(), bx.numpy(), f.numpy()
+    return logits, boxes, feats
+
+
+# ---------------------------------------------------------------------------------------------- training
+@dataclass
+class TrainResult:
+    """What :func:`train_detector` did: ``start_step`` -> ``step``, wall seconds, last loss terms."""
+
+    path: Path
+    start_step: int
+    step: int
+    seconds: float
+    last: dict
+
+
+def train_detector(root: str | Path, ckpt: str | Path, train_cfg: TrainConfig | None = None,
+                   model_cfg: DetectorConfig | None = None, frames: FrameSet | None = None,
+                   progress: bool = True) -> TrainResult:
+    """Train (or resume training of) the detector in checkpoint folder ``ckpt`` on the TRAIN scenes of
+    ``root`` up to ``train_cfg.steps``. An existing checkpoint keeps its model and training settings except
+    ``steps``; a finished one returns at once. ``frames`` may pass preloaded training frames."""
+    from tqdm import tqdm
+
+    ckpt = Path(ckpt)
+    train_cfg = train_cfg or TrainConfig()
+    torch.set_num_threads(max(1, int(train_cfg.threads)))
+    if is_checkpoint(ckpt):
+        model, meta = load_model(ckpt)
+        stored = TrainConfig.from_dict(meta["train"])
+        stored.steps, stored.threads = train_cfg.steps, train_cfg.threads
+        train_cfg = stored
+        start = int(meta["step"])
+    else:
+        if model_cfg is None:
+            model_cfg = DetectorConfig()
+        torch.manual_seed(train_cfg.seed)
+        model = ClassQueryDetector(model_cfg)
+        meta = {"format": FORMAT, "model": model_cfg.to_dict(), "step": 0, "temperature": 1.0,
+                "calibrated_step": -1, "min_score": 0.05, "history": []}
+        start = 0
+    if start >= train_cfg.steps:
+        return TrainResult(ckpt, start, start, 0.0, meta["history"][-1] if meta["history"] else {})
+    if frames is None:
+        frames = load_frames(root, "train", train_cfg.max_states_per_scene, train_cfg.seed, progress)
+    if frames.images.shape[1] != model.cfg.image_size:
+        raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
+    opt = torch.optim.AdamW(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
+    if start > 0:
+        _load_optimizer(ckpt, opt, meta)
+    meta["train"] = asdict(train_cfg)
+    meta["train_scenes"] = frames.scenes
+    model.train()
+    t0 = time.perf_counter()
+    step = start
+    last: dict = {}
+    bar = tqdm(total=train_cfg.steps, initial=start, desc="detector train", unit="step", disable=not progress,
+               dynamic_ncols=True)
+
+    def save() -> None:
+        meta["step"] = step
+        save_checkpoint(ckpt, model, opt, meta)
+
+    try:
+        while step < train_cfg.steps:
+            idx, flip = batch_plan(step, len(frames), train_cfg)
+            img, present, boxes = make_batch(frames, idx, flip)
+            for g in opt.param_groups:
+                g["lr"] = lr_at(step, train_cfg)
+            logits, pred, _ = model(model.normalize(img))
+            loss, terms = detection_loss(logits, pred, present, boxes, train_cfg.loss)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            last = terms
+            if step % train_cfg.log_every == 0 or step == train_cfg.steps:
+                meta["history"].append({"step": step, **{k: round(v, 5) for k, v in terms.items()}})
+            bar.update(1)
+            bar.set_postfix(loss=f"{terms['loss']:.3f}", bce=f"{terms['bce']:.3f}")
+            if step % train_cfg.checkpoint_every == 0 and step < train_cfg.steps:
+                save()
+    except KeyboardInterrupt:
+        save()
+        raise
+    finally:
+        bar.close()
+    save()
+    model.eval()
+    return TrainResult(ckpt, start, step, time.perf_counter() - t0, last)
+
+
+def calibrate(root: str | Path, ckpt: str | Path, split: str = "val", frames: FrameSet | None = None,
+              batch_size: int = 256, progress: bool = False) -> float:
+    """Fit the temperature of the checkpoint on ``split`` and store it (``temperature``, ``calibrated_step``);
+    returns T. Skipped (T kept) when the checkpoint was already calibrated at its current step."""
+    model, meta = load_model(ckpt)
+    if meta.get("calibrated_step") == meta["step"] and frames is None:
+        return float(meta["temperature"])
+    if frames is None:
+        frames = load_frames(root, split, progress=progress)
+    logits, _, _ = predict(model, frames.images, batch_size)
+    t = fit_temperature(logits, frames.present)
+    meta["temperature"], meta["calibrated_step"], meta["calibration_split"] = t, meta["step"], split
+    meta["fingerprint"] = weights_fingerprint(model, t)
+    _atomic_json(Path(ckpt) / "detector.json", meta)
+    return t

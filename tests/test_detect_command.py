@@ -1,0 +1,72 @@
+"""``tsnav detect`` on a copy of the tiny world: tables for every scene, skip on rerun, evaluation, errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from tsnav.cli import main
+from tsnav.data.reader import list_scenes, load_scene
+from tsnav.detect.table import load_detections
+
+
+@pytest.fixture()
+def world(tiny_world, tmp_path):
+    root = tmp_path / "w"
+    shutil.copytree(tiny_world, root)
+    return root
+
+
+def test_oracle_command(world, capsys):
+    assert main(["detect", "--data", str(world), "--detector", "oracle", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "5 scenes written, 0 already done" in out and "presence AP" in out and "ECE" in out
+    for p in list_scenes(world):
+        det = load_detections(p, "oracle")
+        np.testing.assert_array_equal(det.keys, load_scene(p).keys)
+        assert det.detector == "oracle"
+    rep = json.loads((world / "detectors" / "oracle_eval_val.json").read_text())
+    assert rep["mean_presence_ap"] == pytest.approx(1.0) and rep["mean_box_ap50"] == pytest.approx(1.0)
+    assert main(["detect", "--data", str(world), "--detector", "oracle", "--quiet", "--no-eval"]) == 0
+    assert "0 scenes written, 5 already done" in capsys.readouterr().out
+
+
+def test_learned_command_trains_resumes_and_refuses_stale_tables(world, capsys):
+    ck = world / "ck"
+    args = ["detect", "--data", str(world), "--detector", "learned", "--checkpoint", str(ck), "--quiet",
+            "--max-states-per-scene", "16", "--batch-size", "8", "--threads", "1"]
+    assert main(args + ["--train-steps", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "trained the detector 0 -> 3 steps" in out and "temperature" in out and "box AP@0.5" in out
+    assert (ck / "model.safetensors").exists() and (ck / "optimizer.safetensors").exists()
+    meta = json.loads((ck / "detector.json").read_text())
+    assert meta["step"] == 3 and meta["calibrated_step"] == 3
+    for p in list_scenes(world):
+        det = load_detections(p, "learned")
+        assert det.fingerprint == meta["fingerprint"] and det.feature_dim == meta["model"]["dim"]
+    # Same checkpoint again: nothing to train, nothing to write.
+    assert main(args + ["--no-eval"]) == 0
+    out = capsys.readouterr().out
+    assert "at step 3" in out and "0 scenes written, 5 already done" in out
+    # Training on changes the detector: the old tables are refused unless --overwrite.
+    assert main(args + ["--train-steps", "4", "--no-eval"]) == 2
+    assert "made by another detector" in capsys.readouterr().err
+    assert main(args + ["--train-steps", "4", "--no-eval", "--overwrite"]) == 0
+    assert "5 scenes written" in capsys.readouterr().out
+
+
+def test_bad_input_is_one_line(world, tmp_path, capsys):
+    assert main(["detect", "--data", str(tmp_path / "nope"), "--detector", "oracle"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no such dataset folder" in err and len(err.splitlines()) == 1
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main(["detect", "--data", str(world), "--detector", "learned", "--checkpoint", str(f)]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert main(["detect", "--data", str(world), "--detector", "oracle", "--name", "a/b"]) == 2
+    assert "detector name" in capsys.readouterr().err
+    assert main(["detect", "--data", str(world), "--detector", "learned", "--train-steps", "0"]) == 2
+    assert "--train-steps" in capsys.readouterr().err

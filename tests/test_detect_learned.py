@@ -1,0 +1,162 @@
+"""The learned class-query detector: model, batches, training (loss drops, exact resume), calibration."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tsnav.constants import NUM_CATEGORIES
+from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
+from tsnav.detect.model import (ClassQueryDetector, DetectorConfig, detection_loss, generalized_iou,
+                                pixel_to_unit, unit_to_pixel)
+from tsnav.detect.train import (TrainConfig, calibrate, fit_temperature, load_model, lr_at, predict,
+                                read_meta, train_detector)
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def tiny_frames(tiny_world):
+    return load_frames(tiny_world, "train", max_states_per_scene=24, seed=0)
+
+
+def test_model_outputs():
+    torch.manual_seed(0)
+    m = ClassQueryDetector(DetectorConfig()).eval()
+    x = m.normalize(torch.randint(0, 256, (3, 64, 64, 3), dtype=torch.uint8))
+    logits, boxes, feats = m(x)
+    assert logits.shape == (3, NUM_CATEGORIES) and boxes.shape == (3, NUM_CATEGORIES, 4)
+    assert feats.shape == (3, NUM_CATEGORIES, 64)
+    assert (boxes >= 0).all() and (boxes <= 1).all()
+    assert (boxes[..., 2] >= boxes[..., 0]).all() and (boxes[..., 3] >= boxes[..., 1]).all()
+    # The start bias makes every class unlikely (about the base rate of a class in view).
+    assert torch.sigmoid(logits).max() < 0.2
+
+
+def test_box_conversions_and_giou():
+    px = np.array([[0, 0, 63, 63], [10, 20, 10, 20], [3, 4, 7, 9]], np.float32)
+    unit = pixel_to_unit(px, 64)
+    np.testing.assert_allclose(unit[0], [0, 0, 1, 1])
+    np.testing.assert_allclose(unit[1], [10 / 64, 20 / 64, 11 / 64, 21 / 64])
+    np.testing.assert_allclose(unit_to_pixel(unit, 64), px, atol=1e-5)
+    a = torch.tensor([[0.0, 0.0, 0.5, 0.5], [0.0, 0.0, 0.5, 0.5]])
+    b = torch.tensor([[0.0, 0.0, 0.5, 0.5], [0.5, 0.5, 1.0, 1.0]])
+    # Identical: 1. Touching corners: IoU 0, hull 1, union 0.5 -> 0 - (1 - 0.5) / 1 = -0.5.
+    np.testing.assert_allclose(generalized_iou(a, b).numpy(), [1.0, -0.5], atol=1e-6)
+
+
+def test_flip_moves_boxes_with_the_pixels():
+    img = np.zeros((1, 64, 64, 3), np.uint8)
+    img[0, 10:20, 5:12] = 255  # rows 10..19, columns 5..11
+    present = np.zeros((1, NUM_CATEGORIES), bool)
+    present[0, 3] = True
+    boxes = np.zeros((1, NUM_CATEGORIES, 4), np.float32)
+    boxes[0, 3] = pixel_to_unit(np.array([5, 10, 11, 19]), 64)
+    fs = FrameSet(img, present, boxes, ["x"], np.array([0, 1]))
+    out, pr, bx = make_batch(fs, np.array([0, 0]), np.array([False, True]))
+    assert (fs.images[0] == img[0]).all()  # the source frames are never modified
+    ys, xs = np.nonzero(out[1, :, :, 0].numpy())
+    np.testing.assert_allclose(unit_to_pixel(bx[1, 3].numpy(), 64), [xs.min(), ys.min(), xs.max(), ys.max()],
+                               atol=1e-4)
+    np.testing.assert_array_equal(bx[0].numpy(), boxes[0])
+    assert (bx[1, 0] == 0).all()  # absent classes keep zero boxes
+
+
+def test_frames_and_targets(tiny_world, tiny_frames, tiny_scenes):
+    fs = tiny_frames
+    assert fs.images.dtype == np.uint8 and fs.images.shape[1:] == (64, 64, 3)
+    assert len(fs) == fs.offsets[-1] == 24 * len(fs.scenes)
+    assert set(fs.scenes) <= {s.name for s in tiny_scenes if s.meta["split"] == "train"}
+    assert fs.present.any()
+    b = fs.boxes[fs.present]
+    assert (b[:, 2] > b[:, 0]).all() and (b[:, 3] > b[:, 1]).all() and (b >= 0).all() and (b <= 1).all()
+    s = next(x for x in tiny_scenes if x.name == fs.scenes[0])
+    full = read_images(s.path, s.keys[:3])
+    assert full.shape == (3, 64, 64, 3)
+    with pytest.raises(Exception, match="lacks state"):
+        read_images(s.path, ["9.99|9.99|0|0"])
+
+
+def test_lr_schedule():
+    cfg = TrainConfig(steps=100, warmup=10, lr=1.0, min_lr_ratio=0.1)
+    assert lr_at(0, cfg) == pytest.approx(0.1) and lr_at(9, cfg) == pytest.approx(1.0)
+    assert lr_at(10, cfg) == pytest.approx(1.0) and lr_at(100, cfg) == pytest.approx(0.1)
+    assert lr_at(55, cfg) == pytest.approx(0.1 + 0.9 * 0.5)
+
+
+def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_path):
+    cfg = TrainConfig(steps=60, batch_size=16, lr=3e-3, warmup=5, log_every=5, checkpoint_every=100, threads=1)
+    small = DetectorConfig(widths=(8, 16, 32), dim=32, heads=2)
+
+    def full_loss(model) -> float:
+        with torch.no_grad():
+            img, present, boxes = make_batch(tiny_frames, np.arange(len(tiny_frames)), np.zeros(len(tiny_frames)))
+            logits, pred, _ = model.eval()(model.normalize(img))
+            return detection_loss(logits, pred, present, boxes)[1]["loss"]
+
+    torch.manual_seed(cfg.seed)
+    before = full_loss(ClassQueryDetector(small))  # the initialisation train_detector starts from
+    res = train_detector(tiny_world, tmp_path / "a", cfg, small, frames=tiny_frames, progress=False)
+    assert (res.start_step, res.step) == (0, 60)
+    after = full_loss(load_model(tmp_path / "a")[0])
+    assert after < 0.85 * before, (before, after)
+    hist = read_meta(tmp_path / "a")["history"]
+    assert [h["step"] for h in hist] == list(range(5, 61, 5))
+
+    # 6 steps at once == 3 steps, then resumed to 6 (weights, BatchNorm statistics and AdamW state).
+    cfg6 = TrainConfig(steps=6, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
+    train_detector(tiny_world, tmp_path / "once", cfg6, small, frames=tiny_frames, progress=False)
+    cfg3 = TrainConfig(steps=3, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
+    train_detector(tiny_world, tmp_path / "twice", cfg3, small, frames=tiny_frames, progress=False)
+    r = train_detector(tiny_world, tmp_path / "twice", TrainConfig(steps=6, threads=1), frames=tiny_frames,
+                       progress=False)
+    assert (r.start_step, r.step) == (3, 6)
+    ma, _ = load_model(tmp_path / "once")
+    mb, meta = load_model(tmp_path / "twice")
+    assert meta["train"]["batch_size"] == 8  # the stored settings are kept on resume
+    for (k, a), b in zip(ma.state_dict().items(), mb.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=k)
+    # Already finished: returns at once.
+    again = train_detector(tiny_world, tmp_path / "twice", TrainConfig(steps=6), frames=tiny_frames, progress=False)
+    assert again.start_step == again.step == 6
+
+
+def test_fit_temperature_recovers_a_known_temperature():
+    rng = np.random.default_rng(0)
+    z = rng.normal(0, 4, 20000)
+    y = rng.random(len(z)) < 1 / (1 + np.exp(-z / 2.5))
+    t = fit_temperature(z, y)
+    assert t == pytest.approx(2.5, rel=0.08)
+    # The fitted optimum is the minimum of a fine grid of the same objective (slow reference).
+    grid = np.exp(np.linspace(math.log(0.5), math.log(10), 400))
+    nll = [np.mean(np.logaddexp(0, z / g) - y * z / g) for g in grid]
+    assert t == pytest.approx(grid[int(np.argmin(nll))], rel=0.01)
+
+
+def test_learned_table(tiny_world, tiny_frames, tiny_scenes, tmp_path):
+    from tsnav.detect.learned import LearnedDetector
+
+    cfg = TrainConfig(steps=4, batch_size=8, warmup=1, threads=1)
+    small = DetectorConfig(widths=(8, 16, 32), dim=32, heads=2)
+    train_detector(tiny_world, tmp_path / "c", cfg, small, frames=tiny_frames, progress=False)
+    t = calibrate(tiny_world, tmp_path / "c", frames=tiny_frames)
+    assert t > 0 and read_meta(tmp_path / "c")["temperature"] == t
+    det = LearnedDetector.load(tmp_path / "c")
+    assert det.temperature == t
+    s = tiny_scenes[3]
+    table = det.detect_scene(s, batch_size=64, chunk=100)
+    np.testing.assert_array_equal(table.keys, s.keys)
+    assert table.scores.shape == (s.num_states, NUM_CATEGORIES)
+    assert table.features.shape == (s.num_states, NUM_CATEGORIES, 32)
+    kept = table.scores >= det.min_score
+    np.testing.assert_array_equal(table.labels >= 0, kept)
+    assert (table.boxes[~kept] == -1).all()
+    assert (table.boxes[kept] >= 0).all() and (table.boxes[kept] <= 63).all()
+    # Scores are sigmoid(logit / T) of the model's logits.
+    img = read_images(s.path, s.keys[:5])
+    logits, _, _ = predict(det.model, img)
+    np.testing.assert_allclose(table.scores[:5], 1 / (1 + np.exp(-logits / t)), rtol=1e-5, atol=1e-6)
+    assert table.fingerprint == read_meta(tmp_path / "c")["fingerprint"]
