@@ -7,7 +7,7 @@ import torch
 from tsnav.constants import CATEGORY_INDEX
 from tsnav.data.reader import load_scene
 from tsnav.pretrain.data import (
-    DEPTH_SCALE, AugmentConfig, RGBDImages, apply_augment, clean_depth, denormalize_rgb, draw_augment,
+    DEPTH_MEAN, DEPTH_STD, AugmentConfig, RGBDImages, apply_augment, clean_depth, denormalize_rgb, draw_augment,
     normalize_rgb, prepare_batch,
 )
 from tsnav.pretrain.synthetic import write_synthetic_dataset
@@ -81,5 +81,5 @@ def test_normalisation_and_depth_scaling():
     depth = torch.tensor([[[[2.5, float("nan")], [float("inf"), -1.0]]]])
     assert clean_depth(depth.clone()).flatten().tolist() == [2.5, 10.0, 10.0, 0.0]
     _, d = prepare_batch({"rgb": rgb[:1, :, :2, :2], "depth": torch.full((1, 1, 2, 2), 2.5)}, None)
-    assert torch.all(d == 2.5 / DEPTH_SCALE)
+    assert torch.allclose(d, torch.tensor((2.5 - DEPTH_MEAN) / DEPTH_STD))
     assert CATEGORY_INDEX["Toaster"] == 21

@@ -7,15 +7,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data import DEPTH_SCALE, MAX_DEPTH, denormalize_rgb
+from .data import MAX_DEPTH, denormalize_rgb, target_to_depth
 from .model import MaskedAutoencoderViT
 
 
-def _depth_colors(d: np.ndarray) -> np.ndarray:
-    """``[..., H, W]`` metres -> ``[..., H, W, 3]`` float colours (matplotlib ``viridis``, near = dark)."""
+def _depth_colors(d: np.ndarray, vmax: np.ndarray) -> np.ndarray:
+    """``[N, H, W]`` metres -> ``[N, H, W, 3]`` colours (``viridis``, 0 m dark, ``vmax[n]`` metres bright)."""
     from matplotlib import colormaps
 
-    return colormaps["viridis"](np.clip(d / (MAX_DEPTH / 2), 0, 1))[..., :3]
+    return colormaps["viridis"](np.clip(d / vmax[:, None, None], 0, 1))[..., :3]
 
 
 @torch.no_grad()
@@ -24,7 +24,7 @@ def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depth
     """Write a PNG grid, one row per image: input, masked input, RGB reconstruction (visible patches pasted
     back, as MAE shows it), predicted depth (DE-MAE; grey for MAE), true depth. Returns the grid as uint8.
 
-    images: normalised RGB ``[N, 3, S, S]``; depths: ``[N, 1, S, S]`` in metres / ``DEPTH_SCALE`` (or None).
+    images: normalised RGB ``[N, 3, S, S]``; depths: ``[N, 1, S, S]`` depth targets (:func:`~tsnav.pretrain.data.depth_to_target`) or None.
     """
     from PIL import Image
 
@@ -47,12 +47,15 @@ def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depth
             denormalize_rgb(images * (1 - mask_img) + rec * mask_img)]
     cols = [c.permute(0, 2, 3, 1).cpu().numpy() for c in cols]
     grey = np.full((n, s, s, 3), 0.5)
+    true = target_to_depth(depths[:, 0]).cpu().numpy() if depths is not None else None
+    # one colour scale per row: 0 m to the row's farthest true depth (both depth columns share it)
+    vmax = np.maximum(true.reshape(n, -1).max(1), 0.5) if true is not None else np.full(n, MAX_DEPTH / 2)
     if out.pred_depth is not None:
-        pd = model.unpatchify(out.pred_depth.float(), 1)[:, 0].cpu().numpy() * DEPTH_SCALE
-        cols.append(_depth_colors(pd))
+        pd = target_to_depth(model.unpatchify(out.pred_depth.float(), 1)[:, 0]).cpu().numpy()
+        cols.append(_depth_colors(pd, vmax))
     else:
         cols.append(grey)
-    cols.append(_depth_colors(depths[:, 0].cpu().numpy() * DEPTH_SCALE) if depths is not None else grey)
+    cols.append(_depth_colors(true, vmax) if true is not None else grey)
     pad = 2
     grid = np.ones((n * (s + pad) + pad, len(cols) * (s + pad) + pad, 3))
     for i in range(n):
