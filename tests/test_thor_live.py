@@ -135,14 +135,14 @@ def test_blocked_moves_are_left_out_and_unreachable_states_dropped(original, tmp
 
 
 def test_controller_without_depth_or_masks_is_refused(original, tmp_path):
-    for kw, what in (({"renderDepthImage": False}, "renderDepthImage"),
-                     ({"renderInstanceSegmentation": False}, "renderInstanceSegmentation")):
-        ctrl = StandInController(original.path, width=original.image_size, **kw)
+    ctrl = StandInController(original.path, width=original.image_size, renderDepthImage=False)
+    for depth, seg, what in ((False, True, "renderDepthImage"), (True, False, "renderInstanceSegmentation")):
+        ctrl.depth_on, ctrl.seg_on = depth, seg  # as if made with renderDepthImage / renderInstanceSegmentation off
         with pytest.raises(LiveExportError, match=what) as e:
             export_live(ctrl, original.name, tmp_path, size=original.image_size)
         assert "\n" not in str(e.value)
         assert not (tmp_path / original.name).exists() and not list(tmp_path.glob(".*"))
-    ctrl = StandInController(original.path, width=original.image_size)
+    ctrl.depth_on = ctrl.seg_on = True
     with pytest.raises(LiveExportError, match=r"expected \(32, 32, 3\)"):
         export_live(ctrl, original.name, tmp_path, size=32)
 

@@ -156,6 +156,8 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
         return stats
     t0 = time.perf_counter()
     ev = controller.reset(scene_name)
+    if ev is not None:  # fail before the walk when the settings are wrong
+        _check_frames(ev, cfg.size, scene_name)
     ev = _step(controller, stats, action="GetReachablePositions")
     reach = ev.metadata.get("actionReturn") if _ok(ev) else None
     if not reach:
@@ -385,6 +387,10 @@ def _check_frames(ev, size: int, scene_name: str) -> None:
         raise LiveExportError(f"{scene_name}: no depth frame; create the controller with renderDepthImage=True")
     if getattr(ev, "instance_segmentation_frame", None) is None or getattr(ev, "instance_masks", None) is None:
         raise LiveExportError(f"{scene_name}: no instance masks; create the controller with renderInstanceSegmentation=True")
+    shape = np.shape(ev.frame)
+    if shape != (size, size, 3):
+        raise LiveExportError(f"{scene_name}: the controller renders {shape} frames, expected ({size}, {size}, 3) "
+                              f"(create it with width=height={size})")
 
 
 def _write_json(path: Path, obj) -> None:
