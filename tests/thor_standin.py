@@ -117,7 +117,7 @@ class StandInController:
         s = self.scene
         ns = s.next_state
         if action == "GetReachablePositions":
-            ret = [{"x": p["x"] + self.noise, "y": GRID_Y, "z": p["z"] - self.noise} for p in self.grid]
+            ret = [{"x": p["x"] - self.noise, "y": GRID_Y, "z": p["z"] - self.noise} for p in self.grid]  # Unity float noise
             return self._event(action, True, ret)
         if action in ("Teleport", "TeleportFull"):
             p = kwargs.get("position", {})

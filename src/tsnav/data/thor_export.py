@@ -113,8 +113,9 @@ def check_lineage_layout(scene_dir: str | Path) -> list[str]:
                                             for a in "xyz") for p in grid):
             problems.append(f"{L.GRID_FILE}: expected a non-empty list of {{\"x\", \"y\", \"z\"}} numbers")
         elif nodes:
-            have = {(f"{p['x']:.2f}", f"{p['z']:.2f}") for p in grid}
-            missing = sorted({tuple(k.split("|")[:2]) for k in nodes if L.KEY_PATTERN.match(str(k))} - have)
+            have = {(round(p["x"] * 100), round(p["z"] * 100)) for p in grid}  # centimetres: -0.00 == 0.00
+            pos = {tuple(k.split("|")[:2]) for k in nodes if L.KEY_PATTERN.match(str(k))}
+            missing = sorted(p for p in pos if (round(float(p[0]) * 100), round(float(p[1]) * 100)) not in have)
             for x, z in missing[:MAX_REPORTED]:
                 problems.append(f"{L.GRID_FILE}: state position ({x}, {z}) of graph.json is missing")
 

@@ -227,7 +227,9 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
     stats.dropped = g.number_of_nodes() - len(keep)
     kept = np.array(sorted(keep), dtype=np.int64)
     pos_i, rot_i, hor_i = kept // (R * H), (kept // H) % R, kept % H
-    keys = np.array([state_key(raw[i, 0], raw[i, 2], ROTATIONS[r], HORIZONS[h]) for i, r, h in zip(pos_i, rot_i, hor_i)])
+    # key positions: two decimals, no negative zero (Unity reports -1e-7 for 0; the key must read 0.00)
+    kx, kz = np.round(raw[:, 0], 2) + 0.0, np.round(raw[:, 2], 2) + 0.0
+    keys = np.array([state_key(kx[i], kz[i], ROTATIONS[r], HORIZONS[h]) for i, r, h in zip(pos_i, rot_i, hor_i)])
     key_of = dict(zip(kept.tolist(), keys.tolist()))
     kept_edges = [(key_of[a], key_of[b]) for a, b in g.subgraph(keep).edges()]
     positions = np.unique(pos_i)
@@ -306,7 +308,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
         has = np.array([b is not None for b in boxes3], bool)
         if has.any():
             bb = [b for b in boxes3 if b is not None]
-            agent = raw[pos_i][:, [0, 2]]
+            agent = np.stack([kx[pos_i], kz[pos_i]], 1)
             distance[:, has] = box_distance(agent, np.array([b[0] for b in bb]), np.array([b[1] for b in bb]), np.zeros(len(bb)))
         min_px = cfg.min_pixels()
         vis = (pixels >= min_px) & (distance <= cfg.visibility_distance)
@@ -314,7 +316,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
         keys_s = keys[order]
         vis_map = {o["objectId"]: keys_s[vis[order, j]].tolist() for j, o in enumerate(objects)}
         _write_json(tmp / "visible_object_map_1.5.json", vis_map)
-        _write_json(tmp / "grid.json", [{"x": float(raw[i, 0]), "y": float(raw[i, 1]), "z": float(raw[i, 2])} for i in positions])
+        _write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(raw[i, 1]), "z": float(kz[i])} for i in positions])
         _write_json(tmp / "graph.json", {"directed": True, "multigraph": False, "graph": {},
                                          "nodes": [{"id": k} for k in keys_s.tolist()],
                                          "links": [{"source": a, "target": b} for a, b in sorted(kept_edges)]})
@@ -341,7 +343,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
         bounds = ev.metadata.get("sceneBounds")
         meta = {
             "format": "tsnav-scene", "version": 1, "name": scene_name, "room_type": room_type, "split": split,
-            "rooms": [], "floor": [p.tolist() for p in derive_floor(raw[positions][:, [0, 2]])], "furniture": [],
+            "rooms": [], "floor": [p.tolist() for p in derive_floor(np.stack([kx[positions], kz[positions]], 1))], "furniture": [],
             "objects": records, "scene_bounds": bounds, "image_size": cfg.size,
             "visibility": {"min_pixels": min_px, "min_pixel_fraction": cfg.min_pixel_fraction,
                            "distance": cfg.visibility_distance},
