@@ -33,7 +33,7 @@ import networkx as nx
 import numpy as np
 
 from tsnav.constants import (CAMERA_HEIGHT, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES,
-                             ROTATE_LEFT, ROTATE_RIGHT, TARGET_CATEGORIES)
+                             ROTATE_LEFT, ROTATE_RIGHT)
 from tsnav.data.reader import load_scene
 
 GRID_Y = 0.9009995
@@ -249,4 +249,4 @@ def write_lineage_scene(scene_dir, out: Path, metadata: bool = False, detections
     return out
 
 
-__all__ = ["StandInController", "StandInEvent", "aabb", "detections_22x264", "write_lineage_scene", "TARGET_CATEGORIES"]
+__all__ = ["StandInController", "StandInEvent", "aabb", "detections_22x264", "write_lineage_scene"]

@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -345,7 +345,8 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
             "image_size": image_size, "num_states": S, "num_positions": int(len(grid)),
             "visibility": {"distance": VISIBILITY_DISTANCE,
                            "rule": "AI2-THOR's visible flag (in view, within 1.5 m) from the lineage's data"},
-            "source": {"format": "ai2thor-offline-data", "path": str(src.resolve()), "files": sorted(carried)},
+            "source": {"format": "ai2thor-offline-data", "path": str(src.resolve()), "files": sorted(carried),
+                       "config": asdict(cfg)},
             "derived": {
                 "floor": "union of 0.25 m squares centred on grid.json positions, holes filled",
                 "objects": "visible_object_map ids (Type|x|y|z)" + (" and metadata.json objects" if raw else ""),

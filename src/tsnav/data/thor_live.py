@@ -34,7 +34,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -349,7 +349,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
                            "distance": cfg.visibility_distance},
             "num_states": int(V), "num_positions": int(len(positions)),
             "source": {"format": "ai2thor-live", "controller": type(controller).__name__,
-                       "settings": controller_settings(cfg.size)},
+                       "settings": controller_settings(cfg.size), "config": asdict(cfg)},
             "derived": {"floor": "union of 0.25 m squares centred on the reachable positions, holes filled",
                         "distance": "floor plane, agent position to the footprint of the object's axis-aligned box",
                         "visible": "instance mask >= min_pixels and distance <= 1.5 m"},
