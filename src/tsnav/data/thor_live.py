@@ -107,7 +107,10 @@ def make_controller(size: int = 300, **overrides):
         from ai2thor.controller import Controller
     except ImportError:
         raise ThorUnavailable(INSTALL_HINT) from None
-    return Controller(**{**controller_settings(size), **overrides})
+    try:
+        return Controller(**{**controller_settings(size), **overrides})
+    except Exception as e:  # download, display or Vulkan problems of the Unity build
+        raise ThorUnavailable(f"AI2-THOR could not start: {' '.join(str(e).split()) or type(e).__name__}") from None
 
 
 def _step(controller, stats: LiveStats, **action):
