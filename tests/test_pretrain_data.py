@@ -83,3 +83,16 @@ def test_normalisation_and_depth_scaling():
     _, d = prepare_batch({"rgb": rgb[:1, :, :2, :2], "depth": torch.full((1, 1, 2, 2), 2.5)}, None)
     assert torch.allclose(d, torch.tensor((2.5 - DEPTH_MEAN) / DEPTH_STD))
     assert CATEGORY_INDEX["Toaster"] == 21
+
+
+def test_tiny_world_train_frames(tiny_world):
+    from tsnav.data.reader import list_scenes
+
+    imgs = RGBDImages(tiny_world, "train", img_size=32, labels=True)
+    train_scenes = list_scenes(tiny_world, "train")
+    assert imgs.scenes == train_scenes
+    assert len(imgs) == sum(load_scene(p).num_states for p in train_scenes)
+    b = imgs.get(np.arange(0, len(imgs), max(1, len(imgs) // 16)))
+    assert b["rgb"].shape[1:] == (3, 32, 32) and torch.isfinite(b["depth"]).all()
+    assert 0 < b["depth"].mean() < 10 and b["rgb"].float().std() > 5
+    assert b["labels"].sum() > 0

@@ -149,3 +149,30 @@ def probe_encoder(encoder: Encoder, root, config: ProbeConfig | None = None) -> 
     return {"encoder": encoder.spec, "method": encoder.method, "depth_rmse_m": rmse,
             "depth_rmse_baseline_m": base, "map": m_ap, "map_chance": chance,
             "categories": int(ev_ok.sum()), "n_fit": int(len(fi)), "n_eval": int(len(ei)), "config": asdict(cfg)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tsnav.pretrain.probe --data ROOT --encoder SPEC [SPEC ...]``: print one JSON line each."""
+    import argparse
+    import json
+
+    from .features import load_encoder
+
+    ap = argparse.ArgumentParser(prog="python -m tsnav.pretrain.probe", description="linear probes of encoders")
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--encoder", nargs="+", required=True, help="encoder specs as for `tsnav features`")
+    ap.add_argument("--model", default="vit_tiny")
+    ap.add_argument("--patch", type=int, default=16)
+    ap.add_argument("--img-size", type=int, default=64)
+    ap.add_argument("--max-images", type=int, default=ProbeConfig.max_images)
+    args = ap.parse_args(argv)
+    for spec in args.encoder:
+        enc = load_encoder(spec, args.model, args.patch, args.img_size)
+        res = probe_encoder(enc, args.data, ProbeConfig(max_images=args.max_images))
+        res.pop("config")
+        print(json.dumps(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
