@@ -67,7 +67,7 @@ def test_bad_inputs_are_named():
     with pytest.raises(ValueError, match="horizon 60"):
         trapezoid(0, 0, 0, 60)
     with pytest.raises(ValueError, match="sample_size"):
-        AreaConfig(sample_size=0.05)
+        AreaConfig(sample_size=0.03)
     with pytest.raises(ValueError, match="near base"):
         AreaConfig(near_level=5.0)
     with pytest.raises(ValueError, match="no floor"):

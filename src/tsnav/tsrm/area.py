@@ -11,13 +11,14 @@ Two implementations:
 
 * :class:`ExactSearchedRegion` - the reference: shapely polygons, one episode.
 * :class:`AreaIndex` + :class:`BatchCoverage` - the fast path. Area is measured by point samples on a
-  square lattice of pitch ``sample_size`` (1/32 m by default); a sample counts when it lies in the region.
-  The samples are packed 8 x 8 into 64-bit *blocks* whose side (8 samples = 0.25 m) divides the position
-  grid, so every agent stands on a block corner and the blocks a trapezoid touches, with the bits of the
-  samples inside it, depend only on (rotation, horizon): one *stencil* (block offsets + bit masks) per pose
-  profile serves every state of every scene. Each episode keeps one coverage word per block, with the
-  samples off the floor preset to 1, so the area a step gains is ``popcount(mask & ~coverage)`` summed
-  over the stencil, times ``sample_size**2``. A batch of episodes is counted with one gather per profile.
+  square lattice of pitch ``sample_size`` (1/32 m by default; it divides the 0.25 m grid, so every
+  position is a lattice corner); a sample counts when it lies in the region. The samples are packed 8 x 8
+  into 64-bit *blocks*. The blocks a trapezoid touches, with the bits of its samples, depend only on the
+  (rotation, horizon) profile and the position's phase inside its block: one *stencil* (block offsets + bit
+  masks) per such pose serves every state of every scene (16 stencils at 1/32 m, 64 at 1/16 m). Each
+  episode keeps one coverage word per block, with the samples off the floor preset to 1, so the area a step
+  gains is ``popcount(mask & ~coverage)`` summed over the stencil, times ``sample_size**2``. A batch of
+  episodes is counted with one gather per horizon.
 
 Samples sit at half-sample offsets from agent positions, so walls on the 0.125 m lattice (the usual room
 bounds) fall between samples. Trapezoid edges that run along rows of samples (the lateral edges of headings
@@ -37,6 +38,9 @@ import shapely
 
 from ..constants import GRID_SIZE, ROTATE_STEP
 
+#: Episodes per gather in :meth:`BatchCoverage.add` (bounds the size of the temporaries).
+CHUNK = 256
+
 #: Samples per block side; a block is one 64-bit word of 8 x 8 samples (bit = 8 * row + column).
 BLOCK = 8
 
@@ -54,8 +58,8 @@ class AreaConfig:
     far_down: float = 3.0
     """Distance to the far base at horizon 30, metres."""
     sample_size: float = 1 / 32
-    """Pitch of the area samples of the fast implementation, metres. A block of 8 x 8 samples must divide
-    the 0.25 m grid: 1/32 (blocks of 0.25 m) or 1/64, 1/96, ... (finer, slower)."""
+    """Pitch of the area samples of the fast implementation, metres; must divide the 0.25 m grid. Work per
+    step grows as 1 / sample_size^2 (1/16 is about 3x faster, 1/64 about 4x slower)."""
 
     def __post_init__(self):
         for name in ("near_level", "far_level", "near_down", "far_down", "sample_size"):
@@ -63,10 +67,10 @@ class AreaConfig:
                 raise ValueError(f"AreaConfig.{name} must be positive, got {getattr(self, name)}")
         if not (self.near_level < self.far_level and self.near_down < self.far_down):
             raise ValueError("AreaConfig: the near base must be closer than the far base")
-        k = GRID_SIZE / (BLOCK * self.sample_size)
+        k = GRID_SIZE / self.sample_size
         if abs(k - round(k)) > 1e-6 or round(k) < 1:
-            raise ValueError(f"AreaConfig.sample_size {self.sample_size}: 8 samples must divide the {GRID_SIZE} m "
-                             f"grid (use 1/32, 1/64, ...)")
+            raise ValueError(f"AreaConfig.sample_size {self.sample_size} must divide the {GRID_SIZE} m grid "
+                             f"(e.g. 1/16, 0.05, 1/32)")
 
     @property
     def block_size(self) -> float:
@@ -172,9 +176,9 @@ def profile_of(rotation, horizon) -> np.ndarray:
 
 
 def stencil_reach(config: AreaConfig) -> int:
-    """Blocks from the agent to the farthest block any stencil touches (rasters pad positions by this)."""
+    """Blocks from the agent's block to the farthest block any stencil touches (rasters pad by more)."""
     far = max(config.far_level, config.far_down)
-    return int(np.ceil(far * np.sqrt(2) / config.block_size)) + 1
+    return int(np.ceil(far * np.sqrt(2) / config.block_size)) + 2
 
 
 def stencil_weights(rotation: int, horizon: int, config: AreaConfig = AreaConfig()):
@@ -255,27 +259,52 @@ else:  # numpy < 2.0
         return _POP8[x.view(np.uint8)].reshape(x.shape + (8,)).sum(axis=-1, dtype=np.uint8)
 
 
-def stencil_blocks(rotation: int, horizon: int, config: AreaConfig = AreaConfig()):
-    """The stencil of a pose profile: ``(dcol, drow, mask)`` - block offsets from the block whose lower-left
-    corner is the agent, and the uint64 bit mask of the trapezoid's samples in each block."""
+def stencil_blocks(rotation: int, horizon: int, config: AreaConfig = AreaConfig(), phase: tuple[int, int] = (0, 0)):
+    """The stencil of a pose: ``(dcol, drow, mask)`` - offsets from the agent's block and the uint64 bit mask
+    of the trapezoid's samples in each block. ``phase`` = (column, row) of the agent's position inside its
+    block, in samples (0..7): the agent stands at the lower-left corner of sample ``phase`` of its block."""
     du, dv = stencil_samples(rotation, horizon, config)
-    dcol, p = np.divmod(du, BLOCK)
-    drow, q = np.divmod(dv, BLOCK)
+    dcol, p = np.divmod(du + int(phase[0]), BLOCK)
+    drow, q = np.divmod(dv + int(phase[1]), BLOCK)
     keys, inv = np.unique(np.stack([drow, dcol], axis=1), axis=0, return_inverse=True)
     mask = np.zeros(len(keys), dtype=np.uint64)
     np.bitwise_or.at(mask, inv.reshape(-1), np.left_shift(np.uint64(1), (BLOCK * q + p).astype(np.uint64)))
     return keys[:, 1].astype(np.int64), keys[:, 0].astype(np.int64), mask
 
 
+def _floor_samples(floor, cx: np.ndarray, cz: np.ndarray, parity: np.ndarray, s: float) -> np.ndarray:
+    """Bool: the sample at ``(cx, cz)`` is on the floor. Samples lying on the floor's boundary (walls through
+    sample centres, e.g. 0.125 m walls at a 0.05 m pitch) count in a checkerboard (``parity`` = u + v), half
+    of them, so a wall through a row of samples costs no area on either side."""
+    inside = shapely.contains_xy(floor, cx, cz)
+    edge = shapely.intersects_xy(floor.boundary.buffer(s * 1e-6), cx, cz)
+    inside[edge] = parity[edge] % 2 == 0
+    return inside
+
+
 class AreaIndex:
     """Static tables of the fast searched area for a bank of scenes (state ids concatenated in order).
 
+    Every state maps to a *stencil* - its (rotation, horizon) profile and the sample phase of its position
+    inside its block - and the stencils of each horizon are stored as one padded table, so that a batch is
+    counted with one gather per horizon.
+
+    Layout of an episode's coverage row (``rows x width`` blocks): the scene's content (floor near the
+    positions) at rows ``[0, height)``, columns ``[0, content width)``, then ``reach + 1`` margin columns on
+    the right and ``reach + 1`` margin rows on top, all-ones (off the floor). Rows of consecutive episodes
+    are stored back to back after a leading margin, so a stencil block left of column 0 wraps into the
+    previous row's right margin and one below row 0 lands in the previous episode's top margin: every
+    stencil block outside the content hits an all-ones margin block, and writing ``old | mask`` back keeps
+    it all-ones. Stencil padding entries point ``reach + 1`` rows below the agent (a margin row) with mask 0.
+
     Attributes:
-        config: the :class:`AreaConfig`. width: common raster width of all scenes, blocks.
-        row_len: blocks per coverage row (``max height * width``); height: ``(num_scenes,)`` rows, blocks.
-        anchor: ``(total_S,)`` int64 flat index of the block whose lower-left corner is the state's position.
-        profile: ``(total_S,)`` int64 pose profile (:func:`profile_of`).
-        offsets, masks: per profile, flat block offsets (int64) and sample bit masks (uint64) of the stencil.
+        config: the :class:`AreaConfig`. width: blocks per raster row (all scenes); rows: raster rows per
+        episode; row_len = rows * width; lead: blocks of the leading margin; height: ``(num_scenes,)``
+        content rows of each scene.
+        anchor: ``(total_S,)`` int64 flat index (within its episode row) of the block holding the position.
+        group: ``(total_S,)`` int64 0 for horizon 0, 1 for horizon 30; stencil: ``(total_S,)`` int64 row of
+            the state's stencil in ``offsets[group]`` / ``masks[group]``.
+        offsets, masks: per horizon, ``(n_stencils, K)`` flat block offsets (int64) and bit masks (uint64).
         off_floor: ``(num_scenes, row_len)`` uint64, the bits of samples outside the floor set.
         origin: ``(num_scenes, 2)`` (x, z) metres of the lower-left corner of block (0, 0).
         floor_area: ``(num_scenes,)`` floor area at raster resolution, square metres.
@@ -290,49 +319,70 @@ class AreaIndex:
         self.config = config
         bs = config.block_size
         s = config.sample_size
-        pad = stencil_reach(config) + 1
-        geoms, cols, rows, origins, widths, heights = [], [], [], [], [], []
+        reach = self.reach = stencil_reach(config)
+        geoms, us, vs, origins, widths, heights = [], [], [], [], [], []
         for fl, (x, z) in zip(floors, positions):
             g = fl if isinstance(fl, shapely.Geometry) else floor_union(fl)
             x = np.asarray(x, np.float64)
             z = np.asarray(z, np.float64)
-            x0, z0 = float(x.min()), float(z.min())
-            ci, ri = (x - x0) / bs, (z - z0) / bs
-            if np.abs(ci - np.round(ci)).max() > 1e-3 or np.abs(ri - np.round(ri)).max() > 1e-3:
-                raise ValueError(f"state positions are not on a {bs} m lattice; the area raster needs grid positions")
-            ci = np.round(ci).astype(np.int64) + pad
-            ri = np.round(ri).astype(np.int64) + pad
+            fx0, fz0, fx1, fz1 = g.bounds
+            # content: the floor's bounding box, cut to the stencils' reach around the positions
+            lo_x = min(float(x.min()), max(fx0, float(x.min()) - reach * bs))
+            lo_z = min(float(z.min()), max(fz0, float(z.min()) - reach * bs))
+            ox = float(x.min()) - np.ceil((float(x.min()) - lo_x) / bs - 1e-9) * bs
+            oz = float(z.min()) - np.ceil((float(z.min()) - lo_z) / bs - 1e-9) * bs
+            hi_x = min(fx1, float(x.max()) + reach * bs)
+            hi_z = min(fz1, float(z.max()) + reach * bs)
+            u, v = (x - ox) / s, (z - oz) / s
+            if np.abs(u - np.round(u)).max() > 1e-3 or np.abs(v - np.round(v)).max() > 1e-3:
+                raise ValueError(f"state positions are not on a {s} m lattice; the area raster needs grid positions")
+            u, v = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
             geoms.append(g)
-            cols.append(ci)
-            rows.append(ri)
-            origins.append((x0 - pad * bs, z0 - pad * bs))
-            widths.append(int(ci.max()) + pad + 1)
-            heights.append(int(ri.max()) + pad + 1)
-        self.width = w = max(widths)
+            us.append(u)
+            vs.append(v)
+            origins.append((ox, oz))
+            widths.append(max(int(u.max()) // BLOCK + 1, int(np.ceil((hi_x - ox) / bs - 1e-9))))
+            heights.append(max(int(v.max()) // BLOCK + 1, int(np.ceil((hi_z - oz) / bs - 1e-9))))
+        self.width = w = max(widths) + reach + 1
         self.height = np.array(heights, dtype=np.int64)
-        self.row_len = int(self.height.max()) * w
+        self.rows = int(self.height.max()) + reach + 1
+        self.row_len = self.rows * w
+        self.lead = (reach + 1) * w
         self.origin = np.array(origins, dtype=np.float64).reshape(-1, 2)
-        self.anchor = np.concatenate([r * w + c for r, c in zip(rows, cols)]).astype(np.int64)
-        self.profile = profile_of(rotations, horizons)
-        if len(self.profile) != len(self.anchor):
+        u, v = np.concatenate(us), np.concatenate(vs)
+        self.anchor = (v // BLOCK) * w + u // BLOCK
+        profile = profile_of(rotations, horizons)
+        if len(profile) != len(self.anchor):
             raise ValueError("AreaIndex: rotations/horizons must cover every state of every scene")
+        self.group = profile % 2
+        key = (profile * BLOCK + v % BLOCK) * BLOCK + u % BLOCK  # (profile, row phase, column phase)
+        self.stencil = np.zeros(len(key), dtype=np.int64)
         self.offsets, self.masks = [], []
-        for p in range(16):
-            dc, dr, m = stencil_blocks((p // 2) * ROTATE_STEP, 30 if p % 2 else 0, config)
-            self.offsets.append(dr * w + dc)
-            self.masks.append(m)
-        self.off_floor = []
-        for g, (x0, z0), h in zip(geoms, origins, heights):
-            u = np.arange(w * BLOCK)
-            v = np.arange(h * BLOCK)
-            uu, vv = np.meshgrid(u, v, indexing="xy")
-            inside = shapely.contains_xy(g, x0 + (uu + 0.5) * s, z0 + (vv + 0.5) * s)
-            row = np.full(self.row_len, np.iinfo(np.uint64).max, dtype=np.uint64)
-            row[: h * w] = ~_pack_blocks(inside).reshape(-1)
-            self.off_floor.append(row)
-        self.floor_area = np.array([(BLOCK * BLOCK * self.row_len - popcount(r).sum(dtype=np.int64)) * s * s
-                                    for r in self.off_floor])
-        self.off_floor = np.stack(self.off_floor)
+        dummy = -(reach + 1) * w  # a margin block no real stencil entry reaches
+        for grp in (0, 1):
+            sel = self.group == grp
+            keys, inv = np.unique(key[sel], return_inverse=True)
+            self.stencil[sel] = inv.reshape(-1)
+            rows = []
+            for k in keys.tolist():
+                prof, pv, pu = k // (BLOCK * BLOCK), (k // BLOCK) % BLOCK, k % BLOCK
+                dc, dr, m = stencil_blocks((prof // 2) * ROTATE_STEP, 30 if prof % 2 else 0, config, (pu, pv))
+                assert np.abs(dc).max() <= reach and np.abs(dr).max() <= reach
+                rows.append((dr * w + dc, m))
+            kmax = max((len(o) for o, _ in rows), default=0)
+            off = np.full((len(rows), kmax), dummy, dtype=np.int64)
+            msk = np.zeros((len(rows), kmax), dtype=np.uint64)
+            for i, (o, m) in enumerate(rows):
+                off[i, : len(o)] = o
+                msk[i, : len(m)] = m
+            self.offsets.append(off)
+            self.masks.append(msk)
+        self.off_floor = np.full((len(geoms), self.row_len), np.iinfo(np.uint64).max, dtype=np.uint64)
+        for i, (g, (x0, z0), cw, h) in enumerate(zip(geoms, origins, widths, heights)):
+            uu, vv = np.meshgrid(np.arange(cw * BLOCK), np.arange(h * BLOCK), indexing="xy")
+            inside = _floor_samples(g, x0 + (uu + 0.5) * s, z0 + (vv + 0.5) * s, uu + vv, s)
+            self.off_floor[i].reshape(self.rows, w)[:h, :cw] = ~_pack_blocks(inside)
+        self.floor_area = (BLOCK * BLOCK * self.row_len - popcount(self.off_floor).sum(axis=1, dtype=np.int64)) * s * s
 
     @classmethod
     def from_scenes(cls, scenes: Sequence, config: AreaConfig = AreaConfig()) -> "AreaIndex":
@@ -351,15 +401,16 @@ class AreaIndex:
 class BatchCoverage:
     """Per-episode coverage rasters of a batch of episodes: the fast searched region ``RG_t``.
 
-    ``covered[b]`` holds one uint64 per block of episode ``b``'s scene; a bit is set when its sample is off
-    the floor or already searched, so the new samples under a stencil are exactly ``(T_t n floor) - RG_{t-1}``
-    at raster resolution.
+    ``covered[b]`` holds one uint64 per block of episode ``b``'s raster (layout in :class:`AreaIndex`); a bit
+    is set when its sample is off the floor or already searched, so the new samples under a stencil are
+    exactly ``(T_t n floor) - RG_{t-1}`` at raster resolution.
     """
 
     def __init__(self, index: AreaIndex, batch_size: int):
         self.index = index
         self.batch_size = int(batch_size)
-        self.covered = np.full((self.batch_size, index.row_len), np.iinfo(np.uint64).max, dtype=np.uint64)
+        self._flat = np.full(index.lead + self.batch_size * index.row_len, np.iinfo(np.uint64).max, dtype=np.uint64)
+        self.covered = self._flat[index.lead:].reshape(self.batch_size, index.row_len)
         self.scene = np.zeros(self.batch_size, dtype=np.int64)
         self.samples = np.zeros(self.batch_size, dtype=np.int64)
 
@@ -382,21 +433,20 @@ class BatchCoverage:
         gained = np.zeros(len(episodes), dtype=np.int64)
         if len(episodes):
             idx = self.index
-            flat = self.covered.reshape(-1)
-            base = episodes * idx.row_len + idx.anchor[states]
-            prof = idx.profile[states]
-            order = np.argsort(prof, kind="stable")
-            bounds = np.searchsorted(prof[order], np.arange(17))
-            for p in range(16):  # one gather per pose profile, all episodes of that profile at once
-                sel = order[bounds[p]:bounds[p + 1]]
-                if len(sel) == 0:
-                    continue
-                cells = base[sel, None] + idx.offsets[p][None, :]
-                old = flat[cells]
-                upd = old | idx.masks[p]
-                np.bitwise_xor(upd, old, out=old)  # the samples this view adds
-                gained[sel] = popcount(old).sum(axis=1, dtype=np.int64)
-                flat[cells] = upd
+            flat = self._flat
+            base = idx.lead + episodes * idx.row_len + idx.anchor[states]
+            group = idx.group[states]
+            for g in (0, 1):  # one padded gather per horizon and chunk of episodes
+                sel_all = np.flatnonzero(group == g)
+                for c in range(0, len(sel_all), CHUNK):  # chunks keep the (n, K) temporaries in cache
+                    sel = sel_all[c:c + CHUNK]
+                    row = idx.stencil[states[sel]]
+                    cells = base[sel, None] + idx.offsets[g][row]
+                    old = flat[cells]
+                    upd = old | idx.masks[g][row]
+                    np.bitwise_xor(upd, old, out=old)  # the samples this view adds
+                    gained[sel] = popcount(old).sum(axis=1, dtype=np.int64)
+                    flat[cells] = upd
             self.samples[episodes] += gained
         return gained * self.index.config.sample_size ** 2
 
@@ -406,7 +456,8 @@ class BatchCoverage:
 
     def region_mask(self, b: int) -> np.ndarray:
         """``(rows, cols)`` bool sample raster of episode ``b``'s searched region (row = z), see ``extent``."""
+        idx = self.index
         s = int(self.scene[b])
-        h, w = int(self.index.height[s]), self.index.width
-        searched = self.covered[b, : h * w] & ~self.index.off_floor[s][: h * w]
-        return _unpack_blocks(searched.reshape(h, w))
+        h, w = int(idx.height[s]), idx.width
+        searched = self.covered[b].reshape(idx.rows, w)[:h] & ~idx.off_floor[s].reshape(idx.rows, w)[:h]
+        return _unpack_blocks(searched)
