@@ -9,8 +9,8 @@ batch of global state ids of a :class:`~tsnav.sim.batch.SceneBank`.
   ground-truth box of the instance with the most visible pixels (``Scene.boxes``).
 * :class:`Observer` turns ``(state, target)`` arrays into an :class:`AgentObs` with gathers only. The
   detection feature of a box is the image feature map averaged over the box (area-weighted over the grid
-  cells it covers), standing in for DETR's 256-d decoder feature of the lineage; a bank attribute
-  ``detection_features`` ``(S, 22, D)`` is used instead when a detector provides one.
+  cells it covers), standing in for DETR's 256-d decoder feature of the lineage; the detector's own per-class
+  features ``(S, 22, D)`` (``tsnav.detect`` tables) are used instead when given.
 """
 
 from __future__ import annotations
@@ -102,7 +102,8 @@ class DetectionTable:
     fallback described in the module docstring. ``source`` is ``"detector"`` or ``"oracle"``.
     """
 
-    def __init__(self, bank):
+    def __init__(self, bank, features: np.ndarray | None = None):
+        """``features``: optional ``(S, 22, D)`` per-class detection features, row-aligned with the bank."""
         if bank.detections is not None:
             det = bank.detections
             side = np.array([s.image_size or 1 for s in bank.scenes], dtype=np.float32)[bank.scene_of]
@@ -116,8 +117,10 @@ class DetectionTable:
         if bank.confidence is not None and bank.detections is None:
             self.source = "detector-confidence+gt-boxes"
         self.box[self.score <= 0] = 0.0
-        extra = getattr(bank, "detection_features", None)
-        self.features = None if extra is None else torch.as_tensor(np.asarray(extra, dtype=np.float16))
+        if features is not None and np.shape(features)[:2] != (bank.num_states, NUM_CATEGORIES):
+            raise ValueError(f"detection features must have shape ({bank.num_states}, {NUM_CATEGORIES}, D), "
+                             f"got {np.shape(features)}")
+        self.features = None if features is None else torch.as_tensor(np.asarray(features, dtype=np.float16))
 
 
 def roi_pool(image: torch.Tensor, box: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,179 @@
+"""Batched synchronous advantage actor-critic (A2C) over ``B`` parallel episodes (paper III-D, made batched).
+
+Same network, reward, rollout and loss as the paper's A3C (:mod:`tsnav.rl.a3c`), but one process steps
+``num_envs`` episodes of a :class:`~tsnav.sim.batch.BatchEnv` together and makes one synchronous update per
+rollout of ``rollout_steps`` steps, so the network runs on batches instead of single frames. Under
+``torchrun`` every rank does the same with its own episodes and seed and the gradients are averaged.
+
+Each update, top to bottom:
+
+1. collect a rollout of ``T`` steps (auto-reset; truncated episodes bootstrap from the critic),
+2. GAE advantages and returns (gamma 0.99, tau 1.0),
+3. loss = policy - 0.01 entropy + 0.5 value; backward; all-reduce; clip the gradient norm at 100,
+4. Adam (AMSGrad) step.
+
+Checkpoints every ``checkpoint_every`` updates hold weights, optimizer state, progress and every rank's RNG
+states; after saving, every row starts a fresh episode. A run killed at any moment and started again
+resumes from its last checkpoint and continues exactly like an uninterrupted run (bit-identical weights on
+the CPU); a finished run is not retrained.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..agent.model import AgentConfig
+from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, latest_checkpoint, load_checkpoint, rng_state,
+                         set_rng_state, write_rng)
+from .config import TrainConfig
+from .distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
+                          init_distributed)
+from .logger import RunLogger
+from .rollout import RolloutCollector, a2c_loss, gae
+from .stats import concat, summarize
+from .world import load_bank, make_model, make_observer, make_train_env, resolve_device
+
+
+def new_progress() -> dict:
+    """Counters of a run: updates, environment steps and finished episodes over all ranks, training seconds."""
+    return {"update": 0, "env_steps": 0, "episodes": 0, "seconds": 0.0, "finished": False}
+
+
+class ProgressBar:
+    """tqdm bar over the unit of the run's budget (episodes, updates or seconds)."""
+
+    def __init__(self, cfg: TrainConfig, progress: dict, enabled: bool):
+        from tqdm import tqdm
+
+        b = cfg.budget
+        self.key, total, unit = (("episodes", b["episodes"], "ep") if "episodes" in b else
+                                 ("update", b["updates"], "upd") if "updates" in b else
+                                 ("seconds", int(60 * b["minutes"]), "s"))
+        self.bar = tqdm(total=total, initial=int(progress[self.key]), unit=unit, disable=not enabled,
+                        dynamic_ncols=True, desc=f"train {cfg.algo}")
+
+    def update(self, progress: dict, postfix: dict | None = None) -> None:
+        self.bar.update(max(0, int(progress[self.key]) - self.bar.n))
+        if postfix:
+            self.bar.set_postfix(postfix, refresh=False)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
+                  on_update=None, scenes=None) -> dict:
+    """Train (or resume) the run in ``run_dir``; returns the final progress dict.
+
+    ``on_update(progress)`` is called after every update (tests use it to interrupt a run); ``scenes``
+    replaces loading ``cfg.split`` of ``cfg.data`` (the scenes still need their feature caches).
+    """
+    run_dir = Path(run_dir)
+    device = resolve_device(cfg.device)
+    info = init_distributed(device)
+    device = device_for(info, device)
+    torch.set_num_threads(cfg.threads)
+    bank, det_features = load_bank(cfg, scenes)
+    observer = make_observer(bank, cfg, det_features=det_features, device=device)
+    model = make_model(agent, observer, cfg.seed).to(device)
+    broadcast_model(model, info)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
+    env = make_train_env(bank, cfg, cfg.num_envs, seed=cfg.seed * 1000 + info.rank)
+    torch.manual_seed(cfg.seed * 1000 + 7919 * info.rank + 1)  # dropout and action sampling
+
+    progress = new_progress()
+    ck = latest_checkpoint(run_dir)
+    if ck is not None:
+        state = load_checkpoint(ck, model, optimizer)
+        progress.update(state["progress"])
+        rng = state["rng"].get(info.rank)
+        if rng is not None:
+            set_rng_state(rng, env.np_random)
+        else:  # a rank that did not exist when the checkpoint was written
+            torch.manual_seed(cfg.seed * 1000 + 7919 * info.rank + progress["update"])
+            env.np_random = np.random.default_rng([cfg.seed, info.rank, progress["update"]])
+    if cfg.budget_reached(progress):
+        if not progress.get("finished"):
+            progress["finished"] = True
+            _checkpoint(run_dir, progress, model, optimizer, env, info)
+        return progress
+    progress["finished"] = False
+
+    collector = RolloutCollector(env, observer, model)
+    collector.start()
+    logger = RunLogger(run_dir, progress["update"], enabled=info.is_main)
+    bar = ProgressBar(cfg, progress, enabled=progress_bar and info.is_main)
+    t_start, seconds0 = time.perf_counter(), progress["seconds"]
+    window = {"t": time.perf_counter(), "steps": progress["env_steps"], "parts": [], "episodes": []}
+    steps_per_update = cfg.num_envs * cfg.rollout_steps * info.world
+    try:
+        while True:
+            model.train()
+            ro = collector.collect(cfg.rollout_steps)
+            adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished, cfg.gamma, cfg.gae_tau)
+            loss, parts = a2c_loss(ro, adv, ret, cfg.entropy_coef, cfg.value_coef)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            allreduce_gradients(model, info)
+            parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
+            optimizer.step()
+
+            episodes, seconds = all_sum([ro.episodes, time.perf_counter() - t_start if info.is_main else 0.0],
+                                        info, device)
+            progress["update"] += 1
+            progress["env_steps"] += steps_per_update
+            progress["episodes"] += int(episodes)
+            progress["seconds"] = seconds0 + seconds
+            window["parts"].append(parts)
+            window["episodes"].append(collector.stats.pop())
+            reached = cfg.budget_reached(progress)
+            boundary = reached or progress["update"] % cfg.checkpoint_every == 0
+            if progress["update"] % cfg.log_every == 0 or boundary:  # windows never span a checkpoint
+                record = _log_record(progress, window)
+                logger.log(record)
+                bar.update(progress, {k: f"{record[k]:.3g}" for k in ("SR", "return") if k in record})
+            else:
+                bar.update(progress)
+            if boundary:
+                progress["finished"] = reached
+                _checkpoint(run_dir, progress, model, optimizer, env, info)
+                if not reached:
+                    collector.start()  # fresh episodes: a resumed run starts here too
+            if on_update is not None:
+                on_update(dict(progress))
+            if reached:
+                break
+    finally:
+        bar.close()
+        logger.close()
+    return progress
+
+
+def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo) -> None:
+    """Checkpoint with every rank's RNG states (rank 0 writes the rest and commits)."""
+    if info.is_main:
+        checkpoint_tmp(run_dir, progress["update"])
+    barrier(info)
+    tmp = checkpoint_tmp_path(run_dir, progress["update"])
+    write_rng(tmp, info.rank, rng_state(env.np_random))
+    barrier(info)
+    if info.is_main:
+        commit_checkpoint(run_dir, tmp, progress, model, optimizer)
+    barrier(info)
+
+
+def _log_record(progress: dict, window: dict) -> dict:
+    """One log line: progress, mean losses over the window, episode statistics, env steps per second."""
+    now = time.perf_counter()
+    parts = window["parts"]
+    rec = {k: progress[k] for k in ("update", "env_steps", "episodes", "seconds")}
+    for k in parts[0]:
+        rec[k] = sum(p[k] for p in parts) / len(parts)
+    rec["steps_per_s"] = (progress["env_steps"] - window["steps"]) / max(now - window["t"], 1e-9)
+    rec.update(summarize(concat(window["episodes"])))
+    window.update(t=now, steps=progress["env_steps"], parts=[], episodes=[])
+    return rec

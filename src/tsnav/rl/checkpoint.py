@@ -1,0 +1,196 @@
+"""Run folders, pickle-free checkpoints, and loading a trained agent as an evaluation policy.
+
+Run folder layout::
+
+    RUN/config.json                      resolved configuration (training, agent, reward, features, scenes)
+    RUN/log.jsonl                        one JSON line per log interval (losses, rewards per term, SR, ...)
+    RUN/tb/                              TensorBoard events
+    RUN/checkpoints/ckpt_<update>/       model.safetensors   weights, metadata: the network description
+                                         optim.safetensors   optimizer state tensors
+                                         state.json          progress (update, env steps, episodes, seconds,
+                                                             finished), optimizer groups
+                                         rng_rank<r>.json    RNG states of rank r (torch, env sampler)
+
+A checkpoint folder is written under a temporary name and renamed when complete, so the newest folder whose
+name has no dot is always whole; older ones beyond ``keep`` are removed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..agent.model import ActorCritic
+from ..pretrain.checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors,
+                                   save_tensors)
+
+CKPT = "checkpoints"
+MODEL_FORMAT = "tsnav-agent"
+
+
+def _name(update: int) -> str:
+    return f"ckpt_{int(update):09d}"
+
+
+def checkpoint_tmp_path(run_dir: str | Path, update: int) -> Path:
+    """Temporary folder of the checkpoint of ``update`` (renamed when complete)."""
+    return Path(run_dir) / CKPT / f".{_name(update)}.tmp"
+
+
+def checkpoint_tmp(run_dir: str | Path, update: int) -> Path:
+    """Create (empty) the temporary folder of the checkpoint of ``update``."""
+    tmp = checkpoint_tmp_path(run_dir, update)
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    return tmp
+
+
+def rng_state(env_rng: np.random.Generator | None = None) -> dict:
+    """JSON-able RNG states: torch's global CPU generator (as a list of bytes) and the env's sampler."""
+    d = {"torch": torch.get_rng_state().tolist()}
+    if env_rng is not None:
+        d["env"] = env_rng.bit_generator.state
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        d["cuda"] = [s.tolist() for s in torch.cuda.get_rng_state_all()]
+    return d
+
+
+def set_rng_state(d: dict, env_rng: np.random.Generator | None = None) -> None:
+    """Inverse of :func:`rng_state`."""
+    torch.set_rng_state(torch.tensor(d["torch"], dtype=torch.uint8))
+    if env_rng is not None and "env" in d:
+        env_rng.bit_generator.state = d["env"]
+    if "cuda" in d and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([torch.tensor(s, dtype=torch.uint8) for s in d["cuda"]])
+
+
+def write_rng(tmp: Path, rank: int, state: dict) -> None:
+    atomic_write_json(Path(tmp) / f"rng_rank{rank}.json", state)
+
+
+def commit_checkpoint(run_dir: str | Path, tmp: Path, progress: dict, model: ActorCritic,
+                      optimizer: torch.optim.Optimizer | None, keep: int = 2) -> Path:
+    """Write the model, optimizer and progress into ``tmp`` and rename it to its final name."""
+    run_dir, tmp = Path(run_dir), Path(tmp)
+    names = [n for n, _ in model.named_parameters()]
+    save_tensors(tmp / "model.safetensors", model.state_dict(),
+                 {"format": MODEL_FORMAT, "model": json.dumps(model.describe(), sort_keys=True)})
+    state = {"progress": dict(progress)}
+    if optimizer is not None:
+        tensors, meta = optimizer_to_tensors(optimizer, names)
+        save_tensors(tmp / "optim.safetensors", tensors)
+        state["optimizer"] = meta
+    atomic_write_json(tmp / "state.json", state)
+    final = run_dir / CKPT / _name(progress["update"])
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    for old in list_checkpoints(run_dir)[:-keep]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def save_checkpoint(run_dir: str | Path, progress: dict, model: ActorCritic, optimizer=None,
+                    rng: dict | None = None, keep: int = 2) -> Path:
+    """Single-process checkpoint of ``progress["update"]`` (see the module docstring)."""
+    tmp = checkpoint_tmp(run_dir, progress["update"])
+    if rng is not None:
+        write_rng(tmp, 0, rng)
+    return commit_checkpoint(run_dir, tmp, progress, model, optimizer, keep)
+
+
+def list_checkpoints(run_dir: str | Path) -> list[Path]:
+    """Complete checkpoint folders of a run, oldest first."""
+    d = Path(run_dir) / CKPT
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.iterdir() if p.is_dir() and p.name.startswith("ckpt_") and (p / "state.json").exists())
+
+
+def latest_checkpoint(run_dir: str | Path) -> Path | None:
+    found = list_checkpoints(run_dir)
+    return found[-1] if found else None
+
+
+def load_checkpoint(path: str | Path, model: ActorCritic | None = None, optimizer=None) -> dict:
+    """Load weights (and optimizer state) of a checkpoint folder; returns its ``state.json`` content plus
+    ``rng`` (rank -> RNG state dict) when present."""
+    path = Path(path)
+    with open(path / "state.json") as f:
+        state = json.load(f)
+    if model is not None:
+        sd, meta = load_tensors(path / "model.safetensors")
+        if meta.get("format") != MODEL_FORMAT:
+            raise ValueError(f"{path / 'model.safetensors'}: not a tsnav agent checkpoint")
+        model.load_state_dict(sd)
+    if optimizer is not None and "optimizer" in state:
+        tensors, _ = load_tensors(path / "optim.safetensors")
+        optimizer_from_tensors(optimizer, [n for n, _ in model.named_parameters()], tensors, state["optimizer"])
+    state["rng"] = {}
+    for f in path.glob("rng_rank*.json"):
+        with open(f) as fh:
+            state["rng"][int(f.stem[len("rng_rank"):])] = json.load(fh)
+    return state
+
+
+def read_run_config(run_dir: str | Path) -> dict:
+    """The ``config.json`` of a run folder; ``FileNotFoundError`` / ``ValueError`` naming it otherwise."""
+    p = Path(run_dir) / "config.json"
+    if not p.exists():
+        raise FileNotFoundError(f"{run_dir}: not a training run (no config.json)")
+    with open(p) as f:
+        cfg = json.load(f)
+    if cfg.get("format") != "tsnav-train-run":
+        raise ValueError(f"{p}: not a tsnav training run config")
+    return cfg
+
+
+def load_model(run_dir: str | Path, checkpoint: str | Path | None = None) -> tuple[ActorCritic, dict]:
+    """The trained network of a run (latest checkpoint unless given) in eval mode, and the checkpoint state."""
+    path = Path(checkpoint) if checkpoint is not None else latest_checkpoint(run_dir)
+    if path is None:
+        raise FileNotFoundError(f"{run_dir}: no checkpoint yet")
+    _, meta = load_tensors(path / "model.safetensors")
+    if meta.get("format") != MODEL_FORMAT:
+        raise ValueError(f"{path / 'model.safetensors'}: not a tsnav agent checkpoint")
+    model = ActorCritic.from_description(json.loads(meta["model"]))
+    state = load_checkpoint(path, model)
+    return model.eval(), state
+
+
+def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, device: str = "cpu"):
+    """The trained agent of ``run_dir`` as a :class:`~tsnav.eval.policies.Policy` over ``bank``.
+
+    The bank's scenes need the run's feature cache (``features_<name>.hdf5``); when the run used detection
+    tables and the bank has none installed, they are installed (so the evaluation's stage switch uses the same
+    detector as training). ``greedy`` takes the most probable action (the lineage's evaluation), else samples.
+    """
+    from ..agent.observe import DetectionTable, Observer, load_bank_features
+    from .config import TrainConfig
+    from .policy import AgentPolicy
+    from .world import install
+
+    cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
+    model, _ = load_model(run_dir)
+    det_features = None
+    if cfg.detections is not None:
+        if bank.detections is None:
+            det_features = install(bank, cfg.detections)
+        else:
+            from ..detect.table import load_scene_detections
+
+            det_features = load_scene_detections(bank.scenes, cfg.detections).features
+    features = load_bank_features(bank, cfg.features)
+    if tuple(features.shape[1:]) != model.feature_shape:
+        raise ValueError(f"features_{cfg.features} of these scenes have shape {tuple(features.shape[1:])} but the "
+                         f"agent of {run_dir} was trained on {model.feature_shape}")
+    observer = Observer(bank, features, DetectionTable(bank, det_features), device=device)
+    if observer.det_dim != model.det_dim:
+        raise ValueError(f"detection features of size {observer.det_dim} do not match the agent's {model.det_dim}")
+    return AgentPolicy(model.to(device), observer, greedy=greedy, seed=seed)

@@ -1,0 +1,134 @@
+"""Training configuration of the actor-critic trainers (paper III-D, IV-A; lineage A3C settings)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+ALGOS = ("a3c", "batched")
+#: Fields that may change when a run is resumed (its budget); every other field must match the saved config.
+BUDGET_FIELDS = ("episodes", "updates", "minutes")
+#: Paper IV-A: the agent is trained for 1.5 M episodes.
+PAPER_EPISODES = 1_500_000
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on besides the network sizes (:class:`~tsnav.agent.AgentConfig`)."""
+
+    data: str = ""
+    """Dataset root (scene folders)."""
+    features: str = ""
+    """Name of the feature cache: files ``features_<name>.hdf5`` in every scene (``tsnav features``)."""
+    detections: str | None = None
+    """Name of the detection tables ``detections_<name>.hdf5`` (``tsnav detect``) driving the stage switch and
+    the agent's target detections; None = the oracle fallback (ground-truth in-frame flag and boxes)."""
+    split: str = "train"
+    """Scenes used for training."""
+    algo: str = "a3c"
+    """``a3c`` (the paper's asynchronous workers) or ``batched`` (synchronous A2C over many episodes)."""
+    reward: str = "tsrm"
+    """Reward variant of :class:`~tsnav.tsrm.reward.RewardConfig`: tsrm, baseline, explore or distance."""
+    preset: str = "paper"
+    """Agent size preset (:data:`tsnav.agent.PRESETS`), recorded for reference."""
+    lr: float = 1e-4
+    """Adam learning rate (paper IV-A: 1e-4; a higher one may be needed at CPU scale)."""
+    amsgrad: bool = True
+    """Adam with the AMSGrad correction, as the lineage's shared optimizer."""
+    gamma: float = 0.99
+    """Discount factor."""
+    gae_tau: float = 1.0
+    """GAE lambda (the lineage's tau = 1.0: discounted returns minus the value)."""
+    entropy_coef: float = 0.01
+    """Weight of the entropy bonus."""
+    value_coef: float = 0.5
+    """Weight of the value loss (itself 0.5 (R - V)^2 per step)."""
+    max_grad_norm: float = 100.0
+    """Gradient-norm clip."""
+    rollout_steps: int = 30
+    """T, steps per rollout and update (per episode row); backpropagation through time over T steps."""
+    max_steps: int = 30
+    """Training episode length: truncated after this many actions (the lineage trains with 30)."""
+    num_envs: int = 16
+    """Batched trainer: episodes stepped together per process (rank)."""
+    workers: int = 14
+    """A3C: worker processes, one episode each (paper: 14)."""
+    seed: int = 0
+    """Seed of initialisation, episode sampling, dropout and actions (rank / worker offsets are added)."""
+    c_target: float = 0.7
+    """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
+    success_distance: float = 1.0
+    """Done succeeds with the target in view within this many metres (paper III-A)."""
+    episodes: int | None = None
+    """Budget: stop after this many finished training episodes (paper: 1.5 M). All budgets None -> 1.5 M."""
+    updates: int | None = None
+    """Budget: stop after this many optimizer updates."""
+    minutes: float | None = None
+    """Budget: stop after this many minutes of training (summed over resumed sessions)."""
+    checkpoint_every: int = 100
+    """Updates between checkpoints. The batched trainer starts fresh episodes after each checkpoint so that a
+    resumed run continues exactly like an uninterrupted one."""
+    log_every: int = 10
+    """Updates between log lines (JSONL, TensorBoard)."""
+    threads: int = 1
+    """Intra-op CPU threads per process (1: the network's small ops gain nothing from more, and spinning
+    threads of several processes on few cores slow each other down badly)."""
+    device: str = "auto"
+    """``auto`` (CUDA when available), ``cpu`` or ``cuda`` (batched trainer; A3C workers run on the CPU)."""
+
+    def __post_init__(self):
+        if self.algo not in ALGOS:
+            raise ValueError(f"unknown algo {self.algo!r} (choose from {', '.join(ALGOS)})")
+        from ..tsrm.reward import VARIANTS
+
+        if self.reward not in VARIANTS:
+            raise ValueError(f"unknown reward {self.reward!r} (choose from {', '.join(VARIANTS)})")
+        for name in ("rollout_steps", "max_steps", "num_envs", "workers", "checkpoint_every", "log_every",
+                     "threads"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be positive, got {self.lr}")
+        if not 0.0 <= self.c_target <= 1.0:
+            raise ValueError(f"c_target must be in [0, 1], got {self.c_target}")
+        if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.gae_tau <= 1.0:
+            raise ValueError("gamma must be in (0, 1] and gae_tau in [0, 1]")
+        for name in BUDGET_FIELDS:
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ValueError(f"{name} budget must be positive, got {v}")
+
+    @property
+    def budget(self) -> dict:
+        """The active budget: the given ones, else ``{"episodes": 1.5 M}`` (paper IV-A)."""
+        b = {k: getattr(self, k) for k in BUDGET_FIELDS if getattr(self, k) is not None}
+        return b or {"episodes": PAPER_EPISODES}
+
+    def budget_reached(self, progress: dict) -> bool:
+        """Whether ``progress`` (``update``, ``episodes``, ``seconds``) has used up the budget."""
+        b = self.budget
+        return (("episodes" in b and progress["episodes"] >= b["episodes"])
+                or ("updates" in b and progress["update"] >= b["updates"])
+                or ("minutes" in b and progress["seconds"] >= 60.0 * b["minutes"]))
+
+    def budget_fraction(self, progress: dict) -> float:
+        """Fraction of the budget used (the largest over its parts), for progress bars."""
+        b = self.budget
+        parts = [progress["episodes"] / b["episodes"] if "episodes" in b else 0.0,
+                 progress["update"] / b["updates"] if "updates" in b else 0.0,
+                 progress["seconds"] / (60.0 * b["minutes"]) if "minutes" in b else 0.0]
+        return min(1.0, max(parts))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown training config field(s): {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+    def identity(self) -> dict:
+        """The fields that define the run (everything but the budget)."""
+        return {k: v for k, v in asdict(self).items() if k not in BUDGET_FIELDS}

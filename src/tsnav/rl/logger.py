@@ -1,0 +1,76 @@
+"""Training logs: JSON Lines (``log.jsonl``) and TensorBoard (``tb/``), both resumable.
+
+On resume, log lines written after the checkpoint being resumed (their ``update`` is larger) are dropped, and
+TensorBoard purges the same steps, so a resumed run's logs read like an uninterrupted one's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from ..pretrain.checkpoint import atomic_write_bytes
+
+#: TensorBoard group of each key (cleanrl-style tags: charts/..., losses/..., reward/..., metrics/...).
+_GROUPS = {"loss": "losses", "policy_loss": "losses", "value_loss": "losses", "entropy": "losses",
+           "grad_norm": "losses", "SR": "metrics", "SPL": "metrics", "SSR": "metrics", "SSSPL": "metrics",
+           "NSNPL": "metrics"}
+
+
+class RunLogger:
+    """Appends one record per log interval; ``enabled=False`` (non-zero ranks) makes it a no-op."""
+
+    def __init__(self, run_dir: str | Path, resume_update: int = 0, enabled: bool = True, tensorboard: bool = True):
+        self.enabled = enabled
+        self.path = Path(run_dir) / "log.jsonl"
+        self.tb = None
+        if not enabled:
+            return
+        if self.path.exists():
+            keep = []
+            for line in self.path.read_text().splitlines():
+                try:
+                    if json.loads(line).get("update", 0) <= resume_update:
+                        keep.append(line)
+                except json.JSONDecodeError:
+                    break  # a torn last line from a kill
+            atomic_write_bytes(self.path, "".join(k + "\n" for k in keep).encode())
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=resume_update + 1 if resume_update else None)
+
+    def log(self, record: dict) -> None:
+        """Write ``record`` (must hold ``update`` and ``env_steps``); numbers go to TensorBoard under their group."""
+        if not self.enabled:
+            return
+        clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in record.items()}
+        with open(self.path, "a") as f:
+            f.write(json.dumps(clean, sort_keys=True) + "\n")
+        if self.tb is not None:
+            step = int(record["env_steps"])
+            for k, v in record.items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and k not in ("update", "env_steps"):
+                    group = "reward" if k.startswith("reward/") or k == "return" else _GROUPS.get(k, "charts")
+                    tag = f"{group}/{k.split('/', 1)[-1]}"
+                    self.tb.add_scalar(tag, v, step)
+            self.tb.flush()
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()
+            self.tb = None
+
+
+def read_log(run_dir: str | Path) -> list[dict]:
+    """The records of a run's ``log.jsonl`` (a torn last line is skipped)."""
+    p = Path(run_dir) / "log.jsonl"
+    out = []
+    if p.exists():
+        for line in p.read_text().splitlines():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                break
+    return out

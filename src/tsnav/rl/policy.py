@@ -1,0 +1,42 @@
+"""A trained agent as an evaluation :class:`~tsnav.eval.policies.Policy` (``reset(mask)`` / ``act(obs)``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..agent.model import ActorCritic, AgentState
+from ..agent.observe import Observer
+
+
+class AgentPolicy:
+    """Drives an :class:`ActorCritic` over a batch of evaluation episodes, keeping each episode's LSTM state,
+    target memory and previous action; ``reset(mask)`` clears the rows that start a new episode. Greedy
+    (most probable action, the lineage's evaluation) or sampled with a seeded generator. Dropout is off."""
+
+    def __init__(self, model: ActorCritic, observer: Observer, greedy: bool = True, seed: int = 0):
+        self.model = model.eval()
+        self.observer = observer
+        self.greedy = greedy
+        self.generator = torch.Generator(device=observer.device).manual_seed(seed)
+        self.state: AgentState | None = None
+
+    def reset(self, mask: np.ndarray) -> None:
+        mask = np.asarray(mask, dtype=bool)
+        if self.state is None or self.state.batch_size != len(mask):
+            self.state = self.model.initial_state(len(mask), self.observer.device)
+        else:
+            self.state = self.state.reset(torch.from_numpy(mask).to(self.observer.device))
+
+    @torch.no_grad()
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        n = len(obs["state"])
+        if self.state is None or self.state.batch_size != n:
+            self.reset(np.ones(n, dtype=bool))
+        logits, _, state = self.model(self.observer(obs["state"], obs["target"]), self.state)
+        if self.greedy:
+            action = logits.argmax(dim=1)
+        else:
+            action = torch.multinomial(torch.softmax(logits, dim=1), 1, generator=self.generator)[:, 0]
+        self.state = state.with_action(action)
+        return action.cpu().numpy().astype(np.int64)

@@ -1,0 +1,203 @@
+"""Rollouts, advantages and the actor-critic loss shared by the A3C and batched trainers (paper III-D).
+
+A rollout is ``T`` steps of ``B`` episodes of a :class:`~tsnav.sim.batch.BatchEnv` with auto-reset, acted on
+by the :class:`~tsnav.agent.ActorCritic` with gradients kept (as the lineage's A3C: one forward per step,
+one backward per rollout; the recurrent state is detached at the rollout start).
+
+Episode ends: Done *terminates* an episode (no bootstrap); the time limit *truncates* it, and then the return
+is bootstrapped from the critic's value of the final observation (one extra forward of the truncated rows
+with their pre-reset recurrent state). The last step of a rollout bootstraps from the value of the next
+observation. With ``bootstrap[t]`` = value after step ``t`` within the same episode:
+
+    delta_t = r_t + gamma * (1 - terminated_t) * bootstrap_t - V(s_t)
+    A_t     = delta_t + gamma * tau * (1 - finished_t) * A_{t+1}          (GAE; the lineage's tau = 1.0)
+    R_t     = A_t + V(s_t)
+
+Loss per episode row, summed over the rollout's steps and averaged over rows (the lineage sums over the
+steps of its single-episode rollouts):
+
+    L = sum_t [ -log pi(a_t|s_t) A_t  -  c_ent H(pi(.|s_t))  +  c_v 0.5 (R_t - V(s_t))^2 ]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..agent.model import ActorCritic, AgentState
+from ..agent.observe import Observer
+from ..sim.batch import BatchEnv
+from .stats import EpisodeStats
+
+
+@dataclass
+class Rollout:
+    """``(T, B)`` tensors of one rollout; ``logp``, ``entropy`` and ``value`` carry gradients."""
+
+    logp: torch.Tensor
+    entropy: torch.Tensor
+    value: torch.Tensor
+    reward: torch.Tensor
+    bootstrap: torch.Tensor
+    terminated: torch.Tensor
+    finished: torch.Tensor
+    episodes: int = 0
+    """Episodes that finished during the rollout."""
+    states: np.ndarray | None = None
+    """``(T, B)`` global state ids observed (for :func:`replay`)."""
+    targets: np.ndarray | None = None
+    """``(T, B)`` target category ids."""
+    actions: np.ndarray | None = None
+    """``(T, B)`` actions taken."""
+    start: AgentState | None = None
+    """Recurrent state at the rollout start (detached)."""
+
+    @property
+    def steps(self) -> int:
+        return int(self.reward.numel())
+
+
+class RolloutCollector:
+    """Steps ``env`` with ``model`` and keeps the observation and recurrent state between rollouts."""
+
+    def __init__(self, env: BatchEnv, observer: Observer, model: ActorCritic, stats: EpisodeStats | None = None,
+                 generator: torch.Generator | None = None):
+        self.env = env
+        self.observer = observer
+        self.model = model
+        self.stats = stats or EpisodeStats(env.bank, env.num_envs)
+        self.generator = generator
+        self.obs: dict | None = None
+        self.state: AgentState | None = None
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    def start(self) -> None:
+        """Begin fresh episodes in every row (drawn from the env's sampler and RNG)."""
+        self.obs = self.env.reset()
+        self.state = self.model.initial_state(self.env.num_envs, self.device)
+        self.stats.start_rows(np.ones(self.env.num_envs, dtype=bool), self.obs)
+
+    def collect(self, steps: int) -> Rollout:
+        """Run ``steps`` steps; the model must be in the mode wanted (``train()`` for dropout)."""
+        if self.obs is None:
+            self.start()
+        dev = self.device
+        b = self.env.num_envs
+        logps, ents, values, rewards, boots, terms, fins = [], [], [], [], [], [], []
+        states, targets, actions = [], [], []
+        state = self.state.detach()
+        start = state
+        obs = self.obs
+        episodes = 0
+        for t in range(steps):
+            o = self.observer(obs["state"], obs["target"])
+            logits, value, state = self.model(o, state)
+            dist = torch.distributions.Categorical(logits=logits)
+            if self.generator is None:
+                action = dist.sample()
+            else:
+                action = torch.multinomial(dist.probs.detach(), 1, generator=self.generator)[:, 0]
+            state = state.with_action(action)
+            target = obs["target"]
+            states.append(obs["state"])
+            targets.append(target)
+            actions.append(action.cpu().numpy())
+            obs, reward, term, trunc, info = self.env.step(actions[-1])
+            boot = torch.zeros(b, device=dev)
+            if trunc.any():  # bootstrap from the critic at the final observation of truncated episodes
+                rows = np.flatnonzero(trunc)
+                with torch.no_grad():
+                    o_fin = self.observer(info["final_state"][rows], target[rows])
+                    _, v_fin, _ = self.model(o_fin, state.index(torch.from_numpy(rows).to(dev)))
+                boot[torch.from_numpy(rows).to(dev)] = v_fin
+            fin = term | trunc
+            episodes += self.stats.step(reward, term, trunc, info, obs)
+            state = state.reset(torch.from_numpy(fin).to(dev))
+            logps.append(dist.log_prob(action))
+            ents.append(dist.entropy())
+            values.append(value)
+            rewards.append(torch.from_numpy(np.asarray(reward, dtype=np.float32)).to(dev))
+            boots.append(boot)
+            terms.append(torch.from_numpy(term).to(dev))
+            fins.append(torch.from_numpy(fin).to(dev))
+        with torch.no_grad():  # value of the observation after the rollout
+            _, v_next, _ = self.model(self.observer(obs["state"], obs["target"]), state)
+        self.obs, self.state = obs, state
+        value = torch.stack(values)
+        boot = torch.stack(boots)
+        fin = torch.stack(fins)
+        nxt = torch.cat([value[1:].detach(), v_next[None]])  # V(s_{t+1}) within the episode when not finished
+        boot = torch.where(fin, boot, nxt)
+        return Rollout(logp=torch.stack(logps), entropy=torch.stack(ents), value=value, reward=torch.stack(rewards),
+                       bootstrap=boot, terminated=torch.stack(terms), finished=fin, episodes=episodes,
+                       states=np.stack(states), targets=np.stack(targets), actions=np.stack(actions), start=start)
+
+
+def replay(model: ActorCritic, observer: Observer, ro: Rollout) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Re-run a recorded rollout's observations and actions through ``model``: ``(logp, entropy, value)``
+    ``(T, B)`` with gradients (same recurrent-state resets; dropout as set by the model's mode)."""
+    dev = next(model.parameters()).device
+    state = ro.start
+    logps, ents, values = [], [], []
+    for t in range(ro.states.shape[0]):
+        logits, v, state = model(observer(ro.states[t], ro.targets[t]), state)
+        dist = torch.distributions.Categorical(logits=logits)
+        a = torch.from_numpy(ro.actions[t]).to(dev)
+        logps.append(dist.log_prob(a))
+        ents.append(dist.entropy())
+        values.append(v)
+        state = state.with_action(a).reset(ro.finished[t])
+    return torch.stack(logps), torch.stack(ents), torch.stack(values)
+
+
+def gae(reward: torch.Tensor, value: torch.Tensor, bootstrap: torch.Tensor, terminated: torch.Tensor,
+        finished: torch.Tensor, gamma: float = 0.99, tau: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Generalised advantage estimation over ``(T, B)`` tensors (see the module docstring); returns
+    ``(advantages, returns)``, both detached. ``terminated`` implies ``finished``."""
+    reward, value, bootstrap = reward.detach(), value.detach(), bootstrap.detach()
+    not_term = 1.0 - terminated.to(reward.dtype)
+    not_fin = 1.0 - finished.to(reward.dtype)
+    adv = torch.zeros_like(reward)
+    last = torch.zeros_like(reward[0])
+    for t in range(reward.shape[0] - 1, -1, -1):
+        delta = reward[t] + gamma * not_term[t] * bootstrap[t] - value[t]
+        last = delta + gamma * tau * not_fin[t] * last
+        adv[t] = last
+    return adv, adv + value
+
+
+def gae_reference(reward, value, bootstrap, terminated, finished, gamma=0.99, tau=1.0):
+    """Slow reference for :func:`gae`: per row, split the rollout into episode segments and sum
+    ``(gamma tau)^k delta_{t+k}`` inside each segment with Python floats."""
+    reward, value, bootstrap = (np.asarray(x, dtype=np.float64) for x in (reward, value, bootstrap))
+    terminated, finished = np.asarray(terminated, dtype=bool), np.asarray(finished, dtype=bool)
+    T, B = reward.shape
+    adv = np.zeros((T, B))
+    for b in range(B):
+        for t in range(T):
+            total, k = 0.0, t
+            while k < T:
+                nxt = 0.0 if terminated[k, b] else bootstrap[k, b]
+                delta = reward[k, b] + gamma * nxt - value[k, b]
+                total += (gamma * tau) ** (k - t) * delta
+                if finished[k, b]:
+                    break
+                k += 1
+            adv[t, b] = total
+    return adv, adv + value
+
+
+def a2c_loss(ro: Rollout, advantages: torch.Tensor, returns: torch.Tensor, entropy_coef: float = 0.01,
+             value_coef: float = 0.5) -> tuple[torch.Tensor, dict[str, float]]:
+    """The actor-critic loss of the module docstring and its parts (floats, per row and rollout)."""
+    policy = -(ro.logp * advantages.detach()).sum(0).mean()
+    entropy = ro.entropy.sum(0).mean()
+    value = (0.5 * (returns.detach() - ro.value) ** 2).sum(0).mean()
+    loss = policy - entropy_coef * entropy + value_coef * value
+    return loss, {"loss": loss.item(), "policy_loss": policy.item(), "value_loss": value.item(),
+                  "entropy": entropy.item() / ro.reward.shape[0]}

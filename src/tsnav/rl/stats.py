@@ -1,0 +1,121 @@
+"""On-the-fly episode statistics of training rollouts: return per reward term, SR, SPL, SSR, SSSPL, NSNPL.
+
+:class:`EpisodeStats` follows the ``B`` rows of a :class:`~tsnav.sim.batch.BatchEnv` with auto-reset and
+collects one entry per finished episode (array operations per step, no loop over episodes). The two-stage
+bookkeeping matches the evaluation runner (paper III-B / IV-A): an episode enters the pathfinding stage at the
+first frame (the start included) whose target confidence exceeds C_target; searching length = movement
+actions before that frame. Training episodes are truncated at ``max_steps`` (30), so these figures are lower
+than the 100-step test figures.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..sim.paths import UNREACHABLE
+
+FIELDS = ("success", "path_length", "optimal_length", "entered", "search_length", "optimal_search_length",
+          "nav_length", "optimal_nav_length", "steps", "return")
+
+
+def _ratio(opt: np.ndarray, actual: np.ndarray) -> np.ndarray:
+    """L* / max(L, L*), 1 where both are 0 (same convention as :mod:`tsnav.eval.metrics`)."""
+    opt = np.asarray(opt, dtype=np.float64)
+    den = np.maximum(np.asarray(actual, dtype=np.float64), opt)
+    return np.where(den > 0, opt / np.where(den > 0, den, 1.0), 1.0)
+
+
+class EpisodeStats:
+    """Per-row accumulators over a batch of training episodes; :meth:`pop` returns the finished ones."""
+
+    def __init__(self, bank, num_envs: int, stage_mask: np.ndarray | None = None):
+        self.bank = bank
+        self.stage = bank.stage_mask if stage_mask is None else stage_mask
+        self.search_dist = bank.search_dist
+        b = num_envs
+        self.start = np.zeros(b, dtype=np.int64)
+        self.target = np.zeros(b, dtype=np.int64)
+        self.entered = np.zeros(b, dtype=bool)
+        self.search_length = np.zeros(b, dtype=np.int64)
+        self.switch_state = np.zeros(b, dtype=np.int64)
+        self.ret = np.zeros(b, dtype=np.float64)
+        self.terms: dict[str, np.ndarray] = {}
+        self._done: list[dict[str, np.ndarray]] = []
+
+    def start_rows(self, mask: np.ndarray, obs: dict) -> None:
+        """Rows where ``mask`` is True begin an episode whose first observation is ``obs``."""
+        rows = np.flatnonzero(mask)
+        s, g = obs["state"][rows], obs["target"][rows]
+        self.start[rows] = s
+        self.target[rows] = g
+        self.entered[rows] = self.stage[s, g]
+        self.search_length[rows] = 0
+        self.switch_state[rows] = s
+        self.ret[rows] = 0.0
+        for v in self.terms.values():
+            v[rows] = 0.0
+
+    def step(self, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, info: dict,
+             next_obs: dict) -> int:
+        """Account one :meth:`BatchEnv.step`; returns the number of episodes that finished."""
+        active = info["active"]
+        self.ret += np.where(active, reward, 0.0)
+        for k, v in info["reward_terms"].items():
+            if k not in self.terms:
+                self.terms[k] = np.zeros(len(self.ret), dtype=np.float64)
+            self.terms[k] += np.where(active, v, 0.0)
+        new = active & ~self.entered & self.stage[info["final_state"], self.target]
+        self.entered |= new
+        self.search_length[new] = info["path_length"][new]
+        self.switch_state[new] = info["final_state"][new]
+        fin = terminated | truncated
+        if fin.any():
+            r = np.flatnonzero(fin)
+            g, s0 = self.target[r], self.start[r]
+            L = info["path_length"][r].astype(np.int64)
+            entered = self.entered[r]
+            ls = np.where(entered, self.search_length[r], L)
+            entry = {"success": info["success"][r].astype(bool), "path_length": L,
+                     "optimal_length": self.bank.dist[s0, g].astype(np.int64), "entered": entered,
+                     "search_length": ls, "optimal_search_length": self.search_dist[s0, g].astype(np.int64),
+                     "nav_length": np.where(entered, L - ls, 0),
+                     "optimal_nav_length": np.where(entered, self.bank.dist[self.switch_state[r], g], 0).astype(np.int64),
+                     "steps": info["steps"][r].astype(np.int64), "return": self.ret[r].copy()}
+            for k, v in self.terms.items():
+                entry[f"reward/{k}"] = v[r].copy()
+            self._done.append(entry)
+            self.start_rows(fin, next_obs)
+        return int(fin.sum())
+
+    def pop(self) -> dict[str, np.ndarray]:
+        """Finished episodes since the last call, as arrays of equal length (empty dict when none)."""
+        done, self._done = self._done, []
+        return concat(done)
+
+
+def concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Concatenate entries of :meth:`EpisodeStats.pop` (e.g. from several workers)."""
+    parts = [p for p in parts if p]
+    if not parts:
+        return {}
+    return {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
+
+
+def summarize(ep: dict[str, np.ndarray]) -> dict[str, float]:
+    """Means over finished episodes: ``return``, each ``reward/<term>``, ``length``, ``SR``, ``SPL``, ``SSR``,
+    ``SSSPL``, ``NSNPL`` (fractions) and the count ``n_episodes``."""
+    if not ep or len(ep["success"]) == 0:
+        return {"n_episodes": 0}
+    suc = ep["success"].astype(np.float64)
+    nav = ep["entered"].astype(np.float64)
+    opt_s = np.where(ep["optimal_search_length"] >= UNREACHABLE, 0, ep["optimal_search_length"])
+    out = {"n_episodes": int(len(suc)), "return": float(np.mean(ep["return"])),
+           "length": float(np.mean(ep["steps"])), "SR": float(suc.mean()),
+           "SPL": float(np.mean(suc * _ratio(ep["optimal_length"], ep["path_length"]))),
+           "SSR": float(nav.mean()), "SSSPL": float(np.mean(nav * _ratio(opt_s, ep["search_length"])))}
+    k_nav = nav.sum()
+    out["NSNPL"] = float(np.sum(suc * nav * _ratio(ep["optimal_nav_length"], ep["nav_length"])) / k_nav) if k_nav else 0.0
+    for k, v in ep.items():
+        if k.startswith("reward/"):
+            out[k] = float(np.mean(v))
+    return out

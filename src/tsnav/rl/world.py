@@ -1,0 +1,66 @@
+"""Build what a trainer needs from a :class:`~tsnav.rl.config.TrainConfig`: the scene bank (with detections
+when configured), the observer over the cached features, the reward and the training env."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..agent.model import ActorCritic, AgentConfig
+from ..agent.observe import DetectionTable, Observer, load_bank_features
+from ..sim.batch import BatchEnv, SceneBank, SimConfig, make_env
+from ..tsrm.reward import RewardConfig, TSRMReward
+from .config import TrainConfig
+
+
+def load_bank(cfg: TrainConfig, scenes=None) -> tuple[SceneBank, np.ndarray | None]:
+    """The training bank (scenes of ``cfg.split`` under ``cfg.data``, or ``scenes``), with the detection
+    tables ``cfg.detections`` installed; returns ``(bank, detection features or None)``."""
+    if scenes is None:
+        bank = SceneBank.from_root(cfg.data, cfg.split, success_distance=cfg.success_distance, c_target=cfg.c_target)
+    else:
+        bank = SceneBank(scenes, success_distance=cfg.success_distance, c_target=cfg.c_target)
+    return bank, install(bank, cfg.detections)
+
+
+def install(bank: SceneBank, detections: str | None) -> np.ndarray | None:
+    """Install the detection tables named ``detections`` into ``bank`` (no-op for None); returns their
+    per-class features ``(S, 22, F)``."""
+    if detections is None:
+        return None
+    from ..detect.table import install_detections
+
+    return install_detections(bank, detections).features
+
+
+def make_observer(bank: SceneBank, cfg: TrainConfig, features: torch.Tensor | None = None,
+                  det_features: np.ndarray | None = None, device="cpu") -> Observer:
+    """Observer over the feature caches ``cfg.features`` of the bank's scenes (or the given tensor)."""
+    if features is None:
+        features = load_bank_features(bank, cfg.features)
+    return Observer(bank, features, DetectionTable(bank, det_features), device=device)
+
+
+def make_reward(bank: SceneBank, cfg: TrainConfig) -> TSRMReward:
+    """The reward variant ``cfg.reward`` with the paper's constants and ``cfg.c_target``."""
+    return TSRMReward(bank, RewardConfig(variant=cfg.reward, c_target=cfg.c_target))
+
+
+def make_train_env(bank: SceneBank, cfg: TrainConfig, num_envs: int, seed: int) -> BatchEnv:
+    """Auto-resetting training env of ``num_envs`` episodes, truncated at ``cfg.max_steps``."""
+    sim = SimConfig(success_distance=cfg.success_distance, c_target=cfg.c_target, max_steps=cfg.max_steps,
+                    autoreset=True)
+    return make_env(bank, num_envs, sim, reward_fn=make_reward(bank, cfg), seed=seed)
+
+
+def make_model(agent: AgentConfig, observer: Observer, seed: int) -> ActorCritic:
+    """The actor-critic for the observer's feature shape, initialised from ``seed`` (the same on every rank)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return ActorCritic(agent, observer.feature_shape, observer.det_dim)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)

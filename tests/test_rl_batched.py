@@ -1,0 +1,202 @@
+"""Batched A2C trainer: GAE against a slow reference, bootstrapping on truncation only, a short run that
+lowers the loss, exact resume after an interruption, no retraining of a finished run, checkpoints."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tsnav.agent import agent_config
+from tsnav.agent.pixels import cache_pixel_features
+from tsnav.constants import DONE
+from tsnav.rl.batched import train_batched
+from tsnav.rl.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
+from tsnav.rl.config import TrainConfig
+from tsnav.rl.logger import read_log
+from tsnav.rl.rollout import RolloutCollector, gae, gae_reference
+from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
+
+FEATS = "rltest_px"
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small networks run fastest on one thread (and do not fight other processes for the cores)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def world(tiny_world):
+    cache_pixel_features(tiny_world, FEATS, grid=4)
+    return tiny_world
+
+
+def _cfg(world, **kw):
+    base = dict(data=str(world), features=FEATS, algo="batched", num_envs=8, rollout_steps=6, max_steps=30,
+                checkpoint_every=3, log_every=2, lr=1e-3, device="cpu")
+    return TrainConfig(**{**base, **kw})
+
+
+def test_gae_matches_reference_loop():
+    rng = np.random.default_rng(0)
+    T, B = 12, 7
+    reward = rng.normal(size=(T, B))
+    value = rng.normal(size=(T, B))
+    boot = rng.normal(size=(T, B))
+    finished = rng.random((T, B)) < 0.25
+    terminated = finished & (rng.random((T, B)) < 0.5)
+    for tau in (1.0, 0.95):
+        adv, ret = gae(*(torch.tensor(x) for x in (reward, value, boot, terminated, finished)), gamma=0.99, tau=tau)
+        ra, rr = gae_reference(reward, value, boot, terminated, finished, gamma=0.99, tau=tau)
+        np.testing.assert_allclose(adv.numpy(), ra, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(ret.numpy(), rr, rtol=1e-10, atol=1e-10)
+
+
+def test_gae_by_hand_truncation_bootstraps_termination_does_not():
+    g = 0.5
+    # one row, three steps: the episode is truncated at t=1 (bootstrap 10), a new one terminates at t=2
+    r = torch.tensor([[1.0], [2.0], [3.0]])
+    v = torch.tensor([[0.5], [1.0], [2.0]])
+    boot = torch.tensor([[1.0], [10.0], [99.0]])  # within an episode the bootstrap is the next value
+    fin = torch.tensor([[False], [True], [True]])
+    term = torch.tensor([[False], [False], [True]])
+    adv, ret = gae(r, v, boot, term, fin, gamma=g, tau=1.0)
+    assert ret[:, 0].tolist() == [1 + g * (2 + g * 10), 2 + g * 10, 3.0]
+    assert adv[:, 0].tolist() == [1 + g * (2 + g * 10) - 0.5, 2 + g * 10 - 1.0, 3.0 - 2.0]
+
+
+def test_collector_bootstraps_from_the_final_observation(world):
+    cfg = _cfg(world, max_steps=3, num_envs=4)
+    bank, _ = load_bank(cfg)
+    obs_fn = make_observer(bank, cfg)
+    model = make_model(agent_config("cpu", dropout=0.0), obs_fn, 0)
+    with torch.no_grad():
+        model.actor.bias[DONE] = -50.0  # never Done: every episode is truncated after 3 steps
+    col = RolloutCollector(make_train_env(bank, cfg, 4, seed=1), obs_fn, model,
+                           generator=torch.Generator().manual_seed(5))
+    col.start()
+    first = dict(col.obs)
+    with torch.no_grad():
+        ro = col.collect(5)
+    assert ro.finished[2].all() and not ro.terminated.any() and not ro.finished[[0, 1, 3, 4]].any()
+    # replay the same episodes and actions: the bootstrap is the critic's value of the final observation with
+    # the episode's own recurrent state (not the value of the next episode's first frame)
+    env2 = make_train_env(bank, cfg, 4, seed=99)
+    obs = env2.reset(episodes=(first["scene"], first["target"], first["state"]))
+    gen = torch.Generator().manual_seed(5)
+    state = model.initial_state(4)
+    with torch.no_grad():
+        for t in range(3):
+            logits, _, state = model(obs_fn(obs["state"], obs["target"]), state)
+            a = torch.multinomial(torch.distributions.Categorical(logits=logits).probs, 1, generator=gen)[:, 0]
+            state = state.with_action(a)
+            target = obs["target"]
+            obs, _, _, trunc, info = env2.step(a.numpy())
+        assert trunc.all()
+        v_final = model(obs_fn(info["final_state"], target), state)[1]
+    torch.testing.assert_close(ro.bootstrap[2], v_final)
+    assert not torch.allclose(ro.bootstrap[2], ro.value[3])
+    # bootstrap within an episode is the next step's value
+    torch.testing.assert_close(ro.bootstrap[:2], ro.value[1:3])
+
+    # terminated rows: forcing Done makes every step terminal, so the return is just the reward
+    model2 = make_model(agent_config("cpu", dropout=0.0), obs_fn, 0)
+    with torch.no_grad():
+        model2.actor.bias[DONE] = 50.0
+    col3 = RolloutCollector(make_train_env(bank, cfg, 4, seed=2), obs_fn, model2)
+    with torch.no_grad():
+        ro3 = col3.collect(4)
+    assert ro3.terminated.all() and ro3.finished.all()
+    adv, ret = gae(ro3.reward, ro3.value, ro3.bootstrap, ro3.terminated, ro3.finished)
+    torch.testing.assert_close(ret, ro3.reward)
+
+
+def test_an_update_lowers_the_loss_of_its_rollout(world):
+    from dataclasses import replace
+
+    from tsnav.rl.rollout import a2c_loss, replay
+
+    cfg = _cfg(world, num_envs=16, rollout_steps=10)
+    bank, _ = load_bank(cfg)
+    obs_fn = make_observer(bank, cfg)
+    model = make_model(agent_config("cpu", dropout=0.0), obs_fn, 0)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4, amsgrad=True)  # the paper's learning rate
+    col = RolloutCollector(make_train_env(bank, cfg, 16, seed=3), obs_fn, model)
+    for _ in range(3):
+        ro = col.collect(10)
+        adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished)
+        loss, _ = a2c_loss(ro, adv, ret)
+        logp, ent, val = replay(model, obs_fn, ro)  # the replay reproduces the rollout exactly
+        torch.testing.assert_close(logp, ro.logp)
+        torch.testing.assert_close(val, ro.value)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            logp, ent, val = replay(model, obs_fn, ro)
+            after, _ = a2c_loss(replace(ro, logp=logp, entropy=ent, value=val), adv, ret)
+        assert after < loss.item(), (loss.item(), float(after))
+
+
+def test_short_run_raises_the_return(world, tmp_path):
+    cfg = _cfg(world, num_envs=16, rollout_steps=10, updates=60, log_every=1, checkpoint_every=1000, lr=3e-3)
+    progress = train_batched(cfg, agent_config("cpu"), tmp_path / "run", progress_bar=False)
+    assert progress["update"] == 60 and progress["finished"]
+    log = read_log(tmp_path / "run")
+    assert [r["update"] for r in log] == list(range(1, 61))
+    first = np.mean([r["return"] for r in log[:15]])
+    last = np.mean([r["return"] for r in log[-15:]])
+    assert last > first + 0.1, (first, last)
+    assert {"SR", "SPL", "SSSPL", "NSNPL", "reward/explore", "reward/distance", "steps_per_s"} <= set(log[-1])
+
+
+class Interrupt(Exception):
+    pass
+
+
+def _weights(run):
+    from tsnav.pretrain.checkpoint import load_tensors
+
+    ck = latest_checkpoint(run)
+    return load_tensors(ck / "model.safetensors")[0], load_tensors(ck / "optim.safetensors")[0], ck
+
+
+def test_resume_equals_uninterrupted_run(world, tmp_path):
+    cfg = _cfg(world, updates=8)
+    agent = agent_config("cpu")
+    full = train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
+
+    def kill(progress):
+        if progress["update"] == 5:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+    assert latest_checkpoint(tmp_path / "b").name == "ckpt_000000003"
+    resumed = train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
+    assert resumed["update"] == full["update"] == 8
+    assert resumed["episodes"] == full["episodes"] and resumed["env_steps"] == full["env_steps"]
+    wa, oa, _ = _weights(tmp_path / "a")
+    wb, ob, ck = _weights(tmp_path / "b")
+    assert wa.keys() == wb.keys() and oa.keys() == ob.keys()
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    for k in oa:
+        assert torch.equal(oa[k], ob[k]), k
+    la, lb = read_log(tmp_path / "a"), read_log(tmp_path / "b")
+    assert [r["update"] for r in lb] == [r["update"] for r in la] == [2, 3, 4, 6, 8]
+    for ra, rb in zip(la, lb):
+        assert ra["loss"] == rb["loss"] and ra["n_episodes"] == rb["n_episodes"]
+
+    # a finished run is not retrained
+    mtime = (ck / "model.safetensors").stat().st_mtime_ns
+    again = train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
+    assert again["update"] == 8 and (ck / "model.safetensors").stat().st_mtime_ns == mtime
+    assert len(list_checkpoints(tmp_path / "b")) <= 2
+    state = load_checkpoint(ck)
+    assert state["progress"]["finished"] and 0 in state["rng"]
+    json.dumps(state["rng"][0])
