@@ -31,6 +31,7 @@ wall clips the opposite edge. Every stencil is within 0.03% of 15 or 8.9375 m^2.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Sequence
 
 import numpy as np
@@ -217,6 +218,7 @@ def stencil_weights(rotation: int, horizon: int, config: AreaConfig = AreaConfig
 DITHER = (0.5, 0.5 * (np.sqrt(5.0) - 1.0) - 0.5)
 
 
+@lru_cache(maxsize=64)
 def stencil_samples(rotation: int, horizon: int, config: AreaConfig = AreaConfig()) -> tuple[np.ndarray, np.ndarray]:
     """Samples of the trapezoid of an agent at the origin: ``(du, dv)`` int arrays (x, z), in samples.
 
@@ -227,7 +229,9 @@ def stencil_samples(rotation: int, horizon: int, config: AreaConfig = AreaConfig
     du, dv, w = stencil_weights(rotation, horizon, config)
     dither = np.mod(DITHER[0] * du + DITHER[1] * dv, 1.0)
     keep = dither < w
-    return du[keep], dv[keep]
+    du, dv = du[keep], dv[keep]
+    du.flags.writeable = dv.flags.writeable = False  # cached: shared by every caller
+    return du, dv
 
 
 def _pack_blocks(inside: np.ndarray) -> np.ndarray:
@@ -266,10 +270,12 @@ def stencil_blocks(rotation: int, horizon: int, config: AreaConfig = AreaConfig(
     du, dv = stencil_samples(rotation, horizon, config)
     dcol, p = np.divmod(du + int(phase[0]), BLOCK)
     drow, q = np.divmod(dv + int(phase[1]), BLOCK)
-    keys, inv = np.unique(np.stack([drow, dcol], axis=1), axis=0, return_inverse=True)
+    span = int(np.abs(dcol).max()) + 1
+    keys, inv = np.unique((drow + span) * (2 * span + 1) + dcol + span, return_inverse=True)
     mask = np.zeros(len(keys), dtype=np.uint64)
     np.bitwise_or.at(mask, inv.reshape(-1), np.left_shift(np.uint64(1), (BLOCK * q + p).astype(np.uint64)))
-    return keys[:, 1].astype(np.int64), keys[:, 0].astype(np.int64), mask
+    krow, kcol = np.divmod(keys, 2 * span + 1)
+    return (kcol - span).astype(np.int64), (krow - span).astype(np.int64), mask
 
 
 def _floor_samples(floor, cx: np.ndarray, cz: np.ndarray, parity: np.ndarray, s: float) -> np.ndarray:
