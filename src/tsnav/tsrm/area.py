@@ -59,8 +59,9 @@ class AreaConfig:
     far_down: float = 3.0
     """Distance to the far base at horizon 30, metres."""
     sample_size: float = 1 / 32
-    """Pitch of the area samples of the fast implementation, metres; must divide the 0.25 m grid. Work per
-    step grows as 1 / sample_size^2 (1/16 is about 3x faster, 1/64 about 4x slower)."""
+    """Pitch of the area samples of the fast implementation, metres; must divide the 0.25 m grid. 1/32 keeps
+    whole 30-step episodes within 1% of the shapely area; 1/16 makes the reward about 2x faster and is
+    within 1% for 99% of such episodes (a few % on regions under 1 m^2); work grows as 1 / sample_size^2."""
 
     def __post_init__(self):
         for name in ("near_level", "far_level", "near_down", "far_down", "sample_size"):
