@@ -115,3 +115,28 @@ def test_two_gloo_processes_keep_replicas_identical_and_match_one_process(data, 
         torch.testing.assert_close(r0[k], w[k], atol=2e-5, rtol=1e-4)
     init = load_tensors(tmp_path / "run" / "model.safetensors")[0]
     assert torch.equal(init["blocks.0.attn.qkv.weight"], r0["blocks.0.attn.qkv.weight"])
+
+
+def test_interrupt_writes_a_checkpoint_and_resume_matches(data, tmp_path, monkeypatch):
+    import tsnav.pretrain.train as tr
+
+    cfg = PretrainConfig(method="demae", batch_size=4, steps=4, checkpoint_every=100, **TINY)
+    train(cfg, data, tmp_path / "a", progress=False)
+    calls = {"n": 0}
+    real = tr.compute_loss
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:  # Ctrl-C / SIGTERM during step 3
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(tr, "compute_loss", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, data, tmp_path / "b", progress=False)
+    assert json.loads((tmp_path / "b" / "progress.json").read_text())["step"] == 2
+    monkeypatch.setattr(tr, "compute_loss", real)
+    train(cfg, data, tmp_path / "b", progress=False)
+    wa, wb = weights(tmp_path / "a"), weights(tmp_path / "b")
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k

@@ -30,6 +30,8 @@ import contextlib
 import json
 import math
 import os
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -308,11 +310,21 @@ def train_model(cfg: PretrainConfig, data: str | Path | RGBDImages, out: str | P
     out = Path(out)
     device = resolve_device(cfg.device)
     di = setup_distributed(device)
+    # SIGTERM (a scheduler's pre-emption, `timeout`) is handled like Ctrl-C: checkpoint, then stop.
+    old = None
+    if threading.current_thread() is threading.main_thread():
+        old = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         return _train(cfg, data, out, device, di, stop_at, progress)
     finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
         if di.owns_group:
             dist.destroy_process_group()
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
