@@ -360,6 +360,9 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
     groups, names = param_groups(model, cfg.weight_decay)
     opt = torch.optim.AdamW(groups, lr=peak, betas=cfg.betas)
     start = 0
+    if prog is not None and int(prog.get("global_batch", G)) != G:
+        raise ValueError(f"{out} was trained with a global batch of {prog['global_batch']} images "
+                         f"({prog.get('world_size')} processes); resume with the same number of processes")
     if prog is not None:  # resume
         sd, _ = load_tensors(out / prog["model_file"])
         model.load_state_dict(sd)
