@@ -452,24 +452,7 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
 
     # --- pretraining runs
     if found.pretrain_runs:
-        parts = []
-        for d in found.pretrain_runs:
-            cfg = (_read_json(d / "config.json") or {}).get("pretrain", {})
-            prog = _read_json(d / "progress.json") or {}
-            lab = _label(d, root)
-            loss = prog.get("loss")
-            info = (f"method {cfg.get('method')}, {cfg.get('model')}, patch {cfg.get('patch_size')}, "
-                    f"{cfg.get('img_size')}px, {prog.get('step', 0)}/{prog.get('total_steps', '?')} steps"
-                    + (f", last loss {loss:.4f}" if isinstance(loss, (int, float)) else ""))
-            img = ""
-            if (d / "recon.png").exists():
-                name = assets.copy(d / "recon.png", f"recon_{lab}")
-                img = (f"<figure><img src='{name}' alt='reconstructions' style='max-width:640px'><figcaption>"
-                       "Validation frames, one per row: input, masked input (75 % of patches hidden), RGB "
-                       "reconstruction (visible patches pasted back), predicted depth (DE-MAE; grey for MAE), "
-                       "true depth.</figcaption></figure>")
-            parts.append(f"<h3>{_e(lab)}</h3><p class='meta'>{_e(info)}</p>{img}")
-        sections.append(("pretraining", "Pretraining", "".join(parts)))
+        sections.append(("pretraining", "Pretraining", _pretrain_html(found.pretrain_runs, root, assets)))
 
     # --- gallery of plain evaluations
     if found.evals and gallery > 0:
@@ -490,6 +473,27 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
     index = out / "index.html"
     _atomic_write_text(index, doc)
     return index
+
+
+def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
+    parts = []
+    for d in runs:
+        cfg = (_read_json(d / "config.json") or {}).get("pretrain", {})
+        prog = _read_json(d / "progress.json") or {}
+        lab = _label(d, root)
+        loss = prog.get("loss")
+        info = (f"method {cfg.get('method')}, {cfg.get('model')}, patch {cfg.get('patch_size')}, "
+                f"{cfg.get('img_size')}px, {prog.get('step', 0)}/{prog.get('total_steps', '?')} steps"
+                + (f", last loss {loss:.4f}" if isinstance(loss, (int, float)) else ""))
+        img = ""
+        if (d / "recon.png").exists():
+            name = assets.copy(d / "recon.png", f"recon_{lab}")
+            img = (f"<figure><img src='{name}' alt='reconstructions' style='max-width:640px'><figcaption>"
+                   "Validation frames, one per row: input, masked input (75 % of patches hidden), RGB "
+                   "reconstruction (visible patches pasted back), predicted depth (DE-MAE; grey for MAE), "
+                   "true depth.</figcaption></figure>")
+        parts.append(f"<h3>{_e(lab)}</h3><p class='meta'>{_e(info)}</p>{img}")
+    return "".join(parts)
 
 
 def _gallery_html(eval_dir: Path, label: str, assets: _Assets, n: int) -> str:
@@ -536,6 +540,11 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> t
         parts.append(f"<figure><img src='{name_png}' alt='threshold sweep' style='max-width:1100px'><figcaption>"
                      "Each metric over the stage-switch threshold C_target on the validation episodes; the red star "
                      "marks the best value (paper Fig. 4).</figcaption></figure>")
+    pre_dir = Path(exp.get("config", {}).get("pretrain_dir") or d / "pretrain")
+    pre_runs = scan(pre_dir).pretrain_runs if pre_dir.is_dir() else []
+    if pre_runs:
+        parts.append("<h3>Encoders</h3>" + _pretrain_html(pre_runs, root, assets).replace("<h3>", "<h4>")
+                     .replace("</h3>", "</h4>"))
     series = []
     for j in exp.get("jobs", []):
         run = d / j["dir"] / "train"

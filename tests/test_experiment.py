@@ -1,0 +1,203 @@
+"""Experiments on the tiny world with very short budgets: all rows produced, resume skips finished jobs, tables
+well formed (Markdown / CSV parse, intervals sane), the threshold plot, the report of an experiment folder.
+
+The trainer is injected as a small stand-in in these tests only (it writes a real run folder
+with an untrained agent, so evaluation loads it with :func:`tsnav.rl.checkpoint.load_policy`)."""
+
+import csv
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+
+from tsnav.eval.experiment import (CSV_FIELDS, Experiment, ExperimentConfig, ScaleConfig, aggregate, csv_table,
+                                   experiment_rows, markdown_table, mean_ci)
+from tsnav.eval.metrics import METRICS
+
+TINY = ScaleConfig(vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2, pretrain_batch_size=8,
+                   feature_batch_size=256, num_envs=4, minutes_per_job=0.05, test_per_room_type=6,
+                   val_per_room_type=6)
+
+
+class StandInTrainer:
+    """Writes a loadable run folder (config.json, one checkpoint of an untrained agent, a short log)."""
+
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, tc, agent, run_dir):
+        import torch
+
+        from tsnav.rl.checkpoint import save_checkpoint
+        from tsnav.rl.world import load_bank, make_model, make_observer
+
+        self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
+        run_dir.mkdir(parents=True, exist_ok=True)
+        bank, det = load_bank(tc)
+        model = make_model(agent, make_observer(bank, tc, det_features=det), tc.seed)
+        with torch.no_grad():  # mostly turn on the spot, so that some episodes see their target
+            model.actor.bias.copy_(torch.tensor([1.0, 0.0, 4.0, 0.0, 0.0, -2.0]))
+        (run_dir / "config.json").write_text(json.dumps({"format": "tsnav-train-run", "train": tc.to_dict(),
+                                                         "agent": agent.__dict__}))
+        with open(run_dir / "log.jsonl", "w") as f:
+            for u in range(1, 4):
+                f.write(json.dumps({"update": u, "env_steps": 100 * u, "return": 0.1 * u + tc.seed, "SR": 0.1 * u}) + "\n")
+        save_checkpoint(run_dir, {"update": 3, "env_steps": 300, "episodes": 10, "seconds": 1.0, "finished": True},
+                        model)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small batches run faster on one thread, above all on a busy machine."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def pretrain_dir(tmp_path_factory):
+    """Pretraining runs shared by the experiments of this module (as ``--pretrain-dir`` lets users do)."""
+    return tmp_path_factory.mktemp("pretrain")
+
+
+def test_mean_ci_against_hand_values():
+    m, h = mean_ci([1.0, 2.0, 3.0])
+    assert m == 2.0 and h == pytest.approx(4.302652729911275 * 1.0 / math.sqrt(3))  # t(0.975, 2) = 4.3027
+    assert mean_ci([5.0]) == (5.0, None) and mean_ci([]) == (None, None)
+    m, h = mean_ci([2.0, 2.0, 2.0, 2.0])
+    assert m == 2.0 and h == 0.0
+
+
+def test_rows_match_the_paper():
+    abl = experiment_rows("ablation")
+    assert [(r.encoder, r.reward) for r in abl] == [("resnet18", "baseline"), ("resnet18", "explore"),
+                                                    ("resnet18", "distance"), ("resnet18", "tsrm"),
+                                                    ("demae", "baseline"), ("demae", "tsrm")]
+    assert [r.flags["DE-MAE"] for r in abl] == [0, 0, 0, 0, 1, 1]
+    pre = experiment_rows("pretraining", vc1=True)
+    assert [r.encoder for r in pre] == ["resnet18", "vc1", "mae", "demae-crop", "demae"]
+    assert all(r.reward == "baseline" for r in pre)
+    thr = experiment_rows("threshold")
+    assert [r.c_target for r in thr] == pytest.approx([0.1 * k for k in range(1, 10)])
+    with pytest.raises(ValueError, match="unknown experiment"):
+        experiment_rows("nope")
+
+
+def _summary(sr):
+    sub = {m: sr for m in METRICS}
+    return {"ALL": dict(sub, episodes=10, K_nav=5), "L>=5": dict(sub, episodes=5, K_nav=2)}
+
+
+def test_tables_parse():
+    rows = experiment_rows("ablation")
+    per_row = {"baseline": [_summary(0.5), _summary(0.6), _summary(0.7)], "explore": [_summary(0.4)]}
+    res = aggregate(rows, per_row, list(METRICS), ["Exploration Reward", "Distance Reward", "DE-MAE"])
+    md = markdown_table(res).strip().splitlines()
+    assert len(md) == 2 + len(rows)
+    ncols = len(md[0].split("|"))
+    assert all(len(line.split("|")) == ncols for line in md)
+    assert "60.00 ± " in md[2] and "| 3 |" in md[2]
+    assert "| 40.00 |" in md[3]  # one seed: no interval
+    table = list(csv.DictReader(io.StringIO(csv_table(res))))
+    assert tuple(table[0]) == CSV_FIELDS
+    assert len(table) == len(rows) * 2 * len(METRICS)
+    b = [r for r in table if r["row"] == "baseline" and r["subset"] == "ALL" and r["metric"] == "SR"][0]
+    assert float(b["mean"]) == pytest.approx(60.0)
+    assert float(b["ci_low"]) < 60.0 < float(b["ci_high"])
+    assert float(b["ci95"]) == pytest.approx(4.302652729911275 * 10.0 / math.sqrt(3), rel=1e-4)
+
+
+def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, capsys):
+    out = tmp_path / "ablation"
+    cfg = ExperimentConfig(experiment="ablation", data=str(tiny_world), out=str(out), scale="small", seeds=2,
+                           device="cpu", pretrain_dir=str(pretrain_dir))
+    trainer = StandInTrainer()
+    res = Experiment(cfg, train_fn=trainer, scale=TINY).run()
+    assert len(trainer.calls) == 12
+    assert {c[0] for c in trainer.calls} == {"baseline", "explore", "distance", "tsrm"}
+    feats = {c[1] for c in trainer.calls}
+    assert len(feats) == 2 and any(f.startswith("resnet18-") for f in feats) and any(f.startswith("demae-") for f in feats)
+    assert [r["n"] for r in res["rows"]] == [2] * 6
+    for r in res["rows"]:
+        for s in ("ALL", "L>=5"):
+            for m in METRICS:
+                v = r["metrics"][s][m]
+                assert 0.0 <= v["mean"] <= 100.0 and v["ci95"] is not None and v["ci95"] >= 0.0
+                assert len(v["values"]) == 2
+    for j in json.loads((out / "experiment.json").read_text())["jobs"]:
+        d = out / j["dir"]
+        assert (d / "DONE").exists() and (d / "eval" / "records.jsonl").exists()
+        assert (d / "eval" / "trajectories.jsonl").exists()
+    # the pretraining runs and feature caches are there
+    assert (pretrain_dir / "demae" / "encoder.safetensors").exists()
+    assert (pretrain_dir / "resnet18-sup" / "encoder.safetensors").exists()
+    md = (out / "table.md").read_text()
+    assert md.count("\n| ") == 8 and "TSRM + DE-MAE" in md
+    rows = list(csv.DictReader(open(out / "table.csv")))
+    assert len(rows) == 6 * 2 * len(METRICS)
+
+    # resume: nothing left to train; one unfinished job is redone
+    (out / "jobs" / "explore_s1" / "DONE").unlink()
+    again = StandInTrainer()
+    Experiment(cfg, train_fn=again, scale=TINY).run()
+    assert again.calls == [("explore", again.calls[0][1], 0.7, 1)]
+    assert "11 finished, 1 to run" in capsys.readouterr().out
+
+    # another scale in the same folder is refused
+    with pytest.raises(ValueError, match="another scale"):
+        Experiment(ExperimentConfig(**{**cfg.__dict__, "scale": "paper"}), train_fn=again).run()
+
+    from tsnav.eval.report import build_report
+
+    html = build_report(out, gallery=2).read_text()
+    assert "Experiment: ablation" in html and "12 of 12 jobs finished" in html and "&#10003;" in html
+    assert "Encoders" in html and html.count("recon_") == 1  # DE-MAE; the ResNet18 run has no reconstructions
+    assert html.count("_map.png") == 2
+
+
+def test_threshold_experiment_plot(tmp_path, tiny_world, pretrain_dir):
+    out = tmp_path / "thr"
+    cfg = ExperimentConfig(experiment="threshold", data=str(tiny_world), out=str(out), seeds=1, device="cpu",
+                           pretrain_dir=str(pretrain_dir))
+    trainer = StandInTrainer()
+    res = Experiment(cfg, train_fn=trainer, scale=TINY).run()
+    assert sorted(c[2] for c in trainer.calls) == pytest.approx([0.1 * k for k in range(1, 10)])
+    assert len(res["rows"]) == 9 and all(r["n"] == 1 for r in res["rows"])
+    assert json.loads((out / "jobs" / "c30_s0" / "eval" / "metrics.json").read_text())["config"]["c_target"] == 0.3
+    ep = json.loads((out / "episodes_val.json").read_text())
+    assert ep["split"] == "val" and len(ep["episodes"]) > 0
+    from PIL import Image
+
+    img = np.asarray(Image.open(out / "threshold.png").convert("RGB"))
+    assert img.shape[1] > 1000
+    red = (img[..., 0] > 200) & (img[..., 1] < 60) & (img[..., 2] < 60)
+    assert red.sum() > 50  # the best points are starred
+    # the same agent (one seed) at a higher threshold switches stage later or never, never earlier
+    from tsnav.eval.metrics import read_records
+
+    switch = np.array([[1000 if r.pathfinding_start_step is None else r.pathfinding_start_step
+                        for r in read_records(out / "jobs" / f"c{10 * k:02d}_s0" / "eval" / "records.jsonl")]
+                       for k in range(1, 10)])
+    assert (np.diff(switch, axis=0) >= 0).all()
+    ssr = [r["metrics"]["ALL"]["SSR"]["mean"] for r in res["rows"]]
+    assert all(a >= b - 1e-9 for a, b in zip(ssr, ssr[1:]))
+
+
+def test_experiment_command_errors(tmp_path, tiny_world, capsys):
+    from tsnav.cli import main
+
+    assert main(["experiment", "ablation", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert "no such dataset folder" in capsys.readouterr().err
+    w = tmp_path / "w.safetensors"
+    w.write_bytes(b"")
+    assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
+                 "--vc1-weights", str(w)]) == 2
+    assert "pretraining experiment only" in capsys.readouterr().err
+    assert main(["experiment", "threshold", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
+                 "--seeds", "0"]) == 2
+    assert "--seeds must be >= 1" in capsys.readouterr().err
