@@ -124,9 +124,12 @@ def test_an_update_lowers_the_loss_of_its_rollout(world):
     bank, _ = load_bank(cfg)
     obs_fn = make_observer(bank, cfg)
     model = make_model(agent_config("cpu", dropout=0.0), obs_fn, 0)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-4, amsgrad=True)  # the paper's learning rate
     col = RolloutCollector(make_train_env(bank, cfg, 16, seed=3), obs_fn, model)
+    torch.manual_seed(0)
     for _ in range(3):
+        # the paper's learning rate; a fresh optimizer per update, whose first step is a descent direction of
+        # this rollout's loss (later steps also carry the momentum of earlier rollouts)
+        opt = torch.optim.Adam(model.parameters(), lr=1e-4, amsgrad=True)
         ro = col.collect(10)
         adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished)
         loss, _ = a2c_loss(ro, adv, ret)

@@ -32,9 +32,8 @@ from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint,
 from .config import TrainConfig
 from .distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
                           init_distributed)
-from .logger import RunLogger
+from .logger import LogWindow, RunLogger
 from .rollout import RolloutCollector, a2c_loss, gae
-from .stats import concat, summarize
 from .world import load_bank, make_model, make_observer, make_train_env, resolve_device
 
 
@@ -108,7 +107,7 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     logger = RunLogger(run_dir, progress["update"], enabled=info.is_main)
     bar = ProgressBar(cfg, progress, enabled=progress_bar and info.is_main)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
-    window = {"t": time.perf_counter(), "steps": progress["env_steps"], "parts": [], "episodes": []}
+    window = LogWindow(progress["env_steps"])
     steps_per_update = cfg.num_envs * cfg.rollout_steps * info.world
     try:
         while True:
@@ -128,12 +127,11 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
             progress["env_steps"] += steps_per_update
             progress["episodes"] += int(episodes)
             progress["seconds"] = seconds0 + seconds
-            window["parts"].append(parts)
-            window["episodes"].append(collector.stats.pop())
+            window.add(parts, collector.stats.pop())
             reached = cfg.budget_reached(progress)
             boundary = reached or progress["update"] % cfg.checkpoint_every == 0
             if progress["update"] % cfg.log_every == 0 or boundary:  # windows never span a checkpoint
-                record = _log_record(progress, window)
+                record = window.record(progress)
                 logger.log(record)
                 bar.update(progress, {k: f"{record[k]:.3g}" for k in ("SR", "return") if k in record})
             else:
@@ -164,16 +162,3 @@ def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: Dist
     if info.is_main:
         commit_checkpoint(run_dir, tmp, progress, model, optimizer)
     barrier(info)
-
-
-def _log_record(progress: dict, window: dict) -> dict:
-    """One log line: progress, mean losses over the window, episode statistics, env steps per second."""
-    now = time.perf_counter()
-    parts = window["parts"]
-    rec = {k: progress[k] for k in ("update", "env_steps", "episodes", "seconds")}
-    for k in parts[0]:
-        rec[k] = sum(p[k] for p in parts) / len(parts)
-    rec["steps_per_s"] = (progress["env_steps"] - window["steps"]) / max(now - window["t"], 1e-9)
-    rec.update(summarize(concat(window["episodes"])))
-    window.update(t=now, steps=progress["env_steps"], parts=[], episodes=[])
-    return rec

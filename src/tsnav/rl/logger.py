@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 from ..pretrain.checkpoint import atomic_write_bytes
@@ -74,3 +75,34 @@ def read_log(run_dir: str | Path) -> list[dict]:
             except json.JSONDecodeError:
                 break
     return out
+
+
+class LogWindow:
+    """Losses and finished episodes gathered between two log lines, turned into one record."""
+
+    def __init__(self, env_steps: int):
+        self.t = time.perf_counter()
+        self.steps = env_steps
+        self.parts: list[dict] = []
+        self.episodes: list[dict] = []
+
+    def add(self, parts: dict, episodes: dict) -> None:
+        self.parts.append(parts)
+        self.episodes.append(episodes)
+
+    def __bool__(self) -> bool:
+        return bool(self.parts)
+
+    def record(self, progress: dict) -> dict:
+        """Progress counters, mean loss parts, episode statistics (:func:`tsnav.rl.stats.summarize`) and
+        environment steps per second over the window; starts a new window."""
+        from .stats import concat, summarize
+
+        now = time.perf_counter()
+        rec = {k: progress[k] for k in ("update", "env_steps", "episodes", "seconds")}
+        for k in self.parts[0] if self.parts else ():
+            rec[k] = sum(p[k] for p in self.parts) / len(self.parts)
+        rec["steps_per_s"] = (progress["env_steps"] - self.steps) / max(now - self.t, 1e-9)
+        rec.update(summarize(concat(self.episodes)))
+        self.t, self.steps, self.parts, self.episodes = now, progress["env_steps"], [], []
+        return rec

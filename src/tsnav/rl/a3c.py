@@ -1,0 +1,226 @@
+"""Asynchronous advantage actor-critic, the paper's trainer (III-D; Mnih et al. 2016; the lineage's A3C).
+
+``workers`` processes (torch.multiprocessing, spawn) share one model (``share_memory``) and one Adam
+(AMSGrad) whose moment estimates and step counters live in shared memory (:class:`SharedAdam`). Each worker
+owns a :class:`~tsnav.sim.batch.BatchEnv` with a single episode (``num_envs = 1``, the lineage's one episode
+per worker) and a local copy of the model. Per update a worker
+
+1. copies the shared weights into its local model,
+2. collects a rollout of ``rollout_steps`` steps (the same rollout, GAE and loss as the batched trainer),
+3. back-propagates on the local model, clips the gradient norm, hands the gradients to the shared
+   parameters and steps the shared optimizer (Hogwild: no lock, as in the lineage).
+
+Counters (updates, environment steps, episodes) are shared; finished-episode statistics and losses go to the
+main process through a queue. The main process logs, checkpoints every ``checkpoint_every`` updates and stops
+the workers when the budget is used up. Resume restores weights, optimizer state and counters; the episodes in
+flight and the workers' RNG streams start anew (A3C is not deterministic anyway).
+"""
+
+from __future__ import annotations
+
+import queue as queue_mod
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..agent.model import ActorCritic, AgentConfig
+from .batched import ProgressBar, new_progress
+from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from .config import TrainConfig
+from .logger import LogWindow, RunLogger
+from .rollout import RolloutCollector, a2c_loss, gae
+from .world import load_bank, make_model, make_observer, make_train_env
+
+
+class SharedAdam(torch.optim.Adam):
+    """Adam (AMSGrad by default, as the lineage) whose state is allocated up front in shared memory, so that
+    every worker process steps the same moments and step counters."""
+
+    def __init__(self, params, lr: float = 1e-4, betas=(0.9, 0.999), eps: float = 1e-8, weight_decay: float = 0.0,
+                 amsgrad: bool = True):
+        super().__init__(params, lr=lr, betas=betas, eps=eps, weight_decay=weight_decay, amsgrad=amsgrad,
+                         foreach=False)
+        for group in self.param_groups:
+            for p in group["params"]:
+                st = self.state[p]
+                st["step"] = torch.zeros((), dtype=torch.float32).share_memory_()
+                st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format).share_memory_()
+                st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format).share_memory_()
+                if amsgrad:
+                    st["max_exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format).share_memory_()
+
+    def load_shared(self, other: torch.optim.Optimizer) -> None:
+        """Copy the state of ``other`` (same parameters, e.g. loaded from a checkpoint) into the shared tensors."""
+        for group, ogroup in zip(self.param_groups, other.param_groups):
+            for k, v in ogroup.items():
+                if k != "params":
+                    group[k] = v
+            for p, op in zip(group["params"], ogroup["params"]):
+                for k, v in other.state[op].items():
+                    self.state[p][k].copy_(v)
+
+
+def a3c_update(local: ActorCritic, shared: ActorCritic, optimizer: torch.optim.Optimizer,
+               collector: RolloutCollector, cfg: TrainConfig):
+    """One worker update (steps 1-3 of the module docstring); returns ``(loss parts, rollout)``."""
+    local.load_state_dict(shared.state_dict())
+    local.train()
+    ro = collector.collect(cfg.rollout_steps)
+    adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished, cfg.gamma, cfg.gae_tau)
+    loss, parts = a2c_loss(ro, adv, ret, cfg.entropy_coef, cfg.value_coef)
+    local.zero_grad(set_to_none=True)
+    loss.backward()
+    parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(local.parameters(), cfg.max_grad_norm))
+    for lp, sp in zip(local.parameters(), shared.parameters()):
+        sp._grad = lp.grad
+    optimizer.step()
+    return parts, ro
+
+
+def _worker(wid: int, cfg_d: dict, agent_d: dict, scenes, shared: ActorCritic, optimizer: SharedAdam,
+            features: torch.Tensor, counters, out_queue, stop, seed: int) -> None:
+    torch.set_num_threads(1)
+    try:
+        cfg = TrainConfig.from_dict(cfg_d)
+        torch.manual_seed(seed)
+        bank, det = load_bank(cfg, scenes)
+        observer = make_observer(bank, cfg, features=features, det_features=det)
+        local = make_model(AgentConfig(**agent_d), observer, seed)
+        collector = RolloutCollector(make_train_env(bank, cfg, 1, seed=seed), observer, local)
+        collector.start()
+        while not stop.is_set():
+            parts, ro = a3c_update(local, shared, optimizer, collector, cfg)
+            with counters.get_lock():
+                counters[0] += 1
+                counters[1] += ro.steps
+                counters[2] += ro.episodes
+            eps = collector.stats.pop()
+            out_queue.put({"worker": wid, "parts": parts, "episodes": {k: v.tolist() for k, v in eps.items()}})
+    except Exception:
+        out_queue.put({"worker": wid, "error": traceback.format_exc()})
+        raise
+
+
+def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
+              scenes=None, poll_seconds: float = 0.2) -> dict:
+    """Train (or resume) the A3C run in ``run_dir`` with ``cfg.workers`` processes; returns the progress."""
+    import torch.multiprocessing as mp
+
+    run_dir = Path(run_dir)
+    torch.set_num_threads(cfg.threads)
+    bank, det = load_bank(cfg, scenes)
+    observer = make_observer(bank, cfg, det_features=det)
+    features = observer.features.share_memory_()
+    shared = make_model(agent, observer, cfg.seed)
+    shared.share_memory()
+    optimizer = SharedAdam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
+    progress = new_progress()
+    progress["sessions"] = 0
+    ck = latest_checkpoint(run_dir)
+    if ck is not None:
+        plain = torch.optim.Adam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
+        state = load_checkpoint(ck, shared, plain)  # load_state_dict copies into the shared parameters
+        optimizer.load_shared(plain)
+        progress.update(state["progress"])
+    if cfg.budget_reached(progress):
+        if not progress.get("finished"):
+            progress["finished"] = True
+            save_checkpoint(run_dir, progress, shared, optimizer)
+        return progress
+    progress["finished"] = False
+    session = progress["sessions"]
+    progress["sessions"] += 1
+
+    ctx = mp.get_context("spawn")
+    counters = ctx.Array("d", [progress["update"], progress["env_steps"], progress["episodes"]])
+    out_queue = ctx.Queue()
+    stop = ctx.Event()
+    procs = []
+    for w in range(cfg.workers):
+        seed = int(np.random.SeedSequence([cfg.seed, w, session]).generate_state(1)[0])
+        p = ctx.Process(target=_worker, args=(w, cfg.to_dict(), agent.__dict__.copy(), scenes, shared, optimizer,
+                                              features, counters, out_queue, stop, seed), daemon=True)
+        p.start()
+        procs.append(p)
+
+    logger = RunLogger(run_dir, progress["update"])
+    bar = ProgressBar(cfg, progress, enabled=progress_bar)
+    t_start, seconds0 = time.perf_counter(), progress["seconds"]
+    window = LogWindow(progress["env_steps"])
+    last_log = progress["update"] // cfg.log_every
+    last_ckpt = progress["update"] // cfg.checkpoint_every
+
+    def drain(block: float = 0.0) -> None:
+        while True:
+            try:
+                msg = out_queue.get(timeout=block) if block else out_queue.get_nowait()
+            except queue_mod.Empty:
+                return
+            if "error" in msg:
+                raise RuntimeError(f"A3C worker {msg['worker']} failed:\n{msg['error']}")
+            window.add(msg["parts"], {k: np.asarray(v) for k, v in msg["episodes"].items()})
+
+    def snapshot() -> None:
+        with counters.get_lock():
+            progress["update"], progress["env_steps"], progress["episodes"] = (int(v) for v in counters[:])
+        progress["seconds"] = seconds0 + time.perf_counter() - t_start
+
+    try:
+        while True:
+            time.sleep(poll_seconds)
+            drain()
+            snapshot()
+            if cfg.budget_reached(progress):
+                break
+            if progress["update"] // cfg.log_every > last_log and window:
+                last_log = progress["update"] // cfg.log_every
+                record = window.record(progress)
+                logger.log(record)
+                bar.update(progress, {k: f"{record[k]:.3g}" for k in ("SR", "return") if k in record})
+            else:
+                bar.update(progress)
+            if progress["update"] // cfg.checkpoint_every > last_ckpt:
+                last_ckpt = progress["update"] // cfg.checkpoint_every
+                save_checkpoint(run_dir, progress, _copy(shared), optimizer)
+            dead = [p for p in procs if p.exitcode not in (None, 0)]
+            if dead:
+                drain()
+                raise RuntimeError(f"an A3C worker exited with code {dead[0].exitcode}")
+        # budget used up: stop the workers, keep the updates they finish meanwhile
+        stop.set()
+        deadline = time.time() + 60
+        while any(p.is_alive() for p in procs) and time.time() < deadline:
+            drain(block=0.1)
+        drain()
+        snapshot()
+        if window:
+            logger.log(window.record(progress))
+        bar.update(progress)
+    finally:
+        stop.set()
+        for p in procs:
+            if p.is_alive():
+                try:  # unblock a worker waiting on a full queue
+                    while True:
+                        out_queue.get_nowait()
+                except (queue_mod.Empty, OSError, ValueError):
+                    pass
+                p.join(timeout=5)
+            if p.is_alive():
+                p.terminate()
+                p.join(timeout=5)
+        bar.close()
+        logger.close()
+    progress["finished"] = cfg.budget_reached(progress)
+    save_checkpoint(run_dir, progress, _copy(shared), optimizer)
+    return progress
+
+
+def _copy(shared: ActorCritic) -> ActorCritic:
+    """A private copy of the shared model (a consistent snapshot to save while workers keep updating)."""
+    m = ActorCritic.from_description(shared.describe())
+    m.load_state_dict({k: v.clone() for k, v in shared.state_dict().items()})
+    return m

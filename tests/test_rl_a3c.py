@@ -1,0 +1,116 @@
+"""A3C: the shared Adam keeps its state in shared memory, a worker update lowers the loss of its rollout on
+the shared model, and a short run with 2 worker processes shares counters, checkpoints, resumes and stops."""
+
+import numpy as np
+import pytest
+import torch
+
+from tsnav.agent import agent_config
+from tsnav.agent.pixels import cache_pixel_features
+from tsnav.rl.a3c import SharedAdam, a3c_update, train_a3c
+from tsnav.rl.checkpoint import latest_checkpoint, load_checkpoint
+from tsnav.rl.config import TrainConfig
+from tsnav.rl.logger import read_log
+from tsnav.rl.rollout import RolloutCollector, a2c_loss, gae, replay
+from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
+
+FEATS = "rltest_px"
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def world(tiny_world):
+    cache_pixel_features(tiny_world, FEATS, grid=4)
+    return tiny_world
+
+
+def _cfg(world, **kw):
+    base = dict(data=str(world), features=FEATS, algo="a3c", workers=2, rollout_steps=8, lr=1e-3, device="cpu",
+                log_every=4, checkpoint_every=5)
+    return TrainConfig(**{**base, **kw})
+
+
+def test_shared_adam_state_is_shared_and_matches_adam():
+    torch.manual_seed(0)
+    a = torch.nn.Linear(4, 3)
+    b = torch.nn.Linear(4, 3)
+    b.load_state_dict(a.state_dict())
+    shared = SharedAdam(a.parameters(), lr=1e-2)
+    plain = torch.optim.Adam(b.parameters(), lr=1e-2, amsgrad=True)
+    for p in a.parameters():
+        st = shared.state[p]
+        assert all(st[k].is_shared() for k in ("step", "exp_avg", "exp_avg_sq", "max_exp_avg_sq"))
+    x = torch.randn(8, 4)
+    for _ in range(3):
+        for m, opt in ((a, shared), (b, plain)):
+            opt.zero_grad()
+            (m(x) ** 2).sum().backward()
+            opt.step()
+    for pa, pb in zip(a.parameters(), b.parameters()):
+        torch.testing.assert_close(pa, pb)
+        assert float(shared.state[pa]["step"]) == 3.0
+
+
+def test_worker_update_lowers_the_loss_on_the_shared_model(world):
+    cfg = _cfg(world)
+    bank, _ = load_bank(cfg)
+    obs_fn = make_observer(bank, cfg)
+    agent = agent_config("cpu", dropout=0.0)
+    shared = make_model(agent, obs_fn, 0)
+    shared.share_memory()
+    local = make_model(agent, obs_fn, 123)  # other weights: the update must start from the shared ones
+    col = RolloutCollector(make_train_env(bank, cfg, 1, seed=0), obs_fn, local)
+    torch.manual_seed(0)
+    for i in range(3):
+        # a fresh optimizer per update: Adam's first step is a descent direction of this rollout's loss
+        # (later steps also carry the momentum of earlier rollouts)
+        opt = SharedAdam(shared.parameters(), lr=1e-4)
+        before = {k: v.clone() for k, v in shared.state_dict().items()}
+        parts, ro = a3c_update(local, shared, opt, col, cfg)
+        for k, v in local.state_dict().items():  # the rollout ran with the shared weights
+            assert torch.equal(v, before[k]), k
+        assert any(not torch.equal(v, before[k]) for k, v in shared.state_dict().items())
+        adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished)
+        with torch.no_grad():
+            logp, ent, val = replay(shared, obs_fn, ro)
+            from dataclasses import replace
+
+            after, _ = a2c_loss(replace(ro, logp=logp, entropy=ent, value=val), adv, ret)
+        assert float(after) < parts["loss"], (parts["loss"], float(after))
+        assert float(opt.state[next(shared.parameters())]["step"]) == 1
+
+
+def test_two_worker_run_resume_and_finish(world, tmp_path):
+    run = tmp_path / "run"
+    agent = agent_config("cpu")
+    cfg = _cfg(world, updates=12)
+    init = make_model(agent, make_observer(load_bank(cfg)[0], cfg), cfg.seed).state_dict()
+    p1 = train_a3c(cfg, agent, run, progress_bar=False, poll_seconds=0.05)
+    assert p1["finished"] and p1["update"] >= 12 and p1["env_steps"] == 8 * p1["update"]
+    ck = latest_checkpoint(run)
+    st = load_checkpoint(ck)
+    assert st["progress"]["update"] == p1["update"]
+    # every worker update went through the one shared optimizer
+    from tsnav.pretrain.checkpoint import load_tensors
+
+    opt_t, _ = load_tensors(ck / "optim.safetensors")
+    steps = {float(v) for k, v in opt_t.items() if k.endswith("::step")}
+    assert steps == {float(p1["update"])}
+    w, _ = load_tensors(ck / "model.safetensors")
+    assert any(not torch.equal(w[k], init[k]) for k in init)
+    log = read_log(run)
+    assert log and log[-1]["update"] == p1["update"] and np.isfinite(log[-1]["loss"])
+    assert sum(r["n_episodes"] for r in log) > 0
+
+    # a finished run is not retrained; a larger budget resumes from the counters
+    assert train_a3c(cfg, agent, run, progress_bar=False)["update"] == p1["update"]
+    p2 = train_a3c(_cfg(world, updates=p1["update"] + 6), agent, run, progress_bar=False, poll_seconds=0.05)
+    assert p2["update"] >= p1["update"] + 6 and p2["sessions"] == 2
+    assert p2["env_steps"] == 8 * p2["update"]
