@@ -12,6 +12,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", required=True, help="episode list JSON (from 'tsnav episodes')")
     parser.add_argument("--policy", default="explorer",
                         help="random | oracle | explorer | package.module:factory (default: explorer)")
+    parser.add_argument("--run", default=None,
+                        help="evaluate the trained agent of this `tsnav train` run folder (instead of --policy)")
     parser.add_argument("--out", required=True, help="output folder for records.jsonl and metrics.json")
     parser.add_argument("--seed", type=int, default=0, help="seed of stochastic policies (default: 0)")
     parser.add_argument("--max-steps", type=int, default=100, help="episode length limit (paper: 100)")
@@ -55,7 +57,13 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"{args.episodes}: the episode list is empty")
     dist = args.success_distance if args.success_distance is not None else float(meta.get("success_distance", 1.0))
     bank = load_bank_for_episodes(args.data, episodes, success_distance=dist, c_target=args.c_target)
-    policy = make_policy(args.policy, bank, seed=args.seed, c_target=args.c_target)
+    if args.run is not None:
+        from ..rl.checkpoint import load_policy
+
+        policy = load_policy(args.run, bank, seed=args.seed)
+        args.policy = f"run:{Path(args.run).resolve()}"
+    else:
+        policy = make_policy(args.policy, bank, seed=args.seed, c_target=args.c_target)
     config = EvalConfig(max_steps=args.max_steps, c_target=args.c_target, batch_size=args.batch_size)
     t0 = time.perf_counter()
     records = evaluate(bank, episodes, policy, config)

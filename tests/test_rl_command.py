@@ -1,0 +1,90 @@
+"""`tsnav train` and `tsnav eval --run`: run folder contents, resume / no retraining, one-line errors, and the
+trained agent as an evaluation policy (per-episode state, batch independence)."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tsnav.agent.pixels import cache_pixel_features
+from tsnav.cli import main
+from tsnav.eval.policies import Policy
+from tsnav.eval.runner import EvalConfig, evaluate
+from tsnav.rl.checkpoint import list_checkpoints, load_policy
+from tsnav.sim.batch import SceneBank
+from tsnav.sim.episodes import read_episodes
+
+FEATS = "rltest_px"
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_world, tmp_path_factory):
+    cache_pixel_features(tiny_world, FEATS, grid=4)
+    run = tmp_path_factory.mktemp("cmd") / "run"
+    rc = main(["train", "--data", str(tiny_world), "--features", FEATS, "--reward", "tsrm", "--algo", "batched",
+               "--out", str(run), "--updates", "4", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5",
+               "--checkpoint-every", "2", "--log-every", "1", "--lr", "1e-3", "--quiet"])
+    assert rc == 0
+    return tiny_world, run
+
+
+def test_run_folder(trained):
+    _, run = trained
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["format"] == "tsnav-train-run" and cfg["train"]["algo"] == "batched"
+    assert cfg["train"]["updates"] == 4 and cfg["train"]["gamma"] == 0.99 and cfg["train"]["max_grad_norm"] == 100.0
+    assert cfg["agent"]["dropout"] == 0.45 and cfg["reward"]["variant"] == "tsrm" and cfg["reward"]["k_explore"] == 0.1
+    assert cfg["features"]["shape"] == [3, 4, 4] and cfg["features"]["name"] == FEATS
+    assert [p.name for p in list_checkpoints(run)] == ["ckpt_000000002", "ckpt_000000004"]
+    assert len((run / "log.jsonl").read_text().splitlines()) == 4
+    assert any((run / "tb").iterdir())
+
+
+def test_resume_budget_and_errors(trained, tmp_path, capsys):
+    world, run = trained
+    assert main(["train", "--out", str(run), "--quiet"]) == 0
+    assert "already finished" in capsys.readouterr().out
+    assert main(["train", "--out", str(run), "--updates", "6", "--quiet"]) == 0
+    assert "after 6 updates" in capsys.readouterr().out
+    assert json.loads((run / "config.json").read_text())["train"]["updates"] == 6
+    assert main(["train", "--out", str(run), "--lr", "0.5", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "another configuration (lr)" in err and len(err.splitlines()) == 1
+    assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--quiet"]) == 2
+    assert "--features is required" in capsys.readouterr().err
+    assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--features", "nothing",
+                 "--quiet"]) == 2
+    assert "no feature cache" in capsys.readouterr().err
+
+
+def test_eval_run_and_policy(trained, tmp_path, capsys):
+    world, run = trained
+    eps = tmp_path / "eps.json"
+    assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "6", "--out", str(eps)]) == 0
+    out = tmp_path / "eval"
+    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["policy"].startswith("run:") and m["metrics"]["ALL"]["episodes"] > 0
+
+    episodes, _ = read_episodes(eps)
+    bank = SceneBank.from_root(world, "test")
+    pol = load_policy(run, bank)
+    assert isinstance(pol, Policy)
+    together = evaluate(bank, episodes, pol, EvalConfig(max_steps=20))
+    alone = [evaluate(bank, [e], load_policy(run, bank), EvalConfig(max_steps=20))[0] for e in episodes[:4]]
+    for a, b in zip(alone, together[:4]):
+        assert (a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
+    again = evaluate(bank, episodes, pol, EvalConfig(max_steps=20))  # greedy: deterministic, state reset
+    assert [r.steps for r in again] == [r.steps for r in together]
+    sampled = load_policy(run, bank, greedy=False, seed=3)
+    a = sampled.act({"state": np.array([0, 1]), "target": np.array([0, 0])})
+    assert a.shape == (2,) and a.dtype == np.int64
