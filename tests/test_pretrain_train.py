@@ -140,3 +140,32 @@ def test_interrupt_writes_a_checkpoint_and_resume_matches(data, tmp_path, monkey
     wa, wb = weights(tmp_path / "a"), weights(tmp_path / "b")
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k
+
+
+def test_sigterm_stops_cleanly_at_a_step_boundary(data, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = (
+        "import sys\n"
+        "from tsnav.pretrain.train import PretrainConfig, train\n"
+        "cfg = PretrainConfig(method='demae', batch_size=4, steps=100000, checkpoint_every=10**9, "
+        "model='vit_micro', patch_size=8, img_size=16, log_every=1, viz_images=0)\n"
+        "try:\n"
+        "    train(cfg, sys.argv[1], sys.argv[2], progress=False)\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(130)\n")
+    p = subprocess.Popen([sys.executable, "-c", code, str(data), str(tmp_path / "r")],
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    deadline = time.time() + 120
+    while not list((tmp_path / "r" / "tb").glob("events*")) and time.time() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)
+    p.send_signal(signal.SIGTERM)
+    assert p.wait(timeout=120) == 130
+    prog = json.loads((tmp_path / "r" / "progress.json").read_text())
+    assert prog["step"] >= 1 and not prog["finished"]
+    assert (tmp_path / "r" / prog["model_file"]).exists() and (tmp_path / "r" / prog["optim_file"]).exists()

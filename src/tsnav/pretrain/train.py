@@ -310,24 +310,36 @@ def train_model(cfg: PretrainConfig, data: str | Path | RGBDImages, out: str | P
     out = Path(out)
     device = resolve_device(cfg.device)
     di = setup_distributed(device)
-    # SIGTERM (a scheduler's pre-emption, `timeout`) is handled like Ctrl-C: checkpoint, then stop.
-    old = None
+    # SIGTERM (a scheduler's pre-emption, `timeout`) and Ctrl-C stop the run at the end of the current step
+    # with a checkpoint; a second signal stops at once (a checkpoint is written only if no update was
+    # half-applied).
+    stop = _StopRequest()
+    old = {}
     if threading.current_thread() is threading.main_thread():
-        old = signal.signal(signal.SIGTERM, _raise_interrupt)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            old[sig] = signal.signal(sig, stop.handle)
     try:
-        return _train(cfg, data, out, device, di, stop_at, progress)
+        return _train(cfg, data, out, device, di, stop_at, progress, stop)
     finally:
-        if old is not None:
-            signal.signal(signal.SIGTERM, old)
+        for sig, h in old.items():
+            signal.signal(sig, h)
         if di.owns_group:
             dist.destroy_process_group()
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt(f"signal {signum}")
+class _StopRequest:
+    """Signal handler state: the first signal asks for a clean stop, the second interrupts at once."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def handle(self, signum, frame) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt(f"signal {signum}")
+        self.signum = signum
 
 
-def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
+def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopRequest | None = None):
     mc = model_config(cfg)
     model_cfg = {} if mc is None else mc.to_dict()
     _check_config(out, cfg, model_cfg, write=False)
@@ -358,7 +370,7 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
     warmup = max(1, int(round(cfg.warmup_fraction * total)))
     peak = cfg.resolved_base_lr * G / 256
     groups, names = param_groups(model, cfg.weight_decay)
-    opt = torch.optim.AdamW(groups, lr=peak, betas=cfg.betas)
+    opt = torch.optim.AdamW(groups, lr=peak, betas=cfg.betas, foreach=True)
     start = 0
     if prog is not None and int(prog.get("global_batch", G)) != G:
         raise ValueError(f"{out} was trained with a global batch of {prog['global_batch']} images "
@@ -424,6 +436,7 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
                 p.unlink()
 
     step, last_loss, t0, seen = start, None, time.perf_counter(), 0
+    consistent = True
     end = total if stop_at is None else min(total, stop_at)
     model.train()
     try:
@@ -449,9 +462,11 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
                     sums[k] = sums.get(k, 0) + v.float() / A
             if not all(torch.isfinite(v).all() for v in sums.values()):
                 raise FloatingPointError(f"non-finite loss at step {step}; lower --base-lr")
+            consistent = False  # weights / optimiser state are between steps until step += 1
             opt.step()
             opt.zero_grad(set_to_none=True)
             step += 1
+            consistent = True
             seen += G
             if step % cfg.log_every == 0 or step == end:
                 vals = torch.stack([sums[k] for k in sorted(sums)]).to(device)
@@ -475,8 +490,17 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress) -> dict:
                 save_checkpoint(step, False, last_loss)
                 if W > 1:
                     dist.barrier()
+            want_stop = stop is not None and stop.signum is not None
+            if W > 1:  # every process stops at the same step, or the others would wait forever
+                flag = torch.tensor([float(want_stop)], device=device)
+                dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+                want_stop = bool(flag.item())
+            if want_stop and step < end:
+                save_checkpoint(step, False, last_loss)
+                raise KeyboardInterrupt("stop requested")
     except KeyboardInterrupt:
-        save_checkpoint(step, False, last_loss)
+        if consistent:
+            save_checkpoint(step, False, last_loss)
         raise
     finally:
         if bar is not None:
