@@ -1,4 +1,5 @@
-"""The learned class-query detector: model, batches, training (loss drops, exact resume), calibration."""
+"""The learned grid detector: model, dense targets vs reference, batches, training (loss drops, exact
+resume), calibration, tables."""
 
 from __future__ import annotations
 
@@ -10,10 +11,10 @@ import torch
 
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
-from tsnav.detect.model import (ClassQueryDetector, DetectorConfig, detection_loss, generalized_iou,
-                                pixel_to_unit, unit_to_pixel)
-from tsnav.detect.train import (TrainConfig, calibrate, fit_temperature, load_model, lr_at, predict,
-                                read_meta, train_detector)
+from tsnav.detect.model import (DetectorConfig, GridDetector, dense_targets, dense_targets_reference,
+                                detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
+from tsnav.detect.train import (TrainConfig, apply_gains, batch_plan, calibrate, fit_temperature, load_model,
+                                lr_at, predict, read_meta, train_detector)
 
 torch.set_num_threads(1)
 
@@ -25,7 +26,7 @@ def tiny_frames(tiny_world):
 
 def test_model_outputs():
     torch.manual_seed(0)
-    m = ClassQueryDetector(DetectorConfig()).eval()
+    m = GridDetector(DetectorConfig()).eval()
     x = m.normalize(torch.randint(0, 256, (3, 64, 64, 3), dtype=torch.uint8))
     logits, boxes, feats = m(x)
     assert logits.shape == (3, NUM_CATEGORIES) and boxes.shape == (3, NUM_CATEGORIES, 4)
@@ -34,6 +35,12 @@ def test_model_outputs():
     assert (boxes[..., 2] >= boxes[..., 0]).all() and (boxes[..., 3] >= boxes[..., 1]).all()
     # The start bias makes every class unlikely (about the base rate of a class in view).
     assert torch.sigmoid(logits).max() < 0.2
+    # Per class: the box and feature of the best cell.
+    cl, cb, cf = m.dense(x)
+    best = cl.argmax(-1)
+    torch.testing.assert_close(boxes[1, 5], cb[1, 5, best[1, 5]].clamp(0, 1))
+    torch.testing.assert_close(feats[2, 7], cf[2, best[2, 7]])
+    torch.testing.assert_close(logits, torch.logsumexp(cl, -1) + m.class_bias)
 
 
 def test_box_conversions_and_giou():
@@ -55,14 +62,38 @@ def test_flip_moves_boxes_with_the_pixels():
     present[0, 3] = True
     boxes = np.zeros((1, NUM_CATEGORIES, 4), np.float32)
     boxes[0, 3] = pixel_to_unit(np.array([5, 10, 11, 19]), 64)
-    fs = FrameSet(img, present, boxes, ["x"], np.array([0, 1]))
-    out, pr, bx = make_batch(fs, np.array([0, 0]), np.array([False, True]))
-    assert (fs.images[0] == img[0]).all()  # the source frames are never modified
-    ys, xs = np.nonzero(out[1, :, :, 0].numpy())
-    np.testing.assert_allclose(unit_to_pixel(bx[1, 3].numpy(), 64), [xs.min(), ys.min(), xs.max(), ys.max()],
+    obj = np.zeros((1, 2, 4), np.float32)
+    obj[0, 0] = boxes[0, 3]
+    fs = FrameSet(img, present, boxes, obj, np.array([[3, 4]], np.int16), np.array([[2, 0]], np.int8), ["x"],
+                  np.array([0, 1]))
+    b = make_batch(fs, np.array([0, 0]), np.array([False, True]))
+    assert (fs.images[0] == img[0]).all() and (fs.obj_boxes[0] == obj[0]).all()  # sources never modified
+    ys, xs = np.nonzero(b.images[1, :, :, 0].numpy())
+    np.testing.assert_allclose(unit_to_pixel(b.boxes[1, 3].numpy(), 64), [xs.min(), ys.min(), xs.max(), ys.max()],
                                atol=1e-4)
-    np.testing.assert_array_equal(bx[0].numpy(), boxes[0])
-    assert (bx[1, 0] == 0).all()  # absent classes keep zero boxes
+    torch.testing.assert_close(b.obj_boxes[1, 0], b.boxes[1, 3])
+    np.testing.assert_array_equal(b.boxes[0].numpy(), boxes[0])
+    assert (b.boxes[1, 0] == 0).all() and (b.obj_boxes[1, 1] == 0).all()  # absent stays zero
+
+
+def test_dense_targets_by_hand_and_against_reference(tiny_frames):
+    # One 8x8 grid; object 0 (class 2, visible) covers cells x 0..1, y 0..0; object 1 (class 2, visible) is
+    # a sliver inside cell (5, 5) away from its centre; object 2 (class 4, too few pixels) covers cell (7, 7).
+    boxes = torch.tensor([[[0.0, 0.0, 0.25, 0.125], [0.63, 0.63, 0.65, 0.66], [0.875, 0.875, 1.0, 1.0]]])
+    cat = torch.tensor([[2, 2, 4]])
+    state = torch.tensor([[2, 2, 1]])
+    pos, ign, tgt = dense_targets(boxes, cat, state, 8)
+    assert pos[0, 2].nonzero().flatten().tolist() == [0, 1, 5 * 8 + 5]
+    assert pos.sum() == 3 and ign[0, 4].nonzero().flatten().tolist() == [63] and ign.sum() == 1
+    torch.testing.assert_close(tgt[0, 2, 1], boxes[0, 0])
+    torch.testing.assert_close(tgt[0, 2, 45], boxes[0, 1])
+    # Real frames (with flips): equal to the loop reference.
+    b = make_batch(tiny_frames, np.arange(12), np.arange(12) % 2 == 1)
+    fast = dense_targets(b.obj_boxes, b.obj_category, b.obj_state, 8)
+    ref = dense_targets_reference(b.obj_boxes.numpy(), b.obj_category.numpy(), b.obj_state.numpy(), 8)
+    for f, r in zip(fast, ref):
+        np.testing.assert_array_equal(f.numpy(), r)
+    assert fast[0].any()
 
 
 def test_frames_and_targets(tiny_world, tiny_frames, tiny_scenes):
@@ -73,11 +104,29 @@ def test_frames_and_targets(tiny_world, tiny_frames, tiny_scenes):
     assert fs.present.any()
     b = fs.boxes[fs.present]
     assert (b[:, 2] > b[:, 0]).all() and (b[:, 3] > b[:, 1]).all() and (b >= 0).all() and (b <= 1).all()
+    # Present exactly when a visible object of the class is in the frame.
+    onehot = fs.obj_category[..., None] == np.arange(NUM_CATEGORIES)
+    np.testing.assert_array_equal(fs.present, ((fs.obj_state == 2)[..., None] & onehot).any(1))
+    assert ((fs.obj_state > 0) <= (fs.obj_category >= 0)).all()
     s = next(x for x in tiny_scenes if x.name == fs.scenes[0])
     full = read_images(s.path, s.keys[:3])
     assert full.shape == (3, 64, 64, 3)
     with pytest.raises(Exception, match="lacks state"):
         read_images(s.path, ["9.99|9.99|0|0"])
+
+
+def test_batch_plan_and_colour_gains():
+    cfg = TrainConfig(batch_size=32, color_jitter=0.2, brightness=0.1)
+    a, b = batch_plan(7, 100, cfg), batch_plan(7, 100, cfg)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)  # a function of (seed, step) only
+    assert not np.array_equal(batch_plan(8, 100, cfg)[0], a[0])
+    idx, flip, gains = a
+    assert idx.shape == (32,) and flip.dtype == bool and gains.shape == (32, 3)
+    assert (gains >= 0.8 * 0.9 - 1e-6).all() and (gains <= 1.2 * 1.1 + 1e-6).all()
+    img = torch.tensor([[[[100, 200, 250]]]], dtype=torch.uint8)
+    out = apply_gains(img, np.array([[1.0, 0.5, 1.2]], np.float32))
+    np.testing.assert_allclose(out.numpy().reshape(-1), [100, 100, 255])  # 250 * 1.2 clipped
 
 
 def test_lr_schedule():
@@ -88,23 +137,23 @@ def test_lr_schedule():
 
 
 def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_path):
-    cfg = TrainConfig(steps=60, batch_size=16, lr=3e-3, warmup=5, log_every=5, checkpoint_every=100, threads=1)
-    small = DetectorConfig(widths=(8, 16, 32), dim=32, heads=2)
+    cfg = TrainConfig(steps=40, batch_size=16, lr=3e-3, warmup=5, log_every=5, checkpoint_every=100, threads=1)
+    small = DetectorConfig(widths=(8, 16, 32), dim=32)
 
     def full_loss(model) -> float:
         with torch.no_grad():
-            img, present, boxes = make_batch(tiny_frames, np.arange(len(tiny_frames)), np.zeros(len(tiny_frames)))
-            logits, pred, _ = model.eval()(model.normalize(img))
-            return detection_loss(logits, pred, present, boxes)[1]["loss"]
+            b = make_batch(tiny_frames, np.arange(len(tiny_frames)), np.zeros(len(tiny_frames)))
+            return detection_loss(model.eval(), model.normalize(b.images), b.present, b.obj_boxes, b.obj_category,
+                                  b.obj_state)[1]["loss"]
 
     torch.manual_seed(cfg.seed)
-    before = full_loss(ClassQueryDetector(small))  # the initialisation train_detector starts from
+    before = full_loss(GridDetector(small))  # the initialisation train_detector starts from
     res = train_detector(tiny_world, tmp_path / "a", cfg, small, frames=tiny_frames, progress=False)
-    assert (res.start_step, res.step) == (0, 60)
+    assert (res.start_step, res.step) == (0, 40)
     after = full_loss(load_model(tmp_path / "a")[0])
-    assert after < 0.85 * before, (before, after)
+    assert after < 0.75 * before, (before, after)
     hist = read_meta(tmp_path / "a")["history"]
-    assert [h["step"] for h in hist] == list(range(5, 61, 5))
+    assert [h["step"] for h in hist] == list(range(5, 41, 5))
 
     # 6 steps at once == 3 steps, then resumed to 6 (weights, BatchNorm statistics and AdamW state).
     cfg6 = TrainConfig(steps=6, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
@@ -140,7 +189,7 @@ def test_learned_table(tiny_world, tiny_frames, tiny_scenes, tmp_path):
     from tsnav.detect.learned import LearnedDetector
 
     cfg = TrainConfig(steps=4, batch_size=8, warmup=1, threads=1)
-    small = DetectorConfig(widths=(8, 16, 32), dim=32, heads=2)
+    small = DetectorConfig(widths=(8, 16, 32), dim=32)
     train_detector(tiny_world, tmp_path / "c", cfg, small, frames=tiny_frames, progress=False)
     t = calibrate(tiny_world, tmp_path / "c", frames=tiny_frames)
     assert t > 0 and read_meta(tmp_path / "c")["temperature"] == t

@@ -2,7 +2,7 @@
 
 * :mod:`.table`     the ``detections_<name>.hdf5`` format, :func:`load_detections`, :func:`install_detections`
 * :mod:`.oracle`    ground truth from the renderer's instance ids and the oracle detector
-* :mod:`.model`     the learned class-query detector (a reduced DETR for 64x64 frames)
+* :mod:`.model`     the learned dense grid detector (FCOS-like, for 64x64 frames)
 * :mod:`.data`      training frames and targets
 * :mod:`.train`     training, checkpoints, temperature scaling
 * :mod:`.learned`   the learned detector's tables

@@ -4,7 +4,7 @@
     tsnav detect --data DIR --detector learned [--checkpoint CKPT] [--train-steps N]
 
 ``oracle`` reads the renderer's instance statistics (:mod:`tsnav.detect.oracle`). ``learned`` trains the
-class-query detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/learned``) is missing or
+grid detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/learned``) is missing or
 has fewer than ``--train-steps`` steps (resumable: rerun the command after an interruption), fits its
 temperature on the VAL scenes, then detects in every scene. Each scene gets ``detections_<name>.hdf5``
 (name: ``--name``, default the detector kind); scenes whose table was made by the same detector are
@@ -29,7 +29,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None,
                    help="learned: checkpoint folder (default DATA/detectors/learned); trained there if needed")
     p.add_argument("--train-steps", type=int, default=None,
-                   help="learned: train up to this many steps (default 1500 for a new checkpoint; an existing "
+                   help="learned: train up to this many steps (default 2500 for a new checkpoint; an existing "
                         "one is used as it is)")
     p.add_argument("--batch-size", type=int, default=None, help="learned: frames per training step (default 64)")
     p.add_argument("--max-states-per-scene", type=int, default=None,
@@ -39,7 +39,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation")
     p.add_argument("--overwrite", action="store_true", help="replace tables made by another detector")
-    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -90,6 +90,19 @@ def _learned(args, root: Path):
     return det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
 
 
+def _sigterm_interrupts() -> None:
+    """Turn SIGTERM into KeyboardInterrupt so that training saves a checkpoint before the process ends
+    (background jobs ignore SIGINT)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        def handler(signum, frame):
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGTERM, handler)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
@@ -103,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
     if args.threads < 1:
         raise CommandError("--threads must be at least 1")
     torch.set_num_threads(args.threads)
+    _sigterm_interrupts()
     name = check_name(args.name or args.detector)
     scenes = list_scenes(root, split=args.split)
     if not scenes:

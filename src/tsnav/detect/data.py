@@ -17,7 +17,7 @@ import torch
 
 from ..data.reader import Scene, SceneFormatError, list_scenes, load_scene
 from .model import pixel_to_unit
-from .oracle import ground_truth
+from .oracle import ground_truth, min_pixels
 
 
 def read_images(scene_dir: str | Path, keys) -> np.ndarray:
@@ -46,18 +46,24 @@ def read_images(scene_dir: str | Path, keys) -> np.ndarray:
 
 @dataclass
 class FrameSet:
-    """Frames and per-class targets of several scenes (``N`` frames).
+    """Frames and targets of several scenes (``N`` frames, ``K`` = most target objects in one scene).
 
     Attributes:
         images: ``(N, H, W, 3)`` uint8.
-        present: ``(N, 22)`` bool.
-        boxes: ``(N, 22, 4)`` float32 normalised continuous boxes (0 where not present).
+        present: ``(N, 22)`` bool, the class is in view (ground truth of :mod:`tsnav.detect.oracle`).
+        boxes: ``(N, 22, 4)`` float32 normalised continuous ground-truth box per class (0 where absent).
+        obj_boxes: ``(N, K, 4)`` float32 normalised continuous box of every target object (0 if not in view).
+        obj_category: ``(N, K)`` int16 class of each object column (-1: padding).
+        obj_state: ``(N, K)`` int8: 0 not in view, 1 fewer than ``min_pixels`` pixels, 2 visible.
         scenes: scene names; offsets: ``(len(scenes)+1,)`` row ranges of each scene.
     """
 
     images: np.ndarray
     present: np.ndarray
     boxes: np.ndarray
+    obj_boxes: np.ndarray
+    obj_category: np.ndarray
+    obj_state: np.ndarray
     scenes: list
     offsets: np.ndarray
 
@@ -65,13 +71,29 @@ class FrameSet:
         return len(self.images)
 
 
-def scene_targets(scene: Scene, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(present ``(n, 22)`` bool, normalised boxes ``(n, 22, 4)``) of ``scene`` for state ids ``rows``."""
+def scene_targets(scene: Scene, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Targets of ``scene`` for state ids ``rows`` (default all): the per-class ``present`` / ``boxes`` and
+    the per-object ``obj_boxes`` / ``obj_category`` / ``obj_state`` of :class:`FrameSet`."""
     gt = ground_truth(scene)
     rows = np.arange(scene.num_states) if rows is None else np.asarray(rows)
     present = gt.present[rows]
     boxes = np.where(present[..., None], pixel_to_unit(gt.boxes[rows], scene.image_size), 0.0)
-    return present, boxes.astype(np.float32)
+    cols = np.flatnonzero(scene.object_category >= 0)
+    px = scene.pixels[np.ix_(rows, cols)]
+    state = np.where(px >= min_pixels(scene), 2, np.where(px > 0, 1, 0)).astype(np.int8)
+    ob = scene.boxes[rows][:, cols].astype(np.float32)
+    ob = np.where(state[..., None] > 0, pixel_to_unit(ob, scene.image_size), 0.0).astype(np.float32)
+    cat = np.broadcast_to(scene.object_category[cols].astype(np.int16), state.shape)
+    return {"present": present, "boxes": boxes.astype(np.float32), "obj_boxes": ob, "obj_category": cat,
+            "obj_state": state}
+
+
+def _pad(parts: list[np.ndarray], width: int, fill) -> np.ndarray:
+    out = []
+    for a in parts:
+        pad = [(0, 0), (0, width - a.shape[1])] + [(0, 0)] * (a.ndim - 2)
+        out.append(np.pad(a, pad, constant_values=fill))
+    return np.concatenate(out)
 
 
 def load_frames(root: str | Path, split: str, max_states_per_scene: int | None = None, seed: int = 0,
@@ -83,7 +105,7 @@ def load_frames(root: str | Path, split: str, max_states_per_scene: int | None =
     paths = [p for p in list_scenes(root, split=split)]
     if not paths:
         raise ValueError(f"{root}: no complete scene of split {split!r}")
-    images, present, boxes, names, sizes = [], [], [], [], []
+    images, targets, names, sizes = [], [], [], []
     size = None
     for p in tqdm(paths, desc=f"frames {split}", unit="scene", disable=not progress, dynamic_ncols=True):
         s = load_scene(p)
@@ -96,13 +118,16 @@ def load_frames(root: str | Path, split: str, max_states_per_scene: int | None =
             rng = np.random.default_rng([seed, len(names)])
             rows = np.sort(rng.choice(s.num_states, max_states_per_scene, replace=False))
         images.append(read_images(p, s.keys[rows]))
-        pr, bx = scene_targets(s, rows)
-        present.append(pr)
-        boxes.append(bx)
+        targets.append(scene_targets(s, rows))
         names.append(s.name)
         sizes.append(len(rows))
-    return FrameSet(np.concatenate(images), np.concatenate(present), np.concatenate(boxes), names,
-                    np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+    K = max(1, max(t["obj_category"].shape[1] for t in targets))
+    return FrameSet(images=np.concatenate(images), present=np.concatenate([t["present"] for t in targets]),
+                    boxes=np.concatenate([t["boxes"] for t in targets]),
+                    obj_boxes=_pad([t["obj_boxes"] for t in targets], K, 0.0),
+                    obj_category=_pad([t["obj_category"] for t in targets], K, -1),
+                    obj_state=_pad([t["obj_state"] for t in targets], K, 0),
+                    scenes=names, offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
 
 
 def flip_boxes(boxes: torch.Tensor) -> torch.Tensor:
@@ -110,15 +135,32 @@ def flip_boxes(boxes: torch.Tensor) -> torch.Tensor:
     return torch.stack([1 - boxes[..., 2], boxes[..., 1], 1 - boxes[..., 0], boxes[..., 3]], dim=-1)
 
 
-def make_batch(frames: FrameSet, index: np.ndarray, flip: np.ndarray) -> tuple[torch.Tensor, torch.Tensor,
-                                                                                   torch.Tensor]:
-    """(uint8 images ``[B, H, W, 3]``, present ``[B, 22]`` bool, boxes ``[B, 22, 4]``) for rows ``index``, with
-    the frames where ``flip`` is True mirrored left-right (boxes mirrored with them)."""
+@dataclass
+class Batch:
+    """A training batch: uint8 ``images`` ``[B, H, W, 3]``; ``present`` ``[B, 22]``; ``boxes``
+    ``[B, 22, 4]``; ``obj_boxes`` ``[B, K, 4]``; ``obj_category``, ``obj_state`` ``[B, K]`` (see
+    :class:`FrameSet`)."""
+
+    images: torch.Tensor
+    present: torch.Tensor
+    boxes: torch.Tensor
+    obj_boxes: torch.Tensor
+    obj_category: torch.Tensor
+    obj_state: torch.Tensor
+
+
+def make_batch(frames: FrameSet, index: np.ndarray, flip: np.ndarray) -> Batch:
+    """The rows ``index`` of ``frames``, with the frames where ``flip`` is True mirrored left-right (their
+    boxes mirrored with them). The source arrays are never modified."""
+    index = np.asarray(index)
     img = torch.from_numpy(frames.images[index])
     present = torch.from_numpy(frames.present[index])
     boxes = torch.from_numpy(frames.boxes[index])
+    ob = torch.from_numpy(frames.obj_boxes[index])
+    state = torch.from_numpy(frames.obj_state[index].astype(np.int64))
     f = torch.from_numpy(np.asarray(flip, dtype=bool))
     if f.any():
         img[f] = img[f].flip(2)
         boxes[f] = torch.where(present[f][..., None], flip_boxes(boxes[f]), boxes[f])
-    return img, present, boxes
+        ob[f] = torch.where((state[f] > 0)[..., None], flip_boxes(ob[f]), ob[f])
+    return Batch(img, present, boxes, ob, torch.from_numpy(frames.obj_category[index].astype(np.int64)), state)

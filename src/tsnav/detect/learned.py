@@ -1,8 +1,8 @@
 """The learned detector's detection table (DESIGN.md "Detector"; stands in for the paper's DETR, Fig. 2).
 
-For every state of a scene: ``score = sigmoid(logit / T)`` of each class query (``T`` fitted on the VAL
-scenes by :func:`tsnav.detect.train.calibrate`), its box converted to inclusive pixel corners, and its
-``dim``-d decoder output (64-d by default) as the feature. A class's detection is kept (label = the class)
+For every state of a scene and each class: ``score = sigmoid(logit / T)`` of the presence logit (``T``
+fitted on the VAL scenes by :func:`tsnav.detect.train.calibrate`), the box of the class's best cell
+converted to inclusive pixel corners, and that cell's ``dim``-d feature (64-d by default). A class's detection is kept (label = the class)
 when its score reaches ``min_score`` (0.05, the usual detector output threshold); otherwise label and box
 are -1. Scores are stored for every class either way, because the stage switch (paper III-B) and the
 calibration tables read them.
@@ -17,15 +17,15 @@ import numpy as np
 from ..constants import NUM_CATEGORIES
 from ..data.reader import Scene
 from .data import read_images
-from .model import ClassQueryDetector, unit_to_pixel
+from .model import GridDetector, unit_to_pixel
 from .table import Detections
 from .train import load_model, predict, weights_fingerprint
 
 
 class LearnedDetector:
-    """A trained, calibrated :class:`~tsnav.detect.model.ClassQueryDetector` loaded from a checkpoint folder."""
+    """A trained, calibrated :class:`~tsnav.detect.model.GridDetector` loaded from a checkpoint folder."""
 
-    def __init__(self, model: ClassQueryDetector, temperature: float = 1.0, min_score: float = 0.05,
+    def __init__(self, model: GridDetector, temperature: float = 1.0, min_score: float = 0.05,
                  meta: dict | None = None):
         if not temperature > 0:
             raise ValueError(f"temperature must be positive, got {temperature}")

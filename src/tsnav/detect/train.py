@@ -3,7 +3,7 @@
 Training uses the TRAIN scenes only; batches are drawn with a generator seeded by ``(seed, step)``, so a
 resumed run sees the same batches as an uninterrupted one. Optimiser: AdamW with linear warm-up and cosine
 decay to ``min_lr_ratio`` x ``lr`` at ``steps`` (extending a finished run with more steps re-stretches the
-remaining schedule). Augmentation: horizontal flip.
+remaining schedule). Augmentation: horizontal flip and per-frame colour gains.
 
 Calibration: a single temperature ``T`` (Guo et al. 2017) divides the presence logits,
 ``score = sigmoid(logit / T)``; ``T`` minimises the mean binary cross-entropy on the VAL scenes.
@@ -31,16 +31,17 @@ import numpy as np
 import torch
 
 from .data import FrameSet, load_frames, make_batch
-from .model import ClassQueryDetector, DetectorConfig, LossWeights, detection_loss
+from .model import DetectorConfig, GridDetector, LossWeights, detection_loss
 
 FORMAT = "tsnav-detector"
 
 
 @dataclass
 class TrainConfig:
-    """Training of the learned detector (CPU-sized defaults: a few minutes on 2 cores for the demo world)."""
+    """Training of the learned detector (CPU-sized defaults: about 0.1 s per step on one core, a few
+    minutes for the demo world)."""
 
-    steps: int = 1500
+    steps: int = 2500
     """Optimiser steps."""
     batch_size: int = 64
     """Frames per step."""
@@ -54,6 +55,11 @@ class TrainConfig:
     """AdamW weight decay."""
     flip_prob: float = 0.5
     """Probability of a horizontal flip per frame."""
+    color_jitter: float = 0.2
+    """Colour augmentation: each frame's channels are scaled by independent factors in ``1 +- color_jitter``
+    (object materials vary per instance, so colour alone must not identify a class); 0 disables it."""
+    brightness: float = 0.2
+    """Colour augmentation: each frame is also scaled by a factor in ``1 +- brightness``."""
     loss: LossWeights = field(default_factory=LossWeights)
     """Weights of the loss terms."""
     seed: int = 0
@@ -64,8 +70,9 @@ class TrainConfig:
     """Steps between entries of the loss history."""
     max_states_per_scene: int | None = None
     """Use at most this many (random) states per train scene; None uses all."""
-    threads: int = 2
-    """torch CPU threads."""
+    threads: int = 1
+    """torch CPU threads. One is the safe default: on a busy machine two threads were measured 30x slower
+    per step than one (threads spin waiting for each other)."""
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -87,10 +94,21 @@ def lr_at(step: int, cfg: TrainConfig) -> float:
     return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
-def batch_plan(step: int, n: int, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(row indices, flip flags) of step ``step``: a function of ``(seed, step)`` only (resumable)."""
+def batch_plan(step: int, n: int, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row indices ``(B,)``, flip flags ``(B,)``, colour gains ``(B, 3)``) of step ``step``: a function of
+    ``(seed, step)`` only, so a resumed run sees the same batches."""
     rng = np.random.default_rng([cfg.seed, step])
-    return rng.integers(0, n, cfg.batch_size), rng.random(cfg.batch_size) < cfg.flip_prob
+    idx = rng.integers(0, n, cfg.batch_size)
+    flip = rng.random(cfg.batch_size) < cfg.flip_prob
+    gains = (rng.uniform(1 - cfg.color_jitter, 1 + cfg.color_jitter, (cfg.batch_size, 3))
+             * rng.uniform(1 - cfg.brightness, 1 + cfg.brightness, (cfg.batch_size, 1)))
+    return idx, flip, gains.astype(np.float32)
+
+
+def apply_gains(images: torch.Tensor, gains: np.ndarray) -> torch.Tensor:
+    """uint8 frames ``[B, H, W, 3]`` scaled per frame and channel by ``gains`` ``(B, 3)``, clipped to
+    [0, 255] (float)."""
+    return (images.float() * torch.from_numpy(gains)[:, None, None, :]).clamp(0, 255)
 
 
 # ---------------------------------------------------------------------------------------------- checkpoints
@@ -128,7 +146,7 @@ def read_meta(path: str | Path) -> dict:
     return meta
 
 
-def save_checkpoint(path: str | Path, model: ClassQueryDetector, opt: torch.optim.Optimizer | None,
+def save_checkpoint(path: str | Path, model: GridDetector, opt: torch.optim.Optimizer | None,
                     meta: dict) -> None:
     """Write model, optimiser state and ``detector.json`` into the folder ``path``, each file atomically and
     the JSON last. A crash between the files can leave weights a little newer than the step the JSON
@@ -147,7 +165,7 @@ def save_checkpoint(path: str | Path, model: ClassQueryDetector, opt: torch.opti
     _atomic_json(p / "detector.json", meta)
 
 
-def weights_fingerprint(model: ClassQueryDetector, temperature: float) -> str:
+def weights_fingerprint(model: GridDetector, temperature: float) -> str:
     """Identifies a trained detector: sha256 of its weights and temperature (first 16 hex digits)."""
     h = hashlib.sha256()
     for k, v in sorted(model.state_dict().items()):
@@ -157,12 +175,12 @@ def weights_fingerprint(model: ClassQueryDetector, temperature: float) -> str:
     return "learned-" + h.hexdigest()[:16]
 
 
-def load_model(path: str | Path) -> tuple[ClassQueryDetector, dict]:
+def load_model(path: str | Path) -> tuple[GridDetector, dict]:
     """(model in eval mode, ``detector.json``) of a checkpoint folder."""
     from safetensors.torch import load_file
 
     meta = read_meta(path)
-    model = ClassQueryDetector(DetectorConfig.from_dict(meta["model"]))
+    model = GridDetector(DetectorConfig.from_dict(meta["model"]))
     try:
         state = load_file(str(Path(path) / "model.safetensors"))
     except (OSError, FileNotFoundError) as e:
@@ -208,7 +226,7 @@ def fit_temperature(logits: np.ndarray, present: np.ndarray, bounds: tuple[float
 
 
 @torch.no_grad()
-def predict(model: ClassQueryDetector, images: np.ndarray, batch_size: int = 256
+def predict(model: GridDetector, images: np.ndarray, batch_size: int = 256
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(logits ``(N, 22)`` float32, normalised boxes ``(N, 22, 4)`` float32, features ``(N, 22, dim)`` float32)
     of uint8 frames ``(N, H, W, 3)``, in batches, in eval mode."""
@@ -258,7 +276,7 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: TrainConfig | 
         if model_cfg is None:
             model_cfg = DetectorConfig()
         torch.manual_seed(train_cfg.seed)
-        model = ClassQueryDetector(model_cfg)
+        model = GridDetector(model_cfg)
         meta = {"format": FORMAT, "model": model_cfg.to_dict(), "step": 0, "temperature": 1.0,
                 "calibrated_step": -1, "min_score": 0.05, "history": []}
         start = 0
@@ -286,12 +304,13 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: TrainConfig | 
 
     try:
         while step < train_cfg.steps:
-            idx, flip = batch_plan(step, len(frames), train_cfg)
-            img, present, boxes = make_batch(frames, idx, flip)
+            idx, flip, gains = batch_plan(step, len(frames), train_cfg)
+            b = make_batch(frames, idx, flip)
             for g in opt.param_groups:
                 g["lr"] = lr_at(step, train_cfg)
-            logits, pred, _ = model(model.normalize(img))
-            loss, terms = detection_loss(logits, pred, present, boxes, train_cfg.loss)
+            x = model.normalize(apply_gains(b.images, gains))
+            loss, terms = detection_loss(model, x, b.present, b.obj_boxes,
+                                         b.obj_category, b.obj_state, train_cfg.loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -300,7 +319,7 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: TrainConfig | 
             if step % train_cfg.log_every == 0 or step == train_cfg.steps:
                 meta["history"].append({"step": step, **{k: round(v, 5) for k, v in terms.items()}})
             bar.update(1)
-            bar.set_postfix(loss=f"{terms['loss']:.3f}", bce=f"{terms['bce']:.3f}")
+            bar.set_postfix(loss=f"{terms['loss']:.3f}", bce=f"{terms['bce']:.3f}", giou=f"{terms['giou']:.3f}")
             if step % train_cfg.checkpoint_every == 0 and step < train_cfg.steps:
                 save()
     except KeyboardInterrupt:
