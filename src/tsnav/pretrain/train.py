@@ -375,6 +375,9 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
     if prog is not None and int(prog.get("global_batch", G)) != G:
         raise ValueError(f"{out} was trained with a global batch of {prog['global_batch']} images "
                          f"({prog.get('world_size')} processes); resume with the same number of processes")
+    if prog is not None and int(prog.get("images", n)) != n:
+        raise ValueError(f"{out} was trained on {prog['images']} images, the dataset now has {n}; "
+                         f"use a new --out folder")
     if prog is not None:  # resume
         sd, _ = load_tensors(out / prog["model_file"])
         model.load_state_dict(sd)
@@ -429,7 +432,7 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
         atomic_write_json(_progress_path(out), {
             "step": step, "epoch": step // steps_per_epoch, "total_steps": total, "finished": finished,
             "model_file": f"{tag}-model.safetensors", "optim_file": f"{tag}-optim.safetensors",
-            "optimizer": ometa, "loss": loss_value, "world_size": W, "global_batch": G,
+            "optimizer": ometa, "loss": loss_value, "world_size": W, "global_batch": G, "images": n,
             "rng": {"torch": torch.get_rng_state().tolist()}})
         for p in out.glob("ckpt-*.safetensors"):
             if not p.name.startswith(tag):
