@@ -88,3 +88,29 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
     sampled = load_policy(run, bank, greedy=False, seed=3)
     a = sampled.act({"state": np.array([0, 1]), "target": np.array([0, 0])})
     assert a.shape == (2,) and a.dtype == np.int64
+
+
+def test_torchrun_two_ranks(trained, tmp_path):
+    """Data parallel under torchrun (gloo): both ranks step their own episodes and keep identical weights."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    world, _ = trained
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    run = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(port),
+           "-m", "tsnav", "train", "--data", str(world), "--features", FEATS, "--algo", "batched", "--out", str(run),
+           "--updates", "2", "--num-envs", "3", "--rollout-steps", "4", "--preset", "cpu", "--checkpoint-every", "1",
+           "--device", "cpu", "--quiet"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert res.returncode == 0, res.stderr[-2000:]
+    from tsnav.rl.checkpoint import latest_checkpoint, load_checkpoint
+
+    st = load_checkpoint(latest_checkpoint(run))
+    assert st["progress"]["env_steps"] == 2 * 3 * 4 * 2
+    assert set(st["rng"]) == {0, 1} and st["rng"][0]["weights"] == st["rng"][1]["weights"]
+    assert st["rng"][0]["env"] != st["rng"][1]["env"]  # each rank its own episodes

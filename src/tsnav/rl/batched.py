@@ -151,13 +151,24 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     return progress
 
 
+def weights_digest(model: torch.nn.Module) -> str:
+    """SHA-256 of a model's weights (ranks record it in their checkpoint files: they must agree)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for k, v in model.state_dict().items():
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo) -> None:
     """Checkpoint with every rank's RNG states (rank 0 writes the rest and commits)."""
     if info.is_main:
         checkpoint_tmp(run_dir, progress["update"])
     barrier(info)
     tmp = checkpoint_tmp_path(run_dir, progress["update"])
-    write_rng(tmp, info.rank, rng_state(env.np_random))
+    write_rng(tmp, info.rank, {**rng_state(env.np_random), "weights": weights_digest(model)})
     barrier(info)
     if info.is_main:
         commit_checkpoint(run_dir, tmp, progress, model, optimizer)

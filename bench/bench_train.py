@@ -1,0 +1,107 @@
+"""Training throughput: A3C (paper III-D; N worker processes, one episode each) vs the batched A2C trainer, same
+network (agent preset), reward (TSRM) and feature cache, on this machine's CPU cores.
+
+Each trainer runs for a fixed wall time in a temporary run folder through its real code path (tsnav.rl.a3c /
+tsnav.rl.batched). Reported per trainer: environment steps per second in steady state (log windows after the
+first, so start-up is excluded) and overall (start-up included), mean training episode length, episodes per
+second, and the projected wall time of the paper's 1.5 M training episodes at that rate.
+
+    .venv/bin/python bench/bench_train.py --data /tmp/demo --features NAME [--seconds 60] [--workers 2]
+        [--num-envs 64 256] [--preset cpu]
+
+Without --data a tiny world is built in a temporary folder with pooled-pixel features.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+PAPER_EPISODES = 1_500_000
+
+
+def _summary(name: str, run: Path, progress: dict, wall: float) -> dict:
+    from tsnav.rl.logger import read_log
+
+    log = read_log(run)
+    steady = [r for r in log[1:] if r.get("steps_per_s")]
+    sps_steady = (sum(r["steps_per_s"] for r in steady) / len(steady)) if steady else float("nan")
+    n = sum(r.get("n_episodes", 0) for r in log)
+    length = sum(r.get("length", 0) * r.get("n_episodes", 0) for r in log) / max(n, 1)
+    sps_all = progress["env_steps"] / wall
+    eps_s = sps_steady / length if length else float("nan")
+    return {"trainer": name, "env_steps": progress["env_steps"], "episodes": progress["episodes"],
+            "updates": progress["update"], "wall_s": wall, "steps_per_s_steady": sps_steady,
+            "steps_per_s_overall": sps_all, "episode_length": length, "episodes_per_s": eps_s,
+            "hours_for_1.5M_episodes": PAPER_EPISODES / eps_s / 3600 if eps_s == eps_s and eps_s > 0 else float("nan")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=None, help="dataset root (default: a temporary tiny world)")
+    ap.add_argument("--features", default=None, help="feature cache name (default: pooled pixels, built here)")
+    ap.add_argument("--seconds", type=float, default=60.0, help="wall time per trainer")
+    ap.add_argument("--workers", type=int, default=2, help="A3C worker processes")
+    ap.add_argument("--num-envs", type=int, nargs="+", default=[64, 256], help="batched trainer batch sizes")
+    ap.add_argument("--rollout-steps", type=int, default=30)
+    ap.add_argument("--preset", default="cpu", help="agent preset (cpu or paper)")
+    ap.add_argument("--out", default=None, help="write the figures as JSON here")
+    args = ap.parse_args()
+
+    from tsnav.agent import agent_config
+    from tsnav.agent.pixels import cache_pixel_features
+    from tsnav.rl.a3c import train_a3c
+    from tsnav.rl.batched import train_batched
+    from tsnav.rl.config import TrainConfig
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_train_"))
+    try:
+        data = args.data
+        if data is None:
+            from tsnav.world.build import build_dataset
+
+            data = tmp / "world"
+            build_dataset(data, "tiny", workers=1, progress=False)
+        features = args.features
+        if features is None:
+            features = "bench_pixels"
+            cache_pixel_features(data, features, grid=4, split="train")
+        agent = agent_config(args.preset)
+        minutes = args.seconds / 60.0
+        base = dict(data=str(data), features=features, reward="tsrm", preset=args.preset, lr=1e-4,
+                    rollout_steps=args.rollout_steps, max_steps=30, minutes=minutes, log_every=5,
+                    checkpoint_every=10**9, device="cpu", threads=1)
+        results = []
+        t = time.perf_counter()
+        run = tmp / "a3c"
+        p = train_a3c(TrainConfig(algo="a3c", workers=args.workers, **base), agent, run, progress_bar=False)
+        results.append(_summary(f"A3C, {args.workers} workers x 1 episode", run, p, time.perf_counter() - t))
+        for b in args.num_envs:
+            t = time.perf_counter()
+            run = tmp / f"batched{b}"
+            p = train_batched(TrainConfig(algo="batched", num_envs=b, **base), agent, run, progress_bar=False)
+            results.append(_summary(f"batched A2C, 1 process x {b} episodes", run, p, time.perf_counter() - t))
+
+        ref = results[0]["steps_per_s_steady"]
+        print(f"data {data}, features {features}, agent preset {args.preset}, reward tsrm, "
+              f"rollout {args.rollout_steps} steps, {args.seconds:.0f} s per trainer")
+        head = (f"{'trainer':<40} {'steps/s':>9} {'(overall)':>10} {'x A3C':>6} {'ep len':>7} {'ep/s':>7} "
+                f"{'h for 1.5M ep':>14}")
+        print(head)
+        print("-" * len(head))
+        for r in results:
+            print(f"{r['trainer']:<40} {r['steps_per_s_steady']:9.0f} {r['steps_per_s_overall']:10.0f} "
+                  f"{r['steps_per_s_steady'] / ref:6.1f} {r['episode_length']:7.1f} {r['episodes_per_s']:7.1f} "
+                  f"{r['hours_for_1.5M_episodes']:14.1f}")
+        if args.out:
+            Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
