@@ -77,16 +77,19 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
 
     episodes, _ = read_episodes(eps)
     bank = SceneBank.from_root(world, "test")
-    pol = load_policy(run, bank)
+    pol = load_policy(run, bank, greedy=True)
     assert isinstance(pol, Policy)
     together = evaluate(bank, episodes, pol, EvalConfig(max_steps=20))
-    alone = [evaluate(bank, [e], load_policy(run, bank), EvalConfig(max_steps=20))[0] for e in episodes[:4]]
-    for a, b in zip(alone, together[:4]):
+    alone = [evaluate(bank, [e], load_policy(run, bank, greedy=True), EvalConfig(max_steps=20))[0]
+             for e in episodes[:4]]
+    for a, b in zip(alone, together[:4]):  # each episode keeps its own LSTM state and memory
         assert (a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
     again = evaluate(bank, episodes, pol, EvalConfig(max_steps=20))  # greedy: deterministic, state reset
     assert [r.steps for r in again] == [r.steps for r in together]
-    sampled = load_policy(run, bank, greedy=False, seed=3)
-    a = sampled.act({"state": np.array([0, 1]), "target": np.array([0, 0])})
+    # sampled (the default, as the lineage evaluates): reproducible for a seed
+    runs = [evaluate(bank, episodes, load_policy(run, bank, seed=s), EvalConfig(max_steps=20)) for s in (3, 3, 4)]
+    assert [r.steps for r in runs[0]] == [r.steps for r in runs[1]] != [r.steps for r in runs[2]]
+    a = load_policy(run, bank).act({"state": np.array([0, 1]), "target": np.array([0, 0])})
     assert a.shape == (2,) and a.dtype == np.int64
 
 

@@ -11,10 +11,10 @@ from ..agent.observe import Observer
 
 class AgentPolicy:
     """Drives an :class:`ActorCritic` over a batch of evaluation episodes, keeping each episode's LSTM state,
-    target memory and previous action; ``reset(mask)`` clears the rows that start a new episode. Greedy
-    (most probable action, the lineage's evaluation) or sampled with a seeded generator. Dropout is off."""
+    target memory and previous action; ``reset(mask)`` clears the rows that start a new episode. Actions are
+    sampled with a seeded generator (the lineage's evaluation) or greedy (most probable). Dropout is off."""
 
-    def __init__(self, model: ActorCritic, observer: Observer, greedy: bool = True, seed: int = 0):
+    def __init__(self, model: ActorCritic, observer: Observer, greedy: bool = False, seed: int = 0):
         self.model = model.eval()
         self.observer = observer
         self.greedy = greedy
