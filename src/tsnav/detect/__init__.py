@@ -12,7 +12,8 @@
 Heavy dependencies (torch) load only with the modules that need them.
 """
 
-from .table import Detections, detections_path, install_detections, load_detections, load_scene_detections, write_detections
+from .table import (Detections, detections_path, install_detections, load_detections, load_scene_detections,
+                    write_detections)
 
 __all__ = ["Detections", "detections_path", "install_detections", "load_detections", "load_scene_detections",
            "write_detections"]

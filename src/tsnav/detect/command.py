@@ -29,8 +29,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None,
                    help="learned: checkpoint folder (default DATA/detectors/learned); trained there if needed")
     p.add_argument("--train-steps", type=int, default=None,
-                   help="learned: train up to this many steps (default 2500 for a new checkpoint; an existing "
-                        "one is used as it is)")
+                   help="learned: train up to this many steps (default: 2500 for a new checkpoint, the "
+                        "checkpoint's own target for an existing one)")
     p.add_argument("--batch-size", type=int, default=None, help="learned: frames per training step (default 64)")
     p.add_argument("--max-states-per-scene", type=int, default=None,
                    help="learned: train on at most this many random states per train scene")
@@ -70,8 +70,8 @@ def _learned(args, root: Path):
     if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
         raise CommandError(f"--checkpoint {ckpt} is a folder that holds no detector checkpoint")
     steps = args.train_steps
-    if steps is None:
-        steps = int(read_meta(ckpt)["step"]) if is_checkpoint(ckpt) else TrainConfig.steps
+    if steps is None:  # an existing checkpoint: finish its own target (a no-op when it is finished)
+        steps = int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt) else TrainConfig.steps
     tc = TrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene)
     if args.batch_size:
         tc.batch_size = args.batch_size

@@ -2,9 +2,9 @@
 
 For every state of a scene and each class: ``score = sigmoid(logit / T)`` of the presence logit (``T``
 fitted on the VAL scenes by :func:`tsnav.detect.train.calibrate`), the box of the class's best cell
-converted to inclusive pixel corners, and that cell's ``dim``-d feature (64-d by default). A class's detection is kept (label = the class)
-when its score reaches ``min_score`` (0.05, the usual detector output threshold); otherwise label and box
-are -1. Scores are stored for every class either way, because the stage switch (paper III-B) and the
+converted to inclusive pixel corners, and that cell's ``dim``-d feature (64-d by default). A class's
+detection is kept (label = the class) when its score reaches ``min_score`` (0.05, the usual detector
+output threshold); otherwise label and box are -1. Scores are stored for every class either way, because the stage switch (paper III-B) and the
 calibration tables read them.
 """
 
