@@ -1,0 +1,83 @@
+"""The main job on the tiny world with tiny budgets: every stage runs, the report and the results table are
+written, a second run reuses every stage, and a removed output is rebuilt with what depends on it.
+
+The trainer is the stand-in of ``test_experiment`` (a loadable run folder with an untrained agent)."""
+
+import json
+import shutil
+
+import pytest
+
+from test_experiment import StandInTrainer
+from tsnav.demo import STAGES, DemoConfig, run_demo, train_subset
+
+TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, vit_model="vit_micro", patch_size=8, img_size=32,
+                  pretrain_steps=2, pretrain_batch_size=8, test_per_room_type=5, train_minutes=0.05, num_envs=4,
+                  gallery=2)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_train_subset_links_smallest_rooms(tmp_path, tiny_world, tiny_scenes):
+    names = train_subset(tiny_world, tmp_path / "sub", 1)
+    train = [s for s in tiny_scenes if s.meta.get("split") == "train"]
+    by_type = {}
+    for s in train:
+        by_type.setdefault(s.room_type, []).append((s.num_states, s.name))
+    assert names == sorted(min(v)[1] for v in by_type.values())
+    assert all((tmp_path / "sub" / n).is_symlink() and (tmp_path / "sub" / n / "COMPLETE").exists() for n in names)
+    assert train_subset(tiny_world, tmp_path / "sub", None) == sorted(s.name for s in train)
+
+
+def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
+    out = tmp_path / "demo"
+    shutil.copytree(tiny_world, out / "world")  # the world stage then only checks it
+    trainer = StandInTrainer()
+    res = run_demo(out, TINY, train_fn=trainer)
+    assert [res["stages"][s][0] for s in STAGES] == ["done"] * len(STAGES)
+    assert list(res["results"]) == ["agent (TSRM, DE-MAE)", "scripted explorer", "random"]
+    assert len(trainer.calls) == 1 and trainer.calls[0][0] == "tsrm"
+    for name in ("agent", "explorer", "random"):
+        m = json.loads((out / "eval" / name / "metrics.json").read_text())
+        assert m["detections"] == "oracle" and (out / "eval" / name / "trajectories.jsonl").exists()
+    assert json.loads((out / "eval" / "agent" / "metrics.json").read_text())["run"] == str((out / "run").resolve())
+    assert (out / "pretrain" / "recon.png").exists()
+    html = (out / "report" / "index.html").read_text()
+    for word in ("agent (TSRM, DE-MAE)", "scripted explorer", "Training", "Pretraining", "Episode gallery"):
+        assert word in html
+    text = capsys.readouterr().out
+    assert "[1/8] world" in text and "[8/8] report" in text and "results on the test episodes" in text
+    assert "scripted explorer" in text.split("results on the test episodes")[1]
+
+    # a second run reuses every stage and trains nothing
+    again = StandInTrainer()
+    res2 = run_demo(out, TINY, train_fn=again)
+    assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES)
+    assert again.calls == [] and res2["results"].keys() == res["results"].keys()
+
+    # a lost evaluation is redone, and the report after it
+    shutil.rmtree(out / "eval" / "random")
+    res3 = run_demo(out, TINY, train_fn=again)
+    st = {s: res3["stages"][s][0] for s in STAGES}
+    assert st["train"] == "reused" and st["evaluate"] == "done" and st["report"] == "done"
+    assert (out / "eval" / "random" / "metrics.json").exists()
+
+
+def test_demo_without_trainer_marks_training_pending(tmp_path, tiny_world, monkeypatch, capsys):
+    import tsnav.demo as demo
+
+    monkeypatch.setattr(demo, "_train_available", lambda: "no trainer in this test")
+    out = tmp_path / "demo"
+    shutil.copytree(tiny_world, out / "world")
+    res = run_demo(out, TINY)
+    assert res["stages"]["train"][0] == "pending"
+    assert list(res["results"]) == ["scripted explorer", "random"]
+    assert "PENDING: the agent trainer has not landed" in capsys.readouterr().out
