@@ -47,4 +47,5 @@ def test_probe_runs_end_to_end(tmp_path):
     res = probe_encoder(enc, root, ProbeConfig(max_images=64))
     assert res["n_fit"] == 64 and res["n_eval"] == 32
     assert 0 < res["depth_rmse_m"] < 10 and res["depth_rmse_baseline_m"] > 0
+    assert 0 < res["depth_rmse_heldout_m"] < 10 and res["depth_rmse_heldout_baseline_m"] > 0
     assert res["categories"] == 0 or 0 <= res["map"] <= 1
