@@ -9,6 +9,15 @@ from tsnav.pretrain.model import (
 )
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small tensors: one thread is faster, and the CI machine's two cores are shared."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def small(use_depth=True, **kw):
     cfg = MAEConfig(img_size=32, patch_size=8, embed_dim=32, depth=2, num_heads=2, decoder_embed_dim=16,
                     decoder_depth=1, decoder_num_heads=2, use_depth=use_depth, **kw)

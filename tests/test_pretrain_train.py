@@ -3,7 +3,6 @@
 import json
 import socket
 
-import numpy as np
 import pytest
 import torch
 import torch.multiprocessing as mp
@@ -11,6 +10,15 @@ import torch.multiprocessing as mp
 from tsnav.pretrain.checkpoint import load_tensors
 from tsnav.pretrain.synthetic import write_synthetic_dataset
 from tsnav.pretrain.train import PretrainConfig, lr_at, train
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small tensors: one thread is faster, and the CI machine's two cores are shared."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 TINY = dict(model="vit_micro", patch_size=8, img_size=16, log_every=1, viz_images=0)
 

@@ -1,11 +1,21 @@
 """Reconstruction picture: layout, the visible patches shown unchanged, MAE without a depth column."""
 
 import numpy as np
+import pytest
 import torch
 from PIL import Image
 
 from tsnav.pretrain.model import MAEConfig, MaskedAutoencoderViT
 from tsnav.pretrain.viz import reconstruction_grid
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small tensors: one thread is faster, and the CI machine's two cores are shared."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 def model(use_depth):
