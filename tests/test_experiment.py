@@ -201,3 +201,27 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     assert main(["experiment", "threshold", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
                  "--seeds", "0"]) == 2
     assert "--seeds must be >= 1" in capsys.readouterr().err
+
+
+def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pretrain_dir):
+    """The default trainer (tsnav.rl.train.train_run), two updates per job."""
+    from dataclasses import replace
+
+    from tsnav.rl.checkpoint import read_run_config
+
+    scale = replace(TINY, minutes_per_job=None, updates_per_job=2, num_envs=4)
+    out = tmp_path / "pre"
+    cfg = ExperimentConfig(experiment="pretraining", data=str(tiny_world), out=str(out), seeds=1, device="cpu",
+                           pretrain_dir=str(pretrain_dir))
+    res = Experiment(cfg, scale=scale).run()
+    assert [r["row"] for r in res["rows"]] == ["resnet18", "mae", "demae_crop", "demae"]
+    assert all(r["n"] == 1 for r in res["rows"]) and res["metrics"] == ["SR", "SPL"]
+    feats = set()
+    for r in res["rows"]:
+        run = read_run_config(out / "jobs" / f"{r['row']}_s0" / "train")
+        assert run["train"]["reward"] == "baseline" and run["train"]["updates"] == 2
+        assert run["train"]["minutes"] is None
+        feats.add(run["train"]["features"])
+    assert len(feats) == 4
+    md = (out / "table.md").read_text()
+    assert "ALL SR" in md and "L>=5 SPL" in md and "SSR" not in md

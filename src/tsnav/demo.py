@@ -77,6 +77,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="worker processes for world building")
     p.add_argument("--train-minutes", type=float, default=None, help="training budget of the agent (default 3)")
     p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads (default: the cores not busy with other processes)")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -112,7 +114,7 @@ class Stages:
         m = self.marker(name)
         upstream_ran = any(status == "done" for status, _ in self.times.values())
         if m is not None and not upstream_ran and valid(m):
-            print(f"    reused (built {m.get('seconds', 0):.0f} s earlier run)", flush=True)
+            print(f"    reused (made by an earlier run in {m.get('seconds', 0):.0f} s)", flush=True)
             self.times[name] = ("reused", 0.0)
             return m
         t0 = time.perf_counter()
@@ -359,5 +361,10 @@ def run(args) -> int:
         if args.pretrain_steps < 1:
             raise CommandError("--pretrain-steps must be >= 1")
         cfg.pretrain_steps = args.pretrain_steps
+    if args.threads is not None and args.threads < 1:
+        raise CommandError("--threads must be >= 1")
+    from .eval.experiment import set_threads
+
+    print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)
     return 0

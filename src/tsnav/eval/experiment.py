@@ -44,6 +44,7 @@ import csv
 import io
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -77,8 +78,11 @@ class ScaleConfig:
     pretrain_batch_size: int = 64
     """Images per pretraining step."""
     pretrain_base_lr: float | None = 1.5e-3
-    """Pretraining learning rate per 256 images; None: the method's default (MAE: 1.5e-4). Short CPU runs use a
-    larger one."""
+    """Pretraining learning rate per 256 images of the MAE-family methods; None: MAE's 1.5e-4. Short CPU runs
+    use a larger one."""
+    resnet_pretrain_steps: int | None = 400
+    """Optimiser steps of the supervised ResNet18 baseline (used when no ImageNet weights are given); None: as
+    ``pretrain_steps``."""
     feature_batch_size: int = 128
     """Frames per encoder call when caching features."""
     algo: str = "batched"
@@ -95,6 +99,9 @@ class ScaleConfig:
     """Training budget per job in minutes (None: ``episodes_per_job``)."""
     episodes_per_job: int | None = None
     """Training budget per job in episodes (paper: 1.5 M)."""
+    updates_per_job: int | None = None
+    """Training budget per job in optimizer updates (tests). Training stops at the first budget reached; with
+    none set, the paper's 1.5 M episodes."""
     test_per_room_type: int = 250
     """Test episodes per room type (the lineage: 250)."""
     val_per_room_type: int = 100
@@ -321,6 +328,37 @@ def plot_threshold(results: dict, path: str | Path) -> Path | None:
 # ---------------------------------------------------------------------------------------------------------
 
 
+def busy_cores(samples: int = 5, interval: float = 0.1) -> int:
+    """Runnable processes besides this one (median of a few reads of ``/proc/loadavg``); 0 when unknown."""
+    counts = []
+    for k in range(samples):
+        try:
+            running = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
+        except (OSError, ValueError, IndexError):
+            return 0
+        counts.append(max(0, running - 1))
+        if k + 1 < samples:
+            time.sleep(interval)
+    return int(np.median(counts))
+
+
+def auto_threads() -> int:
+    """Torch CPU threads for this machine: the cores not busy with other processes, at least 1. Oversubscribed
+    OpenMP threads spin against each other: on a shared 2-core machine one thread can be several times faster
+    than two."""
+    cores = os.cpu_count() or 1
+    return max(1, min(cores, cores - busy_cores()))
+
+
+def set_threads(n: int | None) -> int:
+    """Set torch's CPU threads (None: :func:`auto_threads`); returns the number set."""
+    import torch
+
+    n = auto_threads() if n is None else n
+    torch.set_num_threads(n)
+    return n
+
+
 def say(msg: str) -> None:
     print(msg, flush=True)
 
@@ -411,8 +449,10 @@ def encoder_spec(enc: str, scale: ScaleConfig, pretrain_dir: Path, cfg: Experime
     else:
         raise ValueError(f"unknown encoder {enc!r}")
     run = pretrain_dir / method
+    sup = method == "resnet18-sup"
+    steps = scale.resnet_pretrain_steps if sup and scale.resnet_pretrain_steps is not None else scale.pretrain_steps
     pre = dict(method=method, model=scale.vit_model, patch_size=scale.patch_size, img_size=scale.img_size,
-               steps=scale.pretrain_steps, batch_size=scale.pretrain_batch_size, base_lr=scale.pretrain_base_lr,
+               steps=steps, batch_size=scale.pretrain_batch_size, base_lr=None if sup else scale.pretrain_base_lr,
                device=cfg.device)
     return EncoderSpec(enc, str(run), scale.vit_model, scale.patch_size, scale.img_size, pre)
 
@@ -504,11 +544,11 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
     from ..rl.config import TrainConfig
 
     minutes = cfg.minutes_per_job if cfg.minutes_per_job is not None else scale.minutes_per_job
-    episodes = None if minutes is not None else scale.episodes_per_job
+    episodes, updates = scale.episodes_per_job, scale.updates_per_job
     tc = TrainConfig(data=str(Path(cfg.data).resolve()), features=features, detections=cfg.detections,
                      split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
                      num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
-                     minutes=minutes, episodes=episodes, device=cfg.device)
+                     minutes=minutes, episodes=episodes, updates=updates, device=cfg.device)
     return tc, agent_config(scale.agent_preset)
 
 
@@ -670,6 +710,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resnet18-weights", default=None,
                         help="torchvision ResNet18 weights (ImageNet, as in the paper) for the baseline encoder")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: the cores not busy with other processes)")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
 
 
@@ -688,7 +730,10 @@ def run(args: argparse.Namespace) -> int:
                            minutes_per_job=args.minutes_per_job, pretrain_dir=args.pretrain_dir,
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device)
+    if args.threads is not None and args.threads < 1:
+        raise CommandError("--threads must be >= 1")
     exp = Experiment(cfg)
+    say(f"torch threads: {set_threads(args.threads)}")
     results = exp.run()
     print(markdown_table(results))
     print(f"tables: {exp.out / 'table.md'}, {exp.out / 'table.csv'}"
