@@ -155,3 +155,25 @@ def test_report_command_errors(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["report", str(tmp_path / "empty")]) == 2
     assert "nothing to report" in capsys.readouterr().err
+
+
+def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
+    """`tsnav eval --run` keeps no trajectories: the report re-rolls the agent (sampled actions, same seed) and
+    gets the very same episodes."""
+    from test_experiment import StandInTrainer
+    from tsnav.agent import agent_config
+    from tsnav.agent.pixels import cache_pixel_features
+    from tsnav.rl.config import TrainConfig
+
+    cache_pixel_features(tiny_world, "report_px", grid=4)
+    run = tmp_path / "work" / "run"
+    StandInTrainer()(TrainConfig(data=str(tiny_world), features="report_px", device="cpu"), agent_config("cpu"), run)
+    ep_file = tmp_path / "episodes.json"
+    write_episodes(ep_file, episodes, split="test", success_distance=1.0)
+    ev = tmp_path / "work" / "eval_agent"
+    assert main(["eval", "--data", str(tiny_world), "--episodes", str(ep_file), "--run", str(run), "--seed", "4",
+                 "--out", str(ev)]) == 0
+    index = build_report(tmp_path / "work", gallery=2)
+    assert (ev / "trajectories.jsonl").exists()  # re-rolled, and equal to the records (checked while writing)
+    text = index.read_text()
+    assert "no gallery" not in text and text.count("_map.png") == 2

@@ -234,15 +234,18 @@ def eval_bank(meta: dict, episodes):
 
 
 def eval_policy(meta: dict, bank):
-    """The policy of an evaluation folder: the trained agent of ``meta["run"]`` or a scripted policy."""
+    """The policy of an evaluation folder: the trained agent of ``meta["run"]`` (or of a ``run:PATH`` policy, as
+    ``tsnav eval --run`` records it) or a scripted policy."""
     from .policies import make_policy
 
     seed = int(meta.get("seed", 0))
-    if meta.get("run"):
+    name = str(meta.get("policy", "explorer"))
+    run = meta.get("run") or (name[len("run:"):] if name.startswith("run:") else None)
+    if run:
         from ..rl.checkpoint import load_policy
 
-        return load_policy(meta["run"], bank, seed=seed)
-    return make_policy(meta.get("policy", "explorer"), bank, seed=seed,
+        return load_policy(run, bank, seed=seed)
+    return make_policy(name, bank, seed=seed,
                        c_target=float(meta.get("config", {}).get("c_target", 0.7)))
 
 
