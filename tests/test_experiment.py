@@ -204,7 +204,7 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
 
 
 def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pretrain_dir):
-    """The default trainer (tsnav.rl.train.train_run), two updates per job."""
+    """The default trainer (tsnav.rl.train.train_run), two updates per job, two jobs at once in worker processes."""
     from dataclasses import replace
 
     from tsnav.rl.checkpoint import read_run_config
@@ -212,7 +212,7 @@ def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pret
     scale = replace(TINY, minutes_per_job=None, updates_per_job=2, num_envs=4)
     out = tmp_path / "pre"
     cfg = ExperimentConfig(experiment="pretraining", data=str(tiny_world), out=str(out), seeds=1, device="cpu",
-                           pretrain_dir=str(pretrain_dir))
+                           pretrain_dir=str(pretrain_dir), parallel=2)
     res = Experiment(cfg, scale=scale).run()
     assert [r["row"] for r in res["rows"]] == ["resnet18", "mae", "demae_crop", "demae"]
     assert all(r["n"] == 1 for r in res["rows"]) and res["metrics"] == ["SR", "SPL"]

@@ -207,6 +207,8 @@ class ExperimentConfig:
     """Device of pretraining, features and training (``auto``: CUDA when present)."""
     seed_offset: int = 0
     """Added to the job seeds (repeat an experiment with other seeds)."""
+    parallel: int = 1
+    """Jobs trained at once, each in its own process (use 2 on two idle cores; progress bars are then off)."""
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -581,6 +583,8 @@ class Experiment:
             raise ValueError(f"unknown scale {cfg.scale!r} (choose from {', '.join(SCALES)})")
         if cfg.seeds < 1:
             raise ValueError(f"--seeds must be >= 1, got {cfg.seeds}")
+        if cfg.parallel < 1:
+            raise ValueError(f"--parallel must be >= 1, got {cfg.parallel}")
         if cfg.minutes_per_job is not None and not cfg.minutes_per_job > 0:
             raise ValueError(f"--minutes-per-job must be positive, got {cfg.minutes_per_job}")
         self.cfg = cfg
@@ -670,7 +674,8 @@ class Experiment:
         return done
 
     def run(self) -> dict:
-        """Run every unfinished job, one after another; returns ``results.json``'s content."""
+        """Run every unfinished job (one after another, or ``cfg.parallel`` at once); returns ``results.json``'s
+        content."""
         self.out.mkdir(parents=True, exist_ok=True)
         self._check_and_write_config()
         features = self.prepare()
@@ -678,15 +683,43 @@ class Experiment:
         skipped = len(self.jobs) - len(todo)
         say(f"[{self.cfg.experiment}] {len(self.jobs)} jobs: {skipped} finished, {len(todo)} to run")
         t_start = time.perf_counter()
-        for k, job in enumerate(todo, 1):
-            say(f"[{self.cfg.experiment}] job {k}/{len(todo)}: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
-            res = self.run_job(job, features[job.row.encoder])
+        name = self.cfg.experiment
+
+        def report(k: int, job: Job, res: dict) -> None:
             a = res["metrics"]["ALL"]
-            say(f"[{self.cfg.experiment}] job {k}/{len(todo)} done in {res['train_seconds'] + res['eval_seconds']:.0f} s: "
+            say(f"[{name}] job {k}/{len(todo)} ({job.row.label}, seed {job.seed}) done in "
+                f"{res['train_seconds'] + res['eval_seconds']:.0f} s: "
                 + ", ".join(f"{m} {100 * a[m]:.1f}" for m in METRICS)
                 + f" (elapsed {(time.perf_counter() - t_start) / 60:.1f} min)")
             self.write_tables()
+
+        if self.cfg.parallel > 1 and len(todo) > 1 and self._train_fn is None:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            threads = max(1, auto_threads() // self.cfg.parallel)
+            with ProcessPoolExecutor(self.cfg.parallel, mp_context=mp.get_context("spawn")) as pool:
+                futs = {}
+                for job in todo:
+                    say(f"[{name}] queued: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
+                    futs[pool.submit(_job_process, self.cfg, self.scale, self.jobs.index(job),
+                                     features[job.row.encoder], threads)] = job
+                for k, fut in enumerate(as_completed(futs), 1):
+                    report(k, futs[fut], fut.result())
+        else:
+            for k, job in enumerate(todo, 1):
+                say(f"[{name}] job {k}/{len(todo)}: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
+                report(k, job, self.run_job(job, features[job.row.encoder]))
         return self.write_tables()
+
+
+def _job_process(cfg: ExperimentConfig, scale: ScaleConfig, index: int, features: str, threads: int) -> dict:
+    """One job in a worker process (``--parallel``): training without a progress bar, then evaluation."""
+    from functools import partial
+
+    set_threads(threads)
+    exp = Experiment(cfg, train_fn=partial(default_train_fn(), progress_bar=False), scale=scale)
+    return exp.run_job(exp.jobs[index], features)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -710,6 +743,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resnet18-weights", default=None,
                         help="torchvision ResNet18 weights (ImageNet, as in the paper) for the baseline encoder")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument("--parallel", type=int, default=1,
+                        help="jobs trained at once, each in its own process (default 1; 2 on two idle cores)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: the cores not busy with other processes)")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
@@ -729,7 +764,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = ExperimentConfig(experiment=args.experiment, data=args.data, out=args.out, scale=args.scale, seeds=args.seeds,
                            minutes_per_job=args.minutes_per_job, pretrain_dir=args.pretrain_dir,
                            detections=args.detections, vc1_weights=args.vc1_weights,
-                           resnet18_weights=args.resnet18_weights, device=args.device)
+                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel)
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     exp = Experiment(cfg)

@@ -485,7 +485,9 @@ def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
         prog = _read_json(d / "progress.json") or {}
         lab = _label(d, root)
         loss = prog.get("loss")
-        info = (f"method {cfg.get('method')}, {cfg.get('model')}, patch {cfg.get('patch_size')}, "
+        arch = ("ResNet18" if cfg.get("method") == "resnet18-sup"
+                else f"{cfg.get('model')}, patch {cfg.get('patch_size')}")
+        info = (f"method {cfg.get('method')}, {arch}, "
                 f"{cfg.get('img_size')}px, {prog.get('step', 0)}/{prog.get('total_steps', '?')} steps"
                 + (f", last loss {loss:.4f}" if isinstance(loss, (int, float)) else ""))
         img = ""
