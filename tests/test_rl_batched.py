@@ -203,3 +203,19 @@ def test_resume_equals_uninterrupted_run(world, tmp_path):
     state = load_checkpoint(ck)
     assert state["progress"]["finished"] and 0 in state["rng"]
     json.dumps(state["rng"][0])
+
+
+def test_checkpoint_retention_and_milestones(tmp_path):
+    from tsnav.rl.checkpoint import save_checkpoint
+    from tsnav.rl.batched import new_progress
+    from tsnav.agent import ActorCritic
+
+    model = ActorCritic(agent_config("cpu"), (3, 2, 2), 3)
+    for u in range(1, 8):
+        save_checkpoint(tmp_path, {**new_progress(), "update": u}, model, milestone_every=3)
+    assert [p.name for p in list_checkpoints(tmp_path)] == ["ckpt_000000003", "ckpt_000000006", "ckpt_000000007"]
+    for u in range(8, 10):
+        save_checkpoint(tmp_path, {**new_progress(), "update": u}, model)
+    assert [p.name for p in list_checkpoints(tmp_path)][-2:] == ["ckpt_000000008", "ckpt_000000009"]
+    with pytest.raises(ValueError, match="milestone_every"):
+        TrainConfig(milestone_every=0)

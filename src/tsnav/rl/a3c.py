@@ -128,7 +128,7 @@ def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
     if cfg.budget_reached(progress):
         if not progress.get("finished"):
             progress["finished"] = True
-            save_checkpoint(run_dir, progress, shared, optimizer)
+            save_checkpoint(run_dir, progress, shared, optimizer, milestone_every=cfg.milestone_every)
         return progress
     progress["finished"] = False
     session = progress["sessions"]
@@ -184,7 +184,7 @@ def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
                 bar.update(progress)
             if progress["update"] // cfg.checkpoint_every > last_ckpt:
                 last_ckpt = progress["update"] // cfg.checkpoint_every
-                save_checkpoint(run_dir, progress, _copy(shared), optimizer)
+                save_checkpoint(run_dir, progress, _copy(shared), optimizer, milestone_every=cfg.milestone_every)
             dead = [p for p in procs if p.exitcode not in (None, 0)]
             if dead:
                 drain()
@@ -215,7 +215,7 @@ def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
         bar.close()
         logger.close()
     progress["finished"] = cfg.budget_reached(progress)
-    save_checkpoint(run_dir, progress, _copy(shared), optimizer)
+    save_checkpoint(run_dir, progress, _copy(shared), optimizer, milestone_every=cfg.milestone_every)
     return progress
 
 

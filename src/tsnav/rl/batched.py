@@ -98,7 +98,7 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     if cfg.budget_reached(progress):
         if not progress.get("finished"):
             progress["finished"] = True
-            _checkpoint(run_dir, progress, model, optimizer, env, info)
+            _checkpoint(run_dir, progress, model, optimizer, env, info, cfg.milestone_every)
         return progress
     progress["finished"] = False
 
@@ -138,7 +138,7 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
                 bar.update(progress)
             if boundary:
                 progress["finished"] = reached
-                _checkpoint(run_dir, progress, model, optimizer, env, info)
+                _checkpoint(run_dir, progress, model, optimizer, env, info, cfg.milestone_every)
                 if not reached:
                     collector.start()  # fresh episodes: a resumed run starts here too
             if on_update is not None:
@@ -162,7 +162,8 @@ def weights_digest(model: torch.nn.Module) -> str:
     return h.hexdigest()
 
 
-def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo) -> None:
+def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo,
+                milestone_every: int | None = None) -> None:
     """Checkpoint with every rank's RNG states (rank 0 writes the rest and commits)."""
     if info.is_main:
         checkpoint_tmp(run_dir, progress["update"])
@@ -171,5 +172,5 @@ def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: Dist
     write_rng(tmp, info.rank, {**rng_state(env.np_random), "weights": weights_digest(model)})
     barrier(info)
     if info.is_main:
-        commit_checkpoint(run_dir, tmp, progress, model, optimizer)
+        commit_checkpoint(run_dir, tmp, progress, model, optimizer, milestone_every=milestone_every)
     barrier(info)

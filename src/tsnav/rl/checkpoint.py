@@ -75,8 +75,10 @@ def write_rng(tmp: Path, rank: int, state: dict) -> None:
 
 
 def commit_checkpoint(run_dir: str | Path, tmp: Path, progress: dict, model: ActorCritic,
-                      optimizer: torch.optim.Optimizer | None, keep: int = 2) -> Path:
-    """Write the model, optimizer and progress into ``tmp`` and rename it to its final name."""
+                      optimizer: torch.optim.Optimizer | None, keep: int = 2, milestone_every: int | None = None) -> Path:
+    """Write the model, optimizer and progress into ``tmp`` and rename it to its final name. The ``keep`` newest
+    checkpoints stay, plus every one whose update is a multiple of ``milestone_every`` (for model selection on a
+    validation split afterwards)."""
     run_dir, tmp = Path(run_dir), Path(tmp)
     names = [n for n, _ in model.named_parameters()]
     save_tensors(tmp / "model.safetensors", model.state_dict(),
@@ -92,17 +94,20 @@ def commit_checkpoint(run_dir: str | Path, tmp: Path, progress: dict, model: Act
         shutil.rmtree(final)
     os.replace(tmp, final)
     for old in list_checkpoints(run_dir)[:-keep]:
+        if milestone_every and int(old.name.split("_")[1]) % milestone_every == 0:
+            continue
         shutil.rmtree(old, ignore_errors=True)
     return final
 
 
 def save_checkpoint(run_dir: str | Path, progress: dict, model: ActorCritic, optimizer=None,
-                    rng: dict | None = None, keep: int = 2) -> Path:
-    """Single-process checkpoint of ``progress["update"]`` (see the module docstring)."""
+                    rng: dict | None = None, keep: int = 2, milestone_every: int | None = None) -> Path:
+    """Single-process checkpoint of ``progress["update"]`` (see the module docstring and
+    :func:`commit_checkpoint`)."""
     tmp = checkpoint_tmp(run_dir, progress["update"])
     if rng is not None:
         write_rng(tmp, 0, rng)
-    return commit_checkpoint(run_dir, tmp, progress, model, optimizer, keep)
+    return commit_checkpoint(run_dir, tmp, progress, model, optimizer, keep, milestone_every)
 
 
 def list_checkpoints(run_dir: str | Path) -> list[Path]:
@@ -164,14 +169,16 @@ def load_model(run_dir: str | Path, checkpoint: str | Path | None = None) -> tup
     return model.eval(), state
 
 
-def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, device: str = "cpu"):
+def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, device: str = "cpu",
+                checkpoint: str | Path | None = None):
     """The trained agent of ``run_dir`` as a :class:`~tsnav.eval.policies.Policy` over ``bank``.
 
     The bank's scenes need the run's feature cache (``features_<name>.hdf5``); when the run used detection
     tables and the bank has none installed, they are installed (so the evaluation's stage switch uses the same
     detector as training). Actions are sampled from the policy with a generator seeded by ``seed``, as the
     lineage evaluates (SAVN's agent samples ``prob.multinomial(1)`` in training and test alike, with dropout off);
-    ``greedy`` takes the most probable action instead.
+    ``greedy`` takes the most probable action instead. ``checkpoint`` picks a checkpoint folder other than the
+    latest.
     """
     from ..agent.observe import DetectionTable, Observer, load_bank_features
     from .config import TrainConfig
@@ -179,7 +186,7 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, 
     from .world import install
 
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
-    model, _ = load_model(run_dir)
+    model, _ = load_model(run_dir, checkpoint)
     det_features = None
     if cfg.detections is not None:
         if bank.detections is None:

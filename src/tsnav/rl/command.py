@@ -37,6 +37,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rollout-steps", type=int, default=None, help="steps per update (default: 30)")
     parser.add_argument("--max-steps", type=int, default=None, help="training episode length (lineage: 30)")
     parser.add_argument("--checkpoint-every", type=int, default=None, help="updates between checkpoints")
+    parser.add_argument("--milestone-every", type=int, default=None,
+                        help="keep every checkpoint at a multiple of this many updates (default: only the newest two)")
     parser.add_argument("--log-every", type=int, default=None, help="updates between log lines")
     parser.add_argument("--device", default=None, help="auto, cpu or cuda (batched trainer)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -47,6 +49,7 @@ _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "
            "num_envs": "num_envs", "workers": "workers", "c_target": "c_target", "seed": "seed",
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
+           "milestone_every": "milestone_every",
            "device": "device"}
 
 

@@ -67,6 +67,9 @@ class TrainConfig:
     checkpoint_every: int = 100
     """Updates between checkpoints. The batched trainer starts fresh episodes after each checkpoint so that a
     resumed run continues exactly like an uninterrupted one."""
+    milestone_every: int | None = None
+    """Also keep every checkpoint whose update is a multiple of this (None: only the two newest), so that a
+    checkpoint can be chosen on a validation split afterwards."""
     log_every: int = 10
     """Updates between log lines (JSONL, TensorBoard)."""
     threads: int = 1
@@ -92,6 +95,8 @@ class TrainConfig:
             raise ValueError(f"c_target must be in [0, 1], got {self.c_target}")
         if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.gae_tau <= 1.0:
             raise ValueError("gamma must be in (0, 1] and gae_tau in [0, 1]")
+        if self.milestone_every is not None and self.milestone_every < 1:
+            raise ValueError(f"milestone_every must be >= 1, got {self.milestone_every}")
         for name in BUDGET_FIELDS:
             v = getattr(self, name)
             if v is not None and not v > 0:
