@@ -22,13 +22,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from ..atomic import atomic_write_bytes, atomic_write_json
 
 from .data import FrameSet, load_frames, make_batch
 from .model import DetectorConfig, GridDetector, LossWeights, detection_loss
@@ -113,18 +114,13 @@ def apply_gains(images: torch.Tensor, gains: np.ndarray) -> torch.Tensor:
 
 # ---------------------------------------------------------------------------------------------- checkpoints
 def _atomic_json(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1)
-    os.replace(tmp, path)
+    atomic_write_json(path, obj, indent=1, sort_keys=False)
 
 
 def _atomic_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict | None = None) -> None:
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(tmp), metadata=metadata)
-    os.replace(tmp, path)
+    atomic_write_bytes(path, save({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, metadata=metadata))
 
 
 def is_checkpoint(path: str | Path) -> bool:

@@ -19,13 +19,13 @@ Records are exchanged as JSON Lines, one :class:`EpisodeRecord` per line.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+
+from ..atomic import atomic_write_text
 
 #: Metric names, in the paper's table order.
 METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
@@ -165,17 +165,7 @@ def format_table(summary: dict) -> str:
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_text(path, text)
 
 
 def write_records(path: str | Path, records: Iterable[EpisodeRecord]) -> None:
