@@ -44,7 +44,7 @@ from ..constants import (FIELD_OF_VIEW, GRID_SIZE, HORIZONS, ROTATE_STEP, ROTATI
 from .lineage import derive_floor
 from .reader import COMPLETE_MARKER, SceneFormatError, load_scene
 from .thor_import import _scene_info
-from .writer import MIN_PIXEL_FRACTION, box_distance, object_stats
+from .writer import MIN_PIXEL_FRACTION, box_distance, min_pixels, object_stats
 
 INSTALL_HINT = ("ai2thor is not installed: pip install 'tsnav[thor]' (AI2-THOR then downloads its Unity build "
                 "on first use and needs a display or Vulkan)")
@@ -76,7 +76,7 @@ class LiveConfig:
     """States per batch of the pixel / box computation."""
 
     def min_pixels(self) -> int:
-        return max(2, int(math.ceil(self.min_pixel_fraction * self.size ** 2)))
+        return min_pixels(self.size, self.min_pixel_fraction)
 
 
 @dataclass

@@ -25,6 +25,13 @@ from .reader import COMPLETE_MARKER
 
 #: Minimum share of the frame an object must cover to count as seen (AI2-THOR casts rays; we count pixels).
 MIN_PIXEL_FRACTION = 0.001
+
+
+def min_pixels(image_size: int, fraction: float = MIN_PIXEL_FRACTION) -> int:
+    """Pixels an object must show in a ``image_size``-square frame to count as seen (at least 2)."""
+    return max(2, int(math.ceil(fraction * image_size ** 2)))
+
+
 #: Height of the agent's position in ``grid.json`` (AI2-THOR reports the agent's body centre).
 GRID_Y = 0.9
 
@@ -42,7 +49,7 @@ class BuildConfig:
     tiles: int = 16  #: views rendered per framebuffer read
 
     def min_pixels(self) -> int:
-        return max(2, int(math.ceil(MIN_PIXEL_FRACTION * self.image_size ** 2)))
+        return min_pixels(self.image_size)
 
 
 @dataclass
