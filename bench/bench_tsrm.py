@@ -23,26 +23,14 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
 
-from tsnav.data.toy import toy_scene
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_sim import ACTION_P, scenes  # noqa: E402  (the same four rooms as the stepping benchmark)
 from tsnav.sim.batch import BatchEnv, SceneBank, SparseReward
 from tsnav.sim.episodes import TrainingSampler
 from tsnav.tsrm.area import AreaConfig
 from tsnav.tsrm.reward import RewardConfig, TSRMReward, TSRMRewardReference
 
-ACTION_P = [0.5, 0.18, 0.18, 0.05, 0.05, 0.04]
 MAX_STEPS = 30
-
-
-def scenes():
-    """Four rooms of 5 x 4 m to 6 x 5 m (about 5-8 k states each) with a few targets and obstacles."""
-    out = []
-    rng = np.random.default_rng(0)
-    cats = ["Bowl", "Chair", "Fridge", "Sink", "Television", "Laptop", "Book"]
-    for k, (w, d) in enumerate([(5.0, 4.0), (6.0, 5.0), (5.5, 4.5), (6.0, 4.0)]):
-        objs = {f"{c}|{k}": (float(rng.uniform(0, w)), float(rng.uniform(0, d))) for c in rng.choice(cats, 4, replace=False)}
-        blocked = [(round(float(x) * 4) / 4, round(float(z) * 4) / 4) for x, z in rng.uniform([1, 1], [w - 1, d - 1], (12, 2))]
-        out.append(toy_scene(w, d, objs, blocked=blocked, name=f"Bench{k}"))
-    return out
 
 
 def bench_batch(bank, b, seconds, reward_fn):

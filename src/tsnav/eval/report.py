@@ -201,16 +201,10 @@ def plot_experiment_curves(series: list[tuple[str, list[dict]]], path: str | Pat
 
 
 def read_log(run_dir: str | Path) -> list[dict]:
-    """Records of a run's ``log.jsonl`` (a torn last line is skipped)."""
-    p = Path(run_dir) / "log.jsonl"
-    out = []
-    if p.exists():
-        for line in p.read_text().splitlines():
-            try:
-                out.append(json.loads(line))
-            except json.JSONDecodeError:
-                break
-    return out
+    """Records of a run's ``log.jsonl`` (a torn last line is skipped); see :func:`tsnav.rl.logger.read_log`."""
+    from ..rl.logger import read_log as _read_log
+
+    return _read_log(run_dir)
 
 
 # ---------------------------------------------------------------------------------------------------------
