@@ -1,4 +1,7 @@
-"""Shared fixtures. ``tiny_world``: the `tiny` preset built once per test session (a few seconds)."""
+"""Shared fixtures. ``tiny_world``: the `tiny` preset built once per test session (a few seconds);
+``pixel_world``: the same with small pixel features cached for the agent tests; ``one_torch_thread``: small
+networks run fastest on one thread and do not fight other processes for the cores (modules opt in with
+``pytestmark = pytest.mark.usefixtures("one_torch_thread")``)."""
 
 from __future__ import annotations
 
@@ -24,3 +27,26 @@ def tiny_scenes(tiny_world):
     from tsnav.data.reader import list_scenes, load_scene
 
     return [load_scene(p) for p in list_scenes(tiny_world)]
+
+
+PIXEL_FEATURES = "rltest_px"
+"""Name of the 3x4x4 pixel-feature cache that :func:`pixel_world` writes into the tiny world."""
+
+
+@pytest.fixture(scope="session")
+def pixel_world(tiny_world):
+    """The tiny world with :data:`PIXEL_FEATURES` cached (4x4 colour grids: agents train in seconds)."""
+    from tsnav.agent.pixels import cache_pixel_features
+
+    cache_pixel_features(tiny_world, PIXEL_FEATURES, grid=4)
+    return tiny_world
+
+
+@pytest.fixture
+def one_torch_thread():
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -14,12 +14,7 @@ from tsnav.sim.batch import SceneBank
 D = 6
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _filled_memory(b=3, m=5, seed=0):

@@ -16,14 +16,7 @@ TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, vit_model="vit_micro", 
                   gallery=2)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    import torch
-
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_train_subset_links_smallest_rooms(tmp_path, tiny_world, tiny_scenes):

@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from tsnav.eval.experiment import (CSV_FIELDS, Experiment, ExperimentConfig, ScaleConfig, aggregate, csv_table,
-                                   experiment_rows, markdown_table, mean_ci)
+from tsnav.eval.experiment import Experiment, ExperimentConfig, ScaleConfig, experiment_rows
+from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
 from tsnav.eval.metrics import METRICS
 
 TINY = ScaleConfig(vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2, pretrain_batch_size=8,
@@ -48,15 +48,7 @@ class StandInTrainer:
                         model)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small batches run faster on one thread, above all on a busy machine."""
-    import torch
-
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
@@ -201,6 +193,13 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     assert main(["experiment", "threshold", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
                  "--seeds", "0"]) == 2
     assert "--seeds must be >= 1" in capsys.readouterr().err
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "experiment.json").write_text("{not json")
+    assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "unreadable experiment file" in err and len(err.strip().splitlines()) == 1
+    assert (bad / "experiment.json").read_text() == "{not json"  # left as it was
 
 
 def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pretrain_dir):

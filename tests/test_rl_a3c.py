@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from tsnav.agent import agent_config
-from tsnav.agent.pixels import cache_pixel_features
 from tsnav.rl.a3c import SharedAdam, a3c_update, train_a3c
 from tsnav.rl.checkpoint import latest_checkpoint, load_checkpoint
 from tsnav.rl.config import TrainConfig
@@ -14,21 +13,15 @@ from tsnav.rl.logger import read_log
 from tsnav.rl.rollout import RolloutCollector, a2c_loss, gae, replay
 from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
 
-FEATS = "rltest_px"
+from conftest import PIXEL_FEATURES as FEATS
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def world(tiny_world):
-    cache_pixel_features(tiny_world, FEATS, grid=4)
-    return tiny_world
+def world(pixel_world):
+    return pixel_world
 
 
 def _cfg(world, **kw):

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from tsnav.agent import agent_config
-from tsnav.agent.pixels import cache_pixel_features
 from tsnav.constants import DONE
 from tsnav.rl.batched import train_batched
 from tsnav.rl.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
@@ -17,22 +16,15 @@ from tsnav.rl.logger import read_log
 from tsnav.rl.rollout import RolloutCollector, gae, gae_reference
 from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
 
-FEATS = "rltest_px"
+from conftest import PIXEL_FEATURES as FEATS
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small networks run fastest on one thread (and do not fight other processes for the cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def world(tiny_world):
-    cache_pixel_features(tiny_world, FEATS, grid=4)
-    return tiny_world
+def world(pixel_world):
+    return pixel_world
 
 
 def _cfg(world, **kw):

@@ -5,9 +5,7 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
-from tsnav.agent.pixels import cache_pixel_features
 from tsnav.cli import main
 from tsnav.eval.policies import Policy
 from tsnav.eval.runner import EvalConfig, evaluate
@@ -15,20 +13,15 @@ from tsnav.rl.checkpoint import list_checkpoints, load_policy
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.episodes import read_episodes
 
-FEATS = "rltest_px"
+from conftest import PIXEL_FEATURES as FEATS
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def trained(tiny_world, tmp_path_factory):
-    cache_pixel_features(tiny_world, FEATS, grid=4)
+def trained(pixel_world, tmp_path_factory):
+    tiny_world = pixel_world
     run = tmp_path_factory.mktemp("cmd") / "run"
     rc = main(["train", "--data", str(tiny_world), "--features", FEATS, "--reward", "tsrm", "--algo", "batched",
                "--out", str(run), "--updates", "4", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5",

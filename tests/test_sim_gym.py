@@ -9,7 +9,7 @@ from gymnasium.utils.env_checker import check_env
 
 import tsnav.sim  # noqa: F401  (registers the env id)
 from sim_helpers import toy_scenes, write_scene_folder
-from tsnav.constants import CATEGORY_INDEX, DONE, ROTATE_LEFT
+from tsnav.constants import DONE, ROTATE_LEFT
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.gym_env import ENV_ID, ObjectNavEnv, ObjectNavVectorEnv
 

@@ -16,7 +16,7 @@ import shapely
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
-from tsnav.constants import (ACTIONS, CAMERA_HEIGHT, GRID_SIZE, MOVE_AHEAD, parse_state_key, parse_state_keys,
+from tsnav.constants import (ACTIONS, GRID_SIZE, MOVE_AHEAD, parse_state_key, parse_state_keys,
                              state_key)
 from tsnav.data.reader import SceneFormatError, edge_actions, load_scene
 from tsnav.data.writer import box_distance, object_stats, object_stats_reference

@@ -22,8 +22,9 @@ from typing import Sequence
 
 import numpy as np
 
+from ..atomic import atomic_write_text
 from ..constants import ACTIONS, CATEGORY_INDEX, DONE
-from .metrics import EpisodeRecord, _atomic_write_text
+from .metrics import EpisodeRecord
 from .runner import EvalConfig, evaluate
 
 
@@ -110,7 +111,7 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
 
 def write_trajectories(path: str | Path, trajectories: Sequence[Trajectory]) -> None:
     """JSON Lines, one trajectory per line, written atomically."""
-    _atomic_write_text(Path(path), "".join(t.to_json() + "\n" for t in trajectories))
+    atomic_write_text(Path(path), "".join(t.to_json() + "\n" for t in trajectories))
 
 
 def read_trajectories(path: str | Path) -> list[Trajectory]:

@@ -164,13 +164,9 @@ def format_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_text(path, text)
-
-
 def write_records(path: str | Path, records: Iterable[EpisodeRecord]) -> None:
     """Write records as JSON Lines, atomically (temporary file + ``os.replace``)."""
-    _atomic_write_text(Path(path), "".join(r.to_json() + "\n" for r in records))
+    atomic_write_text(Path(path), "".join(r.to_json() + "\n" for r in records))
 
 
 def read_records(path: str | Path) -> list[EpisodeRecord]:
@@ -189,4 +185,4 @@ def read_records(path: str | Path) -> list[EpisodeRecord]:
 
 def write_json(path: str | Path, obj) -> None:
     """Write ``obj`` as indented JSON, atomically."""
-    _atomic_write_text(Path(path), json.dumps(obj, indent=2, sort_keys=True) + "\n")
+    atomic_write_text(Path(path), json.dumps(obj, indent=2, sort_keys=True) + "\n")

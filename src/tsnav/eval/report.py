@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import METRICS, _atomic_write_text, read_records
+from ..atomic import atomic_write_text
+from .metrics import METRICS, read_records
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
 SKIP_DIRS = {"checkpoints", "tb", "report", "__pycache__", "stages"}
@@ -468,7 +469,7 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
            + "".join(f"<section id='{a}'><h2>{_e(h)}</h2>{b}</section>" for a, h, b in sections)
            + "</body></html>\n")
     index = out / "index.html"
-    _atomic_write_text(index, doc)
+    atomic_write_text(index, doc)
     return index
 
 

@@ -19,7 +19,7 @@ from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
 from ..constants import ROOM_TARGETS, ROOM_TYPES
-from .catalog import FLOORS, FURNITURE_SIZES, OBJECT_SIZES, WALLS, build_parts, draw_size, jitter, material
+from .catalog import FLOORS, FURNITURE_SIZES, OBJECT_SIZES, WALLS, build_parts, draw_size, jitter
 from .spec import Furniture, ObjectInstance, Part, SceneSpec, box_footprint
 
 GENERATOR_VERSION = 2
@@ -257,7 +257,6 @@ class RoomBuilder:
 
     def light_switch(self) -> ObjectInstance | None:
         x0, z0, x1, z1 = self.rect
-        size = OBJECT_SIZES["LightSwitch"][1]
         for _ in range(20):
             side = int(self.rng.integers(4))
             t = self.rng.uniform(0.3, 0.7)

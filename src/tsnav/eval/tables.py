@@ -1,0 +1,123 @@
+"""Tables and plots of an experiment: mean and 95 % t-interval over seeds, ``results.json`` content, the
+Markdown and long-format CSV tables, and the threshold figure (paper Fig. 4)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+SUBSETS = ("ALL", "L>=5")
+"""Episode subsets of every table: all episodes, and those with optimal length of at least 5 actions."""
+
+
+def mean_ci(values) -> tuple[float | None, float | None]:
+    """Mean and half-width of the 95 % confidence interval of the mean (Student t, n-1 degrees of freedom);
+    half-width None with fewer than two values, both None with none."""
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
+    if len(v) == 0:
+        return None, None
+    if len(v) == 1:
+        return float(v[0]), None
+    from scipy.stats import t
+
+    half = float(t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+    return float(v.mean()), half
+
+
+def aggregate(rows: list, per_row: dict[str, list[dict]], metrics: list[str], flags: list[str]) -> dict:
+    """``results.json`` content: per row and subset and metric, the per-seed values (percent), mean and 95 %
+    half-width. ``per_row[row.id]`` holds the :func:`~tsnav.eval.metrics.summarize` results of its seeds."""
+    out_rows = []
+    for r in rows:
+        sums = per_row.get(r.id, [])
+        ms = {}
+        for s in SUBSETS:
+            ms[s] = {}
+            for m in metrics:
+                vals = [100.0 * x[s][m] for x in sums if s in x]
+                mean, half = mean_ci(vals)
+                ms[s][m] = {"mean": mean, "ci95": half, "values": vals}
+        out_rows.append({"row": r.id, "label": r.label, "flags": r.flags, "c_target": r.c_target,
+                         "encoder": r.encoder, "reward": r.reward, "n": len(sums), "metrics": ms})
+    return {"subsets": list(SUBSETS), "metrics": metrics, "flag_columns": flags, "rows": out_rows}
+
+
+def _fmt(v: dict) -> str:
+    if v.get("mean") is None:
+        return "-"
+    return f"{v['mean']:.2f}" + (f" ± {v['ci95']:.2f}" if v.get("ci95") is not None else "")
+
+
+def markdown_table(results: dict) -> str:
+    """A Markdown table: row label, check-mark columns, seeds, then ``subset metric`` columns (mean ± 95 %)."""
+    flags, subsets, metrics = results["flag_columns"], results["subsets"], results["metrics"]
+    head = ["row"] + flags + ["seeds"] + [f"{s} {m}" for s in subsets for m in metrics]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join([" --- "] * (1 + len(flags) + 1)
+                                                          + [" ---: "] * (len(subsets) * len(metrics))) + "|"]
+    for r in results["rows"]:
+        cells = [r["label"]] + ["✓" if r["flags"].get(f) else "" for f in flags] + [str(r["n"])]
+        cells += [_fmt(r["metrics"][s][m]) for s in subsets for m in metrics]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+CSV_FIELDS = ("row", "label", "subset", "metric", "mean", "ci95", "ci_low", "ci_high", "n_seeds", "values")
+
+
+def csv_table(results: dict) -> str:
+    """Long-format CSV, one line per (row, subset, metric): mean, 95 % half-width and bounds, seeds, values."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, lineterminator="\n")
+    w.writeheader()
+    for r in results["rows"]:
+        for s in results["subsets"]:
+            for m in results["metrics"]:
+                v = r["metrics"][s][m]
+                mean, half = v["mean"], v["ci95"]
+                w.writerow({"row": r["row"], "label": r["label"], "subset": s, "metric": m,
+                            "mean": "" if mean is None else f"{mean:.4f}", "ci95": "" if half is None else f"{half:.4f}",
+                            "ci_low": "" if half is None else f"{mean - half:.4f}",
+                            "ci_high": "" if half is None else f"{mean + half:.4f}", "n_seeds": r["n"],
+                            "values": " ".join(f"{x:.4f}" for x in v["values"])})
+    return buf.getvalue()
+
+
+def plot_threshold(results: dict, path: str | Path) -> Path | None:
+    """Paper Fig. 4: each metric over C_target (mean with 95 % interval; ALL solid, L>=5 dashed), the best
+    mean of each metric (ALL) marked with a red star."""
+    rows = [r for r in results["rows"] if r["n"] > 0]
+    if not rows:
+        return None
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    metrics = results["metrics"]
+    fig = Figure(figsize=(3.1 * len(metrics), 3.2), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(metrics), squeeze=False)[0]
+    xs = np.array([r["c_target"] for r in rows])
+    for ax, m in zip(axes, metrics):
+        for s, style in zip(SUBSETS, ("-", "--")):
+            mean = np.array([np.nan if r["metrics"][s][m]["mean"] is None else r["metrics"][s][m]["mean"] for r in rows])
+            half = np.array([0.0 if r["metrics"][s][m]["ci95"] is None else r["metrics"][s][m]["ci95"] for r in rows])
+            ax.errorbar(xs, mean, yerr=half, fmt="o" + style, ms=3, lw=1.3, capsize=2, alpha=1.0 if s == "ALL" else 0.55,
+                        color="#1f77b4", label=s)
+            if s == "ALL" and np.isfinite(mean).any():
+                b = int(np.nanargmax(mean))
+                ax.scatter([xs[b]], [mean[b]], marker="*", s=220, color="red", zorder=5,
+                           label=f"best {xs[b]:.1f}")
+        ax.set_title(m, fontsize=10)
+        ax.set_xlabel("C_target", fontsize=8)
+        ax.set_xticks(np.round(np.arange(0.1, 0.91, 0.2), 1))
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+    axes[0].set_ylabel("%", fontsize=8)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    return path
