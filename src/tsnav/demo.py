@@ -12,9 +12,8 @@ exists and its outputs are still there, and every underlying step resumes after 
  7. evaluate     the agent, the scripted explorer and the random policy on the test episodes   OUT/eval/<policy>
  8. report       HTML report: tables, curves, reconstructions, episode gallery                  OUT/report/index.html
 
-The training and pretraining use a subset of the training rooms (``train_rooms_per_type`` per room type,
-the smallest ones, linked into ``OUT/train_world``) so that the whole job fits the time budget; the test
-rooms are never seen in training.
+The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
+keeps only the smallest ones per room type, for shorter runs); the test rooms are never seen in training.
 """
 
 from __future__ import annotations
@@ -36,7 +35,7 @@ class DemoConfig:
     """World preset (``tsnav world --preset``)."""
     world_workers: int = 2
     """Processes building the world."""
-    train_rooms_per_type: int | None = 2
+    train_rooms_per_type: int | None = None
     """Training rooms used per room type (the smallest ones); None: all training rooms."""
     vit_model: str = "vit_tiny"
     """ViT size of the DE-MAE encoder."""
@@ -58,7 +57,7 @@ class DemoConfig:
     """Test episodes per room type."""
     reward: str = "tsrm"
     """Reward variant of the agent (paper: TSRM)."""
-    train_minutes: float = 3.0
+    train_minutes: float = 4.0
     """Training budget of the agent, minutes."""
     num_envs: int = 64
     """Episodes stepped together by the batched trainer."""
@@ -75,7 +74,7 @@ class DemoConfig:
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/demo", help="folder for the world, runs and report (default out/demo)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for world building")
-    p.add_argument("--train-minutes", type=float, default=None, help="training budget of the agent (default 3)")
+    p.add_argument("--train-minutes", type=float, default=None, help="training budget of the agent (default 4)")
     p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: the cores not busy with other processes)")
