@@ -114,12 +114,13 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     if st.switch_frame >= 0:
         ax.plot(px[st.switch_frame:], pz[st.switch_frame:], "-", color=PATH_COLOR, lw=2, zorder=4, label="pathfinding")
         ax.scatter([px[st.switch_frame]], [pz[st.switch_frame]], marker="*", s=220, color="gold", edgecolors="k",
-                   zorder=6, label="stage switch")
+                   zorder=6.5, label="stage switch")  # above the start marker, below the hollow end
     rad = np.deg2rad(scene.rotation[states[0]])
     ax.annotate("", xy=(px[0] + 0.3 * np.sin(rad), pz[0] + 0.3 * np.cos(rad)), xytext=(px[0], pz[0]),
                 arrowprops=dict(arrowstyle="->", color="k", lw=1.5), zorder=6)
     ax.scatter([px[0]], [pz[0]], marker="o", s=50, color="white", edgecolors="k", zorder=6, label="start")
-    ax.scatter([px[-1]], [pz[-1]], marker="s", s=40, color="k", zorder=6, label="end")
+    ax.scatter([px[-1]], [pz[-1]], marker="s", s=40, facecolors="none", edgecolors="k", linewidths=1.5, zorder=7,
+               label="end")  # hollow, so a stage-switch star under it stays visible
     name = TARGET_CATEGORIES[g]
     objs = [o for o in scene.meta.get("objects", [])
             if o.get("objectType", str(o.get("objectId", "")).split("|")[0]) == name and "position" in o]
