@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from tsnav.eval.experiment import Experiment, ExperimentConfig, ScaleConfig, experiment_rows
+from tsnav.eval.experiment import Experiment, ExperimentConfig, ScaleConfig, experiment_rows, train_config_for
 from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
 from tsnav.eval.metrics import METRICS
 
@@ -180,6 +180,22 @@ def test_threshold_experiment_plot(tmp_path, tiny_world, pretrain_dir):
     assert all(a >= b - 1e-9 for a, b in zip(ssr, ssr[1:]))
 
 
+def test_training_budget_in_minutes_or_updates():
+    """--updates-per-job replaces the scale's minutes (a budget that does not depend on how busy the machine is);
+    with --minutes-per-job too, both apply and the first reached stops training."""
+    row = experiment_rows("ablation")[0]
+    scale = ScaleConfig()  # small: 4 minutes, no update limit
+
+    def budget(**kw):
+        tc, _ = train_config_for(ExperimentConfig(experiment="ablation", data="d", out="o", **kw), scale, row, "f", 0)
+        return tc.minutes, tc.updates
+
+    assert budget() == (4.0, None)
+    assert budget(minutes_per_job=2.5) == (2.5, None)
+    assert budget(updates_per_job=700) == (None, 700)
+    assert budget(updates_per_job=700, minutes_per_job=3.0) == (3.0, 700)
+
+
 def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     from tsnav.cli import main
 
@@ -193,6 +209,9 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     assert main(["experiment", "threshold", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
                  "--seeds", "0"]) == 2
     assert "--seeds must be >= 1" in capsys.readouterr().err
+    assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
+                 "--updates-per-job", "0"]) == 2
+    assert "--updates-per-job must be >= 1" in capsys.readouterr().err
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "experiment.json").write_text("{not json")
