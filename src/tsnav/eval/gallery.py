@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..atomic import atomic_write_text
+from ..atomic import atomic_save_figure, atomic_write_text
 from ..constants import ACTIONS, CATEGORY_INDEX, DONE
 from .metrics import EpisodeRecord
 from .runner import EvalConfig, evaluate
@@ -222,10 +222,7 @@ def draw_frame_strip(frames: np.ndarray, labels: Sequence[str], path: str | Path
         ax.set_title(lab, fontsize=8)
     if title:
         fig.suptitle(title, fontsize=8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    return path
+    return atomic_save_figure(fig, path, dpi=100)
 
 
 @dataclass

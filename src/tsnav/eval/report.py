@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_write_text
+from ..atomic import atomic_save_figure, atomic_write_text
 from .metrics import METRICS, read_records
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
@@ -153,17 +153,9 @@ def plot_learning_curves(log: list[dict], path: str | Path, title: str = "") -> 
             a2.plot(x, y, lw=1.2, label=k)
     a2.set_title("losses", fontsize=9)
     for a in (a0, a1, a2):
-        a.set_xlabel("environment steps", fontsize=8)
-        a.tick_params(labelsize=7)
-        a.grid(alpha=0.3)
         if a.get_legend_handles_labels()[0]:
             a.legend(fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    return path
+    return _finish_curves(fig, (a0, a1, a2), path, title)
 
 
 def plot_experiment_curves(series: list[tuple[str, list[dict]]], path: str | Path, title: str = "") -> Path | None:
@@ -188,17 +180,19 @@ def plot_experiment_curves(series: list[tuple[str, list[dict]]], path: str | Pat
                 a.plot(x, s * y, color=c, lw=1.1, alpha=0.85, **kw)
     a0.set_title("return per training episode", fontsize=9)
     a1.set_title("SR of training episodes (%)", fontsize=9)
-    for a in (a0, a1):
+    a1.legend(fontsize=7)
+    return _finish_curves(fig, (a0, a1), path, title)
+
+
+def _finish_curves(fig, axes, path: str | Path, title: str) -> Path:
+    """Shared look of the learning-curve figures (x: environment steps), then an atomic PNG write."""
+    for a in axes:
         a.set_xlabel("environment steps", fontsize=8)
         a.tick_params(labelsize=7)
         a.grid(alpha=0.3)
-    a1.legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    return path
+    return atomic_save_figure(fig, path, dpi=90)
 
 
 def read_log(run_dir: str | Path) -> list[dict]:

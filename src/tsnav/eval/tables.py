@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_save_figure
+
 SUBSETS = ("ALL", "L>=5")
 """Episode subsets of every table: all episodes, and those with optimal length of at least 5 actions."""
 
@@ -117,7 +119,4 @@ def plot_threshold(results: dict, path: str | Path) -> Path | None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6)
     axes[0].set_ylabel("%", fontsize=8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    return path
+    return atomic_save_figure(fig, path, dpi=100)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..atomic import atomic_write_bytes
 from .data import MAX_DEPTH, denormalize_rgb, target_to_depth
 from .model import MaskedAutoencoderViT
 
@@ -64,9 +66,7 @@ def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depth
     grid = (np.clip(grid, 0, 1) * 255).round().astype(np.uint8)
     scale = max(1, 96 // s)  # small frames are enlarged so the picture can be read
     img = Image.fromarray(grid).resize((grid.shape[1] * scale, grid.shape[0] * scale), Image.NEAREST)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    img.save(tmp, format="PNG")
-    tmp.replace(path)
+    buf = io.BytesIO()
+    img.save(buf, format="PNG")
+    atomic_write_bytes(path, buf.getvalue())
     return grid

@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 import shapely
 
+from ..atomic import atomic_save_figure
 from ..constants import CATEGORY_INDEX, TARGET_CATEGORIES
 from .area import scene_floor, trapezoid
 from .reward import RewardConfig
@@ -139,7 +140,4 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     fig.legend(loc="outside right upper", fontsize=7, framealpha=0.8)
     ax.set_title(title or f"{scene.name}: target {name}, {len(states) - 1} steps, searched {region.area:.2f} m$^2$",
                  fontsize=9)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    return path
+    return atomic_save_figure(fig, path, dpi=dpi)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_save_figure
 from ..cli import CommandError
 from ..constants import TARGET_CATEGORIES
 
@@ -102,9 +103,7 @@ def show_scene(scene_dir: str | Path, out: str | Path, size: int = 128) -> Path:
             if k == 0:
                 a.set_ylabel(("RGB", "depth (m)", "instance ids")[row], fontsize=8)
     fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
+    out = atomic_save_figure(fig, out)
     plt.close(fig)
     return out
 
