@@ -13,13 +13,7 @@ from tsnav.pretrain.synthetic import write_synthetic_dataset
 from tsnav.pretrain.train import PretrainConfig, save_encoder, train
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Small tensors: one thread is faster, and the CI machine's two cores are shared."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture()

@@ -4,20 +4,13 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from tsnav.pretrain.features import load_encoder
 from tsnav.pretrain.probe import ProbeConfig, average_precision, probe_encoder, ridge_fit, ridge_predict
 from tsnav.pretrain.synthetic import write_synthetic_dataset
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Small tensors: one thread is faster, and the CI machine's two cores are shared."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def slow_ap(s, y):

@@ -10,13 +10,7 @@ from safetensors.torch import load_file
 from tsnav.pretrain.model import MAEConfig, MaskedAutoencoderViT, load_encoder_weights
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Small tensors: one thread is faster, and the CI machine's two cores are shared."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 FIX = Path(__file__).parent / "fixtures" / "pretrain"
 

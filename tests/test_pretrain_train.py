@@ -12,13 +12,7 @@ from tsnav.pretrain.synthetic import write_synthetic_dataset
 from tsnav.pretrain.train import PretrainConfig, lr_at, train
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Small tensors: one thread is faster, and the CI machine's two cores are shared."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 TINY = dict(model="vit_micro", patch_size=8, img_size=16, log_every=1, viz_images=0)
 
