@@ -31,7 +31,7 @@ from .batched import ProgressBar, new_progress
 from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .logger import LogWindow, RunLogger
-from .rollout import RolloutCollector, a2c_loss, gae
+from .rollout import RolloutCollector, collect_and_loss
 from .world import load_bank, make_model, make_observer, make_train_env
 
 
@@ -68,9 +68,7 @@ def a3c_update(local: ActorCritic, shared: ActorCritic, optimizer: torch.optim.O
     """One worker update (steps 1-3 of the module docstring); returns ``(loss parts, rollout)``."""
     local.load_state_dict(shared.state_dict())
     local.train()
-    ro = collector.collect(cfg.rollout_steps)
-    adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished, cfg.gamma, cfg.gae_tau)
-    loss, parts = a2c_loss(ro, adv, ret, cfg.entropy_coef, cfg.value_coef)
+    ro, loss, parts = collect_and_loss(collector, cfg)
     local.zero_grad(set_to_none=True)
     loss.backward()
     parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(local.parameters(), cfg.max_grad_norm))

@@ -33,7 +33,7 @@ from .config import TrainConfig
 from .distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
                           init_distributed)
 from .logger import LogWindow, RunLogger
-from .rollout import RolloutCollector, a2c_loss, gae
+from .rollout import RolloutCollector, collect_and_loss
 from .world import load_bank, make_model, make_observer, make_train_env, resolve_device
 
 
@@ -112,9 +112,7 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     try:
         while True:
             model.train()
-            ro = collector.collect(cfg.rollout_steps)
-            adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished, cfg.gamma, cfg.gae_tau)
-            loss, parts = a2c_loss(ro, adv, ret, cfg.entropy_coef, cfg.value_coef)
+            ro, loss, parts = collect_and_loss(collector, cfg)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             allreduce_gradients(model, info)

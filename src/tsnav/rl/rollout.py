@@ -201,3 +201,12 @@ def a2c_loss(ro: Rollout, advantages: torch.Tensor, returns: torch.Tensor, entro
     loss = policy - entropy_coef * entropy + value_coef * value
     return loss, {"loss": loss.item(), "policy_loss": policy.item(), "value_loss": value.item(),
                   "entropy": entropy.item() / ro.reward.shape[0]}
+
+
+def collect_and_loss(collector: "RolloutCollector", cfg) -> tuple[Rollout, torch.Tensor, dict[str, float]]:
+    """One rollout of ``cfg.rollout_steps`` and its actor-critic loss (GAE with ``cfg.gamma`` / ``cfg.gae_tau``,
+    :func:`a2c_loss` with ``cfg.entropy_coef`` / ``cfg.value_coef``): the step both trainers share."""
+    ro = collector.collect(cfg.rollout_steps)
+    adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished, cfg.gamma, cfg.gae_tau)
+    loss, parts = a2c_loss(ro, adv, ret, cfg.entropy_coef, cfg.value_coef)
+    return ro, loss, parts
