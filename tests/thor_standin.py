@@ -32,7 +32,7 @@ import h5py
 import networkx as nx
 import numpy as np
 
-from tsnav.constants import (CAMERA_HEIGHT, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES,
+from tsnav.constants import (CAMERA_HEIGHT, object_id, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES,
                              ROTATE_LEFT, ROTATE_RIGHT)
 from tsnav.data.reader import load_scene
 
@@ -91,7 +91,7 @@ class StandInController:
             objs.append((o["objectId"], o["objectType"], o["inst"], aabb(b["center"], b["size"], b["yaw"]), o["position"]))
         for f in s.meta["furniture"]:
             cx, cy, cz = f["center"]
-            oid = f"{f['category']}|{cx:+06.2f}|{cy:+06.2f}|{cz:+06.2f}"
+            oid = object_id(f["category"], cx, cy, cz)
             objs.append((oid, f["category"], f["inst"], aabb(f["center"], f["size"], f["yaw"]), {"x": cx, "y": cy, "z": cz}))
         self.objects = objs
         rng = np.random.default_rng(0)

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..constants import (FIELD_OF_VIEW, GRID_SIZE, HORIZONS, ROTATE_STEP, ROTATIONS, TARGET_CATEGORIES,
                          VISIBILITY_DISTANCE, state_key)
-from .lineage import derive_floor
+from .lineage import derive_floor, visible_object_map
 from .reader import COMPLETE_MARKER, SceneFormatError, load_scene
 from .thor_import import _scene_info
 from .writer import MIN_PIXEL_FRACTION, box_distance, min_pixels, object_stats
@@ -317,7 +317,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
         vis = (pixels >= min_px) & (distance <= cfg.visibility_distance)
         order = np.argsort(keys, kind="stable")
         keys_s = keys[order]
-        vis_map = {o["objectId"]: keys_s[vis[order, j]].tolist() for j, o in enumerate(objects)}
+        vis_map = visible_object_map([o["objectId"] for o in objects], keys_s, vis[order])
         _write_json(tmp / "visible_object_map_1.5.json", vis_map)
         _write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(raw[i, 1]), "z": float(kz[i])} for i in positions])
         _write_json(tmp / "graph.json", {"directed": True, "multigraph": False, "graph": {},

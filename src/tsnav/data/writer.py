@@ -21,6 +21,7 @@ from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
 from ..world.house import generate
 from ..world.navgrid import build_graph, reachable_positions
 from ..world.spec import SceneSpec
+from .lineage import visible_object_map
 from .reader import COMPLETE_MARKER
 
 #: Minimum share of the frame an object must cover to count as seen (AI2-THOR casts rays; we count pixels).
@@ -213,7 +214,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer=None)
         keys_s, pixels_s, boxes_s, distance_s = keys[order], pixels[order], boxes[order], distance[order]
         min_px = cfg.min_pixels()
         vis = (pixels_s >= min_px) & (distance_s <= VISIBILITY_DISTANCE)
-        vis_map = {o.objectId: keys_s[vis[:, j]].tolist() for j, o in enumerate(objects)}
+        vis_map = visible_object_map([o.objectId for o in objects], keys_s, vis)
         _write_json(tmp / "visible_object_map_1.5.json", vis_map)
         _write_json(tmp / "grid.json", [{"x": float(x), "y": GRID_Y, "z": float(z)} for x, z in positions])
         _write_json(tmp / "graph.json", {"directed": True, "multigraph": False, "graph": {},

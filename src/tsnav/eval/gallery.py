@@ -23,7 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from ..atomic import atomic_save_figure, atomic_write_text
-from ..constants import ACTIONS, CATEGORY_INDEX, DONE
+from ..constants import ACTION_ORDER, ACTIONS, CATEGORY_INDEX, DONE, OLD_ACTION_ORDER, action_permutation
 from .metrics import EpisodeRecord
 from .runner import EvalConfig, evaluate
 
@@ -43,6 +43,8 @@ class Trajectory:
     switch_frame: int = -1
     """First frame whose target confidence exceeded C_target (the pathfinding stage starts there), or -1."""
     success: bool = False
+    action_order: str = ACTION_ORDER
+    """The order ``actions`` are written in (``constants.ACTION_ORDER``); files without it are from the old order."""
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
@@ -115,13 +117,19 @@ def write_trajectories(path: str | Path, trajectories: Sequence[Trajectory]) -> 
 
 
 def read_trajectories(path: str | Path) -> list[Trajectory]:
+    """Trajectories of a JSON Lines file, action ids converted to ``constants.ACTIONS`` (lines without an
+    ``action_order`` were written in ``constants.OLD_ACTION_ORDER``); ``ValueError`` naming the line otherwise."""
     out = []
     with open(path) as f:
         for i, line in enumerate(f, 1):
             if line.strip():
                 try:
-                    out.append(Trajectory(**json.loads(line)))
-                except (json.JSONDecodeError, TypeError) as e:
+                    d = json.loads(line)
+                    order = d.pop("action_order", OLD_ACTION_ORDER)
+                    perm = action_permutation(order)
+                    d["actions"] = [int(perm[a]) for a in d["actions"]]
+                    out.append(Trajectory(**d))
+                except (json.JSONDecodeError, TypeError, KeyError, IndexError, ValueError) as e:
                     raise ValueError(f"{path}:{i}: not a trajectory ({e})") from None
     return out
 
