@@ -155,12 +155,11 @@ def default_name(spec: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
 
 
-def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
-                   bar=None) -> np.ndarray:
-    """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order."""
+def iter_scene_features(encoder: Encoder, scene_dir: Path, keys, batch_size: int = 64):
+    """Yield ``(start, features)`` batches: float32 ``(b, C, h, w)`` features of the frames ``keys[start:start + b]``
+    of ``scene_dir/images.hdf5``, each frame resized to ``encoder.img_size`` and ImageNet-normalised."""
     import h5py
 
-    out = None
     with h5py.File(scene_dir / "images.hdf5", "r") as fi:
         missing = [k for k in keys[:] if k not in fi]
         if missing:
@@ -168,12 +167,19 @@ def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_si
         for a in range(0, len(keys), batch_size):
             rgb = torch.from_numpy(np.stack([fi[k][()] for k in keys[a:a + batch_size]])).permute(0, 3, 1, 2)
             x = normalize_rgb(resize_rgb(rgb, encoder.img_size).to(encoder.device))
-            f = encoder.encode(x).float().cpu().numpy().astype(np.float16)  # [b, C, h, w]
-            if out is None:
-                out = np.empty((len(keys),) + f.shape[1:], dtype=np.float16)
-            out[a:a + len(f)] = f
-            if bar is not None:
-                bar.update(len(f))
+            yield a, encoder.encode(x).float().cpu().numpy()
+
+
+def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
+                   bar=None) -> np.ndarray:
+    """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order."""
+    out = None
+    for a, f in iter_scene_features(encoder, scene_dir, keys, batch_size):
+        if out is None:
+            out = np.empty((len(keys),) + f.shape[1:], dtype=np.float16)
+        out[a:a + len(f)] = f.astype(np.float16)
+        if bar is not None:
+            bar.update(len(f))
     return out
 
 
