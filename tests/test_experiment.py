@@ -31,7 +31,7 @@ class StandInTrainer:
         import torch
 
         from tsnav.rl.checkpoint import save_checkpoint
-        from tsnav.rl.world import load_bank, make_model, make_observer
+        from tsnav.rl.assemble import load_bank, make_model, make_observer
 
         self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
         run_dir.mkdir(parents=True, exist_ok=True)

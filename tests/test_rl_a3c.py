@@ -11,7 +11,7 @@ from tsnav.rl.checkpoint import latest_checkpoint, load_checkpoint
 from tsnav.rl.config import TrainConfig
 from tsnav.rl.logger import read_log
 from tsnav.rl.rollout import RolloutCollector, a2c_loss, gae, replay
-from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
+from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
 
 from conftest import PIXEL_FEATURES as FEATS
 

@@ -14,7 +14,7 @@ from tsnav.rl.checkpoint import latest_checkpoint, list_checkpoints, load_checkp
 from tsnav.rl.config import TrainConfig
 from tsnav.rl.logger import read_log
 from tsnav.rl.rollout import RolloutCollector, gae, gae_reference
-from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
+from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
 
 from conftest import PIXEL_FEATURES as FEATS
 

@@ -25,7 +25,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 def load_bank_for_episodes(data, episodes, **bank_kwargs):
     """A :class:`SceneBank` of exactly the scenes an episode list refers to (folders ``data/<scene>``)."""
-    from ..cli import CommandError
+    from ..errors import CommandError
     from ..data.reader import is_complete, load_scene
     from ..sim.batch import SceneBank
 
@@ -40,7 +40,7 @@ def load_bank_for_episodes(data, episodes, **bank_kwargs):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cli import CommandError
+    from ..errors import CommandError
     from ..sim.episodes import read_episodes
     from .metrics import format_table, summarize, write_json, write_records
     from .policies import make_policy

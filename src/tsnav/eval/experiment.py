@@ -258,7 +258,7 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
     oracle configuration; returns the number of scenes written."""
     from ..data.reader import list_scenes, load_scene
     from ..detect.oracle import OracleConfig, oracle_detections
-    from ..detect.table import read_fingerprint, write_detections
+    from ..data.detections import read_fingerprint, write_detections
 
     cfg = OracleConfig()
     fp = cfg.fingerprint()
@@ -278,7 +278,7 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
 def ensure_detections(data: str | Path, name: str) -> None:
     """Oracle tables are computed when missing; other tables must exist in every scene."""
     from ..data.reader import list_scenes
-    from ..detect.table import detections_path
+    from ..data.detections import detections_path
 
     if name == "oracle":
         n = ensure_oracle_detections(data, name)
@@ -287,7 +287,7 @@ def ensure_detections(data: str | Path, name: str) -> None:
         return
     missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
     if missing:
-        from ..cli import CommandError
+        from ..errors import CommandError
 
         raise CommandError(f"scene {missing[0]} has no detections_{name}.hdf5 (run `tsnav detect --name {name}`)")
 
@@ -419,12 +419,8 @@ TrainFn = Callable[[object, object, Path], object]
 
 def default_train_fn() -> TrainFn:
     """The trainer of :mod:`tsnav.rl` (resumable run folders with ``config.json``, checkpoints, ``log.jsonl``)."""
-    try:
-        from ..rl.train import train_run
-    except ImportError as e:
-        from ..cli import CommandError
+    from ..rl.train import train_run
 
-        raise CommandError(f"the agent trainer is not available in this version ({e})") from None
     return train_run
 
 
@@ -651,7 +647,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cli import CommandError
+    from ..errors import CommandError
 
     if not Path(args.data).is_dir():
         raise CommandError(f"--data {args.data}: no such dataset folder")

@@ -216,9 +216,7 @@ def eval_bank(meta: dict, episodes):
     bank = load_bank_for_episodes(meta["data"], episodes, success_distance=float(meta.get("success_distance", 1.0)),
                                   c_target=float(cfg.get("c_target", 0.7)))
     if meta.get("detections"):
-        from ..detect.table import install_detections
-
-        install_detections(bank, meta["detections"])
+        bank.install_detections(meta["detections"])
     return bank
 
 
@@ -571,7 +569,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cli import CommandError
+    from ..errors import CommandError
 
     if args.gallery < 0:
         raise CommandError("--gallery must be >= 0")
