@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from tsnav.eval.experiment import Experiment, ExperimentConfig, ScaleConfig, experiment_rows, train_config_for
+from tsnav.eval.experiment import Experiment, train_config_for
+from tsnav.eval.experiment_config import ExperimentConfig, ScaleConfig, experiment_rows
 from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
 from tsnav.eval.metrics import METRICS
 

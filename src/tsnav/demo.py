@@ -160,7 +160,8 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     """Run the demo into ``out``; returns ``{"stages": {name: (status, seconds)}, "results": {label: summary}}``.
 
     ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
-    from .eval.experiment import ensure_oracle_detections, evaluate_to_folder
+    from .eval.stage_cache import ensure_oracle_detections
+    from .eval.runner import evaluate_to_folder
     from .eval.metrics import write_json
 
     cfg = cfg or DemoConfig()
@@ -238,7 +239,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     ep_file = out / "test_episodes.json"
 
     def do_episodes():
-        from .eval.experiment import ensure_episodes
+        from .eval.stage_cache import ensure_episodes
         from .sim.episodes import read_episodes
 
         ensure_episodes(world, "test", ep_file, cfg.test_per_room_type)
@@ -253,7 +254,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     def do_train():
         from .agent import agent_config
-        from .eval.report import read_log
+        from .rl.logger import read_log
         from .rl.config import TrainConfig
         from .rl.train import train_run
 
