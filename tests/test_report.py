@@ -162,7 +162,7 @@ def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
     gets the very same episodes."""
     from test_experiment import StandInTrainer
     from tsnav.agent import agent_config
-    from tsnav.agent.pixels import cache_pixel_features
+    from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.config import TrainConfig
 
     cache_pixel_features(tiny_world, "report_px", grid=4)
