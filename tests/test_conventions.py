@@ -164,7 +164,7 @@ def test_old_checkpoint_is_converted_on_load(tmp_path, capsys):
 
 
 def test_old_trajectories_are_converted_on_read(tmp_path):
-    from tsnav.eval.gallery import Trajectory, read_trajectories, write_trajectories
+    from tsnav.eval.runner import Trajectory, read_trajectories, write_trajectories
 
     t = Trajectory(episode=0, scene="FloorPlan1", target="Bowl", keys=["a", "b", "c", "d"],
                    actions=[LOOK_DOWN, LOOK_UP, DONE])

@@ -20,11 +20,11 @@ from tsnav.cli import main
 from tsnav.constants import ACTIONS, DONE, NUM_ACTIONS, TARGET_CATEGORIES
 from tsnav.data import lineage as L
 from tsnav.data import lineage_splits as LS
-from tsnav.data.lineage_export import optimal_actions, optimal_actions_reference, write_splits
+from tsnav.sim.lineage import optimal_actions, optimal_actions_reference, write_splits
 from tsnav.data.reader import load_scene
 from tsnav.data.thor_export import check_lineage_dataset, check_lineage_layout
 from tsnav.detect.oracle import oracle_detections
-from tsnav.detect.table import write_detections
+from tsnav.data.detections import write_detections
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -19,22 +19,20 @@ builtin containers and scalars and numpy's array reconstruction: a pickle that n
 Success radius: the lineage's evaluator counts success by its visibility map (in view within 1.5 m); the
 paper's rule (and tsnav's default) is 1.0 m. A list made for one radius can hold starts from which the
 other rule already succeeds. The radius a list was made for is written beside the lists in
-:data:`INFO_FILE`; :func:`episodes_from_splits` computes optimal lengths for the radius it is given.
+:data:`INFO_FILE`; :func:`tsnav.sim.lineage.episodes_from_splits` turns lists into tsnav episodes with the
+optimal lengths of the radius it is given.
 """
 
 from __future__ import annotations
 
 import io
-import json
-import os
 import pickle
-import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, TARGET_CATEGORIES
+from ..atomic import atomic_write_bytes, atomic_write_json
+from ..constants import CATEGORY_INDEX
 
 #: Room-type names of the split files (``{room}_{split}_22.pkl``).
 SPLIT_ROOMS = ("kitchen", "living_room", "bedroom", "bathroom")
@@ -69,15 +67,7 @@ def write_split(path: str | Path, records: list[dict]) -> Path:
     """Pickle ``records`` (plain dicts, lists, strings, numpy arrays) to ``path``, atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            pickle.dump(list(records), f, protocol=4)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(path, pickle.dumps(list(records), protocol=4))
     return path
 
 
@@ -176,81 +166,6 @@ def scene_base_name(name: str) -> str:
     return name[: -len("_physics")] if name.endswith("_physics") else name
 
 
-@dataclass
-class SplitImport:
-    """What :func:`episodes_from_splits` kept and dropped."""
-
-    read: int = 0
-    kept: int = 0
-    dropped: dict = field(default_factory=dict)
-    """reason -> count: ``scene not in DATA``, ``start not a state``, ``target not in scene``, ``target
-    unreachable``, ``start already succeeds``."""
-
-    def drop(self, why: str) -> None:
-        self.dropped[why] = self.dropped.get(why, 0) + 1
-
-    def summary(self) -> str:
-        """One line: read, kept, and the dropped counts by reason."""
-        drops = ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items(), key=lambda kv: -kv[1]))
-        return (f"{self.read} episodes read, {self.kept} kept, {self.read - self.kept} dropped"
-                + (f" ({drops})" if drops else ""))
-
-
-def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0):
-    """tsnav episodes (:class:`tsnav.sim.episodes.Episode`) of the lineage's split files ``paths`` for the
-    scenes present in the dataset folder ``data``; returns ``(episodes, SplitImport)``.
-
-    An episode is dropped (and counted by reason) when its scene is not in ``data``, its start is not a
-    state of the scene, the scene has no success state of its target (no such object, or not a target
-    category), the start cannot reach one, or the start already succeeds under ``success_distance`` (no
-    path to measure). The optimal length is L* of the start state for ``success_distance``.
-    """
-    from ..sim.batch import SceneBank
-    from ..sim.episodes import Episode
-    from ..sim.paths import UNREACHABLE
-    from .reader import list_scenes, load_scene
-
-    records = []
-    for p in paths:
-        records += read_split(p)
-    stats = SplitImport(read=len(records))
-    folders = {scene_base_name(d.name): d for d in list_scenes(data)}
-    wanted = sorted({scene_base_name(r["scene"]) for r in records} & set(folders))
-    if not wanted:
-        for _ in records:
-            stats.drop("scene not in DATA")
-        return [], stats
-    bank = SceneBank([load_scene(folders[n]) for n in wanted], success_distance=success_distance)
-    index = {scene_base_name(n): i for i, n in enumerate(bank.names)}
-    out = []
-    for r in records:
-        name = scene_base_name(r["scene"])
-        if name not in index:
-            stats.drop("scene not in DATA")
-            continue
-        i = index[name]
-        try:
-            s = bank.global_state(i, r["state"])
-        except (KeyError, ValueError, IndexError):
-            stats.drop("start not a state")
-            continue
-        c = CATEGORY_INDEX.get(r["goal_object_type"])
-        if c is None or not bank.present[i, c] or not bank.success[bank.scene_of == i, c].any():
-            stats.drop("target not in scene")
-            continue
-        d = int(bank.dist[s, c])
-        if d == UNREACHABLE:
-            stats.drop("target unreachable")
-            continue
-        if d == 0:
-            stats.drop("start already succeeds")
-            continue
-        out.append(Episode(scene=bank.names[i], target=TARGET_CATEGORIES[c], start=r["state"], optimal_length=d,
-                           room_type=bank.room_types[i]))
-    stats.kept = len(out)
-    return out, stats
-
-
 def split_records(bank, episodes) -> list[dict]:
     """The lineage's records of tsnav ``episodes`` over ``bank``: ``task_data`` lists the scene's object ids of
     the target type that its visibility map lists (the objects the lineage's evaluator and planner look up)."""
@@ -270,12 +185,10 @@ def split_records(bank, episodes) -> list[dict]:
 def write_split_info(folder: str | Path, info: dict) -> Path:
     """Write :data:`INFO_FILE` into the split folder (atomic)."""
     path = Path(folder) / INFO_FILE
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(info, indent=1) + "\n")
-    os.replace(tmp, path)
+    atomic_write_json(path, info, sort_keys=False)
     return path
 
 
-__all__ = ["GLOVE_SHAPE", "INFO_FILE", "NUM_CATEGORIES", "RestrictedUnpickler", "SPLIT_NAMES", "SPLIT_ROOMS",
-           "SplitFormatError", "SplitImport", "UnsafePickle", "episodes_from_splits", "read_split", "safe_load",
-           "split_file_name", "split_record", "split_records", "target_one_hot", "write_split", "write_split_info"]
+__all__ = ["GLOVE_SHAPE", "INFO_FILE", "RestrictedUnpickler", "SPLIT_NAMES", "SPLIT_ROOMS", "SplitFormatError",
+           "UnsafePickle", "read_split", "safe_load", "scene_base_name", "split_file_name", "split_record",
+           "split_records", "target_one_hot", "write_split", "write_split_info"]

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from ..data import lineage as L
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
 from .resnet import ResNet18, load_resnet_weights
@@ -236,6 +237,60 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
             if t.exists():
                 t.unlink()
     return sorted(written)
+
+
+def _h5_attr(path: Path, name: str):
+    """A file attribute of an HDF5 file as a str (None when absent or unreadable)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            v = f.attrs.get(name)
+    except OSError:
+        return None
+    return v.decode() if isinstance(v, bytes) else v
+
+
+def write_resnet_features(scene_dir: str | Path, encoder, keys, batch_size: int = 16, bar=None,
+                          overwrite: bool = False) -> bool:
+    """Write the lineage's ``resnet18_featuremap.hdf5`` into ``scene_dir``: one float32 ``(1, 512, 7, 7)`` dataset per
+    state key of ``keys``, ResNet18's last feature map of the frame resized to 224 x 224 (ImageNet-normalised, as
+    :func:`cache_features`); atomic (temporary file renamed when complete).
+
+    ``encoder``: an :class:`Encoder` of arch ``resnet18`` with input size 224.
+    Returns False when the file exists and was made by the same encoder (fingerprint) and ``overwrite`` is
+    off; raises ``ValueError`` for another encoder's file without ``overwrite``.
+    """
+    import h5py
+
+    if encoder.arch != "resnet18" or encoder.img_size != L.RESNET_INPUT_SIZE:
+        raise ValueError(f"the lineage's {L.RESNET_FILE} holds ResNet18 maps of {L.RESNET_INPUT_SIZE}px frames; "
+                         f"encoder {encoder.spec} is {encoder.arch} at {encoder.img_size}px")
+    scene_dir = Path(scene_dir)
+    out = scene_dir / L.RESNET_FILE
+    if out.exists() and not overwrite:
+        fp = _h5_attr(out, "fingerprint")
+        if fp == encoder.fingerprint:
+            return False
+        raise ValueError(f"{out} exists and was made by another encoder ({fp}); pass --overwrite to replace it")
+    tmp = out.with_name(f".{out.name}.partial-{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w") as f:
+            for a, feats in iter_scene_features(encoder, scene_dir, keys, batch_size):
+                if feats.shape[1:] != L.RESNET_SHAPE[1:]:
+                    raise ValueError(f"encoder {encoder.spec} gives {feats.shape[1:]} maps, expected {L.RESNET_SHAPE[1:]}")
+                for k, x in zip(keys[a:a + len(feats)], feats):
+                    f.create_dataset(str(k), data=x[None].astype(np.float32), track_times=False)
+                if bar is not None:
+                    bar.update(len(feats))
+            f.attrs["encoder"] = encoder.spec
+            f.attrs["fingerprint"] = encoder.fingerprint
+            f.attrs["input_size"] = L.RESNET_INPUT_SIZE
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return True
 
 
 def h5py_str(x) -> str:

@@ -1,5 +1,8 @@
 """``tsnav thor``: AI2-THOR interoperability (docs/AI2THOR.md).
 
+It lives in ``eval`` because ``export-lineage`` and ``episodes`` draw on every layer below (scene format,
+simulator episodes and shortest paths, the ResNet18 encoder); the format work itself is in ``tsnav.data``.
+
     tsnav thor import SRC --out DST            lineage offline data (one scene folder or a folder of them)
     tsnav thor check DIR ... [--complete] [--image-size 300]   departures from the lineage's layout (a scene
                                                folder, or a dataset folder: every scene and test_val_split/)
@@ -14,7 +17,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cli import CommandError
+from ..errors import CommandError
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -73,7 +76,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from .reader import SceneFormatError
+    from ..data.reader import SceneFormatError
 
     try:
         return {"import": _import, "check": _check, "export-detections": _export_detections,
@@ -83,7 +86,7 @@ def run(args) -> int:
 
 
 def _import(args) -> int:
-    from .thor_import import ImportConfig, import_lineage_dataset
+    from ..data.thor_import import ImportConfig, import_lineage_dataset
 
     out = Path(args.out)
     try:
@@ -109,16 +112,14 @@ def _import(args) -> int:
 
 
 def _check(args) -> int:
-    from .lineage import GRAPH_FILE
-    from .thor_export import check_lineage_dataset, check_lineage_layout
+    from ..data.lineage import GRAPH_FILE
+    from ..data.thor_export import check_lineage_dataset, check_lineage_layout
 
     bad = 0
     for d in args.scene_dirs:
         p = Path(d)
-        if p.is_dir() and not (p / GRAPH_FILE).exists():
+        if p.is_dir() and not (p / GRAPH_FILE).exists() and any((c / GRAPH_FILE).exists() for c in p.iterdir()):
             report = {f"{d.rstrip('/')}/{k}": v for k, v in check_lineage_dataset(p, args.complete, args.image_size).items()}
-            if len(report) == 1:
-                report = {d: [f"no scene folder (holding {GRAPH_FILE}) here"]}
         else:
             report = {d: check_lineage_layout(d, args.complete, args.image_size)}
         for name, problems in report.items():
@@ -171,7 +172,8 @@ def _export_lineage(args) -> int:
 
 def _episodes(args) -> int:
     from ..sim.episodes import write_episodes
-    from .lineage_splits import SplitFormatError, episodes_from_splits
+    from ..data.lineage_splits import SplitFormatError
+    from ..sim.lineage import episodes_from_splits
 
     out = Path(args.out)
     if not Path(args.data).is_dir():
@@ -193,7 +195,7 @@ def _episodes(args) -> int:
 
 
 def _export_detections(args) -> int:
-    from .thor_export import export_detections_22x264
+    from ..data.thor_export import export_detections_22x264
 
     path = export_detections_22x264(args.scene_dir, args.detections, args.out, box_size=args.box_size)
     print(f"wrote {path}")
@@ -201,7 +203,7 @@ def _export_detections(args) -> int:
 
 
 def _export_live(args) -> int:
-    from .thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
+    from ..data.thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
 
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     if not scenes:
