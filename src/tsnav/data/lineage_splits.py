@@ -25,6 +25,7 @@ optimal lengths of the radius it is given.
 
 from __future__ import annotations
 
+import builtins
 import io
 import pickle
 from pathlib import Path
@@ -99,8 +100,6 @@ class RestrictedUnpickler(pickle.Unpickler):
 
     def find_class(self, module: str, name: str):
         if module in ("builtins", "__builtin__") and name in _BUILTINS:
-            import builtins
-
             return getattr(builtins, name)
         if module == "_codecs" and name == "encode":  # bytes in protocol 2 pickles of numpy arrays
             return _latin1_encode

@@ -13,11 +13,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import h5py
 import numpy as np
 
-from ..constants import HORIZONS, ROTATIONS
+from ..constants import HORIZONS, NUM_ACTIONS, ROTATIONS, TARGET_CATEGORIES, parse_state_keys
 from . import lineage as L
-from .reader import SceneFormatError, edge_actions
+from . import lineage_splits as LS
+from .detections import Detections
+from .reader import SceneFormatError, edge_actions, list_scenes, load_scene
+
 
 #: At most this many problems are reported per check (a broken file would otherwise list every state).
 MAX_REPORTED = 5
@@ -79,8 +83,6 @@ def _check_graph(d: Path, problems: list[str]) -> list[str] | None:
     ok = [(a, b) for a, b in links if a in node_set and b in node_set and isinstance(a, str) and isinstance(b, str)
           and L.KEY_PATTERN.match(a) and L.KEY_PATTERN.match(b)]
     if ok:
-        from ..constants import parse_state_keys
-
         x0, z0, r0, h0 = parse_state_keys([a for a, _ in ok])
         x1, z1, r1, h1 = parse_state_keys([b for _, b in ok])
         act = edge_actions(x0, z0, r0, h0, x1, z1, r1, h1)
@@ -162,8 +164,6 @@ def check_lineage_layout(scene_dir: str | Path, complete: bool = False, image_si
 def _check_detection_rows(path: Path, problems: list[str]) -> None:
     """Content of a 22 x 264 table: labels integers 1..23 (0 is filed under the last class by the lineage's
     ``table[label - 1]`` readers), boxes of every row inside the 300 px frame (no -1 markers)."""
-    import h5py
-
     if not path.exists():
         return
     name, n = path.name, 0
@@ -193,8 +193,6 @@ def _check_detection_rows(path: Path, problems: list[str]) -> None:
 
 def _check_optimal_actions(path: Path, nodes, problems: list[str]) -> None:
     """``optimal_action.json``: {state key of the graph: {target type of the 22: action id 0..5}}."""
-    from ..constants import NUM_ACTIONS, TARGET_CATEGORIES
-
     if not path.exists():
         return
     name = path.name
@@ -227,8 +225,6 @@ def _check_optimal_actions(path: Path, nodes, problems: list[str]) -> None:
 def check_lineage_dataset(root: str | Path, complete: bool = False, image_size: int | None = None) -> dict[str, list[str]]:
     """:func:`check_lineage_layout` of every scene folder of ``root`` (key: scene name) and of the episode lists
     (key ``test_val_split``; :func:`check_lineage_splits`). ``complete``: the lists must be there too."""
-    from .reader import list_scenes
-
     root = Path(root)
     out = {}
     dirs = sorted(p for p in root.iterdir() if p.is_dir() and (p / L.GRAPH_FILE).exists()) if root.is_dir() else []
@@ -245,9 +241,6 @@ def check_lineage_splits(root: str | Path, scene_dirs, required: bool = False) -
     episode dicts (read with the restricted unpickler) whose scene is a folder of ``root``, state a state of
     it, goal type one of the 22, task_data object ids of the scene's visibility map of that type, and
     glove_embedding a float ``(60, 1)`` one-hot array."""
-    from ..constants import TARGET_CATEGORIES
-    from . import lineage_splits as LS
-
     folder = Path(root) / L.SPLIT_DIR
     files = sorted(folder.glob("*_22.pkl")) if folder.is_dir() else []
     if not files:
@@ -295,8 +288,6 @@ def check_lineage_splits(root: str | Path, scene_dirs, required: bool = False) -
 
 def _check_h5(path: Path, nodes, problems: list[str], kind: str, required_all: bool = False,
               size: int | None = None) -> None:
-    import h5py
-
     if not path.exists():
         return
     name = path.name
@@ -359,11 +350,6 @@ def export_detections_22x264(scene_dir: str | Path, detections_file: str | Path,
     labels and features, and for boxes whenever ``box_size / image_size`` is a power-of-two fraction (as
     300 / 64) or 1.
     """
-    from .detections import Detections
-    from .reader import load_scene
-
-    import h5py
-
     scene_dir = Path(scene_dir)
     p = Path(detections_file)
     if not p.is_absolute() and not p.exists():

@@ -17,7 +17,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..data.lineage import GRAPH_FILE
+from ..data.lineage_splits import SplitFormatError
+from ..data.reader import SceneFormatError
+from ..data.thor_export import check_lineage_dataset, check_lineage_layout, export_detections_22x264
+from ..data.thor_import import ImportConfig, import_lineage_dataset
+from ..data.thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
 from ..errors import CommandError
+from ..sim.episodes import write_episodes
+from ..sim.lineage import episodes_from_splits
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -76,8 +84,6 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from ..data.reader import SceneFormatError
-
     try:
         return {"import": _import, "check": _check, "export-detections": _export_detections,
                 "export-live": _export_live, "export-lineage": _export_lineage, "episodes": _episodes}[args.action](args)
@@ -86,8 +92,6 @@ def run(args) -> int:
 
 
 def _import(args) -> int:
-    from ..data.thor_import import ImportConfig, import_lineage_dataset
-
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -112,9 +116,6 @@ def _import(args) -> int:
 
 
 def _check(args) -> int:
-    from ..data.lineage import GRAPH_FILE
-    from ..data.thor_export import check_lineage_dataset, check_lineage_layout
-
     bad = 0
     for d in args.scene_dirs:
         p = Path(d)
@@ -133,7 +134,7 @@ def _check(args) -> int:
 
 
 def _export_lineage(args) -> int:
-    from .lineage_export import export_lineage
+    from .lineage_export import export_lineage  # imports torch: only this subcommand encodes frames
 
     data = Path(args.data)
     if not data.is_dir():
@@ -145,7 +146,7 @@ def _export_lineage(args) -> int:
         raise CommandError("--success-distance must be in (0, 10] m and --per-room-type >= 1")
     encoder = None
     if args.encoder is not None:
-        from ..pretrain.features import load_encoder
+        from ..pretrain.features import load_encoder  # torch, as above
 
         try:
             encoder = load_encoder(args.encoder, img_size=224, device=args.device)
@@ -171,10 +172,6 @@ def _export_lineage(args) -> int:
 
 
 def _episodes(args) -> int:
-    from ..sim.episodes import write_episodes
-    from ..data.lineage_splits import SplitFormatError
-    from ..sim.lineage import episodes_from_splits
-
     out = Path(args.out)
     if not Path(args.data).is_dir():
         raise CommandError(f"--data {args.data}: no such dataset folder")
@@ -195,16 +192,12 @@ def _episodes(args) -> int:
 
 
 def _export_detections(args) -> int:
-    from ..data.thor_export import export_detections_22x264
-
     path = export_detections_22x264(args.scene_dir, args.detections, args.out, box_size=args.box_size)
     print(f"wrote {path}")
     return 0
 
 
 def _export_live(args) -> int:
-    from ..data.thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
-
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     if not scenes:
         raise CommandError("--scenes names no scene")

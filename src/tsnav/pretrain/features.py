@@ -32,14 +32,19 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 import torch
 import torch.nn as nn
+from tqdm import tqdm
 
 from ..data import lineage as L
+from ..data.reader import list_scenes, load_scene
+from .checkpoint import load_tensors
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
 from .resnet import ResNet18, load_resnet_weights
+from .train import resolve_device
 
 
 @dataclass
@@ -89,8 +94,6 @@ def _vit_from_config(cfg: dict) -> MaskedAutoencoderViT:
 def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_size: int = 224,
                  device: str | torch.device = "cpu") -> Encoder:
     """Build the frozen encoder named by ``spec`` (see the module docstring for the forms)."""
-    from .checkpoint import load_tensors
-
     kind, _, rest = spec.partition(":")
     if kind == "untrained" and rest:
         torch.manual_seed(0)
@@ -159,8 +162,6 @@ def default_name(spec: str) -> str:
 def iter_scene_features(encoder: Encoder, scene_dir: Path, keys, batch_size: int = 64):
     """Yield ``(start, features)`` batches: float32 ``(b, C, h, w)`` features of the frames ``keys[start:start + b]``
     of ``scene_dir/images.hdf5``, each frame resized to ``encoder.img_size`` and ImageNet-normalised."""
-    import h5py
-
     with h5py.File(scene_dir / "images.hdf5", "r") as fi:
         missing = [k for k in keys[:] if k not in fi]
         if missing:
@@ -190,11 +191,6 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
 
     Returns the feature files (written or already present).
     """
-    import h5py
-    from tqdm import tqdm
-
-    from ..data.reader import list_scenes, load_scene
-
     scenes = [p for p in list_scenes(root, split=split)]
     if not scenes:
         raise ValueError(f"{root}: no complete scene folder" + (f" of split {split}" if split else ""))
@@ -241,8 +237,6 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
 
 def _h5_attr(path: Path, name: str):
     """A file attribute of an HDF5 file as a str (None when absent or unreadable)."""
-    import h5py
-
     try:
         with h5py.File(path, "r") as f:
             v = f.attrs.get(name)
@@ -261,8 +255,6 @@ def write_resnet_features(scene_dir: str | Path, encoder, keys, batch_size: int 
     Returns False when the file exists and was made by the same encoder (fingerprint) and ``overwrite`` is
     off; raises ``ValueError`` for another encoder's file without ``overwrite``.
     """
-    import h5py
-
     if encoder.arch != "resnet18" or encoder.img_size != L.RESNET_INPUT_SIZE:
         raise ValueError(f"the lineage's {L.RESNET_FILE} holds ResNet18 maps of {L.RESNET_INPUT_SIZE}px frames; "
                          f"encoder {encoder.spec} is {encoder.arch} at {encoder.img_size}px")
@@ -299,8 +291,6 @@ def h5py_str(x) -> str:
 
 def read_features(scene_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray, dict]:
     """``(features (S, C, h, w) float16, keys (S,) str, attrs)`` of a scene's feature cache."""
-    import h5py
-
     f = Path(scene_dir) / f"features_{name}.hdf5"
     if not f.exists():
         raise FileNotFoundError(f"{f}: no feature cache (run `tsnav features`)")
@@ -325,8 +315,6 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .train import resolve_device
-
     enc = load_encoder(args.encoder, args.model, args.patch, args.img_size, resolve_device(args.device))
     name = args.name or default_name(args.encoder)
     files = cache_features(enc, args.data, name, args.batch_size, args.split, args.overwrite, not args.quiet)
