@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +37,7 @@ import torch
 import torch.nn as nn
 from tqdm import tqdm
 
+from ..atomic import atomic_path
 from ..data import lineage as L
 from ..data.reader import list_scenes, load_scene
 from .checkpoint import load_tensors
@@ -217,21 +217,15 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
         for p, keys in scenes_keys:
             feats = scene_features(encoder, p, keys, batch_size, bar)
             f = p / f"features_{name}.hdf5"
-            tmp = p / f".features_{name}.hdf5.tmp"
-            with h5py.File(tmp, "w") as h:
+            with atomic_path(f) as tmp, h5py.File(tmp, "w") as h:
                 h.create_dataset("features", data=feats)
                 h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
                 for k, v in encoder.attrs().items():
                     h.attrs[k] = v
                 h.attrs["channels"], h.attrs["grid"] = int(feats.shape[1]), int(feats.shape[2])
-            os.replace(tmp, f)
             written.append(f)
     finally:
         bar.close()
-        for p, _ in scenes_keys:
-            t = p / f".features_{name}.hdf5.tmp"
-            if t.exists():
-                t.unlink()
     return sorted(written)
 
 
@@ -265,23 +259,17 @@ def write_resnet_features(scene_dir: str | Path, encoder, keys, batch_size: int 
         if fp == encoder.fingerprint:
             return False
         raise ValueError(f"{out} exists and was made by another encoder ({fp}); pass --overwrite to replace it")
-    tmp = out.with_name(f".{out.name}.partial-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            for a, feats in iter_scene_features(encoder, scene_dir, keys, batch_size):
-                if feats.shape[1:] != L.RESNET_SHAPE[1:]:
-                    raise ValueError(f"encoder {encoder.spec} gives {feats.shape[1:]} maps, expected {L.RESNET_SHAPE[1:]}")
-                for k, x in zip(keys[a:a + len(feats)], feats):
-                    f.create_dataset(str(k), data=x[None].astype(np.float32), track_times=False)
-                if bar is not None:
-                    bar.update(len(feats))
-            f.attrs["encoder"] = encoder.spec
-            f.attrs["fingerprint"] = encoder.fingerprint
-            f.attrs["input_size"] = L.RESNET_INPUT_SIZE
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(out) as tmp, h5py.File(tmp, "w") as f:
+        for a, feats in iter_scene_features(encoder, scene_dir, keys, batch_size):
+            if feats.shape[1:] != L.RESNET_SHAPE[1:]:
+                raise ValueError(f"encoder {encoder.spec} gives {feats.shape[1:]} maps, expected {L.RESNET_SHAPE[1:]}")
+            for k, x in zip(keys[a:a + len(feats)], feats):
+                f.create_dataset(str(k), data=x[None].astype(np.float32), track_times=False)
+            if bar is not None:
+                bar.update(len(feats))
+        f.attrs["encoder"] = encoder.spec
+        f.attrs["fingerprint"] = encoder.fingerprint
+        f.attrs["input_size"] = L.RESNET_INPUT_SIZE
     return True
 
 
