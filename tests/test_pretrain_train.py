@@ -9,7 +9,8 @@ import torch.multiprocessing as mp
 
 from tsnav.checkpoint import load_tensors
 from tsnav.pretrain.synthetic import write_synthetic_dataset
-from tsnav.pretrain.train import PretrainConfig, lr_at, train
+from tsnav.pretrain.train import PretrainConfig, train
+from tsnav.schedule import warmup_cosine as lr_at
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -30,6 +31,7 @@ def test_lr_schedule_by_hand():
     assert lr_at(0, 10, 1.0, 2) == 0.5 and lr_at(1, 10, 1.0, 2) == 1.0
     assert lr_at(2, 10, 1.0, 2) == pytest.approx(1.0)
     assert lr_at(6, 10, 1.0, 2, 0.0) == pytest.approx(0.5)  # half-way through the cosine
+    assert lr_at(10, 10, 1.0, 2, 0.1) == pytest.approx(0.1) and lr_at(50, 10, 1.0, 2, 0.1) == pytest.approx(0.1)
 
 
 @pytest.mark.parametrize("method", ["demae", "demae-crop"])

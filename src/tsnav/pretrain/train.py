@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import signal
 import threading
@@ -47,6 +46,7 @@ from tqdm import tqdm
 
 from ..constants import NUM_CATEGORIES
 from ..distributed import DistInfo, init_distributed, resolve_device
+from ..schedule import warmup_cosine
 from ..checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors, read_json,
                           resume_newest, save_tensors)
 from .data import AugmentConfig, BatchView, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
@@ -188,15 +188,6 @@ def save_encoder(model: nn.Module, path: str | Path, method: str) -> None:
 # ---------------------------------------------------------------------------------------------------------
 # Schedule, sharding, distributed set-up
 # ---------------------------------------------------------------------------------------------------------
-
-
-def lr_at(step: int, total: int, peak: float, warmup: int, min_lr: float = 0.0) -> float:
-    """Learning rate of optimiser step ``step`` (0-based): linear warm-up to ``peak`` over ``warmup`` steps,
-    then half-cosine from ``peak`` to ``min_lr`` at step ``total``."""
-    if step < warmup:
-        return peak * (step + 1) / warmup
-    t = (step - warmup) / max(1, total - warmup)
-    return min_lr + (peak - min_lr) * 0.5 * (1.0 + math.cos(math.pi * t))
 
 
 def step_seed(seed: int, step: int) -> int:
@@ -444,7 +435,7 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
             aug = draw_augment(gen, G, aug_cfg)
             noise = torch.rand(G, L, generator=gen) if L else None
             for g in opt.param_groups:
-                g["lr"] = lr_at(step, total, peak, warmup, cfg.min_lr)
+                g["lr"] = warmup_cosine(step, total, peak, warmup, cfg.min_lr)
             sums: dict[str, torch.Tensor] = {}
             for m in range(A):
                 batch = next(loader)
