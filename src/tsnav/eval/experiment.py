@@ -211,6 +211,9 @@ class ExperimentConfig:
     """Added to the job seeds (repeat an experiment with other seeds)."""
     parallel: int = 1
     """Jobs trained at once, each in its own process (use 2 on two idle cores; progress bars are then off)."""
+    sample: bool = False
+    """Evaluate the agents by sampling their actions (seeded) instead of the greedy argmax, the lineage's
+    test-time rule."""
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -380,10 +383,11 @@ def ensure_features(es: EncoderSpec, data: str | Path, splits: list[str], batch_
 
 def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
                        run: str | Path | None = None, detections: str | None = None, c_target: float = 0.7,
-                       seed: int = 0, label: str | None = None, max_steps: int = 100) -> dict:
+                       seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
-    :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). Returns the :func:`summarize` result."""
+    :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
+    lineage's test-time rule) unless ``sample``. Returns the :func:`summarize` result."""
     from ..sim.episodes import read_episodes
     from .gallery import record_trajectories, write_trajectories
     from .report import eval_bank, eval_policy
@@ -393,6 +397,7 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     episodes, emeta = read_episodes(episodes_file)
     config = EvalConfig(max_steps=max_steps, c_target=c_target)
     meta = {"policy": "agent" if run else policy, "run": str(Path(run).resolve()) if run else None, "seed": seed,
+            "sample": bool(sample),
             "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
             "success_distance": float(emeta.get("success_distance", 1.0)), "detections": detections,
             "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
@@ -460,7 +465,9 @@ class Job:
 
 
 #: experiment.json fields that must match when an experiment folder is resumed.
-IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset")
+IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample")
+#: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled).
+LEGACY_IDENTITY = {"sample": True}
 
 
 class Experiment:
@@ -501,9 +508,10 @@ class Experiment:
             except (OSError, ValueError) as e:
                 raise ValueError(f"{p}: unreadable experiment file ({e}); use another --out or remove it") from None
             for k in IDENTITY:
-                if old.get("config", {}).get(k) != d.get(k):
+                was = old.get("config", {}).get(k, LEGACY_IDENTITY.get(k))
+                if was != d.get(k):
                     raise ValueError(f"{self.out} holds the {old.get('experiment')!r} experiment with another {k} "
-                                     f"({old.get('config', {}).get(k)!r}, now {d.get(k)!r}); use another --out")
+                                     f"({was!r}, now {d.get(k)!r}); use another --out")
         doc = {"format": "tsnav-experiment", "experiment": self.cfg.experiment, "description": self.info["description"],
                "scale": self.cfg.scale, "seeds": self.cfg.seeds, "config": d, "scale_config": asdict(self.scale),
                "rows": [asdict(r) for r in self.rows], "gallery_row": self.info["gallery_row"],
@@ -564,7 +572,8 @@ class Experiment:
         t1 = time.perf_counter()
         summary = evaluate_to_folder(jd / "eval", self.cfg.data, self.episodes_file, run=jd / "train",
                                      detections=self.cfg.detections, c_target=job.row.c_target, seed=job.seed,
-                                     label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps)
+                                     label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps,
+                                     sample=self.cfg.sample)
         done = {"row": job.row.id, "seed": job.seed, "train_seconds": t1 - t0,
                 "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}}
         write_json(jd / "DONE", done)
@@ -647,6 +656,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="jobs trained at once, each in its own process (default 1; 2 on two idle cores)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: the cores not busy with other processes)")
+    parser.add_argument("--sample", action="store_true",
+                        help="evaluate agents by sampling their actions instead of the greedy argmax (the lineage's "
+                             "test-time rule, the default)")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
 
 
@@ -665,7 +677,8 @@ def run(args: argparse.Namespace) -> int:
                            minutes_per_job=args.minutes_per_job, updates_per_job=args.updates_per_job,
                            pretrain_dir=args.pretrain_dir,
                            detections=args.detections, vc1_weights=args.vc1_weights,
-                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel)
+                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
+                           sample=args.sample)
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     exp = Experiment(cfg)

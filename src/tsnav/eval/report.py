@@ -224,7 +224,9 @@ def eval_bank(meta: dict, episodes):
 
 def eval_policy(meta: dict, bank):
     """The policy of an evaluation folder: the trained agent of ``meta["run"]`` (or of a ``run:PATH`` policy, as
-    ``tsnav eval --run`` records it) or a scripted policy."""
+    ``tsnav eval --run`` records it) or a scripted policy. The agent acts greedily unless ``meta["sample"]`` is
+    true; folders written before that key existed were evaluated by sampling, so a missing key means
+    sampling (a re-roll must reproduce the recorded episodes)."""
     from .policies import make_policy
 
     seed = int(meta.get("seed", 0))
@@ -233,7 +235,7 @@ def eval_policy(meta: dict, bank):
     if run:
         from ..rl.checkpoint import load_policy
 
-        return load_policy(run, bank, seed=seed)
+        return load_policy(run, bank, greedy=not bool(meta.get("sample", True)), seed=seed)
     return make_policy(name, bank, seed=seed,
                        c_target=float(meta.get("config", {}).get("c_target", 0.7)))
 
