@@ -5,10 +5,11 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from tsnav.cli import main
 from tsnav.eval.policies import Policy
-from tsnav.eval.runner import EvalConfig, evaluate
+from tsnav.eval.runner import EvalConfig, eval_policy, evaluate
 from tsnav.rl.checkpoint import list_checkpoints, load_policy
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.episodes import read_episodes
@@ -93,8 +94,6 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
 def test_greedy_is_the_default_and_takes_the_argmax(trained):
     """Evaluation is greedy by default (the lineage's test-time rule): the action is the argmax of the
     policy's logits, and the seed does not matter."""
-    import torch
-
     world, run = trained
     bank = SceneBank.from_root(world, "test")
     pol = load_policy(run, bank, seed=1)
@@ -111,8 +110,6 @@ def test_greedy_is_the_default_and_takes_the_argmax(trained):
     other = load_policy(run, bank, seed=2)
     assert np.array_equal(other.act({"state": states, "target": targets}), first)
     # report re-rolls: greedy when the folder recorded greedy, sampled for folders that predate the key
-    from tsnav.eval.report import eval_policy
-
     assert eval_policy({"run": str(run), "seed": 0, "sample": False}, bank).greedy
     assert not eval_policy({"run": str(run), "seed": 0, "sample": True}, bank).greedy
     assert not eval_policy({"run": str(run), "seed": 0}, bank).greedy

@@ -26,8 +26,14 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic
+from ..agent.observe import DetectionTable, Observer, load_bank_features
+from ..data.detections import load_scene_detections
 from ..pretrain.checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors,
                                    save_tensors)
+from .assemble import install
+from .config import TrainConfig
+from .policy import AgentPolicy
+
 
 CKPT = "checkpoints"
 MODEL_FORMAT = "tsnav-agent"
@@ -179,11 +185,6 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, d
     ``prob.argmax`` at test time and sample only while training); ``greedy=False`` samples from the policy with
     a generator seeded by ``seed`` instead. ``checkpoint`` picks a checkpoint folder other than the latest.
     """
-    from ..agent.observe import DetectionTable, Observer, load_bank_features
-    from .config import TrainConfig
-    from .policy import AgentPolicy
-    from .world import install
-
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
     model, _ = load_model(run_dir, checkpoint)
     det_features = None
@@ -191,8 +192,6 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, d
         if bank.detections is None:
             det_features = install(bank, cfg.detections)
         else:
-            from ..detect.table import load_scene_detections
-
             det_features = load_scene_detections(bank.scenes, cfg.detections).features
     features = load_bank_features(bank, cfg.features)
     if tuple(features.shape[1:]) != model.feature_shape:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .house import ithor_scenes, robothor_scenes
+from ..data.names import ithor_scenes, robothor_scenes
 
 PRESETS = {
     # a handful of small rooms, seconds to build: for tests
