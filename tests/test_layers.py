@@ -14,6 +14,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "tsnav"
 #: import each other.
 LAYERS: list[set[str]] = [
     {"constants", "errors", "atomic"},
+    {"metrics"},
     {"render"},
     {"data"},
     {"world"},

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +37,7 @@ import torch
 import torch.nn as nn
 from tqdm import tqdm
 
+from ..atomic import atomic_path
 from ..data.reader import list_scenes, load_scene
 from .checkpoint import load_tensors
 from .data import normalize_rgb, resize_rgb
@@ -210,21 +210,15 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
         for p, keys in scenes_keys:
             feats = scene_features(encoder, p, keys, batch_size, bar)
             f = p / f"features_{name}.hdf5"
-            tmp = p / f".features_{name}.hdf5.tmp"
-            with h5py.File(tmp, "w") as h:
+            with atomic_path(f) as tmp, h5py.File(tmp, "w") as h:
                 h.create_dataset("features", data=feats)
                 h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
                 for k, v in encoder.attrs().items():
                     h.attrs[k] = v
                 h.attrs["channels"], h.attrs["grid"] = int(feats.shape[1]), int(feats.shape[2])
-            os.replace(tmp, f)
             written.append(f)
     finally:
         bar.close()
-        for p, _ in scenes_keys:
-            t = p / f".features_{name}.hdf5.tmp"
-            if t.exists():
-                t.unlink()
     return sorted(written)
 
 

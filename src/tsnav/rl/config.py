@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+from ..constants import C_TARGET
 from ..tsrm.reward import VARIANTS
 
 ALGOS = ("a3c", "batched")
@@ -56,7 +57,7 @@ class TrainConfig:
     """A3C: worker processes, one episode each (paper: 14)."""
     seed: int = 0
     """Seed of initialisation, episode sampling, dropout and actions (rank / worker offsets are added)."""
-    c_target: float = 0.7
+    c_target: float = C_TARGET
     """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
     success_distance: float = 1.0
     """Done succeeds with the target in view within this many metres (paper III-A)."""
