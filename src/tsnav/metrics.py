@@ -19,13 +19,14 @@ Records are exchanged as JSON Lines, one :class:`EpisodeRecord` per line.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
 from .atomic import atomic_write_text
+from .errors import from_fields
 
 #: Metric names, in the paper's table order.
 METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
@@ -68,11 +69,7 @@ class EpisodeRecord:
 
     @classmethod
     def from_dict(cls, d: dict) -> "EpisodeRecord":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown episode record field(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
+        return from_fields(cls, d, "episode record")
 
 
 def ratio(opt: np.ndarray, actual: np.ndarray) -> np.ndarray:

@@ -26,7 +26,6 @@ Encoder specs (``--encoder``):
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,11 +38,11 @@ from tqdm import tqdm
 
 from ..atomic import atomic_path
 from ..data.reader import list_scenes, load_scene
-from .checkpoint import load_tensors
+from ..checkpoint import load_tensors, weights_digest
+from ..distributed import resolve_device
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
 from .resnet import ResNet18, load_resnet_weights
-from .train import resolve_device
 
 
 @dataclass
@@ -74,13 +73,9 @@ class Encoder:
 
 
 def _fingerprint(module: nn.Module) -> str:
-    h = hashlib.sha256()
-    for k, v in sorted(module.state_dict().items()):
-        if k.startswith(("decoder", "mask_token", "fc.")):
-            continue
-        h.update(k.encode())
-        h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()[:16]
+    """Identifies an encoder: :func:`~tsnav.checkpoint.weights_digest` of its weights without the decoder (first
+    16 hex digits)."""
+    return weights_digest(module.state_dict(), skip=("decoder", "mask_token", "fc."))[:16]
 
 
 def _vit_from_config(cfg: dict) -> MaskedAutoencoderViT:

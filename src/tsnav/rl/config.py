@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 from ..constants import C_TARGET
+from ..errors import from_fields
 from ..tsrm.reward import VARIANTS
 
 ALGOS = ("a3c", "batched")
@@ -130,11 +131,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown training config field(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
+        return from_fields(cls, d, "training config")
 
     def identity(self) -> dict:
         """The fields that define the run (everything but the budget)."""
