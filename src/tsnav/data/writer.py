@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
-from ..world.house import generate
 from ..world.navgrid import build_graph, reachable_positions
+from ..world.presets import scene_spec
 from ..world.spec import SceneSpec
 from .reader import COMPLETE_MARKER
 
@@ -45,6 +45,7 @@ class BuildConfig:
     depth_dtype: str = "float16"  #: dtype of depth.hdf5 (metres); float16 keeps datasets small
     compression: str | None = None  #: HDF5 filter for images (None or "gzip"; lzf output is not byte-reproducible)
     compact: bool = False  #: small rooms (the `tiny` preset)
+    world: str = "procedural"  #: layout source: "procedural" or "ithor-real" (tsnav.world.presets.WORLDS)
     seed: int = 0  #: world seed; the same name and seed give the same scene
     tiles: int = 16  #: views rendered per framebuffer read
 
@@ -146,7 +147,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer=None)
         stats.skipped = True
         return stats
     t0 = time.perf_counter()
-    spec: SceneSpec = generate(name, seed=cfg.seed, compact=cfg.compact)
+    spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact)
     positions, move = reachable_positions(spec)
     nodes, edges = build_graph(positions, move)
     js = spec.to_json()

@@ -55,7 +55,8 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
         scene_info(n)  # validates the name
     if cfg is None:
         p = PRESETS.get(preset or "", {})
-        cfg = BuildConfig(image_size=p.get("image_size", 64), compact=p.get("compact", False))
+        cfg = BuildConfig(image_size=p.get("image_size", 64), compact=p.get("compact", False),
+                          world=p.get("world", "procedural"))
     check_output_dir(out)
     # Leftovers of interrupted builds are never complete: remove them.
     for stale in out.glob(".*.partial-*"):
