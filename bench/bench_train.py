@@ -53,7 +53,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from tsnav.agent import agent_config
-    from tsnav.agent.pixels import cache_pixel_features
+    from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.a3c import train_a3c
     from tsnav.rl.batched import train_batched
     from tsnav.rl.config import TrainConfig

@@ -11,8 +11,7 @@ import argparse
 import tempfile
 import time
 
-from tsnav.data.writer import BuildConfig
-from tsnav.world.build import build_dataset
+from tsnav.world.build import BuildConfig, build_dataset
 
 
 def main() -> None:

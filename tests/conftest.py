@@ -36,7 +36,7 @@ PIXEL_FEATURES = "rltest_px"
 @pytest.fixture(scope="session")
 def pixel_world(tiny_world):
     """The tiny world with :data:`PIXEL_FEATURES` cached (4x4 colour grids: agents train in seconds)."""
-    from tsnav.agent.pixels import cache_pixel_features
+    from tsnav.pretrain.pixels import cache_pixel_features
 
     cache_pixel_features(tiny_world, PIXEL_FEATURES, grid=4)
     return tiny_world

@@ -62,15 +62,3 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     st = {s: res3["stages"][s][0] for s in STAGES}
     assert st["train"] == "reused" and st["evaluate"] == "done" and st["report"] == "done"
     assert (out / "eval" / "random" / "metrics.json").exists()
-
-
-def test_demo_without_trainer_marks_training_pending(tmp_path, tiny_world, monkeypatch, capsys):
-    import tsnav.demo as demo
-
-    monkeypatch.setattr(demo, "_train_available", lambda: "no trainer in this test")
-    out = tmp_path / "demo"
-    shutil.copytree(tiny_world, out / "world")
-    res = run_demo(out, TINY)
-    assert res["stages"]["train"][0] == "pending"
-    assert list(res["results"]) == ["scripted explorer", "random"]
-    assert "PENDING: the agent trainer has not landed" in capsys.readouterr().out

@@ -10,7 +10,7 @@ import pytest
 
 from tsnav.cli import main
 from tsnav.data.reader import list_scenes, load_scene
-from tsnav.detect.table import load_detections
+from tsnav.data.detections import load_detections
 
 
 @pytest.fixture()

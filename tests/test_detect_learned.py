@@ -13,7 +13,7 @@ from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
 from tsnav.detect.model import (DetectorConfig, GridDetector, dense_targets, dense_targets_reference,
                                 detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
-from tsnav.detect.train import (TrainConfig, apply_gains, batch_plan, calibrate, fit_temperature, load_model,
+from tsnav.detect.train import (DetectorTrainConfig, apply_gains, batch_plan, calibrate, fit_temperature, load_model,
                                 lr_at, predict, read_meta, train_detector)
 
 torch.set_num_threads(1)
@@ -116,7 +116,7 @@ def test_frames_and_targets(tiny_world, tiny_frames, tiny_scenes):
 
 
 def test_batch_plan_and_colour_gains():
-    cfg = TrainConfig(batch_size=32, color_jitter=0.2, brightness=0.1)
+    cfg = DetectorTrainConfig(batch_size=32, color_jitter=0.2, brightness=0.1)
     a, b = batch_plan(7, 100, cfg), batch_plan(7, 100, cfg)
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)  # a function of (seed, step) only
@@ -130,14 +130,14 @@ def test_batch_plan_and_colour_gains():
 
 
 def test_lr_schedule():
-    cfg = TrainConfig(steps=100, warmup=10, lr=1.0, min_lr_ratio=0.1)
+    cfg = DetectorTrainConfig(steps=100, warmup=10, lr=1.0, min_lr_ratio=0.1)
     assert lr_at(0, cfg) == pytest.approx(0.1) and lr_at(9, cfg) == pytest.approx(1.0)
     assert lr_at(10, cfg) == pytest.approx(1.0) and lr_at(100, cfg) == pytest.approx(0.1)
     assert lr_at(55, cfg) == pytest.approx(0.1 + 0.9 * 0.5)
 
 
 def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_path):
-    cfg = TrainConfig(steps=40, batch_size=16, lr=3e-3, warmup=5, log_every=5, checkpoint_every=100, threads=1)
+    cfg = DetectorTrainConfig(steps=40, batch_size=16, lr=3e-3, warmup=5, log_every=5, checkpoint_every=100, threads=1)
     small = DetectorConfig(widths=(8, 16, 32), dim=32)
 
     def full_loss(model) -> float:
@@ -156,11 +156,11 @@ def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_pa
     assert [h["step"] for h in hist] == list(range(5, 41, 5))
 
     # 6 steps at once == 3 steps, then resumed to 6 (weights, BatchNorm statistics and AdamW state).
-    cfg6 = TrainConfig(steps=6, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
+    cfg6 = DetectorTrainConfig(steps=6, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
     train_detector(tiny_world, tmp_path / "once", cfg6, small, frames=tiny_frames, progress=False)
-    cfg3 = TrainConfig(steps=3, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
+    cfg3 = DetectorTrainConfig(steps=3, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
     train_detector(tiny_world, tmp_path / "twice", cfg3, small, frames=tiny_frames, progress=False)
-    r = train_detector(tiny_world, tmp_path / "twice", TrainConfig(steps=6, threads=1), frames=tiny_frames,
+    r = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=6, threads=1), frames=tiny_frames,
                        progress=False)
     assert (r.start_step, r.step) == (3, 6)
     ma, _ = load_model(tmp_path / "once")
@@ -169,7 +169,7 @@ def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_pa
     for (k, a), b in zip(ma.state_dict().items(), mb.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=k)
     # Already finished: returns at once.
-    again = train_detector(tiny_world, tmp_path / "twice", TrainConfig(steps=6), frames=tiny_frames, progress=False)
+    again = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=6), frames=tiny_frames, progress=False)
     assert again.start_step == again.step == 6
 
 
@@ -188,7 +188,7 @@ def test_fit_temperature_recovers_a_known_temperature():
 def test_learned_table(tiny_world, tiny_frames, tiny_scenes, tmp_path):
     from tsnav.detect.learned import LearnedDetector
 
-    cfg = TrainConfig(steps=4, batch_size=8, warmup=1, threads=1)
+    cfg = DetectorTrainConfig(steps=4, batch_size=8, warmup=1, threads=1)
     small = DetectorConfig(widths=(8, 16, 32), dim=32)
     train_detector(tiny_world, tmp_path / "c", cfg, small, frames=tiny_frames, progress=False)
     t = calibrate(tiny_world, tmp_path / "c", frames=tiny_frames)

@@ -9,7 +9,7 @@ import pytest
 
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.oracle import oracle_detections
-from tsnav.detect.table import (Detections, detections_path, install_detections, load_detections,
+from tsnav.data.detections import (Detections, detections_path, load_detections,
                                 load_scene_detections, write_detections)
 
 
@@ -75,7 +75,7 @@ def test_oracle_tables_follow_scene_keys_and_install_into_bank(tiny_scenes, tmp_
         write_detections(d, "oracle", oracle_detections(s))
         scenes.append(dataclasses.replace(s, path=d))
     bank = SceneBank(scenes, cache=False)
-    det = install_detections(bank, "oracle")
+    det = bank.install_detections("oracle")
     assert det.num_states == bank.num_states
     np.testing.assert_array_equal(det.keys, bank.keys)
     for i, s in enumerate(scenes):

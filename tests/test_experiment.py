@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from tsnav.eval.experiment import Experiment, ExperimentConfig, ScaleConfig, experiment_rows, train_config_for
+from tsnav.eval.experiment import Experiment, train_config_for
+from tsnav.eval.experiment_config import ExperimentConfig, ScaleConfig, experiment_rows
 from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
 from tsnav.eval.metrics import METRICS
 
@@ -31,7 +32,7 @@ class StandInTrainer:
         import torch
 
         from tsnav.rl.checkpoint import save_checkpoint
-        from tsnav.rl.world import load_bank, make_model, make_observer
+        from tsnav.rl.assemble import load_bank, make_model, make_observer
 
         self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
         run_dir.mkdir(parents=True, exist_ok=True)

@@ -139,8 +139,7 @@ def test_packaged_layouts_and_notice():
 
 def test_real_scene_build_is_deterministic(tmp_path):
     from tsnav.data.reader import load_scene
-    from tsnav.world.build import build_dataset
-    from tsnav.data.writer import BuildConfig
+    from tsnav.world.build import BuildConfig, build_dataset
 
     cfg = BuildConfig(image_size=32, world="ithor-real")
     for d in ("a", "b"):

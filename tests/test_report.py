@@ -10,8 +10,8 @@ from PIL import Image
 
 from tsnav.cli import main
 from tsnav.constants import CATEGORY_INDEX, DONE
-from tsnav.eval.gallery import (key_frames, read_trajectories, record_trajectories, select_episodes,
-                                write_trajectories)
+from tsnav.eval.gallery import key_frames, select_episodes
+from tsnav.eval.runner import read_trajectories, record_trajectories, write_trajectories
 from tsnav.eval.metrics import EpisodeRecord, read_records
 from tsnav.eval.policies import make_policy
 from tsnav.eval.report import build_report, plot_learning_curves, scan
@@ -102,7 +102,7 @@ def _fake_train_run(d, n=12):
 
 def test_learning_curves_png(tmp_path):
     _fake_train_run(tmp_path / "run")
-    from tsnav.eval.report import read_log
+    from tsnav.rl.logger import read_log
 
     log = read_log(tmp_path / "run")
     assert len(log) == 12
@@ -162,7 +162,7 @@ def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
     gets the very same episodes."""
     from test_experiment import StandInTrainer
     from tsnav.agent import agent_config
-    from tsnav.agent.pixels import cache_pixel_features
+    from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.config import TrainConfig
 
     cache_pixel_features(tiny_world, "report_px", grid=4)

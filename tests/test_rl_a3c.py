@@ -10,8 +10,9 @@ from tsnav.rl.a3c import SharedAdam, a3c_update, train_a3c
 from tsnav.rl.checkpoint import latest_checkpoint, load_checkpoint
 from tsnav.rl.config import TrainConfig
 from tsnav.rl.logger import read_log
-from tsnav.rl.rollout import RolloutCollector, a2c_loss, gae, replay
-from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
+from tsnav.rl.rollout import RolloutCollector, a2c_loss, gae
+from rl_helpers import replay
+from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
 
 from conftest import PIXEL_FEATURES as FEATS
 

@@ -14,7 +14,7 @@ from tsnav.rl.checkpoint import latest_checkpoint, list_checkpoints, load_checkp
 from tsnav.rl.config import TrainConfig
 from tsnav.rl.logger import read_log
 from tsnav.rl.rollout import RolloutCollector, gae, gae_reference
-from tsnav.rl.world import load_bank, make_model, make_observer, make_train_env
+from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
 
 from conftest import PIXEL_FEATURES as FEATS
 
@@ -110,7 +110,8 @@ def test_collector_bootstraps_from_the_final_observation(world):
 def test_an_update_lowers_the_loss_of_its_rollout(world):
     from dataclasses import replace
 
-    from tsnav.rl.rollout import a2c_loss, replay
+    from rl_helpers import replay
+    from tsnav.rl.rollout import a2c_loss
 
     cfg = _cfg(world, num_envs=16, rollout_steps=10)
     bank, _ = load_bank(cfg)

@@ -179,7 +179,8 @@ def test_bad_input(bank):
 
 
 def test_make_env_from_config():
-    from tsnav.sim.batch import SimConfig, make_env
+    from tsnav.sim.batch import SimConfig
+    from tsnav.sim.episodes import make_env
 
     env = make_env(toy_scenes(), 4, SimConfig(success_distance=1.5, max_steps=30), seed=0)
     assert env.bank.success_distance == 1.5 and env.max_steps == 30 and env.autoreset

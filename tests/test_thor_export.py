@@ -13,7 +13,7 @@ from tsnav.constants import NUM_CATEGORIES
 from tsnav.data import lineage as L
 from tsnav.data.reader import SceneFormatError, list_scenes, load_scene
 from tsnav.data.thor_export import check_lineage_layout, export_detections_22x264
-from tsnav.detect.table import Detections, write_detections
+from tsnav.data.detections import Detections, write_detections
 
 
 def test_tsnav_scenes_pass_the_lineage_layout_check(tiny_world):

@@ -113,7 +113,7 @@ def test_import_writes_floor_objects_and_detections(imported, original, lineage_
         assert rec["position"]["x"] == pytest.approx(float(o["objectId"].split("|")[1]))
     assert set(np.asarray(imported.object_category)[imported.object_category >= 0]) <= set(range(NUM_CATEGORIES))
     # detections in the detect stage's layout, equal to the hand-built lineage rows
-    from tsnav.detect.table import load_detections, load_scene_detections
+    from tsnav.data.detections import load_detections, load_scene_detections
 
     det = load_detections(imported.path, "lineage")
     assert np.array_equal(det.keys, imported.keys) and det.image_size == 300

@@ -10,7 +10,7 @@ import shapely
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.data import lineage as L
 from tsnav.data.reader import SceneFormatError
-from tsnav.detect.table import Detections
+from tsnav.data.detections import Detections
 
 
 def test_parse_object_id_ai2thor_forms():

@@ -20,7 +20,8 @@ from tsnav.constants import (ACTIONS, GRID_SIZE, MOVE_AHEAD, parse_state_key, pa
                              state_key)
 from tsnav.data.reader import SceneFormatError, edge_actions, load_scene
 from tsnav.data.writer import box_distance, object_stats, object_stats_reference
-from tsnav.world.house import generate, ithor_scenes, robothor_scenes, scene_info
+from tsnav.data.names import ithor_scenes, robothor_scenes, scene_info
+from tsnav.world.house import generate
 from tsnav.world.navgrid import AGENT_RADIUS
 
 
@@ -164,7 +165,7 @@ def test_reader_arrays_agree_with_json(tiny_scenes):
 
 
 def test_determinism_two_builds_identical(tmp_path):
-    from tsnav.data.writer import BuildConfig
+    from tsnav.world.build import BuildConfig
     from tsnav.world.build import build_dataset
 
     cfg = BuildConfig(image_size=32, compact=True)
@@ -179,14 +180,14 @@ def test_determinism_two_builds_identical(tmp_path):
 def test_interrupted_build_resumes(tmp_path):
     """A build killed mid-way leaves no complete-looking partial scene; rerunning finishes the rest."""
     out = tmp_path / "w"
-    code = ("import os, tsnav.data.writer as w\n"
-            "orig = w.build_scene\n"
+    code = ("import os, tsnav.world.build as b\n"
+            "orig = b.build_scene\n"
             "def boom(name, *a, **k):\n"
             "    if name == 'FloorPlan402':\n"
             "        (lambda: os._exit(3))()\n"
             "    return orig(name, *a, **k)\n"
-            "import tsnav.world.build as b; b.build_scene = boom\n"
-            "from tsnav.data.writer import BuildConfig\n"
+            "b.build_scene = boom\n"
+            "from tsnav.world.build import BuildConfig\n"
             f"b.build_dataset({str(out)!r}, scenes=['FloorPlan401', 'FloorPlan402'], cfg=BuildConfig(image_size=32, compact=True), progress=False)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True)
     assert r.returncode == 3
@@ -194,7 +195,7 @@ def test_interrupted_build_resumes(tmp_path):
     # a half-written temporary folder from a kill inside the writer is never taken for a scene
     (out / ".FloorPlan402.partial-99").mkdir()
     from tsnav.data.reader import list_scenes
-    from tsnav.data.writer import BuildConfig
+    from tsnav.world.build import BuildConfig
     from tsnav.world.build import build_dataset
 
     assert [p.name for p in list_scenes(out)] == ["FloorPlan401"]

@@ -11,6 +11,8 @@ import argparse
 import importlib
 import sys
 
+from .errors import CommandError
+
 #: subcommand -> (module, one-line help)
 COMMANDS = {
     "world": ("tsnav.world.command", "build an offline dataset of procedurally generated houses"),
@@ -26,10 +28,6 @@ COMMANDS = {
     "thor": ("tsnav.data.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),
     "demo": ("tsnav.demo", "the main job: world, pretraining, detections, training, evaluation, report"),
 }
-
-
-class CommandError(Exception):
-    """An error the user can fix; printed as one line without a traceback."""
 
 
 def main(argv: list[str] | None = None) -> int:

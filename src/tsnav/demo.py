@@ -125,10 +125,6 @@ class Stages:
         print(f"    done in {dt:.0f} s", flush=True)
         return m
 
-    def pending(self, name: str, what: str, why: str) -> None:
-        self.header(name, what)
-        print(f"    PENDING: {why}", flush=True)
-        self.times[name] = ("pending", 0.0)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -160,22 +156,12 @@ def train_subset(world: Path, dest: Path, per_type: int | None) -> list[str]:
     return sorted(names)
 
 
-def _train_available() -> str | None:
-    """None when the agent trainer is available, else why not."""
-    try:
-        from .eval.experiment import default_train_fn
-
-        default_train_fn()
-        return None
-    except Exception as e:  # noqa: BLE001 - any import problem means "pending"
-        return str(e)
-
-
 def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> dict:
     """Run the demo into ``out``; returns ``{"stages": {name: (status, seconds)}, "results": {label: summary}}``.
 
     ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
-    from .eval.experiment import ensure_oracle_detections, evaluate_to_folder
+    from .eval.stage_cache import ensure_oracle_detections
+    from .eval.runner import evaluate_to_folder
     from .eval.metrics import write_json
 
     cfg = cfg or DemoConfig()
@@ -253,7 +239,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     ep_file = out / "test_episodes.json"
 
     def do_episodes():
-        from .eval.experiment import ensure_episodes
+        from .eval.stage_cache import ensure_episodes
         from .sim.episodes import read_episodes
 
         ensure_episodes(world, "test", ep_file, cfg.test_per_room_type)
@@ -265,34 +251,27 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     # 6. train ------------------------------------------------------------------------------------------
     run_dir = out / "run"
-    why = None if train_fn is not None else _train_available()
-    if why is None:
-        def do_train():
-            from .agent import agent_config
-            from .eval.report import read_log
-            from .rl.config import TrainConfig
 
-            tc = TrainConfig(data=str(sub.resolve()), features=cfg.features_name, detections=cfg.detections,
-                             split="train", algo="batched", reward=cfg.reward, preset=cfg.agent_preset, lr=cfg.lr,
-                             num_envs=cfg.num_envs, seed=cfg.seed, minutes=cfg.train_minutes, device="cpu")
-            fn = train_fn
-            if fn is None:
-                from .eval.experiment import default_train_fn
+    def do_train():
+        from .agent import agent_config
+        from .rl.logger import read_log
+        from .rl.config import TrainConfig
+        from .rl.train import train_run
 
-                fn = default_train_fn()
-            fn(tc, agent_config(cfg.agent_preset), run_dir)
-            log = read_log(run_dir)
-            last = {k: log[-1][k] for k in ("update", "env_steps", "episodes", "SR") if log and k in log[-1]}
-            return {"minutes": cfg.train_minutes, "log_lines": len(log), **last}
+        tc = TrainConfig(data=str(sub.resolve()), features=cfg.features_name, detections=cfg.detections,
+                         split="train", algo="batched", reward=cfg.reward, preset=cfg.agent_preset, lr=cfg.lr,
+                         num_envs=cfg.num_envs, seed=cfg.seed, minutes=cfg.train_minutes, device="cpu")
+        fn = train_fn or train_run
+        fn(tc, agent_config(cfg.agent_preset), run_dir)
+        log = read_log(run_dir)
+        last = {k: log[-1][k] for k in ("update", "env_steps", "episodes", "SR") if log and k in log[-1]}
+        return {"minutes": cfg.train_minutes, "log_lines": len(log), **last}
 
-        st.run("train", f"TSRM agent, batched A2C, {cfg.train_minutes:g} min -> {run_dir}", do_train,
-               lambda m: m.get("minutes") == cfg.train_minutes and (run_dir / "config.json").exists())
-    else:
-        st.pending("train", "TSRM agent, batched A2C", f"the agent trainer has not landed ({why})")
+    st.run("train", f"TSRM agent, batched A2C, {cfg.train_minutes:g} min -> {run_dir}", do_train,
+           lambda m: m.get("minutes") == cfg.train_minutes and (run_dir / "config.json").exists())
 
     # 7. evaluate ---------------------------------------------------------------------------------------
-    policies = [("agent (TSRM, DE-MAE)", "agent")] if why is None else []
-    policies += [("scripted explorer", "explorer"), ("random", "random")]
+    policies = [("agent (TSRM, DE-MAE)", "agent"), ("scripted explorer", "explorer"), ("random", "random")]
     results = {}
 
     def do_eval():
@@ -342,14 +321,11 @@ def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
             m = s[sub]
             print(f"{label:<{width}}  {sub:<6} " + " ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
                   + f" {m['episodes']:6d}")
-    pend = [n for n, (s, _) in st.times.items() if s == "pending"]
-    if pend:
-        print(f"\npending stages: {', '.join(pend)} (run `tsnav demo` again when they are available)")
     print(f"\nreport: {index}")
 
 
 def run(args) -> int:
-    from .cli import CommandError
+    from .errors import CommandError
 
     cfg = DemoConfig(world_workers=args.workers)
     if args.train_minutes is not None:

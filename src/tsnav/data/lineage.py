@@ -23,7 +23,7 @@ are AI2-THOR's ``Type|x|y|z`` (e.g. ``Fridge|-02.10|+00.00|+01.07``).
 
 This module holds that format knowledge and the pieces shared by import and export: the floor polygon
 derived from the reachable grid, and the conversion between the lineage's 22 x 264 detection table and
-the detect stage's per-category table (:class:`tsnav.detect.table.Detections`).
+the detect stage's per-category table (:class:`tsnav.data.detections.Detections`).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ DEPTH_FILE = "depth.hdf5"
 RESNET_FILE = "resnet18_featuremap.hdf5"
 #: Names under which the lineage stores the 22-class DETR table (DOA/IOM/DAT, then VTNet/HOZ).
 DETECTION_FILES = ("detr_features_22cls.hdf5", "det_feature_categories.hdf5")
-#: Name of the imported table in the detect stage's layout (``detections_<name>.hdf5``, tsnav.detect.table).
+#: Name of the imported table in the detect stage's layout (``detections_<name>.hdf5``, tsnav.data.detections).
 DETECTIONS_LINEAGE_NAME = "lineage"
 DETECTIONS_LINEAGE_FILE = f"detections_{DETECTIONS_LINEAGE_NAME}.hdf5"
 #: Other per-state files of the lineage that the import carries over unchanged.
@@ -113,7 +113,7 @@ def derive_floor(grid_positions, cell: float = GRID_SIZE) -> list[np.ndarray]:
 def table_to_22x264(det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> np.ndarray:
     """The lineage's ``(S, 22, 264)`` float32 rows from a tsnav detection table (row ``c`` = category ``c``).
 
-    ``det``: a :class:`tsnav.detect.table.Detections` with 256-d features. Label column: ``c + 1`` where
+    ``det``: a :class:`tsnav.data.detections.Detections` with 256-d features. Label column: ``c + 1`` where
     ``labels[s, c] == c``, :data:`EMPTY_LABEL` (0, the label of the lineage's zero padding rows, never a
     target) where it is -1; score, box and feature are written as they are in both cases. Boxes are
     rescaled from ``det.image_size`` to ``box_size`` pixels (kept as they are when ``box_size`` is None).
@@ -138,7 +138,7 @@ def table_to_22x264(det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> np.ndarra
 def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SIZE, out_size: int | None = None,
                       source: str = ""):
     """The best detection per category from the lineage's ``(S, R, 264)`` rows, as a
-    :class:`tsnav.detect.table.Detections` (the inverse of :func:`table_to_22x264`).
+    :class:`tsnav.data.detections.Detections` (the inverse of :func:`table_to_22x264`).
 
     For each state and category ``c`` the row labelled ``c + 1`` with the highest score is taken (how the
     lineage's agents read DETR's table). Where no row carries that label: if the table has 22 rows and row
@@ -147,7 +147,7 @@ def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SI
     DETR's "no object" class, 23, never count as a detection). Boxes are rescaled from ``image_size`` to
     ``out_size`` pixels when ``out_size`` is given.
     """
-    from ..detect.table import Detections
+    from .detections import Detections
 
     rows = np.asarray(rows, dtype=np.float32)
     if rows.ndim != 3 or rows.shape[2] != TABLE_WIDTH:
@@ -186,7 +186,7 @@ def _rows_fingerprint(rows: np.ndarray) -> str:
 
 def read_detections_22x264(path: str | Path, image_size: int = LINEAGE_IMAGE_SIZE, keys=None):
     """Read a lineage detection file (one ``(R, 264)`` dataset per state key) as
-    :class:`tsnav.detect.table.Detections`.
+    :class:`tsnav.data.detections.Detections`.
 
     ``keys``: the states to read, in order (default: every dataset of the file, sorted); a key the file lacks
     gets an empty row (score 0, label -1, box -1). Boxes stay in pixels of the ``image_size`` frame they
@@ -232,7 +232,7 @@ def read_detections_22x264(path: str | Path, image_size: int = LINEAGE_IMAGE_SIZ
 
 
 def write_detections_22x264(path: str | Path, det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> Path:
-    """Write the lineage's file from a :class:`tsnav.detect.table.Detections`: one float32 ``(22, 264)``
+    """Write the lineage's file from a :class:`tsnav.data.detections.Detections`: one float32 ``(22, 264)``
     dataset per state key (atomic: a temporary file renamed when complete)."""
     import h5py
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cli import CommandError
+from ..errors import CommandError
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:

@@ -2,7 +2,7 @@
 
 tsnav scene folders already hold the lineage's files (``graph.json``, ``grid.json``,
 ``visible_object_map_1.5.json``, ``images.hdf5``); what the lineage's agents additionally read is the
-22 x 264 DETR table, written here from a tsnav detection table (:mod:`tsnav.detect.table`).
+22 x 264 DETR table, written here from a tsnav detection table (:mod:`tsnav.data.detections`).
 :func:`check_lineage_layout` lists every way a folder departs from the layout of
 :mod:`tsnav.data.lineage` (key formats, JSON shapes, HDF5 dataset names and dtypes), as SAVN's
 ``OfflineControllerWithSmallRotation`` and the VTNet / DOA / IOM episode readers would meet it.
@@ -206,7 +206,7 @@ def export_detections_22x264(scene_dir: str | Path, detections_file: str | Path,
     labels and features, and for boxes whenever ``box_size / image_size`` is a power-of-two fraction (as
     300 / 64) or 1.
     """
-    from ..detect.table import Detections
+    from .detections import Detections
     from .reader import load_scene
 
     import h5py

@@ -16,12 +16,12 @@ lineage's files:
   success rule then applies: visible (1.5 m map) and within 1.0 m. Without ``metadata.json`` no distance is known and success falls
   back to the lineage's rule, the visibility map alone (``Scene.category_visible_within``).
 * **detections** (``detections_lineage.hdf5``): the 22 x 264 DETR table of ``detr_features_22cls.hdf5`` /
-  ``det_feature_categories.hdf5`` in the detect stage's layout (:mod:`tsnav.detect.table`; best row per
+  ``det_feature_categories.hdf5`` in the detect stage's layout (:mod:`tsnav.data.detections`; best row per
   category, boxes in pixels of the lineage's 300 x 300 frames, empty rows for states the file lacks).
 
 The lineage's own files are carried over (hard-linked when possible, else copied; ``copy_mode``), so the
-imported folder still works with the lineage's code. Writing is atomic like :mod:`tsnav.data.writer`: a
-hidden temporary folder, checked with ``load_scene`` and renamed when complete (``COMPLETE`` marker).
+imported folder still works with the lineage's code. Writing goes through :mod:`tsnav.data.writer`: a hidden
+temporary folder, checked with ``load_scene`` and renamed when complete (``COMPLETE`` marker).
 """
 
 from __future__ import annotations
@@ -32,12 +32,15 @@ import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ..constants import GRID_SIZE, VISIBILITY_DISTANCE
 from . import lineage as L
+from .detections import write_detections
+from .names import lineage_scene_info
 from .reader import COMPLETE_MARKER, SceneFormatError, load_scene
-from .writer import box_distance
+from .writer import box_distance, scene_folder, write_json, write_states
 
 @dataclass
 class ImportConfig:
@@ -177,8 +180,6 @@ def _place(src: Path, dst: Path, mode: str) -> None:
 
 def _check_images(path: Path, scene, what: str, channels: bool) -> tuple[int, list[str]]:
     """Open an image-like HDF5 file keyed by state; returns (frame size, warnings)."""
-    import h5py
-
     try:
         with h5py.File(path, "r") as f:
             keys = sorted(f.keys())
@@ -281,11 +282,7 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
 
     stats.states, stats.positions, stats.objects = S, len(grid), O
     stats.distances = distance is not None
-    tmp = dst.parent / f".{dst.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    try:
+    with scene_folder(dst) as tmp:
         image_size = 0
         carried = []
         for name, channels in ((L.IMAGES_FILE, True), (L.DEPTH_FILE, False)):
@@ -301,10 +298,6 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
             carried.append(L.METADATA_FILE)
         det_path = next((src / n for n in L.DETECTION_FILES if (src / n).exists()), None)
         if det_path is not None:
-            import h5py
-
-            from ..detect.table import write_detections
-
             try:
                 with h5py.File(det_path, "r") as f:
                     det_keys = sorted(f.keys())
@@ -325,20 +318,12 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
             shutil.copy2(vis_path, tmp / L.VISIBLE_MAP_FILE)
         else:  # SAVN's map under its new name, or the raw metadata's visible flags as a map
             vmap = vis if vis is not None else {oid: base.keys[visible[:, j]].tolist() for j, oid in enumerate(order)}
-            with open(tmp / L.VISIBLE_MAP_FILE, "w") as f:
-                json.dump(vmap, f, separators=(",", ":"))
+            write_json(tmp / L.VISIBLE_MAP_FILE, vmap)
         if distance is not None:
-            import h5py
-
-            with h5py.File(tmp / "states.hdf5", "w") as f:
-                f.create_dataset("keys", data=base.keys.astype("S"), track_times=False)
-                f.create_dataset("object_ids", data=np.array(order, dtype="S"), track_times=False)
-                f.create_dataset("pixels", data=np.full((S, O), -1, np.int32), track_times=False)
-                f.create_dataset("boxes", data=np.full((S, O, 4), -1, np.int16), track_times=False)
-                f.create_dataset("distance", data=distance, track_times=False)
-                f.attrs["image_size"] = image_size
+            write_states(tmp, base.keys, order, np.full((S, O), -1, np.int32), np.full((S, O, 4), -1, np.int16),
+                         distance, image_size=image_size)
         floor = L.derive_floor(grid[:, [0, 2]], GRID_SIZE)
-        room_type, split = _scene_info(dst.name)
+        room_type, split = lineage_scene_info(dst.name)
         meta = {
             "format": "tsnav-scene", "version": 1, "name": dst.name, "room_type": room_type, "split": split,
             "rooms": [], "floor": [p.tolist() for p in floor], "furniture": [], "objects": records,
@@ -356,32 +341,13 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
             },
             "warnings": stats.warnings,
         }
-        with open(tmp / "scene.json", "w") as f:
-            json.dump(meta, f, separators=(",", ":"))
+        write_json(tmp / "scene.json", meta)
         check = load_scene(tmp)  # the result must read back as a tsnav scene
         if check.num_states != S or not check.floor:
             raise SceneFormatError(f"{dst}: imported scene does not read back")
-        (tmp / COMPLETE_MARKER).write_text("ok\n")
-        if dst.exists():
-            shutil.rmtree(dst)
-        os.replace(tmp, dst)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     stats.image_size = image_size
     stats.files = sorted(p.name for p in dst.iterdir())
     return stats
-
-
-def _scene_info(name: str) -> tuple[str, str | None]:
-    """Room type and split of an AI2-THOR scene name (``FloorPlan1`` or the lineage's ``FloorPlan1_physics``)."""
-    from ..world.house import scene_info
-
-    base = name[:-len("_physics")] if name.endswith("_physics") else name
-    try:
-        return scene_info(base)
-    except ValueError:
-        return "unknown", None
 
 
 def find_lineage_scenes(src: str | Path) -> list[Path]:

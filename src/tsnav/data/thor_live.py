@@ -16,7 +16,7 @@ checks:
    states is kept.
 3. Render every kept state: teleport to (position, rotation, horizon) and read ``event.frame``,
    ``event.depth_frame``, ``event.instance_masks`` and ``metadata['objects']``.
-4. Write the scene folder as :mod:`tsnav.data.writer` does (atomic, ``COMPLETE`` last): ``images.hdf5``,
+4. Write the scene folder through :mod:`tsnav.data.writer` (atomic, ``COMPLETE`` last): ``images.hdf5``,
    ``depth.hdf5``, ``graph.json``, ``grid.json``, ``visible_object_map_1.5.json`` (the object shows at
    least ``min_pixels`` pixels of its instance mask and the footprint of its axis-aligned box is within
    1.5 m of the agent on the floor plane, tsnav's distance of ``writer.box_distance``),
@@ -29,22 +29,21 @@ not against a real Unity build (none can be downloaded where tsnav is developed)
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import networkx as nx
 import numpy as np
 
 from ..constants import (FIELD_OF_VIEW, GRID_SIZE, HORIZONS, ROTATE_STEP, ROTATIONS, TARGET_CATEGORIES,
                          VISIBILITY_DISTANCE, state_key)
 from .lineage import derive_floor
+from .names import lineage_scene_info
 from .reader import COMPLETE_MARKER, SceneFormatError, load_scene
-from .thor_import import _scene_info
-from .writer import MIN_PIXEL_FRACTION, box_distance, min_pixels, object_stats
+from .writer import (MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats, scene_folder, write_graph,
+                     write_json, write_states)
 
 INSTALL_HINT = ("ai2thor is not installed: pip install 'tsnav[thor]' (AI2-THOR then downloads its Unity build "
                 "on first use and needs a display or Vulkan)")
@@ -219,8 +218,6 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
             j = move_to[i, ri]
             if j >= 0 and valid[j, ri]:
                 edges.append((a, sid(j, ri, hi)))
-    import networkx as nx
-
     g = nx.DiGraph()
     g.add_nodes_from(sid(i, ri, hi) for i, ri in zip(*np.nonzero(valid)) for hi in range(H))
     g.add_edges_from(edges)
@@ -238,17 +235,8 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
     positions = np.unique(pos_i)
 
     # --- 2. render every kept state.
-    tmp = out_dir / f".{scene_name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    import h5py
-
-    img_f = dep_f = None
-    try:
-        img_f = h5py.File(tmp / "images.hdf5", "w")
-        dep_f = h5py.File(tmp / "depth.hdf5", "w")
-        V = len(kept)
+    V = len(kept)
+    with scene_folder(final) as tmp, FrameWriter(tmp, cfg.depth_dtype) as frames:
         objects: list[dict] | None = None
         lut_cols: dict[str, int] = {}
         thor_visible = None
@@ -284,8 +272,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
             frame, depth = np.asarray(ev.frame), np.asarray(ev.depth_frame)
             if frame.shape != (cfg.size, cfg.size, 3):
                 raise LiveExportError(f"{scene_name}: frame of {keys[v]} is {frame.shape}, expected ({cfg.size}, {cfg.size}, 3)")
-            img_f.create_dataset(keys[v], data=frame.astype(np.uint8), track_times=False)
-            dep_f.create_dataset(keys[v], data=depth.astype(cfg.depth_dtype), track_times=False)
+            frames.add(keys[v], frame.astype(np.uint8), depth)
             idmap = np.zeros(frame.shape[:2], np.int64)
             masks = ev.instance_masks
             for oid, j in lut_cols.items():
@@ -300,9 +287,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
             if len(ids_buf) >= cfg.chunk:
                 flush(v + 1)
         flush(V)
-        img_f.close()
-        dep_f.close()
-        img_f = dep_f = None
+        frames.close()
 
         # --- 3. distances, visibility map and the remaining files.
         O = len(objects)
@@ -318,21 +303,12 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
         order = np.argsort(keys, kind="stable")
         keys_s = keys[order]
         vis_map = {o["objectId"]: keys_s[vis[order, j]].tolist() for j, o in enumerate(objects)}
-        _write_json(tmp / "visible_object_map_1.5.json", vis_map)
-        _write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(raw[i, 1]), "z": float(kz[i])} for i in positions])
-        _write_json(tmp / "graph.json", {"directed": True, "multigraph": False, "graph": {},
-                                         "nodes": [{"id": k} for k in keys_s.tolist()],
-                                         "links": [{"source": a, "target": b} for a, b in sorted(kept_edges)]})
-        with h5py.File(tmp / "states.hdf5", "w") as f:
-            f.create_dataset("keys", data=keys_s.astype("S"), track_times=False)
-            f.create_dataset("object_ids", data=np.array([o["objectId"] for o in objects], dtype="S"), track_times=False)
-            f.create_dataset("pixels", data=pixels[order], track_times=False)
-            f.create_dataset("boxes", data=boxes[order], track_times=False)
-            f.create_dataset("distance", data=distance[order], track_times=False)
-            f.create_dataset("thor_visible", data=thor_visible[order], track_times=False)
-            f.attrs["image_size"] = cfg.size
-            f.attrs["min_pixels"] = min_px
-        room_type, split = _scene_info(scene_name)
+        write_json(tmp / "visible_object_map_1.5.json", vis_map)
+        write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(raw[i, 1]), "z": float(kz[i])} for i in positions])
+        write_graph(tmp, keys_s.tolist(), sorted(kept_edges))
+        write_states(tmp, keys_s, [o["objectId"] for o in objects], pixels[order], boxes[order], distance[order],
+                     image_size=cfg.size, min_pixels=min_px, extra={"thor_visible": thor_visible[order]})
+        room_type, split = lineage_scene_info(scene_name)
         records = []
         for o, b in zip(objects, boxes3):
             rec = {"objectId": o["objectId"], "objectType": o.get("objectType", o["objectId"].split("|")[0])}
@@ -357,22 +333,9 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
                         "distance": "floor plane, agent position to the footprint of the object's axis-aligned box",
                         "visible": "instance mask >= min_pixels and distance <= 1.5 m"},
         }
-        _write_json(tmp / "scene.json", meta)
+        write_json(tmp / "scene.json", meta)
         if load_scene(tmp).num_states != V:
             raise SceneFormatError(f"{final}: exported scene does not read back")
-        (tmp / COMPLETE_MARKER).write_text("ok\n")
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    except BaseException:
-        for f in (img_f, dep_f):
-            if f is not None:
-                try:
-                    f.close()
-                except Exception:
-                    pass
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     stats.states, stats.positions, stats.objects = int(V), int(len(positions)), len(objects)
     stats.seconds = time.perf_counter() - t0
     return stats
@@ -396,8 +359,3 @@ def _check_frames(ev, size: int, scene_name: str) -> None:
     if shape != (size, size, 3):
         raise LiveExportError(f"{scene_name}: the controller renders {shape} frames, expected ({size}, {size}, 3) "
                               f"(create it with width=height={size})")
-
-
-def _write_json(path: Path, obj) -> None:
-    with open(path, "w") as f:
-        json.dump(obj, f, separators=(",", ":"))

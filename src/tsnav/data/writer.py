@@ -1,8 +1,12 @@
-"""Build offline datasets: generate, lay out the state graph, render every state, write scene folders.
+"""The one writer of the scene folder format (DESIGN.md "The offline dataset", the lineage layout).
 
-A scene is written into a hidden temporary folder next to its final place and renamed when complete, so
-an interrupted build never leaves a half-written scene that looks complete; running the build again skips
-finished scenes and redoes the rest. Files follow the lineage layout (DESIGN.md "The offline dataset").
+Every producer of scene folders (the procedural world, the lineage import, the live AI2-THOR export) writes
+through this module: :func:`scene_folder` is the atomic commit (a hidden temporary folder next to the final
+place, ``COMPLETE`` written last, then renamed, so an interrupted write never leaves a half-written scene
+that looks complete), :class:`FrameWriter` writes ``images.hdf5`` / ``depth.hdf5``, :func:`write_states`
+the per-state object table ``states.hdf5``, and :func:`write_json` the JSON files (``graph.json``,
+``grid.json``, ``visible_object_map_1.5.json``, ``scene.json``) in one compact form. It also holds the
+per-view visibility statistics the producers share (:func:`object_stats`, :func:`box_distance`).
 """
 
 from __future__ import annotations
@@ -11,16 +15,13 @@ import json
 import math
 import os
 import shutil
-import time
-from dataclasses import asdict, dataclass, field
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
+import h5py
 import numpy as np
 
-from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
-from ..world.navgrid import build_graph, reachable_positions
-from ..world.presets import scene_spec
-from ..world.spec import SceneSpec
 from .reader import COMPLETE_MARKER
 
 #: Minimum share of the frame an object must cover to count as seen (AI2-THOR casts rays; we count pixels).
@@ -34,36 +35,6 @@ def min_pixels(image_size: int, fraction: float = MIN_PIXEL_FRACTION) -> int:
 
 #: Height of the agent's position in ``grid.json`` (AI2-THOR reports the agent's body centre).
 GRID_Y = 0.9
-
-
-@dataclass
-class BuildConfig:
-    """Settings of one dataset build."""
-
-    image_size: int = 64  #: side of the square frames, pixels
-    store_images: bool = True  #: write images.hdf5 and depth.hdf5 (needed for pretraining and features)
-    depth_dtype: str = "float16"  #: dtype of depth.hdf5 (metres); float16 keeps datasets small
-    compression: str | None = None  #: HDF5 filter for images (None or "gzip"; lzf output is not byte-reproducible)
-    compact: bool = False  #: small rooms (the `tiny` preset)
-    world: str = "procedural"  #: layout source: "procedural" or "ithor-real" (tsnav.world.presets.WORLDS)
-    seed: int = 0  #: world seed; the same name and seed give the same scene
-    tiles: int = 16  #: views rendered per framebuffer read
-
-    def min_pixels(self) -> int:
-        return min_pixels(self.image_size)
-
-
-@dataclass
-class SceneStats:
-    name: str
-    states: int = 0
-    positions: int = 0
-    objects: int = 0
-    render_s: float = 0.0
-    write_s: float = 0.0
-    other_s: float = 0.0
-    skipped: bool = False
-    extra: dict = field(default_factory=dict)
 
 
 def box_distance(points: np.ndarray, centers: np.ndarray, sizes: np.ndarray, yaws: np.ndarray) -> np.ndarray:
@@ -133,128 +104,86 @@ def object_stats_reference(ids: np.ndarray, lut: np.ndarray, num_objects: int):
     return pixels, boxes
 
 
-def _write_json(path: Path, obj) -> None:
+def write_json(path: str | Path, obj) -> None:
+    """Write ``obj`` as compact JSON (the form of every JSON file of a scene folder)."""
     with open(path, "w") as f:
         json.dump(obj, f, separators=(",", ":"), sort_keys=False)
 
 
-def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer=None) -> SceneStats:
-    """Generate, render and write scene ``name`` into ``out_dir/name`` (skipped when already complete)."""
-    out_dir = Path(out_dir)
-    final = out_dir / name
-    stats = SceneStats(name)
-    if (final / COMPLETE_MARKER).exists():
-        stats.skipped = True
-        return stats
-    t0 = time.perf_counter()
-    spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact)
-    positions, move = reachable_positions(spec)
-    nodes, edges = build_graph(positions, move)
-    js = spec.to_json()
-    objects = spec.objects
-    O = len(objects)
-    lut = np.full(len(spec.instances), -1, np.int64)
-    for j, o in enumerate(objects):
-        lut[o.inst] = j
-    # Render order: position, rotation, horizon; the tables are stored in sorted key order.
-    poses = np.array([(x, z, r, h) for x, z in positions for r in ROTATIONS for h in HORIZONS], dtype=np.float64)
-    keys = np.array([state_key(*p) for p in poses])
-    order = np.argsort(keys, kind="stable")
-    stats.other_s += time.perf_counter() - t0
+def write_graph(folder: Path, nodes, edges) -> None:
+    """``graph.json``: networkx node-link directed graph; ``nodes`` state keys, ``edges`` ``(source, target)``."""
+    write_json(folder / "graph.json", {"directed": True, "multigraph": False, "graph": {},
+                                       "nodes": [{"id": k} for k in nodes],
+                                       "links": [{"source": a, "target": b} for a, b in edges]})
 
-    own = renderer is None
-    if own:
-        from ..render.gl import Renderer
 
-        renderer = Renderer(cfg.image_size, cfg.tiles)
-    renderer.set_scene(np.array(js["parts"], dtype=np.float32), js["light"])
-    tmp = out_dir / f".{name}.partial-{os.getpid()}"
+def write_states(folder: Path, keys: np.ndarray, object_ids, pixels: np.ndarray, boxes: np.ndarray,
+                 distance: np.ndarray, image_size: int, min_pixels: int | None = None,
+                 extra: dict[str, np.ndarray] | None = None) -> None:
+    """``states.hdf5``: per state (``keys`` sorted) and object: ``pixels`` (S, O) int32 visible pixel count
+    (-1 unknown), ``boxes`` (S, O, 4) int16 ``[x0, y0, x1, y1]``, ``distance`` (S, O) metres on the floor
+    plane; ``extra`` datasets of the same row order; attributes ``image_size`` and ``min_pixels``."""
+    with h5py.File(folder / "states.hdf5", "w") as f:
+        f.create_dataset("keys", data=np.asarray(keys).astype("S"), track_times=False)
+        f.create_dataset("object_ids", data=np.array(list(object_ids), dtype="S"), track_times=False)
+        f.create_dataset("pixels", data=pixels, track_times=False)
+        f.create_dataset("boxes", data=boxes, track_times=False)
+        f.create_dataset("distance", data=distance, track_times=False)
+        for name, data in (extra or {}).items():
+            f.create_dataset(name, data=data, track_times=False)
+        f.attrs["image_size"] = image_size
+        if min_pixels is not None:
+            f.attrs["min_pixels"] = min_pixels
+
+
+class FrameWriter:
+    """``images.hdf5`` (RGB uint8 HxWx3) and ``depth.hdf5`` (metres, ``depth_dtype``), one dataset per state
+    key; a context manager that closes both files."""
+
+    def __init__(self, folder: Path, depth_dtype: str = "float16", compression: str | None = None):
+        self.depth_dtype, self.compression = depth_dtype, compression
+        self.images = h5py.File(folder / "images.hdf5", "w", track_order=False)
+        try:
+            self.depth = h5py.File(folder / "depth.hdf5", "w", track_order=False)
+        except BaseException:
+            self.images.close()
+            raise
+
+    def add(self, key: str, rgb: np.ndarray, depth: np.ndarray) -> None:
+        """Store the frame of state ``key``: ``rgb`` (H, W, 3) uint8 and ``depth`` (H, W) metres."""
+        self.images.create_dataset(key, data=rgb, compression=self.compression, track_times=False)
+        self.depth.create_dataset(key, data=np.asarray(depth).astype(self.depth_dtype), track_times=False)
+
+    def close(self) -> None:
+        for f in (self.images, self.depth):
+            try:
+                f.close()
+            except Exception:  # noqa: BLE001 - closing after an error must not hide it
+                pass
+
+    def __enter__(self) -> "FrameWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@contextmanager
+def scene_folder(final: str | Path) -> Iterator[Path]:
+    """Atomic commit of the scene folder ``final``: yields an empty hidden temporary folder next to it; when
+    the block ends without error writes ``COMPLETE`` into it, replaces an old (incomplete or overwritten)
+    ``final`` and renames; on any error (or interruption) removes the temporary folder and re-raises."""
+    final = Path(final)
+    tmp = final.parent / f".{final.name}.partial-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    import h5py
-
-    V = len(poses)
-    pixels = np.zeros((V, O), np.int32)
-    boxes = np.full((V, O, 4), -1, np.int16)
-    img_f = dep_f = None
     try:
-        if cfg.store_images:
-            img_f = h5py.File(tmp / "images.hdf5", "w", track_order=False)
-            dep_f = h5py.File(tmp / "depth.hdf5", "w", track_order=False)
-        chunk = renderer.tiles * 4
-        for start in range(0, V, chunk):
-            t1 = time.perf_counter()
-            rgb, depth, ids = renderer.render(poses[start:start + chunk])
-            px, bx = object_stats(ids, lut, O) if O else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
-            pixels[start:start + len(ids)] = px
-            boxes[start:start + len(ids)] = bx
-            t2 = time.perf_counter()
-            stats.render_s += t2 - t1
-            if cfg.store_images:
-                dd = depth.astype(cfg.depth_dtype)
-                for i in range(len(ids)):
-                    k = keys[start + i]
-                    img_f.create_dataset(k, data=rgb[i], compression=cfg.compression, track_times=False)
-                    dep_f.create_dataset(k, data=dd[i], track_times=False)
-            stats.write_s += time.perf_counter() - t2
-        t3 = time.perf_counter()
-        if img_f is not None:
-            img_f.close()
-            dep_f.close()
-            img_f = dep_f = None
-        # Distances: agent position to the nearest point of each object's footprint (floor plane); per position.
-        if O:
-            dist_pos = box_distance(positions, np.array([o.center for o in objects]), np.array([o.size for o in objects]),
-                                    np.array([o.yaw for o in objects]))
-        else:
-            dist_pos = np.zeros((len(positions), 0))
-        per_pos = len(ROTATIONS) * len(HORIZONS)
-        distance = np.repeat(dist_pos, per_pos, axis=0).astype(np.float32)
-        keys_s, pixels_s, boxes_s, distance_s = keys[order], pixels[order], boxes[order], distance[order]
-        min_px = cfg.min_pixels()
-        vis = (pixels_s >= min_px) & (distance_s <= VISIBILITY_DISTANCE)
-        vis_map = {o.objectId: keys_s[vis[:, j]].tolist() for j, o in enumerate(objects)}
-        _write_json(tmp / "visible_object_map_1.5.json", vis_map)
-        _write_json(tmp / "grid.json", [{"x": float(x), "y": GRID_Y, "z": float(z)} for x, z in positions])
-        _write_json(tmp / "graph.json", {"directed": True, "multigraph": False, "graph": {},
-                                         "nodes": [{"id": k} for k in sorted(nodes)],
-                                         "links": [{"source": a, "target": b} for a, b in edges]})
-        with h5py.File(tmp / "states.hdf5", "w") as f:
-            f.create_dataset("keys", data=keys_s.astype("S"), track_times=False)
-            f.create_dataset("object_ids", data=np.array([o.objectId for o in objects], dtype="S"), track_times=False)
-            f.create_dataset("pixels", data=pixels_s, track_times=False)
-            f.create_dataset("boxes", data=boxes_s, track_times=False)
-            f.create_dataset("distance", data=distance_s, track_times=False)
-            f.attrs["image_size"] = cfg.image_size
-            f.attrs["min_pixels"] = min_px
-        js.update({"image_size": cfg.image_size, "compact": cfg.compact,
-                   "visibility": {"min_pixels": min_px, "min_pixel_fraction": MIN_PIXEL_FRACTION,
-                                  "distance": VISIBILITY_DISTANCE},
-                   "num_states": len(keys), "num_positions": len(positions)})
-        _write_json(tmp / "scene.json", js)
+        yield tmp
         (tmp / COMPLETE_MARKER).write_text("ok\n")
-        if final.exists():  # an old incomplete folder (e.g. from another tool); replace it
+        if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
-        stats.write_s += time.perf_counter() - t3
     except BaseException:
-        for f in (img_f, dep_f):
-            if f is not None:
-                try:
-                    f.close()
-                except Exception:
-                    pass
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    finally:
-        if own:
-            renderer.release()
-    stats.states, stats.positions, stats.objects = len(keys), len(positions), O
-    return stats
-
-
-def write_index(out_dir: Path, preset: str, names: list[str], cfg: BuildConfig) -> None:
-    tmp = out_dir / ".index.json.tmp"
-    _write_json(tmp, {"format": "tsnav-dataset", "preset": preset, "scenes": names, "config": asdict(cfg)})
-    os.replace(tmp, out_dir / "index.json")

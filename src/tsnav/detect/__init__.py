@@ -1,6 +1,8 @@
 """detect stage of tsnav: per-state, per-class detection tables (DESIGN.md "Detector", paper III-B / Fig. 2).
 
-* :mod:`.table`     the ``detections_<name>.hdf5`` format, :func:`load_detections`, :func:`install_detections`
+The table's file format (``detections_<name>.hdf5``) belongs to the data layer: :mod:`tsnav.data.detections`;
+:meth:`tsnav.sim.batch.SceneBank.install_detections` puts it into a bank.
+
 * :mod:`.oracle`    ground truth from the renderer's instance ids and the oracle detector
 * :mod:`.model`     the learned dense grid detector (FCOS-like, for 64x64 frames)
 * :mod:`.data`      training frames and targets
@@ -11,9 +13,3 @@
 
 Heavy dependencies (torch) load only with the modules that need them.
 """
-
-from .table import (Detections, detections_path, install_detections, load_detections, load_scene_detections,
-                    write_detections)
-
-__all__ = ["Detections", "detections_path", "install_detections", "load_detections", "load_scene_detections",
-           "write_detections"]

@@ -20,7 +20,7 @@ import json
 import os
 from pathlib import Path
 
-from ..cli import CommandError
+from ..errors import CommandError
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -58,7 +58,7 @@ def _tick(det, bar):
 
 def _learned(args, root: Path):
     from .learned import LearnedDetector
-    from .train import TrainConfig, calibrate, is_checkpoint, read_meta, train_detector
+    from .train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
 
     ckpt = Path(args.checkpoint) if args.checkpoint else root / "detectors" / "learned"
     if args.train_steps is not None and args.train_steps < 1:
@@ -71,8 +71,8 @@ def _learned(args, root: Path):
         raise CommandError(f"--checkpoint {ckpt} is a folder that holds no detector checkpoint")
     steps = args.train_steps
     if steps is None:  # an existing checkpoint: finish its own target (a no-op when it is finished)
-        steps = int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt) else TrainConfig.steps
-    tc = TrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene)
+        steps = int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt) else DetectorTrainConfig.steps
+    tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene)
     if args.batch_size:
         tc.batch_size = args.batch_size
     res = train_detector(root, ckpt, tc, progress=not args.quiet)
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..data.reader import list_scenes, load_scene
-    from .table import check_name, read_fingerprint, write_detections
+    from ..data.detections import check_name, read_fingerprint, write_detections
 
     root = Path(args.data)
     if not root.is_dir():
@@ -149,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.no_eval:
         from .evaluate import evaluate_detections
-        from .table import load_detections
+        from ..data.detections import load_detections
 
         eval_scenes = [load_scene(p) for p in list_scenes(root, split=args.eval_split)]
         eval_scenes = [s for s in eval_scenes if (s.path / f"detections_{name}.hdf5").exists()]

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..constants import NUM_CATEGORIES, TARGET_CATEGORIES
 from .oracle import ground_truth
-from .table import Detections
+from ..data.detections import Detections
 
 
 def average_precision(scores: np.ndarray, positive: np.ndarray, num_positives: int | None = None) -> float:

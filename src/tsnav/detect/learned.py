@@ -18,7 +18,7 @@ from ..constants import NUM_CATEGORIES
 from ..data.reader import Scene
 from .data import read_images
 from .model import GridDetector, unit_to_pixel
-from .table import Detections
+from ..data.detections import Detections
 from .train import load_model, predict, weights_fingerprint
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..constants import NUM_CATEGORIES
 from ..data.reader import Scene
-from .table import Detections
+from ..data.detections import Detections
 
 #: Size of the oracle's per-class feature vector.
 ORACLE_FEATURE_DIM = 64

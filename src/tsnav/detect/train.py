@@ -13,7 +13,7 @@ Checkpoint folder (all files replaced atomically):
 * ``model.safetensors``: the model's state dict (BatchNorm statistics included);
 * ``optimizer.safetensors``: AdamW moment tensors (``state.<param index>.<name>``);
 * ``detector.json``: ``format``, ``model`` (:class:`~tsnav.detect.model.DetectorConfig`), ``train``
-  (:class:`TrainConfig`), ``step``, ``temperature``, ``calibrated_step``, ``min_score``, ``history`` (loss
+  (:class:`DetectorTrainConfig`), ``step``, ``temperature``, ``calibrated_step``, ``min_score``, ``history`` (loss
   terms every ``log_every`` steps), ``param_groups`` of the optimiser.
 """
 
@@ -38,7 +38,7 @@ FORMAT = "tsnav-detector"
 
 
 @dataclass
-class TrainConfig:
+class DetectorTrainConfig:
     """Training of the learned detector (CPU-sized defaults: about 0.1 s per step on one core, a few
     minutes for the demo world)."""
 
@@ -76,7 +76,7 @@ class TrainConfig:
     per step than one (threads spin waiting for each other)."""
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
+    def from_dict(cls, d: dict) -> "DetectorTrainConfig":
         d = dict(d)
         if isinstance(d.get("loss"), dict):
             d["loss"] = LossWeights(**d["loss"])
@@ -86,7 +86,7 @@ class TrainConfig:
         return cls(**d)
 
 
-def lr_at(step: int, cfg: TrainConfig) -> float:
+def lr_at(step: int, cfg: DetectorTrainConfig) -> float:
     """Learning rate of optimiser step ``step`` (0-based): warm-up, then cosine to ``min_lr_ratio * lr``."""
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
@@ -95,7 +95,7 @@ def lr_at(step: int, cfg: TrainConfig) -> float:
     return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
-def batch_plan(step: int, n: int, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def batch_plan(step: int, n: int, cfg: DetectorTrainConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(row indices ``(B,)``, flip flags ``(B,)``, colour gains ``(B, 3)``) of step ``step``: a function of
     ``(seed, step)`` only, so a resumed run sees the same batches."""
     rng = np.random.default_rng([cfg.seed, step])
@@ -251,7 +251,7 @@ class TrainResult:
     last: dict
 
 
-def train_detector(root: str | Path, ckpt: str | Path, train_cfg: TrainConfig | None = None,
+def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainConfig | None = None,
                    model_cfg: DetectorConfig | None = None, frames: FrameSet | None = None,
                    progress: bool = True) -> TrainResult:
     """Train (or resume training of) the detector in checkpoint folder ``ckpt`` on the TRAIN scenes of
@@ -260,11 +260,11 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: TrainConfig | 
     from tqdm import tqdm
 
     ckpt = Path(ckpt)
-    train_cfg = train_cfg or TrainConfig()
+    train_cfg = train_cfg or DetectorTrainConfig()
     torch.set_num_threads(max(1, int(train_cfg.threads)))
     if is_checkpoint(ckpt):
         model, meta = load_model(ckpt)
-        stored = TrainConfig.from_dict(meta["train"])
+        stored = DetectorTrainConfig.from_dict(meta["train"])
         stored.steps, stored.threads = train_cfg.steps, train_cfg.threads
         train_cfg = stored
         start = int(meta["step"])

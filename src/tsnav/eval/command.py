@@ -6,6 +6,12 @@ import argparse
 import time
 from pathlib import Path
 
+from ..errors import CommandError
+from ..sim.episodes import read_episodes
+from .metrics import format_table, summarize, write_json, write_records
+from .policies import make_policy
+from .runner import EvalConfig, config_dict, evaluate, load_bank_for_episodes
+
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset root (scene folders)")
@@ -23,29 +29,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=4096, help="episodes stepped together")
 
 
-def load_bank_for_episodes(data, episodes, **bank_kwargs):
-    """A :class:`SceneBank` of exactly the scenes an episode list refers to (folders ``data/<scene>``)."""
-    from ..cli import CommandError
-    from ..data.reader import is_complete, load_scene
-    from ..sim.batch import SceneBank
-
-    names = sorted({e.scene for e in episodes})
-    scenes = []
-    for name in names:
-        p = Path(data) / name
-        if not is_complete(p):
-            raise CommandError(f"{p}: scene of the episode list is missing or incomplete")
-        scenes.append(load_scene(p))
-    return SceneBank(scenes, **bank_kwargs)
-
-
 def run(args: argparse.Namespace) -> int:
-    from ..cli import CommandError
-    from ..sim.episodes import read_episodes
-    from .metrics import format_table, summarize, write_json, write_records
-    from .policies import make_policy
-    from .runner import EvalConfig, config_dict, evaluate
-
     if not Path(args.data).is_dir():
         raise CommandError(f"--data {args.data}: no such dataset folder")
     if args.max_steps < 1 or args.batch_size < 1:
@@ -58,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     dist = args.success_distance if args.success_distance is not None else float(meta.get("success_distance", 1.0))
     bank = load_bank_for_episodes(args.data, episodes, success_distance=dist, c_target=args.c_target)
     if args.run is not None:
+        # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
         from ..rl.checkpoint import load_policy
 
         policy = load_policy(args.run, bank, seed=args.seed)

@@ -1,11 +1,5 @@
-"""Per-step trajectories of evaluation episodes and the report's episode gallery.
-
-The evaluation runner (:mod:`tsnav.eval.runner`) keeps only per-episode counts. For pictures we need the
-states an agent went through, so :func:`record_trajectories` runs :func:`~tsnav.eval.runner.evaluate`
-unchanged with the policy wrapped in a :class:`TrajectoryRecorder` that notes the observed state and the
-returned action of every row at every step. The records are therefore exactly those of a plain evaluation
-(same batches, same policy calls, same random draws), and each :class:`Trajectory` is consistent with its
-record (``len(actions) == steps``; movement actions ``== path_length``).
+"""The report's episode gallery, drawn from the trajectories an evaluation recorded
+(:func:`tsnav.eval.runner.record_trajectories`).
 
 A gallery item (:func:`write_gallery`) is two PNGs: the top-down map of :func:`tsnav.tsrm.plot.draw_episode`
 (path coloured by stage, searched region, stage switch, target instances) and a strip of the agent's
@@ -15,115 +9,16 @@ scene's ``images.hdf5`` or rendered when the scene has no stored images.
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from ..atomic import atomic_save_figure, atomic_write_text
-from ..constants import ACTIONS, CATEGORY_INDEX, DONE
+from ..atomic import atomic_save_figure
+from ..constants import ACTIONS, DONE
 from .metrics import EpisodeRecord
-from .runner import EvalConfig, evaluate
-
-
-@dataclass
-class Trajectory:
-    """The frames and actions of one evaluation episode (frames 0..T: the start frame, then one per action)."""
-
-    episode: int
-    """Index of the episode in its episode list (``EpisodeRecord.episode``)."""
-    scene: str
-    target: str
-    keys: list[str]
-    """State keys of the frames, start first (``len(actions) + 1`` entries)."""
-    actions: list[int]
-    """Action ids in the order of ``constants.ACTIONS``, Done included."""
-    switch_frame: int = -1
-    """First frame whose target confidence exceeded C_target (the pathfinding stage starts there), or -1."""
-    success: bool = False
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
-
-
-class TrajectoryRecorder:
-    """A :class:`~tsnav.eval.policies.Policy` wrapper noting ``obs["state"]``, ``obs["active"]`` and the actions.
-
-    Each ``reset`` whose mask is all True starts a new chunk (the runner resets once per chunk of episodes).
-    """
-
-    def __init__(self, policy):
-        self.policy = policy
-        self.chunks: list[dict[str, list[np.ndarray]]] = []
-
-    def reset(self, mask: np.ndarray) -> None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.all():
-            self.chunks.append({"state": [], "active": [], "action": []})
-        self.policy.reset(mask)
-
-    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        a = np.asarray(self.policy.act(obs))
-        c = self.chunks[-1]
-        c["state"].append(np.asarray(obs["state"], dtype=np.int64).copy())
-        c["active"].append(np.asarray(obs.get("active", np.ones(len(a), bool)), dtype=bool).copy())
-        c["action"].append(a.astype(np.int64).copy())
-        return a
-
-
-def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
-                        ) -> tuple[list[EpisodeRecord], list[Trajectory]]:
-    """Evaluate ``policy`` on ``episodes`` (exactly like :func:`~tsnav.eval.runner.evaluate`) and return the
-    records together with one :class:`Trajectory` per episode, in the same order."""
-    config = config or EvalConfig()
-    rec = TrajectoryRecorder(policy)
-    records = evaluate(bank, episodes, rec, config)
-    stage = bank.stage_confidence > config.c_target
-    trajectories: list[Trajectory] = []
-    lo = 0
-    for chunk in rec.chunks:
-        states = np.stack(chunk["state"]) if chunk["state"] else np.zeros((0, 0), np.int64)  # [T, B]
-        active = np.stack(chunk["active"]) if chunk["active"] else np.zeros((0, 0), bool)
-        actions = np.stack(chunk["action"]) if chunk["action"] else np.zeros((0, 0), np.int64)
-        n = states.shape[1] if states.ndim == 2 and states.shape[0] else 0
-        for j in range(n):
-            r = records[lo + j]
-            t = np.flatnonzero(active[:, j])
-            s, a = states[t, j], actions[t, j]
-            if len(s):
-                final = int(bank.next_state[s[-1], a[-1]])
-                frames = np.concatenate([s, [final]])
-            else:
-                frames = np.array([bank.global_state(bank.scene_index(r.scene), r.start)], dtype=np.int64)
-            g = CATEGORY_INDEX[r.target]
-            above = stage[frames, g]
-            trajectories.append(Trajectory(
-                episode=r.episode, scene=r.scene, target=r.target, keys=[str(k) for k in bank.keys[frames]],
-                actions=[int(x) for x in a], switch_frame=int(np.argmax(above)) if above.any() else -1,
-                success=bool(r.success)))
-        lo += n
-    if len(trajectories) != len(records):
-        raise RuntimeError(f"recorded {len(trajectories)} trajectories for {len(records)} episodes")
-    return records, trajectories
-
-
-def write_trajectories(path: str | Path, trajectories: Sequence[Trajectory]) -> None:
-    """JSON Lines, one trajectory per line, written atomically."""
-    atomic_write_text(Path(path), "".join(t.to_json() + "\n" for t in trajectories))
-
-
-def read_trajectories(path: str | Path) -> list[Trajectory]:
-    out = []
-    with open(path) as f:
-        for i, line in enumerate(f, 1):
-            if line.strip():
-                try:
-                    out.append(Trajectory(**json.loads(line)))
-                except (json.JSONDecodeError, TypeError) as e:
-                    raise ValueError(f"{path}:{i}: not a trajectory ({e})") from None
-    return out
+from .runner import Trajectory
 
 
 def select_episodes(records: Sequence[EpisodeRecord], n: int = 6, seed: int = 0) -> list[int]:

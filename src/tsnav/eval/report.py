@@ -30,7 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_save_figure, atomic_write_text
-from .metrics import METRICS, read_records
+from ..rl.logger import read_log
+from .metrics import METRICS
+from .runner import eval_trajectories
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
 SKIP_DIRS = {"checkpoints", "tb", "report", "__pycache__", "stages"}
@@ -193,84 +195,6 @@ def _finish_curves(fig, axes, path: str | Path, title: str) -> Path:
     if title:
         fig.suptitle(title, fontsize=10)
     return atomic_save_figure(fig, path, dpi=90)
-
-
-def read_log(run_dir: str | Path) -> list[dict]:
-    """Records of a run's ``log.jsonl`` (a torn last line is skipped); see :func:`tsnav.rl.logger.read_log`."""
-    from ..rl.logger import read_log as _read_log
-
-    return _read_log(run_dir)
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Gallery: trajectories of an evaluation folder (stored or re-rolled)
-# ---------------------------------------------------------------------------------------------------------
-
-
-def eval_bank(meta: dict, episodes):
-    """The scene bank an evaluation folder's ``metrics.json`` describes (same scenes, success distance,
-    C_target and detection tables)."""
-    from .command import load_bank_for_episodes
-
-    cfg = meta.get("config", {})
-    bank = load_bank_for_episodes(meta["data"], episodes, success_distance=float(meta.get("success_distance", 1.0)),
-                                  c_target=float(cfg.get("c_target", 0.7)))
-    if meta.get("detections"):
-        from ..detect.table import install_detections
-
-        install_detections(bank, meta["detections"])
-    return bank
-
-
-def eval_policy(meta: dict, bank):
-    """The policy of an evaluation folder: the trained agent of ``meta["run"]`` (or of a ``run:PATH`` policy, as
-    ``tsnav eval --run`` records it) or a scripted policy."""
-    from .policies import make_policy
-
-    seed = int(meta.get("seed", 0))
-    name = str(meta.get("policy", "explorer"))
-    run = meta.get("run") or (name[len("run:"):] if name.startswith("run:") else None)
-    if run:
-        from ..rl.checkpoint import load_policy
-
-        return load_policy(run, bank, seed=seed)
-    return make_policy(name, bank, seed=seed,
-                       c_target=float(meta.get("config", {}).get("c_target", 0.7)))
-
-
-def eval_trajectories(eval_dir: str | Path):
-    """``(bank, records, trajectories, c_target)`` of an evaluation folder; trajectories are read from
-    ``trajectories.jsonl`` or re-rolled with the recorded policy and seed."""
-    from ..sim.episodes import read_episodes
-    from .gallery import read_trajectories, record_trajectories, write_trajectories
-    from .runner import EvalConfig
-
-    eval_dir = Path(eval_dir)
-    meta = json.loads((eval_dir / "metrics.json").read_text())
-    episodes, _ = read_episodes(meta["episodes_file"])
-    bank = eval_bank(meta, episodes)
-    records = read_records(eval_dir / "records.jsonl")
-    cfg = meta.get("config", {})
-    c_target = float(cfg.get("c_target", 0.7))
-    tp = eval_dir / "trajectories.jsonl"
-    if tp.exists():
-        trajectories = read_trajectories(tp)
-    else:
-        config = EvalConfig(max_steps=int(cfg.get("max_steps", 100)), c_target=c_target,
-                            batch_size=int(cfg.get("batch_size", 4096)))
-        policy = eval_policy(meta, bank)
-        rerolled, trajectories = record_trajectories(bank, episodes, policy, config)
-        same = [(a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
-                for a, b in zip(rerolled, records)]
-        if len(rerolled) != len(records) or not all(same):
-            raise ValueError(f"{eval_dir}: re-rolled episodes differ from records.jsonl (another policy or data?)")
-        try:
-            write_trajectories(tp, trajectories)
-        except OSError:
-            pass
-    if len(trajectories) != len(records):
-        raise ValueError(f"{tp}: {len(trajectories)} trajectories for {len(records)} records")
-    return bank, records, trajectories, c_target
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -571,7 +495,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cli import CommandError
+    from ..errors import CommandError
 
     if args.gallery < 0:
         raise CommandError("--gallery must be >= 0")

@@ -1,5 +1,7 @@
 """Evaluation runner: a batched policy over a fixed episode list, with the two-stage bookkeeping of paper
-III-B / IV-A, producing :class:`~tsnav.eval.metrics.EpisodeRecord` objects.
+III-B / IV-A, producing :class:`~tsnav.eval.metrics.EpisodeRecord` objects; and the evaluation folder
+(``records.jsonl``, ``trajectories.jsonl``, ``metrics.json``): writing one (:func:`evaluate_to_folder`) and
+rebuilding its bank, policy and trajectories (:func:`eval_bank`, :func:`eval_policy`, :func:`eval_trajectories`).
 
 All episodes of a chunk (``batch_size``, default: all of them) run in parallel in one
 :class:`~tsnav.sim.batch.BatchEnv` without auto-reset, ``max_steps`` = 100 as in the paper's tests.
@@ -9,18 +11,34 @@ included) whose target confidence exceeds ``c_target`` (0.7). The confidence is 
 bank has one, else the ground-truth "target in frame" flag as 1.0 (see ``SceneBank.stage_confidence``).
 ``pathfinding_start_step`` is the number of actions output before that frame; the searching path length
 is the number of movement actions output before it, the pathfinding path length the number output after.
+
+The runner keeps only per-episode counts. For pictures we need the states an agent went through, so
+:func:`record_trajectories` runs :func:`evaluate` unchanged with the policy wrapped in a
+:class:`TrajectoryRecorder` that notes the observed state and the returned action of every row at every
+step. The records are therefore exactly those of a plain evaluation (same batches, same policy calls, same
+random draws), and each :class:`Trajectory` is consistent with its record (``len(actions) == steps``;
+movement actions ``== path_length``).
 """
 
 from __future__ import annotations
 
+import json
+import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
+from ..atomic import atomic_write_text
+from ..constants import CATEGORY_INDEX
+from ..data.reader import is_complete, load_scene
+from ..errors import CommandError
 from ..sim.batch import BatchEnv, SceneBank
-from ..sim.episodes import Episode, episodes_to_arrays
+from ..sim.episodes import Episode, episodes_to_arrays, read_episodes
 from ..sim.paths import UNREACHABLE, distance_fields
-from .metrics import EpisodeRecord
+from .metrics import EpisodeRecord, read_records, summarize, write_json, write_records
+from .policies import make_policy
 
 
 @dataclass
@@ -106,3 +124,204 @@ def _run_chunk(bank, scene_idx, target, start, policy, stage, config) -> dict[st
 def config_dict(config: EvalConfig) -> dict:
     return asdict(config)
 
+
+# ---------------------------------------------------------------------------------------------------------
+# Trajectories (for the gallery)
+# ---------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Trajectory:
+    """The frames and actions of one evaluation episode (frames 0..T: the start frame, then one per action)."""
+
+    episode: int
+    """Index of the episode in its episode list (``EpisodeRecord.episode``)."""
+    scene: str
+    target: str
+    keys: list[str]
+    """State keys of the frames, start first (``len(actions) + 1`` entries)."""
+    actions: list[int]
+    """Action ids in the order of ``constants.ACTIONS``, Done included."""
+    switch_frame: int = -1
+    """First frame whose target confidence exceeded C_target (the pathfinding stage starts there), or -1."""
+    success: bool = False
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True)
+
+
+class TrajectoryRecorder:
+    """A :class:`~tsnav.eval.policies.Policy` wrapper noting ``obs["state"]``, ``obs["active"]`` and the actions.
+
+    Each ``reset`` whose mask is all True starts a new chunk (the runner resets once per chunk of episodes).
+    """
+
+    def __init__(self, policy):
+        self.policy = policy
+        self.chunks: list[dict[str, list[np.ndarray]]] = []
+
+    def reset(self, mask: np.ndarray) -> None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.all():
+            self.chunks.append({"state": [], "active": [], "action": []})
+        self.policy.reset(mask)
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        a = np.asarray(self.policy.act(obs))
+        c = self.chunks[-1]
+        c["state"].append(np.asarray(obs["state"], dtype=np.int64).copy())
+        c["active"].append(np.asarray(obs.get("active", np.ones(len(a), bool)), dtype=bool).copy())
+        c["action"].append(a.astype(np.int64).copy())
+        return a
+
+
+def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
+                        ) -> tuple[list[EpisodeRecord], list[Trajectory]]:
+    """Evaluate ``policy`` on ``episodes`` (exactly like :func:`evaluate`) and return the
+    records together with one :class:`Trajectory` per episode, in the same order."""
+    config = config or EvalConfig()
+    rec = TrajectoryRecorder(policy)
+    records = evaluate(bank, episodes, rec, config)
+    stage = bank.stage_confidence > config.c_target
+    trajectories: list[Trajectory] = []
+    lo = 0
+    for chunk in rec.chunks:
+        states = np.stack(chunk["state"]) if chunk["state"] else np.zeros((0, 0), np.int64)  # [T, B]
+        active = np.stack(chunk["active"]) if chunk["active"] else np.zeros((0, 0), bool)
+        actions = np.stack(chunk["action"]) if chunk["action"] else np.zeros((0, 0), np.int64)
+        n = states.shape[1] if states.ndim == 2 and states.shape[0] else 0
+        for j in range(n):
+            r = records[lo + j]
+            t = np.flatnonzero(active[:, j])
+            s, a = states[t, j], actions[t, j]
+            if len(s):
+                final = int(bank.next_state[s[-1], a[-1]])
+                frames = np.concatenate([s, [final]])
+            else:
+                frames = np.array([bank.global_state(bank.scene_index(r.scene), r.start)], dtype=np.int64)
+            g = CATEGORY_INDEX[r.target]
+            above = stage[frames, g]
+            trajectories.append(Trajectory(
+                episode=r.episode, scene=r.scene, target=r.target, keys=[str(k) for k in bank.keys[frames]],
+                actions=[int(x) for x in a], switch_frame=int(np.argmax(above)) if above.any() else -1,
+                success=bool(r.success)))
+        lo += n
+    if len(trajectories) != len(records):
+        raise RuntimeError(f"recorded {len(trajectories)} trajectories for {len(records)} episodes")
+    return records, trajectories
+
+
+def write_trajectories(path: str | Path, trajectories: Sequence[Trajectory]) -> None:
+    """JSON Lines, one trajectory per line, written atomically."""
+    atomic_write_text(Path(path), "".join(t.to_json() + "\n" for t in trajectories))
+
+
+def read_trajectories(path: str | Path) -> list[Trajectory]:
+    out = []
+    with open(path) as f:
+        for i, line in enumerate(f, 1):
+            if line.strip():
+                try:
+                    out.append(Trajectory(**json.loads(line)))
+                except (json.JSONDecodeError, TypeError) as e:
+                    raise ValueError(f"{path}:{i}: not a trajectory ({e})") from None
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Evaluation folders
+# ---------------------------------------------------------------------------------------------------------
+
+
+def load_bank_for_episodes(data, episodes, **bank_kwargs):
+    """A :class:`SceneBank` of exactly the scenes an episode list refers to (folders ``data/<scene>``)."""
+    names = sorted({e.scene for e in episodes})
+    scenes = []
+    for name in names:
+        p = Path(data) / name
+        if not is_complete(p):
+            raise CommandError(f"{p}: scene of the episode list is missing or incomplete")
+        scenes.append(load_scene(p))
+    return SceneBank(scenes, **bank_kwargs)
+
+
+def eval_bank(meta: dict, episodes):
+    """The scene bank an evaluation folder's ``metrics.json`` describes (same scenes, success distance,
+    C_target and detection tables)."""
+    cfg = meta.get("config", {})
+    bank = load_bank_for_episodes(meta["data"], episodes, success_distance=float(meta.get("success_distance", 1.0)),
+                                  c_target=float(cfg.get("c_target", 0.7)))
+    if meta.get("detections"):
+        bank.install_detections(meta["detections"])
+    return bank
+
+
+def eval_policy(meta: dict, bank):
+    """The policy of an evaluation folder: the trained agent of ``meta["run"]`` (or of a ``run:PATH`` policy, as
+    ``tsnav eval --run`` records it) or a scripted policy."""
+    seed = int(meta.get("seed", 0))
+    name = str(meta.get("policy", "explorer"))
+    run = meta.get("run") or (name[len("run:"):] if name.startswith("run:") else None)
+    if run:
+        # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
+        from ..rl.checkpoint import load_policy
+
+        return load_policy(run, bank, seed=seed)
+    return make_policy(name, bank, seed=seed,
+                       c_target=float(meta.get("config", {}).get("c_target", 0.7)))
+
+
+def eval_trajectories(eval_dir: str | Path):
+    """``(bank, records, trajectories, c_target)`` of an evaluation folder; trajectories are read from
+    ``trajectories.jsonl`` or re-rolled with the recorded policy and seed."""
+    eval_dir = Path(eval_dir)
+    meta = json.loads((eval_dir / "metrics.json").read_text())
+    episodes, _ = read_episodes(meta["episodes_file"])
+    bank = eval_bank(meta, episodes)
+    records = read_records(eval_dir / "records.jsonl")
+    cfg = meta.get("config", {})
+    c_target = float(cfg.get("c_target", 0.7))
+    tp = eval_dir / "trajectories.jsonl"
+    if tp.exists():
+        trajectories = read_trajectories(tp)
+    else:
+        config = EvalConfig(max_steps=int(cfg.get("max_steps", 100)), c_target=c_target,
+                            batch_size=int(cfg.get("batch_size", 4096)))
+        policy = eval_policy(meta, bank)
+        rerolled, trajectories = record_trajectories(bank, episodes, policy, config)
+        same = [(a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
+                for a, b in zip(rerolled, records)]
+        if len(rerolled) != len(records) or not all(same):
+            raise ValueError(f"{eval_dir}: re-rolled episodes differ from records.jsonl (another policy or data?)")
+        try:
+            write_trajectories(tp, trajectories)
+        except OSError:
+            pass
+    if len(trajectories) != len(records):
+        raise ValueError(f"{tp}: {len(trajectories)} trajectories for {len(records)} records")
+    return bank, records, trajectories, c_target
+
+
+def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
+                       run: str | Path | None = None, detections: str | None = None, c_target: float = 0.7,
+                       seed: int = 0, label: str | None = None, max_steps: int = 100) -> dict:
+    """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
+    episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
+    :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). Returns the :func:`summarize` result."""
+    out_dir = Path(out_dir)
+    episodes, emeta = read_episodes(episodes_file)
+    config = EvalConfig(max_steps=max_steps, c_target=c_target)
+    meta = {"policy": "agent" if run else policy, "run": str(Path(run).resolve()) if run else None, "seed": seed,
+            "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
+            "success_distance": float(emeta.get("success_distance", 1.0)), "detections": detections,
+            "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
+    bank = eval_bank(meta, episodes)
+    pol = eval_policy(meta, bank)
+    t0 = time.perf_counter()
+    records, trajectories = record_trajectories(bank, episodes, pol, config)
+    summary = summarize(records, config.min_optimal_length)
+    write_records(out_dir / "records.jsonl", records)
+    write_trajectories(out_dir / "trajectories.jsonl", trajectories)
+    write_json(out_dir / "metrics.json", {**meta, "metrics": summary, "seconds": time.perf_counter() - t0,
+                                          "detector_confidence": bank.confidence is not None})
+    return summary

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..cli import CommandError
+from ..errors import CommandError
 from .model import SIZES
 from .train import METHODS, PretrainConfig, train
 

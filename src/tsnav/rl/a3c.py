@@ -27,12 +27,12 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic, AgentConfig
-from .batched import ProgressBar, new_progress
+from .progress import ProgressBar, new_progress
 from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .logger import LogWindow, RunLogger
 from .rollout import RolloutCollector, collect_and_loss
-from .world import load_bank, make_model, make_observer, make_train_env
+from .assemble import load_bank, make_model, make_observer, make_train_env
 
 
 class SharedAdam(torch.optim.Adam):

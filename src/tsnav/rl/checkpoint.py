@@ -183,7 +183,7 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, 
     from ..agent.observe import DetectionTable, Observer, load_bank_features
     from .config import TrainConfig
     from .policy import AgentPolicy
-    from .world import install
+    from .assemble import install
 
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
     model, _ = load_model(run_dir, checkpoint)
@@ -192,7 +192,7 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, 
         if bank.detections is None:
             det_features = install(bank, cfg.detections)
         else:
-            from ..detect.table import load_scene_detections
+            from ..data.detections import load_scene_detections
 
             det_features = load_scene_detections(bank.scenes, cfg.detections).features
     features = load_bank_features(bank, cfg.features)

@@ -56,7 +56,7 @@ _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "
 def resolve(args: argparse.Namespace):
     """``(TrainConfig, AgentConfig)`` from the arguments, on top of the run's saved configuration if any."""
     from ..agent import agent_config
-    from ..cli import CommandError
+    from ..errors import CommandError
     from ..rl.config import TrainConfig
     from .train import stored_config
 

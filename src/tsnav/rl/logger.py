@@ -11,7 +11,7 @@ import math
 import time
 from pathlib import Path
 
-from ..pretrain.checkpoint import atomic_write_bytes
+from ..atomic import atomic_write_bytes
 
 #: TensorBoard group of each key (cleanrl-style tags: charts/..., losses/..., reward/..., metrics/...).
 _GROUPS = {"loss": "losses", "policy_loss": "losses", "value_loss": "losses", "entropy": "losses",

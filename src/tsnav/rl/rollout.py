@@ -46,7 +46,7 @@ class Rollout:
     episodes: int = 0
     """Episodes that finished during the rollout."""
     states: np.ndarray | None = None
-    """``(T, B)`` global state ids observed (for :func:`replay`)."""
+    """``(T, B)`` global state ids observed (the test helper ``replay`` re-runs them)."""
     targets: np.ndarray | None = None
     """``(T, B)`` target category ids."""
     actions: np.ndarray | None = None
@@ -136,23 +136,6 @@ class RolloutCollector:
         return Rollout(logp=torch.stack(logps), entropy=torch.stack(ents), value=value, reward=torch.stack(rewards),
                        bootstrap=boot, terminated=torch.stack(terms), finished=fin, episodes=episodes,
                        states=np.stack(states), targets=np.stack(targets), actions=np.stack(actions), start=start)
-
-
-def replay(model: ActorCritic, observer: Observer, ro: Rollout) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Re-run a recorded rollout's observations and actions through ``model``: ``(logp, entropy, value)``
-    ``(T, B)`` with gradients (same recurrent-state resets; dropout as set by the model's mode)."""
-    dev = next(model.parameters()).device
-    state = ro.start
-    logps, ents, values = [], [], []
-    for t in range(ro.states.shape[0]):
-        logits, v, state = model(observer(ro.states[t], ro.targets[t]), state)
-        dist = torch.distributions.Categorical(logits=logits)
-        a = torch.from_numpy(ro.actions[t]).to(dev)
-        logps.append(dist.log_prob(a))
-        ents.append(dist.entropy())
-        values.append(v)
-        state = state.with_action(a).reset(ro.finished[t])
-    return torch.stack(logps), torch.stack(ents), torch.stack(values)
 
 
 def gae(reward: torch.Tensor, value: torch.Tensor, bootstrap: torch.Tensor, terminated: torch.Tensor,

@@ -48,8 +48,9 @@ from typing import Protocol, Sequence, runtime_checkable
 import numpy as np
 
 from ..constants import DONE, GRID_SIZE, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
-from ..data.reader import Scene
-from .paths import UNREACHABLE, distance_fields, scene_distance_fields
+from ..data.detections import Detections, load_scene_detections
+from ..data.reader import Scene, list_scenes, load_scene
+from .paths import distance_fields, scene_distance_fields
 
 
 @runtime_checkable
@@ -75,7 +76,7 @@ class EpisodeSampler(Protocol):
 
 @dataclass
 class SimConfig:
-    """Simulator settings in one place (paper III-A, IV-A); :func:`make_env` builds a bank and env from it."""
+    """Simulator settings in one place (paper III-A, IV-A); :func:`tsnav.sim.episodes.make_env` builds a bank and env from it."""
 
     success_distance: float = SUCCESS_DISTANCE
     """Done succeeds with an instance of the target in view within this many metres (paper: 1.0;
@@ -86,21 +87,6 @@ class SimConfig:
     """Actions per episode before truncation (paper: 100 at test time; the lineage trains with 30)."""
     autoreset: bool = True
     """Finished rows immediately start a new episode from the sampler (training); off for evaluation."""
-
-
-def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sampler: EpisodeSampler | None = None,
-             reward_fn: RewardFn | None = None, seed: int | None = None) -> "BatchEnv":
-    """A :class:`BatchEnv` over ``scenes_or_bank`` (a :class:`SceneBank` or a list of scenes) configured by
-    ``config``; ``sampler`` defaults to the training sampler of :mod:`tsnav.sim.episodes`."""
-    config = config or SimConfig()
-    bank = scenes_or_bank if isinstance(scenes_or_bank, SceneBank) else SceneBank(
-        scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target)
-    if sampler is None:
-        from .episodes import TrainingSampler
-
-        sampler = TrainingSampler(bank)
-    return BatchEnv(bank, num_envs, sampler=sampler, reward_fn=reward_fn, max_steps=config.max_steps,
-                    autoreset=config.autoreset, seed=seed)
 
 
 @dataclass
@@ -190,8 +176,6 @@ class SceneBank:
     @classmethod
     def from_root(cls, root, split: str | None = None, **kwargs) -> "SceneBank":
         """Load every complete scene folder of a dataset root (optionally one split) into a bank."""
-        from ..data.reader import list_scenes, load_scene
-
         paths = list_scenes(root, split)
         if not paths:
             raise ValueError(f"{root}: no complete scenes" + (f" in split {split!r}" if split else ""))
@@ -215,6 +199,15 @@ class SceneBank:
         if det.shape != (self.num_states, NUM_CATEGORIES, 6):
             raise ValueError(f"detections must have shape ({self.num_states}, {NUM_CATEGORIES}, 6), got {det.shape}")
         self.detections = det
+
+    def install_detections(self, name: str) -> Detections:
+        """Load ``detections_<name>.hdf5`` of every scene in bank order and install it: its scores drive the
+        stage switch (paper III-B), its rows become :attr:`detections`. Returns the concatenated table (its
+        ``features`` are row-aligned with the bank's global state ids)."""
+        det = load_scene_detections(self.scenes, name)
+        self.set_confidence(det.scores)
+        self.set_detections(det.rows())
+        return det
 
     @property
     def stage_confidence(self) -> np.ndarray:

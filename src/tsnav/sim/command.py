@@ -26,7 +26,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cli import CommandError
+    from ..errors import CommandError
     from .batch import SceneBank
     from .episodes import EpisodeConfig, make_episodes, read_episodes, write_episodes
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, ROOM_TARGETS, TARGET_CATEGORIES
-from .batch import SceneBank
+from .batch import BatchEnv, EpisodeSampler, RewardFn, SceneBank, SimConfig
 from .paths import UNREACHABLE
 
 EPISODES_FORMAT = "tsnav-episodes"
@@ -118,6 +118,19 @@ class TrainingSampler:
         pair = t.scene_ptr[scene] + (u[0] * self._npairs[scene]).astype(np.int64)
         start = t.starts[t.ptr[pair] + (u[1] * self._counts[pair]).astype(np.int64)]
         return scene, t.pair_target[pair], start
+
+
+def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sampler: EpisodeSampler | None = None,
+             reward_fn: RewardFn | None = None, seed: int | None = None) -> BatchEnv:
+    """A :class:`BatchEnv` over ``scenes_or_bank`` (a :class:`SceneBank` or a list of scenes) configured by
+    ``config``; ``sampler`` defaults to the :class:`TrainingSampler`."""
+    config = config or SimConfig()
+    bank = scenes_or_bank if isinstance(scenes_or_bank, SceneBank) else SceneBank(
+        scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target)
+    if sampler is None:
+        sampler = TrainingSampler(bank)
+    return BatchEnv(bank, num_envs, sampler=sampler, reward_fn=reward_fn, max_steps=config.max_steps,
+                    autoreset=config.autoreset, seed=seed)
 
 
 @dataclass

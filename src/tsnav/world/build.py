@@ -1,16 +1,148 @@
-"""Build a dataset of many scenes, in parallel worker processes, resumably."""
+"""Build offline datasets: generate, lay out the state graph, render every state, write scene folders.
+
+:func:`build_scene` makes one scene (written through :mod:`tsnav.data.writer`, atomically: running the build
+again skips finished scenes and redoes the rest); :func:`build_dataset` many, in parallel worker processes.
+Files follow the lineage layout (DESIGN.md "The offline dataset").
+"""
 
 from __future__ import annotations
 
+import json
 import multiprocessing as mp
 import os
 import shutil
-from dataclasses import replace
+import time
+from contextlib import ExitStack
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from ..data.writer import BuildConfig, SceneStats, build_scene, write_index
-from .house import scene_info
-from .presets import PRESETS, preset_scenes
+import numpy as np
+from tqdm import tqdm
+
+from ..atomic import atomic_write_text
+from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
+from ..data.reader import COMPLETE_MARKER
+from ..data.writer import (GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
+                           scene_folder, write_graph, write_json, write_states)
+from ..render.gl import Renderer
+from ..data.names import scene_info
+from .navgrid import build_graph, reachable_positions
+from .presets import PRESETS, preset_scenes, scene_spec
+from .spec import SceneSpec
+
+@dataclass
+class BuildConfig:
+    """Settings of one dataset build."""
+
+    image_size: int = 64  #: side of the square frames, pixels
+    store_images: bool = True  #: write images.hdf5 and depth.hdf5 (needed for pretraining and features)
+    depth_dtype: str = "float16"  #: dtype of depth.hdf5 (metres); float16 keeps datasets small
+    compression: str | None = None  #: HDF5 filter for images (None or "gzip"; lzf output is not byte-reproducible)
+    compact: bool = False  #: small rooms (the `tiny` preset)
+    world: str = "procedural"  #: layout source: "procedural" or "ithor-real" (tsnav.world.presets.WORLDS)
+    seed: int = 0  #: world seed; the same name and seed give the same scene
+    tiles: int = 16  #: views rendered per framebuffer read
+
+    def min_pixels(self) -> int:
+        return min_pixels(self.image_size)
+
+
+@dataclass
+class SceneStats:
+    name: str
+    states: int = 0
+    positions: int = 0
+    objects: int = 0
+    render_s: float = 0.0
+    write_s: float = 0.0
+    other_s: float = 0.0
+    skipped: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Renderer | None = None) -> SceneStats:
+    """Generate, render and write scene ``name`` into ``out_dir/name`` (skipped when already complete)."""
+    out_dir = Path(out_dir)
+    final = out_dir / name
+    stats = SceneStats(name)
+    if (final / COMPLETE_MARKER).exists():
+        stats.skipped = True
+        return stats
+    t0 = time.perf_counter()
+    spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact)
+    positions, move = reachable_positions(spec)
+    nodes, edges = build_graph(positions, move)
+    js = spec.to_json()
+    objects = spec.objects
+    O = len(objects)
+    lut = np.full(len(spec.instances), -1, np.int64)
+    for j, o in enumerate(objects):
+        lut[o.inst] = j
+    # Render order: position, rotation, horizon; the tables are stored in sorted key order.
+    poses = np.array([(x, z, r, h) for x, z in positions for r in ROTATIONS for h in HORIZONS], dtype=np.float64)
+    keys = np.array([state_key(*p) for p in poses])
+    order = np.argsort(keys, kind="stable")
+    stats.other_s += time.perf_counter() - t0
+
+    own = renderer is None
+    if own:
+        renderer = Renderer(cfg.image_size, cfg.tiles)
+    try:
+        renderer.set_scene(np.array(js["parts"], dtype=np.float32), js["light"])
+        V = len(poses)
+        pixels = np.zeros((V, O), np.int32)
+        boxes = np.full((V, O, 4), -1, np.int16)
+        with scene_folder(final) as tmp:
+            with ExitStack() as stack:
+                frames = stack.enter_context(FrameWriter(tmp, cfg.depth_dtype, cfg.compression)) if cfg.store_images else None
+                chunk = renderer.tiles * 4
+                for start in range(0, V, chunk):
+                    t1 = time.perf_counter()
+                    rgb, depth, ids = renderer.render(poses[start:start + chunk])
+                    px, bx = object_stats(ids, lut, O) if O else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
+                    pixels[start:start + len(ids)] = px
+                    boxes[start:start + len(ids)] = bx
+                    t2 = time.perf_counter()
+                    stats.render_s += t2 - t1
+                    if frames is not None:
+                        for i in range(len(ids)):
+                            frames.add(keys[start + i], rgb[i], depth[i])
+                    stats.write_s += time.perf_counter() - t2
+            t3 = time.perf_counter()
+            # Distances: agent position to the nearest point of each object's footprint (floor plane); per position.
+            if O:
+                dist_pos = box_distance(positions, np.array([o.center for o in objects]), np.array([o.size for o in objects]),
+                                        np.array([o.yaw for o in objects]))
+            else:
+                dist_pos = np.zeros((len(positions), 0))
+            per_pos = len(ROTATIONS) * len(HORIZONS)
+            distance = np.repeat(dist_pos, per_pos, axis=0).astype(np.float32)
+            keys_s, pixels_s, boxes_s, distance_s = keys[order], pixels[order], boxes[order], distance[order]
+            min_px = cfg.min_pixels()
+            vis = (pixels_s >= min_px) & (distance_s <= VISIBILITY_DISTANCE)
+            write_json(tmp / "visible_object_map_1.5.json", {o.objectId: keys_s[vis[:, j]].tolist() for j, o in enumerate(objects)})
+            write_json(tmp / "grid.json", [{"x": float(x), "y": GRID_Y, "z": float(z)} for x, z in positions])
+            write_graph(tmp, sorted(nodes), edges)
+            write_states(tmp, keys_s, [o.objectId for o in objects], pixels_s, boxes_s, distance_s,
+                         image_size=cfg.image_size, min_pixels=min_px)
+            js.update({"image_size": cfg.image_size, "compact": cfg.compact,
+                       "visibility": {"min_pixels": min_px, "min_pixel_fraction": MIN_PIXEL_FRACTION,
+                                      "distance": VISIBILITY_DISTANCE},
+                       "num_states": len(keys), "num_positions": len(positions)})
+            write_json(tmp / "scene.json", js)
+        stats.write_s += time.perf_counter() - t3
+    finally:
+        if own:
+            renderer.release()
+    stats.states, stats.positions, stats.objects = len(keys), len(positions), O
+    return stats
+
+
+def write_index(out_dir: Path, preset: str, names: list[str], cfg: BuildConfig) -> None:
+    """``index.json`` of a dataset: preset, scene names and the build settings (written atomically)."""
+    atomic_write_text(out_dir / "index.json", json.dumps({"format": "tsnav-dataset", "preset": preset, "scenes": names,
+                                                         "config": asdict(cfg)}, separators=(",", ":")))
+
 
 _RENDERER = None
 _INIT_ERROR: Exception | None = None
@@ -20,8 +152,6 @@ def _init_worker(size: int, tiles: int) -> None:
     # An initializer that raises makes multiprocessing respawn workers forever: keep the error for the task.
     global _RENDERER, _INIT_ERROR
     os.environ.setdefault("LP_NUM_THREADS", "1")
-    from ..render.gl import Renderer
-
     try:
         _RENDERER = Renderer(size, tiles)
     except Exception as e:  # noqa: BLE001 - re-raised in _build_one
@@ -62,15 +192,11 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
     for stale in out.glob(".*.partial-*"):
         shutil.rmtree(stale, ignore_errors=True)
     write_index(out, preset or "custom", names, cfg)
-    from tqdm import tqdm
-
     todo = [(n, out, cfg) for n in names]
     results: list[SceneStats] = []
     bar = tqdm(total=len(todo), desc=f"world {preset or 'custom'}", unit="scene", disable=not progress)
     try:
         if workers <= 1:
-            from ..render.gl import Renderer
-
             renderer = Renderer(cfg.image_size, cfg.tiles)
             try:
                 for t in todo:
@@ -80,8 +206,6 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
             finally:
                 renderer.release()
         else:
-            from ..render.gl import Renderer
-
             Renderer(16, 1).release()  # fail fast, in this process, when EGL is missing
             ctx = mp.get_context("spawn")
             with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.image_size, cfg.tiles)) as pool:

@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..cli import CommandError
-from ..data.writer import BuildConfig
+from ..errors import CommandError
+from ..render.gl import RendererUnavailable
+from .build import BuildConfig, build_dataset
 from .presets import PRESETS
 
 
@@ -22,8 +23,6 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from .build import build_dataset
-
     if args.preset not in PRESETS:
         raise CommandError(f"unknown preset {args.preset!r} (choose from {', '.join(PRESETS)})")
     pre = PRESETS[args.preset]
@@ -35,8 +34,6 @@ def run(args) -> int:
     cfg = BuildConfig(image_size=size, store_images=not args.no_images, seed=args.seed,
                       compact=pre["compact"] if args.compact is None else True, world=pre.get("world", "procedural"))
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
-    from ..render.gl import RendererUnavailable
-
     try:
         stats = build_dataset(args.out, args.preset, scenes, cfg, workers=args.workers)
     except RendererUnavailable as e:

@@ -11,7 +11,6 @@ the same scene, byte for byte. Names and splits follow AI2-THOR and the lineage:
 from __future__ import annotations
 
 import math
-import re
 import zlib
 
 import numpy as np
@@ -19,6 +18,7 @@ from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
 from ..constants import ROOM_TARGETS, ROOM_TYPES
+from ..data.names import scene_info
 from .catalog import FLOORS, FURNITURE_SIZES, OBJECT_SIZES, WALLS, build_parts, draw_size, jitter
 from .spec import Furniture, ObjectInstance, Part, SceneSpec, box_footprint
 
@@ -26,7 +26,6 @@ GENERATOR_VERSION = 2
 WALL_T = 0.1
 DOOR_W = 1.0
 
-ITHOR_BASE = {"kitchen": 0, "living_room": 200, "bedroom": 300, "bathroom": 400}
 ROOM_SIZE = {  # (width range, depth range), metres
     "kitchen": ((3.5, 6.0), (4.0, 7.0)),
     "living_room": ((4.5, 7.0), (5.0, 8.5)),
@@ -34,46 +33,6 @@ ROOM_SIZE = {  # (width range, depth range), metres
     "bathroom": ((2.25, 3.5), (2.75, 4.0)),
 }
 COMPACT_SIZE = {t: ((2.5, 3.25), (2.75, 3.5)) for t in ROOM_TYPES}
-
-
-# ----------------------------------------------------------------------------------------- names
-def ithor_scenes(room_type: str | None = None, split: str | None = None) -> list[str]:
-    out = []
-    for t in ROOM_TYPES if room_type is None else (room_type,):
-        for i in range(1, 31):
-            if split is None or ithor_split(i) == split:
-                out.append(f"FloorPlan{ITHOR_BASE[t] + i}")
-    return out
-
-
-def ithor_split(i: int) -> str:
-    return "train" if i <= 20 else ("val" if i % 2 == 1 else "test")
-
-
-def robothor_scenes(split: str | None = None) -> list[str]:
-    out = []
-    if split in (None, "train"):
-        out += [f"FloorPlan_Train{a}_{b}" for a in range(1, 13) for b in range(1, 6)]
-    if split in (None, "val"):
-        out += [f"FloorPlan_Val{a}_{b}" for a in range(1, 4) for b in range(1, 6)]
-    return out
-
-
-def scene_info(name: str) -> tuple[str, str]:
-    """``(room_type, split)`` of a scene name; ``ValueError`` for names that are not scenes of this world."""
-    m = re.fullmatch(r"FloorPlan(\d+)", name)
-    if m:
-        n = int(m.group(1))
-        for t, base in ITHOR_BASE.items():
-            if base + 1 <= n <= base + 30:
-                return t, ithor_split(n - base)
-    m = re.fullmatch(r"FloorPlan_(Train|Val)(\d+)_(\d+)", name)
-    if m:
-        a, b = int(m.group(2)), int(m.group(3))
-        if 1 <= b <= 5 and ((m.group(1) == "Train" and 1 <= a <= 12) or (m.group(1) == "Val" and 1 <= a <= 3)):
-            return "apartment", m.group(1).lower()
-    raise ValueError(f"unknown scene name {name!r} (expected FloorPlan1-30, 201-230, 301-330, 401-430, "
-                     f"FloorPlan_Train1-12_1-5 or FloorPlan_Val1-3_1-5)")
 
 
 def scene_seed(name: str, seed: int = 0) -> int:

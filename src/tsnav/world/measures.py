@@ -21,7 +21,8 @@ from shapely.ops import unary_union
 
 from ..atomic import atomic_write_text
 from ..constants import ROOM_TARGETS, ROOM_TYPES
-from .house import generate, ithor_scenes, scene_info
+from ..data.names import ithor_scenes, scene_info
+from .house import generate
 from .layouts import load_layout
 from .navgrid import reachable_positions
 

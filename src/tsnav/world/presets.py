@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from .house import generate, ithor_scenes, robothor_scenes
+from ..data.names import ithor_scenes, robothor_scenes
+from .house import generate
 from .spec import SceneSpec
 
 #: Where a scene's layout comes from: ``procedural`` (generated from its name) or ``ithor-real`` (the real

@@ -34,8 +34,8 @@ from shapely.geometry import MultiPoint, Polygon, box
 from shapely.geometry.polygon import orient
 
 from ..constants import TARGET_CATEGORIES
+from ..data.names import scene_info
 from .catalog import FLOORS, WALLS, build_parts, jitter, materials_for
-from .house import scene_info
 from .layouts import Layout, LayoutObject, load_layout
 from .spec import Furniture, ObjectInstance, Part, SceneSpec
 

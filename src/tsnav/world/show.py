@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_save_figure
-from ..cli import CommandError
+from ..errors import CommandError
 from ..constants import TARGET_CATEGORIES
 
 

@@ -8,7 +8,8 @@ import torch
 
 from ..agent.model import ActorCritic, AgentConfig
 from ..agent.observe import DetectionTable, Observer, load_bank_features
-from ..sim.batch import BatchEnv, SceneBank, SimConfig, make_env
+from ..sim.batch import BatchEnv, SceneBank, SimConfig
+from ..sim.episodes import make_env
 from ..tsrm.reward import RewardConfig, TSRMReward
 from .config import TrainConfig
 
@@ -28,9 +29,7 @@ def install(bank: SceneBank, detections: str | None) -> np.ndarray | None:
     per-class features ``(S, 22, F)``."""
     if detections is None:
         return None
-    from ..detect.table import install_detections
-
-    return install_detections(bank, detections).features
+    return bank.install_detections(detections).features
 
 
 def make_observer(bank: SceneBank, cfg: TrainConfig, features: torch.Tensor | None = None,

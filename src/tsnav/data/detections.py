@@ -212,14 +212,3 @@ def load_scene_detections(scenes: Sequence, name: str) -> Detections:
                              f"(rerun `tsnav detect`)")
         parts.append(d)
     return Detections.concatenate(parts)
-
-
-def install_detections(bank, name: str) -> Detections:
-    """Load ``detections_<name>.hdf5`` of every scene of ``bank`` (a :class:`~tsnav.sim.batch.SceneBank`) in
-    bank order and install them: ``bank.set_confidence(scores)`` (drives the stage switch, paper III-B) and
-    ``bank.set_detections(rows)``. Returns the concatenated table (its ``features`` are row-aligned with the
-    bank's global state ids)."""
-    det = load_scene_detections(bank.scenes, name)
-    bank.set_confidence(det.scores)
-    bank.set_detections(det.rows())
-    return det

@@ -1,0 +1,168 @@
+"""The paper's experiments as data: scales, rows, and the resolved configuration of an experiment.
+
+A row is one line of a paper table (Table II ablation, Table III pretraining) or one point of Fig. 4
+(threshold); :func:`experiment_rows` lists them. The jobs that run them live in :mod:`tsnav.eval.experiment`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .metrics import METRICS
+
+EXPERIMENTS = ("ablation", "pretraining", "threshold")
+
+
+
+@dataclass
+class ScaleConfig:
+    """Sizes of every stage at one scale (``small``: 2-core CPU; ``paper``: the paper's settings)."""
+
+    vit_model: str = "vit_tiny"
+    """ViT size of the MAE-family encoders (paper: ViT-Base)."""
+    patch_size: int = 16
+    """ViT patch side, pixels."""
+    img_size: int = 64
+    """Encoder input side, pixels (frames are resized to it; paper: 224)."""
+    pretrain_steps: int | None = 800
+    """Optimiser steps of each pretraining run; None: ``PretrainConfig.epochs`` passes over the data."""
+    pretrain_batch_size: int = 64
+    """Images per pretraining step."""
+    pretrain_base_lr: float | None = 1.5e-3
+    """Pretraining learning rate per 256 images of the MAE-family methods; None: MAE's 1.5e-4. Short CPU runs
+    use a larger one."""
+    resnet_pretrain_steps: int | None = 400
+    """Optimiser steps of the supervised ResNet18 baseline (used when no ImageNet weights are given); None: as
+    ``pretrain_steps``."""
+    feature_batch_size: int = 128
+    """Frames per encoder call when caching features."""
+    algo: str = "batched"
+    """Trainer: ``batched`` (synchronous A2C over many episodes) or ``a3c`` (paper: 14 asynchronous workers)."""
+    agent_preset: str = "cpu"
+    """Agent network size (:data:`tsnav.agent.PRESETS`; paper: ``paper``)."""
+    lr: float = 1e-3
+    """Adam learning rate of the agent (paper: 1e-4; short CPU runs need a larger one)."""
+    num_envs: int = 64
+    """Episodes stepped together by the batched trainer."""
+    workers: int = 14
+    """A3C workers (paper: 14)."""
+    minutes_per_job: float | None = 4.0
+    """Training budget per job in minutes (None: ``episodes_per_job``)."""
+    episodes_per_job: int | None = None
+    """Training budget per job in episodes (paper: 1.5 M)."""
+    updates_per_job: int | None = None
+    """Training budget per job in optimizer updates (tests). Training stops at the first budget reached; with
+    none set, the paper's 1.5 M episodes."""
+    test_per_room_type: int = 250
+    """Test episodes per room type (the lineage: 250)."""
+    val_per_room_type: int = 100
+    """Validation episodes per room type (threshold sweep)."""
+    max_steps: int = 100
+    """Evaluation episode length (paper: 100)."""
+
+
+SCALES = {
+    "small": ScaleConfig(),
+    "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
+                         pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
+                         num_envs=16, workers=14, minutes_per_job=None, episodes_per_job=1_500_000,
+                         test_per_room_type=250, val_per_room_type=250),
+}
+
+
+@dataclass
+class Row:
+    """One row of an experiment's table (one trained agent per seed)."""
+
+    id: str
+    """Short name, used in folder names."""
+    label: str
+    """What the table shows."""
+    encoder: str
+    """Encoder of the image features: ``resnet18``, ``demae``, ``mae``, ``demae-crop`` or ``vc1``."""
+    reward: str
+    """Reward variant (:data:`tsnav.tsrm.reward.VARIANTS`)."""
+    c_target: float = 0.7
+    """Stage-switch threshold for training and evaluation (paper: 0.7)."""
+    flags: dict = field(default_factory=dict)
+    """Check-mark columns of the table (Table II: exploration reward, distance reward, DE-MAE)."""
+
+
+ABLATION_FLAGS = ("Exploration Reward", "Distance Reward", "DE-MAE")
+
+
+def _abl(id_, label, enc, reward, e, d, m) -> Row:
+    return Row(id_, label, enc, reward, 0.7, dict(zip(ABLATION_FLAGS, (e, d, m))))
+
+
+def experiment_rows(name: str, vc1: bool = False) -> list[Row]:
+    """The rows of an experiment (paper Table II, Table III, Fig. 4)."""
+    if name == "ablation":
+        return [_abl("baseline", "baseline (ResNet18, baseline reward)", "resnet18", "baseline", 0, 0, 0),
+                _abl("explore", "+ exploration reward", "resnet18", "explore", 1, 0, 0),
+                _abl("distance", "+ distance reward", "resnet18", "distance", 0, 1, 0),
+                _abl("tsrm", "+ both (TSRM)", "resnet18", "tsrm", 1, 1, 0),
+                _abl("demae", "+ DE-MAE alone", "demae", "baseline", 0, 0, 1),
+                _abl("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm", 1, 1, 1)]
+    if name == "pretraining":
+        rows = [Row("resnet18", "Baseline (ResNet18)", "resnet18", "baseline")]
+        if vc1:
+            rows.append(Row("vc1", "VC-1 (ViT-Base, Ego4D)", "vc1", "baseline"))
+        return rows + [Row("mae", "Standard MAE (ViT)", "mae", "baseline"),
+                       Row("demae_crop", "DE-MAE (ViT) w/ crop", "demae-crop", "baseline"),
+                       Row("demae", "DE-MAE (ViT) w/o crop", "demae", "baseline")]
+    if name == "threshold":
+        return [Row(f"c{int(round(100 * c)):02d}", f"C_target = {c:.1f}", "demae", "tsrm", c)
+                for c in np.round(np.arange(0.1, 0.91, 0.1), 2).tolist()]
+    raise ValueError(f"unknown experiment {name!r} (choose from {', '.join(EXPERIMENTS)})")
+
+
+#: Per experiment: evaluation split, metrics in the table, check-mark columns, row shown in the gallery.
+EXPERIMENT_INFO = {
+    "ablation": dict(split="test", metrics=list(METRICS), flags=list(ABLATION_FLAGS), gallery_row="tsrm_demae",
+                     description="Paper Table II: TSRM terms and DE-MAE added to the baseline."),
+    "pretraining": dict(split="test", metrics=["SR", "SPL"], flags=[], gallery_row="demae",
+                        description="Paper Table III: pretraining methods of the image encoder, baseline reward."),
+    "threshold": dict(split="val", metrics=list(METRICS), flags=[], gallery_row="c70",
+                      description="Paper Fig. 4: the stage-switch threshold C_target swept on validation episodes."),
+}
+
+
+@dataclass
+class ExperimentConfig:
+    """A resolved experiment (saved as ``experiment.json``)."""
+
+    experiment: str
+    """``ablation``, ``pretraining`` or ``threshold``."""
+    data: str
+    """Dataset root (train scenes for pretraining and training, test / val scenes for evaluation)."""
+    out: str
+    """Experiment folder."""
+    scale: str = "small"
+    """Name of the :class:`ScaleConfig`."""
+    seeds: int = 1
+    """Trained agents per row (seeds 0 .. seeds-1); the table reports the mean and 95 % t-interval."""
+    minutes_per_job: float | None = None
+    """Overrides the scale's training budget per job (minutes)."""
+    updates_per_job: int | None = None
+    """Overrides the scale's training budget per job with a number of optimizer updates, the same on any
+    machine however busy (no minute limit unless ``minutes_per_job`` is also set; the first budget reached
+    stops training)."""
+    pretrain_dir: str | None = None
+    """Where pretraining runs live (default ``OUT/pretrain``); share it between experiments."""
+    detections: str = "oracle"
+    """Detection tables driving the stage switch; ``oracle`` tables are computed when missing, other names
+    must exist (``tsnav detect``)."""
+    vc1_weights: str | None = None
+    """Published VC-1 ViT-Base weights (timm layout); adds the VC-1 row to the pretraining experiment."""
+    resnet18_weights: str | None = None
+    """torchvision-layout ResNet18 weights (e.g. ImageNet, like the paper); without them the ResNet18 baseline
+    is pretrained here, supervised on the categories visible in the train frames."""
+    device: str = "auto"
+    """Device of pretraining, features and training (``auto``: CUDA when present)."""
+    seed_offset: int = 0
+    """Added to the job seeds (repeat an experiment with other seeds)."""
+    parallel: int = 1
+    """Jobs trained at once, each in its own process (use 2 on two idle cores; progress bars are then off)."""

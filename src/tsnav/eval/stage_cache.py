@@ -1,0 +1,124 @@
+"""Stages an experiment's jobs share, each made once and reused (resumable): detection tables, episode
+lists, pretrained encoders and their feature caches (see :mod:`tsnav.eval.experiment`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..data.detections import detections_path, read_fingerprint, write_detections
+from ..data.reader import list_scenes, load_scene
+from ..detect.oracle import OracleConfig, oracle_detections
+from ..errors import CommandError
+from ..pretrain.features import cache_features, load_encoder
+from ..pretrain.train import PretrainConfig, resolve_device, train
+from ..sim.batch import SceneBank
+from ..sim.episodes import make_episodes, write_episodes
+from .experiment_config import ExperimentConfig, ScaleConfig
+
+
+def say(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
+    """Write the oracle detector's table ``detections_<name>.hdf5`` into every scene lacking one made by the same
+    oracle configuration; returns the number of scenes written."""
+    cfg = OracleConfig()
+    fp = cfg.fingerprint()
+    n = 0
+    for p in list_scenes(data):
+        have = read_fingerprint(p, name)
+        if have == fp:
+            continue
+        if have is not None:
+            raise ValueError(f"{p / f'detections_{name}.hdf5'} was made by another detector ({have}); "
+                             f"remove it or use another --detections name")
+        write_detections(p, name, oracle_detections(load_scene(p), cfg))
+        n += 1
+    return n
+
+
+def ensure_detections(data: str | Path, name: str) -> None:
+    """Oracle tables are computed when missing; other tables must exist in every scene."""
+    if name == "oracle":
+        n = ensure_oracle_detections(data, name)
+        if n:
+            say(f"detections: oracle tables written for {n} scenes")
+        return
+    missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
+    if missing:
+        raise CommandError(f"scene {missing[0]} has no detections_{name}.hdf5 (run `tsnav detect --name {name}`)")
+
+
+def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_type: int, seed: int = 0,
+                    success_distance: float = 1.0) -> Path:
+    """The fixed episode list of ``split`` at ``path`` (made once; reused when present)."""
+    path = Path(path)
+    if path.exists():
+        return path
+    bank = SceneBank.from_root(data, split, success_distance=success_distance)
+    eps = make_episodes(bank, per_room_type, seed)
+    if not eps:
+        raise ValueError(f"{data}: no valid episode in split {split!r}")
+    write_episodes(path, eps, split=split, seed=seed, success_distance=success_distance, per_room_type=per_room_type,
+                   start_horizon=0, room_targets=True, data=str(Path(data).resolve()))
+    return path
+
+
+@dataclass
+class EncoderSpec:
+    """How to obtain an encoder: a ``tsnav features`` spec, the ViT sizes for ``vit:``/``untrained:`` specs, and
+    the pretraining run that produces it (None when nothing needs training)."""
+
+    id: str
+    spec: str
+    model: str = "vit_base"
+    patch_size: int = 16
+    img_size: int = 224
+    pretrain: dict | None = None
+    """``PretrainConfig`` fields of the run in ``pretrain_dir/<id>`` (None: use ``spec`` as it is)."""
+
+
+def encoder_spec(enc: str, scale: ScaleConfig, pretrain_dir: Path, cfg: ExperimentConfig) -> EncoderSpec:
+    """The :class:`EncoderSpec` of an encoder id of the rows at a scale."""
+    if enc == "vc1":
+        if not cfg.vc1_weights:
+            raise ValueError("the VC-1 row needs --vc1-weights PATH")
+        return EncoderSpec("vc1", f"vit:{cfg.vc1_weights}", "vit_base", 16, 224)
+    if enc == "resnet18":
+        if cfg.resnet18_weights:
+            return EncoderSpec("resnet18", f"resnet18:{cfg.resnet18_weights}", img_size=scale.img_size)
+        method = "resnet18-sup"
+    elif enc in ("demae", "mae", "demae-crop"):
+        method = enc
+    else:
+        raise ValueError(f"unknown encoder {enc!r}")
+    run = pretrain_dir / method
+    sup = method == "resnet18-sup"
+    steps = scale.resnet_pretrain_steps if sup and scale.resnet_pretrain_steps is not None else scale.pretrain_steps
+    pre = dict(method=method, model=scale.vit_model, patch_size=scale.patch_size, img_size=scale.img_size,
+               steps=steps, batch_size=scale.pretrain_batch_size, base_lr=None if sup else scale.pretrain_base_lr,
+               device=cfg.device)
+    return EncoderSpec(enc, str(run), scale.vit_model, scale.patch_size, scale.img_size, pre)
+
+
+def ensure_encoder(es: EncoderSpec, data: str | Path) -> None:
+    """Run (or resume, or skip when finished) the pretraining run of ``es``."""
+    if es.pretrain is None:
+        return
+    say(f"pretrain {es.pretrain['method']} -> {es.spec}")
+    res = train(PretrainConfig(**es.pretrain), data, es.spec, progress=True)
+    if not res["finished"]:
+        raise RuntimeError(f"pretraining {es.spec} did not finish")
+
+
+def ensure_features(es: EncoderSpec, data: str | Path, splits: list[str], batch_size: int = 128,
+                    device: str = "auto") -> str:
+    """Cache the features of ``es`` for the scenes of ``splits``; returns the cache name
+    ``<id>-<fingerprint>`` (identical encoders share a cache)."""
+    enc = load_encoder(es.spec, es.model, es.patch_size, es.img_size, resolve_device(device))
+    name = f"{es.id}-{enc.fingerprint[:10]}"
+    for s in splits:
+        cache_features(enc, data, name, batch_size=batch_size, split=s, progress=True)
+    return name

@@ -1,0 +1,26 @@
+"""Test helper for the rl tests: re-running a recorded rollout through a model."""
+
+from __future__ import annotations
+
+import torch
+
+from tsnav.agent.model import ActorCritic
+from tsnav.agent.observe import Observer
+from tsnav.rl.rollout import Rollout
+
+
+def replay(model: ActorCritic, observer: Observer, ro: Rollout) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Re-run a recorded rollout's observations and actions through ``model``: ``(logp, entropy, value)``
+    ``(T, B)`` with gradients (same recurrent-state resets; dropout as set by the model's mode)."""
+    dev = next(model.parameters()).device
+    state = ro.start
+    logps, ents, values = [], [], []
+    for t in range(ro.states.shape[0]):
+        logits, v, state = model(observer(ro.states[t], ro.targets[t]), state)
+        dist = torch.distributions.Categorical(logits=logits)
+        a = torch.from_numpy(ro.actions[t]).to(dev)
+        logps.append(dist.log_prob(a))
+        ents.append(dist.entropy())
+        values.append(v)
+        state = state.with_action(a).reset(ro.finished[t])
+    return torch.stack(logps), torch.stack(ents), torch.stack(values)
