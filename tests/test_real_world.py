@@ -155,3 +155,22 @@ def test_real_scene_build_is_deterministic(tmp_path):
     assert set(json.loads((a / "visible_object_map_1.5.json").read_text())) <= {
         o.object_id for o in load_layout("FloorPlan405").objects}
     assert Path(a / "scene.json").stat().st_size > 0
+
+
+def test_paper_scale_runs_on_ithor_real(tmp_path, tiny_world, capsys):
+    from tsnav.cli import main
+    from tsnav.eval.experiment_config import SCALES
+    from tsnav.eval.stage_cache import ensure_world
+
+    assert SCALES["paper"].world == "ithor-real" and SCALES["small"].world == "demo"
+    # A missing --data folder: the one-line error names the scale's world and --build-world.
+    assert main(["experiment", "ablation", "--scale", "paper", "--data", str(tmp_path / "none"),
+                 "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "no such dataset folder" in err and "ithor-real" in err and len(err.strip().splitlines()) == 1
+    # An existing dataset of another world is used as it is, with a note.
+    assert ensure_world(tiny_world, "ithor-real") == "tiny"
+    assert "holds the 'tiny' world" in capsys.readouterr().out
+    # With build=True a missing folder is built with the given preset first.
+    assert ensure_world(tmp_path / "built", "tiny", build=True) == "tiny"
+    assert (tmp_path / "built" / "FloorPlan401" / "COMPLETE").exists()
