@@ -5,6 +5,7 @@ Readers never see a half-written file, and an interrupted write leaves the previ
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
@@ -37,8 +38,6 @@ def atomic_write_json(path: str | Path, obj, indent: int | None = 1, sort_keys: 
 def atomic_save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
     """Render a matplotlib figure (format from the suffix, PNG by default) and write it atomically; returns
     the path. A killed report or plot never leaves a truncated picture behind."""
-    import io
-
     path = Path(path)
     buf = io.BytesIO()
     fig.savefig(buf, format=path.suffix.lstrip(".") or "png", **savefig_kwargs)

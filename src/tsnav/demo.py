@@ -24,6 +24,23 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from .agent import agent_config
+from .data.reader import list_scenes, load_scene
+from .errors import CommandError
+from .eval.experiment import set_threads
+from .eval.metrics import METRICS, write_json
+from .eval.report import build_report
+from .eval.runner import evaluate_to_folder
+from .eval.stage_cache import ensure_episodes, ensure_oracle_detections
+from .pretrain.features import cache_features, load_encoder
+from .pretrain.train import PretrainConfig, train
+from .rl.config import TrainConfig
+from .rl.logger import read_log
+from .rl.train import train_run
+from .sim.episodes import read_episodes
+from .world.build import build_dataset
+from .world.presets import preset_scenes
+
 STAGES = ("world", "pretrain", "features", "detections", "episodes", "train", "evaluate", "report")
 
 
@@ -107,8 +124,6 @@ class Stages:
     def run(self, name: str, what: str, fn, valid=lambda m: True) -> dict:
         """Run ``fn() -> summary dict`` unless a valid marker exists and no earlier stage ran in this call (the
         underlying steps skip what is already on disk, so a rerun after an upstream change is cheap)."""
-        from .eval.metrics import write_json
-
         self.header(name, what)
         m = self.marker(name)
         upstream_ran = any(status == "done" for status, _ in self.times.values())
@@ -126,7 +141,6 @@ class Stages:
         return m
 
 
-
 # ---------------------------------------------------------------------------------------------------------
 # Stages
 # ---------------------------------------------------------------------------------------------------------
@@ -135,8 +149,6 @@ class Stages:
 def train_subset(world: Path, dest: Path, per_type: int | None) -> list[str]:
     """Link the ``per_type`` smallest training rooms of each room type into ``dest`` (a dataset root of its own);
     returns their names. None: every training room."""
-    from .data.reader import list_scenes, load_scene
-
     rooms: dict[str, list[tuple[int, str, Path]]] = {}
     for p in list_scenes(world, "train"):
         s = load_scene(p)
@@ -160,10 +172,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     """Run the demo into ``out``; returns ``{"stages": {name: (status, seconds)}, "results": {label: summary}}``.
 
     ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
-    from .eval.stage_cache import ensure_oracle_detections
-    from .eval.runner import evaluate_to_folder
-    from .eval.metrics import write_json
-
     cfg = cfg or DemoConfig()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -175,17 +183,11 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     # 1. world ------------------------------------------------------------------------------------------
     def do_world():
-        from .data.reader import list_scenes
-        from .world.build import build_dataset
-
         build_dataset(world, cfg.preset, workers=cfg.world_workers)
         names = train_subset(world, sub, cfg.train_rooms_per_type)
         return {"scenes": len(list_scenes(world)), "train_rooms": names}
 
     def world_ok(m):
-        from .data.reader import list_scenes
-        from .world.presets import preset_scenes
-
         return world.is_dir() and len(list_scenes(world)) == len(preset_scenes(cfg.preset)) and sub.is_dir()
 
     wm = st.run("world", f"build the `{cfg.preset}` world into {world} (finished rooms are reused)", do_world, world_ok)
@@ -195,8 +197,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     pre = out / "pretrain"
 
     def do_pretrain():
-        from .pretrain.train import PretrainConfig, train
-
         pc = PretrainConfig(method="demae", model=cfg.vit_model, patch_size=cfg.patch_size, img_size=cfg.img_size,
                             steps=cfg.pretrain_steps, batch_size=cfg.pretrain_batch_size,
                             base_lr=cfg.pretrain_base_lr, checkpoint_every=100, seed=cfg.seed)
@@ -208,8 +208,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     # 3. features ---------------------------------------------------------------------------------------
     def do_features():
-        from .pretrain.features import cache_features, load_encoder
-
         enc = load_encoder(str(pre))
         n = 0
         for root, split in ((sub, "train"), (world, "test")):
@@ -222,8 +220,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         return {"scenes": n, "fingerprint": enc.fingerprint}
 
     def features_ok(m):
-        from .data.reader import list_scenes
-
         rooms = list_scenes(sub, "train") + list_scenes(world, "test")
         return all((p / f"features_{cfg.features_name}.hdf5").exists() for p in rooms)
 
@@ -239,9 +235,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     ep_file = out / "test_episodes.json"
 
     def do_episodes():
-        from .eval.stage_cache import ensure_episodes
-        from .sim.episodes import read_episodes
-
         ensure_episodes(world, "test", ep_file, cfg.test_per_room_type)
         return {"episodes": len(read_episodes(ep_file)[0])}
 
@@ -253,11 +246,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     run_dir = out / "run"
 
     def do_train():
-        from .agent import agent_config
-        from .rl.logger import read_log
-        from .rl.config import TrainConfig
-        from .rl.train import train_run
-
         tc = TrainConfig(data=str(sub.resolve()), features=cfg.features_name, detections=cfg.detections,
                          split="train", algo="batched", reward=cfg.reward, preset=cfg.agent_preset, lr=cfg.lr,
                          num_envs=cfg.num_envs, seed=cfg.seed, minutes=cfg.train_minutes, device="cpu")
@@ -292,8 +280,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     # 8. report -----------------------------------------------------------------------------------------
     def do_report():
-        from .eval.report import build_report
-
         index = build_report(out, out / "report", gallery=cfg.gallery, title="tsnav demo: TSRM + DE-MAE on the demo world")
         return {"index": str(index)}
 
@@ -306,8 +292,6 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
 
 def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
-    from .eval.metrics import METRICS
-
     print("\nstage        status    seconds")
     for name in STAGES:
         status, sec = st.times.get(name, ("-", 0.0))
@@ -325,8 +309,6 @@ def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
 
 
 def run(args) -> int:
-    from .errors import CommandError
-
     cfg = DemoConfig(world_workers=args.workers)
     if args.train_minutes is not None:
         if not args.train_minutes > 0:
@@ -338,7 +320,6 @@ def run(args) -> int:
         cfg.pretrain_steps = args.pretrain_steps
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
-    from .eval.experiment import set_threads
 
     print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)

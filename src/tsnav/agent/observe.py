@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from ..constants import NUM_CATEGORIES
+from ..pretrain.features import read_features
 
 
 @dataclass
@@ -54,8 +55,6 @@ def load_bank_features(bank, name: str) -> torch.Tensor:
     """``(total_S, C, h, w)`` float16 tensor of the caches ``features_<name>.hdf5`` of every scene of ``bank``,
     in global state order. Raises ``FileNotFoundError`` / ``ValueError`` naming the scene when a cache is
     missing, was written for other states, or has another shape than the others."""
-    from ..pretrain.features import read_features
-
     out = None
     shape = None
     for i, scene in enumerate(bank.scenes):

@@ -34,9 +34,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+import h5py
 import numpy as np
 
 from ..constants import NUM_CATEGORIES
+
 
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
@@ -139,8 +141,6 @@ def _attr_str(x) -> str:
 
 def write_detections(scene_dir: str | Path, name: str, det: Detections) -> Path:
     """Write ``det`` to ``scene_dir/detections_<name>.hdf5`` atomically (temp file + rename)."""
-    import h5py
-
     det.validate()
     if len(det.keys) > 1 and not (det.keys[:-1] < det.keys[1:]).all():
         raise ValueError("detections: keys must be sorted and unique (the order of Scene.keys)")
@@ -167,8 +167,6 @@ def write_detections(scene_dir: str | Path, name: str, det: Detections) -> Path:
 
 def read_fingerprint(scene_dir: str | Path, name: str) -> str | None:
     """Fingerprint of the detector that wrote a scene's table, or None when the scene has no table."""
-    import h5py
-
     path = detections_path(scene_dir, name)
     if not path.exists():
         return None
@@ -182,8 +180,6 @@ def read_fingerprint(scene_dir: str | Path, name: str) -> str | None:
 def load_detections(scene_dir: str | Path, name: str) -> Detections:
     """Read ``scene_dir/detections_<name>.hdf5`` into a :class:`Detections` (one-line error when absent or
     malformed)."""
-    import h5py
-
     path = detections_path(scene_dir, name)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no detection table (run `tsnav detect --detector ...`)")

@@ -28,14 +28,19 @@ the detect stage's per-category table (:class:`tsnav.data.detections.Detections`
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from pathlib import Path
 
+import h5py
 import numpy as np
+import shapely
 
 from ..constants import GRID_SIZE, NUM_CATEGORIES
+from .detections import Detections
 from .reader import SceneFormatError
+
 
 GRAPH_FILE = "graph.json"
 GRID_FILE = "grid.json"
@@ -93,8 +98,6 @@ def derive_floor(grid_positions, cell: float = GRID_SIZE) -> list[np.ndarray]:
     the searched area of TSRM (paper section III-B) counts floor seen around it. Every reachable position
     is the centre of its square, so the floor covers it with a margin of ``cell / 2``.
     """
-    import shapely
-
     if isinstance(grid_positions, (list, tuple)) and grid_positions and isinstance(grid_positions[0], dict):
         pts = np.array([[p["x"], p["z"]] for p in grid_positions], dtype=np.float64)
     else:
@@ -147,8 +150,6 @@ def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SI
     DETR's "no object" class, 23, never count as a detection). Boxes are rescaled from ``image_size`` to
     ``out_size`` pixels when ``out_size`` is given.
     """
-    from .detections import Detections
-
     rows = np.asarray(rows, dtype=np.float32)
     if rows.ndim != 3 or rows.shape[2] != TABLE_WIDTH:
         raise ValueError(f"expected (S, R, {TABLE_WIDTH}) detection rows, got shape {rows.shape}")
@@ -179,8 +180,6 @@ def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SI
 
 
 def _rows_fingerprint(rows: np.ndarray) -> str:
-    import hashlib
-
     return "lineage-" + hashlib.sha256(np.ascontiguousarray(rows).tobytes()).hexdigest()[:16]
 
 
@@ -193,8 +192,6 @@ def read_detections_22x264(path: str | Path, image_size: int = LINEAGE_IMAGE_SIZ
     were computed on (300 in the lineage). :class:`SceneFormatError` naming the file and the problem for a
     missing or truncated file or a dataset of the wrong shape.
     """
-    import h5py
-
     path = Path(path)
     if not path.exists():
         raise SceneFormatError(f"{path}: missing file")
@@ -234,8 +231,6 @@ def read_detections_22x264(path: str | Path, image_size: int = LINEAGE_IMAGE_SIZ
 def write_detections_22x264(path: str | Path, det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> Path:
     """Write the lineage's file from a :class:`tsnav.data.detections.Detections`: one float32 ``(22, 264)``
     dataset per state key (atomic: a temporary file renamed when complete)."""
-    import h5py
-
     path = Path(path)
     rows = table_to_22x264(det, box_size)
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")

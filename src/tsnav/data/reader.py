@@ -19,12 +19,12 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import h5py
 import numpy as np
 
-from ..constants import (
-    CATEGORY_INDEX, DONE, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES,
-    ROTATE_LEFT, ROTATE_RIGHT, ROTATE_STEP, SUCCESS_DISTANCE, parse_state_keys,
-)
+from ..constants import (CATEGORY_INDEX, DONE, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES,
+                         ROTATE_LEFT, ROTATE_RIGHT, ROTATE_STEP, SUCCESS_DISTANCE, parse_state_keys)
+
 
 COMPLETE_MARKER = "COMPLETE"
 
@@ -237,8 +237,6 @@ def load_scene(path: str | Path) -> Scene:
     image_size = int(meta.get("image_size", 0))
     st_path = path / "states.hdf5"
     if st_path.exists():
-        import h5py
-
         try:
             with h5py.File(st_path, "r") as f:
                 st_keys = f["keys"][()].astype(str)

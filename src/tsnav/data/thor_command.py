@@ -12,6 +12,10 @@ import argparse
 from pathlib import Path
 
 from ..errors import CommandError
+from .reader import SceneFormatError
+from .thor_export import check_lineage_layout, export_detections_22x264
+from .thor_import import ImportConfig, import_lineage_dataset
+from .thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -41,8 +45,6 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from .reader import SceneFormatError
-
     try:
         return {"import": _import, "check": _check, "export-detections": _export_detections,
                 "export-live": _export_live}[args.action](args)
@@ -51,8 +53,6 @@ def run(args) -> int:
 
 
 def _import(args) -> int:
-    from .thor_import import ImportConfig, import_lineage_dataset
-
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -77,8 +77,6 @@ def _import(args) -> int:
 
 
 def _check(args) -> int:
-    from .thor_export import check_lineage_layout
-
     bad = 0
     for d in args.scene_dirs:
         problems = check_lineage_layout(d)
@@ -92,16 +90,12 @@ def _check(args) -> int:
 
 
 def _export_detections(args) -> int:
-    from .thor_export import export_detections_22x264
-
     path = export_detections_22x264(args.scene_dir, args.detections, args.out, box_size=args.box_size)
     print(f"wrote {path}")
     return 0
 
 
 def _export_live(args) -> int:
-    from .thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
-
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     if not scenes:
         raise CommandError("--scenes names no scene")

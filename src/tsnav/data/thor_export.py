@@ -13,11 +13,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import h5py
 import numpy as np
 
-from ..constants import HORIZONS, ROTATIONS
+from ..constants import HORIZONS, ROTATIONS, parse_state_keys
 from . import lineage as L
-from .reader import SceneFormatError, edge_actions
+from .detections import Detections
+from .reader import SceneFormatError, edge_actions, load_scene
+
 
 #: At most this many problems are reported per check (a broken file would otherwise list every state).
 MAX_REPORTED = 5
@@ -79,8 +82,6 @@ def _check_graph(d: Path, problems: list[str]) -> list[str] | None:
     ok = [(a, b) for a, b in links if a in node_set and b in node_set and isinstance(a, str) and isinstance(b, str)
           and L.KEY_PATTERN.match(a) and L.KEY_PATTERN.match(b)]
     if ok:
-        from ..constants import parse_state_keys
-
         x0, z0, r0, h0 = parse_state_keys([a for a, _ in ok])
         x1, z1, r1, h1 = parse_state_keys([b for _, b in ok])
         act = edge_actions(x0, z0, r0, h0, x1, z1, r1, h1)
@@ -144,8 +145,6 @@ def check_lineage_layout(scene_dir: str | Path) -> list[str]:
 
 
 def _check_h5(path: Path, nodes, problems: list[str], kind: str, required_all: bool = False) -> None:
-    import h5py
-
     if not path.exists():
         return
     name = path.name
@@ -206,11 +205,6 @@ def export_detections_22x264(scene_dir: str | Path, detections_file: str | Path,
     labels and features, and for boxes whenever ``box_size / image_size`` is a power-of-two fraction (as
     300 / 64) or 1.
     """
-    from .detections import Detections
-    from .reader import load_scene
-
-    import h5py
-
     scene_dir = Path(scene_dir)
     p = Path(detections_file)
     if not p.is_absolute() and not p.exists():

@@ -43,8 +43,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
@@ -58,13 +60,14 @@ from ..atomic import atomic_write_text
 from ..errors import CommandError
 from ..rl.config import TrainConfig
 from ..rl.train import train_run
-from .experiment_config import EXPERIMENT_INFO, EXPERIMENTS, SCALES, ExperimentConfig, Row, ScaleConfig, experiment_rows
+from .experiment_config import EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row, ScaleConfig, experiment_rows
 from .metrics import METRICS, write_json
 from .report import build_report
 from .runner import evaluate_to_folder
 from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
                           ensure_world, say)
 from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshold
+
 
 # ---------------------------------------------------------------------------------------------------------
 # Threads
@@ -275,9 +278,6 @@ class Experiment:
             self.write_tables()
 
         if self.cfg.parallel > 1 and len(todo) > 1 and self._train_fn is None:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
             threads = max(1, auto_threads() // self.cfg.parallel)
             with ProcessPoolExecutor(self.cfg.parallel, mp_context=mp.get_context("spawn")) as pool:
                 futs = {}

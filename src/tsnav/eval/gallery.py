@@ -13,10 +13,16 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+import h5py
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from ..atomic import atomic_save_figure
 from ..constants import ACTIONS, DONE
+from ..tsrm.plot import draw_episode
+from ..tsrm.reward import RewardConfig
+from ..world.show import render_views
 from .metrics import EpisodeRecord
 from .runner import Trajectory
 
@@ -87,13 +93,10 @@ def frame_images(scene, keys: Sequence[str]) -> np.ndarray:
     else rendered from ``scene.json`` (needs EGL); ``ValueError`` when neither is possible."""
     p = scene.images_path()
     if p is not None:
-        import h5py
-
         with h5py.File(p, "r") as f:
             return np.stack([f[k][()] for k in keys]).astype(np.uint8)
     if "parts" not in scene.meta:
         raise ValueError(f"{scene.path}: no images.hdf5 and no render parts: no first-person frames")
-    from ..world.show import render_views
 
     idx = scene.indices(list(keys))
     poses = np.stack([scene.x[idx], scene.z[idx], scene.rotation[idx], scene.horizon[idx]], 1).astype(np.float32)
@@ -103,9 +106,6 @@ def frame_images(scene, keys: Sequence[str]) -> np.ndarray:
 
 def draw_frame_strip(frames: np.ndarray, labels: Sequence[str], path: str | Path, title: str = "") -> Path:
     """A PNG of ``frames`` side by side with one caption each."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     k = len(frames)
     fig = Figure(figsize=(1.9 * k, 2.35), layout="constrained")
     FigureCanvasAgg(fig)
@@ -140,9 +140,6 @@ def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence
     colouring uses ``bank.stage_confidence`` and ``c_target`` like the evaluation. Picture paths in the items
     are relative to ``relative_to`` (default: the parent of ``out_dir``).
     """
-    from ..tsrm.plot import draw_episode
-    from ..tsrm.reward import RewardConfig
-
     out_dir = Path(out_dir)
     base = Path(relative_to) if relative_to is not None else out_dir.parent
     conf = bank.stage_confidence

@@ -13,6 +13,7 @@ int64 actions in the order of ``constants.ACTIONS``. Actions of inactive rows ar
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -180,8 +181,6 @@ def make_policy(name: str, bank: SceneBank, seed: int = 0, c_target: float | Non
     if name == "explorer":
         return ExplorerPolicy(bank, c_target=c_target)
     if ":" in name:
-        import importlib
-
         mod, _, attr = name.partition(":")
         try:
             factory = getattr(importlib.import_module(mod), attr)

@@ -28,11 +28,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from ..atomic import atomic_save_figure, atomic_write_text
+from ..errors import CommandError
 from ..rl.logger import read_log
-from .metrics import METRICS
+from .gallery import write_gallery
+from .metrics import METRICS, format_table
 from .runner import eval_trajectories
+
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
 SKIP_DIRS = {"checkpoints", "tb", "report", "__pycache__", "stages"}
@@ -116,9 +122,6 @@ def scan(root: str | Path) -> Found:
 
 
 def _figure(w: float, h: float, ncols: int):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=(w, h), layout="constrained")
     FigureCanvasAgg(fig)
     return fig, fig.subplots(1, ncols, squeeze=False)[0]
@@ -166,7 +169,6 @@ def plot_experiment_curves(series: list[tuple[str, list[dict]]], path: str | Pat
     series = [(lab, log) for lab, log in series if log]
     if not series:
         return None
-    from matplotlib import colormaps
 
     labels = list(dict.fromkeys(lab for lab, _ in series))
     cmap = colormaps["tab10"]
@@ -337,7 +339,6 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
         details = []
         for d in found.evals:
             m = json.loads((d / "metrics.json").read_text())
-            from .metrics import format_table
 
             details.append(f"<details><summary>{_e(_eval_label(d, root))}: per room type</summary>"
                            f"<pre>{_e(format_table(m['metrics']))}</pre></details>")
@@ -415,8 +416,6 @@ def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
 
 
 def _gallery_html(eval_dir: Path, label: str, assets: _Assets, n: int) -> str:
-    from .gallery import write_gallery
-
     try:
         bank, records, trajectories, c_target = eval_trajectories(eval_dir)
     except (OSError, ValueError, KeyError, ImportError) as e:
@@ -495,8 +494,6 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import CommandError
-
     if args.gallery < 0:
         raise CommandError("--gallery must be >= 0")
     if not Path(args.path).is_dir():

@@ -9,8 +9,12 @@ import math
 from pathlib import Path
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from scipy.stats import t
 
 from ..atomic import atomic_save_figure
+
 
 SUBSETS = ("ALL", "L>=5")
 """Episode subsets of every table: all episodes, and those with optimal length of at least 5 actions."""
@@ -24,7 +28,6 @@ def mean_ci(values) -> tuple[float | None, float | None]:
         return None, None
     if len(v) == 1:
         return float(v[0]), None
-    from scipy.stats import t
 
     half = float(t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
     return float(v.mean()), half
@@ -94,8 +97,6 @@ def plot_threshold(results: dict, path: str | Path) -> Path | None:
     rows = [r for r in results["rows"] if r["n"] > 0]
     if not rows:
         return None
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
 
     metrics = results["metrics"]
     fig = Figure(figsize=(3.1 * len(metrics), 3.2), layout="constrained")

@@ -10,9 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
+from safetensors.torch import save
 
-from ..atomic import atomic_write_bytes  # noqa: F401  (re-exported)
-from ..atomic import atomic_write_json as _atomic_write_json
+from ..atomic import atomic_write_bytes, atomic_write_json as _atomic_write_json
 
 
 def atomic_write_json(path: str | Path, obj) -> None:
@@ -21,16 +22,12 @@ def atomic_write_json(path: str | Path, obj) -> None:
 
 def save_tensors(path: str | Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:
     """Atomically write ``tensors`` as safetensors (contiguous CPU copies) with string ``metadata``."""
-    from safetensors.torch import save
-
     t = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
     atomic_write_bytes(path, save(t, metadata=metadata))
 
 
 def load_tensors(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """Tensors and metadata of a safetensors file."""
-    from safetensors import safe_open
-
     out = {}
     with safe_open(str(path), framework="pt") as f:
         meta = f.metadata() or {}

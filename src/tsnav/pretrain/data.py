@@ -24,12 +24,14 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from ..constants import NUM_CATEGORIES
 from ..data.reader import SceneFormatError, list_scenes, load_scene
+
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -78,7 +80,6 @@ class RGBDImages:
             scenes = scenes[:max_scenes]
         if not scenes:
             raise ValueError(f"{self.root}: no complete {split} scene with images.hdf5 and depth.hdf5")
-        import h5py
 
         self.scenes: list[Path] = scenes
         self.keys: list[np.ndarray] = []
@@ -123,8 +124,6 @@ class RGBDImages:
         if self._pid != os.getpid():  # forked worker: never share HDF5 handles across processes
             self._files, self._pid = {}, os.getpid()
         if si not in self._files:
-            import h5py
-
             p = self.scenes[si]
             self._files[si] = (h5py.File(p / "images.hdf5", "r"), h5py.File(p / "depth.hdf5", "r"))
         return self._files[si]

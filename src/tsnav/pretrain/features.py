@@ -32,13 +32,18 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 import torch
 import torch.nn as nn
+from tqdm import tqdm
 
+from ..data.reader import list_scenes, load_scene
+from .checkpoint import load_tensors
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
 from .resnet import ResNet18, load_resnet_weights
+from .train import resolve_device
 
 
 @dataclass
@@ -88,8 +93,6 @@ def _vit_from_config(cfg: dict) -> MaskedAutoencoderViT:
 def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_size: int = 224,
                  device: str | torch.device = "cpu") -> Encoder:
     """Build the frozen encoder named by ``spec`` (see the module docstring for the forms)."""
-    from .checkpoint import load_tensors
-
     kind, _, rest = spec.partition(":")
     if kind == "untrained" and rest:
         torch.manual_seed(0)
@@ -158,8 +161,6 @@ def default_name(spec: str) -> str:
 def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
                    bar=None) -> np.ndarray:
     """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order."""
-    import h5py
-
     out = None
     with h5py.File(scene_dir / "images.hdf5", "r") as fi:
         missing = [k for k in keys[:] if k not in fi]
@@ -183,11 +184,6 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
 
     Returns the feature files (written or already present).
     """
-    import h5py
-    from tqdm import tqdm
-
-    from ..data.reader import list_scenes, load_scene
-
     scenes = [p for p in list_scenes(root, split=split)]
     if not scenes:
         raise ValueError(f"{root}: no complete scene folder" + (f" of split {split}" if split else ""))
@@ -238,8 +234,6 @@ def h5py_str(x) -> str:
 
 def read_features(scene_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray, dict]:
     """``(features (S, C, h, w) float16, keys (S,) str, attrs)`` of a scene's feature cache."""
-    import h5py
-
     f = Path(scene_dir) / f"features_{name}.hdf5"
     if not f.exists():
         raise FileNotFoundError(f"{f}: no feature cache (run `tsnav features`)")
@@ -264,8 +258,6 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .train import resolve_device
-
     enc = load_encoder(args.encoder, args.model, args.patch, args.img_size, resolve_device(args.device))
     name = args.name or default_name(args.encoder)
     files = cache_features(enc, args.data, name, args.batch_size, args.split, args.overwrite, not args.quiet)

@@ -10,7 +10,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
+
+from ..data.reader import list_scenes, load_scene
+
 
 _MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 _STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -29,10 +33,6 @@ def pooled_pixels(rgb: np.ndarray, grid: int) -> np.ndarray:
 
 def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, split: str | None = None) -> list[Path]:
     """Write ``features_<name>.hdf5`` of pooled pixels into every complete scene of ``root`` that lacks it."""
-    import h5py
-
-    from ..data.reader import list_scenes, load_scene
-
     out = []
     for p in list_scenes(root, split):
         f = p / f"features_{name}.hdf5"

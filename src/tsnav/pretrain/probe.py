@@ -19,6 +19,8 @@ scene's states (sorted keys, i.e. positions of smaller x) and scored on the seco
 
 from __future__ import annotations
 
+import argparse
+import json
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -26,7 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from .data import RGBDImages, normalize_rgb
-from .features import Encoder
+from .features import Encoder, load_encoder
 
 
 @dataclass
@@ -166,11 +168,6 @@ def probe_encoder(encoder: Encoder, root, config: ProbeConfig | None = None) -> 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m tsnav.pretrain.probe --data ROOT --encoder SPEC [SPEC ...]``: print one JSON line each."""
-    import argparse
-    import json
-
-    from .features import load_encoder
-
     ap = argparse.ArgumentParser(prog="python -m tsnav.pretrain.probe", description="linear probes of encoders")
     ap.add_argument("--data", required=True)
     ap.add_argument("--encoder", nargs="+", required=True, help="encoder specs as for `tsnav features`")

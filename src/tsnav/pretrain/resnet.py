@@ -19,6 +19,7 @@ import torch
 import torch.nn as nn
 
 from ..constants import NUM_CATEGORIES
+from .model import read_state_dict
 
 
 class BasicBlock(nn.Module):
@@ -93,8 +94,6 @@ def load_resnet_weights(model: ResNet18, path: str | Path) -> dict[str, list[str
     The ``fc`` head is loaded only when its shape matches (an ImageNet head does not fit 22 outputs; it is
     then reported under ``"ignored"``). Raises ``ValueError`` listing missing / unexpected keys.
     """
-    from .model import read_state_dict
-
     sd = read_state_dict(path)
     own = model.state_dict()
     ignored = [k for k in sd if k.startswith("fc.") and (k not in own or sd[k].shape != own[k].shape)]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ..constants import CAMERA_HEIGHT, HORIZONS, ROTATIONS, TARGET_CATEGORIES, state_key
@@ -50,8 +51,6 @@ def write_synthetic_dataset(root: str | Path, scenes: dict[str, str] | None = No
     ``depth.hdf5`` (one dataset per state key), ``graph.json``, ``scene.json``, ``states.hdf5`` and the
     ``COMPLETE`` marker. Returns ``root``.
     """
-    import h5py
-
     root = Path(root)
     scenes = scenes or {"Synth1": "train", "Synth2": "train", "Synth3": "val"}
     rng = np.random.default_rng(seed)

@@ -41,14 +41,15 @@ import torch
 import torch.distributed as dist
 import torch.nn as nn
 import torch.nn.functional as F
+from tqdm import tqdm
 
 from ..constants import NUM_CATEGORIES
-from .checkpoint import (
-    atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors, save_tensors,
-)
-from .data import AugmentConfig, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
+from .checkpoint import atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors, save_tensors
+from .data import AugmentConfig, BatchView, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
 from .model import SIZES, MaskedAutoencoderViT, make_config
 from .resnet import ResNet18
+from .viz import reconstruction_grid
+
 
 METHODS = ("demae", "mae", "demae-crop", "resnet18-sup")
 #: Config fields that may change between an interrupted run and its resumption.
@@ -405,8 +406,6 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
                 yield block[m * B * W:(m + 1) * B * W][di.rank::W]
 
     if cfg.num_workers > 0:
-        from .data import BatchView
-
         loader = iter(torch.utils.data.DataLoader(BatchView(images), sampler=micro_batches(start), batch_size=None,
                                                   num_workers=cfg.num_workers, persistent_workers=False))
     else:
@@ -414,8 +413,8 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
 
     writer = bar = None
     if di.rank == 0:
+        # lazy: torch.utils.tensorboard takes about 2.3 s to import (`python -X importtime`); only logging runs need it
         from torch.utils.tensorboard import SummaryWriter
-        from tqdm import tqdm
 
         writer = SummaryWriter(log_dir=str(out / "tb"), purge_step=start)
         bar = tqdm(total=total, initial=start, desc=f"pretrain {cfg.method}", unit="step", disable=not progress,
@@ -527,8 +526,6 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
 def write_reconstructions(model: MaskedAutoencoderViT, cfg: PretrainConfig, path: Path,
                           train_images: RGBDImages) -> None:
     """Reconstruction grid of a few val images (train images when the dataset has no val split)."""
-    from .viz import reconstruction_grid
-
     val = scene_split_images(train_images.root, "val", cfg.img_size, preload=False, max_scenes=1) or train_images
     idx = np.linspace(0, len(val) - 1, num=min(cfg.viz_images, len(val))).round().astype(np.int64)
     batch = val.get(idx)

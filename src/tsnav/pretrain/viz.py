@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from PIL import Image
+from matplotlib import colormaps
 
 from ..atomic import atomic_write_bytes
 from .data import MAX_DEPTH, denormalize_rgb, target_to_depth
@@ -15,8 +17,6 @@ from .model import MaskedAutoencoderViT
 
 def _depth_colors(d: np.ndarray, vmax: np.ndarray) -> np.ndarray:
     """``[N, H, W]`` metres -> ``[N, H, W, 3]`` colours (``viridis``, 0 m dark, ``vmax[n]`` metres bright)."""
-    from matplotlib import colormaps
-
     return colormaps["viridis"](np.clip(d / vmax[:, None, None], 0, 1))[..., :3]
 
 
@@ -28,8 +28,6 @@ def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depth
 
     images: normalised RGB ``[N, 3, S, S]``; depths: ``[N, 1, S, S]`` depth targets (:func:`~tsnav.pretrain.data.depth_to_target`) or None.
     """
-    from PIL import Image
-
     was_training = model.training
     model.eval()
     g = torch.Generator().manual_seed(seed)

@@ -12,6 +12,7 @@ down; 90 degree field of view, square images; depth is the distance along the vi
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
@@ -154,8 +155,6 @@ class Renderer:
         except ImportError as e:  # pragma: no cover - moderngl is a dependency
             raise RendererUnavailable(f"moderngl is not installed ({e})") from None
         try:
-            import os
-
             # TSNAV_EGL_LIBRARY / TSNAV_GL_LIBRARY pick other library files (e.g. a vendor's EGL).
             self.ctx = moderngl.create_context(standalone=True, backend="egl",
                                                libgl=os.environ.get("TSNAV_GL_LIBRARY", "libGL.so.1"),

@@ -25,14 +25,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.multiprocessing as mp
 
 from ..agent.model import ActorCritic, AgentConfig
-from .progress import ProgressBar, new_progress
+from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .logger import LogWindow, RunLogger
+from .progress import ProgressBar, new_progress
 from .rollout import RolloutCollector, collect_and_loss
-from .assemble import load_bank, make_model, make_observer, make_train_env
 
 
 class SharedAdam(torch.optim.Adam):
@@ -105,8 +106,6 @@ def _worker(wid: int, cfg_d: dict, agent_d: dict, scenes, shared: ActorCritic, o
 def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
               scenes=None, poll_seconds: float = 0.2) -> dict:
     """Train (or resume) the A3C run in ``run_dir`` with ``cfg.workers`` processes; returns the progress."""
-    import torch.multiprocessing as mp
-
     run_dir = Path(run_dir)
     torch.set_num_threads(cfg.threads)
     bank, det = load_bank(cfg, scenes)

@@ -20,6 +20,7 @@ the CPU); a finished run is not retrained.
 
 from __future__ import annotations
 
+import hashlib
 import time
 from pathlib import Path
 
@@ -27,15 +28,14 @@ import numpy as np
 import torch
 
 from ..agent.model import AgentConfig
-from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, latest_checkpoint, load_checkpoint, rng_state,
-                         set_rng_state, write_rng)
+from .assemble import load_bank, make_model, make_observer, make_train_env, resolve_device
+from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, latest_checkpoint, load_checkpoint,
+                         rng_state, set_rng_state, write_rng)
 from .config import TrainConfig
-from .distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
-                          init_distributed)
+from .distributed import DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for, init_distributed
 from .logger import LogWindow, RunLogger
 from .progress import ProgressBar, new_progress
 from .rollout import RolloutCollector, collect_and_loss
-from .assemble import load_bank, make_model, make_observer, make_train_env, resolve_device
 
 
 def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
@@ -125,8 +125,6 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
 
 def weights_digest(model: torch.nn.Module) -> str:
     """SHA-256 of a model's weights (ranks record it in their checkpoint files: they must agree)."""
-    import hashlib
-
     h = hashlib.sha256()
     for k, v in model.state_dict().items():
         h.update(k.encode())

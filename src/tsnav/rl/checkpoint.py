@@ -26,8 +26,14 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic
+from ..agent.observe import DetectionTable, Observer, load_bank_features
+from ..data.detections import load_scene_detections
 from ..pretrain.checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors,
                                    save_tensors)
+from .assemble import install
+from .config import TrainConfig
+from .policy import AgentPolicy
+
 
 CKPT = "checkpoints"
 MODEL_FORMAT = "tsnav-agent"
@@ -180,11 +186,6 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, 
     ``greedy`` takes the most probable action instead. ``checkpoint`` picks a checkpoint folder other than the
     latest.
     """
-    from ..agent.observe import DetectionTable, Observer, load_bank_features
-    from .config import TrainConfig
-    from .policy import AgentPolicy
-    from .assemble import install
-
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
     model, _ = load_model(run_dir, checkpoint)
     det_features = None
@@ -192,8 +193,6 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, 
         if bank.detections is None:
             det_features = install(bank, cfg.detections)
         else:
-            from ..data.detections import load_scene_detections
-
             det_features = load_scene_detections(bank.scenes, cfg.detections).features
     features = load_bank_features(bank, cfg.features)
     if tuple(features.shape[1:]) != model.feature_shape:

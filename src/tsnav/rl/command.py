@@ -12,6 +12,12 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
+from ..agent import agent_config
+from ..errors import CommandError
+from ..rl.config import TrainConfig
+from .checkpoint import latest_checkpoint
+from .train import stored_config, train_run
+
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="run folder (created; an existing one is resumed)")
@@ -55,11 +61,6 @@ _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "
 
 def resolve(args: argparse.Namespace):
     """``(TrainConfig, AgentConfig)`` from the arguments, on top of the run's saved configuration if any."""
-    from ..agent import agent_config
-    from ..errors import CommandError
-    from ..rl.config import TrainConfig
-    from .train import stored_config
-
     out = Path(args.out)
     given = {f: getattr(args, a) for a, f in _FIELDS.items() if getattr(args, a) is not None}
     budget = {k: getattr(args, k) for k in ("minutes", "episodes", "updates") if getattr(args, k) is not None}
@@ -86,9 +87,6 @@ def resolve(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from .checkpoint import latest_checkpoint
-    from .train import train_run
-
     cfg, agent = resolve(args)
     before = latest_checkpoint(args.out)
     progress = train_run(cfg, agent, args.out, progress_bar=not args.quiet)

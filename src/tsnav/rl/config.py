@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+from ..tsrm.reward import VARIANTS
+
 ALGOS = ("a3c", "batched")
 #: Fields that may change when a run is resumed (its budget); every other field must match the saved config.
 BUDGET_FIELDS = ("episodes", "updates", "minutes")
@@ -81,7 +83,6 @@ class TrainConfig:
     def __post_init__(self):
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algo {self.algo!r} (choose from {', '.join(ALGOS)})")
-        from ..tsrm.reward import VARIANTS
 
         if self.reward not in VARIANTS:
             raise ValueError(f"unknown reward {self.reward!r} (choose from {', '.join(VARIANTS)})")

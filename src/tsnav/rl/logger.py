@@ -12,6 +12,8 @@ import time
 from pathlib import Path
 
 from ..atomic import atomic_write_bytes
+from .stats import concat, summarize
+
 
 #: TensorBoard group of each key (cleanrl-style tags: charts/..., losses/..., reward/..., metrics/...).
 _GROUPS = {"loss": "losses", "policy_loss": "losses", "value_loss": "losses", "entropy": "losses",
@@ -38,6 +40,7 @@ class RunLogger:
                     break  # a torn last line from a kill
             atomic_write_bytes(self.path, "".join(k + "\n" for k in keep).encode())
         if tensorboard:
+            # lazy: torch.utils.tensorboard takes about 2.3 s to import (`python -X importtime`); only logging runs need it
             from torch.utils.tensorboard import SummaryWriter
 
             self.tb = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=resume_update + 1 if resume_update else None)
@@ -96,8 +99,6 @@ class LogWindow:
     def record(self, progress: dict) -> dict:
         """Progress counters, mean loss parts, episode statistics (:func:`tsnav.rl.stats.summarize`) and
         environment steps per second over the window; starts a new window."""
-        from .stats import concat, summarize
-
         now = time.perf_counter()
         rec = {k: progress[k] for k in ("update", "env_steps", "episodes", "seconds")}
         for k in self.parts[0] if self.parts else ():

@@ -7,20 +7,26 @@ import os
 from dataclasses import asdict
 from pathlib import Path
 
+import h5py
+import torch
+
 from ..agent.model import AgentConfig
+from ..data.reader import list_scenes
+from ..pretrain.checkpoint import atomic_write_json
+from ..pretrain.features import h5py_str
+from ..sim.batch import SimConfig
+from ..tsrm.reward import RewardConfig
+from .a3c import train_a3c
+from .batched import train_batched
 from .checkpoint import read_run_config
 from .config import BUDGET_FIELDS, TrainConfig
+
 
 RUN_FORMAT = "tsnav-train-run"
 
 
 def feature_info(cfg: TrainConfig) -> dict:
     """Encoder description and shape of the feature cache ``cfg.features`` (from the first training scene)."""
-    import h5py
-
-    from ..data.reader import list_scenes
-    from ..pretrain.features import h5py_str
-
     scenes = list_scenes(cfg.data, cfg.split)
     if not scenes:
         raise ValueError(f"{cfg.data}: no complete scene of split {cfg.split!r}")
@@ -36,11 +42,6 @@ def feature_info(cfg: TrainConfig) -> dict:
 
 def resolved_config(cfg: TrainConfig, agent: AgentConfig) -> dict:
     """Everything the run depends on, as saved in ``config.json``."""
-    import torch
-
-    from ..sim.batch import SimConfig
-    from ..tsrm.reward import RewardConfig
-
     reward = RewardConfig(variant=cfg.reward, c_target=cfg.c_target)
     sim = SimConfig(success_distance=cfg.success_distance, c_target=cfg.c_target, max_steps=cfg.max_steps,
                     autoreset=True)
@@ -67,18 +68,13 @@ def train_run(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
     The run's configuration is written to ``run_dir/config.json`` (by rank 0 under torchrun); a run folder
     holding another configuration is refused, except for the budget, which may change between sessions.
     """
-    from ..pretrain.checkpoint import atomic_write_json
-
     run_dir = Path(run_dir)
     if (run_dir / "config.json").exists():
         check_resume(run_dir, cfg, agent)
     if int(os.environ.get("RANK", "0")) == 0:
         atomic_write_json(run_dir / "config.json", resolved_config(cfg, agent))
     if cfg.algo == "a3c":
-        from .a3c import train_a3c
-
         return train_a3c(cfg, agent, run_dir, progress_bar=progress_bar)
-    from .batched import train_batched
 
     return train_batched(cfg, agent, run_dir, progress_bar=progress_bar)
 

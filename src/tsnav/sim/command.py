@@ -7,6 +7,9 @@ from collections import Counter
 from pathlib import Path
 
 from ..constants import SUCCESS_DISTANCE
+from ..errors import CommandError
+from .batch import SceneBank
+from .episodes import EpisodeConfig, make_episodes, read_episodes, write_episodes
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -26,10 +29,6 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import CommandError
-    from .batch import SceneBank
-    from .episodes import EpisodeConfig, make_episodes, read_episodes, write_episodes
-
     out = Path(args.out)
     if args.per_room_type < 1:
         raise CommandError(f"--per-room-type must be >= 1, got {args.per_room_type}")

@@ -27,14 +27,17 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
+import h5py
 import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from ..constants import CATEGORY_INDEX, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE, TARGET_CATEGORIES
+from ..data.toy import toy_scene
 from .batch import BatchEnv, RewardFn, SceneBank, SparseReward
 from .episodes import EpisodeConfig, TrainingSampler
+
 
 ENV_ID = "tsnav/ObjectNav-v0"
 DEFAULT_IMAGE_SIZE = 64
@@ -51,7 +54,6 @@ def _make_bank(bank, scenes, data, split, success_distance) -> SceneBank:
         return SceneBank(list(scenes), success_distance=success_distance)
     if data is not None:
         return SceneBank.from_root(data, split, success_distance=success_distance)
-    from ..data.toy import toy_scene
 
     return SceneBank([toy_scene()], success_distance=success_distance)
 
@@ -90,8 +92,6 @@ class Observations:
             if p is None:
                 self._files[key] = None
             else:
-                import h5py
-
                 self._files[key] = h5py.File(p, "r")
         return self._files[key]
 

@@ -7,6 +7,13 @@ states of a target category) over the reversed graph, one BFS frontier at a time
 
 from __future__ import annotations
 
+import hashlib
+import os
+import tempfile
+import zipfile
+from collections import deque
+from pathlib import Path
+
 import numpy as np
 from scipy import sparse
 
@@ -57,8 +64,6 @@ def multi_source_bfs(next_state: np.ndarray, sources: np.ndarray, reverse: spars
 
 def bfs_reference(next_state: np.ndarray, sources) -> np.ndarray:
     """Slow, obviously-correct reference for :func:`multi_source_bfs`: a queue over Python lists."""
-    from collections import deque
-
     n = len(next_state)
     preds: list[list[int]] = [[] for _ in range(n)]
     for s in range(n):
@@ -166,8 +171,6 @@ def shortest_path_actions(next_state: np.ndarray, dist: np.ndarray, start: int) 
 
 
 def _arrays_hash(*arrays: np.ndarray) -> str:
-    import hashlib
-
     h = hashlib.sha256(f"v{PATHS_CACHE_VERSION}".encode())
     for a in arrays:
         a = np.ascontiguousarray(a)
@@ -184,11 +187,6 @@ def cached_distance_fields(next_state: np.ndarray, sources: np.ndarray, cache_fi
     invalidates it. Writes are atomic (temporary file + ``os.replace``); a cache that cannot be written
     (read-only dataset) is skipped silently, an unreadable one is recomputed.
     """
-    import os
-    import tempfile
-    import zipfile
-    from pathlib import Path
-
     if cache_file is None:
         return distance_fields(next_state, sources)
     cache_file = Path(cache_file)

@@ -13,11 +13,16 @@ from typing import Sequence
 
 import numpy as np
 import shapely
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import PathPatch, Polygon as MplPolygon
+from matplotlib.path import Path as MplPath
 
 from ..atomic import atomic_save_figure
 from ..constants import CATEGORY_INDEX, TARGET_CATEGORIES
 from .area import scene_floor, trapezoid
 from .reward import RewardConfig
+
 
 SEARCH_COLOR = "#1f77b4"
 PATH_COLOR = "#d62728"
@@ -59,9 +64,6 @@ def searched_region(scene, states: Sequence[int], config: RewardConfig = RewardC
 
 
 def _fill(ax, geom, **kw) -> None:
-    from matplotlib.patches import PathPatch
-    from matplotlib.path import Path as MplPath
-
     polys = [geom] if isinstance(geom, shapely.Polygon) else [g for g in getattr(geom, "geoms", []) if isinstance(g, shapely.Polygon)]
     for p in polys:
         if p.is_empty:
@@ -80,10 +82,6 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     ``states``: scene-local state ids of the frames, start first; ``target``: category name or id;
     ``confidence``: ``(S, 22)`` target confidence per state (default: 1.0 where the category is in frame).
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Polygon as MplPolygon
-
     g = CATEGORY_INDEX[target] if isinstance(target, str) else int(target)
     states = np.asarray(states, dtype=np.int64)
     if states.ndim != 1 or len(states) == 0:

@@ -41,8 +41,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..constants import NUM_CATEGORIES
+from ..sim.paths import UNREACHABLE
 from .area import AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, scene_floor
 from .distance import bank_pose_distance, distance_delta, pose_distance_reference, pose_nodes
+
 
 VARIANTS = ("baseline", "explore", "distance", "tsrm")
 TERMS = ("explore", "distance", "collision", "slack", "success")
@@ -276,8 +278,6 @@ class TSRMRewardReference:
 
     def step(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
              ) -> tuple[float, dict[str, float]]:
-        from ..sim.paths import UNREACHABLE
-
         cfg = self.config
         sc = self.scene
         self.steps += 1

@@ -5,24 +5,27 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Polygon as MplPolygon
 
 from ..atomic import atomic_save_figure
-from ..errors import CommandError
 from ..constants import TARGET_CATEGORIES
+from ..data.reader import SceneFormatError, load_scene
+from ..errors import CommandError
+from ..render.gl import Renderer
 
 
 def category_colors() -> dict[str, tuple]:
-    import matplotlib
-
+    """A colour per target category (tab20, then Set1)."""
     cmap = matplotlib.colormaps["tab20"]
     return {c: cmap(i % 20) if i < 20 else matplotlib.colormaps["Set1"](i - 20) for i, c in enumerate(TARGET_CATEGORIES)}
 
 
 def draw_topdown(ax, scene, show_grid: bool = True, label_objects: bool = True) -> None:
     """Floor, furniture footprints, target objects by category and (optionally) the reachable grid."""
-    from matplotlib.patches import Polygon as MplPolygon
-
     meta = scene.meta
     for poly in scene.floor:
         ax.add_patch(MplPolygon(poly, closed=True, facecolor="#f3efe6", edgecolor="#444", lw=1.5, zorder=0))
@@ -54,8 +57,6 @@ def draw_topdown(ax, scene, show_grid: bool = True, label_objects: bool = True) 
 
 def render_views(scene, poses: np.ndarray, size: int = 128):
     """Render ``poses`` (V, 4: x, z, rotation, horizon) of a tsnav scene folder with the scene's parts."""
-    from ..render.gl import Renderer
-
     r = Renderer(size, tiles=max(1, len(poses)))
     try:
         r.set_scene(np.array(scene.meta["parts"], dtype=np.float32), scene.meta.get("light"))
@@ -72,13 +73,6 @@ def id_colors(ids: np.ndarray) -> np.ndarray:
 
 
 def show_scene(scene_dir: str | Path, out: str | Path, size: int = 128) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..data.reader import load_scene
-
     scene = load_scene(scene_dir)
     if "parts" not in scene.meta:
         raise CommandError(f"{scene_dir}: no tsnav scene.json with render parts (imported data cannot be re-rendered)")
@@ -86,7 +80,8 @@ def show_scene(scene_dir: str | Path, out: str | Path, size: int = 128) -> Path:
     centre = pos[np.argmin(np.linalg.norm(pos - pos.mean(0), axis=1))]
     poses = np.array([[centre[0], centre[1], r, 0] for r in (0, 90, 180, 270)] + [[centre[0], centre[1], 45, 30]])
     rgb, depth, ids = render_views(scene, poses, size)
-    fig = plt.figure(figsize=(15, 6.2), dpi=110)
+    fig = Figure(figsize=(15, 6.2), dpi=110)
+    FigureCanvasAgg(fig)
     gs = fig.add_gridspec(3, 7, width_ratios=[2.2, 2.2, 1, 1, 1, 1, 1])
     ax = fig.add_subplot(gs[:, :2])
     draw_topdown(ax, scene)
@@ -107,7 +102,6 @@ def show_scene(scene_dir: str | Path, out: str | Path, size: int = 128) -> Path:
                 a.set_ylabel(("RGB", "depth (m)", "instance ids")[row], fontsize=8)
     fig.tight_layout()
     out = atomic_save_figure(fig, out)
-    plt.close(fig)
     return out
 
 
@@ -118,8 +112,6 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from ..data.reader import SceneFormatError
-
     out = args.out or str(Path(args.scene_dir) / "show.png")
     try:
         path = show_scene(args.scene_dir, out, args.size)
