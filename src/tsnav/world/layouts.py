@@ -23,6 +23,8 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
+from ..atomic import atomic_write_bytes
+
 #: Package-data file of the packed layouts (inside ``tsnav/world/data``).
 PACKED_NAME = "ithor_layouts.json.gz"
 PACKED_FORMAT = "tsnav-ithor-layouts"
@@ -190,8 +192,6 @@ def from_row(row, where: str) -> LayoutObject:
 
 def pack_layouts(src_dir: str | Path, out: str | Path) -> int:
     """Read every ``FloorPlan*.json`` in ``src_dir`` (checked) and write the packed file ``out``; scene count."""
-    from ..atomic import atomic_write_bytes
-
     files = sorted(Path(src_dir).glob("FloorPlan*.json"), key=lambda p: int(re.findall(r"\d+", p.name)[0]))
     if not files:
         raise LayoutError(f"{src_dir}: no FloorPlan*.json layout files")

@@ -16,6 +16,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
@@ -120,8 +121,6 @@ def main(argv: list[str] | None = None) -> int:
     missing = [n for n in names if not (Path(a.real) / n / "scene.json").exists()]
     if missing:
         raise SystemExit(f"{a.real}: {len(missing)} scenes not built (e.g. {missing[0]})")
-    from tqdm import tqdm
-
     real = [real_measures(Path(a.real) / n) for n in tqdm(names, desc="real", unit="scene")]
     proc = [procedural_measures(n) for n in tqdm(names, desc="procedural", unit="scene")]
     text = table(real, proc)

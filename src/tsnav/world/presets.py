@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ..data.names import ithor_scenes, robothor_scenes
 from .house import generate
+from .real import real_spec
 from .spec import SceneSpec
 
 #: Where a scene's layout comes from: ``procedural`` (generated from its name) or ``ithor-real`` (the real
@@ -36,7 +37,5 @@ def scene_spec(name: str, world: str = "procedural", seed: int = 0, compact: boo
     if world == "procedural":
         return generate(name, seed=seed, compact=compact)
     if world == "ithor-real":
-        from .real import real_spec
-
         return real_spec(name)
     raise ValueError(f"unknown world {world!r} (choose from {', '.join(WORLDS)})")
