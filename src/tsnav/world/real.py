@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from dataclasses import replace
 
 import numpy as np
 from shapely.geometry import MultiPoint, Polygon, box
@@ -87,7 +88,23 @@ def blocks(o: LayoutObject, floor_y: float = 0.0, height: float = AGENT_HEIGHT) 
 
 
 def floor_top(layout: Layout) -> float:
+    """Height of the Floor object's top surface, metres (not 0 in every scene: 0.22 in FloorPlan3)."""
     return layout.floor.aabb_max[1]
+
+
+def on_floor(layout: Layout) -> Layout:
+    """``layout`` moved vertically so that the floor's top is at y = 0, where the renderer's camera height
+    (1.5 m) and the agent's capsule are measured from; x and z (and the recorded objectIds) are unchanged."""
+    dy = -floor_top(layout)
+    if dy == 0:
+        return layout
+
+    def move(o: LayoutObject) -> LayoutObject:
+        cx, cy, cz = o.aabb_center
+        oobb = None if o.oobb is None else tuple((x, y + dy, z) for x, y, z in o.oobb)
+        return replace(o, aabb_center=(cx, cy + dy, cz), oobb=oobb)
+
+    return Layout(layout.scene, tuple(move(o) for o in layout.objects))
 
 
 def oriented_box(o: LayoutObject) -> tuple[tuple[float, float], tuple[float, float], float]:
@@ -333,7 +350,8 @@ def spec_from_layout(layout: Layout, room_type: str, split: str) -> SceneSpec:
     """The :class:`SceneSpec` of one recorded layout: room outline, walls, and every object as parts of its
     recorded size, pose and category; objects of the 22 target classes keep their recorded objectId."""
     name = layout.scene
-    fy = floor_top(layout)
+    layout = on_floor(layout)
+    fy = 0.0
     poly = room_polygon(layout)
     x0, z0, x1, z1 = poly.bounds
     top = max(o.aabb_max[1] for o in layout.objects if o.object_type != "Floor")
