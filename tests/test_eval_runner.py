@@ -9,7 +9,7 @@ import pytest
 from sim_helpers import toy_scenes, write_toy_dataset
 from tsnav.cli import main
 from tsnav.constants import CATEGORY_INDEX
-from tsnav.eval.metrics import read_records, summarize
+from tsnav.metrics import read_records, summarize
 from tsnav.eval.policies import ExplorerPolicy, OraclePolicy, Policy, RandomPolicy, make_policy, scene_waypoints
 from tsnav.eval.runner import EvalConfig, evaluate
 from tsnav.sim.batch import SceneBank

@@ -15,7 +15,7 @@ import pytest
 from tsnav.eval.experiment import Experiment, train_config_for
 from tsnav.eval.experiment_config import ExperimentConfig, ScaleConfig, experiment_rows
 from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
-from tsnav.eval.metrics import METRICS
+from tsnav.metrics import METRICS
 
 TINY = ScaleConfig(vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2, pretrain_batch_size=8,
                    feature_batch_size=256, num_envs=4, minutes_per_job=0.05, test_per_room_type=6,
@@ -171,7 +171,7 @@ def test_threshold_experiment_plot(tmp_path, tiny_world, pretrain_dir):
     red = (img[..., 0] > 200) & (img[..., 1] < 60) & (img[..., 2] < 60)
     assert red.sum() > 50  # the best points are starred
     # the same agent (one seed) at a higher threshold switches stage later or never, never earlier
-    from tsnav.eval.metrics import read_records
+    from tsnav.metrics import read_records
 
     switch = np.array([[1000 if r.pathfinding_start_step is None else r.pathfinding_start_step
                         for r in read_records(out / "jobs" / f"c{10 * k:02d}_s0" / "eval" / "records.jsonl")]

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from tsnav.eval.metrics import (
+from tsnav.metrics import (
     EpisodeRecord, format_table, metrics, nsnpl, read_records, sr, spl, ssr, ssspl, summarize, write_records,
 )
 

@@ -7,9 +7,10 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
-from tsnav.pretrain.checkpoint import load_tensors
+from tsnav.checkpoint import load_tensors
 from tsnav.pretrain.synthetic import write_synthetic_dataset
-from tsnav.pretrain.train import PretrainConfig, lr_at, train
+from tsnav.pretrain.train import PretrainConfig, train
+from tsnav.schedule import warmup_cosine as lr_at
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -30,6 +31,7 @@ def test_lr_schedule_by_hand():
     assert lr_at(0, 10, 1.0, 2) == 0.5 and lr_at(1, 10, 1.0, 2) == 1.0
     assert lr_at(2, 10, 1.0, 2) == pytest.approx(1.0)
     assert lr_at(6, 10, 1.0, 2, 0.0) == pytest.approx(0.5)  # half-way through the cosine
+    assert lr_at(10, 10, 1.0, 2, 0.1) == pytest.approx(0.1) and lr_at(50, 10, 1.0, 2, 0.1) == pytest.approx(0.1)
 
 
 @pytest.mark.parametrize("method", ["demae", "demae-crop"])
@@ -50,6 +52,29 @@ def test_resume_reproduces_uninterrupted_run(data, tmp_path, method):
     m0 = (tmp_path / "a" / "model.safetensors").stat().st_mtime_ns
     assert train(cfg, data, tmp_path / "a", progress=False)["finished"]
     assert (tmp_path / "a" / "model.safetensors").stat().st_mtime_ns == m0
+
+
+def test_truncated_newest_checkpoint_resumes_from_the_previous_one(data, tmp_path, capsys):
+    """Issue 16 section 5: the newest two checkpoints are kept; a broken newest one is named in one line and
+    the run resumes from the one before, ending exactly like an uninterrupted run."""
+    cfg = PretrainConfig(method="mae", batch_size=4, steps=6, checkpoint_every=2, **TINY)
+    train(cfg, data, tmp_path / "a", progress=False)
+    train(cfg, data, tmp_path / "b", stop_at=5, progress=False)
+    prog = json.loads((tmp_path / "b" / "progress.json").read_text())
+    assert prog["step"] == 5 and prog["previous"]["step"] == 4
+    assert sorted(p.name for p in (tmp_path / "b").glob("ckpt-*")) == [
+        "ckpt-00000004-model.safetensors", "ckpt-00000004-optim.safetensors",
+        "ckpt-00000005-model.safetensors", "ckpt-00000005-optim.safetensors"]
+    broken = tmp_path / "b" / prog["model_file"]
+    broken.write_bytes(broken.read_bytes()[:64])
+    capsys.readouterr()
+    b = train(cfg, data, tmp_path / "b", progress=False)
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("tsnav:")]
+    assert len(err) == 1 and str(broken) in err[0] and "step 4" in err[0], err
+    assert b["finished"] and b["step"] == 6
+    wa, wb = weights(tmp_path / "a"), weights(tmp_path / "b")
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
 
 
 def test_accumulation_equals_larger_batch(data, tmp_path):

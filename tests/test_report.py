@@ -12,7 +12,7 @@ from tsnav.cli import main
 from tsnav.constants import CATEGORY_INDEX, DONE
 from tsnav.eval.gallery import key_frames, select_episodes
 from tsnav.eval.runner import read_trajectories, record_trajectories, write_trajectories
-from tsnav.eval.metrics import EpisodeRecord, read_records
+from tsnav.metrics import EpisodeRecord, read_records
 from tsnav.eval.policies import make_policy
 from tsnav.eval.report import build_report, plot_learning_curves, scan
 from tsnav.eval.runner import EvalConfig, evaluate

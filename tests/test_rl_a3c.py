@@ -92,7 +92,7 @@ def test_two_worker_run_resume_and_finish(world, tmp_path):
     st = load_checkpoint(ck)
     assert st["progress"]["update"] == p1["update"]
     # every worker update went through the one shared optimizer
-    from tsnav.pretrain.checkpoint import load_tensors
+    from tsnav.checkpoint import load_tensors
 
     opt_t, _ = load_tensors(ck / "optim.safetensors")
     steps = {float(v) for k, v in opt_t.items() if k.endswith("::step")}

@@ -155,7 +155,7 @@ class Interrupt(Exception):
 
 
 def _weights(run):
-    from tsnav.pretrain.checkpoint import load_tensors
+    from tsnav.checkpoint import load_tensors
 
     ck = latest_checkpoint(run)
     return load_tensors(ck / "model.safetensors")[0], load_tensors(ck / "optim.safetensors")[0], ck
@@ -196,6 +196,37 @@ def test_resume_equals_uninterrupted_run(world, tmp_path):
     state = load_checkpoint(ck)
     assert state["progress"]["finished"] and 0 in state["rng"]
     json.dumps(state["rng"][0])
+
+
+def test_truncated_newest_checkpoint_resumes_from_the_previous_one(world, tmp_path, capsys):
+    """Issue 16 section 5: a broken newest checkpoint is named in one line, set aside, and the run resumes
+    from the checkpoint before it, ending exactly like an uninterrupted run."""
+    cfg = _cfg(world, updates=8)
+    agent = agent_config("cpu")
+    train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
+
+    def kill(progress):
+        if progress["update"] == 7:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+    newest = latest_checkpoint(tmp_path / "b")
+    assert newest.name == "ckpt_000000006"
+    broken = newest / "model.safetensors"
+    broken.write_bytes(broken.read_bytes()[:100])  # a copy cut short
+    capsys.readouterr()
+    resumed = train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(broken) in err[0] and "resuming from ckpt_000000003" in err[0], err
+    assert (newest.parent / "ckpt_000000006.broken" / "model.safetensors").exists()  # kept, not listed
+    assert resumed["update"] == 8
+    wa, oa, _ = _weights(tmp_path / "a")
+    wb, ob, _ = _weights(tmp_path / "b")
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    for k in oa:
+        assert torch.equal(oa[k], ob[k]), k
 
 
 def test_checkpoint_retention_and_milestones(tmp_path):

@@ -189,3 +189,16 @@ def test_make_env_from_config():
     # a larger success region: every 1.0 m success state is a 1.5 m one
     b1 = SceneBank(toy_scenes(), cache=False)
     assert (env.bank.success >= b1.success).all() and env.bank.success.sum() > b1.success.sum()
+
+
+def test_make_env_refuses_a_config_the_bank_would_ignore():
+    from tsnav.sim.batch import SceneBank, SimConfig
+    from tsnav.sim.episodes import make_env
+
+    bank = SceneBank(toy_scenes(), c_target=0.5)
+    make_env(bank, 2, SimConfig(c_target=0.5), seed=0)  # consistent: fine
+    make_env(bank, 2, seed=0)  # no config: the bank's settings
+    with pytest.raises(ValueError, match="c_target"):
+        make_env(bank, 2, SimConfig(c_target=0.7), seed=0)
+    with pytest.raises(ValueError, match="success_distance"):
+        make_env(bank, 2, SimConfig(success_distance=1.5, c_target=0.5), seed=0)

@@ -12,7 +12,7 @@ from networkx.readwrite import json_graph
 import tsnav.sim  # noqa: F401
 from tsnav.cli import main
 from tsnav.data.reader import list_scenes, load_scene
-from tsnav.eval.metrics import read_records, summarize
+from tsnav.metrics import read_records, summarize
 from tsnav.eval.policies import ExplorerPolicy, OraclePolicy
 from tsnav.eval.runner import evaluate
 from tsnav.sim.batch import BatchEnv, SceneBank

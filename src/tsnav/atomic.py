@@ -1,6 +1,8 @@
-"""Atomic file writes: a temporary file in the same folder, then ``os.replace``.
+"""Atomic writes: a temporary file (or folder) in the same folder, then ``os.replace``.
 
-Readers never see a half-written file, and an interrupted write leaves the previous version in place.
+Readers never see a half-written file, and an interrupted write leaves the previous version in place. Every
+temp-file-and-rename in tsnav goes through here: bytes, text and JSON directly; files that a library writes
+by path (HDF5, ``.npz``) through :func:`atomic_path`; folders through :func:`atomic_folder`.
 """
 
 from __future__ import annotations
@@ -8,8 +10,11 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -43,3 +48,41 @@ def atomic_save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
     fig.savefig(buf, format=path.suffix.lstrip(".") or "png", **savefig_kwargs)
     atomic_write_bytes(path, buf.getvalue())
     return path
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a hidden temporary path next to ``path`` for a writer that needs a file name (``h5py.File(tmp,
+    "w")``, ``open(tmp, "wb")``); when the block ends without error the file is renamed to ``path``, on any
+    error (or interruption) it is removed and ``path`` is left as it was."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+@contextmanager
+def atomic_folder(final: str | Path) -> Iterator[Path]:
+    """Yield an empty hidden temporary folder ``.<name>.partial-<pid>`` next to ``final``; when the block ends
+    without error an existing ``final`` is removed and the folder renamed to it; on any error (or
+    interruption) the temporary folder is removed."""
+    final = Path(final)
+    tmp = final.parent / f".{final.name}.partial-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    try:
+        yield tmp
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

@@ -23,6 +23,8 @@ CAMERA_HEIGHT = 1.5
 VISIBILITY_DISTANCE = 1.5
 #: Success distance of the paper (section III-A), metres.
 SUCCESS_DISTANCE = 1.0
+#: C_target, the stage-switch threshold on the target confidence (paper III-B "Dividing point", IV-A: 0.7).
+C_TARGET = 0.7
 
 #: The action space of the paper (section III-A), in this order everywhere (array index = action id).
 ACTIONS = ("MoveAhead", "RotateLeft", "RotateRight", "LookDown", "LookUp", "Done")

@@ -25,13 +25,14 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from .agent import agent_config
+from .constants import C_TARGET
 from .data.reader import list_scenes, load_scene
 from .errors import CommandError
 from .eval.experiment import set_threads
-from .eval.metrics import METRICS, write_json
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
 from .eval.stage_cache import ensure_episodes, ensure_oracle_detections
+from .metrics import METRICS, write_json
 from .pretrain.features import cache_features, load_encoder
 from .pretrain.train import PretrainConfig, train
 from .rl.config import TrainConfig
@@ -226,7 +227,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     st.run("features", "encode every state of the training and test rooms once", do_features, features_ok)
 
     # 4. detections -------------------------------------------------------------------------------------
-    st.run("detections", "oracle detector table per room (confidence drives the stage switch, C_target 0.7)",
+    st.run("detections", f"oracle detector table per room (confidence drives the stage switch, C_target {C_TARGET:g})",
            lambda: {"written": ensure_oracle_detections(world, cfg.detections)},
            lambda m: all((p / f"detections_{cfg.detections}.hdf5").exists() for p in world.iterdir()
                          if (p / "COMPLETE").exists()))

@@ -2,6 +2,20 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
+from typing import TypeVar
+
+T = TypeVar("T")
+
 
 class CommandError(Exception):
     """An error the user can fix; the ``tsnav`` command prints it as one line without a traceback."""
+
+
+def from_fields(cls: type[T], d: dict, what: str) -> T:
+    """``cls(**d)`` for a dataclass ``cls``, refusing keys that are none of its fields with a ``ValueError``
+    naming them (``what``: e.g. "training config"), as when a file was written by another version."""
+    unknown = set(d) - {f.name for f in fields(cls)}
+    if unknown:
+        raise ValueError(f"unknown {what} field(s): {', '.join(sorted(unknown))}")
+    return cls(**d)

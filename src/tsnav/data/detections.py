@@ -28,7 +28,6 @@ Files are written to a temporary name and renamed, so a file that exists is comp
 from __future__ import annotations
 
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from typing import Sequence
 import h5py
 import numpy as np
 
+from ..atomic import atomic_path
 from ..constants import NUM_CATEGORIES
 
 
@@ -145,9 +145,7 @@ def write_detections(scene_dir: str | Path, name: str, det: Detections) -> Path:
     if len(det.keys) > 1 and not (det.keys[:-1] < det.keys[1:]).all():
         raise ValueError("detections: keys must be sorted and unique (the order of Scene.keys)")
     path = detections_path(scene_dir, name)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
             f.create_dataset("keys", data=det.keys.astype("S"), track_times=False)
             f.create_dataset("scores", data=det.scores, track_times=False)
             f.create_dataset("labels", data=det.labels, track_times=False)
@@ -158,10 +156,6 @@ def write_detections(scene_dir: str | Path, name: str, det: Detections) -> Path:
             f.attrs["fingerprint"] = det.fingerprint
             f.attrs["config"] = json.dumps(det.config, sort_keys=True)
             f.attrs["image_size"] = int(det.image_size)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path
 
 

@@ -29,7 +29,6 @@ the detect stage's per-category table (:class:`tsnav.data.detections.Detections`
 from __future__ import annotations
 
 import hashlib
-import os
 import re
 from pathlib import Path
 
@@ -37,6 +36,7 @@ import h5py
 import numpy as np
 import shapely
 
+from ..atomic import atomic_path
 from ..constants import GRID_SIZE, NUM_CATEGORIES
 from .detections import Detections
 from .reader import SceneFormatError
@@ -233,14 +233,8 @@ def write_detections_22x264(path: str | Path, det, box_size: int | None = LINEAG
     dataset per state key (atomic: a temporary file renamed when complete)."""
     path = Path(path)
     rows = table_to_22x264(det, box_size)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            for k, r in zip(np.asarray(det.keys, dtype=str).tolist(), rows):
-                f.create_dataset(k, data=r, track_times=False)
-            f.attrs["box_frame"] = int(box_size if box_size is not None else det.image_size)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        for k, r in zip(np.asarray(det.keys, dtype=str).tolist(), rows):
+            f.create_dataset(k, data=r, track_times=False)
+        f.attrs["box_frame"] = int(box_size if box_size is not None else det.image_size)
     return path

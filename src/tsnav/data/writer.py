@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -22,6 +20,7 @@ from typing import Iterator
 import h5py
 import numpy as np
 
+from ..atomic import atomic_folder
 from .reader import COMPLETE_MARKER
 
 #: Minimum share of the frame an object must cover to count as seen (AI2-THOR casts rays; we count pixels).
@@ -172,18 +171,7 @@ class FrameWriter:
 def scene_folder(final: str | Path) -> Iterator[Path]:
     """Atomic commit of the scene folder ``final``: yields an empty hidden temporary folder next to it; when
     the block ends without error writes ``COMPLETE`` into it, replaces an old (incomplete or overwritten)
-    ``final`` and renames; on any error (or interruption) removes the temporary folder and re-raises."""
-    final = Path(final)
-    tmp = final.parent / f".{final.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    try:
+    ``final`` and renames (:func:`tsnav.atomic.atomic_folder`); on any error removes the temporary folder."""
+    with atomic_folder(final) as tmp:
         yield tmp
         (tmp / COMPLETE_MARKER).write_text("ok\n")
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise

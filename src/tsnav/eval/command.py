@@ -6,9 +6,10 @@ import argparse
 import time
 from pathlib import Path
 
+from ..constants import C_TARGET
 from ..errors import CommandError
 from ..sim.episodes import read_episodes
-from .metrics import format_table, summarize, write_json, write_records
+from ..metrics import format_table, summarize, write_json, write_records
 from .policies import make_policy
 from .runner import EvalConfig, config_dict, evaluate, load_bank_for_episodes
 
@@ -23,7 +24,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder for records.jsonl and metrics.json")
     parser.add_argument("--seed", type=int, default=0, help="seed of stochastic policies (default: 0)")
     parser.add_argument("--max-steps", type=int, default=100, help="episode length limit (paper: 100)")
-    parser.add_argument("--c-target", type=float, default=0.7, help="stage-switch threshold (paper: 0.7)")
+    parser.add_argument("--c-target", type=float, default=C_TARGET, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--success-distance", type=float, default=None,
                         help="success distance in metres (default: the episode list's)")
     parser.add_argument("--batch-size", type=int, default=4096, help="episodes stepped together")

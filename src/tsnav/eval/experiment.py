@@ -61,7 +61,7 @@ from ..errors import CommandError
 from ..rl.config import TrainConfig
 from ..rl.train import train_run
 from .experiment_config import EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row, ScaleConfig, experiment_rows
-from .metrics import METRICS, write_json
+from ..metrics import METRICS, write_json
 from .report import build_report
 from .runner import evaluate_to_folder
 from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,

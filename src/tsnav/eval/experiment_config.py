@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .metrics import METRICS
+from ..constants import C_TARGET
+from ..metrics import METRICS
 
 EXPERIMENTS = ("ablation", "pretraining", "threshold")
 
@@ -87,7 +88,7 @@ class Row:
     """Encoder of the image features: ``resnet18``, ``demae``, ``mae``, ``demae-crop`` or ``vc1``."""
     reward: str
     """Reward variant (:data:`tsnav.tsrm.reward.VARIANTS`)."""
-    c_target: float = 0.7
+    c_target: float = C_TARGET
     """Stage-switch threshold for training and evaluation (paper: 0.7)."""
     flags: dict = field(default_factory=dict)
     """Check-mark columns of the table (Table II: exploration reward, distance reward, DE-MAE)."""
@@ -97,7 +98,7 @@ ABLATION_FLAGS = ("Exploration Reward", "Distance Reward", "DE-MAE")
 
 
 def _abl(id_, label, enc, reward, e, d, m) -> Row:
-    return Row(id_, label, enc, reward, 0.7, dict(zip(ABLATION_FLAGS, (e, d, m))))
+    return Row(id_, label, enc, reward, C_TARGET, dict(zip(ABLATION_FLAGS, (e, d, m))))
 
 
 def experiment_rows(name: str, vc1: bool = False) -> list[Row]:

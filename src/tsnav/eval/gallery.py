@@ -19,11 +19,11 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..atomic import atomic_save_figure
-from ..constants import ACTIONS, DONE
+from ..constants import ACTIONS, C_TARGET, DONE
 from ..tsrm.plot import draw_episode
 from ..tsrm.reward import RewardConfig
 from ..world.show import render_views
-from .metrics import EpisodeRecord
+from ..metrics import EpisodeRecord
 from .runner import Trajectory
 
 
@@ -132,7 +132,7 @@ class GalleryItem:
 
 
 def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence[Trajectory], out_dir: str | Path,
-                  n: int = 6, c_target: float = 0.7, prefix: str = "ep", relative_to: str | Path | None = None
+                  n: int = 6, c_target: float = C_TARGET, prefix: str = "ep", relative_to: str | Path | None = None
                   ) -> list[GalleryItem]:
     """Pictures of about ``n`` selected episodes (:func:`select_episodes`) into ``out_dir``.
 

@@ -22,6 +22,7 @@ import numpy as np
 from ..constants import DONE, NUM_ACTIONS, ROTATE_RIGHT, ROTATE_STEP
 from ..sim.batch import SceneBank
 from ..sim.paths import UNREACHABLE, distance_fields, optimal_action_targets
+from ..sim.stage import above_threshold
 
 
 @runtime_checkable
@@ -98,7 +99,7 @@ class ExplorerPolicy:
         self.bank = bank
         self.config = config or ExplorerConfig()
         thr = bank.c_target if c_target is None else c_target
-        self.detect = bank.stage_confidence > thr
+        self.detect = above_threshold(bank.stage_confidence, thr)
         fields, counts = [], []
         for i in range(bank.num_scenes):
             lo, hi = int(bank.offsets[i]), int(bank.offsets[i + 1])

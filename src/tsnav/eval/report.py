@@ -36,7 +36,7 @@ from ..atomic import atomic_save_figure, atomic_write_text
 from ..errors import CommandError
 from ..rl.logger import read_log
 from .gallery import write_gallery
-from .metrics import METRICS, format_table
+from ..metrics import METRICS, format_table
 from .runner import eval_trajectories
 
 

@@ -1,5 +1,5 @@
 """Evaluation runner: a batched policy over a fixed episode list, with the two-stage bookkeeping of paper
-III-B / IV-A, producing :class:`~tsnav.eval.metrics.EpisodeRecord` objects; and the evaluation folder
+III-B / IV-A, producing :class:`~tsnav.metrics.EpisodeRecord` objects; and the evaluation folder
 (``records.jsonl``, ``trajectories.jsonl``, ``metrics.json``): writing one (:func:`evaluate_to_folder`) and
 rebuilding its bank, policy and trajectories (:func:`eval_bank`, :func:`eval_policy`, :func:`eval_trajectories`).
 
@@ -31,13 +31,14 @@ from typing import Sequence
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..constants import CATEGORY_INDEX
+from ..constants import C_TARGET, CATEGORY_INDEX
 from ..data.reader import is_complete, load_scene
 from ..errors import CommandError
 from ..sim.batch import BatchEnv, SceneBank
 from ..sim.episodes import Episode, episodes_to_arrays, read_episodes
 from ..sim.paths import UNREACHABLE, distance_fields
-from .metrics import EpisodeRecord, read_records, summarize, write_json, write_records
+from ..sim.stage import StageSwitch, switch_frame
+from ..metrics import EpisodeRecord, read_records, summarize, write_json, write_records
 from .policies import make_policy
 
 
@@ -47,7 +48,7 @@ class EvalConfig:
 
     max_steps: int = 100
     """Episode length limit at test time (paper: 100 actions)."""
-    c_target: float = 0.7
+    c_target: float = C_TARGET
     """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
     min_optimal_length: int = 5
     """The "L >= 5" subset of the paper's tables."""
@@ -62,12 +63,13 @@ def evaluate(bank: SceneBank, episodes: list[Episode], policy, config: EvalConfi
     if config.batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {config.batch_size}")
     scene_idx, target, start = episodes_to_arrays(bank, episodes)
-    stage = bank.stage_confidence > config.c_target
-    search_dist = bank.search_dist if config.c_target == bank.c_target else distance_fields(bank.next_state, stage)
+    switch = StageSwitch(bank, config.c_target)
+    search_dist = bank.search_dist if config.c_target == bank.c_target else distance_fields(bank.next_state,
+                                                                                              switch.switches)
     records: list[EpisodeRecord] = []
     for lo in range(0, len(episodes), config.batch_size):
         hi = min(lo + config.batch_size, len(episodes))
-        cols = _run_chunk(bank, scene_idx[lo:hi], target[lo:hi], start[lo:hi], policy, stage, config)
+        cols = _run_chunk(bank, scene_idx[lo:hi], target[lo:hi], start[lo:hi], policy, switch, config)
         opt_search = search_dist[start[lo:hi], target[lo:hi]]
         for j in range(hi - lo):
             e = episodes[lo + j]
@@ -86,15 +88,12 @@ def evaluate(bank: SceneBank, episodes: list[Episode], policy, config: EvalConfi
     return records
 
 
-def _run_chunk(bank, scene_idx, target, start, policy, stage, config) -> dict[str, np.ndarray]:
+def _run_chunk(bank, scene_idx, target, start, policy, switch: StageSwitch, config) -> dict[str, np.ndarray]:
     n = len(start)
     env = BatchEnv(bank, n, max_steps=config.max_steps, autoreset=False)
     obs = env.reset(episodes=(scene_idx, target, start))
     policy.reset(np.ones(n, dtype=bool))
-    entered = stage[start, target].copy()
-    switch_step = np.zeros(n, dtype=np.int64)
-    switch_length = np.zeros(n, dtype=np.int64)
-    switch_state = start.copy()
+    switch.reset(np.ones(n, dtype=bool), start, target)
     success = np.zeros(n, dtype=bool)
     steps = np.zeros(n, dtype=np.int64)
     path_length = np.zeros(n, dtype=np.int64)
@@ -107,18 +106,15 @@ def _run_chunk(bank, scene_idx, target, start, policy, stage, config) -> dict[st
             raise ValueError(f"the policy returned actions of shape {actions.shape}, expected ({n},)")
         obs, _, term, trunc, info = env.step(actions)
         act = info["active"]
-        new = act & ~entered & stage[info["final_state"], target]
-        entered |= new
-        switch_step[new] = info["steps"][new]
-        switch_length[new] = info["path_length"][new]
-        switch_state[new] = info["final_state"][new]
+        switch.update(info["final_state"], info["steps"], info["path_length"], active=act)
         fin = term | trunc
         success[fin] = info["success"][fin]
         steps[act] = info["steps"][act]
         path_length[act] = info["path_length"][act]
-    switch_opt = bank.dist[switch_state, target]
-    return {"entered": entered, "switch_step": switch_step, "switch_length": switch_length,
-            "switch_opt": switch_opt, "success": success, "steps": steps, "path_length": path_length}
+    switch_opt = bank.dist[switch.switch_state, target]
+    return {"entered": switch.entered.copy(), "switch_step": switch.switch_step.copy(),
+            "switch_length": switch.switch_length.copy(), "switch_opt": switch_opt, "success": success,
+            "steps": steps, "path_length": path_length}
 
 
 def config_dict(config: EvalConfig) -> dict:
@@ -182,7 +178,7 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
     config = config or EvalConfig()
     rec = TrajectoryRecorder(policy)
     records = evaluate(bank, episodes, rec, config)
-    stage = bank.stage_confidence > config.c_target
+    conf = bank.stage_confidence
     trajectories: list[Trajectory] = []
     lo = 0
     for chunk in rec.chunks:
@@ -200,10 +196,9 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
             else:
                 frames = np.array([bank.global_state(bank.scene_index(r.scene), r.start)], dtype=np.int64)
             g = CATEGORY_INDEX[r.target]
-            above = stage[frames, g]
             trajectories.append(Trajectory(
                 episode=r.episode, scene=r.scene, target=r.target, keys=[str(k) for k in bank.keys[frames]],
-                actions=[int(x) for x in a], switch_frame=int(np.argmax(above)) if above.any() else -1,
+                actions=[int(x) for x in a], switch_frame=switch_frame(conf[frames, g], config.c_target),
                 success=bool(r.success)))
         lo += n
     if len(trajectories) != len(records):
@@ -250,7 +245,7 @@ def eval_bank(meta: dict, episodes):
     C_target and detection tables)."""
     cfg = meta.get("config", {})
     bank = load_bank_for_episodes(meta["data"], episodes, success_distance=float(meta.get("success_distance", 1.0)),
-                                  c_target=float(cfg.get("c_target", 0.7)))
+                                  c_target=float(cfg.get("c_target", C_TARGET)))
     if meta.get("detections"):
         bank.install_detections(meta["detections"])
     return bank
@@ -267,8 +262,7 @@ def eval_policy(meta: dict, bank):
         from ..rl.checkpoint import load_policy
 
         return load_policy(run, bank, seed=seed)
-    return make_policy(name, bank, seed=seed,
-                       c_target=float(meta.get("config", {}).get("c_target", 0.7)))
+    return make_policy(name, bank, seed=seed, c_target=bank.c_target)
 
 
 def eval_trajectories(eval_dir: str | Path):
@@ -280,7 +274,7 @@ def eval_trajectories(eval_dir: str | Path):
     bank = eval_bank(meta, episodes)
     records = read_records(eval_dir / "records.jsonl")
     cfg = meta.get("config", {})
-    c_target = float(cfg.get("c_target", 0.7))
+    c_target = bank.c_target  # eval_bank took it from the folder's config
     tp = eval_dir / "trajectories.jsonl"
     if tp.exists():
         trajectories = read_trajectories(tp)
@@ -303,7 +297,7 @@ def eval_trajectories(eval_dir: str | Path):
 
 
 def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
-                       run: str | Path | None = None, detections: str | None = None, c_target: float = 0.7,
+                       run: str | Path | None = None, detections: str | None = None, c_target: float = C_TARGET,
                        seed: int = 0, label: str | None = None, max_steps: int = 100) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything

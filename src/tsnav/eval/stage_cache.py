@@ -13,7 +13,8 @@ from ..data.reader import list_scenes, load_scene
 from ..detect.oracle import OracleConfig, oracle_detections
 from ..errors import CommandError
 from ..pretrain.features import cache_features, load_encoder
-from ..pretrain.train import PretrainConfig, resolve_device, train
+from ..distributed import resolve_device
+from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, write_episodes
 from ..world.build import build_dataset

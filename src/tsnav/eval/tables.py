@@ -35,7 +35,7 @@ def mean_ci(values) -> tuple[float | None, float | None]:
 
 def aggregate(rows: list, per_row: dict[str, list[dict]], metrics: list[str], flags: list[str]) -> dict:
     """``results.json`` content: per row and subset and metric, the per-seed values (percent), mean and 95 %
-    half-width. ``per_row[row.id]`` holds the :func:`~tsnav.eval.metrics.summarize` results of its seeds."""
+    half-width. ``per_row[row.id]`` holds the :func:`~tsnav.metrics.summarize` results of its seeds."""
     out_rows = []
     for r in rows:
         sums = per_row.get(r.id, [])

@@ -26,9 +26,7 @@ Encoder specs (``--encoder``):
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,12 +36,13 @@ import torch
 import torch.nn as nn
 from tqdm import tqdm
 
+from ..atomic import atomic_path
 from ..data.reader import list_scenes, load_scene
-from .checkpoint import load_tensors
+from ..checkpoint import load_tensors, weights_digest
+from ..distributed import resolve_device
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
 from .resnet import ResNet18, load_resnet_weights
-from .train import resolve_device
 
 
 @dataclass
@@ -74,13 +73,9 @@ class Encoder:
 
 
 def _fingerprint(module: nn.Module) -> str:
-    h = hashlib.sha256()
-    for k, v in sorted(module.state_dict().items()):
-        if k.startswith(("decoder", "mask_token", "fc.")):
-            continue
-        h.update(k.encode())
-        h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()[:16]
+    """Identifies an encoder: :func:`~tsnav.checkpoint.weights_digest` of its weights without the decoder (first
+    16 hex digits)."""
+    return weights_digest(module.state_dict(), skip=("decoder", "mask_token", "fc."))[:16]
 
 
 def _vit_from_config(cfg: dict) -> MaskedAutoencoderViT:
@@ -210,21 +205,15 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
         for p, keys in scenes_keys:
             feats = scene_features(encoder, p, keys, batch_size, bar)
             f = p / f"features_{name}.hdf5"
-            tmp = p / f".features_{name}.hdf5.tmp"
-            with h5py.File(tmp, "w") as h:
+            with atomic_path(f) as tmp, h5py.File(tmp, "w") as h:
                 h.create_dataset("features", data=feats)
                 h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
                 for k, v in encoder.attrs().items():
                     h.attrs[k] = v
                 h.attrs["channels"], h.attrs["grid"] = int(feats.shape[1]), int(feats.shape[2])
-            os.replace(tmp, f)
             written.append(f)
     finally:
         bar.close()
-        for p, _ in scenes_keys:
-            t = p / f".features_{name}.hdf5.tmp"
-            if t.exists():
-                t.unlink()
     return sorted(written)
 
 

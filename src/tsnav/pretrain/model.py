@@ -17,7 +17,7 @@ load by key with :func:`load_encoder_weights`.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -26,6 +26,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from safetensors.torch import load_file
+
+from ..errors import from_fields
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -91,11 +93,7 @@ class MAEConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "MAEConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown MAE config fields: {sorted(unknown)}")
-        return cls(**d)
+        return from_fields(cls, d, "MAE config")
 
 
 #: Encoder sizes (width, depth, heads) and the smaller decoders used with them. ViT-Base and its decoder

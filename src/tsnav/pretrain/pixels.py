@@ -7,12 +7,12 @@ and trainers can run without a pretrained encoder: a "no encoder" reference and 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from ..atomic import atomic_path
 from ..data.reader import list_scenes, load_scene
 
 
@@ -41,13 +41,11 @@ def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, 
             with h5py.File(p / "images.hdf5", "r") as fi:
                 rgb = np.stack([fi[k][()] for k in keys])
             feats = pooled_pixels(rgb, grid).astype(np.float16)
-            tmp = p / f".features_{name}.hdf5.{os.getpid()}.tmp"
-            with h5py.File(tmp, "w") as h:
+            with atomic_path(f) as tmp, h5py.File(tmp, "w") as h:
                 h.create_dataset("features", data=feats)
                 h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
                 h.attrs.update({"encoder": f"pixels:{grid}", "arch": "pixels", "method": "pooled-pixels",
                                 "img_size": int(rgb.shape[1]), "fingerprint": f"pixels-{grid}", "channels": 3,
                                 "grid": grid})
-            os.replace(tmp, f)
         out.append(f)
     return out

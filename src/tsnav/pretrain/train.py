@@ -15,8 +15,10 @@ where the interrupted one stopped.
 Run folder::
 
     config.json                       resolved PretrainConfig and model config
-    progress.json                     step, epoch, finished, checkpoint file names, RNG states
-    ckpt-<step>-model.safetensors     full model (latest checkpoint only)
+    progress.json                     step, epoch, finished, checkpoint file names, RNG states; ``previous``:
+                                      the same for the checkpoint before (resumed from when the newest is
+                                      broken)
+    ckpt-<step>-model.safetensors     full model (the newest two checkpoints)
     ckpt-<step>-optim.safetensors     optimiser state (flattened; groups in progress.json)
     model.safetensors                 final full model          (finished runs)
     encoder.safetensors               final encoder weights, architecture in its metadata
@@ -28,7 +30,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import signal
 import threading
@@ -44,7 +45,10 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..constants import NUM_CATEGORIES
-from .checkpoint import atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors, save_tensors
+from ..distributed import DistInfo, init_distributed, resolve_device
+from ..schedule import warmup_cosine
+from ..checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors, read_json,
+                          resume_newest, save_tensors)
 from .data import AugmentConfig, BatchView, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
 from .model import SIZES, MaskedAutoencoderViT, make_config
 from .resnet import ResNet18
@@ -186,15 +190,6 @@ def save_encoder(model: nn.Module, path: str | Path, method: str) -> None:
 # ---------------------------------------------------------------------------------------------------------
 
 
-def lr_at(step: int, total: int, peak: float, warmup: int, min_lr: float = 0.0) -> float:
-    """Learning rate of optimiser step ``step`` (0-based): linear warm-up to ``peak`` over ``warmup`` steps,
-    then half-cosine from ``peak`` to ``min_lr`` at step ``total``."""
-    if step < warmup:
-        return peak * (step + 1) / warmup
-    t = (step - warmup) / max(1, total - warmup)
-    return min_lr + (peak - min_lr) * 0.5 * (1.0 + math.cos(math.pi * t))
-
-
 def step_seed(seed: int, step: int) -> int:
     return int(np.random.SeedSequence([seed, step, 17]).generate_state(1)[0])
 
@@ -202,37 +197,6 @@ def step_seed(seed: int, step: int) -> int:
 def epoch_permutation(n: int, seed: int, epoch: int) -> np.ndarray:
     g = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, epoch, 29]).generate_state(1)[0]))
     return torch.randperm(n, generator=g).numpy()
-
-
-@dataclass
-class DistInfo:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-    owns_group: bool = False
-
-
-def setup_distributed(device: torch.device) -> DistInfo:
-    """Join the process group when launched by torchrun (``WORLD_SIZE > 1``) or when one exists already."""
-    if dist.is_available() and dist.is_initialized():
-        return DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), False)
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return DistInfo()
-    dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
-    return DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), True)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError("device 'cuda' requested but CUDA is not available")
-        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
-    if name != "cpu":
-        raise ValueError(f"unknown device {name!r} (auto, cpu, cuda)")
-    return torch.device("cpu")
 
 
 def param_groups(model: nn.Module, weight_decay: float) -> tuple[list[dict], list[str]]:
@@ -275,8 +239,22 @@ def _progress_path(out: Path) -> Path:
 
 
 def read_progress(out: str | Path) -> dict | None:
+    """``progress.json`` of a pretraining run (None before the first checkpoint): the newest checkpoint's
+    step, files, optimizer groups and RNG state, and under ``previous`` the same for the one before it."""
     p = _progress_path(Path(out))
-    return json.loads(p.read_text()) if p.exists() else None
+    return read_json(p) if p.exists() else None
+
+
+def _read_checkpoint(out: Path, rec: dict) -> tuple[dict, dict]:
+    """Model and optimizer tensors of a progress record (:class:`BrokenCheckpoint` when a file is broken)."""
+    return load_tensors(out / rec["model_file"])[0], load_tensors(out / rec["optim_file"])[0]
+
+
+def _set_aside(out: Path, rec: dict) -> None:
+    for k in ("model_file", "optim_file"):
+        p = out / rec[k]
+        if p.exists():
+            os.replace(p, p.with_name(p.name + ".broken"))
 
 
 def _check_config(out: Path, cfg: PretrainConfig, model_cfg: dict, write: bool) -> None:
@@ -310,7 +288,7 @@ def train_model(cfg: PretrainConfig, data: str | Path | RGBDImages, out: str | P
     """
     out = Path(out)
     device = resolve_device(cfg.device)
-    di = setup_distributed(device)
+    di = init_distributed(device)
     # SIGTERM (a scheduler's pre-emption, `timeout`) and Ctrl-C stop the run at the end of the current step
     # with a checkpoint; a second signal stops at once (a checkpoint is written only if no update was
     # half-applied).
@@ -379,13 +357,16 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
     if prog is not None and int(prog.get("images", n)) != n:
         raise ValueError(f"{out} was trained on {prog['images']} images, the dataset now has {n}; "
                          f"use a new --out folder")
-    if prog is not None:  # resume
-        sd, _ = load_tensors(out / prog["model_file"])
+    if prog is not None:  # resume (from the checkpoint before the newest when that one is broken)
+        rec, (sd, ot) = resume_newest([r for r in (prog, prog.get("previous")) if r], lambda r: _read_checkpoint(out, r),
+                                      on_broken=lambda r: _set_aside(out, r) if di.rank == 0 else None,
+                                      label=lambda r: f"{r['model_file']} (step {r['step']})")
+        if rec is not prog and di.rank == 0:
+            atomic_write_json(_progress_path(out), rec)
         model.load_state_dict(sd)
-        ot, _ = load_tensors(out / prog["optim_file"])
-        optimizer_from_tensors(opt, names, {k: v.to(device) for k, v in ot.items()}, prog["optimizer"])
-        start = int(prog["step"])
-        torch.set_rng_state(torch.tensor(prog["rng"]["torch"], dtype=torch.uint8))
+        optimizer_from_tensors(opt, names, {k: v.to(device) for k, v in ot.items()}, rec["optimizer"])
+        start = int(rec["step"])
+        torch.set_rng_state(torch.tensor(rec["rng"]["torch"], dtype=torch.uint8))
     ddp = model
     if W > 1:
         ddp = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
@@ -428,13 +409,20 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
                      {"config": json.dumps(model_cfg), "method": cfg.method, "step": str(step)})
         ot, ometa = optimizer_to_tensors(opt, names)
         save_tensors(out / f"{tag}-optim.safetensors", ot)
-        atomic_write_json(_progress_path(out), {
+        record = {
             "step": step, "epoch": step // steps_per_epoch, "total_steps": total, "finished": finished,
             "model_file": f"{tag}-model.safetensors", "optim_file": f"{tag}-optim.safetensors",
             "optimizer": ometa, "loss": loss_value, "world_size": W, "global_batch": G, "images": n,
-            "rng": {"torch": torch.get_rng_state().tolist()}})
+            "rng": {"torch": torch.get_rng_state().tolist()}}
+        old = read_progress(out)  # the checkpoint this one replaces stays as the fallback
+        if old is not None:
+            older = old if old.get("step") != step else old.get("previous")
+            if older:
+                record["previous"] = {k: v for k, v in older.items() if k != "previous"}
+        atomic_write_json(_progress_path(out), record)
+        keep = {r[k] for r in (record, record.get("previous")) if r for k in ("model_file", "optim_file")}
         for p in out.glob("ckpt-*.safetensors"):
-            if not p.name.startswith(tag):
+            if p.name not in keep:
                 p.unlink()
 
     step, last_loss, t0, seen = start, None, time.perf_counter(), 0
@@ -447,7 +435,7 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
             aug = draw_augment(gen, G, aug_cfg)
             noise = torch.rand(G, L, generator=gen) if L else None
             for g in opt.param_groups:
-                g["lr"] = lr_at(step, total, peak, warmup, cfg.min_lr)
+                g["lr"] = warmup_cosine(step, total, peak, warmup, cfg.min_lr)
             sums: dict[str, torch.Tensor] = {}
             for m in range(A):
                 batch = next(loader)

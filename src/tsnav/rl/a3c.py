@@ -29,7 +29,7 @@ import torch.multiprocessing as mp
 
 from ..agent.model import ActorCritic, AgentConfig
 from .assemble import load_bank, make_model, make_observer, make_train_env
-from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from .checkpoint import resume_checkpoint, save_checkpoint
 from .config import TrainConfig
 from .logger import LogWindow, RunLogger
 from .progress import ProgressBar, new_progress
@@ -116,12 +116,11 @@ def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
     optimizer = SharedAdam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
     progress = new_progress()
     progress["sessions"] = 0
-    ck = latest_checkpoint(run_dir)
-    if ck is not None:
-        plain = torch.optim.Adam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
-        state = load_checkpoint(ck, shared, plain)  # load_state_dict copies into the shared parameters
+    plain = torch.optim.Adam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
+    found = resume_checkpoint(run_dir, shared, plain)  # load_state_dict copies into the shared parameters
+    if found is not None:
         optimizer.load_shared(plain)
-        progress.update(state["progress"])
+        progress.update(found[1]["progress"])
     if cfg.budget_reached(progress):
         if not progress.get("finished"):
             progress["finished"] = True

@@ -57,9 +57,3 @@ def make_model(agent: AgentConfig, observer: Observer, seed: int) -> ActorCritic
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         return ActorCritic(agent, observer.feature_shape, observer.det_dim)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)

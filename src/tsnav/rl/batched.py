@@ -20,7 +20,6 @@ the CPU); a finished run is not retrained.
 
 from __future__ import annotations
 
-import hashlib
 import time
 from pathlib import Path
 
@@ -28,11 +27,13 @@ import numpy as np
 import torch
 
 from ..agent.model import AgentConfig
-from .assemble import load_bank, make_model, make_observer, make_train_env, resolve_device
-from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, latest_checkpoint, load_checkpoint,
+from ..checkpoint import weights_digest
+from ..distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
+                           init_distributed, resolve_device)
+from .assemble import load_bank, make_model, make_observer, make_train_env
+from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, resume_checkpoint,
                          rng_state, set_rng_state, write_rng)
 from .config import TrainConfig
-from .distributed import DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for, init_distributed
 from .logger import LogWindow, RunLogger
 from .progress import ProgressBar, new_progress
 from .rollout import RolloutCollector, collect_and_loss
@@ -59,9 +60,9 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     torch.manual_seed(cfg.seed * 1000 + 7919 * info.rank + 1)  # dropout and action sampling
 
     progress = new_progress()
-    ck = latest_checkpoint(run_dir)
-    if ck is not None:
-        state = load_checkpoint(ck, model, optimizer)
+    found = resume_checkpoint(run_dir, model, optimizer, aside=info.is_main)
+    if found is not None:
+        state = found[1]
         progress.update(state["progress"])
         rng = state["rng"].get(info.rank)
         if rng is not None:
@@ -123,15 +124,6 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     return progress
 
 
-def weights_digest(model: torch.nn.Module) -> str:
-    """SHA-256 of a model's weights (ranks record it in their checkpoint files: they must agree)."""
-    h = hashlib.sha256()
-    for k, v in model.state_dict().items():
-        h.update(k.encode())
-        h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
-
-
 def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo,
                 milestone_every: int | None = None) -> None:
     """Checkpoint with every rank's RNG states (rank 0 writes the rest and commits)."""
@@ -139,7 +131,7 @@ def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: Dist
         checkpoint_tmp(run_dir, progress["update"])
     barrier(info)
     tmp = checkpoint_tmp_path(run_dir, progress["update"])
-    write_rng(tmp, info.rank, {**rng_state(env.np_random), "weights": weights_digest(model)})
+    write_rng(tmp, info.rank, {**rng_state(env.np_random), "weights": weights_digest(model.state_dict())})
     barrier(info)
     if info.is_main:
         commit_checkpoint(run_dir, tmp, progress, model, optimizer, milestone_every=milestone_every)

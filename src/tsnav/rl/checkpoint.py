@@ -12,13 +12,16 @@ Run folder layout::
                                          rng_rank<r>.json    RNG states of rank r (torch, env sampler)
 
 A checkpoint folder is written under a temporary name and renamed when complete, so the newest folder whose
-name has no dot is always whole; older ones beyond ``keep`` are removed.
+name has no dot is always whole; older ones beyond ``keep`` (2) are removed. A newest checkpoint broken later
+(a truncated file) is reported in one line, renamed ``ckpt_<update>.broken`` and training resumes from the one
+before it (:func:`resume_checkpoint`).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -28,8 +31,8 @@ import torch
 from ..agent.model import ActorCritic
 from ..agent.observe import DetectionTable, Observer, load_bank_features
 from ..data.detections import load_scene_detections
-from ..pretrain.checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors,
-                                   save_tensors)
+from ..checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors,
+                          optimizer_to_tensors, read_json, resume_newest, save_tensors)
 from .assemble import install
 from .config import TrainConfig
 from .policy import AgentPolicy
@@ -37,6 +40,7 @@ from .policy import AgentPolicy
 
 CKPT = "checkpoints"
 MODEL_FORMAT = "tsnav-agent"
+_COMPLETE = re.compile(r"^ckpt_\d+$")
 
 
 def _name(update: int) -> str:
@@ -121,7 +125,7 @@ def list_checkpoints(run_dir: str | Path) -> list[Path]:
     d = Path(run_dir) / CKPT
     if not d.is_dir():
         return []
-    return sorted(p for p in d.iterdir() if p.is_dir() and p.name.startswith("ckpt_") and (p / "state.json").exists())
+    return sorted(p for p in d.iterdir() if p.is_dir() and _COMPLETE.match(p.name) and (p / "state.json").exists())
 
 
 def latest_checkpoint(run_dir: str | Path) -> Path | None:
@@ -131,10 +135,10 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
 
 def load_checkpoint(path: str | Path, model: ActorCritic | None = None, optimizer=None) -> dict:
     """Load weights (and optimizer state) of a checkpoint folder; returns its ``state.json`` content plus
-    ``rng`` (rank -> RNG state dict) when present."""
+    ``rng`` (rank -> RNG state dict) when present. :class:`~tsnav.checkpoint.BrokenCheckpoint` names a file
+    that cannot be read."""
     path = Path(path)
-    with open(path / "state.json") as f:
-        state = json.load(f)
+    state = read_json(path / "state.json")
     if model is not None:
         sd, meta = load_tensors(path / "model.safetensors")
         if meta.get("format") != MODEL_FORMAT:
@@ -145,9 +149,24 @@ def load_checkpoint(path: str | Path, model: ActorCritic | None = None, optimize
         optimizer_from_tensors(optimizer, [n for n, _ in model.named_parameters()], tensors, state["optimizer"])
     state["rng"] = {}
     for f in path.glob("rng_rank*.json"):
-        with open(f) as fh:
-            state["rng"][int(f.stem[len("rng_rank"):])] = json.load(fh)
+        state["rng"][int(f.stem[len("rng_rank"):])] = read_json(f)
     return state
+
+
+def set_aside(path: Path) -> None:
+    """Rename a broken checkpoint folder to ``<name>.broken`` (kept for inspection, no longer listed)."""
+    dest = path.with_name(path.name + ".broken")
+    if dest.exists():
+        shutil.rmtree(dest)
+    os.replace(path, dest)
+
+
+def resume_checkpoint(run_dir: str | Path, model: ActorCritic | None = None, optimizer=None,
+                      aside: bool = True) -> tuple[Path, dict] | None:
+    """Load the newest checkpoint of a run that reads (:func:`load_checkpoint`); a broken newer one is reported
+    in one line and, with ``aside``, renamed by :func:`set_aside`. None when the run has no checkpoint."""
+    return resume_newest(list_checkpoints(run_dir)[::-1], lambda p: load_checkpoint(p, model, optimizer),
+                         on_broken=set_aside if aside else None, label=lambda p: p.name)
 
 
 def read_run_config(run_dir: str | Path) -> dict:
@@ -164,15 +183,19 @@ def read_run_config(run_dir: str | Path) -> dict:
 
 def load_model(run_dir: str | Path, checkpoint: str | Path | None = None) -> tuple[ActorCritic, dict]:
     """The trained network of a run (latest checkpoint unless given) in eval mode, and the checkpoint state."""
-    path = Path(checkpoint) if checkpoint is not None else latest_checkpoint(run_dir)
-    if path is None:
+    def load(path: Path) -> tuple[ActorCritic, dict]:
+        _, meta = load_tensors(path / "model.safetensors")
+        if meta.get("format") != MODEL_FORMAT:
+            raise ValueError(f"{path / 'model.safetensors'}: not a tsnav agent checkpoint")
+        model = ActorCritic.from_description(json.loads(meta["model"]))
+        return model.eval(), load_checkpoint(path, model)
+
+    if checkpoint is not None:
+        return load(Path(checkpoint))
+    found = resume_newest(list_checkpoints(run_dir)[::-1], load, label=lambda p: p.name)  # a reader: sets nothing aside
+    if found is None:
         raise FileNotFoundError(f"{run_dir}: no checkpoint yet")
-    _, meta = load_tensors(path / "model.safetensors")
-    if meta.get("format") != MODEL_FORMAT:
-        raise ValueError(f"{path / 'model.safetensors'}: not a tsnav agent checkpoint")
-    model = ActorCritic.from_description(json.loads(meta["model"]))
-    state = load_checkpoint(path, model)
-    return model.eval(), state
+    return found[1]
 
 
 def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, device: str = "cpu",

@@ -13,8 +13,9 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..agent import agent_config
+from ..constants import C_TARGET
 from ..errors import CommandError
-from ..rl.config import TrainConfig
+from .config import TrainConfig
 from .checkpoint import latest_checkpoint
 from .train import stored_config, train_run
 
@@ -34,7 +35,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=float, default=None, help="Adam learning rate (paper: 1e-4)")
     parser.add_argument("--num-envs", type=int, default=None, help="batched: episodes per process (default: 16)")
     parser.add_argument("--workers", type=int, default=None, help="a3c: worker processes (paper: 14)")
-    parser.add_argument("--c-target", type=float, default=None, help="stage-switch threshold (paper: 0.7)")
+    parser.add_argument("--c-target", type=float, default=None, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
     parser.add_argument("--preset", default=None, help="agent size: paper or cpu (default: paper)")
     parser.add_argument("--detections", default=None,

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
+from ..constants import C_TARGET
+from ..errors import from_fields
 from ..tsrm.reward import VARIANTS
 
 ALGOS = ("a3c", "batched")
@@ -56,7 +58,7 @@ class TrainConfig:
     """A3C: worker processes, one episode each (paper: 14)."""
     seed: int = 0
     """Seed of initialisation, episode sampling, dropout and actions (rank / worker offsets are added)."""
-    c_target: float = 0.7
+    c_target: float = C_TARGET
     """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
     success_distance: float = 1.0
     """Done succeeds with the target in view within this many metres (paper III-A)."""
@@ -129,11 +131,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown training config field(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
+        return from_fields(cls, d, "training config")
 
     def identity(self) -> dict:
         """The fields that define the run (everything but the budget)."""

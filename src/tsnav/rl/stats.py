@@ -12,32 +12,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..metrics import metric_values
 from ..sim.paths import UNREACHABLE
+from ..sim.stage import StageSwitch
 
 FIELDS = ("success", "path_length", "optimal_length", "entered", "search_length", "optimal_search_length",
           "nav_length", "optimal_nav_length", "steps", "return")
 
 
-def _ratio(opt: np.ndarray, actual: np.ndarray) -> np.ndarray:
-    """L* / max(L, L*), 1 where both are 0 (same convention as :mod:`tsnav.eval.metrics`)."""
-    opt = np.asarray(opt, dtype=np.float64)
-    den = np.maximum(np.asarray(actual, dtype=np.float64), opt)
-    return np.where(den > 0, opt / np.where(den > 0, den, 1.0), 1.0)
-
-
 class EpisodeStats:
     """Per-row accumulators over a batch of training episodes; :meth:`pop` returns the finished ones."""
 
-    def __init__(self, bank, num_envs: int, stage_mask: np.ndarray | None = None):
+    def __init__(self, bank, num_envs: int):
         self.bank = bank
-        self.stage = bank.stage_mask if stage_mask is None else stage_mask
+        self.switch = StageSwitch(bank, num_envs=num_envs)  # the bank's C_target, as bank.search_dist
         self.search_dist = bank.search_dist
         b = num_envs
         self.start = np.zeros(b, dtype=np.int64)
         self.target = np.zeros(b, dtype=np.int64)
-        self.entered = np.zeros(b, dtype=bool)
-        self.search_length = np.zeros(b, dtype=np.int64)
-        self.switch_state = np.zeros(b, dtype=np.int64)
         self.ret = np.zeros(b, dtype=np.float64)
         self.terms: dict[str, np.ndarray] = {}
         self._done: list[dict[str, np.ndarray]] = []
@@ -48,9 +40,7 @@ class EpisodeStats:
         s, g = obs["state"][rows], obs["target"][rows]
         self.start[rows] = s
         self.target[rows] = g
-        self.entered[rows] = self.stage[s, g]
-        self.search_length[rows] = 0
-        self.switch_state[rows] = s
+        self.switch.reset(mask, obs["state"], obs["target"])
         self.ret[rows] = 0.0
         for v in self.terms.values():
             v[rows] = 0.0
@@ -64,22 +54,20 @@ class EpisodeStats:
             if k not in self.terms:
                 self.terms[k] = np.zeros(len(self.ret), dtype=np.float64)
             self.terms[k] += np.where(active, v, 0.0)
-        new = active & ~self.entered & self.stage[info["final_state"], self.target]
-        self.entered |= new
-        self.search_length[new] = info["path_length"][new]
-        self.switch_state[new] = info["final_state"][new]
+        self.switch.update(info["final_state"], info["steps"], info["path_length"], active=active)
+        sw = self.switch
         fin = terminated | truncated
         if fin.any():
             r = np.flatnonzero(fin)
             g, s0 = self.target[r], self.start[r]
             L = info["path_length"][r].astype(np.int64)
-            entered = self.entered[r]
-            ls = np.where(entered, self.search_length[r], L)
+            entered = sw.entered[r].copy()
+            ls = np.where(entered, sw.switch_length[r], L)
             entry = {"success": info["success"][r].astype(bool), "path_length": L,
                      "optimal_length": self.bank.dist[s0, g].astype(np.int64), "entered": entered,
                      "search_length": ls, "optimal_search_length": self.search_dist[s0, g].astype(np.int64),
                      "nav_length": np.where(entered, L - ls, 0),
-                     "optimal_nav_length": np.where(entered, self.bank.dist[self.switch_state[r], g], 0).astype(np.int64),
+                     "optimal_nav_length": np.where(entered, self.bank.dist[sw.switch_state[r], g], 0).astype(np.int64),
                      "steps": info["steps"][r].astype(np.int64), "return": self.ret[r].copy()}
             for k, v in self.terms.items():
                 entry[f"reward/{k}"] = v[r].copy()
@@ -106,15 +94,11 @@ def summarize(ep: dict[str, np.ndarray]) -> dict[str, float]:
     ``SSSPL``, ``NSNPL`` (fractions) and the count ``n_episodes``."""
     if not ep or len(ep["success"]) == 0:
         return {"n_episodes": 0}
-    suc = ep["success"].astype(np.float64)
-    nav = ep["entered"].astype(np.float64)
     opt_s = np.where(ep["optimal_search_length"] >= UNREACHABLE, 0, ep["optimal_search_length"])
-    out = {"n_episodes": int(len(suc)), "return": float(np.mean(ep["return"])),
-           "length": float(np.mean(ep["steps"])), "SR": float(suc.mean()),
-           "SPL": float(np.mean(suc * _ratio(ep["optimal_length"], ep["path_length"]))),
-           "SSR": float(nav.mean()), "SSSPL": float(np.mean(nav * _ratio(opt_s, ep["search_length"])))}
-    k_nav = nav.sum()
-    out["NSNPL"] = float(np.sum(suc * nav * _ratio(ep["optimal_nav_length"], ep["nav_length"])) / k_nav) if k_nav else 0.0
+    out = {"n_episodes": int(len(ep["success"])), "return": float(np.mean(ep["return"])),
+           "length": float(np.mean(ep["steps"])),
+           **metric_values(ep["success"], ep["entered"], ep["path_length"], ep["optimal_length"], ep["search_length"],
+                           opt_s, ep["nav_length"], ep["optimal_nav_length"])}
     for k, v in ep.items():
         if k.startswith("reward/"):
             out[k] = float(np.mean(v))

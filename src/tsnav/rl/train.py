@@ -12,7 +12,7 @@ import torch
 
 from ..agent.model import AgentConfig
 from ..data.reader import list_scenes
-from ..pretrain.checkpoint import atomic_write_json
+from ..checkpoint import atomic_write_json
 from ..pretrain.features import h5py_str
 from ..sim.batch import SimConfig
 from ..tsrm.reward import RewardConfig

@@ -47,7 +47,7 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from ..constants import DONE, GRID_SIZE, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
+from ..constants import C_TARGET, DONE, GRID_SIZE, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
 from ..data.detections import Detections, load_scene_detections
 from ..data.reader import Scene, list_scenes, load_scene
 from .paths import distance_fields, scene_distance_fields
@@ -81,7 +81,7 @@ class SimConfig:
     success_distance: float = SUCCESS_DISTANCE
     """Done succeeds with an instance of the target in view within this many metres (paper: 1.0;
     lineage: 1.5)."""
-    c_target: float = 0.7
+    c_target: float = C_TARGET
     """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
     max_steps: int = 100
     """Actions per episode before truncation (paper: 100 at test time; the lineage trains with 30)."""
@@ -133,7 +133,7 @@ class SceneBank:
 
     def __init__(self, scenes: Sequence[Scene], success_distance: float = SUCCESS_DISTANCE,
                  confidence: np.ndarray | None = None, detections: np.ndarray | None = None,
-                 c_target: float = 0.7, cache: bool = True):
+                 c_target: float = C_TARGET, cache: bool = True):
         if len(scenes) == 0:
             raise ValueError("SceneBank needs at least one scene")
         if not success_distance > 0:

@@ -16,13 +16,12 @@ Episode lists are JSON::
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_write_text
 from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, ROOM_TARGETS, TARGET_CATEGORIES
 from .batch import BatchEnv, EpisodeSampler, RewardFn, SceneBank, SimConfig
 from .paths import UNREACHABLE
@@ -123,10 +122,18 @@ class TrainingSampler:
 def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sampler: EpisodeSampler | None = None,
              reward_fn: RewardFn | None = None, seed: int | None = None) -> BatchEnv:
     """A :class:`BatchEnv` over ``scenes_or_bank`` (a :class:`SceneBank` or a list of scenes) configured by
-    ``config``; ``sampler`` defaults to the :class:`TrainingSampler`."""
+    ``config``; ``sampler`` defaults to the :class:`TrainingSampler`. With a bank, ``config``'s success distance
+    and C_target must be the bank's (``ValueError`` otherwise: they are properties of the bank)."""
+    given = config is not None
     config = config or SimConfig()
-    bank = scenes_or_bank if isinstance(scenes_or_bank, SceneBank) else SceneBank(
-        scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target)
+    if isinstance(scenes_or_bank, SceneBank):
+        bank = scenes_or_bank
+        for name in ("success_distance", "c_target"):  # the bank's are the ones in force: never ignore a config's
+            if given and getattr(config, name) != getattr(bank, name):
+                raise ValueError(f"SimConfig.{name} = {getattr(config, name)} differs from the bank's "
+                                 f"{getattr(bank, name)}; build the bank with it or pass the scenes instead")
+    else:
+        bank = SceneBank(scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target)
     if sampler is None:
         sampler = TrainingSampler(bank)
     return BatchEnv(bank, num_envs, sampler=sampler, reward_fn=reward_fn, max_steps=config.max_steps,
@@ -215,17 +222,7 @@ def write_episodes(path: str | Path, episodes: list[Episode], **meta) -> None:
     path = Path(path)
     doc = {"format": EPISODES_FORMAT, "version": EPISODES_VERSION, **meta,
            "episodes": [asdict(e) for e in episodes]}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, indent=1)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 
 
 def read_episodes(path: str | Path) -> tuple[list[Episode], dict]:

@@ -1,23 +1,28 @@
 """Gymnasium interface: the single env ``tsnav/ObjectNav-v0`` and its native vector env over
 :class:`~tsnav.sim.batch.BatchEnv` (paper III-A).
 
-    import gymnasium as gym, tsnav.sim
-    env = gym.make("tsnav/ObjectNav-v0", data="out/world", split="train")
-    envs = gym.make_vec("tsnav/ObjectNav-v0", num_envs=64, data="out/world", split="train")
+    import gymnasium as gym
+    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data="out/world", split="train", reward="tsrm")
+    envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v0", num_envs=64, vectorization_mode="vector_entry_point",
+                        data="out/world", split="train")
 
-Without ``data`` / ``scenes`` / ``bank`` the env runs on the analytic toy room of ``tsnav.data.toy``.
+The registered id builds these classes through :mod:`tsnav.tsrm.envs`, which adds the paper's reward
+(``reward="tsrm" | "baseline" | "explore" | "distance" | "sparse"``, default ``"tsrm"``), the detector's
+tables (``detections=NAME``) and ``c_target``. Constructed directly, the classes take any ``reward_fn``
+(default: the sparse reward). Without ``data`` / ``scenes`` / ``bank`` the env runs on the analytic toy room
+of ``tsnav.data.toy``.
 
 | | |
 | --- | --- |
 | Action space | ``Discrete(6)``: 0 MoveAhead, 1 RotateLeft, 2 RotateRight, 3 LookDown, 4 LookUp, 5 Done |
 | Observation | ``Dict``: ``rgb`` ``(H, W, 3)`` uint8 from ``images.hdf5`` (zeros when absent); ``depth`` ``(H, W)`` float32 metres from ``depth.hdf5`` (zeros when absent); ``target`` ``Discrete(22)`` category id; ``detections`` ``(22, 6)`` float32 per-class rows (score, label, x0, y0, x1, y1) from the detector stage (zeros when absent) |
-| Reward | a :class:`~tsnav.sim.batch.RewardFn`; default :class:`~tsnav.sim.batch.SparseReward` (-0.01 per step, +5 on success) |
+| Reward | a :class:`~tsnav.sim.batch.RewardFn`: through the registered id the paper's TSRM reward by default (:mod:`tsnav.tsrm.envs`); the classes alone default to :class:`~tsnav.sim.batch.SparseReward` (-0.01 per step, +5 on success) |
 | Start | a random training episode (scene, a reachable target present in it, a level start state that is not a success state), or ``reset(options={"episode": (scene_name, target_name, start_key)})`` |
 | Termination | the agent outputs Done (success when the target is in view within the success distance) |
 | Truncation | ``max_steps`` actions without Done (paper: 100 at test time; the lineage trains with 30) |
 
 ``info`` carries ``state`` (global id), ``scene``, ``collided``, ``success``, ``steps``, ``path_length`` and
-the reward terms. The vector env auto-resets in the same step (``AutoresetMode.SAME_STEP``): the returned
+each reward term of the step as ``reward/<term>``. The vector env auto-resets in the same step (``AutoresetMode.SAME_STEP``): the returned
 observation of a finished sub-env is its next episode's first one, and ``info["final_obs"]`` /
 ``info["final_info"]`` hold the last ones, as Gymnasium's ``SyncVectorEnv`` does in that mode.
 """
@@ -33,7 +38,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from ..constants import CATEGORY_INDEX, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE, TARGET_CATEGORIES
+from ..constants import C_TARGET, CATEGORY_INDEX, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE, TARGET_CATEGORIES
 from ..data.toy import toy_scene
 from .batch import BatchEnv, RewardFn, SceneBank, SparseReward
 from .episodes import EpisodeConfig, TrainingSampler
@@ -47,15 +52,17 @@ MAX_DEPTH = 1000.0
 MAX_PIXEL = 10000.0
 
 
-def _make_bank(bank, scenes, data, split, success_distance) -> SceneBank:
+def make_bank(bank: SceneBank | None = None, scenes=None, data: str | None = None, split: str | None = "train",
+              success_distance: float = SUCCESS_DISTANCE, c_target: float = C_TARGET) -> SceneBank:
+    """The env's bank: ``bank`` itself, else one over ``scenes``, else the scenes of ``split`` under ``data``,
+    else the analytic toy room."""
     if bank is not None:
         return bank
     if scenes is not None:
-        return SceneBank(list(scenes), success_distance=success_distance)
+        return SceneBank(list(scenes), success_distance=success_distance, c_target=c_target)
     if data is not None:
-        return SceneBank.from_root(data, split, success_distance=success_distance)
-
-    return SceneBank([toy_scene()], success_distance=success_distance)
+        return SceneBank.from_root(data, split, success_distance=success_distance, c_target=c_target)
+    return SceneBank([toy_scene()], success_distance=success_distance, c_target=c_target)
 
 
 class Observations:
@@ -143,7 +150,7 @@ class ObjectNavEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.render_mode = render_mode
-        self.bank = _make_bank(bank, scenes, data, split, success_distance)
+        self.bank = make_bank(bank, scenes, data, split, success_distance)
         self.sampler = TrainingSampler(self.bank, episode_config)
         self.batch = BatchEnv(self.bank, 1, sampler=self.sampler, reward_fn=reward_fn or SparseReward(),
                               max_steps=max_steps, autoreset=False)
@@ -181,7 +188,7 @@ class ObjectNavEnv(gym.Env):
         out = {"state": int(info["final_state"][0]), "scene": self.bank.names[int(self.batch.scene[0])],
                "collided": bool(info["collided"][0]), "success": bool(info["success"][0]),
                "steps": int(info["steps"][0]), "path_length": int(info["path_length"][0])}
-        out.update({k: float(v[0]) for k, v in info["reward_terms"].items()})
+        out.update({f"reward/{k}": float(v[0]) for k, v in info["reward_terms"].items()})
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), out
 
     def render(self):
@@ -202,7 +209,7 @@ class ObjectNavVectorEnv(VectorEnv):
                  bank: SceneBank | None = None, max_steps: int = 100, reward_fn: RewardFn | None = None,
                  success_distance: float = SUCCESS_DISTANCE, image_size: int | None = None,
                  episode_config: EpisodeConfig | None = None):
-        self.bank = _make_bank(bank, scenes, data, split, success_distance)
+        self.bank = make_bank(bank, scenes, data, split, success_distance)
         self.num_envs = int(num_envs)
         self.sampler = TrainingSampler(self.bank, episode_config)
         self.batch = BatchEnv(self.bank, self.num_envs, sampler=self.sampler,
@@ -233,7 +240,8 @@ class ObjectNavVectorEnv(VectorEnv):
         infos: dict[str, Any] = {}
         for k, v in {"state": self.batch.state.copy(), "scene": self.batch.scene.copy(),
                      "collided": info["collided"], "success": info["success"], "steps": info["steps"],
-                     "path_length": info["path_length"], **info["reward_terms"]}.items():
+                     "path_length": info["path_length"],
+                     **{f"reward/{k}": v for k, v in info["reward_terms"].items()}}.items():
             infos[k], infos[f"_{k}"] = v, every
         fin = term | trunc
         if fin.any():

@@ -8,14 +8,14 @@ states of a target category) over the reversed graph, one BFS frontier at a time
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 import zipfile
 from collections import deque
 from pathlib import Path
 
 import numpy as np
 from scipy import sparse
+
+from ..atomic import atomic_path
 
 UNREACHABLE = np.iinfo(np.int32).max
 
@@ -200,15 +200,8 @@ def cached_distance_fields(next_state: np.ndarray, sources: np.ndarray, cache_fi
             pass
     dist = distance_fields(next_state, sources)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=cache_file.name + ".", suffix=".tmp", dir=cache_file.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, dist=dist, hash=np.array(key))
-            os.replace(tmp, cache_file)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_path(cache_file) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, dist=dist, hash=np.array(key))
     except OSError:
         pass
     return dist

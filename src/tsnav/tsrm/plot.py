@@ -19,7 +19,8 @@ from matplotlib.patches import PathPatch, Polygon as MplPolygon
 from matplotlib.path import Path as MplPath
 
 from ..atomic import atomic_save_figure
-from ..constants import CATEGORY_INDEX, TARGET_CATEGORIES
+from ..constants import C_TARGET, CATEGORY_INDEX, TARGET_CATEGORIES
+from ..sim.stage import switch_frame
 from .area import scene_floor, trapezoid
 from .reward import RewardConfig
 
@@ -41,11 +42,10 @@ class EpisodeStages:
     searching_frames: np.ndarray
 
 
-def episode_stages(states: Sequence[int], target: int, confidence: np.ndarray, c_target: float = 0.7) -> EpisodeStages:
+def episode_stages(states: Sequence[int], target: int, confidence: np.ndarray, c_target: float = C_TARGET) -> EpisodeStages:
     """Stages of the frames ``states`` (scene-local ids, start first) for ``target`` (category id)."""
     states = np.asarray(states, dtype=np.int64)
-    above = np.asarray(confidence)[states, int(target)] > c_target
-    switch = int(np.argmax(above)) if above.any() else -1
+    switch = switch_frame(np.asarray(confidence)[states, int(target)], c_target)
     if switch == 0:
         frames = np.zeros(0, dtype=np.int64)  # the episode starts in the pathfinding stage: nothing searched
     else:

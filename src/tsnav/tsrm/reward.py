@@ -17,9 +17,10 @@ term            value                                                           
 
 Stages (III-B, "Dividing point"): an episode starts in the searching stage and enters the pathfinding stage,
 for good, at the first frame whose detector confidence for the target exceeds ``C_target = 0.7``; the start
-frame counts. A step is *taken in* the stage of the frame where its action was chosen, so the step that
-reaches the switching frame still earns the exploration reward (it is the searching action that found the
-target) and every later step earns the distance reward. An episode whose start frame already shows the
+frame counts (:class:`tsnav.sim.stage.StageSwitch` owns the rule and the per-episode stage). A step is
+*taken in* the stage of the frame where its action was chosen, so the step that reaches the switching frame
+still earns the exploration reward (it is the searching action that found the target) and every later step
+earns the distance reward. An episode whose start frame already shows the
 target gets distance rewards from its first step.
 
 Searched region: ``RG`` starts as the start frame's trapezoid clipped to the floor, without reward (no
@@ -40,7 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..constants import NUM_CATEGORIES
+from ..constants import C_TARGET, NUM_CATEGORIES
+from ..sim.stage import StageSwitch, above_threshold
 from ..sim.paths import UNREACHABLE
 from .area import AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, scene_floor
 from .distance import bank_pose_distance, distance_delta, pose_distance_reference, pose_nodes
@@ -75,7 +77,7 @@ class RewardConfig:
     """Added at every step (III-D (iv))."""
     success_reward: float = 5.0
     """Added when Done succeeds (III-D (v))."""
-    c_target: float = 0.7
+    c_target: float = C_TARGET
     """C_target: the first frame with target confidence above it starts the pathfinding stage (IV-A)."""
     area: AreaConfig = field(default_factory=AreaConfig)
     """Observable trapezoid (1/4 m at horizon 0, 0.25/3 m at horizon 30) and the fast raster's sample size."""
@@ -111,10 +113,7 @@ class TSRMReward:
         defaults to ``bank.stage_confidence`` (the detector's when installed, else ground-truth in-frame)."""
         self.bank = bank
         self.config = config
-        conf = bank.stage_confidence if confidence is None else np.asarray(confidence, dtype=np.float32)
-        if conf.shape != (bank.num_states, NUM_CATEGORIES):
-            raise ValueError(f"confidence must have shape ({bank.num_states}, {NUM_CATEGORIES}), got {conf.shape}")
-        self.switches = conf > config.c_target  # (S, C): this frame starts the pathfinding stage
+        self.switch = StageSwitch(bank, config.c_target, confidence)
         self.dist = bank_pose_distance(bank) if config.uses("distance") else None
         node_of, _ = pose_nodes(bank.x, bank.z, bank.rotation, bank.scene_of)
         # Pose nodes are numbered scene by scene; the collision memory indexes them per scene.
@@ -135,14 +134,23 @@ class TSRMReward:
         self.batch_size = b
         self.scene = np.zeros(b, dtype=np.int64)
         self.target = np.zeros(b, dtype=np.int64)
-        self.stage = np.zeros(b, dtype=np.int8)
-        self.switch_step = np.full(b, -1, dtype=np.int64)
+        self.switch._alloc(b)
         self.steps = np.zeros(b, dtype=np.int64)
         self.collided_at = np.zeros((b, self.nodes_per_scene), dtype=bool)
         # States whose view is already in RG (exploration only): revisiting one adds no area, skip its stencil.
         self.viewed = np.zeros((b, self.states_per_scene if self.config.uses("explore") else 0), dtype=bool)
         self.coverage = BatchCoverage(self.area_index, b) if self.area_index is not None else None
         self._exact: list[ExactSearchedRegion | None] = [None] * b
+
+    @property
+    def stage(self) -> np.ndarray:
+        """``(B,)`` int8 stage of every episode: :data:`SEARCHING` or :data:`PATHFINDING`."""
+        return np.where(self.switch.entered, PATHFINDING, SEARCHING).astype(np.int8)
+
+    @property
+    def switch_step(self) -> np.ndarray:
+        """``(B,)`` step index of the frame that started pathfinding (0 = start frame, -1 = not yet)."""
+        return self.switch.switch_step
 
     @property
     def searched_area(self) -> np.ndarray:
@@ -170,15 +178,15 @@ class TSRMReward:
         if len(mask) != self.batch_size:
             self._alloc(len(mask))
         rows = np.flatnonzero(mask)
+        target_all = target
         scene_idx = np.asarray(scene_idx, dtype=np.int64)[rows]
         target = np.asarray(target, dtype=np.int64)[rows]
         start = np.asarray(start_state, dtype=np.int64)[rows]
         self.scene[rows] = scene_idx
         self.target[rows] = target
         self.steps[rows] = 0
-        at_start = self.switches[start, target]
-        self.stage[rows] = np.where(at_start, PATHFINDING, SEARCHING)
-        self.switch_step[rows] = np.where(at_start, 0, -1)
+        self.switch.reset(mask, start_state, target_all)
+        at_start = self.switch.entered[rows]
         self.collided_at[rows] = False
         if self.config.uses("explore"):
             if self.coverage is not None:
@@ -202,7 +210,7 @@ class TSRMReward:
         if b != self.batch_size:
             raise ValueError(f"step got {b} episodes but reset was called with {self.batch_size}")
         self.steps += 1
-        searching = self.stage == SEARCHING  # the stage in which this step's action was chosen
+        searching = self.switch.searching  # the stage in which this step's action was chosen
         terms = {k: np.zeros(b, dtype=np.float64) for k in TERMS}
         if cfg.uses("explore"):
             fresh = np.zeros(b, dtype=bool)
@@ -214,9 +222,7 @@ class TSRMReward:
             rows = np.flatnonzero(~searching)
             terms["distance"][rows] = cfg.k_distance * distance_delta(self.dist, prev[rows], new[rows],
                                                                        self.target[rows])
-        switch = searching & self.switches[new, self.target]
-        self.stage[switch] = PATHFINDING
-        self.switch_step[switch] = self.steps[switch]
+        self.switch.update(new, self.steps)
         rows = np.flatnonzero(collided)
         if len(rows):
             nodes = self.node_local[prev[rows]]
@@ -267,7 +273,7 @@ class TSRMRewardReference:
             sc = self.scene
             self._dist_cache[self.target] = pose_distance_reference(
                 sc.next_state, sc.x, sc.z, sc.rotation, sc.success_mask(self.target, self.success_distance))
-        self.pathfinding = bool(self.confidence[start_state, self.target] > self.config.c_target)
+        self.pathfinding = bool(above_threshold(self.confidence[start_state, self.target], self.config.c_target))
         self.switch_step = 0 if self.pathfinding else -1
         self.steps = 0
         self.collision_poses: set = set()
@@ -287,7 +293,7 @@ class TSRMRewardReference:
                 before = self.region.area
                 self.region.add(sc.x[new_state], sc.z[new_state], sc.rotation[new_state], sc.horizon[new_state])
                 terms["explore"] = cfg.k_explore * (self.region.area - before)
-            if self.confidence[new_state, self.target] > cfg.c_target:
+            if above_threshold(self.confidence[new_state, self.target], cfg.c_target):
                 self.pathfinding = True
                 self.switch_step = self.steps
         elif cfg.uses("distance"):

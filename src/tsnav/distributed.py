@@ -1,7 +1,8 @@
-"""Data parallelism for the batched trainer under ``torchrun`` (gloo on the CPU, NCCL on GPUs).
+"""Devices and data parallelism for every trainer under ``torchrun`` (gloo on the CPU, NCCL on GPUs).
 
-Every rank steps its own episodes with its own seed; gradients are averaged with one all-reduce per update,
-so all ranks keep identical weights. Without ``torchrun`` (``WORLD_SIZE`` unset or 1) everything is a no-op.
+The batched agent trainer steps its own episodes on every rank and averages gradients with one all-reduce per
+update; pretraining wraps its model in DistributedDataParallel. Without ``torchrun`` (``WORLD_SIZE`` unset or
+1) and without an existing process group everything here is a no-op.
 """
 
 from __future__ import annotations
@@ -13,11 +14,29 @@ import torch
 import torch.distributed as dist
 
 
+def resolve_device(name: str) -> torch.device:
+    """``auto`` (CUDA when present), ``cpu``, ``cuda`` (this process's ``LOCAL_RANK`` GPU) or ``cuda:<i>``;
+    ``ValueError`` for another name or CUDA without a GPU."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cpu":
+        return torch.device("cpu")
+    if name == "cuda" or name.startswith("cuda:"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} requested but CUDA is not available")
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0))) if name == "cuda" else torch.device(name)
+    raise ValueError(f"unknown device {name!r} (auto, cpu, cuda)")
+
+
 @dataclass
 class DistInfo:
+    """This process in its process group (rank 0 of 1 when not distributed)."""
+
     rank: int = 0
     world: int = 1
     local_rank: int = 0
+    owns_group: bool = False
+    """This process created the group (and destroys it when done)."""
 
     @property
     def enabled(self) -> bool:
@@ -29,13 +48,16 @@ class DistInfo:
 
 
 def init_distributed(device: torch.device) -> DistInfo:
-    """Join the process group when launched by ``torchrun``; returns this process's rank and world size."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
+    """Join the process group when one exists already or when launched by ``torchrun`` (``WORLD_SIZE > 1``);
+    returns this process's rank and world size."""
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if dist.is_available() and dist.is_initialized():
+        info = DistInfo(dist.get_rank(), dist.get_world_size(), local, owns_group=False)
+    elif int(os.environ.get("WORLD_SIZE", "1")) <= 1:
         return DistInfo()
-    if not dist.is_initialized():
+    else:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-    info = DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")))
+        info = DistInfo(dist.get_rank(), dist.get_world_size(), local, owns_group=True)
     if device.type == "cuda":
         torch.cuda.set_device(info.local_rank)
     return info

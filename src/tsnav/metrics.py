@@ -19,13 +19,14 @@ Records are exchanged as JSON Lines, one :class:`EpisodeRecord` per line.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
-from ..atomic import atomic_write_text
+from .atomic import atomic_write_text
+from .errors import from_fields
 
 #: Metric names, in the paper's table order.
 METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
@@ -68,71 +69,73 @@ class EpisodeRecord:
 
     @classmethod
     def from_dict(cls, d: dict) -> "EpisodeRecord":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown episode record field(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
+        return from_fields(cls, d, "episode record")
 
 
-def _ratio(opt: np.ndarray, actual: np.ndarray) -> np.ndarray:
+def ratio(opt: np.ndarray, actual: np.ndarray) -> np.ndarray:
     """L* / max(L, L*), elementwise; 1 where both are 0."""
     opt = np.asarray(opt, dtype=np.float64)
     den = np.maximum(np.asarray(actual, dtype=np.float64), opt)
     return np.where(den > 0, opt / np.where(den > 0, den, 1.0), 1.0)
 
 
+def metric_values(success, entered, path_length, optimal_length, search_length, optimal_search_length,
+                  nav_length, optimal_nav_length) -> dict[str, float]:
+    """The five metrics of paper IV-A over ``K`` episodes given as ``(K,)`` arrays (the one definition; the
+    record-based functions below and the training statistics of :mod:`tsnav.rl.stats` use it). Lengths are
+    movement-action counts; ``entered`` is Nav_i. Every metric is 0 when ``K = 0``; NSNPL is 0 when no
+    episode entered the pathfinding stage."""
+    suc = np.asarray(success, dtype=np.float64)
+    nav = np.asarray(entered, dtype=np.float64)
+    if len(suc) == 0:
+        return dict.fromkeys(METRICS, 0.0)
+    k_nav = float(nav.sum())
+    return {"SR": float(np.mean(suc)),
+            "SPL": float(np.mean(suc * ratio(optimal_length, path_length))),
+            "SSR": float(np.mean(nav)),
+            "SSSPL": float(np.mean(nav * ratio(optimal_search_length, search_length))),
+            "NSNPL": float(np.sum(suc * nav * ratio(optimal_nav_length, nav_length)) / k_nav) if k_nav else 0.0}
+
+
 def _col(records: Sequence[EpisodeRecord], name: str, default=0) -> np.ndarray:
     return np.array([default if getattr(r, name) is None else getattr(r, name) for r in records], dtype=np.float64)
 
 
+def _values(records: Sequence[EpisodeRecord]) -> dict[str, float]:
+    return metric_values(*(_col(records, n) for n in (
+        "success", "entered_pathfinding", "path_length", "optimal_length", "search_path_length",
+        "optimal_search_length", "pathfinding_path_length", "optimal_pathfinding_length")))
+
+
 def sr(records: Sequence[EpisodeRecord]) -> float:
     """Success rate: share of successful episodes (paper IV-A)."""
-    if not records:
-        return 0.0
-    return float(np.mean(_col(records, "success")))
+    return _values(records)["SR"]
 
 
 def spl(records: Sequence[EpisodeRecord]) -> float:
     """Success weighted by path length (Anderson et al.; paper IV-A)."""
-    if not records:
-        return 0.0
-    suc = _col(records, "success")
-    return float(np.mean(suc * _ratio(_col(records, "optimal_length"), _col(records, "path_length"))))
+    return _values(records)["SPL"]
 
 
 def ssr(records: Sequence[EpisodeRecord]) -> float:
     """Searching success rate: share of episodes that entered the pathfinding stage (paper IV-A)."""
-    if not records:
-        return 0.0
-    return float(np.mean(_col(records, "entered_pathfinding")))
+    return _values(records)["SSR"]
 
 
 def ssspl(records: Sequence[EpisodeRecord]) -> float:
     """Searching success weighted by searching path length (the paper's new metric, IV-A)."""
-    if not records:
-        return 0.0
-    nav = _col(records, "entered_pathfinding")
-    r = _ratio(_col(records, "optimal_search_length"), _col(records, "search_path_length"))
-    return float(np.mean(nav * r))
+    return _values(records)["SSSPL"]
 
 
 def nsnpl(records: Sequence[EpisodeRecord]) -> float:
     """Navigation success weighted by navigation path length, averaged over the K_Nav episodes that entered
     the pathfinding stage (paper IV-A); 0 when none did."""
-    nav = _col(records, "entered_pathfinding")
-    k_nav = float(nav.sum()) if len(records) else 0.0
-    if k_nav == 0:
-        return 0.0
-    suc = _col(records, "success")
-    r = _ratio(_col(records, "optimal_pathfinding_length"), _col(records, "pathfinding_path_length"))
-    return float(np.sum(suc * nav * r) / k_nav)
+    return _values(records)["NSNPL"]
 
 
 def metrics(records: Sequence[EpisodeRecord]) -> dict:
     """All five metrics plus the counts ``episodes`` (K) and ``K_nav``."""
-    return {"SR": sr(records), "SPL": spl(records), "SSR": ssr(records), "SSSPL": ssspl(records),
-            "NSNPL": nsnpl(records), "episodes": len(records),
+    return {**_values(records), "episodes": len(records),
             "K_nav": int(sum(bool(r.entered_pathfinding) for r in records))}
 
 

@@ -1,0 +1,74 @@
+"""The Gymnasium env ``tsnav/ObjectNav-v0`` with the paper's reward (the factories its id is registered to).
+
+    import gymnasium as gym
+    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data="out/world", split="train", reward="tsrm",
+                   detections="oracle")
+    envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v0", num_envs=64, vectorization_mode="vector_entry_point",
+                        data="out/world", reward="tsrm")
+
+(``"tsnav.sim:"`` makes Gymnasium import :mod:`tsnav.sim`, which registers the id.) The spaces, dynamics and
+start states are those of :mod:`tsnav.sim.gym_env`; this module chooses the reward and the stage switch:
+
+=================  ==========================================================================================
+argument           meaning
+=================  ==========================================================================================
+``reward``         ``"tsrm"`` (default: exploration + distance terms, paper III-B), ``"explore"``,
+                   ``"distance"``, ``"baseline"`` (collision, slack, success: Table II), or ``"sparse"``
+                   (-0.01 per step, +5 on success, no collision penalty); or a ``RewardConfig``
+``detections``     name of the detection tables ``detections_<name>.hdf5`` to install: their scores drive the
+                   stage switch and fill the ``detections`` observation (default: none; the switch then uses
+                   ground-truth visibility)
+``c_target``       stage-switch threshold C_target (default 0.7, paper IV-A)
+=================  ==========================================================================================
+
+``info`` holds every reward term of the step as ``reward/<term>`` (``explore``, ``distance``, ``collision``,
+``slack``, ``success``; zeros for terms the variant switches off) and the episode's stage as ``stage``
+(0 searching, 1 pathfinding). The rewards are those of the batched trainer (:mod:`tsnav.rl`) for the same
+episodes and actions: the same :class:`~tsnav.tsrm.reward.TSRMReward` over the same bank.
+"""
+
+from __future__ import annotations
+
+from ..constants import C_TARGET, SUCCESS_DISTANCE
+from ..sim.batch import RewardFn, SceneBank, SparseReward
+from ..sim.gym_env import ObjectNavEnv, ObjectNavVectorEnv, make_bank
+from .reward import VARIANTS, RewardConfig, TSRMReward
+
+#: Reward names the env accepts: the paper's variants and the sparse reward.
+REWARDS = VARIANTS + ("sparse",)
+
+
+def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_target: float, bank: SceneBank | None,
+                     scenes, data, split, success_distance: float) -> tuple[SceneBank, RewardFn]:
+    if isinstance(reward, RewardConfig):
+        c_target = reward.c_target
+    elif reward not in REWARDS:
+        raise ValueError(f"unknown reward {reward!r} (choose from {', '.join(REWARDS)})")
+    if bank is not None and bank.c_target != c_target:
+        raise ValueError(f"c_target {c_target} differs from the given bank's {bank.c_target}")
+    bank = make_bank(bank, scenes, data, split, success_distance, c_target=c_target)
+    if detections is not None:
+        bank.install_detections(detections)
+    if reward == "sparse":
+        return bank, SparseReward()
+    config = reward if isinstance(reward, RewardConfig) else RewardConfig(variant=reward, c_target=c_target)
+    return bank, TSRMReward(bank, config)
+
+
+def make_objectnav(reward: str | RewardConfig = "tsrm", detections: str | None = None, c_target: float = C_TARGET,
+                   data: str | None = None, split: str | None = "train", scenes=None, bank: SceneBank | None = None,
+                   success_distance: float = SUCCESS_DISTANCE, **kwargs) -> ObjectNavEnv:
+    """One episode at a time with ``reward`` (see the module docstring); other arguments as
+    :class:`~tsnav.sim.gym_env.ObjectNavEnv`."""
+    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance)
+    return ObjectNavEnv(bank=bank, reward_fn=reward_fn, **kwargs)
+
+
+def make_objectnav_vector(num_envs: int = 1, reward: str | RewardConfig = "tsrm", detections: str | None = None,
+                          c_target: float = C_TARGET, data: str | None = None, split: str | None = "train",
+                          scenes=None, bank: SceneBank | None = None, success_distance: float = SUCCESS_DISTANCE,
+                          **kwargs) -> ObjectNavVectorEnv:
+    """``num_envs`` episodes stepped together with ``reward``; other arguments as
+    :class:`~tsnav.sim.gym_env.ObjectNavVectorEnv`."""
+    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance)
+    return ObjectNavVectorEnv(num_envs, bank=bank, reward_fn=reward_fn, **kwargs)
