@@ -39,7 +39,9 @@ def write_scene_folder(scene, folder: Path, images: int | None = None) -> Path:
     (folder / "graph.json").write_text(json.dumps(graph))
     (folder / "grid.json").write_text(json.dumps(
         [{"x": float(x), "y": 0.9, "z": float(z)} for x, z in sorted(set(zip(scene.x.tolist(), scene.z.tolist())))]))
-    vis = {str(o): [keys[s] for s in np.flatnonzero(scene.visible[:, j])] for j, o in enumerate(scene.object_ids)}
+    # as the lineage's maps: objects seen from no state are not listed
+    vis = {str(o): [keys[s] for s in np.flatnonzero(scene.visible[:, j])] for j, o in enumerate(scene.object_ids)
+           if scene.visible[:, j].any()}
     (folder / "visible_object_map_1.5.json").write_text(json.dumps(vis))
     meta = dict(scene.meta)
     meta["floor"] = [p.tolist() for p in scene.floor]

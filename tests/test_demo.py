@@ -5,15 +5,17 @@ The trainer is the stand-in of ``test_experiment`` (a loadable run folder with a
 
 import json
 import shutil
+from dataclasses import replace
 
 import pytest
 
 from test_experiment import StandInTrainer
 from tsnav.demo import STAGES, DemoConfig, run_demo, train_subset
+from tsnav.eval.experiment_config import SCALES
 
-TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, vit_model="vit_micro", patch_size=8, img_size=32,
-                  pretrain_steps=2, pretrain_batch_size=8, test_per_room_type=5, train_minutes=0.05, num_envs=4,
-                  gallery=2)
+TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, gallery=2,
+                  scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
+                                pretrain_batch_size=8, test_per_room_type=5, minutes_per_job=0.05, num_envs=4))
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -42,7 +44,7 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
         m = json.loads((out / "eval" / name / "metrics.json").read_text())
         assert m["detections"] == "oracle" and (out / "eval" / name / "trajectories.jsonl").exists()
     assert json.loads((out / "eval" / "agent" / "metrics.json").read_text())["run"] == str((out / "run").resolve())
-    assert (out / "pretrain" / "recon.png").exists()
+    assert (out / "pretrain" / "demae" / "recon.png").exists()
     html = (out / "report" / "index.html").read_text()
     for word in ("agent (TSRM, DE-MAE)", "scripted explorer", "Training", "Pretraining", "Episode gallery"):
         assert word in html

@@ -20,25 +20,28 @@ def bank():
     return SceneBank(toy_scenes(), cache=False)
 
 
-def test_valid_starts_table_matches_brute_force(bank):
-    t = valid_starts(bank)
+@pytest.mark.parametrize("horizon", [None, 0, 30])
+def test_valid_starts_table_matches_brute_force(bank, horizon):
+    t = valid_starts(bank, EpisodeConfig(start_horizon=horizon))
     got = set(zip(t.pair_scene[np.repeat(np.arange(len(t.counts)), t.counts)].tolist(),
                   t.pair_target[np.repeat(np.arange(len(t.counts)), t.counts)].tolist(), t.starts.tolist()))
     expect = set()
     for s in range(bank.num_states):
         for c in range(NUM_CATEGORIES):
-            if (bank.horizon[s] == 0 and bank.present[bank.scene_of[s], c] and not bank.success[s, c]
-                    and bank.dist[s, c] < UNREACHABLE):
+            if ((horizon is None or bank.horizon[s] == horizon) and bank.present[bank.scene_of[s], c]
+                    and not bank.success[s, c] and bank.dist[s, c] < UNREACHABLE):
                 expect.add((int(bank.scene_of[s]), c, s))
     # Vase is not a target category; all present categories belong to the room lists here.
     assert got == expect
+    if horizon is None:  # the default: both horizons, as the lineage's test splits
+        assert set(bank.horizon[t.starts].tolist()) == {0, 30}
 
 
 def test_training_sampler_is_valid_and_covers(bank):
     sampler = TrainingSampler(bank)
     scene, target, start = sampler.sample(3000, np.random.default_rng(0))
     assert (bank.scene_of[start] == scene).all()
-    assert (bank.horizon[start] == 0).all()
+    assert 0.3 < (bank.horizon[start] == 30).mean() < 0.7  # both horizons, about half each
     assert not bank.success[start, target].any()
     assert (bank.dist[start, target] < UNREACHABLE).all()
     assert bank.present[scene, target].all()
@@ -65,7 +68,10 @@ def test_fixed_episodes_round_trip(bank, tmp_path):
     assert make_episodes(bank, per_room_type=40, seed=1) == eps
     scene_idx, target, start = episodes_to_arrays(bank, eps)
     assert np.array_equal(bank.dist[start, target], [e.optimal_length for e in eps])
-    assert (bank.horizon[start] == 0).all() and (bank.dist[start, target] >= 1).all()
+    assert (bank.dist[start, target] >= 1).all()
+    assert abs((bank.horizon[start] == 30).mean() - 0.5) < 0.15  # each horizon 1/2 within a pair
+    level = make_episodes(bank, per_room_type=40, seed=1, config=EpisodeConfig(start_horizon=0))
+    assert {e.start.split("|")[3] for e in level} == {"0"}
     p = tmp_path / "test.json"
     write_episodes(p, eps, split="test", seed=1)
     eps2, meta = read_episodes(p)

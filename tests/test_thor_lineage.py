@@ -77,7 +77,11 @@ def test_22x264_columns_hand_checked(tmp_path):
     n = int(np.flatnonzero(det.labels[s] < 0)[0])
     assert np.array_equal(row[c, :256], det.features[s, c].astype(np.float32))
     assert row[c, 256] == det.scores[s, c] and row[c, 257] == c + 1
-    assert row[n, 257] == 0  # no kept detection: the padding label, never a target
+    # no kept detection: DETR's "no object" label 23 (never 0, which IOM's reader files under the last class),
+    # a box inside the frame (not the -1 marker rescaled to -4.6875), the class's score and feature
+    assert row[n, 257] == 23 and (row[n, 260:264] == 0).all()
+    assert row[n, 256] == det.scores[s, n] and np.array_equal(row[n, :256], det.features[s, n].astype(np.float32))
+    assert (row[:, 257] != 0).all() and (row[:, 260:264] >= 0).all()
     assert (row[:, 258:260] == 0).all()
     assert np.allclose(row[c, 260:264], det.boxes[s, c] * 300 / 64)
 
@@ -91,12 +95,42 @@ def test_22x264_round_trip_exact(tmp_path):
     assert np.array_equal(back.labels, det.labels)
     assert np.array_equal(back.scores, det.scores)
     assert np.array_equal(back.features, det.features)
-    assert np.array_equal(back.boxes, (det.boxes.astype(np.float64) * 300 / 64).astype(np.float32))
-    exact = L.table_from_22x264(det.keys, L.table_to_22x264(det, 300), image_size=300, out_size=64)
+    kept = det.labels >= 0
+    assert np.array_equal(back.boxes[kept], (det.boxes[kept].astype(np.float64) * 300 / 64).astype(np.float32))
+    assert (back.boxes[~kept] == -1).all()
+    exact = L.table_from_22x264(det.keys, L.table_to_22x264(det, 300), image_size=300, out_size=64, own_rows=True)
     assert np.array_equal(exact.boxes, det.boxes)  # 300/64 = 75/16: exact both ways
-    same = L.table_from_22x264(det.keys, L.table_to_22x264(det, None), image_size=64)
+    same = L.table_from_22x264(det.keys, L.table_to_22x264(det, None), image_size=64, own_rows=True)
     for a in ("scores", "labels", "boxes", "features"):
         assert np.array_equal(getattr(same, a), getattr(det, a)), a
+
+
+def test_22x264_pads_small_features_and_reads_them_back(tmp_path):
+    """tsnav's 64-d detector features: zero-padded to the lineage's 256 columns, read back at 64."""
+    det = _table(S=5, seed=2)
+    small = Detections(keys=det.keys, scores=det.scores, labels=det.labels, boxes=det.boxes,
+                       features=det.features[..., :64], image_size=64)
+    rows = L.table_to_22x264(small)
+    assert rows.shape == (5, 22, 264) and (rows[:, :, 64:256] == 0).all()
+    assert np.array_equal(rows[:, :, :64], small.features.astype(np.float32))
+    back = L.read_detections_22x264(L.write_detections_22x264(tmp_path / "d.hdf5", small), image_size=300)
+    assert back.features.shape == (5, 22, 64) and np.array_equal(back.features, small.features)
+    assert np.array_equal(back.scores, small.scores) and np.array_equal(back.labels, small.labels)
+
+
+def test_22x264_empty_rows_are_not_filed_under_a_class():
+    """The lineage's pretraining reader gathers ``table[label - 1] = best row of label`` for labels 0..22: a row
+    labelled 0 would land in row -1 (Toaster). Rows tsnav writes without a detection carry 23 and are skipped."""
+    det = _table(S=6, seed=5)
+    rows = L.table_to_22x264(det)
+    for s in range(len(rows)):
+        gathered = np.zeros((22, 264), np.float32)
+        for cate_id in range(23):  # the lineage's loop, as its readers write it
+            idx = rows[s, :, 257] == cate_id
+            if idx.sum() > 0:
+                gathered[cate_id - 1] = rows[s][idx][rows[s, idx, 256].argmax()]
+        filed = gathered[:, 257].astype(int)
+        assert np.array_equal(filed, np.where(det.labels[s] >= 0, det.labels[s] + 1, 0))
 
 
 def test_22x264_best_row_per_class_like_the_lineage():
@@ -120,10 +154,10 @@ def test_22x264_best_row_per_class_like_the_lineage():
 
 def test_22x264_refuses_other_feature_sizes_and_bad_files(tmp_path):
     det = _table()
-    small = Detections(keys=det.keys, scores=det.scores, labels=det.labels, boxes=det.boxes,
-                       features=det.features[..., :64], image_size=64)
+    big = Detections(keys=det.keys, scores=det.scores, labels=det.labels, boxes=det.boxes,
+                     features=np.concatenate([det.features, det.features], -1), image_size=64)
     with pytest.raises(ValueError, match="256-d"):
-        L.table_to_22x264(small)
+        L.table_to_22x264(big)
     with pytest.raises(SceneFormatError, match="missing file"):
         L.read_detections_22x264(tmp_path / "nope.hdf5")
     bad = tmp_path / "bad.hdf5"

@@ -55,8 +55,11 @@ def test_exported_tables_match_the_renders(exported, original):
     s, ctrl, _ = exported
     cols = [original.object_ids.tolist().index(o) for o in s.object_ids]
     assert sorted(s.object_ids.tolist()) == sorted(original.object_ids.tolist())  # furniture filtered out
-    assert np.array_equal(s.pixels, original.pixels[:, cols])
-    assert np.array_equal(s.boxes, original.boxes[:, cols])
+    # the same renderer; a different tile layout moves a few edge pixels (as for the images below)
+    dpx = np.abs(s.pixels - original.pixels[:, cols])
+    assert dpx.max() <= 8 and (dpx > 0).mean() < 0.002, (dpx.max(), (dpx > 0).sum())
+    dbox = np.abs(s.boxes.astype(int) - original.boxes[:, cols].astype(int))
+    assert ((s.boxes < 0) == (original.boxes[:, cols] < 0)).mean() > 0.998 and (dbox[(s.boxes >= 0) & (original.boxes[:, cols] >= 0)] <= 1).all()
     # axis-aligned footprints hold the rotated ones: never farther than the scene's own distances
     assert (s.distance <= original.distance[:, cols] + 1e-5).all()
     with h5py.File(s.path / "images.hdf5", "r") as a, h5py.File(original.path / "images.hdf5", "r") as b:
@@ -103,7 +106,8 @@ def test_reader_arrays_agree_with_files(exported):
     assert {(s.keys[i], s.keys[s.next_state[i, k]]) for i, k in zip(a, b)} == edges
     vis = json.loads((s.path / "visible_object_map_1.5.json").read_text())
     for j, oid in enumerate(s.object_ids):
-        assert set(s.keys[s.visible[:, j]].tolist()) == set(vis[str(oid)])
+        assert set(s.keys[s.visible[:, j]].tolist()) == set(vis.get(str(oid), []))
+    assert all(vis.values())  # the lineage's maps never list an object with no state
     grid = json.loads((s.path / "grid.json").read_text())
     assert {(round(p["x"], 2), round(p["z"], 2)) for p in grid} == set(zip(np.round(s.x, 2).tolist(), np.round(s.z, 2).tolist()))
     with h5py.File(s.path / "states.hdf5", "r") as f:

@@ -7,7 +7,11 @@
 ``objects`` [{``objectId``, ``objectType``, ``position``, ``axisAlignedBoundingBox``, ``visible``,
 ``distance``}], ``sceneBounds``, ``screenWidth``/``screenHeight``), ``frame`` (uint8 H x W x 3),
 ``depth_frame`` (float32 metres), ``instance_segmentation_frame`` (uint8 colours) and ``instance_masks``
-(objectId -> bool mask). Frames come from tsnav's renderer (``tsnav.world.show.render_views``) of the
+(objectId -> bool mask). The metadata replays the shape of a real ai2thor 5 event
+(``fixtures/ai2thor/event_FloorPlan29_physics_reset.json``): every top-level key, every ``agent`` key and
+every field of an object record are there, with this scene's values where the export reads them (agent pose,
+objects' ids, types, positions, boxes, ``visible``, ``distance``, ``sceneBounds``) and the real event's
+values elsewhere. Frames come from tsnav's renderer (``tsnav.world.show.render_views``) of the
 scene's own states (rendered once, up front); actions are answered from the scene's state graph:
 
 * ``GetReachablePositions``: the scene's ``grid.json`` with a little float noise, as Unity reports them.
@@ -32,11 +36,18 @@ import h5py
 import networkx as nx
 import numpy as np
 
-from tsnav.constants import (CAMERA_HEIGHT, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES,
+from tsnav.constants import (CAMERA_HEIGHT, object_id, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES,
                              ROTATE_LEFT, ROTATE_RIGHT)
 from tsnav.data.reader import load_scene
 
 GRID_Y = 0.9009995
+#: A real ai2thor 5 event (``Event.metadata`` after reset of FloorPlan29_physics); see fixtures/ai2thor/README.md.
+REAL_EVENT = Path(__file__).parent / "fixtures" / "ai2thor" / "event_FloorPlan29_physics_reset.json"
+
+
+def real_event_metadata() -> dict:
+    """The real event's metadata dict (a fresh copy)."""
+    return json.loads(REAL_EVENT.read_text())
 
 
 def aabb(center, size, yaw):
@@ -91,13 +102,15 @@ class StandInController:
             objs.append((o["objectId"], o["objectType"], o["inst"], aabb(b["center"], b["size"], b["yaw"]), o["position"]))
         for f in s.meta["furniture"]:
             cx, cy, cz = f["center"]
-            oid = f"{f['category']}|{cx:+06.2f}|{cy:+06.2f}|{cz:+06.2f}"
+            oid = object_id(f["category"], cx, cy, cz)
             objs.append((oid, f["category"], f["inst"], aabb(f["center"], f["size"], f["yaw"]), {"x": cx, "y": cy, "z": cz}))
         self.objects = objs
         rng = np.random.default_rng(0)
         self.colors = {o[2]: rng.integers(0, 256, 3).astype(np.uint8) for o in objs}
         self.state = 0
         self.scene_name = s.name
+        self.template = real_event_metadata()
+        self.object_template = self.template["objects"][0]
 
     # ------------------------------------------------------------------ ai2thor Controller interface
     def reset(self, scene=None, **init_params):
@@ -163,17 +176,23 @@ class StandInController:
             if m.any() and self.seg_on:
                 masks[oid] = m
                 seg[m] = self.colors[inst]
-            objects.append({"objectId": oid, "objectType": otype, "position": dict(pos),
-                            "axisAlignedBoundingBox": box, "visible": bool(m.any() and d <= 1.5),
+            # every field of a real object record; identity, geometry and visibility are this scene's
+            objects.append({**self.object_template, "name": oid.split("|")[0] + f"_{inst}", "objectId": oid,
+                            "objectType": otype, "assetId": otype, "position": dict(pos),
+                            "rotation": {"x": 0.0, "y": 0.0, "z": 0.0}, "visible": bool(m.any() and d <= 1.5),
+                            "axisAlignedBoundingBox": box, "objectOrientedBoundingBox": {"cornerPoints": box["cornerPoints"]},
+                            "parentReceptacles": None, "receptacleObjectIds": None,
                             "distance": float(np.linalg.norm(cam - np.array([pos["x"], pos["y"], pos["z"]])))})
         fl = np.concatenate([np.asarray(p) for p in s.floor])
-        meta = {"lastAction": action, "lastActionSuccess": bool(ok), "errorMessage": error, "actionReturn": ret,
+        bounds = aabb([float(fl[:, 0].mean()), 0.0, float(fl[:, 1].mean())],
+                      [float(np.ptp(fl[:, 0])), 2.6, float(np.ptp(fl[:, 1]))], 0.0)
+        t = self.template  # the real event's top-level keys; the state's values where the export reads them
+        meta = {**t, "lastAction": action, "lastActionSuccess": bool(ok), "errorMessage": error, "actionReturn": ret,
                 "sceneName": self.scene_name, "screenWidth": self.size, "screenHeight": self.size,
-                "agent": {"position": {"x": x, "y": GRID_Y, "z": z}, "rotation": {"x": 0.0, "y": float(s.rotation[v]), "z": 0.0},
-                          "cameraHorizon": float(s.horizon[v])},
+                "agent": {**t["agent"], "position": {"x": x, "y": GRID_Y, "z": z},
+                          "rotation": {"x": 0.0, "y": float(s.rotation[v]), "z": 0.0}, "cameraHorizon": float(s.horizon[v])},
                 "cameraPosition": {"x": x, "y": CAMERA_HEIGHT, "z": z}, "objects": objects,
-                "sceneBounds": {"center": {"x": float(fl[:, 0].mean()), "y": 1.3, "z": float(fl[:, 1].mean())},
-                                "size": {"x": float(np.ptp(fl[:, 0])), "y": 2.6, "z": float(np.ptp(fl[:, 1]))}}}
+                "sceneBounds": {"cornerPoints": bounds["cornerPoints"], "center": bounds["center"], "size": bounds["size"]}}
         return StandInEvent(meta, self.rgb[v].copy(), self.depth[v].astype(np.float32) if self.depth_on else None,
                             seg if self.seg_on else None, masks if self.seg_on else {})
 
@@ -249,4 +268,5 @@ def write_lineage_scene(scene_dir, out: Path, metadata: bool = False, detections
     return out
 
 
-__all__ = ["StandInController", "StandInEvent", "aabb", "detections_22x264", "write_lineage_scene"]
+__all__ = ["REAL_EVENT", "StandInController", "StandInEvent", "aabb", "detections_22x264", "real_event_metadata",
+           "write_lineage_scene"]

@@ -25,7 +25,7 @@ COMMANDS = {
     "train": ("tsnav.rl.command", "train a navigation agent (A3C or batched A2C)"),
     "experiment": ("tsnav.eval.experiment", "run one of the paper's experiments (ablation, pretraining, threshold)"),
     "report": ("tsnav.eval.report", "write an HTML report for a run or experiment folder"),
-    "thor": ("tsnav.data.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),
+    "thor": ("tsnav.eval.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),
     "demo": ("tsnav.demo", "the main job: world, pretraining, detections, training, evaluation, report"),
 }
 

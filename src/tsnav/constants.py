@@ -26,10 +26,35 @@ SUCCESS_DISTANCE = 1.0
 #: C_target, the stage-switch threshold on the target confidence (paper III-B "Dividing point", IV-A: 0.7).
 C_TARGET = 0.7
 
-#: The action space of the paper (section III-A), in this order everywhere (array index = action id).
-ACTIONS = ("MoveAhead", "RotateLeft", "RotateRight", "LookDown", "LookUp", "Done")
-MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, LOOK_DOWN, LOOK_UP, DONE = range(6)
+#: The action space of the paper (section III-A), in this order everywhere (array index = action id). The order
+#: is the lineage's (IOM ``utils/action_util.py``): 0 MoveAhead, 1 RotateLeft, 2 RotateRight, 3 LookUp,
+#: 4 LookDown, 5 Done, so action ids in tsnav's files and the lineage's ``optimal_action.json`` agree.
+ACTIONS = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", "LookDown", "Done")
+MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, LOOK_UP, LOOK_DOWN, DONE = range(6)
 NUM_ACTIONS = len(ACTIONS)
+#: The order as one string, stored with every file that holds action ids (trained runs, trajectories).
+ACTION_ORDER = ",".join(ACTIONS)
+#: The order tsnav used before it followed the lineage (LookDown and LookUp swapped); files that carry no
+#: ``action_order`` were written in it.
+OLD_ACTION_ORDER = "MoveAhead,RotateLeft,RotateRight,LookDown,LookUp,Done"
+
+
+def action_permutation(order: str) -> np.ndarray:
+    """Index array ``p`` with ``new_id = p[old_id]`` for ids written in ``order`` (a comma-separated list of
+    action names); ``ValueError`` naming the order when it is not a permutation of :data:`ACTIONS`."""
+    names = [a.strip() for a in str(order).split(",")]
+    if sorted(names) != sorted(ACTIONS):
+        raise ValueError(f"unknown action order {order!r}; expected the six actions {ACTION_ORDER}")
+    return np.array([ACTIONS.index(a) for a in names], dtype=np.int64)
+
+
+def object_id(object_type: str, x: float, y: float, z: float) -> str:
+    """An object id as AI2-THOR formats it: ``Plate|+00.52|+00.92|+03.73`` (sign, at least two integer digits,
+    two decimals; ``-10.25`` stays ``-10.25``). Rounding to 0 keeps a + sign (``+00.00``)."""
+    def f(v: float) -> str:
+        v = round(float(v), 2) + 0.0  # no negative zero
+        return f"{v:+06.2f}"
+    return f"{object_type}|{f(x)}|{f(y)}|{f(z)}"
 
 #: The 22 AI2-THOR target classes of the lineage's DETR detector (DESIGN.md, "Detector").
 TARGET_CATEGORIES = (
@@ -42,11 +67,12 @@ CATEGORY_INDEX = {c: i for i, c in enumerate(TARGET_CATEGORIES)}
 
 ROOM_TYPES = ("kitchen", "living_room", "bedroom", "bathroom")
 
-#: Per-room-type target sets: 15 / 10 / 8 / 3 categories, whose union is the 22 classes.
+#: Per-room-type target sets: 15 / 10 / 8 / 3 categories, whose union is the 22 classes; exactly the targets
+#: that occur in the lineage's 22-class test splits (``test_val_split/{room}_test_22.pkl``).
 ROOM_TARGETS = {
-    "kitchen": ("Bowl", "Chair", "CoffeeMachine", "Fridge", "GarbageCan", "Kettle", "LightSwitch",
-                "Microwave", "Pan", "Plate", "Pot", "Sink", "StoveBurner", "Toaster", "Book"),
-    "living_room": ("Book", "Bowl", "Chair", "DeskLamp", "FloorLamp", "GarbageCan", "Laptop",
+    "kitchen": ("Bowl", "CellPhone", "Chair", "CoffeeMachine", "Fridge", "GarbageCan", "Kettle", "LightSwitch",
+                "Microwave", "Pan", "Plate", "Pot", "Sink", "StoveBurner", "Toaster"),
+    "living_room": ("Book", "CellPhone", "Chair", "DeskLamp", "FloorLamp", "GarbageCan", "Laptop",
                     "LightSwitch", "RemoteControl", "Television"),
     "bedroom": ("AlarmClock", "Book", "CellPhone", "Chair", "DeskLamp", "GarbageCan", "Laptop",
                 "LightSwitch"),

@@ -4,8 +4,8 @@ Stages (each prints progress; each is skipped on a second run when its marker ``
 exists and its outputs are still there, and every underlying step resumes after an interruption):
 
  1. world        build the ``demo`` preset (20 rooms: 12 train, 4 val, 4 test; 64x64 frames)     OUT/world
- 2. pretrain     DE-MAE on the training frames (ViT-Tiny, 64x64, a couple of minutes)           OUT/pretrain
- 3. features     cache the encoder's features of the training and test scenes                   world/*/features_demo_demae.hdf5
+ 2. pretrain     DE-MAE on the training frames (ViT-Tiny, 64x64, a couple of minutes)           OUT/pretrain/demae
+ 3. features     cache the encoder's features of the training and test scenes                   */features_demae-<fp>.hdf5
  4. detections   the oracle detector's per-state table (confidence drives the stage switch)     world/*/detections_oracle.hdf5
  5. episodes     fixed test episodes                                                            OUT/test_episodes.json
  6. train        a TSRM agent with the batched A2C trainer (a few minutes)                      OUT/run
@@ -14,6 +14,12 @@ exists and its outputs are still there, and every underlying step resumes after 
 
 The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
 keeps only the smallest ones per room type, for shorter runs); the test rooms are never seen in training.
+
+The demo is one row of the paper's experiments (TSRM + DE-MAE, :mod:`tsnav.eval.experiment`) at the ``demo``
+scale (:data:`tsnav.eval.experiment_config.SCALES`): its encoder, feature cache, training configuration and
+evaluation come from the experiment's own functions (``encoder_spec`` / ``ensure_encoder`` /
+``ensure_features`` / ``train_config_for`` / ``evaluate_to_folder``); what the demo adds is the world, the
+scripted baselines beside the agent, the stage markers and the printed table.
 """
 
 from __future__ import annotations
@@ -21,21 +27,18 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from .agent import agent_config
 from .constants import C_TARGET
 from .data.reader import list_scenes, load_scene
 from .errors import CommandError
-from .eval.experiment import set_threads
+from .eval.experiment import set_threads, train_config_for
+from .eval.experiment_config import SCALES, ExperimentConfig, Row, ScaleConfig
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
-from .eval.stage_cache import ensure_episodes, ensure_oracle_detections
+from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
 from .metrics import METRICS, write_json
-from .pretrain.features import cache_features, load_encoder
-from .pretrain.train import PretrainConfig, train
-from .rl.config import TrainConfig
 from .rl.logger import read_log
 from .rl.train import train_run
 from .sim.episodes import read_episodes
@@ -45,9 +48,13 @@ from .world.presets import preset_scenes
 STAGES = ("world", "pretrain", "features", "detections", "episodes", "train", "evaluate", "report")
 
 
+#: The experiment row the demo trains: TSRM + DE-MAE (paper Table II, last row).
+ROW = Row("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm")
+
+
 @dataclass
 class DemoConfig:
-    """Sizes of the demo (chosen to fit about ten minutes of a 2-core CPU)."""
+    """The demo: a world preset and the ``demo`` scale of the experiments (about ten minutes of a 2-core CPU)."""
 
     preset: str = "demo"
     """World preset (``tsnav world --preset``)."""
@@ -55,34 +62,11 @@ class DemoConfig:
     """Processes building the world."""
     train_rooms_per_type: int | None = None
     """Training rooms used per room type (the smallest ones); None: all training rooms."""
-    vit_model: str = "vit_tiny"
-    """ViT size of the DE-MAE encoder."""
-    patch_size: int = 16
-    """ViT patch side, pixels."""
-    img_size: int = 64
-    """Encoder input side, pixels (the demo world's frames are 64x64)."""
-    pretrain_steps: int = 300
-    """DE-MAE optimiser steps."""
-    pretrain_batch_size: int = 64
-    """Images per pretraining step."""
-    pretrain_base_lr: float = 1.5e-3
-    """Pretraining learning rate per 256 images (larger than MAE's 1.5e-4 for a short run)."""
-    features_name: str = "demo_demae"
-    """Name of the feature cache (``features_<name>.hdf5``)."""
+    scale: ScaleConfig = field(default_factory=lambda: replace(SCALES["demo"]))
+    """Sizes of pretraining, training and evaluation (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps,
+    4 minutes of batched A2C, 100 test episodes per room type)."""
     detections: str = "oracle"
     """Detection tables (the oracle detector, computed here)."""
-    test_per_room_type: int = 100
-    """Test episodes per room type."""
-    reward: str = "tsrm"
-    """Reward variant of the agent (paper: TSRM)."""
-    train_minutes: float = 4.0
-    """Training budget of the agent, minutes."""
-    num_envs: int = 64
-    """Episodes stepped together by the batched trainer."""
-    lr: float = 1e-3
-    """Adam learning rate of the agent (the paper's 1e-4 is for 1.5 M episodes)."""
-    agent_preset: str = "cpu"
-    """Agent network size (``tsnav.agent.PRESETS``)."""
     seed: int = 0
     """Seed of the training run and of the random policy."""
     gallery: int = 6
@@ -195,36 +179,30 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     print(f"    {wm['scenes']} rooms; training on {', '.join(wm['train_rooms'])}", flush=True)
 
     # 2. pretrain ---------------------------------------------------------------------------------------
-    pre = out / "pretrain"
+    sc = cfg.scale
+    exp = ExperimentConfig(experiment="demo", data=str(sub), out=str(out), scale="demo", detections=cfg.detections,
+                           device="cpu")
+    es = encoder_spec(ROW.encoder, sc, out / "pretrain", exp)
 
     def do_pretrain():
-        pc = PretrainConfig(method="demae", model=cfg.vit_model, patch_size=cfg.patch_size, img_size=cfg.img_size,
-                            steps=cfg.pretrain_steps, batch_size=cfg.pretrain_batch_size,
-                            base_lr=cfg.pretrain_base_lr, checkpoint_every=100, seed=cfg.seed)
-        res = train(pc, sub, pre, progress=True)
-        return {"steps": res["step"], "loss": res["loss"]}
+        ensure_encoder(es, sub)
+        prog = json.loads((Path(es.spec) / "progress.json").read_text())
+        return {"steps": prog["step"], "loss": prog.get("loss")}
 
-    st.run("pretrain", f"DE-MAE, {cfg.vit_model} at {cfg.img_size}x{cfg.img_size}, {cfg.pretrain_steps} steps -> {pre}",
-           do_pretrain, lambda m: (pre / "encoder.safetensors").exists())
+    st.run("pretrain", f"DE-MAE, {sc.vit_model} at {sc.img_size}x{sc.img_size}, {sc.pretrain_steps} steps -> {es.spec}",
+           do_pretrain, lambda m: (Path(es.spec) / "encoder.safetensors").exists())
 
     # 3. features ---------------------------------------------------------------------------------------
     def do_features():
-        enc = load_encoder(str(pre))
-        n = 0
-        for root, split in ((sub, "train"), (world, "test")):
-            try:
-                n += len(cache_features(enc, root, cfg.features_name, split=split))
-            except ValueError as e:  # made by an earlier encoder (the pretraining was redone): recompute
-                if "another encoder" not in str(e):
-                    raise
-                n += len(cache_features(enc, root, cfg.features_name, split=split, overwrite=True))
-        return {"scenes": n, "fingerprint": enc.fingerprint}
+        name = ensure_features(es, sub, ["train"], sc.feature_batch_size, exp.device)
+        ensure_features(es, world, ["test"], sc.feature_batch_size, exp.device)
+        return {"name": name, "scenes": len(list_scenes(sub, "train")) + len(list_scenes(world, "test"))}
 
     def features_ok(m):
         rooms = list_scenes(sub, "train") + list_scenes(world, "test")
-        return all((p / f"features_{cfg.features_name}.hdf5").exists() for p in rooms)
+        return "name" in m and all((p / f"features_{m['name']}.hdf5").exists() for p in rooms)
 
-    st.run("features", "encode every state of the training and test rooms once", do_features, features_ok)
+    fm = st.run("features", "encode every state of the training and test rooms once", do_features, features_ok)
 
     # 4. detections -------------------------------------------------------------------------------------
     st.run("detections", f"oracle detector table per room (confidence drives the stage switch, C_target {C_TARGET:g})",
@@ -236,10 +214,10 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     ep_file = out / "test_episodes.json"
 
     def do_episodes():
-        ensure_episodes(world, "test", ep_file, cfg.test_per_room_type)
+        ensure_episodes(world, "test", ep_file, sc.test_per_room_type)
         return {"episodes": len(read_episodes(ep_file)[0])}
 
-    em = st.run("episodes", f"{cfg.test_per_room_type} test episodes per room type", do_episodes,
+    em = st.run("episodes", f"{sc.test_per_room_type} test episodes per room type", do_episodes,
                 lambda m: ep_file.exists())
     print(f"    {em['episodes']} episodes in {ep_file}", flush=True)
 
@@ -247,17 +225,14 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     run_dir = out / "run"
 
     def do_train():
-        tc = TrainConfig(data=str(sub.resolve()), features=cfg.features_name, detections=cfg.detections,
-                         split="train", algo="batched", reward=cfg.reward, preset=cfg.agent_preset, lr=cfg.lr,
-                         num_envs=cfg.num_envs, seed=cfg.seed, minutes=cfg.train_minutes, device="cpu")
-        fn = train_fn or train_run
-        fn(tc, agent_config(cfg.agent_preset), run_dir)
+        tc, agent = train_config_for(exp, sc, ROW, fm["name"], cfg.seed)
+        (train_fn or train_run)(tc, agent, run_dir)
         log = read_log(run_dir)
         last = {k: log[-1][k] for k in ("update", "env_steps", "episodes", "SR") if log and k in log[-1]}
-        return {"minutes": cfg.train_minutes, "log_lines": len(log), **last}
+        return {"minutes": sc.minutes_per_job, "log_lines": len(log), **last}
 
-    st.run("train", f"TSRM agent, batched A2C, {cfg.train_minutes:g} min -> {run_dir}", do_train,
-           lambda m: m.get("minutes") == cfg.train_minutes and (run_dir / "config.json").exists())
+    st.run("train", f"TSRM agent, batched A2C, {sc.minutes_per_job:g} min -> {run_dir}", do_train,
+           lambda m: m.get("minutes") == sc.minutes_per_job and (run_dir / "config.json").exists())
 
     # 7. evaluate ---------------------------------------------------------------------------------------
     policies = [("agent (TSRM, DE-MAE)", "agent"), ("scripted explorer", "explorer"), ("random", "random")]
@@ -314,11 +289,11 @@ def run(args) -> int:
     if args.train_minutes is not None:
         if not args.train_minutes > 0:
             raise CommandError("--train-minutes must be positive")
-        cfg.train_minutes = args.train_minutes
+        cfg.scale.minutes_per_job = args.train_minutes
     if args.pretrain_steps is not None:
         if args.pretrain_steps < 1:
             raise CommandError("--pretrain-steps must be >= 1")
-        cfg.pretrain_steps = args.pretrain_steps
+        cfg.scale.pretrain_steps = args.pretrain_steps
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
 

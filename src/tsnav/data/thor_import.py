@@ -314,10 +314,13 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
                 _place(src / name, tmp / name, cfg.copy_mode)
         for name in (L.GRAPH_FILE, L.GRID_FILE):
             shutil.copy2(src / name, tmp / name)
-        if vis_path is not None and vis_path.name == L.VISIBLE_MAP_FILE:
+        if vis_path is not None and vis_path.name == L.VISIBLE_MAP_FILE and all(vis.values()):
             shutil.copy2(vis_path, tmp / L.VISIBLE_MAP_FILE)
-        else:  # SAVN's map under its new name, or the raw metadata's visible flags as a map
-            vmap = vis if vis is not None else {oid: base.keys[visible[:, j]].tolist() for j, oid in enumerate(order)}
+        else:  # SAVN's map under its new name, the raw metadata's visible flags, or a map listing unseen objects
+            if vis is not None:
+                vmap = {oid: keys for oid, keys in vis.items() if keys}
+            else:
+                vmap = L.visible_object_map(order, base.keys, visible)
             write_json(tmp / L.VISIBLE_MAP_FILE, vmap)
         if distance is not None:
             write_states(tmp, base.keys, order, np.full((S, O), -1, np.int32), np.full((S, O, 4), -1, np.int16),

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..constants import (FIELD_OF_VIEW, GRID_SIZE, HORIZONS, ROTATE_STEP, ROTATIONS, TARGET_CATEGORIES,
                          VISIBILITY_DISTANCE, state_key)
-from .lineage import derive_floor
+from .lineage import derive_floor, visible_object_map
 from .names import lineage_scene_info
 from .reader import COMPLETE_MARKER, SceneFormatError, load_scene
 from .writer import (MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats, scene_folder, write_graph,
@@ -125,6 +125,37 @@ def _cm(v) -> np.ndarray:
     return np.round(np.asarray(v, dtype=np.float64) * 100).astype(np.int64)
 
 
+def agent_pose(metadata: dict) -> tuple[float, float, float, int, int] | None:
+    """``(x, y, z, rotation, horizon)`` of ``metadata["agent"]``: position in metres, rotation (yaw, degrees)
+    and camera horizon rounded to whole degrees (Unity reports 269.9999 for 270 and -0.0 for 0; rotation mod
+    360); None when a field is missing."""
+    a = metadata.get("agent")
+    try:
+        p, r = a["position"], a["rotation"]
+        return (float(p["x"]), float(p["y"]), float(p["z"]), int(round(float(r["y"]))) % 360,
+                int(round(float(a["cameraHorizon"]))) + 0)
+    except (TypeError, KeyError, ValueError):
+        return None
+
+
+def visible_object_ids(metadata: dict) -> set[str]:
+    """objectIds that AI2-THOR flags ``visible`` in ``metadata["objects"]`` (in view and within its
+    ``visibilityDistance``); kept in ``states.hdf5`` as ``thor_visible``."""
+    return {o["objectId"] for o in metadata.get("objects", []) if isinstance(o, dict) and o.get("objectId")
+            and o.get("visible")}
+
+
+def scene_bounds(metadata: dict) -> dict | None:
+    """``metadata["sceneBounds"]`` (``center`` and ``size`` {x, y, z} metres, ``cornerPoints``), as written to
+    ``scene.json``; None when it is missing or lacks a numeric centre and size."""
+    b = metadata.get("sceneBounds")
+    try:
+        [float(b[k][a]) for k in ("center", "size") for a in "xyz"]
+    except (TypeError, KeyError, ValueError):
+        return None
+    return b
+
+
 def _aabb(o: dict) -> tuple[list[float], list[float]] | None:
     """(base centre, size) of an object's ``axisAlignedBoundingBox``; its position as a point otherwise."""
     box = o.get("axisAlignedBoundingBox")
@@ -179,10 +210,9 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
                      rotation=dict(x=0.0, y=float(rot), z=0.0), horizon=float(hor), standing=True)
 
     def pose_ok(ev, i: int, rot: int, hor: int) -> bool:
-        a = ev.metadata.get("agent", {})
-        p, r = a.get("position", {}), a.get("rotation", {})
-        return (_ok(ev) and abs(float(p.get("x", 1e9)) - raw[i, 0]) < 0.01 and abs(float(p.get("z", 1e9)) - raw[i, 2]) < 0.01
-                and round(float(r.get("y", -1))) % 360 == rot and round(float(a.get("cameraHorizon", -99))) == hor)
+        pose = agent_pose(ev.metadata)
+        return (_ok(ev) and pose is not None and abs(pose[0] - raw[i, 0]) < 0.01 and abs(pose[2] - raw[i, 2]) < 0.01
+                and pose[3:] == (rot, hor))
 
     # --- 1. walk the action graph: which (position, rotation) exist and which MoveAhead succeed.
     valid = np.zeros((P, R), dtype=bool)
@@ -280,9 +310,9 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
                 if m is not None:
                     idmap[np.asarray(m, dtype=bool)] = j + 1
             ids_buf.append(idmap)
-            for o in ev.metadata.get("objects", []):
-                j = lut_cols.get(o.get("objectId"))
-                if j is not None and o.get("visible"):
+            for oid in visible_object_ids(ev.metadata):
+                j = lut_cols.get(oid)
+                if j is not None:
                     thor_visible[v, j] = True
             if len(ids_buf) >= cfg.chunk:
                 flush(v + 1)
@@ -302,7 +332,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
         vis = (pixels >= min_px) & (distance <= cfg.visibility_distance)
         order = np.argsort(keys, kind="stable")
         keys_s = keys[order]
-        vis_map = {o["objectId"]: keys_s[vis[order, j]].tolist() for j, o in enumerate(objects)}
+        vis_map = visible_object_map([o["objectId"] for o in objects], keys_s, vis[order])
         write_json(tmp / "visible_object_map_1.5.json", vis_map)
         write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(raw[i, 1]), "z": float(kz[i])} for i in positions])
         write_graph(tmp, keys_s.tolist(), sorted(kept_edges))
@@ -319,7 +349,7 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
             if isinstance(o.get("axisAlignedBoundingBox"), dict):
                 rec["axisAlignedBoundingBox"] = o["axisAlignedBoundingBox"]
             records.append(rec)
-        bounds = ev.metadata.get("sceneBounds")
+        bounds = scene_bounds(ev.metadata)
         meta = {
             "format": "tsnav-scene", "version": 1, "name": scene_name, "room_type": room_type, "split": split,
             "rooms": [], "floor": [p.tolist() for p in derive_floor(np.stack([kx[positions], kz[positions]], 1))], "furniture": [],

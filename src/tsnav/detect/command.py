@@ -17,10 +17,21 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import signal
+import threading
 from pathlib import Path
 
+import torch
+from tqdm import tqdm
+
+from ..atomic import atomic_write_text
+from ..data.detections import check_name, load_detections, read_fingerprint, write_detections
+from ..data.reader import list_scenes, load_scene
 from ..errors import CommandError
+from .evaluate import evaluate_detections
+from .learned import LearnedDetector
+from .oracle import OracleConfig, oracle_detections
+from .train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -44,8 +55,6 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 
 
 def _oracle(args):
-    from .oracle import OracleConfig, oracle_detections
-
     cfg = OracleConfig()
     return cfg.fingerprint(), (lambda scene, bar: _tick(oracle_detections(scene, cfg), bar))
 
@@ -57,9 +66,6 @@ def _tick(det, bar):
 
 
 def _learned(args, root: Path):
-    from .learned import LearnedDetector
-    from .train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
-
     ckpt = Path(args.checkpoint) if args.checkpoint else root / "detectors" / "learned"
     if args.train_steps is not None and args.train_steps < 1:
         raise CommandError("--train-steps must be at least 1")
@@ -93,9 +99,6 @@ def _learned(args, root: Path):
 def _sigterm_interrupts() -> None:
     """Turn SIGTERM into KeyboardInterrupt so that training saves a checkpoint before the process ends
     (background jobs ignore SIGINT)."""
-    import signal
-    import threading
-
     if threading.current_thread() is threading.main_thread():
         def handler(signum, frame):
             raise KeyboardInterrupt
@@ -104,12 +107,6 @@ def _sigterm_interrupts() -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
-    from tqdm import tqdm
-
-    from ..data.reader import list_scenes, load_scene
-    from ..data.detections import check_name, read_fingerprint, write_detections
-
     root = Path(args.data)
     if not root.is_dir():
         raise CommandError(f"--data {root}: no such dataset folder")
@@ -148,9 +145,6 @@ def run(args: argparse.Namespace) -> int:
           f"({sum(s.num_states for s in loaded)} states)")
 
     if not args.no_eval:
-        from .evaluate import evaluate_detections
-        from ..data.detections import load_detections
-
         eval_scenes = [load_scene(p) for p in list_scenes(root, split=args.eval_split)]
         eval_scenes = [s for s in eval_scenes if (s.path / f"detections_{name}.hdf5").exists()]
         if not eval_scenes:
@@ -160,10 +154,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"evaluation of {name} on {args.eval_split} scenes:")
         print(report.format())
         out = root / "detectors" / f"{name}_eval_{args.eval_split}.json"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps({"detector": args.detector, "name": name, "fingerprint": fingerprint,
-                                   **report.to_json()}, indent=1))
-        os.replace(tmp, out)
+        atomic_write_text(out, json.dumps({"detector": args.detector, "name": name, "fingerprint": fingerprint,
+                                           **report.to_json()}, indent=1))
         print(f"saved {out}")
     return 0

@@ -12,8 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from ..data.reader import Scene, SceneFormatError, list_scenes, load_scene
 from .model import pixel_to_unit
@@ -22,8 +24,6 @@ from .oracle import ground_truth, min_pixels
 
 def read_images(scene_dir: str | Path, keys) -> np.ndarray:
     """``(len(keys), H, W, 3)`` uint8 frames of ``keys`` from ``scene_dir/images.hdf5``, in that order."""
-    import h5py
-
     path = Path(scene_dir) / "images.hdf5"
     if not path.exists():
         raise FileNotFoundError(f"{path}: missing (build the world with images)")
@@ -100,8 +100,6 @@ def load_frames(root: str | Path, split: str, max_states_per_scene: int | None =
                 progress: bool = False) -> FrameSet:
     """Frames and targets of every complete scene of ``split`` under ``root`` (optionally a random subset of
     at most ``max_states_per_scene`` states per scene, drawn with ``seed``)."""
-    from tqdm import tqdm
-
     paths = [p for p in list_scenes(root, split=split)]
     if not paths:
         raise ValueError(f"{root}: no complete scene of split {split!r}")

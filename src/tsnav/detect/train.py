@@ -8,31 +8,40 @@ remaining schedule). Augmentation: horizontal flip and per-frame colour gains.
 Calibration: a single temperature ``T`` (Guo et al. 2017) divides the presence logits,
 ``score = sigmoid(logit / T)``; ``T`` minimises the mean binary cross-entropy on the VAL scenes.
 
-Checkpoint folder (all files replaced atomically):
+Checkpoint folder:
 
 * ``model.safetensors``: the model's state dict (BatchNorm statistics included);
 * ``optimizer.safetensors``: AdamW moment tensors (``state.<param index>.<name>``);
 * ``detector.json``: ``format``, ``model`` (:class:`~tsnav.detect.model.DetectorConfig`), ``train``
   (:class:`DetectorTrainConfig`), ``step``, ``temperature``, ``calibrated_step``, ``min_score``, ``history`` (loss
-  terms every ``log_every`` steps), ``param_groups`` of the optimiser.
+  terms every ``log_every`` steps), ``param_groups`` of the optimiser;
+* ``previous/``: the same three files of the checkpoint before. A new checkpoint is written completely into a
+  temporary folder first, the current one moves to ``previous/`` and the new files move in, ``detector.json``
+  last. Training resumes from ``previous/`` when the newest files are broken (named in one line; they are
+  renamed ``*.broken``).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
+import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.optimize import minimize_scalar
+from tqdm import tqdm
 
-from ..atomic import atomic_write_bytes, atomic_write_json
-
+from ..atomic import atomic_folder, atomic_write_json
+from ..checkpoint import load_tensors, read_json, resume_newest, save_tensors, weights_digest
+from ..errors import from_fields
+from ..schedule import warmup_cosine
 from .data import FrameSet, load_frames, make_batch
 from .model import DetectorConfig, GridDetector, LossWeights, detection_loss
+
 
 FORMAT = "tsnav-detector"
 
@@ -80,19 +89,13 @@ class DetectorTrainConfig:
         d = dict(d)
         if isinstance(d.get("loss"), dict):
             d["loss"] = LossWeights(**d["loss"])
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown train config fields: {sorted(unknown)}")
-        return cls(**d)
+        return from_fields(cls, d, "train config")
 
 
 def lr_at(step: int, cfg: DetectorTrainConfig) -> float:
-    """Learning rate of optimiser step ``step`` (0-based): warm-up, then cosine to ``min_lr_ratio * lr``."""
-    if step < cfg.warmup:
-        return cfg.lr * (step + 1) / cfg.warmup
-    span = max(cfg.steps - cfg.warmup, 1)
-    t = min((step - cfg.warmup) / span, 1.0)
-    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+    """Learning rate of optimiser step ``step`` (0-based): warm-up, then cosine to ``min_lr_ratio * lr``
+    (:func:`tsnav.schedule.warmup_cosine`)."""
+    return warmup_cosine(step, cfg.steps, cfg.lr, cfg.warmup, cfg.min_lr_ratio * cfg.lr)
 
 
 def batch_plan(step: int, n: int, cfg: DetectorTrainConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -117,10 +120,9 @@ def _atomic_json(path: Path, obj) -> None:
     atomic_write_json(path, obj, indent=1, sort_keys=False)
 
 
-def _atomic_safetensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict | None = None) -> None:
-    from safetensors.torch import save
-
-    atomic_write_bytes(path, save({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, metadata=metadata))
+#: Files of a checkpoint, in the order they are moved in (the JSON last: its presence marks a complete one).
+FILES = ("model.safetensors", "optimizer.safetensors", "detector.json")
+PREVIOUS = "previous"
 
 
 def is_checkpoint(path: str | Path) -> bool:
@@ -133,10 +135,7 @@ def read_meta(path: str | Path) -> dict:
     p = Path(path) / "detector.json"
     if not p.exists():
         raise FileNotFoundError(f"{Path(path)}: not a detector checkpoint (no detector.json)")
-    try:
-        meta = json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{p}: not valid JSON ({e.msg})") from None
+    meta = read_json(p)
     if meta.get("format") != FORMAT:
         raise ValueError(f"{p}: not a {FORMAT} checkpoint")
     return meta
@@ -144,43 +143,48 @@ def read_meta(path: str | Path) -> dict:
 
 def save_checkpoint(path: str | Path, model: GridDetector, opt: torch.optim.Optimizer | None,
                     meta: dict) -> None:
-    """Write model, optimiser state and ``detector.json`` into the folder ``path``, each file atomically and
-    the JSON last. A crash between the files can leave weights a little newer than the step the JSON
-    names; resuming then repeats at most ``checkpoint_every`` steps."""
+    """Write the newest checkpoint into the folder ``path`` (module docstring): complete in a temporary
+    folder first, then the current checkpoint moves to ``previous/`` and the new files move in, the JSON
+    last."""
     p = Path(path)
     p.mkdir(parents=True, exist_ok=True)
-    _atomic_safetensors(p / "model.safetensors", model.state_dict(), {"format": FORMAT})
-    meta = dict(meta)
-    if opt is not None:
-        sd = opt.state_dict()
-        tensors = {f"state.{i}.{k}": (v if torch.is_tensor(v) else torch.tensor(v))
-                   for i, st in sd["state"].items() for k, v in st.items()}
-        _atomic_safetensors(p / "optimizer.safetensors", tensors)
-        meta["param_groups"] = sd["param_groups"]
-    meta["fingerprint"] = weights_fingerprint(model, meta.get("temperature", 1.0))
-    _atomic_json(p / "detector.json", meta)
+    incoming = p / ".incoming"
+    with atomic_folder(incoming) as tmp:
+        save_tensors(tmp / "model.safetensors", model.state_dict(), {"format": FORMAT})
+        meta = dict(meta)
+        if opt is not None:
+            sd = opt.state_dict()
+            tensors = {f"state.{i}.{k}": (v if torch.is_tensor(v) else torch.tensor(v))
+                       for i, st in sd["state"].items() for k, v in st.items()}
+            save_tensors(tmp / "optimizer.safetensors", tensors)
+            meta["param_groups"] = sd["param_groups"]
+        meta["fingerprint"] = weights_fingerprint(model, meta.get("temperature", 1.0))
+        _atomic_json(tmp / "detector.json", meta)
+    if is_checkpoint(p):
+        with atomic_folder(p / PREVIOUS) as prev:
+            for name in FILES:
+                if (p / name).exists():
+                    os.replace(p / name, prev / name)
+    for name in FILES:
+        if (incoming / name).exists():
+            os.replace(incoming / name, p / name)
+        elif (p / name).exists():
+            (p / name).unlink()
+    shutil.rmtree(incoming, ignore_errors=True)
 
 
 def weights_fingerprint(model: GridDetector, temperature: float) -> str:
-    """Identifies a trained detector: sha256 of its weights and temperature (first 16 hex digits)."""
-    h = hashlib.sha256()
-    for k, v in sorted(model.state_dict().items()):
-        h.update(k.encode())
-        h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    h.update(repr(float(temperature)).encode())
-    return "learned-" + h.hexdigest()[:16]
+    """Identifies a trained detector: :func:`~tsnav.checkpoint.weights_digest` of its weights and temperature
+    (first 16 hex digits)."""
+    return "learned-" + weights_digest(model.state_dict(), extra=repr(float(temperature)).encode())[:16]
 
 
 def load_model(path: str | Path) -> tuple[GridDetector, dict]:
-    """(model in eval mode, ``detector.json``) of a checkpoint folder."""
-    from safetensors.torch import load_file
-
+    """(model in eval mode, ``detector.json``) of a checkpoint folder; :class:`BrokenCheckpoint` names a file
+    that cannot be read."""
     meta = read_meta(path)
     model = GridDetector(DetectorConfig.from_dict(meta["model"]))
-    try:
-        state = load_file(str(Path(path) / "model.safetensors"))
-    except (OSError, FileNotFoundError) as e:
-        raise ValueError(f"{Path(path) / 'model.safetensors'}: unreadable ({e})") from None
+    state, _ = load_tensors(Path(path) / "model.safetensors")
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise ValueError(f"{Path(path) / 'model.safetensors'}: weights do not fit the config "
@@ -188,26 +192,44 @@ def load_model(path: str | Path) -> tuple[GridDetector, dict]:
     return model.eval(), meta
 
 
-def _load_optimizer(path: Path, opt: torch.optim.Optimizer, meta: dict) -> None:
-    from safetensors.torch import load_file
-
+def _read_optimizer(path: Path, meta: dict) -> dict[int, dict] | None:
+    """The optimiser state of a checkpoint (``None`` when it has none)."""
     f = path / "optimizer.safetensors"
     if not f.exists() or "param_groups" not in meta:
-        return
-    flat = load_file(str(f))
+        return None
     state: dict[int, dict] = {}
-    for k, v in flat.items():
+    for k, v in load_tensors(f)[0].items():
         _, i, name = k.split(".", 2)
         state.setdefault(int(i), {})[name] = v
-    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    return state
+
+
+def _set_aside(path: Path) -> None:
+    for name in FILES:
+        if (path / name).exists():
+            os.replace(path / name, path / (name + ".broken"))
+
+
+def resume_state(ckpt: str | Path) -> tuple[Path, GridDetector, dict, dict[int, dict] | None] | None:
+    """``(folder, model, detector.json, optimiser state)`` of the newest checkpoint of ``ckpt`` that reads: the
+    folder itself, else ``previous/`` (a broken newest one is named in one line and set aside); None when
+    there is none."""
+    ckpt = Path(ckpt)
+    candidates = [c for c in (ckpt, ckpt / PREVIOUS) if is_checkpoint(c)]
+
+    def load(c: Path):
+        model, meta = load_model(c)
+        return model, meta, _read_optimizer(c, meta)
+
+    found = resume_newest(candidates, load, on_broken=lambda c: _set_aside(c) if c == ckpt else None,
+                          label=lambda c: str(c))
+    return None if found is None else (found[0], *found[1])
 
 
 # ---------------------------------------------------------------------------------------------- calibration
 def fit_temperature(logits: np.ndarray, present: np.ndarray, bounds: tuple[float, float] = (0.05, 20.0)) -> float:
     """Temperature ``T`` minimising the mean binary cross-entropy of ``sigmoid(logits / T)`` against
     ``present`` (Guo et al. 2017; one scalar for all classes), searched on log T within ``bounds``."""
-    from scipy.optimize import minimize_scalar
-
     z = torch.as_tensor(np.asarray(logits, dtype=np.float64)).reshape(-1)
     y = torch.as_tensor(np.asarray(present, dtype=np.float64)).reshape(-1)
     if z.numel() == 0:
@@ -257,13 +279,13 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     """Train (or resume training of) the detector in checkpoint folder ``ckpt`` on the TRAIN scenes of
     ``root`` up to ``train_cfg.steps``. An existing checkpoint keeps its model and training settings except
     ``steps``; a finished one returns at once. ``frames`` may pass preloaded training frames."""
-    from tqdm import tqdm
-
     ckpt = Path(ckpt)
     train_cfg = train_cfg or DetectorTrainConfig()
     torch.set_num_threads(max(1, int(train_cfg.threads)))
-    if is_checkpoint(ckpt):
-        model, meta = load_model(ckpt)
+    found = resume_state(ckpt)
+    opt_state = None
+    if found is not None:
+        _, model, meta, opt_state = found
         stored = DetectorTrainConfig.from_dict(meta["train"])
         stored.steps, stored.threads = train_cfg.steps, train_cfg.threads
         train_cfg = stored
@@ -283,8 +305,8 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     if frames.images.shape[1] != model.cfg.image_size:
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
     opt = torch.optim.AdamW(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
-    if start > 0:
-        _load_optimizer(ckpt, opt, meta)
+    if start > 0 and opt_state is not None:
+        opt.load_state_dict({"state": opt_state, "param_groups": meta["param_groups"]})
     meta["train"] = asdict(train_cfg)
     meta["train_scenes"] = frames.scenes
     model.train()

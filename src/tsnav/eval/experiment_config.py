@@ -68,6 +68,7 @@ class ScaleConfig:
 
 
 SCALES = {
+    "demo": ScaleConfig(pretrain_steps=300, minutes_per_job=4.0, test_per_room_type=100),
     "small": ScaleConfig(),
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
                          pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,

@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..constants import C_TARGET, CATEGORY_INDEX
+from ..constants import ACTION_ORDER, C_TARGET, CATEGORY_INDEX, OLD_ACTION_ORDER, action_permutation
 from ..data.reader import is_complete, load_scene
 from ..errors import CommandError
 from ..sim.batch import BatchEnv, SceneBank
@@ -141,6 +141,8 @@ class Trajectory:
     switch_frame: int = -1
     """First frame whose target confidence exceeded C_target (the pathfinding stage starts there), or -1."""
     success: bool = False
+    action_order: str = ACTION_ORDER
+    """The order ``actions`` are written in (``constants.ACTION_ORDER``); files without it are from the old order."""
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
@@ -212,13 +214,18 @@ def write_trajectories(path: str | Path, trajectories: Sequence[Trajectory]) -> 
 
 
 def read_trajectories(path: str | Path) -> list[Trajectory]:
+    """Trajectories of a JSON Lines file, action ids converted to ``constants.ACTIONS`` (lines without an
+    ``action_order`` were written in ``constants.OLD_ACTION_ORDER``); ``ValueError`` naming the line otherwise."""
     out = []
     with open(path) as f:
         for i, line in enumerate(f, 1):
             if line.strip():
                 try:
-                    out.append(Trajectory(**json.loads(line)))
-                except (json.JSONDecodeError, TypeError) as e:
+                    d = json.loads(line)
+                    perm = action_permutation(d.pop("action_order", OLD_ACTION_ORDER))
+                    d["actions"] = [int(perm[a]) for a in d["actions"]]
+                    out.append(Trajectory(**d))
+                except (json.JSONDecodeError, TypeError, KeyError, IndexError, ValueError) as e:
                     raise ValueError(f"{path}:{i}: not a trajectory ({e})") from None
     return out
 

@@ -84,7 +84,7 @@ def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_typ
     if not eps:
         raise ValueError(f"{data}: no valid episode in split {split!r}")
     write_episodes(path, eps, split=split, seed=seed, success_distance=success_distance, per_room_type=per_room_type,
-                   start_horizon=0, room_targets=True, data=str(Path(data).resolve()))
+                   start_horizon=None, room_targets=True, data=str(Path(data).resolve()))
     return path
 
 

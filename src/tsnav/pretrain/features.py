@@ -37,6 +37,7 @@ import torch.nn as nn
 from tqdm import tqdm
 
 from ..atomic import atomic_path
+from ..data import lineage as L
 from ..data.reader import list_scenes, load_scene
 from ..checkpoint import load_tensors, weights_digest
 from ..distributed import resolve_device
@@ -153,10 +154,9 @@ def default_name(spec: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
 
 
-def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
-                   bar=None) -> np.ndarray:
-    """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order."""
-    out = None
+def iter_scene_features(encoder: Encoder, scene_dir: Path, keys, batch_size: int = 64):
+    """Yield ``(start, features)`` batches: float32 ``(b, C, h, w)`` features of the frames ``keys[start:start + b]``
+    of ``scene_dir/images.hdf5``, each frame resized to ``encoder.img_size`` and ImageNet-normalised."""
     with h5py.File(scene_dir / "images.hdf5", "r") as fi:
         missing = [k for k in keys[:] if k not in fi]
         if missing:
@@ -164,12 +164,19 @@ def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_si
         for a in range(0, len(keys), batch_size):
             rgb = torch.from_numpy(np.stack([fi[k][()] for k in keys[a:a + batch_size]])).permute(0, 3, 1, 2)
             x = normalize_rgb(resize_rgb(rgb, encoder.img_size).to(encoder.device))
-            f = encoder.encode(x).float().cpu().numpy().astype(np.float16)  # [b, C, h, w]
-            if out is None:
-                out = np.empty((len(keys),) + f.shape[1:], dtype=np.float16)
-            out[a:a + len(f)] = f
-            if bar is not None:
-                bar.update(len(f))
+            yield a, encoder.encode(x).float().cpu().numpy()
+
+
+def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
+                   bar=None) -> np.ndarray:
+    """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order."""
+    out = None
+    for a, f in iter_scene_features(encoder, scene_dir, keys, batch_size):
+        if out is None:
+            out = np.empty((len(keys),) + f.shape[1:], dtype=np.float16)
+        out[a:a + len(f)] = f.astype(np.float16)
+        if bar is not None:
+            bar.update(len(f))
     return out
 
 
@@ -215,6 +222,50 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
     finally:
         bar.close()
     return sorted(written)
+
+
+def _h5_attr(path: Path, name: str):
+    """A file attribute of an HDF5 file as a str (None when absent or unreadable)."""
+    try:
+        with h5py.File(path, "r") as f:
+            v = f.attrs.get(name)
+    except OSError:
+        return None
+    return v.decode() if isinstance(v, bytes) else v
+
+
+def write_resnet_features(scene_dir: str | Path, encoder, keys, batch_size: int = 16, bar=None,
+                          overwrite: bool = False) -> bool:
+    """Write the lineage's ``resnet18_featuremap.hdf5`` into ``scene_dir``: one float32 ``(1, 512, 7, 7)`` dataset per
+    state key of ``keys``, ResNet18's last feature map of the frame resized to 224 x 224 (ImageNet-normalised, as
+    :func:`cache_features`); atomic (temporary file renamed when complete).
+
+    ``encoder``: an :class:`Encoder` of arch ``resnet18`` with input size 224.
+    Returns False when the file exists and was made by the same encoder (fingerprint) and ``overwrite`` is
+    off; raises ``ValueError`` for another encoder's file without ``overwrite``.
+    """
+    if encoder.arch != "resnet18" or encoder.img_size != L.RESNET_INPUT_SIZE:
+        raise ValueError(f"the lineage's {L.RESNET_FILE} holds ResNet18 maps of {L.RESNET_INPUT_SIZE}px frames; "
+                         f"encoder {encoder.spec} is {encoder.arch} at {encoder.img_size}px")
+    scene_dir = Path(scene_dir)
+    out = scene_dir / L.RESNET_FILE
+    if out.exists() and not overwrite:
+        fp = _h5_attr(out, "fingerprint")
+        if fp == encoder.fingerprint:
+            return False
+        raise ValueError(f"{out} exists and was made by another encoder ({fp}); pass --overwrite to replace it")
+    with atomic_path(out) as tmp, h5py.File(tmp, "w") as f:
+        for a, feats in iter_scene_features(encoder, scene_dir, keys, batch_size):
+            if feats.shape[1:] != L.RESNET_SHAPE[1:]:
+                raise ValueError(f"encoder {encoder.spec} gives {feats.shape[1:]} maps, expected {L.RESNET_SHAPE[1:]}")
+            for k, x in zip(keys[a:a + len(feats)], feats):
+                f.create_dataset(str(k), data=x[None].astype(np.float32), track_times=False)
+            if bar is not None:
+                bar.update(len(feats))
+        f.attrs["encoder"] = encoder.spec
+        f.attrs["fingerprint"] = encoder.fingerprint
+        f.attrs["input_size"] = L.RESNET_INPUT_SIZE
+    return True
 
 
 def h5py_str(x) -> str:

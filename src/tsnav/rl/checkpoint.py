@@ -5,7 +5,8 @@ Run folder layout::
     RUN/config.json                      resolved configuration (training, agent, reward, features, scenes)
     RUN/log.jsonl                        one JSON line per log interval (losses, rewards per term, SR, ...)
     RUN/tb/                              TensorBoard events
-    RUN/checkpoints/ckpt_<update>/       model.safetensors   weights, metadata: the network description
+    RUN/checkpoints/ckpt_<update>/       model.safetensors   weights, metadata: the network description and
+                                                             action_order (rows of the actor head)
                                          optim.safetensors   optimizer state tensors
                                          state.json          progress (update, env steps, episodes, seconds,
                                                              finished), optimizer groups
@@ -23,6 +24,7 @@ import json
 import os
 import re
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,7 @@ from ..agent.observe import DetectionTable, Observer, load_bank_features
 from ..data.detections import load_scene_detections
 from ..checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors,
                           optimizer_to_tensors, read_json, resume_newest, save_tensors)
+from ..constants import ACTION_ORDER, NUM_ACTIONS, OLD_ACTION_ORDER, action_permutation
 from .assemble import install
 from .config import TrainConfig
 from .policy import AgentPolicy
@@ -41,6 +44,37 @@ from .policy import AgentPolicy
 CKPT = "checkpoints"
 MODEL_FORMAT = "tsnav-agent"
 _COMPLETE = re.compile(r"^ckpt_\d+$")
+
+#: Parameters with one row per action id (the actor head; the previous-action embedding, whose last row is
+#: the "no action yet" marker). Their rows follow ``constants.ACTIONS``; checkpoints store the order.
+ACTION_ROW_PARAMS = ("actor.weight", "actor.bias", "action_embed.weight")
+
+
+def convert_action_rows(tensors: dict, order: str) -> dict:
+    """``tensors`` (model weights, or optimizer state keyed ``<param>::<state>``) with the action rows of
+    :data:`ACTION_ROW_PARAMS` moved from the action ``order`` they were trained in to ``constants.ACTIONS``.
+    Other tensors are returned as they are."""
+    perm = action_permutation(order)
+    if (perm == np.arange(NUM_ACTIONS)).all():
+        return dict(tensors)
+    out = {}
+    for k, v in tensors.items():
+        if k.split("::", 1)[0] in ACTION_ROW_PARAMS and v.ndim >= 1 and v.shape[0] >= NUM_ACTIONS:
+            v = v.clone()
+            v[torch.as_tensor(perm)] = tensors[k][:NUM_ACTIONS].clone()
+        out[k] = v
+    return out
+
+
+def checkpoint_action_order(meta: dict, path: Path, quiet: bool = False) -> str:
+    """The action order a checkpoint was trained in (``action_order`` of its metadata; checkpoints written
+    before tsnav followed the lineage's order carry none and used :data:`OLD_ACTION_ORDER`). Prints one line
+    to stderr when the checkpoint is converted on load."""
+    order = meta.get("action_order", OLD_ACTION_ORDER)
+    if order != ACTION_ORDER and not quiet:
+        print(f"note: {path} was trained with the action order {order}; its actor and action-embedding rows "
+              f"are converted on load to {ACTION_ORDER} (the lineage's)", file=sys.stderr)
+    return order
 
 
 def _name(update: int) -> str:
@@ -92,7 +126,8 @@ def commit_checkpoint(run_dir: str | Path, tmp: Path, progress: dict, model: Act
     run_dir, tmp = Path(run_dir), Path(tmp)
     names = [n for n, _ in model.named_parameters()]
     save_tensors(tmp / "model.safetensors", model.state_dict(),
-                 {"format": MODEL_FORMAT, "model": json.dumps(model.describe(), sort_keys=True)})
+                 {"format": MODEL_FORMAT, "model": json.dumps(model.describe(), sort_keys=True),
+                  "action_order": ACTION_ORDER})
     state = {"progress": dict(progress)}
     if optimizer is not None:
         tensors, meta = optimizer_to_tensors(optimizer, names)
@@ -136,16 +171,20 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
 def load_checkpoint(path: str | Path, model: ActorCritic | None = None, optimizer=None) -> dict:
     """Load weights (and optimizer state) of a checkpoint folder; returns its ``state.json`` content plus
     ``rng`` (rank -> RNG state dict) when present. :class:`~tsnav.checkpoint.BrokenCheckpoint` names a file
-    that cannot be read."""
+    that cannot be read. A checkpoint trained in another action order (see :func:`checkpoint_action_order`)
+    has its action rows converted to ``constants.ACTIONS``."""
     path = Path(path)
     state = read_json(path / "state.json")
+    order = ACTION_ORDER
     if model is not None:
         sd, meta = load_tensors(path / "model.safetensors")
         if meta.get("format") != MODEL_FORMAT:
             raise ValueError(f"{path / 'model.safetensors'}: not a tsnav agent checkpoint")
-        model.load_state_dict(sd)
+        order = checkpoint_action_order(meta, path)
+        model.load_state_dict(convert_action_rows(sd, order))
     if optimizer is not None and "optimizer" in state:
         tensors, _ = load_tensors(path / "optim.safetensors")
+        tensors = convert_action_rows(tensors, order)
         optimizer_from_tensors(optimizer, [n for n, _ in model.named_parameters()], tensors, state["optimizer"])
     state["rng"] = {}
     for f in path.glob("rng_rank*.json"):

@@ -9,6 +9,7 @@ train --algo batched ...``.
 from __future__ import annotations
 
 import argparse
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -91,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     cfg, agent = resolve(args)
     before = latest_checkpoint(args.out)
     progress = train_run(cfg, agent, args.out, progress_bar=not args.quiet)
-    if int(__import__("os").environ.get("RANK", "0")) != 0:
+    if int(os.environ.get("RANK", "0")) != 0:
         return 0
     done = "finished" if progress.get("finished") else "stopped"
     if before is not None and latest_checkpoint(args.out) == before and progress.get("finished"):

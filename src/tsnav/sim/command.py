@@ -21,8 +21,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     parser.add_argument("--success-distance", type=float, default=SUCCESS_DISTANCE,
                         help="success distance in metres (paper: 1.0; lineage: 1.5)")
-    parser.add_argument("--start-horizon", type=int, default=0,
-                        help="camera horizon of start states in degrees; -1 for any (default: 0)")
+    parser.add_argument("--start-horizon", type=int, default=-1,
+                        help="camera horizon of start states in degrees (0 or 30); -1 for both, about half each, "
+                             "as the lineage's test splits (default: -1)")
     parser.add_argument("--all-targets", action="store_true",
                         help="allow every category present, not only the room type's target list")
     parser.add_argument("--force", action="store_true", help="replace an existing, different episode list")

@@ -1,14 +1,18 @@
 """Episodes: the training sampler and fixed validation / test episode lists (paper III-A, IV-A).
 
 An episode is (scene, target category, start state). A valid episode has the target present in the scene,
-a start state at the configured camera horizon (0 by default) from which a success state of the target can
-be reached, and a start that is not already a success state. The optimal length stored with fixed
-episodes is L* of :mod:`tsnav.sim.paths` (movement actions, Done not counted).
+a start state from which a success state of the target can be reached, and a start that is not already a
+success state. Starts take any of the 8 rotations and, as in the lineage's test splits, horizon 0 or 30
+(fixed lists draw each horizon with probability 1/2 per (scene, target) pair; ``start_horizon`` restricts
+them to one). Success (target in view within the success distance) is a property of the full state, horizon
+included, so a start looking down that already sees the target close by is excluded like any other; the
+optimal length stored with fixed episodes is L* of :mod:`tsnav.sim.paths` from the start state itself
+(movement actions, Done not counted), so a start at horizon 30 counts the LookUp it may need.
 
 Episode lists are JSON::
 
     {"format": "tsnav-episodes", "version": 1, "split": "test", "success_distance": 1.0, "seed": 0,
-     "per_room_type": 250, "start_horizon": 0,
+     "per_room_type": 250, "start_horizon": null,
      "episodes": [{"scene": "FloorPlan1", "target": "Bowl", "start": "0.50|3.50|315|0",
                    "optimal_length": 7, "room_type": "kitchen"}, ...]}
 """
@@ -34,8 +38,9 @@ EPISODES_VERSION = 1
 class EpisodeConfig:
     """How episodes are drawn (training sampler and fixed lists)."""
 
-    start_horizon: int | None = 0
-    """Camera horizon of start states in degrees (0 = level); None allows any horizon."""
+    start_horizon: int | None = None
+    """Camera horizon of start states in degrees (0 = level, 30 = looking down); None (default) allows both,
+    as the lineage's test splits have them (about half each)."""
     room_targets: bool = True
     """Restrict targets to the lineage's per-room-type target list (constants.ROOM_TARGETS) when the scene's
     room type has one; other room types use every category present."""
@@ -156,8 +161,10 @@ class Episode:
 def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
                   config: EpisodeConfig | None = None) -> list[Episode]:
     """Draw a fixed episode list: ``per_room_type`` distinct episodes for each room type (fewer when the room
-    type has fewer valid episodes), each (scene, target) pair of a room type equally likely, like the
-    lineage's 250 test episodes per room type. Deterministic for a given bank and ``seed``."""
+    type has fewer valid episodes), each (scene, target) pair of a room type equally likely and, within a
+    pair, each start horizon that has valid starts equally likely (the lineage's test splits start about half
+    at horizon 0, half at 30), like the lineage's 250 test episodes per room type. Deterministic for a given
+    bank and ``seed``."""
     if per_room_type < 1:
         raise ValueError(f"per_room_type must be >= 1, got {per_room_type}")
     config = config or EpisodeConfig()
@@ -172,12 +179,17 @@ def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
         if len(pairs) == 0:
             continue
         scenes_rt = np.unique(t.pair_scene[pairs])
-        # weight of a triple: 1 / (scenes of the room type * pairs of its scene * starts of its pair)
+        # weight of a triple: 1 / (scenes of the room type * pairs of its scene * horizons of its pair
+        #                          * starts of its pair at its horizon)
         cnt = t.counts[pairs]
         w_pair = 1.0 / (len(scenes_rt) * npairs[t.pair_scene[pairs]])
         idx = np.concatenate([np.arange(t.ptr[p], t.ptr[p + 1]) for p in pairs])
         pair_of = np.repeat(pairs, cnt)
-        w = np.repeat(w_pair / cnt, cnt)
+        hor = np.asarray(bank.horizon)[t.starts[idx]].astype(np.int64)
+        _, group, per_group = np.unique(pair_of * 1000 + hor, return_inverse=True, return_counts=True)
+        _, hgroup = np.unique(pair_of, return_inverse=True)
+        horizons_of_pair = np.bincount(hgroup[np.unique(group, return_index=True)[1]])  # horizons per pair
+        w = np.repeat(w_pair, cnt) / (horizons_of_pair[hgroup] * per_group[group])
         k = min(per_room_type, len(idx))
         chosen = rng.choice(len(idx), size=k, replace=False, p=w / w.sum())
         for j in chosen:

@@ -14,10 +14,10 @@ of ``tsnav.data.toy``.
 
 | | |
 | --- | --- |
-| Action space | ``Discrete(6)``: 0 MoveAhead, 1 RotateLeft, 2 RotateRight, 3 LookDown, 4 LookUp, 5 Done |
+| Action space | ``Discrete(6)``: 0 MoveAhead, 1 RotateLeft, 2 RotateRight, 3 LookUp, 4 LookDown, 5 Done (the lineage's order) |
 | Observation | ``Dict``: ``rgb`` ``(H, W, 3)`` uint8 from ``images.hdf5`` (zeros when absent); ``depth`` ``(H, W)`` float32 metres from ``depth.hdf5`` (zeros when absent); ``target`` ``Discrete(22)`` category id; ``detections`` ``(22, 6)`` float32 per-class rows (score, label, x0, y0, x1, y1) from the detector stage (zeros when absent) |
 | Reward | a :class:`~tsnav.sim.batch.RewardFn`: through the registered id the paper's TSRM reward by default (:mod:`tsnav.tsrm.envs`); the classes alone default to :class:`~tsnav.sim.batch.SparseReward` (-0.01 per step, +5 on success) |
-| Start | a random training episode (scene, a reachable target present in it, a level start state that is not a success state), or ``reset(options={"episode": (scene_name, target_name, start_key)})`` |
+| Start | a random training episode (scene, a reachable target present in it, a start state at horizon 0 or 30 that is not a success state), or ``reset(options={"episode": (scene_name, target_name, start_key)})`` |
 | Termination | the agent outputs Done (success when the target is in view within the success distance) |
 | Truncation | ``max_steps`` actions without Done (paper: 100 at test time; the lineage trains with 30) |
 

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from ..atomic import atomic_write_text
 from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
+from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
 from ..data.writer import (GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
                            scene_folder, write_graph, write_json, write_states)
@@ -120,7 +121,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
             keys_s, pixels_s, boxes_s, distance_s = keys[order], pixels[order], boxes[order], distance[order]
             min_px = cfg.min_pixels()
             vis = (pixels_s >= min_px) & (distance_s <= VISIBILITY_DISTANCE)
-            write_json(tmp / "visible_object_map_1.5.json", {o.objectId: keys_s[vis[:, j]].tolist() for j, o in enumerate(objects)})
+            write_json(tmp / "visible_object_map_1.5.json", visible_object_map([o.objectId for o in objects], keys_s, vis))
             write_json(tmp / "grid.json", [{"x": float(x), "y": GRID_Y, "z": float(z)} for x, z in positions])
             write_graph(tmp, sorted(nodes), edges)
             write_states(tmp, keys_s, [o.objectId for o in objects], pixels_s, boxes_s, distance_s,

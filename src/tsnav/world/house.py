@@ -17,7 +17,7 @@ import numpy as np
 from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
-from ..constants import ROOM_TARGETS, ROOM_TYPES
+from ..constants import ROOM_TARGETS, ROOM_TYPES, object_id
 from ..data.names import scene_info
 from .catalog import FLOORS, FURNITURE_SIZES, OBJECT_SIZES, WALLS, build_parts, draw_size, jitter
 from .spec import Furniture, ObjectInstance, Part, SceneSpec, box_footprint
@@ -50,7 +50,8 @@ SUPPORTS = {
     "Book": ("ShelvingUnit", "CoffeeTable", "Desk", "SideTable", "DiningTable", "Bed", "Dresser"),
     "Laptop": ("Desk", "CoffeeTable", "DiningTable", "Bed", "Sofa"),
     "RemoteControl": ("CoffeeTable", "Sofa", "SideTable", "TVStand"),
-    "CellPhone": ("Bed", "Desk", "SideTable", "Dresser"), "AlarmClock": ("SideTable", "Dresser", "Desk"),
+    "CellPhone": ("Bed", "Desk", "SideTable", "Dresser", "CounterTop", "DiningTable", "KitchenIsland", "CoffeeTable",
+                  "Sofa", "TVStand"), "AlarmClock": ("SideTable", "Dresser", "Desk"),
     "DeskLamp": ("Desk", "SideTable", "Dresser"), "Television": ("TVStand", "Dresser"),
     "Sink": ("CounterTop", "Vanity"), "StoveBurner": ("Stove",),
 }
@@ -176,7 +177,7 @@ class RoomBuilder:
             center, support = (round(cx, 3), round(height, 3), round(cz, 3)), on.id
         else:
             center, support, oyaw = at, ("wall" if category == "LightSwitch" else "floor"), yaw
-        oid = f"{category}|{center[0]:+.2f}|{center[1]:+.2f}|{center[2]:+.2f}"
+        oid = object_id(category, *center)
         if any(o.objectId == oid for o in self.spec.objects):
             return None
         inst = self.spec.new_inst(oid)
