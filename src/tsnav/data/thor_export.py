@@ -1,11 +1,13 @@
 """Export tsnav scenes to the lineage's layout, and check a folder against what the lineage's readers expect.
 
 tsnav scene folders already hold the lineage's files (``graph.json``, ``grid.json``,
-``visible_object_map_1.5.json``, ``images.hdf5``); what the lineage's agents additionally read is the
-22 x 264 DETR table, written here from a tsnav detection table (:mod:`tsnav.data.detections`).
-:func:`check_lineage_layout` lists every way a folder departs from the layout of
-:mod:`tsnav.data.lineage` (key formats, JSON shapes, HDF5 dataset names and dtypes), as SAVN's
-``OfflineControllerWithSmallRotation`` and the VTNet / DOA / IOM episode readers would meet it.
+``visible_object_map_1.5.json``, ``images.hdf5``); of what the lineage's agents additionally read, the
+22 x 264 DETR table is written here from a tsnav detection table (:mod:`tsnav.data.detections`); the rest
+(ResNet features, optimal actions, episode lists) by ``tsnav thor export-lineage``
+(:mod:`tsnav.eval.lineage_export`). :func:`check_lineage_layout` lists every way a scene folder departs from
+the layout of :mod:`tsnav.data.lineage` (key formats, JSON shapes, HDF5 dataset names, shapes, dtypes and
+contents), as SAVN's ``OfflineControllerWithSmallRotation`` and the VTNet / DOA / IOM readers would meet it;
+:func:`check_lineage_dataset` does so for every scene of a dataset and its episode lists.
 """
 
 from __future__ import annotations
@@ -343,12 +345,13 @@ def export_detections_22x264(scene_dir: str | Path, detections_file: str | Path,
     """Write the lineage's 22 x 264 table (float32 per state key) from a tsnav detection table.
 
     ``detections_file``: a ``detections_<name>.hdf5`` of the detect stage (a path, or a name relative to
-    ``scene_dir``); its features must be 256-d (the lineage's DETR feature). ``out_path`` defaults to
+    ``scene_dir``); features of up to 256 dimensions (the lineage's DETR feature is 256-d; tsnav's detectors give
+    64-d, zero-padded, see :func:`tsnav.data.lineage.table_to_22x264`). ``out_path`` defaults to
     ``scene_dir/detr_features_22cls.hdf5``. Boxes are rescaled to ``box_size`` pixels (the lineage's 300 x 300
     frames; None keeps the table's pixels). Every key must be a state of the scene's ``graph.json``.
     Read back with :func:`tsnav.data.lineage.read_detections_22x264`; the round trip is exact for scores,
-    labels and features, and for boxes whenever ``box_size / image_size`` is a power-of-two fraction (as
-    300 / 64) or 1.
+    labels and features, and for the boxes of kept detections whenever ``box_size / image_size`` is a
+    power-of-two fraction (as 300 / 64) or 1.
     """
     scene_dir = Path(scene_dir)
     p = Path(detections_file)
