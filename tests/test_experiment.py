@@ -144,6 +144,18 @@ def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, c
     # another scale in the same folder is refused
     with pytest.raises(ValueError, match="another scale"):
         Experiment(ExperimentConfig(**{**cfg.__dict__, "scale": "paper"}), train_fn=again).run()
+    # agents were evaluated greedily (recorded); sampling them in the same folder is refused, and so is
+    # resuming a folder from before the key existed (its agents were sampled) without --sample
+    assert json.loads((out / "jobs" / "tsrm_s0" / "eval" / "metrics.json").read_text())["sample"] is False
+    with pytest.raises(ValueError, match="another sample"):
+        Experiment(ExperimentConfig(**{**cfg.__dict__, "sample": True}), train_fn=again).run()
+    doc = json.loads((out / "experiment.json").read_text())
+    del doc["config"]["sample"]
+    (out / "experiment.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"another sample \(True, now False\)"):
+        Experiment(cfg, train_fn=again).run()
+    doc["config"]["sample"] = False
+    (out / "experiment.json").write_text(json.dumps(doc))
 
     from tsnav.eval.report import build_report
 

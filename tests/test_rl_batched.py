@@ -139,11 +139,13 @@ def test_an_update_lowers_the_loss_of_its_rollout(world):
 
 
 def test_short_run_raises_the_return(world, tmp_path):
-    cfg = _cfg(world, num_envs=16, rollout_steps=10, updates=60, log_every=1, checkpoint_every=1000, lr=3e-3)
+    # 80 updates: with failed looks no longer penalised as collisions, this seed's return first rises after
+    # about 60 updates (0.40 over the first 15, 1.36 over the last 15; 0.44 -> 1.35 with the old penalty)
+    cfg = _cfg(world, num_envs=16, rollout_steps=10, updates=80, log_every=1, checkpoint_every=1000, lr=3e-3)
     progress = train_batched(cfg, agent_config("cpu"), tmp_path / "run", progress_bar=False)
-    assert progress["update"] == 60 and progress["finished"]
+    assert progress["update"] == 80 and progress["finished"]
     log = read_log(tmp_path / "run")
-    assert [r["update"] for r in log] == list(range(1, 61))
+    assert [r["update"] for r in log] == list(range(1, 81))
     first = np.mean([r["return"] for r in log[:15]])
     last = np.mean([r["return"] for r in log[-15:]])
     assert last > first + 0.1, (first, last)

@@ -5,10 +5,11 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from tsnav.cli import main
 from tsnav.eval.policies import Policy
-from tsnav.eval.runner import EvalConfig, evaluate
+from tsnav.eval.runner import EvalConfig, eval_policy, evaluate
 from tsnav.rl.checkpoint import list_checkpoints, load_policy
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.episodes import read_episodes
@@ -66,7 +67,10 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
     out = tmp_path / "eval"
     assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--out", str(out)]) == 0
     m = json.loads((out / "metrics.json").read_text())
-    assert m["policy"].startswith("run:") and m["metrics"]["ALL"]["episodes"] > 0
+    assert m["policy"].startswith("run:") and m["metrics"]["ALL"]["episodes"] > 0 and m["sample"] is False
+    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--out",
+                 str(tmp_path / "eval_s"), "--sample", "--seed", "3"]) == 0
+    assert json.loads((tmp_path / "eval_s" / "metrics.json").read_text())["sample"] is True
 
     episodes, _ = read_episodes(eps)
     bank = SceneBank.from_root(world, "test")
@@ -79,11 +83,36 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
         assert (a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
     again = evaluate(bank, episodes, pol, EvalConfig(max_steps=20))  # greedy: deterministic, state reset
     assert [r.steps for r in again] == [r.steps for r in together]
-    # sampled (the default, as the lineage evaluates): reproducible for a seed
-    runs = [evaluate(bank, episodes, load_policy(run, bank, seed=s), EvalConfig(max_steps=20)) for s in (3, 3, 4)]
+    # sampled (--sample): reproducible for a seed, different for another
+    runs = [evaluate(bank, episodes, load_policy(run, bank, greedy=False, seed=s), EvalConfig(max_steps=20))
+            for s in (3, 3, 4)]
     assert [r.steps for r in runs[0]] == [r.steps for r in runs[1]] != [r.steps for r in runs[2]]
     a = load_policy(run, bank).act({"state": np.array([0, 1]), "target": np.array([0, 0])})
     assert a.shape == (2,) and a.dtype == np.int64
+
+
+def test_greedy_is_the_default_and_takes_the_argmax(trained):
+    """Evaluation is greedy by default (the lineage's test-time rule): the action is the argmax of the
+    policy's logits, and the seed does not matter."""
+    world, run = trained
+    bank = SceneBank.from_root(world, "test")
+    pol = load_policy(run, bank, seed=1)
+    assert pol.greedy and not load_policy(run, bank, greedy=False).greedy
+    rng = np.random.default_rng(0)
+    states = rng.integers(0, bank.num_states, 32)
+    targets = rng.integers(0, 22, 32)
+    state = pol.model.initial_state(32, pol.observer.device)
+    with torch.no_grad():
+        logits, _, _ = pol.model(pol.observer(states, targets), state)
+    first = pol.act({"state": states, "target": targets})
+    assert np.array_equal(first, logits.argmax(dim=1).numpy())
+    assert logits.softmax(1).max(1).values.min() < 0.999  # a real distribution, so sampling could differ
+    other = load_policy(run, bank, seed=2)
+    assert np.array_equal(other.act({"state": states, "target": targets}), first)
+    # report re-rolls: greedy when the folder recorded greedy, sampled for folders that predate the key
+    assert eval_policy({"run": str(run), "seed": 0, "sample": False}, bank).greedy
+    assert not eval_policy({"run": str(run), "seed": 0, "sample": True}, bank).greedy
+    assert not eval_policy({"run": str(run), "seed": 0}, bank).greedy
 
 
 def test_torchrun_two_ranks(trained, tmp_path):

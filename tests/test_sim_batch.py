@@ -40,25 +40,27 @@ def test_bank_offsets_and_global_graph(bank):
 
 def test_hand_worked_episode(bank):
     env = _one(bank, "ToyB", "0.00|0.00|180|0", "GarbageCan", reward_fn=SparseReward())
-    seq = [(MOVE_AHEAD, True, "0.00|0.00|180|0"),   # faces -z at the wall
-           (ROTATE_RIGHT, False, "0.00|0.00|225|0"),
-           (LOOK_DOWN, False, "0.00|0.00|225|30"),
-           (LOOK_DOWN, True, "0.00|0.00|225|30"),   # already looking down
-           (LOOK_UP, False, "0.00|0.00|225|0")]
-    for a, coll, key in seq:
+    # (action, failed = lastActionSuccess False, collided, state after)
+    seq = [(MOVE_AHEAD, True, True, "0.00|0.00|180|0"),   # faces -z at the wall: a collision
+           (ROTATE_RIGHT, False, False, "0.00|0.00|225|0"),
+           (LOOK_UP, True, False, "0.00|0.00|225|0"),       # already level: fails, but bumps into nothing
+           (LOOK_DOWN, False, False, "0.00|0.00|225|30"),
+           (LOOK_DOWN, True, False, "0.00|0.00|225|30"),    # already looking down: the same
+           (LOOK_UP, False, False, "0.00|0.00|225|0")]
+    for a, failed, coll, key in seq:
         obs, r, term, trunc, info = env.step(np.array([a]))
-        assert info["collided"][0] == coll and bank.keys[obs["state"][0]] == key
+        assert info["failed"][0] == failed and info["collided"][0] == coll and bank.keys[obs["state"][0]] == key
         assert not term[0] and not trunc[0] and r[0] == pytest.approx(-0.01)
     obs, r, term, trunc, info = env.step(np.array([DONE]))
     # GarbageCan|1 stands at (0, 0): in view and within 1 m
     assert term[0] and not trunc[0] and info["success"][0]
-    assert info["steps"][0] == 6 and info["path_length"][0] == 5  # Done not counted
+    assert info["steps"][0] == 7 and info["path_length"][0] == 6  # Done not counted
     assert r[0] == pytest.approx(5 - 0.01)
     assert info["reward_terms"]["success"][0] == 5.0
     # Frozen afterwards: no reward, no movement, no new flags.
     obs, r, term, trunc, info = env.step(np.array([MOVE_AHEAD]))
     assert not info["active"][0] and r[0] == 0 and not term[0] and not trunc[0]
-    assert info["steps"][0] == 6
+    assert info["steps"][0] == 7
 
 
 def test_done_elsewhere_fails_and_truncation_is_not_termination(bank):
@@ -101,7 +103,7 @@ def test_agrees_with_reference_controller(bank):
                 continue
             out = c.step(int(acts[k, i]), max_steps=30)
             assert bank.keys[obs["state"][i]] == out["state"]
-            assert info["collided"][i] == out["collided"]
+            assert info["collided"][i] == out["collided"] and info["failed"][i] == out["failed"]
             assert term[i] == out["terminated"] and trunc[i] == out["truncated"]
             assert info["success"][i] == out["success"]
             assert info["steps"][i] == out["steps"] and info["path_length"][i] == out["path_length"]

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from tsnav.constants import CATEGORY_INDEX, DONE, LOOK_DOWN, MOVE_AHEAD, NUM_CATEGORIES, ROTATE_LEFT, ROTATE_RIGHT
+from tsnav.constants import (CATEGORY_INDEX, DONE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES, ROTATE_LEFT,
+                             ROTATE_RIGHT)
 from tsnav.data.toy import toy_scene
 from tsnav.sim.batch import BatchEnv, RewardFn, SceneBank
 from tsnav.tsrm.distance import bank_pose_distance
@@ -27,7 +28,7 @@ def run(reward, scene, start, target, actions):
     out = []
     for a in actions:
         n = int(scene.next_state[s, a])
-        r, terms = reward.step(np.array([s]), np.array([a]), np.array([n]), np.array([n == s and a != DONE]),
+        r, terms = reward.step(np.array([s]), np.array([a]), np.array([n]), np.array([n == s and a == MOVE_AHEAD]),
                                np.array([a == DONE]), np.array([False]))
         out.append((float(r[0]), {k: float(v[0]) for k, v in terms.items()}))
         s = n
@@ -61,6 +62,26 @@ def test_collision_rule():
     # a new episode forgets the collisions
     again = run(rew, sc, start, BOWL, [MOVE_AHEAD])
     assert again[0][1]["collision"] == 0.0
+
+
+def test_failed_looks_are_not_collisions():
+    """LookUp at horizon 0 and LookDown at 30 fail (lastActionSuccess False, no graph edge) but bump into
+    nothing: the env flags them ``failed``, not ``collided``, so the collision penalty never applies to them,
+    however often they repeat at one pose; a repeated MoveAhead into the wall is penalised."""
+    sc = room()
+    bank = SceneBank([sc], cache=False)
+    rew = TSRMReward(bank, RewardConfig(variant="tsrm"))
+    env = BatchEnv(bank, 1, max_steps=100, autoreset=False, reward_fn=rew)
+    start = sc.index("0.00|0.00|180|0")  # level, facing the wall
+    env.reset(episodes=(np.zeros(1, int), np.array([BOWL]), np.array([start])))
+    seq = [(LOOK_UP, True, False), (LOOK_UP, True, False), (LOOK_DOWN, False, False), (LOOK_DOWN, True, False),
+           (LOOK_DOWN, True, False), (MOVE_AHEAD, True, True), (MOVE_AHEAD, True, True)]
+    col = []
+    for a, failed, collided in seq:
+        _, _, _, _, info = env.step(np.array([a]))
+        assert bool(info["failed"][0]) == failed and bool(info["collided"][0]) == collided
+        col.append(float(info["reward_terms"]["collision"][0]))
+    assert col == pytest.approx([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -0.1])
 
 
 def test_stage_switch_is_irreversible_and_switching_step_explores():
@@ -162,7 +183,7 @@ def test_fast_matches_reference_on_random_walks(variant):
     for _ in range(30):
         act = rng.choice(6, n, p=[0.5, 0.15, 0.15, 0.08, 0.08, 0.04])
         new = bank.next_state[local + off, act].astype(np.int64)
-        collided = (new == local + off) & (act != DONE)
+        collided = (new == local + off) & (act == MOVE_AHEAD)
         done = act == DONE
         success = done & bank.success[new, target]
         r, terms = fast.step(local + off, act, new, collided, done, success)

@@ -71,6 +71,8 @@ class DemoConfig:
     """Seed of the training run and of the random policy."""
     gallery: int = 6
     """Episodes shown per evaluation in the report."""
+    sample: bool = False
+    """Evaluate the agent by sampling its actions instead of the greedy argmax (the lineage's test-time rule)."""
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -80,6 +82,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: the cores not busy with other processes)")
+    p.add_argument("--sample", action="store_true",
+                   help="evaluate the agent by sampling its actions instead of the greedy argmax (the default)")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -244,11 +248,11 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
             print(f"    {label} ...", flush=True)
             results[label] = evaluate_to_folder(
                 d, world, ep_file, policy=name, run=run_dir if name == "agent" else None, detections=cfg.detections,
-                seed=cfg.seed, label=label)
-        return {"policies": [n for _, n in policies]}
+                seed=cfg.seed, label=label, sample=cfg.sample)
+        return {"policies": [n for _, n in policies], "sample": cfg.sample}
 
     st.run("evaluate", "on the test episodes: " + ", ".join(lab for lab, _ in policies), do_eval,
-           lambda m: m.get("policies") == [n for _, n in policies]
+           lambda m: m.get("policies") == [n for _, n in policies] and m.get("sample", True) == cfg.sample
            and all((out / "eval" / n / "metrics.json").exists() for _, n in policies))
     if not results:
         for label, name in policies:
@@ -285,7 +289,7 @@ def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
 
 
 def run(args) -> int:
-    cfg = DemoConfig(world_workers=args.workers)
+    cfg = DemoConfig(world_workers=args.workers, sample=args.sample)
     if args.train_minutes is not None:
         if not args.train_minutes > 0:
             raise CommandError("--train-minutes must be positive")

@@ -43,7 +43,7 @@ class Scene:
         keys: ``(S,)`` state keys, sorted; state id = index.
         x, z: ``(S,)`` float32 position, metres. rotation, horizon: ``(S,)`` int16 degrees.
         next_state: ``(S, 6)`` int32 state reached by each action of ``constants.ACTIONS``; the state itself
-            when the action fails (a collision) and for Done.
+            when the action fails (a MoveAhead collision, or a look past horizons 0 / 30) and for Done.
         object_ids: ``(O,)`` AI2-THOR-style object ids; object_category: ``(O,)`` index into
             ``TARGET_CATEGORIES`` (-1 for non-target objects).
         visible: ``(S, O)`` bool, from ``visible_object_map_1.5.json`` (in view and within 1.5 m).

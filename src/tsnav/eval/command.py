@@ -23,6 +23,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="evaluate the trained agent of this `tsnav train` run folder (instead of --policy)")
     parser.add_argument("--out", required=True, help="output folder for records.jsonl and metrics.json")
     parser.add_argument("--seed", type=int, default=0, help="seed of stochastic policies (default: 0)")
+    parser.add_argument("--sample", action="store_true",
+                        help="--run: sample the agent's actions (seeded by --seed) instead of the default greedy "
+                             "argmax, the lineage's test-time rule")
     parser.add_argument("--max-steps", type=int, default=100, help="episode length limit (paper: 100)")
     parser.add_argument("--c-target", type=float, default=C_TARGET, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--success-distance", type=float, default=None,
@@ -46,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
         from ..rl.checkpoint import load_policy
 
-        policy = load_policy(args.run, bank, seed=args.seed)
+        policy = load_policy(args.run, bank, greedy=not args.sample, seed=args.seed)
         args.policy = f"run:{Path(args.run).resolve()}"
     else:
         policy = make_policy(args.policy, bank, seed=args.seed, c_target=args.c_target)
@@ -58,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     write_records(out / "records.jsonl", records)
     write_json(out / "metrics.json", {
-        "metrics": summary, "policy": args.policy, "seed": args.seed, "episodes_file": str(args.episodes),
+        "metrics": summary, "policy": args.policy, "seed": args.seed, "sample": bool(args.sample),
+        "episodes_file": str(args.episodes),
         "data": str(Path(args.data).resolve()), "success_distance": dist, "config": config_dict(config),
         "detector_confidence": bank.confidence is not None, "seconds": seconds})
     print(f"policy {args.policy}: {len(records)} episodes in {seconds:.2f} s "

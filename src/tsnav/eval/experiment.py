@@ -146,7 +146,9 @@ class Job:
 
 
 #: experiment.json fields that must match when an experiment folder is resumed.
-IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset")
+IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample")
+#: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled).
+LEGACY_IDENTITY = {"sample": True}
 
 
 class Experiment:
@@ -187,9 +189,10 @@ class Experiment:
             except (OSError, ValueError) as e:
                 raise ValueError(f"{p}: unreadable experiment file ({e}); use another --out or remove it") from None
             for k in IDENTITY:
-                if old.get("config", {}).get(k) != d.get(k):
+                was = old.get("config", {}).get(k, LEGACY_IDENTITY.get(k))
+                if was != d.get(k):
                     raise ValueError(f"{self.out} holds the {old.get('experiment')!r} experiment with another {k} "
-                                     f"({old.get('config', {}).get(k)!r}, now {d.get(k)!r}); use another --out")
+                                     f"({was!r}, now {d.get(k)!r}); use another --out")
         doc = {"format": "tsnav-experiment", "experiment": self.cfg.experiment, "description": self.info["description"],
                "scale": self.cfg.scale, "seeds": self.cfg.seeds, "config": d, "scale_config": asdict(self.scale),
                "rows": [asdict(r) for r in self.rows], "gallery_row": self.info["gallery_row"],
@@ -251,7 +254,8 @@ class Experiment:
         t1 = time.perf_counter()
         summary = evaluate_to_folder(jd / "eval", self.cfg.data, self.episodes_file, run=jd / "train",
                                      detections=self.cfg.detections, c_target=job.row.c_target, seed=job.seed,
-                                     label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps)
+                                     label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps,
+                                     sample=self.cfg.sample)
         done = {"row": job.row.id, "seed": job.seed, "train_seconds": t1 - t0,
                 "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}}
         write_json(jd / "DONE", done)
@@ -332,6 +336,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="jobs trained at once, each in its own process (default 1; 2 on two idle cores)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: the cores not busy with other processes)")
+    parser.add_argument("--sample", action="store_true",
+                        help="evaluate agents by sampling their actions instead of the greedy argmax (the lineage's "
+                             "test-time rule, the default)")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
 
 
@@ -352,7 +359,8 @@ def run(args: argparse.Namespace) -> int:
                            minutes_per_job=args.minutes_per_job, updates_per_job=args.updates_per_job,
                            pretrain_dir=args.pretrain_dir,
                            detections=args.detections, vc1_weights=args.vc1_weights,
-                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel)
+                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
+                           sample=args.sample)
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     exp = Experiment(cfg)

@@ -171,3 +171,6 @@ class ExperimentConfig:
     """Added to the job seeds (repeat an experiment with other seeds)."""
     parallel: int = 1
     """Jobs trained at once, each in its own process (use 2 on two idle cores; progress bars are then off)."""
+    sample: bool = False
+    """Evaluate the agents by sampling their actions (seeded) instead of the greedy argmax, the lineage's
+    test-time rule."""

@@ -260,7 +260,9 @@ def eval_bank(meta: dict, episodes):
 
 def eval_policy(meta: dict, bank):
     """The policy of an evaluation folder: the trained agent of ``meta["run"]`` (or of a ``run:PATH`` policy, as
-    ``tsnav eval --run`` records it) or a scripted policy."""
+    ``tsnav eval --run`` records it) or a scripted policy. The agent acts greedily unless ``meta["sample"]`` is
+    true; folders written before that key existed were evaluated by sampling, so a missing key means
+    sampling (a re-roll must reproduce the recorded episodes)."""
     seed = int(meta.get("seed", 0))
     name = str(meta.get("policy", "explorer"))
     run = meta.get("run") or (name[len("run:"):] if name.startswith("run:") else None)
@@ -268,7 +270,7 @@ def eval_policy(meta: dict, bank):
         # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
         from ..rl.checkpoint import load_policy
 
-        return load_policy(run, bank, seed=seed)
+        return load_policy(run, bank, greedy=not bool(meta.get("sample", True)), seed=seed)
     return make_policy(name, bank, seed=seed, c_target=bank.c_target)
 
 
@@ -305,15 +307,16 @@ def eval_trajectories(eval_dir: str | Path):
 
 def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
                        run: str | Path | None = None, detections: str | None = None, c_target: float = C_TARGET,
-                       seed: int = 0, label: str | None = None, max_steps: int = 100) -> dict:
+                       seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
-    :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). Returns the :func:`summarize` result."""
+    :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
+    lineage's test-time rule) unless ``sample``. Returns the :func:`summarize` result."""
     out_dir = Path(out_dir)
     episodes, emeta = read_episodes(episodes_file)
     config = EvalConfig(max_steps=max_steps, c_target=c_target)
     meta = {"policy": "agent" if run else policy, "run": str(Path(run).resolve()) if run else None, "seed": seed,
-            "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
+            "sample": bool(sample), "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
             "success_distance": float(emeta.get("success_distance", 1.0)), "detections": detections,
             "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
     bank = eval_bank(meta, episodes)

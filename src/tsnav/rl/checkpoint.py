@@ -237,16 +237,15 @@ def load_model(run_dir: str | Path, checkpoint: str | Path | None = None) -> tup
     return found[1]
 
 
-def load_policy(run_dir: str | Path, bank, greedy: bool = False, seed: int = 0, device: str = "cpu",
+def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, device: str = "cpu",
                 checkpoint: str | Path | None = None):
     """The trained agent of ``run_dir`` as a :class:`~tsnav.eval.policies.Policy` over ``bank``.
 
     The bank's scenes need the run's feature cache (``features_<name>.hdf5``); when the run used detection
     tables and the bank has none installed, they are installed (so the evaluation's stage switch uses the same
-    detector as training). Actions are sampled from the policy with a generator seeded by ``seed``, as the
-    lineage evaluates (SAVN's agent samples ``prob.multinomial(1)`` in training and test alike, with dropout off);
-    ``greedy`` takes the most probable action instead. ``checkpoint`` picks a checkpoint folder other than the
-    latest.
+    detector as training). Actions are greedy (the most probable), as the lineage evaluates (IOM / DOA take
+    ``prob.argmax`` at test time and sample only while training); ``greedy=False`` samples from the policy with
+    a generator seeded by ``seed`` instead. ``checkpoint`` picks a checkpoint folder other than the latest.
     """
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
     model, _ = load_model(run_dir, checkpoint)

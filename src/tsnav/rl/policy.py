@@ -11,10 +11,14 @@ from ..agent.observe import Observer
 
 class AgentPolicy:
     """Drives an :class:`ActorCritic` over a batch of evaluation episodes, keeping each episode's LSTM state,
-    target memory and previous action; ``reset(mask)`` clears the rows that start a new episode. Actions are
-    sampled with a seeded generator (the lineage's evaluation) or greedy (most probable). Dropout is off."""
+    target memory and previous action; ``reset(mask)`` clears the rows that start a new episode. Dropout is off.
 
-    def __init__(self, model: ActorCritic, observer: Observer, greedy: bool = False, seed: int = 0):
+    Actions are greedy by default: the most probable action (``argmax`` of the logits), as the lineage
+    evaluates (IOM's ``ThorAgent.action`` and DOA sample ``prob.multinomial(1)`` only while training and take
+    ``prob.argmax`` at test time), so an evaluation is deterministic. ``greedy=False`` samples from the
+    policy with a generator seeded by ``seed`` (``--sample`` on the commands)."""
+
+    def __init__(self, model: ActorCritic, observer: Observer, greedy: bool = True, seed: int = 0):
         self.model = model.eval()
         self.observer = observer
         self.greedy = greedy

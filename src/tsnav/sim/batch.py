@@ -17,7 +17,12 @@ Episode semantics (used by every stage of tsnav):
   ``max_steps`` without a Done (paper: 100 at test time; the lineage trains with 30).
 * Done always ends the episode (*terminated*); it is a *success* when the state is a success state of the
   target category (an instance in view and within ``success_distance``, 1.0 m in the paper).
-* A movement action whose target equals the current state failed: ``collided`` is set.
+* A movement action whose target equals the current state failed (AI2-THOR's ``lastActionSuccess`` is
+  False): ``failed`` is set. Only a failed MoveAhead is a *collision* (``collided``): the lineage's offline
+  controller (``OfflineControllerWithSmallRotation.step``) also fails LookUp at horizon 0 and LookDown at 30
+  (horizons 0 and 30 only, so the graph has no such edge), and real AI2-THOR fails a look past the camera's
+  limits, but neither moves the agent into anything; the paper's collision penalty (III-D (iii)) is about
+  bumping into obstacles, and IOM's episode penalises a failed action only when it is a MoveAhead.
 * ``path_length`` counts the movement actions (every non-Done action, failed ones included), the same
   quantity as the optimal length L* of :mod:`tsnav.sim.paths` (Done not counted).
 
@@ -47,7 +52,7 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from ..constants import C_TARGET, DONE, GRID_SIZE, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
+from ..constants import C_TARGET, DONE, GRID_SIZE, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
 from ..data.detections import Detections, load_scene_detections
 from ..data.reader import Scene, list_scenes, load_scene
 from .paths import distance_fields, scene_distance_fields
@@ -267,7 +272,8 @@ class BatchEnv:
     ``scene`` scene index (int64), ``step`` actions taken so far in the episode (int32).
 
     :meth:`step` returns ``(obs, reward, terminated, truncated, info)`` with ``info`` arrays (all ``(B,)``,
-    describing the step just taken, before any auto-reset): ``collided``, ``success``, ``steps``,
+    describing the step just taken, before any auto-reset): ``collided`` (a failed MoveAhead), ``failed`` (any
+    failed movement action, looks past the horizon limits included), ``success``, ``steps``,
     ``path_length``, ``final_state`` (the state reached), ``active`` (the row was in an episode), and
     ``reward_terms`` (dict). With ``autoreset`` (default) finished rows immediately start a new episode from
     ``sampler`` and ``obs`` shows its first state ("same-step" auto-reset); without it finished rows stay
@@ -359,7 +365,10 @@ class BatchEnv:
         new = np.where(active, moved, prev)
         is_done = a == DONE
         moving = active & ~is_done
-        collided = moving & (moved == prev)
+        failed = moving & (moved == prev)  # lastActionSuccess False
+        # A collision is a failed MoveAhead only; a look past the horizon limits fails without bumping into
+        # anything (module docstring), so the collision penalty of III-D (iii) does not apply to it.
+        collided = failed & (a == MOVE_AHEAD)
         self.steps += active
         self.path_length += moving
         terminated = active & is_done
@@ -373,7 +382,7 @@ class BatchEnv:
         else:
             reward = np.zeros(self.num_envs, dtype=np.float32)
             terms = {}
-        info = {"collided": collided, "success": success, "steps": self.steps.copy(),
+        info = {"collided": collided, "failed": failed, "success": success, "steps": self.steps.copy(),
                 "path_length": self.path_length.copy(), "final_state": new, "active": active.copy(),
                 "reward_terms": terms}
         self.state = new.copy()  # auto-reset writes into self.state; info keeps the final states

@@ -21,8 +21,9 @@ of ``tsnav.data.toy``.
 | Termination | the agent outputs Done (success when the target is in view within the success distance) |
 | Truncation | ``max_steps`` actions without Done (paper: 100 at test time; the lineage trains with 30) |
 
-``info`` carries ``state`` (global id), ``scene``, ``collided``, ``success``, ``steps``, ``path_length`` and
-each reward term of the step as ``reward/<term>``. The vector env auto-resets in the same step (``AutoresetMode.SAME_STEP``): the returned
+``info`` carries ``state`` (global id), ``scene``, ``collided`` (a failed MoveAhead), ``failed`` (any failed
+action, looks past the horizon limits included), ``success``, ``steps``, ``path_length`` and each reward term
+of the step as ``reward/<term>``. The vector env auto-resets in the same step (``AutoresetMode.SAME_STEP``): the returned
 observation of a finished sub-env is its next episode's first one, and ``info["final_obs"]`` /
 ``info["final_info"]`` hold the last ones, as Gymnasium's ``SyncVectorEnv`` does in that mode.
 """
@@ -186,7 +187,8 @@ class ObjectNavEnv(gym.Env):
             raise ValueError(f"action must be an int in [0, {NUM_ACTIONS}), got {action!r}")
         _, reward, term, trunc, info = self.batch.step(np.array([int(action)]))
         out = {"state": int(info["final_state"][0]), "scene": self.bank.names[int(self.batch.scene[0])],
-               "collided": bool(info["collided"][0]), "success": bool(info["success"][0]),
+               "collided": bool(info["collided"][0]), "failed": bool(info["failed"][0]),
+               "success": bool(info["success"][0]),
                "steps": int(info["steps"][0]), "path_length": int(info["path_length"][0])}
         out.update({f"reward/{k}": float(v[0]) for k, v in info["reward_terms"].items()})
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), out
@@ -239,8 +241,8 @@ class ObjectNavVectorEnv(VectorEnv):
         every = np.ones(self.num_envs, dtype=bool)
         infos: dict[str, Any] = {}
         for k, v in {"state": self.batch.state.copy(), "scene": self.batch.scene.copy(),
-                     "collided": info["collided"], "success": info["success"], "steps": info["steps"],
-                     "path_length": info["path_length"],
+                     "collided": info["collided"], "failed": info["failed"], "success": info["success"],
+                     "steps": info["steps"], "path_length": info["path_length"],
                      **{f"reward/{k}": v for k, v in info["reward_terms"].items()}}.items():
             infos[k], infos[f"_{k}"] = v, every
         fin = term | trunc

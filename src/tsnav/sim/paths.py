@@ -93,7 +93,7 @@ def bfs_reference(next_state: np.ndarray, sources) -> np.ndarray:
 #   the optimal path length L* of an episode is the number of *movement* actions (MoveAhead, RotateLeft,
 #   RotateRight, LookDown, LookUp) on the shortest action sequence from the start state to any success state
 #   of the target; the final Done is NOT counted. The agent's path length L counts the same kind of actions:
-#   every non-Done action it outputs (including failed ones, i.e. collisions), so that an agent that follows
+#   every non-Done action it outputs (including failed ones: collisions and looks past the horizon limits), so that an agent that follows
 #   a shortest path and then outputs Done has L = L* and SPL = 1.
 # ---------------------------------------------------------------------------------------------------------
 

@@ -84,7 +84,7 @@ class ReferenceController:
         """Apply one action id; returns a dict with the new key and the episode flags."""
         name = ACTIONS[action]
         self.steps += 1
-        collided = terminated = success = False
+        collided = failed = terminated = success = False
         if name == "Done":
             terminated = True
             success = self.success_objects[self.state].get(self.target, False)
@@ -93,9 +93,10 @@ class ReferenceController:
             nxt = self._next_key(name)
             if self.graph.has_edge(self.state, nxt):
                 self.state = nxt
-            else:
-                collided = True
+            else:  # lastActionSuccess False; a collision only for MoveAhead (see sim.batch)
+                failed = True
+                collided = name == "MoveAhead"
         truncated = (not terminated) and self.steps >= max_steps
         self.done = terminated or truncated
-        return {"state": self.state, "collided": collided, "terminated": terminated, "truncated": truncated,
-                "success": success, "steps": self.steps, "path_length": self.path_length}
+        return {"state": self.state, "collided": collided, "failed": failed, "terminated": terminated,
+                "truncated": truncated, "success": success, "steps": self.steps, "path_length": self.path_length}
