@@ -71,20 +71,23 @@ class ScaleConfig:
     """Validation episodes per room type (threshold sweep)."""
     max_steps: int = 100
     """Evaluation episode length (paper: 100)."""
+    world: str = "demo"
+    """World preset (``tsnav world --preset``) the scale runs on: built into ``--data`` when that folder does not
+    exist yet. Paper: ``ithor-real``, the real iTHOR scenes rebuilt from their recorded layouts."""
 
 
 SCALES = {
     "demo": ScaleConfig(pretrain_steps=300, updates_per_job=DEMO_UPDATES, test_per_room_type=100),
     "small": ScaleConfig(),
     # The budget at which TSRM + DE-MAE's validation curve on the 80 training rooms has plateaued (issue 15,
-    # items 3-4). PLACEHOLDER numbers until `scripts/convergence.py` has measured that curve: set
+    # items 3-4). PLACEHOLDER numbers until `tsnav convergence` has measured that curve: set
     # ``updates_per_job`` (and the agent size, if the curve says so) from it.
     "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, num_envs=256, test_per_room_type=250,
-                          val_per_room_type=100),
+                          val_per_room_type=100, world="ithor-real"),
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
                          pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
                          num_envs=16, workers=14, updates_per_job=None, episodes_per_job=1_500_000,
-                         test_per_room_type=250, val_per_room_type=250),
+                         test_per_room_type=250, val_per_room_type=250, world="ithor-real"),
 }
 
 
