@@ -32,9 +32,10 @@ Output folder::
                                  mean and 95 % t-interval over seeds per row, rewritten after every job
     OUT/threshold.png            (threshold) each metric over C_target, best point marked with a red star
 
-Scales: ``small`` fits a 2-core CPU in about two hours on the ``demo`` world (ViT-Tiny at 64x64, short
-pretraining, a few minutes of batched training per job); ``paper`` uses the paper's settings (ViT-Base at
-224x224, 1.5 M training episodes, A3C with 14 workers) and needs a GPU and days.
+Scales: ``demo`` is the scale of ``tsnav demo`` (its one row, TSRM + DE-MAE, in about ten minutes); ``small``
+fits a 2-core CPU in about two hours on the ``demo`` world (ViT-Tiny at 64x64, short pretraining, a few minutes
+of batched training per job); ``paper`` uses the paper's settings (ViT-Base at 224x224, 1.5 M training episodes,
+A3C with 14 workers) and needs a GPU and days.
 """
 
 from __future__ import annotations
