@@ -35,7 +35,8 @@ Output folder::
 Scales: ``demo`` is the scale of ``tsnav demo`` (its one row, TSRM + DE-MAE, in about ten minutes); ``small``
 fits a 2-core CPU in about two hours on the ``demo`` world (ViT-Tiny at 64x64, short pretraining, a few minutes
 of batched training per job); ``paper`` uses the paper's settings (ViT-Base at 224x224, 1.5 M training episodes,
-A3C with 14 workers) and needs a GPU and days.
+A3C with 14 workers) on the ``ithor-real`` world (the 120 real iTHOR scenes) and needs a GPU and days.
+``--build-world`` builds the scale's world into a ``--data`` folder that does not exist yet.
 """
 
 from __future__ import annotations
@@ -63,7 +64,8 @@ from .experiment_config import EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentC
 from ..metrics import METRICS, write_json
 from .report import build_report
 from .runner import evaluate_to_folder
-from .stage_cache import encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features, say
+from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
+                          ensure_world, say)
 from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshold
 
 
@@ -224,6 +226,7 @@ class Experiment:
         """Detections, episode list, encoders and feature caches; returns encoder id -> feature name."""
         cfg, scale = self.cfg, self.scale
         split = self.info["split"]
+        ensure_world(cfg.data, scale.world)
         say(f"[{cfg.experiment}] detections ({cfg.detections}) and {split} episodes")
         ensure_detections(cfg.data, cfg.detections)
         ensure_episodes(cfg.data, split, self.episodes_file,
@@ -311,6 +314,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("experiment", choices=EXPERIMENTS, help="ablation (Table II), pretraining (Table III), "
                         "threshold (Fig. 4)")
     parser.add_argument("--data", required=True, help="dataset root (train, val and test scenes with images)")
+    parser.add_argument("--build-world", action="store_true",
+                        help="build the scale's world into --data first when the folder does not exist "
+                             "(small: demo, paper: ithor-real, the real iTHOR scenes)")
     parser.add_argument("--out", required=True, help="experiment folder (resumed when it exists)")
     parser.add_argument("--scale", choices=sorted(SCALES), default="small",
                         help="small: 2-core CPU, about two hours; paper: the paper's settings (GPU)")
@@ -337,8 +343,12 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not Path(args.data).is_dir():
-        raise CommandError(f"--data {args.data}: no such dataset folder")
+    world = SCALES[args.scale].world
+    if not Path(args.data).is_dir() and not (args.build_world and not Path(args.data).exists()):
+        raise CommandError(f"--data {args.data}: no such dataset folder (--build-world builds the {world} world of "
+                           f"--scale {args.scale} there; or: tsnav world --preset {world} --out {args.data})")
+    if args.build_world:
+        ensure_world(args.data, world, build=True)
     for opt in ("vc1_weights", "resnet18_weights"):
         v = getattr(args, opt)
         if v and not Path(v).exists():

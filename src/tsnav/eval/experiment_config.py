@@ -62,6 +62,9 @@ class ScaleConfig:
     """Validation episodes per room type (threshold sweep)."""
     max_steps: int = 100
     """Evaluation episode length (paper: 100)."""
+    world: str = "demo"
+    """World preset (``tsnav world --preset``) the scale runs on: built into ``--data`` when that folder does not
+    exist yet. Paper: ``ithor-real``, the real iTHOR scenes rebuilt from their recorded layouts."""
 
 
 SCALES = {
@@ -70,7 +73,7 @@ SCALES = {
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
                          pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
                          num_envs=16, workers=14, minutes_per_job=None, episodes_per_job=1_500_000,
-                         test_per_room_type=250, val_per_room_type=250),
+                         test_per_room_type=250, val_per_room_type=250, world="ithor-real"),
 }
 
 

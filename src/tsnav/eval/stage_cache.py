@@ -3,6 +3,8 @@ lists, pretrained encoders and their feature caches (see :mod:`tsnav.eval.experi
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,11 +17,30 @@ from ..distributed import resolve_device
 from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, write_episodes
+from ..world.build import build_dataset
 from .experiment_config import ExperimentConfig, ScaleConfig
 
 
 def say(msg: str) -> None:
     print(msg, flush=True)
+
+
+def ensure_world(data: str | Path, preset: str, build: bool = False, workers: int | None = None) -> str:
+    """The world preset of the dataset at ``data`` (from its ``index.json``); with ``build``, ``preset`` (the
+    scale's world, :attr:`ScaleConfig.world`) is first built there when the folder does not exist. Prints a note
+    when the dataset holds another world than ``preset``."""
+    root = Path(data)
+    if build and not root.exists():
+        say(f"building the {preset} world into {root} (resumable; interrupt and rerun to continue)")
+        build_dataset(root, preset, workers=workers or min(2, os.cpu_count() or 1))
+    try:
+        built = json.loads((root / "index.json").read_text()).get("preset", "custom")
+    except (OSError, ValueError, AttributeError):
+        built = "unknown"
+    if built != preset:
+        say(f"note: {root} holds the {built!r} world; this scale stands for {preset!r} "
+            f"(tsnav world --preset {preset})")
+    return built
 
 
 def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:

@@ -27,9 +27,8 @@ from ..data.writer import (GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance
                            scene_folder, write_graph, write_json, write_states)
 from ..render.gl import Renderer
 from ..data.names import scene_info
-from .house import generate
 from .navgrid import build_graph, reachable_positions
-from .presets import PRESETS, preset_scenes
+from .presets import PRESETS, preset_scenes, scene_spec
 from .spec import SceneSpec
 
 @dataclass
@@ -41,6 +40,7 @@ class BuildConfig:
     depth_dtype: str = "float16"  #: dtype of depth.hdf5 (metres); float16 keeps datasets small
     compression: str | None = None  #: HDF5 filter for images (None or "gzip"; lzf output is not byte-reproducible)
     compact: bool = False  #: small rooms (the `tiny` preset)
+    world: str = "procedural"  #: layout source: "procedural" or "ithor-real" (tsnav.world.presets.WORLDS)
     seed: int = 0  #: world seed; the same name and seed give the same scene
     tiles: int = 16  #: views rendered per framebuffer read
 
@@ -70,7 +70,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
         stats.skipped = True
         return stats
     t0 = time.perf_counter()
-    spec: SceneSpec = generate(name, seed=cfg.seed, compact=cfg.compact)
+    spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact)
     positions, move = reachable_positions(spec)
     nodes, edges = build_graph(positions, move)
     js = spec.to_json()
@@ -186,7 +186,8 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
         scene_info(n)  # validates the name
     if cfg is None:
         p = PRESETS.get(preset or "", {})
-        cfg = BuildConfig(image_size=p.get("image_size", 64), compact=p.get("compact", False))
+        cfg = BuildConfig(image_size=p.get("image_size", 64), compact=p.get("compact", False),
+                          world=p.get("world", "procedural"))
     check_output_dir(out)
     # Leftovers of interrupted builds are never complete: remove them.
     for stale in out.glob(".*.partial-*"):

@@ -246,16 +246,25 @@ ROLES = {
 }
 
 
-def build_parts(category: str, center, size, yaw: float, inst: int, rng: np.random.Generator) -> list[Part]:
-    """World-space parts of one model placed with its base centre at ``center`` and rotated by ``yaw``."""
-    roles = ROLES.get(category, ("painted",))
+def materials_for(category: str, rng: np.random.Generator, roles: tuple[str, ...] | None = None) -> dict:
+    """Material slots (main, accent, trim, screen, lamp, metal) of one model, drawn from ``roles`` (default:
+    the category's :data:`ROLES`)."""
+    roles = roles or ROLES.get(category, ("painted",))
     mats = {}
-    names = ("main", "accent", "trim")
-    for i, name in enumerate(names):
+    for i, name in enumerate(("main", "accent", "trim")):
         mats[name] = material(rng, roles[min(i, len(roles) - 1)])
     mats["screen"] = material(rng, "screen")
     mats["lamp"] = material(rng, "lamp")
     mats["metal"] = material(rng, "metal")
+    return mats
+
+
+def build_parts(category: str, center, size, yaw: float, inst: int, rng: np.random.Generator,
+                mats: dict | None = None) -> list[Part]:
+    """World-space parts of one model placed with its base centre at ``center`` and rotated by ``yaw``;
+    ``mats`` (from :func:`materials_for`) fixes the materials instead of drawing them from ``rng``."""
+    if mats is None:
+        mats = materials_for(category, rng)
     c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
     out = []
     for (lx, ly, lz), lsize, role in shape(category, size, rng):

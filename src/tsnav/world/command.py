@@ -32,7 +32,7 @@ def run(args) -> int:
     if args.workers < 1:
         raise CommandError("--workers must be at least 1")
     cfg = BuildConfig(image_size=size, store_images=not args.no_images, seed=args.seed,
-                      compact=pre["compact"] if args.compact is None else True)
+                      compact=pre["compact"] if args.compact is None else True, world=pre.get("world", "procedural"))
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
     try:
         stats = build_dataset(args.out, args.preset, scenes, cfg, workers=args.workers)

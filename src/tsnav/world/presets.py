@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 from ..data.names import ithor_scenes, robothor_scenes
+from .house import generate
+from .real import real_spec
+from .spec import SceneSpec
+
+#: Where a scene's layout comes from: ``procedural`` (generated from its name) or ``ithor-real`` (the real
+#: iTHOR scene's recorded object layout, :mod:`tsnav.world.real`).
+WORLDS = ("procedural", "ithor-real")
 
 PRESETS = {
     # a handful of small rooms, seconds to build: for tests
@@ -12,6 +19,8 @@ PRESETS = {
     "demo": {"scenes": [f"FloorPlan{b + i}" for b in (0, 200, 300, 400) for i in (1, 2, 3, 21, 22)],
              "compact": False, "image_size": 64},
     "ithor": {"scenes": ithor_scenes(), "compact": False, "image_size": 128},
+    # the 120 real iTHOR scenes rebuilt from their recorded object layouts (same names and splits as ithor)
+    "ithor-real": {"scenes": ithor_scenes(), "compact": False, "image_size": 128, "world": "ithor-real"},
     "robothor": {"scenes": robothor_scenes(), "compact": False, "image_size": 128},
 }
 
@@ -20,3 +29,13 @@ def preset_scenes(name: str) -> list[str]:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
     return list(PRESETS[name]["scenes"])
+
+
+def scene_spec(name: str, world: str = "procedural", seed: int = 0, compact: bool = False) -> SceneSpec:
+    """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` and ``compact`` apply to
+    procedural scenes only."""
+    if world == "procedural":
+        return generate(name, seed=seed, compact=compact)
+    if world == "ithor-real":
+        return real_spec(name)
+    raise ValueError(f"unknown world {world!r} (choose from {', '.join(WORLDS)})")

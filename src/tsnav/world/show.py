@@ -30,6 +30,9 @@ def draw_topdown(ax, scene, show_grid: bool = True, label_objects: bool = True) 
     for poly in scene.floor:
         ax.add_patch(MplPolygon(poly, closed=True, facecolor="#f3efe6", edgecolor="#444", lw=1.5, zorder=0))
     for f in meta.get("furniture", []):
+        if not f.get("blocks", True):  # small things on receptacles, wall fixtures: outline only, no label
+            ax.add_patch(MplPolygon(f["footprint"], closed=True, fill=False, edgecolor="#a89a86", lw=0.4, zorder=1))
+            continue
         ax.add_patch(MplPolygon(f["footprint"], closed=True, facecolor="#b9aa94", edgecolor="#6b5d49", lw=0.8, zorder=1))
         c = np.mean(f["footprint"], axis=0)
         ax.text(c[0], c[1], f["category"], fontsize=5, ha="center", va="center", color="#3b3226", zorder=2)
