@@ -7,7 +7,7 @@ first, so start-up is excluded) and overall (start-up included), mean training e
 second, and the projected wall time of the paper's 1.5 M training episodes at that rate.
 
     .venv/bin/python bench/bench_train.py --data /tmp/demo --features NAME [--seconds 60] [--workers 2]
-        [--num-envs 64 256] [--preset cpu]
+        [--num-envs 64 256] [--preset cpu] [--no-a3c]
 
 Without --data a tiny world is built in a temporary folder with pooled-pixel features.
 """
@@ -49,6 +49,7 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, nargs="+", default=[64, 256], help="batched trainer batch sizes")
     ap.add_argument("--rollout-steps", type=int, default=30)
     ap.add_argument("--preset", default="cpu", help="agent preset (cpu or paper)")
+    ap.add_argument("--no-a3c", action="store_true", help="batched trainer only (ratios are then to the first batch size)")
     ap.add_argument("--out", default=None, help="write the figures as JSON here")
     args = ap.parse_args()
 
@@ -77,9 +78,10 @@ def main() -> None:
                     checkpoint_every=10**9, device="cpu", threads=1)
         results = []
         t = time.perf_counter()
-        run = tmp / "a3c"
-        p = train_a3c(TrainConfig(algo="a3c", workers=args.workers, **base), agent, run, progress_bar=False)
-        results.append(_summary(f"A3C, {args.workers} workers x 1 episode", run, p, time.perf_counter() - t))
+        if not args.no_a3c:
+            run = tmp / "a3c"
+            p = train_a3c(TrainConfig(algo="a3c", workers=args.workers, **base), agent, run, progress_bar=False)
+            results.append(_summary(f"A3C, {args.workers} workers x 1 episode", run, p, time.perf_counter() - t))
         for b in args.num_envs:
             t = time.perf_counter()
             run = tmp / f"batched{b}"

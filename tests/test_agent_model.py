@@ -169,3 +169,33 @@ def test_oracle_detections_and_observer(tiny_scenes):
     np.testing.assert_allclose(obs.pose[:, 0].numpy(), bank.x[s[rows]])
     with pytest.raises(ValueError, match="features cover"):
         Observer(bank, feats[:-1])
+
+
+@pytest.mark.parametrize("dim,heads", [(64, 2), (256, 4)])
+def test_memory_attention_fast_path_equals_multihead_attention(dim, heads):
+    """``TargetMemoryAggregator.attend`` (key and value projections moved to the query side) computes the same
+    outputs and gradients as ``nn.MultiheadAttention``'s forward (``attend_reference``), padded slots included."""
+    torch.manual_seed(0)
+    agg = TargetMemoryAggregator(feat_dim=8, dim=dim, heads=heads, out_dim=32)
+    with torch.no_grad():  # non-zero biases, so that the bias algebra is exercised
+        agg.attn.in_proj_bias.normal_()
+        agg.attn.out_proj.bias.normal_()
+    b, m = 37, 8
+    q = torch.randn(b, dim, dtype=torch.float64, requires_grad=True)
+    nodes = torch.randn(b, m, dim, dtype=torch.float64, requires_grad=True)
+    pad = torch.rand(b, m) < 0.5
+    pad[:, 0] = False  # the aggregator never pads every slot of a row
+    pad[3] = True
+    pad[3, 5] = False
+    agg = agg.double()
+    outs, grads = [], []
+    for fn in (agg.attend, agg.attend_reference):
+        agg.zero_grad()
+        q.grad = nodes.grad = None
+        out = fn(q, nodes, pad)
+        (out * torch.linspace(-1, 1, dim, dtype=torch.float64)).sum().backward()
+        outs.append(out.detach())
+        grads.append([q.grad.clone(), nodes.grad.clone()] + [p.grad.clone() for p in agg.attn.parameters()])
+    assert torch.allclose(outs[0], outs[1], atol=1e-10)
+    for g0, g1 in zip(*grads):
+        assert torch.allclose(g0, g1, atol=1e-10)

@@ -15,7 +15,7 @@ from tsnav.eval.experiment_config import SCALES
 
 TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, gallery=2,
                   scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
-                                pretrain_batch_size=8, test_per_room_type=5, minutes_per_job=0.05, num_envs=4))
+                                pretrain_batch_size=8, test_per_room_type=5, updates_per_job=2, num_envs=4))
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -64,3 +64,25 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     st = {s: res3["stages"][s][0] for s in STAGES}
     assert st["train"] == "reused" and st["evaluate"] == "done" and st["report"] == "done"
     assert (out / "eval" / "random" / "metrics.json").exists()
+
+
+def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_world, capsys):
+    """The demo's training budget is in updates: two runs from scratch with the same seed give the same agent
+    (weights) and print the same results table, however long each took."""
+    from tsnav.checkpoint import weights_digest
+    from tsnav.rl.checkpoint import load_model
+
+    cfg = replace(TINY, scale=replace(TINY.scale, updates_per_job=3, minutes_per_job=None))
+    tables, digests = [], []
+    for k in range(2):
+        out = tmp_path / f"demo{k}"
+        shutil.copytree(tiny_world, out / "world")
+        capsys.readouterr()
+        res = run_demo(out, cfg)
+        text = capsys.readouterr().out
+        tables.append(text.split("results on the test episodes")[1].split("report:")[0])
+        digests.append(weights_digest(load_model(out / "run")[0].state_dict()))
+        assert res["results"]["agent (TSRM, DE-MAE)"]["ALL"]["episodes"] > 0
+        assert json.loads((out / "stages" / "train.json").read_text())["update"] == 3
+    assert digests[0] == digests[1]
+    assert tables[0] == tables[1] and "agent (TSRM, DE-MAE)" in tables[0]

@@ -18,7 +18,7 @@ from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, 
 from tsnav.metrics import METRICS
 
 TINY = ScaleConfig(vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2, pretrain_batch_size=8,
-                   feature_batch_size=256, num_envs=4, minutes_per_job=0.05, test_per_room_type=6,
+                   feature_batch_size=256, num_envs=4, updates_per_job=2, test_per_room_type=6,
                    val_per_room_type=6)
 
 
@@ -193,17 +193,21 @@ def test_threshold_experiment_plot(tmp_path, tiny_world, pretrain_dir):
     assert all(a >= b - 1e-9 for a, b in zip(ssr, ssr[1:]))
 
 
-def test_training_budget_in_minutes_or_updates():
-    """--updates-per-job replaces the scale's minutes (a budget that does not depend on how busy the machine is);
-    with --minutes-per-job too, both apply and the first reached stops training."""
-    row = experiment_rows("ablation")[0]
-    scale = ScaleConfig()  # small: 4 minutes, no update limit
+def test_training_budget_in_updates_or_minutes():
+    """Budgets are in updates by default (the same agent on a busy machine); --updates-per-job or
+    --minutes-per-job replace the scale's; with both, the first reached stops training."""
+    from tsnav.eval.experiment_config import SCALES
 
-    def budget(**kw):
-        tc, _ = train_config_for(ExperimentConfig(experiment="ablation", data="d", out="o", **kw), scale, row, "f", 0)
+    row = experiment_rows("ablation")[0]
+    scale = ScaleConfig()  # small: 1000 updates, no minute limit
+
+    def budget(sc=scale, **kw):
+        tc, _ = train_config_for(ExperimentConfig(experiment="ablation", data="d", out="o", **kw), sc, row, "f", 0)
         return tc.minutes, tc.updates
 
-    assert budget() == (4.0, None)
+    assert budget() == (None, 1000)
+    for name, sc in SCALES.items():  # no scale trains for a number of minutes
+        assert sc.minutes_per_job is None and (sc.updates_per_job or sc.episodes_per_job), name
     assert budget(minutes_per_job=2.5) == (2.5, None)
     assert budget(updates_per_job=700) == (None, 700)
     assert budget(updates_per_job=700, minutes_per_job=3.0) == (3.0, 700)

@@ -150,6 +150,9 @@ def test_short_run_raises_the_return(world, tmp_path):
     last = np.mean([r["return"] for r in log[-15:]])
     assert last > first + 0.1, (first, last)
     assert {"SR", "SPL", "SSSPL", "NSNPL", "reward/explore", "reward/distance", "steps_per_s"} <= set(log[-1])
+    # the Done collapse monitor: the policy's mean Done probability and the share of Done actions taken
+    assert all(0.0 < r["done_prob"] < 1.0 and 0.0 <= r["done_rate"] <= 1.0 for r in log)
+    assert abs(np.mean([r["done_prob"] for r in log]) - np.mean([r["done_rate"] for r in log])) < 0.05
 
 
 class Interrupt(Exception):

@@ -23,6 +23,8 @@ COMMANDS = {
     "pretrain": ("tsnav.pretrain.command", "pretrain a ViT encoder with DE-MAE / MAE"),
     "features": ("tsnav.pretrain.features", "cache encoder features for every state of a dataset"),
     "train": ("tsnav.rl.command", "train a navigation agent (A3C or batched A2C)"),
+    "select": ("tsnav.eval.select", "choose a run's best checkpoint on validation episodes (kept as RUN/best)"),
+    "convergence": ("tsnav.eval.convergence", "train in chunks, score each on validation episodes, plot the curve"),
     "experiment": ("tsnav.eval.experiment", "run one of the paper's experiments (ablation, pretraining, threshold)"),
     "report": ("tsnav.eval.report", "write an HTML report for a run or experiment folder"),
     "thor": ("tsnav.eval.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),

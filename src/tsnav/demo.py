@@ -8,7 +8,7 @@ exists and its outputs are still there, and every underlying step resumes after 
  3. features     cache the encoder's features of the training and test scenes                   */features_demae-<fp>.hdf5
  4. detections   the oracle detector's per-state table (confidence drives the stage switch)     world/*/detections_oracle.hdf5
  5. episodes     fixed test episodes                                                            OUT/test_episodes.json
- 6. train        a TSRM agent with the batched A2C trainer (a few minutes)                      OUT/run
+ 6. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes)       OUT/run
  7. evaluate     the agent, the scripted explorer and the random policy on the test episodes   OUT/eval/<policy>
  8. report       HTML report: tables, curves, reconstructions, episode gallery                  OUT/report/index.html
 
@@ -34,7 +34,7 @@ from .constants import C_TARGET
 from .data.reader import list_scenes, load_scene
 from .errors import CommandError
 from .eval.experiment import set_threads, train_config_for
-from .eval.experiment_config import SCALES, ExperimentConfig, Row, ScaleConfig
+from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row, ScaleConfig
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
 from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
@@ -64,7 +64,7 @@ class DemoConfig:
     """Training rooms used per room type (the smallest ones); None: all training rooms."""
     scale: ScaleConfig = field(default_factory=lambda: replace(SCALES["demo"]))
     """Sizes of pretraining, training and evaluation (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps,
-    4 minutes of batched A2C, 100 test episodes per room type)."""
+    ``DEMO_UPDATES`` updates of batched A2C, 100 test episodes per room type)."""
     detections: str = "oracle"
     """Detection tables (the oracle detector, computed here)."""
     seed: int = 0
@@ -78,7 +78,10 @@ class DemoConfig:
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/demo", help="folder for the world, runs and report (default out/demo)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for world building")
-    p.add_argument("--train-minutes", type=float, default=None, help="training budget of the agent (default 4)")
+    p.add_argument("--train-updates", type=int, default=None,
+                   help=f"training budget of the agent in updates (default {DEMO_UPDATES}: the same table on any machine)")
+    p.add_argument("--train-minutes", type=float, default=None,
+                   help="training budget in minutes instead (the table then depends on the machine's load)")
     p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: the cores not busy with other processes)")
@@ -233,10 +236,12 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         (train_fn or train_run)(tc, agent, run_dir)
         log = read_log(run_dir)
         last = {k: log[-1][k] for k in ("update", "env_steps", "episodes", "SR") if log and k in log[-1]}
-        return {"minutes": sc.minutes_per_job, "log_lines": len(log), **last}
+        return {"budget": budget, "log_lines": len(log), **last}
 
-    st.run("train", f"TSRM agent, batched A2C, {sc.minutes_per_job:g} min -> {run_dir}", do_train,
-           lambda m: m.get("minutes") == sc.minutes_per_job and (run_dir / "config.json").exists())
+    budget = {"updates": sc.updates_per_job, "minutes": sc.minutes_per_job, "episodes": sc.episodes_per_job}
+    shown = ", ".join(f"{v:g} {k}" for k, v in budget.items() if v is not None) or "1.5 M episodes"
+    st.run("train", f"TSRM agent, batched A2C, {shown} -> {run_dir}", do_train,
+           lambda m: m.get("budget") == budget and (run_dir / "config.json").exists())
 
     # 7. evaluate ---------------------------------------------------------------------------------------
     policies = [("agent (TSRM, DE-MAE)", "agent"), ("scripted explorer", "explorer"), ("random", "random")]
@@ -290,10 +295,12 @@ def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
 
 def run(args) -> int:
     cfg = DemoConfig(world_workers=args.workers, sample=args.sample)
-    if args.train_minutes is not None:
-        if not args.train_minutes > 0:
+    if args.train_updates is not None or args.train_minutes is not None:  # asked for: replaces the default
+        if args.train_updates is not None and args.train_updates < 1:
+            raise CommandError("--train-updates must be >= 1")
+        if args.train_minutes is not None and not args.train_minutes > 0:
             raise CommandError("--train-minutes must be positive")
-        cfg.scale.minutes_per_job = args.train_minutes
+        cfg.scale.updates_per_job, cfg.scale.minutes_per_job = args.train_updates, args.train_minutes
     if args.pretrain_steps is not None:
         if args.pretrain_steps < 1:
             raise CommandError("--pretrain-steps must be >= 1")

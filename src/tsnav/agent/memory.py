@@ -122,6 +122,34 @@ class TargetMemoryAggregator(nn.Module):
         # An all-masked row would give NaN: unmask slot 0 there and replace the result below.
         pad = ~mem.valid
         pad = pad & ~(empty[:, None] & (torch.arange(pad.shape[1], device=pad.device) == 0)[None, :])
-        att, _ = self.attn(q[:, None, :], nodes, nodes, key_padding_mask=pad, need_weights=False)  # [B, 1, d]
-        att = torch.where(empty[:, None], self.nothing[None, :].expand_as(q), att[:, 0])
+        att = self.attend(q, nodes, pad)  # [B, d]
+        att = torch.where(empty[:, None], self.nothing[None, :].expand_as(q), att)
         return torch.relu(self.out(torch.cat([att, q], dim=-1)))
+
+    def attend(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
+        """``self.attn`` with the single query ``q`` ``(B, d)`` over ``nodes`` ``(B, M, d)``, slots where ``pad``
+        ``(B, M)`` is True left out: ``(B, d)``. The same function as :meth:`attend_reference` (the module's own
+        forward; ``tests/test_agent.py`` holds them together) with the key and value projections moved to the
+        query side, so that no projection of the ``M`` nodes is computed:
+
+            score_hm = (W_q,h q + b_q,h) . (W_k,h n_m + b_k,h) / sqrt(e) = (W_k,h^T Q_h) . n_m / sqrt(e) + const_h
+            out_h    = sum_m a_hm (W_v,h n_m + b_v,h) = W_v,h (sum_m a_hm n_m) + b_v,h       (sum_m a_hm = 1)
+
+        (the constant of each head does not change its softmax)."""
+        a = self.attn
+        b, d = q.shape
+        heads = a.num_heads
+        e = d // heads
+        w_q, w_k, w_v = a.in_proj_weight.chunk(3)
+        b_q, _, b_v = a.in_proj_bias.chunk(3)
+        qh = torch.nn.functional.linear(q, w_q, b_q).view(b, heads, e)  # [B, H, e]
+        u = torch.einsum("bhe,hed->bhd", qh, w_k.view(heads, e, d)) * (1.0 / math.sqrt(e))  # [B, H, d]
+        score = torch.einsum("bhd,bmd->bhm", u, nodes).masked_fill(pad[:, None, :], float("-inf"))
+        z = torch.einsum("bhm,bmd->bhd", torch.softmax(score, dim=-1), nodes)  # [B, H, d]
+        v = torch.einsum("bhd,hed->bhe", z, w_v.view(heads, e, d)) + b_v.view(heads, e)  # [B, H, e]
+        return a.out_proj(v.reshape(b, d))
+
+    def attend_reference(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
+        """Slow reference of :meth:`attend`: ``torch.nn.MultiheadAttention``'s own forward."""
+        att, _ = self.attn(q[:, None, :], nodes, nodes, key_padding_mask=pad, need_weights=False)  # [B, 1, d]
+        return att[:, 0]

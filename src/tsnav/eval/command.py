@@ -21,6 +21,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="random | oracle | explorer | package.module:factory (default: explorer)")
     parser.add_argument("--run", default=None,
                         help="evaluate the trained agent of this `tsnav train` run folder (instead of --policy)")
+    parser.add_argument("--checkpoint", default="auto",
+                        help="--run: auto (the run's best checkpoint chosen by `tsnav select`, else the latest), "
+                             "best, latest, or a checkpoint folder")
     parser.add_argument("--out", required=True, help="output folder for records.jsonl and metrics.json")
     parser.add_argument("--seed", type=int, default=0, help="seed of stochastic policies (default: 0)")
     parser.add_argument("--sample", action="store_true",
@@ -49,7 +52,10 @@ def run(args: argparse.Namespace) -> int:
         # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
         from ..rl.checkpoint import load_policy
 
-        policy = load_policy(args.run, bank, greedy=not args.sample, seed=args.seed)
+        try:
+            policy = load_policy(args.run, bank, greedy=not args.sample, seed=args.seed, checkpoint=args.checkpoint)
+        except FileNotFoundError as e:
+            raise CommandError(str(e)) from None
         args.policy = f"run:{Path(args.run).resolve()}"
     else:
         policy = make_policy(args.policy, bank, seed=args.seed, c_target=args.c_target)
@@ -62,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     write_records(out / "records.jsonl", records)
     write_json(out / "metrics.json", {
         "metrics": summary, "policy": args.policy, "seed": args.seed, "sample": bool(args.sample),
+        "checkpoint": str(args.checkpoint) if args.run is not None else None,
         "episodes_file": str(args.episodes),
         "data": str(Path(args.data).resolve()), "success_distance": dist, "config": config_dict(config),
         "detector_confidence": bank.confidence is not None, "seconds": seconds})

@@ -1,6 +1,6 @@
 """``tsnav experiment ablation|pretraining|threshold``: the paper's experiments as resumable job lists.
 
-    tsnav experiment ablation    --data DIR --out DIR [--scale small|paper] [--seeds N] [--minutes-per-job M]
+    tsnav experiment ablation    --data DIR --out DIR [--scale small|medium|paper] [--seeds N] [--updates-per-job N]
     tsnav experiment pretraining --data DIR --out DIR [... --vc1-weights PATH]
     tsnav experiment threshold   --data DIR --out DIR [...]
 
@@ -33,9 +33,10 @@ Output folder::
     OUT/threshold.png            (threshold) each metric over C_target, best point marked with a red star
 
 Scales: ``demo`` is the scale of ``tsnav demo`` (its one row, TSRM + DE-MAE, in about ten minutes); ``small``
-fits a 2-core CPU in about two hours on the ``demo`` world (ViT-Tiny at 64x64, short pretraining, a few minutes
-of batched training per job); ``paper`` uses the paper's settings (ViT-Base at 224x224, 1.5 M training episodes,
-A3C with 14 workers) on the ``ithor-real`` world (the 120 real iTHOR scenes) and needs a GPU and days.
+fits a 2-core CPU in about two hours on the ``demo`` world (ViT-Tiny at 64x64, short pretraining, 1000 updates
+of batched training per job); ``medium`` is the budget at which the validation curve on the paper's 80 training
+rooms plateaus (``ithor-real``; placeholder numbers until measured with ``tsnav convergence``); ``paper`` uses
+the paper's settings (ViT-Base at 224x224, 1.5 M training episodes, A3C with 14 workers) on the ``ithor-real`` world (the 120 real iTHOR scenes) and needs a GPU and days.
 ``--build-world`` builds the scale's world into a ``--data`` folder that does not exist yet.
 """
 
@@ -119,10 +120,9 @@ def default_train_fn() -> TrainFn:
 
 def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, features: str, seed: int):
     """The :class:`~tsnav.rl.config.TrainConfig` and :class:`~tsnav.agent.AgentConfig` of one job."""
-    minutes = cfg.minutes_per_job if cfg.minutes_per_job is not None else scale.minutes_per_job
-    episodes, updates = scale.episodes_per_job, scale.updates_per_job
-    if cfg.updates_per_job is not None:  # a repeatable budget: no minute limit unless one was asked for too
-        updates, minutes = cfg.updates_per_job, cfg.minutes_per_job
+    episodes, updates, minutes = scale.episodes_per_job, scale.updates_per_job, scale.minutes_per_job
+    if cfg.updates_per_job is not None or cfg.minutes_per_job is not None:  # asked for: replaces the scale's
+        episodes, updates, minutes = None, cfg.updates_per_job, cfg.minutes_per_job
     tc = TrainConfig(data=str(Path(cfg.data).resolve()), features=features, detections=cfg.detections,
                      split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
                      num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
@@ -319,13 +319,15 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                              "(small: demo, paper: ithor-real, the real iTHOR scenes)")
     parser.add_argument("--out", required=True, help="experiment folder (resumed when it exists)")
     parser.add_argument("--scale", choices=sorted(SCALES), default="small",
-                        help="small: 2-core CPU, about two hours; paper: the paper's settings (GPU)")
+                        help="small: 2-core CPU, about two hours; medium: the converged budget on the 80 training "
+                             "rooms (placeholder until measured); paper: the paper's settings (GPU)")
     parser.add_argument("--seeds", type=int, default=1, help="trained agents per row (default 1)")
-    parser.add_argument("--minutes-per-job", type=float, default=None,
-                        help="training minutes per job (default: the scale's; small: 4)")
     parser.add_argument("--updates-per-job", type=int, default=None,
-                        help="training budget per job in optimizer updates instead of minutes: the same on "
-                             "a busy machine (small: about 1000 updates in 4 minutes on 2 idle cores)")
+                        help="training budget per job in optimizer updates (default: the scale's; small: 1000, "
+                             "about 4 minutes on 2 idle cores)")
+    parser.add_argument("--minutes-per-job", type=float, default=None,
+                        help="training budget per job in minutes instead (depends on the machine's load; with "
+                             "--updates-per-job too, the first reached stops training)")
     parser.add_argument("--pretrain-dir", default=None, help="pretraining runs (default OUT/pretrain; share it)")
     parser.add_argument("--detections", default="oracle", help="detection tables (default oracle, computed here)")
     parser.add_argument("--vc1-weights", default=None, help="VC-1 ViT-Base weights: adds the VC-1 row (pretraining)")

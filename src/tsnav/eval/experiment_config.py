@@ -15,6 +15,14 @@ from ..metrics import METRICS
 
 EXPERIMENTS = ("ablation", "pretraining", "threshold")
 
+#: Training updates of the demo's agent (64 episodes x 30 steps each): the same table on any machine.
+#: About 4 minutes on an idle 2-core machine (the demo trained 4 minutes, ~1000 updates, before it counted updates).
+DEMO_UPDATES = 1000
+#: PLACEHOLDER: updates per job of the ``medium`` scale (256 episodes x 30 steps each = 7680 env steps per
+#: update; 4000 updates = 31 M env steps, about the paper's 1.5 M episodes at ~20 steps per episode). To be set
+#: from the convergence curve (issue 15, item 3).
+MEDIUM_UPDATES = 4000
+
 
 
 @dataclass
@@ -49,13 +57,14 @@ class ScaleConfig:
     """Episodes stepped together by the batched trainer."""
     workers: int = 14
     """A3C workers (paper: 14)."""
-    minutes_per_job: float | None = 4.0
-    """Training budget per job in minutes (None: ``episodes_per_job``)."""
+    updates_per_job: int | None = 1000
+    """Training budget per job in optimizer updates (the default kind of budget: the same agent on a busy and an
+    idle machine; 1000 updates of 64 episodes x 30 steps are about 1.9 M environment steps)."""
     episodes_per_job: int | None = None
-    """Training budget per job in episodes (paper: 1.5 M)."""
-    updates_per_job: int | None = None
-    """Training budget per job in optimizer updates (tests). Training stops at the first budget reached; with
-    none set, the paper's 1.5 M episodes."""
+    """Training budget per job in finished training episodes (paper: 1.5 M)."""
+    minutes_per_job: float | None = None
+    """Training budget per job in minutes, only when asked for (the result then depends on the machine's load).
+    Training stops at the first budget reached; with none set, the paper's 1.5 M episodes."""
     test_per_room_type: int = 250
     """Test episodes per room type (the lineage: 250)."""
     val_per_room_type: int = 100
@@ -68,11 +77,16 @@ class ScaleConfig:
 
 
 SCALES = {
-    "demo": ScaleConfig(pretrain_steps=300, minutes_per_job=4.0, test_per_room_type=100),
+    "demo": ScaleConfig(pretrain_steps=300, updates_per_job=DEMO_UPDATES, test_per_room_type=100),
     "small": ScaleConfig(),
+    # The budget at which TSRM + DE-MAE's validation curve on the 80 training rooms has plateaued (issue 15,
+    # items 3-4). PLACEHOLDER numbers until `tsnav convergence` has measured that curve: set
+    # ``updates_per_job`` (and the agent size, if the curve says so) from it.
+    "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, num_envs=256, test_per_room_type=250,
+                          val_per_room_type=100, world="ithor-real"),
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
                          pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
-                         num_envs=16, workers=14, minutes_per_job=None, episodes_per_job=1_500_000,
+                         num_envs=16, workers=14, updates_per_job=None, episodes_per_job=1_500_000,
                          test_per_room_type=250, val_per_room_type=250, world="ithor-real"),
 }
 

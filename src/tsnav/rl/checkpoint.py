@@ -237,18 +237,46 @@ def load_model(run_dir: str | Path, checkpoint: str | Path | None = None) -> tup
     return found[1]
 
 
+#: Folder of a run holding a copy of the checkpoint chosen on validation episodes (``tsnav select``).
+BEST = "best"
+#: ``checkpoint=`` choices of :func:`resolve_checkpoint` besides a path.
+CHECKPOINT_CHOICES = ("auto", "best", "latest")
+
+
+def resolve_checkpoint(run_dir: str | Path, which: str | Path | None = "auto") -> Path | None:
+    """The checkpoint folder ``which`` names: ``auto`` (or None) the run's ``best`` (chosen on validation
+    episodes by ``tsnav select``) when it has one, else the latest; ``best`` (``FileNotFoundError`` when the
+    run has none); ``latest`` (returned as None: :func:`load_model` then takes the newest readable one); or a
+    checkpoint folder's path."""
+    best = Path(run_dir) / BEST
+    has_best = (best / "state.json").exists() and (best / "model.safetensors").exists()
+    if which is None or str(which) == "auto":
+        return best if has_best else None
+    if str(which) == "best":
+        if not has_best:
+            raise FileNotFoundError(f"{run_dir}: no best checkpoint (run `tsnav select --run {run_dir}` first)")
+        return best
+    if str(which) == "latest":
+        return None
+    path = Path(which)
+    if not (path / "model.safetensors").exists():
+        raise FileNotFoundError(f"{path}: not a checkpoint folder (no model.safetensors)")
+    return path
+
+
 def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, device: str = "cpu",
-                checkpoint: str | Path | None = None):
+                checkpoint: str | Path | None = "auto"):
     """The trained agent of ``run_dir`` as a :class:`~tsnav.eval.policies.Policy` over ``bank``.
 
     The bank's scenes need the run's feature cache (``features_<name>.hdf5``); when the run used detection
     tables and the bank has none installed, they are installed (so the evaluation's stage switch uses the same
     detector as training). Actions are greedy (the most probable), as the lineage evaluates (IOM / DOA take
     ``prob.argmax`` at test time and sample only while training); ``greedy=False`` samples from the policy with
-    a generator seeded by ``seed`` instead. ``checkpoint`` picks a checkpoint folder other than the latest.
+    a generator seeded by ``seed`` instead. ``checkpoint`` (:func:`resolve_checkpoint`): ``auto`` the run's
+    ``best`` checkpoint when validation chose one, else the latest; ``best``, ``latest`` or a folder's path.
     """
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
-    model, _ = load_model(run_dir, checkpoint)
+    model, _ = load_model(run_dir, resolve_checkpoint(run_dir, checkpoint))
     det_features = None
     if cfg.detections is not None:
         if bank.detections is None:

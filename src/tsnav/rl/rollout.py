@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic, AgentState
+from ..constants import DONE
 from ..agent.observe import Observer
 from ..sim.batch import BatchEnv
 from .stats import EpisodeStats
@@ -53,6 +54,9 @@ class Rollout:
     """``(T, B)`` actions taken."""
     start: AgentState | None = None
     """Recurrent state at the rollout start (detached)."""
+    done_prob: float = 0.0
+    """Mean probability the policy gave Done over the rollout's steps (the "Done collapse" of docs/RESULTS.md
+    shows as this falling towards 0 while episodes run to their step limit)."""
 
     @property
     def steps(self) -> int:
@@ -94,6 +98,7 @@ class RolloutCollector:
         start = state
         obs = self.obs
         episodes = 0
+        done_prob = 0.0
         for t in range(steps):
             o = self.observer(obs["state"], obs["target"])
             logits, value, state = self.model(o, state)
@@ -103,6 +108,7 @@ class RolloutCollector:
             else:
                 action = torch.multinomial(dist.probs.detach(), 1, generator=self.generator)[:, 0]
             state = state.with_action(action)
+            done_prob += float(dist.probs.detach()[:, DONE].mean())
             target = obs["target"]
             states.append(obs["state"])
             targets.append(target)
@@ -135,7 +141,8 @@ class RolloutCollector:
         boot = torch.where(fin, boot, nxt)
         return Rollout(logp=torch.stack(logps), entropy=torch.stack(ents), value=value, reward=torch.stack(rewards),
                        bootstrap=boot, terminated=torch.stack(terms), finished=fin, episodes=episodes,
-                       states=np.stack(states), targets=np.stack(targets), actions=np.stack(actions), start=start)
+                       states=np.stack(states), targets=np.stack(targets), actions=np.stack(actions), start=start,
+                       done_prob=done_prob / steps)
 
 
 def gae(reward: torch.Tensor, value: torch.Tensor, bootstrap: torch.Tensor, terminated: torch.Tensor,
@@ -192,4 +199,6 @@ def collect_and_loss(collector: "RolloutCollector", cfg) -> tuple[Rollout, torch
     ro = collector.collect(cfg.rollout_steps)
     adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished, cfg.gamma, cfg.gae_tau)
     loss, parts = a2c_loss(ro, adv, ret, cfg.entropy_coef, cfg.value_coef)
+    parts["done_prob"] = ro.done_prob  # the Done collapse monitor (docs/RESULTS.md)
+    parts["done_rate"] = float((ro.actions == DONE).mean()) if ro.actions is not None else float("nan")
     return ro, loss, parts

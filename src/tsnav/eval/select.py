@@ -1,0 +1,102 @@
+"""``tsnav select``: choose a run's checkpoint on validation episodes (issue 15; the paper trains for a fixed
+budget, but a CPU-scale run overfits its rooms before the budget ends, so the checkpoint kept is the one that
+navigates the validation rooms best).
+
+Every checkpoint the run kept (its milestones, ``tsnav train --milestone-every N``, and the newest two) is
+evaluated on a fixed validation episode list with greedy actions (the lineage's test-time rule); the scores go
+to ``RUN/selection.json`` (rewritten atomically after each checkpoint, so an interrupted selection resumes and
+scores only what is new), and the best - highest SR, then SPL, then the earliest update - is copied to
+``RUN/best/`` (a temporary folder renamed when complete). ``tsnav eval --run RUN`` then evaluates ``best``
+unless told ``--checkpoint latest|PATH``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+
+from ..atomic import atomic_folder, atomic_write_json
+from ..checkpoint import BrokenCheckpoint, read_json, weights_digest
+from ..errors import CommandError
+from ..metrics import summarize
+from ..rl.checkpoint import BEST, list_checkpoints, load_model, load_policy
+from ..sim.episodes import read_episodes
+from .runner import EvalConfig, evaluate, load_bank_for_episodes
+
+SELECTION = "selection.json"
+#: Metrics that rank checkpoints, in order (ALL episodes).
+RANK_BY = ("SR", "SPL")
+
+
+def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str | Path, *, seed: int = 0,
+                      max_steps: int = 100, progress=print) -> dict:
+    """Score every kept checkpoint of ``run_dir`` on ``episodes_file`` (greedy), keep the best as
+    ``RUN/best``; returns the selection (``scores``: checkpoint name -> update, digest, metrics; ``best``)."""
+    run_dir = Path(run_dir)
+    ckpts = list_checkpoints(run_dir)
+    if not ckpts:
+        raise FileNotFoundError(f"{run_dir}: no checkpoint to select from")
+    episodes, emeta = read_episodes(episodes_file)
+    if not episodes:
+        raise ValueError(f"{episodes_file}: the episode list is empty")
+    path = run_dir / SELECTION
+    try:
+        old = read_json(path) if path.exists() else {}
+    except BrokenCheckpoint:  # an unreadable score cache is recomputed
+        old = {}
+    same_list = old.get("episodes_file") == str(Path(episodes_file).resolve()) and old.get("max_steps") == max_steps
+    scores = dict(old.get("scores", {})) if same_list else {}
+    bank = load_bank_for_episodes(data, episodes, success_distance=float(emeta.get("success_distance", 1.0)))
+    config = EvalConfig(max_steps=max_steps)
+    for ck in ckpts:
+        digest = weights_digest(load_model(run_dir, ck)[0].state_dict())
+        if scores.get(ck.name, {}).get("digest") == digest:
+            continue
+        policy = load_policy(run_dir, bank, greedy=True, seed=seed, checkpoint=ck)
+        summary = summarize(evaluate(bank, episodes, policy, config), config.min_optimal_length)
+        state = read_json(ck / "state.json")["progress"]
+        scores[ck.name] = {"update": int(state["update"]), "env_steps": int(state["env_steps"]),
+                           "episodes": int(state["episodes"]), "digest": digest, "metrics": summary}
+        progress(f"    {ck.name}: " + ", ".join(f"{k} {100 * summary['ALL'][k]:.1f}" for k in RANK_BY))
+        atomic_write_json(path, {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps,
+                                 "scores": scores, "best": old.get("best") if same_list else None})
+    live = {k: v for k, v in scores.items() if (run_dir / "checkpoints" / k).is_dir()}
+    name = max(live, key=lambda k: (*(live[k]["metrics"]["ALL"][m] for m in RANK_BY), -live[k]["update"]))
+    best = run_dir / BEST
+    have = read_json(best / "state.json").get("selected_from") if (best / "state.json").exists() else None
+    if have != name or weights_digest(load_model(run_dir, best)[0].state_dict()) != live[name]["digest"]:
+        with atomic_folder(best) as tmp:
+            for f in (run_dir / "checkpoints" / name).iterdir():
+                if f.is_file():
+                    shutil.copy2(f, tmp / f.name)
+            st = read_json(tmp / "state.json")
+            atomic_write_json(tmp / "state.json", {**st, "selected_from": name})
+    result = {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps, "scores": scores,
+              "best": name}
+    atomic_write_json(path, result)
+    return result
+
+
+def build_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--run", required=True, help="a `tsnav train` run folder")
+    parser.add_argument("--data", required=True, help="dataset root holding the validation scenes")
+    parser.add_argument("--episodes", required=True, help="validation episode list (`tsnav episodes --split val`)")
+    parser.add_argument("--max-steps", type=int, default=100, help="episode length limit (paper: 100)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if not (Path(args.run) / "config.json").exists():
+        raise CommandError(f"--run {args.run}: not a training run (no config.json)")
+    if not Path(args.episodes).exists():
+        raise CommandError(f"--episodes {args.episodes}: no such file")
+    if args.max_steps < 1:
+        raise CommandError("--max-steps must be >= 1")
+    try:
+        res = select_checkpoint(args.run, args.data, args.episodes, max_steps=args.max_steps)
+    except (FileNotFoundError, ValueError) as e:
+        raise CommandError(str(e)) from None
+    b = res["scores"][res["best"]]
+    print(f"{args.run}: best checkpoint {res['best']} (update {b['update']}; "
+          + ", ".join(f"{k} {100 * b['metrics']['ALL'][k]:.1f}" for k in RANK_BY) + f") -> {Path(args.run) / BEST}")
+    return 0

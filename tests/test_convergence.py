@@ -1,0 +1,36 @@
+"""`tsnav convergence` at tiny size (issue 15, items 3-4 prepared): chunks of updates, each checkpoint scored on
+validation episodes, the curve PNG and JSON, and a resumed command that continues instead of starting over."""
+
+import json
+
+import pytest
+
+from tsnav.cli import main
+from tsnav.eval.convergence import plateaued
+
+from conftest import PIXEL_FEATURES as FEATS
+
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_convergence_curve_resumes(pixel_world, tmp_path, capsys):
+    out = tmp_path / "conv"
+    args = ["convergence", "--data", str(pixel_world), "--features", FEATS, "--out", str(out), "--chunk", "2",
+            "--num-envs", "4", "--val-per-room-type", "3", "--lr", "3e-3"]
+    assert main(args + ["--updates", "4"]) == 0
+    curve = json.loads((out / "curve.json").read_text())
+    assert [p["update"] for p in curve["points"]] == [2, 4]
+    assert all(p["env_steps"] == 4 * 30 * p["update"] for p in curve["points"])
+    assert (out / "curve.png").stat().st_size > 10_000 and (out / "run" / "best" / "model.safetensors").exists()
+    capsys.readouterr()
+    assert main(args + ["--updates", "6"]) == 0  # resumed: only the new chunk is trained and scored
+    text = capsys.readouterr().out
+    assert text.count("ckpt_") == 1 and "update 6:" in text
+    assert [p["update"] for p in json.loads((out / "curve.json").read_text())["points"]] == [2, 4, 6]
+    assert main(["convergence", "--data", str(tmp_path / "none"), "--features", FEATS, "--out", str(out)]) == 2
+
+
+def test_plateau_rule():
+    pts = [{"SR": s} for s in (0.1, 0.3, 0.5, 0.4, 0.5)]
+    assert plateaued(pts, 2) and not plateaued(pts, 3) and not plateaued(pts, None)
