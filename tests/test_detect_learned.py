@@ -43,6 +43,30 @@ def test_model_outputs():
     torch.testing.assert_close(logits, torch.logsumexp(cl, -1) + m.class_bias)
 
 
+def test_space_to_depth_stem():
+    """stem 2: a 128px frame enters as 12 channels at 64px (pixel unshuffle, every pixel kept); the grid is
+    that of a 64px frame; the first layer sees exactly the unshuffled pixels."""
+    torch.manual_seed(0)
+    cfg = DetectorConfig(image_size=128, stem=2)
+    assert cfg.grid == 8 and DetectorConfig.from_dict(cfg.to_dict()) == cfg
+    m = GridDetector(cfg).eval()
+    assert m.backbone[0][0].in_channels == 12
+    x = m.normalize(torch.randint(0, 256, (2, 128, 128, 3), dtype=torch.uint8))
+    logits, boxes, feats = m(x)
+    assert logits.shape == (2, NUM_CATEGORIES) and boxes.shape == (2, NUM_CATEGORIES, 4)
+    cl, _, _ = m.dense(x)
+    assert cl.shape == (2, NUM_CATEGORIES, 64)
+    seen = []
+    hook = m.backbone[0][0].register_forward_hook(lambda mod, inp, out: seen.append(inp[0]))
+    m(x)
+    hook.remove()
+    # channel c * 4 + i * 2 + j of the unshuffled input is pixel (2y + i, 2x + j) of colour c
+    torch.testing.assert_close(seen[0][:, 1 * 4 + 1 * 2 + 0], x[:, 1, 1::2, 0::2])
+    with pytest.raises(ValueError, match="multiple of 16"):
+        GridDetector(DetectorConfig(image_size=72, stem=2))
+    assert DetectorConfig.from_dict({k: v for k, v in DetectorConfig().to_dict().items() if k != "stem"}).stem == 1
+
+
 def test_box_conversions_and_giou():
     px = np.array([[0, 0, 63, 63], [10, 20, 10, 20], [3, 4, 7, 9]], np.float32)
     unit = pixel_to_unit(px, 64)

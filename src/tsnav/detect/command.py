@@ -45,6 +45,12 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=int, default=None, help="learned: frames per training step (default 64)")
     p.add_argument("--max-states-per-scene", type=int, default=None,
                    help="learned: train on at most this many random states per train scene")
+    p.add_argument("--stem", type=int, default=None,
+                   help="learned, new checkpoint: space-to-depth factor of the input (default: frame side / 64, so "
+                        "128px frames cost what 64px ones do)")
+    p.add_argument("--widths", default=None,
+                   help="learned, new checkpoint: channels of the three backbone stages, e.g. 24,48,96 "
+                        "(default 16,32,64)")
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
@@ -81,7 +87,7 @@ def _learned(args, root: Path):
     tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene)
     if args.batch_size:
         tc.batch_size = args.batch_size
-    res = train_detector(root, ckpt, tc, progress=not args.quiet)
+    res = train_detector(root, ckpt, tc, model_cfg=_model_config(args, root), progress=not args.quiet)
     if res.step > res.start_step:
         print(f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "
               f"(last loss {res.last.get('loss', float('nan')):.3f}); checkpoint {ckpt}")
@@ -94,6 +100,31 @@ def _learned(args, root: Path):
         print(f"no calibration ({e}); temperature 1")
     det = LearnedDetector.load(ckpt)
     return det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
+
+
+def _model_config(args, root: Path):
+    """Architecture of a new checkpoint: input side = the train scenes' frame side; ``--stem`` / ``--widths``."""
+    # lazy, as in _learned: .model imports torch, which `tsnav detect --detector oracle` never needs
+    from ..data.reader import list_scenes, load_scene
+    from .model import DetectorConfig
+
+    train = list_scenes(root, split="train")
+    if not train:
+        raise CommandError(f"{root}: no complete train scene to train the detector on")
+    size = load_scene(train[0]).image_size
+    stem = args.stem if args.stem is not None else max(1, size // 64)
+    cfg = DetectorConfig(image_size=size, stem=stem)
+    if args.widths:
+        try:
+            widths = tuple(int(w) for w in args.widths.split(","))
+        except ValueError:
+            widths = ()
+        if len(widths) != 3 or min(widths) < 1:
+            raise CommandError(f"--widths {args.widths!r}: give three positive channel counts, e.g. 24,48,96")
+        cfg.widths = widths
+    if stem < 1 or size % (8 * stem) or size < 16 * stem:
+        raise CommandError(f"--stem {stem} does not fit {size}px frames (the side must be a multiple of 8 x stem)")
+    return cfg
 
 
 def _sigterm_interrupts() -> None:
