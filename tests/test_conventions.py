@@ -130,7 +130,7 @@ def test_old_checkpoint_is_converted_on_load(tmp_path, capsys):
     path = save_checkpoint(tmp_path / "run", {"update": 1}, model, opt)
     # the same checkpoint as the old order wrote it: rows 3 and 4 swapped, no action_order
     swap = [0, 1, 2, 4, 3, 5]
-    for name in ("model.safetensors", "optim.safetensors"):
+    for name in ("model.safetensors", "optimizer.safetensors"):
         sd = load_file(str(path / name))
         from safetensors import safe_open
 

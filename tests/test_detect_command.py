@@ -41,8 +41,9 @@ def test_learned_command_trains_resumes_and_refuses_stale_tables(world, capsys):
     assert main(args + ["--train-steps", "3"]) == 0
     out = capsys.readouterr().out
     assert "trained the detector 0 -> 3 steps" in out and "temperature" in out and "box AP@0.5" in out
-    assert (ck / "model.safetensors").exists() and (ck / "optimizer.safetensors").exists()
-    meta = json.loads((ck / "detector.json").read_text())
+    newest = ck / "checkpoints" / "ckpt_000000003"
+    assert (newest / "model.safetensors").exists() and (newest / "optimizer.safetensors").exists()
+    meta = json.loads((newest / "state.json").read_text())
     assert meta["step"] == 3 and meta["calibrated_step"] == 3
     for p in list_scenes(world):
         det = load_detections(p, "learned")

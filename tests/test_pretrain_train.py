@@ -1,6 +1,7 @@
 """Pretraining loop: resume equals an uninterrupted run; two gloo processes equal one process; outputs."""
 
 import json
+import shutil
 import socket
 
 import pytest
@@ -9,7 +10,7 @@ import torch.multiprocessing as mp
 
 from tsnav.checkpoint import load_tensors
 from tsnav.pretrain.synthetic import write_synthetic_dataset
-from tsnav.pretrain.train import PretrainConfig, train
+from tsnav.pretrain.train import PretrainConfig, read_progress, train
 from tsnav.schedule import warmup_cosine as lr_at
 
 
@@ -40,7 +41,7 @@ def test_resume_reproduces_uninterrupted_run(data, tmp_path, method):
     a = train(cfg, data, tmp_path / "a", progress=False)
     part = train(cfg, data, tmp_path / "b", stop_at=2, progress=False)
     assert part["finished"] is False and part["step"] == 2
-    assert json.loads((tmp_path / "b" / "progress.json").read_text())["step"] == 2
+    assert read_progress(tmp_path / "b")["step"] == 2
     assert not (tmp_path / "b" / "encoder.safetensors").exists()
     b = train(cfg, data, tmp_path / "b", progress=False)
     assert a["finished"] and b["finished"] and b["step"] == 4
@@ -60,17 +61,18 @@ def test_truncated_newest_checkpoint_resumes_from_the_previous_one(data, tmp_pat
     cfg = PretrainConfig(method="mae", batch_size=4, steps=6, checkpoint_every=2, **TINY)
     train(cfg, data, tmp_path / "a", progress=False)
     train(cfg, data, tmp_path / "b", stop_at=5, progress=False)
-    prog = json.loads((tmp_path / "b" / "progress.json").read_text())
-    assert prog["step"] == 5 and prog["previous"]["step"] == 4
-    assert sorted(p.name for p in (tmp_path / "b").glob("ckpt-*")) == [
-        "ckpt-00000004-model.safetensors", "ckpt-00000004-optim.safetensors",
-        "ckpt-00000005-model.safetensors", "ckpt-00000005-optim.safetensors"]
-    broken = tmp_path / "b" / prog["model_file"]
+    assert read_progress(tmp_path / "b")["step"] == 5
+    ckpts = tmp_path / "b" / "checkpoints"
+    assert sorted(p.name for p in ckpts.iterdir()) == ["ckpt_000000004", "ckpt_000000005"]
+    assert sorted(p.name for p in (ckpts / "ckpt_000000005").iterdir()) == [
+        "model.safetensors", "optimizer.safetensors", "state.json"]
+    broken = ckpts / "ckpt_000000005" / "model.safetensors"
     broken.write_bytes(broken.read_bytes()[:64])
     capsys.readouterr()
     b = train(cfg, data, tmp_path / "b", progress=False)
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("tsnav:")]
-    assert len(err) == 1 and str(broken) in err[0] and "step 4" in err[0], err
+    assert len(err) == 1 and str(broken) in err[0] and "resuming from ckpt_000000004" in err[0], err
+    assert (ckpts / "ckpt_000000005.broken" / "model.safetensors").exists()  # kept, no longer listed
     assert b["finished"] and b["step"] == 6
     wa, wb = weights(tmp_path / "a"), weights(tmp_path / "b")
     for k in wa:
@@ -91,7 +93,7 @@ def test_accumulation_equals_larger_batch(data, tmp_path):
 def test_changed_config_is_refused_and_outputs_exist(data, tmp_path):
     cfg = PretrainConfig(method="demae", batch_size=4, steps=2, **{**TINY, "viz_images": 3})
     train(cfg, data, tmp_path / "r", progress=False)
-    for f in ("config.json", "progress.json", "model.safetensors", "encoder.safetensors", "recon.png"):
+    for f in ("config.json", "checkpoints", "model.safetensors", "encoder.safetensors", "recon.png"):
         assert (tmp_path / "r" / f).exists(), f
     enc, meta = load_tensors(tmp_path / "r" / "encoder.safetensors")
     assert meta["arch"] == "vit" and json.loads(meta["config"])["img_size"] == 16
@@ -133,7 +135,7 @@ def test_two_gloo_processes_keep_replicas_identical_and_match_one_process(data, 
     r1 = load_tensors(tmp_path / "replica1.safetensors")[0]
     for k in r0:
         assert torch.equal(r0[k], r1[k]), k
-    assert json.loads((tmp_path / "run" / "progress.json").read_text())["world_size"] == 2
+    assert read_progress(tmp_path / "run")["world_size"] == 2
     # one process with the same global batch (2 x 2) learns the same weights up to float reordering
     single = PretrainConfig(method="demae", batch_size=4, steps=3, **TINY)
     train(single, data, tmp_path / "single", progress=False)
@@ -161,7 +163,7 @@ def test_interrupt_writes_a_checkpoint_and_resume_matches(data, tmp_path, monkey
     monkeypatch.setattr(tr, "compute_loss", flaky)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, data, tmp_path / "b", progress=False)
-    assert json.loads((tmp_path / "b" / "progress.json").read_text())["step"] == 2
+    assert read_progress(tmp_path / "b")["step"] == 2
     monkeypatch.setattr(tr, "compute_loss", real)
     train(cfg, data, tmp_path / "b", progress=False)
     wa, wb = weights(tmp_path / "a"), weights(tmp_path / "b")
@@ -193,6 +195,48 @@ def test_sigterm_stops_cleanly_at_a_step_boundary(data, tmp_path):
     time.sleep(1.0)
     p.send_signal(signal.SIGTERM)
     assert p.wait(timeout=120) == 130
-    prog = json.loads((tmp_path / "r" / "progress.json").read_text())
+    prog = read_progress(tmp_path / "r")
     assert prog["step"] >= 1 and not prog["finished"]
-    assert (tmp_path / "r" / prog["model_file"]).exists() and (tmp_path / "r" / prog["optim_file"]).exists()
+    ck = tmp_path / "r" / "checkpoints" / f"ckpt_{prog['step']:09d}"
+    assert (ck / "model.safetensors").exists() and (ck / "optimizer.safetensors").exists()
+
+
+def _to_legacy_layout(run, steps):
+    """Rewrite a run folder's checkpoints by hand into the layout before ``checkpoints/``: progress.json naming
+    ckpt-<step 8 digits>-model/optim.safetensors files, the checkpoint before under ``previous``."""
+    records = []
+    for step in steps:
+        ck = run / "checkpoints" / f"ckpt_{step:09d}"
+        rec = json.loads((ck / "state.json").read_text())
+        tag = f"ckpt-{step:08d}"
+        (ck / "model.safetensors").rename(run / f"{tag}-model.safetensors")
+        (ck / "optimizer.safetensors").rename(run / f"{tag}-optim.safetensors")
+        records.append(rec | {"model_file": f"{tag}-model.safetensors", "optim_file": f"{tag}-optim.safetensors"})
+    shutil.rmtree(run / "checkpoints")
+    (run / "progress.json").write_text(json.dumps(records[1] | {"previous": records[0]}))
+
+
+def test_legacy_run_folder_resumes_and_continues_in_the_one_layout(data, tmp_path, capsys):
+    """A run folder written before the one checkpoint layout (progress.json + ckpt-* files) is still read and
+    resumed, also from its ``previous`` record when the newest file is broken; new checkpoints go to
+    checkpoints/."""
+    cfg = PretrainConfig(method="mae", batch_size=4, steps=6, checkpoint_every=2, **TINY)
+    train(cfg, data, tmp_path / "a", progress=False)
+    for name, broken in (("b", False), ("c", True)):
+        run = tmp_path / name
+        train(cfg, data, run, stop_at=5, progress=False)
+        _to_legacy_layout(run, [4, 5])
+        assert read_progress(run)["step"] == 5 and read_progress(run)["model_file"] == "ckpt-00000005-model.safetensors"
+        if broken:
+            f = run / "ckpt-00000005-model.safetensors"
+            f.write_bytes(f.read_bytes()[:64])
+        capsys.readouterr()
+        res = train(cfg, data, run, progress=False)
+        err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("tsnav:")]
+        assert len(err) == int(broken) and (not broken or "step 4" in err[0]), err
+        assert res["finished"] and res["step"] == 6
+        assert [p.name for p in (run / "checkpoints").iterdir()] == ["ckpt_000000006"]
+        assert read_progress(run)["step"] == 6 and read_progress(run)["finished"]
+        wa, wb = weights(tmp_path / "a"), weights(run)
+        for k in wa:
+            assert torch.equal(wa[k], wb[k]), (name, k)

@@ -94,7 +94,7 @@ def test_two_worker_run_resume_and_finish(world, tmp_path):
     # every worker update went through the one shared optimizer
     from tsnav.checkpoint import load_tensors
 
-    opt_t, _ = load_tensors(ck / "optim.safetensors")
+    opt_t, _ = load_tensors(ck / "optimizer.safetensors")
     steps = {float(v) for k, v in opt_t.items() if k.endswith("::step")}
     assert steps == {float(p1["update"])}
     w, _ = load_tensors(ck / "model.safetensors")

@@ -163,7 +163,7 @@ def _weights(run):
     from tsnav.checkpoint import load_tensors
 
     ck = latest_checkpoint(run)
-    return load_tensors(ck / "model.safetensors")[0], load_tensors(ck / "optim.safetensors")[0], ck
+    return load_tensors(ck / "model.safetensors")[0], load_tensors(ck / "optimizer.safetensors")[0], ck
 
 
 def test_resume_equals_uninterrupted_run(world, tmp_path):
@@ -248,3 +248,30 @@ def test_checkpoint_retention_and_milestones(tmp_path):
     assert [p.name for p in list_checkpoints(tmp_path)][-2:] == ["ckpt_000000008", "ckpt_000000009"]
     with pytest.raises(ValueError, match="milestone_every"):
         TrainConfig(milestone_every=0)
+
+
+def test_checkpoint_written_before_the_one_layout_still_loads(tmp_path):
+    """Agent checkpoints written before the layouts were unified name the optimizer file optim.safetensors; it
+    is still read (new ones write optimizer.safetensors)."""
+    from tsnav.rl.checkpoint import save_checkpoint
+    from tsnav.rl.batched import new_progress
+    from tsnav.agent import ActorCritic
+
+    torch.manual_seed(0)
+    model = ActorCritic(agent_config("cpu"), (3, 2, 2), 3)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    sum(p.sum() for p in model.parameters()).backward()
+    opt.step()
+    ck = save_checkpoint(tmp_path, {**new_progress(), "update": 1}, model, opt)
+    assert sorted(p.name for p in ck.iterdir()) == ["model.safetensors", "optimizer.safetensors", "state.json"]
+    (ck / "optimizer.safetensors").rename(ck / "optim.safetensors")
+    fresh = ActorCritic(agent_config("cpu"), (3, 2, 2), 3)
+    fresh_opt = torch.optim.Adam(fresh.parameters(), lr=1e-3)
+    load_checkpoint(ck, fresh, fresh_opt)
+    for (k, a), b in zip(model.state_dict().items(), fresh.state_dict().values()):
+        assert torch.equal(a, b), k
+    sa, sb = opt.state_dict()["state"], fresh_opt.state_dict()["state"]
+    assert sa.keys() == sb.keys() and len(sa) > 0
+    for i in sa:
+        for k in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(sa[i][k], sb[i][k]), (i, k)

@@ -39,6 +39,7 @@ from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
 from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
 from .metrics import METRICS, write_json
+from .pretrain.train import read_progress
 from .rl.logger import read_log
 from .rl.train import train_run
 from .sim.episodes import read_episodes
@@ -193,7 +194,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     def do_pretrain():
         ensure_encoder(es, sub)
-        prog = json.loads((Path(es.spec) / "progress.json").read_text())
+        prog = read_progress(es.spec)
         return {"steps": prog["step"], "loss": prog.get("loss")}
 
     st.run("pretrain", f"DE-MAE, {sc.vit_model} at {sc.img_size}x{sc.img_size}, {sc.pretrain_steps} steps -> {es.spec}",

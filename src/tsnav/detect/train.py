@@ -8,24 +8,25 @@ remaining schedule). Augmentation: horizontal flip and per-frame colour gains.
 Calibration: a single temperature ``T`` (Guo et al. 2017) divides the presence logits,
 ``score = sigmoid(logit / T)``; ``T`` minimises the mean binary cross-entropy on the VAL scenes.
 
-Checkpoint folder:
+Checkpoint folder (``tsnav detect --checkpoint DIR``): ``DIR/checkpoints/ckpt_<step>/``, the layout of every
+trainer (:mod:`tsnav.checkpoint`; the newest two kept, a broken newest one named in one line, renamed
+``.broken``, and training resumes from the one before), each holding
 
 * ``model.safetensors``: the model's state dict (BatchNorm statistics included);
 * ``optimizer.safetensors``: AdamW moment tensors (``state.<param index>.<name>``);
-* ``detector.json``: ``format``, ``model`` (:class:`~tsnav.detect.model.DetectorConfig`), ``train``
+* ``state.json``: ``format``, ``model`` (:class:`~tsnav.detect.model.DetectorConfig`), ``train``
   (:class:`DetectorTrainConfig`), ``step``, ``temperature``, ``calibrated_step``, ``min_score``, ``history`` (loss
-  terms every ``log_every`` steps), ``param_groups`` of the optimiser;
-* ``previous/``: the same three files of the checkpoint before. A new checkpoint is written completely into a
-  temporary folder first, the current one moves to ``previous/`` and the new files move in, ``detector.json``
-  last. Training resumes from ``previous/`` when the newest files are broken (named in one line; they are
-  renamed ``*.broken``).
+  terms every ``log_every`` steps), ``param_groups`` of the optimiser, ``fingerprint``.
+
+Detector folders written before that layout (the three files at the top of ``DIR``, JSON ``detector.json``,
+the checkpoint before in ``DIR/previous/``) are still read, resumed and calibrated; new checkpoints go to
+``DIR/checkpoints/``.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -35,8 +36,9 @@ import torch
 from scipy.optimize import minimize_scalar
 from tqdm import tqdm
 
-from ..atomic import atomic_folder, atomic_write_json
-from ..checkpoint import load_tensors, read_json, resume_newest, save_tensors, weights_digest
+from ..atomic import atomic_write_json
+from ..checkpoint import (CHECKPOINTS, STATE_FILE, list_checkpoints, load_tensors, optimizer_file, read_json,
+                          resume_newest, save_checkpoint as save_checkpoint_folder, set_aside, weights_digest)
 from ..errors import from_fields
 from ..schedule import warmup_cosine
 from .data import FrameSet, load_frames, make_batch
@@ -120,21 +122,55 @@ def _atomic_json(path: Path, obj) -> None:
     atomic_write_json(path, obj, indent=1, sort_keys=False)
 
 
-#: Files of a checkpoint, in the order they are moved in (the JSON last: its presence marks a complete one).
-FILES = ("model.safetensors", "optimizer.safetensors", "detector.json")
-PREVIOUS = "previous"
+#: JSON and files of a detector folder written before the one checkpoint layout (read, never written anew).
+LEGACY_META = "detector.json"
+LEGACY_FILES = ("model.safetensors", "optimizer.safetensors", LEGACY_META)
+LEGACY_PREVIOUS = "previous"
+
+
+def _is_legacy(p: Path) -> bool:
+    return (p / LEGACY_META).exists() and (p / "model.safetensors").exists()
+
+
+def _meta_file(c: Path) -> Path:
+    """The JSON of one checkpoint: ``state.json`` (a ``ckpt_<step>`` folder) or the legacy ``detector.json``."""
+    return c / STATE_FILE if (c / STATE_FILE).exists() else c / LEGACY_META
+
+
+def checkpoint_candidates(path: str | Path) -> list[Path]:
+    """Checkpoints of the detector folder ``path``, newest first: ``checkpoints/ckpt_<step>`` folders, then a
+    legacy checkpoint at the top of ``path`` and its ``previous/``. A ``ckpt_<step>`` folder itself (one with a
+    ``state.json``) is its own only candidate."""
+    p = Path(path)
+    if (p / STATE_FILE).exists():
+        return [p]
+    found = list_checkpoints(p / CHECKPOINTS)[::-1]
+    return found + [c for c in (p, p / LEGACY_PREVIOUS) if _is_legacy(c)]
 
 
 def is_checkpoint(path: str | Path) -> bool:
-    p = Path(path)
-    return (p / "detector.json").exists() and (p / "model.safetensors").exists()
+    """Whether ``path`` holds a detector checkpoint (either layout)."""
+    return bool(checkpoint_candidates(path))
+
+
+def newest_checkpoint(path: str | Path) -> Path:
+    """The folder holding the newest checkpoint's files of the detector folder ``path`` (``FileNotFoundError``
+    in one line when there is none)."""
+    found = checkpoint_candidates(path)
+    if not found:
+        raise FileNotFoundError(f"{Path(path)}: not a detector checkpoint (no {CHECKPOINTS}/ckpt_*/{STATE_FILE} "
+                                f"or {LEGACY_META})")
+    return found[0]
 
 
 def read_meta(path: str | Path) -> dict:
-    """The parsed ``detector.json`` of a checkpoint folder (one-line error when absent or malformed)."""
-    p = Path(path) / "detector.json"
-    if not p.exists():
-        raise FileNotFoundError(f"{Path(path)}: not a detector checkpoint (no detector.json)")
+    """The JSON of the newest checkpoint of a detector folder (``state.json``; legacy ``detector.json``), or of
+    the checkpoint folder ``path`` itself; one-line error when absent or malformed."""
+    return _read_meta(newest_checkpoint(path))
+
+
+def _read_meta(c: Path) -> dict:
+    p = _meta_file(c)
     meta = read_json(p)
     if meta.get("format") != FORMAT:
         raise ValueError(f"{p}: not a {FORMAT} checkpoint")
@@ -142,35 +178,19 @@ def read_meta(path: str | Path) -> dict:
 
 
 def save_checkpoint(path: str | Path, model: GridDetector, opt: torch.optim.Optimizer | None,
-                    meta: dict) -> None:
-    """Write the newest checkpoint into the folder ``path`` (module docstring): complete in a temporary
-    folder first, then the current checkpoint moves to ``previous/`` and the new files move in, the JSON
-    last."""
-    p = Path(path)
-    p.mkdir(parents=True, exist_ok=True)
-    incoming = p / ".incoming"
-    with atomic_folder(incoming) as tmp:
-        save_tensors(tmp / "model.safetensors", model.state_dict(), {"format": FORMAT})
-        meta = dict(meta)
-        if opt is not None:
-            sd = opt.state_dict()
-            tensors = {f"state.{i}.{k}": (v if torch.is_tensor(v) else torch.tensor(v))
-                       for i, st in sd["state"].items() for k, v in st.items()}
-            save_tensors(tmp / "optimizer.safetensors", tensors)
-            meta["param_groups"] = sd["param_groups"]
-        meta["fingerprint"] = weights_fingerprint(model, meta.get("temperature", 1.0))
-        _atomic_json(tmp / "detector.json", meta)
-    if is_checkpoint(p):
-        with atomic_folder(p / PREVIOUS) as prev:
-            for name in FILES:
-                if (p / name).exists():
-                    os.replace(p / name, prev / name)
-    for name in FILES:
-        if (incoming / name).exists():
-            os.replace(incoming / name, p / name)
-        elif (p / name).exists():
-            (p / name).unlink()
-    shutil.rmtree(incoming, ignore_errors=True)
+                    meta: dict) -> Path:
+    """Write the checkpoint of ``meta["step"]`` into ``path/checkpoints/ckpt_<step>/`` (module docstring;
+    complete in a temporary folder, then renamed; the newest two kept). Returns its folder."""
+    meta = dict(meta)
+    tensors = None
+    if opt is not None:
+        sd = opt.state_dict()
+        tensors = {f"state.{i}.{k}": (v if torch.is_tensor(v) else torch.tensor(v))
+                   for i, st in sd["state"].items() for k, v in st.items()}
+        meta["param_groups"] = sd["param_groups"]
+    meta["fingerprint"] = weights_fingerprint(model, meta.get("temperature", 1.0))
+    return save_checkpoint_folder(Path(path) / CHECKPOINTS, int(meta["step"]), model.state_dict(), {"format": FORMAT},
+                                  meta, tensors)
 
 
 def weights_fingerprint(model: GridDetector, temperature: float) -> str:
@@ -180,21 +200,26 @@ def weights_fingerprint(model: GridDetector, temperature: float) -> str:
 
 
 def load_model(path: str | Path) -> tuple[GridDetector, dict]:
-    """(model in eval mode, ``detector.json``) of a checkpoint folder; :class:`BrokenCheckpoint` names a file
-    that cannot be read."""
-    meta = read_meta(path)
+    """(model in eval mode, checkpoint JSON) of the newest checkpoint of a detector folder (or of a checkpoint
+    folder itself); :class:`BrokenCheckpoint` names a file that cannot be read."""
+    return _load(newest_checkpoint(path))
+
+
+def _load(c: Path) -> tuple[GridDetector, dict]:
+    """(model in eval mode, JSON) of the one checkpoint whose files are in the folder ``c``."""
+    meta = _read_meta(c)
     model = GridDetector(DetectorConfig.from_dict(meta["model"]))
-    state, _ = load_tensors(Path(path) / "model.safetensors")
+    state, _ = load_tensors(c / "model.safetensors")
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
-        raise ValueError(f"{Path(path) / 'model.safetensors'}: weights do not fit the config "
+        raise ValueError(f"{c / 'model.safetensors'}: weights do not fit the config "
                          f"(missing {missing[:2]}, unexpected {unexpected[:2]})")
     return model.eval(), meta
 
 
 def _read_optimizer(path: Path, meta: dict) -> dict[int, dict] | None:
     """The optimiser state of a checkpoint (``None`` when it has none)."""
-    f = path / "optimizer.safetensors"
+    f = optimizer_file(path)
     if not f.exists() or "param_groups" not in meta:
         return None
     state: dict[int, dict] = {}
@@ -204,24 +229,28 @@ def _read_optimizer(path: Path, meta: dict) -> dict[int, dict] | None:
     return state
 
 
-def _set_aside(path: Path) -> None:
-    for name in FILES:
-        if (path / name).exists():
-            os.replace(path / name, path / (name + ".broken"))
+def _set_aside(ckpt: Path, c: Path) -> None:
+    """Set a broken checkpoint aside: a ``ckpt_<step>`` folder is renamed ``.broken``; the files of a legacy
+    top-level checkpoint are renamed ``*.broken`` (a legacy ``previous/`` is left as it is)."""
+    if c.parent.name == CHECKPOINTS:
+        set_aside(c)
+    elif c == ckpt:
+        for name in LEGACY_FILES:
+            if (c / name).exists():
+                os.replace(c / name, c / (name + ".broken"))
 
 
 def resume_state(ckpt: str | Path) -> tuple[Path, GridDetector, dict, dict[int, dict] | None] | None:
-    """``(folder, model, detector.json, optimiser state)`` of the newest checkpoint of ``ckpt`` that reads: the
-    folder itself, else ``previous/`` (a broken newest one is named in one line and set aside); None when
-    there is none."""
+    """``(folder, model, checkpoint JSON, optimiser state)`` of the newest checkpoint of the detector folder
+    ``ckpt`` that reads (:func:`checkpoint_candidates`; a broken newer one is named in one line and set aside);
+    None when there is none."""
     ckpt = Path(ckpt)
-    candidates = [c for c in (ckpt, ckpt / PREVIOUS) if is_checkpoint(c)]
 
     def load(c: Path):
-        model, meta = load_model(c)
+        model, meta = _load(c)
         return model, meta, _read_optimizer(c, meta)
 
-    found = resume_newest(candidates, load, on_broken=lambda c: _set_aside(c) if c == ckpt else None,
+    found = resume_newest(checkpoint_candidates(ckpt), load, on_broken=lambda c: _set_aside(ckpt, c),
                           label=lambda c: str(c))
     return None if found is None else (found[0], *found[1])
 
@@ -363,5 +392,5 @@ def calibrate(root: str | Path, ckpt: str | Path, split: str = "val", frames: Fr
     t = fit_temperature(logits, frames.present)
     meta["temperature"], meta["calibrated_step"], meta["calibration_split"] = t, meta["step"], split
     meta["fingerprint"] = weights_fingerprint(model, t)
-    _atomic_json(Path(ckpt) / "detector.json", meta)
+    _atomic_json(_meta_file(newest_checkpoint(ckpt)), meta)
     return t

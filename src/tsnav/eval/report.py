@@ -392,11 +392,22 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
     return index
 
 
+def _pretrain_progress(d: Path) -> dict:
+    """State of a pretraining run's newest checkpoint (``checkpoints/ckpt_<step>/state.json``; run folders
+    written before that layout: ``progress.json``); JSON only, so that reports need no torch."""
+    states = sorted(p for p in d.glob("checkpoints/ckpt_*/state.json") if "." not in p.parent.name)
+    for p in states[::-1]:
+        state = _read_json(p)
+        if isinstance(state, dict):
+            return state
+    return _read_json(d / "progress.json") or {}
+
+
 def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
     parts = []
     for d in runs:
         cfg = (_read_json(d / "config.json") or {}).get("pretrain", {})
-        prog = _read_json(d / "progress.json") or {}
+        prog = _pretrain_progress(d)
         lab = _label(d, root)
         loss = prog.get("loss")
         arch = ("ResNet18" if cfg.get("method") == "resnet18-sup"

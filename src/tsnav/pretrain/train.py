@@ -15,15 +15,18 @@ where the interrupted one stopped.
 Run folder::
 
     config.json                       resolved PretrainConfig and model config
-    progress.json                     step, epoch, finished, checkpoint file names, RNG states; ``previous``:
-                                      the same for the checkpoint before (resumed from when the newest is
-                                      broken)
-    ckpt-<step>-model.safetensors     full model (the newest two checkpoints)
-    ckpt-<step>-optim.safetensors     optimiser state (flattened; groups in progress.json)
+    checkpoints/ckpt_<step>/          the newest two checkpoints in the layout of every trainer
+                                      (:mod:`tsnav.checkpoint`): model.safetensors (full model),
+                                      optimizer.safetensors (flattened optimiser state), state.json (step,
+                                      epoch, total_steps, finished, loss, optimiser groups, RNG state)
     model.safetensors                 final full model          (finished runs)
     encoder.safetensors               final encoder weights, architecture in its metadata
     recon.png                         reconstructions of a few val images (MAE methods)
     tb/                               TensorBoard scalars
+
+Run folders written before the layouts were unified (``progress.json`` naming ``ckpt-<step>-model.safetensors``
+and ``ckpt-<step>-optim.safetensors``, the checkpoint before under ``previous``) are still read and resumed
+(:func:`read_legacy_progress`); new checkpoints of such a run go to ``checkpoints/``.
 """
 
 from __future__ import annotations
@@ -47,8 +50,9 @@ from tqdm import tqdm
 from ..constants import NUM_CATEGORIES
 from ..distributed import DistInfo, init_distributed, resolve_device
 from ..schedule import warmup_cosine
-from ..checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors, optimizer_to_tensors, read_json,
-                          resume_newest, save_tensors)
+from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_checkpoints, load_tensors, newest_state,
+                          optimizer_file, optimizer_from_tensors, optimizer_to_tensors, read_json, resume_newest,
+                          save_checkpoint as save_checkpoint_folder, save_tensors, set_aside)
 from .data import AugmentConfig, BatchView, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
 from .model import SIZES, MaskedAutoencoderViT, make_config
 from .resnet import ResNet18
@@ -234,27 +238,59 @@ def compute_loss(model: nn.Module, method: str, rgb: torch.Tensor, depth: torch.
     return out.loss, parts
 
 
-def _progress_path(out: Path) -> Path:
-    return out / "progress.json"
+#: File of the run folders written before the one checkpoint layout (read by :func:`read_legacy_progress`).
+LEGACY_PROGRESS = "progress.json"
 
 
-def read_progress(out: str | Path) -> dict | None:
-    """``progress.json`` of a pretraining run (None before the first checkpoint): the newest checkpoint's
-    step, files, optimizer groups and RNG state, and under ``previous`` the same for the one before it."""
-    p = _progress_path(Path(out))
+def read_legacy_progress(out: str | Path) -> dict | None:
+    """``progress.json`` of a run folder in the layout before ``checkpoints/`` (None when absent): the newest
+    checkpoint's step, file names (``model_file``, ``optim_file``), optimizer groups and RNG state, and under
+    ``previous`` the same for the one before it."""
+    p = Path(out) / LEGACY_PROGRESS
     return read_json(p) if p.exists() else None
 
 
-def _read_checkpoint(out: Path, rec: dict) -> tuple[dict, dict]:
-    """Model and optimizer tensors of a progress record (:class:`BrokenCheckpoint` when a file is broken)."""
-    return load_tensors(out / rec["model_file"])[0], load_tensors(out / rec["optim_file"])[0]
+def read_progress(out: str | Path) -> dict | None:
+    """Progress of a pretraining run (None before the first checkpoint): ``state.json`` of its newest readable
+    checkpoint (step, epoch, total_steps, finished, loss, optimizer groups, RNG state), else the legacy
+    ``progress.json``."""
+    state = newest_state(Path(out) / CHECKPOINTS)
+    return state if state is not None else read_legacy_progress(out)
 
 
-def _set_aside(out: Path, rec: dict) -> None:
+def _candidates(out: Path) -> list[tuple[str, object]]:
+    """Checkpoints to resume from, newest first: the ``checkpoints/`` folders, then the records of a legacy
+    ``progress.json`` (its newest and ``previous``)."""
+    found: list[tuple[str, object]] = [("folder", p) for p in list_checkpoints(out / CHECKPOINTS)[::-1]]
+    legacy = read_legacy_progress(out)
+    if legacy is not None:
+        found += [("legacy", r) for r in (legacy, legacy.get("previous")) if r]
+    return found
+
+
+def _read_checkpoint(out: Path, c: tuple[str, object]) -> tuple[dict, dict, dict]:
+    """(state, model tensors, optimizer tensors) of a resume candidate (:class:`BrokenCheckpoint` when a file
+    is broken)."""
+    kind, x = c
+    if kind == "folder":
+        return read_json(x / STATE_FILE), load_tensors(x / "model.safetensors")[0], load_tensors(optimizer_file(x))[0]
+    return x, load_tensors(out / x["model_file"])[0], load_tensors(out / x["optim_file"])[0]
+
+
+def _set_aside(out: Path, c: tuple[str, object]) -> None:
+    kind, x = c
+    if kind == "folder":
+        set_aside(x)
+        return
     for k in ("model_file", "optim_file"):
-        p = out / rec[k]
+        p = out / x[k]
         if p.exists():
             os.replace(p, p.with_name(p.name + ".broken"))
+
+
+def _label(c: tuple[str, object]) -> str:
+    kind, x = c
+    return x.name if kind == "folder" else f"{x['model_file']} (step {x['step']})"
 
 
 def _check_config(out: Path, cfg: PretrainConfig, model_cfg: dict, write: bool) -> None:
@@ -358,11 +394,12 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
         raise ValueError(f"{out} was trained on {prog['images']} images, the dataset now has {n}; "
                          f"use a new --out folder")
     if prog is not None:  # resume (from the checkpoint before the newest when that one is broken)
-        rec, (sd, ot) = resume_newest([r for r in (prog, prog.get("previous")) if r], lambda r: _read_checkpoint(out, r),
-                                      on_broken=lambda r: _set_aside(out, r) if di.rank == 0 else None,
-                                      label=lambda r: f"{r['model_file']} (step {r['step']})")
-        if rec is not prog and di.rank == 0:
-            atomic_write_json(_progress_path(out), rec)
+        c, (rec, sd, ot) = resume_newest(_candidates(out), lambda c: _read_checkpoint(out, c),
+                                         on_broken=lambda c: _set_aside(out, c) if di.rank == 0 else None,
+                                         label=_label)
+        legacy = read_legacy_progress(out) if c[0] == "legacy" else None
+        if legacy is not None and rec.get("step") != legacy.get("step") and di.rank == 0:
+            atomic_write_json(out / LEGACY_PROGRESS, rec)  # the legacy run now continues from its previous record
         model.load_state_dict(sd)
         optimizer_from_tensors(opt, names, {k: v.to(device) for k, v in ot.items()}, rec["optimizer"])
         start = int(rec["step"])
@@ -404,26 +441,13 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
     def save_checkpoint(step: int, finished: bool, loss_value: float | None) -> None:
         if di.rank != 0:
             return
-        tag = f"ckpt-{step:08d}"
-        save_tensors(out / f"{tag}-model.safetensors", model.state_dict(),
-                     {"config": json.dumps(model_cfg), "method": cfg.method, "step": str(step)})
         ot, ometa = optimizer_to_tensors(opt, names)
-        save_tensors(out / f"{tag}-optim.safetensors", ot)
-        record = {
+        state = {
             "step": step, "epoch": step // steps_per_epoch, "total_steps": total, "finished": finished,
-            "model_file": f"{tag}-model.safetensors", "optim_file": f"{tag}-optim.safetensors",
             "optimizer": ometa, "loss": loss_value, "world_size": W, "global_batch": G, "images": n,
             "rng": {"torch": torch.get_rng_state().tolist()}}
-        old = read_progress(out)  # the checkpoint this one replaces stays as the fallback
-        if old is not None:
-            older = old if old.get("step") != step else old.get("previous")
-            if older:
-                record["previous"] = {k: v for k, v in older.items() if k != "previous"}
-        atomic_write_json(_progress_path(out), record)
-        keep = {r[k] for r in (record, record.get("previous")) if r for k in ("model_file", "optim_file")}
-        for p in out.glob("ckpt-*.safetensors"):
-            if p.name not in keep:
-                p.unlink()
+        save_checkpoint_folder(out / CHECKPOINTS, step, model.state_dict(),
+                               {"config": json.dumps(model_cfg), "method": cfg.method, "step": str(step)}, state, ot)
 
     step, last_loss, t0, seen = start, None, time.perf_counter(), 0
     consistent = True

@@ -7,13 +7,14 @@ Run folder layout::
     RUN/tb/                              TensorBoard events
     RUN/checkpoints/ckpt_<update>/       model.safetensors   weights, metadata: the network description and
                                                              action_order (rows of the actor head)
-                                         optim.safetensors   optimizer state tensors
+                                         optimizer.safetensors  optimizer state tensors (optim.safetensors
+                                                             in checkpoints written before; still read)
                                          state.json          progress (update, env steps, episodes, seconds,
                                                              finished), optimizer groups
                                          rng_rank<r>.json    RNG states of rank r (torch, env sampler)
 
-A checkpoint folder is written under a temporary name and renamed when complete, so the newest folder whose
-name has no dot is always whole; older ones beyond ``keep`` (2) are removed. A newest checkpoint broken later
+The layout is the one of every trainer (:mod:`tsnav.checkpoint`). A checkpoint folder is written under a
+temporary name and renamed when complete, so the newest folder whose name has no dot is always whole; older ones beyond ``keep`` (2) are removed. A newest checkpoint broken later
 (a truncated file) is reported in one line, renamed ``ckpt_<update>.broken`` and training resumes from the one
 before it (:func:`resume_checkpoint`).
 """
@@ -21,9 +22,6 @@ before it (:func:`resume_checkpoint`).
 from __future__ import annotations
 
 import json
-import os
-import re
-import shutil
 import sys
 from pathlib import Path
 
@@ -33,17 +31,17 @@ import torch
 from ..agent.model import ActorCritic
 from ..agent.observe import DetectionTable, Observer, load_bank_features
 from ..data.detections import load_scene_detections
-from ..checkpoint import (atomic_write_json, load_tensors, optimizer_from_tensors,
-                          optimizer_to_tensors, read_json, resume_newest, save_tensors)
+from .. import checkpoint as ckpt
+from ..checkpoint import (CHECKPOINTS, atomic_write_json, load_tensors, optimizer_file, optimizer_from_tensors,
+                          optimizer_to_tensors, read_json, resume_newest, set_aside)
 from ..constants import ACTION_ORDER, NUM_ACTIONS, OLD_ACTION_ORDER, action_permutation
 from .assemble import install
 from .config import TrainConfig
 from .policy import AgentPolicy
 
 
-CKPT = "checkpoints"
+CKPT = CHECKPOINTS
 MODEL_FORMAT = "tsnav-agent"
-_COMPLETE = re.compile(r"^ckpt_\d+$")
 
 #: Parameters with one row per action id (the actor head; the previous-action embedding, whose last row is
 #: the "no action yet" marker). Their rows follow ``constants.ACTIONS``; checkpoints store the order.
@@ -77,22 +75,15 @@ def checkpoint_action_order(meta: dict, path: Path, quiet: bool = False) -> str:
     return order
 
 
-def _name(update: int) -> str:
-    return f"ckpt_{int(update):09d}"
-
-
 def checkpoint_tmp_path(run_dir: str | Path, update: int) -> Path:
     """Temporary folder of the checkpoint of ``update`` (renamed when complete)."""
-    return Path(run_dir) / CKPT / f".{_name(update)}.tmp"
+    return ckpt.checkpoint_tmp_path(Path(run_dir) / CKPT, update)
 
 
 def checkpoint_tmp(run_dir: str | Path, update: int) -> Path:
-    """Create (empty) the temporary folder of the checkpoint of ``update``."""
-    tmp = checkpoint_tmp_path(run_dir, update)
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    return tmp
+    """Create (empty) the temporary folder of the checkpoint of ``update`` (renamed when complete; every rank
+    writes its RNG file into it first)."""
+    return ckpt.checkpoint_tmp(Path(run_dir) / CKPT, update)
 
 
 def rng_state(env_rng: np.random.Generator | None = None) -> dict:
@@ -123,26 +114,14 @@ def commit_checkpoint(run_dir: str | Path, tmp: Path, progress: dict, model: Act
     """Write the model, optimizer and progress into ``tmp`` and rename it to its final name. The ``keep`` newest
     checkpoints stay, plus every one whose update is a multiple of ``milestone_every`` (for model selection on a
     validation split afterwards)."""
-    run_dir, tmp = Path(run_dir), Path(tmp)
     names = [n for n, _ in model.named_parameters()]
-    save_tensors(tmp / "model.safetensors", model.state_dict(),
-                 {"format": MODEL_FORMAT, "model": json.dumps(model.describe(), sort_keys=True),
-                  "action_order": ACTION_ORDER})
-    state = {"progress": dict(progress)}
+    state, tensors = {"progress": dict(progress)}, None
     if optimizer is not None:
-        tensors, meta = optimizer_to_tensors(optimizer, names)
-        save_tensors(tmp / "optim.safetensors", tensors)
-        state["optimizer"] = meta
-    atomic_write_json(tmp / "state.json", state)
-    final = run_dir / CKPT / _name(progress["update"])
-    if final.exists():
-        shutil.rmtree(final)
-    os.replace(tmp, final)
-    for old in list_checkpoints(run_dir)[:-keep]:
-        if milestone_every and int(old.name.split("_")[1]) % milestone_every == 0:
-            continue
-        shutil.rmtree(old, ignore_errors=True)
-    return final
+        tensors, state["optimizer"] = optimizer_to_tensors(optimizer, names)
+    ckpt.write_checkpoint_files(tmp, model.state_dict(),
+                                {"format": MODEL_FORMAT, "model": json.dumps(model.describe(), sort_keys=True),
+                                 "action_order": ACTION_ORDER}, state, tensors)
+    return ckpt.commit_checkpoint(Path(run_dir) / CKPT, tmp, progress["update"], keep, milestone_every)
 
 
 def save_checkpoint(run_dir: str | Path, progress: dict, model: ActorCritic, optimizer=None,
@@ -157,10 +136,7 @@ def save_checkpoint(run_dir: str | Path, progress: dict, model: ActorCritic, opt
 
 def list_checkpoints(run_dir: str | Path) -> list[Path]:
     """Complete checkpoint folders of a run, oldest first."""
-    d = Path(run_dir) / CKPT
-    if not d.is_dir():
-        return []
-    return sorted(p for p in d.iterdir() if p.is_dir() and _COMPLETE.match(p.name) and (p / "state.json").exists())
+    return ckpt.list_checkpoints(Path(run_dir) / CKPT)
 
 
 def latest_checkpoint(run_dir: str | Path) -> Path | None:
@@ -183,21 +159,13 @@ def load_checkpoint(path: str | Path, model: ActorCritic | None = None, optimize
         order = checkpoint_action_order(meta, path)
         model.load_state_dict(convert_action_rows(sd, order))
     if optimizer is not None and "optimizer" in state:
-        tensors, _ = load_tensors(path / "optim.safetensors")
+        tensors, _ = load_tensors(optimizer_file(path))
         tensors = convert_action_rows(tensors, order)
         optimizer_from_tensors(optimizer, [n for n, _ in model.named_parameters()], tensors, state["optimizer"])
     state["rng"] = {}
     for f in path.glob("rng_rank*.json"):
         state["rng"][int(f.stem[len("rng_rank"):])] = read_json(f)
     return state
-
-
-def set_aside(path: Path) -> None:
-    """Rename a broken checkpoint folder to ``<name>.broken`` (kept for inspection, no longer listed)."""
-    dest = path.with_name(path.name + ".broken")
-    if dest.exists():
-        shutil.rmtree(dest)
-    os.replace(path, dest)
 
 
 def resume_checkpoint(run_dir: str | Path, model: ActorCritic | None = None, optimizer=None,
