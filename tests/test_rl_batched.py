@@ -29,7 +29,7 @@ def world(pixel_world):
 
 def _cfg(world, **kw):
     base = dict(data=str(world), features=FEATS, algo="batched", num_envs=8, rollout_steps=6, max_steps=30,
-                checkpoint_every=3, log_every=2, lr=1e-3, device="cpu")
+                checkpoint_every=3, log_every=2, lr=1e-3, device="cpu", detections="oracle")
     return TrainConfig(**{**base, **kw})
 
 

@@ -24,7 +24,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def trained(pixel_world, tmp_path_factory):
     tiny_world = pixel_world
     run = tmp_path_factory.mktemp("cmd") / "run"
-    rc = main(["train", "--data", str(tiny_world), "--features", FEATS, "--reward", "tsrm", "--algo", "batched",
+    rc = main(["train", "--data", str(tiny_world), "--features", FEATS, "--detections", "oracle", "--reward", "tsrm",
+               "--algo", "batched",
                "--out", str(run), "--updates", "4", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5",
                "--checkpoint-every", "2", "--log-every", "1", "--lr", "1e-3", "--quiet"])
     assert rc == 0
@@ -56,8 +57,10 @@ def test_resume_budget_and_errors(trained, tmp_path, capsys):
     assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--quiet"]) == 2
     assert "--features is required" in capsys.readouterr().err
     assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--features", "nothing",
-                 "--quiet"]) == 2
+                 "--detections", "oracle", "--quiet"]) == 2
     assert "no feature cache" in capsys.readouterr().err
+    assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--features", FEATS, "--quiet"]) == 2
+    assert "--detections is required" in capsys.readouterr().err  # no silent fallback to ground truth
 
 
 def test_eval_run_and_policy(trained, tmp_path, capsys):
@@ -128,7 +131,8 @@ def test_torchrun_two_ranks(trained, tmp_path):
         port = s.getsockname()[1]
     run = tmp_path / "ddp"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(port),
-           "-m", "tsnav", "train", "--data", str(world), "--features", FEATS, "--algo", "batched", "--out", str(run),
+           "-m", "tsnav", "train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
+           "--out", str(run),
            "--updates", "2", "--num-envs", "3", "--rollout-steps", "4", "--preset", "cpu", "--checkpoint-every", "1",
            "--device", "cpu", "--quiet"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})

@@ -18,7 +18,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys):
     world, run = pixel_world, tmp_path / "run"
-    assert main(["train", "--data", str(world), "--features", FEATS, "--algo", "batched", "--out", str(run),
+    assert main(["train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
+                 "--out", str(run),
                  "--updates", "6", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5", "--checkpoint-every",
                  "1", "--milestone-every", "2", "--lr", "3e-3", "--quiet"]) == 0
     names = [p.name for p in list_checkpoints(run)]

@@ -31,7 +31,9 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from .constants import C_TARGET
+from .data.detections import read_fingerprint
 from .data.reader import list_scenes, load_scene
+from .detect.oracle import OracleConfig
 from .errors import CommandError
 from .eval.experiment import set_threads, train_config_for
 from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row, ScaleConfig
@@ -67,7 +69,10 @@ class DemoConfig:
     """Sizes of pretraining, training and evaluation (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps,
     ``DEMO_UPDATES`` updates of batched A2C, 100 test episodes per room type)."""
     detections: str = "oracle"
-    """Detection tables (the oracle detector, computed here)."""
+    """Detection tables the agent and the stage switch read, named explicitly (the agent never falls back to
+    ground truth). ``oracle`` (computed here; its features carry no distance, its confidence is a hand-made
+    function of instance size and distance) stays the demo's choice until the learned detector is good
+    enough (issue 14)."""
     seed: int = 0
     """Seed of the training run and of the random policy."""
     gallery: int = 6
@@ -213,9 +218,10 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     fm = st.run("features", "encode every state of the training and test rooms once", do_features, features_ok)
 
     # 4. detections -------------------------------------------------------------------------------------
-    st.run("detections", f"oracle detector table per room (confidence drives the stage switch, C_target {C_TARGET:g})",
+    st.run("detections", f"detections: {cfg.detections} (named explicitly), the oracle detector's table per room "
+                         f"(confidence drives the stage switch, C_target {C_TARGET:g})",
            lambda: {"written": ensure_oracle_detections(world, cfg.detections)},
-           lambda m: all((p / f"detections_{cfg.detections}.hdf5").exists() for p in world.iterdir()
+           lambda m: all(read_fingerprint(p, cfg.detections) == OracleConfig().fingerprint() for p in world.iterdir()
                          if (p / "COMPLETE").exists()))
 
     # 5. episodes ---------------------------------------------------------------------------------------

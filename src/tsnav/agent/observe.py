@@ -4,9 +4,9 @@ batch of global state ids of a :class:`~tsnav.sim.batch.SceneBank`.
 * :func:`load_bank_features` stacks the per-scene feature caches ``features_<name>.hdf5`` of
   :mod:`tsnav.pretrain.features` into one ``(total_S, C, h, w)`` float16 tensor in the bank's global order.
 * :class:`DetectionTable` holds, per state and target category, the detector's confidence and box (the
-  lineage stores the best detection per class). When the bank has no detector output installed it falls back
-  to the oracle: confidence = ``bank.stage_confidence`` (ground-truth in-frame flag as 1.0 / 0.0) and the
-  ground-truth box of the instance with the most visible pixels (``Scene.boxes``).
+  lineage stores the best detection per class), from the detection table installed in the bank (``tsnav
+  detect``: the learned detector, or the oracle when named explicitly). Without one it refuses: the agent's
+  inputs are the image features and a detector's table, as in the paper, never ground truth.
 * :class:`Observer` turns ``(state, target)`` arrays into an :class:`AgentObs` with gathers only. The
   detection feature of a box is the image feature map averaged over the box (area-weighted over the grid
   cells it covers), standing in for DETR's 256-d decoder feature of the lineage; the detector's own per-class
@@ -72,49 +72,30 @@ def load_bank_features(bank, name: str) -> torch.Tensor:
     return out
 
 
-def ground_truth_boxes(bank) -> np.ndarray:
-    """``(S, 22, 4)`` float32 ground-truth box per state and category, fractions of the image side: the
-    visible part of the instance with the most pixels; zeros where no instance is visible."""
-    out = np.zeros((bank.num_states, NUM_CATEGORIES, 4), dtype=np.float32)
-    for i, scene in enumerate(bank.scenes):
-        lo = int(bank.offsets[i])
-        side = float(scene.image_size or 1)
-        seen = scene.visible_at_any_range()  # (S_i, O)
-        px = np.where(seen, np.maximum(scene.pixels, 1), 0)  # visible instances only
-        for c in np.unique(scene.object_category[scene.object_category >= 0]):
-            cols = np.flatnonzero(scene.object_category == c)
-            best = cols[np.argmax(px[:, cols], axis=1)]  # (S_i,)
-            rows = np.arange(scene.num_states)
-            any_seen = px[rows, best] > 0
-            box = scene.boxes[rows, best].astype(np.float32) / side
-            # boxes are inclusive pixel indices: the right / bottom edge is one pixel further
-            box[:, 2:] += 1.0 / side
-            box = np.clip(box, 0.0, 1.0)
-            out[lo + rows[any_seen], c] = box[any_seen]
-    return out
+#: The one-line error of an agent stage asked to observe a bank without a detection table.
+NO_DETECTIONS = ("no detection table installed in the scene bank: the agent reads only a detector's table "
+                 "(run `tsnav detect --detector learned`, or pass `--detections oracle` explicitly)")
 
 
 class DetectionTable:
     """Per-state, per-category detection of the target: ``score (S, 22)`` and ``box (S, 22, 4)`` (fractions).
 
-    From ``bank.detections`` (rows score, label, x0, y0, x1, y1 in pixels) when installed, else the oracle
-    fallback described in the module docstring. ``source`` is ``"detector"`` or ``"oracle"``.
+    From ``bank.detections`` (rows score, label, x0, y0, x1, y1 in pixels), the table of a named detector
+    (``tsnav detect``; ``oracle`` when asked for by name). There is no fallback to ground truth: a bank without
+    an installed table raises ``ValueError`` (:data:`NO_DETECTIONS`), so nothing privileged (the in-frame flag
+    of ``bank.stage_confidence``, ground-truth boxes, distances) can reach the agent by default (issue 14).
+    ``source`` is ``"detector"``.
     """
 
     def __init__(self, bank, features: np.ndarray | None = None):
         """``features``: optional ``(S, 22, D)`` per-class detection features, row-aligned with the bank."""
-        if bank.detections is not None:
-            det = bank.detections
-            side = np.array([s.image_size or 1 for s in bank.scenes], dtype=np.float32)[bank.scene_of]
-            self.score = det[..., 0].astype(np.float32)
-            self.box = np.clip(det[..., 2:6] / side[:, None, None], 0.0, 1.0).astype(np.float32)
-            self.source = "detector"
-        else:
-            self.score = bank.stage_confidence.astype(np.float32)
-            self.box = ground_truth_boxes(bank)
-            self.source = "oracle"
-        if bank.confidence is not None and bank.detections is None:
-            self.source = "detector-confidence+gt-boxes"
+        if bank.detections is None:
+            raise ValueError(NO_DETECTIONS)
+        det = bank.detections
+        side = np.array([s.image_size or 1 for s in bank.scenes], dtype=np.float32)[bank.scene_of]
+        self.score = det[..., 0].astype(np.float32)
+        self.box = np.clip(det[..., 2:6] / side[:, None, None], 0.0, 1.0).astype(np.float32)
+        self.source = "detector"
         self.box[self.score <= 0] = 0.0
         if features is not None and np.shape(features)[:2] != (bank.num_states, NUM_CATEGORIES):
             raise ValueError(f"detection features must have shape ({bank.num_states}, {NUM_CATEGORIES}, D), "
@@ -141,7 +122,8 @@ class Observer:
     """Gathers :class:`AgentObs` for global state ids of ``bank`` (array operations only).
 
     ``features`` is the ``(total_S, C, h, w)`` float16 tensor of :func:`load_bank_features` (may live in
-    shared memory for A3C workers); ``detections`` defaults to ``DetectionTable(bank)``.
+    shared memory for A3C workers); ``detections`` defaults to ``DetectionTable(bank)`` (which needs a
+    detection table installed in ``bank``).
     """
 
     def __init__(self, bank, features: torch.Tensor, detections: DetectionTable | None = None,

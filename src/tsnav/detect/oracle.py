@@ -14,15 +14,23 @@ that stands in for a detector's score (paper III-B switches stage at confidence 
 where ``f`` is the instance's visible pixel fraction of the frame and ``d`` its distance in metres from the
 camera (``Scene.distance``; the distance term is 0 when unknown). conf = 0 when the class is not present.
 With the defaults a 10 %-of-frame object at 0.5 m scores 0.999, a 40-pixel (1 % of 64x64) object at 1.5 m
-0.91, and a 5-pixel sliver at 4 m 0.04. Deterministic.
+0.91, and a 5-pixel sliver at 4 m 0.04. Deterministic. The confidence is a hand-made stand-in for a
+detector's score (a real detector's score does fall with distance, as objects shrink and blur), so it depends
+on the true distance; the oracle is therefore an explicitly named option only (``--detections oracle``), never
+a silent default, and its *feature* carries no distance (below).
 
 Oracle feature (64-d, :data:`ORACLE_FEATURE_DIM`), fixed, no learning:
 
 * ``[0:32)``  the category code (fixed random signs +-1/sqrt(32), seed ``OracleConfig.seed``) times conf;
 * ``[32:56)`` Fourier features of the box geometry ``g = (cx, cy, w, h) / image_size``:
   ``sin(pi 2^k g), cos(pi 2^k g)`` for k = 0, 1, 2 (zero when not present);
-* ``[56:64)`` ``conf, present, sqrt(f), min(d, 5) / 5, x0 / W, y0 / H, (x1 + 1) / W, (y1 + 1) / H``
+* ``[56:64)`` ``conf, present, sqrt(f), 0, x0 / W, y0 / H, (x1 + 1) / W, (y1 + 1) / H``
   (zero when not present).
+
+Slot 59 held the true distance ``min(d, 5) / 5`` up to ``OracleConfig.version`` 1 (issue 14: nothing privileged
+reaches the agent). It is kept, always zero, so the feature stays 64-d and tables, agents and the lineage export
+keep their shapes; version 2 changes the fingerprint, so oracle tables written before are recomputed by
+``ensure_oracle_detections`` instead of being silently reused.
 """
 
 from __future__ import annotations
@@ -57,6 +65,8 @@ class OracleConfig:
     """Logit added per metre nearer than ``half_distance``."""
     seed: int = 0
     """Seed of the fixed random category code of the feature."""
+    version: int = 2
+    """Layout version of the oracle table (2: feature slot 59, the true distance in version 1, is zero)."""
 
     def fingerprint(self) -> str:
         return "oracle-" + hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]
@@ -168,7 +178,8 @@ def category_code(seed: int = 0) -> np.ndarray:
 
 
 def oracle_features(gt: GroundTruth, conf: np.ndarray, image_size: int, seed: int = 0) -> np.ndarray:
-    """``(S, 22, 64)`` float16 oracle feature (layout in the module docstring)."""
+    """``(S, 22, 64)`` float16 oracle feature (layout in the module docstring): a function of the box, the
+    visible pixel fraction and ``conf`` only (``gt.distance`` is not read)."""
     S = gt.present.shape[0]
     W = float(image_size)
     pres = gt.present[..., None].astype(np.float32)
@@ -179,8 +190,8 @@ def oracle_features(gt: GroundTruth, conf: np.ndarray, image_size: int, seed: in
     ang = np.pi * g[..., None, :] * (2.0 ** np.arange(_FOURIER_OCTAVES, dtype=np.float32))[:, None]  # (S,22,3,4)
     four = np.concatenate([np.sin(ang), np.cos(ang)], axis=-2).reshape(S, NUM_CATEGORIES, -1) * pres
     frac = gt.pixels.astype(np.float32) / W ** 2
-    dist = np.minimum(np.nan_to_num(gt.distance, nan=5.0), 5.0) / 5.0
-    tail = np.stack([conf, gt.present.astype(np.float32), np.sqrt(frac), dist, x0 / W, y0 / W, x1 / W, y1 / W],
+    no_distance = np.zeros_like(frac)  # slot 59: the true distance until version 1; nothing privileged now
+    tail = np.stack([conf, gt.present.astype(np.float32), np.sqrt(frac), no_distance, x0 / W, y0 / W, x1 / W, y1 / W],
                     axis=-1) * pres
     out = np.concatenate([code, four, tail], axis=-1)
     assert out.shape[-1] == ORACLE_FEATURE_DIM

@@ -100,7 +100,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset root with train and val scenes")
     parser.add_argument("--features", required=True, help="feature cache name (features_<NAME>.hdf5, `tsnav features`)")
     parser.add_argument("--out", required=True, help="output folder (resumed when it exists)")
-    parser.add_argument("--detections", default=None, help="detection tables (default: oracle fallback)")
+    parser.add_argument("--detections", required=True,
+                        help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle")
     parser.add_argument("--reward", default="tsrm", choices=["tsrm", "baseline", "explore", "distance"])
     parser.add_argument("--updates", type=int, default=8000, help="total updates (default 8000)")
     parser.add_argument("--chunk", type=int, default=250, help="updates between validation points (default 250)")

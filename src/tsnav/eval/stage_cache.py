@@ -45,7 +45,9 @@ def ensure_world(data: str | Path, preset: str, build: bool = False, workers: in
 
 def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
     """Write the oracle detector's table ``detections_<name>.hdf5`` into every scene lacking one made by the same
-    oracle configuration; returns the number of scenes written."""
+    oracle configuration; a table of an older oracle configuration or layout version (another ``oracle-``
+    fingerprint, e.g. one whose features held the true distance) is recomputed, one made by another detector
+    is refused. Returns the number of scenes written."""
     cfg = OracleConfig()
     fp = cfg.fingerprint()
     n = 0
@@ -53,7 +55,7 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
         have = read_fingerprint(p, name)
         if have == fp:
             continue
-        if have is not None:
+        if have is not None and not have.startswith("oracle-"):
             raise ValueError(f"{p / f'detections_{name}.hdf5'} was made by another detector ({have}); "
                              f"remove it or use another --detections name")
         write_detections(p, name, oracle_detections(load_scene(p), cfg))

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic, AgentConfig
-from ..agent.observe import DetectionTable, Observer, load_bank_features
+from ..agent.observe import NO_DETECTIONS, DetectionTable, Observer, load_bank_features
 from ..sim.batch import BatchEnv, SceneBank, SimConfig
 from ..sim.episodes import make_env
 from ..tsrm.reward import RewardConfig, TSRMReward
@@ -25,10 +25,11 @@ def load_bank(cfg: TrainConfig, scenes=None) -> tuple[SceneBank, np.ndarray | No
 
 
 def install(bank: SceneBank, detections: str | None) -> np.ndarray | None:
-    """Install the detection tables named ``detections`` into ``bank`` (no-op for None); returns their
-    per-class features ``(S, 22, F)``."""
+    """Install the detection tables named ``detections`` into ``bank``; returns their per-class features
+    ``(S, 22, F)``. ``ValueError`` (:data:`~tsnav.agent.observe.NO_DETECTIONS`) when ``detections`` is None:
+    the agent never falls back to ground truth."""
     if detections is None:
-        return None
+        raise ValueError(NO_DETECTIONS)
     return bank.install_detections(detections).features
 
 

@@ -40,7 +40,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
     parser.add_argument("--preset", default=None, help="agent size: paper or cpu (default: paper)")
     parser.add_argument("--detections", default=None,
-                        help="detection tables detections_<NAME>.hdf5 (default: oracle fallback from the dataset)")
+                        help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle; "
+                             "required (the agent never falls back to ground truth)")
     parser.add_argument("--split", default=None, help="training scenes (default: train)")
     parser.add_argument("--rollout-steps", type=int, default=None, help="steps per update (default: 30)")
     parser.add_argument("--max-steps", type=int, default=None, help="training episode length (lineage: 30)")
@@ -74,7 +75,7 @@ def resolve(args: argparse.Namespace):
             raise CommandError(f"{out} was trained with --preset {cfg.preset}; use another --out")
         cfg = replace(cfg, **given, **({"episodes": None, "updates": None, "minutes": None, **budget} if budget else {}))
         return cfg, agent
-    for need in ("data", "features"):
+    for need in ("data", "features", "detections"):  # detections: no fallback to ground truth (issue 14)
         if need not in given:
             raise CommandError(f"--{need} is required for a new run ({out} has no config.json)")
     if not Path(given["data"]).is_dir():

@@ -25,7 +25,8 @@ class TrainConfig:
     """Name of the feature cache: files ``features_<name>.hdf5`` in every scene (``tsnav features``)."""
     detections: str | None = None
     """Name of the detection tables ``detections_<name>.hdf5`` (``tsnav detect``) driving the stage switch and
-    the agent's target detections; None = the oracle fallback (ground-truth in-frame flag and boxes)."""
+    the agent's target detections (``learned``, or ``oracle`` named explicitly). Required to train or evaluate:
+    None is refused with a one-line error (no fallback to ground truth, issue 14)."""
     split: str = "train"
     """Scenes used for training."""
     algo: str = "a3c"

@@ -11,6 +11,7 @@ import h5py
 import torch
 
 from ..agent.model import AgentConfig
+from ..agent.observe import NO_DETECTIONS
 from ..data.reader import list_scenes
 from ..checkpoint import atomic_write_json
 from ..pretrain.features import h5py_str
@@ -47,7 +48,7 @@ def resolved_config(cfg: TrainConfig, agent: AgentConfig) -> dict:
                     autoreset=True)
     return {"format": RUN_FORMAT, "train": cfg.to_dict(), "agent": asdict(agent), "reward": asdict(reward),
             "sim": asdict(sim), "features": feature_info(cfg), "budget": cfg.budget,
-            "detections": cfg.detections or "oracle fallback (ground-truth in-frame flag and boxes)",
+            "detections": cfg.detections,
             "torch": torch.__version__}
 
 
@@ -67,8 +68,11 @@ def train_run(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
 
     The run's configuration is written to ``run_dir/config.json`` (by rank 0 under torchrun); a run folder
     holding another configuration is refused, except for the budget, which may change between sessions.
+    ``cfg.detections`` must name a detection table (no ground-truth fallback).
     """
     run_dir = Path(run_dir)
+    if cfg.detections is None:
+        raise ValueError(NO_DETECTIONS)
     if (run_dir / "config.json").exists():
         check_resume(run_dir, cfg, agent)
     if int(os.environ.get("RANK", "0")) == 0:
