@@ -44,6 +44,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None, help="dataset root (default: a temporary tiny world)")
     ap.add_argument("--features", default=None, help="feature cache name (default: pooled pixels, built here)")
+    ap.add_argument("--detections", default="oracle",
+                    help="detection tables the agent reads (named explicitly; oracle tables are computed here)")
     ap.add_argument("--seconds", type=float, default=60.0, help="wall time per trainer")
     ap.add_argument("--workers", type=int, default=2, help="A3C worker processes")
     ap.add_argument("--num-envs", type=int, nargs="+", default=[64, 256], help="batched trainer batch sizes")
@@ -54,6 +56,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from tsnav.agent import agent_config
+    from tsnav.eval.stage_cache import ensure_detections
     from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.a3c import train_a3c
     from tsnav.rl.batched import train_batched
@@ -71,9 +74,11 @@ def main() -> None:
         if features is None:
             features = "bench_pixels"
             cache_pixel_features(data, features, grid=4, split="train")
+        if args.detections == "oracle":
+            ensure_detections(data, "oracle")
         agent = agent_config(args.preset)
         minutes = args.seconds / 60.0
-        base = dict(data=str(data), features=features, reward="tsrm", preset=args.preset, lr=1e-4,
+        base = dict(data=str(data), features=features, detections=args.detections, reward="tsrm", preset=args.preset, lr=1e-4,
                     rollout_steps=args.rollout_steps, max_steps=30, minutes=minutes, log_every=5,
                     checkpoint_every=10**9, device="cpu", threads=1)
         results = []

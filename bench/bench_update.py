@@ -25,6 +25,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None)
     ap.add_argument("--features", default=None)
+    ap.add_argument("--detections", default="oracle", help="detection tables the agent reads (named explicitly)")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--num-envs", type=int, default=256)
     ap.add_argument("--rollout-steps", type=int, default=30)
@@ -37,6 +38,7 @@ def main() -> None:
     from tsnav.agent import agent_config
     from tsnav.agent.memory import TargetMemoryAggregator
     from tsnav.pretrain.pixels import cache_pixel_features
+    from tsnav.eval.stage_cache import ensure_detections
     from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
     from tsnav.rl.config import TrainConfig
     from tsnav.rl.rollout import RolloutCollector, collect_and_loss
@@ -53,7 +55,10 @@ def main() -> None:
         if features is None:
             features = "bench_pixels"
             cache_pixel_features(data, features, grid=4, split="train")
-        cfg = TrainConfig(data=str(data), features=features, reward="tsrm", algo="batched", num_envs=args.num_envs,
+        if args.detections == "oracle":
+            ensure_detections(data, "oracle")
+        cfg = TrainConfig(data=str(data), features=features, detections=args.detections, reward="tsrm",
+                          algo="batched", num_envs=args.num_envs,
                           rollout_steps=args.rollout_steps, device="cpu")
         bank, det = load_bank(cfg)
         observer = make_observer(bank, cfg, det_features=det)

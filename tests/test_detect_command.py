@@ -16,7 +16,7 @@ from tsnav.data.detections import load_detections
 @pytest.fixture()
 def world(tiny_world, tmp_path):
     root = tmp_path / "w"
-    shutil.copytree(tiny_world, root)
+    shutil.copytree(tiny_world, root, ignore=shutil.ignore_patterns("detections_*"))  # other tests write some
     return root
 
 

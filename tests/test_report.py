@@ -162,12 +162,15 @@ def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
     gets the very same episodes."""
     from test_experiment import StandInTrainer
     from tsnav.agent import agent_config
+    from tsnav.eval.stage_cache import ensure_oracle_detections
     from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.config import TrainConfig
 
     cache_pixel_features(tiny_world, "report_px", grid=4)
+    ensure_oracle_detections(tiny_world, "oracle")  # the agent reads a named detection table
     run = tmp_path / "work" / "run"
-    StandInTrainer()(TrainConfig(data=str(tiny_world), features="report_px", device="cpu"), agent_config("cpu"), run)
+    StandInTrainer()(TrainConfig(data=str(tiny_world), features="report_px", detections="oracle", device="cpu"),
+                     agent_config("cpu"), run)
     ep_file = tmp_path / "episodes.json"
     write_episodes(ep_file, episodes, split="test", success_distance=1.0)
     ev = tmp_path / "work" / "eval_agent"

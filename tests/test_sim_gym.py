@@ -57,7 +57,9 @@ def test_truncation_and_termination_single(bank):
 def test_observations_from_hdf5(tmp_path):
     root = tmp_path / "data"
     write_scene_folder(toy_scenes()[2], root / "ToyC", images=8)  # the smallest scene: HDF5 writes are slow
-    env = gym.make(ENV_ID, data=str(root), split="test")
+    with pytest.raises(ValueError, match="name the detection table"):
+        gym.make(ENV_ID, data=str(root), split="test")  # no silent fallback to ground truth
+    env = gym.make(ENV_ID, bank=SceneBank.from_root(root, "test"))
     obs, info = env.reset(seed=1)
     s = int(env.unwrapped.bank.local_state(info["state"]))  # the pattern follows the scene-local index
     assert obs["rgb"].shape == (8, 8, 3) and (obs["rgb"] == s % 251).all()

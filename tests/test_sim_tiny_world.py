@@ -15,6 +15,7 @@ from tsnav.data.reader import list_scenes, load_scene
 from tsnav.metrics import read_records, summarize
 from tsnav.eval.policies import ExplorerPolicy, OraclePolicy
 from tsnav.eval.runner import evaluate
+from tsnav.eval.stage_cache import ensure_oracle_detections
 from tsnav.sim.batch import BatchEnv, SceneBank
 from tsnav.sim.episodes import TrainingSampler, make_episodes
 from tsnav.sim.gym_env import ENV_ID
@@ -72,7 +73,8 @@ def test_training_rollout_is_deterministic(bank):
 
 
 def test_gym_env_on_rendered_scenes(tiny_world):
-    env = gym.make(ENV_ID, data=str(tiny_world), split=None, max_steps=20)
+    ensure_oracle_detections(tiny_world, "oracle")
+    env = gym.make(ENV_ID, data=str(tiny_world), split=None, max_steps=20, detections="oracle")
     obs, info = env.reset(seed=0)
     assert obs["rgb"].shape == (64, 64, 3) and obs["rgb"].any()  # real frames
     assert obs["depth"].dtype == np.float32 and (obs["depth"] > 0).any()

@@ -2,9 +2,10 @@
 :class:`~tsnav.sim.batch.BatchEnv` (paper III-A).
 
     import gymnasium as gym
-    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data="out/world", split="train", reward="tsrm")
+    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data="out/world", split="train", reward="tsrm",
+                   detections="oracle")
     envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v0", num_envs=64, vectorization_mode="vector_entry_point",
-                        data="out/world", split="train")
+                        data="out/world", split="train", detections="oracle")
 
 The registered id builds these classes through :mod:`tsnav.tsrm.envs`, which adds the paper's reward
 (``reward="tsrm" | "baseline" | "explore" | "distance" | "sparse"``, default ``"tsrm"``), the detector's

@@ -4,7 +4,7 @@
     env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data="out/world", split="train", reward="tsrm",
                    detections="oracle")
     envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v0", num_envs=64, vectorization_mode="vector_entry_point",
-                        data="out/world", reward="tsrm")
+                        data="out/world", reward="tsrm", detections="oracle")
 
 (``"tsnav.sim:"`` makes Gymnasium import :mod:`tsnav.sim`, which registers the id.) The spaces, dynamics and
 start states are those of :mod:`tsnav.sim.gym_env`; this module chooses the reward and the stage switch:
@@ -15,9 +15,11 @@ argument           meaning
 ``reward``         ``"tsrm"`` (default: exploration + distance terms, paper III-B), ``"explore"``,
                    ``"distance"``, ``"baseline"`` (collision, slack, success: Table II), or ``"sparse"``
                    (-0.01 per step, +5 on success, no collision penalty); or a ``RewardConfig``
-``detections``     name of the detection tables ``detections_<name>.hdf5`` to install: their scores drive the
-                   stage switch and fill the ``detections`` observation (default: none; the switch then uses
-                   ground-truth visibility)
+``detections``     name of the detection tables ``detections_<name>.hdf5`` to install (``tsnav detect``;
+                   ``"learned"`` or ``"oracle"``): their scores drive the stage switch and fill the
+                   ``detections`` observation. Required with ``data`` / ``scenes`` (a one-line ``ValueError``
+                   otherwise: no silent fallback to ground-truth visibility, issue 14); a given ``bank`` keeps
+                   what its caller installed; the analytic toy room (no world) has no detector
 ``c_target``       stage-switch threshold C_target (default 0.7, paper IV-A)
 =================  ==========================================================================================
 
@@ -46,6 +48,9 @@ def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_targe
         raise ValueError(f"unknown reward {reward!r} (choose from {', '.join(REWARDS)})")
     if bank is not None and bank.c_target != c_target:
         raise ValueError(f"c_target {c_target} differs from the given bank's {bank.c_target}")
+    if detections is None and (data is not None or scenes is not None) and bank is None:
+        raise ValueError("name the detection table the env reads: detections='learned' or detections='oracle' "
+                         "(`tsnav detect`); there is no fallback to ground truth")
     bank = make_bank(bank, scenes, data, split, success_distance, c_target=c_target)
     if detections is not None:
         bank.install_detections(detections)
