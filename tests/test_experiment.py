@@ -8,6 +8,8 @@ import csv
 import io
 import json
 import math
+import re
+import shutil
 
 import numpy as np
 import pytest
@@ -134,11 +136,32 @@ def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, c
     rows = list(csv.DictReader(open(out / "table.csv")))
     assert len(rows) == 6 * 2 * len(METRICS)
 
-    # resume: nothing left to train; one unfinished job is redone
+    # every job evaluated the checkpoint chosen on the validation episodes (its `best`), and says which
+    sel_eps = json.loads((out / "episodes_select.json").read_text())
+    assert sel_eps["split"] == "val" and len(sel_eps["episodes"]) > 0
+    for j in json.loads((out / "experiment.json").read_text())["jobs"]:
+        d = out / j["dir"]
+        ck = json.loads((d / "DONE").read_text())["checkpoint"]
+        sel = json.loads((d / "train" / "selection.json").read_text())
+        assert ck["kind"] == "best" and ck["name"] == sel["best"] and (d / "train" / "best" / "state.json").exists()
+        assert ck["val_SR"] == sel["scores"][ck["name"]]["metrics"]["ALL"]["SR"] and ck["update"] == 3
+
+    # resume: nothing left to train; one unfinished job is redone, its selection.json reused (no checkpoint
+    # scored again); a job interrupted before selection selects on resume
+    capsys.readouterr()
     (out / "jobs" / "explore_s1" / "DONE").unlink()
     again = StandInTrainer()
     Experiment(cfg, train_fn=again, scale=TINY).run()
     assert again.calls == [("explore", again.calls[0][1], 0.7, 1)]
+    printed = capsys.readouterr().out
+    assert "11 finished, 1 to run" in printed and "selecting explore_s1" in printed
+    assert not re.search(r"^ +\S+: SR [0-9.]+, SPL [0-9.]+$", printed, re.M)  # select_checkpoint's score line
+    for f in ("DONE", "train/selection.json"):
+        (out / "jobs" / "tsrm_s0" / f).unlink()
+    shutil.rmtree(out / "jobs" / "tsrm_s0" / "train" / "best")
+    Experiment(cfg, train_fn=StandInTrainer(), scale=TINY).run()
+    assert (out / "jobs" / "tsrm_s0" / "train" / "selection.json").exists()
+    assert json.loads((out / "jobs" / "tsrm_s0" / "DONE").read_text())["checkpoint"]["kind"] == "best"
     assert "11 finished, 1 to run" in capsys.readouterr().out
 
     # another scale in the same folder is refused
@@ -155,6 +178,12 @@ def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, c
     with pytest.raises(ValueError, match=r"another sample \(True, now False\)"):
         Experiment(cfg, train_fn=again).run()
     doc["config"]["sample"] = False
+    # folders from before checkpoint selection evaluated the latest checkpoint: not mixed with new jobs
+    del doc["config"]["checkpoint"]
+    (out / "experiment.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"another checkpoint \('latest', now 'best'\)"):
+        Experiment(cfg, train_fn=again).run()
+    doc["config"]["checkpoint"] = "best"
     (out / "experiment.json").write_text(json.dumps(doc))
 
     from tsnav.eval.report import build_report
@@ -213,6 +242,27 @@ def test_training_budget_in_updates_or_minutes():
     assert budget(updates_per_job=700, minutes_per_job=3.0) == (3.0, 700)
 
 
+def test_jobs_keep_milestones_for_selection():
+    """Each scale keeps a handful of milestones per job, on checkpoint updates; --checkpoint latest keeps none."""
+    from dataclasses import replace
+
+    from tsnav.eval.experiment_config import SCALES
+
+    row = experiment_rows("ablation")[0]
+    for name, sc in SCALES.items():
+        if sc.updates_per_job and sc.milestone_every:
+            assert 3 <= sc.updates_per_job // sc.milestone_every <= 10, name
+    cfg = ExperimentConfig(experiment="ablation", data="d", out="o")
+    tc, _ = train_config_for(cfg, SCALES["small"], row, "f", 0)
+    assert (tc.milestone_every, tc.checkpoint_every) == (200, 100)
+    tc, _ = train_config_for(cfg, replace(SCALES["small"], milestone_every=30), row, "f", 0)
+    assert (tc.milestone_every, tc.checkpoint_every) == (30, 10)
+    tc, _ = train_config_for(replace(cfg, checkpoint="latest"), SCALES["small"], row, "f", 0)
+    assert (tc.milestone_every, tc.checkpoint_every) == (None, 100)
+    with pytest.raises(ValueError, match="--checkpoint must be one of"):
+        Experiment(replace(cfg, checkpoint="first"))
+
+
 def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     from tsnav.cli import main
 
@@ -244,7 +294,7 @@ def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pret
 
     from tsnav.rl.checkpoint import read_run_config
 
-    scale = replace(TINY, minutes_per_job=None, updates_per_job=2, num_envs=4)
+    scale = replace(TINY, minutes_per_job=None, updates_per_job=2, num_envs=4, milestone_every=1)
     out = tmp_path / "pre"
     cfg = ExperimentConfig(experiment="pretraining", data=str(tiny_world), out=str(out), seeds=1, device="cpu",
                            pretrain_dir=str(pretrain_dir), parallel=2)
@@ -255,8 +305,14 @@ def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pret
     for r in res["rows"]:
         run = read_run_config(out / "jobs" / f"{r['row']}_s0" / "train")
         assert run["train"]["reward"] == "baseline" and run["train"]["updates"] == 2
-        assert run["train"]["minutes"] is None
+        assert run["train"]["minutes"] is None and run["train"]["milestone_every"] == 1
         feats.add(run["train"]["features"])
+        # both milestones (updates 1 and 2) scored on validation; the best by SR, SPL, then earliest
+        done = json.loads((out / "jobs" / f"{r['row']}_s0" / "DONE").read_text())
+        scores = json.loads((out / "jobs" / f"{r['row']}_s0" / "train" / "selection.json").read_text())["scores"]
+        assert sorted(s["update"] for s in scores.values()) == [1, 2] and done["checkpoint"]["candidates"] == 2
+        best = max(scores.values(), key=lambda s: (s["metrics"]["ALL"]["SR"], s["metrics"]["ALL"]["SPL"], -s["update"]))
+        assert done["checkpoint"]["update"] == best["update"]
     assert len(feats) == 4
     md = (out / "table.md").read_text()
     assert "ALL SR" in md and "L>=5 SPL" in md and "SSR" not in md

@@ -5,15 +5,17 @@ exists and its outputs are still there, and every underlying step resumes after 
 
  1. world        build the ``demo`` preset (20 rooms: 12 train, 4 val, 4 test; 64x64 frames)     OUT/world
  2. pretrain     DE-MAE on the training frames (ViT-Tiny, 64x64, a couple of minutes)           OUT/pretrain/demae
- 3. features     cache the encoder's features of the training and test scenes                   */features_demae-<fp>.hdf5
+ 3. features     cache the encoder's features of the training, val and test scenes              */features_demae-<fp>.hdf5
  4. detections   the oracle detector's per-state table (confidence drives the stage switch)     world/*/detections_oracle.hdf5
- 5. episodes     fixed test episodes                                                            OUT/test_episodes.json
- 6. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes)       OUT/run
+ 5. episodes     fixed test episodes, and val episodes for checkpoint selection                 OUT/{test,val}_episodes.json
+ 6. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes); its    OUT/run
+                 milestones (every 200 updates) scored greedily on the val episodes, the best
+                 kept as OUT/run/best and evaluated
  7. evaluate     the agent, the scripted explorer and the random policy on the test episodes   OUT/eval/<policy>
  8. report       HTML report: tables, curves, reconstructions, episode gallery                  OUT/report/index.html
 
 The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
-keeps only the smallest ones per room type, for shorter runs); the test rooms are never seen in training.
+keeps only the smallest ones per room type, for shorter runs); the val and test rooms are never seen in training.
 
 The demo is one row of the paper's experiments (TSRM + DE-MAE, :mod:`tsnav.eval.experiment`) at the ``demo``
 scale (:data:`tsnav.eval.experiment_config.SCALES`): its encoder, feature cache, training configuration and
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -35,10 +38,11 @@ from .data.detections import read_fingerprint
 from .data.reader import list_scenes, load_scene
 from .detect.oracle import OracleConfig
 from .errors import CommandError
-from .eval.experiment import set_threads, train_config_for
+from .eval.experiment import SELECT_SEED, set_threads, train_config_for
 from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row, ScaleConfig
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
+from .eval.select import chosen, select_checkpoint
 from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
 from .metrics import METRICS, write_json
 from .pretrain.train import read_progress
@@ -49,6 +53,17 @@ from .world.build import build_dataset
 from .world.presets import preset_scenes
 
 STAGES = ("world", "pretrain", "features", "detections", "episodes", "train", "evaluate", "report")
+
+
+#: Torch CPU threads of the demo unless ``--threads`` says otherwise. A fixed count, not the cores that happen to
+#: be idle: another count sums floats in another order, so the pretrained encoder and the agent (and the printed
+#: table) would depend on how busy the machine was at the start.
+DEMO_THREADS = 2
+
+
+def demo_threads() -> int:
+    """The demo's default torch threads: :data:`DEMO_THREADS`, or the machine's cores when it has fewer."""
+    return max(1, min(DEMO_THREADS, os.cpu_count() or 1))
 
 
 #: The experiment row the demo trains: TSRM + DE-MAE (paper Table II, last row).
@@ -90,7 +105,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                    help="training budget in minutes instead (the table then depends on the machine's load)")
     p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
     p.add_argument("--threads", type=int, default=None,
-                   help="torch CPU threads (default: the cores not busy with other processes)")
+                   help=f"torch CPU threads (default {DEMO_THREADS}, or the machine's cores when fewer: a fixed "
+                        "count, because another count sums floats in another order and trains another agent)")
     p.add_argument("--sample", action="store_true",
                    help="evaluate the agent by sampling its actions instead of the greedy argmax (the default)")
 
@@ -208,14 +224,15 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     # 3. features ---------------------------------------------------------------------------------------
     def do_features():
         name = ensure_features(es, sub, ["train"], sc.feature_batch_size, exp.device)
-        ensure_features(es, world, ["test"], sc.feature_batch_size, exp.device)
-        return {"name": name, "scenes": len(list_scenes(sub, "train")) + len(list_scenes(world, "test"))}
+        ensure_features(es, world, ["test", "val"], sc.feature_batch_size, exp.device)
+        return {"name": name, "scenes": sum(len(list_scenes(d, s)) for d, s in ((sub, "train"), (world, "test"),
+                                                                                 (world, "val")))}
 
     def features_ok(m):
-        rooms = list_scenes(sub, "train") + list_scenes(world, "test")
+        rooms = list_scenes(sub, "train") + list_scenes(world, "test") + list_scenes(world, "val")
         return "name" in m and all((p / f"features_{m['name']}.hdf5").exists() for p in rooms)
 
-    fm = st.run("features", "encode every state of the training and test rooms once", do_features, features_ok)
+    fm = st.run("features", "encode every state of the training, validation and test rooms once", do_features, features_ok)
 
     # 4. detections -------------------------------------------------------------------------------------
     st.run("detections", f"detections: {cfg.detections} (named explicitly), the oracle detector's table per room "
@@ -226,14 +243,17 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     # 5. episodes ---------------------------------------------------------------------------------------
     ep_file = out / "test_episodes.json"
+    val_file = out / "val_episodes.json"
 
     def do_episodes():
         ensure_episodes(world, "test", ep_file, sc.test_per_room_type)
-        return {"episodes": len(read_episodes(ep_file)[0])}
+        ensure_episodes(world, "val", val_file, sc.val_per_room_type, seed=SELECT_SEED)
+        return {"episodes": len(read_episodes(ep_file)[0]), "val_episodes": len(read_episodes(val_file)[0])}
 
-    em = st.run("episodes", f"{sc.test_per_room_type} test episodes per room type", do_episodes,
-                lambda m: ep_file.exists())
-    print(f"    {em['episodes']} episodes in {ep_file}", flush=True)
+    em = st.run("episodes", f"{sc.test_per_room_type} test and {sc.val_per_room_type} validation episodes per room "
+                "type", do_episodes, lambda m: ep_file.exists() and val_file.exists() and "val_episodes" in m)
+    print(f"    {em['episodes']} episodes in {ep_file}, {em['val_episodes']} in {val_file} (checkpoint selection)",
+          flush=True)
 
     # 6. train ------------------------------------------------------------------------------------------
     run_dir = out / "run"
@@ -243,12 +263,19 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         (train_fn or train_run)(tc, agent, run_dir)
         log = read_log(run_dir)
         last = {k: log[-1][k] for k in ("update", "env_steps", "episodes", "SR") if log and k in log[-1]}
-        return {"budget": budget, "log_lines": len(log), **last}
+        # milestones scored greedily on the val rooms' episodes; the best is kept as run/best and evaluated
+        # (resumed from run/selection.json when interrupted here)
+        sel = select_checkpoint(run_dir, world, val_file, seed=cfg.seed, max_steps=sc.max_steps, c_target=ROW.c_target)
+        checkpoint = chosen(sel)
+        print(f"    best of {checkpoint['candidates']} checkpoints on validation: {sel['best']} (update "
+              f"{checkpoint['update']}, SR {100 * checkpoint['val_SR']:.1f}, SPL {100 * checkpoint['val_SPL']:.1f})",
+              flush=True)
+        return {"budget": budget, "log_lines": len(log), **last, "checkpoint": checkpoint}
 
     budget = {"updates": sc.updates_per_job, "minutes": sc.minutes_per_job, "episodes": sc.episodes_per_job}
     shown = ", ".join(f"{v:g} {k}" for k, v in budget.items() if v is not None) or "1.5 M episodes"
-    st.run("train", f"TSRM agent, batched A2C, {shown} -> {run_dir}", do_train,
-           lambda m: m.get("budget") == budget and (run_dir / "config.json").exists())
+    st.run("train", f"TSRM agent, batched A2C, {shown}, best milestone on validation -> {run_dir}", do_train,
+           lambda m: m.get("budget") == budget and "checkpoint" in m and (run_dir / "config.json").exists())
 
     # 7. evaluate ---------------------------------------------------------------------------------------
     policies = [("agent (TSRM, DE-MAE)", "agent"), ("scripted explorer", "explorer"), ("random", "random")]
@@ -315,6 +342,7 @@ def run(args) -> int:
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
 
-    print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
+    threads = args.threads if args.threads is not None else demo_threads()
+    print(f"tsnav demo -> {args.out} (torch threads: {set_threads(threads)})", flush=True)
     run_demo(args.out, cfg)
     return 0

@@ -17,7 +17,13 @@ threshold      C_target = 0.1 .. 0.9 (DE-MAE features, TSRM reward), validation 
 =============  ===========================================================================  ==============
 
 A job is one (row, seed): (pretrain the row's encoder if needed) -> cache its features (once per encoder) ->
-train the agent -> evaluate it. The shared stages run once and are reused: pretraining runs live in
+train the agent, keeping a milestone every ``ScaleConfig.milestone_every`` updates -> score the milestones (and
+the newest two checkpoints) greedily on validation episodes and keep the best as ``train/best`` (issue 15;
+:func:`tsnav.eval.select.select_checkpoint`, resumed from ``train/selection.json``) -> evaluate that checkpoint.
+``--checkpoint latest`` skips selection and evaluates the last checkpoint (as folders from before selection did;
+the two kinds are not mixed in one folder). The threshold experiment reports validation episodes too: its
+selection episodes are other episodes (another seed) of the same validation rooms, so its table is slightly
+optimistic for every row alike. The shared stages run once and are reused: pretraining runs live in
 ``--pretrain-dir`` (default ``OUT/pretrain``), feature caches are ``features_<encoder>-<fingerprint>.hdf5`` in
 the scene folders (so identical encoders share them across experiments), detection tables and episode lists
 are made once. Every stage resumes after an interruption; a job whose folder holds ``DONE`` is skipped.
@@ -26,8 +32,10 @@ Output folder::
 
     OUT/experiment.json          resolved configuration, rows, jobs (rewritten at every start)
     OUT/episodes_<split>.json    the fixed evaluation episodes
-    OUT/jobs/<row>_s<seed>/      train/ (run folder of the trainer), eval/ (records.jsonl, metrics.json,
-                                 trajectories.jsonl), DONE (summary, written last)
+    OUT/episodes_select.json     validation episodes that choose each job's checkpoint (``--checkpoint best``)
+    OUT/jobs/<row>_s<seed>/      train/ (run folder of the trainer; selection.json, best/), eval/ (records.jsonl,
+                                 metrics.json, trajectories.jsonl), DONE (summary with the checkpoint used,
+                                 written last)
     OUT/results.json, OUT/table.md, OUT/table.csv
                                  mean and 95 % t-interval over seeds per row, rewritten after every job
     OUT/threshold.png            (threshold) each metric over C_target, best point marked with a red star
@@ -44,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import multiprocessing as mp
 import os
 import time
@@ -59,12 +68,14 @@ import torch
 from ..agent import agent_config
 from ..atomic import atomic_write_text
 from ..errors import CommandError
+from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
 from ..rl.train import train_run
 from .experiment_config import EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row, ScaleConfig, experiment_rows
 from ..metrics import METRICS, write_json
 from .report import build_report
 from .runner import evaluate_to_folder
+from .select import chosen, select_checkpoint
 from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
                           ensure_world, say)
 from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshold
@@ -123,10 +134,14 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
     episodes, updates, minutes = scale.episodes_per_job, scale.updates_per_job, scale.minutes_per_job
     if cfg.updates_per_job is not None or cfg.minutes_per_job is not None:  # asked for: replaces the scale's
         episodes, updates, minutes = None, cfg.updates_per_job, cfg.minutes_per_job
+    milestones = scale.milestone_every if cfg.checkpoint == "best" else None
+    # checkpoints land on multiples of checkpoint_every (100 by default); milestones must be among them
+    every = math.gcd(TrainConfig.checkpoint_every, milestones) if milestones else TrainConfig.checkpoint_every
     tc = TrainConfig(data=str(Path(cfg.data).resolve()), features=features, detections=cfg.detections,
                      split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
                      num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
-                     minutes=minutes, episodes=episodes, updates=updates, device=cfg.device)
+                     minutes=minutes, episodes=episodes, updates=updates, device=cfg.device,
+                     checkpoint_every=every, milestone_every=milestones)
     return tc, agent_config(scale.agent_preset)
 
 
@@ -146,9 +161,15 @@ class Job:
 
 
 #: experiment.json fields that must match when an experiment folder is resumed.
-IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample")
-#: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled).
-LEGACY_IDENTITY = {"sample": True}
+IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample",
+            "checkpoint")
+#: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled, and
+#: the latest checkpoint was evaluated).
+LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest"}
+#: ``ExperimentConfig.checkpoint`` values.
+CHECKPOINTS = ("best", "latest")
+#: Seed of the selection episodes (the threshold experiment's evaluation episodes on val use seed 0).
+SELECT_SEED = 1
 
 
 class Experiment:
@@ -167,6 +188,8 @@ class Experiment:
             raise ValueError(f"--minutes-per-job must be positive, got {cfg.minutes_per_job}")
         if cfg.updates_per_job is not None and cfg.updates_per_job < 1:
             raise ValueError(f"--updates-per-job must be >= 1, got {cfg.updates_per_job}")
+        if cfg.checkpoint not in CHECKPOINTS:
+            raise ValueError(f"--checkpoint must be one of {', '.join(CHECKPOINTS)}, got {cfg.checkpoint!r}")
         self.cfg = cfg
         self.scale = scale or SCALES[cfg.scale]
         self.info = EXPERIMENT_INFO[cfg.experiment]
@@ -231,18 +254,42 @@ class Experiment:
         ensure_detections(cfg.data, cfg.detections)
         ensure_episodes(cfg.data, split, self.episodes_file,
                         scale.test_per_room_type if split == "test" else scale.val_per_room_type)
+        splits = ["train", split]
+        if cfg.checkpoint == "best":
+            say(f"[{cfg.experiment}] validation episodes for checkpoint selection")
+            ensure_episodes(cfg.data, "val", self.select_file, scale.val_per_room_type, seed=SELECT_SEED)
+            splits = list(dict.fromkeys([*splits, "val"]))
         features = {}
         todo = [j for j in self.jobs if not self.done(j)]
         for enc in dict.fromkeys(j.row.encoder for j in todo):
             es = encoder_spec(enc, scale, self.pretrain_dir, cfg)
             ensure_encoder(es, cfg.data)
-            say(f"[{cfg.experiment}] features of {enc} for the train and {split} scenes")
-            features[enc] = ensure_features(es, cfg.data, ["train", split], scale.feature_batch_size, cfg.device)
+            say(f"[{cfg.experiment}] features of {enc} for the {' and '.join(splits)} scenes")
+            features[enc] = ensure_features(es, cfg.data, splits, scale.feature_batch_size, cfg.device)
         return features
 
     @property
     def episodes_file(self) -> Path:
         return self.out / f"episodes_{self.info['split']}.json"
+
+    @property
+    def select_file(self) -> Path:
+        """Validation episodes on which each job's checkpoints are scored (``checkpoint == "best"``)."""
+        return self.out / "episodes_select.json"
+
+    def choose_checkpoint(self, job: Job) -> dict:
+        """Select the job's checkpoint (``best``: :func:`~tsnav.eval.select.select_checkpoint` on the selection
+        episodes, resumed from ``train/selection.json``; ``latest``: the last trained); returns what was used
+        (checkpoint name, update, and for ``best`` the validation SR / SPL)."""
+        run = self.out / job.dir / "train"
+        if self.cfg.checkpoint == "best":
+            say(f"[{self.cfg.experiment}] selecting {job.row.id}_s{job.seed}'s checkpoint on {self.select_file.name}")
+            sel = select_checkpoint(run, self.cfg.data, self.select_file, seed=job.seed, max_steps=self.scale.max_steps,
+                                    c_target=job.row.c_target, progress=say)
+            return {"kind": "best", **chosen(sel)}
+        ck = resolve_checkpoint(run, "latest")
+        return {"kind": "latest", "name": ck.name,
+                "update": int(json.loads((ck / "state.json").read_text())["progress"]["update"])}
 
     def run_job(self, job: Job, features: str) -> dict:
         """Train (resumable) and evaluate one job; writes ``DONE`` last."""
@@ -251,12 +298,13 @@ class Experiment:
         train_fn = self._train_fn or default_train_fn()
         t0 = time.perf_counter()
         train_fn(tc, agent, jd / "train")
+        checkpoint = self.choose_checkpoint(job)
         t1 = time.perf_counter()
         summary = evaluate_to_folder(jd / "eval", self.cfg.data, self.episodes_file, run=jd / "train",
                                      detections=self.cfg.detections, c_target=job.row.c_target, seed=job.seed,
                                      label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps,
                                      sample=self.cfg.sample)
-        done = {"row": job.row.id, "seed": job.seed, "train_seconds": t1 - t0,
+        done = {"row": job.row.id, "seed": job.seed, "checkpoint": checkpoint, "train_seconds": t1 - t0,
                 "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}}
         write_json(jd / "DONE", done)
         return done
@@ -341,6 +389,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sample", action="store_true",
                         help="evaluate agents by sampling their actions instead of the greedy argmax (the lineage's "
                              "test-time rule, the default)")
+    parser.add_argument("--checkpoint", choices=CHECKPOINTS, default="best",
+                        help="checkpoint each job evaluates: best (default; the job's milestones scored greedily on "
+                             "validation episodes) or latest (the last trained)")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
 
 
@@ -362,7 +413,7 @@ def run(args: argparse.Namespace) -> int:
                            pretrain_dir=args.pretrain_dir,
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
-                           sample=args.sample)
+                           sample=args.sample, checkpoint=args.checkpoint)
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     exp = Experiment(cfg)

@@ -62,6 +62,9 @@ class ScaleConfig:
     idle machine; 1000 updates of 64 episodes x 30 steps are about 1.9 M environment steps)."""
     episodes_per_job: int | None = None
     """Training budget per job in finished training episodes (paper: 1.5 M)."""
+    milestone_every: int | None = 200
+    """Updates between the milestone checkpoints a job keeps for validation-based selection (issue 15; a handful
+    per job); None: no milestones, selection then chooses among the two newest checkpoints."""
     minutes_per_job: float | None = None
     """Training budget per job in minutes, only when asked for (the result then depends on the machine's load).
     Training stops at the first budget reached; with none set, the paper's 1.5 M episodes."""
@@ -82,11 +85,12 @@ SCALES = {
     # The budget at which TSRM + DE-MAE's validation curve on the 80 training rooms has plateaued (issue 15,
     # items 3-4). PLACEHOLDER numbers until `tsnav convergence` has measured that curve: set
     # ``updates_per_job`` (and the agent size, if the curve says so) from it.
-    "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, num_envs=256, test_per_room_type=250,
+    "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, milestone_every=500, num_envs=256, test_per_room_type=250,
                           val_per_room_type=100, world="ithor-real"),
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
                          pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
                          num_envs=16, workers=14, updates_per_job=None, episodes_per_job=1_500_000,
+                         milestone_every=None,
                          test_per_room_type=250, val_per_room_type=250, world="ithor-real"),
 }
 
@@ -185,6 +189,10 @@ class ExperimentConfig:
     """Added to the job seeds (repeat an experiment with other seeds)."""
     parallel: int = 1
     """Jobs trained at once, each in its own process (use 2 on two idle cores; progress bars are then off)."""
+    checkpoint: str = "best"
+    """Checkpoint each job evaluates: ``best`` (issue 15: the job's milestones are scored greedily on validation
+    episodes, ``OUT/episodes_select.json``, and the best is kept as ``train/best``) or ``latest`` (the last one
+    trained, as experiment folders did before selection existed)."""
     sample: bool = False
     """Evaluate the agents by sampling their actions (seeded) instead of the greedy argmax, the lineage's
     test-time rule."""

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from ..atomic import atomic_folder, atomic_write_json
 from ..checkpoint import BrokenCheckpoint, read_json, weights_digest
+from ..constants import C_TARGET
 from ..errors import CommandError
 from ..metrics import summarize
 from ..rl.checkpoint import BEST, list_checkpoints, load_model, load_policy
@@ -30,9 +31,10 @@ RANK_BY = ("SR", "SPL")
 
 
 def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str | Path, *, seed: int = 0,
-                      max_steps: int = 100, progress=print) -> dict:
-    """Score every kept checkpoint of ``run_dir`` on ``episodes_file`` (greedy), keep the best as
-    ``RUN/best``; returns the selection (``scores``: checkpoint name -> update, digest, metrics; ``best``)."""
+                      max_steps: int = 100, c_target: float = C_TARGET, progress=print) -> dict:
+    """Score every kept checkpoint of ``run_dir`` on ``episodes_file`` (greedy, episode length ``max_steps``,
+    stage-switch threshold ``c_target``), keep the best as ``RUN/best``; returns the selection (``scores``:
+    checkpoint name -> update, digest, metrics; ``best``)."""
     run_dir = Path(run_dir)
     ckpts = list_checkpoints(run_dir)
     if not ckpts:
@@ -45,10 +47,11 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
         old = read_json(path) if path.exists() else {}
     except BrokenCheckpoint:  # an unreadable score cache is recomputed
         old = {}
-    same_list = old.get("episodes_file") == str(Path(episodes_file).resolve()) and old.get("max_steps") == max_steps
+    same_list = (old.get("episodes_file") == str(Path(episodes_file).resolve()) and old.get("max_steps") == max_steps
+                 and old.get("c_target", C_TARGET) == c_target)
     scores = dict(old.get("scores", {})) if same_list else {}
     bank = load_bank_for_episodes(data, episodes, success_distance=float(emeta.get("success_distance", 1.0)))
-    config = EvalConfig(max_steps=max_steps)
+    config = EvalConfig(max_steps=max_steps, c_target=c_target)
     for ck in ckpts:
         digest = weights_digest(load_model(run_dir, ck)[0].state_dict())
         if scores.get(ck.name, {}).get("digest") == digest:
@@ -60,7 +63,7 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
                            "episodes": int(state["episodes"]), "digest": digest, "metrics": summary}
         progress(f"    {ck.name}: " + ", ".join(f"{k} {100 * summary['ALL'][k]:.1f}" for k in RANK_BY))
         atomic_write_json(path, {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps,
-                                 "scores": scores, "best": old.get("best") if same_list else None})
+                                 "c_target": c_target, "scores": scores, "best": old.get("best") if same_list else None})
     live = {k: v for k, v in scores.items() if (run_dir / "checkpoints" / k).is_dir()}
     name = max(live, key=lambda k: (*(live[k]["metrics"]["ALL"][m] for m in RANK_BY), -live[k]["update"]))
     best = run_dir / BEST
@@ -72,10 +75,19 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
                     shutil.copy2(f, tmp / f.name)
             st = read_json(tmp / "state.json")
             atomic_write_json(tmp / "state.json", {**st, "selected_from": name})
-    result = {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps, "scores": scores,
+    result = {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps, "c_target": c_target,
+              "scores": scores,
               "best": name}
     atomic_write_json(path, result)
     return result
+
+
+def chosen(selection: dict) -> dict:
+    """What a job or the demo records about the checkpoint a selection kept: its name, update, the number of
+    checkpoints scored and its validation SR / SPL (fractions, ALL episodes)."""
+    b = selection["scores"][selection["best"]]
+    return {"name": selection["best"], "update": b["update"], "candidates": len(selection["scores"]),
+            "val_SR": b["metrics"]["ALL"]["SR"], "val_SPL": b["metrics"]["ALL"]["SPL"]}
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
