@@ -24,6 +24,23 @@ def frames(tiny_world):
     return load_frames(tiny_world, "train", max_states_per_scene=8, seed=0)
 
 
+def _train_interrupted_at_step_5(tiny_world, out, cfg, frames, monkeypatch):
+    """Train into ``out`` with a Ctrl-C during step 5: the trainer saves step 5 and stops."""
+    calls = {"n": 0}
+    make_batch = T.make_batch
+
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 6:
+            raise KeyboardInterrupt
+        return make_batch(*args, **kwargs)
+
+    monkeypatch.setattr(T, "make_batch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_detector(tiny_world, out, cfg, SMALL, frames=frames, progress=False)
+    monkeypatch.setattr(T, "make_batch", make_batch)
+
+
 def test_truncated_newest_checkpoint_resumes_from_the_previous_one(tiny_world, frames, tmp_path, monkeypatch, capsys):
     cfg = DetectorTrainConfig(steps=6, batch_size=8, warmup=2, checkpoint_every=2, threads=1)
     train_detector(tiny_world, tmp_path / "a", cfg, SMALL, frames=frames, progress=False)
@@ -33,19 +50,7 @@ def test_truncated_newest_checkpoint_resumes_from_the_previous_one(tiny_world, f
         "model.safetensors", "optimizer.safetensors", "state.json"]
     assert read_meta(tmp_path / "a")["step"] == 6 and read_meta(kept / "ckpt_000000004")["step"] == 4
 
-    calls = {"n": 0}
-    make_batch = T.make_batch
-
-    def interrupted(*args, **kwargs):  # Ctrl-C during step 5: the trainer saves step 5 and stops
-        calls["n"] += 1
-        if calls["n"] == 6:
-            raise KeyboardInterrupt
-        return make_batch(*args, **kwargs)
-
-    monkeypatch.setattr(T, "make_batch", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        train_detector(tiny_world, tmp_path / "b", cfg, SMALL, frames=frames, progress=False)
-    monkeypatch.setattr(T, "make_batch", make_batch)
+    _train_interrupted_at_step_5(tiny_world, tmp_path / "b", cfg, frames, monkeypatch)
     b = tmp_path / "b"
     assert read_meta(b)["step"] == 5 and read_meta(b / "checkpoints" / "ckpt_000000004")["step"] == 4
     broken = b / "checkpoints" / "ckpt_000000005" / "model.safetensors"
@@ -85,19 +90,7 @@ def test_legacy_detector_folder_is_read_resumed_and_calibrated(tiny_world, frame
     ma, _ = load_model(tmp_path / "a")
     for name, broken in (("b", False), ("c", True)):
         d = tmp_path / name
-        calls = {"n": 0}
-        make_batch = T.make_batch
-
-        def interrupted(*args, **kwargs):  # Ctrl-C during step 5: the trainer saves step 5 and stops
-            calls["n"] += 1
-            if calls["n"] == 6:
-                raise KeyboardInterrupt
-            return make_batch(*args, **kwargs)
-
-        monkeypatch.setattr(T, "make_batch", interrupted)
-        with pytest.raises(KeyboardInterrupt):
-            train_detector(tiny_world, d, cfg, SMALL, frames=frames, progress=False)
-        monkeypatch.setattr(T, "make_batch", make_batch)
+        _train_interrupted_at_step_5(tiny_world, d, cfg, frames, monkeypatch)
         fp = read_meta(d)["fingerprint"]
         _to_legacy_folder(d)
         assert json.loads((d / "detector.json").read_text())["step"] == 5 and read_meta(d)["step"] == 5
