@@ -97,16 +97,14 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
 
 
 def test_default_threads_do_not_depend_on_the_load(monkeypatch):
-    """The demo's default thread count is fixed per machine, not the cores that happen to be idle: another count
-    trains another agent (seen here: 2 threads on an idle machine and 1 on a busy one gave SR 52.0 and 55.0)."""
-    import tsnav.demo as demo
+    """The default thread count of the demo and the experiments is fixed per machine, not the cores that happen
+    to be idle: another count trains another agent (seen here: 2 threads on an idle machine and 1 on a busy one
+    gave SR 52.0 and 55.0)."""
     import tsnav.eval.experiment as experiment
 
-    monkeypatch.setattr(demo.os, "cpu_count", lambda: 2)
-    monkeypatch.setattr(experiment, "busy_cores", lambda *a, **k: 2)  # a fully busy machine
-    assert experiment.auto_threads() == 1  # what the load-dependent default would have picked
-    assert demo.demo_threads() == demo.DEMO_THREADS == 2
-    monkeypatch.setattr(demo.os, "cpu_count", lambda: 1)
-    assert demo.demo_threads() == 1
-    monkeypatch.setattr(demo.os, "cpu_count", lambda: 64)
-    assert demo.demo_threads() == 2
+    monkeypatch.setattr(experiment.os, "cpu_count", lambda: 2)
+    assert experiment.default_threads() == experiment.DEFAULT_THREADS == 2
+    monkeypatch.setattr(experiment.os, "cpu_count", lambda: 1)
+    assert experiment.default_threads() == 1
+    monkeypatch.setattr(experiment.os, "cpu_count", lambda: 64)
+    assert experiment.default_threads() == 2

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -38,7 +37,7 @@ from .data.detections import read_fingerprint
 from .data.reader import list_scenes, load_scene
 from .detect.oracle import OracleConfig
 from .errors import CommandError
-from .eval.experiment import SELECT_SEED, set_threads, train_config_for
+from .eval.experiment import DEFAULT_THREADS, SELECT_SEED, set_threads, train_config_for
 from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row, ScaleConfig
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
@@ -53,17 +52,6 @@ from .world.build import build_dataset
 from .world.presets import preset_scenes
 
 STAGES = ("world", "pretrain", "features", "detections", "episodes", "train", "evaluate", "report")
-
-
-#: Torch CPU threads of the demo unless ``--threads`` says otherwise. A fixed count, not the cores that happen to
-#: be idle: another count sums floats in another order, so the pretrained encoder and the agent (and the printed
-#: table) would depend on how busy the machine was at the start.
-DEMO_THREADS = 2
-
-
-def demo_threads() -> int:
-    """The demo's default torch threads: :data:`DEMO_THREADS`, or the machine's cores when it has fewer."""
-    return max(1, min(DEMO_THREADS, os.cpu_count() or 1))
 
 
 #: The experiment row the demo trains: TSRM + DE-MAE (paper Table II, last row).
@@ -105,7 +93,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                    help="training budget in minutes instead (the table then depends on the machine's load)")
     p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
     p.add_argument("--threads", type=int, default=None,
-                   help=f"torch CPU threads (default {DEMO_THREADS}, or the machine's cores when fewer: a fixed "
+                   help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
                         "count, because another count sums floats in another order and trains another agent)")
     p.add_argument("--sample", action="store_true",
                    help="evaluate the agent by sampling its actions instead of the greedy argmax (the default)")
@@ -342,7 +330,6 @@ def run(args) -> int:
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
 
-    threads = args.threads if args.threads is not None else demo_threads()
-    print(f"tsnav demo -> {args.out} (torch threads: {set_threads(threads)})", flush=True)
+    print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)
     return 0

@@ -62,7 +62,6 @@ from functools import partial
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from ..agent import agent_config
@@ -86,31 +85,20 @@ from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshol
 # ---------------------------------------------------------------------------------------------------------
 
 
-def busy_cores(samples: int = 5, interval: float = 0.1) -> int:
-    """Runnable processes besides this one (median of a few reads of ``/proc/loadavg``); 0 when unknown."""
-    counts = []
-    for k in range(samples):
-        try:
-            running = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
-        except (OSError, ValueError, IndexError):
-            return 0
-        counts.append(max(0, running - 1))
-        if k + 1 < samples:
-            time.sleep(interval)
-    return int(np.median(counts))
+#: Torch CPU threads unless ``--threads`` says otherwise. A fixed count, not the cores that happen to be idle:
+#: another count sums floats in another order, so the pretrained encoder and the agents (and every table) would
+#: depend on how busy the machine was at the start (seen: 2 and 1 threads gave demo agent SR 52.0 and 55.0).
+DEFAULT_THREADS = 2
 
 
-def auto_threads() -> int:
-    """Torch CPU threads for this machine: the cores not busy with other processes, at least 1. Oversubscribed
-    OpenMP threads spin against each other: on a shared 2-core machine one thread can be several times faster
-    than two."""
-    cores = os.cpu_count() or 1
-    return max(1, min(cores, cores - busy_cores()))
+def default_threads() -> int:
+    """:data:`DEFAULT_THREADS`, or the machine's cores when it has fewer."""
+    return max(1, min(DEFAULT_THREADS, os.cpu_count() or 1))
 
 
 def set_threads(n: int | None) -> int:
-    """Set torch's CPU threads (None: :func:`auto_threads`); returns the number set."""
-    n = auto_threads() if n is None else n
+    """Set torch's CPU threads (None: :func:`default_threads`); returns the number set."""
+    n = default_threads() if n is None else n
     torch.set_num_threads(n)
     return n
 
@@ -330,7 +318,7 @@ class Experiment:
             self.write_tables()
 
         if self.cfg.parallel > 1 and len(todo) > 1 and self._train_fn is None:
-            threads = max(1, auto_threads() // self.cfg.parallel)
+            threads = max(1, default_threads() // self.cfg.parallel)
             with ProcessPoolExecutor(self.cfg.parallel, mp_context=mp.get_context("spawn")) as pool:
                 futs = {}
                 for job in todo:
@@ -372,7 +360,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=1, help="trained agents per row (default 1)")
     parser.add_argument("--updates-per-job", type=int, default=None,
                         help="training budget per job in optimizer updates (default: the scale's; small: 1000, "
-                             "about 4 minutes on 2 idle cores)")
+                             "about 2.5 minutes with 2 threads on 2 idle cores)")
     parser.add_argument("--minutes-per-job", type=float, default=None,
                         help="training budget per job in minutes instead (depends on the machine's load; with "
                              "--updates-per-job too, the first reached stops training)")
@@ -385,7 +373,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--parallel", type=int, default=1,
                         help="jobs trained at once, each in its own process (default 1; 2 on two idle cores)")
     parser.add_argument("--threads", type=int, default=None,
-                        help="torch CPU threads (default: the cores not busy with other processes)")
+                        help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
+                             "count, because another count trains other agents)")
     parser.add_argument("--sample", action="store_true",
                         help="evaluate agents by sampling their actions instead of the greedy argmax (the lineage's "
                              "test-time rule, the default)")

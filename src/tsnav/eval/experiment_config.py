@@ -16,7 +16,7 @@ from ..metrics import METRICS
 EXPERIMENTS = ("ablation", "pretraining", "threshold")
 
 #: Training updates of the demo's agent (64 episodes x 30 steps each): the same table on any machine.
-#: About 4 minutes on an idle 2-core machine (the demo trained 4 minutes, ~1000 updates, before it counted updates).
+#: About 2.5 minutes with 2 torch threads on an idle 2-core machine (154 s measured in `make demo`, 2026-12-01).
 DEMO_UPDATES = 1000
 #: PLACEHOLDER: updates per job of the ``medium`` scale (256 episodes x 30 steps each = 7680 env steps per
 #: update; 4000 updates = 31 M env steps, about the paper's 1.5 M episodes at ~20 steps per episode). To be set
