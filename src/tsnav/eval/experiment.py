@@ -291,7 +291,7 @@ class Experiment:
         summary = evaluate_to_folder(jd / "eval", self.cfg.data, self.episodes_file, run=jd / "train",
                                      detections=self.cfg.detections, c_target=job.row.c_target, seed=job.seed,
                                      label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps,
-                                     sample=self.cfg.sample)
+                                     sample=self.cfg.sample, checkpoint=checkpoint["kind"])
         done = {"row": job.row.id, "seed": job.seed, "checkpoint": checkpoint, "train_seconds": t1 - t0,
                 "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}}
         write_json(jd / "DONE", done)

@@ -270,7 +270,8 @@ def eval_policy(meta: dict, bank):
         # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
         from ..rl.checkpoint import load_policy
 
-        return load_policy(run, bank, greedy=not bool(meta.get("sample", True)), seed=seed)
+        return load_policy(run, bank, greedy=not bool(meta.get("sample", True)), seed=seed,
+                           checkpoint=meta.get("checkpoint", "auto"))
     return make_policy(name, bank, seed=seed, c_target=bank.c_target)
 
 
@@ -307,16 +308,19 @@ def eval_trajectories(eval_dir: str | Path):
 
 def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
                        run: str | Path | None = None, detections: str | None = None, c_target: float = C_TARGET,
-                       seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False) -> dict:
+                       seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False,
+                       checkpoint: str = "auto") -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
     :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
-    lineage's test-time rule) unless ``sample``. Returns the :func:`summarize` result."""
+    lineage's test-time rule) unless ``sample``; ``checkpoint`` names which of the run's checkpoints
+    (``auto`` / ``best`` / ``latest`` / a folder, as :func:`~tsnav.rl.checkpoint.resolve_checkpoint`), recorded so
+    that a re-roll loads the same one. Returns the :func:`summarize` result."""
     out_dir = Path(out_dir)
     episodes, emeta = read_episodes(episodes_file)
     config = EvalConfig(max_steps=max_steps, c_target=c_target)
     meta = {"policy": "agent" if run else policy, "run": str(Path(run).resolve()) if run else None, "seed": seed,
-            "sample": bool(sample), "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
+            "sample": bool(sample), "checkpoint": str(checkpoint) if run else None, "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
             "success_distance": float(emeta.get("success_distance", 1.0)), "detections": detections,
             "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
     bank = eval_bank(meta, episodes)
