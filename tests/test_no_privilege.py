@@ -48,9 +48,14 @@ def test_agent_observation_ignores_privileged_sources(pixel_world):
         scene.pixels[:] = 0
         scene.boxes[:] = 0
     bank.in_frame[:] = rng.permutation(bank.in_frame.reshape(-1)).reshape(bank.in_frame.shape)
+    # the bank copies distances and success states when it is built: change its own copies too
+    dist0, success0 = bank.dist.copy(), bank.success.copy()
+    bank.dist[:] = rng.permutation(bank.dist.reshape(-1)).reshape(bank.dist.shape)
+    bank.success[:] = rng.permutation(bank.success.reshape(-1)).reshape(bank.success.shape)
     bank.set_confidence(np.zeros_like(conf0))
     # The mutation is not vacuous: the privileged sources did change.
     assert not np.array_equal(bank.in_frame, in_frame0) and not np.array_equal(bank.stage_confidence, conf0)
+    assert not np.array_equal(bank.dist, dist0) and not np.array_equal(bank.success, success0)
     assert conf0.max() > 0 and in_frame0.any()
 
     after = _all_obs(make_observer(bank, cfg, det_features=det), bank)
