@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_bytes, atomic_write_json
-from ..constants import CATEGORY_INDEX
+from ..constants import CATEGORY_INDEX, ROOM_TYPES
 
 #: Room-type names of the split files (``{room}_{split}_22.pkl``).
-SPLIT_ROOMS = ("kitchen", "living_room", "bedroom", "bathroom")
+SPLIT_ROOMS = ROOM_TYPES
 SPLIT_NAMES = ("test", "val")
 #: Shape of the ``glove_embedding`` field.
 GLOVE_SHAPE = (60, 1)

@@ -30,6 +30,7 @@ from ..data.reader import list_scenes, load_scene
 from ..errors import CommandError
 from .evaluate import evaluate_detections
 from .learned import LearnedDetector
+from .model import DetectorConfig
 from .oracle import OracleConfig, oracle_detections
 from .train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
 
@@ -104,9 +105,6 @@ def _learned(args, root: Path):
 
 def _model_config(args, root: Path):
     """Architecture of a new checkpoint: input side = the train scenes' frame side; ``--stem`` / ``--widths``."""
-    # lazy, as in _learned: .model imports torch, which `tsnav detect --detector oracle` never needs
-    from ..data.reader import list_scenes, load_scene
-    from .model import DetectorConfig
 
     train = list_scenes(root, split="train")
     if not train:

@@ -200,5 +200,5 @@ def collect_and_loss(collector: "RolloutCollector", cfg) -> tuple[Rollout, torch
     adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished, cfg.gamma, cfg.gae_tau)
     loss, parts = a2c_loss(ro, adv, ret, cfg.entropy_coef, cfg.value_coef)
     parts["done_prob"] = ro.done_prob  # the Done collapse monitor (docs/RESULTS.md)
-    parts["done_rate"] = float((ro.actions == DONE).mean()) if ro.actions is not None else float("nan")
+    parts["done_rate"] = float((ro.actions == DONE).mean())  # collect always records the actions
     return ro, loss, parts
