@@ -52,6 +52,9 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--widths", default=None,
                    help="learned, new checkpoint: channels of the three backbone stages, e.g. 24,48,96 "
                         "(default 16,32,64)")
+    p.add_argument("--fine", action=argparse.BooleanOptionalAction, default=None,
+                   help="learned, new checkpoint: output cells of stride 4 after the stem instead of 8 (an FPN-style "
+                        "lateral from the second stage; better for small objects)")
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
@@ -120,6 +123,8 @@ def _model_config(args, root: Path):
         if len(widths) != 3 or min(widths) < 1:
             raise CommandError(f"--widths {args.widths!r}: give three positive channel counts, e.g. 24,48,96")
         cfg.widths = widths
+    if args.fine is not None:
+        cfg.fine = bool(args.fine)
     if stem < 1 or size % (8 * stem) or size < 16 * stem:
         raise CommandError(f"--stem {stem} does not fit {size}px frames (the side must be a multiple of 8 x stem)")
     return cfg
