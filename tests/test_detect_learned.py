@@ -11,9 +11,10 @@ import torch
 
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
-from tsnav.detect.model import (DetectorConfig, GridDetector, dense_targets, dense_targets_reference,
+from tsnav.detect.model import (DetectorConfig, GridDetector, default_config, dense_targets, dense_targets_reference,
                                 detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
-from tsnav.detect.train import (DetectorTrainConfig, apply_gains, batch_plan, calibrate, fit_temperature, load_model,
+from tsnav.detect.train import (DetectorTrainConfig, apply_gains, batch_plan, calibrate, default_train_steps,
+                                fit_temperature, load_model,
                                 lr_at, predict, read_meta, train_detector)
 
 torch.set_num_threads(1)
@@ -105,6 +106,11 @@ def test_fine_grid():
                                  torch.tensor([[3]]), torch.tensor([[2]]))
     loss.backward()
     assert math.isfinite(terms["loss"]) and m.lateral.weight.grad.abs().sum() > 0
+    # The default of a new 128px checkpoint is this fine, wider detector; below 128px the small one stays.
+    best = default_config(128)
+    assert best.fine and best.stem == 2 and best.widths == (32, 64, 128) and best.grid == 16
+    assert default_config(64) == DetectorConfig() and default_config(96).stem == 1
+    assert default_train_steps(128) == 9000 and default_train_steps(64) == DetectorTrainConfig.steps
     legacy = {k: v for k, v in DetectorConfig(image_size=128, stem=2).to_dict().items() if k != "fine"}
     assert DetectorConfig.from_dict(legacy).fine is False and DetectorConfig.from_dict(legacy).grid == 8
 

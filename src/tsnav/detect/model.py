@@ -86,6 +86,17 @@ class DetectorConfig:
         return d
 
 
+def default_config(image_size: int) -> DetectorConfig:
+    """The architecture ``tsnav detect --detector learned`` gives a new checkpoint for ``image_size`` px
+    frames: a space-to-depth stem of ``image_size / 64`` (a 128px frame costs what a 64px one does); from 128px
+    on, the wider backbone (32, 64, 128) with the fine (stride-4) grid, the best measured on the `ithor-real`
+    world (BENCHMARKS.md, "Learned detector"); below, the small default (16, 32, 64) of the demo world."""
+    stem = max(1, image_size // 64)
+    if image_size >= 128:
+        return DetectorConfig(image_size=image_size, stem=stem, widths=(32, 64, 128), fine=True)
+    return DetectorConfig(image_size=image_size, stem=stem)
+
+
 def _conv(cin: int, cout: int, stride: int, dilation: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, dilation, dilation=dilation, bias=False),
                          nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
