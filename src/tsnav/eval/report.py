@@ -38,6 +38,7 @@ from ..rl.logger import read_log
 from .gallery import write_gallery
 from ..metrics import METRICS, format_table
 from .runner import eval_trajectories
+from .tables import quality_line
 
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
@@ -463,6 +464,11 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> t
                      "seed), in percent. Files: " + ", ".join(
                          f"<code>{_e(f)}</code>" for f in ("table.md", "table.csv", "results.json") if (d / f).exists())
                      + ".</p>")
+    quality = results.get("detector_quality") or {}
+    if quality:
+        parts.append("<p class='note'>Detection tables (agents' input and stage switch; rows marked "
+                     "&lsquo;oracle switch&rsquo; read the oracle's), measured on the val rooms:</p><ul>"
+                     + "".join(f"<li>{_e(quality_line(q))}</li>" for q in quality.values()) + "</ul>")
     if (d / "threshold.png").exists():
         name_png = assets.copy(d / "threshold.png", f"threshold_{lab}")
         parts.append(f"<figure><img src='{name_png}' alt='threshold sweep' style='max-width:1100px'><figcaption>"
