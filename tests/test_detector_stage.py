@@ -135,5 +135,11 @@ def test_scales_size_the_detector_by_frame_side():
     assert SCALES["medium"].detector_model["stem"] == 2 and SCALES["paper"].detector_model["stem"] == 2
     assert all(isinstance(sc.detector_steps, int) and sc.detector_steps > 0 for sc in SCALES.values())
     tc, mc = detector_configs(SCALES["medium"], 128)
-    assert mc.image_size == 128 and mc.grid == 8 and tc.threads == 1 and tc.steps == SCALES["medium"].detector_steps
+    assert mc.image_size == 128 and mc.grid == 16 and tc.threads == 1 and tc.steps == SCALES["medium"].detector_steps
     assert np.array_equal(mc.widths, SCALES["medium"].detector_model["widths"])
+    # the 128-px scales train what `tsnav detect` trains on a 128-px world, the 64-px ones its small default
+    from tsnav.detect.model import default_config
+    from tsnav.detect.train import default_train_steps
+
+    assert mc == default_config(128) and tc.steps == default_train_steps(128)
+    assert detector_configs(SCALES["demo"], 64)[1] == default_config(64)

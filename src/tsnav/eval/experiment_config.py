@@ -22,12 +22,12 @@ DEMO_UPDATES = 1000
 #: update; 4000 updates = 31 M env steps, about the paper's 1.5 M episodes at ~20 steps per episode). To be set
 #: from the convergence curve (issue 15, item 3).
 MEDIUM_UPDATES = 4000
-#: The learned detector of the 128-px worlds (``ithor-real``): space-to-depth stem 2 and the widths of the best run
-#: on record (BENCHMARKS.md "learned detector", issue 14 item 1); the 64-px scales keep ``DetectorConfig``'s
-#: defaults with stem 1.
-DETECTOR_128 = {"stem": 2, "widths": (24, 48, 96)}
-#: Detector training steps of the 128-px scales (the run on record: 10,000 steps, still improving).
-DETECTOR_128_STEPS = 10000
+#: The learned detector of the 128-px worlds (``ithor-real``): space-to-depth stem 2, the wider backbone and the
+#: fine grid that ``tsnav detect`` gives a new 128-px checkpoint (:func:`tsnav.detect.model.default_config`,
+#: BENCHMARKS.md "Learned detector"); the 64-px scales keep ``DetectorConfig``'s defaults with stem 1.
+DETECTOR_128 = {"stem": 2, "widths": (32, 64, 128), "fine": True}
+#: Detector training steps of the 128-px scales (:func:`tsnav.detect.train.default_train_steps`).
+DETECTOR_128_STEPS = 9000
 
 
 
@@ -104,13 +104,13 @@ SCALES = {
     # ``updates_per_job`` (and the agent size, if the curve says so) from it.
     "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, milestone_every=500, num_envs=256, test_per_room_type=250,
                           val_per_room_type=100, world="ithor-real", detector_steps=DETECTOR_128_STEPS,
-                          detector_states_per_scene=1000, detector_model=dict(DETECTOR_128)),
+                          detector_states_per_scene=1600, detector_model=dict(DETECTOR_128)),
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
                          pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
                          num_envs=16, workers=14, updates_per_job=None, episodes_per_job=1_500_000,
                          milestone_every=None,
                          test_per_room_type=250, val_per_room_type=250, world="ithor-real",
-                         detector_steps=DETECTOR_128_STEPS, detector_states_per_scene=1000,
+                         detector_steps=DETECTOR_128_STEPS, detector_states_per_scene=1600,
                          detector_model=dict(DETECTOR_128)),
 }
 
