@@ -258,3 +258,41 @@ def test_targets_can_be_seen_and_reached(tiny_scenes):
     assert seen.mean() >= 0.9
     ok = [s.category_visible_within(1.0)[:, s.categories_present()].any(0) for s in tiny_scenes]
     assert np.concatenate(ok).mean() >= 0.75
+
+
+@pytest.mark.parametrize("name,world", [("FloorPlan1", "procedural"), ("FloorPlan21", "procedural"),
+                                        ("FloorPlan301", "ithor-real")])
+def test_state_tables_equal_reference(name, world):
+    """The array forms of the build (``state_poses``, ``state_keys``, ``graph_edges``) against the slow
+    per-state loop (``build_graph`` and the poses loop the build used before): same rows, keys and edges in
+    the same order; the sorted keys are the sorted nodes."""
+    from tsnav.constants import HORIZONS, ROTATIONS
+    from tsnav.world.navgrid import build_graph, graph_edges, reachable_positions, state_keys, state_poses
+    from tsnav.world.presets import scene_spec
+
+    positions, move = reachable_positions(scene_spec(name, world, compact=world == "procedural"))
+    assert (move < 0).any() and (move >= 0).any()
+    nodes, edges = build_graph(positions, move)
+    poses_ref = np.array([(x, z, r, h) for x, z in positions for r in ROTATIONS for h in HORIZONS], dtype=np.float64)
+    poses = state_poses(positions)
+    assert poses.dtype == np.float64 and np.array_equal(poses, poses_ref)
+    keys = state_keys(positions)
+    assert keys.tolist() == nodes == [state_key(*p) for p in poses_ref]
+    src, dst = graph_edges(move)
+    assert list(zip(keys[src].tolist(), keys[dst].tolist())) == edges
+    assert keys[np.argsort(keys, kind="stable")].tolist() == sorted(nodes)
+
+
+def test_built_graph_and_keys_equal_reference(tiny_world, tmp_path):
+    """A built scene's ``graph.json`` is byte for byte the one the per-state reference writes, and its
+    ``states.hdf5`` rows are the sorted reference nodes."""
+    from tsnav.data.writer import write_graph
+    from tsnav.world.navgrid import build_graph, reachable_positions
+    from tsnav.world.presets import scene_spec
+
+    name = "FloorPlan201"
+    nodes, edges = build_graph(*reachable_positions(scene_spec(name, compact=True)))
+    write_graph(tmp_path, sorted(nodes), edges)
+    assert filecmp.cmp(tmp_path / "graph.json", tiny_world / name / "graph.json", shallow=False)
+    with h5py.File(tiny_world / name / "states.hdf5", "r") as f:
+        assert [k.decode() for k in f["keys"][:]] == sorted(nodes)
