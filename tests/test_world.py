@@ -296,3 +296,29 @@ def test_built_graph_and_keys_equal_reference(tiny_world, tmp_path):
     assert filecmp.cmp(tmp_path / "graph.json", tiny_world / name / "graph.json", shallow=False)
     with h5py.File(tiny_world / name / "states.hdf5", "r") as f:
         assert [k.decode() for k in f["keys"][:]] == sorted(nodes)
+
+
+@pytest.mark.parametrize("depth_dtype,compression", [("float16", None), ("float32", "gzip")])
+def test_frame_writer_add_many_equals_add(tmp_path, depth_dtype, compression):
+    """``FrameWriter.add_many`` (one depth conversion per batch) writes the same bytes as ``add`` per frame."""
+    from tsnav.data.writer import FrameWriter
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (5, 8, 8, 3), dtype=np.uint8)
+    depth = rng.uniform(0.0, 12.0, (5, 8, 8)).astype(np.float32)
+    keys = np.array([state_key(x, 1.0, r, 30) for x, r in [(0.5, 0), (0.25, 45), (-1.0, 90), (2.0, 315), (0.0, 0)]])
+    for d in ("one", "many"):
+        (tmp_path / d).mkdir()
+    with FrameWriter(tmp_path / "one", depth_dtype, compression) as w:
+        for i in range(len(keys)):
+            w.add(keys[i], rgb[i], depth[i])
+    with FrameWriter(tmp_path / "many", depth_dtype, compression) as w:
+        w.add_many(keys[:2], rgb[:2], depth[:2])
+        w.add_many(keys[2:], rgb[2:], depth[2:])
+        with pytest.raises(ValueError, match="3 keys, 2 RGB"):
+            w.add_many(keys[:3], rgb[:2], depth[:2])
+    for f in ("images.hdf5", "depth.hdf5"):
+        assert filecmp.cmp(tmp_path / "one" / f, tmp_path / "many" / f, shallow=False), f
+    with h5py.File(tmp_path / "many" / "depth.hdf5", "r") as f:
+        assert f[keys[2]].dtype == np.dtype(depth_dtype)
+        assert np.array_equal(f[keys[2]][()], depth[2].astype(depth_dtype))

@@ -106,8 +106,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
                     t2 = time.perf_counter()
                     stats.render_s += t2 - t1
                     if frames is not None:
-                        for i in range(len(ids)):
-                            frames.add(keys[start + i], rgb[i], depth[i])
+                        frames.add_many(keys[start:start + len(ids)], rgb, depth)
                     stats.write_s += time.perf_counter() - t2
             t3 = time.perf_counter()
             # Distances: agent position to the nearest point of each object's footprint (floor plane); per position.
