@@ -90,10 +90,9 @@ def evaluate(bank: SceneBank, episodes: list[Episode], policy, config: EvalConfi
 
 def _run_chunk(bank, scene_idx, target, start, policy, switch: StageSwitch, config) -> dict[str, np.ndarray]:
     n = len(start)
-    env = BatchEnv(bank, n, max_steps=config.max_steps, autoreset=False)
+    env = BatchEnv(bank, n, max_steps=config.max_steps, autoreset=False, stage=switch)  # the env keeps the stage
     obs = env.reset(episodes=(scene_idx, target, start))
     policy.reset(np.ones(n, dtype=bool))
-    switch.reset(np.ones(n, dtype=bool), start, target)
     success = np.zeros(n, dtype=bool)
     steps = np.zeros(n, dtype=np.int64)
     path_length = np.zeros(n, dtype=np.int64)
@@ -106,7 +105,6 @@ def _run_chunk(bank, scene_idx, target, start, policy, switch: StageSwitch, conf
             raise ValueError(f"the policy returned actions of shape {actions.shape}, expected ({n},)")
         obs, _, term, trunc, info = env.step(actions)
         act = info["active"]
-        switch.update(info["final_state"], info["steps"], info["path_length"], active=act)
         fin = term | trunc
         success[fin] = info["success"][fin]
         steps[act] = info["steps"][act]
