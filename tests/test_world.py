@@ -44,6 +44,14 @@ def test_scene_names_and_splits():
     assert len(ithor_scenes(split="val")) == 20 and len(ithor_scenes(split="test")) == 20
     with pytest.raises(ValueError, match="unknown scene"):
         scene_info("FloorPlan31")
+    from tsnav.data import lineage_splits
+    from tsnav.data.names import lineage_scene_info, scene_base_name
+
+    assert scene_base_name("FloorPlan24_physics") == "FloorPlan24" == scene_base_name("FloorPlan24")
+    assert scene_base_name("FloorPlan_physics2") == "FloorPlan_physics2"  # only a suffix is stripped
+    assert lineage_splits.scene_base_name is scene_base_name  # one definition
+    assert lineage_scene_info("FloorPlan330_physics") == ("bedroom", "test")
+    assert lineage_scene_info("Kitchen_physics") == ("unknown", None)
 
 
 def test_generator_deterministic_and_varied():
