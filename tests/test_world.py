@@ -330,3 +330,17 @@ def test_frame_writer_add_many_equals_add(tmp_path, depth_dtype, compression):
     with h5py.File(tmp_path / "many" / "depth.hdf5", "r") as f:
         assert f[keys[2]].dtype == np.dtype(depth_dtype)
         assert np.array_equal(f[keys[2]][()], depth[2].astype(depth_dtype))
+
+
+def test_build_config_from_preset():
+    """One preset -> BuildConfig mapping (``build_dataset`` without a config and ``tsnav world`` use it)."""
+    from tsnav.world.build import BuildConfig
+    from tsnav.world.presets import PRESETS
+
+    for name, p in PRESETS.items():
+        cfg = BuildConfig.from_preset(name)
+        assert (cfg.image_size, cfg.compact, cfg.world) == (p["image_size"], p["compact"], p.get("world", "procedural"))
+        assert cfg.store_images and cfg.seed == 0
+    assert BuildConfig.from_preset("ithor-real").world == "ithor-real"
+    assert BuildConfig.from_preset("tiny", image_size=32, seed=3) == BuildConfig(image_size=32, compact=True, seed=3)
+    assert BuildConfig.from_preset(None) == BuildConfig.from_preset("custom") == BuildConfig()

@@ -47,6 +47,14 @@ class BuildConfig:
     def min_pixels(self) -> int:
         return min_pixels(self.image_size)
 
+    @classmethod
+    def from_preset(cls, preset: str | None, **overrides) -> "BuildConfig":
+        """The settings of ``preset`` (:data:`~tsnav.world.presets.PRESETS`: image size, compact rooms, world;
+        the defaults for ``None`` or a name that is not a preset), then ``overrides`` (field values)."""
+        p = PRESETS.get(preset or "", {})
+        return replace(cls(image_size=p.get("image_size", 64), compact=p.get("compact", False),
+                           world=p.get("world", "procedural")), **overrides)
+
 
 @dataclass
 class SceneStats:
@@ -185,9 +193,7 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
     for n in names:
         scene_info(n)  # validates the name
     if cfg is None:
-        p = PRESETS.get(preset or "", {})
-        cfg = BuildConfig(image_size=p.get("image_size", 64), compact=p.get("compact", False),
-                          world=p.get("world", "procedural"))
+        cfg = BuildConfig.from_preset(preset)
     check_output_dir(out)
     # Leftovers of interrupted builds are never complete: remove them.
     for stale in out.glob(".*.partial-*"):
