@@ -9,8 +9,10 @@ import pytest
 from tsnav.checkpoint import weights_digest
 from tsnav.cli import main
 from tsnav.eval import select as sel
+from tsnav.eval.runner import eval_bank, eval_policy
 from tsnav.eval.select import select_checkpoint
 from tsnav.rl.checkpoint import BEST, list_checkpoints, load_model, resolve_checkpoint
+from tsnav.sim.episodes import read_episodes
 
 from conftest import PIXEL_FEATURES as FEATS
 
@@ -60,14 +62,22 @@ def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys, 
     select_checkpoint(run, world, eps, max_steps=30, progress=seen.append)
     assert seen == [] and hashed == [names[0]]
 
-    # `tsnav eval --run` evaluates best by default, the same as naming the chosen checkpoint's folder
-    out = {}
+    # `tsnav eval --run` evaluates best by default, the same as naming the chosen checkpoint's folder, and not
+    # the latest: the weights of the policy each evaluation folder describes (what evaluate_to_folder ran and a
+    # re-roll loads) are compared. Tiny training scores every checkpoint alike, so the earliest wins the tie and
+    # best differs from latest; the records of such near-identical agents can coincide, the weights cannot.
+    assert res["best"] != names[-1], "the test needs a best checkpoint other than the latest"
+    digests = {}
     for tag, extra in (("auto", []), ("path", ["--checkpoint", str(run / "checkpoints" / res["best"])]),
                        ("latest", ["--checkpoint", "latest"])):
         assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--max-steps", "30",
                      "--out", str(tmp_path / tag), *extra]) == 0
-        out[tag] = json.loads((tmp_path / tag / "records.jsonl").read_text().splitlines()[0])
-    assert out["auto"] == out["path"]
+        meta = json.loads((tmp_path / tag / "metrics.json").read_text())
+        episodes, _ = read_episodes(eps)
+        digests[tag] = weights_digest(eval_policy(meta, eval_bank(meta, episodes)).model.state_dict())
+    assert digests["auto"] == digests["path"] == res["scores"][res["best"]]["digest"]
+    assert digests["latest"] == res["scores"][names[-1]]["digest"] != digests["auto"]
+    assert (tmp_path / "auto" / "records.jsonl").read_bytes() == (tmp_path / "path" / "records.jsonl").read_bytes()
     assert json.loads((tmp_path / "auto" / "metrics.json").read_text())["checkpoint"] == "auto"
     # a checkpoint whose weights changed (here: another one's file copied over it) is rehashed and rescored
     (run / "checkpoints" / names[1] / "model.safetensors").write_bytes(
