@@ -11,9 +11,10 @@ import torch
 
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
-from tsnav.detect.model import (DetectorConfig, GridDetector, dense_targets, dense_targets_reference,
+from tsnav.detect.model import (DetectorConfig, GridDetector, default_config, dense_targets, dense_targets_reference,
                                 detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
-from tsnav.detect.train import (DetectorTrainConfig, apply_gains, batch_plan, calibrate, fit_temperature, load_model,
+from tsnav.detect.train import (DetectorTrainConfig, apply_gains, batch_plan, calibrate, default_train_steps,
+                                fit_temperature, load_model,
                                 lr_at, predict, read_meta, train_detector)
 
 torch.set_num_threads(1)
@@ -65,6 +66,53 @@ def test_space_to_depth_stem():
     with pytest.raises(ValueError, match="multiple of 16"):
         GridDetector(DetectorConfig(image_size=72, stem=2))
     assert DetectorConfig.from_dict({k: v for k, v in DetectorConfig().to_dict().items() if k != "stem"}).stem == 1
+
+
+def test_fine_grid():
+    """fine: a grid twice as fine (stride 4 after the stem); its cell feature is the smoothed sum of the
+    upsampled coarse neck output and the stride-4 stage's lateral projection; the dense targets and loss work
+    on it; old configs (no ``fine`` field) read as coarse."""
+    torch.manual_seed(0)
+    cfg = DetectorConfig(image_size=128, stem=2, widths=(8, 16, 32), dim=16, fine=True)
+    assert cfg.grid == 16 and DetectorConfig.from_dict(cfg.to_dict()) == cfg
+    m = GridDetector(cfg).eval()
+    x = m.normalize(torch.randint(0, 256, (2, 128, 128, 3), dtype=torch.uint8))
+    cl, cb, cf = m.dense(x)
+    assert cl.shape == (2, NUM_CATEGORIES, 256) and cb.shape == (2, NUM_CATEGORIES, 256, 4)
+    assert cf.shape == (2, 256, 16)
+    u = torch.nn.functional.pixel_unshuffle(x, 2)
+    stage2 = m.backbone[:3](u)
+    coarse = m.neck(m.backbone[3:](stage2))
+    assert stage2.shape[-1] == 16 and coarse.shape[-1] == 8
+    up = coarse.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3)  # nearest upsampling by hand
+    expect = m.smooth(up + m.lateral(stage2)).flatten(2).transpose(1, 2)
+    torch.testing.assert_close(cf, expect)
+    # A 6x6-pixel object at the top left claims the fine cell that holds its centre.
+    boxes = torch.tensor([[[2 / 128, 2 / 128, 8 / 128, 8 / 128]]])
+    pos, _, _ = dense_targets(boxes, torch.tensor([[3]]), torch.tensor([[2]]), cfg.grid)
+    assert pos[0, 3].nonzero().flatten().tolist() == [0]
+    # Random objects on the fine grid, with area ties inside a class and untargeted padding: as the reference.
+    g = torch.Generator().manual_seed(1)
+    lo, hi = torch.rand(4, 9, 2, generator=g) * 0.7, torch.rand(4, 9, 2, generator=g) * 0.3
+    rnd = torch.cat([lo, lo + hi], -1)
+    rnd[:, 1] = rnd[:, 0]
+    cat = torch.randint(-1, 4, (4, 9), generator=g)
+    cat[:, 1] = cat[:, 0]
+    st = torch.randint(0, 3, (4, 9), generator=g)
+    for f, r in zip(dense_targets(rnd, cat, st, 16), dense_targets_reference(rnd.numpy(), cat.numpy(), st.numpy(), 16)):
+        np.testing.assert_array_equal(f.numpy(), r)
+    m.train()
+    loss, terms = detection_loss(m, x[:1], torch.zeros(1, NUM_CATEGORIES, dtype=torch.bool), boxes,
+                                 torch.tensor([[3]]), torch.tensor([[2]]))
+    loss.backward()
+    assert math.isfinite(terms["loss"]) and m.lateral.weight.grad.abs().sum() > 0
+    # The default of a new 128px checkpoint is this fine, wider detector; below 128px the small one stays.
+    best = default_config(128)
+    assert best.fine and best.stem == 2 and best.widths == (32, 64, 128) and best.grid == 16
+    assert default_config(64) == DetectorConfig() and default_config(96).stem == 1
+    assert default_train_steps(128) == 9000 and default_train_steps(64) == DetectorTrainConfig.steps
+    legacy = {k: v for k, v in DetectorConfig(image_size=128, stem=2).to_dict().items() if k != "fine"}
+    assert DetectorConfig.from_dict(legacy).fine is False and DetectorConfig.from_dict(legacy).grid == 8
 
 
 def test_box_conversions_and_giou():

@@ -11,8 +11,9 @@ from PIL import Image
 from tsnav.constants import CATEGORY_INDEX, ROOM_TARGETS
 from tsnav.detect.evaluate import reliability_table
 from tsnav.detect.oracle import ground_truth, oracle_detections
+from tsnav.detect.evaluate import average_precision
 from tsnav.detect.quality import (detection_gallery, main, pick_gallery_states, reliability_figure, scene_targets,
-                                  switch_report, switch_report_reference)
+                                  subset_ap, subset_report, switch_report, switch_report_reference)
 from tsnav.data.detections import write_detections
 
 
@@ -64,6 +65,26 @@ def test_switch_report_by_hand_and_against_reference(tiny_scenes):
     assert fast.to_json()["reach"] == pytest.approx(fast.reached / fast.pairs)
     with pytest.raises(ValueError, match="do not match"):
         switch_report([tiny_scenes[0]], [dets[1]])
+
+
+def test_subset_ap_by_hand_and_on_scenes(tiny_scenes):
+    # One class, 6 states: in view at 0, 1, 2 (subset: 0 and 2), not in view at 3, 4, 5.
+    present = np.array([1, 1, 1, 0, 0, 0], bool)[:, None]
+    subset = np.array([1, 0, 1, 0, 0, 0], bool)[:, None]
+    scores = np.array([0.9, 0.1, 0.5, 0.6, 0.2, 0.3], np.float32)[:, None]
+    # State 1 (in view, outside the subset) is left out: ranking 0.9+, 0.6-, 0.5+, 0.3-, 0.2- -> AP (1 + 2/3) / 2.
+    assert subset_ap(scores, present, subset)[0] == pytest.approx((1 + 2 / 3) / 2)
+    assert np.isnan(subset_ap(scores, present, np.zeros_like(subset))[0])
+    # The whole set as the subset is the plain presence AP; the size buckets partition the positives.
+    dets = [_noisy(oracle_detections(x), k) for k, x in enumerate(tiny_scenes)]
+    sc = np.concatenate([d.scores for d in dets])
+    gt = np.concatenate([ground_truth(x).present for x in tiny_scenes])
+    full = subset_ap(sc, gt, np.ones_like(gt))
+    c = int(np.argmax(gt.sum(0)))
+    assert full[c] == pytest.approx(average_precision(sc[:, c], gt[:, c]))
+    rep = subset_report(tiny_scenes, dets)
+    assert sum(rep[b]["positives"] for b in ("small", "medium", "large")) == int(gt.sum())
+    assert 0 < rep["within 1.5 m"]["positives"] <= int(gt.sum())
 
 
 def test_figures_and_command(tiny_world, tiny_scenes, tmp_path, capsys):

@@ -30,9 +30,9 @@ from ..data.reader import list_scenes, load_scene
 from ..errors import CommandError
 from .evaluate import evaluate_detections
 from .learned import LearnedDetector
-from .model import DetectorConfig
+from .model import default_config
 from .oracle import OracleConfig, oracle_detections
-from .train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
+from .train import DetectorTrainConfig, calibrate, default_train_steps, is_checkpoint, read_meta, train_detector
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -41,8 +41,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None,
                    help="learned: checkpoint folder (default DATA/detectors/learned); trained there if needed")
     p.add_argument("--train-steps", type=int, default=None,
-                   help="learned: train up to this many steps (default: 2500 for a new checkpoint, the "
-                        "checkpoint's own target for an existing one)")
+                   help="learned: train up to this many steps (default for a new checkpoint: 9000 for frames of "
+                        "128px or more, else 2500; an existing checkpoint's own target)")
     p.add_argument("--batch-size", type=int, default=None, help="learned: frames per training step (default 64)")
     p.add_argument("--max-states-per-scene", type=int, default=None,
                    help="learned: train on at most this many random states per train scene")
@@ -51,7 +51,11 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                         "128px frames cost what 64px ones do)")
     p.add_argument("--widths", default=None,
                    help="learned, new checkpoint: channels of the three backbone stages, e.g. 24,48,96 "
-                        "(default 16,32,64)")
+                        "(default 32,64,128 for frames of 128px or more, else 16,32,64)")
+    p.add_argument("--fine", action=argparse.BooleanOptionalAction, default=None,
+                   help="learned, new checkpoint: output cells of stride 4 after the stem instead of 8 (an FPN-style "
+                        "lateral from the second stage; better for small objects; default on for frames of 128px "
+                        "or more)")
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
@@ -82,13 +86,15 @@ def _learned(args, root: Path):
         raise CommandError(f"--checkpoint {ckpt} is a file; give a checkpoint folder")
     if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
         raise CommandError(f"--checkpoint {ckpt} is a folder that holds no detector checkpoint")
+    model_cfg = _model_config(args, root)
     steps = args.train_steps
     if steps is None:  # an existing checkpoint: finish its own target (a no-op when it is finished)
-        steps = int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt) else DetectorTrainConfig.steps
+        steps = (int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt)
+                 else default_train_steps(model_cfg.image_size))
     tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene)
     if args.batch_size:
         tc.batch_size = args.batch_size
-    res = train_detector(root, ckpt, tc, model_cfg=_model_config(args, root), progress=not args.quiet)
+    res = train_detector(root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet)
     if res.step > res.start_step:
         print(f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "
               f"(last loss {res.last.get('loss', float('nan')):.3f}); checkpoint {ckpt}")
@@ -104,14 +110,15 @@ def _learned(args, root: Path):
 
 
 def _model_config(args, root: Path):
-    """Architecture of a new checkpoint: input side = the train scenes' frame side; ``--stem`` / ``--widths``."""
+    """Architecture of a new checkpoint: :func:`~tsnav.detect.model.default_config` of the train scenes' frame
+    side, changed by ``--stem`` / ``--widths`` / ``--fine``."""
 
     train = list_scenes(root, split="train")
     if not train:
         raise CommandError(f"{root}: no complete train scene to train the detector on")
     size = load_scene(train[0]).image_size
-    stem = args.stem if args.stem is not None else max(1, size // 64)
-    cfg = DetectorConfig(image_size=size, stem=stem)
+    cfg = default_config(size)
+    stem = cfg.stem = args.stem if args.stem is not None else cfg.stem
     if args.widths:
         try:
             widths = tuple(int(w) for w in args.widths.split(","))
@@ -120,6 +127,8 @@ def _model_config(args, root: Path):
         if len(widths) != 3 or min(widths) < 1:
             raise CommandError(f"--widths {args.widths!r}: give three positive channel counts, e.g. 24,48,96")
         cfg.widths = widths
+    if args.fine is not None:
+        cfg.fine = bool(args.fine)
     if stem < 1 or size % (8 * stem) or size < 16 * stem:
         raise CommandError(f"--stem {stem} does not fit {size}px frames (the side must be a multiple of 8 x stem)")
     return cfg

@@ -10,7 +10,9 @@ Architecture, for ``S x S`` frames (64 x 64 by default), ``G = S / 8`` cells a s
 
 * backbone: conv3x3-BN-ReLU layers with strides 2, 2, 1, 2, 1 and a dilated (2) conv3x3 for context
   (receptive field 71 px): ``[N, 3, S, S] -> [N, C, G, G]``;
-* neck: 1x1 conv to ``dim`` channels + ReLU: the per-cell feature ``[N, dim, G, G]``;
+* neck: 1x1 conv to ``dim`` channels + ReLU: the per-cell feature ``[N, dim, G, G]``; with
+  ``DetectorConfig.fine`` the grid is twice as fine (``G = S / 4``): the neck's output is upsampled and added
+  to a 1x1 projection of the stride-4 stage, then smoothed by a conv3x3-BN-ReLU (one FPN level);
 * heads (1x1 convs): a logit per class and cell ``[N, 22, G, G]``, and per class and cell a box as offsets
   of its four edges from the cell centre, in frame units ``[N, 22, 4, G, G]``.
 
@@ -57,11 +59,16 @@ class DetectorConfig:
     stem: int = 1
     """Space-to-depth factor of the input (pixel unshuffle): with 2, a 128x128 frame enters the backbone as 12
     channels at 64x64, so the network costs about what it costs at 64x64 yet sees every pixel."""
+    fine: bool = False
+    """Finer output grid: cells of stride 4 after the stem instead of 8 (twice as many a side). The last
+    stage's feature is upsampled (nearest) and added to a 1x1 projection of the second stage's (an FPN-style
+    lateral), then smoothed by a conv3x3-BN-ReLU; small objects (a phone, a remote) then own cells of their
+    own. Checkpoints written before this field have ``fine`` False."""
 
     @property
     def grid(self) -> int:
-        """Cells per side of the output grid (stride 8 after the space-to-depth stem)."""
-        return self.image_size // (8 * self.stem)
+        """Cells per side of the output grid (stride 8 after the space-to-depth stem, 4 when ``fine``)."""
+        return self.image_size // (8 * self.stem) * (2 if self.fine else 1)
 
     @classmethod
     def from_dict(cls, d: dict) -> "DetectorConfig":
@@ -77,6 +84,17 @@ class DetectorConfig:
         d = asdict(self)
         d["widths"] = list(self.widths)
         return d
+
+
+def default_config(image_size: int) -> DetectorConfig:
+    """The architecture ``tsnav detect --detector learned`` gives a new checkpoint for ``image_size`` px
+    frames: a space-to-depth stem of ``image_size / 64`` (a 128px frame costs what a 64px one does); from 128px
+    on, the wider backbone (32, 64, 128) with the fine (stride-4) grid, the best measured on the `ithor-real`
+    world (BENCHMARKS.md, "Learned detector"); below, the small default (16, 32, 64) of the demo world."""
+    stem = max(1, image_size // 64)
+    if image_size >= 128:
+        return DetectorConfig(image_size=image_size, stem=stem, widths=(32, 64, 128), fine=True)
+    return DetectorConfig(image_size=image_size, stem=stem)
 
 
 def _conv(cin: int, cout: int, stride: int, dilation: int = 1) -> nn.Sequential:
@@ -105,6 +123,9 @@ class GridDetector(nn.Module):
         self.backbone = nn.Sequential(_conv(3 * cfg.stem ** 2, w1, 2), _conv(w1, w2, 2), _conv(w2, w2, 1), _conv(w2, w3, 2),
                                       _conv(w3, w3, 1), _conv(w3, w3, 1, dilation=2))
         self.neck = nn.Sequential(nn.Conv2d(w3, cfg.dim, 1), nn.ReLU(inplace=True))
+        if cfg.fine:
+            self.lateral = nn.Conv2d(w2, cfg.dim, 1)
+            self.smooth = _conv(cfg.dim, cfg.dim, 1)
         self.cls_head = nn.Conv2d(cfg.dim, C, 1)
         self.box_head = nn.Conv2d(cfg.dim, C * 4, 1)
         # Start: cells at the focal-loss prior 0.01 (RetinaNet); boxes 0.2 frame wide around the cell centre.
@@ -127,7 +148,12 @@ class GridDetector(nn.Module):
         ``[x0, y0, x1, y1]`` (corners ordered, not clipped), cell features ``[N, L, dim]``), ``L = G * G``."""
         if self.cfg.stem > 1:
             x = F.pixel_unshuffle(x, self.cfg.stem)
-        f = self.neck(self.backbone(x))  # [N, dim, G, G]
+        if self.cfg.fine:
+            stage2 = self.backbone[:3](x)  # [N, w2, 2G', 2G'] (stride 4)
+            coarse = self.neck(self.backbone[3:](stage2))  # [N, dim, G', G'] (stride 8)
+            f = self.smooth(F.interpolate(coarse, scale_factor=2, mode="nearest") + self.lateral(stage2))
+        else:
+            f = self.neck(self.backbone(x))  # [N, dim, G, G]
         N, C = x.shape[0], self.cfg.num_classes
         logits = self.cls_head(f).flatten(2)  # [N, 22, L]
         d = self.box_head(f).reshape(N, C, 4, -1).transpose(2, 3)  # [N, 22, L, 4]
@@ -177,16 +203,26 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     my = ((boxes[..., 1] + boxes[..., 3]) / 2 * grid).floor().clamp(0, grid - 1)
     centre_cell = (my * grid + mx).long()  # [B, K]
     claims = inside | (torch.arange(L, device=boxes.device) == centre_cell[..., None])  # [B, K, L]
-    onehot = (category[..., None] == torch.arange(num_classes, device=boxes.device)) & (category[..., None] >= 0)
+    # Each object has one class: reduce over objects into per-class maps by scatter (no [B, K, 22, L] tensor).
+    # Objects without a target class (-1) go to a dummy class row ``num_classes`` that is dropped at the end.
+    cls = torch.where(category >= 0, category, torch.full_like(category, num_classes)).long()
+    index = cls[..., None].expand(-1, -1, L)  # [B, K, L]
     vis = claims & (state == 2)[..., None]  # [B, K, L]
     weak = claims & (state == 1)[..., None]
-    vis_c = onehot[..., None] & vis[:, :, None, :]  # [B, K, 22, L]
-    weak_c = onehot[..., None] & weak[:, :, None, :]
-    positive = vis_c.any(dim=1)  # [B, 22, L]
-    ignore = weak_c.any(dim=1) & ~positive
+    inf = torch.tensor(float("inf"), device=boxes.device)
     area = ((boxes[..., 2] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 1]))  # [B, K]
-    masked = torch.where(vis_c, area[..., None, None], torch.full_like(area[..., None, None], float("inf")))
-    k = masked.argmin(dim=1)  # [B, 22, L]: first smallest
+    masked = torch.where(vis, area[..., None], inf)  # [B, K, L]
+    smallest = torch.full((B, num_classes + 1, L), float("inf"), device=boxes.device)
+    smallest = smallest.scatter_reduce(1, index, masked, reduce="amin")  # [B, 23, L]
+    positive = torch.isfinite(smallest[:, :num_classes])  # [B, 22, L]
+    # The first object of the class whose area is the smallest (the reference's tie rule).
+    first = torch.where(vis & (masked == torch.gather(smallest, 1, index)),
+                        torch.arange(K, device=boxes.device)[None, :, None], K)  # [B, K, L]
+    k = torch.full((B, num_classes + 1, L), K, device=boxes.device, dtype=torch.long)
+    k = k.scatter_reduce(1, index, first, reduce="amin")[:, :num_classes].clamp(max=max(K - 1, 0))
+    weak_c = torch.zeros((B, num_classes + 1, L), device=boxes.device, dtype=torch.long)
+    weak_c = weak_c.scatter_reduce(1, index, weak.long(), reduce="amax")[:, :num_classes].bool()
+    ignore = weak_c & ~positive
     target = torch.gather(boxes[:, None, :, :].expand(-1, num_classes, -1, -1), 2,
                           k[..., None].expand(-1, -1, -1, 4))  # [B, 22, L, 4]
     target = torch.where(positive[..., None], target, torch.zeros_like(target))

@@ -37,11 +37,19 @@ from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, ROOM_TARGETS, TARGET_CAT
 from ..data.detections import Detections, load_detections
 from ..data.reader import list_scenes, load_scene
 from .data import read_images
-from .evaluate import box_iou, evaluate_detections
+from .evaluate import average_precision, box_iou, evaluate_detections
 from .oracle import ground_truth
 
 #: Score thresholds at which false positives are counted.
 FP_THRESHOLDS = (0.5, 0.7, 0.9)
+
+#: Size buckets of :func:`subset_ap`: the target's visible pixels as a share of the frame (upper bounds; at
+#: 128x128: small < 82 px, about 9x9; medium < 492 px, about 22x22; large the rest).
+SIZE_BUCKETS = (("small", 0.005), ("medium", 0.03), ("large", float("inf")))
+
+#: The lineage's visibility distance (AI2-THOR's ``visibilityDistance``, metres): the "near" figure counts a
+#: class as in view only when its instance is within this distance.
+NEAR_DISTANCE = 1.5
 
 
 def scene_targets(scene) -> np.ndarray:
@@ -162,6 +170,56 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
                         fp_pair_any={t: share(v, neg_any) for t, v in fp_p_any.items()},
                         fp_pair_target={t: share(v, neg_tgt) for t, v in fp_p_tgt.items()},
                         states=n_states, scenes=[s.name for s in scenes])
+
+
+def subset_ap(scores: np.ndarray, present: np.ndarray, subset: np.ndarray) -> np.ndarray:
+    """``(22,)`` presence AP per class counting only the in-view (state, class) pairs of ``subset`` as
+    positives: in-view pairs outside it are left out (neither positive nor negative), pairs not in view are the
+    negatives (COCO's area ranges, applied to presence). NaN for a class without positives in ``subset``."""
+    out = np.full(present.shape[1], np.nan)
+    for c in range(present.shape[1]):
+        keep = ~present[:, c] | subset[:, c]
+        pos = present[keep, c] & subset[keep, c]
+        if pos.any():
+            out[c] = average_precision(scores[keep, c], pos)
+    return out
+
+
+def subset_report(scenes: Sequence, detections: Sequence[Detections]) -> dict:
+    """Presence AP by the target's size in the frame (:data:`SIZE_BUCKETS`) and for targets within
+    :data:`NEAR_DISTANCE` (an AI2-THOR-style figure, reported beside the issue's definition, never instead):
+    ``{bucket: {"mean_presence_ap", "positives", "classes": {class: AP}}}``."""
+    scores, present, pixels, distance = [], [], [], []
+    for s, d in zip(scenes, detections):
+        gt = ground_truth(s)
+        scores.append(d.scores)
+        present.append(gt.present)
+        pixels.append(gt.pixels / float(s.image_size ** 2))
+        distance.append(gt.distance)
+    scores, present = np.concatenate(scores), np.concatenate(present)
+    share, distance = np.concatenate(pixels), np.concatenate(distance)
+    subsets, lo = {}, 0.0
+    for name, hi in SIZE_BUCKETS:
+        subsets[name] = (share >= lo) & (share < hi)
+        lo = hi
+    subsets[f"within {NEAR_DISTANCE:g} m"] = np.nan_to_num(distance, nan=np.inf) <= NEAR_DISTANCE
+    out = {}
+    for name, sub in subsets.items():
+        ap = subset_ap(scores, present, sub)
+        out[name] = {"mean_presence_ap": float(np.nanmean(ap)) if np.isfinite(ap).any() else None,
+                     "positives": int((present & sub).sum()),
+                     "classes": {c: float(ap[i]) for i, c in enumerate(TARGET_CATEGORIES) if np.isfinite(ap[i])}}
+    return out
+
+
+def format_subsets(report: dict) -> str:
+    """:func:`subset_report` as text: mean presence AP and positives per subset."""
+    lines = [f"{'subset':<16} {'positives':>9} {'classes':>7} {'mean presence AP':>17}"]
+    for name, r in report.items():
+        ap = r["mean_presence_ap"]
+        lines.append(f"{name:<16} {r['positives']:9d} {len(r['classes']):7d} "
+                     f"{(f'{ap:.3f}' if ap is not None else '-'):>17}")
+    return "\n".join(lines)
 
 
 def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], c_target: float = 0.7,
@@ -310,11 +368,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     dets = [load_detections(s.path, args.name) for s in scenes]
     report = evaluate_detections(scenes, dets)
     switch = switch_report(scenes, dets, args.c_target)
+    subsets = subset_report(scenes, dets)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / f"quality_{args.split}.json",
                       {"name": args.name, "detector": dets[0].detector, "fingerprint": dets[0].fingerprint,
-                       "config": dets[0].config, "evaluation": report.to_json(), "switch": switch.to_json()},
+                       "config": dets[0].config, "evaluation": report.to_json(), "switch": switch.to_json(),
+                       "subsets": subsets},
                       indent=1)
     reliability_figure([("all (state, class) pairs", report.reliability),
                         ("classes present in the scene", report.reliability_present)],
@@ -326,6 +386,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                             f"box missed, red class not in view), ground truth dashed")
     print(report.format())
     print(switch.format())
+    print("presence AP by the target's size in the frame, and within 1.5 m (AI2-THOR-style, beside the above):")
+    print(format_subsets(subsets))
     print(f"wrote {out / f'quality_{args.split}.json'}, reliability_{args.split}.png, gallery_{args.split}.png")
     return 0
 

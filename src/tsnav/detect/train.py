@@ -94,6 +94,12 @@ class DetectorTrainConfig:
         return from_fields(cls, d, "train config")
 
 
+def default_train_steps(image_size: int) -> int:
+    """Training steps ``tsnav detect`` gives a new checkpoint for ``image_size`` px frames: 9000 from 128px on
+    (the `ithor-real` detector of BENCHMARKS.md), else :attr:`DetectorTrainConfig.steps`."""
+    return 9000 if image_size >= 128 else DetectorTrainConfig.steps
+
+
 def lr_at(step: int, cfg: DetectorTrainConfig) -> float:
     """Learning rate of optimiser step ``step`` (0-based): warm-up, then cosine to ``min_lr_ratio * lr``
     (:func:`tsnav.schedule.warmup_cosine`)."""
