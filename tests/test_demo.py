@@ -1,7 +1,7 @@
 """The main job on the tiny world with tiny budgets: every stage runs, the report and the results table are
 written, a second run reuses every stage, and a removed output is rebuilt with what depends on it.
 
-The trainer is the stand-in of ``test_experiment`` (a loadable run folder with an untrained agent)."""
+The trainer is the real one (``tsnav.rl.train.train_run``, two updates of four envs), wrapped to count its calls."""
 
 import json
 import shutil
@@ -9,9 +9,9 @@ from dataclasses import replace
 
 import pytest
 
-from test_experiment import StandInTrainer
 from tsnav.demo import STAGES, DemoConfig, run_demo, train_subset
 from tsnav.eval.experiment_config import SCALES
+from tsnav.rl.train import train_run
 
 TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, gallery=2,
                   scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
@@ -24,6 +24,19 @@ NO_LEARNED = shutil.ignore_patterns("detections_learned*")
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+class CountedTrainer:
+    """The real trainer, recording each call's reward, features, C_target and seed."""
+
+    def __init__(self):
+        self.calls = []
+        self.detections = []
+
+    def __call__(self, tc, agent, run_dir):
+        self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
+        self.detections.append(tc.detections)
+        return train_run(tc, agent, run_dir)
 
 
 def test_train_subset_links_smallest_rooms(tmp_path, tiny_world, tiny_scenes):
@@ -40,11 +53,15 @@ def test_train_subset_links_smallest_rooms(tmp_path, tiny_world, tiny_scenes):
 def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     out = tmp_path / "demo"
     shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)  # the world stage then only checks it
-    trainer = StandInTrainer()
+    trainer = CountedTrainer()
     res = run_demo(out, TINY, train_fn=trainer)
     assert [res["stages"][s][0] for s in STAGES] == ["done"] * len(STAGES)
     assert list(res["results"]) == ["agent (TSRM, DE-MAE)", "scripted explorer", "random"]
     assert len(trainer.calls) == 1 and trainer.calls[0][0] == "tsrm"
+    log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines() if line.strip()]
+    assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.updates_per_job == 2  # trained for real
+    assert json.loads((out / "stages" / "train.json").read_text())["update"] == 2
+    ckpts = sorted(p.name for p in (out / "run" / "checkpoints").iterdir())
     for name in ("agent", "explorer", "random"):
         m = json.loads((out / "eval" / name / "metrics.json").read_text())
         assert m["detections"] == "learned" and (out / "eval" / name / "trajectories.jsonl").exists()
@@ -67,10 +84,11 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     assert "scripted explorer" in text.split("results on the test episodes")[1]
 
     # a second run reuses every stage and trains nothing
-    again = StandInTrainer()
+    again = CountedTrainer()
     res2 = run_demo(out, TINY, train_fn=again)
     assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES)
-    assert again.calls == [] and res2["results"].keys() == res["results"].keys()
+    assert again.calls == [] and res2["results"] == res["results"]
+    assert sorted(p.name for p in (out / "run" / "checkpoints").iterdir()) == ckpts
 
     # a lost evaluation is redone, and the report after it
     shutil.rmtree(out / "eval" / "random")
@@ -118,7 +136,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
     hold learned tables (written by an experiment) is used as it is: no detector trained."""
     out = tmp_path / "oracle"
     shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)
-    trainer = StandInTrainer()
+    trainer = CountedTrainer()
     res = run_demo(out, replace(TINY, detections="oracle"), train_fn=trainer)
     assert res["stages"]["detector"][0] == "-" and not (out / "detector").exists()
     assert trainer.detections == ["oracle"]
@@ -133,7 +151,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
     from tsnav.errors import CommandError
 
     with pytest.raises(CommandError, match=r"detections_learned.hdf5 was made by another detector \(oracle-"):
-        run_demo(out2, TINY, train_fn=StandInTrainer())
+        run_demo(out2, TINY, train_fn=CountedTrainer())
 
     # learned tables of one detector in every room (an experiment's): used as they are
     from tsnav.eval.detector_stage import ensure_learned_detections
@@ -145,7 +163,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
     made = ensure_learned_detections(out2 / "world", "learned", tmp_path / "exp_detector", TINY.scale, progress=False,
                                      say=lambda m: None)
     capsys.readouterr()
-    trainer = StandInTrainer()
+    trainer = CountedTrainer()
     run_demo(out2, TINY, train_fn=trainer)
     assert "no detector trained" in capsys.readouterr().out and not (out2 / "detector").exists()
     assert trainer.detections == ["learned"]

@@ -33,6 +33,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..atomic import atomic_save_figure, atomic_write_text
+from ..checkpoint_layout import BrokenCheckpoint, read_progress
 from ..errors import CommandError
 from ..rl.logger import read_log
 from .gallery import write_gallery
@@ -394,14 +395,12 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
 
 
 def _pretrain_progress(d: Path) -> dict:
-    """State of a pretraining run's newest checkpoint (``checkpoints/ckpt_<step>/state.json``; run folders
-    written before that layout: ``progress.json``); JSON only, so that reports need no torch."""
-    states = sorted(p for p in d.glob("checkpoints/ckpt_*/state.json") if "." not in p.parent.name)
-    for p in states[::-1]:
-        state = _read_json(p)
-        if isinstance(state, dict):
-            return state
-    return _read_json(d / "progress.json") or {}
+    """:func:`~tsnav.checkpoint_layout.read_progress` of a pretraining run ({} when there is none or it does not
+    read); JSON only, so that reports need no torch."""
+    try:
+        return read_progress(d) or {}
+    except BrokenCheckpoint:
+        return {}
 
 
 def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
