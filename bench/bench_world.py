@@ -1,7 +1,8 @@
 """Dataset-building throughput: states per second at 64, 128 and 224 pixels, render and write separately.
 
 Builds four full-size kitchens with two worker processes (both cores busy) into a temporary folder and
-prints, per image size, the end-to-end rate, and the render-only and write-only rates summed over workers.
+prints, per image size, the end-to-end rate, and the render-only and write-only rates summed over workers;
+then the time of the scenes' state tables (poses, keys, graph edges) in array form against the per-state loop.
 Run: .venv/bin/python bench/bench_world.py [--sizes 64 128 224] [--scenes 4]
 """
 
@@ -11,7 +12,31 @@ import argparse
 import tempfile
 import time
 
+import numpy as np
+
+from tsnav.constants import HORIZONS, ROTATIONS
 from tsnav.world.build import BuildConfig, build_dataset
+from tsnav.world.navgrid import build_graph, graph_edges, reachable_positions, state_keys, state_poses
+from tsnav.world.presets import scene_spec
+
+
+def state_tables(names: list[str]) -> None:
+    """Print the time of the build's state tables, array form against the per-state reference loop."""
+    grids = [reachable_positions(scene_spec(n)) for n in names]
+    t = time.perf_counter()
+    for positions, move in grids:
+        np.array([(x, z, r, h) for x, z in positions for r in ROTATIONS for h in HORIZONS], dtype=np.float64)
+        build_graph(positions, move)
+    ref = time.perf_counter() - t
+    t = time.perf_counter()
+    for positions, move in grids:
+        keys = state_keys(positions)
+        state_poses(positions)
+        src, dst = graph_edges(move)
+        list(zip(keys[src].tolist(), keys[dst].tolist()))
+    fast = time.perf_counter() - t
+    states = sum(len(p) for p, _ in grids) * len(ROTATIONS) * len(HORIZONS)
+    print(f"state tables of {states} states: per-state loop {ref * 1e3:.0f} ms, arrays {fast * 1e3:.0f} ms")
 
 
 def main() -> None:
@@ -32,6 +57,7 @@ def main() -> None:
         write = sum(s.write_s for s in stats)
         # per-worker busy times are summed; divide by workers for the rate with all workers busy
         print(f"{size:>5} {n:>7} {wall:>7.1f} {n / wall:>9.0f} {n / render * a.workers:>9.0f} {n / write * a.workers:>9.0f}")
+    state_tables(names)
 
 
 if __name__ == "__main__":

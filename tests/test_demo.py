@@ -1,7 +1,7 @@
 """The main job on the tiny world with tiny budgets: every stage runs, the report and the results table are
 written, a second run reuses every stage, and a removed output is rebuilt with what depends on it.
 
-The trainer is the stand-in of ``test_experiment`` (a loadable run folder with an untrained agent)."""
+The trainer is the real one (``tsnav.rl.train.train_run``, two updates of four envs), wrapped to count its calls."""
 
 import json
 import shutil
@@ -9,16 +9,34 @@ from dataclasses import replace
 
 import pytest
 
-from test_experiment import StandInTrainer
 from tsnav.demo import STAGES, DemoConfig, run_demo, train_subset
 from tsnav.eval.experiment_config import SCALES
+from tsnav.rl.train import train_run
 
 TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, gallery=2,
                   scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
-                                pretrain_batch_size=8, test_per_room_type=5, updates_per_job=2, num_envs=4))
+                                pretrain_batch_size=8, test_per_room_type=5, updates_per_job=2, num_envs=4,
+                                detector_steps=4, detector_batch_size=8, detector_states_per_scene=24))
+
+#: Copy the tiny world into a demo folder without the learned tables other tests may have written (the demo
+#: then trains its own detector).
+NO_LEARNED = shutil.ignore_patterns("detections_learned*")
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+class CountedTrainer:
+    """The real trainer, recording each call's reward, features, C_target and seed."""
+
+    def __init__(self):
+        self.calls = []
+        self.detections = []
+
+    def __call__(self, tc, agent, run_dir):
+        self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
+        self.detections.append(tc.detections)
+        return train_run(tc, agent, run_dir)
 
 
 def test_train_subset_links_smallest_rooms(tmp_path, tiny_world, tiny_scenes):
@@ -34,29 +52,43 @@ def test_train_subset_links_smallest_rooms(tmp_path, tiny_world, tiny_scenes):
 
 def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     out = tmp_path / "demo"
-    shutil.copytree(tiny_world, out / "world")  # the world stage then only checks it
-    trainer = StandInTrainer()
+    shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)  # the world stage then only checks it
+    trainer = CountedTrainer()
     res = run_demo(out, TINY, train_fn=trainer)
     assert [res["stages"][s][0] for s in STAGES] == ["done"] * len(STAGES)
     assert list(res["results"]) == ["agent (TSRM, DE-MAE)", "scripted explorer", "random"]
     assert len(trainer.calls) == 1 and trainer.calls[0][0] == "tsrm"
+    log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines() if line.strip()]
+    assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.updates_per_job == 2  # trained for real
+    assert json.loads((out / "stages" / "train.json").read_text())["update"] == 2
+    ckpts = sorted(p.name for p in (out / "run" / "checkpoints").iterdir())
     for name in ("agent", "explorer", "random"):
         m = json.loads((out / "eval" / name / "metrics.json").read_text())
-        assert m["detections"] == "oracle" and (out / "eval" / name / "trajectories.jsonl").exists()
+        assert m["detections"] == "learned" and (out / "eval" / name / "trajectories.jsonl").exists()
+    # the detector stage trained the learned detector (its steps) and its tables are in every room
+    det = json.loads((out / "stages" / "detector.json").read_text())
+    assert det["steps"] == TINY.scale.detector_steps and det["fingerprint"].startswith("learned-")
+    from tsnav.data.detections import read_fingerprint
+    from tsnav.data.reader import list_scenes
+
+    assert {read_fingerprint(p, "learned") for p in list_scenes(out / "world")} == {det["fingerprint"]}
+    assert trainer.detections == ["learned"]
     assert json.loads((out / "eval" / "agent" / "metrics.json").read_text())["run"] == str((out / "run").resolve())
     assert (out / "pretrain" / "demae" / "recon.png").exists()
     html = (out / "report" / "index.html").read_text()
     for word in ("agent (TSRM, DE-MAE)", "scripted explorer", "Training", "Pretraining", "Episode gallery"):
         assert word in html
     text = capsys.readouterr().out
-    assert "[1/8] world" in text and "[8/8] report" in text and "results on the test episodes" in text
+    assert "[1/9] world" in text and "[9/9] report" in text and "results on the test episodes" in text
+    assert "[4/9] detector" in text and "detections: detections_learned on" in text and "reach of 0.7" in text
     assert "scripted explorer" in text.split("results on the test episodes")[1]
 
     # a second run reuses every stage and trains nothing
-    again = StandInTrainer()
+    again = CountedTrainer()
     res2 = run_demo(out, TINY, train_fn=again)
     assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES)
-    assert again.calls == [] and res2["results"].keys() == res["results"].keys()
+    assert again.calls == [] and res2["results"] == res["results"]
+    assert sorted(p.name for p in (out / "run" / "checkpoints").iterdir()) == ckpts
 
     # a lost evaluation is redone, and the report after it
     shutil.rmtree(out / "eval" / "random")
@@ -73,10 +105,10 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
     from tsnav.rl.checkpoint import load_model
 
     cfg = replace(TINY, scale=replace(TINY.scale, updates_per_job=3, minutes_per_job=None, milestone_every=1))
-    tables, digests = [], []
+    tables, digests, detectors = [], [], []
     for k in range(2):
         out = tmp_path / f"demo{k}"
-        shutil.copytree(tiny_world, out / "world")
+        shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)
         capsys.readouterr()
         res = run_demo(out, cfg)
         text = capsys.readouterr().out
@@ -92,8 +124,50 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
         best = weights_digest(load_model(out / "run", out / "run" / "best")[0].state_dict())
         assert best == sel["scores"][sel["best"]]["digest"]
         digests.append(best)
+        detectors.append(json.loads((out / "stages" / "detector.json").read_text())["fingerprint"])
+    # the same detector (weights and temperature) and so the same tables, trained on one thread
+    assert detectors[0] == detectors[1]
     assert digests[:2] == digests[2:]  # the latest and the selected agent of each run
     assert tables[0] == tables[1] and "agent (TSRM, DE-MAE)" in tables[0]
+
+
+def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, capsys):
+    """``--detections oracle`` trains no detector and evaluates on the oracle's table; a world whose rooms already
+    hold learned tables (written by an experiment) is used as it is: no detector trained."""
+    out = tmp_path / "oracle"
+    shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)
+    trainer = CountedTrainer()
+    res = run_demo(out, replace(TINY, detections="oracle"), train_fn=trainer)
+    assert res["stages"]["detector"][0] == "-" and not (out / "detector").exists()
+    assert trainer.detections == ["oracle"]
+    assert json.loads((out / "eval" / "agent" / "metrics.json").read_text())["detections"] == "oracle"
+    assert "not used (--detections oracle)" in capsys.readouterr().out
+
+    out2 = tmp_path / "existing"
+    shutil.copytree(out / "world", out2 / "world")
+    for p in (out2 / "world").iterdir():  # stand-in for another detector's tables: copies named learned
+        if (p / "detections_oracle.hdf5").exists():
+            shutil.copy(p / "detections_oracle.hdf5", p / "detections_learned.hdf5")
+    from tsnav.errors import CommandError
+
+    with pytest.raises(CommandError, match=r"detections_learned.hdf5 was made by another detector \(oracle-"):
+        run_demo(out2, TINY, train_fn=CountedTrainer())
+
+    # learned tables of one detector in every room (an experiment's): used as they are
+    from tsnav.eval.detector_stage import ensure_learned_detections
+
+    from tsnav.data.reader import list_scenes
+
+    for p in list_scenes(out2 / "world"):
+        (p / "detections_learned.hdf5").unlink()
+    made = ensure_learned_detections(out2 / "world", "learned", tmp_path / "exp_detector", TINY.scale, progress=False,
+                                     say=lambda m: None)
+    capsys.readouterr()
+    trainer = CountedTrainer()
+    run_demo(out2, TINY, train_fn=trainer)
+    assert "no detector trained" in capsys.readouterr().out and not (out2 / "detector").exists()
+    assert trainer.detections == ["learned"]
+    assert json.loads((out2 / "stages" / "detections.json").read_text())["fingerprint"] == made["fingerprint"]
 
 
 def test_default_threads_do_not_depend_on_the_load(monkeypatch):

@@ -165,3 +165,13 @@ def test_eval_command(tmp_path, capsys):
     assert "unknown policy" in capsys.readouterr().err
     assert read_records(out / "records.jsonl") == recs  # outputs kept on error
     assert main(["eval", "--data", str(root), "--episodes", str(tmp_path / "missing.json"), "--out", str(out)]) == 2
+    # the command is evaluate_to_folder: same records, trajectories and metadata (the time apart)
+    from tsnav.eval.runner import evaluate_to_folder
+
+    summary = evaluate_to_folder(tmp_path / "direct", root, eps, policy="oracle")
+    assert summary == m["metrics"]
+    for f in ("records.jsonl", "trajectories.jsonl"):
+        assert (tmp_path / "direct" / f).read_bytes() == (out / f).read_bytes(), f
+    direct = json.loads((tmp_path / "direct" / "metrics.json").read_text())
+    assert {k: v for k, v in direct.items() if k != "seconds"} == {k: v for k, v in m.items() if k != "seconds"}
+    assert m["policy"] == "oracle" and m["episodes_file"] == str(eps.resolve()) and m["detections"] is None

@@ -21,7 +21,7 @@ from tsnav.metrics import METRICS
 
 TINY = ScaleConfig(vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2, pretrain_batch_size=8,
                    feature_batch_size=256, num_envs=4, updates_per_job=2, test_per_room_type=6,
-                   val_per_room_type=6)
+                   val_per_room_type=6, detector_steps=4, detector_batch_size=8, detector_states_per_scene=24)
 
 
 class StandInTrainer:
@@ -29,6 +29,7 @@ class StandInTrainer:
 
     def __init__(self):
         self.calls = []
+        self.detections = []
 
     def __call__(self, tc, agent, run_dir):
         import torch
@@ -37,6 +38,7 @@ class StandInTrainer:
         from tsnav.rl.assemble import load_bank, make_model, make_observer
 
         self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
+        self.detections.append(tc.detections)
         run_dir.mkdir(parents=True, exist_ok=True)
         bank, det = load_bank(tc)
         model = make_model(agent, make_observer(bank, tc, det_features=det), tc.seed)
@@ -52,6 +54,15 @@ class StandInTrainer:
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def exp_world(tiny_world, tmp_path_factory):
+    """A copy of the tiny world without learned tables: the experiments here train their detector and write
+    ``detections_learned.hdf5`` into it (the session's tiny world stays as it was)."""
+    root = tmp_path_factory.mktemp("exp_world") / "world"
+    shutil.copytree(tiny_world, root, ignore=shutil.ignore_patterns("detections_learned*"))
+    return root
 
 
 @pytest.fixture(scope="module")
@@ -72,8 +83,13 @@ def test_rows_match_the_paper():
     abl = experiment_rows("ablation")
     assert [(r.encoder, r.reward) for r in abl] == [("resnet18", "baseline"), ("resnet18", "explore"),
                                                     ("resnet18", "distance"), ("resnet18", "tsrm"),
-                                                    ("demae", "baseline"), ("demae", "tsrm")]
-    assert [r.flags["DE-MAE"] for r in abl] == [0, 0, 0, 0, 1, 1]
+                                                    ("demae", "baseline"), ("demae", "tsrm"), ("demae", "tsrm")]
+    assert [r.flags["DE-MAE"] for r in abl] == [0, 0, 0, 0, 1, 1, 1]
+    # issue 14: every row reads the experiment's table (the learned detector's by default) except the labelled
+    # oracle-switch row
+    assert [r.detections_of("learned") for r in abl] == ["learned"] * 6 + ["oracle"]
+    assert abl[-1].label == "TSRM + DE-MAE, oracle switch"
+    assert ExperimentConfig(experiment="ablation", data="d", out="o").detections == "learned"
     pre = experiment_rows("pretraining", vc1=True)
     assert [r.encoder for r in pre] == ["resnet18", "vc1", "mae", "demae-crop", "demae"]
     assert all(r.reward == "baseline" for r in pre)
@@ -107,17 +123,26 @@ def test_tables_parse():
     assert float(b["ci95"]) == pytest.approx(4.302652729911275 * 10.0 / math.sqrt(3), rel=1e-4)
 
 
-def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, capsys):
+def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, capsys):
     out = tmp_path / "ablation"
-    cfg = ExperimentConfig(experiment="ablation", data=str(tiny_world), out=str(out), scale="small", seeds=2,
+    cfg = ExperimentConfig(experiment="ablation", data=str(exp_world), out=str(out), scale="small", seeds=2,
                            device="cpu", pretrain_dir=str(pretrain_dir))
     trainer = StandInTrainer()
     res = Experiment(cfg, train_fn=trainer, scale=TINY).run()
-    assert len(trainer.calls) == 12
+    assert len(trainer.calls) == 14
     assert {c[0] for c in trainer.calls} == {"baseline", "explore", "distance", "tsrm"}
+    assert sorted(set(trainer.detections)) == ["learned", "oracle"] and trainer.detections.count("oracle") == 2
     feats = {c[1] for c in trainer.calls}
     assert len(feats) == 2 and any(f.startswith("resnet18-") for f in feats) and any(f.startswith("demae-") for f in feats)
-    assert [r["n"] for r in res["rows"]] == [2] * 6
+    assert [r["n"] for r in res["rows"]] == [2] * 7
+    # the oracle-switch row was evaluated on the oracle's table, the others on the learned detector's; both
+    # tables' quality recorded and printed under the table
+    ev = {j: json.loads((out / "jobs" / j / "eval" / "metrics.json").read_text())["detections"]
+          for j in ("tsrm_demae_s0", "tsrm_demae_oracle_s1")}
+    assert ev == {"tsrm_demae_s0": "learned", "tsrm_demae_oracle_s1": "oracle"}
+    quality = json.loads((out / "detector_quality.json").read_text())
+    assert sorted(quality) == ["learned", "oracle"] and quality["learned"]["fingerprint"].startswith("learned-")
+    assert 0.0 <= quality["learned"]["reach"] <= 1.0 and quality["oracle"]["pairs"] == quality["learned"]["pairs"]
     for r in res["rows"]:
         for s in ("ALL", "L>=5"):
             for m in METRICS:
@@ -132,9 +157,11 @@ def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, c
     assert (pretrain_dir / "demae" / "encoder.safetensors").exists()
     assert (pretrain_dir / "resnet18-sup" / "encoder.safetensors").exists()
     md = (out / "table.md").read_text()
-    assert md.count("\n| ") == 8 and "TSRM + DE-MAE" in md
+    assert md.count("\n| ") == 9 and "| TSRM + DE-MAE, oracle switch |" in md
+    assert "Detections: learned; row 'TSRM + DE-MAE, oracle switch': oracle" in md
+    assert "- detections_learned on" in md and "- detections_oracle on" in md and "reach of 0.7" in md
     rows = list(csv.DictReader(open(out / "table.csv")))
-    assert len(rows) == 6 * 2 * len(METRICS)
+    assert len(rows) == 7 * 2 * len(METRICS)
 
     # every job evaluated the checkpoint chosen on the validation episodes (its `best`), and says which
     sel_eps = json.loads((out / "episodes_select.json").read_text())
@@ -154,7 +181,7 @@ def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, c
     Experiment(cfg, train_fn=again, scale=TINY).run()
     assert again.calls == [("explore", again.calls[0][1], 0.7, 1)]
     printed = capsys.readouterr().out
-    assert "11 finished, 1 to run" in printed and "selecting explore_s1" in printed
+    assert "13 finished, 1 to run" in printed and "selecting explore_s1" in printed
     assert not re.search(r"^ +\S+: SR [0-9.]+, SPL [0-9.]+$", printed, re.M)  # select_checkpoint's score line
     for f in ("DONE", "train/selection.json"):
         (out / "jobs" / "tsrm_s0" / f).unlink()
@@ -162,7 +189,7 @@ def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, c
     Experiment(cfg, train_fn=StandInTrainer(), scale=TINY).run()
     assert (out / "jobs" / "tsrm_s0" / "train" / "selection.json").exists()
     assert json.loads((out / "jobs" / "tsrm_s0" / "DONE").read_text())["checkpoint"]["kind"] == "best"
-    assert "11 finished, 1 to run" in capsys.readouterr().out
+    assert "13 finished, 1 to run" in capsys.readouterr().out
 
     # another scale in the same folder is refused
     with pytest.raises(ValueError, match="another scale"):
@@ -189,14 +216,15 @@ def test_ablation_runs_resumes_and_reports(tmp_path, tiny_world, pretrain_dir, c
     from tsnav.eval.report import build_report
 
     html = build_report(out, gallery=2).read_text()
-    assert "Experiment: ablation" in html and "12 of 12 jobs finished" in html and "&#10003;" in html
+    assert "Experiment: ablation" in html and "14 of 14 jobs finished" in html and "&#10003;" in html
+    assert "TSRM + DE-MAE, oracle switch" in html and "detections_learned on" in html
     assert "Encoders" in html and html.count("recon_") == 1  # DE-MAE; the ResNet18 run has no reconstructions
     assert html.count("_map.png") == 2
 
 
-def test_threshold_experiment_plot(tmp_path, tiny_world, pretrain_dir):
+def test_threshold_experiment_plot(tmp_path, exp_world, pretrain_dir):
     out = tmp_path / "thr"
-    cfg = ExperimentConfig(experiment="threshold", data=str(tiny_world), out=str(out), seeds=1, device="cpu",
+    cfg = ExperimentConfig(experiment="threshold", data=str(exp_world), out=str(out), seeds=1, device="cpu",
                            pretrain_dir=str(pretrain_dir))
     trainer = StandInTrainer()
     res = Experiment(cfg, train_fn=trainer, scale=TINY).run()
@@ -288,7 +316,7 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     assert (bad / "experiment.json").read_text() == "{not json"  # left as it was
 
 
-def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pretrain_dir):
+def test_pretraining_experiment_with_the_real_trainer(tmp_path, exp_world, pretrain_dir):
     """The default trainer (tsnav.rl.train.train_run), two updates per job, two jobs at once in worker processes."""
     from dataclasses import replace
 
@@ -296,7 +324,7 @@ def test_pretraining_experiment_with_the_real_trainer(tmp_path, tiny_world, pret
 
     scale = replace(TINY, minutes_per_job=None, updates_per_job=2, num_envs=4, milestone_every=1)
     out = tmp_path / "pre"
-    cfg = ExperimentConfig(experiment="pretraining", data=str(tiny_world), out=str(out), seeds=1, device="cpu",
+    cfg = ExperimentConfig(experiment="pretraining", data=str(exp_world), out=str(out), seeds=1, device="cpu",
                            pretrain_dir=str(pretrain_dir), parallel=2)
     res = Experiment(cfg, scale=scale).run()
     assert [r["row"] for r in res["rows"]] == ["resnet18", "mae", "demae_crop", "demae"]

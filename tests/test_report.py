@@ -180,3 +180,32 @@ def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
     assert (ev / "trajectories.jsonl").exists()  # re-rolled, and equal to the records (checked while writing)
     text = index.read_text()
     assert "no gallery" not in text and text.count("_map.png") == 2
+
+
+def test_pretrain_progress_is_read_progress_without_torch(tmp_path):
+    """The report reads a pretraining run's progress through checkpoint_layout.read_progress (the one reader,
+    also pretrain.train's), torch-free; a broken or missing file gives an empty entry, not an error."""
+    import subprocess
+    import sys
+
+    from tsnav.checkpoint_layout import read_progress
+    from tsnav.eval.report import _pretrain_progress
+    from tsnav.pretrain import train
+
+    assert train.read_progress is read_progress
+    run = tmp_path / "run"
+    run.mkdir()
+    assert _pretrain_progress(run) == {} and read_progress(run) is None
+    (run / "progress.json").write_text('{"step": 3, "loss": 0.5}')
+    assert _pretrain_progress(run) == read_progress(run) == {"step": 3, "loss": 0.5}
+    for step, text in ((4, '{"step": 4, "total_steps": 9}'), (5, '{"step": 5, "tot')):
+        ck = run / "checkpoints" / f"ckpt_{step:09d}"
+        ck.mkdir(parents=True)
+        (ck / "state.json").write_text(text)
+    assert _pretrain_progress(run) == read_progress(run) == {"step": 4, "total_steps": 9}  # newest broken: skipped
+    (run / "checkpoints" / "ckpt_000000004" / "state.json").write_text("[]")
+    (run / "progress.json").write_text("{")
+    assert _pretrain_progress(run) == {}
+    code = "import sys, tsnav.eval.report, tsnav.checkpoint_layout; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

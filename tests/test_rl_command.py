@@ -70,7 +70,8 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
     out = tmp_path / "eval"
     assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--out", str(out)]) == 0
     m = json.loads((out / "metrics.json").read_text())
-    assert m["policy"].startswith("run:") and m["metrics"]["ALL"]["episodes"] > 0 and m["sample"] is False
+    assert m["policy"] == "agent" and m["run"] == str(run.resolve())
+    assert m["metrics"]["ALL"]["episodes"] > 0 and m["sample"] is False
     assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--out",
                  str(tmp_path / "eval_s"), "--sample", "--seed", "3"]) == 0
     assert json.loads((tmp_path / "eval_s" / "metrics.json").read_text())["sample"] is True

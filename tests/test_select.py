@@ -2,13 +2,17 @@
 kept as RUN/best and used by `tsnav eval --run` unless told otherwise; resumable and atomic."""
 
 import json
+import os
 
 import pytest
 
 from tsnav.checkpoint import weights_digest
 from tsnav.cli import main
+from tsnav.eval import select as sel
+from tsnav.eval.runner import eval_bank, eval_policy
 from tsnav.eval.select import select_checkpoint
-from tsnav.rl.checkpoint import list_checkpoints, load_model, resolve_checkpoint
+from tsnav.rl.checkpoint import BEST, list_checkpoints, load_model, resolve_checkpoint
+from tsnav.sim.episodes import read_episodes
 
 from conftest import PIXEL_FEATURES as FEATS
 
@@ -16,7 +20,7 @@ from conftest import PIXEL_FEATURES as FEATS
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys):
+def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys, monkeypatch):
     world, run = pixel_world, tmp_path / "run"
     assert main(["train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
                  "--out", str(run),
@@ -40,23 +44,48 @@ def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys):
     best = run / "best"
     assert weights_digest(load_model(run, best)[0].state_dict()) == res["scores"][res["best"]]["digest"]
     assert json.loads((run / "selection.json").read_text())["best"] == res["best"]
-    # resumed: nothing is scored again; a broken score file is recomputed, not trusted
+    # resumed: nothing is scored again, nor reloaded and rehashed (weights files unchanged: same size and
+    # modification time); a broken score file is recomputed, not trusted
+    hashed = []
+    digest = sel._digest
+    monkeypatch.setattr(sel, "_digest", lambda run_dir, ck: hashed.append(ck.name) or digest(run_dir, ck))
     seen.clear()
     assert select_checkpoint(run, world, eps, max_steps=30, progress=seen.append)["best"] == res["best"]
-    assert seen == []
+    assert seen == [] and hashed == []
     (run / "selection.json").write_text('{"scores": {tru')
     assert select_checkpoint(run, world, eps, max_steps=30, progress=seen.append)["best"] == res["best"]
-    assert len(seen) == 4
+    assert len(seen) == 4 and sorted(hashed) == sorted(names + [BEST])  # RUN/best checked again too
+    # a checkpoint whose weights file was touched is rehashed (only it), not rescored: its weights are the same
+    f = run / "checkpoints" / names[0] / "model.safetensors"
+    os.utime(f, ns=(f.stat().st_atime_ns, f.stat().st_mtime_ns + 10**9))
+    seen.clear(), hashed.clear()
+    select_checkpoint(run, world, eps, max_steps=30, progress=seen.append)
+    assert seen == [] and hashed == [names[0]]
 
-    # `tsnav eval --run` evaluates best by default, the same as naming the chosen checkpoint's folder
-    out = {}
+    # `tsnav eval --run` evaluates best by default, the same as naming the chosen checkpoint's folder, and not
+    # the latest: the weights of the policy each evaluation folder describes (what evaluate_to_folder ran and a
+    # re-roll loads) are compared. Tiny training scores every checkpoint alike, so the earliest wins the tie and
+    # best differs from latest; the records of such near-identical agents can coincide, the weights cannot.
+    assert res["best"] != names[-1], "the test needs a best checkpoint other than the latest"
+    digests = {}
     for tag, extra in (("auto", []), ("path", ["--checkpoint", str(run / "checkpoints" / res["best"])]),
                        ("latest", ["--checkpoint", "latest"])):
         assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--max-steps", "30",
                      "--out", str(tmp_path / tag), *extra]) == 0
-        out[tag] = json.loads((tmp_path / tag / "records.jsonl").read_text().splitlines()[0])
-    assert out["auto"] == out["path"]
+        meta = json.loads((tmp_path / tag / "metrics.json").read_text())
+        episodes, _ = read_episodes(eps)
+        digests[tag] = weights_digest(eval_policy(meta, eval_bank(meta, episodes)).model.state_dict())
+    assert digests["auto"] == digests["path"] == res["scores"][res["best"]]["digest"]
+    assert digests["latest"] == res["scores"][names[-1]]["digest"] != digests["auto"]
+    assert (tmp_path / "auto" / "records.jsonl").read_bytes() == (tmp_path / "path" / "records.jsonl").read_bytes()
     assert json.loads((tmp_path / "auto" / "metrics.json").read_text())["checkpoint"] == "auto"
+    # a checkpoint whose weights changed (here: another one's file copied over it) is rehashed and rescored
+    (run / "checkpoints" / names[1] / "model.safetensors").write_bytes(
+        (run / "checkpoints" / names[2] / "model.safetensors").read_bytes())
+    seen.clear(), hashed.clear()
+    res2 = select_checkpoint(run, world, eps, max_steps=30, progress=seen.append)
+    assert len(seen) == 1 and seen[0].strip().startswith(names[1]) and hashed[0] == names[1]
+    assert res2["scores"][names[1]]["digest"] == res["scores"][names[2]]["digest"]
     assert main(["select", "--run", str(run), "--data", str(world), "--episodes", str(eps), "--max-steps", "30"]) == 0
     assert f"best checkpoint {res['best']}" in capsys.readouterr().out
     assert main(["select", "--run", str(tmp_path / "none"), "--data", str(world), "--episodes", str(eps)]) == 2

@@ -66,3 +66,72 @@ def test_rejects_a_bad_threshold_or_table():
         StageSwitch(bank, 1.5)
     with pytest.raises(ValueError, match="shape"):
         StageSwitch(bank, confidence=np.zeros((3, NUM_CATEGORIES)))
+
+
+def test_bank_stage_mask_is_the_switch_rule():
+    """``SceneBank.stage_mask`` (searching lengths, SSSPL) is the switch's own table: strictly above C_target."""
+    for c_target in (0.5, C_TARGET):
+        bank = SceneBank(toy_scenes(), cache=False, c_target=c_target)
+        assert np.array_equal(bank.stage_mask, bank.in_frame)  # no detector: ground truth 1.0 / 0.0
+        conf = np.random.default_rng(2).choice(np.float32([0.2, 0.5, 0.7, 0.71, 0.9]), (bank.num_states, NUM_CATEGORIES))
+        bank.set_confidence(conf)
+        assert np.array_equal(bank.stage_mask, StageSwitch(bank).switches)
+        assert np.array_equal(bank.stage_mask, conf > c_target)
+        assert not bank.stage_mask[conf == np.float32(c_target)].any()
+
+
+def test_one_stage_switch_per_env_shared_with_the_reward():
+    """Training keeps one StageSwitch per env: the TSRM reward's. The stage the env reports in ``info`` (and the
+    training statistics read) equals that of a separate switch driven by the env's steps, as rl/stats kept
+    before; episodes finish with the same stage figures."""
+    from tsnav.rl.stats import EpisodeStats
+    from tsnav.tsrm.reward import TSRMReward
+
+    bank = SceneBank(toy_scenes(), cache=False)
+    rng = np.random.default_rng(5)
+    bank.set_confidence(rng.random((bank.num_states, NUM_CATEGORIES)).astype(np.float32) ** 3)
+    B = 5
+    reward = TSRMReward(bank)
+    env = BatchEnv(bank, B, sampler=TrainingSampler(bank), reward_fn=reward, max_steps=10, seed=3)
+    assert env.stage is reward.switch
+    stats = EpisodeStats(bank, B)
+    ref = StageSwitch(bank, num_envs=B)
+    obs = env.reset(seed=3)
+    stats.start_rows(np.ones(B, bool), obs)
+    ref.reset(np.ones(B, bool), obs["state"], obs["target"])
+    entered = finished = 0
+    for _ in range(150):
+        obs, rew, term, trunc, info = env.step(rng.integers(0, NUM_ACTIONS, B))
+        ref.update(info["final_state"], info["steps"], info["path_length"], active=info["active"])
+        assert np.array_equal(info["entered"], ref.entered)
+        assert np.array_equal(info["switch_length"], ref.switch_length)
+        assert np.array_equal(info["switch_state"], ref.switch_state)
+        n = stats.step(rew, term, trunc, info, obs)
+        fin = term | trunc
+        if n:
+            ep = stats.pop()
+            r = np.flatnonzero(fin)
+            assert np.array_equal(ep["entered"], ref.entered[r])
+            assert np.array_equal(ep["search_length"], np.where(ref.entered[r], ref.switch_length[r], info["path_length"][r]))
+            entered += int(ref.entered[r].sum())
+            finished += len(r)
+            ref.reset(fin, obs["state"], obs["target"])
+    assert finished > 40 and 0 < entered < finished
+
+
+def test_env_keeps_the_stage_without_a_stage_reward():
+    """Without a reward that keeps a stage, the env keeps one (the bank's, or the one passed as ``stage``,
+    e.g. an evaluation's own C_target); a reward's switch at another C_target than the bank's is refused."""
+    from tsnav.tsrm.reward import RewardConfig, TSRMReward
+
+    bank = SceneBank(toy_scenes(), cache=False)
+    env = BatchEnv(bank, 3, sampler=TrainingSampler(bank), seed=0)
+    assert env.stage.c_target == bank.c_target and np.array_equal(env.stage.switches, bank.stage_mask)
+    mine = StageSwitch(bank, 0.4)
+    env = BatchEnv(bank, 3, sampler=TrainingSampler(bank), seed=0, stage=mine)
+    obs = env.reset(seed=0)
+    assert env.stage is mine and np.array_equal(mine.target, obs["target"])
+    with pytest.raises(ValueError, match="own stage switch"):
+        BatchEnv(bank, 3, reward_fn=TSRMReward(bank), stage=mine)
+    with pytest.raises(ValueError, match="C_target 0.5 differs"):
+        BatchEnv(bank, 3, reward_fn=TSRMReward(bank, RewardConfig(c_target=0.5)))

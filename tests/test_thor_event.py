@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from thor_standin import StandInController, real_event_metadata
-from tsnav.constants import TARGET_CATEGORIES
+from thor_standin import GRID_Y, StandInController, real_event_metadata
+from tsnav.constants import CAMERA_HEIGHT, TARGET_CATEGORIES
 from tsnav.data.thor_live import LiveConfig, _aabb, _object_table, agent_pose, scene_bounds, visible_object_ids
 
 
@@ -82,6 +82,29 @@ def test_standin_replays_the_real_metadata_shape(real, tiny_world):
     assert set(m) == set(real)
     assert set(m["agent"]) == set(real["agent"]) and set(m["sceneBounds"]) == set(real["sceneBounds"])
     assert all(set(o) == set(real["objects"][0]) for o in m["objects"])
+    # the values the exporter reads: this scene's, in the real event's types and units
+    scene = ctrl.scene
+    assert m["sceneName"] == "FloorPlan21" and m["lastAction"] == "Reset" and m["lastActionSuccess"] is True
+    assert m["screenWidth"] == m["screenHeight"] == 32 and m["fov"] == real["fov"] == 90.0
+    pos, rot = m["agent"]["position"], m["agent"]["rotation"]
+    assert all(type(pos[a]) is float and type(rot[a]) is float for a in "xyz")
+    assert type(m["agent"]["cameraHorizon"]) is float
+    start = ctrl.grid[0]
+    assert (pos["x"], pos["z"], rot["y"], m["agent"]["cameraHorizon"]) == (start["x"], start["z"], 0.0, 0.0)
+    assert (m["cameraPosition"]["x"], m["cameraPosition"]["z"]) == (pos["x"], pos["z"])
+    assert m["cameraPosition"]["y"] - pos["y"] == pytest.approx(CAMERA_HEIGHT - GRID_Y)  # camera above the body centre
+    targets = [o for o in m["objects"] if o["objectType"] in TARGET_CATEGORIES]
+    assert sorted(o["objectId"] for o in targets) == sorted(scene.object_ids.tolist())
+    for o in m["objects"]:
+        kind, *coords = o["objectId"].split("|")
+        assert kind == o["objectType"] and type(o["visible"]) is bool and type(o["distance"]) is float
+        assert np.allclose([float(c) for c in coords], [o["position"][a] for a in "xyz"], atol=0.005)
+        box = o["axisAlignedBoundingBox"]
+        c, h = np.array([box["center"][a] for a in "xyz"]), np.array([box["size"][a] for a in "xyz"]) / 2
+        corners = np.array(box["cornerPoints"])
+        assert corners.shape == (8, 3) and np.allclose(corners.min(0), c - h) and np.allclose(corners.max(0), c + h)
+        cam = np.array([m["cameraPosition"][a] for a in "xyz"])
+        assert o["distance"] == pytest.approx(float(np.linalg.norm(cam - [o["position"][a] for a in "xyz"])))
     for k in ("fov", "screenWidth", "lastActionSuccess", "cameraPosition", "agent", "sceneBounds"):
         assert type(m[k]) is type(real[k]), k
     for k, v in real["objects"][0].items():

@@ -44,6 +44,14 @@ def test_scene_names_and_splits():
     assert len(ithor_scenes(split="val")) == 20 and len(ithor_scenes(split="test")) == 20
     with pytest.raises(ValueError, match="unknown scene"):
         scene_info("FloorPlan31")
+    from tsnav.data import lineage_splits
+    from tsnav.data.names import lineage_scene_info, scene_base_name
+
+    assert scene_base_name("FloorPlan24_physics") == "FloorPlan24" == scene_base_name("FloorPlan24")
+    assert scene_base_name("FloorPlan_physics2") == "FloorPlan_physics2"  # only a suffix is stripped
+    assert lineage_splits.scene_base_name is scene_base_name  # one definition
+    assert lineage_scene_info("FloorPlan330_physics") == ("bedroom", "test")
+    assert lineage_scene_info("Kitchen_physics") == ("unknown", None)
 
 
 def test_generator_deterministic_and_varied():
@@ -258,3 +266,81 @@ def test_targets_can_be_seen_and_reached(tiny_scenes):
     assert seen.mean() >= 0.9
     ok = [s.category_visible_within(1.0)[:, s.categories_present()].any(0) for s in tiny_scenes]
     assert np.concatenate(ok).mean() >= 0.75
+
+
+@pytest.mark.parametrize("name,world", [("FloorPlan1", "procedural"), ("FloorPlan21", "procedural"),
+                                        ("FloorPlan301", "ithor-real")])
+def test_state_tables_equal_reference(name, world):
+    """The array forms of the build (``state_poses``, ``state_keys``, ``graph_edges``) against the slow
+    per-state loop (``build_graph`` and the poses loop the build used before): same rows, keys and edges in
+    the same order; the sorted keys are the sorted nodes."""
+    from tsnav.constants import HORIZONS, ROTATIONS
+    from tsnav.world.navgrid import build_graph, graph_edges, reachable_positions, state_keys, state_poses
+    from tsnav.world.presets import scene_spec
+
+    positions, move = reachable_positions(scene_spec(name, world, compact=world == "procedural"))
+    assert (move < 0).any() and (move >= 0).any()
+    nodes, edges = build_graph(positions, move)
+    poses_ref = np.array([(x, z, r, h) for x, z in positions for r in ROTATIONS for h in HORIZONS], dtype=np.float64)
+    poses = state_poses(positions)
+    assert poses.dtype == np.float64 and np.array_equal(poses, poses_ref)
+    keys = state_keys(positions)
+    assert keys.tolist() == nodes == [state_key(*p) for p in poses_ref]
+    src, dst = graph_edges(move)
+    assert list(zip(keys[src].tolist(), keys[dst].tolist())) == edges
+    assert keys[np.argsort(keys, kind="stable")].tolist() == sorted(nodes)
+
+
+def test_built_graph_and_keys_equal_reference(tiny_world, tmp_path):
+    """A built scene's ``graph.json`` is byte for byte the one the per-state reference writes, and its
+    ``states.hdf5`` rows are the sorted reference nodes."""
+    from tsnav.data.writer import write_graph
+    from tsnav.world.navgrid import build_graph, reachable_positions
+    from tsnav.world.presets import scene_spec
+
+    name = "FloorPlan201"
+    nodes, edges = build_graph(*reachable_positions(scene_spec(name, compact=True)))
+    write_graph(tmp_path, sorted(nodes), edges)
+    assert filecmp.cmp(tmp_path / "graph.json", tiny_world / name / "graph.json", shallow=False)
+    with h5py.File(tiny_world / name / "states.hdf5", "r") as f:
+        assert [k.decode() for k in f["keys"][:]] == sorted(nodes)
+
+
+@pytest.mark.parametrize("depth_dtype,compression", [("float16", None), ("float32", "gzip")])
+def test_frame_writer_add_many_equals_add(tmp_path, depth_dtype, compression):
+    """``FrameWriter.add_many`` (one depth conversion per batch) writes the same bytes as ``add`` per frame."""
+    from tsnav.data.writer import FrameWriter
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (5, 8, 8, 3), dtype=np.uint8)
+    depth = rng.uniform(0.0, 12.0, (5, 8, 8)).astype(np.float32)
+    keys = np.array([state_key(x, 1.0, r, 30) for x, r in [(0.5, 0), (0.25, 45), (-1.0, 90), (2.0, 315), (0.0, 0)]])
+    for d in ("one", "many"):
+        (tmp_path / d).mkdir()
+    with FrameWriter(tmp_path / "one", depth_dtype, compression) as w:
+        for i in range(len(keys)):
+            w.add(keys[i], rgb[i], depth[i])
+    with FrameWriter(tmp_path / "many", depth_dtype, compression) as w:
+        w.add_many(keys[:2], rgb[:2], depth[:2])
+        w.add_many(keys[2:], rgb[2:], depth[2:])
+        with pytest.raises(ValueError, match="3 keys, 2 RGB"):
+            w.add_many(keys[:3], rgb[:2], depth[:2])
+    for f in ("images.hdf5", "depth.hdf5"):
+        assert filecmp.cmp(tmp_path / "one" / f, tmp_path / "many" / f, shallow=False), f
+    with h5py.File(tmp_path / "many" / "depth.hdf5", "r") as f:
+        assert f[keys[2]].dtype == np.dtype(depth_dtype)
+        assert np.array_equal(f[keys[2]][()], depth[2].astype(depth_dtype))
+
+
+def test_build_config_from_preset():
+    """One preset -> BuildConfig mapping (``build_dataset`` without a config and ``tsnav world`` use it)."""
+    from tsnav.world.build import BuildConfig
+    from tsnav.world.presets import PRESETS
+
+    for name, p in PRESETS.items():
+        cfg = BuildConfig.from_preset(name)
+        assert (cfg.image_size, cfg.compact, cfg.world) == (p["image_size"], p["compact"], p.get("world", "procedural"))
+        assert cfg.store_images and cfg.seed == 0
+    assert BuildConfig.from_preset("ithor-real").world == "ithor-real"
+    assert BuildConfig.from_preset("tiny", image_size=32, seed=3) == BuildConfig(image_size=32, compact=True, seed=3)
+    assert BuildConfig.from_preset(None) == BuildConfig.from_preset("custom") == BuildConfig()

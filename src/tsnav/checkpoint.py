@@ -16,16 +16,13 @@ detector: ``DIR/checkpoints``)::
 
 A checkpoint is written complete in a temporary folder and renamed, so a folder ``ckpt_<step>`` (no dot) with
 a ``state.json`` is whole; the newest two are kept (plus the agent's milestones). A newest checkpoint broken
-later is named in one line, renamed ``ckpt_<step>.broken`` and the one before it is used.
+later is named in one line, renamed ``ckpt_<step>.broken`` and the one before it is used. The layout's names
+and JSON files are in :mod:`tsnav.checkpoint_layout` (no torch), re-exported here.
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
-import os
-import re
-import shutil
 import sys
 from pathlib import Path
 from typing import Callable, Sequence, TypeVar
@@ -35,35 +32,19 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save
 
 from .atomic import atomic_folder, atomic_write_bytes, atomic_write_json as _atomic_write_json
+# The layout and its JSON files live in the torch-free checkpoint_layout; re-exported here.
+from .checkpoint_layout import (CHECKPOINTS, MODEL_FILE, OLD_OPTIMIZER_FILE, OPTIMIZER_FILE, STATE_FILE,  # noqa: F401
+                                BrokenCheckpoint, _one_line, checkpoint_name, checkpoint_step, checkpoint_tmp,
+                                checkpoint_tmp_path, commit_checkpoint, list_checkpoints, newest_state,
+                                optimizer_file, prune_checkpoints, read_json, set_aside)
 
 T = TypeVar("T")
 R = TypeVar("R")
 
 
-class BrokenCheckpoint(ValueError):
-    """A checkpoint file that cannot be read; the message names the file and says what is wrong in one line."""
-
-
-def _one_line(e: BaseException) -> str:
-    text = str(e).strip().splitlines()
-    return text[0] if text else type(e).__name__
-
-
 def atomic_write_json(path: str | Path, obj) -> None:
     """JSON of a checkpoint or run folder (indented, sorted keys), written atomically."""
     _atomic_write_json(path, obj, indent=1, sort_keys=True)
-
-
-def read_json(path: str | Path) -> dict:
-    """A checkpoint's JSON file; :class:`BrokenCheckpoint` when it is missing, truncated or not an object."""
-    try:
-        with open(path) as f:
-            obj = json.load(f)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise BrokenCheckpoint(f"{path}: broken checkpoint file ({_one_line(e)})") from None
-    if not isinstance(obj, dict):
-        raise BrokenCheckpoint(f"{path}: broken checkpoint file (not a JSON object)")
-    return obj
 
 
 def save_tensors(path: str | Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:
@@ -166,59 +147,6 @@ def weights_digest(state_dict: dict[str, torch.Tensor], skip: tuple[str, ...] = 
     return h.hexdigest()
 
 
-# ---------------------------------------------------------------------------------------------- the one layout
-#: Folder (inside a run or detector folder) holding one sub-folder per checkpoint.
-CHECKPOINTS = "checkpoints"
-MODEL_FILE = "model.safetensors"
-OPTIMIZER_FILE = "optimizer.safetensors"
-#: Earlier name of the optimizer file (agent checkpoints before the layouts were unified); still read.
-OLD_OPTIMIZER_FILE = "optim.safetensors"
-STATE_FILE = "state.json"
-_COMPLETE = re.compile(r"^ckpt_\d+$")
-
-
-def checkpoint_name(step: int) -> str:
-    """Folder name of the checkpoint of ``step`` (``ckpt_<step, 9 digits>``; sorts by step)."""
-    return f"ckpt_{int(step):09d}"
-
-
-def checkpoint_step(path: str | Path) -> int:
-    """The step of a checkpoint folder from its name."""
-    return int(Path(path).name.split("_", 1)[1].split(".")[0])
-
-
-def list_checkpoints(folder: str | Path) -> list[Path]:
-    """Complete checkpoint folders (``ckpt_<step>/`` with a ``state.json``) of a checkpoints folder, oldest
-    first. Temporary (``.ckpt_*``) and set-aside (``*.broken``) folders are not listed."""
-    d = Path(folder)
-    if not d.is_dir():
-        return []
-    return sorted(p for p in d.iterdir() if p.is_dir() and _COMPLETE.match(p.name) and (p / STATE_FILE).exists())
-
-
-def optimizer_file(ckpt: str | Path) -> Path:
-    """The optimizer file of a checkpoint folder: ``optimizer.safetensors``, or the older
-    ``optim.safetensors`` when only that exists."""
-    ckpt = Path(ckpt)
-    new = ckpt / OPTIMIZER_FILE
-    return ckpt / OLD_OPTIMIZER_FILE if not new.exists() and (ckpt / OLD_OPTIMIZER_FILE).exists() else new
-
-
-def checkpoint_tmp_path(folder: str | Path, step: int) -> Path:
-    """Path of the temporary folder ``.ckpt_<step>.tmp`` of a checkpoint (see :func:`checkpoint_tmp`)."""
-    return Path(folder) / f".{checkpoint_name(step)}.tmp"
-
-
-def checkpoint_tmp(folder: str | Path, step: int) -> Path:
-    """Create (empty) the temporary folder ``.ckpt_<step>.tmp`` of a checkpoint; :func:`commit_checkpoint`
-    renames it when complete (writers that fill it from several processes, e.g. one RNG file per rank)."""
-    tmp = checkpoint_tmp_path(folder, step)
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    return tmp
-
-
 def write_checkpoint_files(tmp: str | Path, model: dict[str, torch.Tensor], model_meta: dict[str, str] | None,
                            state: dict, optimizer: dict[str, torch.Tensor] | None = None) -> None:
     """Write the files of one checkpoint into the (temporary) folder ``tmp``: ``model.safetensors`` (with
@@ -229,27 +157,6 @@ def write_checkpoint_files(tmp: str | Path, model: dict[str, torch.Tensor], mode
     if optimizer is not None:
         save_tensors(tmp / OPTIMIZER_FILE, optimizer)
     atomic_write_json(tmp / STATE_FILE, state)
-
-
-def commit_checkpoint(folder: str | Path, tmp: str | Path, step: int, keep: int = 2,
-                      milestone_every: int | None = None) -> Path:
-    """Rename the complete temporary folder ``tmp`` to ``folder/ckpt_<step>`` and remove older checkpoints
-    beyond the ``keep`` newest, except those whose step is a multiple of ``milestone_every``."""
-    final = Path(folder) / checkpoint_name(step)
-    if final.exists():
-        shutil.rmtree(final)
-    os.replace(tmp, final)
-    prune_checkpoints(folder, keep, milestone_every)
-    return final
-
-
-def prune_checkpoints(folder: str | Path, keep: int = 2, milestone_every: int | None = None) -> None:
-    """Remove the checkpoints of ``folder`` older than the ``keep`` newest, except milestones (step a multiple
-    of ``milestone_every``)."""
-    for old in list_checkpoints(folder)[:-keep]:
-        if milestone_every and checkpoint_step(old) % milestone_every == 0:
-            continue
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def save_checkpoint(folder: str | Path, step: int, model: dict[str, torch.Tensor], model_meta: dict[str, str] | None,
@@ -264,21 +171,3 @@ def save_checkpoint(folder: str | Path, step: int, model: dict[str, torch.Tensor
     return final
 
 
-def set_aside(path: str | Path) -> None:
-    """Rename a broken checkpoint folder to ``<name>.broken`` (kept for inspection, no longer listed)."""
-    path = Path(path)
-    dest = path.with_name(path.name + ".broken")
-    if dest.exists():
-        shutil.rmtree(dest)
-    os.replace(path, dest)
-
-
-def newest_state(folder: str | Path) -> dict | None:
-    """``state.json`` of the newest checkpoint of ``folder`` whose state reads (a reader: sets nothing aside,
-    prints nothing); None when there is none."""
-    for p in list_checkpoints(folder)[::-1]:
-        try:
-            return read_json(p / STATE_FILE)
-        except BrokenCheckpoint:
-            continue
-    return None

@@ -6,13 +6,17 @@ exists and its outputs are still there, and every underlying step resumes after 
  1. world        build the ``demo`` preset (20 rooms: 12 train, 4 val, 4 test; 64x64 frames)     OUT/world
  2. pretrain     DE-MAE on the training frames (ViT-Tiny, 64x64, a couple of minutes)           OUT/pretrain/demae
  3. features     cache the encoder's features of the training, val and test scenes              */features_demae-<fp>.hdf5
- 4. detections   the oracle detector's per-state table (confidence drives the stage switch)     world/*/detections_oracle.hdf5
- 5. episodes     fixed test episodes, and val episodes for checkpoint selection                 OUT/{test,val}_episodes.json
- 6. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes); its    OUT/run
+ 4. detector     the learned detector (issue 14), trained on the training rooms for a fixed     OUT/detector
+                 number of steps (one thread: the same detector on any machine), calibrated on val
+ 5. detections   its per-state table in every room (its confidence drives the stage switch and  world/*/detections_learned.hdf5
+                 its boxes and features feed the agent); quality on the val rooms printed      OUT/detector_quality.json
+                 (``--detections oracle``: the oracle's table instead, no detector trained)
+ 6. episodes     fixed test episodes, and val episodes for checkpoint selection                 OUT/{test,val}_episodes.json
+ 7. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes); its    OUT/run
                  milestones (every 200 updates) scored greedily on the val episodes, the best
                  kept as OUT/run/best and evaluated
- 7. evaluate     the agent, the scripted explorer and the random policy on the test episodes   OUT/eval/<policy>
- 8. report       HTML report: tables, curves, reconstructions, episode gallery                  OUT/report/index.html
+ 8. evaluate     the agent, the scripted explorer and the random policy on the test episodes   OUT/eval/<policy>
+ 9. report       HTML report: tables, curves, reconstructions, episode gallery                  OUT/report/index.html
 
 The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
 keeps only the smallest ones per room type, for shorter runs); the val and test rooms are never seen in training.
@@ -42,6 +46,9 @@ from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row,
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
 from .eval.select import chosen, select_checkpoint
+from .detect.train import is_checkpoint, read_meta
+from .eval.detector_stage import ensure_detector, ensure_learned_detections, record_quality, tables_complete
+from .eval.tables import quality_line
 from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
 from .metrics import METRICS, write_json
 from .pretrain.train import read_progress
@@ -51,7 +58,7 @@ from .sim.episodes import read_episodes
 from .world.build import build_dataset
 from .world.presets import preset_scenes
 
-STAGES = ("world", "pretrain", "features", "detections", "episodes", "train", "evaluate", "report")
+STAGES = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "report")
 
 
 #: The experiment row the demo trains: TSRM + DE-MAE (paper Table II, last row).
@@ -71,11 +78,11 @@ class DemoConfig:
     scale: ScaleConfig = field(default_factory=lambda: replace(SCALES["demo"]))
     """Sizes of pretraining, training and evaluation (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps,
     ``DEMO_UPDATES`` updates of batched A2C, 100 test episodes per room type)."""
-    detections: str = "oracle"
+    detections: str = "learned"
     """Detection tables the agent and the stage switch read, named explicitly (the agent never falls back to
-    ground truth). ``oracle`` (computed here; its features carry no distance, its confidence is a hand-made
-    function of instance size and distance) stays the demo's choice until the learned detector is good
-    enough (issue 14)."""
+    ground truth): ``learned`` (issue 14 item 4: the detector trained here, ``scale.detector_steps`` steps) or
+    ``oracle`` (computed here; its features carry no distance, its confidence is a hand-made function of
+    instance size and distance)."""
     seed: int = 0
     """Seed of the training run and of the random policy."""
     gallery: int = 6
@@ -97,6 +104,11 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                         "count, because another count sums floats in another order and trains another agent)")
     p.add_argument("--sample", action="store_true",
                    help="evaluate the agent by sampling its actions instead of the greedy argmax (the default)")
+    p.add_argument("--detections", choices=("learned", "oracle"), default="learned",
+                   help="learned (default): train the detector on the training rooms and use its table; oracle: "
+                        "the oracle's table (hand-made confidence from instance size and distance)")
+    p.add_argument("--detector-steps", type=int, default=None,
+                   help=f"training steps of the learned detector (default {SCALES['demo'].detector_steps})")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -222,14 +234,50 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     fm = st.run("features", "encode every state of the training, validation and test rooms once", do_features, features_ok)
 
-    # 4. detections -------------------------------------------------------------------------------------
-    st.run("detections", f"detections: {cfg.detections} (named explicitly), the oracle detector's table per room "
-                         f"(confidence drives the stage switch, C_target {C_TARGET:g})",
-           lambda: {"written": ensure_oracle_detections(world, cfg.detections)},
-           lambda m: all(read_fingerprint(p, cfg.detections) == OracleConfig().fingerprint() for p in world.iterdir()
-                         if (p / "COMPLETE").exists()))
+    # 4. detector ---------------------------------------------------------------------------------------
+    det_dir = out / "detector"
+    learned = cfg.detections != "oracle"
 
-    # 5. episodes ---------------------------------------------------------------------------------------
+    def do_detector():
+        ready = tables_complete(world, cfg.detections)
+        if ready:  # every room already has a learned table (e.g. written by an experiment): used as it is
+            print(f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
+                  flush=True)
+            return {"fingerprint": ready, "tables": "existing"}
+        det = ensure_detector(sub, world, det_dir, sc, say=lambda m: print(m, flush=True))
+        return {"fingerprint": det.fingerprint, "steps": det.meta.get("step"), "temperature": det.temperature}
+
+    def detector_ok(m):
+        if m.get("tables") == "existing":
+            return tables_complete(world, cfg.detections) == m.get("fingerprint")
+        meta = read_meta(det_dir) if is_checkpoint(det_dir) else {}
+        return meta.get("step") == sc.detector_steps and meta.get("calibrated_step") == sc.detector_steps
+
+    if learned:
+        st.run("detector", f"learned detector, {sc.detector_steps} steps on the training rooms (one thread), "
+                           f"temperature fitted on the val rooms -> {det_dir}", do_detector, detector_ok)
+    else:
+        st.header("detector", "not used (--detections oracle)")
+        st.times["detector"] = ("-", 0.0)
+
+    # 5. detections -------------------------------------------------------------------------------------
+    def do_detections():
+        if learned:
+            done = ensure_learned_detections(world, cfg.detections, det_dir, sc, train_root=sub,
+                                             say=lambda m: print(m, flush=True))
+            fingerprint, written = done["fingerprint"], done["written"]
+        else:
+            written, fingerprint = ensure_oracle_detections(world, cfg.detections), OracleConfig().fingerprint()
+        quality = record_quality(out, world, [cfg.detections], say=lambda m: print(m, flush=True))
+        return {"written": written, "fingerprint": fingerprint, "quality": quality[cfg.detections]}
+
+    what = ("the learned detector's table per room" if learned else "the oracle detector's table per room")
+    dm = st.run("detections", f"detections: {cfg.detections} (named explicitly), {what} (confidence drives the stage "
+                         f"switch, C_target {C_TARGET:g}); quality on the val rooms", do_detections,
+           lambda m: "quality" in m and all(read_fingerprint(p, cfg.detections) == m.get("fingerprint")
+                                            for p in list_scenes(world)))
+
+    # 6. episodes ---------------------------------------------------------------------------------------
     ep_file = out / "test_episodes.json"
     val_file = out / "val_episodes.json"
 
@@ -243,7 +291,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     print(f"    {em['episodes']} episodes in {ep_file}, {em['val_episodes']} in {val_file} (checkpoint selection)",
           flush=True)
 
-    # 6. train ------------------------------------------------------------------------------------------
+    # 7. train ------------------------------------------------------------------------------------------
     run_dir = out / "run"
 
     def do_train():
@@ -265,7 +313,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     st.run("train", f"TSRM agent, batched A2C, {shown}, best milestone on validation -> {run_dir}", do_train,
            lambda m: m.get("budget") == budget and "checkpoint" in m and (run_dir / "config.json").exists())
 
-    # 7. evaluate ---------------------------------------------------------------------------------------
+    # 8. evaluate ---------------------------------------------------------------------------------------
     policies = [("agent (TSRM, DE-MAE)", "agent"), ("scripted explorer", "explorer"), ("random", "random")]
     results = {}
 
@@ -285,7 +333,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         for label, name in policies:
             results[label] = json.loads((out / "eval" / name / "metrics.json").read_text())["metrics"]
 
-    # 8. report -----------------------------------------------------------------------------------------
+    # 9. report -----------------------------------------------------------------------------------------
     def do_report():
         index = build_report(out, out / "report", gallery=cfg.gallery, title="tsnav demo: TSRM + DE-MAE on the demo world")
         return {"index": str(index)}
@@ -295,6 +343,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     total = time.perf_counter() - t_all
     _print_results(results, st, total, rm.get("index", str(out / "report" / "index.html")))
+    print(f"detections: {quality_line(dm['quality'])}", flush=True)
     return {"stages": st.times, "results": results, "seconds": total}
 
 
@@ -316,7 +365,11 @@ def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
 
 
 def run(args) -> int:
-    cfg = DemoConfig(world_workers=args.workers, sample=args.sample)
+    cfg = DemoConfig(world_workers=args.workers, sample=args.sample, detections=args.detections)
+    if args.detector_steps is not None:
+        if args.detector_steps < 1:
+            raise CommandError("--detector-steps must be >= 1")
+        cfg.scale.detector_steps = args.detector_steps
     if args.train_updates is not None or args.train_minutes is not None:  # asked for: replaces the default
         if args.train_updates is not None and args.train_updates < 1:
             raise CommandError("--train-updates must be >= 1")

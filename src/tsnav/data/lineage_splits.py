@@ -34,6 +34,7 @@ import numpy as np
 
 from ..atomic import atomic_write_bytes, atomic_write_json
 from ..constants import CATEGORY_INDEX, ROOM_TYPES
+from .names import scene_base_name  # re-exported: SAVN's folder names carry the suffix, the lists do not
 
 #: Room-type names of the split files (``{room}_{split}_22.pkl``).
 SPLIT_ROOMS = ROOM_TYPES
@@ -158,11 +159,6 @@ def read_split(path: str | Path) -> list[dict]:
         if not isinstance(r["task_data"], (list, tuple)) or not all(isinstance(t, str) for t in r["task_data"]):
             raise SplitFormatError(f"{path}: episode {i}: task_data must be a list of object ids")
     return obj
-
-
-def scene_base_name(name: str) -> str:
-    """``FloorPlan24_physics`` -> ``FloorPlan24`` (SAVN's folder names carry the suffix, the lists do not)."""
-    return name[: -len("_physics")] if name.endswith("_physics") else name
 
 
 def split_records(bank, episodes) -> list[dict]:

@@ -57,11 +57,16 @@ def scene_info(name: str) -> tuple[str, str]:
                      f"FloorPlan_Train1-12_1-5 or FloorPlan_Val1-3_1-5)")
 
 
+def scene_base_name(name: str) -> str:
+    """``FloorPlan24_physics`` -> ``FloorPlan24``: the scene name without the ``_physics`` suffix of the lineage's
+    folder names and AI2-THOR's metadata files (the episode lists and tsnav's folders do not carry it)."""
+    return name.removesuffix("_physics")
+
+
 def lineage_scene_info(name: str) -> tuple[str, str | None]:
     """Room type and split of an AI2-THOR scene name (``FloorPlan1`` or the lineage's ``FloorPlan1_physics``);
     ``("unknown", None)`` for other names."""
-    base = name[:-len("_physics")] if name.endswith("_physics") else name
     try:
-        return scene_info(base)
+        return scene_info(scene_base_name(name))
     except ValueError:
         return "unknown", None

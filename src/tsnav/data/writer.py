@@ -153,6 +153,17 @@ class FrameWriter:
         self.images.create_dataset(key, data=rgb, compression=self.compression, track_times=False)
         self.depth.create_dataset(key, data=np.asarray(depth).astype(self.depth_dtype), track_times=False)
 
+    def add_many(self, keys, rgb: np.ndarray, depth: np.ndarray) -> None:
+        """Store the frames of states ``keys`` (N), in that order: ``rgb`` (N, H, W, 3) uint8 and ``depth``
+        (N, H, W) metres, converted to ``depth_dtype`` once for the batch. The files equal those of
+        :meth:`add` called frame by frame."""
+        depth = np.asarray(depth).astype(self.depth_dtype)
+        if not (len(keys) == len(rgb) == len(depth)):
+            raise ValueError(f"add_many: {len(keys)} keys, {len(rgb)} RGB frames, {len(depth)} depth frames")
+        for key, c, d in zip(keys, rgb, depth):
+            self.images.create_dataset(key, data=c, compression=self.compression, track_times=False)
+            self.depth.create_dataset(key, data=d, track_times=False)
+
     def close(self) -> None:
         for f in (self.images, self.depth):
             try:

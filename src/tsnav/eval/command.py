@@ -1,17 +1,16 @@
-"""``tsnav eval``: evaluate a policy on a fixed episode list; writes records.jsonl and metrics.json."""
+"""``tsnav eval``: evaluate a policy on a fixed episode list (:func:`~tsnav.eval.runner.evaluate_to_folder`);
+writes records.jsonl, trajectories.jsonl and metrics.json."""
 
 from __future__ import annotations
 
 import argparse
-import time
+import json
 from pathlib import Path
 
 from ..constants import C_TARGET
 from ..errors import CommandError
-from ..sim.episodes import read_episodes
-from ..metrics import format_table, summarize, write_json, write_records
-from .policies import make_policy
-from .runner import EvalConfig, config_dict, evaluate, load_bank_for_episodes
+from ..metrics import format_table
+from .runner import evaluate_to_folder
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -24,7 +23,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", default="auto",
                         help="--run: auto (the run's best checkpoint chosen by `tsnav select`, else the latest), "
                              "best, latest, or a checkpoint folder")
-    parser.add_argument("--out", required=True, help="output folder for records.jsonl and metrics.json")
+    parser.add_argument("--out", required=True, help="output folder for records.jsonl, trajectories.jsonl and metrics.json")
     parser.add_argument("--seed", type=int, default=0, help="seed of stochastic policies (default: 0)")
     parser.add_argument("--sample", action="store_true",
                         help="--run: sample the agent's actions (seeded by --seed) instead of the default greedy "
@@ -43,37 +42,15 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--max-steps and --batch-size must be >= 1")
     if not 0.0 <= args.c_target <= 1.0:
         raise CommandError(f"--c-target must be in [0, 1], got {args.c_target}")
-    episodes, meta = read_episodes(args.episodes)
-    if not episodes:
-        raise CommandError(f"{args.episodes}: the episode list is empty")
-    dist = args.success_distance if args.success_distance is not None else float(meta.get("success_distance", 1.0))
-    bank = load_bank_for_episodes(args.data, episodes, success_distance=dist, c_target=args.c_target)
-    if args.run is not None:
-        # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
-        from ..rl.checkpoint import load_policy
-
-        try:
-            policy = load_policy(args.run, bank, greedy=not args.sample, seed=args.seed, checkpoint=args.checkpoint)
-        except FileNotFoundError as e:
-            raise CommandError(str(e)) from None
-        args.policy = f"run:{Path(args.run).resolve()}"
-    else:
-        policy = make_policy(args.policy, bank, seed=args.seed, c_target=args.c_target)
-    config = EvalConfig(max_steps=args.max_steps, c_target=args.c_target, batch_size=args.batch_size)
-    t0 = time.perf_counter()
-    records = evaluate(bank, episodes, policy, config)
-    seconds = time.perf_counter() - t0
-    summary = summarize(records, config.min_optimal_length)
     out = Path(args.out)
-    write_records(out / "records.jsonl", records)
-    write_json(out / "metrics.json", {
-        "metrics": summary, "policy": args.policy, "seed": args.seed, "sample": bool(args.sample),
-        "checkpoint": str(args.checkpoint) if args.run is not None else None,
-        "episodes_file": str(args.episodes),
-        "data": str(Path(args.data).resolve()), "success_distance": dist, "config": config_dict(config),
-        "detector_confidence": bank.confidence is not None, "seconds": seconds})
-    print(f"policy {args.policy}: {len(records)} episodes in {seconds:.2f} s "
-          f"(stage switch: {'detector' if bank.confidence is not None else 'ground-truth visibility'})")
+    summary = evaluate_to_folder(out, args.data, args.episodes, policy=args.policy, run=args.run,
+                                 c_target=args.c_target, seed=args.seed, max_steps=args.max_steps, sample=args.sample,
+                                 checkpoint=args.checkpoint, success_distance=args.success_distance,
+                                 batch_size=args.batch_size)
+    meta = json.loads((out / "metrics.json").read_text())
+    n = sum(1 for line in (out / "records.jsonl").read_text().splitlines() if line.strip())
+    print(f"{meta['label']}: {n} episodes in {meta['seconds']:.2f} s "
+          f"(stage switch: {'detector' if meta['detector_confidence'] else 'ground-truth visibility'})")
     print(format_table(summary))
-    print(f"wrote {out / 'records.jsonl'} and {out / 'metrics.json'}")
+    print(f"wrote {out / 'records.jsonl'}, {out / 'trajectories.jsonl'} and {out / 'metrics.json'}")
     return 0

@@ -8,13 +8,23 @@
 experiment     rows                                                                         paper
 =============  ===========================================================================  ==============
 ablation       baseline (ResNet18 features, baseline reward); + exploration; + distance;    Table II
-               + both (TSRM); + DE-MAE alone (DE-MAE features, baseline reward); all three
+               + both (TSRM); + DE-MAE alone (DE-MAE features, baseline reward); all three;
+               all three with the oracle's table instead of the learned detector's
+               ("TSRM + DE-MAE, oracle switch", issue 14)
                - SR, SPL, SSR, SSSPL, NSNPL for ALL and L>=5, test episodes
 pretraining    ResNet18 baseline, (VC-1 with --vc1-weights), standard MAE, DE-MAE w/ crop,  Table III
                DE-MAE w/o crop - all with the baseline reward; SR, SPL for ALL and L>=5
 threshold      C_target = 0.1 .. 0.9 (DE-MAE features, TSRM reward), validation episodes;   Fig. 4
                every metric over C_target with its best point marked (threshold.png)
 =============  ===========================================================================  ==============
+
+Detections (issue 14 item 4): every row's agent reads, and its stage switch follows, the learned detector's table
+``detections_learned.hdf5`` (``--detections``; the oracle-switch row of the ablation reads ``detections_oracle``).
+When the dataset has learned tables of one detector in every scene they are used as they are; otherwise the
+detector is trained on the train rooms in ``--detector-dir`` (default ``OUT/detector``; resumable, sizes and
+steps from the scale), calibrated on val, and writes its table into the scenes lacking one (a table of another
+detector is never overwritten: one-line error naming it). Each table's quality on the val rooms (presence AP,
+reach of C_target, false positives) is written to ``OUT/detector_quality.json`` and printed under the table.
 
 A job is one (row, seed): (pretrain the row's encoder if needed) -> cache its features (once per encoder) ->
 train the agent, keeping a milestone every ``ScaleConfig.milestone_every`` updates -> score the milestones (and
@@ -31,6 +41,8 @@ are made once. Every stage resumes after an interruption; a job whose folder hol
 Output folder::
 
     OUT/experiment.json          resolved configuration, rows, jobs (rewritten at every start)
+    OUT/detector/                the learned detector's checkpoints (``--detector-dir``), when trained here
+    OUT/detector_quality.json    each detection table measured on the val rooms
     OUT/episodes_<split>.json    the fixed evaluation episodes
     OUT/episodes_select.json     validation episodes that choose each job's checkpoint (``--checkpoint best``)
     OUT/jobs/<row>_s<seed>/      train/ (run folder of the trainer; selection.json, best/), eval/ (records.jsonl,
@@ -75,9 +87,10 @@ from ..metrics import METRICS, write_json
 from .report import build_report
 from .runner import evaluate_to_folder
 from .select import chosen, select_checkpoint
+from .detector_stage import QUALITY_FILE, record_quality
 from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
                           ensure_world, say)
-from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshold
+from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -125,7 +138,7 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
     milestones = scale.milestone_every if cfg.checkpoint == "best" else None
     # checkpoints land on multiples of checkpoint_every (100 by default); milestones must be among them
     every = math.gcd(TrainConfig.checkpoint_every, milestones) if milestones else TrainConfig.checkpoint_every
-    tc = TrainConfig(data=str(Path(cfg.data).resolve()), features=features, detections=cfg.detections,
+    tc = TrainConfig(data=str(Path(cfg.data).resolve()), features=features, detections=row.detections_of(cfg.detections),
                      split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
                      num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
                      minutes=minutes, episodes=episodes, updates=updates, device=cfg.device,
@@ -185,6 +198,7 @@ class Experiment:
         self.jobs = [Job(r, cfg.seed_offset + s) for s in range(cfg.seeds) for r in self.rows]
         self.out = Path(cfg.out)
         self.pretrain_dir = Path(cfg.pretrain_dir) if cfg.pretrain_dir else self.out / "pretrain"
+        self.detector_dir = Path(cfg.detector_dir) if cfg.detector_dir else self.out / "detector"
         self._train_fn = train_fn
 
     # -- bookkeeping ----------------------------------------------------------------------------------------
@@ -223,14 +237,30 @@ class Experiment:
                 per_row.setdefault(j.row.id, []).append(json.loads(m.read_text())["metrics"])
         results = aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
         results["experiment"] = self.cfg.experiment
+        results["detections"] = self.cfg.detections
+        quality = self.quality()
+        if quality:
+            results["detector_quality"] = quality
         write_json(self.out / "results.json", results)
         atomic_write_text(self.out / "table.md", f"## {self.cfg.experiment}: {self.info['description']}\n\n"
                            + markdown_table(results)
-                           + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval.\n")
+                           + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
+                           + f"Detections: {self.cfg.detections}"
+                           + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
+                           + ".\n" + "".join(f"\n- {quality_line(q)}" for q in quality.values())
+                           + ("\n" if quality else ""))
         atomic_write_text(self.out / "table.csv", csv_table(results))
         if self.cfg.experiment == "threshold":
             plot_threshold(results, self.out / "threshold.png")
         return results
+
+    def quality(self) -> dict:
+        """``OUT/detector_quality.json`` (the tables measured on val rooms), or {} before it is written."""
+        p = self.out / QUALITY_FILE
+        try:
+            return json.loads(p.read_text()) if p.exists() else {}
+        except ValueError:
+            return {}
 
     # -- stages ----------------------------------------------------------------------------------------------
     def prepare(self) -> dict[str, str]:
@@ -238,8 +268,10 @@ class Experiment:
         cfg, scale = self.cfg, self.scale
         split = self.info["split"]
         ensure_world(cfg.data, scale.world)
-        say(f"[{cfg.experiment}] detections ({cfg.detections}) and {split} episodes")
-        ensure_detections(cfg.data, cfg.detections)
+        say(f"[{cfg.experiment}] detections ({', '.join(self.detection_names)}) and {split} episodes")
+        for name in self.detection_names:
+            ensure_detections(cfg.data, name, self.detector_dir, scale)
+        record_quality(self.out, cfg.data, self.detection_names, say=say)
         ensure_episodes(cfg.data, split, self.episodes_file,
                         scale.test_per_room_type if split == "test" else scale.val_per_room_type)
         splits = ["train", split]
@@ -255,6 +287,11 @@ class Experiment:
             say(f"[{cfg.experiment}] features of {enc} for the {' and '.join(splits)} scenes")
             features[enc] = ensure_features(es, cfg.data, splits, scale.feature_batch_size, cfg.device)
         return features
+
+    @property
+    def detection_names(self) -> list[str]:
+        """Detection tables the rows read: the experiment's, then rows' own (the oracle-switch row)."""
+        return list(dict.fromkeys([self.cfg.detections] + [r.detections_of(self.cfg.detections) for r in self.rows]))
 
     @property
     def episodes_file(self) -> Path:
@@ -289,7 +326,8 @@ class Experiment:
         checkpoint = self.choose_checkpoint(job)
         t1 = time.perf_counter()
         summary = evaluate_to_folder(jd / "eval", self.cfg.data, self.episodes_file, run=jd / "train",
-                                     detections=self.cfg.detections, c_target=job.row.c_target, seed=job.seed,
+                                     detections=job.row.detections_of(self.cfg.detections),
+                                     c_target=job.row.c_target, seed=job.seed,
                                      label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps,
                                      sample=self.cfg.sample, checkpoint=checkpoint["kind"])
         done = {"row": job.row.id, "seed": job.seed, "checkpoint": checkpoint, "train_seconds": t1 - t0,
@@ -365,7 +403,13 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="training budget per job in minutes instead (depends on the machine's load; with "
                              "--updates-per-job too, the first reached stops training)")
     parser.add_argument("--pretrain-dir", default=None, help="pretraining runs (default OUT/pretrain; share it)")
-    parser.add_argument("--detections", default="oracle", help="detection tables (default oracle, computed here)")
+    parser.add_argument("--detections", default="learned",
+                        help="detection tables of the agents and the stage switch (default learned: used as they are "
+                             "when every scene has one of the same detector, else the detector is trained in "
+                             "--detector-dir on the train rooms, calibrated on val, and writes them; oracle: the "
+                             "oracle's, computed here)")
+    parser.add_argument("--detector-dir", default=None,
+                        help="learned detector's training folder (default OUT/detector; share it, resumable)")
     parser.add_argument("--vc1-weights", default=None, help="VC-1 ViT-Base weights: adds the VC-1 row (pretraining)")
     parser.add_argument("--resnet18-weights", default=None,
                         help="torchvision ResNet18 weights (ImageNet, as in the paper) for the baseline encoder")
@@ -399,7 +443,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--vc1-weights adds a row to the pretraining experiment only")
     cfg = ExperimentConfig(experiment=args.experiment, data=args.data, out=args.out, scale=args.scale, seeds=args.seeds,
                            minutes_per_job=args.minutes_per_job, updates_per_job=args.updates_per_job,
-                           pretrain_dir=args.pretrain_dir,
+                           pretrain_dir=args.pretrain_dir, detector_dir=args.detector_dir,
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
                            sample=args.sample, checkpoint=args.checkpoint)

@@ -22,6 +22,12 @@ DEMO_UPDATES = 1000
 #: update; 4000 updates = 31 M env steps, about the paper's 1.5 M episodes at ~20 steps per episode). To be set
 #: from the convergence curve (issue 15, item 3).
 MEDIUM_UPDATES = 4000
+#: The learned detector of the 128-px worlds (``ithor-real``): space-to-depth stem 2, the wider backbone and the
+#: fine grid that ``tsnav detect`` gives a new 128-px checkpoint (:func:`tsnav.detect.model.default_config`,
+#: BENCHMARKS.md "Learned detector"); the 64-px scales keep ``DetectorConfig``'s defaults with stem 1.
+DETECTOR_128 = {"stem": 2, "widths": (32, 64, 128), "fine": True}
+#: Detector training steps of the 128-px scales (:func:`tsnav.detect.train.default_train_steps`).
+DETECTOR_128_STEPS = 9000
 
 
 
@@ -74,6 +80,17 @@ class ScaleConfig:
     """Validation episodes per room type (threshold sweep)."""
     max_steps: int = 100
     """Evaluation episode length (paper: 100)."""
+    detector_steps: int = 2500
+    """Optimiser steps of the learned detector (issue 14 item 4: trained on the train rooms when the dataset has no
+    learned tables; a budget in steps, so the same detector on a busy and an idle machine)."""
+    detector_batch_size: int = 64
+    """Frames per detector training step."""
+    detector_states_per_scene: int | None = None
+    """Random states per train room the detector trains on; None: every state."""
+    detector_model: dict = field(default_factory=lambda: {"stem": 1})
+    """:class:`~tsnav.detect.model.DetectorConfig` fields of a new detector besides the input side (taken from the
+    train frames): 64-px worlds use ``stem`` 1, 128-px worlds ``stem`` 2 (space-to-depth: a 128-px frame then costs
+    what a 64-px one does)."""
     world: str = "demo"
     """World preset (``tsnav world --preset``) the scale runs on: built into ``--data`` when that folder does not
     exist yet. Paper: ``ithor-real``, the real iTHOR scenes rebuilt from their recorded layouts."""
@@ -86,12 +103,15 @@ SCALES = {
     # items 3-4). PLACEHOLDER numbers until `tsnav convergence` has measured that curve: set
     # ``updates_per_job`` (and the agent size, if the curve says so) from it.
     "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, milestone_every=500, num_envs=256, test_per_room_type=250,
-                          val_per_room_type=100, world="ithor-real"),
+                          val_per_room_type=100, world="ithor-real", detector_steps=DETECTOR_128_STEPS,
+                          detector_states_per_scene=1600, detector_model=dict(DETECTOR_128)),
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
                          pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
                          num_envs=16, workers=14, updates_per_job=None, episodes_per_job=1_500_000,
                          milestone_every=None,
-                         test_per_room_type=250, val_per_room_type=250, world="ithor-real"),
+                         test_per_room_type=250, val_per_room_type=250, world="ithor-real",
+                         detector_steps=DETECTOR_128_STEPS, detector_states_per_scene=1600,
+                         detector_model=dict(DETECTOR_128)),
 }
 
 
@@ -111,6 +131,13 @@ class Row:
     """Stage-switch threshold for training and evaluation (paper: 0.7)."""
     flags: dict = field(default_factory=dict)
     """Check-mark columns of the table (Table II: exploration reward, distance reward, DE-MAE)."""
+    detections: str | None = None
+    """Detection table of this row's agent and stage switch when it is not the experiment's
+    (:attr:`ExperimentConfig.detections`): the ablation's oracle-switch row reads ``oracle``."""
+
+    def detections_of(self, default: str) -> str:
+        """The detection table name this row trains and is evaluated with."""
+        return self.detections or default
 
 
 ABLATION_FLAGS = ("Exploration Reward", "Distance Reward", "DE-MAE")
@@ -128,7 +155,12 @@ def experiment_rows(name: str, vc1: bool = False) -> list[Row]:
                 _abl("distance", "+ distance reward", "resnet18", "distance", 0, 1, 0),
                 _abl("tsrm", "+ both (TSRM)", "resnet18", "tsrm", 1, 1, 0),
                 _abl("demae", "+ DE-MAE alone", "demae", "baseline", 0, 0, 1),
-                _abl("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm", 1, 1, 1)]
+                _abl("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm", 1, 1, 1),
+                # issue 14 item 4: the same agent with the oracle's table (no distance in its features; its
+                # confidence a hand-made function of instance size and distance) instead of the learned
+                # detector's, so the oracle switch's effect is measured
+                Row("tsrm_demae_oracle", "TSRM + DE-MAE, oracle switch", "demae", "tsrm", C_TARGET,
+                    dict(zip(ABLATION_FLAGS, (1, 1, 1))), detections="oracle")]
     if name == "pretraining":
         rows = [Row("resnet18", "Baseline (ResNet18)", "resnet18", "baseline")]
         if vc1:
@@ -175,9 +207,15 @@ class ExperimentConfig:
     stops training)."""
     pretrain_dir: str | None = None
     """Where pretraining runs live (default ``OUT/pretrain``); share it between experiments."""
-    detections: str = "oracle"
-    """Detection tables driving the stage switch; ``oracle`` tables are computed when missing, other names
-    must exist (``tsnav detect``)."""
+    detections: str = "learned"
+    """Detection tables the agents read and the stage switch follows (issue 14 item 4: the learned detector).
+    ``oracle`` tables are computed when missing; any other name (``learned``) is used as it is when every scene
+    holds one made by the same learned detector, and otherwise the detector in ``detector_dir`` is trained on the
+    train rooms (resumable), calibrated on val and its tables written into the scenes that lack one. A row may
+    name its own table (:attr:`Row.detections`)."""
+    detector_dir: str | None = None
+    """Where the learned detector is trained (default ``OUT/detector``); share it between experiments on one
+    world."""
     vc1_weights: str | None = None
     """Published VC-1 ViT-Base weights (timm layout); adds the VC-1 row to the pretraining experiment."""
     resnet18_weights: str | None = None

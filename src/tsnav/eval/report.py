@@ -33,11 +33,13 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..atomic import atomic_save_figure, atomic_write_text
+from ..checkpoint_layout import BrokenCheckpoint, read_progress
 from ..errors import CommandError
 from ..rl.logger import read_log
 from .gallery import write_gallery
 from ..metrics import METRICS, format_table
 from .runner import eval_trajectories
+from .tables import quality_line
 
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
@@ -393,14 +395,12 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
 
 
 def _pretrain_progress(d: Path) -> dict:
-    """State of a pretraining run's newest checkpoint (``checkpoints/ckpt_<step>/state.json``; run folders
-    written before that layout: ``progress.json``); JSON only, so that reports need no torch."""
-    states = sorted(p for p in d.glob("checkpoints/ckpt_*/state.json") if "." not in p.parent.name)
-    for p in states[::-1]:
-        state = _read_json(p)
-        if isinstance(state, dict):
-            return state
-    return _read_json(d / "progress.json") or {}
+    """:func:`~tsnav.checkpoint_layout.read_progress` of a pretraining run ({} when there is none or it does not
+    read); JSON only, so that reports need no torch."""
+    try:
+        return read_progress(d) or {}
+    except BrokenCheckpoint:
+        return {}
 
 
 def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
@@ -463,6 +463,11 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> t
                      "seed), in percent. Files: " + ", ".join(
                          f"<code>{_e(f)}</code>" for f in ("table.md", "table.csv", "results.json") if (d / f).exists())
                      + ".</p>")
+    quality = results.get("detector_quality") or {}
+    if quality:
+        parts.append("<p class='note'>Detection tables (agents' input and stage switch; rows marked "
+                     "&lsquo;oracle switch&rsquo; read the oracle's), measured on the val rooms:</p><ul>"
+                     + "".join(f"<li>{_e(quality_line(q))}</li>" for q in quality.values()) + "</ul>")
     if (d / "threshold.png").exists():
         name_png = assets.copy(d / "threshold.png", f"threshold_{lab}")
         parts.append(f"<figure><img src='{name_png}' alt='threshold sweep' style='max-width:1100px'><figcaption>"

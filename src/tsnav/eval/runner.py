@@ -90,10 +90,9 @@ def evaluate(bank: SceneBank, episodes: list[Episode], policy, config: EvalConfi
 
 def _run_chunk(bank, scene_idx, target, start, policy, switch: StageSwitch, config) -> dict[str, np.ndarray]:
     n = len(start)
-    env = BatchEnv(bank, n, max_steps=config.max_steps, autoreset=False)
+    env = BatchEnv(bank, n, max_steps=config.max_steps, autoreset=False, stage=switch)  # the env keeps the stage
     obs = env.reset(episodes=(scene_idx, target, start))
     policy.reset(np.ones(n, dtype=bool))
-    switch.reset(np.ones(n, dtype=bool), start, target)
     success = np.zeros(n, dtype=bool)
     steps = np.zeros(n, dtype=np.int64)
     path_length = np.zeros(n, dtype=np.int64)
@@ -106,7 +105,6 @@ def _run_chunk(bank, scene_idx, target, start, policy, switch: StageSwitch, conf
             raise ValueError(f"the policy returned actions of shape {actions.shape}, expected ({n},)")
         obs, _, term, trunc, info = env.step(actions)
         act = info["active"]
-        switch.update(info["final_state"], info["steps"], info["path_length"], active=act)
         fin = term | trunc
         success[fin] = info["success"][fin]
         steps[act] = info["steps"][act]
@@ -309,19 +307,24 @@ def eval_trajectories(eval_dir: str | Path):
 def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
                        run: str | Path | None = None, detections: str | None = None, c_target: float = C_TARGET,
                        seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False,
-                       checkpoint: str = "auto") -> dict:
+                       checkpoint: str = "auto", success_distance: float | None = None, batch_size: int = 4096) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
     :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
     lineage's test-time rule) unless ``sample``; ``checkpoint`` names which of the run's checkpoints
     (``auto`` / ``best`` / ``latest`` / a folder, as :func:`~tsnav.rl.checkpoint.resolve_checkpoint`), recorded so
-    that a re-roll loads the same one. Returns the :func:`summarize` result."""
+    that a re-roll loads the same one. ``success_distance`` (metres) defaults to the episode list's;
+    ``batch_size`` episodes are stepped together. This is ``tsnav eval``. Returns the :func:`summarize` result."""
     out_dir = Path(out_dir)
     episodes, emeta = read_episodes(episodes_file)
-    config = EvalConfig(max_steps=max_steps, c_target=c_target)
+    if not episodes:
+        raise CommandError(f"{episodes_file}: the episode list is empty")
+    if success_distance is None:
+        success_distance = float(emeta.get("success_distance", 1.0))
+    config = EvalConfig(max_steps=max_steps, c_target=c_target, batch_size=batch_size)
     meta = {"policy": "agent" if run else policy, "run": str(Path(run).resolve()) if run else None, "seed": seed,
             "sample": bool(sample), "checkpoint": str(checkpoint) if run else None, "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
-            "success_distance": float(emeta.get("success_distance", 1.0)), "detections": detections,
+            "success_distance": float(success_distance), "detections": detections,
             "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
     bank = eval_bank(meta, episodes)
     pol = eval_policy(meta, bank)

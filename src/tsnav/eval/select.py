@@ -5,7 +5,8 @@ navigates the validation rooms best).
 Every checkpoint the run kept (its milestones, ``tsnav train --milestone-every N``, and the newest two) is
 evaluated on a fixed validation episode list with greedy actions (the lineage's test-time rule); the scores go
 to ``RUN/selection.json`` (rewritten atomically after each checkpoint, so an interrupted selection resumes and
-scores only what is new), and the best - highest SR, then SPL, then the earliest update - is copied to
+scores only what is new; a checkpoint whose weights file has the size and modification time recorded with its
+score is not even reloaded and rehashed), and the best - highest SR, then SPL, then the earliest update - is copied to
 ``RUN/best/`` (a temporary folder renamed when complete). ``tsnav eval --run RUN`` then evaluates ``best``
 unless told ``--checkpoint latest|PATH``.
 """
@@ -17,7 +18,7 @@ import shutil
 from pathlib import Path
 
 from ..atomic import atomic_folder, atomic_write_json
-from ..checkpoint import BrokenCheckpoint, read_json, weights_digest
+from ..checkpoint import MODEL_FILE, BrokenCheckpoint, read_json, weights_digest
 from ..constants import C_TARGET
 from ..errors import CommandError
 from ..metrics import summarize
@@ -28,6 +29,19 @@ from .runner import EvalConfig, evaluate, load_bank_for_episodes
 SELECTION = "selection.json"
 #: Metrics that rank checkpoints, in order (ALL episodes).
 RANK_BY = ("SR", "SPL")
+
+
+def file_signature(path: Path) -> list[int]:
+    """``[size in bytes, modification time in ns]`` of ``path``: a checkpoint's weights file whose signature is
+    the one recorded with its score has not changed since (checkpoints are written whole and renamed), so its
+    digest is reused instead of loading and hashing the weights again."""
+    st = Path(path).stat()
+    return [int(st.st_size), int(st.st_mtime_ns)]
+
+
+def _digest(run_dir: Path, ck: Path) -> str:
+    """:func:`~tsnav.checkpoint.weights_digest` of the agent weights of checkpoint folder ``ck``."""
+    return weights_digest(load_model(run_dir, ck)[0].state_dict())
 
 
 def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str | Path, *, seed: int = 0,
@@ -53,22 +67,31 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
     bank = load_bank_for_episodes(data, episodes, success_distance=float(emeta.get("success_distance", 1.0)))
     config = EvalConfig(max_steps=max_steps, c_target=c_target)
     for ck in ckpts:
-        digest = weights_digest(load_model(run_dir, ck)[0].state_dict())
-        if scores.get(ck.name, {}).get("digest") == digest:
+        entry = scores.get(ck.name, {})
+        sig = file_signature(ck / MODEL_FILE)
+        if entry.get("file") == sig and "digest" in entry:
+            continue  # unchanged since it was scored: no reload, no rehash
+        digest = _digest(run_dir, ck)
+        if entry.get("digest") == digest:
+            scores[ck.name] = {**entry, "file": sig}  # the same weights (e.g. a score file written before signatures)
             continue
         policy = load_policy(run_dir, bank, greedy=True, seed=seed, checkpoint=ck)
         summary = summarize(evaluate(bank, episodes, policy, config), config.min_optimal_length)
         state = read_json(ck / "state.json")["progress"]
         scores[ck.name] = {"update": int(state["update"]), "env_steps": int(state["env_steps"]),
-                           "episodes": int(state["episodes"]), "digest": digest, "metrics": summary}
+                           "episodes": int(state["episodes"]), "digest": digest, "file": sig, "metrics": summary}
         progress(f"    {ck.name}: " + ", ".join(f"{k} {100 * summary['ALL'][k]:.1f}" for k in RANK_BY))
         atomic_write_json(path, {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps,
-                                 "c_target": c_target, "scores": scores, "best": old.get("best") if same_list else None})
+                                 "c_target": c_target, "scores": scores, "best": old.get("best") if same_list else None,
+                                 "best_file": old.get("best_file")})
     live = {k: v for k, v in scores.items() if (run_dir / "checkpoints" / k).is_dir()}
     name = max(live, key=lambda k: (*(live[k]["metrics"]["ALL"][m] for m in RANK_BY), -live[k]["update"]))
     best = run_dir / BEST
     have = read_json(best / "state.json").get("selected_from") if (best / "state.json").exists() else None
-    if have != name or weights_digest(load_model(run_dir, best)[0].state_dict()) != live[name]["digest"]:
+    # RUN/best is rehashed only when it is not the folder this function last wrote or checked with these weights
+    unchanged = (have == name and (best / MODEL_FILE).exists()
+                 and old.get("best_file") == {"file": file_signature(best / MODEL_FILE), "digest": live[name]["digest"]})
+    if not unchanged and (have != name or _digest(run_dir, best) != live[name]["digest"]):
         with atomic_folder(best) as tmp:
             for f in (run_dir / "checkpoints" / name).iterdir():
                 if f.is_file():
@@ -76,8 +99,8 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
             st = read_json(tmp / "state.json")
             atomic_write_json(tmp / "state.json", {**st, "selected_from": name})
     result = {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps, "c_target": c_target,
-              "scores": scores,
-              "best": name}
+              "scores": scores, "best": name,
+              "best_file": {"file": file_signature(best / MODEL_FILE), "digest": live[name]["digest"]}}
     atomic_write_json(path, result)
     return result
 

@@ -18,6 +18,7 @@ from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, write_episodes
 from ..world.build import build_dataset
+from .detector_stage import ensure_learned_detections
 from .experiment_config import ExperimentConfig, ScaleConfig
 
 
@@ -63,16 +64,23 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
     return n
 
 
-def ensure_detections(data: str | Path, name: str) -> None:
-    """Oracle tables are computed when missing; other tables must exist in every scene."""
+def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | None = None,
+                      scale: ScaleConfig | None = None) -> None:
+    """Oracle tables are computed when missing; any other name is a learned detector's table: used as it is when
+    every scene holds one of the same detector, else the detector in ``detector_dir`` is trained at ``scale`` and
+    writes the missing ones (:func:`tsnav.eval.detector_stage.ensure_learned_detections`; without a
+    ``detector_dir`` every scene must already have its table)."""
     if name == "oracle":
         n = ensure_oracle_detections(data, name)
         if n:
             say(f"detections: oracle tables written for {n} scenes")
         return
-    missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
-    if missing:
-        raise CommandError(f"scene {missing[0]} has no detections_{name}.hdf5 (run `tsnav detect --name {name}`)")
+    if detector_dir is None or scale is None:
+        missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
+        if missing:
+            raise CommandError(f"scene {missing[0]} has no detections_{name}.hdf5 (run `tsnav detect --name {name}`)")
+        return
+    ensure_learned_detections(data, name, detector_dir, scale, say=say)
 
 
 def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_type: int, seed: int = 0,

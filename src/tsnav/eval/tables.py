@@ -47,7 +47,8 @@ def aggregate(rows: list, per_row: dict[str, list[dict]], metrics: list[str], fl
                 mean, half = mean_ci(vals)
                 ms[s][m] = {"mean": mean, "ci95": half, "values": vals}
         out_rows.append({"row": r.id, "label": r.label, "flags": r.flags, "c_target": r.c_target,
-                         "encoder": r.encoder, "reward": r.reward, "n": len(sums), "metrics": ms})
+                         "encoder": r.encoder, "reward": r.reward, "detections": getattr(r, "detections", None),
+                         "n": len(sums), "metrics": ms})
     return {"subsets": list(SUBSETS), "metrics": metrics, "flag_columns": flags, "rows": out_rows}
 
 
@@ -89,6 +90,15 @@ def csv_table(results: dict) -> str:
                             "ci_high": "" if half is None else f"{mean + half:.4f}", "n_seeds": r["n"],
                             "values": " ".join(f"{x:.4f}" for x in v["values"])})
     return buf.getvalue()
+
+
+def quality_line(q: dict) -> str:
+    """One line of a :func:`detection_quality` record (percent)."""
+    fp = " / ".join(f"{100 * v:.2f}" for v in q["fp_states"].values())
+    return (f"detections_{q['name']} on {q['scenes']} {q['split']} rooms: presence AP {q['presence_ap']:.3f}, box "
+            f"AP@0.5 {q['box_ap50']:.3f}, ECE {100 * q['ece']:.2f} %, reach of {q['c_target']:g}: {q['reached']}/"
+            f"{q['pairs']} pairs ({100 * q['reach']:.1f} %), false-positive states > "
+            f"{' / '.join(q['fp_states'])}: {fp} %")
 
 
 def plot_threshold(results: dict, path: str | Path) -> Path | None:

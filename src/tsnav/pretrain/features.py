@@ -212,16 +212,23 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
         for p, keys in scenes_keys:
             feats = scene_features(encoder, p, keys, batch_size, bar)
             f = p / f"features_{name}.hdf5"
-            with atomic_path(f) as tmp, h5py.File(tmp, "w") as h:
-                h.create_dataset("features", data=feats)
-                h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
-                for k, v in encoder.attrs().items():
-                    h.attrs[k] = v
-                h.attrs["channels"], h.attrs["grid"] = int(feats.shape[1]), int(feats.shape[2])
+            write_feature_file(f, feats, keys, encoder.attrs())
             written.append(f)
     finally:
         bar.close()
     return sorted(written)
+
+
+def write_feature_file(path: str | Path, features: np.ndarray, keys, attrs: dict) -> None:
+    """Write one scene's feature cache ``features_<name>.hdf5`` atomically: ``features`` ``(S, C, g, g)`` in the
+    row order of ``keys`` (state keys), the ``attrs`` describing the encoder (in their order), then ``channels``
+    = C and ``grid`` = g. The one writer of the format (encoders here, pooled pixels in :mod:`.pixels`)."""
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h:
+        h.create_dataset("features", data=features)
+        h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
+        for k, v in attrs.items():
+            h.attrs[k] = v
+        h.attrs["channels"], h.attrs["grid"] = int(features.shape[1]), int(features.shape[2])
 
 
 def _h5_attr(path: Path, name: str):

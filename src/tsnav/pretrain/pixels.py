@@ -12,12 +12,12 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..atomic import atomic_path
 from ..data.reader import list_scenes, load_scene
+from .data import IMAGENET_MEAN, IMAGENET_STD
+from .features import write_feature_file
 
-
-_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
-_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+_MEAN = np.array(IMAGENET_MEAN, dtype=np.float32)
+_STD = np.array(IMAGENET_STD, dtype=np.float32)
 
 
 def pooled_pixels(rgb: np.ndarray, grid: int) -> np.ndarray:
@@ -41,11 +41,8 @@ def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, 
             with h5py.File(p / "images.hdf5", "r") as fi:
                 rgb = np.stack([fi[k][()] for k in keys])
             feats = pooled_pixels(rgb, grid).astype(np.float16)
-            with atomic_path(f) as tmp, h5py.File(tmp, "w") as h:
-                h.create_dataset("features", data=feats)
-                h.create_dataset("keys", data=np.asarray(keys, dtype="S"))
-                h.attrs.update({"encoder": f"pixels:{grid}", "arch": "pixels", "method": "pooled-pixels",
-                                "img_size": int(rgb.shape[1]), "fingerprint": f"pixels-{grid}", "channels": 3,
-                                "grid": grid})
+            write_feature_file(f, feats, keys, {"encoder": f"pixels:{grid}", "arch": "pixels",
+                                                "method": "pooled-pixels", "img_size": int(rgb.shape[1]),
+                                                "fingerprint": f"pixels-{grid}"})
         out.append(f)
     return out

@@ -50,9 +50,10 @@ from tqdm import tqdm
 from ..constants import NUM_CATEGORIES
 from ..distributed import DistInfo, init_distributed, resolve_device
 from ..schedule import warmup_cosine
-from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_checkpoints, load_tensors, newest_state,
+from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_checkpoints, load_tensors,
                           optimizer_file, optimizer_from_tensors, optimizer_to_tensors, read_json, resume_newest,
                           save_checkpoint as save_checkpoint_folder, save_tensors, set_aside)
+from ..checkpoint_layout import LEGACY_PROGRESS, read_legacy_progress, read_progress  # noqa: F401 - read_progress: API
 from .data import AugmentConfig, BatchView, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
 from .model import SIZES, MaskedAutoencoderViT, make_config
 from .resnet import ResNet18
@@ -236,26 +237,6 @@ def compute_loss(model: nn.Module, method: str, rgb: torch.Tensor, depth: torch.
     if method != "mae":
         parts["depth"] = out.loss_depth.detach()
     return out.loss, parts
-
-
-#: File of the run folders written before the one checkpoint layout (read by :func:`read_legacy_progress`).
-LEGACY_PROGRESS = "progress.json"
-
-
-def read_legacy_progress(out: str | Path) -> dict | None:
-    """``progress.json`` of a run folder in the layout before ``checkpoints/`` (None when absent): the newest
-    checkpoint's step, file names (``model_file``, ``optim_file``), optimizer groups and RNG state, and under
-    ``previous`` the same for the one before it."""
-    p = Path(out) / LEGACY_PROGRESS
-    return read_json(p) if p.exists() else None
-
-
-def read_progress(out: str | Path) -> dict | None:
-    """Progress of a pretraining run (None before the first checkpoint): ``state.json`` of its newest readable
-    checkpoint (step, epoch, total_steps, finished, loss, optimizer groups, RNG state), else the legacy
-    ``progress.json``."""
-    state = newest_state(Path(out) / CHECKPOINTS)
-    return state if state is not None else read_legacy_progress(out)
 
 
 def _candidates(out: Path) -> list[tuple[str, object]]:

@@ -2,9 +2,10 @@
 
 :class:`EpisodeStats` follows the ``B`` rows of a :class:`~tsnav.sim.batch.BatchEnv` with auto-reset and
 collects one entry per finished episode (array operations per step, no loop over episodes). The two-stage
-bookkeeping matches the evaluation runner (paper III-B / IV-A): an episode enters the pathfinding stage at the
-first frame (the start included) whose target confidence exceeds C_target; searching length = movement
-actions before that frame. Training episodes are truncated at ``max_steps`` (30), so these figures are lower
+bookkeeping is the env's (paper III-B / IV-A; ``info["entered"]``, ``switch_length``, ``switch_state`` from
+the env's one :class:`~tsnav.sim.stage.StageSwitch`, the reward's during training): an episode enters the
+pathfinding stage at the first frame (the start included) whose target confidence exceeds C_target; searching
+length = movement actions before that frame. Training episodes are truncated at ``max_steps`` (30), so these figures are lower
 than the 100-step test figures.
 """
 
@@ -14,7 +15,6 @@ import numpy as np
 
 from ..metrics import metric_values
 from ..sim.paths import UNREACHABLE
-from ..sim.stage import StageSwitch
 
 FIELDS = ("success", "path_length", "optimal_length", "entered", "search_length", "optimal_search_length",
           "nav_length", "optimal_nav_length", "steps", "return")
@@ -25,7 +25,6 @@ class EpisodeStats:
 
     def __init__(self, bank, num_envs: int):
         self.bank = bank
-        self.switch = StageSwitch(bank, num_envs=num_envs)  # the bank's C_target, as bank.search_dist
         self.search_dist = bank.search_dist
         b = num_envs
         self.start = np.zeros(b, dtype=np.int64)
@@ -40,7 +39,6 @@ class EpisodeStats:
         s, g = obs["state"][rows], obs["target"][rows]
         self.start[rows] = s
         self.target[rows] = g
-        self.switch.reset(mask, obs["state"], obs["target"])
         self.ret[rows] = 0.0
         for v in self.terms.values():
             v[rows] = 0.0
@@ -54,20 +52,18 @@ class EpisodeStats:
             if k not in self.terms:
                 self.terms[k] = np.zeros(len(self.ret), dtype=np.float64)
             self.terms[k] += np.where(active, v, 0.0)
-        self.switch.update(info["final_state"], info["steps"], info["path_length"], active=active)
-        sw = self.switch
         fin = terminated | truncated
         if fin.any():
             r = np.flatnonzero(fin)
             g, s0 = self.target[r], self.start[r]
             L = info["path_length"][r].astype(np.int64)
-            entered = sw.entered[r].copy()
-            ls = np.where(entered, sw.switch_length[r], L)
+            entered = info["entered"][r].copy()
+            ls = np.where(entered, info["switch_length"][r], L)
             entry = {"success": info["success"][r].astype(bool), "path_length": L,
                      "optimal_length": self.bank.dist[s0, g].astype(np.int64), "entered": entered,
                      "search_length": ls, "optimal_search_length": self.search_dist[s0, g].astype(np.int64),
                      "nav_length": np.where(entered, L - ls, 0),
-                     "optimal_nav_length": np.where(entered, self.bank.dist[sw.switch_state[r], g], 0).astype(np.int64),
+                     "optimal_nav_length": np.where(entered, self.bank.dist[info["switch_state"][r], g], 0).astype(np.int64),
                      "steps": info["steps"][r].astype(np.int64), "return": self.ret[r].copy()}
             for k, v in self.terms.items():
                 entry[f"reward/{k}"] = v[r].copy()

@@ -43,6 +43,9 @@ Reward plug-in (stable interface; the TSRM reward of :mod:`tsnav.tsrm` implement
   terms ``{name: (B,) float32}`` (e.g. ``slack``, ``success``) that the env passes on in ``info``. Rows whose
   episode had already finished before this step (only without auto-reset) are passed with
   ``new_state == prev_state`` and ``done`` True; the env zeroes their reward and terms.
+* A reward that follows the two stages (paper III-B) exposes its :class:`~tsnav.sim.stage.StageSwitch` as
+  ``switch`` and keeps it up to date in ``reset`` / ``step`` (the TSRM reward does); the env then reports
+  that one in ``info`` instead of keeping a second (one stage switch per env).
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ from ..constants import C_TARGET, DONE, GRID_SIZE, MOVE_AHEAD, NUM_ACTIONS, NUM_
 from ..data.detections import Detections, load_scene_detections
 from ..data.reader import Scene, list_scenes, load_scene
 from .paths import distance_fields, scene_distance_fields
+from .stage import StageSwitch, above_threshold
 
 
 @runtime_checkable
@@ -226,7 +230,7 @@ class SceneBank:
     def stage_mask(self) -> np.ndarray:
         """``(S, C)`` bool: the frame of this state switches the episode to the pathfinding stage
         (confidence > C_target)."""
-        return self.stage_confidence > self.c_target
+        return above_threshold(self.stage_confidence, self.c_target)
 
     @property
     def search_dist(self) -> np.ndarray:
@@ -274,15 +278,22 @@ class BatchEnv:
     :meth:`step` returns ``(obs, reward, terminated, truncated, info)`` with ``info`` arrays (all ``(B,)``,
     describing the step just taken, before any auto-reset): ``collided`` (a failed MoveAhead), ``failed`` (any
     failed movement action, looks past the horizon limits included), ``success``, ``steps``,
-    ``path_length``, ``final_state`` (the state reached), ``active`` (the row was in an episode), and
-    ``reward_terms`` (dict). With ``autoreset`` (default) finished rows immediately start a new episode from
+    ``path_length``, ``final_state`` (the state reached), ``active`` (the row was in an episode),
+    ``reward_terms`` (dict), and the two-stage state of the episode after this step (paper III-B):
+    ``entered`` (in the pathfinding stage), ``switch_length`` (movement actions before the switching frame)
+    and ``switch_state`` (the switching frame's state). The stage is kept by :attr:`stage`, a
+    :class:`~tsnav.sim.stage.StageSwitch`: the reward's own when it has one (``reward_fn.switch``, updated by
+    the reward), else ``stage`` when given, else one over the bank's confidence and C_target (both updated
+    here). With ``autoreset`` (default) finished rows immediately start a new episode from
     ``sampler`` and ``obs`` shows its first state ("same-step" auto-reset); without it finished rows stay
     frozen (``active`` False) until :meth:`reset`.
     """
 
     def __init__(self, bank: SceneBank, num_envs: int, sampler: EpisodeSampler | None = None,
                  reward_fn: RewardFn | None = None, max_steps: int = 100, autoreset: bool = True,
-                 seed: int | None = None):
+                 seed: int | None = None, stage: StageSwitch | None = None):
+        """``stage``: the stage switch to keep (e.g. an evaluation's at its own C_target); not together with
+        a reward that keeps its own."""
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if max_steps < 1:
@@ -305,6 +316,13 @@ class BatchEnv:
         self._ns = bank.next_state.astype(np.int64).reshape(-1)  # flat (S*6,)
         self._succ = bank.success.reshape(-1)  # flat (S*C,)
         self._arange = np.arange(b, dtype=np.int64)
+        reward_stage = getattr(reward_fn, "switch", None)
+        if reward_stage is not None and stage is not None:
+            raise ValueError("BatchEnv: the reward keeps its own stage switch; do not pass stage= as well")
+        if reward_stage is not None and reward_stage.c_target != bank.c_target:
+            raise ValueError(f"the reward's C_target {reward_stage.c_target} differs from the bank's {bank.c_target}")
+        self._keeps_stage = reward_stage is None  # else the reward resets and updates it
+        self.stage: StageSwitch = reward_stage if reward_stage is not None else (stage or StageSwitch(bank, num_envs=b))
 
     # -- episodes -----------------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, episodes: tuple | None = None) -> dict[str, np.ndarray]:
@@ -343,6 +361,8 @@ class BatchEnv:
         self.steps[rows] = 0
         self.path_length[rows] = 0
         self.active[rows] = True
+        if self._keeps_stage:
+            self.stage.reset(mask, self.state, self.target)
         if self.reward_fn is not None:
             self.reward_fn.reset(mask.copy(), self.scene.copy(), self.target.copy(), self.state.copy())
 
@@ -382,9 +402,13 @@ class BatchEnv:
         else:
             reward = np.zeros(self.num_envs, dtype=np.float32)
             terms = {}
+        if self._keeps_stage:
+            self.stage.update(new, self.steps, self.path_length, active=active)
+        stage = self.stage
         info = {"collided": collided, "failed": failed, "success": success, "steps": self.steps.copy(),
                 "path_length": self.path_length.copy(), "final_state": new, "active": active.copy(),
-                "reward_terms": terms}
+                "reward_terms": terms, "entered": stage.entered.copy(), "switch_length": stage.switch_length.copy(),
+                "switch_state": stage.switch_state.copy()}
         self.state = new.copy()  # auto-reset writes into self.state; info keeps the final states
         self.active = active & ~finished
         if self.autoreset and finished.any():

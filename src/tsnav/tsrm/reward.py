@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..constants import C_TARGET, NUM_CATEGORIES
+from ..constants import C_TARGET, DONE, NUM_CATEGORIES
 from ..sim.stage import StageSwitch, above_threshold
 from ..sim.paths import UNREACHABLE
 from .area import AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, scene_floor
@@ -137,6 +137,7 @@ class TSRMReward:
         self.target = np.zeros(b, dtype=np.int64)
         self.switch._alloc(b)
         self.steps = np.zeros(b, dtype=np.int64)
+        self.path_length = np.zeros(b, dtype=np.int64)
         self.collided_at = np.zeros((b, self.nodes_per_scene), dtype=bool)
         # States whose view is already in RG (exploration only): revisiting one adds no area, skip its stencil.
         self.viewed = np.zeros((b, self.states_per_scene if self.config.uses("explore") else 0), dtype=bool)
@@ -186,6 +187,7 @@ class TSRMReward:
         self.scene[rows] = scene_idx
         self.target[rows] = target
         self.steps[rows] = 0
+        self.path_length[rows] = 0
         self.switch.reset(mask, start_state, target_all)
         at_start = self.switch.entered[rows]
         self.collided_at[rows] = False
@@ -211,6 +213,7 @@ class TSRMReward:
         if b != self.batch_size:
             raise ValueError(f"step got {b} episodes but reset was called with {self.batch_size}")
         self.steps += 1
+        self.path_length += np.asarray(action) != DONE  # movement actions, as BatchEnv counts them
         searching = self.switch.searching  # the stage in which this step's action was chosen
         terms = {k: np.zeros(b, dtype=np.float64) for k in TERMS}
         if cfg.uses("explore"):
@@ -223,7 +226,7 @@ class TSRMReward:
             rows = np.flatnonzero(~searching)
             terms["distance"][rows] = cfg.k_distance * distance_delta(self.dist, prev[rows], new[rows],
                                                                        self.target[rows])
-        self.switch.update(new, self.steps)
+        self.switch.update(new, self.steps, self.path_length)
         rows = np.flatnonzero(collided)
         if len(rows):
             nodes = self.node_local[prev[rows]]

@@ -20,14 +20,14 @@ import numpy as np
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
-from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, state_key
+from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
 from ..data.writer import (GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
                            scene_folder, write_graph, write_json, write_states)
 from ..render.gl import Renderer
 from ..data.names import scene_info
-from .navgrid import build_graph, reachable_positions
+from .navgrid import graph_edges, reachable_positions, state_keys, state_poses
 from .presets import PRESETS, preset_scenes, scene_spec
 from .spec import SceneSpec
 
@@ -46,6 +46,14 @@ class BuildConfig:
 
     def min_pixels(self) -> int:
         return min_pixels(self.image_size)
+
+    @classmethod
+    def from_preset(cls, preset: str | None, **overrides) -> "BuildConfig":
+        """The settings of ``preset`` (:data:`~tsnav.world.presets.PRESETS`: image size, compact rooms, world;
+        the defaults for ``None`` or a name that is not a preset), then ``overrides`` (field values)."""
+        p = PRESETS.get(preset or "", {})
+        return replace(cls(image_size=p.get("image_size", 64), compact=p.get("compact", False),
+                           world=p.get("world", "procedural")), **overrides)
 
 
 @dataclass
@@ -72,16 +80,16 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
     t0 = time.perf_counter()
     spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact)
     positions, move = reachable_positions(spec)
-    nodes, edges = build_graph(positions, move)
     js = spec.to_json()
     objects = spec.objects
+    object_ids = [o.objectId for o in objects]
     O = len(objects)
     lut = np.full(len(spec.instances), -1, np.int64)
     for j, o in enumerate(objects):
         lut[o.inst] = j
-    # Render order: position, rotation, horizon; the tables are stored in sorted key order.
-    poses = np.array([(x, z, r, h) for x, z in positions for r in ROTATIONS for h in HORIZONS], dtype=np.float64)
-    keys = np.array([state_key(*p) for p in poses])
+    # Render order = node order: position, rotation, horizon; the tables are stored in sorted key order.
+    poses = state_poses(positions)
+    keys = state_keys(positions)
     order = np.argsort(keys, kind="stable")
     stats.other_s += time.perf_counter() - t0
 
@@ -106,8 +114,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
                     t2 = time.perf_counter()
                     stats.render_s += t2 - t1
                     if frames is not None:
-                        for i in range(len(ids)):
-                            frames.add(keys[start + i], rgb[i], depth[i])
+                        frames.add_many(keys[start:start + len(ids)], rgb, depth)
                     stats.write_s += time.perf_counter() - t2
             t3 = time.perf_counter()
             # Distances: agent position to the nearest point of each object's footprint (floor plane); per position.
@@ -121,10 +128,11 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
             keys_s, pixels_s, boxes_s, distance_s = keys[order], pixels[order], boxes[order], distance[order]
             min_px = cfg.min_pixels()
             vis = (pixels_s >= min_px) & (distance_s <= VISIBILITY_DISTANCE)
-            write_json(tmp / "visible_object_map_1.5.json", visible_object_map([o.objectId for o in objects], keys_s, vis))
+            write_json(tmp / "visible_object_map_1.5.json", visible_object_map(object_ids, keys_s, vis))
             write_json(tmp / "grid.json", [{"x": float(x), "y": GRID_Y, "z": float(z)} for x, z in positions])
-            write_graph(tmp, sorted(nodes), edges)
-            write_states(tmp, keys_s, [o.objectId for o in objects], pixels_s, boxes_s, distance_s,
+            src, dst = graph_edges(move)
+            write_graph(tmp, keys_s.tolist(), zip(keys[src].tolist(), keys[dst].tolist()))
+            write_states(tmp, keys_s, object_ids, pixels_s, boxes_s, distance_s,
                          image_size=cfg.image_size, min_pixels=min_px)
             js.update({"image_size": cfg.image_size, "compact": cfg.compact,
                        "visibility": {"min_pixels": min_px, "min_pixel_fraction": MIN_PIXEL_FRACTION,
@@ -185,9 +193,7 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
     for n in names:
         scene_info(n)  # validates the name
     if cfg is None:
-        p = PRESETS.get(preset or "", {})
-        cfg = BuildConfig(image_size=p.get("image_size", 64), compact=p.get("compact", False),
-                          world=p.get("world", "procedural"))
+        cfg = BuildConfig.from_preset(preset)
     check_output_dir(out)
     # Leftovers of interrupted builds are never complete: remove them.
     for stale in out.glob(".*.partial-*"):

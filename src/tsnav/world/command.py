@@ -25,14 +25,13 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     if args.preset not in PRESETS:
         raise CommandError(f"unknown preset {args.preset!r} (choose from {', '.join(PRESETS)})")
-    pre = PRESETS[args.preset]
-    size = args.size or pre["image_size"]
-    if size < 16 or size > 1024:
-        raise CommandError(f"--size {size} is out of range (16..1024)")
+    cfg = BuildConfig.from_preset(args.preset, store_images=not args.no_images, seed=args.seed,
+                                  **({"image_size": args.size} if args.size else {}),
+                                  **({"compact": True} if args.compact else {}))
+    if cfg.image_size < 16 or cfg.image_size > 1024:
+        raise CommandError(f"--size {cfg.image_size} is out of range (16..1024)")
     if args.workers < 1:
         raise CommandError("--workers must be at least 1")
-    cfg = BuildConfig(image_size=size, store_images=not args.no_images, seed=args.seed,
-                      compact=pre["compact"] if args.compact is None else True, world=pre.get("world", "procedural"))
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
     try:
         stats = build_dataset(args.out, args.preset, scenes, cfg, workers=args.workers)

@@ -25,6 +25,8 @@ from .spec import Furniture, ObjectInstance, Part, SceneSpec, box_footprint
 #: Part of every scene seed. 3: the lineage's room target sets (CellPhone in kitchens and living rooms) and
 #: AI2-THOR's object-id format (issue 13); 2: the world of docs/RESULTS.md.
 GENERATOR_VERSION = 3
+#: Wall thickness, metres: procedural rooms draw a WALL_T / 2 slab inside each room (two rooms sharing an edge
+#: make one WALL_T wall), real scenes one WALL_T slab outside the room polygon (world/real.py).
 WALL_T = 0.1
 DOOR_W = 1.0
 
@@ -347,17 +349,29 @@ def _apartment_layout(rng, ox, oz, compact):
     return rooms, doors
 
 
+#: Colour of the ceiling (both worlds).
+CEILING_COLOUR = (0.96, 0.96, 0.95)
+
+
+def floor_and_ceiling(rect, height: float, material, floor_inst: int, ceil_inst: int) -> list[Part]:
+    """The floor slab (0.1 m thick, top at y = 0) and the ceiling slab (0.1 m, bottom at ``height``) over the
+    rectangle ``rect`` = ``(x0, z0, x1, z1)``, metres; ``material`` the floor's (colour, colour 2, pattern, scale)
+    as :func:`~tsnav.world.catalog.jitter` returns it. Used by the procedural rooms and the real scenes."""
+    x0, z0, x1, z1 = rect
+    fc, fc2, fp, fs = material
+    centre, size = ((x0 + x1) / 2, (z0 + z1) / 2), (x1 - x0, 0.1, z1 - z0)
+    return [Part((centre[0], -0.05, centre[1]), size, 0.0, fc, fc2, fp, fs, floor_inst),
+            Part((centre[0], height + 0.05, centre[1]), size, 0.0, CEILING_COLOUR, CEILING_COLOUR, 0, 1.0, ceil_inst)]
+
+
 def _structure(spec: SceneSpec, rng) -> None:
     """Floor, ceiling and walls (with door openings) as parts; the floor polygon(s) of ``spec``."""
     floor_inst, wall_inst, ceil_inst = spec.new_inst("Floor"), spec.new_inst("Wall"), spec.new_inst("Ceiling")
     H = spec.wall_height
     union = unary_union([box(*r["rect"]) for r in spec.rooms] + [box(*d["rect"]) for d in spec.doors])
     for r in spec.rooms:
-        x0, z0, x1, z1 = r["rect"]
-        fc, fc2, fp, fs = jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))])
-        spec.parts.append(Part(((x0 + x1) / 2, -0.05, (z0 + z1) / 2), (x1 - x0, 0.1, z1 - z0), 0.0, fc, fc2, fp, fs, floor_inst))
-        spec.parts.append(Part(((x0 + x1) / 2, H + 0.05, (z0 + z1) / 2), (x1 - x0, 0.1, z1 - z0), 0.0,
-                               (0.96, 0.96, 0.95), (0.96, 0.96, 0.95), 0, 1.0, ceil_inst))
+        floor_material = jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))])
+        spec.parts += floor_and_ceiling(r["rect"], H, floor_material, floor_inst, ceil_inst)
         r["wall_material"] = jitter(rng, *WALLS[int(rng.integers(len(WALLS)))])
     for d in spec.doors:
         x0, z0, x1, z1 = d["rect"]

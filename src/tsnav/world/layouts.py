@@ -24,6 +24,7 @@ from importlib import resources
 from pathlib import Path
 
 from ..atomic import atomic_write_bytes
+from ..data.names import scene_base_name
 
 #: Package-data file of the packed layouts (inside ``tsnav/world/data``).
 PACKED_NAME = "ithor_layouts.json.gz"
@@ -135,9 +136,9 @@ def parse_layout(data, where: str, expect_scene: str | None = None) -> Layout:
     if not isinstance(data, dict) or not isinstance(data.get("objects"), list):
         raise LayoutError(f"{where}: expected {{'scene': NAME, 'objects': [...]}}")
     scene = data.get("scene")
-    if not isinstance(scene, str) or not _NAME.fullmatch(scene.removesuffix("_physics")):
+    if not isinstance(scene, str) or not _NAME.fullmatch(scene_base_name(scene)):
         raise LayoutError(f"{where}: 'scene' must be an iTHOR scene name like FloorPlan1, got {scene!r}")
-    scene = scene.removesuffix("_physics")
+    scene = scene_base_name(scene)
     if expect_scene is not None and scene != expect_scene:
         raise LayoutError(f"{where}: holds scene {scene!r}, expected {expect_scene!r}")
     objects = tuple(parse_object(o, f"{where}: object {i}") for i, o in enumerate(data["objects"]))
@@ -163,7 +164,7 @@ def read_layout_file(path: str | Path) -> Layout:
         raise LayoutError(f"{path}: cannot read: {e}") from None
     except json.JSONDecodeError as e:
         raise LayoutError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
-    stem = path.name.split(".")[0].removesuffix("_physics")
+    stem = scene_base_name(path.name.split(".")[0])
     return parse_layout(data, str(path), stem if _NAME.fullmatch(stem) else None)
 
 

@@ -84,8 +84,58 @@ def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
     return pos, move
 
 
+def state_poses(positions: np.ndarray) -> np.ndarray:
+    """``(V, 4)`` float64 rows ``(x, z, rotation, horizon)`` of every state, in node order: position, then
+    rotation (:data:`ROTATIONS`), then horizon (:data:`HORIZONS`); state ``(p, k, h)`` is row ``(p * R + k) * H + h``."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    R, H = len(ROTATIONS), len(HORIZONS)
+    per = R * H
+    rh = np.array([(r, h) for r in ROTATIONS for h in HORIZONS], dtype=np.float64)  # (R*H, 2)
+    return np.concatenate([np.repeat(positions, per, axis=0), np.tile(rh, (len(positions), 1))], axis=1)
+
+
+def state_keys(positions: np.ndarray) -> np.ndarray:
+    """State keys (:func:`~tsnav.constants.state_key`) of :func:`state_poses`, same order, as a numpy string
+    array; each position's ``x|z`` is formatted once."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    xz = [state_key(x, z, 0, 0).rsplit("|", 2)[0] for x, z in positions]
+    tails = ["|" + state_key(0, 0, r, h).split("|", 2)[2] for r in ROTATIONS for h in HORIZONS]
+    return np.array([a + t for a in xz for t in tails]) if xz else np.array([], dtype=str)
+
+
+def graph_edges(move: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Directed edges of the state graph as state indices (rows of :func:`state_poses`): ``(source, target)``.
+
+    Per state, in this order: RotateRight (+45), RotateLeft (-45), the other horizon (LookDown/LookUp), then
+    MoveAhead when ``move[p, k] >= 0``; states in node order. Array form of :func:`build_graph`.
+    """
+    move = np.asarray(move, dtype=np.int64)
+    P, R, H = len(move), len(ROTATIONS), len(HORIZONS)
+    p = np.arange(P)[:, None, None]
+    k = np.arange(R)[None, :, None]
+    h = np.arange(H)[None, None, :]
+
+    def index(pp, kk, hh):
+        return (pp * R + kk) * H + hh
+
+    src = np.broadcast_to(index(p, k, h), (P, R, H))
+    right = np.broadcast_to(index(p, (k + 1) % R, h), (P, R, H))
+    left = np.broadcast_to(index(p, (k - 1) % R, h), (P, R, H))
+    other = np.broadcast_to(index(p, k, (H - 1) - h), (P, R, H))
+    m = move[:, :, None]
+    ahead = np.broadcast_to(np.where(m >= 0, index(np.maximum(m, 0), k, h), -1), (P, R, H))
+    tgt = np.stack([right, left, other, ahead], axis=-1).reshape(-1)
+    srcs = np.repeat(src.reshape(-1), 4)
+    keep = tgt >= 0
+    return srcs[keep], tgt[keep]
+
+
 def build_graph(positions: np.ndarray, move: np.ndarray) -> tuple[list[str], list[tuple[str, str]]]:
-    """State keys and directed edges (MoveAhead, RotateLeft/Right, LookDown/Up) of the state graph."""
+    """State keys and directed edges (RotateRight/Left, LookDown/Up, MoveAhead) of the state graph.
+
+    Slow, obviously-correct reference of :func:`state_keys` + :func:`graph_edges` (which the build uses);
+    ``tests/test_world.py`` holds them together.
+    """
     nodes, edges = [], []
     for p, (x, z) in enumerate(positions):
         for k, r in enumerate(ROTATIONS):

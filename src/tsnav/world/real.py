@@ -37,6 +37,7 @@ from shapely.geometry.polygon import orient
 from ..constants import TARGET_CATEGORIES
 from ..data.names import scene_info
 from .catalog import FLOORS, WALLS, build_parts, jitter, materials_for
+from .house import WALL_T, floor_and_ceiling
 from .layouts import Layout, LayoutObject, load_layout
 from .spec import Furniture, ObjectInstance, Part, SceneSpec, box_footprint
 
@@ -51,8 +52,6 @@ WALL_SNAP = 0.6
 MIN_ALCOVE = 1.0
 #: Deepest a counter run is taken to be, metres; a counter box deeper on both sides is an L, U or island.
 COUNTER_MAX_DEPTH = 1.2
-#: Wall slab thickness, metres (outside the room's interior).
-WALL_T = 0.1
 #: Categories drawn with the procedural catalog's model scaled to the recorded box; others are plain boxes.
 CATALOG_SHAPES = frozenset({"CounterTop", "DiningTable", "Desk", "CoffeeTable", "SideTable", "ShelvingUnit", "Sofa",
                             "ArmChair", "TVStand", "Bed", "Dresser", "Toilet", "Bathtub", "Chair", "Fridge",
@@ -363,11 +362,8 @@ def spec_from_layout(layout: Layout, room_type: str, split: str) -> SceneSpec:
     spec.light = {"direction": [0.35, -2.5, 0.2], "ambient": 0.55, "diffuse": 0.42, "tint": [1.0, 0.98, 0.95]}
     rng = np.random.default_rng(zlib.crc32(f"tsnav-ithor-real|{name}".encode()))
     floor_inst, wall_inst, ceil_inst = spec.new_inst("Floor"), spec.new_inst("Wall"), spec.new_inst("Ceiling")
-    fc, fc2, fp, fs = jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))])
-    cx, cz, w, d = (x0 + x1) / 2, (z0 + z1) / 2, x1 - x0, z1 - z0
-    spec.parts.append(Part((cx, fy - 0.05, cz), (w, 0.1, d), 0.0, fc, fc2, fp, fs, floor_inst))
-    spec.parts.append(Part((cx, fy + spec.wall_height + 0.05, cz), (w, 0.1, d), 0.0, (0.96, 0.96, 0.95),
-                           (0.96, 0.96, 0.95), 0, 1.0, ceil_inst))
+    floor_material = jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))])
+    spec.parts += floor_and_ceiling((x0, z0, x1, z1), spec.wall_height, floor_material, floor_inst, ceil_inst)
     _walls(spec, poly, wall_inst, jitter(rng, *WALLS[int(rng.integers(len(WALLS)))]))
     for o in layout.objects:
         if o.object_type == "Floor":

@@ -1,0 +1,199 @@
+"""The learned detector as a stage of the experiments and the demo (issue 14 item 4; paper III-B: a real
+detector's confidence drives the stage switch and its table feeds the agent's target memory).
+
+:func:`ensure_detector` trains (or resumes, or finds finished) the grid detector of :mod:`tsnav.detect` in a
+detector folder on the TRAIN rooms, with the sizes and step budget of a :class:`ScaleConfig`, and fits its
+temperature on the VAL rooms. :func:`ensure_learned_detections` gives every scene of a dataset a learned table:
+
+* every scene already holds one made by the same learned detector (e.g. tables the lead wrote with
+  ``tsnav detect``): they are used as they are, nothing is trained;
+* some scenes lack one: the detector of the folder is trained / calibrated and its tables are written into
+  those scenes only;
+* a table made by another detector (an oracle's, or a learned detector other than the folder's) is never
+  retrained or overwritten: one-line error naming the file.
+
+Training, calibration and detection run on one torch thread (restored afterwards): the detector, its tables and
+so every agent trained on them are then the same whatever ``--threads`` the caller uses.
+
+:func:`detection_quality` measures a table on the VAL rooms (presence and box AP, ECE, reach of ``C_target``, false
+positives: :mod:`tsnav.detect.evaluate`, :mod:`tsnav.detect.quality`); experiments record it in
+``OUT/detector_quality.json`` and print it under their table.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+import torch
+from tqdm import tqdm
+
+from ..atomic import atomic_write_json
+from ..constants import C_TARGET
+from ..data.detections import load_detections, read_fingerprint, write_detections
+from ..data.reader import list_scenes, load_scene
+from ..detect.evaluate import evaluate_detections
+from ..detect.learned import LearnedDetector
+from ..detect.model import DetectorConfig
+from ..detect.quality import switch_report
+from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
+from ..errors import CommandError
+from .experiment_config import ScaleConfig
+from .tables import quality_line
+
+#: Prefix of every learned detector's fingerprint (:func:`tsnav.detect.train.weights_fingerprint`).
+LEARNED_PREFIX = "learned-"
+#: The experiment folder's record of its detection tables' quality.
+QUALITY_FILE = "detector_quality.json"
+
+
+class one_thread:
+    """Context: torch on one CPU thread, the caller's count restored on exit."""
+
+    def __enter__(self):
+        self.before = torch.get_num_threads()
+        torch.set_num_threads(1)
+
+    def __exit__(self, *exc):
+        torch.set_num_threads(self.before)
+        return False
+
+
+def detector_configs(scale: ScaleConfig, image_size: int) -> tuple[DetectorTrainConfig, DetectorConfig]:
+    """Training settings and the architecture of a new detector at ``scale`` for ``image_size``-px frames."""
+    tc = DetectorTrainConfig(steps=scale.detector_steps, batch_size=scale.detector_batch_size,
+                             max_states_per_scene=scale.detector_states_per_scene, threads=1)
+    mc = DetectorConfig.from_dict({**scale.detector_model, "image_size": image_size})
+    return tc, mc
+
+
+def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir: str | Path, scale: ScaleConfig,
+                    progress: bool = True, say: Callable[[str], None] = print) -> LearnedDetector:
+    """Train (resume; nothing when finished) the learned detector in ``detector_dir`` on the train rooms of
+    ``train_root`` up to ``scale.detector_steps`` steps, fit its temperature on the val rooms of ``calib_root``
+    (once per step count) and load it. A folder trained on other rooms is refused (one line)."""
+    detector_dir = Path(detector_dir)
+    train = list_scenes(train_root, split="train")
+    if not train:
+        raise CommandError(f"{train_root}: no complete train room to train the detector on")
+    names = sorted(p.name for p in train)
+    if detector_dir.exists() and not detector_dir.is_dir():
+        raise CommandError(f"detector folder {detector_dir} is a file")
+    if is_checkpoint(detector_dir):
+        was = read_meta(detector_dir).get("train_scenes")
+        if was is not None and sorted(was) != names:
+            raise CommandError(f"{detector_dir} holds a detector trained on other rooms ({len(was)} rooms, "
+                               f"{was[0]} ...); use another --detector-dir")
+    elif detector_dir.is_dir() and any(detector_dir.iterdir()):
+        raise CommandError(f"{detector_dir} is a folder that holds no detector checkpoint; use another --detector-dir")
+    tc, mc = detector_configs(scale, load_scene(train[0]).image_size)
+    with one_thread():
+        res = train_detector(train_root, detector_dir, tc, model_cfg=mc, progress=progress)
+        if res.step > res.start_step:
+            say(f"    detector trained {res.start_step} -> {res.step} steps in {res.seconds:.0f} s "
+                f"(last loss {res.last.get('loss', float('nan')):.3f}) -> {detector_dir}")
+        t = calibrate(calib_root, detector_dir, split="val", progress=progress)
+    say(f"    detector at step {res.step}, temperature {t:.3f} (fitted on the val rooms)")
+    return LearnedDetector.load(detector_dir)
+
+
+def _table(p: Path, name: str) -> str:
+    return str(p / f"detections_{name}.hdf5")
+
+
+def learned_tables(data: str | Path, name: str) -> tuple[dict[Path, str | None], list[str]]:
+    """(fingerprint of every scene's ``detections_<name>.hdf5`` or None, the one learned detector's fingerprint
+    as a list of at most one). One-line error when a table was made by an oracle or the scenes' tables by two
+    learned detectors."""
+    paths = list_scenes(data)
+    if not paths:
+        raise CommandError(f"{data}: no complete scene")
+    have = {p: read_fingerprint(p, name) for p in paths}
+    for p, fp in have.items():
+        if fp is not None and not fp.startswith(LEARNED_PREFIX):
+            raise CommandError(f"{_table(p, name)} was made by another detector ({fp}), not a learned one; "
+                               f"remove it or use another --detections name")
+    kinds = sorted({fp for fp in have.values() if fp is not None})
+    if len(kinds) > 1:
+        odd = next(p for p, fp in have.items() if fp == kinds[1])
+        raise CommandError(f"{_table(odd, name)} was made by another learned detector ({kinds[1]}) than other "
+                           f"scenes' ({kinds[0]}); remove the stale tables")
+    return have, kinds
+
+
+def tables_complete(data: str | Path, name: str) -> str | None:
+    """The learned detector's fingerprint when every scene of ``data`` already holds its table (they are then
+    used as they are), else None (errors of :func:`learned_tables`)."""
+    have, kinds = learned_tables(data, name)
+    return kinds[0] if kinds and all(fp is not None for fp in have.values()) else None
+
+
+def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | Path, scale: ScaleConfig,
+                              progress: bool = True, say: Callable[[str], None] = print,
+                              train_root: str | Path | None = None) -> dict:
+    """Give every scene of ``data`` a learned table ``detections_<name>.hdf5`` (module docstring; the detector
+    trains on the train rooms of ``train_root``, default ``data``, and is calibrated on the val rooms of ``data``);
+    returns ``{"fingerprint", "written", "trained"}`` (``trained``: the detector folder was used)."""
+    have, kinds = learned_tables(data, name)
+    missing = [p for p, fp in have.items() if fp is None]
+    if not missing:
+        return {"fingerprint": kinds[0], "written": 0, "trained": False}
+    det = ensure_detector(train_root or data, data, detector_dir, scale, progress=progress, say=say)
+    if kinds and det.fingerprint != kinds[0]:
+        odd = next(p for p, fp in have.items() if fp is not None)
+        raise CommandError(f"{_table(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
+                           f"{detector_dir} ({det.fingerprint}); it is not overwritten: remove it, or write the "
+                           f"missing tables with its own detector (tsnav detect)")
+    scenes = [load_scene(p) for p in missing]
+    bar = tqdm(total=sum(s.num_states for s in scenes), desc=f"detect {name}", unit="state", disable=not progress,
+               dynamic_ncols=True)
+    try:
+        with one_thread():
+            for s in scenes:
+                write_detections(s.path, name, det.detect_scene(s, bar=bar))
+    finally:
+        bar.close()
+    say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
+    return {"fingerprint": det.fingerprint, "written": len(scenes), "trained": True}
+
+
+def detection_quality(data: str | Path, name: str, split: str = "val", c_target: float = C_TARGET) -> dict:
+    """The table ``detections_<name>.hdf5`` measured on the ``split`` rooms: mean presence AP, box AP@0.5, ECE
+    (all (state, class) pairs), reach of ``c_target`` (share of (scene, target) pairs with some state above it)
+    and false-positive states (a class not in view scoring above 0.5 / 0.7 / 0.9), with the detector's
+    fingerprint."""
+    paths = list_scenes(data, split=split)
+    if not paths:
+        raise CommandError(f"{data}: no {split} scene to measure detections_{name}.hdf5 on")
+    scenes = [load_scene(p) for p in paths]
+    dets = [load_detections(p, name) for p in paths]
+    ev = evaluate_detections(scenes, dets)
+    sw = switch_report(scenes, dets, c_target)
+    fps = sorted({d.fingerprint for d in dets})
+    return {"name": name, "fingerprint": fps[0] if len(fps) == 1 else fps, "split": split, "scenes": len(scenes),
+            "states": ev.states, "presence_ap": ev.mean_presence_ap, "box_ap50": ev.mean_box_ap,
+            "ece": ev.reliability.ece, "c_target": c_target, "reach": sw.reach, "pairs": sw.pairs,
+            "reached": sw.reached, "reached_in_view": sw.reached_in_view,
+            "fp_states": {f"{t:g}": v for t, v in sw.fp_state_any.items()},
+            "fp_states_targets": {f"{t:g}": v for t, v in sw.fp_state_target.items()}}
+
+
+def record_quality(out: str | Path, data: str | Path, names: list[str], say: Callable[[str], None] = print) -> dict:
+    """Measure each table of ``names`` on the val rooms of ``data`` (reusing ``OUT/detector_quality.json``'s
+    entry when its fingerprint is unchanged), write the file and print one line per table; returns it."""
+    path = Path(out) / QUALITY_FILE
+    try:
+        old = json.loads(path.read_text()) if path.exists() else {}
+    except ValueError:
+        old = {}
+    doc = {}
+    for name in names:
+        fps = sorted({read_fingerprint(p, name) for p in list_scenes(data, split="val")} - {None})
+        q = old.get(name)
+        if not q or q.get("fingerprint") != (fps[0] if len(fps) == 1 else fps):
+            q = detection_quality(data, name)
+        doc[name] = q
+        say(f"    {quality_line(q)}")
+    atomic_write_json(path, doc, indent=1)
+    return doc
