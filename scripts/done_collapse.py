@@ -30,7 +30,9 @@ def main() -> None:
     p.add_argument("--features", required=True)
     p.add_argument("--detections", required=True)
     p.add_argument("--out", required=True, help="folder of the runs (one sub-folder per variant; resumed)")
-    p.add_argument("--updates", type=int, default=60)
+    p.add_argument("--updates", type=int, default=60, help="budget; extend a finished run by raising it")
+    p.add_argument("--checkpoint-every", type=int, default=60,
+                   help="updates between checkpoints (each starts fresh episodes: part of the run's identity)")
     p.add_argument("--num-envs", type=int, default=256)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
@@ -40,7 +42,7 @@ def main() -> None:
     for name in a.variants:
         base = TrainConfig(data=str(Path(a.data).resolve()), features=a.features, detections=a.detections,
                            algo="batched", reward="tsrm", preset="cpu", lr=a.lr, num_envs=a.num_envs, seed=a.seed,
-                           updates=a.updates, checkpoint_every=a.updates)
+                           updates=a.updates, checkpoint_every=a.checkpoint_every)
         cfg = TrainConfig.from_dict({**base.to_dict(), **VARIANTS[name]})
         out = Path(a.out) / name
         train_run(cfg, agent_config("cpu"), out, progress_bar=False)
