@@ -174,3 +174,13 @@ def test_floor_falls_back_to_reachable_cells():
     assert floor.area == pytest.approx((9 * 7 - 1) * 0.0625)
     idx = AreaIndex.from_scenes([sc])
     assert idx.floor_area[0] == pytest.approx(floor.area)
+
+
+def test_floor_outline_doubling_back_keeps_its_polygon():
+    # A recorded floor ring that runs out along a wall and back (FloorPlan8 and FloorPlan204 of ithor-real):
+    # shapely repairs it into a polygon plus a zero-area line; the floor is the polygon alone, and the fast
+    # area index (which needs the floor's boundary) builds on it.
+    ring = np.array([(0, 0), (1, 0), (1, 1), (0, 1), (0, 0.5), (-1, 0.5), (0, 0.5)], float)
+    fl = floor_union([ring])
+    assert fl.geom_type == "Polygon" and fl.area == pytest.approx(1.0) and fl.boundary is not None
+    assert fl.equals(floor_union([ring[:4]]))

@@ -123,6 +123,10 @@ def floor_union(floor: Sequence[np.ndarray]):
     if not polys:
         raise ValueError("the scene has no floor polygon (scene.json 'floor'); the searched area is undefined")
     geom = shapely.union_all([shapely.make_valid(p) for p in polys])
+    # Repairing a self-touching outline (e.g. a ring that doubles back along a wall, as in the recorded floors
+    # of FloorPlan8 and FloorPlan204) gives a collection of polygons and zero-area lines; keep the polygons.
+    parts = [g for g in shapely.get_parts(geom) if g.geom_type in ("Polygon", "MultiPolygon")]
+    geom = shapely.union_all(parts) if parts else shapely.Polygon()
     if geom.area <= 0:
         raise ValueError("the scene's floor polygons have zero area")
     return geom
