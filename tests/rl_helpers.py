@@ -24,3 +24,21 @@ def replay(model: ActorCritic, observer: Observer, ro: Rollout) -> tuple[torch.T
         values.append(v)
         state = state.with_action(a).reset(ro.finished[t])
     return torch.stack(logps), torch.stack(ents), torch.stack(values)
+
+
+class RecordingTrainer:
+    """Base of the experiment and demo tests' trainers: records each call's (reward, features, C_target, seed)
+    in ``calls`` and its detection table in ``detections``; subclasses train in ``train``."""
+
+    def __init__(self):
+        self.calls = []
+        self.detections = []
+
+    def __call__(self, tc, agent, run_dir):
+        self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
+        self.detections.append(tc.detections)
+        return self.train(tc, agent, run_dir)
+
+    def train(self, tc, agent, run_dir):
+        raise NotImplementedError
+

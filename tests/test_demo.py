@@ -13,6 +13,8 @@ from tsnav.demo import STAGES, DemoConfig, run_demo, train_subset
 from tsnav.eval.experiment_config import SCALES
 from tsnav.rl.train import train_run
 
+from rl_helpers import RecordingTrainer
+
 TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, gallery=2,
                   scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
                                 pretrain_batch_size=8, test_per_room_type=5, updates_per_job=2, num_envs=4,
@@ -26,16 +28,10 @@ NO_LEARNED = shutil.ignore_patterns("detections_learned*")
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-class CountedTrainer:
-    """The real trainer, recording each call's reward, features, C_target and seed."""
+class CountedTrainer(RecordingTrainer):
+    """The real trainer, recording each call's reward, features, C_target, seed and detections."""
 
-    def __init__(self):
-        self.calls = []
-        self.detections = []
-
-    def __call__(self, tc, agent, run_dir):
-        self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
-        self.detections.append(tc.detections)
+    def train(self, tc, agent, run_dir):
         return train_run(tc, agent, run_dir)
 
 

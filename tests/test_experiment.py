@@ -19,26 +19,22 @@ from tsnav.eval.experiment_config import ExperimentConfig, ScaleConfig, experime
 from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
 from tsnav.metrics import METRICS
 
+from rl_helpers import RecordingTrainer
+
 TINY = ScaleConfig(vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2, pretrain_batch_size=8,
                    feature_batch_size=256, num_envs=4, updates_per_job=2, test_per_room_type=6,
                    val_per_room_type=6, detector_steps=4, detector_batch_size=8, detector_states_per_scene=24)
 
 
-class StandInTrainer:
+class StandInTrainer(RecordingTrainer):
     """Writes a loadable run folder (config.json, one checkpoint of an untrained agent, a short log)."""
 
-    def __init__(self):
-        self.calls = []
-        self.detections = []
-
-    def __call__(self, tc, agent, run_dir):
+    def train(self, tc, agent, run_dir):
         import torch
 
         from tsnav.rl.checkpoint import save_checkpoint
         from tsnav.rl.assemble import load_bank, make_model, make_observer
 
-        self.calls.append((tc.reward, tc.features, tc.c_target, tc.seed))
-        self.detections.append(tc.detections)
         run_dir.mkdir(parents=True, exist_ok=True)
         bank, det = load_bank(tc)
         model = make_model(agent, make_observer(bank, tc, det_features=det), tc.seed)
