@@ -269,7 +269,7 @@ def eval_policy(meta: dict, bank):
         from ..rl.checkpoint import load_policy
 
         return load_policy(run, bank, greedy=not bool(meta.get("sample", True)), seed=seed,
-                           checkpoint=meta.get("checkpoint", "auto"))
+                           checkpoint=meta.get("checkpoint", "auto"), detections=meta.get("detections"))
     return make_policy(name, bank, seed=seed, c_target=bank.c_target)
 
 
