@@ -10,6 +10,7 @@ from pathlib import Path
 from ..constants import C_TARGET
 from ..errors import CommandError
 from ..metrics import format_table
+from .outcomes import OUTCOMES_FILE, format_outcomes
 from .runner import evaluate_to_folder
 
 
@@ -56,5 +57,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"{meta['label']}: {n} episodes in {meta['seconds']:.2f} s "
           f"(stage switch: {'detector' if meta['detector_confidence'] else 'ground-truth visibility'})")
     print(format_table(summary))
-    print(f"wrote {out / 'records.jsonl'}, {out / 'trajectories.jsonl'} and {out / 'metrics.json'}")
+    print(format_outcomes(json.loads((out / OUTCOMES_FILE).read_text())))
+    print(f"wrote {out / 'records.jsonl'}, {out / 'trajectories.jsonl'}, {out / OUTCOMES_FILE} and {out / 'metrics.json'}")
     return 0
