@@ -90,7 +90,8 @@ from .select import chosen, select_checkpoint
 from .detector_stage import QUALITY_FILE, record_quality
 from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
                           ensure_world, say)
-from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line
+from .tables import (SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line, welch_against,
+                     welch_markdown)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -238,6 +239,7 @@ class Experiment:
         results = aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
         results["experiment"] = self.cfg.experiment
         results["detections"] = self.cfg.detections
+        results["welch"] = welch_against(results, self.info["baseline_row"])
         quality = self.quality()
         if quality:
             results["detector_quality"] = quality
@@ -248,7 +250,10 @@ class Experiment:
                            + f"Detections: {self.cfg.detections}"
                            + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
                            + ".\n" + "".join(f"\n- {quality_line(q)}" for q in quality.values())
-                           + ("\n" if quality else ""))
+                           + ("\n" if quality else "")
+                           + (f"\nDifferences against '{results['welch']['baseline']}' in percentage points, "
+                              "Welch's t-test p-value over the per-seed values:\n\n" + welch_markdown(results)
+                              + "\n" + welch_markdown(results, "L>=5") if results["welch"] else ""))
         atomic_write_text(self.out / "table.csv", csv_table(results))
         if self.cfg.experiment == "threshold":
             plot_threshold(results, self.out / "threshold.png")
@@ -453,6 +458,8 @@ def run(args: argparse.Namespace) -> int:
     say(f"torch threads: {set_threads(args.threads)}")
     results = exp.run()
     print(markdown_table(results))
+    if results.get("welch"):
+        print(welch_markdown(results))
     print(f"tables: {exp.out / 'table.md'}, {exp.out / 'table.csv'}"
           + (f", plot {exp.out / 'threshold.png'}" if args.experiment == "threshold" else ""))
     if not args.no_report:
