@@ -188,6 +188,8 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     assert table.count("\n| ") == 9 and "| TSRM + DE-MAE, oracle switch |" in table
     assert welch_part.count("\n| ") == 2 * 8 and "| ALL: row vs baseline (ResNet18, baseline reward) |" in welch_part
     assert "| L>=5: row vs" in welch_part
+    assert "Done dips (fewer than 5 % of training episodes ending with Done): 0 of 14 jobs." in welch_part
+    assert json.loads((out / "results.json").read_text())["done_dips"] == {"jobs": 14, "with_dips": []}
     assert "Detections: learned; row 'TSRM + DE-MAE, oracle switch': oracle" in md
     assert "- detections_learned on" in md and "- detections_oracle on" in md and "reach of 0.7" in md
     rows = list(csv.DictReader(open(out / "table.csv")))
