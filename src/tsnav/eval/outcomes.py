@@ -14,13 +14,13 @@ never turns left).
 from __future__ import annotations
 
 from collections import Counter
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 from ..constants import ACTIONS, DONE
 from ..metrics import EpisodeRecord
 
-if TYPE_CHECKING:  # runner imports this module
-    from .runner import Trajectory
+# Trajectories are :class:`tsnav.eval.runner.Trajectory` objects (runner imports this module, so they are typed
+# by what is read from them: ``episode``, ``target``, ``success``, ``actions``).
 
 #: File of :func:`outcome_summary` in an evaluation folder.
 OUTCOMES_FILE = "outcomes.json"
@@ -33,7 +33,7 @@ def outcome_keys() -> list[str]:
     return [f"{e}, {'switched' if s else 'never switched'}" for e in ENDINGS for s in (True, False)]
 
 
-def episode_ending(trajectory: Trajectory) -> str:
+def episode_ending(trajectory) -> str:
     """``success``, ``wrong Done`` (Done outside a success state) or ``step limit`` (no Done: the episode was
     cut at the evaluation's step limit)."""
     if trajectory.success:
@@ -43,7 +43,7 @@ def episode_ending(trajectory: Trajectory) -> str:
     return "step limit"
 
 
-def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence[Trajectory]) -> dict:
+def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) -> dict:
     """Counts of (ending, switched) over the episodes, success rates with and without a switch, per-target
     episodes / SR / switch rate, and the share of each action among all actions taken.
 
