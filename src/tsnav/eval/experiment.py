@@ -55,7 +55,8 @@ Output folder::
 Scales: ``demo`` is the scale of ``tsnav demo`` (its one row, TSRM + DE-MAE, in about ten minutes); ``small``
 fits a 2-core CPU in about two hours on the ``demo`` world (ViT-Tiny at 64x64, short pretraining, 1000 updates
 of batched training per job); ``medium`` is the budget at which the validation curve on the paper's 80 training
-rooms plateaus (``ithor-real``; placeholder numbers until measured with ``tsnav convergence``); ``paper`` uses
+rooms plateaus (``ithor-real``, 128 px, 256 episodes per update, 2000 updates per job, measured with
+``tsnav convergence``: about 25-35 minutes per job on one core here); ``paper`` uses
 the paper's settings (ViT-Base at 224x224, 1.5 M training episodes, A3C with 14 workers) on the ``ithor-real`` world (the 120 real iTHOR scenes) and needs a GPU and days.
 ``--build-world`` builds the scale's world into a ``--data`` folder that does not exist yet.
 """
@@ -431,7 +432,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="experiment folder (resumed when it exists)")
     parser.add_argument("--scale", choices=sorted(SCALES), default="small",
                         help="small: 2-core CPU, about two hours; medium: the converged budget on the 80 training "
-                             "rooms (placeholder until measured); paper: the paper's settings (GPU)")
+                             "rooms (ithor-real, 2000 updates of 256 episodes per job, ~30 min per job on a core); "
+                             "paper: the paper's settings (GPU)")
     parser.add_argument("--seeds", type=int, default=1, help="trained agents per row (default 1)")
     parser.add_argument("--updates-per-job", type=int, default=None,
                         help="training budget per job in optimizer updates (default: the scale's; small: 1000, "

@@ -18,10 +18,13 @@ EXPERIMENTS = ("ablation", "pretraining", "threshold")
 #: Training updates of the demo's agent (64 episodes x 30 steps each): the same table on any machine.
 #: About 2.5 minutes with 2 torch threads on an idle 2-core machine (154 s measured in `make demo`, 2026-12-01).
 DEMO_UPDATES = 1000
-#: PLACEHOLDER: updates per job of the ``medium`` scale (256 episodes x 30 steps each = 7680 env steps per
-#: update; 4000 updates = 31 M env steps, about the paper's 1.5 M episodes at ~20 steps per episode). To be set
-#: from the convergence curve (issue 15, item 3).
-MEDIUM_UPDATES = 4000
+#: Updates per job of the ``medium`` scale (256 episodes x 30 steps each = 7680 env steps per update; 2000
+#: updates = 15.4 M env steps, about 0.68 M training episodes). Measured with `tsnav convergence` on the 80
+#: ``ithor-real`` train rooms (TSRM + DE-MAE, learned switch, lr 1e-3, 400 greedy val episodes, docs/RESULTS.md
+#: "Convergence on the 80 real rooms"): val SR 24.5 / 27.8 / 34.8 / 37.2 / 33.8 at updates 500 / 1000 / 1500 /
+#: 2000 / 2250, i.e. flat within its standard error (~2.4 points) from 1500 on. At the paper's lr 1e-4 the same
+#: run needs ~3500 updates to reach a lower plateau (SR 29). Milestones every 250 updates are scored on val.
+MEDIUM_UPDATES = 2000
 #: The learned detector of the 128-px worlds (``ithor-real``): space-to-depth stem 2, the wider backbone and the
 #: fine grid that ``tsnav detect`` gives a new 128-px checkpoint (:func:`tsnav.detect.model.default_config`,
 #: BENCHMARKS.md "Learned detector"); the 64-px scales keep ``DetectorConfig``'s defaults with stem 1.
@@ -58,7 +61,9 @@ class ScaleConfig:
     agent_preset: str = "cpu"
     """Agent network size (:data:`tsnav.agent.PRESETS`; paper: ``paper``)."""
     lr: float = 1e-3
-    """Adam learning rate of the agent (paper: 1e-4; short CPU runs need a larger one)."""
+    """Adam learning rate of the agent (paper: 1e-4 for 14 A3C workers of one episode each). The batched trainer
+    averages each update over 64-256 episodes; on the 80 real rooms 1e-3 reached a higher validation plateau in
+    a third of the updates that 1e-4 needed (docs/RESULTS.md, "Convergence on the 80 real rooms")."""
     num_envs: int = 64
     """Episodes stepped together by the batched trainer."""
     workers: int = 14
@@ -100,9 +105,8 @@ SCALES = {
     "demo": ScaleConfig(pretrain_steps=300, updates_per_job=DEMO_UPDATES, test_per_room_type=100),
     "small": ScaleConfig(),
     # The budget at which TSRM + DE-MAE's validation curve on the 80 training rooms has plateaued (issue 15,
-    # items 3-4). PLACEHOLDER numbers until `tsnav convergence` has measured that curve: set
-    # ``updates_per_job`` (and the agent size, if the curve says so) from it.
-    "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, milestone_every=500, num_envs=256, test_per_room_type=250,
+    # items 3-4; MEDIUM_UPDATES).
+    "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, milestone_every=250, num_envs=256, test_per_room_type=250,
                           val_per_room_type=100, world="ithor-real", detector_steps=DETECTOR_128_STEPS,
                           detector_states_per_scene=1600, detector_model=dict(DETECTOR_128)),
     "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
