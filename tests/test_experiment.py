@@ -376,3 +376,37 @@ def test_pretraining_experiment_with_the_real_trainer(tmp_path, exp_world, pretr
     assert len(feats) == 4
     md = (out / "table.md").read_text()
     assert "ALL SR" in md and "L>=5 SPL" in md and "SSR" not in md
+
+
+def test_pretraining_reuses_the_ablations_jobs(tmp_path, exp_world, pretrain_dir, capsys):
+    """--reuse-from: the pretraining table's ResNet18 and DE-MAE rows (baseline reward) are the ablation's
+    "baseline" and "+ DE-MAE alone" jobs: copied, not trained again, then selected and evaluated here."""
+    abl = tmp_path / "abl"
+    base = dict(data=str(exp_world), seeds=1, device="cpu", pretrain_dir=str(pretrain_dir))
+    Experiment(ExperimentConfig(experiment="ablation", out=str(abl), **base), train_fn=StandInTrainer(),
+               scale=TINY).run()
+    pre = tmp_path / "pre"
+    trainer = StandInTrainer()
+    capsys.readouterr()
+    res = Experiment(ExperimentConfig(experiment="pretraining", out=str(pre), reuse_from=(str(abl),), **base),
+                     train_fn=trainer, scale=TINY).run()
+    assert sorted(c[1].split("-")[0] for c in trainer.calls) == ["demae", "mae"]  # MAE and the crop variant only
+    out = capsys.readouterr().out
+    assert out.count("reusing the trained run") == 2 and str(abl / "jobs" / "baseline_s0" / "train") in out
+    assert all(r["n"] == 1 for r in res["rows"])
+    for row, src in (("resnet18", "baseline"), ("demae", "demae")):
+        a = abl / "jobs" / f"{src}_s0" / "train"
+        b = pre / "jobs" / f"{row}_s0" / "train"
+        assert json.loads((b / "config.json").read_text()) == json.loads((a / "config.json").read_text())
+        assert (b / "selection.json").exists() and (b / "best").is_dir()  # selected again, here
+        assert not (b.parent / "train.copying").exists()
+    # nothing to reuse for another seed; a folder that is no experiment is refused
+    tc1, _ = train_config_for(ExperimentConfig(experiment="pretraining", out="x", **base), TINY,
+                              experiment_rows("pretraining")[0], "resnet18-x", 1)
+    exp2 = Experiment(ExperimentConfig(experiment="pretraining", out=str(tmp_path / "pre2"), reuse_from=(str(abl),),
+                                       **base), train_fn=StandInTrainer(), scale=TINY)
+    assert exp2.reusable_run(tc1) is None
+    exp3 = Experiment(ExperimentConfig(experiment="pretraining", out=str(tmp_path / "pre3"),
+                                       reuse_from=(str(tmp_path),), **base), train_fn=StandInTrainer(), scale=TINY)
+    with pytest.raises(ValueError, match="not an experiment folder"):
+        exp3.reusable_run(tc1)

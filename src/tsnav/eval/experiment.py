@@ -68,6 +68,7 @@ import json
 import math
 import multiprocessing as mp
 import os
+import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
@@ -265,6 +266,26 @@ class Experiment:
             plot_threshold(results, self.out / "threshold.png")
         return results
 
+    def reusable_run(self, tc: TrainConfig) -> Path | None:
+        """A finished job's ``train`` folder in one of ``cfg.reuse_from`` whose training configuration equals
+        ``tc`` (budget included), or None."""
+        want = json.loads(json.dumps(tc.to_dict()))  # as config.json holds it (tuples become lists)
+        for other in self.cfg.reuse_from:
+            root = Path(other)
+            if not (root / "experiment.json").exists():
+                raise ValueError(f"--reuse-from {other}: not an experiment folder (no experiment.json)")
+            for cfg_file in sorted(root.glob("jobs/*/train/config.json")):
+                job_dir = cfg_file.parent.parent
+                if not (job_dir / "DONE").exists():
+                    continue
+                try:
+                    have = json.loads(cfg_file.read_text()).get("train")
+                except ValueError:
+                    continue
+                if have == want:
+                    return cfg_file.parent
+        return None
+
     def done_dips(self) -> dict:
         """Done dips (:mod:`tsnav.rl.done_dips`) in the training logs of the finished jobs: ``{"jobs": n,
         "with_dips": [{"row", "seed", "dips"}]}``."""
@@ -345,7 +366,12 @@ class Experiment:
         tc, agent = train_config_for(self.cfg, self.scale, job.row, features, job.seed)
         train_fn = self._train_fn or default_train_fn()
         t0 = time.perf_counter()
-        train_fn(tc, agent, jd / "train")
+        src = None if (jd / "train").exists() else self.reusable_run(tc)
+        if src is not None:  # finished there with this very configuration and budget: nothing to train
+            say(f"[{self.cfg.experiment}] {job.row.id}_s{job.seed}: reusing the trained run {src}")
+            copy_run(src, jd / "train")
+        else:
+            train_fn(tc, agent, jd / "train")
         checkpoint = self.choose_checkpoint(job)
         t1 = time.perf_counter()
         summary = evaluate_to_folder(jd / "eval", self.cfg.data, self.episodes_file, run=jd / "train",
@@ -393,6 +419,16 @@ class Experiment:
                 say(f"[{name}] job {k}/{len(todo)}: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
                 report(k, job, self.run_job(job, features[job.row.encoder]))
         return self.write_tables()
+
+
+def copy_run(src: Path, dst: Path) -> None:
+    """Copy a trained run folder without its checkpoint selection (``selection.json``, ``best``: the selection
+    is redone on this experiment's validation episodes); atomic (a temporary folder renamed into place)."""
+    tmp = dst.with_name(dst.name + ".copying")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    shutil.copytree(src, tmp, ignore=shutil.ignore_patterns("selection.json", "best"))
+    tmp.rename(dst)
 
 
 def dips_line(dips: dict) -> str:
@@ -465,6 +501,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="checkpoint each job evaluates: best (default; the job's milestones scored greedily on "
                              "validation episodes) or latest (the last trained)")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
+    parser.add_argument("--reuse-from", action="append", default=[], metavar="EXPERIMENT_DIR",
+                        help="another experiment folder whose finished jobs with the same training configuration "
+                             "are copied instead of trained again (e.g. the ablation's baseline and DE-MAE rows "
+                             "for the pretraining table); repeatable")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -478,6 +518,9 @@ def run(args: argparse.Namespace) -> int:
         v = getattr(args, opt)
         if v and not Path(v).exists():
             raise CommandError(f"--{opt.replace('_', '-')} {v}: no such file")
+    for d in args.reuse_from:
+        if not (Path(d) / "experiment.json").exists():
+            raise CommandError(f"--reuse-from {d}: not an experiment folder (no experiment.json)")
     if args.vc1_weights and args.experiment != "pretraining":
         raise CommandError("--vc1-weights adds a row to the pretraining experiment only")
     cfg = ExperimentConfig(experiment=args.experiment, data=args.data, out=args.out, scale=args.scale, seeds=args.seeds,
@@ -485,7 +528,8 @@ def run(args: argparse.Namespace) -> int:
                            pretrain_dir=args.pretrain_dir, detector_dir=args.detector_dir,
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
-                           sample=args.sample, checkpoint=args.checkpoint)
+                           sample=args.sample, checkpoint=args.checkpoint,
+                           reuse_from=tuple(str(Path(d).resolve()) for d in args.reuse_from))
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     exp = Experiment(cfg)

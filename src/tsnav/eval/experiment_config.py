@@ -238,3 +238,8 @@ class ExperimentConfig:
     sample: bool = False
     """Evaluate the agents by sampling their actions (seeded) instead of the greedy argmax, the lineage's
     test-time rule."""
+    reuse_from: tuple[str, ...] = ()
+    """Other experiment folders whose finished jobs may be reused: a job whose training configuration (budget
+    included) equals one of theirs copies that trained run instead of training again, then selects its checkpoint
+    and is evaluated here as usual (Table III's ResNet18 and DE-MAE rows are Table II's baseline and
+    "+ DE-MAE alone" rows). Not part of the folder's identity: it changes no result."""
