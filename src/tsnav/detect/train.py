@@ -3,7 +3,9 @@
 Training uses the TRAIN scenes only; batches are drawn with a generator seeded by ``(seed, step)``, so a
 resumed run sees the same batches as an uninterrupted one. Optimiser: AdamW with linear warm-up and cosine
 decay to ``min_lr_ratio`` x ``lr`` at ``steps`` (extending a finished run with more steps re-stretches the
-remaining schedule). Augmentation: horizontal flip and per-frame colour gains.
+remaining schedule). Augmentation: horizontal flip and per-frame colour gains. Frames are drawn uniformly, or
+class-balanced by repeat-factor sampling (:attr:`DetectorTrainConfig.repeat_threshold`, :func:`repeat_factors`),
+which on the `ithor-real` world raised val presence AP and reach at equal steps (BENCHMARKS.md).
 
 Calibration: a single temperature ``T`` (Guo et al. 2017) divides the presence logits,
 ``score = sigmoid(logit / T)``; ``T`` minimises the mean binary cross-entropy on the VAL scenes.
