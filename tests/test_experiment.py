@@ -119,6 +119,37 @@ def test_tables_parse():
     assert float(b["ci95"]) == pytest.approx(4.302652729911275 * 10.0 / math.sqrt(3), rel=1e-4)
 
 
+def test_welch_against_the_baseline():
+    """Welch's test of each row against the baseline equals the textbook formula (Welch-Satterthwaite degrees of
+    freedom, two-sided Student t tail); too few seeds give no p-value; the Markdown lists every other row."""
+    from scipy.stats import t as student
+
+    from tsnav.eval.tables import welch, welch_against, welch_markdown
+
+    a, b = [50.0, 60.0, 70.0], [72.0, 75.0, 81.0, 77.0]
+    va, vb = np.var(a, ddof=1) / len(a), np.var(b, ddof=1) / len(b)
+    tstat = (np.mean(b) - np.mean(a)) / math.sqrt(va + vb)
+    df = (va + vb) ** 2 / (va ** 2 / (len(a) - 1) + vb ** 2 / (len(b) - 1))
+    diff, p = welch(a, b)
+    assert diff == pytest.approx(np.mean(b) - np.mean(a))
+    assert p == pytest.approx(2 * student.sf(abs(tstat), df), rel=1e-9)
+    assert welch([1.0], [2.0, 3.0]) == (pytest.approx(1.5), None) and welch([], [1.0]) == (None, None)
+    assert welch([1.0, 1.0], [1.0, 1.0]) == (0.0, None)
+    rows = experiment_rows("ablation")
+    per_row = {"baseline": [_summary(x) for x in (0.5, 0.6, 0.7)],
+               "explore": [_summary(x) for x in (0.72, 0.75, 0.81, 0.77)], "tsrm": [_summary(0.9)]}
+    res = aggregate(rows, per_row, list(METRICS), ["Exploration Reward", "Distance Reward", "DE-MAE"])
+    res["welch"] = welch_against(res, "baseline")
+    w = res["welch"]["rows"]
+    assert set(w) == {r.id for r in rows} - {"baseline"}
+    assert w["explore"]["ALL"]["SR"]["p"] == pytest.approx(p, rel=1e-6)
+    assert w["tsrm"]["ALL"]["SR"]["diff"] == pytest.approx(30.0) and w["tsrm"]["ALL"]["SR"]["p"] is None
+    assert w["distance"]["ALL"]["SR"]["diff"] is None
+    md = welch_markdown(res).strip().splitlines()
+    assert len(md) == 2 + len(rows) - 1 and f"(p {p:.2f})" in md[2] and "+30.0 (p -)" in next(x for x in md if "+ both (TSRM)" in x)
+    assert welch_against(res, "nosuch") == {} and welch_markdown({"welch": {}}) == ""
+
+
 def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, capsys):
     out = tmp_path / "ablation"
     cfg = ExperimentConfig(experiment="ablation", data=str(exp_world), out=str(out), scale="small", seeds=2,
@@ -153,7 +184,12 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     assert (pretrain_dir / "demae" / "encoder.safetensors").exists()
     assert (pretrain_dir / "resnet18-sup" / "encoder.safetensors").exists()
     md = (out / "table.md").read_text()
-    assert md.count("\n| ") == 9 and "| TSRM + DE-MAE, oracle switch |" in md
+    table, welch_part = md.split("Welch's t-test")
+    assert table.count("\n| ") == 9 and "| TSRM + DE-MAE, oracle switch |" in table
+    assert welch_part.count("\n| ") == 2 * 8 and "| ALL: row vs baseline (ResNet18, baseline reward) |" in welch_part
+    assert "| L>=5: row vs" in welch_part
+    assert "Done dips (fewer than 5 % of training episodes ending with Done): 0 of 14 jobs." in welch_part
+    assert json.loads((out / "results.json").read_text())["done_dips"] == {"jobs": 14, "with_dips": []}
     assert "Detections: learned; row 'TSRM + DE-MAE, oracle switch': oracle" in md
     assert "- detections_learned on" in md and "- detections_oracle on" in md and "reach of 0.7" in md
     rows = list(csv.DictReader(open(out / "table.csv")))

@@ -95,6 +95,49 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
     assert a.shape == (2,) and a.dtype == np.int64
 
 
+def test_eval_with_another_detection_table(trained, tmp_path, capsys):
+    """`tsnav eval --detections NAME`: the stage switch follows that table, and a trained agent reads it instead
+    of its training table (a detector swapped at test time); a missing table is a one-line error."""
+    import dataclasses
+    import shutil
+
+    from tsnav.data.detections import load_detections, write_detections
+    from tsnav.data.reader import list_scenes
+
+    world0, run = trained
+    world = tmp_path / "world"
+    shutil.copytree(world0, world)
+    for scene in list_scenes(world):  # a detector that never sees anything
+        det = load_detections(scene, "oracle")
+        blind = dataclasses.replace(det, scores=np.zeros_like(det.scores), labels=np.full_like(det.labels, -1),
+                                    boxes=np.full_like(det.boxes, -1), features=np.zeros_like(det.features),
+                                    fingerprint="blind-test")
+        write_detections(scene, "blind", blind)
+    eps = tmp_path / "eps.json"
+    assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "6", "--out", str(eps)]) == 0
+    for policy in (["--policy", "explorer"], ["--run", str(run)]):
+        out = tmp_path / f"eval_{policy[0][2:]}"
+        assert main(["eval", "--data", str(world), "--episodes", str(eps), *policy, "--detections", "blind",
+                     "--out", str(out)]) == 0
+        m = json.loads((out / "metrics.json").read_text())
+        assert m["detections"] == "blind" and m["detector_confidence"] is True
+        assert m["metrics"]["ALL"]["SSR"] == 0.0 and m["metrics"]["ALL"]["episodes"] > 0  # the switch never fires
+    # the explorer with the oracle's table does switch
+    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--policy", "explorer", "--detections",
+                 "oracle", "--out", str(tmp_path / "eval_oracle")]) == 0
+    assert json.loads((tmp_path / "eval_oracle" / "metrics.json").read_text())["metrics"]["ALL"]["SSR"] > 0
+    # the agent's detection inputs are the swapped table's (zeros), its own table's otherwise
+    swapped = load_policy(run, SceneBank.from_root(world, "test"), detections="blind")
+    own = load_policy(run, SceneBank.from_root(world, "test"))
+    assert not swapped.observer.detections.features.any() and own.observer.detections.features.any()
+    capsys.readouterr()
+    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--policy", "explorer", "--detections",
+                 "nosuch", "--out", str(tmp_path / "eval_x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "detections_nosuch.hdf5" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "eval_x").exists()
+
+
 def test_greedy_is_the_default_and_takes_the_argmax(trained):
     """Evaluation is greedy by default (the lineage's test-time rule): the action is the argmax of the
     policy's logits, and the seed does not matter."""

@@ -10,6 +10,7 @@ from pathlib import Path
 from ..constants import C_TARGET
 from ..errors import CommandError
 from ..metrics import format_table
+from .outcomes import OUTCOMES_FILE, format_outcomes
 from .runner import evaluate_to_folder
 
 
@@ -33,6 +34,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--success-distance", type=float, default=None,
                         help="success distance in metres (default: the episode list's)")
     parser.add_argument("--batch-size", type=int, default=4096, help="episodes stepped together")
+    parser.add_argument("--detections", default=None,
+                        help="detection table (detections_NAME.hdf5 in every scene) that drives the stage switch "
+                             "and, with --run, feeds the agent instead of its training table (default: --run: the "
+                             "run's own; scripted policies: ground-truth visibility)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--c-target must be in [0, 1], got {args.c_target}")
     out = Path(args.out)
     summary = evaluate_to_folder(out, args.data, args.episodes, policy=args.policy, run=args.run,
-                                 c_target=args.c_target, seed=args.seed, max_steps=args.max_steps, sample=args.sample,
+                                 detections=args.detections, c_target=args.c_target, seed=args.seed, max_steps=args.max_steps, sample=args.sample,
                                  checkpoint=args.checkpoint, success_distance=args.success_distance,
                                  batch_size=args.batch_size)
     meta = json.loads((out / "metrics.json").read_text())
@@ -52,5 +57,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"{meta['label']}: {n} episodes in {meta['seconds']:.2f} s "
           f"(stage switch: {'detector' if meta['detector_confidence'] else 'ground-truth visibility'})")
     print(format_table(summary))
-    print(f"wrote {out / 'records.jsonl'}, {out / 'trajectories.jsonl'} and {out / 'metrics.json'}")
+    print(format_outcomes(json.loads((out / OUTCOMES_FILE).read_text())))
+    print(f"wrote {out / 'records.jsonl'}, {out / 'trajectories.jsonl'}, {out / OUTCOMES_FILE} and {out / 'metrics.json'}")
     return 0

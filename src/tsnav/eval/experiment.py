@@ -90,7 +90,9 @@ from .select import chosen, select_checkpoint
 from .detector_stage import QUALITY_FILE, record_quality
 from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
                           ensure_world, say)
-from .tables import SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line
+from ..rl.done_dips import DIP_DONE_SHARE, run_done_dips
+from .tables import (SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line, welch_against,
+                     welch_markdown)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -238,21 +240,41 @@ class Experiment:
         results = aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
         results["experiment"] = self.cfg.experiment
         results["detections"] = self.cfg.detections
+        results["welch"] = welch_against(results, self.info["baseline_row"])
         quality = self.quality()
         if quality:
             results["detector_quality"] = quality
-        write_json(self.out / "results.json", results)
-        atomic_write_text(self.out / "table.md", f"## {self.cfg.experiment}: {self.info['description']}\n\n"
-                           + markdown_table(results)
-                           + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
-                           + f"Detections: {self.cfg.detections}"
-                           + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
-                           + ".\n" + "".join(f"\n- {quality_line(q)}" for q in quality.values())
-                           + ("\n" if quality else ""))
+        dips = self.done_dips()
+        results["done_dips"] = dips
+        text = (f"## {self.cfg.experiment}: {self.info['description']}\n\n" + markdown_table(results)
+                + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
+                + f"Detections: {self.cfg.detections}"
+                + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
+                + ".\n" + "".join(f"\n- {quality_line(q)}" for q in quality.values()) + ("\n" if quality else ""))
+        if results["welch"]:
+            text += (f"\nDifferences against '{results['welch']['baseline']}' in percentage points, Welch's t-test "
+                     "p-value over the per-seed values:\n\n" + welch_markdown(results) + "\n"
+                     + welch_markdown(results, "L>=5"))
+        if dips["jobs"]:
+            text += "\n" + dips_line(dips) + "\n"
+        atomic_write_text(self.out / "table.md", text)
         atomic_write_text(self.out / "table.csv", csv_table(results))
+        write_json(self.out / "results.json", results)
         if self.cfg.experiment == "threshold":
             plot_threshold(results, self.out / "threshold.png")
         return results
+
+    def done_dips(self) -> dict:
+        """Done dips (:mod:`tsnav.rl.done_dips`) in the training logs of the finished jobs: ``{"jobs": n,
+        "with_dips": [{"row", "seed", "dips"}]}``."""
+        out = {"jobs": 0, "with_dips": []}
+        for j in self.jobs:
+            if self.done(j):
+                out["jobs"] += 1
+                d = run_done_dips(self.out / j.dir / "train")
+                if d:
+                    out["with_dips"].append({"row": j.row.id, "seed": j.seed, "dips": d})
+        return out
 
     def quality(self) -> dict:
         """``OUT/detector_quality.json`` (the tables measured on val rooms), or {} before it is written."""
@@ -372,6 +394,21 @@ class Experiment:
         return self.write_tables()
 
 
+def dips_line(dips: dict) -> str:
+    """One line on the Done dips of an experiment's finished jobs."""
+    w = dips["with_dips"]
+    head = (f"Done dips (fewer than {100 * DIP_DONE_SHARE:.0f} % of training episodes ending with Done): "
+            f"{len(w)} of {dips['jobs']} jobs")
+    if not w:
+        return head + "."
+    parts = []
+    for x in w:
+        spans = ", ".join(f"updates {d['start']}-{d['end']}" + ("" if d["recovered"] else " (not recovered)")
+                          for d in x["dips"])
+        parts.append(f"{x['row']} seed {x['seed']}: {spans}")
+    return head + ": " + "; ".join(parts) + "."
+
+
 def _job_process(cfg: ExperimentConfig, scale: ScaleConfig, index: int, features: str, threads: int) -> dict:
     """One job in a worker process (``--parallel``): training without a progress bar, then evaluation."""
     set_threads(threads)
@@ -453,6 +490,8 @@ def run(args: argparse.Namespace) -> int:
     say(f"torch threads: {set_threads(args.threads)}")
     results = exp.run()
     print(markdown_table(results))
+    if results.get("welch"):
+        print(welch_markdown(results))
     print(f"tables: {exp.out / 'table.md'}, {exp.out / 'table.csv'}"
           + (f", plot {exp.out / 'threshold.png'}" if args.experiment == "threshold" else ""))
     if not args.no_report:

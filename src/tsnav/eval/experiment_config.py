@@ -177,11 +177,11 @@ def experiment_rows(name: str, vc1: bool = False) -> list[Row]:
 #: Per experiment: evaluation split, metrics in the table, check-mark columns, row shown in the gallery.
 EXPERIMENT_INFO = {
     "ablation": dict(split="test", metrics=list(METRICS), flags=list(ABLATION_FLAGS), gallery_row="tsrm_demae",
-                     description="Paper Table II: TSRM terms and DE-MAE added to the baseline."),
+                     baseline_row="baseline", description="Paper Table II: TSRM terms and DE-MAE added to the baseline."),
     "pretraining": dict(split="test", metrics=["SR", "SPL"], flags=[], gallery_row="demae",
-                        description="Paper Table III: pretraining methods of the image encoder, baseline reward."),
+                        baseline_row="resnet18", description="Paper Table III: pretraining methods of the image encoder, baseline reward."),
     "threshold": dict(split="val", metrics=list(METRICS), flags=[], gallery_row="c70",
-                      description="Paper Fig. 4: the stage-switch threshold C_target swept on validation episodes."),
+                      baseline_row="c70", description="Paper Fig. 4: the stage-switch threshold C_target swept on validation episodes."),
 }
 
 

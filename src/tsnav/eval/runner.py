@@ -39,6 +39,7 @@ from ..sim.episodes import Episode, episodes_to_arrays, read_episodes
 from ..sim.paths import UNREACHABLE, distance_fields
 from ..sim.stage import StageSwitch, switch_frame
 from ..metrics import EpisodeRecord, read_records, summarize, write_json, write_records
+from .outcomes import OUTCOMES_FILE, outcome_summary
 from .policies import make_policy
 
 
@@ -269,7 +270,7 @@ def eval_policy(meta: dict, bank):
         from ..rl.checkpoint import load_policy
 
         return load_policy(run, bank, greedy=not bool(meta.get("sample", True)), seed=seed,
-                           checkpoint=meta.get("checkpoint", "auto"))
+                           checkpoint=meta.get("checkpoint", "auto"), detections=meta.get("detections"))
     return make_policy(name, bank, seed=seed, c_target=bank.c_target)
 
 
@@ -314,7 +315,9 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     lineage's test-time rule) unless ``sample``; ``checkpoint`` names which of the run's checkpoints
     (``auto`` / ``best`` / ``latest`` / a folder, as :func:`~tsnav.rl.checkpoint.resolve_checkpoint`), recorded so
     that a re-roll loads the same one. ``success_distance`` (metres) defaults to the episode list's;
-    ``batch_size`` episodes are stepped together. This is ``tsnav eval``. Returns the :func:`summarize` result."""
+    ``batch_size`` episodes are stepped together. This is ``tsnav eval``; it also writes ``outcomes.json``
+    (:func:`~tsnav.eval.outcomes.outcome_summary`: how episodes ended, with and without the stage switch).
+    Returns the :func:`summarize` result."""
     out_dir = Path(out_dir)
     episodes, emeta = read_episodes(episodes_file)
     if not episodes:
@@ -333,6 +336,7 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     summary = summarize(records, config.min_optimal_length)
     write_records(out_dir / "records.jsonl", records)
     write_trajectories(out_dir / "trajectories.jsonl", trajectories)
+    write_json(out_dir / OUTCOMES_FILE, outcome_summary(records, trajectories))
     write_json(out_dir / "metrics.json", {**meta, "metrics": summary, "seconds": time.perf_counter() - t0,
                                           "detector_confidence": bank.confidence is not None})
     return summary

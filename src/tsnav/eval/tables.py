@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from scipy.stats import t
+from scipy.stats import t, ttest_ind
 
 from ..atomic import atomic_save_figure
 
@@ -50,6 +50,58 @@ def aggregate(rows: list, per_row: dict[str, list[dict]], metrics: list[str], fl
                          "encoder": r.encoder, "reward": r.reward, "detections": getattr(r, "detections", None),
                          "n": len(sums), "metrics": ms})
     return {"subsets": list(SUBSETS), "metrics": metrics, "flag_columns": flags, "rows": out_rows}
+
+
+def welch(a, b) -> tuple[float | None, float | None]:
+    """Difference of means ``mean(b) - mean(a)`` and the two-sided p-value of Welch's t-test (unequal
+    variances); p None with fewer than two values on either side or no spread at all."""
+    a = np.asarray([x for x in a if x is not None and math.isfinite(x)], dtype=np.float64)
+    b = np.asarray([x for x in b if x is not None and math.isfinite(x)], dtype=np.float64)
+    if len(a) == 0 or len(b) == 0:
+        return None, None
+    diff = float(b.mean() - a.mean())
+    if len(a) < 2 or len(b) < 2 or (a.var(ddof=1) == 0 and b.var(ddof=1) == 0):
+        return diff, None
+    return diff, float(ttest_ind(b, a, equal_var=False).pvalue)
+
+
+def welch_against(results: dict, baseline: str) -> dict:
+    """Every other row against row ``baseline``: per subset and metric, the difference of the per-seed means
+    (percentage points) and Welch's p-value. ``{}`` when the baseline row is not in the results."""
+    rows = {r["row"]: r for r in results["rows"]}
+    if baseline not in rows:
+        return {}
+    base = rows[baseline]
+    out = {}
+    for r in results["rows"]:
+        if r["row"] == baseline:
+            continue
+        out[r["row"]] = {s: {m: dict(zip(("diff", "p"), welch(base["metrics"][s][m]["values"],
+                                                              r["metrics"][s][m]["values"])))
+                             for m in results["metrics"]} for s in results["subsets"]}
+    return {"baseline": baseline, "rows": out}
+
+
+def welch_markdown(results: dict, subset: str = "ALL") -> str:
+    """The :func:`welch_against` part of ``results`` (``results["welch"]``) as a Markdown table for one subset:
+    ``+diff (p)`` per metric, or "" when there is none."""
+    w = results.get("welch") or {}
+    if not w.get("rows"):
+        return ""
+    labels = {r["row"]: r["label"] for r in results["rows"]}
+    metrics = results["metrics"]
+    lines = [f"| {subset}: row vs {labels.get(w['baseline'], w['baseline'])} | " + " | ".join(metrics) + " |",
+             "| --- |" + " ---: |" * len(metrics)]
+
+    def cell(v):
+        if v["diff"] is None:
+            return "-"
+        p = "-" if v["p"] is None else ("<0.01" if v["p"] < 0.01 else f"{v['p']:.2f}")
+        return f"{v['diff']:+.1f} (p {p})"
+
+    for rid, by_subset in w["rows"].items():
+        lines.append(f"| {labels.get(rid, rid)} | " + " | ".join(cell(by_subset[subset][m]) for m in metrics) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def _fmt(v: dict) -> str:

@@ -233,7 +233,7 @@ def resolve_checkpoint(run_dir: str | Path, which: str | Path | None = "auto") -
 
 
 def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, device: str = "cpu",
-                checkpoint: str | Path | None = "auto"):
+                checkpoint: str | Path | None = "auto", detections: str | None = None):
     """The trained agent of ``run_dir`` as a :class:`~tsnav.eval.policies.Policy` over ``bank``.
 
     The bank's scenes need the run's feature cache (``features_<name>.hdf5``); when the run used detection
@@ -242,15 +242,19 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, d
     ``prob.argmax`` at test time and sample only while training); ``greedy=False`` samples from the policy with
     a generator seeded by ``seed`` instead. ``checkpoint`` (:func:`resolve_checkpoint`): ``auto`` the run's
     ``best`` checkpoint when validation chose one, else the latest; ``best``, ``latest`` or a folder's path.
+    ``detections`` names another detection table for the agent to read instead of its training one (a detector
+    swapped at test time, e.g. ``oracle`` to measure what a perfect detector is worth); the bank's stage switch
+    must then follow the same table (install it, or leave the bank without one and it is installed here).
     """
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
     model, _ = load_model(run_dir, resolve_checkpoint(run_dir, checkpoint))
     det_features = None
-    if cfg.detections is not None:
+    name = detections if detections is not None else cfg.detections
+    if name is not None:
         if bank.detections is None:
-            det_features = install(bank, cfg.detections)
+            det_features = install(bank, name)
         else:
-            det_features = load_scene_detections(bank.scenes, cfg.detections).features
+            det_features = load_scene_detections(bank.scenes, name).features
     features = load_bank_features(bank, cfg.features)
     if tuple(features.shape[1:]) != model.feature_shape:
         raise ValueError(f"features_{cfg.features} of these scenes have shape {tuple(features.shape[1:])} but the "

@@ -1,0 +1,104 @@
+"""How evaluation episodes end, and what the stage switch had to do with it.
+
+SR alone does not say why an agent fails. Every episode ends in one of three ways - Done in a success state
+(success), Done elsewhere (a wrong Done), or the step limit - and either did or did not enter the pathfinding
+stage (the target's detector confidence passed C_target at some frame, paper III-B). Crossing the two shows
+whether failures are search failures (the switch never fired: the detector never became confident about the
+target) or pathfinding / stopping failures (it fired, yet no success). Per target class, SR beside the switch
+rate shows which classes the detector cannot see. The action shares show degenerate policies (e.g. one that
+never turns left).
+
+:func:`outcome_summary` is what ``tsnav eval`` prints under its metrics table and writes to ``outcomes.json``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Sequence
+
+from ..constants import ACTIONS, DONE
+from ..metrics import EpisodeRecord
+
+# Trajectories are :class:`tsnav.eval.runner.Trajectory` objects (runner imports this module, so they are typed
+# by what is read from them: ``episode``, ``target``, ``success``, ``actions``).
+
+#: File of :func:`outcome_summary` in an evaluation folder.
+OUTCOMES_FILE = "outcomes.json"
+#: How an episode ended.
+ENDINGS = ("success", "wrong Done", "step limit")
+
+
+def outcome_keys() -> list[str]:
+    """The six (ending, switch) cells, in display order."""
+    return [f"{e}, {'switched' if s else 'never switched'}" for e in ENDINGS for s in (True, False)]
+
+
+def episode_ending(trajectory) -> str:
+    """``success``, ``wrong Done`` (Done outside a success state) or ``step limit`` (no Done: the episode was
+    cut at the evaluation's step limit)."""
+    if trajectory.success:
+        return "success"
+    if trajectory.actions and trajectory.actions[-1] == DONE:
+        return "wrong Done"
+    return "step limit"
+
+
+def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) -> dict:
+    """Counts of (ending, switched) over the episodes, success rates with and without a switch, per-target
+    episodes / SR / switch rate, and the share of each action among all actions taken.
+
+    ``records`` and ``trajectories`` are the same episodes in the same order (as ``tsnav eval`` writes them);
+    ``ValueError`` when they are not."""
+    if len(records) != len(trajectories):
+        raise ValueError(f"{len(records)} records but {len(trajectories)} trajectories")
+    counts = {k: 0 for k in outcome_keys()}
+    targets: dict[str, list[int]] = {}
+    actions: Counter = Counter()
+    for r, t in zip(records, trajectories):
+        if (r.episode, r.target, bool(r.success)) != (t.episode, t.target, bool(t.success)):
+            raise ValueError(f"episode {r.episode}: record and trajectory disagree (another evaluation?)")
+        switched = bool(r.entered_pathfinding)
+        counts[f"{episode_ending(t)}, {'switched' if switched else 'never switched'}"] += 1
+        row = targets.setdefault(r.target, [0, 0, 0])
+        row[0] += 1
+        row[1] += int(bool(r.success))
+        row[2] += int(switched)
+        actions.update(t.actions)
+    n = len(records)
+    n_sw = sum(v for k, v in counts.items() if k.endswith(", switched"))
+    succ_sw = counts["success, switched"]
+    succ_no = counts["success, never switched"]
+    total_actions = sum(actions.values())
+    return {
+        "episodes": n,
+        "counts": counts,
+        "switched": n_sw,
+        "success_if_switched": succ_sw / n_sw if n_sw else None,
+        "success_if_never_switched": succ_no / (n - n_sw) if n - n_sw else None,
+        "per_target": {k: {"episodes": v[0], "SR": v[1] / v[0], "switch_rate": v[2] / v[0]}
+                       for k, v in sorted(targets.items())},
+        "action_shares": {a: (actions[i] / total_actions if total_actions else 0.0) for i, a in enumerate(ACTIONS)},
+    }
+
+
+def format_outcomes(summary: dict) -> str:
+    """The summary as plain text: endings x switch, the two conditional success rates, per-target rows sorted
+    by SR, action shares (percent)."""
+    n = summary["episodes"]
+    lines = [f"how the {n} episodes ended (switch = the target's confidence passed C_target at some frame):"]
+    for k in outcome_keys():
+        v = summary["counts"].get(k, 0)
+        lines.append(f"  {k:32s} {v:6d}  {100 * v / n if n else 0:5.1f} %")
+
+    def pct(x):
+        return "-" if x is None else f"{100 * x:.1f} %"
+
+    lines.append(f"  success when the switch fired: {pct(summary['success_if_switched'])}; "
+                 f"when it never fired: {pct(summary['success_if_never_switched'])}")
+    lines.append("  target            episodes     SR   switch")
+    rows = sorted(summary["per_target"].items(), key=lambda kv: (-kv[1]["SR"], -kv[1]["switch_rate"], kv[0]))
+    for name, row in rows:
+        lines.append(f"  {name:16s} {row['episodes']:9d} {100 * row['SR']:6.1f} {100 * row['switch_rate']:8.1f}")
+    shares = ", ".join(f"{a} {100 * summary['action_shares'].get(a, 0.0):.1f} %" for a in ACTIONS)
+    lines.append(f"  actions: {shares}")
+    return "\n".join(lines)

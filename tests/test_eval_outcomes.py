@@ -1,0 +1,68 @@
+"""How evaluation episodes end (`tsnav.eval.outcomes`): each ending x switch cell on hand-made episodes, and the
+figures of a real evaluation folder agree with its records and metrics."""
+
+import json
+
+import pytest
+
+from tsnav.cli import main
+from tsnav.constants import DONE, MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT
+from tsnav.eval.outcomes import format_outcomes, outcome_summary
+from tsnav.eval.runner import Trajectory, read_trajectories
+from tsnav.metrics import EpisodeRecord, read_records
+
+
+def episode(i, target, success, switched, actions):
+    rec = EpisodeRecord(success=success, path_length=len(actions), optimal_length=1, entered_pathfinding=switched,
+                        target=target, episode=i, steps=len(actions))
+    traj = Trajectory(episode=i, scene="S", target=target, keys=["k"] * (len(actions) + 1), actions=actions,
+                      success=success)
+    return rec, traj
+
+
+def test_each_ending_and_switch():
+    eps = [episode(0, "Fridge", True, True, [MOVE_AHEAD, DONE]),
+           episode(1, "Fridge", False, True, [MOVE_AHEAD, DONE]),             # wrong Done after the switch
+           episode(2, "CellPhone", False, False, [ROTATE_RIGHT] * 5),          # step limit, never switched
+           episode(3, "CellPhone", False, False, [ROTATE_RIGHT, DONE]),        # wrong Done, never switched
+           episode(4, "CellPhone", True, False, [MOVE_AHEAD, MOVE_AHEAD, DONE]),
+           episode(5, "Fridge", False, True, [ROTATE_LEFT] * 4)]              # step limit after the switch
+    s = outcome_summary([e[0] for e in eps], [e[1] for e in eps])
+    assert s["counts"] == {"success, switched": 1, "success, never switched": 1, "wrong Done, switched": 1,
+                           "wrong Done, never switched": 1, "step limit, switched": 1,
+                           "step limit, never switched": 1}
+    assert s["switched"] == 3 and s["success_if_switched"] == pytest.approx(1 / 3)
+    assert s["success_if_never_switched"] == pytest.approx(1 / 3)
+    assert s["per_target"]["Fridge"] == {"episodes": 3, "SR": pytest.approx(1 / 3), "switch_rate": 1.0}
+    assert s["per_target"]["CellPhone"] == {"episodes": 3, "SR": pytest.approx(1 / 3), "switch_rate": 0.0}
+    n_actions = 2 + 2 + 5 + 2 + 3 + 4
+    assert s["action_shares"]["RotateRight"] == pytest.approx(6 / n_actions)
+    assert s["action_shares"]["Done"] == pytest.approx(4 / n_actions) and s["action_shares"]["LookUp"] == 0.0
+    text = format_outcomes(s)
+    assert "wrong Done, never switched" in text and "CellPhone" in text and "33.3 %" in text
+    with pytest.raises(ValueError, match="6 records but 5 trajectories"):
+        outcome_summary([e[0] for e in eps], [e[1] for e in eps][:5])
+    with pytest.raises(ValueError, match="disagree"):
+        outcome_summary([e[0] for e in eps], [eps[1][1]] + [e[1] for e in eps][1:])
+
+
+def test_eval_folder_outcomes_agree_with_records(tiny_world, tmp_path, capsys):
+    eps = tmp_path / "eps.json"
+    assert main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "8",
+                 "--out", str(eps)]) == 0
+    out = tmp_path / "eval"
+    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "random",
+                 "--max-steps", "30", "--out", str(out)]) == 0
+    assert "how the" in capsys.readouterr().out
+    s = json.loads((out / "outcomes.json").read_text())
+    records = read_records(out / "records.jsonl")
+    trajs = read_trajectories(out / "trajectories.jsonl")
+    m = json.loads((out / "metrics.json").read_text())["metrics"]["ALL"]
+    n = len(records)
+    assert s["episodes"] == n == m["episodes"] and sum(s["counts"].values()) == n
+    assert s["counts"]["success, switched"] + s["counts"]["success, never switched"] == round(m["SR"] * n)
+    assert s["switched"] == sum(r.entered_pathfinding for r in records)
+    # step limit exactly when the episode used all 30 steps without a final Done
+    limit = sum(1 for t in trajs if len(t.actions) == 30 and t.actions[-1] != DONE)
+    assert s["counts"]["step limit, switched"] + s["counts"]["step limit, never switched"] == limit
+    assert sum(s["action_shares"].values()) == pytest.approx(1.0)
