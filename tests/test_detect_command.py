@@ -71,3 +71,6 @@ def test_bad_input_is_one_line(world, tmp_path, capsys):
     assert "detector name" in capsys.readouterr().err
     assert main(["detect", "--data", str(world), "--detector", "learned", "--train-steps", "0"]) == 2
     assert "--train-steps" in capsys.readouterr().err
+    assert main(["detect", "--data", str(world), "--detector", "learned", "--repeat-threshold", "-0.5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--repeat-threshold must be >= 0" in err and len(err.splitlines()) == 1

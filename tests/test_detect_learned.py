@@ -14,8 +14,8 @@ from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
 from tsnav.detect.model import (DetectorConfig, GridDetector, default_config, dense_targets, dense_targets_reference,
                                 detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
 from tsnav.detect.train import (DetectorTrainConfig, apply_gains, batch_plan, calibrate, default_train_steps,
-                                fit_temperature, load_model,
-                                lr_at, predict, read_meta, train_detector)
+                                fit_temperature, load_model, lr_at, predict, read_meta, repeat_factors,
+                                repeat_factors_reference, sample_weighted, train_detector)
 
 torch.set_num_threads(1)
 
@@ -201,6 +201,41 @@ def test_batch_plan_and_colour_gains():
     np.testing.assert_allclose(out.numpy().reshape(-1), [100, 100, 255])  # 250 * 1.2 clipped
 
 
+def test_repeat_factors_by_hand_and_against_reference():
+    # 10 frames; class 0 in 5 (f 0.5), class 1 in 1 (f 0.1), class 2 never.
+    present = np.zeros((10, 3), bool)
+    present[:5, 0] = True
+    present[4, 1] = True
+    w = repeat_factors(present, 0.4)
+    # class 0: max(1, sqrt(0.4 / 0.5)) = 1; class 1: sqrt(0.4 / 0.1) = 2; frame 4 shows both -> 2.
+    np.testing.assert_allclose(w, [1, 1, 1, 1, 2, 1, 1, 1, 1, 1])
+    np.testing.assert_allclose(repeat_factors(present, 0.0), np.ones(10))
+    rng = np.random.default_rng(3)
+    for t in (0.01, 0.1, 0.3):
+        p = rng.random((200, 22)) < rng.uniform(0.005, 0.4, 22)
+        np.testing.assert_allclose(repeat_factors(p, t), repeat_factors_reference(p, t))
+    with pytest.raises(ValueError, match=">= 0"):
+        repeat_factors(present, -0.1)
+    with pytest.raises(ValueError, match="frames, classes"):
+        repeat_factors(present[0], 0.1)
+
+
+def test_weighted_batches_follow_the_weights():
+    w = np.array([1.0, 0.0, 3.0, 4.0])
+    u = np.array([0.0, 0.124, 0.125, 0.49, 0.5, 0.999])
+    # cumulative 1, 1, 4, 8 of 8: [0, 1/8) -> row 0, [1/8, 1/2) -> row 2, [1/2, 1) -> row 3; row 1 never.
+    np.testing.assert_array_equal(sample_weighted(u, w), [0, 0, 2, 2, 3, 3])
+    ref = [next(i for i, c in enumerate(np.cumsum(w)) if x * w.sum() < c) for x in u]
+    np.testing.assert_array_equal(sample_weighted(u, w), ref)
+    cfg = DetectorTrainConfig(batch_size=4000)
+    idx = batch_plan(5, 4, cfg, w)[0]
+    np.testing.assert_allclose(np.bincount(idx, minlength=4) / 4000, w / w.sum(), atol=0.03)
+    np.testing.assert_array_equal(idx, batch_plan(5, 4, cfg, w)[0])  # still a function of (seed, step)
+    for bad in (np.zeros(3), np.array([1.0, -1.0]), np.array([])):
+        with pytest.raises(ValueError, match="sampling weights"):
+            sample_weighted(u, bad)
+
+
 def test_lr_schedule():
     cfg = DetectorTrainConfig(steps=100, warmup=10, lr=1.0, min_lr_ratio=0.1)
     assert lr_at(0, cfg) == pytest.approx(0.1) and lr_at(9, cfg) == pytest.approx(1.0)
@@ -243,6 +278,16 @@ def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_pa
     # Already finished: returns at once.
     again = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=6), frames=tiny_frames, progress=False)
     assert again.start_step == again.step == 6
+    # Class-balanced sampling given for an existing checkpoint: applies from its step on and is recorded.
+    tuned = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8, repeat_threshold=0.3),
+                           frames=tiny_frames, progress=False)
+    assert (tuned.start_step, tuned.step) == (6, 8)
+    meta = read_meta(tmp_path / "twice")
+    assert meta["train"]["repeat_threshold"] == 0.3
+    assert meta["sampling_changes"] == [{"step": 6, "repeat_threshold": 0.3}]
+    with pytest.raises(ValueError, match="repeat_threshold"):
+        train_detector(tiny_world, tmp_path / "bad", DetectorTrainConfig(steps=2, repeat_threshold=-1.0),
+                       small, frames=tiny_frames, progress=False)
 
 
 def test_fit_temperature_recovers_a_known_temperature():

@@ -46,6 +46,10 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=int, default=None, help="learned: frames per training step (default 64)")
     p.add_argument("--max-states-per-scene", type=int, default=None,
                    help="learned: train on at most this many random states per train scene")
+    p.add_argument("--repeat-threshold", type=float, default=None,
+                   help="learned: class-balanced sampling of training frames (repeat-factor sampling with this "
+                        "threshold, e.g. 0.1; 0 or absent: uniform); given for an existing checkpoint it applies "
+                        "from that checkpoint's step on")
     p.add_argument("--stem", type=int, default=None,
                    help="learned, new checkpoint: space-to-depth factor of the input (default: frame side / 64, so "
                         "128px frames cost what 64px ones do)")
@@ -82,6 +86,8 @@ def _learned(args, root: Path):
         raise CommandError("--train-steps must be at least 1")
     if args.batch_size is not None and args.batch_size < 1:
         raise CommandError("--batch-size must be at least 1")
+    if args.repeat_threshold is not None and not args.repeat_threshold >= 0:
+        raise CommandError(f"--repeat-threshold must be >= 0, got {args.repeat_threshold}")
     if ckpt.exists() and not ckpt.is_dir():
         raise CommandError(f"--checkpoint {ckpt} is a file; give a checkpoint folder")
     if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
@@ -91,7 +97,8 @@ def _learned(args, root: Path):
     if steps is None:  # an existing checkpoint: finish its own target (a no-op when it is finished)
         steps = (int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt)
                  else default_train_steps(model_cfg.image_size))
-    tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene)
+    tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene,
+                             repeat_threshold=args.repeat_threshold or 0.0)
     if args.batch_size:
         tc.batch_size = args.batch_size
     res = train_detector(root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet)

@@ -3,7 +3,9 @@
 Training uses the TRAIN scenes only; batches are drawn with a generator seeded by ``(seed, step)``, so a
 resumed run sees the same batches as an uninterrupted one. Optimiser: AdamW with linear warm-up and cosine
 decay to ``min_lr_ratio`` x ``lr`` at ``steps`` (extending a finished run with more steps re-stretches the
-remaining schedule). Augmentation: horizontal flip and per-frame colour gains.
+remaining schedule). Augmentation: horizontal flip and per-frame colour gains. Frames are drawn uniformly, or
+class-balanced by repeat-factor sampling (:attr:`DetectorTrainConfig.repeat_threshold`, :func:`repeat_factors`),
+which on the `ithor-real` world raised val presence AP and reach at equal steps (BENCHMARKS.md).
 
 Calibration: a single temperature ``T`` (Guo et al. 2017) divides the presence logits,
 ``score = sigmoid(logit / T)``; ``T`` minimises the mean binary cross-entropy on the VAL scenes.
@@ -82,6 +84,12 @@ class DetectorTrainConfig:
     """Steps between entries of the loss history."""
     max_states_per_scene: int | None = None
     """Use at most this many (random) states per train scene; None uses all."""
+    repeat_threshold: float = 0.0
+    """Class-balanced sampling of the training frames (repeat-factor sampling, Gupta et al. 2019, LVIS): a frame
+    is drawn with weight ``max(1, max over the classes in view of sqrt(t / f_c))``, ``f_c`` the share of the
+    loaded training frames that show class ``c`` (:func:`repeat_factors`), so frames with rare classes (a phone,
+    an alarm clock) come more often; 0 draws frames uniformly (the behaviour before this field). Given nonzero
+    for an existing checkpoint, it replaces the stored value from the checkpoint's step on (a fine-tune)."""
     threads: int = 1
     """torch CPU threads. One is the safe default: on a busy machine two threads were measured 30x slower
     per step than one (threads spin waiting for each other)."""
@@ -106,15 +114,63 @@ def lr_at(step: int, cfg: DetectorTrainConfig) -> float:
     return warmup_cosine(step, cfg.steps, cfg.lr, cfg.warmup, cfg.min_lr_ratio * cfg.lr)
 
 
-def batch_plan(step: int, n: int, cfg: DetectorTrainConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def repeat_factors(present: np.ndarray, threshold: float) -> np.ndarray:
+    """``(N,)`` float64 sampling weight of each training frame under repeat-factor sampling with threshold
+    ``threshold`` (:attr:`DetectorTrainConfig.repeat_threshold`): ``max(1, max_c sqrt(threshold / f_c))`` over
+    the classes ``c`` in view in the frame (``present`` ``(N, C)`` bool), ``f_c = present[:, c].mean()``; frames
+    with no class in view weigh 1."""
+    present = np.asarray(present, dtype=bool)
+    if present.ndim != 2:
+        raise ValueError(f"present must be (frames, classes), got shape {present.shape}")
+    if not threshold >= 0:
+        raise ValueError(f"repeat threshold must be >= 0, got {threshold}")
+    freq = present.mean(axis=0) if len(present) else np.zeros(present.shape[1])
+    per_class = np.ones(present.shape[1])
+    seen = freq > 0
+    per_class[seen] = np.maximum(1.0, np.sqrt(threshold / freq[seen]))
+    return np.where(present, per_class[None, :], 1.0).max(axis=1, initial=1.0)
+
+
+def repeat_factors_reference(present, threshold: float) -> np.ndarray:
+    """Loop reference of :func:`repeat_factors` (same result, one frame and class at a time)."""
+    present = np.asarray(present, dtype=bool)
+    n, k = present.shape
+    out = np.ones(n)
+    for c in range(k):
+        f = present[:, c].sum() / n
+        if f == 0:
+            continue
+        r = max(1.0, math.sqrt(threshold / f))
+        for i in range(n):
+            if present[i, c]:
+                out[i] = max(out[i], r)
+    return out
+
+
+def batch_plan(step: int, n: int, cfg: DetectorTrainConfig, weights: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(row indices ``(B,)``, flip flags ``(B,)``, colour gains ``(B, 3)``) of step ``step``: a function of
-    ``(seed, step)`` only, so a resumed run sees the same batches."""
+    ``(seed, step)`` (and ``weights``) only, so a resumed run sees the same batches. Rows are drawn uniformly, or
+    with replacement in proportion to ``weights`` ``(n,)`` (:func:`repeat_factors`) when given."""
     rng = np.random.default_rng([cfg.seed, step])
-    idx = rng.integers(0, n, cfg.batch_size)
+    if weights is None:
+        idx = rng.integers(0, n, cfg.batch_size)
+    else:
+        idx = sample_weighted(rng.random(cfg.batch_size), weights)
     flip = rng.random(cfg.batch_size) < cfg.flip_prob
     gains = (rng.uniform(1 - cfg.color_jitter, 1 + cfg.color_jitter, (cfg.batch_size, 3))
              * rng.uniform(1 - cfg.brightness, 1 + cfg.brightness, (cfg.batch_size, 1)))
     return idx, flip, gains.astype(np.float32)
+
+
+def sample_weighted(u: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Rows drawn in proportion to ``weights`` (non-negative, positive sum) by the uniform numbers ``u`` in
+    [0, 1): row ``i`` is chosen when ``u * sum(weights)`` falls in ``[cum[i-1], cum[i])`` of the cumulative sum."""
+    weights = np.asarray(weights, dtype=np.float64)
+    if weights.ndim != 1 or len(weights) == 0 or (weights < 0).any() or not weights.sum() > 0:
+        raise ValueError("sampling weights must be a non-empty vector of non-negative numbers with a positive sum")
+    cum = np.cumsum(weights)
+    return np.minimum(np.searchsorted(cum, np.asarray(u) * cum[-1], side="right"), len(cum) - 1)
 
 
 def apply_gains(images: torch.Tensor, gains: np.ndarray) -> torch.Tensor:
@@ -316,6 +372,8 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     ``steps``; a finished one returns at once. ``frames`` may pass preloaded training frames."""
     ckpt = Path(ckpt)
     train_cfg = train_cfg or DetectorTrainConfig()
+    if not train_cfg.repeat_threshold >= 0:
+        raise ValueError(f"repeat_threshold must be >= 0, got {train_cfg.repeat_threshold}")
     torch.set_num_threads(max(1, int(train_cfg.threads)))
     found = resume_state(ckpt)
     opt_state = None
@@ -323,8 +381,12 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
         _, model, meta, opt_state = found
         stored = DetectorTrainConfig.from_dict(meta["train"])
         stored.steps, stored.threads = train_cfg.steps, train_cfg.threads
-        train_cfg = stored
         start = int(meta["step"])
+        if train_cfg.repeat_threshold > 0 and train_cfg.repeat_threshold != stored.repeat_threshold:
+            stored.repeat_threshold = train_cfg.repeat_threshold
+            meta.setdefault("sampling_changes", []).append({"step": start,
+                                                           "repeat_threshold": train_cfg.repeat_threshold})
+        train_cfg = stored
     else:
         if model_cfg is None:
             model_cfg = DetectorConfig()
@@ -339,6 +401,7 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
         frames = load_frames(root, "train", train_cfg.max_states_per_scene, train_cfg.seed, progress)
     if frames.images.shape[1] != model.cfg.image_size:
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
+    weights = repeat_factors(frames.present, train_cfg.repeat_threshold) if train_cfg.repeat_threshold > 0 else None
     opt = torch.optim.AdamW(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
     if start > 0 and opt_state is not None:
         opt.load_state_dict({"state": opt_state, "param_groups": meta["param_groups"]})
@@ -357,7 +420,7 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
 
     try:
         while step < train_cfg.steps:
-            idx, flip, gains = batch_plan(step, len(frames), train_cfg)
+            idx, flip, gains = batch_plan(step, len(frames), train_cfg, weights)
             b = make_batch(frames, idx, flip)
             for g in opt.param_groups:
                 g["lr"] = lr_at(step, train_cfg)
