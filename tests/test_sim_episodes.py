@@ -100,3 +100,21 @@ def test_episodes_command(tmp_path, capsys):
     assert main(["episodes", "--data", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["episodes", "--data", str(root), "--split", "train", "--out", str(tmp_path / "x.json")]) == 2
     assert "no complete scenes" in capsys.readouterr().err
+
+
+def test_room_target_mask_and_the_two_users_agree(tiny_world):
+    """One definition of "which classes may be targets here": the episode sampler's per-scene mask and the
+    detector quality report's (`detect.quality.scene_targets`) are the same."""
+    from tsnav.constants import ROOM_TARGETS, room_target_mask
+    from tsnav.detect.quality import scene_targets
+    from tsnav.sim.episodes import EpisodeConfig, allowed_targets
+
+    for rt, names in ROOM_TARGETS.items():
+        m = room_target_mask(rt)
+        assert m.dtype == bool and m.shape == (NUM_CATEGORIES,) and m.sum() == len(names)
+        assert all(m[CATEGORY_INDEX[c]] for c in names)
+    assert room_target_mask("garage").all()
+    bank = SceneBank.from_root(tiny_world, "train")
+    allowed = allowed_targets(bank, EpisodeConfig())
+    for i, scene in enumerate(bank.scenes):
+        assert np.array_equal(scene_targets(scene), allowed[i])

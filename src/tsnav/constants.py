@@ -80,6 +80,16 @@ ROOM_TARGETS = {
 }
 
 
+def room_target_mask(room_type: str) -> np.ndarray:
+    """``(22,)`` bool: the classes :data:`ROOM_TARGETS` allows as targets in a room of ``room_type``; every class
+    when the room type is unknown (no restriction)."""
+    if room_type not in ROOM_TARGETS:
+        return np.ones(NUM_CATEGORIES, dtype=bool)
+    mask = np.zeros(NUM_CATEGORIES, dtype=bool)
+    mask[[CATEGORY_INDEX[c] for c in ROOM_TARGETS[room_type]]] = True
+    return mask
+
+
 def state_key(x: float, z: float, rotation: int, horizon: int) -> str:
     """The lineage's state key, e.g. ``0.50|3.50|315|30`` (x, z in metres; degrees)."""
     return f"{x:.2f}|{z:.2f}|{int(rotation) % 360:d}|{int(horizon):d}"

@@ -33,7 +33,7 @@ from matplotlib.patches import Rectangle
 from tqdm import tqdm
 
 from ..atomic import atomic_save_figure, atomic_write_json
-from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, ROOM_TARGETS, TARGET_CATEGORIES
+from ..constants import NUM_CATEGORIES, ROOM_TARGETS, TARGET_CATEGORIES, room_target_mask
 from ..data.detections import Detections, load_detections
 from ..data.reader import list_scenes, load_scene
 from .data import read_images
@@ -57,11 +57,7 @@ def scene_targets(scene) -> np.ndarray:
     type's target list; every present class when the room type is unknown)."""
     mask = np.zeros(NUM_CATEGORIES, bool)
     mask[scene.categories_present()] = True
-    if scene.room_type in ROOM_TARGETS:
-        keep = np.zeros(NUM_CATEGORIES, bool)
-        keep[[CATEGORY_INDEX[c] for c in ROOM_TARGETS[scene.room_type]]] = True
-        mask &= keep
-    return mask
+    return mask & room_target_mask(scene.room_type)
 
 
 @dataclass

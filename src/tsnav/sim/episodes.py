@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, ROOM_TARGETS, TARGET_CATEGORIES
+from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, TARGET_CATEGORIES, room_target_mask
 from .batch import BatchEnv, EpisodeSampler, RewardFn, SceneBank, SimConfig
 from .paths import UNREACHABLE
 
@@ -71,10 +71,7 @@ def allowed_targets(bank: SceneBank, config: EpisodeConfig) -> np.ndarray:
     allowed = bank.present.copy()
     if config.room_targets:
         for i, rt in enumerate(bank.room_types):
-            if rt in ROOM_TARGETS:
-                keep = np.zeros(NUM_CATEGORIES, dtype=bool)
-                keep[[CATEGORY_INDEX[c] for c in ROOM_TARGETS[rt]]] = True
-                allowed[i] &= keep
+            allowed[i] &= room_target_mask(rt)
     return allowed
 
 
