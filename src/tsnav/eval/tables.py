@@ -20,10 +20,15 @@ SUBSETS = ("ALL", "L>=5")
 """Episode subsets of every table: all episodes, and those with optimal length of at least 5 actions."""
 
 
+def finite(values) -> np.ndarray:
+    """The finite, non-None entries of ``values`` as float64 (missing seeds and undefined metrics dropped)."""
+    return np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
+
+
 def mean_ci(values) -> tuple[float | None, float | None]:
     """Mean and half-width of the 95 % confidence interval of the mean (Student t, n-1 degrees of freedom);
     half-width None with fewer than two values, both None with none."""
-    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
+    v = finite(values)
     if len(v) == 0:
         return None, None
     if len(v) == 1:
@@ -55,8 +60,7 @@ def aggregate(rows: list, per_row: dict[str, list[dict]], metrics: list[str], fl
 def welch(a, b) -> tuple[float | None, float | None]:
     """Difference of means ``mean(b) - mean(a)`` and the two-sided p-value of Welch's t-test (unequal
     variances); p None with fewer than two values on either side or no spread at all."""
-    a = np.asarray([x for x in a if x is not None and math.isfinite(x)], dtype=np.float64)
-    b = np.asarray([x for x in b if x is not None and math.isfinite(x)], dtype=np.float64)
+    a, b = finite(a), finite(b)
     if len(a) == 0 or len(b) == 0:
         return None, None
     diff = float(b.mean() - a.mean())

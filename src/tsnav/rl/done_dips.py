@@ -40,19 +40,18 @@ def done_dips(records: list[dict], threshold: float = DIP_DONE_SHARE) -> list[di
     for i, r in enumerate(rows):
         if done_share(r) < threshold:
             if cur is None:
-                step = r["update"] - rows[i - 1]["update"] if i > 0 else r["update"]
-                cur = {"start": int(r["update"]), "end": int(r["update"]), "step": int(step),
-                       "min_done_prob": float(r.get("done_prob", float("nan")))}
+                prev = rows[i - 1]["update"] if i > 0 else 0
+                cur = {"start": int(r["update"]), "step": int(r["update"] - prev), "probs": []}
             cur["end"] = int(r["update"])
-            cur["min_done_prob"] = min(cur["min_done_prob"], float(r.get("done_prob", float("nan"))))
+            if r.get("done_prob") is not None:
+                cur["probs"].append(float(r["done_prob"]))
         elif cur is not None:
             dips.append({**cur, "recovered": True})
             cur = None
     if cur is not None:
         dips.append({**cur, "recovered": False})
-    for d in dips:
-        d["updates"] = d["end"] - d["start"] + d.pop("step")
-    return dips
+    return [{"start": d["start"], "end": d["end"], "min_done_prob": min(d["probs"]) if d["probs"] else None,
+             "recovered": d["recovered"], "updates": d["end"] - d["start"] + d["step"]} for d in dips]
 
 
 def run_done_dips(run_dir: str | Path, threshold: float = DIP_DONE_SHARE) -> list[dict]:
