@@ -1,4 +1,5 @@
-"""Shared fixtures. ``tiny_world``: the `tiny` preset built once per test session (a few seconds);
+"""Shared fixtures. ``tiny_world``: the `tiny` preset built once per test session (a few seconds); ``tiny_real``:
+the `tiny-real` preset (three real bathrooms at 128x128, about ten seconds), also once;
 ``pixel_world``: the same with small pixel features cached for the agent tests; ``one_torch_thread``: small
 networks run fastest on one thread and do not fight other processes for the cores (modules opt in with
 ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``)."""
@@ -19,6 +20,16 @@ def tiny_world(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("tiny_world")
     build_dataset(root, "tiny", workers=1, progress=False)
+    return root
+
+
+@pytest.fixture(scope="session")
+def tiny_real(tmp_path_factory):
+    """Dataset root of the `tiny-real` preset (3 real iTHOR bathrooms: train, test, val; 128x128 images)."""
+    from tsnav.world.build import build_dataset
+
+    root = tmp_path_factory.mktemp("tiny_real")
+    build_dataset(root, "tiny-real", workers=1, progress=False)
     return root
 
 

@@ -15,7 +15,7 @@ from tsnav.rl.train import train_run
 
 from rl_helpers import RecordingTrainer
 
-TINY = DemoConfig(preset="tiny", train_rooms_per_type=1, gallery=2,
+TINY = DemoConfig(preset="tiny", detector="train", train_rooms_per_type=1, gallery=2,
                   scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
                                 pretrain_batch_size=8, test_per_room_type=5, updates_per_job=2, num_envs=4,
                                 detector_steps=4, detector_batch_size=8, detector_states_per_scene=24))
@@ -164,6 +164,38 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
     assert "no detector trained" in capsys.readouterr().out and not (out2 / "detector").exists()
     assert trainer.detections == ["learned"]
     assert json.loads((out2 / "stages" / "detections.json").read_text())["fingerprint"] == made["fingerprint"]
+
+
+def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsys):
+    """The default path: real rooms at 128x128 and the detector shipped with tsnav (nothing trained for it, as the
+    paper's DETR is trained apart from the agent); its tables go into every room and drive the stage switch. A
+    64-px world with the shipped detector is refused in one line before any work."""
+    from tsnav.data.detections import read_fingerprint
+    from tsnav.data.reader import list_scenes
+    from tsnav.detect.shipped import shipped_meta
+    from tsnav.errors import CommandError
+
+    with pytest.raises(CommandError, match=r"reads 128x128 frames .* the tiny world has 64x64: use --detector train"):
+        run_demo(tmp_path / "refused", replace(TINY, detector="shipped"), train_fn=CountedTrainer())
+    assert not (tmp_path / "refused").exists()
+
+    out = tmp_path / "real"
+    shutil.copytree(tiny_real, out / "world")
+    cfg = replace(TINY, preset="tiny-real", detector="shipped", train_rooms_per_type=None)
+    trainer = CountedTrainer()
+    res = run_demo(out, cfg, train_fn=trainer)
+    assert [res["stages"][s][0] for s in STAGES] == ["done"] * len(STAGES)
+    marker = json.loads((out / "stages" / "detector.json").read_text())
+    assert marker["source"] == "shipped" and marker["fingerprint"] == shipped_meta()["fingerprint"]
+    assert not (out / "detector").exists() and trainer.detections == ["learned"]
+    assert all(read_fingerprint(p, "learned") == marker["fingerprint"] for p in list_scenes(out / "world"))
+    quality = json.loads((out / "stages" / "detections.json").read_text())["quality"]
+    assert quality["reach"] == 1.0  # the val bathroom's three targets all pass C_target
+    # the switch fires, so the scripted explorer (Done only after the switch) succeeds on the test bathroom
+    assert res["results"]["scripted explorer"]["ALL"]["SR"] > 0.5
+    capsys.readouterr()
+    res2 = run_demo(out, cfg, train_fn=trainer)  # everything reused, the shipped detector's marker included
+    assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES) and len(trainer.calls) == 1
 
 
 def test_default_threads_do_not_depend_on_the_load(monkeypatch):

@@ -3,14 +3,18 @@
 Stages (each prints progress; each is skipped on a second run when its marker ``OUT/stages/<stage>.json``
 exists and its outputs are still there, and every underlying step resumes after an interruption):
 
- 1. world        build the ``demo`` preset (20 rooms: 12 train, 4 val, 4 test; 64x64 frames)     OUT/world
+ 1. world        build the ``demo-real`` preset: 28 of the real iTHOR rooms (``ithor-real``;   OUT/world
+                 16 train, 4 val, 8 test; 128x128 frames)
  2. pretrain     DE-MAE on the training frames (ViT-Tiny, 64x64, a couple of minutes)           OUT/pretrain/demae
  3. features     cache the encoder's features of the training, val and test scenes              */features_demae-<fp>.hdf5
- 4. detector     the learned detector (issue 14), trained on the training rooms for a fixed     OUT/detector
-                 number of steps (one thread: the same detector on any machine), calibrated on val
+ 4. detector     the learned detector (issue 14): by default the one shipped with tsnav         (package) or OUT/detector
+                 (:mod:`tsnav.detect.shipped`, trained on the 80 ithor-real training rooms, as
+                 the paper's DETR is trained apart from the agent); ``--detector train`` trains
+                 one here on the training rooms for a fixed number of steps (one thread: the same
+                 detector on any machine), calibrated on val (the only choice for 64-px worlds)
  5. detections   its per-state table in every room (its confidence drives the stage switch and  world/*/detections_learned.hdf5
                  its boxes and features feed the agent); quality on the val rooms printed      OUT/detector_quality.json
-                 (``--detections oracle``: the oracle's table instead, no detector trained)
+                 (``--detections oracle``: the oracle's table instead, no detector used)
  6. episodes     fixed test episodes, and val episodes for checkpoint selection                 OUT/{test,val}_episodes.json
  7. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes); its    OUT/run
                  milestones (every 200 updates) scored greedily on the val episodes, the best
@@ -46,8 +50,10 @@ from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row,
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
 from .eval.select import chosen, select_checkpoint
+from .detect.shipped import SHIPPED_DIR, shipped_detector, shipped_meta
 from .detect.train import is_checkpoint, read_meta
-from .eval.detector_stage import ensure_detector, ensure_learned_detections, record_quality, tables_complete
+from .eval.detector_stage import (ensure_detector, ensure_learned_detections, record_quality, tables_complete,
+                                  write_learned_tables)
 from .eval.tables import quality_line
 from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
 from .metrics import METRICS, write_json
@@ -55,7 +61,7 @@ from .pretrain.train import read_progress
 from .rl.logger import read_log
 from .rl.train import train_run
 from .sim.episodes import read_episodes
-from .world.build import build_dataset
+from .world.build import BuildConfig, build_dataset
 from .world.presets import preset_scenes
 
 STAGES = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "report")
@@ -69,8 +75,9 @@ ROW = Row("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm")
 class DemoConfig:
     """The demo: a world preset and the ``demo`` scale of the experiments (about ten minutes of a 2-core CPU)."""
 
-    preset: str = "demo"
-    """World preset (``tsnav world --preset``)."""
+    preset: str = "demo-real"
+    """World preset (``tsnav world --preset``): ``demo-real`` (28 real iTHOR rooms at 128x128) or ``demo`` (20
+    procedural rooms at 64x64, with ``detector="train"``)."""
     world_workers: int = 2
     """Processes building the world."""
     train_rooms_per_type: int | None = None
@@ -80,9 +87,12 @@ class DemoConfig:
     ``DEMO_UPDATES`` updates of batched A2C, 100 test episodes per room type)."""
     detections: str = "learned"
     """Detection tables the agent and the stage switch read, named explicitly (the agent never falls back to
-    ground truth): ``learned`` (issue 14 item 4: the detector trained here, ``scale.detector_steps`` steps) or
+    ground truth): ``learned`` (issue 14 item 4: the learned detector's, shipped or trained here, see ``detector``) or
     ``oracle`` (computed here; its features carry no distance, its confidence is a hand-made function of
     instance size and distance)."""
+    detector: str = "shipped"
+    """Where the learned detector comes from: ``shipped`` (:mod:`tsnav.detect.shipped`, 128-px worlds) or
+    ``train`` (trained here on the training rooms, ``scale.detector_steps`` steps)."""
     seed: int = 0
     """Seed of the training run and of the random policy."""
     gallery: int = 6
@@ -105,10 +115,17 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sample", action="store_true",
                    help="evaluate the agent by sampling its actions instead of the greedy argmax (the default)")
     p.add_argument("--detections", choices=("learned", "oracle"), default="learned",
-                   help="learned (default): train the detector on the training rooms and use its table; oracle: "
+                   help="learned (default): the learned detector's table (see --detector); oracle: "
                         "the oracle's table (hand-made confidence from instance size and distance)")
+    p.add_argument("--preset", choices=("demo-real", "demo"), default="demo-real",
+                   help="world: demo-real (default; 28 real iTHOR rooms at 128x128) or demo (20 procedural rooms "
+                        "at 64x64; needs --detector train)")
+    p.add_argument("--detector", choices=("shipped", "train"), default="shipped",
+                   help="shipped (default): the detector that comes with tsnav, trained on the 80 ithor-real "
+                        "training rooms (128-px worlds only); train: train one here on the training rooms")
     p.add_argument("--detector-steps", type=int, default=None,
-                   help=f"training steps of the learned detector (default {SCALES['demo'].detector_steps})")
+                   help=f"training steps of the learned detector with --detector train (default "
+                        f"{SCALES['demo'].detector_steps})")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -187,6 +204,13 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
     cfg = cfg or DemoConfig()
+    if cfg.detector not in ("shipped", "train"):
+        raise CommandError(f"unknown detector source {cfg.detector!r} (choose from shipped, train)")
+    if cfg.detections != "oracle" and cfg.detector == "shipped":  # refused before any work
+        size, want = BuildConfig.from_preset(cfg.preset).image_size, shipped_meta()["model"]["image_size"]
+        if size != want:
+            raise CommandError(f"the shipped detector reads {want}x{want} frames (the ithor-real rooms), the "
+                               f"{cfg.preset} world has {size}x{size}: use --detector train, or --preset demo-real")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "demo_config.json", asdict(cfg))
@@ -237,6 +261,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     # 4. detector ---------------------------------------------------------------------------------------
     det_dir = out / "detector"
     learned = cfg.detections != "oracle"
+    shipped = cfg.detector == "shipped"
 
     def do_detector():
         ready = tables_complete(world, cfg.detections)
@@ -244,16 +269,31 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
             print(f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
                   flush=True)
             return {"fingerprint": ready, "tables": "existing"}
+        if shipped:
+            det = shipped_detector(load_scene(list_scenes(world)[0]).image_size)
+            print(f"    shipped detector: step {det.meta.get('step')}, trained on {len(det.meta.get('train_scenes', []))} "
+                  f"ithor-real training rooms, temperature {det.temperature:.3f} ({det.fingerprint})", flush=True)
+            return {"fingerprint": det.fingerprint, "source": "shipped", "steps": det.meta.get("step"),
+                    "temperature": det.temperature}
         det = ensure_detector(sub, world, det_dir, sc, say=lambda m: print(m, flush=True))
-        return {"fingerprint": det.fingerprint, "steps": det.meta.get("step"), "temperature": det.temperature}
+        return {"fingerprint": det.fingerprint, "source": "train", "steps": det.meta.get("step"),
+                "temperature": det.temperature}
 
     def detector_ok(m):
         if m.get("tables") == "existing":
             return tables_complete(world, cfg.detections) == m.get("fingerprint")
+        if shipped:
+            return m.get("source") == "shipped" and m.get("fingerprint") == shipped_meta().get("fingerprint")
+        if m.get("source") != "train":
+            return False
         meta = read_meta(det_dir) if is_checkpoint(det_dir) else {}
         return meta.get("step") == sc.detector_steps and meta.get("calibrated_step") == sc.detector_steps
 
-    if learned:
+    if learned and shipped:
+        st.run("detector", f"learned detector shipped with tsnav ({SHIPPED_DIR.name}; trained on the ithor-real "
+                           "training rooms apart from the agent, as the paper's DETR): nothing trained here",
+               do_detector, detector_ok)
+    elif learned:
         st.run("detector", f"learned detector, {sc.detector_steps} steps on the training rooms (one thread), "
                            f"temperature fitted on the val rooms -> {det_dir}", do_detector, detector_ok)
     else:
@@ -262,7 +302,11 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     # 5. detections -------------------------------------------------------------------------------------
     def do_detections():
-        if learned:
+        if learned and shipped:
+            done = write_learned_tables(world, cfg.detections, shipped_detector(), source=str(SHIPPED_DIR),
+                                        say=lambda m: print(m, flush=True))
+            fingerprint, written = done["fingerprint"], done["written"]
+        elif learned:
             done = ensure_learned_detections(world, cfg.detections, det_dir, sc, train_root=sub,
                                              say=lambda m: print(m, flush=True))
             fingerprint, written = done["fingerprint"], done["written"]
@@ -335,7 +379,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     # 9. report -----------------------------------------------------------------------------------------
     def do_report():
-        index = build_report(out, out / "report", gallery=cfg.gallery, title="tsnav demo: TSRM + DE-MAE on the demo world")
+        index = build_report(out, out / "report", gallery=cfg.gallery, title=f"tsnav demo: TSRM + DE-MAE on the {cfg.preset} world")
         return {"index": str(index)}
 
     rm = st.run("report", f"HTML report -> {out / 'report' / 'index.html'}", do_report,
@@ -365,7 +409,8 @@ def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
 
 
 def run(args) -> int:
-    cfg = DemoConfig(world_workers=args.workers, sample=args.sample, detections=args.detections)
+    cfg = DemoConfig(preset=args.preset, detector=args.detector, world_workers=args.workers, sample=args.sample,
+                     detections=args.detections)
     if args.detector_steps is not None:
         if args.detector_steps < 1:
             raise CommandError("--detector-steps must be >= 1")

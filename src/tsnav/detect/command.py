@@ -2,12 +2,14 @@
 
     tsnav detect --data DIR --detector oracle
     tsnav detect --data DIR --detector learned [--checkpoint CKPT] [--train-steps N]
+    tsnav detect --data DIR --detector shipped
 
 ``oracle`` reads the renderer's instance statistics (:mod:`tsnav.detect.oracle`). ``learned`` trains the
 grid detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/learned``) is missing or
 has fewer than ``--train-steps`` steps (resumable: rerun the command after an interruption), fits its
-temperature on the VAL scenes, then detects in every scene. Each scene gets ``detections_<name>.hdf5``
-(name: ``--name``, default the detector kind); scenes whose table was made by the same detector are
+temperature on the VAL scenes, then detects in every scene. ``shipped`` detects with the learned detector that
+comes with tsnav (:mod:`tsnav.detect.shipped`; 128-px ithor-real rooms). Each scene gets
+``detections_<name>.hdf5`` (name: ``--name``, default the detector kind, ``learned`` for ``shipped``); scenes whose table was made by the same detector are
 skipped, a table made by another detector is only replaced with ``--overwrite``. Finally the detector is
 evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
 and saved as ``DIR/detectors/<name>_eval_<split>.json``.
@@ -32,12 +34,15 @@ from .evaluate import evaluate_detections
 from .learned import LearnedDetector
 from .model import default_config
 from .oracle import OracleConfig, oracle_detections
+from .shipped import shipped_detector
 from .train import DetectorTrainConfig, calibrate, default_train_steps, is_checkpoint, read_meta, train_detector
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="dataset root (one folder per scene)")
-    p.add_argument("--detector", required=True, choices=("oracle", "learned"), help="which detector")
+    p.add_argument("--detector", required=True, choices=("oracle", "learned", "shipped"),
+                   help="which detector (shipped: the learned detector that comes with tsnav, for 128-px ithor-real "
+                        "rooms; nothing trained, table name learned by default)")
     p.add_argument("--checkpoint", default=None,
                    help="learned: checkpoint folder (default DATA/detectors/learned); trained there if needed")
     p.add_argument("--train-steps", type=int, default=None,
@@ -159,12 +164,15 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--threads must be at least 1")
     torch.set_num_threads(args.threads)
     _sigterm_interrupts()
-    name = check_name(args.name or args.detector)
+    name = check_name(args.name or ("learned" if args.detector == "shipped" else args.detector))
     scenes = list_scenes(root, split=args.split)
     if not scenes:
         raise CommandError(f"{root}: no complete scene folder" + (f" of split {args.split}" if args.split else ""))
     if args.detector == "oracle":
         fingerprint, detect = _oracle(args)
+    elif args.detector == "shipped":
+        det = shipped_detector(load_scene(scenes[0]).image_size)
+        fingerprint, detect = det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
     else:
         fingerprint, detect = _learned(args, root)
 

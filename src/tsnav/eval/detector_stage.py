@@ -136,16 +136,24 @@ def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | P
     trains on the train rooms of ``train_root``, default ``data``, and is calibrated on the val rooms of ``data``);
     returns ``{"fingerprint", "written", "trained"}`` (``trained``: the detector folder was used)."""
     have, kinds = learned_tables(data, name)
-    missing = [p for p, fp in have.items() if fp is None]
-    if not missing:
+    if not any(fp is None for fp in have.values()):
         return {"fingerprint": kinds[0], "written": 0, "trained": False}
     det = ensure_detector(train_root or data, data, detector_dir, scale, progress=progress, say=say)
+    return write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir))
+
+
+def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, progress: bool = True,
+                         say: Callable[[str], None] = print, source: str = "the given detector") -> dict:
+    """Write the tables of detector ``det`` into the scenes of ``data`` that lack ``detections_<name>.hdf5``
+    (one thread); a table made by another detector is refused in one line and never overwritten (``source``
+    names ``det`` in that line). Returns ``{"fingerprint", "written", "trained": True}``."""
+    have, kinds = learned_tables(data, name)
     if kinds and det.fingerprint != kinds[0]:
         odd = next(p for p, fp in have.items() if fp is not None)
         raise CommandError(f"{_table(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
-                           f"{detector_dir} ({det.fingerprint}); it is not overwritten: remove it, or write the "
+                           f"{source} ({det.fingerprint}); it is not overwritten: remove it, or write the "
                            f"missing tables with its own detector (tsnav detect)")
-    scenes = [load_scene(p) for p in missing]
+    scenes = [load_scene(p) for p, fp in have.items() if fp is None]
     bar = tqdm(total=sum(s.num_states for s in scenes), desc=f"detect {name}", unit="state", disable=not progress,
                dynamic_ncols=True)
     try:
