@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tsnav.constants import CATEGORY_INDEX, ROOM_TARGETS
+from tsnav.constants import CATEGORY_INDEX, ROOM_TARGETS, SUCCESS_DISTANCE
 from tsnav.detect.evaluate import reliability_table
 from tsnav.detect.oracle import ground_truth, oracle_detections
 from tsnav.detect.evaluate import average_precision
@@ -44,6 +44,9 @@ def test_switch_report_by_hand_and_against_reference(tiny_scenes):
     r = switch_report([s], [exact])
     seen = int(gt[:, tgt].any(axis=0).sum())
     assert r.pairs == len(tgt) and r.reached == r.reached_in_view == seen
+    # the pairs episodes ask for have a success state (in view within the success distance): all reached
+    askable = int(s.category_visible_within(SUCCESS_DISTANCE)[:, tgt].any(axis=0).sum())
+    assert r.episode_pairs == r.episode_reached == askable and r.episode_reach == 1.0
     assert all(v == 0 for v in r.fp_state_any.values()) and all(v == 0 for v in r.fp_pair_target.values())
     # One false positive of 0.8 for the first target in a state where it is not in view.
     i = int(np.flatnonzero(~gt[:, tgt[0]])[0])
@@ -58,6 +61,8 @@ def test_switch_report_by_hand_and_against_reference(tiny_scenes):
     fast = switch_report(tiny_scenes, dets)
     ref = switch_report_reference(tiny_scenes, dets)
     assert (fast.pairs, fast.reached, fast.reached_in_view) == (ref["pairs"], ref["reached"], ref["reached_in_view"])
+    assert (fast.episode_pairs, fast.episode_reached) == (ref["episode_pairs"], ref["episode_reached"])
+    assert 0 < fast.episode_pairs <= fast.pairs and fast.episode_reached <= fast.reached
     assert 0 < fast.fp_state_any[0.5] < 1
     for k in ("fp_state_any", "fp_state_target", "fp_pair_any", "fp_pair_target"):
         for t, v in getattr(fast, k).items():

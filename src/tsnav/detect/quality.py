@@ -8,7 +8,10 @@ calibration of :mod:`tsnav.detect.evaluate`:
   its room type's target list, ``constants.ROOM_TARGETS``), the share where some state of the scene has the
   target's confidence above ``C_target``; without one, the agent can never switch in that pair. Every state
   of a scene is reachable (the dataset keeps the largest strongly connected set of positions). Reported
-  both for any state (what the switch sees) and for states where the target is really in view;
+  both for any state (what the switch sees) and for states where the target is really in view. Some of these
+  pairs no episode can ask for: the target is never in view within the success distance from a reachable
+  state (inside a closed receptacle, or behind a wall of the rebuilt room), so the episode sampler leaves them
+  out. *Episode reach* is the same share over the pairs with a success state, the ones episodes do ask for;
 * *false positives*: the share of states where a class *not* in view scores above 0.5 / 0.7 / 0.9 (any of
   the 22 classes; and only the scene's possible targets, the false switches an episode can suffer), and
   the same per (state, class) pair.
@@ -33,7 +36,7 @@ from matplotlib.patches import Rectangle
 from tqdm import tqdm
 
 from ..atomic import atomic_save_figure, atomic_write_json
-from ..constants import NUM_CATEGORIES, ROOM_TARGETS, TARGET_CATEGORIES, room_target_mask
+from ..constants import NUM_CATEGORIES, ROOM_TARGETS, SUCCESS_DISTANCE, TARGET_CATEGORIES, room_target_mask
 from ..data.detections import Detections, load_detections
 from ..data.reader import list_scenes, load_scene
 from .data import read_images
@@ -69,6 +72,8 @@ class SwitchReport:
         pairs: (scene, target) pairs; reached: of them, with some state above ``c_target``; reached_in_view:
             with some state above ``c_target`` where the target is in view.
         class_pairs, class_reached: ``(22,)`` the same per class.
+        episode_pairs: pairs with a success state (target in view within ``SUCCESS_DISTANCE``), the pairs
+            episodes ask for; episode_reached: of them, with some state above ``c_target``.
         fp_state_any: ``{t: share of states where some class not in view scores > t}``.
         fp_state_target: the same over the scene's possible targets only.
         fp_pair_any: ``{t: share of (state, class) pairs not in view with score > t}``.
@@ -88,14 +93,21 @@ class SwitchReport:
     fp_pair_target: dict
     states: int = 0
     scenes: list = field(default_factory=list)
+    episode_pairs: int = 0
+    episode_reached: int = 0
 
     @property
     def reach(self) -> float:
         return self.reached / self.pairs if self.pairs else float("nan")
 
+    @property
+    def episode_reach(self) -> float:
+        return self.episode_reached / self.episode_pairs if self.episode_pairs else float("nan")
+
     def to_json(self) -> dict:
         return {"c_target": self.c_target, "pairs": self.pairs, "reached": self.reached,
-                "reached_in_view": self.reached_in_view, "reach": self.reach,
+                "reached_in_view": self.reached_in_view, "reach": self.reach, "episode_pairs": self.episode_pairs,
+                "episode_reached": self.episode_reached, "episode_reach": self.episode_reach,
                 "classes": {c: {"pairs": int(self.class_pairs[i]), "reached": int(self.class_reached[i])}
                             for i, c in enumerate(TARGET_CATEGORIES) if self.class_pairs[i]},
                 "false_positives": {"state_any": _keys(self.fp_state_any), "state_target": _keys(self.fp_state_target),
@@ -106,6 +118,8 @@ class SwitchReport:
         lines = [f"{len(self.scenes)} scenes, {self.states} states",
                  f"(scene, target) pairs reaching confidence > {self.c_target:g}: {self.reached} / {self.pairs} "
                  f"({100 * self.reach:.1f} %); with the target in view: {self.reached_in_view}",
+                 f"of the pairs episodes ask for (a success state exists): {self.episode_reached} / "
+                 f"{self.episode_pairs} ({100 * self.episode_reach:.1f} %)",
                  "false positives (class not in view scores above t):",
                  f"{'t':>5} {'states, any class':>18} {'states, scene targets':>22} {'pairs, any':>11} "
                  f"{'pairs, targets':>15}"]
@@ -130,6 +144,7 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
     class_pairs = np.zeros(NUM_CATEGORIES, np.int64)
     class_reached = np.zeros(NUM_CATEGORIES, np.int64)
     in_view_reached = 0
+    episode_pairs = episode_reached = 0
     n_states = 0
     fp_s_any = {t: 0 for t in thresholds}
     fp_s_tgt = {t: 0 for t in thresholds}
@@ -145,6 +160,9 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
         class_pairs += tgt
         class_reached += tgt & above.any(axis=0)
         in_view_reached += int((tgt & (above & present).any(axis=0)).sum())
+        askable = tgt & s.category_visible_within(SUCCESS_DISTANCE).any(axis=0)
+        episode_pairs += int(askable.sum())
+        episode_reached += int((askable & above.any(axis=0)).sum())
         n_states += len(present)
         absent = ~present
         neg_any += int(absent.sum())
@@ -165,7 +183,8 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
                         fp_state_target={t: share(v, n_states) for t, v in fp_s_tgt.items()},
                         fp_pair_any={t: share(v, neg_any) for t, v in fp_p_any.items()},
                         fp_pair_target={t: share(v, neg_tgt) for t, v in fp_p_tgt.items()},
-                        states=n_states, scenes=[s.name for s in scenes])
+                        states=n_states, scenes=[s.name for s in scenes], episode_pairs=episode_pairs,
+                        episode_reached=episode_reached)
 
 
 def subset_ap(scores: np.ndarray, present: np.ndarray, subset: np.ndarray) -> np.ndarray:
@@ -221,20 +240,24 @@ def format_subsets(report: dict) -> str:
 def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], c_target: float = 0.7,
                             thresholds: Sequence[float] = FP_THRESHOLDS) -> dict:
     """Slow reference for :func:`switch_report` (loops over scenes, classes and states); returns
-    ``{"pairs", "reached", "reached_in_view", "fp_state_any", "fp_state_target", "fp_pair_any",
-    "fp_pair_target"}`` with the same meaning."""
-    pairs = reached = in_view = states = 0
+    ``{"pairs", "reached", "reached_in_view", "episode_pairs", "episode_reached", "fp_state_any",
+    "fp_state_target", "fp_pair_any", "fp_pair_target"}`` with the same meaning."""
+    pairs = reached = in_view = states = episode_pairs = episode_reached = 0
     cnt = {k: {t: 0 for t in thresholds} for k in ("sa", "st", "pa", "pt")}
     neg_any = neg_tgt = 0
     for s, d in zip(scenes, detections):
         gt = ground_truth(s).present
         targets = [c for c in s.categories_present()
                    if s.room_type not in ROOM_TARGETS or TARGET_CATEGORIES[c] in ROOM_TARGETS[s.room_type]]
+        success = s.category_visible_within(SUCCESS_DISTANCE)
         for c in targets:
             pairs += 1
             hits = [i for i in range(len(gt)) if d.scores[i, c] > c_target]
             reached += bool(hits)
             in_view += any(gt[i, c] for i in hits)
+            if any(success[i, c] for i in range(len(gt))):
+                episode_pairs += 1
+                episode_reached += bool(hits)
         for i in range(len(gt)):
             states += 1
             for t in thresholds:
@@ -245,8 +268,8 @@ def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], 
                 cnt["pt"][t] += sum(c in targets for c in bad)
             neg_any += sum(not gt[i, c] for c in range(NUM_CATEGORIES))
             neg_tgt += sum(not gt[i, c] for c in targets)
-    return {"pairs": pairs, "reached": reached, "reached_in_view": in_view,
-            "fp_state_any": {t: v / states for t, v in cnt["sa"].items()},
+    return {"pairs": pairs, "reached": reached, "reached_in_view": in_view, "episode_pairs": episode_pairs,
+            "episode_reached": episode_reached, "fp_state_any": {t: v / states for t, v in cnt["sa"].items()},
             "fp_state_target": {t: v / states for t, v in cnt["st"].items()},
             "fp_pair_any": {t: v / neg_any for t, v in cnt["pa"].items()},
             "fp_pair_target": {t: v / neg_tgt for t, v in cnt["pt"].items()}}

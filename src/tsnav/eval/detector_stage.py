@@ -182,7 +182,8 @@ def detection_quality(data: str | Path, name: str, split: str = "val", c_target:
     return {"name": name, "fingerprint": fps[0] if len(fps) == 1 else fps, "split": split, "scenes": len(scenes),
             "states": ev.states, "presence_ap": ev.mean_presence_ap, "box_ap50": ev.mean_box_ap,
             "ece": ev.reliability.ece, "c_target": c_target, "reach": sw.reach, "pairs": sw.pairs,
-            "reached": sw.reached, "reached_in_view": sw.reached_in_view,
+            "reached": sw.reached, "reached_in_view": sw.reached_in_view, "episode_pairs": sw.episode_pairs,
+            "episode_reached": sw.episode_reached, "episode_reach": sw.episode_reach,
             "fp_states": {f"{t:g}": v for t, v in sw.fp_state_any.items()},
             "fp_states_targets": {f"{t:g}": v for t, v in sw.fp_state_target.items()}}
 

@@ -148,12 +148,19 @@ def csv_table(results: dict) -> str:
     return buf.getvalue()
 
 
+def _episode_reach(q: dict) -> str:
+    """`` (episode pairs: a/b)`` when the record has the episode reach (records written before it do not)."""
+    if "episode_pairs" not in q:
+        return ""
+    return f" ({q['episode_reached']}/{q['episode_pairs']} of the pairs episodes ask for)"
+
+
 def quality_line(q: dict) -> str:
     """One line of a :func:`detection_quality` record (percent)."""
     fp = " / ".join(f"{100 * v:.2f}" for v in q["fp_states"].values())
     return (f"detections_{q['name']} on {q['scenes']} {q['split']} rooms: presence AP {q['presence_ap']:.3f}, box "
             f"AP@0.5 {q['box_ap50']:.3f}, ECE {100 * q['ece']:.2f} %, reach of {q['c_target']:g}: {q['reached']}/"
-            f"{q['pairs']} pairs ({100 * q['reach']:.1f} %), false-positive states > "
+            f"{q['pairs']} pairs ({100 * q['reach']:.1f} %){_episode_reach(q)}, false-positive states > "
             f"{' / '.join(q['fp_states'])}: {fp} %")
 
 
