@@ -31,6 +31,14 @@ def test_convergence_curve_resumes(pixel_world, tmp_path, capsys):
     assert [p["update"] for p in json.loads((out / "curve.json").read_text())["points"]] == [2, 4, 6]
     assert main(["convergence", "--data", str(tmp_path / "none"), "--features", FEATS, "--detections", "oracle",
                  "--out", str(out)]) == 2
+    # the entropy weight reaches the run's config; a negative one is refused in one line
+    assert json.loads((out / "run" / "config.json").read_text())["train"]["entropy_coef"] == 0.01
+    capsys.readouterr()
+    assert main(args + ["--updates", "6", "--entropy-coef", "-1"]) == 2
+    assert "--entropy-coef must be >= 0" in capsys.readouterr().err
+    other = tmp_path / "conv_ent"
+    assert main([*args[:8], str(other), *args[9:], "--updates", "2", "--entropy-coef", "0.05"]) == 0
+    assert json.loads((other / "run" / "config.json").read_text())["train"]["entropy_coef"] == 0.05
 
 
 def test_plateau_rule():

@@ -3,7 +3,7 @@ validation episodes, to find the budget at which the validation curve stops risi
 DE-MAE on the paper's 80 training rooms; its plateau sets the ``medium`` scale of the experiments).
 
     tsnav convergence --data WORLD --features NAME --out DIR [--detections NAME] [--updates 8000]
-                      [--chunk 250] [--num-envs 256] [--preset cpu] [--lr 1e-3] [--val-per-room-type 50]
+                      [--chunk 250] [--num-envs 256] [--preset cpu] [--lr 1e-3] [--entropy-coef 0.01] [--val-per-room-type 50]
 
 Resumable at any moment: the run folder ``OUT/run`` resumes from its last checkpoint (every chunk boundary is
 a kept milestone), the scores of checkpoints already evaluated are kept in ``OUT/run/selection.json``
@@ -109,6 +109,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-envs", type=int, default=256, help="episodes per update (default 256)")
     parser.add_argument("--preset", default="cpu", help="agent size: cpu or paper (default cpu)")
     parser.add_argument("--lr", type=float, default=1e-3, help="learning rate (default 1e-3; paper 1e-4)")
+    parser.add_argument("--entropy-coef", type=float, default=0.01,
+                        help="weight of the entropy bonus (default 0.01, the lineage's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
 
@@ -118,10 +120,12 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--data {args.data}: no such dataset folder")
     if args.updates < 1 or args.chunk < 1 or args.val_per_room_type < 1:
         raise CommandError("--updates, --chunk and --val-per-room-type must be >= 1")
+    if not args.entropy_coef >= 0:
+        raise CommandError(f"--entropy-coef must be >= 0, got {args.entropy_coef}")
     try:
         cfg = TrainConfig(data=str(Path(args.data).resolve()), features=args.features, detections=args.detections,
                           algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
-                          seed=args.seed, updates=args.updates)
+                          seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
                         patience=args.patience)
