@@ -3,7 +3,8 @@ validation episodes, to find the budget at which the validation curve stops risi
 DE-MAE on the paper's 80 training rooms; its plateau sets the ``medium`` scale of the experiments).
 
     tsnav convergence --data WORLD --features NAME --out DIR [--detections NAME] [--updates 8000]
-                      [--chunk 250] [--num-envs 256] [--preset cpu] [--lr 1e-3] [--entropy-coef 0.01] [--val-per-room-type 50]
+                      [--chunk 250] [--num-envs 256] [--preset cpu] [--lr 1e-3] [--entropy-coef 0.01]
+                      [--val-per-room-type 50]
 
 Resumable at any moment: the run folder ``OUT/run`` resumes from its last checkpoint (every chunk boundary is
 a kept milestone), the scores of checkpoints already evaluated are kept in ``OUT/run/selection.json``
