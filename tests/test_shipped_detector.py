@@ -83,3 +83,24 @@ def test_detect_command_writes_the_shipped_tables(tmp_path, tiny_real, tiny_worl
     err = capsys.readouterr().err.strip()
     assert "reads 128x128 frames" in err and "64x64" in err and len(err.splitlines()) == 1
     assert not any((p / "detections_shipped_x.hdf5").exists() for p in list_scenes(tiny_world))
+
+
+def test_experiments_take_the_shipped_tables(tmp_path, tiny_real, tiny_world):
+    """``tsnav experiment ... --detector shipped``: the missing learned tables are written by the shipped detector
+    (nothing trained, no detector folder); a 64-px world is refused in one line; another source is refused."""
+    from tsnav.data.detections import read_fingerprint
+    from tsnav.eval.experiment import Experiment
+    from tsnav.eval.experiment_config import ExperimentConfig
+    from tsnav.eval.stage_cache import ensure_detections
+
+    data = tmp_path / "data"
+    val = next(p for p in list_scenes(tiny_real) if load_scene(p).meta.get("split") == "val")
+    shutil.copytree(val, data / val.name)
+    ensure_detections(data, "learned", tmp_path / "never_used", None, shipped=True)
+    assert read_fingerprint(data / val.name, "learned") == shipped.shipped_meta()["fingerprint"]
+    assert not (tmp_path / "never_used").exists()
+    ensure_detections(data, "learned", None, None, shipped=True)  # complete: nothing to write, no error
+    with pytest.raises(CommandError, match="reads 128x128 frames"):
+        ensure_detections(tiny_world, "shipped_y", None, None, shipped=True)
+    with pytest.raises(ValueError, match="--detector must be train or shipped"):
+        Experiment(ExperimentConfig(experiment="ablation", data=str(data), out=str(tmp_path / "x"), detector="bogus"))

@@ -193,6 +193,8 @@ class Experiment:
             raise ValueError(f"--minutes-per-job must be positive, got {cfg.minutes_per_job}")
         if cfg.updates_per_job is not None and cfg.updates_per_job < 1:
             raise ValueError(f"--updates-per-job must be >= 1, got {cfg.updates_per_job}")
+        if cfg.detector not in ("train", "shipped"):
+            raise ValueError(f"--detector must be train or shipped, got {cfg.detector!r}")
         if cfg.checkpoint not in CHECKPOINTS:
             raise ValueError(f"--checkpoint must be one of {', '.join(CHECKPOINTS)}, got {cfg.checkpoint!r}")
         self.cfg = cfg
@@ -314,7 +316,7 @@ class Experiment:
         ensure_world(cfg.data, scale.world)
         say(f"[{cfg.experiment}] detections ({', '.join(self.detection_names)}) and {split} episodes")
         for name in self.detection_names:
-            ensure_detections(cfg.data, name, self.detector_dir, scale)
+            ensure_detections(cfg.data, name, self.detector_dir, scale, shipped=cfg.detector == "shipped")
         record_quality(self.out, cfg.data, self.detection_names, say=say)
         ensure_episodes(cfg.data, split, self.episodes_file,
                         scale.test_per_room_type if split == "test" else scale.val_per_room_type)
@@ -485,6 +487,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                              "oracle's, computed here)")
     parser.add_argument("--detector-dir", default=None,
                         help="learned detector's training folder (default OUT/detector; share it, resumable)")
+    parser.add_argument("--detector", choices=("train", "shipped"), default="train",
+                        help="where missing learned tables come from: train (default: the detector in "
+                             "--detector-dir, trained here) or shipped (the detector that comes with tsnav, for the "
+                             "128-px ithor-real rooms: the medium scale's tables in minutes instead of hours)")
     parser.add_argument("--vc1-weights", default=None, help="VC-1 ViT-Base weights: adds the VC-1 row (pretraining)")
     parser.add_argument("--resnet18-weights", default=None,
                         help="torchvision ResNet18 weights (ImageNet, as in the paper) for the baseline encoder")
@@ -525,7 +531,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--vc1-weights adds a row to the pretraining experiment only")
     cfg = ExperimentConfig(experiment=args.experiment, data=args.data, out=args.out, scale=args.scale, seeds=args.seeds,
                            minutes_per_job=args.minutes_per_job, updates_per_job=args.updates_per_job,
-                           pretrain_dir=args.pretrain_dir, detector_dir=args.detector_dir,
+                           pretrain_dir=args.pretrain_dir, detector_dir=args.detector_dir, detector=args.detector,
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
                            sample=args.sample, checkpoint=args.checkpoint,

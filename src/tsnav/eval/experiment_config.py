@@ -220,6 +220,10 @@ class ExperimentConfig:
     detector_dir: str | None = None
     """Where the learned detector is trained (default ``OUT/detector``); share it between experiments on one
     world."""
+    detector: str = "train"
+    """Where missing learned tables come from: ``train`` (the detector in ``detector_dir``, trained here) or
+    ``shipped`` (:mod:`tsnav.detect.shipped`: the detector that comes with tsnav, trained on the 80 ithor-real
+    training rooms at 128x128; the tables of the medium-scale runs in docs/RESULTS.md are its tables)."""
     vc1_weights: str | None = None
     """Published VC-1 ViT-Base weights (timm layout); adds the VC-1 row to the pretraining experiment."""
     resnet18_weights: str | None = None

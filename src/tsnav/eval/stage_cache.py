@@ -18,7 +18,8 @@ from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, write_episodes
 from ..world.build import build_dataset
-from .detector_stage import ensure_learned_detections
+from ..detect.shipped import shipped_detector
+from .detector_stage import ensure_learned_detections, write_learned_tables
 from .experiment_config import ExperimentConfig, ScaleConfig
 
 
@@ -65,15 +66,20 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
 
 
 def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | None = None,
-                      scale: ScaleConfig | None = None) -> None:
+                      scale: ScaleConfig | None = None, shipped: bool = False) -> None:
     """Oracle tables are computed when missing; any other name is a learned detector's table: used as it is when
     every scene holds one of the same detector, else the detector in ``detector_dir`` is trained at ``scale`` and
     writes the missing ones (:func:`tsnav.eval.detector_stage.ensure_learned_detections`; without a
-    ``detector_dir`` every scene must already have its table)."""
+    ``detector_dir`` every scene must already have its table). ``shipped``: the missing learned tables are written
+    by the detector that comes with tsnav (:mod:`tsnav.detect.shipped`) instead, nothing trained."""
     if name == "oracle":
         n = ensure_oracle_detections(data, name)
         if n:
             say(f"detections: oracle tables written for {n} scenes")
+        return
+    if shipped:
+        det = shipped_detector(load_scene(list_scenes(data)[0]).image_size)
+        write_learned_tables(data, name, det, say=say, source="the shipped detector")
         return
     if detector_dir is None or scale is None:
         missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
