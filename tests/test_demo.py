@@ -196,6 +196,16 @@ def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsy
     capsys.readouterr()
     res2 = run_demo(out, cfg, train_fn=trainer)  # everything reused, the shipped detector's marker included
     assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES) and len(trainer.calls) == 1
+    # switching the detector source in the same folder: refused in one line, the tables are kept
+    before = {p.name: read_fingerprint(p, "learned") for p in list_scenes(out / "world")}
+    with pytest.raises(CommandError, match=r"holds the shipped detector's detections_learned.hdf5, not from "
+                                           r"--detector train: use another --out"):
+        run_demo(out, replace(cfg, detector="train"), train_fn=trainer)
+    assert {p.name: read_fingerprint(p, "learned") for p in list_scenes(out / "world")} == before
+    # a folder holding another preset's world is refused before any work (the worlds share room names)
+    with pytest.raises(CommandError, match=r"holds the 'tiny-real' world, not 'tiny': use another --out"):
+        run_demo(out, replace(cfg, preset="tiny", detector="train"), train_fn=trainer)
+    assert len(trainer.calls) == 1
 
 
 def test_default_threads_do_not_depend_on_the_load(monkeypatch):

@@ -212,6 +212,15 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
             raise CommandError(f"the shipped detector reads {want}x{want} frames (the ithor-real rooms), the "
                                f"{cfg.preset} world has {size}x{size}: use --detector train, or --preset demo-real")
     out = Path(out)
+    index = out / "world" / "index.json"
+    if index.exists():  # a world of another preset is never mixed with this one (names overlap): refused
+        try:
+            was = json.loads(index.read_text()).get("preset")
+        except ValueError:
+            was = None
+        if was != cfg.preset:
+            raise CommandError(f"{out / 'world'} holds the {was!r} world, not {cfg.preset!r}: use another --out "
+                               f"(or --preset {was})")
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "demo_config.json", asdict(cfg))
     world = out / "world"
@@ -262,9 +271,14 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     det_dir = out / "detector"
     learned = cfg.detections != "oracle"
     shipped = cfg.detector == "shipped"
+    shipped_fp = shipped_meta()["fingerprint"]
 
     def do_detector():
         ready = tables_complete(world, cfg.detections)
+        if ready and (ready == shipped_fp) != shipped:  # tables of the other source than the one asked for
+            have = "the shipped detector's" if ready == shipped_fp else f"another learned detector's ({ready})"
+            raise CommandError(f"every room of {world} holds {have} detections_{cfg.detections}.hdf5, not from "
+                               f"--detector {cfg.detector}: use another --out (they are never overwritten)")
         if ready:  # every room already has a learned table (e.g. written by an experiment): used as it is
             print(f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
                   flush=True)
@@ -283,8 +297,8 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         if m.get("tables") == "existing":
             return tables_complete(world, cfg.detections) == m.get("fingerprint")
         if shipped:
-            return m.get("source") == "shipped" and m.get("fingerprint") == shipped_meta().get("fingerprint")
-        if m.get("source") != "train":
+            return m.get("source") == "shipped" and m.get("fingerprint") == shipped_fp
+        if m.get("source", "train") != "train":  # markers written before the shipped detector have no source
             return False
         meta = read_meta(det_dir) if is_checkpoint(det_dir) else {}
         return meta.get("step") == sc.detector_steps and meta.get("calibrated_step") == sc.detector_steps

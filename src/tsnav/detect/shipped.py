@@ -42,5 +42,6 @@ def shipped_detector(image_size: int | None = None) -> LearnedDetector:
     if image_size is not None and image_size != det.image_size:
         raise CommandError(f"the shipped detector reads {det.image_size}x{det.image_size} frames (the ithor-real "
                            f"rooms), this world has {image_size}x{image_size}: train a detector on it instead "
-                           f"(tsnav demo --detector train, or tsnav detect --detector learned)")
+                           f"(--detector train in tsnav demo and tsnav experiment, --detector learned in tsnav "
+                           f"detect)")
     return det

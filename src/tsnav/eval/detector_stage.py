@@ -139,14 +139,15 @@ def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | P
     if not any(fp is None for fp in have.values()):
         return {"fingerprint": kinds[0], "written": 0, "trained": False}
     det = ensure_detector(train_root or data, data, detector_dir, scale, progress=progress, say=say)
-    return write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir))
+    return {**write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir)),
+            "trained": True}
 
 
 def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, progress: bool = True,
                          say: Callable[[str], None] = print, source: str = "the given detector") -> dict:
     """Write the tables of detector ``det`` into the scenes of ``data`` that lack ``detections_<name>.hdf5``
     (one thread); a table made by another detector is refused in one line and never overwritten (``source``
-    names ``det`` in that line). Returns ``{"fingerprint", "written", "trained": True}``."""
+    names ``det`` in that line). Returns ``{"fingerprint", "written"}``."""
     have, kinds = learned_tables(data, name)
     if kinds and det.fingerprint != kinds[0]:
         odd = next(p for p, fp in have.items() if fp is not None)
@@ -163,7 +164,7 @@ def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, prog
     finally:
         bar.close()
     say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
-    return {"fingerprint": det.fingerprint, "written": len(scenes), "trained": True}
+    return {"fingerprint": det.fingerprint, "written": len(scenes)}
 
 
 def detection_quality(data: str | Path, name: str, split: str = "val", c_target: float = C_TARGET) -> dict:

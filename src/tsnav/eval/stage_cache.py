@@ -19,7 +19,7 @@ from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, write_episodes
 from ..world.build import build_dataset
 from ..detect.shipped import shipped_detector
-from .detector_stage import ensure_learned_detections, write_learned_tables
+from .detector_stage import ensure_learned_detections, tables_complete, write_learned_tables
 from .experiment_config import ExperimentConfig, ScaleConfig
 
 
@@ -78,6 +78,8 @@ def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | No
             say(f"detections: oracle tables written for {n} scenes")
         return
     if shipped:
+        if tables_complete(data, name):  # every scene holds one learned detector's table: used as it is
+            return
         det = shipped_detector(load_scene(list_scenes(data)[0]).image_size)
         write_learned_tables(data, name, det, say=say, source="the shipped detector")
         return

@@ -149,7 +149,8 @@ def csv_table(results: dict) -> str:
 
 
 def _episode_reach(q: dict) -> str:
-    """`` (episode pairs: a/b)`` when the record has the episode reach (records written before it do not)."""
+    """`` (a/b of the pairs episodes ask for)`` when the record has the episode reach (records written before it
+    do not)."""
     if "episode_pairs" not in q:
         return ""
     return f" ({q['episode_reached']}/{q['episode_pairs']} of the pairs episodes ask for)"
