@@ -20,14 +20,20 @@ from tsnav.errors import CommandError
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def test_weights_match_their_fingerprint_and_provenance():
-    det = shipped.shipped_detector(128)
-    meta = shipped.shipped_meta()
-    assert det.fingerprint == meta["fingerprint"] and det.fingerprint.startswith("learned-")
+@pytest.mark.parametrize("name", sorted(shipped.SHIPPED))
+def test_weights_match_their_fingerprint_and_provenance(name):
+    det = shipped.shipped_detector(128, name=name)
+    meta = shipped.shipped_meta(name)
+    assert det.fingerprint == meta["fingerprint"] and det.fingerprint.startswith("learned-") and meta["name"] == name
     assert det.image_size == 128 and det.temperature == pytest.approx(meta["temperature"])
     assert meta["calibration_split"] == "val" and meta["calibrated_step"] == meta["step"]
     # trained on the 80 training rooms, none of the val or test rooms
     assert sorted(meta["train_scenes"]) == sorted(ithor_scenes(split="train"))
+    # learned4 continues learned3 with stronger class balancing
+    assert shipped.DEFAULT_SHIPPED == "learned4" and shipped.shipped_meta("learned4")["step"] == 41000
+    assert shipped.shipped_meta("learned3")["step"] == 29000
+    with pytest.raises(CommandError, match="no shipped detector named 'learned9'"):
+        shipped.shipped_detector(name="learned9")
 
 
 def test_refuses_other_frame_sizes_and_damaged_weights(tmp_path, monkeypatch):
@@ -41,7 +47,7 @@ def test_refuses_other_frame_sizes_and_damaged_weights(tmp_path, monkeypatch):
     name = sorted(tensors)[0]
     tensors[name] = tensors[name] + 1e-3
     save_file(tensors, bad / "model.safetensors")
-    monkeypatch.setattr(shipped, "SHIPPED_DIR", bad)
+    monkeypatch.setitem(shipped.SHIPPED, shipped.DEFAULT_SHIPPED, bad)
     with pytest.raises(CommandError, match="do not match their recorded fingerprint"):
         shipped.shipped_detector()
 
@@ -78,6 +84,10 @@ def test_detect_command_writes_the_shipped_tables(tmp_path, tiny_real, tiny_worl
     assert read_fingerprint(data / val.name, "learned") == shipped.shipped_meta()["fingerprint"]
     direct = shipped.shipped_detector(128).detect_scene(load_scene(data / val.name))
     assert np.array_equal(load_detections(data / val.name, "learned").scores, direct.scores)
+    # the other shipped detector, by name, under another table name
+    assert main(["detect", "--data", str(data), "--detector", "shipped", "--shipped", "learned3", "--name", "l3",
+                 "--no-eval", "--threads", "1"]) == 0
+    assert read_fingerprint(data / val.name, "l3") == shipped.shipped_meta("learned3")["fingerprint"]
     capsys.readouterr()
     assert main(["detect", "--data", str(tiny_world), "--detector", "shipped", "--no-eval", "--name", "shipped_x"]) == 2
     err = capsys.readouterr().err.strip()

@@ -50,7 +50,7 @@ from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row,
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
 from .eval.select import chosen, select_checkpoint
-from .detect.shipped import SHIPPED_DIR, shipped_detector, shipped_meta
+from .detect.shipped import DEFAULT_SHIPPED, SHIPPED_DIR, shipped_detector, shipped_meta
 from .detect.train import is_checkpoint, read_meta
 from .eval.detector_stage import (ensure_detector, ensure_learned_detections, record_quality, tables_complete,
                                   write_learned_tables)
@@ -304,7 +304,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         return meta.get("step") == sc.detector_steps and meta.get("calibrated_step") == sc.detector_steps
 
     if learned and shipped:
-        st.run("detector", f"learned detector shipped with tsnav ({SHIPPED_DIR.name}; trained on the ithor-real "
+        st.run("detector", f"learned detector shipped with tsnav ({DEFAULT_SHIPPED}; trained on the ithor-real "
                            "training rooms apart from the agent, as the paper's DETR): nothing trained here",
                do_detector, detector_ok)
     elif learned:

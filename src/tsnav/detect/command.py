@@ -34,7 +34,7 @@ from .evaluate import evaluate_detections
 from .learned import LearnedDetector
 from .model import default_config
 from .oracle import OracleConfig, oracle_detections
-from .shipped import shipped_detector
+from .shipped import DEFAULT_SHIPPED, SHIPPED, shipped_detector
 from .train import DetectorTrainConfig, calibrate, default_train_steps, is_checkpoint, read_meta, train_detector
 
 
@@ -65,6 +65,9 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                    help="learned, new checkpoint: output cells of stride 4 after the stem instead of 8 (an FPN-style "
                         "lateral from the second stage; better for small objects; default on for frames of 128px "
                         "or more)")
+    p.add_argument("--shipped", choices=sorted(SHIPPED), default=DEFAULT_SHIPPED,
+                   help=f"shipped: which shipped detector (default {DEFAULT_SHIPPED}; learned3 wrote the tables of the "
+                        "medium-scale experiments)")
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
@@ -171,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     if args.detector == "oracle":
         fingerprint, detect = _oracle(args)
     elif args.detector == "shipped":
-        det = shipped_detector(load_scene(scenes[0]).image_size)
+        det = shipped_detector(load_scene(scenes[0]).image_size, name=args.shipped)
         fingerprint, detect = det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
     else:
         fingerprint, detect = _learned(args, root)
