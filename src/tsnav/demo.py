@@ -46,14 +46,14 @@ from .data.reader import list_scenes, load_scene
 from .detect.oracle import OracleConfig
 from .errors import CommandError
 from .eval.experiment import DEFAULT_THREADS, SELECT_SEED, set_threads, train_config_for
-from .eval.experiment_config import DEMO_UPDATES, SCALES, ExperimentConfig, Row, ScaleConfig
+from .eval.experiment_config import DEMO_UPDATES, DETECTOR_SOURCES, SCALES, ExperimentConfig, Row, ScaleConfig
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
 from .eval.select import chosen, select_checkpoint
-from .detect.shipped import DEFAULT_SHIPPED, SHIPPED_DIR, shipped_detector, shipped_meta
+from .detect.shipped import DEFAULT_SHIPPED, shipped_meta
 from .detect.train import is_checkpoint, read_meta
-from .eval.detector_stage import (ensure_detector, ensure_learned_detections, record_quality, tables_complete,
-                                  write_learned_tables)
+from .eval.detector_stage import (ensure_detector, ensure_learned_detections, ensure_shipped_detections,
+                                  record_quality, tables_complete)
 from .eval.tables import quality_line
 from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
 from .metrics import METRICS, write_json
@@ -120,7 +120,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=("demo-real", "demo"), default="demo-real",
                    help="world: demo-real (default; 28 real iTHOR rooms at 128x128) or demo (20 procedural rooms "
                         "at 64x64; needs --detector train)")
-    p.add_argument("--detector", choices=("shipped", "train"), default="shipped",
+    p.add_argument("--detector", choices=DETECTOR_SOURCES, default="shipped",
                    help="shipped (default): the detector that comes with tsnav, trained on the 80 ithor-real "
                         "training rooms (128-px worlds only); train: train one here on the training rooms")
     p.add_argument("--detector-steps", type=int, default=None,
@@ -204,8 +204,8 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
     cfg = cfg or DemoConfig()
-    if cfg.detector not in ("shipped", "train"):
-        raise CommandError(f"unknown detector source {cfg.detector!r} (choose from shipped, train)")
+    if cfg.detector not in DETECTOR_SOURCES:
+        raise CommandError(f"unknown detector source {cfg.detector!r} (choose from {', '.join(DETECTOR_SOURCES)})")
     if cfg.detections != "oracle" and cfg.detector == "shipped":  # refused before any work
         size, want = BuildConfig.from_preset(cfg.preset).image_size, shipped_meta()["model"]["image_size"]
         if size != want:
@@ -283,12 +283,13 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
             print(f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
                   flush=True)
             return {"fingerprint": ready, "tables": "existing"}
-        if shipped:
-            det = shipped_detector(load_scene(list_scenes(world)[0]).image_size)
-            print(f"    shipped detector: step {det.meta.get('step')}, trained on {len(det.meta.get('train_scenes', []))} "
-                  f"ithor-real training rooms, temperature {det.temperature:.3f} ({det.fingerprint})", flush=True)
-            return {"fingerprint": det.fingerprint, "source": "shipped", "steps": det.meta.get("step"),
-                    "temperature": det.temperature}
+        if shipped:  # loaded (and its weights checked) by the detections stage
+            meta = shipped_meta()
+            print(f"    shipped detector {DEFAULT_SHIPPED}: step {meta['step']}, trained on "
+                  f"{len(meta['train_scenes'])} ithor-real training rooms, temperature {meta['temperature']:.3f} "
+                  f"({shipped_fp})", flush=True)
+            return {"fingerprint": shipped_fp, "source": "shipped", "steps": meta["step"],
+                    "temperature": meta["temperature"]}
         det = ensure_detector(sub, world, det_dir, sc, say=lambda m: print(m, flush=True))
         return {"fingerprint": det.fingerprint, "source": "train", "steps": det.meta.get("step"),
                 "temperature": det.temperature}
@@ -317,8 +318,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     # 5. detections -------------------------------------------------------------------------------------
     def do_detections():
         if learned and shipped:
-            done = write_learned_tables(world, cfg.detections, shipped_detector(), source=str(SHIPPED_DIR),
-                                        say=lambda m: print(m, flush=True))
+            done = ensure_shipped_detections(world, cfg.detections, say=lambda m: print(m, flush=True))
             fingerprint, written = done["fingerprint"], done["written"]
         elif learned:
             done = ensure_learned_detections(world, cfg.detections, det_dir, sc, train_root=sub,

@@ -9,9 +9,9 @@ grid detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/lea
 has fewer than ``--train-steps`` steps (resumable: rerun the command after an interruption), fits its
 temperature on the VAL scenes, then detects in every scene. ``shipped`` detects with the learned detector that
 comes with tsnav (:mod:`tsnav.detect.shipped`; 128-px ithor-real rooms). Each scene gets
-``detections_<name>.hdf5`` (name: ``--name``, default the detector kind, ``learned`` for ``shipped``); scenes whose table was made by the same detector are
-skipped, a table made by another detector is only replaced with ``--overwrite``. Finally the detector is
-evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
+``detections_<name>.hdf5`` (name: ``--name``, default the detector kind, ``learned`` for ``shipped``); scenes
+whose table was made by the same detector are skipped, a table made by another detector is only replaced with
+``--overwrite``. Finally the detector is evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
 and saved as ``DIR/detectors/<name>_eval_<split>.json``.
 """
 

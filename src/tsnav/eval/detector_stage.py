@@ -35,6 +35,7 @@ from ..data.detections import load_detections, read_fingerprint, write_detection
 from ..data.reader import list_scenes, load_scene
 from ..detect.evaluate import evaluate_detections
 from ..detect.learned import LearnedDetector
+from ..detect.shipped import DEFAULT_SHIPPED, shipped_detector
 from ..detect.model import DetectorConfig
 from ..detect.quality import switch_report
 from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
@@ -141,6 +142,19 @@ def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | P
     det = ensure_detector(train_root or data, data, detector_dir, scale, progress=progress, say=say)
     return {**write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir)),
             "trained": True}
+
+
+def ensure_shipped_detections(data: str | Path, name: str, progress: bool = True,
+                              say: Callable[[str], None] = print) -> dict:
+    """Like :func:`ensure_learned_detections`, with the detector shipped in the package
+    (:mod:`tsnav.detect.shipped`, loaded for the scenes' frame size) writing the missing tables: nothing is
+    trained. Returns ``{"fingerprint", "written"}``."""
+    have, kinds = learned_tables(data, name)
+    if not any(fp is None for fp in have.values()):
+        return {"fingerprint": kinds[0], "written": 0}
+    det = shipped_detector(load_scene(next(iter(have))).image_size)
+    return write_learned_tables(data, name, det, progress=progress, say=say,
+                                source=f"the shipped detector {DEFAULT_SHIPPED}")
 
 
 def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, progress: bool = True,

@@ -84,7 +84,8 @@ from ..errors import CommandError
 from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
 from ..rl.train import train_run
-from .experiment_config import EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row, ScaleConfig, experiment_rows
+from .experiment_config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
+                                ScaleConfig, experiment_rows)
 from ..metrics import METRICS, write_json
 from .report import build_report
 from .runner import evaluate_to_folder
@@ -193,7 +194,7 @@ class Experiment:
             raise ValueError(f"--minutes-per-job must be positive, got {cfg.minutes_per_job}")
         if cfg.updates_per_job is not None and cfg.updates_per_job < 1:
             raise ValueError(f"--updates-per-job must be >= 1, got {cfg.updates_per_job}")
-        if cfg.detector not in ("train", "shipped"):
+        if cfg.detector not in DETECTOR_SOURCES:
             raise ValueError(f"--detector must be train or shipped, got {cfg.detector!r}")
         if cfg.checkpoint not in CHECKPOINTS:
             raise ValueError(f"--checkpoint must be one of {', '.join(CHECKPOINTS)}, got {cfg.checkpoint!r}")
@@ -487,7 +488,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                              "oracle's, computed here)")
     parser.add_argument("--detector-dir", default=None,
                         help="learned detector's training folder (default OUT/detector; share it, resumable)")
-    parser.add_argument("--detector", choices=("train", "shipped"), default="train",
+    parser.add_argument("--detector", choices=DETECTOR_SOURCES, default="train",
                         help="where missing learned tables come from: train (default: the detector in "
                              "--detector-dir, trained here) or shipped (the detector that comes with tsnav, for the "
                              "128-px ithor-real rooms: the medium scale's tables in minutes instead of hours)")

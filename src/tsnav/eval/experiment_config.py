@@ -101,6 +101,11 @@ class ScaleConfig:
     exist yet. Paper: ``ithor-real``, the real iTHOR scenes rebuilt from their recorded layouts."""
 
 
+#: Where missing learned detection tables come from (``ExperimentConfig.detector``, ``DemoConfig.detector``):
+#: a detector trained here, or the one shipped in the package (:mod:`tsnav.detect.shipped`).
+DETECTOR_SOURCES = ("train", "shipped")
+
+
 SCALES = {
     "demo": ScaleConfig(pretrain_steps=300, updates_per_job=DEMO_UPDATES, test_per_room_type=100),
     "small": ScaleConfig(),

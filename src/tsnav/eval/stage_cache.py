@@ -18,8 +18,7 @@ from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, write_episodes
 from ..world.build import build_dataset
-from ..detect.shipped import shipped_detector
-from .detector_stage import ensure_learned_detections, tables_complete, write_learned_tables
+from .detector_stage import ensure_learned_detections, ensure_shipped_detections
 from .experiment_config import ExperimentConfig, ScaleConfig
 
 
@@ -78,10 +77,7 @@ def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | No
             say(f"detections: oracle tables written for {n} scenes")
         return
     if shipped:
-        if tables_complete(data, name):  # every scene holds one learned detector's table: used as it is
-            return
-        det = shipped_detector(load_scene(list_scenes(data)[0]).image_size)
-        write_learned_tables(data, name, det, say=say, source="the shipped detector")
+        ensure_shipped_detections(data, name, say=say)
         return
     if detector_dir is None or scale is None:
         missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
