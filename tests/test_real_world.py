@@ -13,7 +13,7 @@ import pytest
 from tsnav.constants import GRID_SIZE, TARGET_CATEGORIES
 from tsnav.world.layouts import (LayoutError, layout_names, load_layout, pack_layouts, parse_layout,
                                  read_layout_file)
-from tsnav.world.navgrid import AGENT_RADIUS, reachable_positions
+from tsnav.world.navgrid import AGENT_RADIUS, SIGHT_DISTANCE, reachable_positions, targets_in_sight
 from tsnav.world.real import alcoves, blocks, outer_rect, real_spec, spec_from_layout
 
 
@@ -61,6 +61,24 @@ def test_blocking_rule_and_reachable_positions():
     # Object ids are kept exactly; the chair (a target class) stands on the floor.
     chair = next(o for o in spec.objects if o.objectType == "Chair")
     assert chair.objectId == "Chair|+01.50|+00.00|+01.50" and chair.support == "floor"
+
+
+def test_kept_connected_set_sees_the_rooms_targets():
+    """FloorPlan409's shower stall (behind ShowerDoor/ShowerGlass) holds 54 grid positions, the bathroom 52:
+    the stall, from which no target is in sight, is left out. Rooms whose largest set sees a target keep it."""
+    spec = real_spec("FloorPlan409")
+    pos, _ = reachable_positions(spec)
+    assert len(pos) == 52
+    seen = targets_in_sight(spec, pos)
+    assert len(seen) >= 2 and seen <= set(TARGET_CATEGORIES)
+    # every category in sight has an object within SIGHT_DISTANCE of a kept position (the slow, direct check)
+    for cat in seen:
+        centres = [(o.center[0], o.center[2]) for o in spec.objects if o.objectType == cat]
+        assert min(np.hypot(*(p - c)) for p in pos for c in np.asarray(centres)) < SIGHT_DISTANCE
+    # FloorPlan408 also has two sets (56 and 55 positions); the larger sees targets and is kept
+    spec = real_spec("FloorPlan408")
+    pos, _ = reachable_positions(spec)
+    assert len(pos) == 56 and targets_in_sight(spec, pos)
 
 
 def test_outer_walls_snap_to_objects_and_alcove_from_a_wall_fixture():

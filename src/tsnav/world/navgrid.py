@@ -3,8 +3,9 @@
 A grid position (0.25 m lattice) is reachable when a disc of the agent's radius around it lies on the
 floor and touches no wall or blocking furniture/object footprint. MoveAhead between two neighbouring
 positions (8 headings; diagonal headings move one step in x and z) is allowed when the whole swept
-segment stays in free space. Only the largest connected set of positions is kept, so every reachable
-position can reach every other one.
+segment stays in free space. Only one connected set of positions is kept, so every reachable position can
+reach every other one: the largest, unless no target object is in sight from it (:func:`keep_component`), as
+when a walled-off shower stall holds a few more grid positions than the rest of the bathroom.
 """
 
 from __future__ import annotations
@@ -13,13 +14,20 @@ import numpy as np
 import shapely
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from shapely.geometry import Polygon
+from shapely.geometry import LineString, Polygon
 from shapely.ops import unary_union
 
-from ..constants import GRID_SIZE, HORIZONS, ROTATIONS, state_key
+from ..constants import GRID_SIZE, HORIZONS, ROTATIONS, TARGET_CATEGORIES, state_key
 from .spec import SceneSpec, box_footprint
 
 AGENT_RADIUS = 0.2
+#: A target is "in sight" of a connected set when one of its positions lies within this distance (metres) of
+#: the object's centre with a clear 2-D line between them (:func:`keep_component`).
+SIGHT_DISTANCE = 1.5
+#: How much of that line may run outside free space: the object's own footprint and the furniture it stands on.
+SIGHT_SLACK = 0.35
+#: Connected sets smaller than this are never kept when a larger one exists.
+MIN_COMPONENT = 4
 #: Headings (degrees) -> grid step (dx, dz) of MoveAhead.
 STEPS = {r: (int(round(np.sin(np.deg2rad(r)))), int(round(np.cos(np.deg2rad(r))))) for r in ROTATIONS}
 
@@ -43,7 +51,7 @@ def free_space(spec: SceneSpec, radius: float = AGENT_RADIUS):
 
 
 def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
-    """``(positions (P, 2) float, move (P, 8) int)``: reachable grid positions (largest connected set,
+    """``(positions (P, 2) float, move (P, 8) int)``: reachable grid positions (the connected set of :func:`keep_component`,
     sorted by x then z) and, per rotation index, the neighbour reached by MoveAhead (-1 when blocked)."""
     free = free_space(spec, radius)
     minx, minz, maxx, maxz = free.bounds if not free.is_empty else (0, 0, 0, 0)
@@ -71,17 +79,51 @@ def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
             sz = pos[:, 1] + t * dz * GRID_SIZE
             seg_ok &= shapely.contains_xy(free, sx, sz)
         move[:, k] = np.where(has & seg_ok, tgt, -1)
-    # Largest connected component of the MoveAhead graph (moves are symmetric: reverse heading).
+    # Connected sets of the MoveAhead graph (moves are symmetric: reverse heading); one is kept.
     src, kk = np.nonzero(move >= 0)
     adj = coo_matrix((np.ones(len(src)), (src, move[src, kk])), shape=(len(pos), len(pos)))
     ncomp, label = connected_components(adj, directed=True, connection="strong")
-    keep_label = np.bincount(label).argmax()
-    keep = label == keep_label
+    keep = label == keep_component(spec, pos, label)
     remap = np.full(len(pos), -1, dtype=np.int64)
     remap[keep] = np.arange(keep.sum())
     pos, move = pos[keep], move[keep]
     move = np.where(move >= 0, remap[np.maximum(move, 0)], -1)
     return pos, move
+
+
+def targets_in_sight(spec: SceneSpec, positions: np.ndarray, free_thin=None) -> set[str]:
+    """Target categories of ``spec`` with an object within :data:`SIGHT_DISTANCE` of one of ``positions``
+    ((P, 2) x, z) along a 2-D line that leaves free space (agent radius 1 cm) for at most :data:`SIGHT_SLACK`."""
+    free_thin = free_space(spec, radius=0.01) if free_thin is None else free_thin
+    seen = set()
+    for o in spec.objects:
+        if o.objectType not in TARGET_CATEGORIES or o.objectType in seen:
+            continue
+        ox, oz = float(o.center[0]), float(o.center[2])
+        d = np.hypot(positions[:, 0] - ox, positions[:, 1] - oz)
+        for i in np.flatnonzero(d < SIGHT_DISTANCE):
+            line = LineString([(positions[i, 0], positions[i, 1]), (ox, oz)])
+            if line.difference(free_thin).length < SIGHT_SLACK:
+                seen.add(o.objectType)
+                break
+    return seen
+
+
+def keep_component(spec: SceneSpec, positions: np.ndarray, label: np.ndarray) -> int:
+    """The label of the connected set to keep: the largest, unless no target is in sight from it
+    (:func:`targets_in_sight`) while one is from another set of :data:`MIN_COMPONENT` positions or more; then
+    the set with the most targets in sight (ties: the larger, then the lower label)."""
+    sizes = np.bincount(label)
+    largest = int(sizes.argmax())
+    others = [int(c) for c in np.flatnonzero(sizes >= MIN_COMPONENT) if c != largest]
+    if not others:
+        return largest
+    free_thin = free_space(spec, radius=0.01)
+    if targets_in_sight(spec, positions[label == largest], free_thin):
+        return largest
+    score = {c: (len(targets_in_sight(spec, positions[label == c], free_thin)), int(sizes[c]), -c)
+             for c in [largest, *others]}
+    return max(score, key=score.get)
 
 
 def state_poses(positions: np.ndarray) -> np.ndarray:
