@@ -185,6 +185,8 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     assert (pretrain_dir / "resnet18-sup" / "encoder.safetensors").exists()
     md = (out / "table.md").read_text()
     table, welch_part = md.split("Welch's t-test")
+    welch_part, claims_part = welch_part.split("Against the paper's claims")
+    assert "**exploration reward raises search success" in claims_part and "| NSNPL | +2.3 |" in claims_part
     assert table.count("\n| ") == 9 and "| TSRM + DE-MAE, oracle switch |" in table
     assert welch_part.count("\n| ") == 2 * 8 and "| ALL: row vs baseline (ResNet18, baseline reward) |" in welch_part
     assert "| L>=5: row vs" in welch_part

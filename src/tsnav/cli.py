@@ -26,6 +26,7 @@ COMMANDS = {
     "select": ("tsnav.eval.select", "choose a run's best checkpoint on validation episodes (kept as RUN/best)"),
     "convergence": ("tsnav.eval.convergence", "train in chunks, score each on validation episodes, plot the curve"),
     "experiment": ("tsnav.eval.experiment", "run one of the paper's experiments (ablation, pretraining, threshold)"),
+    "claims": ("tsnav.eval.claims", "read finished experiments against the paper's claims (Welch tests)"),
     "report": ("tsnav.eval.report", "write an HTML report for a run or experiment folder"),
     "thor": ("tsnav.eval.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),
     "demo": ("tsnav.demo", "the main job: world, pretraining, detections, training, evaluation, report"),

@@ -1,0 +1,250 @@
+"""The paper's claims, read against an experiment's results.
+
+Each claim of the paper's ablation (Table II), pretraining comparison (Table III) and threshold choice (Fig. 4)
+is written here as "row B scores higher than row A on these metrics". :func:`check_claims` takes the
+``results.json`` of finished experiments (:func:`tsnav.eval.tables.aggregate`), computes per claim, metric and
+episode subset the difference of the per-seed means and Welch's p-value (:func:`tsnav.eval.tables.welch`), puts
+the paper's own difference beside it, and gives a verdict:
+
+- ``supported``: same sign as the claim, p < :data:`ALPHA`;
+- ``contradicted``: opposite sign, p < :data:`ALPHA`;
+- ``same sign, n.s.`` / ``opposite sign, n.s.``: no significant difference either way;
+- ``one seed``: a difference without a test (fewer than two seeds on a side);
+- ``no spread``: every seed of both rows gave the same value (no test possible);
+- ``not run``: a row is missing.
+
+``tsnav claims EXP_DIR [EXP_DIR ...]`` prints the table; ``tsnav experiment`` appends its own experiment's part
+to ``table.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..atomic import atomic_write_text
+from ..errors import CommandError
+from .tables import SUBSETS, finite, welch
+
+#: Significance level of the verdicts (two-sided Welch test over the per-seed values).
+ALPHA = 0.05
+METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
+
+#: The paper's Table II (AI2-THOR, percent): row id -> subset -> metric -> value.
+PAPER_TABLE_II = {
+    rid: {"ALL": dict(zip(METRICS, a)), "L>=5": dict(zip(METRICS, b))}
+    for rid, a, b in [
+        ("baseline", (81.92, 47.15, 95.49, 43.87, 48.06), (75.76, 48.37, 93.76, 45.84, 49.72)),
+        ("explore", (82.95, 46.63, 96.63, 46.06, 48.23), (77.74, 48.18, 95.21, 47.39, 49.68)),
+        ("distance", (84.28, 48.87, 95.98, 45.63, 50.40), (78.93, 50.74, 94.83, 46.95, 52.38)),
+        ("tsrm", (85.70, 49.63, 97.06, 47.08, 51.56), (80.46, 51.61, 96.81, 47.92, 53.45)),
+        ("demae", (83.21, 49.35, 96.60, 46.20, 50.29), (77.97, 51.40, 95.12, 47.28, 52.63)),
+        ("tsrm_demae", (86.73, 50.48, 97.79, 47.56, 52.56), (81.71, 52.09, 97.03, 49.20, 54.10)),
+    ]
+}
+#: The paper's Table III (AI2-THOR, percent, SR and SPL): row id -> subset -> metric -> value.
+PAPER_TABLE_III = {
+    rid: {"ALL": dict(zip(("SR", "SPL"), a)), "L>=5": dict(zip(("SR", "SPL"), b))}
+    for rid, a, b in [
+        ("resnet18", (81.92, 47.15), (75.76, 48.37)),
+        ("vc1", (82.12, 48.19), (76.46, 49.76)),
+        ("mae", (82.76, 47.84), (76.98, 49.61)),
+        ("demae_crop", (82.33, 48.36), (77.05, 49.91)),
+        ("demae", (83.21, 49.35), (77.97, 51.40)),
+    ]
+}
+PAPER = {"ablation": PAPER_TABLE_II, "pretraining": PAPER_TABLE_III}
+
+
+@dataclass(frozen=True)
+class Claim:
+    """"Row ``higher`` scores above row ``lower`` on ``metrics``" in experiment ``experiment``; for the
+    threshold experiment ``higher`` is the paper's chosen row and ``lower`` is ``"*"``: every other row."""
+
+    id: str
+    experiment: str
+    text: str
+    lower: str
+    higher: str
+    metrics: tuple[str, ...]
+
+
+CLAIMS = (
+    Claim("exploration", "ablation", "exploration reward raises search success and efficiency (SSR, SSSPL)",
+          "baseline", "explore", ("SSR", "SSSPL")),
+    Claim("distance", "ablation", "distance reward raises pathfinding efficiency (NSNPL)",
+          "baseline", "distance", ("NSNPL",)),
+    Claim("complement-explore", "ablation", "both rewards beat the exploration reward alone (complementarity)",
+          "explore", "tsrm", METRICS),
+    Claim("complement-distance", "ablation", "both rewards beat the distance reward alone (complementarity)",
+          "distance", "tsrm", METRICS),
+    Claim("demae-alone", "ablation", "DE-MAE alone brings modest gains over the baseline",
+          "baseline", "demae", METRICS),
+    Claim("demae-with-tsrm", "ablation", "DE-MAE with TSRM beats TSRM with ResNet18",
+          "tsrm", "tsrm_demae", METRICS),
+    Claim("tsrm-with-demae", "ablation", "DE-MAE with TSRM beats DE-MAE alone",
+          "demae", "tsrm_demae", METRICS),
+    Claim("mae-over-resnet", "pretraining", "standard MAE on the training rooms beats ResNet18",
+          "resnet18", "mae", ("SR", "SPL")),
+    Claim("demae-over-mae", "pretraining", "depth (DE-MAE) beats standard MAE", "mae", "demae", ("SR", "SPL")),
+    Claim("crop-hurts", "pretraining", "random cropping in DE-MAE pretraining hurts",
+          "demae_crop", "demae", ("SR", "SPL")),
+    Claim("threshold-0.7", "threshold", "C_target = 0.7 is the best dividing point (Fig. 4)",
+          "*", "c70", ("SR", "SPL")),
+)
+
+
+def verdict(diff: float | None, p: float | None, seeds: int = 2) -> str:
+    """The verdict of a difference ``higher - lower`` (percentage points), its p-value and the smaller number
+    of seeds of the two sides."""
+    if diff is None:
+        return "not run"
+    if p is None:
+        return "one seed" if seeds < 2 else "no spread"
+    if p < ALPHA:
+        return "supported" if diff > 0 else "contradicted"
+    return "same sign, n.s." if diff > 0 else "opposite sign, n.s."
+
+
+def _values(rows: dict, rid: str, subset: str, metric: str) -> list[float] | None:
+    r = rows.get(rid)
+    if r is None or metric not in r["metrics"].get(subset, {}):
+        return None
+    vals = r["metrics"][subset][metric]["values"]
+    return vals if len(finite(vals)) else None
+
+
+def _paper_diff(experiment: str, lower: str, higher: str, subset: str, metric: str) -> float | None:
+    table = PAPER.get(experiment, {})
+    try:
+        return round(table[higher][subset][metric] - table[lower][subset][metric], 2)
+    except KeyError:
+        return None
+
+
+def _check_pair(c: Claim, rows: dict, lower: str, subset: str, metric: str) -> dict:
+    lo, hi = _values(rows, lower, subset, metric), _values(rows, c.higher, subset, metric)
+    diff, p = welch(lo, hi) if lo is not None and hi is not None else (None, None)
+    mean = lambda v: None if v is None else float(finite(v).mean())  # noqa: E731
+    n = [0 if lo is None else len(finite(lo)), 0 if hi is None else len(finite(hi))]
+    return {"claim": c.id, "experiment": c.experiment, "text": c.text, "lower": lower, "higher": c.higher,
+            "subset": subset, "metric": metric, "lower_mean": mean(lo), "higher_mean": mean(hi),
+            "n": n, "diff": diff, "p": p, "paper_diff": _paper_diff(c.experiment, lower, c.higher, subset, metric),
+            "verdict": verdict(diff, p, min(n))}
+
+
+def check_claims(results: dict[str, dict], subsets=SUBSETS) -> list[dict]:
+    """One dict per (claim, metric, subset) of the experiments in ``results`` (experiment name ->
+    ``results.json`` content); claims of experiments not given are left out. For the threshold claim the
+    comparison is the chosen row against the best other row by that metric's mean (``lower`` names it)."""
+    out = []
+    for c in CLAIMS:
+        res = results.get(c.experiment)
+        if res is None:
+            continue
+        rows = {r["row"]: r for r in res["rows"]}
+        for subset in subsets:
+            for metric in c.metrics:
+                lower = c.lower
+                if lower == "*":
+                    others = [(float(finite(v).mean()), rid) for rid in rows if rid != c.higher
+                              for v in [_values(rows, rid, subset, metric)] if v is not None]
+                    lower = max(others)[1] if others else "(none)"
+                out.append(_check_pair(c, rows, lower, subset, metric))
+    return out
+
+
+def _num(v: float | None, signed: bool = False) -> str:
+    return "-" if v is None else (f"{v:+.1f}" if signed else f"{v:.1f}")
+
+
+def claims_markdown(checks: list[dict], labels: dict[str, str] | None = None) -> str:
+    """``checks`` (:func:`check_claims`) as Markdown: per claim a line naming it and its rows, then a table with
+    a line per metric and, per subset, the paper's difference, ours (lower -> higher means and difference), the
+    p-value and the verdict."""
+    if not checks:
+        return ""
+    labels = labels or {}
+    name = lambda rid: labels.get(rid, rid)  # noqa: E731
+    subsets = list(dict.fromkeys(k["subset"] for k in checks))
+    out = []
+    for cid in dict.fromkeys(k["claim"] for k in checks):
+        ks = [k for k in checks if k["claim"] == cid]
+        first = ks[0]
+        wildcard = next(c.lower for c in CLAIMS if c.id == cid) == "*"
+        against = "the best other row" if wildcard else name(first["lower"])
+        seeds = sorted({tuple(k["n"]) for k in ks})
+        out.append(f"**{first['text']}**: {name(first['higher'])} against {against} "
+                   f"(seeds {', '.join(f'{a}/{b}' for a, b in seeds)})\n")
+        head = "| metric | " + " | ".join(f"{s} paper | {s} here | {s} p | {s} verdict" for s in subsets) + " |"
+        out += [head, "| --- |" + " ---: | --- | ---: | --- |" * len(subsets)]
+        for metric in dict.fromkeys(k["metric"] for k in ks):
+            cells = []
+            for s in subsets:
+                k = next((k for k in ks if k["metric"] == metric and k["subset"] == s), None)
+                if k is None:
+                    cells.append("- | - | - | -")
+                    continue
+                p = "-" if k["p"] is None else ("<0.01" if k["p"] < 0.01 else f"{k['p']:.2f}")
+                here = "-" if k["diff"] is None else (
+                    f"{_num(k['lower_mean'])} -> {_num(k['higher_mean'])} ({_num(k['diff'], True)})")
+                if wildcard and k["diff"] is not None:
+                    here = f"{name(k['lower'])}: " + here
+                cells.append(f"{_num(k['paper_diff'], True)} | {here} | {p} | {k['verdict']}")
+            out.append(f"| {metric} | " + " | ".join(cells) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+def summary_line(checks: list[dict]) -> str:
+    """How many (claim, metric, subset) checks got each verdict, e.g. ``supported 3, same sign, n.s. 5``."""
+    counts: dict[str, int] = {}
+    for k in checks:
+        counts[k["verdict"]] = counts.get(k["verdict"], 0) + 1
+    return ", ".join(f"{v} {n}" for v, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+
+
+def load_results(exp_dir: str | Path) -> dict:
+    """``EXP_DIR/results.json``, with a one-line error when it is missing or not an experiment's results."""
+    path = Path(exp_dir) / "results.json"
+    if not path.is_file():
+        raise CommandError(f"{exp_dir}: no results.json (run `tsnav experiment ... --out {exp_dir}` first)")
+    try:
+        res = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise CommandError(f"{path}: not valid JSON ({e.msg}, line {e.lineno})") from None
+    if not isinstance(res, dict) or "rows" not in res or "experiment" not in res:
+        raise CommandError(f"{path}: not an experiment's results (no 'rows' / 'experiment')")
+    return res
+
+
+def build_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("experiments", nargs="+", metavar="EXP_DIR",
+                   help="experiment folders (`tsnav experiment ... --out EXP_DIR`) holding results.json")
+    p.add_argument("--subset", choices=(*SUBSETS, "both"), default="both", help="episode subset(s) to check")
+    p.add_argument("--out", help="also write the table (Markdown) to this file")
+    p.add_argument("--json", dest="json_out", help="also write the checks as JSON to this file")
+
+
+def run(args) -> int:
+    results: dict[str, dict] = {}
+    labels: dict[str, str] = {}
+    for d in args.experiments:
+        res = load_results(d)
+        if res["experiment"] in results:
+            raise CommandError(f"{d}: a second '{res['experiment']}' experiment (give one folder per experiment)")
+        results[res["experiment"]] = res
+        labels.update({r["row"]: r["label"] for r in res["rows"]})
+    subsets = SUBSETS if args.subset == "both" else (args.subset,)
+    checks = check_claims(results, subsets)
+    if not checks:
+        raise CommandError("none of the paper's claims concerns these experiments")
+    text = claims_markdown(checks, labels) + f"\n{summary_line(checks)} (alpha {ALPHA}, Welch's t-test)\n"
+    print(text, end="")
+    if args.out:
+        atomic_write_text(Path(args.out), text)
+    if args.json_out:
+        atomic_write_text(Path(args.json_out), json.dumps(checks, indent=1) + "\n")
+    return 0

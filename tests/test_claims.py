@@ -1,0 +1,123 @@
+"""The paper's claims read against experiment results: differences, Welch p-values, verdicts, the table and
+the ``tsnav claims`` command."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import t as student
+
+from tsnav.cli import main
+from tsnav.eval.claims import (CLAIMS, PAPER_TABLE_II, check_claims, claims_markdown, summary_line, verdict)
+from tsnav.eval.experiment_config import experiment_rows
+from tsnav.eval.tables import aggregate
+
+METRICS = ["SR", "SPL", "SSR", "SSSPL", "NSNPL"]
+
+
+def _summary(**vals):
+    """A summarize()-like result whose every metric is ``vals.get(metric, 0.5)`` (fractions) in both subsets."""
+    sub = {m: vals.get(m, 0.5) for m in METRICS}
+    return {"ALL": dict(sub, episodes=10), "L>=5": dict(sub, episodes=5)}
+
+
+def _ablation(per_row):
+    return aggregate(experiment_rows("ablation"), per_row, METRICS, ["Exploration Reward", "Distance Reward", "DE-MAE"])
+
+
+def _by(checks, claim, metric, subset="ALL"):
+    return next(k for k in checks if k["claim"] == claim and k["metric"] == metric and k["subset"] == subset)
+
+
+def test_verdicts_and_welch_against_the_textbook_formula():
+    base = [_summary(SSR=x, NSNPL=y) for x, y in [(0.60, 0.40), (0.62, 0.42), (0.61, 0.41)]]
+    explore = [_summary(SSR=x) for x in (0.70, 0.72, 0.71, 0.73)]  # SSR clearly up
+    distance = [_summary(NSNPL=y) for y in (0.30, 0.31, 0.29)]  # NSNPL clearly down: contradicts the paper
+    res = _ablation({"baseline": base, "explore": explore, "distance": distance, "tsrm": [_summary()]})
+    checks = check_claims({"ablation": res})
+    k = _by(checks, "exploration", "SSR")
+    a, b = [60.0, 62.0, 61.0], [70.0, 72.0, 71.0, 73.0]
+    va, vb = np.var(a, ddof=1) / 3, np.var(b, ddof=1) / 4
+    tstat = (np.mean(b) - np.mean(a)) / math.sqrt(va + vb)
+    df = (va + vb) ** 2 / (va ** 2 / 2 + vb ** 2 / 3)
+    assert k["diff"] == pytest.approx(np.mean(b) - np.mean(a))
+    assert k["p"] == pytest.approx(2 * student.sf(abs(tstat), df), rel=1e-9)
+    assert k["verdict"] == "supported" and k["n"] == [3, 4]
+    assert k["lower_mean"] == pytest.approx(61.0) and k["higher_mean"] == pytest.approx(71.5)
+    # the paper's own difference, from its Table II
+    assert k["paper_diff"] == pytest.approx(round(PAPER_TABLE_II["explore"]["ALL"]["SSR"]
+                                                  - PAPER_TABLE_II["baseline"]["ALL"]["SSR"], 2))
+    assert _by(checks, "distance", "NSNPL")["verdict"] == "contradicted"
+    # SSSPL: the same value in every seed of both rows (0.5): no test
+    assert _by(checks, "exploration", "SSSPL")["verdict"] == "no spread"
+    # tsrm has one seed: a difference but no test; demae was not run
+    assert _by(checks, "complement-explore", "SR")["verdict"] == "one seed"
+    assert _by(checks, "demae-alone", "SR")["verdict"] == "not run"
+    assert _by(checks, "demae-alone", "SR")["diff"] is None
+    # every ablation claim, metric and subset is there, nothing of the other experiments
+    n = sum(len(c.metrics) for c in CLAIMS if c.experiment == "ablation") * 2
+    assert len(checks) == n and {k["experiment"] for k in checks} == {"ablation"}
+    assert verdict(1.0, 0.2) == "same sign, n.s." and verdict(-1.0, 0.2) == "opposite sign, n.s."
+    assert verdict(-1.0, 0.01) == "contradicted" and verdict(None, None) == "not run"
+    assert verdict(1.0, None, 1) == "one seed" and verdict(0.0, None, 3) == "no spread"
+    assert summary_line(checks).startswith("not run")  # most checks here have a missing row
+
+
+def test_threshold_claim_compares_with_the_best_other_row():
+    rows = experiment_rows("threshold")
+    sr = {"c10": 0.50, "c30": 0.62, "c50": 0.60, "c70": 0.58, "c90": 0.40}
+    per_row = {rid: [_summary(SR=v + d, SPL=0.2 + d) for d in (-0.01, 0.0, 0.01)] for rid, v in sr.items()}
+    per_row["c70"] = [_summary(SR=0.58 + d, SPL=0.3 + d) for d in (-0.01, 0.0, 0.01)]
+    res = aggregate(rows, per_row, ["SR", "SPL"], [])
+    checks = check_claims({"threshold": res}, subsets=("ALL",))
+    k = _by(checks, "threshold-0.7", "SR")
+    assert k["lower"] == "c30" and k["diff"] == pytest.approx(-4.0) and k["verdict"] == "contradicted"
+    k = _by(checks, "threshold-0.7", "SPL")
+    assert k["lower"] in {"c10", "c30", "c50", "c90"} and k["diff"] == pytest.approx(10.0)
+    assert k["verdict"] == "supported" and k["paper_diff"] is None
+    md = claims_markdown(checks, {r.id: r.label for r in rows})
+    assert "against the best other row" in md and "C_target = 0.3: 62.0 -> 58.0 (-4.0)" in md
+
+
+def test_markdown_has_one_table_per_claim_with_both_subsets():
+    res = _ablation({"baseline": [_summary(NSNPL=x) for x in (0.40, 0.41)],
+                     "distance": [_summary(NSNPL=x) for x in (0.45, 0.46)]})
+    labels = {r.id: r.label for r in experiment_rows("ablation")}
+    md = claims_markdown(check_claims({"ablation": res}), labels)
+    block = md.split("**distance reward raises pathfinding efficiency (NSNPL)**")[1].split("**")[0]
+    lines = [x for x in block.splitlines() if x.startswith("| ")]
+    assert lines[0].startswith("| metric | ALL paper | ALL here | ALL p | ALL verdict | L>=5 paper")
+    assert len(lines) == 3 and lines[2].startswith("| NSNPL | +2.3 | 40.5 -> 45.5 (+5.0) | 0.02 | supported | +2.7 |")
+    assert "+ distance reward against baseline (ResNet18, baseline reward) (seeds 2/2)" in block
+    assert claims_markdown([]) == ""
+
+
+def test_claims_command(tmp_path, capsys):
+    res = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.52)],
+                     "explore": [_summary(SR=x) for x in (0.6, 0.62)]})
+    res["experiment"] = "ablation"
+    d = tmp_path / "abl"
+    d.mkdir()
+    (d / "results.json").write_text(json.dumps(res))
+    out, js = tmp_path / "claims.md", tmp_path / "claims.json"
+    assert main(["claims", str(d), "--subset", "ALL", "--out", str(out), "--json", str(js)]) == 0
+    printed = capsys.readouterr().out
+    assert printed == out.read_text() and "L>=5" not in printed and "(alpha 0.05, Welch's t-test)" in printed
+    checks = json.loads(js.read_text())
+    assert _by(checks, "complement-explore", "SR")["verdict"] == "not run"
+    # errors: one line each, nothing written over
+    assert main(["claims", str(tmp_path / "nope")]) == 2
+    assert "no results.json" in capsys.readouterr().err
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "results.json").write_text("{not json")
+    assert main(["claims", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "not valid JSON" in err and len(err.strip().splitlines()) == 1 and out.read_text() == printed
+    assert main(["claims", str(d), str(d)]) == 2
+    assert "a second 'ablation' experiment" in capsys.readouterr().err
+    (bad / "results.json").write_text(json.dumps({"rows": []}))
+    assert main(["claims", str(bad)]) == 2 and "not an experiment's results" in capsys.readouterr().err
