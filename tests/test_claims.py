@@ -46,6 +46,9 @@ def test_verdicts_and_welch_against_the_textbook_formula():
     assert k["diff"] == pytest.approx(np.mean(b) - np.mean(a))
     assert k["p"] == pytest.approx(2 * student.sf(abs(tstat), df), rel=1e-9)
     assert k["verdict"] == "supported" and k["n"] == [3, 4]
+    # the 95 % interval of the difference: the same Welch-Satterthwaite t; it excludes 0 exactly when p < 0.05
+    assert k["ci95"] == pytest.approx(student.ppf(0.975, df) * math.sqrt(va + vb), rel=1e-9)
+    assert k["diff"] - k["ci95"] > 0
     assert k["lower_mean"] == pytest.approx(61.0) and k["higher_mean"] == pytest.approx(71.5)
     # the paper's own difference, from its Table II
     assert k["paper_diff"] == pytest.approx(round(PAPER_TABLE_II["explore"]["ALL"]["SSR"]
@@ -103,7 +106,9 @@ def test_claims_command(tmp_path, capsys):
     d.mkdir()
     (d / "results.json").write_text(json.dumps(res))
     out, js = tmp_path / "claims.md", tmp_path / "claims.json"
-    assert main(["claims", str(d), "--subset", "ALL", "--out", str(out), "--json", str(js)]) == 0
+    png = tmp_path / "claims.png"
+    assert main(["claims", str(d), "--subset", "ALL", "--out", str(out), "--json", str(js), "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     printed = capsys.readouterr().out
     assert printed == out.read_text() and "L>=5" not in printed and "(alpha 0.05, Welch's t-test)" in printed
     checks = json.loads(js.read_text())

@@ -21,10 +21,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..atomic import atomic_write_text
+import numpy as np
+from scipy.stats import t as student
+
+from ..atomic import atomic_save_figure, atomic_write_text
 from ..errors import CommandError
 from .tables import SUBSETS, finite, welch
 
@@ -108,6 +112,19 @@ def verdict(diff: float | None, p: float | None, seeds: int = 2) -> str:
     return "same sign, n.s." if diff > 0 else "opposite sign, n.s."
 
 
+def welch_interval(lower, higher) -> float | None:
+    """Half-width of the 95 % confidence interval of ``mean(higher) - mean(lower)`` (Welch-Satterthwaite degrees
+    of freedom); None with fewer than two values on a side or no spread."""
+    a, b = finite(lower), finite(higher)
+    if len(a) < 2 or len(b) < 2:
+        return None
+    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    if va + vb == 0:
+        return None
+    df = (va + vb) ** 2 / (va ** 2 / (len(a) - 1) + vb ** 2 / (len(b) - 1))
+    return float(student.ppf(0.975, df) * math.sqrt(va + vb))
+
+
 def _values(rows: dict, rid: str, subset: str, metric: str) -> list[float] | None:
     r = rows.get(rid)
     if r is None or metric not in r["metrics"].get(subset, {}):
@@ -131,7 +148,7 @@ def _check_pair(c: Claim, rows: dict, lower: str, subset: str, metric: str) -> d
     n = [0 if lo is None else len(finite(lo)), 0 if hi is None else len(finite(hi))]
     return {"claim": c.id, "experiment": c.experiment, "text": c.text, "lower": lower, "higher": c.higher,
             "subset": subset, "metric": metric, "lower_mean": mean(lo), "higher_mean": mean(hi),
-            "n": n, "diff": diff, "p": p, "paper_diff": _paper_diff(c.experiment, lower, c.higher, subset, metric),
+            "n": n, "diff": diff, "ci95": welch_interval(lo, hi) if diff is not None else None, "p": p, "paper_diff": _paper_diff(c.experiment, lower, c.higher, subset, metric),
             "verdict": verdict(diff, p, min(n))}
 
 
@@ -206,6 +223,35 @@ def summary_line(checks: list[dict]) -> str:
     return ", ".join(f"{v} {n}" for v, n in sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
+def plot_claims(checks: list[dict], path: str | Path, subset: str = "ALL") -> Path | None:
+    """A forest plot of ``checks`` for one subset: per claim and metric our difference (percentage points, dot
+    with its 95 % Welch interval; filled when p < :data:`ALPHA`) and the paper's (red cross); None when there is
+    nothing to draw."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    ks = [k for k in checks if k["subset"] == subset and (k["diff"] is not None or k["paper_diff"] is not None)]
+    if not ks:
+        return None
+    fig = Figure(figsize=(7.5, 0.28 * len(ks) + 1.2), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    y = np.arange(len(ks))[::-1]
+    for yi, k in zip(y, ks):
+        if k["diff"] is not None:
+            sig = k["p"] is not None and k["p"] < ALPHA
+            ax.errorbar([k["diff"]], [yi], xerr=[[k["ci95"] or 0.0], [k["ci95"] or 0.0]], fmt="o", ms=5, capsize=2,
+                        color="#1f77b4", mfc="#1f77b4" if sig else "white", lw=1.2)
+        if k["paper_diff"] is not None:
+            ax.plot([k["paper_diff"]], [yi], "x", color="#d62728", ms=6, mew=1.6)
+    ax.axvline(0.0, color="0.4", lw=0.8)
+    ax.set_yticks(y, [f"{k['higher']} vs {k['lower']}: {k['metric']}" for k in ks], fontsize=7)
+    ax.set_xlabel(f"difference, percentage points ({subset}); red x: the paper; filled: p < {ALPHA}", fontsize=8)
+    ax.tick_params(axis="x", labelsize=7)
+    ax.grid(axis="x", alpha=0.3)
+    return atomic_save_figure(fig, path, dpi=110)
+
+
 def load_results(exp_dir: str | Path) -> dict:
     """``EXP_DIR/results.json``, with a one-line error when it is missing or not an experiment's results."""
     path = Path(exp_dir) / "results.json"
@@ -226,6 +272,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subset", choices=(*SUBSETS, "both"), default="both", help="episode subset(s) to check")
     p.add_argument("--out", help="also write the table (Markdown) to this file")
     p.add_argument("--json", dest="json_out", help="also write the checks as JSON to this file")
+    p.add_argument("--plot", help="also draw the checks of the ALL subset as a forest plot (PNG) to this file")
 
 
 def run(args) -> int:
@@ -247,4 +294,6 @@ def run(args) -> int:
         atomic_write_text(Path(args.out), text)
     if args.json_out:
         atomic_write_text(Path(args.json_out), json.dumps(checks, indent=1) + "\n")
+    if args.plot:
+        plot_claims(checks, args.plot, subsets[0])
     return 0
