@@ -59,7 +59,7 @@ def main() -> None:
         ax.set_ylabel(f"validation {metric}, %")
         ax.set_ylim(0, 100)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, loc="center right")
+    axes[1].legend(fontsize=8, loc="upper left")  # SPL stays low: its upper half is free
     if a.title:
         fig.suptitle(a.title)
     fig.tight_layout()
