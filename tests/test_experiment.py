@@ -252,6 +252,8 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     html = build_report(out, gallery=2).read_text()
     assert "Experiment: ablation" in html and "14 of 14 jobs finished" in html and "&#10003;" in html
     assert "TSRM + DE-MAE, oracle switch" in html and "detections_learned on" in html
+    assert "Against the paper's claims" in html and "exploration reward raises search success" in html
+    assert "alt='claims'" in html
     assert "Encoders" in html and html.count("recon_") == 1  # DE-MAE; the ResNet18 run has no reconstructions
     assert html.count("_map.png") == 2
 

@@ -215,6 +215,27 @@ def claims_markdown(checks: list[dict], labels: dict[str, str] | None = None) ->
     return "\n".join(out)
 
 
+def claims_html(checks: list[dict], labels: dict[str, str] | None = None) -> str:
+    """``checks`` as one HTML table (claim, rows, subset, metric, paper, here, p, verdict), verdicts coloured."""
+    from html import escape
+
+    labels = labels or {}
+    colour = {"supported": "#d7f0d2", "contradicted": "#f6d2d2"}
+    head = ("<tr><th class='l'>claim</th><th class='l'>rows (lower &rarr; higher)</th><th>subset</th><th>metric</th>"
+            "<th>paper</th><th>here</th><th>95 % interval</th><th>p</th><th>seeds</th><th>verdict</th></tr>")
+    body = []
+    for k in checks:
+        p = "-" if k["p"] is None else ("&lt;0.01" if k["p"] < 0.01 else f"{k['p']:.2f}")
+        here = "-" if k["diff"] is None else f"{_num(k['lower_mean'])} &rarr; {_num(k['higher_mean'])} ({_num(k['diff'], True)})"
+        ci = "-" if k.get("ci95") is None else f"&plusmn;{k['ci95']:.1f}"
+        rows = f"{escape(labels.get(k['lower'], k['lower']))} &rarr; {escape(labels.get(k['higher'], k['higher']))}"
+        style = f" style='background:{colour[k['verdict']]}'" if k["verdict"] in colour else ""
+        body.append(f"<tr><td class='l'>{escape(k['text'])}</td><td class='l'>{rows}</td><td>{escape(k['subset'])}</td>"
+                    f"<td>{k['metric']}</td><td>{_num(k['paper_diff'], True)}</td><td>{here}</td><td>{ci}</td>"
+                    f"<td>{p}</td><td>{k['n'][0]}/{k['n'][1]}</td><td{style}>{escape(k['verdict'])}</td></tr>")
+    return f"<table>{head}{''.join(body)}</table>"
+
+
 def summary_line(checks: list[dict]) -> str:
     """How many (claim, metric, subset) checks got each verdict, e.g. ``supported 3, same sign, n.s. 5``."""
     counts: dict[str, int] = {}
