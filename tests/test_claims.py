@@ -11,9 +11,10 @@ import pytest
 from scipy.stats import t as student
 
 from tsnav.cli import main
-from tsnav.eval.claims import (CLAIMS, PAPER_TABLE_II, check_claims, claims_markdown, summary_line, verdict)
+from tsnav.eval.claims import (CLAIMS, PAPER_TABLE_II, check_claims, claims_html, claims_markdown, summary_line,
+                                verdict)
 from tsnav.eval.experiment_config import experiment_rows
-from tsnav.eval.tables import aggregate
+from tsnav.eval.tables import aggregate, welch
 
 METRICS = ["SR", "SPL", "SSR", "SSSPL", "NSNPL"]
 
@@ -81,15 +82,47 @@ def test_threshold_claim_compares_with_the_best_other_row():
     k = _by(checks, "threshold-0.7", "SPL")
     assert k["lower"] in {"c10", "c30", "c50", "c90"} and k["diff"] == pytest.approx(10.0)
     assert k["verdict"] == "supported" and k["paper_diff"] is None
-    md = claims_markdown(checks, {r.id: r.label for r in rows})
+    md = claims_markdown(checks)
     assert "against the best other row" in md and "C_target = 0.3: 62.0 -> 58.0 (-4.0)" in md
+    # the claim's p: Bonferroni over the four other rows (the best one's Welch p times 4) when a row is ahead,
+    # the largest p over all of them (intersection-union) when 0.7 is ahead of every one
+    k = _by(checks, "threshold-0.7", "SR")
+    vals = {r["row"]: r["metrics"]["ALL"]["SR"]["values"] for r in res["rows"]}
+    assert k["p"] == pytest.approx(4 * welch(vals["c30"], vals["c70"])[1])
+    vals = {r["row"]: r["metrics"]["ALL"]["SPL"]["values"] for r in res["rows"]}
+    k = _by(checks, "threshold-0.7", "SPL")
+    assert k["p"] == pytest.approx(max(welch(v, vals["c70"])[1] for rid, v in vals.items() if rid != "c70" and v))
+
+
+def test_threshold_claim_corrects_for_picking_the_best_of_many_rows():
+    """Eight rows level with 0.7 but for the best one's noise: alone it looks significant (p < 0.05), over eight
+    rows it is not; 0.7 ahead of all rows but one with a wide spread is not significantly best."""
+    rows = experiment_rows("threshold")
+    level = [(-0.01, 0.0, 0.01)] * 9
+    per_row = {r.id: [_summary(SR=0.5 + d, SPL=0.3 + d) for d in ds] for r, ds in zip(rows, level)}
+    per_row["c90"] = [_summary(SR=0.525 + d, SPL=0.3 + d) for d in (-0.01, 0.0, 0.01)]  # SR +2.5, p ~ 0.03
+    per_row["c70"] = [_summary(SR=0.5 + d, SPL=0.4 + d) for d in (-0.005, 0.0, 0.005)]
+    per_row["c10"] = [_summary(SR=0.5 + d, SPL=0.3 + d) for d in (-0.2, 0.0, 0.2)]  # SPL 30 +- 20
+    res = aggregate(rows, per_row, ["SR", "SPL"], [])
+    checks = check_claims({"threshold": res}, subsets=("ALL",))
+    vals = {r["row"]: r["metrics"]["ALL"] for r in res["rows"]}
+    k = _by(checks, "threshold-0.7", "SR")
+    alone = welch(vals["c90"]["SR"]["values"], vals["c70"]["SR"]["values"])[1]
+    assert k["lower"] == "c90" and alone < 0.05 and k["p"] == pytest.approx(min(1.0, 8 * alone))
+    assert k["verdict"] == "opposite sign, n.s."
+    k = _by(checks, "threshold-0.7", "SPL")
+    assert k["diff"] > 0 and k["p"] > 0.05 and k["verdict"] == "same sign, n.s."
+    assert k["p"] == pytest.approx(welch(vals["c10"]["SPL"]["values"], vals["c70"]["SPL"]["values"])[1])
+    # one other row with a single seed: no test of the whole claim
+    per_row["c20"] = per_row["c20"][:1]
+    checks = check_claims({"threshold": aggregate(rows, per_row, ["SR", "SPL"], [])}, subsets=("ALL",))
+    assert _by(checks, "threshold-0.7", "SPL")["verdict"] == "one seed"
 
 
 def test_markdown_has_one_table_per_claim_with_both_subsets():
     res = _ablation({"baseline": [_summary(NSNPL=x) for x in (0.40, 0.41)],
                      "distance": [_summary(NSNPL=x) for x in (0.45, 0.46)]})
-    labels = {r.id: r.label for r in experiment_rows("ablation")}
-    md = claims_markdown(check_claims({"ablation": res}), labels)
+    md = claims_markdown(check_claims({"ablation": res}))
     block = md.split("**distance reward raises pathfinding efficiency (NSNPL)**")[1].split("**")[0]
     lines = [x for x in block.splitlines() if x.startswith("| ")]
     assert lines[0].startswith("| metric | ALL paper | ALL here | ALL p | ALL verdict | L>=5 paper")
@@ -126,3 +159,67 @@ def test_claims_command(tmp_path, capsys):
     assert "a second 'ablation' experiment" in capsys.readouterr().err
     (bad / "results.json").write_text(json.dumps({"rows": []}))
     assert main(["claims", str(bad)]) == 2 and "not an experiment's results" in capsys.readouterr().err
+
+
+def test_missing_and_undefined_values_and_equal_means():
+    """None / NaN seeds are dropped (a metric with no finite value is 'not run'); equal means are 'no
+    difference', not a sign."""
+    res = _ablation({"baseline": [_summary(SR=x, SPL=0.4) for x in (0.5, 0.6, 0.55)],
+                     "explore": [_summary(SR=x) for x in (0.6, 0.5, 0.55)],
+                     "distance": [_summary(NSNPL=0.46), _summary(NSNPL=0.46)]})
+    rows = {r["row"]: r for r in res["rows"]}
+    rows["explore"]["metrics"]["ALL"]["SSSPL"]["values"] = [None, float("nan")]
+    rows["explore"]["metrics"]["ALL"]["SR"]["values"].append(None)
+    rows["baseline"]["metrics"]["ALL"]["NSNPL"]["values"] += [float("nan")]
+    del rows["distance"]["metrics"]["L>=5"]
+    checks = check_claims({"ablation": res})
+    assert _by(checks, "exploration", "SSSPL")["verdict"] == "not run"
+    k = _by(checks, "complement-explore", "SR")  # tsrm missing
+    assert k["verdict"] == "not run" and k["p"] is None and k["ci95"] is None
+    k = _by(checks, "distance", "NSNPL")
+    assert k["n"] == [3, 2] and k["verdict"] == "no spread" and k["diff"] == pytest.approx(-4.0)
+    assert _by(checks, "distance", "NSNPL", "L>=5")["verdict"] == "not run"
+    res2 = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.6)], "explore": [_summary(SR=x) for x in (0.6, 0.5)],
+                      "tsrm": [_summary(SR=x) for x in (0.55, 0.56)]})
+    k = _by(check_claims({"ablation": res2}), "complement-explore", "SR")
+    assert k["diff"] == pytest.approx(0.5) and k["verdict"] == "same sign, n.s."
+    assert verdict(0.0, 1.0) == "no difference"
+
+
+def test_markdown_and_html_are_well_formed():
+    res = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.52)],
+                     "explore": [_summary(SR=x) for x in (0.6, 0.62)]})
+    res["rows"][1]["label"] = "explore | <b>"
+    checks = check_claims({"ablation": res})
+    md = claims_markdown(checks)
+    for block in md.split("**")[2::2]:
+        table = [x for x in block.splitlines() if x.startswith("|")]
+        cols = {len(x.replace("\\|", "").split("|")) for x in table}
+        assert len(cols) == 1 and cols == {1 + 4 * 2 + 2}  # metric, 4 columns per subset (both), outer pipes
+    assert "explore \\| <b> against" in md
+    html = claims_html(checks)
+    assert html.count("<tr>") == html.count("</tr>") == len(checks) + 1
+    assert "<b>" not in html and "explore | &lt;b&gt;" in html
+
+
+def test_claims_command_two_experiments_and_bad_outputs(tmp_path, capsys):
+    """Both experiments have a row 'demae' with its own label; each claim names its own. An output path that is
+    a folder or a plot with an unknown suffix is refused before anything is written."""
+    abl = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.52)], "demae": [_summary(SR=x) for x in (0.6, 0.62)]})
+    pre = aggregate(experiment_rows("pretraining"), {"mae": [_summary(SR=0.5)], "demae": [_summary(SR=0.6)]},
+                    ["SR", "SPL"], [])
+    for name, res in (("ablation", abl), ("pretraining", pre)):
+        res["experiment"] = name
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(res))
+    dirs = [str(tmp_path / "ablation"), str(tmp_path / "pretraining")]
+    out = tmp_path / "claims.md"
+    assert main(["claims", *dirs, "--out", str(out)]) == 0
+    md = out.read_text()
+    assert "+ DE-MAE alone against baseline" in md and "DE-MAE (ViT) w/o crop against Standard MAE (ViT)" in md
+    capsys.readouterr()
+    for bad in (["--json", str(tmp_path)], ["--plot", str(tmp_path / "x.txt")]):
+        assert main(["claims", *dirs, "--out", str(out), *bad]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and out.read_text() == md
+    assert not (tmp_path / "x.txt").exists()

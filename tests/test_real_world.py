@@ -15,6 +15,7 @@ from tsnav.world.layouts import (LayoutError, layout_names, load_layout, pack_la
                                  read_layout_file)
 from tsnav.world.navgrid import AGENT_RADIUS, SIGHT_DISTANCE, reachable_positions, targets_in_sight
 from tsnav.world.real import alcoves, blocks, outer_rect, real_spec, spec_from_layout
+from tsnav.world.spec import ObjectInstance, SceneSpec
 
 
 def obj(oid: str, center, size, parents=None, ry: float = 0.0, **flags) -> dict:
@@ -79,6 +80,30 @@ def test_kept_connected_set_sees_the_rooms_targets():
     spec = real_spec("FloorPlan408")
     pos, _ = reachable_positions(spec)
     assert len(pos) == 56 and targets_in_sight(spec, pos)
+
+
+def test_kept_connected_set_rule_on_small_floors():
+    """Two floor squares, 49 grid positions and 9: with no objects (or a target seen from the large one) the
+    large set is kept; with the only target by the small one, the small one; a set of fewer than MIN_COMPONENT
+    positions is never kept; one set is kept as it is."""
+    def square(x0, z0, x1, z1):
+        return [[x0, z0], [x1, z0], [x1, z1], [x0, z1]]
+
+    def spec(*floor, objects=()):
+        return SceneSpec(name="t", room_type="bathroom", split="train", seed=0, rooms=[], floor=list(floor),
+                         objects=list(objects))
+
+    def sink(x, z):
+        return ObjectInstance(f"Sink|{x}|{z}", "Sink", (x, 0.8, z), (0.3, 0.2, 0.1), 0.0, "wall")
+
+    big, small, tiny = square(0, 0, 2, 2), square(3, 0, 4, 1), square(3, 0, 3.75, 0.5)
+    assert len(reachable_positions(spec(big))[0]) == 49
+    assert len(reachable_positions(spec(big, small))[0]) == 49
+    pos, move = reachable_positions(spec(big, small, objects=[sink(3.5, 0.95)]))
+    assert len(pos) == 9 and pos[:, 0].min() == 3.25 and move.max() < 9
+    assert len(reachable_positions(spec(big, small, objects=[sink(3.5, 0.95), sink(1.0, 1.95)]))[0]) == 49
+    assert len(reachable_positions(spec(big, tiny, objects=[sink(3.5, 0.45)]))[0]) == 49
+    assert len(reachable_positions(spec(small, objects=[sink(1.0, 1.95)]))[0]) == 9
 
 
 def test_outer_walls_snap_to_objects_and_alcove_from_a_wall_fixture():

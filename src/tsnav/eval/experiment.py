@@ -94,7 +94,7 @@ from .detector_stage import QUALITY_FILE, record_quality
 from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
                           ensure_world, say)
 from ..rl.done_dips import DIP_DONE_SHARE, run_done_dips
-from .claims import check_claims, claims_markdown, summary_line
+from .claims import ALPHA as CLAIMS_ALPHA, check_claims, claims_markdown, summary_line
 from .tables import (SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line, welch_against,
                      welch_markdown)
 
@@ -265,9 +265,8 @@ class Experiment:
             text += "\n" + dips_line(dips) + "\n"
         checks = check_claims({self.cfg.experiment: results})
         if checks:
-            labels = {r["row"]: r["label"] for r in results["rows"]}
-            text += ("\nAgainst the paper's claims (`tsnav claims`; verdicts at p < 0.05):\n\n"
-                     + claims_markdown(checks, labels) + f"\n{summary_line(checks)}\n")
+            text += (f"\nAgainst the paper's claims (`tsnav claims`; verdicts at p < {CLAIMS_ALPHA}):\n\n"
+                     + claims_markdown(checks) + f"\n{summary_line(checks)}\n")
         atomic_write_text(self.out / "table.md", text)
         atomic_write_text(self.out / "table.csv", csv_table(results))
         write_json(self.out / "results.json", results)

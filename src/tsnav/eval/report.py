@@ -466,14 +466,13 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> t
                      + ".</p>")
     checks = check_claims({name: results}) if results.get("rows") else []
     if checks:
-        labels = {r["row"]: r.get("label", r["row"]) for r in results["rows"]}
         parts.append("<h3>Against the paper's claims</h3><p class='note'>Per claim of the paper, our difference "
                      "(percentage points, per-seed means) beside the paper's, with the 95 % Welch interval and p; "
-                     f"verdicts at p &lt; {ALPHA} ({_e(summary_line(checks))}).</p>" + claims_html(checks, labels))
+                     f"verdicts at p &lt; {ALPHA} ({_e(summary_line(checks))}).</p>" + claims_html(checks))
         png = plot_claims(checks, assets.name(f"claims_{lab}"))
         if png:
             parts.append(f"<figure><img src='{png.name}' alt='claims' style='max-width:800px'><figcaption>Our "
-                         "differences (dots, 95 % Welch interval; filled when p &lt; 0.05) and the paper's (red "
+                         f"differences (dots, 95 % Welch interval; filled when p &lt; {ALPHA}) and the paper's (red "
                          "crosses), ALL episodes.</figcaption></figure>")
     quality = results.get("detector_quality") or {}
     if quality:
