@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -66,7 +67,9 @@ def welch(a, b) -> tuple[float | None, float | None]:
     diff = float(b.mean() - a.mean())
     if len(a) < 2 or len(b) < 2 or (a.var(ddof=1) == 0 and b.var(ddof=1) == 0):
         return diff, None
-    return diff, float(ttest_ind(b, a, equal_var=False).pvalue)
+    with warnings.catch_warnings():  # scipy warns of precision loss when seeds agree to many digits; p stays valid
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return diff, float(ttest_ind(b, a, equal_var=False).pvalue)
 
 
 def welch_against(results: dict, baseline: str) -> dict:
