@@ -40,10 +40,25 @@ def test_each_ending_and_switch():
     assert s["action_shares"]["Done"] == pytest.approx(4 / n_actions) and s["action_shares"]["LookUp"] == 0.0
     text = format_outcomes(s)
     assert "wrong Done, never switched" in text and "CellPhone" in text and "33.3 %" in text
+    assert s["failed_after_a_success_state"] is None  # trajectories without success_frame (older files)
+    assert "Done there would have succeeded" not in text
     with pytest.raises(ValueError, match="6 records but 5 trajectories"):
         outcome_summary([e[0] for e in eps], [e[1] for e in eps][:5])
     with pytest.raises(ValueError, match="disagree"):
         outcome_summary([e[0] for e in eps], [eps[1][1]] + [e[1] for e in eps][1:])
+
+
+def test_failures_that_passed_a_success_state():
+    eps = [episode(0, "Fridge", True, True, [MOVE_AHEAD, DONE]),
+           episode(1, "Fridge", False, True, [MOVE_AHEAD, DONE]),       # wrong Done after passing a success state
+           episode(2, "Fridge", False, True, [ROTATE_LEFT] * 4),        # step limit, never in a success state
+           episode(3, "CellPhone", False, False, [ROTATE_RIGHT] * 3)]   # step limit after passing one
+    for (_, t), frame in zip(eps, (1, 1, -1, 2)):
+        t.success_frame = frame
+    s = outcome_summary([e[0] for e in eps], [e[1] for e in eps])
+    assert s["failed_after_a_success_state"] == {"switched": 1, "never switched": 1}
+    assert ("Done there would have succeeded): 1 of 2 switched failures, 1 of 1 never-switched ones"
+            in format_outcomes(s))
 
 
 def test_eval_folder_outcomes_agree_with_records(tiny_world, tmp_path, capsys):
@@ -66,3 +81,32 @@ def test_eval_folder_outcomes_agree_with_records(tiny_world, tmp_path, capsys):
     limit = sum(1 for t in trajs if len(t.actions) == 30 and t.actions[-1] != DONE)
     assert s["counts"]["step limit, switched"] + s["counts"]["step limit, never switched"] == limit
     assert sum(s["action_shares"].values()) == pytest.approx(1.0)
+    # success_frame against a slow reference, on this folder (random: never in a success state here) and on the
+    # scripted explorer's (always gets there)
+    out2 = tmp_path / "eval_explorer"
+    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "explorer",
+                 "--max-steps", "30", "--out", str(out2)]) == 0
+    frames = check_success_frames(tiny_world, out) + check_success_frames(tiny_world, out2)
+    assert {f >= 0 for f in frames} == {True, False}  # both cases exercised
+
+
+def check_success_frames(world, out) -> list[int]:
+    """Each trajectory's success_frame equals the first of its keys that the scene lists as a success state for
+    its target; the outcome summary's count of failures after a success state follows. Returns the frames."""
+    from tsnav.constants import CATEGORY_INDEX, SUCCESS_DISTANCE
+    from tsnav.data.reader import load_scene
+
+    s = json.loads((out / "outcomes.json").read_text())
+    scenes, missed, frames = {}, {"switched": 0, "never switched": 0}, []
+    for r, t in zip(read_records(out / "records.jsonl"), read_trajectories(out / "trajectories.jsonl")):
+        sc = scenes.setdefault(t.scene, load_scene(world / t.scene))
+        ok = sc.category_visible_within(SUCCESS_DISTANCE)[:, CATEGORY_INDEX[t.target]]
+        index = {k: i for i, k in enumerate(sc.keys)}
+        ref = next((i for i, k in enumerate(t.keys) if ok[index[k]]), -1)
+        assert t.success_frame == ref
+        assert ref >= 0 or not r.success
+        if not r.success and ref >= 0:
+            missed["switched" if r.entered_pathfinding else "never switched"] += 1
+        frames.append(ref)
+    assert s["failed_after_a_success_state"] == missed
+    return frames

@@ -5,8 +5,9 @@ SR alone does not say why an agent fails. Every episode ends in one of three way
 stage (the target's detector confidence passed C_target at some frame, paper III-B). Crossing the two shows
 whether failures are search failures (the switch never fired: the detector never became confident about the
 target) or pathfinding / stopping failures (it fired, yet no success). Per target class, SR beside the switch
-rate shows which classes the detector cannot see. The action shares show degenerate policies (e.g. one that
-never turns left).
+rate shows which classes the detector cannot see. Failed episodes that passed through a success state (the target
+in view within the success distance, where Done would have succeeded) separate "did not stop" from "did not get
+there". The action shares show degenerate policies (e.g. one that never turns left).
 
 :func:`outcome_summary` is what ``tsnav eval`` prints under its metrics table and writes to ``outcomes.json``.
 """
@@ -54,11 +55,15 @@ def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) ->
     counts = {k: 0 for k in outcome_keys()}
     targets: dict[str, list[int]] = {}
     actions: Counter = Counter()
+    missed = {"switched": 0, "never switched": 0}
+    known = all(getattr(t, "success_frame", None) is not None for t in trajectories)
     for r, t in zip(records, trajectories):
         if (r.episode, r.target, bool(r.success)) != (t.episode, t.target, bool(t.success)):
             raise ValueError(f"episode {r.episode}: record and trajectory disagree (another evaluation?)")
         switched = bool(r.entered_pathfinding)
         counts[f"{episode_ending(t)}, {'switched' if switched else 'never switched'}"] += 1
+        if known and not r.success and t.success_frame >= 0:
+            missed["switched" if switched else "never switched"] += 1
         row = targets.setdefault(r.target, [0, 0, 0])
         row[0] += 1
         row[1] += int(bool(r.success))
@@ -75,6 +80,8 @@ def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) ->
         "switched": n_sw,
         "success_if_switched": succ_sw / n_sw if n_sw else None,
         "success_if_never_switched": succ_no / (n - n_sw) if n - n_sw else None,
+        # failed episodes that were in a success state at some frame (None: trajectories without success_frame)
+        "failed_after_a_success_state": missed if known else None,
         "per_target": {k: {"episodes": v[0], "SR": v[1] / v[0], "switch_rate": v[2] / v[0]}
                        for k, v in sorted(targets.items())},
         "action_shares": {a: (actions[i] / total_actions if total_actions else 0.0) for i, a in enumerate(ACTIONS)},
@@ -95,6 +102,13 @@ def format_outcomes(summary: dict) -> str:
 
     lines.append(f"  success when the switch fired: {pct(summary['success_if_switched'])}; "
                  f"when it never fired: {pct(summary['success_if_never_switched'])}")
+    missed = summary.get("failed_after_a_success_state")
+    if missed is not None:
+        fails = {k: sum(v for c, v in summary["counts"].items() if c.endswith(f", {k}") and not c.startswith("success"))
+                 for k in ("switched", "never switched")}
+        lines.append("  failed although in a success state at some frame (Done there would have succeeded): "
+                     f"{missed['switched']} of {fails['switched']} switched failures, "
+                     f"{missed['never switched']} of {fails['never switched']} never-switched ones")
     lines.append("  target            episodes     SR   switch")
     rows = sorted(summary["per_target"].items(), key=lambda kv: (-kv[1]["SR"], -kv[1]["switch_rate"], kv[0]))
     for name, row in rows:

@@ -139,6 +139,9 @@ class Trajectory:
     """Action ids in the order of ``constants.ACTIONS``, Done included."""
     switch_frame: int = -1
     """First frame whose target confidence exceeded C_target (the pathfinding stage starts there), or -1."""
+    success_frame: int | None = None
+    """First frame in a success state for the target (in view within the success distance; Done there would have
+    succeeded), -1 when the episode never was in one, None in files written before this field existed."""
     success: bool = False
     action_order: str = ACTION_ORDER
     """The order ``actions`` are written in (``constants.ACTION_ORDER``); files without it are from the old order."""
@@ -172,6 +175,12 @@ class TrajectoryRecorder:
         return a
 
 
+def first_true(flags) -> int:
+    """Index of the first True of ``flags``, -1 when there is none."""
+    hit = np.flatnonzero(np.asarray(flags, dtype=bool))
+    return int(hit[0]) if len(hit) else -1
+
+
 def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
                         ) -> tuple[list[EpisodeRecord], list[Trajectory]]:
     """Evaluate ``policy`` on ``episodes`` (exactly like :func:`evaluate`) and return the
@@ -200,7 +209,7 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
             trajectories.append(Trajectory(
                 episode=r.episode, scene=r.scene, target=r.target, keys=[str(k) for k in bank.keys[frames]],
                 actions=[int(x) for x in a], switch_frame=switch_frame(conf[frames, g], config.c_target),
-                success=bool(r.success)))
+                success_frame=first_true(bank.success[frames, g]), success=bool(r.success)))
         lo += n
     if len(trajectories) != len(records):
         raise RuntimeError(f"recorded {len(trajectories)} trajectories for {len(records)} episodes")
