@@ -88,6 +88,28 @@ def test_eval_folder_outcomes_agree_with_records(tiny_world, tmp_path, capsys):
                  "--max-steps", "30", "--out", str(out2)]) == 0
     frames = check_success_frames(tiny_world, out) + check_success_frames(tiny_world, out2)
     assert {f >= 0 for f in frames} == {True, False}  # both cases exercised
+    assert any(t.switch_distance > 0 for t in read_trajectories(out2 / "trajectories.jsonl"))
+
+
+def bfs_to_success(scene, start, ok) -> int:
+    """Fewest actions other than Done from state ``start`` to a state where ``ok``, by breadth-first search over
+    the scene's transition table; -1 when none can be reached."""
+    from collections import deque
+
+    from tsnav.constants import ACTIONS
+
+    moves = [i for i, a in enumerate(ACTIONS) if i != DONE]
+    seen, queue = {start: 0}, deque([start])
+    while queue:
+        s = queue.popleft()
+        if ok[s]:
+            return seen[s]
+        for a in moves:
+            n = int(scene.next_state[s, a])
+            if n not in seen:
+                seen[n] = seen[s] + 1
+                queue.append(n)
+    return -1
 
 
 def check_success_frames(world, out) -> list[int]:
@@ -105,8 +127,31 @@ def check_success_frames(world, out) -> list[int]:
         ref = next((i for i, k in enumerate(t.keys) if ok[index[k]]), -1)
         assert t.success_frame == ref
         assert ref >= 0 or not r.success
+        sw = t.switch_frame
+        assert t.success_after_switch == (next((i for i in range(sw, len(t.keys)) if ok[index[t.keys[i]]]), -1)
+                                          if sw >= 0 else -1)
+        assert t.switch_distance == (bfs_to_success(sc, index[t.keys[sw]], ok) if sw >= 0 else -1)
         if not r.success and ref >= 0:
             missed["switched" if r.entered_pathfinding else "never switched"] += 1
         frames.append(ref)
     assert s["failed_after_a_success_state"] == missed
     return frames
+
+
+def test_after_the_switch():
+    eps = [episode(0, "Fridge", True, True, [MOVE_AHEAD, MOVE_AHEAD, DONE]),     # switch at 1, L* 0: 2 actions / 1
+           episode(1, "Fridge", True, True, [MOVE_AHEAD, DONE]),                 # switch at 0, L* 1: 2 / 2
+           episode(2, "Fridge", False, True, [MOVE_AHEAD, DONE]),                # wrong Done
+           episode(3, "Fridge", False, True, [ROTATE_LEFT] * 4),                 # passed a success state
+           episode(4, "Fridge", False, True, [ROTATE_LEFT] * 4),                 # never got there
+           episode(5, "CellPhone", False, False, [ROTATE_RIGHT] * 3)]            # never switched: not counted
+    for (_, t), (sw, d, hit) in zip(eps, [(1, 0, 1), (0, 1, 1), (0, 2, 1), (2, 3, 3), (1, 4, -1), (-1, -1, -1)]):
+        t.switch_frame, t.switch_distance, t.success_after_switch, t.success_frame = sw, d, hit, hit
+    s = outcome_summary([e[0] for e in eps], [e[1] for e in eps])["after_switch"]
+    assert s == {"episodes": 5, "success": 2, "median_distance_at_switch": 2.0, "path_ratio": pytest.approx(4 / 3),
+                 "failures": {"passed a success state without Done": 1, "wrong Done": 1,
+                              "never got to a success state": 1}}
+    assert "after the switch: 2 of 5 succeeded" in format_outcomes(outcome_summary([e[0] for e in eps],
+                                                                                   [e[1] for e in eps]))
+    eps[0][1].switch_distance = None  # an older file: no figures rather than wrong ones
+    assert outcome_summary([e[0] for e in eps], [e[1] for e in eps])["after_switch"] is None

@@ -7,7 +7,9 @@ whether failures are search failures (the switch never fired: the detector never
 target) or pathfinding / stopping failures (it fired, yet no success). Per target class, SR beside the switch
 rate shows which classes the detector cannot see. Failed episodes that passed through a success state (the target
 in view within the success distance, where Done would have succeeded) separate "did not stop" from "did not get
-there". The action shares show degenerate policies (e.g. one that never turns left).
+there". After the switch, the same split (passed a success state without Done / wrong Done / never got to one)
+and the path length of the successful switched episodes against the shortest one from the switch frame show what
+the pathfinding stage costs. The action shares show degenerate policies (e.g. one that never turns left).
 
 :func:`outcome_summary` is what ``tsnav eval`` prints under its metrics table and writes to ``outcomes.json``.
 """
@@ -16,6 +18,8 @@ from __future__ import annotations
 
 from collections import Counter
 from typing import Sequence
+
+import numpy as np
 
 from ..constants import ACTIONS, DONE
 from ..metrics import EpisodeRecord
@@ -70,6 +74,7 @@ def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) ->
         row[2] += int(switched)
         actions.update(t.actions)
     n = len(records)
+    after = after_switch(records, trajectories)
     n_sw = sum(v for k, v in counts.items() if k.endswith(", switched"))
     succ_sw = counts["success, switched"]
     succ_no = counts["success, never switched"]
@@ -82,10 +87,44 @@ def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) ->
         "success_if_never_switched": succ_no / (n - n_sw) if n - n_sw else None,
         # failed episodes that were in a success state at some frame (None: trajectories without success_frame)
         "failed_after_a_success_state": missed if known else None,
+        # the pathfinding stage (None: trajectories without switch_distance)
+        "after_switch": after,
         "per_target": {k: {"episodes": v[0], "SR": v[1] / v[0], "switch_rate": v[2] / v[0]}
                        for k, v in sorted(targets.items())},
         "action_shares": {a: (actions[i] / total_actions if total_actions else 0.0) for i, a in enumerate(ACTIONS)},
     }
+
+
+def after_switch(records: Sequence[EpisodeRecord], trajectories: Sequence) -> dict | None:
+    """What the switched episodes did from their switch frame on: successes, failures split into passed a success
+    state at or after the switch without calling Done / called Done in a wrong state / never got to a success
+    state, the median L* at the switch, and ``path_ratio``: actions taken from the switch frame on (Done
+    included) over L* + 1, summed over the successful switched episodes (1.0 = the shortest path, then Done).
+    None when a trajectory lacks ``switch_distance`` (files written before it existed)."""
+    if any(getattr(t, "switch_distance", None) is None or getattr(t, "success_after_switch", None) is None
+           for t in trajectories):
+        return None
+    failures = {"passed a success state without Done": 0, "wrong Done": 0, "never got to a success state": 0}
+    successes, taken, shortest, at_switch = 0, 0, 0, []
+    for r, t in zip(records, trajectories):
+        if not r.entered_pathfinding or t.switch_frame < 0:
+            continue
+        if t.switch_distance >= 0:
+            at_switch.append(t.switch_distance)
+        if r.success:
+            successes += 1
+            if t.switch_distance >= 0:
+                taken += len(t.actions) - t.switch_frame
+                shortest += t.switch_distance + 1
+        elif episode_ending(t) == "wrong Done":
+            failures["wrong Done"] += 1
+        elif t.success_after_switch >= 0:
+            failures["passed a success state without Done"] += 1
+        else:
+            failures["never got to a success state"] += 1
+    return {"episodes": successes + sum(failures.values()), "success": successes, "failures": failures,
+            "median_distance_at_switch": float(np.median(at_switch)) if at_switch else None,
+            "path_ratio": taken / shortest if shortest else None}
 
 
 def format_outcomes(summary: dict) -> str:
@@ -109,6 +148,14 @@ def format_outcomes(summary: dict) -> str:
         lines.append("  failed although in a success state at some frame (Done there would have succeeded): "
                      f"{missed['switched']} of {fails['switched']} switched failures, "
                      f"{missed['never switched']} of {fails['never switched']} never-switched ones")
+    after = summary.get("after_switch")
+    if after is not None and after["episodes"]:
+        f = after["failures"]
+        ratio = "-" if after["path_ratio"] is None else f"{after['path_ratio']:.2f}"
+        lines.append(f"  after the switch: {after['success']} of {after['episodes']} succeeded; failures: passed a "
+                     f"success state without Done {f['passed a success state without Done']}, wrong Done "
+                     f"{f['wrong Done']}, never got to one {f['never got to a success state']}; median L* at the "
+                     f"switch {after['median_distance_at_switch']:g}; successes took {ratio}x the shortest path")
     lines.append("  target            episodes     SR   switch")
     rows = sorted(summary["per_target"].items(), key=lambda kv: (-kv[1]["SR"], -kv[1]["switch_rate"], kv[0]))
     for name, row in rows:

@@ -142,6 +142,12 @@ class Trajectory:
     success_frame: int | None = None
     """First frame in a success state for the target (in view within the success distance; Done there would have
     succeeded), -1 when the episode never was in one, None in files written before this field existed."""
+    switch_distance: int | None = None
+    """L* at the switch frame: the fewest movement actions from there to a success state (Done not counted), -1
+    when the switch never fired or no success state can be reached from there, None in older files."""
+    success_after_switch: int | None = None
+    """First frame at or after the switch frame in a success state, -1 when there is none (or no switch), None in
+    older files."""
     success: bool = False
     action_order: str = ACTION_ORDER
     """The order ``actions`` are written in (``constants.ACTION_ORDER``); files without it are from the old order."""
@@ -206,10 +212,15 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
             else:
                 frames = np.array([bank.global_state(bank.scene_index(r.scene), r.start)], dtype=np.int64)
             g = CATEGORY_INDEX[r.target]
+            sw = switch_frame(conf[frames, g], config.c_target)
+            hit = bank.success[frames, g]
+            d = int(bank.dist[frames[sw], g]) if sw >= 0 else -1
             trajectories.append(Trajectory(
                 episode=r.episode, scene=r.scene, target=r.target, keys=[str(k) for k in bank.keys[frames]],
-                actions=[int(x) for x in a], switch_frame=switch_frame(conf[frames, g], config.c_target),
-                success_frame=first_true(bank.success[frames, g]), success=bool(r.success)))
+                actions=[int(x) for x in a], switch_frame=sw, success_frame=first_true(hit),
+                switch_distance=d if d != UNREACHABLE else -1,
+                success_after_switch=sw + first_true(hit[sw:]) if sw >= 0 and hit[sw:].any() else -1,
+                success=bool(r.success)))
         lo += n
     if len(trajectories) != len(records):
         raise RuntimeError(f"recorded {len(trajectories)} trajectories for {len(records)} episodes")
