@@ -275,3 +275,67 @@ def test_checkpoint_written_before_the_one_layout_still_loads(tmp_path):
     for i in sa:
         for k in ("exp_avg", "exp_avg_sq"):
             assert torch.equal(sa[i][k], sb[i][k]), (i, k)
+
+
+def test_bf16_rollout_agrees_with_its_float32_replay(world):
+    """The bf16 fast path (autocast forward passes) against float32: the same rollout replayed in float32 gives
+    log-probabilities and values within bfloat16's precision, and the loss gradient points the same way."""
+    from rl_helpers import replay
+    from tsnav.rl.rollout import a2c_loss
+
+    cfg = _cfg(world, num_envs=16, rollout_steps=10)
+    bank, _ = load_bank(cfg)
+    obs_fn = make_observer(bank, cfg)
+    model = make_model(agent_config("paper", dropout=0.0), obs_fn, 0)
+    with pytest.raises(ValueError, match="unknown precision 'fp16'"):
+        RolloutCollector(make_train_env(bank, cfg, 16, seed=3), obs_fn, model, precision="fp16")
+    col = RolloutCollector(make_train_env(bank, cfg, 16, seed=3), obs_fn, model, precision="bf16")
+    torch.manual_seed(0)
+    ro = col.collect(10)
+    assert ro.logp.dtype == ro.value.dtype == torch.float32
+    assert col.state.h.dtype == col.state.c.dtype == torch.float32
+    logp, ent, val = replay(model, obs_fn, ro)
+    assert not torch.equal(logp, ro.logp)  # bf16 arithmetic really ran
+    torch.testing.assert_close(ro.logp, logp, atol=0.02, rtol=0.02)
+    torch.testing.assert_close(ro.value, val, atol=0.02, rtol=0.05)
+
+    def grad(logp, ent, value):
+        adv, ret = gae(ro.reward, value, ro.bootstrap, ro.terminated, ro.finished)
+        fake = type(ro)(logp=logp, entropy=ent, value=value, reward=ro.reward, bootstrap=ro.bootstrap,
+                        terminated=ro.terminated, finished=ro.finished)
+        model.zero_grad()
+        a2c_loss(fake, adv, ret)[0].backward(retain_graph=True)
+        return torch.cat([p.grad.flatten() for p in model.parameters() if p.grad is not None])
+
+    g16, g32 = grad(ro.logp, ro.entropy, ro.value), grad(logp, ent, val)
+    assert torch.nn.functional.cosine_similarity(g16, g32, dim=0) > 0.98
+    assert (g16.norm() / g32.norm() - 1).abs() < 0.05
+
+
+def test_bf16_run_resumes_exactly(world, tmp_path):
+    cfg = _cfg(world, updates=6, precision="bf16")
+    agent = agent_config("cpu")
+    train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
+
+    def kill(progress):
+        if progress["update"] == 4:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+    train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
+    (wa, oa, _), (wb, ob, _) = _weights(tmp_path / "a"), _weights(tmp_path / "b")
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    fp32 = _weights(tmp_path / "a")[0]
+    train_batched(replace_cfg(cfg, precision="fp32"), agent, tmp_path / "c", progress_bar=False)
+    wc = _weights(tmp_path / "c")[0]
+    assert any(not torch.equal(fp32[k], wc[k]) for k in wc)  # the precision changes the arithmetic
+    with pytest.raises(ValueError, match="unknown precision"):
+        _cfg(world, precision="half")
+
+
+def replace_cfg(cfg, **kw):
+    from dataclasses import replace
+
+    return replace(cfg, **kw)

@@ -112,6 +112,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=float, default=1e-3, help="learning rate (default 1e-3; paper 1e-4)")
     parser.add_argument("--entropy-coef", type=float, default=0.01,
                         help="weight of the entropy bonus (default 0.01, the lineage's)")
+    parser.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
+                        help="rollout forward passes in float32 (default) or bfloat16 autocast")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
 
@@ -126,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         cfg = TrainConfig(data=str(Path(args.data).resolve()), features=args.features, detections=args.detections,
                           algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
-                          seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef)
+                          seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef,
+                          precision=args.precision)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
                         patience=args.patience)

@@ -286,9 +286,10 @@ class Experiment:
                 job_dir = cfg_file.parent.parent
                 if not (job_dir / "DONE").exists():
                     continue
-                try:
-                    have = json.loads(cfg_file.read_text()).get("train")
-                except ValueError:
+                try:  # through TrainConfig, so that fields added since (at their defaults) compare equal
+                    have = json.loads(json.dumps(TrainConfig.from_dict(json.loads(cfg_file.read_text())["train"])
+                                                 .to_dict()))
+                except (ValueError, KeyError, TypeError):
                     continue
                 if have == want:
                     return cfg_file.parent

@@ -88,7 +88,8 @@ def _worker(wid: int, cfg_d: dict, agent_d: dict, scenes, shared: ActorCritic, o
         bank, det = load_bank(cfg, scenes)
         observer = make_observer(bank, cfg, features=features, det_features=det)
         local = make_model(AgentConfig(**agent_d), observer, seed)
-        collector = RolloutCollector(make_train_env(bank, cfg, 1, seed=seed), observer, local)
+        collector = RolloutCollector(make_train_env(bank, cfg, 1, seed=seed), observer, local,
+                                     precision=cfg.precision)
         collector.start()
         while not stop.is_set():
             parts, ro = a3c_update(local, shared, optimizer, collector, cfg)

@@ -77,7 +77,7 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
         return progress
     progress["finished"] = False
 
-    collector = RolloutCollector(env, observer, model)
+    collector = RolloutCollector(env, observer, model, precision=cfg.precision)
     collector.start()
     logger = RunLogger(run_dir, progress["update"], enabled=info.is_main)
     bar = ProgressBar(cfg, progress, enabled=progress_bar and info.is_main)

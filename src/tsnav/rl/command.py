@@ -50,6 +50,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="keep every checkpoint at a multiple of this many updates (default: only the newest two)")
     parser.add_argument("--log-every", type=int, default=None, help="updates between log lines")
     parser.add_argument("--device", default=None, help="auto, cpu or cuda (batched trainer)")
+    parser.add_argument("--precision", default=None, choices=["fp32", "bf16"],
+                        help="forward passes of the rollouts in float32 (default) or bfloat16 autocast (faster on "
+                             "CPUs with AVX512-BF16 / AMX and on GPUs)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -59,7 +62,7 @@ _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
            "milestone_every": "milestone_every",
-           "device": "device"}
+           "device": "device", "precision": "precision"}
 
 
 def resolve(args: argparse.Namespace):

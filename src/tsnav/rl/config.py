@@ -9,6 +9,9 @@ from ..errors import from_fields
 from ..tsrm.reward import VARIANTS
 
 ALGOS = ("a3c", "batched")
+#: Arithmetic of the network's forward passes while training: ``fp32``, or ``bf16`` (autocast: matrix products in
+#: bfloat16, weights, optimizer and recurrent state in float32).
+PRECISIONS = ("fp32", "bf16")
 #: Fields that may change when a run is resumed (its budget); every other field must match the saved config.
 BUDGET_FIELDS = ("episodes", "updates", "minutes")
 #: Paper IV-A: the agent is trained for 1.5 M episodes.
@@ -80,6 +83,11 @@ class TrainConfig:
     threads: int = 1
     """Intra-op CPU threads per process (1: the network's small ops gain nothing from more, and spinning
     threads of several processes on few cores slow each other down badly)."""
+    precision: str = "fp32"
+    """``fp32``, or ``bf16``: the training rollouts' forward passes run under ``torch.autocast`` in bfloat16 (the
+    matrix products; weights, gradients' accumulation, optimizer and LSTM state stay float32). About 2.4x the
+    ``paper`` preset's throughput on a CPU with AVX512-BF16 (BENCHMARKS.md); slower than fp32 on CPUs without
+    bfloat16 instructions. Evaluation always runs in float32."""
     device: str = "auto"
     """``auto`` (CUDA when available), ``cpu`` or ``cuda`` (batched trainer; A3C workers run on the CPU)."""
 
@@ -87,6 +95,8 @@ class TrainConfig:
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algo {self.algo!r} (choose from {', '.join(ALGOS)})")
 
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {self.precision!r} (choose from {', '.join(PRECISIONS)})")
         if self.reward not in VARIANTS:
             raise ValueError(f"unknown reward {self.reward!r} (choose from {', '.join(VARIANTS)})")
         for name in ("rollout_steps", "max_steps", "num_envs", "workers", "checkpoint_every", "log_every",

@@ -67,7 +67,10 @@ class RolloutCollector:
     """Steps ``env`` with ``model`` and keeps the observation and recurrent state between rollouts."""
 
     def __init__(self, env: BatchEnv, observer: Observer, model: ActorCritic, stats: EpisodeStats | None = None,
-                 generator: torch.Generator | None = None):
+                 generator: torch.Generator | None = None, precision: str = "fp32"):
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"unknown precision {precision!r} (choose from fp32, bf16)")
+        self.precision = precision
         self.env = env
         self.observer = observer
         self.model = model
@@ -79,6 +82,14 @@ class RolloutCollector:
     @property
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
+
+    def forward(self, obs, state: AgentState) -> tuple[torch.Tensor, torch.Tensor, AgentState]:
+        """The model's step in the collector's precision; logits, value and LSTM state come back as float32."""
+        if self.precision == "fp32":
+            return self.model(obs, state)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16):
+            logits, value, new = self.model(obs, state)
+        return logits.float(), value.float(), AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action)
 
     def start(self) -> None:
         """Begin fresh episodes in every row (drawn from the env's sampler and RNG)."""
@@ -101,7 +112,7 @@ class RolloutCollector:
         done_prob = 0.0
         for t in range(steps):
             o = self.observer(obs["state"], obs["target"])
-            logits, value, state = self.model(o, state)
+            logits, value, state = self.forward(o, state)
             dist = torch.distributions.Categorical(logits=logits)
             if self.generator is None:
                 action = dist.sample()
@@ -119,7 +130,7 @@ class RolloutCollector:
                 rows = np.flatnonzero(trunc)
                 with torch.no_grad():
                     o_fin = self.observer(info["final_state"][rows], target[rows])
-                    _, v_fin, _ = self.model(o_fin, state.index(torch.from_numpy(rows).to(dev)))
+                    _, v_fin, _ = self.forward(o_fin, state.index(torch.from_numpy(rows).to(dev)))
                 boot[torch.from_numpy(rows).to(dev)] = v_fin
             fin = term | trunc
             episodes += self.stats.step(reward, term, trunc, info, obs)
@@ -132,7 +143,7 @@ class RolloutCollector:
             terms.append(torch.from_numpy(term).to(dev))
             fins.append(torch.from_numpy(fin).to(dev))
         with torch.no_grad():  # value of the observation after the rollout
-            _, v_next, _ = self.model(self.observer(obs["state"], obs["target"]), state)
+            _, v_next, _ = self.forward(self.observer(obs["state"], obs["target"]), state)
         self.obs, self.state = obs, state
         value = torch.stack(values)
         boot = torch.stack(boots)
