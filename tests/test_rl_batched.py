@@ -2,6 +2,7 @@
 lowers the loss, exact resume after an interruption, no retraining of a finished run, checkpoints."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -108,7 +109,6 @@ def test_collector_bootstraps_from_the_final_observation(world):
 
 
 def test_an_update_lowers_the_loss_of_its_rollout(world):
-    from dataclasses import replace
 
     from rl_helpers import replay
     from tsnav.rl.rollout import a2c_loss
@@ -203,19 +203,24 @@ def test_resume_equals_uninterrupted_run(world, tmp_path):
     json.dumps(state["rng"][0])
 
 
+def _full_and_interrupted(cfg, agent, tmp_path, at: int) -> None:
+    """Train ``cfg`` to its end in ``tmp_path/a``, and in ``tmp_path/b`` until an interruption after update ``at``."""
+    train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
+
+    def kill(progress):
+        if progress["update"] == at:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+
+
 def test_truncated_newest_checkpoint_resumes_from_the_previous_one(world, tmp_path, capsys):
     """Issue 16 section 5: a broken newest checkpoint is named in one line, set aside, and the run resumes
     from the checkpoint before it, ending exactly like an uninterrupted run."""
     cfg = _cfg(world, updates=8)
     agent = agent_config("cpu")
-    train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
-
-    def kill(progress):
-        if progress["update"] == 7:
-            raise Interrupt()
-
-    with pytest.raises(Interrupt):
-        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+    _full_and_interrupted(cfg, agent, tmp_path, at=7)
     newest = latest_checkpoint(tmp_path / "b")
     assert newest.name == "ckpt_000000006"
     broken = newest / "model.safetensors"
@@ -315,27 +320,14 @@ def test_bf16_rollout_agrees_with_its_float32_replay(world):
 def test_bf16_run_resumes_exactly(world, tmp_path):
     cfg = _cfg(world, updates=6, precision="bf16")
     agent = agent_config("cpu")
-    train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
-
-    def kill(progress):
-        if progress["update"] == 4:
-            raise Interrupt()
-
-    with pytest.raises(Interrupt):
-        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+    _full_and_interrupted(cfg, agent, tmp_path, at=4)
     train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
     (wa, oa, _), (wb, ob, _) = _weights(tmp_path / "a"), _weights(tmp_path / "b")
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k
     fp32 = _weights(tmp_path / "a")[0]
-    train_batched(replace_cfg(cfg, precision="fp32"), agent, tmp_path / "c", progress_bar=False)
+    train_batched(replace(cfg, precision="fp32"), agent, tmp_path / "c", progress_bar=False)
     wc = _weights(tmp_path / "c")[0]
     assert any(not torch.equal(fp32[k], wc[k]) for k in wc)  # the precision changes the arithmetic
     with pytest.raises(ValueError, match="unknown precision"):
         _cfg(world, precision="half")
-
-
-def replace_cfg(cfg, **kw):
-    from dataclasses import replace
-
-    return replace(cfg, **kw)
