@@ -109,7 +109,6 @@ def test_collector_bootstraps_from_the_final_observation(world):
 
 
 def test_an_update_lowers_the_loss_of_its_rollout(world):
-
     from rl_helpers import replay
     from tsnav.rl.rollout import a2c_loss
 
