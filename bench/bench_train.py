@@ -7,7 +7,7 @@ first, so start-up is excluded) and overall (start-up included), mean training e
 second, and the projected wall time of the paper's 1.5 M training episodes at that rate.
 
     .venv/bin/python bench/bench_train.py --data /tmp/demo --features NAME [--seconds 60] [--workers 2]
-        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--no-a3c]
+        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c]
 
 Without --data a tiny world is built in a temporary folder with pooled-pixel features.
 """
@@ -53,6 +53,7 @@ def main() -> None:
     ap.add_argument("--preset", default="cpu", help="agent preset (cpu or paper)")
     ap.add_argument("--precision", nargs="+", default=["fp32"], choices=["fp32", "bf16"],
                     help="batched trainer: forward passes in float32 and / or bfloat16 autocast (each is run)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads of the batched trainer's process (default 1)")
     ap.add_argument("--no-a3c", action="store_true", help="batched trainer only (ratios are then to the first batch size)")
     ap.add_argument("--out", default=None, help="write the figures as JSON here")
     args = ap.parse_args()
@@ -82,25 +83,26 @@ def main() -> None:
         minutes = args.seconds / 60.0
         base = dict(data=str(data), features=features, detections=args.detections, reward="tsrm", preset=args.preset, lr=1e-4,
                     rollout_steps=args.rollout_steps, max_steps=30, minutes=minutes, log_every=5,
-                    checkpoint_every=10**9, device="cpu", threads=1)
+                    checkpoint_every=10**9, device="cpu")
         results = []
         t = time.perf_counter()
         if not args.no_a3c:
             run = tmp / "a3c"
-            p = train_a3c(TrainConfig(algo="a3c", workers=args.workers, **base), agent, run, progress_bar=False)
+            p = train_a3c(TrainConfig(algo="a3c", workers=args.workers, threads=1, **base), agent, run, progress_bar=False)
             results.append(_summary(f"A3C, {args.workers} workers x 1 episode", run, p, time.perf_counter() - t))
         for b in args.num_envs:
             for prec in args.precision:
                 t = time.perf_counter()
                 run = tmp / f"batched{b}_{prec}"
-                p = train_batched(TrainConfig(algo="batched", num_envs=b, precision=prec, **base), agent, run,
+                p = train_batched(TrainConfig(algo="batched", num_envs=b, precision=prec, threads=args.threads, **base),
+                                  agent, run,
                                   progress_bar=False)
                 results.append(_summary(f"batched A2C, 1 process x {b} episodes, {prec}", run, p,
                                         time.perf_counter() - t))
 
         ref = results[0]["steps_per_s_steady"]
         print(f"data {data}, features {features}, agent preset {args.preset}, reward tsrm, "
-              f"rollout {args.rollout_steps} steps, {args.seconds:.0f} s per trainer")
+              f"rollout {args.rollout_steps} steps, {args.threads} thread(s), {args.seconds:.0f} s per trainer")
         head = (f"{'trainer':<46} {'steps/s':>9} {'(overall)':>10} {'x A3C':>6} {'ep len':>7} {'ep/s':>7} "
                 f"{'h for 1.5M ep':>14}")
         print(head)
