@@ -41,6 +41,8 @@ def _summary(name: str, run: Path, progress: dict, wall: float) -> dict:
 
 
 def main() -> None:
+    from tsnav.rl.config import PRECISIONS
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None, help="dataset root (default: a temporary tiny world)")
     ap.add_argument("--features", default=None, help="feature cache name (default: pooled pixels, built here)")
@@ -51,7 +53,7 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, nargs="+", default=[64, 256], help="batched trainer batch sizes")
     ap.add_argument("--rollout-steps", type=int, default=30)
     ap.add_argument("--preset", default="cpu", help="agent preset (cpu or paper)")
-    ap.add_argument("--precision", nargs="+", default=["fp32"], choices=["fp32", "bf16"],
+    ap.add_argument("--precision", nargs="+", default=["fp32"], choices=PRECISIONS,
                     help="batched trainer: forward passes in float32 and / or bfloat16 autocast (each is run)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the batched trainer's process (default 1)")
     ap.add_argument("--no-a3c", action="store_true", help="batched trainer only (ratios are then to the first batch size)")

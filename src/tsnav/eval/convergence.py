@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 from ..agent import agent_config
 from ..atomic import atomic_save_figure, atomic_write_json
 from ..errors import CommandError
-from ..rl.config import TrainConfig
+from ..rl.config import PRECISIONS, TrainConfig
 from ..rl.train import train_run
 from .select import select_checkpoint
 from .stage_cache import ensure_episodes
@@ -112,7 +112,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=float, default=1e-3, help="learning rate (default 1e-3; paper 1e-4)")
     parser.add_argument("--entropy-coef", type=float, default=0.01,
                         help="weight of the entropy bonus (default 0.01, the lineage's)")
-    parser.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
+    parser.add_argument("--precision", default="fp32", choices=PRECISIONS,
                         help="rollout forward passes in float32 (default) or bfloat16 autocast")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")

@@ -215,11 +215,12 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
             sw = switch_frame(conf[frames, g], config.c_target)
             hit = bank.success[frames, g]
             d = int(bank.dist[frames[sw], g]) if sw >= 0 else -1
+            reach = first_true(hit[sw:]) if sw >= 0 else -1
             trajectories.append(Trajectory(
                 episode=r.episode, scene=r.scene, target=r.target, keys=[str(k) for k in bank.keys[frames]],
                 actions=[int(x) for x in a], switch_frame=sw, success_frame=first_true(hit),
                 switch_distance=d if d != UNREACHABLE else -1,
-                success_after_switch=sw + first_true(hit[sw:]) if sw >= 0 and hit[sw:].any() else -1,
+                success_after_switch=sw + reach if reach >= 0 else -1,
                 success=bool(r.success)))
         lo += n
     if len(trajectories) != len(records):

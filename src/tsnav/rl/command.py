@@ -16,7 +16,7 @@ from pathlib import Path
 from ..agent import agent_config
 from ..constants import C_TARGET
 from ..errors import CommandError
-from .config import TrainConfig
+from .config import PRECISIONS, TrainConfig
 from .checkpoint import latest_checkpoint
 from .train import stored_config, train_run
 
@@ -50,7 +50,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="keep every checkpoint at a multiple of this many updates (default: only the newest two)")
     parser.add_argument("--log-every", type=int, default=None, help="updates between log lines")
     parser.add_argument("--device", default=None, help="auto, cpu or cuda (batched trainer)")
-    parser.add_argument("--precision", default=None, choices=["fp32", "bf16"],
+    parser.add_argument("--precision", default=None, choices=PRECISIONS,
                         help="forward passes of the rollouts in float32 (default) or bfloat16 autocast (faster on "
                              "CPUs with AVX512-BF16 / AMX and on GPUs)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -85,7 +85,7 @@ class TrainConfig:
     threads of several processes on few cores slow each other down badly)."""
     precision: str = "fp32"
     """``fp32``, or ``bf16``: the training rollouts' forward passes run under ``torch.autocast`` in bfloat16 (the
-    matrix products; weights, gradients' accumulation, optimizer and LSTM state stay float32). About 2.4x the
+    matrix products; weights, gradients' accumulation, optimizer and LSTM state stay float32). About 2.1-2.3x the
     ``paper`` preset's throughput on a CPU with AVX512-BF16 (BENCHMARKS.md); slower than fp32 on CPUs without
     bfloat16 instructions. Evaluation always runs in float32."""
     device: str = "auto"

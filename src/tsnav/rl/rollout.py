@@ -30,6 +30,7 @@ from ..agent.model import ActorCritic, AgentState
 from ..constants import DONE
 from ..agent.observe import Observer
 from ..sim.batch import BatchEnv
+from .config import PRECISIONS
 from .stats import EpisodeStats
 
 
@@ -68,8 +69,8 @@ class RolloutCollector:
 
     def __init__(self, env: BatchEnv, observer: Observer, model: ActorCritic, stats: EpisodeStats | None = None,
                  generator: torch.Generator | None = None, precision: str = "fp32"):
-        if precision not in ("fp32", "bf16"):
-            raise ValueError(f"unknown precision {precision!r} (choose from fp32, bf16)")
+        if precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {precision!r} (choose from {', '.join(PRECISIONS)})")
         self.precision = precision
         self.env = env
         self.observer = observer
