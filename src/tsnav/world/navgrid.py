@@ -50,11 +50,19 @@ def free_space(spec: SceneSpec, radius: float = AGENT_RADIUS):
     return floor.buffer(-radius + 1e-6, quad_segs=4).difference(blocked)
 
 
-def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
+def reachable_positions(spec: SceneSpec, radius: float | None = None):
     """``(positions (P, 2) float, move (P, 8) int)``: reachable grid positions (the connected set of :func:`keep_component`,
-    sorted by x then z) and, per rotation index, the neighbour reached by MoveAhead (-1 when blocked)."""
+    sorted by x then z) and, per rotation index, the neighbour reached by MoveAhead (-1 when blocked). ``radius``:
+    the clearance kept from walls and obstacles (default: the spec's ``clearance``, else :data:`AGENT_RADIUS`)."""
+    nav = spec.navigation or {}
+    if radius is None:
+        radius = float(nav.get("clearance", AGENT_RADIUS))
     free = free_space(spec, radius)
+    sweep = nav.get("sweep_clearance")
+    free_path = free if sweep is None or float(sweep) == radius else free_space(spec, float(sweep))
     minx, minz, maxx, maxz = free.bounds if not free.is_empty else (0, 0, 0, 0)
+    if free_path is not free:
+        shapely.prepare(free_path)
     xs = np.arange(np.ceil(minx / GRID_SIZE), np.floor(maxx / GRID_SIZE) + 1) * GRID_SIZE
     zs = np.arange(np.ceil(minz / GRID_SIZE), np.floor(maxz / GRID_SIZE) + 1) * GRID_SIZE
     gx, gz = np.meshgrid(xs, zs, indexing="ij")
@@ -77,7 +85,7 @@ def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
         for t in samples:
             sx = pos[:, 0] + t * dx * GRID_SIZE
             sz = pos[:, 1] + t * dz * GRID_SIZE
-            seg_ok &= shapely.contains_xy(free, sx, sz)
+            seg_ok &= shapely.contains_xy(free_path, sx, sz)
         move[:, k] = np.where(has & seg_ok, tgt, -1)
     # Connected sets of the MoveAhead graph (moves are symmetric: reverse heading); one is kept.
     src, kk = np.nonzero(move >= 0)
