@@ -184,7 +184,8 @@ def outer_rect(layout: Layout, version: int = GENERATOR_VERSION) -> list[float]:
         gap = (ext[i] - floor[i]) * sign
         used = gap if 0 < gap <= WALL_SNAP else 0.0
         out.append(floor[i] + sign * max(used, WALL_INSET if version >= 2 else 0.0))
-    return out
+    # From version 2 rounded to 0.1 mm like the alcove cuts, so that a cut flush with a wall leaves no sliver.
+    return [round(v, 4) + 0.0 for v in out] if version >= 2 else out
 
 
 def alcoves(layout: Layout, rect: list[float]) -> list[list[float]]:
