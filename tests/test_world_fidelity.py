@@ -14,8 +14,8 @@ from tsnav.world.build import BuildConfig, build_dataset
 from tsnav.world.fidelity import (TrajectoriesError, load_trajectories, measure, parse_trajectories, scene_moves)
 from tsnav.world.layouts import parse_layout
 from tsnav.world.navgrid import reachable_positions
-from tsnav.world.real import (CLEARANCE, TOILET_SIZE, WALL_INSET, blocks, counter_boxes, footprints, outer_rect,
-                              real_spec, spec_from_layout)
+from tsnav.world.real import (CAPSULE_BOTTOM, CLEARANCE, SEAT_CLEARANCE, TOILET_SIZE, WALL_INSET, blocks,
+                              counter_boxes, footprints, low_clearance, outer_rect, real_spec, spec_from_layout)
 
 from test_real_world import obj
 
@@ -75,6 +75,30 @@ def test_object_resting_on_a_receptacle_and_the_floor_does_not_block():
     p, c = lay.objects[1], lay.objects[2]
     assert blocks(p, version=1) and not blocks(p, version=2)
     assert blocks(c, version=1) and blocks(c, version=2)
+
+
+def test_low_objects_and_upholstered_seats_keep_a_smaller_clearance():
+    """The capsule's rounded bottom: by hand, an object whose top is 0.03 + 0.1 m high is kept
+    sqrt(0.19^2 - 0.09^2) = 0.1673 m away; one lower than the capsule's bottom does not block; sofas keep
+    SEAT_CLEARANCE. Positions follow: a point 0.17 m from a sofa's face (or from a lying bat) is reachable in
+    version 2, not beside a cabinet."""
+    assert low_clearance(CAPSULE_BOTTOM + 0.1) == pytest.approx(math.sqrt(0.19 ** 2 - 0.09 ** 2))
+    assert low_clearance(0.02) == 0.0 and low_clearance(0.5) == CLEARANCE
+    cloth = obj("Cloth|+01.00|+00.01|+01.00", (1.0, 0.01, 1.0), (0.3, 0.02, 0.3), [FLOOR_ID])
+    lay = layout(cloth)
+    assert blocks(lay.objects[1], version=1) and not blocks(lay.objects[1], version=2)
+
+    def reach(kind, top):
+        # a box whose z face lies 0.17 m from the grid point (1.5, 1.75)
+        o = obj(f"{kind}|x", (1.5, top / 2, 1.92 + 0.2), (0.6, top, 0.4), [FLOOR_ID])
+        spec = spec_from_layout(layout(o), "living_room", "train", version=2)
+        pos = {tuple(p) for p in reachable_positions(spec)[0]}
+        return (1.5, 1.75) in pos, spec.navigation.get("clearances", {})
+
+    assert reach("Sofa", 0.8) == (True, {"Sofa|x": SEAT_CLEARANCE})
+    assert reach("Cabinet", 0.8) == (False, {})
+    ok, own = reach("BaseballBat", 0.1)  # top 0.1 m: clearance sqrt(0.19^2 - 0.12^2) = 0.147
+    assert ok and own["BaseballBat|x"] == pytest.approx(round(math.sqrt(0.19 ** 2 - 0.12 ** 2), 4))
 
 
 def test_oversized_toilet_box_is_replaced_by_a_toilet():

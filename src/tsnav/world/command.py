@@ -42,9 +42,10 @@ def run_fidelity(args) -> int:
     except TrajectoriesError as e:
         raise CommandError(str(e)) from None
     print(markdown_table(results), end="")
-    s = summary(results)
-    print(f"positions {s['positions']:.1f} %, moves kept {s['moves_kept']:.1f} %, blocked blocked "
-          f"{s['blocked_blocked']:.1f} %; report in {out}")
+    c = summary(results)["counts"]
+    pct = lambda a, n: 100.0 * a / n if n else float("nan")  # noqa: E731
+    print(f"positions {pct(c['positions_kept'], c['positions']):.1f} %, moves kept {pct(c['moves_kept'], c['moves']):.1f}"
+          f" %, blocked blocked {pct(c['blocked_kept'], c['blocked']):.1f} %; report in {out}")
     return 0
 
 

@@ -33,20 +33,26 @@ STEPS = {r: (int(round(np.sin(np.deg2rad(r)))), int(round(np.cos(np.deg2rad(r)))
 
 
 def free_space(spec: SceneSpec, radius: float = AGENT_RADIUS):
-    """Shapely geometry of the positions the agent's centre may occupy."""
+    """Shapely geometry of the positions the agent's centre may occupy: the floor shrunk by ``radius``, less every
+    wall and blocking footprint grown by ``radius``, or by its own smaller clearance when the spec's
+    ``navigation["clearances"]`` gives one (objectId -> metres: a low object the capsule's rounded bottom passes
+    closer to)."""
     floor = unary_union([Polygon(p) for p in spec.floor])
-    obstacles = []
+    own = (spec.navigation or {}).get("clearances", {})
+    groups: dict[float, list] = {}
     wall_inst = {i for i, n in enumerate(spec.instances) if n == "Wall"}
     for p in spec.parts:
         if int(p.inst) in wall_inst:
-            obstacles.append(Polygon(box_footprint(p.center, p.size, p.yaw)))
+            groups.setdefault(radius, []).append(Polygon(box_footprint(p.center, p.size, p.yaw)))
     for f in spec.furniture:
         if f.blocks:
-            obstacles.append(Polygon(f.footprint()))
+            groups.setdefault(min(radius, own.get(f.id, radius)), []).append(Polygon(f.footprint()))
     for o in spec.objects:
         if o.support == "floor":
-            obstacles.append(Polygon(box_footprint(o.center, o.size, o.yaw)))
-    blocked = unary_union(obstacles).buffer(radius, quad_segs=4) if obstacles else Polygon()
+            groups.setdefault(min(radius, own.get(o.objectId, radius)), []).append(
+                Polygon(box_footprint(o.center, o.size, o.yaw)))
+    grown = [unary_union(polys).buffer(r, quad_segs=4) for r, polys in sorted(groups.items()) if polys]
+    blocked = unary_union(grown) if grown else Polygon()
     return floor.buffer(-radius + 1e-6, quad_segs=4).difference(blocked)
 
 

@@ -83,6 +83,29 @@ CLEARANCE = 0.19
 #: two reachable neighbours (of the real blocked MoveAheads none leads to a position real agents stood on), so
 #: the path only has to stay off the obstacles themselves, not a full capsule radius away from them.
 SWEEP_CLEARANCE = 0.05
+#: Upholstered seats, whose recorded boxes hold cushions and rounded arms beyond their colliders: real agents
+#: stand 0.166-0.186 m from sofa and armchair boxes (FloorPlan222, 226, 330); from version 2 the agent keeps
+#: :data:`SEAT_CLEARANCE` from them. (Beds are not among them: a real agent is blocked 0.182 m from one.)
+UPHOLSTERED = frozenset({"Sofa", "ArmChair"})
+SEAT_CLEARANCE = 0.16
+#: Height of the bottom of the agent's capsule above the floor, metres: AI2-THOR reports the agent's centre 0.93 m
+#: above the floor (``event_FloorPlan29_physics_reset.json``) and the capsule is :data:`AGENT_HEIGHT` high.
+CAPSULE_BOTTOM = 0.03
+
+
+def low_clearance(top: float, clearance: float = 0.19) -> float:
+    """Clearance the capsule keeps from an object whose top is ``top`` metres above the floor (from version 2):
+    the capsule's rounded bottom (a hemisphere of radius ``clearance`` from :data:`CAPSULE_BOTTOM` up) is
+    narrower than ``clearance`` below ``CAPSULE_BOTTOM + clearance``; 0 when the object is lower than the
+    capsule (a cloth lying flat). Objects at least that high keep ``clearance``."""
+    h = top - CAPSULE_BOTTOM
+    if h <= 0:
+        return 0.0
+    if h >= clearance:
+        return clearance
+    return math.sqrt(clearance ** 2 - (clearance - h) ** 2)
+
+
 #: A toilet box wider than this across the direction it faces holds more than the toilet (the Toilet_2 asset of
 #: FloorPlan421-430 records 1.12 x 1.17 m); from version 2 it is replaced by :data:`TOILET_SIZE`, metres.
 TOILET_MAX_WIDTH = 0.8
@@ -108,6 +131,8 @@ def blocks(o: LayoutObject, floor_y: float = 0.0, height: float = AGENT_HEIGHT,
         return False  # on a receptacle: the receptacle blocks
     if version >= 2 and any(not is_floor_id(p) for p in o.parents):
         return False
+    if version >= 2 and o.aabb_max[1] - floor_y <= CAPSULE_BOTTOM:
+        return False  # lower than the capsule's bottom: the agent passes over it
     return o.aabb_min[1] - floor_y < height
 
 
@@ -446,11 +471,17 @@ def spec_from_layout(layout: Layout, room_type: str, split: str, version: int | 
     floor_material = jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))])
     spec.parts += floor_and_ceiling((x0, z0, x1, z1), spec.wall_height, floor_material, floor_inst, ceil_inst)
     _walls(spec, poly, wall_inst, jitter(rng, *WALLS[int(rng.integers(len(WALLS)))]))
+    own: dict[str, float] = {}
     for o in layout.objects:
         if o.object_type == "Floor":
             continue
         inst = spec.new_inst(o.object_id)
         block = blocks(o, fy, version=version)
+        if block and version >= 2:
+            c = min(low_clearance(o.aabb_max[1] - fy, CLEARANCE),
+                    SEAT_CLEARANCE if o.object_type in UPHOLSTERED else CLEARANCE)
+            if c < CLEARANCE:
+                own[o.object_id] = round(c, 4)
         for (ox, oz), (sx, sz), yaw in footprints(layout, o, version):
             size = (round(sx, 4), round(o.aabb_size[1], 4), round(sz, 4))
             center = (round(ox, 4), round(o.aabb_min[1], 4), round(oz, 4))
@@ -461,6 +492,8 @@ def spec_from_layout(layout: Layout, room_type: str, split: str, version: int | 
             else:  # a counter made of several runs gives several entries with its one id
                 spec.furniture.append(Furniture(o.object_id, o.object_type, center, size, yaw, block, None, inst))
             spec.parts += _parts_for(o, ((ox, oz), (sx, sz), yaw), inst, fy, layout)
+    if own:
+        spec.navigation["clearances"] = own
     stove = stove_body(layout, version)
     if stove is not None:  # not a recorded object: its id says so
         (ox, oz), (sx, sz), yaw, top = stove
