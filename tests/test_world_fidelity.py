@@ -249,3 +249,9 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     assert "none of its 1 scenes" in capsys.readouterr().err
     assert main(["world", "fidelity", "--data", str(tmp_path / "w")]) == 2
     assert main(["world", "--preset", "tiny", "--world-version", "1", "--out", str(tmp_path / "x")]) == 2
+    # a version 2 room in the folder: building version 1 into it is refused (the world would mix versions)
+    capsys.readouterr()
+    assert main(["world", "--preset", "ithor-real", "--world-version", "1", "--scenes", "FloorPlan408",
+                 "--no-images", "--size", "32", "--out", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err
+    assert "built with ithor-real version 2" in err and "--world-version 2" in err and err.count("\n") == 1

@@ -205,6 +205,29 @@ def check_output_dir(out: Path) -> None:
         raise PermissionError(f"cannot write to output folder {out}: {e.strerror or e}") from None
 
 
+def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
+    """Refuse to add ``ithor-real`` rooms of one rules version to a folder whose finished rooms were built with
+    another (finished rooms are skipped, so the world would mix versions): one-line ``ValueError``. A room
+    without a recorded ``generator`` was built before versions were recorded: version 1."""
+    if cfg.world != "ithor-real":
+        return
+    from .real import check_version
+
+    want = check_version(cfg.world_version)
+    for n in names:
+        meta_path = out / n / "scene.json"
+        if not (out / n / COMPLETE_MARKER).exists() or not meta_path.exists():
+            continue
+        try:
+            gen = json.loads(meta_path.read_text()).get("generator") or {}
+        except (OSError, ValueError):
+            continue  # an unreadable room is the reader's problem, not a version mismatch
+        have = int(gen.get("version", 1))
+        if have != want:
+            raise ValueError(f"{out / n} was built with ithor-real version {have}, this build makes version {want}: "
+                             f"pass --world-version {have} to finish that world, or use another --out")
+
+
 def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str] | None = None,
                   cfg: BuildConfig | None = None, workers: int = 1, progress: bool = True) -> list[SceneStats]:
     """Build ``scenes`` (default: the preset's) into ``out``; finished scenes are skipped."""
@@ -218,6 +241,7 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
     # Leftovers of interrupted builds are never complete: remove them.
     for stale in out.glob(".*.partial-*"):
         shutil.rmtree(stale, ignore_errors=True)
+    check_world_version(out, names, cfg)
     write_index(out, preset or "custom", names, cfg)
     todo = [(n, out, cfg) for n in names]
     results: list[SceneStats] = []
