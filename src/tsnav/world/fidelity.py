@@ -318,12 +318,11 @@ def save_fidelity_png(path: str | Path, meta: dict, fid: SceneFidelity, position
 
     from ..atomic import atomic_save_figure
 
-    fig = Figure(figsize=(6.4, 6.0), dpi=110)
+    fig = Figure(figsize=(8.0, 6.0), dpi=100)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    ax = fig.add_axes((0.07, 0.07, 0.6, 0.86))
     draw_fidelity(ax, meta, fid, positions, triples)
-    ax.legend(fontsize=5.5, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
-    fig.tight_layout()
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
     return atomic_save_figure(fig, path)
 
 
