@@ -69,12 +69,15 @@ def test_agent_stands_exactly_a_capsule_radius_from_a_box():
 
 
 def test_object_resting_on_a_receptacle_and_the_floor_does_not_block():
-    pillow = obj("Pillow|+01.00|+00.50|+01.00", (1.0, 0.5, 1.0), (0.4, 0.4, 0.4), [FLOOR_ID, "Sofa|+01.00|+00.40|+01.20"])
+    pillow = obj("Pillow|+01.00|+00.50|+01.00", (1.0, 0.5, 1.0), (0.4, 0.4, 0.4), [FLOOR_ID, "Sofa|+01.00|+00.40|+01.20"],
+                 pickupable=True)
     chair = obj("Chair|+02.00|+00.45|+02.00", (2.0, 0.45, 2.0), (0.5, 0.9, 0.5), [FLOOR_ID])
-    lay = layout(pillow, chair)
-    p, c = lay.objects[1], lay.objects[2]
+    desk = obj("Desk|+02.00|+00.40|+00.50", (2.0, 0.4, 0.5), (1.0, 0.8, 0.5), ["Chair|+02.00|+00.45|+02.00", FLOOR_ID])
+    lay = layout(pillow, chair, desk)
+    p, c, d = lay.objects[1], lay.objects[2], lay.objects[3]
     assert blocks(p, version=1) and not blocks(p, version=2)
     assert blocks(c, version=1) and blocks(c, version=2)
+    assert blocks(d, version=1) and blocks(d, version=2)  # not pickupable: a chair touching it carries no desk
 
 
 def test_low_objects_and_upholstered_seats_keep_a_smaller_clearance():

@@ -123,14 +123,15 @@ def blocks(o: LayoutObject, floor_y: float = 0.0, height: float = AGENT_HEIGHT,
            version: int = GENERATOR_VERSION) -> bool:
     """Whether object ``o`` blocks the agent (AI2-THOR's reachability rule as the metadata tells it, see the
     module docstring): floor-standing or fixed, below the capsule's top, not a wall fixture. Version 1 let an
-    object block when any of its receptacles was the Floor; from version 2 an object that also rests on another
-    receptacle (a pillow on a sofa touching the floor, a towel on its holder) is on that receptacle."""
+    object block when any of its receptacles was the Floor; from version 2 a pickupable object that also rests on
+    another receptacle (a pillow on a sofa touching the floor, a towel on its holder) is on that receptacle (a
+    desk whose receptacles are the floor and the chair touching it still blocks)."""
     if o.object_type == "Floor" or o.object_type in WALL_FIXTURES:
         return False
-    if version < 2 and o.parents and not any(is_floor_id(p) for p in o.parents):
+    if o.parents and not any(is_floor_id(p) for p in o.parents):
         return False  # on a receptacle: the receptacle blocks
-    if version >= 2 and any(not is_floor_id(p) for p in o.parents):
-        return False
+    if version >= 2 and o.pickupable and any(not is_floor_id(p) for p in o.parents):
+        return False  # a small thing resting on a receptacle that also touches the floor (a pillow on a sofa)
     if version >= 2 and o.aabb_max[1] - floor_y <= CAPSULE_BOTTOM:
         return False  # lower than the capsule's bottom: the agent passes over it
     return o.aabb_min[1] - floor_y < height
@@ -325,7 +326,16 @@ def counter_boxes(layout: Layout, counter: LayoutObject, version: int = GENERATO
 
 
 def room_polygon(layout: Layout, version: int = GENERATOR_VERSION) -> Polygon:
-    """The room's floor: :func:`outer_rect` minus :func:`alcoves`."""
+    """The room's floor: :func:`outer_rect` minus :func:`alcoves`. From version 2, version 1's outline clipped
+    to version 2's (inset) outer walls: the inset moves the outer walls and changes no alcove. (Version 1's
+    outline keeps a quirk: a cut whose edge is flush with the rectangle's only up to rounding, as in FloorPlan18,
+    223, 324 and 404, becomes a hole that the floor (the exterior) ignores. No dev scene tells whether those cuts are right, so version 2 keeps
+    the outlines as they were.)"""
+    if version >= 2:  # version 1's floor is its polygon's exterior (a cut left as a hole changed nothing)
+        poly = Polygon(room_polygon(layout, 1).exterior).intersection(box(*outer_rect(layout, version)))
+        if not isinstance(poly, Polygon):
+            poly = max(poly.geoms, key=lambda g: g.area)
+        return orient(poly.simplify(0), sign=1.0)
     rect = outer_rect(layout, version)
     poly = box(*rect)
     for c in alcoves(layout, rect):
