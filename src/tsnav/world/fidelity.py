@@ -24,8 +24,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from shapely.geometry import Point, Polygon
+from shapely.ops import unary_union
 
-from ..constants import GRID_SIZE, ROTATIONS
+from ..atomic import atomic_save_figure, atomic_write_text
+from ..constants import GRID_SIZE, MOVE_AHEAD, ROTATIONS
+from ..data.reader import is_complete, load_scene
+from .navgrid import AGENT_RADIUS
+from .spec import box_footprint
 
 #: Action names a trajectories file may hold (the lineage's, plus Done).
 ACTIONS = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", "LookDown", "Done")
@@ -189,8 +195,6 @@ def scene_moves(scene) -> tuple[np.ndarray, np.ndarray]:
     """``(positions, move)`` of a loaded scene folder (:class:`~tsnav.data.reader.Scene`) in the form of
     :func:`~tsnav.world.navgrid.reachable_positions`: MoveAhead at horizon 0 (the graph's moves do not depend on
     the horizon in tsnav worlds; a position's move counts when either horizon has it)."""
-    from ..constants import MOVE_AHEAD
-
     xz = np.stack([scene.x, scene.z], axis=1).astype(np.float64)
     cells = [cell(float(x), float(z)) for x, z in xz]
     uniq = sorted(set(cells))
@@ -261,8 +265,6 @@ def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, tri
             ax.text(c[0], c[1], f["category"], fontsize=4.5, ha="center", va="center", color="#3b3226", zorder=2)
         else:
             ax.add_patch(MplPolygon(f["footprint"], closed=True, fill=False, edgecolor="#b3a794", lw=0.3, zorder=1))
-    from .spec import box_footprint
-
     for o in meta.get("objects", []):
         b = o.get("bbox")
         if not b:
@@ -316,8 +318,6 @@ def save_fidelity_png(path: str | Path, meta: dict, fid: SceneFidelity, position
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from ..atomic import atomic_save_figure
-
     fig = Figure(figsize=(8.0, 6.0), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_axes((0.07, 0.07, 0.6, 0.86))
@@ -332,11 +332,6 @@ def explain_missing(meta: dict, cells: list[Cell], clearance: float) -> list[dic
     footprints (furniture ids, target objects standing on the floor) nearer than ``clearance`` to it, ``"wall"``
     when it is nearer than that to the room's outline or outside it, or nothing (then the position is cut off
     from the kept connected set). One dict ``{"position": [x, z], "causes": [...]}`` per cell."""
-    from shapely.geometry import Point, Polygon
-    from shapely.ops import unary_union
-
-    from .spec import box_footprint
-
     floor = unary_union([Polygon(p) for p in meta.get("floor", [])]) if meta.get("floor") else None
     obstacles = [(f["id"], Polygon(f["footprint"])) for f in meta.get("furniture", []) if f.get("blocks", True)]
     for o in meta.get("objects", []):
@@ -370,9 +365,6 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
     ``fidelity.md`` and (with ``pictures``) ``SCENE.png`` per scene into ``out`` (default ``DATA/fidelity``).
     Returns the per-scene results and the output folder. A trajectories file naming no scene of ``data`` is an
     error (one line); scenes of the file that ``data`` lacks are listed in the JSON as ``absent``."""
-    from ..atomic import atomic_write_text
-    from ..data.reader import is_complete, load_scene
-
     data = Path(data)
     if not data.is_dir():
         raise FileNotFoundError(f"{data}: no such dataset folder")
@@ -391,8 +383,6 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
         fid = measure(name, positions, move, triples[name])
         results.append(fid)
         nav = scene.meta.get("navigation") or {}
-        from .navgrid import AGENT_RADIUS
-
         clearance = float(nav.get("clearance", AGENT_RADIUS))
         explained = explain_missing(scene.meta, fid.missing, clearance)
         js = fid.to_json()
