@@ -49,8 +49,9 @@ def test_blocking_rule_and_reachable_positions():
     kinds = {o.object_id.split("|")[0] + ("-high" if o.aabb_center[1] > 2 else ""): blocks(o) for o in layout.objects}
     assert kinds == {"Floor": False, "Chair": True, "Plate": False, "LightSwitch": False, "Cabinet-high": False,
                      "Cabinet": True}
-    assert outer_rect(layout) == [0.0, 0.0, 3.0, 3.0] and alcoves(layout, [0.0, 0.0, 3.0, 3.0]) == []
-    spec = spec_from_layout(layout, "bathroom", "train")
+    # Version 1's rules (walls at the floor box, the full capsule radius); version 2 below (test_version_2_*).
+    assert outer_rect(layout, 1) == [0.0, 0.0, 3.0, 3.0] and alcoves(layout, [0.0, 0.0, 3.0, 3.0]) == []
+    spec = spec_from_layout(layout, "bathroom", "train", version=1)
     pos, move = reachable_positions(spec)
     # By hand: grid points at least the agent's radius from the walls and from the two blocking boxes.
     blockers = [((1.5, 0, 1.5), (0.5, 0, 0.5)), ((2.75, 0, 2.75), (0.5, 0, 0.5))]
@@ -67,7 +68,7 @@ def test_blocking_rule_and_reachable_positions():
 def test_kept_connected_set_sees_the_rooms_targets():
     """FloorPlan409's shower stall (behind ShowerDoor/ShowerGlass) holds 54 grid positions, the bathroom 52:
     the stall, from which no target is in sight, is left out. Rooms whose largest set sees a target keep it."""
-    spec = real_spec("FloorPlan409")
+    spec = real_spec("FloorPlan409", version=1)
     pos, _ = reachable_positions(spec)
     assert len(pos) == 52
     seen = targets_in_sight(spec, pos)
@@ -77,7 +78,7 @@ def test_kept_connected_set_sees_the_rooms_targets():
         centres = [(o.center[0], o.center[2]) for o in spec.objects if o.objectType == cat]
         assert min(np.hypot(*(p - c)) for p in pos for c in np.asarray(centres)) < SIGHT_DISTANCE
     # FloorPlan408 also has two sets (56 and 55 positions); the larger sees targets and is kept
-    spec = real_spec("FloorPlan408")
+    spec = real_spec("FloorPlan408", version=1)
     pos, _ = reachable_positions(spec)
     assert len(pos) == 56 and targets_in_sight(spec, pos)
 
@@ -112,10 +113,10 @@ def test_outer_walls_snap_to_objects_and_alcove_from_a_wall_fixture():
     switch = obj("LightSwitch|+02.00|+01.30|+02.50", (2.0, 1.3, 2.5), (0.15, 0.15, 0.09), None, ry=180)
     chair = obj("Chair|+03.00|+00.00|+03.75", (3.0, 0.45, 3.75), (0.5, 0.9, 0.5), ["Floor|+00.00|+00.00|+00.00"])
     layout = parse_layout({"scene": "FloorPlan1", "objects": [floor, switch, chair]}, "alcove")
-    rect = outer_rect(layout)
+    rect = outer_rect(layout, 1)
     assert rect == [0.0, 0.0, 4.0, 4.0]
     assert alcoves(layout, rect) == [[0.0, 2.545, 2.75, 4.0]]
-    spec = spec_from_layout(layout, "kitchen", "train")
+    spec = spec_from_layout(layout, "kitchen", "train", version=1)
     pos, _ = reachable_positions(spec)
     assert not any(x < 2.75 and z > 2.5 for x, z in pos)  # nothing in the alcove
     assert any(x >= 3.5 and z >= 3.0 for x, z in pos) and any(x < 2.5 and z < 2.25 for x, z in pos)
@@ -123,7 +124,7 @@ def test_outer_walls_snap_to_objects_and_alcove_from_a_wall_fixture():
     cab = obj("Cabinet|+00.55|+00.40|+01.00", (0.55, 0.4, 1.0), (0.5, 0.8, 0.5))
     wide = obj("Floor|+00.00|+00.00|+00.00", (2.0, -0.05, 2.0), (4.0, 0.1, 4.0))
     lay2 = parse_layout({"scene": "FloorPlan2", "objects": [wide, cab]}, "snap")
-    assert outer_rect(lay2)[0] == pytest.approx(0.3)
+    assert outer_rect(lay2, 1)[0] == pytest.approx(0.3)
 
 
 def test_layout_reader_one_line_errors(tmp_path):

@@ -15,7 +15,7 @@ from .errors import CommandError
 
 #: subcommand -> (module, one-line help)
 COMMANDS = {
-    "world": ("tsnav.world.command", "build an offline dataset of procedurally generated houses"),
+    "world": ("tsnav.world.command", "build an offline dataset (procedural or real rooms); `world fidelity`: check it against real trajectories"),
     "show": ("tsnav.world.show", "draw a scene folder: top-down map and first-person views (PNG)"),
     "eval": ("tsnav.eval.command", "evaluate a policy or a trained run on an episode list"),
     "episodes": ("tsnav.sim.command", "write fixed validation / test episode lists (JSON)"),

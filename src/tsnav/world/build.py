@@ -41,6 +41,9 @@ class BuildConfig:
     compression: str | None = None  #: HDF5 filter for images (None or "gzip"; lzf output is not byte-reproducible)
     compact: bool = False  #: small rooms (the `tiny` preset)
     world: str = "procedural"  #: layout source: "procedural" or "ithor-real" (tsnav.world.presets.WORLDS)
+    #: version of the ithor-real rules (tsnav.world.real.VERSIONS; None: the newest); 1 rebuilds worlds made
+    #: before issue 24
+    world_version: int | None = None
     seed: int = 0  #: world seed; the same name and seed give the same scene
     tiles: int = 16  #: views rendered per framebuffer read
 
@@ -78,7 +81,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
         stats.skipped = True
         return stats
     t0 = time.perf_counter()
-    spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact)
+    spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact, version=cfg.world_version)
     positions, move = reachable_positions(spec)
     js = spec.to_json()
     objects = spec.objects
@@ -137,7 +140,8 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
             js.update({"image_size": cfg.image_size, "compact": cfg.compact,
                        "visibility": {"min_pixels": min_px, "min_pixel_fraction": MIN_PIXEL_FRACTION,
                                       "distance": VISIBILITY_DISTANCE},
-                       "num_states": len(keys), "num_positions": len(positions)})
+                       "num_states": len(keys), "num_positions": len(positions),
+                       "figures": scene_figures(spec, len(positions), len(keys), vis.any(axis=0))})
             write_json(tmp / "scene.json", js)
         stats.write_s += time.perf_counter() - t3
     finally:
@@ -145,6 +149,22 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
             renderer.release()
     stats.states, stats.positions, stats.objects = len(keys), len(positions), O
     return stats
+
+
+def scene_figures(spec: SceneSpec, positions: int, states: int, seen: np.ndarray) -> dict:
+    """The figures that describe a built scene (``scene.json`` ``figures``): reachable positions, states, objects
+    (all recorded or generated objects, and those that block the agent), target-class objects, the target
+    categories present in the scene and those seen from at least one state (``seen``: per object of
+    ``spec.objects``, in the visible object map), and where the scene comes from."""
+    furniture_ids = {f.id for f in spec.furniture}
+    present = sorted({o.objectType for o in spec.objects})
+    seen_cats = sorted({o.objectType for o, s in zip(spec.objects, seen) if s})
+    return {"positions": int(positions), "states": int(states),
+            "objects": len(furniture_ids) + len(spec.objects),
+            "blocking_objects": len({f.id for f in spec.furniture if f.blocks})
+            + sum(o.support == "floor" for o in spec.objects),
+            "target_objects": len(spec.objects), "targets_present": present, "targets_seen": seen_cats,
+            "generator": spec.generator or {"world": "procedural"}}
 
 
 def write_index(out_dir: Path, preset: str, names: list[str], cfg: BuildConfig) -> None:
@@ -185,6 +205,29 @@ def check_output_dir(out: Path) -> None:
         raise PermissionError(f"cannot write to output folder {out}: {e.strerror or e}") from None
 
 
+def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
+    """Refuse to add ``ithor-real`` rooms of one rules version to a folder whose finished rooms were built with
+    another (finished rooms are skipped, so the world would mix versions): one-line ``ValueError``. A room
+    without a recorded ``generator`` was built before versions were recorded: version 1."""
+    if cfg.world != "ithor-real":
+        return
+    from .real import check_version
+
+    want = check_version(cfg.world_version)
+    for n in names:
+        meta_path = out / n / "scene.json"
+        if not (out / n / COMPLETE_MARKER).exists() or not meta_path.exists():
+            continue
+        try:
+            gen = json.loads(meta_path.read_text()).get("generator") or {}
+        except (OSError, ValueError):
+            continue  # an unreadable room is the reader's problem, not a version mismatch
+        have = int(gen.get("version", 1))
+        if have != want:
+            raise ValueError(f"{out / n} was built with ithor-real version {have}, this build makes version {want}: "
+                             f"pass --world-version {have} to finish that world, or use another --out")
+
+
 def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str] | None = None,
                   cfg: BuildConfig | None = None, workers: int = 1, progress: bool = True) -> list[SceneStats]:
     """Build ``scenes`` (default: the preset's) into ``out``; finished scenes are skipped."""
@@ -198,6 +241,7 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
     # Leftovers of interrupted builds are never complete: remove them.
     for stale in out.glob(".*.partial-*"):
         shutil.rmtree(stale, ignore_errors=True)
+    check_world_version(out, names, cfg)
     write_index(out, preset or "custom", names, cfg)
     todo = [(n, out, cfg) for n in names]
     results: list[SceneStats] = []

@@ -1,4 +1,5 @@
-"""``tsnav world``: build an offline dataset of procedurally generated houses."""
+"""``tsnav world``: build an offline dataset of procedurally generated houses or real iTHOR rooms;
+``tsnav world fidelity``: check a built world against recorded real trajectories (:mod:`tsnav.world.fidelity`)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,17 @@ from .presets import PRESETS
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("action", nargs="?", default="build", choices=("build", "fidelity"),
+                   help="build (default): build a dataset; fidelity: check --data against --trajectories")
     p.add_argument("--preset", default="tiny", help=f"scene set: {', '.join(PRESETS)} (default tiny)")
-    p.add_argument("--out", required=True, help="dataset folder (one sub-folder per scene)")
+    p.add_argument("--out", default=None, help="dataset folder (one sub-folder per scene); for fidelity the report "
+                   "folder (default DATA/fidelity)")
+    p.add_argument("--world-version", type=int, default=None,
+                   help="version of the ithor-real rules (default: the newest; 1 rebuilds worlds made before issue 24)")
+    p.add_argument("--data", default=None, help="fidelity: a built dataset folder")
+    p.add_argument("--trajectories", default=None, help="fidelity: real trajectories file "
+                   "(format of ai2thor/real_trajectories/dev_scenes.json)")
+    p.add_argument("--no-pictures", action="store_true", help="fidelity: do not draw the per-scene PNGs")
     p.add_argument("--scenes", default=None, help="comma-separated scene names instead of the preset's")
     p.add_argument("--size", type=int, default=None, help="image side in pixels (default: the preset's)")
     p.add_argument("--no-images", action="store_true", help="do not store images.hdf5 / depth.hdf5")
@@ -22,12 +32,42 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--compact", action="store_true", default=None, help="small rooms (default: the preset's)")
 
 
+def run_fidelity(args) -> int:
+    from .fidelity import TrajectoriesError, fidelity_report, markdown_table, summary
+
+    if not args.data or not args.trajectories:
+        raise CommandError("fidelity needs --data DIR and --trajectories FILE")
+    try:
+        results, out = fidelity_report(args.data, args.trajectories, args.out, pictures=not args.no_pictures)
+    except TrajectoriesError as e:
+        raise CommandError(str(e)) from None
+    print(markdown_table(results), end="")
+    c = summary(results)["counts"]
+    pct = lambda a, n: 100.0 * a / n if n else float("nan")  # noqa: E731
+    print(f"positions {pct(c['positions_kept'], c['positions']):.1f} %, moves kept {pct(c['moves_kept'], c['moves']):.1f}"
+          f" %, blocked blocked {pct(c['blocked_kept'], c['blocked']):.1f} %; report in {out}")
+    return 0
+
+
 def run(args) -> int:
+    if args.action == "fidelity":
+        return run_fidelity(args)
+    if not args.out:
+        raise CommandError("--out DIR is required to build a dataset")
     if args.preset not in PRESETS:
         raise CommandError(f"unknown preset {args.preset!r} (choose from {', '.join(PRESETS)})")
     cfg = BuildConfig.from_preset(args.preset, store_images=not args.no_images, seed=args.seed,
                                   **({"image_size": args.size} if args.size else {}),
-                                  **({"compact": True} if args.compact else {}))
+                                  **({"compact": True} if args.compact else {}),
+                                  **({"world_version": args.world_version} if args.world_version is not None else {}))
+    if cfg.world_version is not None and cfg.world != "ithor-real":
+        raise CommandError(f"--world-version applies to the ithor-real world, not preset {args.preset!r}")
+    if cfg.world_version is not None:
+        from .real import VERSIONS
+
+        if cfg.world_version not in VERSIONS:
+            raise CommandError(f"unknown --world-version {cfg.world_version} (choose from "
+                               f"{', '.join(map(str, VERSIONS))})")
     if cfg.image_size < 16 or cfg.image_size > 1024:
         raise CommandError(f"--size {cfg.image_size} is out of range (16..1024)")
     if args.workers < 1:

@@ -33,28 +33,42 @@ STEPS = {r: (int(round(np.sin(np.deg2rad(r)))), int(round(np.cos(np.deg2rad(r)))
 
 
 def free_space(spec: SceneSpec, radius: float = AGENT_RADIUS):
-    """Shapely geometry of the positions the agent's centre may occupy."""
+    """Shapely geometry of the positions the agent's centre may occupy: the floor shrunk by ``radius``, less every
+    wall and blocking footprint grown by ``radius``, or by its own smaller clearance when the spec's
+    ``navigation["clearances"]`` gives one (objectId -> metres: a low object the capsule's rounded bottom passes
+    closer to)."""
     floor = unary_union([Polygon(p) for p in spec.floor])
-    obstacles = []
+    own = (spec.navigation or {}).get("clearances", {})
+    groups: dict[float, list] = {}
     wall_inst = {i for i, n in enumerate(spec.instances) if n == "Wall"}
     for p in spec.parts:
         if int(p.inst) in wall_inst:
-            obstacles.append(Polygon(box_footprint(p.center, p.size, p.yaw)))
+            groups.setdefault(radius, []).append(Polygon(box_footprint(p.center, p.size, p.yaw)))
     for f in spec.furniture:
         if f.blocks:
-            obstacles.append(Polygon(f.footprint()))
+            groups.setdefault(min(radius, own.get(f.id, radius)), []).append(Polygon(f.footprint()))
     for o in spec.objects:
         if o.support == "floor":
-            obstacles.append(Polygon(box_footprint(o.center, o.size, o.yaw)))
-    blocked = unary_union(obstacles).buffer(radius, quad_segs=4) if obstacles else Polygon()
+            groups.setdefault(min(radius, own.get(o.objectId, radius)), []).append(
+                Polygon(box_footprint(o.center, o.size, o.yaw)))
+    grown = [unary_union(polys).buffer(r, quad_segs=4) for r, polys in sorted(groups.items()) if polys]
+    blocked = unary_union(grown) if grown else Polygon()
     return floor.buffer(-radius + 1e-6, quad_segs=4).difference(blocked)
 
 
-def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
+def reachable_positions(spec: SceneSpec, radius: float | None = None):
     """``(positions (P, 2) float, move (P, 8) int)``: reachable grid positions (the connected set of :func:`keep_component`,
-    sorted by x then z) and, per rotation index, the neighbour reached by MoveAhead (-1 when blocked)."""
+    sorted by x then z) and, per rotation index, the neighbour reached by MoveAhead (-1 when blocked). ``radius``:
+    the clearance kept from walls and obstacles (default: the spec's ``clearance``, else :data:`AGENT_RADIUS`)."""
+    nav = spec.navigation or {}
+    if radius is None:
+        radius = float(nav.get("clearance", AGENT_RADIUS))
     free = free_space(spec, radius)
+    sweep = nav.get("sweep_clearance")
+    free_path = free if sweep is None or float(sweep) == radius else free_space(spec, float(sweep))
     minx, minz, maxx, maxz = free.bounds if not free.is_empty else (0, 0, 0, 0)
+    if free_path is not free:
+        shapely.prepare(free_path)
     xs = np.arange(np.ceil(minx / GRID_SIZE), np.floor(maxx / GRID_SIZE) + 1) * GRID_SIZE
     zs = np.arange(np.ceil(minz / GRID_SIZE), np.floor(maxz / GRID_SIZE) + 1) * GRID_SIZE
     gx, gz = np.meshgrid(xs, zs, indexing="ij")
@@ -77,7 +91,7 @@ def reachable_positions(spec: SceneSpec, radius: float = AGENT_RADIUS):
         for t in samples:
             sx = pos[:, 0] + t * dx * GRID_SIZE
             sz = pos[:, 1] + t * dz * GRID_SIZE
-            seg_ok &= shapely.contains_xy(free, sx, sz)
+            seg_ok &= shapely.contains_xy(free_path, sx, sz)
         move[:, k] = np.where(has & seg_ok, tgt, -1)
     # Connected sets of the MoveAhead graph (moves are symmetric: reverse heading); one is kept.
     src, kk = np.nonzero(move >= 0)

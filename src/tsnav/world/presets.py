@@ -41,11 +41,15 @@ def preset_scenes(name: str) -> list[str]:
     return list(PRESETS[name]["scenes"])
 
 
-def scene_spec(name: str, world: str = "procedural", seed: int = 0, compact: bool = False) -> SceneSpec:
+def scene_spec(name: str, world: str = "procedural", seed: int = 0, compact: bool = False,
+               version: int | None = None) -> SceneSpec:
     """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` and ``compact`` apply to
-    procedural scenes only."""
+    procedural scenes only, ``version`` (of the rules, :data:`tsnav.world.real.VERSIONS`; None: the newest) to
+    ``ithor-real`` only."""
     if world == "procedural":
+        if version is not None:
+            raise ValueError("a world version applies to the ithor-real world only")
         return generate(name, seed=seed, compact=compact)
     if world == "ithor-real":
-        return real_spec(name)
+        return real_spec(name, version)
     raise ValueError(f"unknown world {world!r} (choose from {', '.join(WORLDS)})")

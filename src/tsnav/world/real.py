@@ -70,6 +70,48 @@ EXTRA_ROLES = {
     "Stove": ("metal", "metal", "plastic"),
 }
 _FLOOR_TOL = 0.05
+#: Version of the ``ithor-real`` rules (:func:`real_spec`); version 1 is the rules of worlds built before issue 24.
+GENERATOR_VERSION = 2
+VERSIONS = (1, 2)
+#: The Floor object's box runs under the walls: from version 2 a wall lies at least this far inside its edge, m.
+WALL_INSET = 0.1
+#: Clearance kept between the agent's centre and walls or blocking boxes from version 2, metres: the capsule's
+#: radius (:data:`~tsnav.world.navgrid.AGENT_RADIUS`) less 1 cm, as a capsule just touching a box is no hit and the
+#: recorded boxes are rounded to the millimetre (real agents stand exactly 0.20 m from counters and walls).
+CLEARANCE = 0.19
+#: Clearance a MoveAhead's straight path keeps from version 2, metres: real agents move diagonally between any
+#: two reachable neighbours (of the real blocked MoveAheads none leads to a position real agents stood on), so
+#: the path only has to stay off the obstacles themselves, not a full capsule radius away from them.
+SWEEP_CLEARANCE = 0.05
+#: Upholstered seats, whose recorded boxes hold cushions and rounded arms beyond their colliders: real agents
+#: stand 0.166-0.186 m from sofa and armchair boxes (FloorPlan222, 226, 330); from version 2 the agent keeps
+#: :data:`SEAT_CLEARANCE` from them. (Beds are not among them: a real agent is blocked 0.182 m from one.)
+UPHOLSTERED = frozenset({"Sofa", "ArmChair"})
+SEAT_CLEARANCE = 0.16
+#: Height of the bottom of the agent's capsule above the floor, metres: AI2-THOR reports the agent's centre 0.93 m
+#: above the floor (``event_FloorPlan29_physics_reset.json``) and the capsule is :data:`AGENT_HEIGHT` high.
+CAPSULE_BOTTOM = 0.03
+
+
+def low_clearance(top: float, clearance: float = 0.19) -> float:
+    """Clearance the capsule keeps from an object whose top is ``top`` metres above the floor (from version 2):
+    the capsule's rounded bottom (a hemisphere of radius ``clearance`` from :data:`CAPSULE_BOTTOM` up) is
+    narrower than ``clearance`` below ``CAPSULE_BOTTOM + clearance``; 0 when the object is lower than the
+    capsule (a cloth lying flat). Objects at least that high keep ``clearance``."""
+    h = top - CAPSULE_BOTTOM
+    if h <= 0:
+        return 0.0
+    if h >= clearance:
+        return clearance
+    return math.sqrt(clearance ** 2 - (clearance - h) ** 2)
+
+
+#: A toilet box wider than this across the direction it faces holds more than the toilet (the Toilet_2 asset of
+#: FloorPlan421-430 records 1.12 x 1.17 m); from version 2 it is replaced by :data:`TOILET_SIZE`, metres.
+TOILET_MAX_WIDTH = 0.8
+#: ``(width, depth)`` of the toilet footprint used instead, its back on the recorded box's back face and
+#: centred across on the toilet's pivot (its objectId), metres.
+TOILET_SIZE = (0.53, 0.97)
 
 
 # ------------------------------------------------------------------------------------------------ rules
@@ -77,13 +119,21 @@ def is_floor_id(object_id: str) -> bool:
     return object_id.split("|", 1)[0] == "Floor"
 
 
-def blocks(o: LayoutObject, floor_y: float = 0.0, height: float = AGENT_HEIGHT) -> bool:
+def blocks(o: LayoutObject, floor_y: float = 0.0, height: float = AGENT_HEIGHT,
+           version: int = GENERATOR_VERSION) -> bool:
     """Whether object ``o`` blocks the agent (AI2-THOR's reachability rule as the metadata tells it, see the
-    module docstring): floor-standing or fixed, below the capsule's top, not a wall fixture."""
+    module docstring): floor-standing or fixed, below the capsule's top, not a wall fixture. Version 1 let an
+    object block when any of its receptacles was the Floor; from version 2 a pickupable object that also rests on
+    another receptacle (a pillow on a sofa touching the floor, a towel on its holder) is on that receptacle (a
+    desk whose receptacles are the floor and the chair touching it still blocks)."""
     if o.object_type == "Floor" or o.object_type in WALL_FIXTURES:
         return False
     if o.parents and not any(is_floor_id(p) for p in o.parents):
         return False  # on a receptacle: the receptacle blocks
+    if version >= 2 and o.pickupable and any(not is_floor_id(p) for p in o.parents):
+        return False  # a small thing resting on a receptacle that also touches the floor (a pillow on a sofa)
+    if version >= 2 and o.aabb_max[1] - floor_y <= CAPSULE_BOTTOM:
+        return False  # lower than the capsule's bottom: the agent passes over it
     return o.aabb_min[1] - floor_y < height
 
 
@@ -141,8 +191,9 @@ def _bounds(o: LayoutObject) -> tuple[float, float, float, float]:
     return x0, z0, x1, z1
 
 
-def outer_rect(layout: Layout) -> list[float]:
-    """``[x0, z0, x1, z1]``: the room's outer walls (module docstring, "Outer walls")."""
+def outer_rect(layout: Layout, version: int = GENERATOR_VERSION) -> list[float]:
+    """``[x0, z0, x1, z1]``: the room's outer walls (module docstring, "Outer walls"); from version 2 every
+    wall lies at least :data:`WALL_INSET` inside the floor box's edge."""
     fx0, fz0, fx1, fz1 = _bounds(layout.floor)
     ext = [math.inf, math.inf, -math.inf, -math.inf]
     for o in layout.objects:
@@ -157,8 +208,10 @@ def outer_rect(layout: Layout) -> list[float]:
     out = []
     for i, sign in enumerate((1, 1, -1, -1)):  # x0, z0 grow inwards (+); x1, z1 shrink (-)
         gap = (ext[i] - floor[i]) * sign
-        out.append(floor[i] + sign * gap if 0 < gap <= WALL_SNAP else floor[i])
-    return out
+        used = gap if 0 < gap <= WALL_SNAP else 0.0
+        out.append(floor[i] + sign * max(used, WALL_INSET if version >= 2 else 0.0))
+    # From version 2 rounded to 0.1 mm like the alcove cuts, so that a cut flush with a wall leaves no sliver.
+    return [round(v, 4) + 0.0 for v in out] if version >= 2 else out
 
 
 def alcoves(layout: Layout, rect: list[float]) -> list[list[float]]:
@@ -209,7 +262,7 @@ def _local(x: float, z: float, yaw: float) -> tuple[float, float]:
     return c * x - s * z, s * x + c * z  # inverse of (x = c lx + s lz, z = -s lx + c lz)
 
 
-def counter_boxes(layout: Layout, counter: LayoutObject) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
+def counter_boxes(layout: Layout, counter: LayoutObject, version: int = GENERATOR_VERSION) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
     """Footprints ``((cx, cz), (sx, sz), yaw)`` of a counter whose recorded box (its top slab, without an
     oriented box) is much larger than a counter's depth: an L- or U-shaped run along the walls, or an island
     turned off the grid. Things standing on the counter and the fixed cabinets, drawers and sinks under it
@@ -241,10 +294,13 @@ def counter_boxes(layout: Layout, counter: LayoutObject) -> list[tuple[tuple[flo
         return plain
     ry = counter.rotation[1] % 360
     if abs(ry - 90 * round(ry / 90)) > 5:  # an island turned off the grid
-        lz = [abs(_local(*(np.array((o.aabb_center[0], o.aabb_center[2])) - (cx, cz)), ry)[1]) for o in sup]
+        loc = np.array([_local(*(np.array((o.aabb_center[0], o.aabb_center[2])) - (cx, cz)), ry) for o in sup])
         diag = (ax + az) / 2 * math.sqrt(2)  # length + depth of a rectangle turned by 45 degrees
-        depth = min(max(0.6, 2 * max(lz) + 0.15), diag / 2)
-        return [((cx, cz), (diag - depth, depth), ry)]
+        # Version 1 took the depth along the local z axis; from version 2 along the axis the objects on it
+        # spread less over (they stand along its length).
+        axis = 1 if version < 2 or np.ptp(loc[:, 1]) <= np.ptp(loc[:, 0]) else 0
+        depth = min(max(0.6, 2 * float(np.abs(loc[:, axis]).max()) + 0.15), diag / 2)
+        return [((cx, cz), (diag - depth, depth) if axis == 1 else (depth, diag - depth), ry)]
     runs: dict[int, list[float]] = {}  # side -> [along0, along1, depth]
     for o in sup:
         bx0, bz0, bx1, bz1 = _bounds(o)
@@ -269,9 +325,18 @@ def counter_boxes(layout: Layout, counter: LayoutObject) -> list[tuple[tuple[flo
     return out
 
 
-def room_polygon(layout: Layout) -> Polygon:
-    """The room's floor: :func:`outer_rect` minus :func:`alcoves`."""
-    rect = outer_rect(layout)
+def room_polygon(layout: Layout, version: int = GENERATOR_VERSION) -> Polygon:
+    """The room's floor: :func:`outer_rect` minus :func:`alcoves`. From version 2, version 1's outline clipped
+    to version 2's (inset) outer walls: the inset moves the outer walls and changes no alcove. (Version 1's
+    outline keeps a quirk: a cut whose edge is flush with the rectangle's only up to rounding, as in FloorPlan18,
+    223, 324 and 404, becomes a hole that the floor (the exterior) ignores. No dev scene tells whether those cuts are right, so version 2 keeps
+    the outlines as they were.)"""
+    if version >= 2:  # version 1's floor is its polygon's exterior (a cut left as a hole changed nothing)
+        poly = Polygon(room_polygon(layout, 1).exterior).intersection(box(*outer_rect(layout, version)))
+        if not isinstance(poly, Polygon):
+            poly = max(poly.geoms, key=lambda g: g.area)
+        return orient(poly.simplify(0), sign=1.0)
+    rect = outer_rect(layout, version)
     poly = box(*rect)
     for c in alcoves(layout, rect):
         poly = poly.difference(box(*c))
@@ -287,11 +352,47 @@ def _category_mats(category: str) -> dict:
     return materials_for(category, rng, EXTRA_ROLES.get(category))
 
 
-def footprints(layout: Layout, o: LayoutObject) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
+def pivot(o: LayoutObject) -> tuple[float, float]:
+    """The object's pivot ``(x, z)`` as its objectId records it (``Toilet|-01.84|+00.00|+02.50``), else the
+    centre of its box."""
+    parts = o.object_id.split("|")
+    try:
+        return float(parts[1]), float(parts[3])
+    except (IndexError, ValueError):
+        return o.aabb_center[0], o.aabb_center[2]
+
+
+def toilet_box(o: LayoutObject) -> tuple[tuple[float, float], tuple[float, float], float] | None:
+    """The footprint ``((cx, cz), (sx, sz), yaw)`` of a toilet whose recorded box is wider than
+    :data:`TOILET_MAX_WIDTH` across the direction it faces (turned by a right angle; None otherwise): a
+    :data:`TOILET_SIZE` box with its back on the recorded box's back face, centred across on the pivot."""
+    ry = o.rotation[1] % 360
+    k = round(ry / 90) % 4
+    if abs(ry - 90 * round(ry / 90)) > 5:
+        return None
+    fx, fz = ((0, 1), (1, 0), (0, -1), (-1, 0))[k]  # the direction it faces: rotation 0 faces +z, 90 faces +x
+    across = o.aabb_size[2] if fx else o.aabb_size[0]
+    if across <= TOILET_MAX_WIDTH:
+        return None
+    w, d = TOILET_SIZE
+    px, pz = pivot(o)
+    if fx:  # back face at the box's x side opposite the facing direction
+        back = o.aabb_min[0] if fx > 0 else o.aabb_max[0]
+        return (back + fx * d / 2, pz), (w, d), 90.0 * k
+    back = o.aabb_min[2] if fz > 0 else o.aabb_max[2]
+    return (px, back + fz * d / 2), (w, d), 90.0 * k
+
+
+def footprints(layout: Layout, o: LayoutObject,
+               version: int = GENERATOR_VERSION) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
     """Floor-plane boxes ``((cx, cz), (sx, sz), yaw)`` of object ``o``: :func:`oriented_box`, or for a
-    large counter :func:`counter_boxes`."""
+    large counter :func:`counter_boxes`, or (from version 2) for an oversized toilet box :func:`toilet_box`."""
     if o.object_type == "CounterTop":
-        return counter_boxes(layout, o)
+        return counter_boxes(layout, o, version)
+    if o.object_type == "Toilet" and version >= 2:
+        t = toilet_box(o)
+        if t is not None:
+            return [t]
     return [oriented_box(o)]
 
 
@@ -338,39 +439,60 @@ def _walls(spec: SceneSpec, poly: Polygon, inst: int, material) -> None:
         spec.parts.append(Part((mx, H / 2, mz), (length + 2 * WALL_T, H, WALL_T), yaw, col, col2, pat, scale, inst))
 
 
-def real_spec(name: str) -> SceneSpec:
-    """The :class:`SceneSpec` of real iTHOR scene ``name`` (``FloorPlan1``-``430``) from its packaged layout."""
+def check_version(version: int | None) -> int:
+    """``version`` of the ``ithor-real`` rules (None: the newest, :data:`GENERATOR_VERSION`); ValueError when unknown."""
+    if version is None:
+        return GENERATOR_VERSION
+    if version not in VERSIONS:
+        raise ValueError(f"unknown ithor-real version {version!r} (choose from {', '.join(map(str, VERSIONS))})")
+    return int(version)
+
+
+def real_spec(name: str, version: int | None = None) -> SceneSpec:
+    """The :class:`SceneSpec` of real iTHOR scene ``name`` (``FloorPlan1``-``430``) from its packaged layout, by
+    the rules of ``version`` (:data:`VERSIONS`; None: the newest)."""
+    version = check_version(version)
     room_type, split = scene_info(name)
     if room_type == "apartment":
         raise ValueError(f"the ithor-real world has the 120 iTHOR single rooms, not {name!r}")
-    return spec_from_layout(load_layout(name), room_type, split)
+    return spec_from_layout(load_layout(name), room_type, split, version)
 
 
-def spec_from_layout(layout: Layout, room_type: str, split: str) -> SceneSpec:
+def spec_from_layout(layout: Layout, room_type: str, split: str, version: int | None = None) -> SceneSpec:
     """The :class:`SceneSpec` of one recorded layout: room outline, walls, and every object as parts of its
-    recorded size, pose and category; objects of the 22 target classes keep their recorded objectId."""
+    recorded size, pose and category; objects of the 22 target classes keep their recorded objectId. The spec
+    records the rules' version and (from version 2) the agent's clearance, :data:`CLEARANCE`."""
+    version = check_version(version)
     name = layout.scene
     layout = on_floor(layout)
     fy = 0.0
-    poly = room_polygon(layout)
+    poly = room_polygon(layout, version)
     x0, z0, x1, z1 = poly.bounds
     top = max(o.aabb_max[1] for o in layout.objects if o.object_type != "Floor")
     spec = SceneSpec(name=name, room_type=room_type, split=split, seed=0,
                      rooms=[{"type": room_type, "rect": [round(v, 4) for v in (x0, z0, x1, z1)]}],
                      floor=[[[round(x, 4), round(z, 4)] for x, z in list(poly.exterior.coords)[:-1]]],
-                     wall_height=round(max(2.6, top + 0.1), 3))
+                     wall_height=round(max(2.6, top + 0.1), 3),
+                     generator={"world": "ithor-real", "version": version},
+                     navigation={"clearance": CLEARANCE, "sweep_clearance": SWEEP_CLEARANCE} if version >= 2 else None)
     spec.light = {"direction": [0.35, -2.5, 0.2], "ambient": 0.55, "diffuse": 0.42, "tint": [1.0, 0.98, 0.95]}
     rng = np.random.default_rng(zlib.crc32(f"tsnav-ithor-real|{name}".encode()))
     floor_inst, wall_inst, ceil_inst = spec.new_inst("Floor"), spec.new_inst("Wall"), spec.new_inst("Ceiling")
     floor_material = jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))])
     spec.parts += floor_and_ceiling((x0, z0, x1, z1), spec.wall_height, floor_material, floor_inst, ceil_inst)
     _walls(spec, poly, wall_inst, jitter(rng, *WALLS[int(rng.integers(len(WALLS)))]))
+    own: dict[str, float] = {}
     for o in layout.objects:
         if o.object_type == "Floor":
             continue
         inst = spec.new_inst(o.object_id)
-        block = blocks(o, fy)
-        for (ox, oz), (sx, sz), yaw in footprints(layout, o):
+        block = blocks(o, fy, version=version)
+        if block and version >= 2:
+            c = min(low_clearance(o.aabb_max[1] - fy, CLEARANCE),
+                    SEAT_CLEARANCE if o.object_type in UPHOLSTERED else CLEARANCE)
+            if c < CLEARANCE:
+                own[o.object_id] = round(c, 4)
+        for (ox, oz), (sx, sz), yaw in footprints(layout, o, version):
             size = (round(sx, 4), round(o.aabb_size[1], 4), round(sz, 4))
             center = (round(ox, 4), round(o.aabb_min[1], 4), round(oz, 4))
             if o.object_type in TARGET_CATEGORIES:
@@ -380,7 +502,9 @@ def spec_from_layout(layout: Layout, room_type: str, split: str) -> SceneSpec:
             else:  # a counter made of several runs gives several entries with its one id
                 spec.furniture.append(Furniture(o.object_id, o.object_type, center, size, yaw, block, None, inst))
             spec.parts += _parts_for(o, ((ox, oz), (sx, sz), yaw), inst, fy, layout)
-    stove = stove_body(layout)
+    if own:
+        spec.navigation["clearances"] = own
+    stove = stove_body(layout, version)
     if stove is not None:  # not a recorded object: its id says so
         (ox, oz), (sx, sz), yaw, top = stove
         sid = f"Stove|inferred|{ox:+.2f}|{oz:+.2f}"
@@ -392,12 +516,12 @@ def spec_from_layout(layout: Layout, room_type: str, split: str) -> SceneSpec:
     return spec
 
 
-def stove_body(layout: Layout):
+def stove_body(layout: Layout, version: int = GENERATOR_VERSION):
     """The body under the stove burners, which the records lack (the burners float at counter height in
     26 of 30 kitchens): ``((cx, cz), (width, depth), yaw, height)`` of a box from the floor to the burners,
     over the burners and knobs not standing on a counter run, its front towards the knobs; None without them."""
     counters = [Polygon(box_footprint((c[0], 0, c[1]), (sz[0], 0, sz[1]), y))
-                for o in layout.objects if o.object_type == "CounterTop" for c, sz, y in footprints(layout, o)]
+                for o in layout.objects if o.object_type == "CounterTop" for c, sz, y in footprints(layout, o, version)]
 
     def free(o: LayoutObject) -> bool:
         return not any(p.contains(Point(o.aabb_center[0], o.aabb_center[2])) for p in counters)

@@ -89,6 +89,11 @@ class SceneSpec:
     instances: list[str] = field(default_factory=lambda: [""])
     light: dict = field(default_factory=dict)
     wall_height: float = 2.6
+    #: where the scene comes from (e.g. ``{"world": "ithor-real", "version": 2}``); None for procedural scenes
+    generator: dict | None = None
+    #: reachability rule of the navgrid (None: its defaults): ``clearance``, the distance kept between the agent's
+    #: centre and walls or blocking footprints, and ``sweep_clearance``, the one a MoveAhead's path keeps, metres
+    navigation: dict | None = None
 
     def new_inst(self, name: str) -> int:
         self.instances.append(name)
@@ -105,6 +110,8 @@ class SceneSpec:
             "parts_columns": ["cx", "cy", "cz", "sx", "sy", "sz", "yaw", "r", "g", "b", "r2", "g2", "b2",
                               "pattern", "scale", "inst"],
             "parts": [[round(v, 5) for v in p.row()] for p in self.parts],
+            **({"generator": self.generator} if self.generator is not None else {}),
+            **({"navigation": self.navigation} if self.navigation is not None else {}),
         }
 
 

@@ -1,0 +1,406 @@
+"""Fidelity of a built world against what real agents did in the real rooms (issue 24).
+
+A trajectories file (format of ``../shared/ai2thor/real_trajectories/dev_scenes.json``) holds, per scene, the
+unique ``[state, action, next_state]`` triples that real agents produced on the lineage's real AI2-THOR offline
+graphs; a ``MoveAhead`` whose next state equals its state was blocked in the real room. Against a tsnav scene
+(its reachable positions and, per position and heading, the position MoveAhead reaches or -1) three shares
+are measured, all over the file's triples:
+
+* **positions**: of the distinct positions real agents stood on (state and next state), the share tsnav has;
+* **moves kept**: of the real successful MoveAheads, the share that are edges of tsnav's graph (same source
+  and target position; the heading follows from them);
+* **blocked kept blocked**: of the real blocked MoveAheads, the share tsnav does not let through (a blocked
+  move from a position tsnav lacks counts as blocked: tsnav's agent cannot make it either).
+
+Rotations and look actions depend on no geometry and are not measured. Positions tsnav has but no real agent
+reached are listed too; they are weak evidence (real agents only went where they went).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import Point, Polygon
+from shapely.ops import unary_union
+
+from ..atomic import atomic_save_figure, atomic_write_text
+from ..constants import GRID_SIZE, MOVE_AHEAD, ROTATIONS
+from ..data.reader import is_complete, load_scene
+from .navgrid import AGENT_RADIUS
+from .spec import box_footprint
+
+#: Action names a trajectories file may hold (the lineage's, plus Done).
+ACTIONS = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", "LookDown", "Done")
+
+
+class TrajectoriesError(ValueError):
+    """A trajectories file is malformed; the message is one line naming the file and the problem."""
+
+
+Triple = tuple[str, str, str]
+Cell = tuple[int, int]  # grid indices (round(x / 0.25), round(z / 0.25))
+
+
+def _parse_key(key, where: str) -> tuple[int, int, int, int]:
+    if not isinstance(key, str):
+        raise TrajectoriesError(f"{where}: state key must be a string, got {key!r}")
+    parts = key.split("|")
+    if len(parts) != 4:
+        raise TrajectoriesError(f"{where}: state key {key!r} is not x|z|rotation|horizon")
+    try:
+        x, z, r, h = (float(p) for p in parts)
+    except ValueError:
+        raise TrajectoriesError(f"{where}: state key {key!r} holds a non-number") from None
+    if not all(math.isfinite(v) for v in (x, z, r, h)):
+        raise TrajectoriesError(f"{where}: state key {key!r} holds a non-finite number")
+    i, j = round(x / GRID_SIZE), round(z / GRID_SIZE)
+    if abs(i * GRID_SIZE - x) > 1e-3 or abs(j * GRID_SIZE - z) > 1e-3:
+        raise TrajectoriesError(f"{where}: state key {key!r} is off the {GRID_SIZE} m grid")
+    if int(round(r)) % 360 not in ROTATIONS:
+        raise TrajectoriesError(f"{where}: state key {key!r} has rotation {r:g}, not one of {ROTATIONS}")
+    return i, j, int(round(r)) % 360, int(round(h))
+
+
+def parse_trajectories(doc, where: str) -> dict[str, list[Triple]]:
+    """A decoded trajectories document -> ``{scene: [(state, action, next_state), ...]}`` (checked)."""
+    if not isinstance(doc, dict) or not isinstance(doc.get("scenes"), dict):
+        raise TrajectoriesError(f"{where}: expected {{'scenes': {{SCENE: [[state, action, next_state], ...]}}}}")
+    out: dict[str, list[Triple]] = {}
+    for scene, triples in doc["scenes"].items():
+        if not isinstance(triples, list):
+            raise TrajectoriesError(f"{where}: scene {scene!r}: expected a list of triples")
+        rows = []
+        for n, t in enumerate(triples):
+            w = f"{where}: scene {scene!r} triple {n}"
+            if not isinstance(t, (list, tuple)) or len(t) != 3:
+                raise TrajectoriesError(f"{w}: expected [state, action, next_state], got {t!r}"[:200])
+            s, a, s2 = t
+            if a not in ACTIONS:
+                raise TrajectoriesError(f"{w}: unknown action {a!r} (expected one of {', '.join(ACTIONS)})")
+            p0, p1 = _parse_key(s, w), _parse_key(s2, w)
+            if a == "MoveAhead" and p0 != p1:
+                di, dj = p1[0] - p0[0], p1[1] - p0[1]
+                if p1[2:] != p0[2:] or (di, dj) != step(p0[2]):
+                    raise TrajectoriesError(f"{w}: MoveAhead {s} -> {s2} is not one grid step ahead")
+            rows.append((s, a, s2))
+        out[str(scene)] = rows
+    return out
+
+
+def load_trajectories(path: str | Path) -> dict[str, list[Triple]]:
+    """Read and check a trajectories file; :class:`TrajectoriesError` (one line) when it is malformed."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise TrajectoriesError(f"{path}: no such trajectories file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise TrajectoriesError(f"{path}: cannot read: {e}") from None
+    except json.JSONDecodeError as e:
+        raise TrajectoriesError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    return parse_trajectories(doc, str(path))
+
+
+def step(rotation: int) -> Cell:
+    """Grid step ``(di, dj)`` of MoveAhead at heading ``rotation`` (0 faces +z, 90 faces +x)."""
+    return int(round(math.sin(math.radians(rotation)))), int(round(math.cos(math.radians(rotation))))
+
+
+def cell(x: float, z: float) -> Cell:
+    return round(x / GRID_SIZE), round(z / GRID_SIZE)
+
+
+@dataclass
+class SceneFidelity:
+    """The three shares of one scene and the disagreements behind them (cells are grid indices)."""
+
+    scene: str
+    positions: int = 0  #: distinct real positions
+    positions_kept: int = 0
+    moves: int = 0  #: real successful MoveAhead triples
+    moves_kept: int = 0
+    blocked: int = 0  #: real blocked MoveAhead triples
+    blocked_kept: int = 0
+    tsnav_positions: int = 0
+    missing: list[Cell] = field(default_factory=list)  #: real positions tsnav lacks
+    unvisited: list[Cell] = field(default_factory=list)  #: tsnav positions no real agent stood on
+    lost_moves: list[tuple[Cell, Cell]] = field(default_factory=list)  #: real moves that are no tsnav edge
+    leaks: list[tuple[Cell, int]] = field(default_factory=list)  #: real blocked (cell, heading) tsnav lets through
+
+    @staticmethod
+    def share(a: int, n: int) -> float:
+        return 100.0 * a / n if n else float("nan")
+
+    def shares(self) -> dict[str, float]:
+        return {"positions": self.share(self.positions_kept, self.positions),
+                "moves_kept": self.share(self.moves_kept, self.moves),
+                "blocked_blocked": self.share(self.blocked_kept, self.blocked)}
+
+    def to_json(self) -> dict:
+        g = GRID_SIZE
+        return {"scene": self.scene, **{k: round(v, 2) for k, v in self.shares().items()},
+                "counts": {"positions": self.positions, "positions_kept": self.positions_kept, "moves": self.moves,
+                           "moves_kept": self.moves_kept, "blocked": self.blocked, "blocked_kept": self.blocked_kept,
+                           "tsnav_positions": self.tsnav_positions},
+                "missing_positions": [[i * g, j * g] for i, j in self.missing],
+                "unvisited_positions": [[i * g, j * g] for i, j in self.unvisited],
+                "lost_moves": [[[a[0] * g, a[1] * g], [b[0] * g, b[1] * g]] for a, b in self.lost_moves],
+                "leaked_blocks": [[[c[0] * g, c[1] * g], r] for c, r in self.leaks]}
+
+
+def measure(scene: str, positions: np.ndarray, move: np.ndarray, triples: list[Triple]) -> SceneFidelity:
+    """The fidelity of one tsnav scene given as ``positions`` ((P, 2) x, z) and ``move`` ((P, 8): per heading
+    of :data:`ROTATIONS`, the index of the position MoveAhead reaches, -1 when blocked) against ``triples``."""
+    cells = [cell(float(x), float(z)) for x, z in np.asarray(positions, dtype=np.float64).reshape(-1, 2)]
+    index = {c: n for n, c in enumerate(cells)}
+    move = np.asarray(move).reshape(len(cells), len(ROTATIONS))
+    f = SceneFidelity(scene, tsnav_positions=len(cells))
+    real: set[Cell] = set()
+    lost, leaks = set(), set()
+    for s, a, s2 in triples:
+        i, j, r, _ = _parse_key(s, scene)
+        i2, j2, _, _ = _parse_key(s2, scene)
+        real.add((i, j))
+        real.add((i2, j2))
+        if a != "MoveAhead":
+            continue
+        p = index.get((i, j), -1)
+        tgt = int(move[p, ROTATIONS.index(r)]) if p >= 0 else -1
+        if (i, j) == (i2, j2):
+            f.blocked += 1
+            if tgt < 0:
+                f.blocked_kept += 1
+            else:
+                leaks.add(((i, j), r))
+        else:
+            f.moves += 1
+            if tgt >= 0 and cells[tgt] == (i2, j2):
+                f.moves_kept += 1
+            else:
+                lost.add(((i, j), (i2, j2)))
+    f.positions = len(real)
+    f.positions_kept = sum(c in index for c in real)
+    f.missing = sorted(real - set(index))
+    f.unvisited = sorted(set(index) - real)
+    f.lost_moves = sorted(lost)
+    f.leaks = sorted(leaks)
+    return f
+
+
+def scene_moves(scene) -> tuple[np.ndarray, np.ndarray]:
+    """``(positions, move)`` of a loaded scene folder (:class:`~tsnav.data.reader.Scene`) in the form of
+    :func:`~tsnav.world.navgrid.reachable_positions`: MoveAhead at horizon 0 (the graph's moves do not depend on
+    the horizon in tsnav worlds; a position's move counts when either horizon has it)."""
+    xz = np.stack([scene.x, scene.z], axis=1).astype(np.float64)
+    cells = [cell(float(x), float(z)) for x, z in xz]
+    uniq = sorted(set(cells))
+    index = {c: n for n, c in enumerate(uniq)}
+    move = np.full((len(uniq), len(ROTATIONS)), -1, dtype=np.int64)
+    nxt = scene.next_state[:, MOVE_AHEAD]
+    for s in range(scene.num_states):
+        t = int(nxt[s])
+        if t != s and cells[t] != cells[s]:
+            move[index[cells[s]], ROTATIONS.index(int(scene.rotation[s]) % 360)] = index[cells[t]]
+    return np.array(uniq, dtype=np.float64) * GRID_SIZE, move
+
+
+def summary(results: list[SceneFidelity]) -> dict:
+    """Totals over scenes (shares of the summed counts) and the worst scene of each share."""
+    tot = SceneFidelity("all")
+    for r in results:
+        for k in ("positions", "positions_kept", "moves", "moves_kept", "blocked", "blocked_kept", "tsnav_positions"):
+            setattr(tot, k, getattr(tot, k) + getattr(r, k))
+    out = {k: round(v, 2) for k, v in tot.shares().items()}
+    out["counts"] = tot.to_json()["counts"]
+    for k in ("positions", "moves_kept", "blocked_blocked"):
+        vals = [(r.shares()[k], r.scene) for r in results if not math.isnan(r.shares()[k])]
+        if vals:
+            v, s = min(vals)
+            out[f"worst_{k}"] = {"scene": s, "share": round(v, 2)}
+    return out
+
+
+def markdown_table(results: list[SceneFidelity]) -> str:
+    """The per-scene shares as a Markdown table, totals last."""
+    lines = ["| scene | positions % (kept / real) | moves kept % (kept / real) | blocked blocked % (kept / real) | "
+             "tsnav positions |", "| --- | --- | --- | --- | --- |"]
+
+    def row(name, r: SceneFidelity):
+        s = r.shares()
+        return (f"| {name} | {s['positions']:.1f} ({r.positions_kept}/{r.positions}) | {s['moves_kept']:.1f} "
+                f"({r.moves_kept}/{r.moves}) | {s['blocked_blocked']:.1f} ({r.blocked_kept}/{r.blocked}) | "
+                f"{r.tsnav_positions} |")
+
+    tot = SceneFidelity("all")
+    for r in results:
+        lines.append(row(r.scene, r))
+        for k in ("positions", "positions_kept", "moves", "moves_kept", "blocked", "blocked_kept", "tsnav_positions"):
+            setattr(tot, k, getattr(tot, k) + getattr(r, k))
+    lines.append(row("**all**", tot))
+    return "\n".join(lines) + "\n"
+
+
+
+
+# ------------------------------------------------------------------------------------------------ picture
+def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, triples: list[Triple]) -> None:
+    """Top-down map of one scene's disagreements on ``ax``: the room (floor polygon, blocking footprints filled
+    and labelled, others outlined), tsnav's positions (grey dots), real positions tsnav has (small green dots),
+    real positions tsnav lacks (red crosses), tsnav positions no real agent stood on (hollow blue circles),
+    real moves that are no tsnav edge (orange segments), real blocked moves tsnav lets through (magenta arrows)."""
+    from matplotlib.patches import Polygon as MplPolygon
+
+    g = GRID_SIZE
+    for poly in meta.get("floor", []):
+        ax.add_patch(MplPolygon(poly, closed=True, facecolor="#f6f3ec", edgecolor="#333", lw=1.4, zorder=0))
+    for f in meta.get("furniture", []):
+        if f.get("blocks", True):
+            ax.add_patch(MplPolygon(f["footprint"], closed=True, facecolor="#cdbfa9", edgecolor="#6b5d49", lw=0.6,
+                                    alpha=0.85, zorder=1))
+            c = np.mean(f["footprint"], axis=0)
+            ax.text(c[0], c[1], f["category"], fontsize=4.5, ha="center", va="center", color="#3b3226", zorder=2)
+        else:
+            ax.add_patch(MplPolygon(f["footprint"], closed=True, fill=False, edgecolor="#b3a794", lw=0.3, zorder=1))
+    for o in meta.get("objects", []):
+        b = o.get("bbox")
+        if not b:
+            continue
+        fp = box_footprint(b["center"], b["size"], b.get("yaw", 0.0))
+        floor = o.get("support") == "floor"
+        ax.add_patch(MplPolygon(fp, closed=True, facecolor="#cdbfa9" if floor else "none",
+                                edgecolor="#6b5d49" if floor else "#b3a794", lw=0.5 if floor else 0.3, zorder=1))
+        if floor:
+            ax.text(b["center"][0], b["center"][2], o["objectType"], fontsize=4.5, ha="center", va="center", zorder=2)
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    ax.scatter(pos[:, 0], pos[:, 1], s=3, c="#9a9a9a", linewidths=0, zorder=3, label=f"tsnav position ({len(pos)})")
+    real = sorted({cell(*map(float, k.split("|")[:2])) for t in triples for k in (t[0], t[2])})
+    kept = np.array([c for c in real if c not in set(fid.missing)], dtype=np.float64).reshape(-1, 2) * g
+    ax.scatter(kept[:, 0], kept[:, 1], s=5, c="#2e9e44", linewidths=0, zorder=4,
+               label=f"real position tsnav has ({len(kept)})")
+    if fid.unvisited:
+        u = np.array(fid.unvisited, dtype=np.float64) * g
+        ax.scatter(u[:, 0], u[:, 1], s=9, facecolors="none", edgecolors="#5b8fd6", linewidths=0.5, zorder=4,
+                   label=f"tsnav position never reached ({len(u)})")
+    for a, b in fid.lost_moves:
+        ax.plot([a[0] * g, b[0] * g], [a[1] * g, b[1] * g], color="#f08c00", lw=1.4, alpha=0.9, zorder=5)
+    if fid.lost_moves:
+        ax.plot([], [], color="#f08c00", lw=1.4, label=f"real move not kept ({len(fid.lost_moves)})")
+    for c, r in fid.leaks:
+        di, dj = step(r)
+        ax.annotate("", xy=((c[0] + 0.9 * di) * g, (c[1] + 0.9 * dj) * g), xytext=(c[0] * g, c[1] * g), zorder=6,
+                    arrowprops=dict(arrowstyle="-|>", color="#d0209c", lw=1.2, mutation_scale=7))
+    if fid.leaks:
+        ax.plot([], [], color="#d0209c", lw=1.2, label=f"real blocked move let through ({len(fid.leaks)})")
+    if fid.missing:
+        m = np.array(fid.missing, dtype=np.float64) * g
+        ax.scatter(m[:, 0], m[:, 1], s=26, marker="x", c="#d62728", linewidths=1.3, zorder=7,
+                   label=f"real position tsnav lacks ({len(m)})")
+    pts = [pos] + [np.asarray(p, dtype=np.float64) for p in meta.get("floor", [])]
+    if fid.missing:
+        pts.append(np.array(fid.missing, dtype=np.float64) * g)
+    allp = np.concatenate(pts)
+    ax.set_xlim(allp[:, 0].min() - 0.3, allp[:, 0].max() + 0.3)
+    ax.set_ylim(allp[:, 1].min() - 0.3, allp[:, 1].max() + 0.3)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=6)
+    s = fid.shares()
+    ax.set_title(f"{fid.scene}: positions {s['positions']:.1f} %, moves kept {s['moves_kept']:.1f} %, "
+                 f"blocked {s['blocked_blocked']:.1f} %", fontsize=7.5)
+
+
+def save_fidelity_png(path: str | Path, meta: dict, fid: SceneFidelity, positions: np.ndarray,
+                      triples: list[Triple]) -> Path:
+    """One scene's :func:`draw_fidelity` map as a PNG (written atomically)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.0, 6.0), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.07, 0.07, 0.6, 0.86))
+    draw_fidelity(ax, meta, fid, positions, triples)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
+    return atomic_save_figure(fig, path)
+
+
+# ------------------------------------------------------------------------------------------------ causes
+def explain_missing(meta: dict, cells: list[Cell], clearance: float) -> list[dict]:
+    """Why tsnav lacks each real position of ``cells``, from a scene's ``scene.json`` (``meta``): the blocking
+    footprints (furniture ids, target objects standing on the floor) nearer than ``clearance`` to it, ``"wall"``
+    when it is nearer than that to the room's outline or outside it, or nothing (then the position is cut off
+    from the kept connected set). One dict ``{"position": [x, z], "causes": [...]}`` per cell."""
+    floor = unary_union([Polygon(p) for p in meta.get("floor", [])]) if meta.get("floor") else None
+    obstacles = [(f["id"], Polygon(f["footprint"])) for f in meta.get("furniture", []) if f.get("blocks", True)]
+    for o in meta.get("objects", []):
+        b = o.get("bbox")
+        if o.get("support") == "floor" and b:
+            obstacles.append((o["objectId"], Polygon(box_footprint(b["center"], b["size"], b.get("yaw", 0.0)))))
+    out = []
+    for c in cells:
+        p = Point(c[0] * GRID_SIZE, c[1] * GRID_SIZE)
+        causes = []
+        if floor is not None and (not floor.contains(p) or floor.exterior.distance(p) < clearance - 1e-9):
+            causes.append("wall")
+        causes += sorted({oid for oid, poly in obstacles if poly.distance(p) < clearance - 1e-9})
+        out.append({"position": [c[0] * GRID_SIZE, c[1] * GRID_SIZE], "causes": causes})
+    return out
+
+
+def blame(explained: list[dict]) -> dict[str, int]:
+    """How many missing positions each cause (object id or ``"wall"``) accounts for, most first."""
+    counts: dict[str, int] = {}
+    for e in explained:
+        for c in e["causes"] or ["cut off"]:
+            counts[c] = counts.get(c, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+# ------------------------------------------------------------------------------------------------ report
+def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path | None = None,
+                    pictures: bool = True) -> tuple[list[SceneFidelity], Path]:
+    """Measure every scene of ``trajectories`` that the dataset ``data`` holds; write ``fidelity.json``,
+    ``fidelity.md`` and (with ``pictures``) ``SCENE.png`` per scene into ``out`` (default ``DATA/fidelity``).
+    Returns the per-scene results and the output folder. A trajectories file naming no scene of ``data`` is an
+    error (one line); scenes of the file that ``data`` lacks are listed in the JSON as ``absent``."""
+    data = Path(data)
+    if not data.is_dir():
+        raise FileNotFoundError(f"{data}: no such dataset folder")
+    triples = load_trajectories(trajectories)
+    present = [s for s in triples if is_complete(data / s)]
+    absent = [s for s in triples if s not in present]
+    if not present:
+        raise TrajectoriesError(f"{trajectories}: none of its {len(triples)} scenes is a complete scene folder in "
+                                f"{data}")
+    out = Path(out) if out is not None else data / "fidelity"
+    out.mkdir(parents=True, exist_ok=True)
+    results, scenes_json = [], []
+    for name in present:
+        scene = load_scene(data / name)
+        positions, move = scene_moves(scene)
+        fid = measure(name, positions, move, triples[name])
+        results.append(fid)
+        nav = scene.meta.get("navigation") or {}
+        clearance = float(nav.get("clearance", AGENT_RADIUS))
+        explained = explain_missing(scene.meta, fid.missing, clearance)
+        js = fid.to_json()
+        js["missing_positions"] = explained
+        js["missing_by_cause"] = blame(explained)
+        js["generator"] = scene.meta.get("generator", {"world": "procedural"} if "parts" in scene.meta else None)
+        scenes_json.append(js)
+        if pictures:
+            save_fidelity_png(out / f"{name}.png", scene.meta, fid, positions, triples[name])
+    doc = {"format": "tsnav-fidelity", "version": 1, "data": str(data), "trajectories": str(trajectories),
+           "summary": summary(results), "scenes": scenes_json, "absent": absent}
+    atomic_write_text(out / "fidelity.json", json.dumps(doc, indent=1))
+    md = markdown_table(results)
+    if absent:
+        md += f"\nScenes of the trajectories file not in {data}: {', '.join(absent)}\n"
+    atomic_write_text(out / "fidelity.md", md)
+    return results, out
+
+
+__all__ = ["SceneFidelity", "TrajectoriesError", "blame", "explain_missing", "fidelity_report", "load_trajectories",
+           "markdown_table", "measure", "parse_trajectories", "save_fidelity_png", "scene_moves", "step", "summary"]
