@@ -6,8 +6,14 @@ tsnav.rl.batched). Reported per trainer: environment steps per second in steady 
 first, so start-up is excluded) and overall (start-up included), mean training episode length, episodes per
 second, and the projected wall time of the paper's 1.5 M training episodes at that rate.
 
+The batched trainer runs once per ``--procs`` value (data-parallel processes sharing each update's episodes,
+``TrainConfig.procs``); each row also gives its env steps per CPU-second of all its processes (how it would run
+with an idle core per process: on a shared machine the wall-clock rate of N processes is capped by the cores
+left free), the load average over its run, and, for N > 1, the ratio of its steps/s to the same setting with
+one process, measured in the same session.
+
     .venv/bin/python bench/bench_train.py --data /tmp/demo --features NAME [--seconds 60] [--workers 2]
-        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c]
+        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c] [--procs 1 2]
 
 Without --data a tiny world is built in a temporary folder with pooled-pixel features.
 """
@@ -16,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import tempfile
 import time
@@ -30,6 +37,7 @@ def _summary(name: str, run: Path, progress: dict, wall: float) -> dict:
     log = read_log(run)
     steady = [r for r in log[1:] if r.get("steps_per_s")]
     sps_steady = (sum(r["steps_per_s"] for r in steady) / len(steady)) if steady else float("nan")
+    cpu = [r["steps_per_cpu_s"] for r in steady if r.get("steps_per_cpu_s")]
     n = sum(r.get("n_episodes", 0) for r in log)
     length = sum(r.get("length", 0) * r.get("n_episodes", 0) for r in log) / max(n, 1)
     sps_all = progress["env_steps"] / wall
@@ -37,6 +45,7 @@ def _summary(name: str, run: Path, progress: dict, wall: float) -> dict:
     return {"trainer": name, "env_steps": progress["env_steps"], "episodes": progress["episodes"],
             "updates": progress["update"], "wall_s": wall, "steps_per_s_steady": sps_steady,
             "steps_per_s_overall": sps_all, "episode_length": length, "episodes_per_s": eps_s,
+            "steps_per_cpu_s": sum(cpu) / len(cpu) if cpu else float("nan"),
             "hours_for_1.5M_episodes": PAPER_EPISODES / eps_s / 3600 if eps_s == eps_s and eps_s > 0 else float("nan")}
 
 
@@ -56,6 +65,8 @@ def main() -> None:
     ap.add_argument("--precision", nargs="+", default=["fp32"], choices=PRECISIONS,
                     help="batched trainer: forward passes in float32 and / or bfloat16 autocast (each is run)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the batched trainer's process (default 1)")
+    ap.add_argument("--procs", type=int, nargs="+", default=[1],
+                    help="batched trainer: data-parallel processes (each value is run; e.g. 1 2 for the ratio)")
     ap.add_argument("--no-a3c", action="store_true", help="batched trainer only (ratios are then to the first batch size)")
     ap.add_argument("--out", default=None, help="write the figures as JSON here")
     args = ap.parse_args()
@@ -94,24 +105,35 @@ def main() -> None:
             results.append(_summary(f"A3C, {args.workers} workers x 1 episode", run, p, time.perf_counter() - t))
         for b in args.num_envs:
             for prec in args.precision:
-                t = time.perf_counter()
-                run = tmp / f"batched{b}_{prec}"
-                p = train_batched(TrainConfig(algo="batched", num_envs=b, precision=prec, threads=args.threads, **base),
-                                  agent, run,
-                                  progress_bar=False)
-                results.append(_summary(f"batched A2C, 1 process x {b} episodes, {prec}", run, p,
-                                        time.perf_counter() - t))
+                one = None
+                for n in args.procs:
+                    t = time.perf_counter()
+                    run = tmp / f"batched{b}_{prec}_p{n}"
+                    load0 = os.getloadavg()[0]
+                    p = train_batched(TrainConfig(algo="batched", num_envs=b, precision=prec, threads=args.threads,
+                                                  procs=n, **base), agent, run, progress_bar=False)
+                    r = _summary(f"batched A2C, {n} proc x {b // n} episodes, {prec}", run, p, time.perf_counter() - t)
+                    r["load_1min"] = [load0, os.getloadavg()[0]]
+                    r["procs"] = n
+                    if n == 1:
+                        one = r
+                    r["x_1_proc"] = r["steps_per_s_steady"] / one["steps_per_s_steady"] if one else float("nan")
+                    r["cpu_x_1_proc"] = (r["steps_per_cpu_s"] / one["steps_per_cpu_s"] if one else float("nan"))
+                    results.append(r)
 
         ref = results[0]["steps_per_s_steady"]
         print(f"data {data}, features {features}, agent preset {args.preset}, reward tsrm, "
               f"rollout {args.rollout_steps} steps, {args.threads} thread(s), {args.seconds:.0f} s per trainer")
-        head = (f"{'trainer':<46} {'steps/s':>9} {'(overall)':>10} {'x A3C':>6} {'ep len':>7} {'ep/s':>7} "
-                f"{'h for 1.5M ep':>14}")
+        head = (f"{'trainer':<46} {'steps/s':>9} {'(overall)':>10} {'x A3C':>6} {'x 1 proc':>8} {'steps/CPU-s':>11} "
+                f"{'(x 1 proc)':>10} {'load':>9} {'ep len':>7} {'ep/s':>7} {'h for 1.5M ep':>14}")
         print(head)
         print("-" * len(head))
         for r in results:
+            load = "-" if "load_1min" not in r else "{:.1f}-{:.1f}".format(*r["load_1min"])
             print(f"{r['trainer']:<46} {r['steps_per_s_steady']:9.0f} {r['steps_per_s_overall']:10.0f} "
-                  f"{r['steps_per_s_steady'] / ref:6.1f} {r['episode_length']:7.1f} {r['episodes_per_s']:7.1f} "
+                  f"{r['steps_per_s_steady'] / ref:6.1f} {r.get('x_1_proc', float('nan')):8.2f} "
+                  f"{r.get('steps_per_cpu_s', float('nan')):11.0f} {r.get('cpu_x_1_proc', float('nan')):10.2f} "
+                  f"{load:>9} {r['episode_length']:7.1f} {r['episodes_per_s']:7.1f} "
                   f"{r['hours_for_1.5M_episodes']:14.1f}")
         if args.out:
             Path(args.out).write_text(json.dumps(results, indent=1) + "\n")

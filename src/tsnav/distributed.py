@@ -1,4 +1,5 @@
-"""Devices and data parallelism for every trainer under ``torchrun`` (gloo on the CPU, NCCL on GPUs).
+"""Devices and data parallelism for every trainer under ``torchrun`` (gloo on the CPU, NCCL on GPUs), or in
+processes started here (:func:`run_ranks`: ``tsnav train --procs N`` on one machine's CPU cores).
 
 The batched agent trainer steps its own episodes on every rank and averages gradients with one all-reduce per
 update; pretraining wraps its model in DistributedDataParallel. Without ``torchrun`` (``WORLD_SIZE`` unset or
@@ -7,8 +8,16 @@ update; pretraining wraps its model in DistributedDataParallel. Without ``torchr
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import shutil
+import sys
+import tempfile
+import traceback
 from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+from typing import Any, Callable
 
 import torch
 import torch.distributed as dist
@@ -102,3 +111,73 @@ def broadcast_model(model: torch.nn.Module, info: DistInfo) -> None:
 def barrier(info: DistInfo) -> None:
     if info.enabled:
         dist.barrier()
+
+
+#: Seconds a rank waits in a collective before giving up (a peer that died is usually noticed at once, when its
+#: sockets close; this bounds the rest).
+GROUP_TIMEOUT_S = 600
+
+
+def _rank_main(fn: Callable[..., Any], rank: int, world: int, init_file: str, args: tuple, kwargs: dict) -> None:
+    """Body of a started rank (1..N-1): join the group, run ``fn``, leave; a failure is printed and exits 1."""
+    try:
+        dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world,
+                                timeout=timedelta(seconds=GROUP_TIMEOUT_S))
+        try:
+            fn(*args, **kwargs)
+        finally:
+            dist.destroy_process_group()
+    except BaseException:
+        print(f"rank {rank}: " + traceback.format_exc(), file=sys.stderr, flush=True)
+        sys.exit(1)
+
+
+def run_ranks(fn: Callable[..., Any], procs: int, *args, rank0_kwargs: dict | None = None, **kwargs) -> Any:
+    """Run ``fn(*args, **kwargs)`` as ``procs`` ranks of one gloo process group on this machine's CPU cores and
+    return rank 0's result.
+
+    This process is rank 0 (so its return value, callbacks given in ``rank0_kwargs`` and progress output stay
+    here); ranks 1..N-1 are started with the ``spawn`` method (a fresh interpreter: no forked torch threads),
+    and rendezvous through a file in a temporary folder (no port to choose or collide on). The arguments go to
+    the started ranks by multiprocessing's own transport, in memory; nothing is written to disk. When rank 0
+    fails or is interrupted the other ranks are terminated; when another rank fails, rank 0 raises
+    ``RuntimeError`` naming it. ``procs == 1`` (or an existing process group, e.g. under ``torchrun``) just
+    calls ``fn`` here.
+    """
+    if procs < 1:
+        raise ValueError(f"procs must be >= 1, got {procs}")
+    if procs == 1 or (dist.is_available() and dist.is_initialized()):
+        return fn(*args, **{**kwargs, **(rank0_kwargs or {})})
+    tmp = Path(tempfile.mkdtemp(prefix="tsnav_ranks_"))
+    init_file = str(tmp / "rendezvous")
+    ctx = multiprocessing.get_context("spawn")
+    children = [ctx.Process(target=_rank_main, args=(fn, r, procs, init_file, args, kwargs), daemon=True)
+                for r in range(1, procs)]
+    try:
+        for c in children:
+            c.start()
+        dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=0, world_size=procs,
+                                timeout=timedelta(seconds=GROUP_TIMEOUT_S))
+        try:
+            result = fn(*args, **{**kwargs, **(rank0_kwargs or {})})
+        except BaseException as e:
+            if isinstance(e, RuntimeError):  # gloo's error when a peer died: give that peer time to exit
+                for c in children:
+                    c.join(timeout=30)
+            failed = [r for r, c in enumerate(children, 1) if c.exitcode not in (None, 0)]
+            if failed:  # rank 0 saw the collective break because another rank died first
+                raise RuntimeError(f"rank {failed[0]} of {procs} failed (its error is printed above)") from None
+            raise
+        finally:
+            dist.destroy_process_group()
+        for r, c in enumerate(children, 1):
+            c.join()
+            if c.exitcode != 0:
+                raise RuntimeError(f"rank {r} of {procs} failed (exit code {c.exitcode}; its error is printed above)")
+        return result
+    finally:
+        for c in children:
+            if c.is_alive():
+                c.terminate()
+            c.join()
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -2,8 +2,15 @@
 
 Same network, reward, rollout and loss as the paper's A3C (:mod:`tsnav.rl.a3c`), but one process steps
 ``num_envs`` episodes of a :class:`~tsnav.sim.batch.BatchEnv` together and makes one synchronous update per
-rollout of ``rollout_steps`` steps, so the network runs on batches instead of single frames. Under
-``torchrun`` every rank does the same with its own episodes and seed and the gradients are averaged.
+rollout of ``rollout_steps`` steps, so the network runs on batches instead of single frames.
+
+Data parallel on one machine: with ``procs`` = N (``tsnav train --procs N``, or ``torchrun --nproc-per-node N``)
+N processes each step their own ``num_envs / N`` of the ``num_envs`` episodes, with their own env sampler and
+action RNG, and the gradients are averaged with one all-reduce per update. Each rank's loss is the mean over its
+rows of the per-row rollout loss, so the average of the N ranks' gradients is the gradient of the mean over all
+``num_envs`` rows: the update of one process stepping the same ``num_envs`` episodes, and the learning rate
+means the same for every N. A run is deterministic for a given (seed, procs); the episodes drawn, and so the
+run, differ between values of ``procs`` (``procs`` = 1 is the single-process trainer, bit-identical to it).
 
 Each update, top to bottom:
 
@@ -23,13 +30,15 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import torch.distributed as dist
+
 import numpy as np
 import torch
 
 from ..agent.model import AgentConfig
 from ..checkpoint import weights_digest
 from ..distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
-                           init_distributed, resolve_device)
+                           init_distributed, resolve_device, run_ranks)
 from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, resume_checkpoint,
                          rng_state, set_rng_state, write_rng)
@@ -44,19 +53,34 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     """Train (or resume) the run in ``run_dir``; returns the final progress dict.
 
     ``on_update(progress)`` is called after every update (tests use it to interrupt a run); ``scenes``
-    replaces loading ``cfg.split`` of ``cfg.data`` (the scenes still need their feature caches).
+    replaces loading ``cfg.split`` of ``cfg.data`` (the scenes still need their feature caches). With
+    ``cfg.procs`` > 1 and no process group yet, this process becomes rank 0 of ``cfg.procs`` CPU processes
+    (:func:`tsnav.distributed.run_ranks`); the progress bar and ``on_update`` stay with rank 0.
     """
+    if cfg.procs > 1 and not (dist.is_available() and dist.is_initialized()):
+        return run_ranks(_train, cfg.procs, cfg, agent, run_dir, progress_bar=False, scenes=scenes,
+                         rank0_kwargs={"progress_bar": progress_bar, "on_update": on_update})
+    return _train(cfg, agent, run_dir, progress_bar=progress_bar, on_update=on_update, scenes=scenes)
+
+
+def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
+           on_update=None, scenes=None) -> dict:
+    """:func:`train_batched` in this process, as one rank of the process group when there is one."""
     run_dir = Path(run_dir)
     device = resolve_device(cfg.device)
     info = init_distributed(device)
     device = device_for(info, device)
+    if info.world != cfg.procs:
+        raise ValueError(f"this run is configured for procs={cfg.procs} but runs in {info.world} process(es)")
+    if cfg.num_envs % info.world:
+        raise ValueError(f"num_envs {cfg.num_envs} does not split evenly over {info.world} processes")
     torch.set_num_threads(cfg.threads)
     bank, det_features = load_bank(cfg, scenes)
     observer = make_observer(bank, cfg, det_features=det_features, device=device)
     model = make_model(agent, observer, cfg.seed).to(device)
     broadcast_model(model, info)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
-    env = make_train_env(bank, cfg, cfg.num_envs, seed=cfg.seed * 1000 + info.rank)
+    env = make_train_env(bank, cfg, cfg.num_envs // info.world, seed=cfg.seed * 1000 + info.rank)
     torch.manual_seed(cfg.seed * 1000 + 7919 * info.rank + 1)  # dropout and action sampling
 
     progress = new_progress()
@@ -83,7 +107,8 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     bar = ProgressBar(cfg, progress, enabled=progress_bar and info.is_main)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
     window = LogWindow(progress["env_steps"])
-    steps_per_update = cfg.num_envs * cfg.rollout_steps * info.world
+    steps_per_update = cfg.num_envs * cfg.rollout_steps
+    cpu0 = time.process_time()
     try:
         while True:
             model.train()
@@ -94,13 +119,15 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
             parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
             optimizer.step()
 
-            episodes, seconds = all_sum([ro.episodes, time.perf_counter() - t_start if info.is_main else 0.0],
-                                        info, device)
+            cpu = time.process_time()  # every rank's CPU time: steps per CPU-second show how the ranks scale
+            episodes, seconds, cpu_s = all_sum([ro.episodes, time.perf_counter() - t_start if info.is_main else 0.0,
+                                                cpu - cpu0], info, device)
+            cpu0 = cpu
             progress["update"] += 1
             progress["env_steps"] += steps_per_update
             progress["episodes"] += int(episodes)
             progress["seconds"] = seconds0 + seconds
-            window.add(parts, collector.stats.pop())
+            window.add(parts, collector.stats.pop(), cpu_s)
             reached = cfg.budget_reached(progress)
             boundary = reached or progress["update"] % cfg.checkpoint_every == 0
             if progress["update"] % cfg.log_every == 0 or boundary:  # windows never span a checkpoint

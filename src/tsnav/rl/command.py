@@ -2,8 +2,8 @@
 
 A run folder holds ``config.json`` (resolved configuration), ``checkpoints/``, ``log.jsonl`` and ``tb/``.
 Rerunning the same command (or just ``tsnav train --out RUN``) resumes from the last checkpoint; a finished
-run is not retrained; a larger budget continues it. Data parallel: ``torchrun --nproc-per-node N -m tsnav
-train --algo batched ...``.
+run is not retrained; a larger budget continues it. Data parallel on one machine: ``tsnav train --algo batched
+--procs N ...`` (or ``torchrun --nproc-per-node N -m tsnav train --algo batched ...``).
 """
 
 from __future__ import annotations
@@ -34,7 +34,11 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     budget.add_argument("--episodes", type=int, default=None, help="finished training episodes")
     budget.add_argument("--updates", type=int, default=None, help="optimizer updates")
     parser.add_argument("--lr", type=float, default=None, help="Adam learning rate (paper: 1e-4)")
-    parser.add_argument("--num-envs", type=int, default=None, help="batched: episodes per process (default: 16)")
+    parser.add_argument("--num-envs", type=int, default=None,
+                        help="batched: episodes per update over all processes (default: 16)")
+    parser.add_argument("--procs", type=int, default=None,
+                        help="batched: CPU processes sharing each update's episodes (default 1; 2 uses both cores "
+                             "of a 2-core machine; the run is deterministic for a given seed and --procs)")
     parser.add_argument("--workers", type=int, default=None, help="a3c: worker processes (paper: 14)")
     parser.add_argument("--c-target", type=float, default=None, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
@@ -58,7 +62,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 #: command-line option -> TrainConfig field
 _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "algo", "lr": "lr",
-           "num_envs": "num_envs", "workers": "workers", "c_target": "c_target", "seed": "seed",
+           "num_envs": "num_envs", "procs": "procs", "workers": "workers", "c_target": "c_target", "seed": "seed",
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
            "milestone_every": "milestone_every",

@@ -57,7 +57,12 @@ class TrainConfig:
     max_steps: int = 30
     """Training episode length: truncated after this many actions (the lineage trains with 30)."""
     num_envs: int = 16
-    """Batched trainer: episodes stepped together per process (rank)."""
+    """Batched trainer: episodes stepped together per update, over all processes (each steps ``num_envs /
+    procs`` of them)."""
+    procs: int = 1
+    """Batched trainer: CPU processes sharing the episodes of an update, gradients averaged (``tsnav train
+    --procs N`` starts them; ``torchrun`` may launch them instead). Part of the run's identity: a run is
+    deterministic for a given (seed, procs)."""
     workers: int = 14
     """A3C: worker processes, one episode each (paper: 14)."""
     seed: int = 0
@@ -100,7 +105,7 @@ class TrainConfig:
         if self.reward not in VARIANTS:
             raise ValueError(f"unknown reward {self.reward!r} (choose from {', '.join(VARIANTS)})")
         for name in ("rollout_steps", "max_steps", "num_envs", "workers", "checkpoint_every", "log_every",
-                     "threads"):
+                     "threads", "procs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.lr > 0:
@@ -109,6 +114,10 @@ class TrainConfig:
             raise ValueError(f"c_target must be in [0, 1], got {self.c_target}")
         if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.gae_tau <= 1.0:
             raise ValueError("gamma must be in (0, 1] and gae_tau in [0, 1]")
+        if self.procs > 1 and self.algo != "batched":
+            raise ValueError(f"procs applies to the batched trainer (A3C runs --workers processes), got algo {self.algo!r}")
+        if self.num_envs % self.procs:
+            raise ValueError(f"num_envs {self.num_envs} does not split evenly over procs={self.procs} processes")
         if self.milestone_every is not None and self.milestone_every < 1:
             raise ValueError(f"milestone_every must be >= 1, got {self.milestone_every}")
         for name in BUDGET_FIELDS:

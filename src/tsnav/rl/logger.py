@@ -88,22 +88,27 @@ class LogWindow:
         self.steps = env_steps
         self.parts: list[dict] = []
         self.episodes: list[dict] = []
+        self.cpu_s = 0.0
 
-    def add(self, parts: dict, episodes: dict) -> None:
+    def add(self, parts: dict, episodes: dict, cpu_s: float = 0.0) -> None:
+        """One update's loss parts, finished episodes and CPU seconds (summed over every process)."""
         self.parts.append(parts)
         self.episodes.append(episodes)
+        self.cpu_s += cpu_s
 
     def __bool__(self) -> bool:
         return bool(self.parts)
 
     def record(self, progress: dict) -> dict:
         """Progress counters, mean loss parts, episode statistics (:func:`tsnav.rl.stats.summarize`) and
-        environment steps per second over the window; starts a new window."""
+        environment steps per second (and per CPU-second, when given) over the window; starts a new window."""
         now = time.perf_counter()
         rec = {k: progress[k] for k in ("update", "env_steps", "episodes", "seconds")}
         for k in self.parts[0] if self.parts else ():
             rec[k] = sum(p[k] for p in self.parts) / len(self.parts)
         rec["steps_per_s"] = (progress["env_steps"] - self.steps) / max(now - self.t, 1e-9)
+        if self.cpu_s > 0:  # steps per CPU-second of all processes: the throughput on an idle core each
+            rec["steps_per_cpu_s"] = (progress["env_steps"] - self.steps) / self.cpu_s
         rec.update(summarize(concat(self.episodes)))
-        self.t, self.steps, self.parts, self.episodes = now, progress["env_steps"], [], []
+        self.t, self.steps, self.parts, self.episodes, self.cpu_s = now, progress["env_steps"], [], [], 0.0
         return rec

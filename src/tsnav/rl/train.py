@@ -4,7 +4,7 @@ algorithm (A3C or batched A2C), resuming from the last checkpoint; a finished ru
 from __future__ import annotations
 
 import os
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import h5py
@@ -73,6 +73,9 @@ def train_run(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
     run_dir = Path(run_dir)
     if cfg.detections is None:
         raise ValueError(NO_DETECTIONS)
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and cfg.procs == 1:  # launched by torchrun: its processes are the run's
+        cfg = replace(cfg, procs=world)
     if (run_dir / "config.json").exists():
         check_resume(run_dir, cfg, agent)
     if int(os.environ.get("RANK", "0")) == 0:

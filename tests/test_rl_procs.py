@@ -1,0 +1,178 @@
+"""The batched trainer on N CPU processes (``TrainConfig.procs``, :func:`tsnav.distributed.run_ranks`): the
+averaged gradient of two processes equals one process's over the same episodes, a 2-process run is
+deterministic and resumes bit-exactly, failures of either side are reported, configurations are checked."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+import torch.distributed as dist
+
+from tsnav.agent import agent_config
+from tsnav.distributed import allreduce_gradients, init_distributed, run_ranks
+from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
+from tsnav.rl.batched import train_batched
+from tsnav.rl.checkpoint import load_checkpoint
+from tsnav.rl.config import TrainConfig
+from tsnav.rl.logger import read_log
+from tsnav.rl.rollout import Rollout, RolloutCollector, a2c_loss, gae
+from tsnav.rl.train import check_resume
+
+from conftest import PIXEL_FEATURES as FEATS
+
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+B, T = 8, 6
+
+
+def _cfg(world, **kw):
+    base = dict(data=str(world), features=FEATS, algo="batched", num_envs=8, rollout_steps=6, max_steps=30,
+                checkpoint_every=3, log_every=2, lr=1e-3, device="cpu", detections="oracle")
+    return TrainConfig(**{**base, **kw})
+
+
+def _rollout(world) -> tuple:
+    """The same recorded rollout of ``B`` episodes on every call (fixed model, env seed and action generator)."""
+    cfg = _cfg(world, num_envs=B)
+    bank, _ = load_bank(cfg)
+    observer = make_observer(bank, cfg)
+    model = make_model(agent_config("cpu", dropout=0.0), observer, 0)
+    col = RolloutCollector(make_train_env(bank, cfg, B, seed=11), observer, model,
+                           generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        ro = col.collect(T)
+    return model, observer, ro
+
+
+def _rows_gradient(model, observer, ro: Rollout, rows: np.ndarray) -> None:
+    """Backward of the actor-critic loss of the rollout's ``rows`` alone (re-run through the model with
+    gradients, as the trainer computes it on a rank holding those rows)."""
+    from rl_helpers import replay
+
+    idx = torch.from_numpy(rows)
+    part = Rollout(logp=ro.logp[:, idx], entropy=ro.entropy[:, idx], value=ro.value[:, idx], reward=ro.reward[:, idx],
+                   bootstrap=ro.bootstrap[:, idx], terminated=ro.terminated[:, idx], finished=ro.finished[:, idx],
+                   states=ro.states[:, rows], targets=ro.targets[:, rows], actions=ro.actions[:, rows],
+                   start=ro.start.index(idx))
+    logp, ent, value = replay(model, observer, part)
+    adv, ret = gae(part.reward, value, part.bootstrap, part.terminated, part.finished)
+    loss, _ = a2c_loss(replace(part, logp=logp, entropy=ent, value=value), adv, ret)
+    model.zero_grad()
+    loss.backward()
+
+
+def _flat_grad(model) -> torch.Tensor:
+    return torch.cat([p.grad.reshape(-1) for p in model.parameters() if p.grad is not None])
+
+
+def _rank_gradient(world) -> np.ndarray:
+    """One rank of two: the gradient of its half of the rows, all-reduced like the trainer's."""
+    info = init_distributed(torch.device("cpu"))
+    model, observer, ro = _rollout(world)
+    rows = np.arange(B).reshape(info.world, -1)[info.rank]
+    _rows_gradient(model, observer, ro, rows)
+    allreduce_gradients(model, info)
+    return _flat_grad(model).numpy()
+
+
+def test_two_process_gradient_equals_one_process_gradient_over_the_same_episodes(pixel_world):
+    """Each rank's loss is the mean over its B/2 rows; averaging the two ranks' gradients gives the gradient
+    of the mean over all B rows, which one process stepping the B episodes computes: same learning rate."""
+    model, observer, ro = _rollout(pixel_world)
+    _rows_gradient(model, observer, ro, np.arange(B))
+    one = _flat_grad(model).numpy()
+    two = run_ranks(_rank_gradient, 2, pixel_world)
+    assert not dist.is_initialized()
+    np.testing.assert_allclose(two, one, rtol=1e-5, atol=1e-7)
+    # the rows' halves differ, so this is not a trivial equality; a sum of the two (not a mean) would be twice
+    _rows_gradient(model, observer, ro, np.arange(B // 2))
+    half = _flat_grad(model).numpy()
+    assert np.abs(half - one).max() > 1e-3 * np.abs(one).max()
+
+
+class Interrupt(Exception):
+    pass
+
+
+def _weights(run):
+    from tsnav.checkpoint import load_tensors
+    from tsnav.rl.checkpoint import latest_checkpoint
+
+    ck = latest_checkpoint(run)
+    return load_tensors(ck / "model.safetensors")[0], load_tensors(ck / "optimizer.safetensors")[0]
+
+
+def _same(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_two_process_run_is_deterministic_and_resumes_exactly(pixel_world, tmp_path):
+    cfg = _cfg(pixel_world, procs=2, updates=8)
+    agent = agent_config("cpu")
+    full = train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
+    assert full["update"] == 8 and full["env_steps"] == 8 * 8 * 6
+
+    seen = []
+
+    def kill(progress):
+        seen.append(progress["update"])
+        if progress["update"] == 5:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):  # rank 0 is interrupted; rank 1 is stopped with it
+        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+    assert seen == [1, 2, 3, 4, 5] and not dist.is_initialized()
+    resumed = train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
+    assert (resumed["update"], resumed["episodes"], resumed["env_steps"]) == (8, full["episodes"], full["env_steps"])
+    wa, oa = _weights(tmp_path / "a")
+    wb, ob = _weights(tmp_path / "b")
+    assert _same(wa, wb) and _same(oa, ob)
+    la, lb = read_log(tmp_path / "a"), read_log(tmp_path / "b")
+    assert [r["update"] for r in la] == [r["update"] for r in lb] == [2, 3, 4, 6, 8]
+    assert [(r["loss"], r["n_episodes"]) for r in la] == [(r["loss"], r["n_episodes"]) for r in lb]
+    assert all(r["steps_per_cpu_s"] > 0 for r in la)
+
+    # both ranks wrote their RNG state; they agreed on the weights
+    state = load_checkpoint(sorted((tmp_path / "a" / "checkpoints").iterdir())[-1])
+    assert sorted(state["rng"]) == [0, 1]
+    assert state["rng"][0]["weights"] == state["rng"][1]["weights"]
+    assert state["rng"][0]["env"] != state["rng"][1]["env"]  # each rank draws its own episodes
+
+    # (the interrupted run's first session, updates 1-3, repeated the same (seed, procs) exactly); one process
+    # draws other episodes
+    train_batched(replace(cfg, updates=3, procs=1), agent, tmp_path / "d", progress_bar=False)
+    assert [r["loss"] for r in read_log(tmp_path / "d")] != [r["loss"] for r in la[:2]]
+
+
+def _fail_on_rank1():
+    info = init_distributed(torch.device("cpu"))
+    if info.rank == 1:
+        raise ValueError("rank 1 stops here")
+    t = torch.ones(3)
+    dist.all_reduce(t)  # rank 1 never joins: its sockets close when it exits
+    return t
+
+
+def test_a_failing_rank_is_reported_by_rank_0(capfd):
+    with pytest.raises(RuntimeError, match="rank 1 of 2 failed"):
+        run_ranks(_fail_on_rank1, 2)
+    assert "rank 1 stops here" in capfd.readouterr().err
+    assert not dist.is_initialized()
+
+
+def test_procs_configuration_is_checked(pixel_world, tmp_path):
+    with pytest.raises(ValueError, match="num_envs 9 does not split evenly over procs=2"):
+        _cfg(pixel_world, procs=2, num_envs=9)
+    with pytest.raises(ValueError, match="procs must be >= 1"):
+        _cfg(pixel_world, procs=0)
+    with pytest.raises(ValueError, match="batched trainer"):
+        _cfg(pixel_world, algo="a3c", procs=2)
+    # procs is part of the run's identity: resuming with another value is refused
+    from tsnav.rl.train import train_run
+
+    agent = agent_config("cpu")
+    train_run(_cfg(pixel_world, updates=1), agent, tmp_path / "r", progress_bar=False)
+    with pytest.raises(ValueError, match=r"another configuration \(procs\)"):
+        check_resume(tmp_path / "r", _cfg(pixel_world, updates=1, procs=2), agent)
