@@ -10,10 +10,12 @@ The batched trainer runs once per ``--procs`` value (data-parallel processes sha
 ``TrainConfig.procs``); each row also gives its env steps per CPU-second of all its processes (how it would run
 with an idle core per process: on a shared machine the wall-clock rate of N processes is capped by the cores
 left free), the load average over its run, and, for N > 1, the ratio of its steps/s to the same setting with
-one process, measured in the same session.
+one process, measured in the same session. "idle x" = N x (steps per CPU-second of N processes) / (that of
+one): the speed-up projected for an idle core per process (all-reduce waits excluded; on a busy machine CPU time
+is itself inflated by the other jobs' use of the caches, so compare ratios measured in one session).
 
     .venv/bin/python bench/bench_train.py --data /tmp/demo --features NAME [--seconds 60] [--workers 2]
-        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c] [--procs 1 2]
+        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c] [--procs 1 2] [--log-every 5]
 
 Without --data a tiny world is built in a temporary folder with pooled-pixel features.
 """
@@ -68,6 +70,8 @@ def main() -> None:
     ap.add_argument("--procs", type=int, nargs="+", default=[1],
                     help="batched trainer: data-parallel processes (each value is run; e.g. 1 2 for the ratio)")
     ap.add_argument("--no-a3c", action="store_true", help="batched trainer only (ratios are then to the first batch size)")
+    ap.add_argument("--log-every", type=int, default=5,
+                    help="updates per log window (the steady rate averages the windows after the first)")
     ap.add_argument("--out", default=None, help="write the figures as JSON here")
     args = ap.parse_args()
 
@@ -95,7 +99,7 @@ def main() -> None:
         agent = agent_config(args.preset)
         minutes = args.seconds / 60.0
         base = dict(data=str(data), features=features, detections=args.detections, reward="tsrm", preset=args.preset, lr=1e-4,
-                    rollout_steps=args.rollout_steps, max_steps=30, minutes=minutes, log_every=5,
+                    rollout_steps=args.rollout_steps, max_steps=30, minutes=minutes, log_every=args.log_every,
                     checkpoint_every=10**9, device="cpu")
         results = []
         t = time.perf_counter()
@@ -119,13 +123,14 @@ def main() -> None:
                         one = r
                     r["x_1_proc"] = r["steps_per_s_steady"] / one["steps_per_s_steady"] if one else float("nan")
                     r["cpu_x_1_proc"] = (r["steps_per_cpu_s"] / one["steps_per_cpu_s"] if one else float("nan"))
+                    r["projected_x_1_proc"] = n * r["cpu_x_1_proc"]  # with an idle core per process
                     results.append(r)
 
         ref = results[0]["steps_per_s_steady"]
         print(f"data {data}, features {features}, agent preset {args.preset}, reward tsrm, "
               f"rollout {args.rollout_steps} steps, {args.threads} thread(s), {args.seconds:.0f} s per trainer")
         head = (f"{'trainer':<46} {'steps/s':>9} {'(overall)':>10} {'x A3C':>6} {'x 1 proc':>8} {'steps/CPU-s':>11} "
-                f"{'(x 1 proc)':>10} {'load':>9} {'ep len':>7} {'ep/s':>7} {'h for 1.5M ep':>14}")
+                f"{'(x 1 proc)':>10} {'idle x':>6} {'load':>9} {'ep len':>7} {'ep/s':>7} {'h for 1.5M ep':>14}")
         print(head)
         print("-" * len(head))
         for r in results:
@@ -133,6 +138,7 @@ def main() -> None:
             print(f"{r['trainer']:<46} {r['steps_per_s_steady']:9.0f} {r['steps_per_s_overall']:10.0f} "
                   f"{r['steps_per_s_steady'] / ref:6.1f} {r.get('x_1_proc', float('nan')):8.2f} "
                   f"{r.get('steps_per_cpu_s', float('nan')):11.0f} {r.get('cpu_x_1_proc', float('nan')):10.2f} "
+                  f"{r.get('projected_x_1_proc', float('nan')):6.2f} "
                   f"{load:>9} {r['episode_length']:7.1f} {r['episodes_per_s']:7.1f} "
                   f"{r['hours_for_1.5M_episodes']:14.1f}")
         if args.out:

@@ -176,3 +176,13 @@ def test_procs_configuration_is_checked(pixel_world, tmp_path):
     train_run(_cfg(pixel_world, updates=1), agent, tmp_path / "r", progress_bar=False)
     with pytest.raises(ValueError, match=r"another configuration \(procs\)"):
         check_resume(tmp_path / "r", _cfg(pixel_world, updates=1, procs=2), agent)
+
+
+def test_train_command_refuses_procs_that_do_not_split_the_episodes(pixel_world, tmp_path, capsys):
+    from tsnav.cli import main
+
+    rc = main(["train", "--data", str(pixel_world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
+               "--out", str(tmp_path / "run"), "--updates", "1", "--num-envs", "8", "--procs", "3", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0 and len(err) == 1 and "num_envs 8 does not split evenly over procs=3" in err[0], err
+    assert not (tmp_path / "run" / "config.json").exists()

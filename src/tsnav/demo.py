@@ -109,6 +109,9 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--train-minutes", type=float, default=None,
                    help="training budget in minutes instead (the table then depends on the machine's load)")
     p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
+    p.add_argument("--procs", type=int, default=None,
+                   help="CPU processes of the agent's training (default 1; 2 uses both cores; the table is the same "
+                        "on every run for a given value, but differs between values)")
     p.add_argument("--threads", type=int, default=None,
                    help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
                         "count, because another count sums floats in another order and trains another agent)")
@@ -441,6 +444,10 @@ def run(args) -> int:
         cfg.scale.pretrain_steps = args.pretrain_steps
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
+    if args.procs is not None:
+        if args.procs < 1 or cfg.scale.num_envs % args.procs:
+            raise CommandError(f"--procs must be >= 1 and divide the {cfg.scale.num_envs} training episodes per update")
+        cfg.scale.procs = args.procs
 
     print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)

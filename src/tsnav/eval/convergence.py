@@ -114,6 +114,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="weight of the entropy bonus (default 0.01, the lineage's)")
     parser.add_argument("--precision", default="fp32", choices=PRECISIONS,
                         help="rollout forward passes in float32 (default) or bfloat16 autocast")
+    parser.add_argument("--procs", type=int, default=1,
+                        help="CPU processes sharing each update's episodes (default 1; 2 uses both cores)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
 
@@ -129,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         cfg = TrainConfig(data=str(Path(args.data).resolve()), features=args.features, detections=args.detections,
                           algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
                           seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef,
-                          precision=args.precision)
+                          precision=args.precision, procs=args.procs)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
                         patience=args.patience)

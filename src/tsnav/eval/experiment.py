@@ -148,7 +148,8 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
                      split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
                      num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
                      minutes=minutes, episodes=episodes, updates=updates, device=cfg.device,
-                     checkpoint_every=every, milestone_every=milestones)
+                     checkpoint_every=every, milestone_every=milestones,
+                     procs=(cfg.procs or scale.procs) if scale.algo == "batched" else 1)
     return tc, agent_config(scale.agent_preset)
 
 
@@ -191,6 +192,8 @@ class Experiment:
             raise ValueError(f"--seeds must be >= 1, got {cfg.seeds}")
         if cfg.parallel < 1:
             raise ValueError(f"--parallel must be >= 1, got {cfg.parallel}")
+        if cfg.procs is not None and (cfg.procs < 1 or (cfg.procs > 1 and cfg.parallel > 1)):
+            raise ValueError(f"--procs must be >= 1, and 1 with --parallel > 1 (got --procs {cfg.procs})")
         if cfg.minutes_per_job is not None and not cfg.minutes_per_job > 0:
             raise ValueError(f"--minutes-per-job must be positive, got {cfg.minutes_per_job}")
         if cfg.updates_per_job is not None and cfg.updates_per_job < 1:
@@ -504,6 +507,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--parallel", type=int, default=1,
                         help="jobs trained at once, each in its own process (default 1; 2 on two idle cores)")
+    parser.add_argument("--procs", type=int, default=None,
+                        help="processes of each batched training job (default: the scale's, 1); 2 uses both cores "
+                             "of a 2-core machine; another value trains other agents")
     parser.add_argument("--threads", type=int, default=None,
                         help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
                              "count, because another count trains other agents)")
@@ -540,7 +546,7 @@ def run(args: argparse.Namespace) -> int:
                            minutes_per_job=args.minutes_per_job, updates_per_job=args.updates_per_job,
                            pretrain_dir=args.pretrain_dir, detector_dir=args.detector_dir, detector=args.detector,
                            detections=args.detections, vc1_weights=args.vc1_weights,
-                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
+                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel, procs=args.procs,
                            sample=args.sample, checkpoint=args.checkpoint,
                            reuse_from=tuple(str(Path(d).resolve()) for d in args.reuse_from))
     if args.threads is not None and args.threads < 1:

@@ -65,7 +65,10 @@ class ScaleConfig:
     averages each update over 64-256 episodes; on the 80 real rooms 1e-3 reached a higher validation plateau in
     a third of the updates that 1e-4 needed (docs/RESULTS.md, "Convergence on the 80 real rooms")."""
     num_envs: int = 64
-    """Episodes stepped together by the batched trainer."""
+    """Episodes stepped together by the batched trainer (per update, over all its processes)."""
+    procs: int = 1
+    """CPU processes the batched trainer shares each update's episodes over (:attr:`TrainConfig.procs`; 2 uses
+    both cores of a 2-core machine). Part of the agent's identity: another value trains another agent."""
     workers: int = 14
     """A3C workers (paper: 14)."""
     updates_per_job: int | None = 1000
@@ -240,6 +243,9 @@ class ExperimentConfig:
     """Added to the job seeds (repeat an experiment with other seeds)."""
     parallel: int = 1
     """Jobs trained at once, each in its own process (use 2 on two idle cores; progress bars are then off)."""
+    procs: int | None = None
+    """Overrides the scale's :attr:`ScaleConfig.procs`: processes of each batched training job (one job at a time,
+    ``parallel`` 1)."""
     checkpoint: str = "best"
     """Checkpoint each job evaluates: ``best`` (issue 15: the job's milestones are scored greedily on validation
     episodes, ``OUT/episodes_select.json``, and the best is kept as ``train/best``) or ``latest`` (the last one
