@@ -177,13 +177,14 @@ def test_torchrun_two_ranks(trained, tmp_path):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(port),
            "-m", "tsnav", "train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
            "--out", str(run),
-           "--updates", "2", "--num-envs", "3", "--rollout-steps", "4", "--preset", "cpu", "--checkpoint-every", "1",
+           "--updates", "2", "--num-envs", "6", "--rollout-steps", "4", "--preset", "cpu", "--checkpoint-every", "1",
            "--device", "cpu", "--quiet"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert res.returncode == 0, res.stderr[-2000:]
     from tsnav.rl.checkpoint import latest_checkpoint, load_checkpoint
 
     st = load_checkpoint(latest_checkpoint(run))
-    assert st["progress"]["env_steps"] == 2 * 3 * 4 * 2
+    assert st["progress"]["env_steps"] == 2 * 3 * 4 * 2  # --num-envs is per update: 3 episodes on each rank
+    assert json.loads((run / "config.json").read_text())["train"]["procs"] == 2  # torchrun's processes are the run's
     assert set(st["rng"]) == {0, 1} and st["rng"][0]["weights"] == st["rng"][1]["weights"]
     assert st["rng"][0]["env"] != st["rng"][1]["env"]  # each rank its own episodes

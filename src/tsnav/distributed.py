@@ -141,12 +141,12 @@ def run_ranks(fn: Callable[..., Any], procs: int, *args, rank0_kwargs: dict | No
     and rendezvous through a file in a temporary folder (no port to choose or collide on). The arguments go to
     the started ranks by multiprocessing's own transport, in memory; nothing is written to disk. When rank 0
     fails or is interrupted the other ranks are terminated; when another rank fails, rank 0 raises
-    ``RuntimeError`` naming it. ``procs == 1`` (or an existing process group, e.g. under ``torchrun``) just
-    calls ``fn`` here.
+    ``RuntimeError`` naming it. ``procs == 1``, an existing process group, or a process launched by ``torchrun``
+    (``WORLD_SIZE`` > 1: already one of the ranks) just calls ``fn`` here.
     """
     if procs < 1:
         raise ValueError(f"procs must be >= 1, got {procs}")
-    if procs == 1 or (dist.is_available() and dist.is_initialized()):
+    if procs == 1 or (dist.is_available() and dist.is_initialized()) or int(os.environ.get("WORLD_SIZE", "1")) > 1:
         return fn(*args, **{**kwargs, **(rank0_kwargs or {})})
     tmp = Path(tempfile.mkdtemp(prefix="tsnav_ranks_"))
     init_file = str(tmp / "rendezvous")

@@ -27,6 +27,7 @@ the CPU); a finished run is not retrained.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -55,9 +56,11 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     ``on_update(progress)`` is called after every update (tests use it to interrupt a run); ``scenes``
     replaces loading ``cfg.split`` of ``cfg.data`` (the scenes still need their feature caches). With
     ``cfg.procs`` > 1 and no process group yet, this process becomes rank 0 of ``cfg.procs`` CPU processes
-    (:func:`tsnav.distributed.run_ranks`); the progress bar and ``on_update`` stay with rank 0.
+    (:func:`tsnav.distributed.run_ranks`); the progress bar and ``on_update`` stay with rank 0. Under
+    ``torchrun`` this process is the rank torchrun made it.
     """
-    if cfg.procs > 1 and not (dist.is_available() and dist.is_initialized()):
+    launched = int(os.environ.get("WORLD_SIZE", "1")) > 1  # by torchrun: this process is one of its ranks
+    if cfg.procs > 1 and not launched and not (dist.is_available() and dist.is_initialized()):
         return run_ranks(_train, cfg.procs, cfg, agent, run_dir, progress_bar=False, scenes=scenes,
                          rank0_kwargs={"progress_bar": progress_bar, "on_update": on_update})
     return _train(cfg, agent, run_dir, progress_bar=progress_bar, on_update=on_update, scenes=scenes)

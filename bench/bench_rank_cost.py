@@ -1,0 +1,107 @@
+"""What bounds the data-parallel batched trainer (``TrainConfig.procs``): the CPU time of one update (rollout with
+gradients, GAE, loss, backward, Adam step) over B episode rows against B / N rows, the share each of N ranks
+computes, alternated in one process so that a shared machine affects both alike.
+
+With an idle core per rank, N ranks take ``cost(B / N)`` per update (plus one all-reduce of the gradients) where
+one process takes ``cost(B)``: the speed-up is at most ``cost(B) / cost(B / N)``, below N by the share of an
+update that does not shrink with the rows (per-step Python and operator dispatch, the weights' bfloat16 casts,
+the Adam step). CPU time (``time.process_time``) is reported, not wall time, so that other jobs' use of the
+cores does not count; it is still inflated a little by their use of the caches.
+
+    .venv/bin/python bench/bench_rank_cost.py [--preset cpu|paper] [--precision fp32|bf16] [--num-envs 256]
+        [--procs 2] [--rounds 5]
+
+Without --data a tiny world is built in a temporary folder with pooled-pixel features; the TSRM reward and the
+oracle detection table are used, one torch thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=None)
+    ap.add_argument("--features", default=None)
+    ap.add_argument("--detections", default="oracle", help="detection tables the agent reads (named explicitly)")
+    ap.add_argument("--preset", default="cpu")
+    ap.add_argument("--precision", default="fp32", choices=("fp32", "bf16"))
+    ap.add_argument("--num-envs", type=int, default=256)
+    ap.add_argument("--procs", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--updates", type=int, default=3, help="updates per round and batch size")
+    args = ap.parse_args()
+
+    import torch
+
+    from tsnav.agent import agent_config
+    from tsnav.eval.stage_cache import ensure_detections
+    from tsnav.pretrain.pixels import cache_pixel_features
+    from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
+    from tsnav.rl.config import TrainConfig
+    from tsnav.rl.rollout import RolloutCollector, collect_and_loss
+
+    torch.set_num_threads(1)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_rank_cost_"))
+    try:
+        data, features = args.data, args.features
+        if data is None:
+            from tsnav.world.build import build_dataset
+
+            data = tmp / "world"
+            build_dataset(data, "tiny", workers=1, progress=False)
+        if features is None:
+            features = "bench_pixels"
+            cache_pixel_features(data, features, grid=4, split="train")
+        if args.detections == "oracle":
+            ensure_detections(data, "oracle")
+        cfg = TrainConfig(data=str(data), features=features, detections=args.detections, algo="batched",
+                          preset=args.preset, precision=args.precision, device="cpu")
+        bank, det = load_bank(cfg)
+        observer = make_observer(bank, cfg, det_features=det)
+        sizes = (args.num_envs, args.num_envs // args.procs)
+        runs = {}
+        for b in sizes:
+            model = make_model(agent_config(args.preset), observer, 0)
+            opt = torch.optim.Adam(model.parameters(), lr=1e-4, amsgrad=True)
+            col = RolloutCollector(make_train_env(bank, cfg, b, seed=0), observer, model, precision=args.precision)
+            runs[b] = (model, opt, col)
+
+        def update(b: int) -> None:
+            model, opt, col = runs[b]
+            _, loss, _ = collect_and_loss(col, cfg)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+            opt.step()
+
+        for b in sizes:  # warm-up
+            update(b)
+        per_step = {b: [] for b in sizes}
+        load0 = os.getloadavg()[0]
+        for _ in range(args.rounds):
+            for b in sizes:
+                t = time.process_time()
+                for _ in range(args.updates):
+                    update(b)
+                per_step[b].append((time.process_time() - t) / (args.updates * cfg.rollout_steps))
+        big, small = (statistics.median(per_step[b]) for b in sizes)
+        print(f"preset {args.preset}, {args.precision}, rollout {cfg.rollout_steps} steps, 1 thread, "
+              f"load {load0:.1f}-{os.getloadavg()[0]:.1f}; median CPU ms per rollout step over {args.rounds} rounds")
+        print(f"  1 process x {sizes[0]} rows: {1e3 * big:7.2f} ms  ({sizes[0] / big:8.0f} env steps per CPU-s)")
+        print(f"  1 rank    x {sizes[1]} rows: {1e3 * small:7.2f} ms  ({sizes[1] / small:8.0f} env steps per CPU-s)")
+        print(f"  bound on the speed-up of {args.procs} ranks with idle cores: {big / small:.2f}x; rows-independent "
+              f"cost per step (linear fit): {1e3 * (args.procs * small - big) / (args.procs - 1):.2f} ms")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
