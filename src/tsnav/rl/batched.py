@@ -31,10 +31,9 @@ import os
 import time
 from pathlib import Path
 
-import torch.distributed as dist
-
 import numpy as np
 import torch
+import torch.distributed as dist
 
 from ..agent.model import AgentConfig
 from ..checkpoint import weights_digest
