@@ -91,8 +91,8 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
         plot_curve(points, out / "curve.png",
                    title=f"{cfg.reward} reward, features {cfg.features}, protocol {cfg.protocol}")
         last = points[-1]
-        say(f"update {last['update']} (protocol {cfg.protocol}): env steps {last['env_steps']}, episodes {last['episodes']}, "
-            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in CURVE_METRICS))
+        say(f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
+            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in CURVE_METRICS) + f" (protocol {cfg.protocol})")
         if plateaued(points, patience):
             say(f"validation SR has not risen for {patience} chunks: stopping at update {last['update']}")
             break
