@@ -180,3 +180,33 @@ def test_commands_record_and_print_the_protocol(tiny_world, tmp_path, capsys):
     assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "oracle",
                  "--protocol", "paper", "--out", str(tmp_path / "x")]) == 2
     assert "drawn under the lineage protocol" in capsys.readouterr().err
+
+
+def test_tsrm_distance_term_follows_the_protocol(banks, tiny_scenes):
+    """The TSRM reward's distance fields come from the bank's success mask: under lineage they equal the slow
+    reference's BFS towards the visibility map's states, and the distance term matches the reference's."""
+    from tsnav.tsrm.distance import bank_pose_distance
+    from tsnav.tsrm.reward import RewardConfig, TSRMReward, TSRMRewardReference
+
+    bank = banks["lineage"]
+    d = bank_pose_distance(bank)
+    sc = tiny_scenes[0]
+    lo = bank.offsets[0]
+    cfg = RewardConfig(variant="distance")
+    fast = TSRMReward(bank, cfg)
+    targets = np.flatnonzero(sc.success_table("lineage").any(axis=0))[:3]
+    rng = np.random.default_rng(0)
+    for c in targets:
+        ref = TSRMRewardReference(sc, cfg, protocol="lineage")
+        start = int(rng.integers(sc.num_states))
+        ref.reset(int(c), start)
+        np.testing.assert_array_equal(ref._dist_cache[int(c)], d[lo:lo + sc.num_states, c])
+        fast.reset(np.ones(1, bool), np.zeros(1, np.int64), np.array([c]), np.array([start + lo]))
+        s = start
+        for a in rng.choice(5, 15):
+            new = int(sc.next_state[s, a])
+            _, tf = fast.step(np.array([s + lo]), np.array([a]), np.array([new + lo]), np.zeros(1, bool),
+                              np.zeros(1, bool), np.zeros(1, bool))
+            _, tr = ref.step(s, int(a), new, False, False, False)
+            assert tf["distance"][0] == pytest.approx(tr["distance"], abs=1e-6)
+            s = new
