@@ -4,18 +4,16 @@ An episode is (scene, target category, start state). A valid episode has the tar
 a start state from which a success state of the target can be reached, and, under the ``paper`` success
 protocol, a start that is not already a success state (the ``lineage`` protocol keeps those, L* = 0, as the
 lineage's test lists do; :mod:`tsnav.protocol`). Starts take any of the 8 rotations and, as in the lineage's
-test splits, horizon 0 or 30
-(fixed lists draw each horizon with probability 1/2 per (scene, target) pair; ``start_horizon`` restricts
-them to one). Success (target in view within the success distance) is a property of the full state, horizon
-included, so a start looking down that already sees the target close by is excluded like any other; the
+test splits, horizon 0 or 30 (fixed lists draw each horizon with probability 1/2 per (scene, target) pair;
+``start_horizon`` restricts them to one). Success is a property of the full state, horizon included, so under
+``paper`` a start looking down that already sees the target close by is excluded like any other; the
 optimal length stored with fixed episodes is L* of :mod:`tsnav.sim.paths` from the start state itself
 (movement actions, Done not counted), so a start at horizon 30 counts the LookUp it may need.
 
 Episode lists are JSON::
 
     {"format": "tsnav-episodes", "version": 1, "split": "test", "protocol": "paper", "success_distance": 1.0,
-     "seed": 0,
-     "per_room_type": 250, "start_horizon": null,
+     "seed": 0, "per_room_type": 250, "start_horizon": null,
      "episodes": [{"scene": "FloorPlan1", "target": "Bowl", "start": "0.50|3.50|315|0",
                    "optimal_length": 7, "room_type": "kitchen"}, ...]}
 """
