@@ -12,9 +12,10 @@ are counted. One is chosen for an episode list, a training run and an evaluation
     ``visible_object_map_1.5.json``: IOM ``full_eval.py`` -> ``episodes/basic_episode.py::judge`` loops over
     the episode's ``task_data`` (the target type's object ids) and asks the offline controller's
     ``object_is_visible(id)``, i.e. ``str(state) in visible_map[id]``. Its test lists keep starts that already
-    see the target, so ``lineage`` keeps them too. Its ``compute_spl`` (``utils/net_util.py`` /
-    ``runners/train_util.py`` of that code) divides ``best_path_len`` - ``len(nx.shortest_path(...))``, the
-    number of *states* on a shortest path to a state where the target is listed, start included, hence
+    see the target, so ``lineage`` keeps them too. Its ``compute_spl`` (``runners/train_util.py`` of that code)
+    divides ``best_path_len`` - from the offline controller's ``shortest_path_to_target``
+    (``datasets/offline_controller_with_small_rotation.py``), ``len(nx.shortest_path(...))``, the number of
+    *states* on a shortest path to a state where the target is listed, start included, hence
     ``L* + 1`` in tsnav's movement-action count - by ``player.eps_len``, every action output, Done included
     (``L + 1`` for an episode that succeeded, since success needs Done): SPL = ``(L* + 1) / (L + 1)`` on
     success, so a start that already sees the target and outputs Done at once scores SR 1 and SPL 1, and one
@@ -22,6 +23,8 @@ are counted. One is chosen for an episode list, a training run and an evaluation
     ``GreaterThan/5`` when ``best_path_len >= 5``, i.e. ``L* >= 4`` in movement actions; tsnav's ``L>=5`` row
     under ``lineage`` is that bucket (start-success episodes, ``L* = 0``, are never in it). Test episodes run
     100 steps under both protocols (some of the lineage's val runners give living rooms 200; tsnav does not).
+    These functions were read in the SAVN / VTNet / DOA code the lineage shares (the same ``judge``,
+    ``compute_spl``, ``get_bucketed_metrics`` and controller in each); IOM's own repository was not at hand.
 
 In the worlds tsnav builds (``tsnav world``, the procedural and the ``ithor-real`` rooms),
 ``visible_object_map_1.5.json`` lists an object at a state when it shows at least the scene's ``min_pixels``
