@@ -24,7 +24,7 @@ import numpy as np
 
 from ..constants import (CATEGORY_INDEX, DONE, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES,
                          ROTATE_LEFT, ROTATE_RIGHT, ROTATE_STEP, SUCCESS_DISTANCE, parse_state_keys)
-
+from ..protocol import DEFAULT_PROTOCOL, PAPER, check_protocol
 
 COMPLETE_MARKER = "COMPLETE"
 
@@ -106,6 +106,23 @@ class Scene:
             obj_ok = self.visible
         else:
             obj_ok = self.visible_at_any_range() & (self.distance <= distance)
+        return self._per_category(obj_ok)
+
+    def success_table(self, protocol: str = DEFAULT_PROTOCOL, distance: float = SUCCESS_DISTANCE) -> np.ndarray:
+        """``(S, 22)`` bool: Done in a state succeeds for the category under the success ``protocol``
+        (:mod:`tsnav.protocol`) - the one place that turns a protocol into a success mask.
+
+        ``paper``: :meth:`category_visible_within` ``(distance)`` (1.0 m, paper III-A). ``lineage``: some object id
+        of the category lists the state in ``visible_object_map_1.5.json`` (``visible``), as the lineage's
+        ``basic_episode.judge`` asks it; ``distance`` is not used. Slow reference:
+        :func:`tsnav.data.lineage.visibility_map_success_reference`.
+        """
+        if check_protocol(protocol) == PAPER:
+            return self.category_visible_within(distance)
+        return self._per_category(self.visible)
+
+    def _per_category(self, obj_ok: np.ndarray) -> np.ndarray:
+        """``(S, O)`` per-object flags -> ``(S, 22)``: any object of the category."""
         out = np.zeros((self.num_states, NUM_CATEGORIES), dtype=bool)
         tgt = self.object_category >= 0
         if tgt.any():

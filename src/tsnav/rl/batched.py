@@ -82,7 +82,7 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     logger = RunLogger(run_dir, progress["update"], enabled=info.is_main)
     bar = ProgressBar(cfg, progress, enabled=progress_bar and info.is_main)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
-    window = LogWindow(progress["env_steps"])
+    window = LogWindow(progress["env_steps"], cfg.protocol)
     steps_per_update = cfg.num_envs * cfg.rollout_steps * info.world
     try:
         while True:

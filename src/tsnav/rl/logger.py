@@ -83,7 +83,9 @@ def read_log(run_dir: str | Path) -> list[dict]:
 class LogWindow:
     """Losses and finished episodes gathered between two log lines, turned into one record."""
 
-    def __init__(self, env_steps: int):
+    def __init__(self, env_steps: int, protocol: str = "paper"):
+        self.protocol = protocol
+        """Success protocol of the run: SPL and its lengths as :func:`tsnav.metrics.metric_values` counts them."""
         self.t = time.perf_counter()
         self.steps = env_steps
         self.parts: list[dict] = []
@@ -104,6 +106,6 @@ class LogWindow:
         for k in self.parts[0] if self.parts else ():
             rec[k] = sum(p[k] for p in self.parts) / len(self.parts)
         rec["steps_per_s"] = (progress["env_steps"] - self.steps) / max(now - self.t, 1e-9)
-        rec.update(summarize(concat(self.episodes)))
+        rec.update(summarize(concat(self.episodes), self.protocol))
         self.t, self.steps, self.parts, self.episodes = now, progress["env_steps"], [], []
         return rec

@@ -55,16 +55,18 @@ MAX_PIXEL = 10000.0
 
 
 def make_bank(bank: SceneBank | None = None, scenes=None, data: str | None = None, split: str | None = "train",
-              success_distance: float = SUCCESS_DISTANCE, c_target: float = C_TARGET) -> SceneBank:
+              success_distance: float = SUCCESS_DISTANCE, c_target: float = C_TARGET,
+              protocol: str = "paper") -> SceneBank:
     """The env's bank: ``bank`` itself, else one over ``scenes``, else the scenes of ``split`` under ``data``,
-    else the analytic toy room."""
+    else the analytic toy room (success under ``protocol``, :mod:`tsnav.protocol`)."""
     if bank is not None:
         return bank
+    kw = dict(success_distance=success_distance, c_target=c_target, protocol=protocol)
     if scenes is not None:
-        return SceneBank(list(scenes), success_distance=success_distance, c_target=c_target)
+        return SceneBank(list(scenes), **kw)
     if data is not None:
-        return SceneBank.from_root(data, split, success_distance=success_distance, c_target=c_target)
-    return SceneBank([toy_scene()], success_distance=success_distance, c_target=c_target)
+        return SceneBank.from_root(data, split, **kw)
+    return SceneBank([toy_scene()], **kw)
 
 
 class Observations:
