@@ -2,6 +2,11 @@
 # make test : the same set-up, then the whole test suite.
 # make bench: the same set-up, then the speed benchmarks of bench/ with their defaults (figures: BENCHMARKS.md).
 PY ?= python3
+# The exact torch build set-up installs before the package: 2.13.0 is the small CPU build that lies on this
+# disk (pip takes it from there). pyproject.toml only declares the range the code works with (torch>=2.1), so
+# `pip install -e .` beside a researcher's own torch (a CUDA build, say) keeps it; a plain range asked for with
+# no torch installed would pull a CUDA build of several GB. `make TORCH= test` keeps whatever torch is there.
+TORCH ?= torch==2.13.0
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -14,6 +19,7 @@ $(STAMP): pyproject.toml
 	@bash scripts/setup_system.sh
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
+	@if [ -n "$(TORCH)" ]; then $(BIN)/pip install -q '$(TORCH)'; fi
 	$(BIN)/pip install -q -e '.[test]'
 	@touch $(STAMP)
 
