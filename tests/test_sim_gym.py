@@ -137,8 +137,9 @@ def test_frame_cache_equals_reference_reader(tiny_world, tmp_path):
 
     raw = tmp_path / "raw"
     write_scene_folder(toy_scenes()[2], raw / "ToyC", images=8)  # raw float32 depth, as old or imported worlds
-    for bank in (SceneBank.from_root(tiny_world, None), SceneBank.from_root(raw, None)):
-        fast, ref = Observations(bank, frames="memory"), Observations(bank, frames="hdf5")
+    for bank, layout in ((SceneBank.from_root(tiny_world, None), "standard"),
+                         (SceneBank.from_root(tiny_world, None), "legacy"), (SceneBank.from_root(raw, None), "standard")):
+        fast, ref = Observations(bank, frames="memory", layout=layout), Observations(bank, frames="hdf5", layout=layout)
         assert not fast.cache.loaded.any()
         rng = np.random.default_rng(0)
         for n in (1, 64, 300):

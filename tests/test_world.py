@@ -306,7 +306,7 @@ def test_built_graph_and_keys_equal_reference(tiny_world, tmp_path):
         assert [k.decode() for k in f["keys"][:]] == sorted(nodes)
 
 
-@pytest.mark.parametrize("depth_dtype,compression", [("float16", None), ("float32", "gzip")])
+@pytest.mark.parametrize("depth_dtype,compression", [("float16", None), ("float32", "gzip"), ("float16", "lzf")])
 def test_frame_writer_add_many_equals_add(tmp_path, depth_dtype, compression):
     """``FrameWriter.add_many`` (one depth conversion per batch) writes the same bytes as ``add`` per frame."""
     from tsnav.data.writer import FrameWriter

@@ -6,6 +6,7 @@
                    detections="oracle")
     envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v0", num_envs=64, vectorization_mode="vector_entry_point",
                         data="out/world", split="train", detections="oracle")
+    obs, info = envs.reset(seed=0)   # obs["rgb"] (64, H, W, 3) uint8, obs["depth"] (64, H, W, 1), ...
 
 The registered id builds these classes through :mod:`tsnav.tsrm.envs`, which adds the paper's reward
 (``reward="tsrm" | "baseline" | "explore" | "distance" | "sparse"``, default ``"tsrm"``), the detector's
@@ -16,7 +17,9 @@ of ``tsnav.data.toy``.
 | | |
 | --- | --- |
 | Action space | ``Discrete(6)``: 0 MoveAhead, 1 RotateLeft, 2 RotateRight, 3 LookUp, 4 LookDown, 5 Done (the lineage's order) |
-| Observation | ``Dict``: ``rgb`` ``(H, W, 3)`` uint8 from ``images.hdf5`` (zeros when absent); ``depth`` ``(H, W)`` float32 metres from ``depth.hdf5`` (zeros when absent); ``target`` ``Discrete(22)`` category id; ``detections`` ``(22, 6)`` float32 per-class rows (score, label, x0, y0, x1, y1) from the detector stage (zeros when absent) |
+| Observation (``obs_layout="standard"``, default) | ``Dict`` of images ``(H, W, C)`` and 1-D vectors only, what Stable-Baselines3's ``MultiInputPolicy``, RLlib and CleanRL-style encoders take unwrapped: ``rgb`` ``Box(0, 255, (H, W, 3), uint8)`` from ``images.hdf5`` (zeros when absent); ``depth`` ``Box(0, 1000, (H, W, 1))`` metres from ``depth.hdf5`` in the dtype the files store (float16 for the worlds of this project, float32 otherwise; zeros when absent); ``target`` ``Discrete(22)`` category id; ``detections`` ``Box(-1, 10000, (132,), float32)``: the 22 per-class rows (score, label, x0, y0, x1, y1) of the detector stage flattened row by row (``reshape(22, 6)`` restores them; zeros when absent) |
+| Observation (``obs_layout="legacy"``) | the first release's: ``depth`` ``(H, W)`` float32, ``detections`` ``(22, 6)`` float32, ``rgb`` and ``target`` as above |
+| Frames (``frames=``) | ``"memory"`` (default): each scene's frames are read once, on the first visit to one of its states, into two arrays indexed by state (:class:`FrameCache`; ``H * W * 5`` bytes a state with float16 depth: 80 KiB at 128 px, 20 KiB at 64 px; the 80 training rooms of ``ithor-real`` at 128 px hold 266 k states, 21.8 GB once all are visited); ``"hdf5"``: one HDF5 dataset read per state and frame, no cache (the slow reference, for little memory) |
 | Reward | a :class:`~tsnav.sim.batch.RewardFn`: through the registered id the paper's TSRM reward by default (:mod:`tsnav.tsrm.envs`); the classes alone default to :class:`~tsnav.sim.batch.SparseReward` (-0.01 per step, +5 on success) |
 | Start | a random training episode (scene, a reachable target present in it, a start state at horizon 0 or 30 that is not a success state), or ``reset(options={"episode": (scene_name, target_name, start_key)})`` |
 | Termination | the agent outputs Done (success when the target is in view within the success distance) |
@@ -78,16 +81,17 @@ FRAME_SOURCES = ("memory", "hdf5")
 OBS_LAYOUTS = ("standard", "legacy")
 
 
-def observation_space(height: int, width: int, layout: str = "standard") -> spaces.Dict:
+def observation_space(height: int, width: int, layout: str = "standard", depth_dtype=np.float32) -> spaces.Dict:
     """The env's single observation space for frames of ``height`` x ``width`` in ``layout``
-    (:data:`OBS_LAYOUTS`; the module docstring's table)."""
+    (:data:`OBS_LAYOUTS`; the module docstring's table); ``depth_dtype`` applies to the standard layout
+    (the legacy one is always float32)."""
     if layout not in OBS_LAYOUTS:
         raise ValueError(f"unknown obs_layout {layout!r} (choose from {', '.join(OBS_LAYOUTS)})")
     depth = (height, width, 1) if layout == "standard" else (height, width)
     det = (NUM_CATEGORIES * 6,) if layout == "standard" else (NUM_CATEGORIES, 6)
     return spaces.Dict({
         "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
-        "depth": spaces.Box(0.0, MAX_DEPTH, depth, np.float32),
+        "depth": spaces.Box(0.0, MAX_DEPTH, depth, np.dtype(depth_dtype) if layout == "standard" else np.float32),
         "target": spaces.Discrete(NUM_CATEGORIES),
         "detections": spaces.Box(-1.0, MAX_PIXEL, det, np.float32),
     })
@@ -96,6 +100,19 @@ def observation_space(height: int, width: int, layout: str = "standard") -> spac
 def _first_dataset(f) -> Any:
     first = next(iter(f.keys()), None)
     return None if first is None else f[first]
+
+
+def stored_depth_dtype(bank: SceneBank) -> np.dtype:
+    """float16 when every ``depth.hdf5`` of the bank stores float16 (the worlds of this project), else float32
+    (any other dtype, e.g. an imported lineage world, keeps full precision); float16 when no scene has depth."""
+    for s in bank.scenes:
+        p = s.depth_path()
+        if p is not None:
+            with h5py.File(p, "r") as f:
+                d = _first_dataset(f)
+                if d is not None and np.dtype(d.dtype) != np.float16:
+                    return np.dtype(np.float32)
+    return np.dtype(np.float16)
 
 
 class FrameCache:
@@ -110,16 +127,9 @@ class FrameCache:
     that first read. :meth:`load` reads scenes up front (e.g. before timing).
     """
 
-    def __init__(self, bank: SceneBank, height: int, width: int):
+    def __init__(self, bank: SceneBank, height: int, width: int, depth_dtype=None):
         self.bank, self.height, self.width = bank, int(height), int(width)
-        depth_dtype = np.dtype(np.float16)
-        for s in bank.scenes:
-            p = s.depth_path()
-            if p is not None:
-                with h5py.File(p, "r") as f:
-                    d = _first_dataset(f)
-                    if d is not None and np.dtype(d.dtype) != depth_dtype:
-                        depth_dtype = np.dtype(np.float32)  # any other dtype: keep full precision
+        depth_dtype = stored_depth_dtype(bank) if depth_dtype is None else np.dtype(depth_dtype)
         self.rgb = np.zeros((bank.num_states, self.height, self.width, 3), np.uint8)
         self.depth = np.zeros((bank.num_states, self.height, self.width), depth_dtype)
         self.loaded = np.zeros(bank.num_scenes, dtype=bool)
@@ -156,12 +166,12 @@ class FrameCache:
         self.loaded[i] = True
 
     def gather(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``rgb`` ``(B, H, W, 3)`` uint8 and ``depth`` ``(B, H, W)`` float32 of global ``state`` ids (new arrays)."""
+        """``rgb`` ``(B, H, W, 3)`` uint8 and ``depth`` ``(B, H, W)`` (the cache's dtype) of global ``state``
+        ids (new arrays)."""
         need = self.bank.scene_of[state]
         if not self.loaded[need].all():
             self.load(np.unique(need[~self.loaded[need]]))
-        depth = self.depth[state]
-        return self.rgb[state], (depth if depth.dtype == np.float32 else depth.astype(np.float32))
+        return self.rgb[state], self.depth[state]
 
 
 class Observations:
@@ -187,7 +197,10 @@ class Observations:
         if self.height is None:
             side = image_size or max([s.image_size for s in bank.scenes] + [0]) or DEFAULT_IMAGE_SIZE
             self.height = self.width = int(side)
-        self.space = observation_space(self.height, self.width, layout)
+        # the standard layout hands depth over as stored: a float16 -> float32 conversion would cost more
+        # than the whole gather (BENCHMARKS.md); the legacy layout converts to float32 as it always did
+        self.depth_dtype = stored_depth_dtype(bank) if layout == "standard" else np.dtype(np.float32)
+        self.space = observation_space(self.height, self.width, layout, self.depth_dtype)
         self.cache = FrameCache(bank, self.height, self.width) if frames == "memory" else None
         if self.cache is not None:
             self.close()  # the cache opens each file itself, once
@@ -203,13 +216,13 @@ class Observations:
                 self._files[key] = h5py.File(p, "r")
         return self._files[key]
 
-    def read_frames(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Reference frame reader: ``rgb`` ``(B, H, W, 3)`` uint8 and ``depth`` ``(B, H, W)`` float32 of global
-        ``state`` ids, one HDF5 dataset read per state and kind (zeros where a scene has no file)."""
+    def read_frames(self, state: np.ndarray, depth_dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
+        """Reference frame reader: ``rgb`` ``(B, H, W, 3)`` uint8 and ``depth`` ``(B, H, W)`` (``depth_dtype``) of
+        global ``state`` ids, one HDF5 dataset read per state and kind (zeros where a scene has no file)."""
         state = np.asarray(state, dtype=np.int64)
         n = len(state)
         rgb = np.zeros((n, self.height, self.width, 3), dtype=np.uint8)
-        depth = np.zeros((n, self.height, self.width), dtype=np.float32)
+        depth = np.zeros((n, self.height, self.width), dtype=depth_dtype)
         scene = self.bank.scene_of[state]
         for kind, out in (("images", rgb), ("depth", depth)):
             for j in range(n):
@@ -220,10 +233,13 @@ class Observations:
 
     def gather(self, state: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
         """Batched observation in the env's layout: ``{"rgb": (B,H,W,3), "depth": (B,H,W,1), "target": (B,),
-        "detections": (B,132)}`` (``"legacy"``: ``depth`` ``(B,H,W)``, ``detections`` ``(B,22,6)``)."""
+        "detections": (B,132)}`` (``"legacy"``: ``depth`` ``(B,H,W)`` float32, ``detections`` ``(B,22,6)``)."""
         state = np.asarray(state, dtype=np.int64)
         n = len(state)
-        rgb, depth = self.cache.gather(state) if self.cache is not None else self.read_frames(state)
+        rgb, depth = (self.cache.gather(state) if self.cache is not None
+                      else self.read_frames(state, self.depth_dtype))
+        if depth.dtype != self.depth_dtype:
+            depth = depth.astype(self.depth_dtype)
         det = (self.bank.detections[state] if self.bank.detections is not None
                else np.zeros((n, NUM_CATEGORIES, 6), dtype=np.float32))
         if self.layout == "standard":
@@ -297,7 +313,7 @@ class ObjectNavEnv(gym.Env):
         return self._obs(), self._info()
 
     def step(self, action):
-        if not self.action_space.contains(action):
+        if not (type(action) is int and 0 <= action < NUM_ACTIONS) and not self.action_space.contains(action):
             raise ValueError(f"action must be an int in [0, {NUM_ACTIONS}), got {action!r}")
         _, reward, term, trunc, info = self.batch.step(np.array([int(action)]))
         out = {"state": int(info["final_state"][0]), "scene": self.bank.names[int(self.batch.scene[0])],
