@@ -352,6 +352,7 @@ def test_compressed_frames_equal_raw_and_stay_lineage_readable(tmp_path):
     lineage layout check passes on both; bad settings are refused with one line."""
     from tsnav.cli import main
     from tsnav.data.thor_export import check_lineage_layout
+    from tsnav.data.reader import read_stack, read_stack_reference
     from tsnav.data.writer import FrameWriter
 
     name = "FloorPlan201"
@@ -370,6 +371,13 @@ def test_compressed_frames_equal_raw_and_stay_lineage_readable(tmp_path):
     assert all(gz < raw * 0.7 for gz, raw in sizes.values()), sizes  # (real rooms at 128 px: about 4.5x)
     for d in ("gz", "raw"):
         assert check_lineage_layout(tmp_path / d / name, image_size=64) == []
+        for kind in ("images.hdf5", "depth.hdf5"):  # the consumers' fast reader equals plain h5py reads
+            with h5py.File(tmp_path / d / name / kind, "r") as f:
+                keys = sorted(f.keys())[::-3]
+                fast, ref = read_stack(f, keys), read_stack_reference(f, keys)
+                assert fast.dtype == ref.dtype and np.array_equal(fast, ref)
+                with pytest.raises(KeyError, match="no dataset '1.00"):
+                    read_stack(f, keys[:2] + ["1.00|1.00|0|99"])
     with pytest.raises(ValueError, match="unknown frame compression"):
         FrameWriter(tmp_path, compression="szip")
     with pytest.raises(ValueError, match="gzip level"):

@@ -45,6 +45,7 @@ from gymnasium.vector.utils import batch_space
 
 from ..constants import C_TARGET, CATEGORY_INDEX, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE, TARGET_CATEGORIES
 from ..data.toy import toy_scene
+from ..data.reader import read_stack
 from .batch import BatchEnv, RewardFn, SceneBank, SparseReward
 from .episodes import EpisodeConfig, TrainingSampler
 
@@ -153,16 +154,13 @@ class FrameCache:
             if path is None:
                 continue
             with h5py.File(path, "r") as f:
-                # h5py's low-level calls: about 7x faster than f[key][()] a dataset; HDF5 itself decompresses
-                # and converts to the cache's dtype
-                for j, key in enumerate(scene.keys.tolist()):
-                    try:
-                        d = h5py.h5d.open(f.id, key.encode())
-                    except KeyError:
-                        raise ValueError(f"{path}: no frame for state {key!r}") from None
-                    if d.shape != shape:
-                        raise ValueError(f"{path}: frame {key!r} has shape {d.shape}, the env's frames are {shape}")
-                    d.read(h5py.h5s.ALL, h5py.h5s.ALL, out[off + j])
+                try:
+                    frames = read_stack(f, scene.keys)
+                except KeyError as e:
+                    raise ValueError(f"{path}: no frame for a state of the scene ({e.args[0]})") from None
+                if frames.shape[1:] != shape:
+                    raise ValueError(f"{path}: frames of shape {frames.shape[1:]}, the env's frames are {shape}")
+                out[off:off + len(frames)] = frames
         self.loaded[i] = True
 
     def gather(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
