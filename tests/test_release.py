@@ -100,11 +100,15 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
         ("paper", "agent"), ("paper", "scripted explorer"), ("paper", "random")]
     assert all(0.0 <= r["metrics"]["ALL"]["SR"] <= 1.0 and r["episodes"] > 0 for r in res["rows"])
     assert "scripted explorer" in text and "SSSPL" in text
-    # a second run builds nothing and prints the same figures
-    assert main(args) == 0
+    # a second run builds nothing, prints the same figures and (asked to) writes them into the card
+    assert main(args + ["--update-card"]) == 0
     again = json.loads((ev / "results.json").read_text())
     assert [r["metrics"] for r in again["rows"]] == [r["metrics"] for r in res["rows"]]
     assert "built" not in capsys.readouterr().out
+    card = release.read_card(packed["out"])
+    assert card["figures"]["test"]["rows"] == again["rows"]
+    sr = 100 * again["rows"][0]["metrics"]["ALL"]["SR"]
+    assert f"| paper | agent | ALL | {sr:.2f} |" in (packed["out"] / "card.md").read_text()
 
 
 def test_one_line_errors(packed, tmp_path, capsys):

@@ -46,10 +46,9 @@ CARD_FORMAT = "tsnav-agent-card"
 #: Fields a card must give when packing.
 CARD_REQUIRED = ("name", "summary", "world_preset", "world_version", "image_size", "detector_shipped",
                  "detector_fingerprint", "detections", "protocol", "budget")
-#: Test episodes of the release evaluation: the experiments' list (``tsnav experiment``, 250 per room type,
-#: seed 0 on the world's test rooms).
-TEST_PER_ROOM_TYPE = 250
-TEST_SEED = 0
+#: Episodes of the release evaluation per split: (per room type, seed). Test: the experiments' list (``tsnav
+#: experiment``, 250 per room type, seed 0); val: the convergence runs' list (100 per room type, seed 0).
+SPLIT_EPISODES = {"test": (250, 0), "val": (100, 0)}
 #: Success protocols the release is evaluated under (see :func:`protocol_kwargs`).
 PROTOCOLS = ("paper", "lineage")
 
@@ -187,13 +186,13 @@ def say(msg: str) -> None:
     print(f"[release] {msg}", flush=True)
 
 
-def ensure_test_world(data: Path, card: dict, workers: int) -> list[str]:
-    """Build the world's test rooms into ``data`` (finished rooms are skipped); returns their names."""
+def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test") -> list[str]:
+    """Build the world's rooms of ``split`` into ``data`` (finished rooms are skipped); returns their names."""
     from ..data.names import ithor_scenes
     from ..world.build import BuildConfig, build_dataset
 
     world = card.get("world_preset", "ithor-real")
-    names = list(card.get("test_rooms") or ithor_scenes(split="test"))
+    names = list(card.get(f"{split}_rooms") or ithor_scenes(split=split))
     cfg = BuildConfig.from_preset(world, image_size=int(card.get("image_size", 128)))
     t0 = time.perf_counter()
     stats = build_dataset(data, preset=world, scenes=names, cfg=cfg, workers=workers)
@@ -203,15 +202,15 @@ def ensure_test_world(data: Path, card: dict, workers: int) -> list[str]:
     return names
 
 
-def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128) -> str:
-    """Cache the shipped encoder's features in the test rooms; the name must be the card's."""
+def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test") -> str:
+    """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's."""
     from ..pretrain.features import cache_features, load_encoder
 
     enc = load_encoder(str(folder / "encoder.safetensors"))
     if enc.fingerprint != card["encoder_fingerprint"]:
         raise CommandError(f"{folder / 'encoder.safetensors'}: its weights do not match the card's fingerprint "
                            f"({enc.fingerprint} vs {card['encoder_fingerprint']})")
-    cache_features(enc, data, card["features"], batch_size=batch_size, split="test", progress=True)
+    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=True)
     return card["features"]
 
 
@@ -242,15 +241,16 @@ def protocol_kwargs(protocol: str) -> dict:
     return {}
 
 
-def release_episodes(data: Path, out: Path, protocol: str) -> Path:
-    """The test episode list of ``protocol`` (the experiments' draw: 250 per room type, seed 0), made once."""
+def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") -> Path:
+    """The episode list of ``split`` drawn under ``protocol`` (:data:`SPLIT_EPISODES`), made once."""
     from .stage_cache import ensure_episodes
 
-    return ensure_episodes(data, "test", out / f"episodes_test_{protocol}.json", TEST_PER_ROOM_TYPE, seed=TEST_SEED)
+    per, seed = SPLIT_EPISODES[split]
+    return ensure_episodes(data, split, out / f"episodes_{split}_{protocol}.json", per, seed=seed)
 
 
 def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], baselines: bool = True,
-                 batch_size: int = 4096) -> list[dict]:
+                 batch_size: int = 4096, split: str = "test") -> list[dict]:
     """Evaluate the shipped agent (greedy) on the test episodes of each protocol, and beside it the scripted
     explorer with the same stage switch and the random policy; each evaluation folder is kept under ``out``."""
     from .runner import evaluate_to_folder
@@ -258,7 +258,7 @@ def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], base
     card = read_card(folder)
     rows = []
     for protocol in protocols:
-        eps = release_episodes(data, out, protocol)
+        eps = release_episodes(data, out, protocol, split)
         todo = [("agent", dict(run=str(folder), checkpoint="best"))]
         if baselines:
             todo += [("scripted explorer", dict(policy="explorer", detections=card["detections"])),
@@ -301,6 +301,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     ev.add_argument("--protocol", default="both", choices=("both", *PROTOCOLS),
                     help="success protocol(s) to evaluate under (default both)")
     ev.add_argument("--no-baselines", action="store_true", help="only the agent (no explorer / random rows)")
+    ev.add_argument("--split", default="test", choices=tuple(SPLIT_EPISODES),
+                    help="rooms to evaluate on (default test; val: the validation rooms)")
+    ev.add_argument("--update-card", action="store_true",
+                    help="write the figures into the agent's card (card.json / card.md) as those of --split")
     ev.add_argument("--workers", type=int, default=2, help="world-building processes (default 2)")
     ev.add_argument("--threads", type=int, default=2, help="torch threads for features (default 2)")
     sub.add_parser("list", help="the shipped agents and their cards' headline figures")
@@ -339,25 +343,32 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     times = {}
     say(f"agent {folder.name}: {card.get('summary', '')}")
-    ensure_test_world(data, card, args.workers)
+    split = args.split
+    ensure_test_world(data, card, args.workers, split)
     times["world"] = time.perf_counter() - t0
     ensure_release_detections(data, card)
     times["detections"] = time.perf_counter() - t0 - sum(times.values())
-    ensure_release_features(data, folder, card)
+    ensure_release_features(data, folder, card, split=split)
     times["features"] = time.perf_counter() - t0 - sum(times.values())
-    rows = release_rows(folder, data, out, protocols, baselines=not args.no_baselines)
+    rows = release_rows(folder, data, out, protocols, baselines=not args.no_baselines, split=split)
     times["evaluation"] = time.perf_counter() - t0 - sum(times.values())
-    res = {"agent": folder.name, "card": card.get("name"), "rows": rows, "seconds": times}
+    res = {"agent": folder.name, "card": card.get("name"), "split": split, "rows": rows, "seconds": times}
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(res, indent=1) + "\n")
-    print(f"\n{folder.name} on the {len(ensure_names(data))} real test rooms, greedy, "
+    if args.update_card:
+        figs = card.setdefault("figures", {})
+        figs[split] = {"episodes": max(r["episodes"] for r in rows), "rows": rows}
+        atomic_write_text(folder / "card.json", json.dumps(card, indent=1) + "\n")
+        atomic_write_text(folder / "card.md", card_markdown(card))
+        say(f"card of {folder.name}: {split} figures written")
+    print(f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
           f"detector {card['detector_shipped']} (stages: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()) + ")")
     print(format_rows(rows))
     print(f"wrote {out / 'results.json'}")
     return 0
 
 
-def ensure_names(data: Path) -> list[str]:
+def ensure_names(data: Path, split: str = "test") -> list[str]:
     from ..data.reader import list_scenes
 
-    return [p.name for p in list_scenes(data, split="test")]
+    return [p.name for p in list_scenes(data, split=split)]
