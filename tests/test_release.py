@@ -41,7 +41,7 @@ def packed(tiny_real, tmp_path_factory):
                  "--algo", "batched", "--num-envs", "4", "--preset", "cpu", "--detections", "learned4",
                  "--updates", "2", "--quiet"]) == 0
     ck = sorted((run / "checkpoints").iterdir())[-1]
-    card = {"name": "tiny", "summary": "a test agent", "world_preset": "ithor-real", "world_version": 0,
+    card = {"name": "tiny", "summary": "a test agent", "world_preset": "ithor-real", "world_version": 1,
             "image_size": 128, "test_rooms": [TEST_ROOM], "detector_shipped": "learned4",
             "detector_fingerprint": shipped_meta("learned4")["fingerprint"], "detections": "learned4",
             "protocol": "paper", "budget": "2 updates", "figures": {}}

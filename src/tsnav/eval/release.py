@@ -193,7 +193,8 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
 
     world = card.get("world_preset", "ithor-real")
     names = list(card.get(f"{split}_rooms") or ithor_scenes(split=split))
-    cfg = BuildConfig.from_preset(world, image_size=int(card.get("image_size", 128)))
+    cfg = BuildConfig.from_preset(world, image_size=int(card.get("image_size", 128)),
+                                  world_version=card.get("world_version"))
     t0 = time.perf_counter()
     stats = build_dataset(data, preset=world, scenes=names, cfg=cfg, workers=workers)
     built = sum(not s.skipped for s in stats)
