@@ -88,7 +88,7 @@ def test_float16_encoder_features_match_float32(packed, tiny_real):
 def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     world, ev = packed["root"] / "test_world", packed["root"] / "eval"
     args = ["release", "eval", "--agent", str(packed["out"]), "--data", str(world), "--out", str(ev),
-            "--protocol", "paper", "--workers", "1", "--threads", "1"]
+            "--workers", "1", "--threads", "1"]
     assert main(args) == 0
     text = capsys.readouterr().out
     assert [p.name for p in list_scenes(world)] == [TEST_ROOM]
@@ -97,7 +97,13 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     assert (world / TEST_ROOM / "detections_learned4.hdf5").exists()
     res = json.loads((ev / "results.json").read_text())
     assert [(r["protocol"], r["policy"]) for r in res["rows"]] == [
-        ("paper", "agent"), ("paper", "scripted explorer"), ("paper", "random")]
+        (p, pol) for p in ("paper", "lineage") for pol in ("agent", "scripted explorer", "random")]
+    by = {(r["protocol"], r["policy"]): r for r in res["rows"]}
+    # each protocol has its own list, recorded as such, and the table names the cross-protocol evaluation
+    eps = {p: json.loads((ev / f"episodes_test_{p}.json").read_text()) for p in ("paper", "lineage")}
+    assert eps["lineage"]["protocol"] == "lineage" and eps["paper"]["protocol"] == "paper"
+    assert by[("lineage", "agent")]["episodes"] == len(eps["lineage"]["episodes"])
+    assert "protocol: lineage (agent trained under paper)" in text
     assert all(0.0 <= r["metrics"]["ALL"]["SR"] <= 1.0 and r["episodes"] > 0 for r in res["rows"])
     assert "scripted explorer" in text and "SSSPL" in text
     # a second run builds nothing, prints the same figures and (asked to) writes them into the card

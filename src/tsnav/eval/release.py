@@ -37,6 +37,7 @@ from ..atomic import atomic_path, atomic_write_text
 from ..checkpoint import load_tensors, save_tensors
 from ..errors import CommandError
 from ..metrics import METRICS
+from ..protocol import PROTOCOLS, check_protocol, protocol_line
 
 #: Where shipped agents live (package data of ``tsnav.agent``).
 WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
@@ -49,8 +50,6 @@ CARD_REQUIRED = ("name", "summary", "world_preset", "world_version", "image_size
 #: Episodes of the release evaluation per split: (per room type, seed). Test: the experiments' list (``tsnav
 #: experiment``, 250 per room type, seed 0); val: the convergence runs' list (100 per room type, seed 0).
 SPLIT_EPISODES = {"test": (250, 0), "val": (100, 0)}
-#: Success protocols the release is evaluated under (see :func:`protocol_kwargs`).
-PROTOCOLS = ("paper", "lineage")
 
 
 def shipped_agents() -> dict[str, Path]:
@@ -236,10 +235,9 @@ def ensure_release_detections(data: Path, card: dict) -> str:
 
 
 def protocol_kwargs(protocol: str) -> dict:
-    """Keyword arguments of :func:`~tsnav.eval.runner.evaluate_to_folder` for a success protocol."""
-    if protocol not in PROTOCOLS:
-        raise CommandError(f"unknown protocol {protocol!r} (choose from {', '.join(PROTOCOLS)})")
-    return {}
+    """Keyword arguments of :func:`~tsnav.eval.runner.evaluate_to_folder` for a success protocol: named
+    explicitly, so that an agent trained under the other one is evaluated across protocols."""
+    return {"protocol": check_protocol(protocol)}
 
 
 def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") -> Path:
@@ -247,7 +245,7 @@ def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") 
     from .stage_cache import ensure_episodes
 
     per, seed = SPLIT_EPISODES[split]
-    return ensure_episodes(data, split, out / f"episodes_{split}_{protocol}.json", per, seed=seed)
+    return ensure_episodes(data, split, out / f"episodes_{split}_{protocol}.json", per, seed=seed, protocol=protocol)
 
 
 def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], baselines: bool = True,
@@ -364,6 +362,9 @@ def run(args: argparse.Namespace) -> int:
         say(f"card of {folder.name}: {split} figures written")
     print(f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
           f"detector {card['detector_shipped']} (stages: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()) + ")")
+    trained = json.loads((folder / "config.json").read_text())["train"].get("protocol", "paper")
+    for p in protocols:
+        print(protocol_line(p, trained))
     print(format_rows(rows))
     print(f"wrote {out / 'results.json'}")
     return 0
