@@ -135,3 +135,27 @@ def test_one_line_errors(packed, tmp_path, capsys):
     assert main(["release", "pack", "--run", str(packed["run"]), "--encoder-run", str(packed["root"] / "pre"),
                  "--card", str(bad), "--out", str(tmp_path / "new")]) == 2
     assert "missing fields" in capsys.readouterr().err and not (tmp_path / "new").exists()
+
+
+def test_the_shipped_agent_is_whole_and_matches_its_card():
+    from tsnav.detect.shipped import shipped_meta
+    from tsnav.pretrain.features import load_encoder
+    from tsnav.rl.checkpoint import load_model
+
+    name = release.default_agent()
+    assert name in release.shipped_agents()
+    folder = release.agent_folder(name)
+    card = release.read_card(folder)
+    assert all(k in card for k in release.CARD_REQUIRED)
+    # the detector it was trained with ships too, unchanged
+    assert shipped_meta(card["detector_shipped"])["fingerprint"] == card["detector_fingerprint"]
+    enc = load_encoder(str(folder / "encoder.safetensors"))
+    assert enc.fingerprint == card["encoder_fingerprint"] and card["features"].endswith(enc.fingerprint[:10])
+    model, state = load_model(folder, folder / "best")
+    assert model.feature_shape == (enc.config["embed_dim"], 4, 4)
+    # test figures under both protocols, agent first, as the README's headline
+    rows = card["figures"]["test"]["rows"]
+    assert {r["protocol"] for r in rows} == {"paper", "lineage"} and rows[0]["policy"] == "agent"
+    assert (folder / "card.md").read_text().count("| lineage | agent | ALL |") == 2  # val and test
+    size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+    assert size < 20e6
