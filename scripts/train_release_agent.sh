@@ -31,10 +31,10 @@ name = ensure_features(es, w / "real128", ["train", "val", "test"], batch_size=1
 (w / "features.txt").write_text(name + "\n")
 EOF
 F=$(cat "$W/features.txt")
-# 4. TSRM training with the batched trainer (256 episodes x 30 steps per update, lr 1e-3, cpu preset), every 250
+# 4. TSRM training under the lineage success protocol with the batched trainer (256 episodes x 30 steps per update, lr 1e-3, cpu preset), every 250
 #    updates scored greedily on 400 val episodes; the best is RUN/best
-"$T" convergence --data "$W/real128" --features "$F" --detections learned4 --out "$W/conv" --updates 2000 \
-  --chunk 250 --patience 6 --num-envs 256 --preset cpu --lr 1e-3 --seed 0 --val-per-room-type 100
+"$T" convergence --data "$W/real128" --features "$F" --detections learned4 --out "$W/conv" --updates 3000 \
+  --chunk 250 --patience 6 --num-envs 256 --preset cpu --lr 1e-3 --seed 0 --val-per-room-type 100 --protocol lineage
 # 5. pack (policy, float16 encoder, model card) and write the val and test figures into the card
 "$T" release pack --run "$W/conv/run" --encoder-run "$W/pre/demae-p16" --card "$HERE/scripts/release_card.json" \
   --out "$HERE/src/tsnav/agent/weights/$NAME"

@@ -58,6 +58,7 @@ def test_pack_writes_a_loadable_agent_folder(packed):
     assert card["features"] != packed["feats"] and card["features"].startswith("demae-")
     assert json.loads((out / "config.json").read_text())["train"]["features"] == card["features"]
     assert not (out / "best" / "optimizer.safetensors").exists()
+    assert card["policy_update"] == json.loads((packed["ck"] / "state.json").read_text())["progress"]["update"] == 2
     assert "tsnav release eval" in (out / "card.md").read_text()
     # the policy weights are the checkpoint's, byte for byte
     assert (out / "best" / "model.safetensors").read_bytes() == (packed["ck"] / "model.safetensors").read_bytes()

@@ -141,7 +141,7 @@ def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: 
     full = {"format": CARD_FORMAT, **card, "features": features, "encoder_fingerprint": enc.fingerprint,
             "encoder": {"arch": enc.arch, "method": enc.method, "img_size": enc.img_size, "config": enc.config,
                         "stored_dtype": "float16"},
-            "policy_update": int(state.get("update", -1))}
+            "policy_update": int(state.get("progress", state).get("update", -1))}
     (tmp / "card.json").write_text(json.dumps(full, indent=1) + "\n")
     (tmp / "card.md").write_text(card_markdown(full))
     tmp.rename(out)
