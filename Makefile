@@ -2,6 +2,11 @@
 # make test : the same set-up, then the whole test suite.
 # make bench: the same set-up, then the speed benchmarks of bench/ with their defaults (figures: BENCHMARKS.md).
 PY ?= python3
+# The exact torch build set-up installs before the package: 2.13.0 is the small CPU build that lies on this
+# disk (pip takes it from there). pyproject.toml only declares the range the code works with (torch>=2.1), so
+# `pip install -e .` beside a researcher's own torch (a CUDA build, say) keeps it; a plain range asked for with
+# no torch installed would pull a CUDA build of several GB. `make TORCH= test` keeps whatever torch is there.
+TORCH ?= torch==2.13.0
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -14,6 +19,7 @@ $(STAMP): pyproject.toml
 	@bash scripts/setup_system.sh
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
+	@if [ -n "$(TORCH)" ]; then $(BIN)/pip install -q '$(TORCH)'; fi
 	$(BIN)/pip install -q -e '.[test]'
 	@touch $(STAMP)
 
@@ -23,10 +29,13 @@ demo: setup
 test: setup
 	$(BIN)/python -m pytest -q tests
 
-# bench_detect.py is left out: it needs a built world and a detector checkpoint (--data, --checkpoint; BENCHMARKS.md)
+# left out: bench_detect.py needs a built world and a detector checkpoint (--data, --checkpoint); bench_gym.py and
+# bench_frame_read.py a built world (--data); bench_frames_disk.py a scratch folder and builds rooms for minutes
+# (--out). Their commands are in BENCHMARKS.md.
+NEEDS_ARGS := bench/bench_detect.py bench/bench_gym.py bench/bench_frame_read.py bench/bench_frames_disk.py
 bench: setup
 	@for f in bench/*.py; do \
-	  if [ "$$f" = bench/bench_detect.py ]; then echo "== $$f skipped: needs --data WORLD --checkpoint DETECTOR"; continue; fi; \
+	  case " $(NEEDS_ARGS) " in *" $$f "*) echo "== $$f skipped: needs arguments (BENCHMARKS.md)"; continue;; esac; \
 	  echo "== $$f"; $(BIN)/python $$f || exit 1; done
 
 clean:

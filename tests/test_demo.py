@@ -52,7 +52,15 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     trainer = CountedTrainer()
     res = run_demo(out, TINY, train_fn=trainer)
     assert [res["stages"][s][0] for s in STAGES] == ["done"] * len(STAGES)
-    assert list(res["results"]) == ["agent (TSRM, DE-MAE)", "scripted explorer", "random"]
+    assert list(res["results"]) == ["paper", "lineage"]
+    for protocol, rows in res["results"].items():
+        assert list(rows) == ["agent (TSRM, DE-MAE)", "agent on the oracle table", "scripted explorer", "random"]
+        assert all(r["protocol"] == protocol for r in rows.values())
+    # the lineage's list keeps the starts that already see the target; the oracle table's row reads the oracle's
+    lin = json.loads((out / "eval" / "explorer_lineage" / "metrics.json").read_text())
+    assert lin["protocol"] == "lineage" and lin["episodes_file"].endswith("test_episodes_lineage.json")
+    orc = json.loads((out / "eval" / "agent_oracle_lineage" / "metrics.json").read_text())
+    assert orc["detections"] == "oracle" and orc["protocol"] == "lineage" and orc["trained_protocol"] == "paper"
     assert len(trainer.calls) == 1 and trainer.calls[0][0] == "tsrm"
     log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines() if line.strip()]
     assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.updates_per_job == 2  # trained for real
@@ -78,6 +86,7 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     assert "[1/9] world" in text and "[9/9] report" in text and "results on the test episodes" in text
     assert "[4/9] detector" in text and "detections: detections_learned on" in text and "reach of 0.7" in text
     assert "scripted explorer" in text.split("results on the test episodes")[1]
+    assert "protocol: paper" in text and "protocol: lineage" in text and "agent trained under paper" in text
 
     # a second run reuses every stage and trains nothing
     again = CountedTrainer()
@@ -110,7 +119,7 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
         text = capsys.readouterr().out
         tables.append(text.split("results on the test episodes")[1].split("report:")[0])
         digests.append(weights_digest(load_model(out / "run")[0].state_dict()))
-        assert res["results"]["agent (TSRM, DE-MAE)"]["ALL"]["episodes"] > 0
+        assert res["results"]["paper"]["agent (TSRM, DE-MAE)"]["ALL"]["episodes"] > 0
         marker = json.loads((out / "stages" / "train.json").read_text())
         assert marker["update"] == 3
         # the milestones of updates 1-3 were scored on the val rooms; the evaluated agent is the one kept as best
@@ -137,6 +146,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
     assert res["stages"]["detector"][0] == "-" and not (out / "detector").exists()
     assert trainer.detections == ["oracle"]
     assert json.loads((out / "eval" / "agent" / "metrics.json").read_text())["detections"] == "oracle"
+    assert list(res["results"]["lineage"]) == ["agent (TSRM, DE-MAE)", "scripted explorer", "random"]
     assert "not used (--detections oracle)" in capsys.readouterr().out
 
     out2 = tmp_path / "existing"
@@ -192,7 +202,7 @@ def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsy
     quality = json.loads((out / "stages" / "detections.json").read_text())["quality"]
     assert quality["reach"] == 1.0  # the val bathroom's three targets all pass C_target
     # the switch fires, so the scripted explorer (Done only after the switch) succeeds on the test bathroom
-    assert res["results"]["scripted explorer"]["ALL"]["SR"] > 0.5
+    assert res["results"]["paper"]["scripted explorer"]["ALL"]["SR"] > 0.5
     capsys.readouterr()
     res2 = run_demo(out, cfg, train_fn=trainer)  # everything reused, the shipped detector's marker included
     assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES) and len(trainer.calls) == 1
@@ -220,3 +230,27 @@ def test_default_threads_do_not_depend_on_the_load(monkeypatch):
     assert experiment.default_threads() == 1
     monkeypatch.setattr(experiment.os, "cpu_count", lambda: 64)
     assert experiment.default_threads() == 2
+
+
+def test_results_table_has_one_block_per_protocol():
+    """The table assembly on hand-made summaries: a header per protocol, the paper block laid out as before."""
+    from tsnav.demo import results_table
+    from tsnav.metrics import METRICS
+
+    def summ(sr, n):
+        m = {k: 0.0 for k in METRICS}
+        return {"ALL": {**m, "SR": sr, "episodes": n}, "L>=5": {**m, "SR": sr / 2, "episodes": n // 2}}
+
+    results = {"paper": {"agent": summ(0.5, 40), "random": summ(0.0, 40)},
+               "lineage": {"agent": summ(0.75, 44), "random": summ(0.25, 44)}}
+    text = results_table(results, "paper")
+    blocks = text.split("results on the test episodes")[1:]
+    assert len(blocks) == 2
+    assert blocks[0].splitlines()[1].startswith("protocol: paper - Done succeeds with the target in view within 1.0 m")
+    assert blocks[1].splitlines()[1].startswith("protocol: lineage - ") and "agent trained under paper" in blocks[1]
+    paper_rows = [line for line in blocks[0].splitlines()[3:] if line]
+    # the row layout of the demo's table before protocols: label, subset, the five metrics, K
+    assert paper_rows[0] == "agent   ALL    " + " ".join(f"{v:6.2f}" for v in (50, 0, 0, 0, 0)) + "     40"
+    assert paper_rows[1].startswith("agent   L>=5    25.00") and paper_rows[1].endswith("     20")
+    assert blocks[1].splitlines()[3].startswith("agent   ALL     75.00")
+    assert len(paper_rows) == 4 and "random" in paper_rows[2]

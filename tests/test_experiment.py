@@ -193,6 +193,9 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     assert "Done dips (fewer than 5 % of training episodes ending with Done): 0 of 14 jobs." in welch_part
     assert json.loads((out / "results.json").read_text())["done_dips"] == {"jobs": 14, "with_dips": []}
     assert "Detections: learned; row 'TSRM + DE-MAE, oracle switch': oracle" in md
+    assert "Success protocol: paper (trained and evaluated) - Done succeeds" in md.splitlines()[2]
+    assert json.loads((out / "results.json").read_text())["protocol"] == "paper"
+    assert json.loads((out / "episodes_test.json").read_text())["protocol"] == "paper"
     assert "- detections_learned on" in md and "- detections_oracle on" in md and "reach of 0.7" in md
     rows = list(csv.DictReader(open(out / "table.csv")))
     assert len(rows) == 7 * 2 * len(METRICS)
@@ -228,6 +231,8 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     # another scale in the same folder is refused
     with pytest.raises(ValueError, match="another scale"):
         Experiment(ExperimentConfig(**{**cfg.__dict__, "scale": "paper"}), train_fn=again).run()
+    with pytest.raises(ValueError, match=r"another protocol \('paper', now 'lineage'\)"):
+        Experiment(ExperimentConfig(**{**cfg.__dict__, "protocol": "lineage"}), train_fn=again).run()
     # agents were evaluated greedily (recorded); sampling them in the same folder is refused, and so is
     # resuming a folder from before the key existed (its agents were sampled) without --sample
     assert json.loads((out / "jobs" / "tsrm_s0" / "eval" / "metrics.json").read_text())["sample"] is False
@@ -304,6 +309,10 @@ def test_training_budget_in_updates_or_minutes():
     assert budget(minutes_per_job=2.5) == (2.5, None)
     assert budget(updates_per_job=700) == (None, 700)
     assert budget(updates_per_job=700, minutes_per_job=3.0) == (3.0, 700)
+    for p in ("paper", "lineage"):  # the experiment's protocol is every job's
+        tc, _ = train_config_for(ExperimentConfig(experiment="ablation", data="d", out="o", protocol=p), scale, row,
+                                 "f", 0)
+        assert tc.protocol == p
 
 
 def test_jobs_keep_milestones_for_selection():
@@ -343,6 +352,10 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
                  "--updates-per-job", "0"]) == 2
     assert "--updates-per-job must be >= 1" in capsys.readouterr().err
+    assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
+                 "--protocol", "1.5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "unknown success protocol '1.5'" in err and len(err.splitlines()) == 1 and not (tmp_path / "o").exists()
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "experiment.json").write_text("{not json")

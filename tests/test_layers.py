@@ -13,7 +13,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "tsnav"
 #: Lowest first; the same list is drawn in docs/ARCHITECTURE.md ("Layers"). Packages of one layer do not
 #: import each other.
 LAYERS: list[set[str]] = [
-    {"constants", "errors", "atomic", "distributed", "schedule", "checkpoint_layout"},
+    {"constants", "errors", "atomic", "distributed", "schedule", "checkpoint_layout", "protocol"},
     {"metrics", "checkpoint"},
     {"render"},
     {"data"},

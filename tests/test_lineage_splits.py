@@ -140,3 +140,19 @@ def test_episodes_keep_what_the_dataset_has_and_count_the_rest(tiny_world, tmp_p
     # an existing output is kept unless --force
     assert main(["thor", "episodes", str(a), "--data", str(tiny_world), "--out", str(out)]) == 2
     assert main(["thor", "episodes", str(a), "--data", str(tiny_world), "--out", str(out), "--force"]) == 0
+    # under the lineage's protocol the start that already sees the target is kept (L* = 0) and counted
+    capsys.readouterr()
+    lin = tmp_path / "eps_lineage.json"
+    assert main(["thor", "episodes", str(a), str(b), "--data", str(tiny_world), "--out", str(lin),
+                 "--protocol", "lineage"]) == 0
+    lbank = SceneBank([s], protocol="lineage")
+    zero = 1 + int((lbank.dist[ok[:5], c] == 0).sum())  # the paper's start-success one, and any the map adds
+    line = capsys.readouterr().out.splitlines()[0]
+    assert line == (f"10 episodes read, 6 kept ({zero} start already succeeds), 4 dropped (2 target not in scene, "
+                    "1 scene not in DATA, 1 start not a state)")
+    eps, meta = read_episodes(lin)
+    assert meta["protocol"] == "lineage" and eps[-1].start == str(s.keys[at_goal[0]]) and eps[-1].optimal_length == 0
+    assert [e.optimal_length for e in eps[:5]] == [int(lbank.dist[i, c]) for i in ok[:5]]
+    assert main(["thor", "episodes", str(a), "--data", str(tiny_world), "--out", str(lin), "--force",
+                 "--protocol", "nope"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1

@@ -188,3 +188,41 @@ def test_torchrun_two_ranks(trained, tmp_path):
     assert json.loads((run / "config.json").read_text())["train"]["procs"] == 2  # torchrun's processes are the run's
     assert set(st["rng"]) == {0, 1} and st["rng"][0]["weights"] == st["rng"][1]["weights"]
     assert st["rng"][0]["env"] != st["rng"][1]["env"]  # each rank its own episodes
+
+
+def test_protocol_of_a_run_is_recorded_and_checked(trained, tmp_path, capsys):
+    """A run trained under `--protocol lineage` records it; evaluating it on a paper list needs `--protocol paper`,
+    and the output then names both protocols. The paper-trained run is evaluated on a lineage list the same way."""
+    world, paper_run = trained
+    run = tmp_path / "lineage_run"
+    assert main(["train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
+                 "--out", str(run), "--updates", "2", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5",
+                 "--checkpoint-every", "2", "--log-every", "1", "--protocol", "lineage", "--quiet"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["train"]["protocol"] == "lineage" and cfg["protocol"] == "lineage" and cfg["sim"]["protocol"] == "lineage"
+    assert main(["train", "--out", str(run), "--protocol", "paper", "--quiet"]) == 2  # a run keeps its protocol
+    assert "another configuration (protocol)" in capsys.readouterr().err
+    eps = {p: tmp_path / f"{p}.json" for p in ("paper", "lineage")}
+    for p, f in eps.items():
+        assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "6", "--protocol", p,
+                     "--out", str(f)]) == 0
+    capsys.readouterr()
+    assert main(["eval", "--data", str(world), "--episodes", str(eps["paper"]), "--run", str(run),
+                 "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "trained under the lineage protocol" in err and "--protocol paper" in err
+    assert not (tmp_path / "x").exists()
+    for r, p, trained_under in ((run, "paper", "lineage"), (paper_run, "lineage", "paper"), (run, "lineage", None)):
+        out = tmp_path / f"ev_{r.name}_{p}"
+        extra = ["--protocol", p] if trained_under else []
+        assert main(["eval", "--data", str(world), "--episodes", str(eps[p]), "--run", str(r), "--out", str(out),
+                     *extra]) == 0
+        text = capsys.readouterr().out
+        m = json.loads((out / "metrics.json").read_text())
+        assert m["protocol"] == p and m["trained_protocol"] == (trained_under or p)
+        assert (f"protocol: {p} (agent trained under {trained_under})" if trained_under
+                else f"protocol: {p} (trained and evaluated)") in text
+    assert main(["train", "--out", str(tmp_path / "bad"), "--data", str(world), "--features", FEATS,
+                 "--detections", "oracle", "--protocol", "1.5m", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "unknown success protocol '1.5m'" in err

@@ -54,23 +54,44 @@ def test_truncation_and_termination_single(bank):
         env.step(7)
 
 
-def test_observations_from_hdf5(tmp_path):
+@pytest.mark.parametrize("frames,layout", [("memory", "standard"), ("hdf5", "standard"), ("memory", "legacy")])
+def test_observations_from_hdf5(tmp_path, frames, layout):
     root = tmp_path / "data"
     write_scene_folder(toy_scenes()[2], root / "ToyC", images=8)  # the smallest scene: HDF5 writes are slow
     with pytest.raises(ValueError, match="name the detection table"):
         gym.make(ENV_ID, data=str(root), split="test")  # no silent fallback to ground truth
-    env = gym.make(ENV_ID, bank=SceneBank.from_root(root, "test"))
+    env = gym.make(ENV_ID, bank=SceneBank.from_root(root, "test"), frames=frames, obs_layout=layout)
     obs, info = env.reset(seed=1)
     s = int(env.unwrapped.bank.local_state(info["state"]))  # the pattern follows the scene-local index
     assert obs["rgb"].shape == (8, 8, 3) and (obs["rgb"] == s % 251).all()
-    assert obs["depth"].shape == (8, 8) and (obs["depth"] == 0.5 + s % 7).all()
+    assert obs["depth"].shape == ((8, 8, 1) if layout == "standard" else (8, 8))
+    assert obs["depth"].dtype == np.float32 and (obs["depth"] == 0.5 + s % 7).all()
     b = env.unwrapped.bank
     det = np.zeros((b.num_states, 22, 6), np.float32)
     det[:, :, 0] = np.arange(b.num_states)[:, None]
+    det[:, :, 1] = np.arange(22)[None, :]
     b.set_detections(det)
     obs, _, _, _, info = env.step(0)
-    assert (obs["detections"][:, 0] == info["state"]).all()
+    assert env.observation_space.contains(obs)
+    rows = obs["detections"].reshape(22, 6)  # standard: the (22, 6) table flattened row by row
+    assert (rows[:, 0] == info["state"]).all() and (rows[:, 1] == np.arange(22)).all()
     env.close()
+
+
+def test_standard_layout_is_images_and_vectors(bank):
+    """Every Box of the standard layout is an image (H, W, C) or a 1-D vector (what Stable-Baselines3's and
+    RLlib's default encoders accept); rgb is the uint8 [0, 255] image their CNNs expect."""
+    space = ObjectNavEnv(bank=bank).observation_space
+    for key, sub in space.spaces.items():
+        if isinstance(sub, gym.spaces.Box):
+            assert len(sub.shape) in (1, 3), key
+    rgb = space["rgb"]
+    assert rgb.dtype == np.uint8 and (rgb.low == 0).all() and (rgb.high == 255).all() and rgb.shape[-1] == 3
+    assert space["depth"].shape[-1] == 1 and space["detections"].shape == (22 * 6,)
+    with pytest.raises(ValueError, match="obs_layout"):
+        ObjectNavEnv(bank=bank, obs_layout="channels-first")
+    with pytest.raises(ValueError, match="frames source"):
+        ObjectNavEnv(bank=bank, frames="disk")
 
 
 def test_vector_env(bank):
@@ -99,3 +120,82 @@ def test_vector_env(bank):
             assert (info["final_info"]["success"] <= term).all()
     assert ended > 8
     envs.close()
+
+
+def _reference(env) -> "Observations":
+    from tsnav.sim.gym_env import Observations
+
+    return Observations(env.unwrapped.bank, frames="hdf5")
+
+
+def test_frame_cache_equals_reference_reader(tiny_world, tmp_path):
+    """The in-memory frame cache gathers exactly what the per-key HDF5 reader reads, for rendered frames
+    stored gzip-compressed (the writers' default) and raw (worlds written before compression), in any order
+    and with repeats; scenes are read on first use only."""
+    from tsnav.sim.gym_env import Observations
+    from sim_helpers import write_scene_folder
+
+    raw = tmp_path / "raw"
+    write_scene_folder(toy_scenes()[2], raw / "ToyC", images=8)  # raw float32 depth, as old or imported worlds
+    for bank, layout in ((SceneBank.from_root(tiny_world, None), "standard"),
+                         (SceneBank.from_root(tiny_world, None), "legacy"), (SceneBank.from_root(raw, None), "standard")):
+        fast, ref = Observations(bank, frames="memory", layout=layout), Observations(bank, frames="hdf5", layout=layout)
+        assert not fast.cache.loaded.any()
+        rng = np.random.default_rng(0)
+        for n in (1, 64, 300):
+            state = rng.integers(0, bank.num_states, n)
+            state[-1] = state[0]
+            target = rng.integers(0, 22, n)
+            a, b = fast.gather(state, target), ref.gather(state, target)
+            for k in a:
+                assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
+        assert fast.cache.loaded.all() and fast.cache.rgb.any()
+        ref.close()
+
+
+def test_gymnasium_numpy_loop_sees_the_stored_frames(tiny_world):
+    """A user's loop that imports only gymnasium and numpy (the id's ``tsnav.sim:`` prefix imports the env)
+    steps the vector env and the single env; every observation equals the frames the reference reader
+    takes from the HDF5 files for the state in ``info``, final observations of ended episodes included."""
+    import subprocess
+    import sys
+
+    from tsnav.eval.stage_cache import ensure_oracle_detections
+
+    ensure_oracle_detections(tiny_world, "oracle")
+    code = (
+        "import gymnasium as gym, numpy as np\n"
+        f"envs = gym.make_vec('tsnav.sim:tsnav/ObjectNav-v0', num_envs=16, vectorization_mode='vector_entry_point', "
+        f"data={str(tiny_world)!r}, split=None, detections='oracle', max_steps=8)\n"
+        "obs, info = envs.reset(seed=0)\n"
+        "for _ in range(20):\n"
+        "    obs, r, term, trunc, info = envs.step(np.random.default_rng(0).integers(0, 6, 16))\n"
+        "print(obs['rgb'].shape, obs['depth'].shape, obs['detections'].shape, float(obs['rgb'].mean()))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
+    assert out[0].startswith("(16, 64, 64, 3) (16, 64, 64, 1) (16, 132)") and float(out[0].split()[-1]) > 0
+    # the same loop in this process, checked frame by frame against the reference reader
+    envs = gym.make_vec("tsnav.sim:" + ENV_ID, num_envs=16, vectorization_mode="vector_entry_point",
+                        data=str(tiny_world), split=None, detections="oracle", max_steps=8)
+    ref = _reference(envs)
+    obs, info = envs.reset(seed=0)
+    rng = np.random.default_rng(0)
+    ended = 0
+    for _ in range(20):
+        obs, r, term, trunc, info = envs.step(rng.integers(0, 6, 16))
+        rgb, depth = ref.read_frames(info["state"])
+        assert np.array_equal(obs["rgb"], rgb) and np.array_equal(obs["depth"][..., 0], depth)
+        for j in np.flatnonzero(term | trunc):
+            ended += 1
+            rgb, depth = ref.read_frames([info["final_info"]["state"][j]])
+            assert np.array_equal(info["final_obs"][j]["rgb"], rgb[0])
+            assert np.array_equal(info["final_obs"][j]["depth"][..., 0], depth[0])
+    assert ended > 0
+    env = gym.make("tsnav.sim:" + ENV_ID, data=str(tiny_world), split=None, detections="oracle")
+    obs, info = env.reset(seed=3)
+    for a in rng.integers(0, 5, 30):
+        rgb, depth = ref.read_frames([info["state"]])
+        assert np.array_equal(obs["rgb"], rgb[0]) and np.array_equal(obs["depth"][..., 0], depth[0])
+        obs, r, term, trunc, info = env.step(int(a))
+        if term or trunc:
+            obs, info = env.reset()
+    ref.close()

@@ -30,6 +30,7 @@ COMMANDS = {
     "report": ("tsnav.eval.report", "write an HTML report for a run or experiment folder"),
     "thor": ("tsnav.eval.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),
     "demo": ("tsnav.demo", "the main job: world, pretraining, detections, training, evaluation, report"),
+    "release": ("tsnav.eval.release", "evaluate the trained agent that ships with tsnav on the real test rooms"),
 }
 
 

@@ -15,11 +15,16 @@ exists and its outputs are still there, and every underlying step resumes after 
  5. detections   its per-state table in every room (its confidence drives the stage switch and  world/*/detections_learned.hdf5
                  its boxes and features feed the agent); quality on the val rooms printed      OUT/detector_quality.json
                  (``--detections oracle``: the oracle's table instead, no detector used)
- 6. episodes     fixed test episodes, and val episodes for checkpoint selection                 OUT/{test,val}_episodes.json
+ 6. episodes     fixed test episodes under each success protocol (:mod:`tsnav.protocol`: the   OUT/test_episodes.json,
+                 paper's 1.0 m rule, and the lineage's 1.5 m visibility map with its             OUT/test_episodes_lineage.json,
+                 start-success episodes), and val episodes for checkpoint selection under the    OUT/val_episodes*.json
+                 training protocol (``--protocol``, default paper)
  7. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes); its    OUT/run
                  milestones (every 200 updates) scored greedily on the val episodes, the best
                  kept as OUT/run/best and evaluated
- 8. evaluate     the agent, the scripted explorer and the random policy on the test episodes   OUT/eval/<policy>
+ 8. evaluate     the agent, the same agent reading the oracle's table instead of the learned   OUT/eval/<policy>,
+                 one, the scripted explorer and the random policy on the test episodes, under   OUT/eval/<policy>_lineage
+                 both protocols (the ``paper`` rows are the demo's table from before protocols)
  9. report       HTML report: tables, curves, reconstructions, episode gallery                  OUT/report/index.html
 
 The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
@@ -55,8 +60,10 @@ from .detect.train import is_checkpoint, read_meta
 from .eval.detector_stage import (ensure_detector, ensure_learned_detections, ensure_shipped_detections,
                                   record_quality, tables_complete)
 from .eval.tables import quality_line
-from .eval.stage_cache import encoder_spec, ensure_encoder, ensure_episodes, ensure_features, ensure_oracle_detections
+from .eval.stage_cache import (encoder_spec, ensure_encoder, ensure_episodes, ensure_features,
+                               ensure_oracle_detections, episodes_name)
 from .metrics import METRICS, write_json
+from .protocol import DEFAULT_PROTOCOL, PROTOCOLS, check_protocol, protocol_line
 from .pretrain.train import read_progress
 from .rl.logger import read_log
 from .rl.train import train_run
@@ -99,6 +106,9 @@ class DemoConfig:
     """Episodes shown per evaluation in the report."""
     sample: bool = False
     """Evaluate the agent by sampling its actions instead of the greedy argmax (the lineage's test-time rule)."""
+    protocol: str = DEFAULT_PROTOCOL
+    """Success protocol the agent is trained and its checkpoint selected under (:mod:`tsnav.protocol`); every
+    policy is evaluated under both protocols either way."""
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -126,6 +136,10 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detector", choices=DETECTOR_SOURCES, default="shipped",
                    help="shipped (default): the detector that comes with tsnav, trained on the 80 ithor-real "
                         "training rooms (128-px worlds only); train: train one here on the training rooms")
+    p.add_argument("--protocol", default=DEFAULT_PROTOCOL,
+                   help="success protocol the agent is trained under: paper (default; in view within 1.0 m) or "
+                        "lineage (the 1.5 m visibility map, as the lineage's evaluator); the results are printed "
+                        "under both")
     p.add_argument("--detector-steps", type=int, default=None,
                    help=f"training steps of the learned detector with --detector train (default "
                         f"{SCALES['demo'].detector_steps})")
@@ -207,6 +221,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
 
     ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
     cfg = cfg or DemoConfig()
+    check_protocol(cfg.protocol)
     if cfg.detector not in DETECTOR_SOURCES:
         raise CommandError(f"unknown detector source {cfg.detector!r} (choose from {', '.join(DETECTOR_SOURCES)})")
     if cfg.detections != "oracle" and cfg.detector == "shipped":  # refused before any work
@@ -246,7 +261,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     # 2. pretrain ---------------------------------------------------------------------------------------
     sc = cfg.scale
     exp = ExperimentConfig(experiment="demo", data=str(sub), out=str(out), scale="demo", detections=cfg.detections,
-                           device="cpu")
+                           device="cpu", protocol=cfg.protocol)
     es = encoder_spec(ROW.encoder, sc, out / "pretrain", exp)
 
     def do_pretrain():
@@ -339,18 +354,28 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
                                             for p in list_scenes(world)))
 
     # 6. episodes ---------------------------------------------------------------------------------------
-    ep_file = out / "test_episodes.json"
-    val_file = out / "val_episodes.json"
+    ep_files = {p: out / episodes_name("test", p) for p in PROTOCOLS}
+    ep_file = ep_files[DEFAULT_PROTOCOL]
+    val_file = out / episodes_name("val", cfg.protocol)
 
     def do_episodes():
-        ensure_episodes(world, "test", ep_file, sc.test_per_room_type)
-        ensure_episodes(world, "val", val_file, sc.val_per_room_type, seed=SELECT_SEED)
-        return {"episodes": len(read_episodes(ep_file)[0]), "val_episodes": len(read_episodes(val_file)[0])}
+        for p, f in ep_files.items():
+            ensure_episodes(world, "test", f, sc.test_per_room_type, protocol=p)
+        ensure_episodes(world, "val", val_file, sc.val_per_room_type, seed=SELECT_SEED, protocol=cfg.protocol)
+        test = {p: read_episodes(f)[0] for p, f in ep_files.items()}
+        return {"episodes": len(test[DEFAULT_PROTOCOL]), "val_episodes": len(read_episodes(val_file)[0]),
+                "by_protocol": {p: {"episodes": len(e), "start_success": sum(x.optimal_length == 0 for x in e)}
+                                for p, e in test.items()}}
 
-    em = st.run("episodes", f"{sc.test_per_room_type} test and {sc.val_per_room_type} validation episodes per room "
-                "type", do_episodes, lambda m: ep_file.exists() and val_file.exists() and "val_episodes" in m)
-    print(f"    {em['episodes']} episodes in {ep_file}, {em['val_episodes']} in {val_file} (checkpoint selection)",
-          flush=True)
+    em = st.run("episodes", f"{sc.test_per_room_type} test episodes per room type under each protocol "
+                f"({', '.join(PROTOCOLS)}) and {sc.val_per_room_type} validation episodes per room type ("
+                f"{cfg.protocol})", do_episodes,
+                lambda m: all(f.exists() for f in ep_files.values()) and val_file.exists() and "by_protocol" in m)
+    for p, f in ep_files.items():
+        b = em["by_protocol"][p]
+        print(f"    {p}: {b['episodes']} test episodes in {f}"
+              + (f" ({b['start_success']} start already succeeds)" if b["start_success"] else ""), flush=True)
+    print(f"    {em['val_episodes']} in {val_file} (checkpoint selection, protocol {cfg.protocol})", flush=True)
 
     # 7. train ------------------------------------------------------------------------------------------
     run_dir = out / "run"
@@ -375,24 +400,33 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
            lambda m: m.get("budget") == budget and "checkpoint" in m and (run_dir / "config.json").exists())
 
     # 8. evaluate ---------------------------------------------------------------------------------------
-    policies = [("agent (TSRM, DE-MAE)", "agent"), ("scripted explorer", "explorer"), ("random", "random")]
-    results = {}
+    policies = eval_policies(cfg.detections)
+    results: dict[str, dict] = {}
+
+    def folder(name: str, protocol: str) -> Path:
+        return out / "eval" / (name if protocol == DEFAULT_PROTOCOL else f"{name}_{protocol}")
 
     def do_eval():
-        for label, name in policies:
-            d = out / "eval" / name
-            print(f"    {label} ...", flush=True)
-            results[label] = evaluate_to_folder(
-                d, world, ep_file, policy=name, run=run_dir if name == "agent" else None, detections=cfg.detections,
-                seed=cfg.seed, label=label, sample=cfg.sample)
-        return {"policies": [n for _, n in policies], "sample": cfg.sample}
+        if any(det == "oracle" for _, _, det in policies):
+            ensure_oracle_detections(world, "oracle")
+        for p in PROTOCOLS:
+            for label, name, det in policies:
+                print(f"    {label} ({p}) ...", flush=True)
+                results.setdefault(p, {})[label] = evaluate_to_folder(
+                    folder(name, p), world, ep_files[p], policy="agent" if name.startswith("agent") else name,
+                    run=run_dir if name.startswith("agent") else None, detections=det or cfg.detections,
+                    seed=cfg.seed, label=label if p == DEFAULT_PROTOCOL else f"{label} [{p}]", sample=cfg.sample,
+                    protocol=p)
+        return {"policies": [n for _, n, _ in policies], "protocols": list(PROTOCOLS), "sample": cfg.sample}
 
-    st.run("evaluate", "on the test episodes: " + ", ".join(lab for lab, _ in policies), do_eval,
-           lambda m: m.get("policies") == [n for _, n in policies] and m.get("sample", True) == cfg.sample
-           and all((out / "eval" / n / "metrics.json").exists() for _, n in policies))
+    st.run("evaluate", "on the test episodes of each protocol: " + ", ".join(lab for lab, _, _ in policies), do_eval,
+           lambda m: m.get("policies") == [n for _, n, _ in policies] and m.get("sample", True) == cfg.sample
+           and m.get("protocols") == list(PROTOCOLS)
+           and all((folder(n, p) / "metrics.json").exists() for _, n, _ in policies for p in PROTOCOLS))
     if not results:
-        for label, name in policies:
-            results[label] = json.loads((out / "eval" / name / "metrics.json").read_text())["metrics"]
+        for p in PROTOCOLS:
+            for label, name, _ in policies:
+                results.setdefault(p, {})[label] = json.loads((folder(name, p) / "metrics.json").read_text())["metrics"]
 
     # 9. report -----------------------------------------------------------------------------------------
     def do_report():
@@ -403,31 +437,54 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
                 lambda m: (out / "report" / "index.html").exists())
 
     total = time.perf_counter() - t_all
-    _print_results(results, st, total, rm.get("index", str(out / "report" / "index.html")))
+    _print_results(results, st, total, rm.get("index", str(out / "report" / "index.html")), cfg.protocol)
     print(f"detections: {quality_line(dm['quality'])}", flush=True)
     return {"stages": st.times, "results": results, "seconds": total}
 
 
-def _print_results(results: dict, st: Stages, total: float, index: str) -> None:
+def eval_policies(detections: str) -> list[tuple[str, str, str | None]]:
+    """The demo's rows: ``(label, folder name, detection table or None for the demo's own)``: the agent, the
+    same agent reading the oracle's table (the detector's cost; left out when the demo already runs on the
+    oracle's table), the scripted explorer and the random policy."""
+    rows = [("agent (TSRM, DE-MAE)", "agent", None)]
+    if detections != "oracle":
+        rows.append(("agent on the oracle table", "agent_oracle", "oracle"))
+    return rows + [("scripted explorer", "explorer", None), ("random", "random", None)]
+
+
+def results_table(results: dict[str, dict], trained: str) -> str:
+    """The demo's results table: one block per success protocol (``results``: protocol -> label -> summary), each
+    headed by its protocol line (:func:`tsnav.protocol.protocol_line`; the agent's rows were trained under
+    ``trained``), rows ALL and L>=5 per policy in percent. The ``paper`` block is the table of the demo before
+    protocols existed, line for line, below its header."""
+    labels = [k for r in results.values() for k in r]
+    width = max(len(k) for k in labels) if labels else 10
+    lines = []
+    for protocol, rows in results.items():
+        lines += [f"\nresults on the test episodes (percent; paper IV-A metrics)",
+                  f"{protocol_line(protocol)}; agent trained under {trained}",
+                  f"{'policy':<{width}}  subset " + " ".join(f"{m:>6}" for m in METRICS) + "      K"]
+        for label, s in rows.items():
+            for sub in ("ALL", "L>=5"):
+                m = s[sub]
+                lines.append(f"{label:<{width}}  {sub:<6} " + " ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
+                             + f" {m['episodes']:6d}")
+    return "\n".join(lines)
+
+
+def _print_results(results: dict, st: Stages, total: float, index: str, trained: str = DEFAULT_PROTOCOL) -> None:
     print("\nstage        status    seconds")
     for name in STAGES:
         status, sec = st.times.get(name, ("-", 0.0))
         print(f"{name:<12} {status:<8} {sec:8.0f}")
     print(f"{'total':<12} {'':<8} {total:8.0f}")
-    width = max(len(k) for k in results) if results else 10
-    print(f"\nresults on the test episodes (percent; paper IV-A metrics)\n{'policy':<{width}}  subset "
-          + " ".join(f"{m:>6}" for m in METRICS) + "      K")
-    for label, s in results.items():
-        for sub in ("ALL", "L>=5"):
-            m = s[sub]
-            print(f"{label:<{width}}  {sub:<6} " + " ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
-                  + f" {m['episodes']:6d}")
+    print(results_table(results, trained))
     print(f"\nreport: {index}")
 
 
 def run(args) -> int:
     cfg = DemoConfig(preset=args.preset, detector=args.detector, world_workers=args.workers, sample=args.sample,
-                     detections=args.detections)
+                     detections=args.detections, protocol=check_protocol(args.protocol))
     if args.detector_steps is not None:
         if args.detector_steps < 1:
             raise CommandError("--detector-steps must be >= 1")

@@ -11,7 +11,9 @@ With ``K`` episodes, ``Suc_i`` success, ``Nav_i`` "entered the pathfinding stage
 Lengths count movement actions (MoveAhead, RotateLeft/Right, LookDown/Up); Done is not counted, neither in
 the agent's lengths nor in the optimal ones (see :mod:`tsnav.sim.paths`). A ratio whose both lengths are 0
 (e.g. the target is already detected in the first frame) is 1. Values are fractions in [0, 1]; tables
-print percentages. Every metric is reported for ALL episodes and for those with ``L* >= 5``.
+print percentages. Every metric is reported for ALL episodes and for those with ``L* >= 5``. Under the
+``lineage`` success protocol SPL and the ``L>=5`` subset count lengths as the lineage's evaluator does
+(:mod:`tsnav.protocol`, :func:`long_episode`).
 
 Records are exchanged as JSON Lines, one :class:`EpisodeRecord` per line.
 """
@@ -27,6 +29,7 @@ import numpy as np
 
 from .atomic import atomic_write_text
 from .errors import from_fields
+from .protocol import DEFAULT_PROTOCOL, check_protocol, protocol_line, protocol_of, spec
 
 #: Metric names, in the paper's table order.
 METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
@@ -80,18 +83,24 @@ def ratio(opt: np.ndarray, actual: np.ndarray) -> np.ndarray:
 
 
 def metric_values(success, entered, path_length, optimal_length, search_length, optimal_search_length,
-                  nav_length, optimal_nav_length) -> dict[str, float]:
+                  nav_length, optimal_nav_length, protocol: str = DEFAULT_PROTOCOL) -> dict[str, float]:
     """The five metrics of paper IV-A over ``K`` episodes given as ``(K,)`` arrays (the one definition; the
     record-based functions below and the training statistics of :mod:`tsnav.rl.stats` use it). Lengths are
     movement-action counts; ``entered`` is Nav_i. Every metric is 0 when ``K = 0``; NSNPL is 0 when no
-    episode entered the pathfinding stage."""
+    episode entered the pathfinding stage.
+
+    Under the ``lineage`` protocol SPL is the lineage's ``compute_spl``: both lengths count one more
+    (states on the shortest path, start included, over actions output with Done), ``(L* + 1) / (L + 1)`` on
+    success (:mod:`tsnav.protocol`); the other metrics are the paper's under both."""
     suc = np.asarray(success, dtype=np.float64)
     nav = np.asarray(entered, dtype=np.float64)
     if len(suc) == 0:
         return dict.fromkeys(METRICS, 0.0)
     k_nav = float(nav.sum())
+    off = spec(protocol).length_offset
     return {"SR": float(np.mean(suc)),
-            "SPL": float(np.mean(suc * ratio(optimal_length, path_length))),
+            "SPL": float(np.mean(suc * ratio(np.asarray(optimal_length, dtype=np.float64) + off,
+                                             np.asarray(path_length, dtype=np.float64) + off))),
             "SSR": float(np.mean(nav)),
             "SSSPL": float(np.mean(nav * ratio(optimal_search_length, search_length))),
             "NSNPL": float(np.sum(suc * nav * ratio(optimal_nav_length, nav_length)) / k_nav) if k_nav else 0.0}
@@ -101,10 +110,10 @@ def _col(records: Sequence[EpisodeRecord], name: str, default=0) -> np.ndarray:
     return np.array([default if getattr(r, name) is None else getattr(r, name) for r in records], dtype=np.float64)
 
 
-def _values(records: Sequence[EpisodeRecord]) -> dict[str, float]:
+def _values(records: Sequence[EpisodeRecord], protocol: str = DEFAULT_PROTOCOL) -> dict[str, float]:
     return metric_values(*(_col(records, n) for n in (
         "success", "entered_pathfinding", "path_length", "optimal_length", "search_path_length",
-        "optimal_search_length", "pathfinding_path_length", "optimal_pathfinding_length")))
+        "optimal_search_length", "pathfinding_path_length", "optimal_pathfinding_length")), protocol=protocol)
 
 
 def sr(records: Sequence[EpisodeRecord]) -> float:
@@ -133,34 +142,46 @@ def nsnpl(records: Sequence[EpisodeRecord]) -> float:
     return _values(records)["NSNPL"]
 
 
-def metrics(records: Sequence[EpisodeRecord]) -> dict:
+def metrics(records: Sequence[EpisodeRecord], protocol: str = DEFAULT_PROTOCOL) -> dict:
     """All five metrics plus the counts ``episodes`` (K) and ``K_nav``."""
-    return {**_values(records), "episodes": len(records),
+    return {**_values(records, protocol), "episodes": len(records),
             "K_nav": int(sum(bool(r.entered_pathfinding) for r in records))}
 
 
-def summarize(records: Sequence[EpisodeRecord], min_optimal_length: int = 5, by_room_type: bool = True) -> dict:
-    """Metrics for ``ALL`` episodes and for ``L>=5`` (optimal length at least ``min_optimal_length``),
-    optionally also per room type (``rooms: {room: {"ALL": .., "L>=5": ..}}``)."""
+def long_episode(optimal_length: int, min_optimal_length: int = 5, protocol: str = DEFAULT_PROTOCOL) -> bool:
+    """Whether an episode belongs to the ``L>=5`` subset: ``L* >= min_optimal_length`` in movement actions
+    (``paper``), or the lineage's ``best_path_len >= min_optimal_length`` with its path length counted in
+    states, ``L* + 1`` (``lineage``; its ``GreaterThan/5`` bucket)."""
+    return optimal_length + spec(protocol).length_offset >= min_optimal_length
+
+
+def summarize(records: Sequence[EpisodeRecord], min_optimal_length: int = 5, by_room_type: bool = True,
+              protocol: str = DEFAULT_PROTOCOL) -> dict:
+    """Metrics for ``ALL`` episodes and for ``L>=5`` (:func:`long_episode`), optionally also per room type
+    (``rooms: {room: {"ALL": .., "L>=5": ..}}``), counted under the success ``protocol`` (recorded as
+    ``protocol``; it sets SPL's and the subset's length convention, :mod:`tsnav.protocol`)."""
+    protocol = check_protocol(protocol)
     label = f"L>={min_optimal_length}"
-    long_ = [r for r in records if r.optimal_length >= min_optimal_length]
-    out = {"ALL": metrics(records), label: metrics(long_), "min_optimal_length": min_optimal_length}
+    long_ = [r for r in records if long_episode(r.optimal_length, min_optimal_length, protocol)]
+    out = {"ALL": metrics(records, protocol), label: metrics(long_, protocol),
+           "min_optimal_length": min_optimal_length, "protocol": protocol}
     if by_room_type:
         rooms = sorted({r.room_type for r in records})
-        out["rooms"] = {rt: {"ALL": metrics([r for r in records if r.room_type == rt]),
-                             label: metrics([r for r in long_ if r.room_type == rt])} for rt in rooms}
+        out["rooms"] = {rt: {"ALL": metrics([r for r in records if r.room_type == rt], protocol),
+                             label: metrics([r for r in long_ if r.room_type == rt], protocol)} for rt in rooms}
     return out
 
 
-def format_table(summary: dict) -> str:
-    """A plain-text table of a :func:`summarize` result in percent, like the paper's Table II."""
+def format_table(summary: dict, trained: str | None = None) -> str:
+    """A plain-text table of a :func:`summarize` result in percent, like the paper's Table II, headed by the
+    protocol it was counted under (and the one the agent was trained under, ``trained``, when given)."""
     label = f"L>={summary.get('min_optimal_length', 5)}"
     rows = [("ALL", summary["ALL"]), (label, summary[label])]
     for rt, sub in summary.get("rooms", {}).items():
         rows += [(f"{rt} ALL", sub["ALL"]), (f"{rt} {label}", sub[label])]
     width = max(len(r[0]) for r in rows)
     head = f"{'subset':<{width}}  " + "  ".join(f"{m:>6}" for m in METRICS) + f"  {'K':>6}  {'K_nav':>6}"
-    lines = [head, "-" * len(head)]
+    lines = [protocol_line(protocol_of(summary), trained), head, "-" * len(head)]
     for name, m in rows:
         lines.append(f"{name:<{width}}  " + "  ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
                      + f"  {m['episodes']:>6d}  {m['K_nav']:>6d}")

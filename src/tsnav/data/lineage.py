@@ -100,6 +100,32 @@ def visible_object_map(object_ids, keys, visible) -> dict[str, list[str]]:
     return {str(oid): keys[visible[:, j]].tolist() for j, oid in enumerate(object_ids) if visible[:, j].any()}
 
 
+def visibility_map_success_reference(folder: str | Path, keys) -> np.ndarray:
+    """Slow, obviously-correct reference of ``Scene.success_table("lineage")``: ``(len(keys), 22)`` bool.
+
+    Reads ``visible_object_map_1.5.json`` of the scene folder itself and, per state key and target category,
+    does what the lineage's ``episodes/basic_episode.py::judge`` does on Done: loop over the object ids whose
+    type (the id's first ``|`` field) is the category and succeed when the state key is listed for one.
+    """
+    import json
+
+    from ..constants import TARGET_CATEGORIES
+
+    with open(Path(folder) / VISIBLE_MAP_FILE) as f:
+        vis_map = json.load(f)
+    by_type: dict[str, list[set]] = {}
+    for oid, states in vis_map.items():
+        by_type.setdefault(str(oid).split("|")[0], []).append(set(states))
+    out = np.zeros((len(keys), NUM_CATEGORIES), dtype=bool)
+    for i, key in enumerate(keys):
+        for c, name in enumerate(TARGET_CATEGORIES):
+            for listed in by_type.get(name, []):
+                if str(key) in listed:
+                    out[i, c] = True
+                    break
+    return out
+
+
 def parse_object_id(object_id: str) -> tuple[str, np.ndarray | None]:
     """``(objectType, position)`` of an AI2-THOR object id ``Type|x|y|z``; position ``(3,)`` metres or ``None``
     when the id carries none (e.g. ids of sliced objects with a fifth part keep the parent's position)."""

@@ -135,12 +135,35 @@ def write_states(folder: Path, keys: np.ndarray, object_ids, pixels: np.ndarray,
             f.attrs["min_pixels"] = min_pixels
 
 
+#: HDF5 filters a frame file may use: the ones every stock h5py reads with no plugin (the lineage's readers
+#: open the files unchanged). ``None``: stored raw.
+FRAME_COMPRESSIONS = (None, "gzip", "lzf")
+#: The writers' default: gzip level 1, one chunk per frame. The flat-shaded renders of this project compress
+#: about 4.5x at 128 px (BENCHMARKS.md "Frames at a fraction of the disk"); higher levels gain a few per cent
+#: for much more CPU time, and byte shuffling makes float16 depth larger, not smaller.
+DEFAULT_COMPRESSION = "gzip"
+DEFAULT_COMPRESSION_LEVEL = 1
+
+
 class FrameWriter:
     """``images.hdf5`` (RGB uint8 HxWx3) and ``depth.hdf5`` (metres, ``depth_dtype``), one dataset per state
-    key; a context manager that closes both files."""
+    key; a context manager that closes both files.
 
-    def __init__(self, folder: Path, depth_dtype: str = "float16", compression: str | None = None):
+    ``compression`` (:data:`FRAME_COMPRESSIONS`; ``level`` for gzip) applies to both files, with each frame
+    one HDF5 chunk (h5py's automatic chunking would split a 128 px frame into four chunks and compress
+    worse); plain ``h5py`` reads the datasets as before (``f[key][()]``), decompressing as it reads.
+    """
+
+    def __init__(self, folder: Path, depth_dtype: str = "float16", compression: str | None = DEFAULT_COMPRESSION,
+                 level: int | None = DEFAULT_COMPRESSION_LEVEL):
+        if compression not in FRAME_COMPRESSIONS:
+            raise ValueError(f"unknown frame compression {compression!r} (choose from "
+                             f"{', '.join(str(c) for c in FRAME_COMPRESSIONS)})")
+        if compression == "gzip" and level is not None and not 0 <= int(level) <= 9:
+            raise ValueError(f"gzip level must be in 0..9, got {level}")
         self.depth_dtype, self.compression = depth_dtype, compression
+        self.level = None if compression != "gzip" else (4 if level is None else int(level))
+        self._dcpl: dict[tuple, object] = {}
         self.images = h5py.File(folder / "images.hdf5", "w", track_order=False)
         try:
             self.depth = h5py.File(folder / "depth.hdf5", "w", track_order=False)
@@ -148,10 +171,31 @@ class FrameWriter:
             self.images.close()
             raise
 
+    def _put(self, f, key: str, data: np.ndarray) -> None:
+        """One dataset ``key`` holding ``data``, through h5py's low-level calls with one creation property list
+        per shape (h5py's ``create_dataset`` rebuilds the filter pipeline for every dataset: about a third of
+        the write time of a compressed frame); the files read as any h5py-written ones."""
+        data = np.ascontiguousarray(data)
+        sig = (data.shape, data.dtype.str)
+        dcpl = self._dcpl.get(sig)
+        if dcpl is None:
+            dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+            dcpl.set_obj_track_times(False)
+            if self.compression is not None:
+                dcpl.set_chunk(data.shape)  # one chunk per frame
+                if self.compression == "gzip":
+                    dcpl.set_deflate(self.level)
+                else:
+                    dcpl.set_filter(h5py.h5z.FILTER_LZF, h5py.h5z.FLAG_OPTIONAL)
+            self._dcpl[sig] = dcpl
+        ds = h5py.h5d.create(f.id, key.encode(), h5py.h5t.py_create(data.dtype), h5py.h5s.create_simple(data.shape),
+                             dcpl=dcpl)
+        ds.write(h5py.h5s.ALL, h5py.h5s.ALL, data)
+
     def add(self, key: str, rgb: np.ndarray, depth: np.ndarray) -> None:
         """Store the frame of state ``key``: ``rgb`` (H, W, 3) uint8 and ``depth`` (H, W) metres."""
-        self.images.create_dataset(key, data=rgb, compression=self.compression, track_times=False)
-        self.depth.create_dataset(key, data=np.asarray(depth).astype(self.depth_dtype), track_times=False)
+        self._put(self.images, key, np.asarray(rgb))
+        self._put(self.depth, key, np.asarray(depth).astype(self.depth_dtype))
 
     def add_many(self, keys, rgb: np.ndarray, depth: np.ndarray) -> None:
         """Store the frames of states ``keys`` (N), in that order: ``rgb`` (N, H, W, 3) uint8 and ``depth``
@@ -161,8 +205,8 @@ class FrameWriter:
         if not (len(keys) == len(rgb) == len(depth)):
             raise ValueError(f"add_many: {len(keys)} keys, {len(rgb)} RGB frames, {len(depth)} depth frames")
         for key, c, d in zip(keys, rgb, depth):
-            self.images.create_dataset(key, data=c, compression=self.compression, track_times=False)
-            self.depth.create_dataset(key, data=d, track_times=False)
+            self._put(self.images, key, c)
+            self._put(self.depth, key, d)
 
     def close(self) -> None:
         for f in (self.images, self.depth):

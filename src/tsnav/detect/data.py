@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..data.reader import Scene, SceneFormatError, list_scenes, load_scene
+from ..data.reader import Scene, SceneFormatError, list_scenes, load_scene, read_stack
 from .model import pixel_to_unit
 from .oracle import ground_truth, min_pixels
 
@@ -35,10 +35,7 @@ def read_images(scene_dir: str | Path, keys) -> np.ndarray:
                 raise SceneFormatError(f"{path}: lacks state {missing[0]!r} ({len(missing)} missing)")
             if not keys:
                 return np.zeros((0, 0, 0, 3), np.uint8)
-            first = f[keys[0]]
-            out = np.empty((len(keys),) + first.shape, dtype=np.uint8)
-            for i, k in enumerate(keys):
-                f[k].read_direct(out, dest_sel=np.s_[i])
+            out = read_stack(f, keys).astype(np.uint8, copy=False)
     except OSError as e:
         raise SceneFormatError(f"{path}: unreadable ({e})") from None
     return out

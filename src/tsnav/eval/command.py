@@ -33,6 +33,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--c-target", type=float, default=C_TARGET, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--success-distance", type=float, default=None,
                         help="success distance in metres (default: the episode list's)")
+    parser.add_argument("--protocol", default=None,
+                        help="success protocol (paper | lineage; default: the episode list's). Naming it lets an "
+                             "agent trained under the other protocol be evaluated; it must be the list's (draw a "
+                             "list under each with `tsnav episodes --protocol`)")
     parser.add_argument("--batch-size", type=int, default=4096, help="episodes stepped together")
     parser.add_argument("--detections", default=None,
                         help="detection table (detections_NAME.hdf5 in every scene) that drives the stage switch "
@@ -51,12 +55,12 @@ def run(args: argparse.Namespace) -> int:
     summary = evaluate_to_folder(out, args.data, args.episodes, policy=args.policy, run=args.run,
                                  detections=args.detections, c_target=args.c_target, seed=args.seed, max_steps=args.max_steps, sample=args.sample,
                                  checkpoint=args.checkpoint, success_distance=args.success_distance,
-                                 batch_size=args.batch_size)
+                                 batch_size=args.batch_size, protocol=args.protocol)
     meta = json.loads((out / "metrics.json").read_text())
     n = sum(1 for line in (out / "records.jsonl").read_text().splitlines() if line.strip())
     print(f"{meta['label']}: {n} episodes in {meta['seconds']:.2f} s "
           f"(stage switch: {'detector' if meta['detector_confidence'] else 'ground-truth visibility'})")
-    print(format_table(summary))
+    print(format_table(summary, trained=meta.get("trained_protocol")))
     print(format_outcomes(json.loads((out / OUTCOMES_FILE).read_text())))
     print(f"wrote {out / 'records.jsonl'}, {out / 'trajectories.jsonl'}, {out / OUTCOMES_FILE} and {out / 'metrics.json'}")
     return 0

@@ -28,7 +28,7 @@ from ..errors import CommandError
 from ..rl.config import PRECISIONS, TrainConfig
 from ..rl.train import train_run
 from .select import select_checkpoint
-from .stage_cache import ensure_episodes
+from .stage_cache import ensure_episodes, episodes_name
 
 #: Validation metrics drawn on the curve (paper IV-A).
 CURVE_METRICS = ("SR", "SPL", "SSSPL", "NSNPL")
@@ -76,7 +76,8 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     total = int(cfg.updates)
-    val = ensure_episodes(cfg.data, "val", out / "val_episodes.json", val_per_room_type)
+    val = ensure_episodes(cfg.data, "val", out / episodes_name("val", cfg.protocol), val_per_room_type,
+                          protocol=cfg.protocol)
     run = out / "run"
     points: list[dict] = []
     for end in list(range(chunk, total, chunk)) + [total]:
@@ -86,11 +87,12 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
         sel = select_checkpoint(run, cfg.data, val, max_steps=max_steps, progress=say)
         points = curve_points(sel)
         atomic_write_json(out / "curve.json", {"points": points, "best": sel["best"], "chunk": chunk,
-                                               "train": c.to_dict()})
-        plot_curve(points, out / "curve.png", title=f"{cfg.reward} reward, features {cfg.features}")
+                                               "protocol": cfg.protocol, "train": c.to_dict()})
+        plot_curve(points, out / "curve.png",
+                   title=f"{cfg.reward} reward, features {cfg.features}, protocol {cfg.protocol}")
         last = points[-1]
         say(f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
-            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in CURVE_METRICS))
+            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in CURVE_METRICS) + f" (protocol {cfg.protocol})")
         if plateaued(points, patience):
             say(f"validation SR has not risen for {patience} chunks: stopping at update {last['update']}")
             break
@@ -118,6 +120,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="CPU processes sharing each update's episodes (default 1; 2 uses both cores)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
+    parser.add_argument("--protocol", default="paper",
+                        help="success protocol of training and of the validation episodes: paper or lineage "
+                             "(default: paper)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         cfg = TrainConfig(data=str(Path(args.data).resolve()), features=args.features, detections=args.detections,
                           algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
                           seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef,
-                          precision=args.precision, procs=args.procs)
+                          precision=args.precision, procs=args.procs, protocol=args.protocol)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
                         patience=args.patience)

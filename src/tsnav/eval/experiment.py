@@ -87,6 +87,7 @@ from ..rl.train import train_run
 from .experiment_config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
                                 ScaleConfig, experiment_rows)
 from ..metrics import METRICS, write_json
+from ..protocol import check_protocol, protocol_line
 from .report import build_report
 from .runner import evaluate_to_folder
 from .select import chosen, select_checkpoint
@@ -148,7 +149,7 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
                      split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
                      num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
                      minutes=minutes, episodes=episodes, updates=updates, device=cfg.device,
-                     checkpoint_every=every, milestone_every=milestones,
+                     checkpoint_every=every, milestone_every=milestones, protocol=cfg.protocol,
                      procs=(cfg.procs or scale.procs) if scale.algo == "batched" else 1)
     return tc, agent_config(scale.agent_preset)
 
@@ -170,10 +171,10 @@ class Job:
 
 #: experiment.json fields that must match when an experiment folder is resumed.
 IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample",
-            "checkpoint")
+            "checkpoint", "protocol")
 #: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled, and
 #: the latest checkpoint was evaluated).
-LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest"}
+LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest", "protocol": "paper"}
 #: ``ExperimentConfig.checkpoint`` values.
 CHECKPOINTS = ("best", "latest")
 #: Seed of the selection episodes (the threshold experiment's evaluation episodes on val use seed 0).
@@ -249,13 +250,15 @@ class Experiment:
         results = aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
         results["experiment"] = self.cfg.experiment
         results["detections"] = self.cfg.detections
+        results["protocol"] = self.cfg.protocol
         results["welch"] = welch_against(results, self.info["baseline_row"])
         quality = self.quality()
         if quality:
             results["detector_quality"] = quality
         dips = self.done_dips()
         results["done_dips"] = dips
-        text = (f"## {self.cfg.experiment}: {self.info['description']}\n\n" + markdown_table(results)
+        text = (f"## {self.cfg.experiment}: {self.info['description']}\n\n"
+                + f"Success {protocol_line(self.cfg.protocol, self.cfg.protocol)}.\n\n" + markdown_table(results)
                 + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
                 + f"Detections: {self.cfg.detections}"
                 + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
@@ -329,11 +332,12 @@ class Experiment:
             ensure_detections(cfg.data, name, self.detector_dir, scale, shipped=cfg.detector == "shipped")
         record_quality(self.out, cfg.data, self.detection_names, say=say)
         ensure_episodes(cfg.data, split, self.episodes_file,
-                        scale.test_per_room_type if split == "test" else scale.val_per_room_type)
+                        scale.test_per_room_type if split == "test" else scale.val_per_room_type, protocol=cfg.protocol)
         splits = ["train", split]
         if cfg.checkpoint == "best":
             say(f"[{cfg.experiment}] validation episodes for checkpoint selection")
-            ensure_episodes(cfg.data, "val", self.select_file, scale.val_per_room_type, seed=SELECT_SEED)
+            ensure_episodes(cfg.data, "val", self.select_file, scale.val_per_room_type, seed=SELECT_SEED,
+                            protocol=cfg.protocol)
             splits = list(dict.fromkeys([*splits, "val"]))
         features = {}
         todo = [j for j in self.jobs if not self.done(j)]
@@ -519,6 +523,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", choices=CHECKPOINTS, default="best",
                         help="checkpoint each job evaluates: best (default; the job's milestones scored greedily on "
                              "validation episodes) or latest (the last trained)")
+    parser.add_argument("--protocol", default="paper",
+                        help="success protocol of episodes, training and evaluation: paper (in view within 1.0 m, "
+                             "the default) or lineage (the 1.5 m visibility map, as the lineage's evaluator; "
+                             "start-success episodes kept); recorded in experiment.json and results.json")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
     parser.add_argument("--reuse-from", action="append", default=[], metavar="EXPERIMENT_DIR",
                         help="another experiment folder whose finished jobs with the same training configuration "
@@ -527,6 +535,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_protocol(args.protocol)  # a bad name stops here, in one line, before any work
     world = SCALES[args.scale].world
     if not Path(args.data).is_dir() and not (args.build_world and not Path(args.data).exists()):
         raise CommandError(f"--data {args.data}: no such dataset folder (--build-world builds the {world} world of "
@@ -546,8 +555,8 @@ def run(args: argparse.Namespace) -> int:
                            minutes_per_job=args.minutes_per_job, updates_per_job=args.updates_per_job,
                            pretrain_dir=args.pretrain_dir, detector_dir=args.detector_dir, detector=args.detector,
                            detections=args.detections, vc1_weights=args.vc1_weights,
-                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel, procs=args.procs,
-                           sample=args.sample, checkpoint=args.checkpoint,
+                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
+                           procs=args.procs, sample=args.sample, checkpoint=args.checkpoint, protocol=args.protocol,
                            reuse_from=tuple(str(Path(d).resolve()) for d in args.reuse_from))
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")

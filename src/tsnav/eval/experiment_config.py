@@ -253,6 +253,9 @@ class ExperimentConfig:
     sample: bool = False
     """Evaluate the agents by sampling their actions (seeded) instead of the greedy argmax, the lineage's
     test-time rule."""
+    protocol: str = "paper"
+    """Success protocol (:mod:`tsnav.protocol`) of the episode lists, the training runs and the evaluations:
+    ``paper`` (in view within 1.0 m) or ``lineage`` (the 1.5 m visibility map, as the lineage's evaluator)."""
     reuse_from: tuple[str, ...] = ()
     """Other experiment folders whose finished jobs may be reused: a job whose training configuration (budget
     included) equals one of theirs copies that trained run instead of training again, then selects its checkpoint

@@ -226,8 +226,9 @@ def _e(s) -> str:
 
 
 def metrics_table_html(rows: list[tuple[str, dict]], subsets: tuple[str, ...] = ("ALL", "L>=5")) -> str:
-    """An HTML table with one row per ``(label, summarize() result)``: every metric per subset, in percent."""
-    head1 = "<tr><th class='l' rowspan='2'>evaluation</th>" + "".join(
+    """An HTML table with one row per ``(label, summarize() result)``: the success protocol it was counted under
+    (:mod:`tsnav.protocol`), then every metric per subset, in percent."""
+    head1 = "<tr><th class='l' rowspan='2'>evaluation</th><th rowspan='2'>protocol</th>" + "".join(
         f"<th colspan='{len(METRICS) + 1}'>{_e(s)} (%)</th>" for s in subsets) + "</tr>"
     head2 = "<tr>" + "".join("".join(f"<th>{m}</th>" for m in METRICS) + "<th>K</th>" for _ in subsets) + "</tr>"
     body = []
@@ -237,7 +238,8 @@ def metrics_table_html(rows: list[tuple[str, dict]], subsets: tuple[str, ...] = 
             m = summ.get(s, {})
             cells += [f"<td>{100 * m[k]:.2f}</td>" if isinstance(m.get(k), (int, float)) else "<td>-</td>" for k in METRICS]
             cells.append(f"<td>{m.get('episodes', '-')}</td>")
-        body.append(f"<tr><td class='l'>{_e(label)}</td>{''.join(cells)}</tr>")
+        body.append(f"<tr><td class='l'>{_e(label)}</td><td>{_e(summ.get('protocol', 'paper'))}</td>"
+                    f"{''.join(cells)}</tr>")
     return f"<table>{head1}{head2}{''.join(body)}</table>"
 
 
@@ -338,13 +340,16 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
         body += ("<p class='note'>SR, SPL (Anderson et al.), SSR (share of episodes that entered the pathfinding "
                  "stage), SSSPL (searching success weighted by searching path length), NSNPL (pathfinding "
                  "efficiency over the episodes that entered that stage); paper IV-A. K = episodes. "
-                 "L&ge;5: episodes whose optimal path has at least 5 actions.</p>")
+                 "L&ge;5: episodes whose optimal path has at least 5 actions. Protocol: paper = Done succeeds "
+                 "with the target in view within 1.0 m; lineage = the target listed in the 1.5 m visibility map, "
+                 "start-success episodes kept, SPL and L&ge;5 counted as the lineage's evaluator does "
+                 "(tsnav.protocol).</p>")
         details = []
         for d in found.evals:
             m = json.loads((d / "metrics.json").read_text())
 
             details.append(f"<details><summary>{_e(_eval_label(d, root))}: per room type</summary>"
-                           f"<pre>{_e(format_table(m['metrics']))}</pre></details>")
+                           f"<pre>{_e(format_table(m['metrics'], m.get('trained_protocol')))}</pre></details>")
         sections.append(("results", "Results", body + "".join(details)))
 
     # --- experiments
@@ -454,7 +459,8 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> t
     name = exp.get("experiment", d.name)
     lab = _label(d, root)
     parts = [f"<p class='meta'>{_e(exp.get('description', ''))} Scale {_e(exp.get('scale', '?'))}, "
-             f"{_e(exp.get('seeds', '?'))} seed(s); {_e(lab)}</p>"]
+             f"{_e(exp.get('seeds', '?'))} seed(s); success protocol "
+             f"{_e(exp.get('config', {}).get('protocol', 'paper'))}; {_e(lab)}</p>"]
     done = sum(1 for j in exp.get("jobs", []) if (d / j["dir"] / "DONE").exists())
     total = len(exp.get("jobs", []))
     parts.append(f"<p class='meta'>{done} of {total} jobs finished.</p>")

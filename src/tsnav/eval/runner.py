@@ -38,6 +38,7 @@ from ..sim.batch import BatchEnv, SceneBank
 from ..sim.episodes import Episode, episodes_to_arrays, read_episodes
 from ..sim.paths import UNREACHABLE, distance_fields
 from ..sim.stage import StageSwitch, switch_frame
+from ..protocol import check_protocol, protocol_of
 from ..metrics import EpisodeRecord, read_records, summarize, write_json, write_records
 from .outcomes import OUTCOMES_FILE, outcome_summary
 from .policies import make_policy
@@ -267,12 +268,45 @@ def load_bank_for_episodes(data, episodes, **bank_kwargs):
     return SceneBank(scenes, **bank_kwargs)
 
 
+def run_protocol(run: str | Path) -> str:
+    """The success protocol a training run was trained under (its ``config.json``; ``paper`` for runs made
+    before protocols were recorded)."""
+    path = Path(run) / "config.json"
+    if not path.exists():
+        raise CommandError(f"{run}: not a training run (no config.json)")
+    try:
+        cfg = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise CommandError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    return protocol_of(cfg.get("train", {}))
+
+
+def resolve_protocol(episodes_meta: dict, episodes_file, run=None, protocol: str | None = None
+                     ) -> tuple[str, str | None]:
+    """``(evaluated, trained)``: the protocol an evaluation counts under and the one the agent of ``run`` was
+    trained under (None for scripted policies). The episode list fixes the first (its L* and its start-success
+    episodes were drawn under it); ``protocol``, when given, must be it. An agent trained under another
+    protocol is refused in one line unless ``protocol`` is given: naming it is how one agent is evaluated
+    across protocols (on a list drawn under each, ``tsnav episodes --protocol``)."""
+    listed = protocol_of(episodes_meta)
+    if protocol is not None:
+        protocol = check_protocol(protocol)
+        if protocol != listed:
+            raise CommandError(f"{episodes_file} was drawn under the {listed} protocol; to evaluate under {protocol} "
+                               f"use a list drawn under it (tsnav episodes --protocol {protocol})")
+    trained = run_protocol(run) if run is not None else None
+    if trained is not None and trained != listed and protocol is None:
+        raise CommandError(f"{run} was trained under the {trained} protocol but {episodes_file} is a {listed} "
+                           f"episode list; pass --protocol {listed} to evaluate it across protocols")
+    return listed, trained
+
+
 def eval_bank(meta: dict, episodes):
-    """The scene bank an evaluation folder's ``metrics.json`` describes (same scenes, success distance,
-    C_target and detection tables)."""
+    """The scene bank an evaluation folder's ``metrics.json`` describes (same scenes, success protocol and
+    distance, C_target and detection tables)."""
     cfg = meta.get("config", {})
     bank = load_bank_for_episodes(meta["data"], episodes, success_distance=float(meta.get("success_distance", 1.0)),
-                                  c_target=float(cfg.get("c_target", C_TARGET)))
+                                  c_target=float(cfg.get("c_target", C_TARGET)), protocol=protocol_of(meta))
     if meta.get("detections"):
         bank.install_detections(meta["detections"])
     return bank
@@ -329,7 +363,8 @@ def eval_trajectories(eval_dir: str | Path):
 def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
                        run: str | Path | None = None, detections: str | None = None, c_target: float = C_TARGET,
                        seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False,
-                       checkpoint: str = "auto", success_distance: float | None = None, batch_size: int = 4096) -> dict:
+                       checkpoint: str = "auto", success_distance: float | None = None, batch_size: int = 4096,
+                       protocol: str | None = None) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
     :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
@@ -338,23 +373,27 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     that a re-roll loads the same one. ``success_distance`` (metres) defaults to the episode list's;
     ``batch_size`` episodes are stepped together. This is ``tsnav eval``; it also writes ``outcomes.json``
     (:func:`~tsnav.eval.outcomes.outcome_summary`: how episodes ended, with and without the stage switch).
-    Returns the :func:`summarize` result."""
+    The success protocol is the episode list's (:func:`resolve_protocol`: ``protocol`` given explicitly lets
+    an agent trained under the other one be evaluated); ``metrics.json`` records it as ``protocol`` and the
+    agent's as ``trained_protocol``. Returns the :func:`summarize` result."""
     out_dir = Path(out_dir)
     episodes, emeta = read_episodes(episodes_file)
     if not episodes:
         raise CommandError(f"{episodes_file}: the episode list is empty")
+    protocol, trained = resolve_protocol(emeta, episodes_file, run, protocol)
     if success_distance is None:
         success_distance = float(emeta.get("success_distance", 1.0))
     config = EvalConfig(max_steps=max_steps, c_target=c_target, batch_size=batch_size)
     meta = {"policy": "agent" if run else policy, "run": str(Path(run).resolve()) if run else None, "seed": seed,
             "sample": bool(sample), "checkpoint": str(checkpoint) if run else None, "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
+            "protocol": protocol, "trained_protocol": trained,
             "success_distance": float(success_distance), "detections": detections,
             "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
     bank = eval_bank(meta, episodes)
     pol = eval_policy(meta, bank)
     t0 = time.perf_counter()
     records, trajectories = record_trajectories(bank, episodes, pol, config)
-    summary = summarize(records, config.min_optimal_length)
+    summary = summarize(records, config.min_optimal_length, protocol=protocol)
     write_records(out_dir / "records.jsonl", records)
     write_trajectories(out_dir / "trajectories.jsonl", trajectories)
     write_json(out_dir / OUTCOMES_FILE, outcome_summary(records, trajectories))

@@ -24,7 +24,7 @@ from ..errors import CommandError
 from ..metrics import summarize
 from ..rl.checkpoint import BEST, list_checkpoints, load_model, load_policy
 from ..sim.episodes import read_episodes
-from .runner import EvalConfig, evaluate, load_bank_for_episodes
+from .runner import EvalConfig, evaluate, load_bank_for_episodes, resolve_protocol
 
 SELECTION = "selection.json"
 #: Metrics that rank checkpoints, in order (ALL episodes).
@@ -45,10 +45,13 @@ def _digest(run_dir: Path, ck: Path) -> str:
 
 
 def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str | Path, *, seed: int = 0,
-                      max_steps: int = 100, c_target: float = C_TARGET, progress=print) -> dict:
+                      max_steps: int = 100, c_target: float = C_TARGET, progress=print,
+                      protocol: str | None = None) -> dict:
     """Score every kept checkpoint of ``run_dir`` on ``episodes_file`` (greedy, episode length ``max_steps``,
     stage-switch threshold ``c_target``), keep the best as ``RUN/best``; returns the selection (``scores``:
-    checkpoint name -> update, digest, metrics; ``best``)."""
+    checkpoint name -> update, digest, metrics; ``best``; ``protocol``). The success protocol is the episode
+    list's; a run trained under another one is refused unless ``protocol`` names the list's
+    (:func:`~tsnav.eval.runner.resolve_protocol`)."""
     run_dir = Path(run_dir)
     ckpts = list_checkpoints(run_dir)
     if not ckpts:
@@ -56,15 +59,17 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
     episodes, emeta = read_episodes(episodes_file)
     if not episodes:
         raise ValueError(f"{episodes_file}: the episode list is empty")
+    protocol, _ = resolve_protocol(emeta, episodes_file, run_dir, protocol)
     path = run_dir / SELECTION
     try:
         old = read_json(path) if path.exists() else {}
     except BrokenCheckpoint:  # an unreadable score cache is recomputed
         old = {}
     same_list = (old.get("episodes_file") == str(Path(episodes_file).resolve()) and old.get("max_steps") == max_steps
-                 and old.get("c_target", C_TARGET) == c_target)
+                 and old.get("c_target", C_TARGET) == c_target and old.get("protocol", "paper") == protocol)
     scores = dict(old.get("scores", {})) if same_list else {}
-    bank = load_bank_for_episodes(data, episodes, success_distance=float(emeta.get("success_distance", 1.0)))
+    bank = load_bank_for_episodes(data, episodes, success_distance=float(emeta.get("success_distance", 1.0)),
+                                  protocol=protocol)
     config = EvalConfig(max_steps=max_steps, c_target=c_target)
     for ck in ckpts:
         entry = scores.get(ck.name, {})
@@ -76,13 +81,13 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
             scores[ck.name] = {**entry, "file": sig}  # the same weights (e.g. a score file written before signatures)
             continue
         policy = load_policy(run_dir, bank, greedy=True, seed=seed, checkpoint=ck)
-        summary = summarize(evaluate(bank, episodes, policy, config), config.min_optimal_length)
+        summary = summarize(evaluate(bank, episodes, policy, config), config.min_optimal_length, protocol=protocol)
         state = read_json(ck / "state.json")["progress"]
         scores[ck.name] = {"update": int(state["update"]), "env_steps": int(state["env_steps"]),
                            "episodes": int(state["episodes"]), "digest": digest, "file": sig, "metrics": summary}
         progress(f"    {ck.name}: " + ", ".join(f"{k} {100 * summary['ALL'][k]:.1f}" for k in RANK_BY))
         atomic_write_json(path, {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps,
-                                 "c_target": c_target, "scores": scores, "best": old.get("best") if same_list else None,
+                                 "c_target": c_target, "protocol": protocol, "scores": scores, "best": old.get("best") if same_list else None,
                                  "best_file": old.get("best_file")})
     live = {k: v for k, v in scores.items() if (run_dir / "checkpoints" / k).is_dir()}
     name = max(live, key=lambda k: (*(live[k]["metrics"]["ALL"][m] for m in RANK_BY), -live[k]["update"]))
@@ -99,7 +104,7 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
             st = read_json(tmp / "state.json")
             atomic_write_json(tmp / "state.json", {**st, "selected_from": name})
     result = {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps, "c_target": c_target,
-              "scores": scores, "best": name,
+              "protocol": protocol, "scores": scores, "best": name,
               "best_file": {"file": file_signature(best / MODEL_FILE), "digest": live[name]["digest"]}}
     atomic_write_json(path, result)
     return result
@@ -118,6 +123,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset root holding the validation scenes")
     parser.add_argument("--episodes", required=True, help="validation episode list (`tsnav episodes --split val`)")
     parser.add_argument("--max-steps", type=int, default=100, help="episode length limit (paper: 100)")
+    parser.add_argument("--protocol", default=None,
+                        help="success protocol (default: the episode list's); naming it lets a run trained under "
+                             "the other protocol be scored on this list")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -128,10 +136,11 @@ def run(args: argparse.Namespace) -> int:
     if args.max_steps < 1:
         raise CommandError("--max-steps must be >= 1")
     try:
-        res = select_checkpoint(args.run, args.data, args.episodes, max_steps=args.max_steps)
+        res = select_checkpoint(args.run, args.data, args.episodes, max_steps=args.max_steps, protocol=args.protocol)
     except (FileNotFoundError, ValueError) as e:
         raise CommandError(str(e)) from None
     b = res["scores"][res["best"]]
     print(f"{args.run}: best checkpoint {res['best']} (update {b['update']}; "
-          + ", ".join(f"{k} {100 * b['metrics']['ALL'][k]:.1f}" for k in RANK_BY) + f") -> {Path(args.run) / BEST}")
+          + ", ".join(f"{k} {100 * b['metrics']['ALL'][k]:.1f}" for k in RANK_BY)
+          + f", protocol {res['protocol']}) -> {Path(args.run) / BEST}")
     return 0

@@ -12,11 +12,12 @@ from ..data.detections import detections_path, read_fingerprint, write_detection
 from ..data.reader import list_scenes, load_scene
 from ..detect.oracle import OracleConfig, oracle_detections
 from ..errors import CommandError
+from ..protocol import DEFAULT_PROTOCOL, protocol_of
 from ..pretrain.features import cache_features, load_encoder
 from ..distributed import resolve_device
 from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
-from ..sim.episodes import make_episodes, write_episodes
+from ..sim.episodes import make_episodes, read_episodes, write_episodes
 from ..world.build import build_dataset
 from .detector_stage import ensure_learned_detections, ensure_shipped_detections
 from .experiment_config import ExperimentConfig, ScaleConfig
@@ -88,18 +89,28 @@ def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | No
 
 
 def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_type: int, seed: int = 0,
-                    success_distance: float = 1.0) -> Path:
-    """The fixed episode list of ``split`` at ``path`` (made once; reused when present)."""
+                    success_distance: float = 1.0, protocol: str = DEFAULT_PROTOCOL) -> Path:
+    """The fixed episode list of ``split`` at ``path`` drawn under the success ``protocol`` (made once; reused
+    when present; ``ValueError`` when the file there was drawn under another protocol - it is never replaced)."""
     path = Path(path)
     if path.exists():
+        have = protocol_of(read_episodes(path)[1])
+        if have != protocol:
+            raise ValueError(f"{path} holds episodes drawn under the {have} protocol, not {protocol}")
         return path
-    bank = SceneBank.from_root(data, split, success_distance=success_distance)
+    bank = SceneBank.from_root(data, split, success_distance=success_distance, protocol=protocol)
     eps = make_episodes(bank, per_room_type, seed)
     if not eps:
         raise ValueError(f"{data}: no valid episode in split {split!r}")
-    write_episodes(path, eps, split=split, seed=seed, success_distance=success_distance, per_room_type=per_room_type,
-                   start_horizon=None, room_targets=True, data=str(Path(data).resolve()))
+    write_episodes(path, eps, split=split, seed=seed, protocol=protocol, success_distance=success_distance,
+                   per_room_type=per_room_type, start_horizon=None, room_targets=True, data=str(Path(data).resolve()))
     return path
+
+
+def episodes_name(split: str, protocol: str = DEFAULT_PROTOCOL) -> str:
+    """File name of a shared episode list: ``{split}_episodes.json`` under ``paper`` (as before protocols),
+    ``{split}_episodes_{protocol}.json`` otherwise."""
+    return f"{split}_episodes.json" if protocol == DEFAULT_PROTOCOL else f"{split}_episodes_{protocol}.json"
 
 
 @dataclass

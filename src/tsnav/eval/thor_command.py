@@ -24,6 +24,7 @@ from ..data.thor_export import check_lineage_dataset, check_lineage_layout, expo
 from ..data.thor_import import ImportConfig, import_lineage_dataset
 from ..data.thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
 from ..errors import CommandError
+from ..protocol import check_protocol
 from ..sim.episodes import write_episodes
 from ..sim.lineage import episodes_from_splits
 
@@ -67,6 +68,10 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     epi.add_argument("splits", nargs="+", help="split files, e.g. test_val_split/kitchen_test_22.pkl")
     epi.add_argument("--data", required=True, help="dataset folder; episodes of scenes not in it are dropped")
     epi.add_argument("--out", required=True, help="tsnav episode list (JSON) to write")
+    epi.add_argument("--protocol", default="paper",
+                     help="success protocol: paper (in view within --success-distance; starts that already succeed "
+                          "are dropped) or lineage (the visibility map, as the lineage's evaluator; such starts are "
+                          "kept and counted, as its lists have them) (default: paper)")
     epi.add_argument("--success-distance", type=float, default=1.0,
                      help="success radius for the optimal lengths, metres (default 1.0, the paper's; 1.5 the lineage's)")
     epi.add_argument("--force", action="store_true", help="replace an existing episode list")
@@ -178,14 +183,17 @@ def _episodes(args) -> int:
     if out.exists() and not args.force:
         raise CommandError(f"{out} exists; pass --force to replace it")
     try:
-        eps, st = episodes_from_splits(args.splits, args.data, args.success_distance)
+        protocol = check_protocol(args.protocol)
+        eps, st = episodes_from_splits(args.splits, args.data, args.success_distance, protocol=protocol)
     except SplitFormatError as e:
         raise CommandError(str(e)) from None
+    except ValueError as e:
+        raise CommandError(f"--protocol: {e}") from None
     print(st.summary())
     if not eps:
         raise CommandError(f"no episode of {', '.join(args.splits)} is in {args.data}")
     write_episodes(out, eps, split="lineage", source=[str(Path(p)) for p in args.splits],
-                   success_distance=args.success_distance, start_horizon=None, room_targets=True,
+                   protocol=protocol, success_distance=args.success_distance, start_horizon=None, room_targets=True,
                    data=str(Path(args.data).resolve()), dropped=st.dropped)
     print(f"wrote {len(eps)} episodes to {out}")
     return 0

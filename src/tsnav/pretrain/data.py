@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from ..constants import NUM_CATEGORIES
-from ..data.reader import SceneFormatError, list_scenes, load_scene
+from ..data.reader import SceneFormatError, list_scenes, load_scene, read_stack
 
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -132,8 +132,8 @@ class RGBDImages:
         """Frames ``rows`` of scene ``si`` at ``img_size``: ``uint8 [n, 3, S, S]``, ``float32 [n, 1, S, S]`` m."""
         fi, fd = self._handles(si)
         keys = self.keys[si][rows]
-        rgb = np.stack([fi[k][()] for k in keys]) if len(keys) else np.zeros((0, 1, 1, 3), np.uint8)
-        depth = np.stack([fd[k][()] for k in keys]) if len(keys) else np.zeros((0, 1, 1), np.float32)
+        rgb = read_stack(fi, keys) if len(keys) else np.zeros((0, 1, 1, 3), np.uint8)
+        depth = read_stack(fd, keys) if len(keys) else np.zeros((0, 1, 1), np.float32)
         if rgb.ndim != 4 or rgb.shape[-1] != 3 or depth.shape != rgb.shape[:3]:
             raise SceneFormatError(f"{self.scenes[si]}: expected RGB HxWx3 and depth HxW frames of the same size")
         out_rgb, out_depth = [], []

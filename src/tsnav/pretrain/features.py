@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from ..atomic import atomic_path
 from ..data import lineage as L
-from ..data.reader import list_scenes, load_scene
+from ..data.reader import list_scenes, load_scene, read_stack
 from ..checkpoint import load_tensors, weights_digest
 from ..distributed import resolve_device
 from .data import normalize_rgb, resize_rgb
@@ -162,7 +162,7 @@ def iter_scene_features(encoder: Encoder, scene_dir: Path, keys, batch_size: int
         if missing:
             raise ValueError(f"{scene_dir}: images.hdf5 lacks state {missing[0]!r} ({len(missing)} missing)")
         for a in range(0, len(keys), batch_size):
-            rgb = torch.from_numpy(np.stack([fi[k][()] for k in keys[a:a + batch_size]])).permute(0, 3, 1, 2)
+            rgb = torch.from_numpy(read_stack(fi, keys[a:a + batch_size])).permute(0, 3, 1, 2)
             x = normalize_rgb(resize_rgb(rgb, encoder.img_size).to(encoder.device))
             yield a, encoder.encode(x).float().cpu().numpy()
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..data.reader import list_scenes, load_scene
+from ..data.reader import list_scenes, load_scene, read_stack
 from .data import IMAGENET_MEAN, IMAGENET_STD
 from .features import write_feature_file
 
@@ -39,7 +39,7 @@ def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, 
         if not f.exists():
             keys = load_scene(p).keys
             with h5py.File(p / "images.hdf5", "r") as fi:
-                rgb = np.stack([fi[k][()] for k in keys])
+                rgb = read_stack(fi, keys)
             feats = pooled_pixels(rgb, grid).astype(np.float16)
             write_feature_file(f, feats, keys, {"encoder": f"pixels:{grid}", "arch": "pixels",
                                                 "method": "pooled-pixels", "img_size": int(rgb.shape[1]),

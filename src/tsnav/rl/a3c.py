@@ -146,7 +146,7 @@ def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
     logger = RunLogger(run_dir, progress["update"])
     bar = ProgressBar(cfg, progress, enabled=progress_bar)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
-    window = LogWindow(progress["env_steps"])
+    window = LogWindow(progress["env_steps"], cfg.protocol)
     last_log = progress["update"] // cfg.log_every
     last_ckpt = progress["update"] // cfg.checkpoint_every
 

@@ -18,9 +18,10 @@ def load_bank(cfg: TrainConfig, scenes=None) -> tuple[SceneBank, np.ndarray | No
     """The training bank (scenes of ``cfg.split`` under ``cfg.data``, or ``scenes``), with the detection
     tables ``cfg.detections`` installed; returns ``(bank, detection features or None)``."""
     if scenes is None:
-        bank = SceneBank.from_root(cfg.data, cfg.split, success_distance=cfg.success_distance, c_target=cfg.c_target)
+        bank = SceneBank.from_root(cfg.data, cfg.split, success_distance=cfg.success_distance, c_target=cfg.c_target,
+                                   protocol=cfg.protocol)
     else:
-        bank = SceneBank(scenes, success_distance=cfg.success_distance, c_target=cfg.c_target)
+        bank = SceneBank(scenes, success_distance=cfg.success_distance, c_target=cfg.c_target, protocol=cfg.protocol)
     return bank, install(bank, cfg.detections)
 
 
@@ -49,7 +50,7 @@ def make_reward(bank: SceneBank, cfg: TrainConfig) -> TSRMReward:
 def make_train_env(bank: SceneBank, cfg: TrainConfig, num_envs: int, seed: int) -> BatchEnv:
     """Auto-resetting training env of ``num_envs`` episodes, truncated at ``cfg.max_steps``."""
     sim = SimConfig(success_distance=cfg.success_distance, c_target=cfg.c_target, max_steps=cfg.max_steps,
-                    autoreset=True)
+                    autoreset=True, protocol=cfg.protocol)
     return make_env(bank, num_envs, sim, reward_fn=make_reward(bank, cfg), seed=seed)
 
 

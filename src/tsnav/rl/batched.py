@@ -108,7 +108,7 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
     logger = RunLogger(run_dir, progress["update"], enabled=info.is_main)
     bar = ProgressBar(cfg, progress, enabled=progress_bar and info.is_main)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
-    window = LogWindow(progress["env_steps"])
+    window = LogWindow(progress["env_steps"], cfg.protocol)
     steps_per_update = cfg.num_envs * cfg.rollout_steps
     cpu0 = time.process_time()
     try:

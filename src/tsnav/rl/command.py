@@ -46,6 +46,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detections", default=None,
                         help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle; "
                              "required (the agent never falls back to ground truth)")
+    parser.add_argument("--protocol", default=None,
+                        help="success protocol: paper (in view within 1.0 m, the default) or lineage (the 1.5 m "
+                             "visibility map, as the lineage's evaluator); sets the success mask of the reward and "
+                             "the training episodes, and is recorded in config.json")
     parser.add_argument("--split", default=None, help="training scenes (default: train)")
     parser.add_argument("--rollout-steps", type=int, default=None, help="steps per update (default: 30)")
     parser.add_argument("--max-steps", type=int, default=None, help="training episode length (lineage: 30)")
@@ -66,7 +70,7 @@ _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
            "milestone_every": "milestone_every",
-           "device": "device", "precision": "precision"}
+           "device": "device", "precision": "precision", "protocol": "protocol"}
 
 
 def resolve(args: argparse.Namespace):

@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass
 
 from ..constants import C_TARGET
 from ..errors import from_fields
+from ..protocol import DEFAULT_PROTOCOL, check_protocol
 from ..tsrm.reward import VARIANTS
 
 ALGOS = ("a3c", "batched")
@@ -70,7 +71,11 @@ class TrainConfig:
     c_target: float = C_TARGET
     """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
     success_distance: float = 1.0
-    """Done succeeds with the target in view within this many metres (paper III-A)."""
+    """Done succeeds with the target in view within this many metres (paper III-A; the ``paper`` protocol)."""
+    protocol: str = DEFAULT_PROTOCOL
+    """Success protocol of the run (:mod:`tsnav.protocol`): ``paper`` or ``lineage``. It sets the success mask
+    of the reward's success term and distance fields (TSRM) and the training episodes; evaluations compare it
+    with their episode list's."""
     episodes: int | None = None
     """Budget: stop after this many finished training episodes (paper: 1.5 M). All budgets None -> 1.5 M."""
     updates: int | None = None
@@ -100,6 +105,7 @@ class TrainConfig:
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algo {self.algo!r} (choose from {', '.join(ALGOS)})")
 
+        check_protocol(self.protocol)
         if self.precision not in PRECISIONS:
             raise ValueError(f"unknown precision {self.precision!r} (choose from {', '.join(PRECISIONS)})")
         if self.reward not in VARIANTS:

@@ -83,7 +83,9 @@ def read_log(run_dir: str | Path) -> list[dict]:
 class LogWindow:
     """Losses and finished episodes gathered between two log lines, turned into one record."""
 
-    def __init__(self, env_steps: int):
+    def __init__(self, env_steps: int, protocol: str = "paper"):
+        self.protocol = protocol
+        """Success protocol of the run: SPL and its lengths as :func:`tsnav.metrics.metric_values` counts them."""
         self.t = time.perf_counter()
         self.steps = env_steps
         self.parts: list[dict] = []
@@ -109,6 +111,6 @@ class LogWindow:
         rec["steps_per_s"] = (progress["env_steps"] - self.steps) / max(now - self.t, 1e-9)
         if self.cpu_s > 0:  # steps per CPU-second of all processes: the throughput on an idle core each
             rec["steps_per_cpu_s"] = (progress["env_steps"] - self.steps) / self.cpu_s
-        rec.update(summarize(concat(self.episodes)))
+        rec.update(summarize(concat(self.episodes), self.protocol))
         self.t, self.steps, self.parts, self.episodes, self.cpu_s = now, progress["env_steps"], [], [], 0.0
         return rec

@@ -85,16 +85,17 @@ def concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in parts[0]}
 
 
-def summarize(ep: dict[str, np.ndarray]) -> dict[str, float]:
+def summarize(ep: dict[str, np.ndarray], protocol: str = "paper") -> dict[str, float]:
     """Means over finished episodes: ``return``, each ``reward/<term>``, ``length``, ``SR``, ``SPL``, ``SSR``,
-    ``SSSPL``, ``NSNPL`` (fractions) and the count ``n_episodes``."""
+    ``SSSPL``, ``NSNPL`` (fractions; SPL counted under the run's success ``protocol``) and the count
+    ``n_episodes``."""
     if not ep or len(ep["success"]) == 0:
         return {"n_episodes": 0}
     opt_s = np.where(ep["optimal_search_length"] >= UNREACHABLE, 0, ep["optimal_search_length"])
     out = {"n_episodes": int(len(ep["success"])), "return": float(np.mean(ep["return"])),
            "length": float(np.mean(ep["steps"])),
            **metric_values(ep["success"], ep["entered"], ep["path_length"], ep["optimal_length"], ep["search_length"],
-                           opt_s, ep["nav_length"], ep["optimal_nav_length"])}
+                           opt_s, ep["nav_length"], ep["optimal_nav_length"], protocol=protocol)}
     for k, v in ep.items():
         if k.startswith("reward/"):
             out[k] = float(np.mean(v))

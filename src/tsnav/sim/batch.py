@@ -16,7 +16,8 @@ Episode semantics (used by every stage of tsnav):
 * ``steps`` counts every action output, Done included; the episode is *truncated* when ``steps`` reaches
   ``max_steps`` without a Done (paper: 100 at test time; the lineage trains with 30).
 * Done always ends the episode (*terminated*); it is a *success* when the state is a success state of the
-  target category (an instance in view and within ``success_distance``, 1.0 m in the paper).
+  target category under the bank's success protocol (:mod:`tsnav.protocol`; ``paper``: an instance in view
+  and within ``success_distance``, 1.0 m; ``lineage``: listed in ``visible_object_map_1.5.json``).
 * A movement action whose target equals the current state failed (AI2-THOR's ``lastActionSuccess`` is
   False): ``failed`` is set. Only a failed MoveAhead is a *collision* (``collided``): the lineage's offline
   controller (``OfflineControllerWithSmallRotation.step``) also fails LookUp at horizon 0 and LookDown at 30
@@ -58,6 +59,7 @@ import numpy as np
 from ..constants import C_TARGET, DONE, GRID_SIZE, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
 from ..data.detections import Detections, load_scene_detections
 from ..data.reader import Scene, list_scenes, load_scene
+from ..protocol import DEFAULT_PROTOCOL, check_protocol
 from .paths import distance_fields, scene_distance_fields
 from .stage import StageSwitch, above_threshold
 
@@ -88,8 +90,11 @@ class SimConfig:
     """Simulator settings in one place (paper III-A, IV-A); :func:`tsnav.sim.episodes.make_env` builds a bank and env from it."""
 
     success_distance: float = SUCCESS_DISTANCE
-    """Done succeeds with an instance of the target in view within this many metres (paper: 1.0;
-    lineage: 1.5)."""
+    """Done succeeds with an instance of the target in view within this many metres (the ``paper``
+    protocol's radius: 1.0)."""
+    protocol: str = DEFAULT_PROTOCOL
+    """Success protocol (:mod:`tsnav.protocol`): ``paper`` (in view within ``success_distance``) or
+    ``lineage`` (the visibility map, as the lineage's evaluator reads it; ``success_distance`` unused)."""
     c_target: float = C_TARGET
     """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
     max_steps: int = 100
@@ -128,7 +133,9 @@ class SceneBank:
         next_state: ``(S, 6)`` int32 global successor per action (the state itself when it fails / Done).
         keys, x, z, rotation, horizon: ``(S,)`` concatenated state descriptions (metres, degrees).
         position: ``(S,)`` int32 global position id (same scene and grid cell, any rotation / horizon).
-        success: ``(S, C)`` bool, Done succeeds here for the category (paper III-A, ``success_distance``).
+        success: ``(S, C)`` bool, Done succeeds here for the category under ``protocol``
+            (:meth:`~tsnav.data.reader.Scene.success_table`; ``paper``: III-A, within ``success_distance``).
+        protocol: the success protocol (:mod:`tsnav.protocol`), ``paper`` by default.
         dist: ``(S, C)`` int32 optimal path length L* to the nearest success state (movement actions, Done
             not counted); :data:`~tsnav.sim.paths.UNREACHABLE` when none can be reached.
         in_frame: ``(S, C)`` bool, an instance of the category shows at least the scene's minimum number of
@@ -142,11 +149,12 @@ class SceneBank:
 
     def __init__(self, scenes: Sequence[Scene], success_distance: float = SUCCESS_DISTANCE,
                  confidence: np.ndarray | None = None, detections: np.ndarray | None = None,
-                 c_target: float = C_TARGET, cache: bool = True):
+                 c_target: float = C_TARGET, cache: bool = True, protocol: str = DEFAULT_PROTOCOL):
         if len(scenes) == 0:
             raise ValueError("SceneBank needs at least one scene")
         if not success_distance > 0:
             raise ValueError(f"success_distance must be positive, got {success_distance}")
+        self.protocol = check_protocol(protocol)
         self.scenes = list(scenes)
         self.success_distance = float(success_distance)
         self.c_target = float(c_target)
@@ -168,8 +176,9 @@ class SceneBank:
                           np.round(self.z / GRID_SIZE).astype(np.int64)], axis=1)
         _, pos = np.unique(cells, axis=0, return_inverse=True)
         self.position = pos.reshape(-1).astype(np.int32)
-        self.success = np.concatenate([s.category_visible_within(success_distance) for s in self.scenes])
-        self.dist = np.concatenate([scene_distance_fields(s, success_distance, cache=cache) for s in self.scenes])
+        self.success = np.concatenate([s.success_table(self.protocol, success_distance) for s in self.scenes])
+        self.dist = np.concatenate([scene_distance_fields(s, success_distance, cache=cache, protocol=self.protocol)
+                                    for s in self.scenes])
         self.in_frame = np.concatenate([_in_frame(s) for s in self.scenes])
         self.present = np.zeros((len(self.scenes), NUM_CATEGORIES), dtype=bool)
         for i, s in enumerate(self.scenes):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..constants import SUCCESS_DISTANCE
 from ..errors import CommandError
+from ..protocol import DEFAULT_PROTOCOL, check_protocol, protocol_of
 from .batch import SceneBank
 from .episodes import EpisodeConfig, make_episodes, read_episodes, write_episodes
 
@@ -19,8 +20,12 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="episodes per room type; fewer when the split has fewer (default: 250)")
     parser.add_argument("--out", required=True, help="output JSON file")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--protocol", default=DEFAULT_PROTOCOL,
+                        help="success protocol: paper (in view within --success-distance, start-success episodes "
+                             "left out) or lineage (the 1.5 m visibility map as the lineage's evaluator reads it; "
+                             "start-success episodes kept) (default: paper)")
     parser.add_argument("--success-distance", type=float, default=SUCCESS_DISTANCE,
-                        help="success distance in metres (paper: 1.0; lineage: 1.5)")
+                        help="success distance of the paper protocol in metres (default: 1.0)")
     parser.add_argument("--start-horizon", type=int, default=-1,
                         help="camera horizon of start states in degrees (0 or 30); -1 for both, about half each, "
                              "as the lineage's test splits (default: -1)")
@@ -35,21 +40,26 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--per-room-type must be >= 1, got {args.per_room_type}")
     if not Path(args.data).is_dir():
         raise CommandError(f"--data {args.data}: no such dataset folder")
-    bank = SceneBank.from_root(args.data, args.split, success_distance=args.success_distance)
+    try:
+        protocol = check_protocol(args.protocol)
+    except ValueError as e:
+        raise CommandError(f"--protocol: {e}") from None
+    bank = SceneBank.from_root(args.data, args.split, success_distance=args.success_distance, protocol=protocol)
     config = EpisodeConfig(start_horizon=None if args.start_horizon < 0 else args.start_horizon,
                            room_targets=not args.all_targets)
     episodes = make_episodes(bank, args.per_room_type, args.seed, config)
     if not episodes:
         raise CommandError(f"{args.data}: no valid episode in split {args.split!r}")
-    meta = {"split": args.split, "seed": args.seed, "success_distance": args.success_distance,
+    meta = {"split": args.split, "seed": args.seed, "protocol": protocol, "success_distance": args.success_distance,
             "per_room_type": args.per_room_type, "start_horizon": config.start_horizon,
             "room_targets": config.room_targets, "data": str(Path(args.data).resolve())}
     if out.exists():
         try:
-            old, _ = read_episodes(out)
+            old, old_meta = read_episodes(out)
+            old_protocol = protocol_of(old_meta)
         except ValueError:
-            old = None
-        if old == episodes:
+            old, old_protocol = None, None
+        if old == episodes and old_protocol == protocol:
             print(f"{out}: up to date ({len(episodes)} episodes)")
             return 0
         if not args.force:
@@ -59,5 +69,7 @@ def run(args: argparse.Namespace) -> int:
     mean_opt = sum(e.optimal_length for e in episodes) / len(episodes)
     print(f"wrote {len(episodes)} episodes to {out} ({bank.num_scenes} scenes of split {args.split!r}; "
           + ", ".join(f"{k}: {v}" for k, v in sorted(per_room.items()))
-          + f"; mean optimal length {mean_opt:.1f})")
+          + f"; mean optimal length {mean_opt:.1f}; protocol {protocol}"
+          + (f", {sum(e.optimal_length == 0 for e in episodes)} start already succeeds" if protocol != "paper" else "")
+          + ")")
     return 0

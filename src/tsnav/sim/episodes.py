@@ -1,18 +1,19 @@
 """Episodes: the training sampler and fixed validation / test episode lists (paper III-A, IV-A).
 
 An episode is (scene, target category, start state). A valid episode has the target present in the scene,
-a start state from which a success state of the target can be reached, and a start that is not already a
-success state. Starts take any of the 8 rotations and, as in the lineage's test splits, horizon 0 or 30
-(fixed lists draw each horizon with probability 1/2 per (scene, target) pair; ``start_horizon`` restricts
-them to one). Success (target in view within the success distance) is a property of the full state, horizon
-included, so a start looking down that already sees the target close by is excluded like any other; the
+a start state from which a success state of the target can be reached, and, under the ``paper`` success
+protocol, a start that is not already a success state (the ``lineage`` protocol keeps those, L* = 0, as the
+lineage's test lists do; :mod:`tsnav.protocol`). Starts take any of the 8 rotations and, as in the lineage's
+test splits, horizon 0 or 30 (fixed lists draw each horizon with probability 1/2 per (scene, target) pair;
+``start_horizon`` restricts them to one). Success is a property of the full state, horizon included, so under
+``paper`` a start looking down that already sees the target close by is excluded like any other; the
 optimal length stored with fixed episodes is L* of :mod:`tsnav.sim.paths` from the start state itself
 (movement actions, Done not counted), so a start at horizon 30 counts the LookUp it may need.
 
 Episode lists are JSON::
 
-    {"format": "tsnav-episodes", "version": 1, "split": "test", "success_distance": 1.0, "seed": 0,
-     "per_room_type": 250, "start_horizon": null,
+    {"format": "tsnav-episodes", "version": 1, "split": "test", "protocol": "paper", "success_distance": 1.0,
+     "seed": 0, "per_room_type": 250, "start_horizon": null,
      "episodes": [{"scene": "FloorPlan1", "target": "Bowl", "start": "0.50|3.50|315|0",
                    "optimal_length": 7, "room_type": "kitchen"}, ...]}
 """
@@ -27,6 +28,7 @@ import numpy as np
 
 from ..atomic import atomic_write_text
 from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, TARGET_CATEGORIES, room_target_mask
+from ..protocol import spec
 from .batch import BatchEnv, EpisodeSampler, RewardFn, SceneBank, SimConfig
 from .paths import UNREACHABLE
 
@@ -44,6 +46,10 @@ class EpisodeConfig:
     room_targets: bool = True
     """Restrict targets to the lineage's per-room-type target list (constants.ROOM_TARGETS) when the scene's
     room type has one; other room types use every category present."""
+    keep_start_success: bool | None = None
+    """Keep starts that already succeed (L* = 0); None (default) follows the bank's success protocol:
+    ``paper`` leaves them out, ``lineage`` keeps them, as the lineage's test lists and trainer do
+    (:mod:`tsnav.protocol`)."""
 
 
 @dataclass
@@ -78,7 +84,12 @@ def allowed_targets(bank: SceneBank, config: EpisodeConfig) -> np.ndarray:
 def valid_starts(bank: SceneBank, config: EpisodeConfig | None = None) -> ValidStarts:
     """All valid episodes of a bank as a :class:`ValidStarts` table (array operations, no loop over states)."""
     config = config or EpisodeConfig()
-    ok = (bank.dist < UNREACHABLE) & ~bank.success
+    keep = config.keep_start_success
+    if keep is None:
+        keep = spec(getattr(bank, "protocol", None)).keeps_start_success
+    ok = bank.dist < UNREACHABLE
+    if not keep:
+        ok &= ~bank.success
     ok &= allowed_targets(bank, config)[bank.scene_of]
     if config.start_horizon is not None:
         ok &= (bank.horizon == config.start_horizon)[:, None]
@@ -130,12 +141,15 @@ def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sam
     config = config or SimConfig()
     if isinstance(scenes_or_bank, SceneBank):
         bank = scenes_or_bank
-        for name in ("success_distance", "c_target"):  # the bank's are the ones in force: never ignore a config's
+        for name in ("protocol", "success_distance", "c_target"):  # the bank's are in force: never ignore a config's
+            if name == "success_distance" and bank.protocol != "paper":
+                continue  # only the paper rule has a radius
             if given and getattr(config, name) != getattr(bank, name):
                 raise ValueError(f"SimConfig.{name} = {getattr(config, name)} differs from the bank's "
                                  f"{getattr(bank, name)}; build the bank with it or pass the scenes instead")
     else:
-        bank = SceneBank(scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target)
+        bank = SceneBank(scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target,
+                         protocol=config.protocol)
     if sampler is None:
         sampler = TrainingSampler(bank)
     return BatchEnv(bank, num_envs, sampler=sampler, reward_fn=reward_fn, max_steps=config.max_steps,

@@ -22,6 +22,7 @@ from ..constants import ACTION_ORDER, CATEGORY_INDEX, DONE, NUM_CATEGORIES, TARG
 from ..data import lineage_splits as LS
 from ..data.lineage import SPLIT_DIR
 from ..data.reader import list_scenes, load_scene
+from ..protocol import spec
 from .batch import SceneBank
 from .episodes import Episode, make_episodes
 from .paths import UNREACHABLE, bfs_reference, optimal_action_targets, scene_distance_fields
@@ -40,24 +41,30 @@ class SplitImport:
     """reason -> count: ``scene not in DATA``, ``start not a state``, ``target not in scene``, ``target
     unreachable``, ``start already succeeds``."""
 
+    start_success: int = 0
+    """Kept episodes whose start already succeeds (``lineage`` protocol only)."""
+
     def drop(self, why: str) -> None:
         self.dropped[why] = self.dropped.get(why, 0) + 1
 
     def summary(self) -> str:
         """One line: read, kept, and the dropped counts by reason."""
         drops = ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items(), key=lambda kv: -kv[1]))
-        return (f"{self.read} episodes read, {self.kept} kept, {self.read - self.kept} dropped"
-                + (f" ({drops})" if drops else ""))
+        return (f"{self.read} episodes read, {self.kept} kept"
+                + (f" ({self.start_success} start already succeeds)" if self.start_success else "")
+                + f", {self.read - self.kept} dropped" + (f" ({drops})" if drops else ""))
 
 
-def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0):
+def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0, protocol: str = "paper"):
     """tsnav episodes (:class:`tsnav.sim.episodes.Episode`) of the lineage's split files ``paths`` for the
     scenes present in the dataset folder ``data``; returns ``(episodes, SplitImport)``.
 
     An episode is dropped (and counted by reason) when its scene is not in ``data``, its start is not a
     state of the scene, the scene has no success state of its target (no such object, or not a target
-    category), the start cannot reach one, or the start already succeeds under ``success_distance`` (no
-    path to measure). The optimal length is L* of the start state for ``success_distance``.
+    category), the start cannot reach one, or - under the ``paper`` protocol only - the start already
+    succeeds within ``success_distance`` (no path to measure). Under ``lineage`` such a start is kept with
+    L* = 0, as the lineage's evaluator keeps it (:mod:`tsnav.protocol`); ``SplitImport.start_success``
+    counts them. The optimal length is L* of the start state under the protocol.
     """
     records = []
     for p in paths:
@@ -69,7 +76,8 @@ def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0)
         for _ in records:
             stats.drop("scene not in DATA")
         return [], stats
-    bank = SceneBank([load_scene(folders[n]) for n in wanted], success_distance=success_distance)
+    bank = SceneBank([load_scene(folders[n]) for n in wanted], success_distance=success_distance, protocol=protocol)
+    keep_start_success = spec(protocol).keeps_start_success
     index = {LS.scene_base_name(n): i for i, n in enumerate(bank.names)}
     out = []
     for r in records:
@@ -92,8 +100,10 @@ def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0)
             stats.drop("target unreachable")
             continue
         if d == 0:
-            stats.drop("start already succeeds")
-            continue
+            if not keep_start_success:
+                stats.drop("start already succeeds")
+                continue
+            stats.start_success += 1
         out.append(Episode(scene=bank.names[i], target=TARGET_CATEGORIES[c], start=r["state"], optimal_length=d,
                            room_type=bank.room_types[i]))
     stats.kept = len(out)

@@ -207,17 +207,20 @@ def cached_distance_fields(next_state: np.ndarray, sources: np.ndarray, cache_fi
     return dist
 
 
-def scene_distance_fields(scene, success_distance: float = 1.0, cache: bool = True) -> np.ndarray:
+def scene_distance_fields(scene, success_distance: float = 1.0, cache: bool = True,
+                          protocol: str = "paper") -> np.ndarray:
     """``(S, 22)`` int32 optimal path lengths L* from every state of ``scene`` to the nearest success state of
-    each target category (paper III-A: target in view and within ``success_distance`` metres; 1.0 m in the
-    paper, 1.5 m in the lineage). Movement actions counted, Done not (see the definition above);
-    :data:`UNREACHABLE` for absent or unreachable categories.
+    each target category under the success ``protocol`` (:mod:`tsnav.protocol`; ``paper``: target in view and
+    within ``success_distance`` metres, 1.0 m in the paper; ``lineage``: listed in the visibility map).
+    Movement actions counted, Done not (see the definition above); :data:`UNREACHABLE` for absent or
+    unreachable categories.
 
-    Cached per scene folder in ``shortest_paths_{success_distance:.2f}m.npz`` when the scene was read from a
-    folder holding ``graph.json``.
+    Cached per scene folder in ``shortest_paths_{success_distance:.2f}m.npz`` (``paper``) or
+    ``shortest_paths_lineage.npz`` when the scene was read from a folder holding ``graph.json``.
     """
-    success = scene.category_visible_within(success_distance)
+    success = scene.success_table(protocol, success_distance)
     cache_file = None
     if cache and scene.path is not None and (scene.path / "graph.json").exists():
-        cache_file = scene.path / f"shortest_paths_{success_distance:.2f}m.npz"
+        name = "lineage" if protocol == "lineage" else f"{success_distance:.2f}m"
+        cache_file = scene.path / f"shortest_paths_{name}.npz"
     return cached_distance_fields(scene.next_state, success, cache_file)

@@ -31,11 +31,12 @@ class ReferenceController:
     """One episode at a time over a scene, per-step dict / graph look-ups.
 
     ``success_objects[key]`` maps a state key to {category: True} for target categories in view and within
-    the success distance; the next key of an action is computed from the geometry of the current key and
+    the success distance (``protocol="lineage"``: listed in the visibility map); the next key of an action is computed from the geometry of the current key and
     accepted when it is a graph neighbour (a failed action leaves the state unchanged).
     """
 
-    def __init__(self, scene: Scene, success_distance: float = SUCCESS_DISTANCE, graph: nx.DiGraph | None = None):
+    def __init__(self, scene: Scene, success_distance: float = SUCCESS_DISTANCE, graph: nx.DiGraph | None = None,
+                 protocol: str = "paper"):
         self.scene = scene
         self.graph = scene_graph(scene) if graph is None else graph
         seen = scene.visible_at_any_range()
@@ -47,7 +48,7 @@ class ReferenceController:
                 if cat < 0:
                     continue
                 dist = scene.distance[s, o]
-                if no_distances:  # imported data without metadata: the 1.5 m visibility map decides
+                if no_distances or protocol == "lineage":  # the 1.5 m visibility map decides (tsnav.protocol)
                     ok = bool(scene.visible[s, o])
                 else:
                     ok = bool(seen[s, o]) and bool(dist <= success_distance)

@@ -21,6 +21,8 @@ argument           meaning
                    otherwise: no silent fallback to ground-truth visibility, issue 14); a given ``bank`` keeps
                    what its caller installed; the analytic toy room (no world) has no detector
 ``c_target``       stage-switch threshold C_target (default 0.7, paper IV-A)
+``protocol``       success protocol (:mod:`tsnav.protocol`): ``"paper"`` (default; in view within 1.0 m) or
+                   ``"lineage"`` (the 1.5 m visibility map); a given ``bank`` keeps its own
 =================  ==========================================================================================
 
 ``info`` holds every reward term of the step as ``reward/<term>`` (``explore``, ``distance``, ``collision``,
@@ -41,17 +43,20 @@ REWARDS = VARIANTS + ("sparse",)
 
 
 def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_target: float, bank: SceneBank | None,
-                     scenes, data, split, success_distance: float) -> tuple[SceneBank, RewardFn]:
+                     scenes, data, split, success_distance: float, protocol: str | None = None
+                     ) -> tuple[SceneBank, RewardFn]:
     if isinstance(reward, RewardConfig):
         c_target = reward.c_target
     elif reward not in REWARDS:
         raise ValueError(f"unknown reward {reward!r} (choose from {', '.join(REWARDS)})")
     if bank is not None and bank.c_target != c_target:
         raise ValueError(f"c_target {c_target} differs from the given bank's {bank.c_target}")
+    if bank is not None and protocol is not None and bank.protocol != protocol:
+        raise ValueError(f"protocol {protocol!r} differs from the given bank's {bank.protocol!r}")
     if detections is None and (data is not None or scenes is not None) and bank is None:
         raise ValueError("name the detection table the env reads: detections='learned' or detections='oracle' "
                          "(`tsnav detect`); there is no fallback to ground truth")
-    bank = make_bank(bank, scenes, data, split, success_distance, c_target=c_target)
+    bank = make_bank(bank, scenes, data, split, success_distance, c_target=c_target, protocol=protocol or "paper")
     if detections is not None:
         bank.install_detections(detections)
     if reward == "sparse":
@@ -62,18 +67,20 @@ def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_targe
 
 def make_objectnav(reward: str | RewardConfig = "tsrm", detections: str | None = None, c_target: float = C_TARGET,
                    data: str | None = None, split: str | None = "train", scenes=None, bank: SceneBank | None = None,
-                   success_distance: float = SUCCESS_DISTANCE, **kwargs) -> ObjectNavEnv:
+                   success_distance: float = SUCCESS_DISTANCE, protocol: str | None = None, **kwargs) -> ObjectNavEnv:
     """One episode at a time with ``reward`` (see the module docstring); other arguments as
     :class:`~tsnav.sim.gym_env.ObjectNavEnv`."""
-    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance)
+    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance,
+                                       protocol)
     return ObjectNavEnv(bank=bank, reward_fn=reward_fn, **kwargs)
 
 
 def make_objectnav_vector(num_envs: int = 1, reward: str | RewardConfig = "tsrm", detections: str | None = None,
                           c_target: float = C_TARGET, data: str | None = None, split: str | None = "train",
                           scenes=None, bank: SceneBank | None = None, success_distance: float = SUCCESS_DISTANCE,
-                          **kwargs) -> ObjectNavVectorEnv:
+                          protocol: str | None = None, **kwargs) -> ObjectNavVectorEnv:
     """``num_envs`` episodes stepped together with ``reward``; other arguments as
     :class:`~tsnav.sim.gym_env.ObjectNavVectorEnv`."""
-    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance)
+    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance,
+                                       protocol)
     return ObjectNavVectorEnv(num_envs, bank=bank, reward_fn=reward_fn, **kwargs)

@@ -249,7 +249,7 @@ class TSRMRewardReference:
     poses. Slow; the reference that :class:`TSRMReward` is tested against. State ids are scene-local."""
 
     def __init__(self, scene, config: RewardConfig = RewardConfig(), confidence: np.ndarray | None = None,
-                 success_distance: float = 1.0):
+                 success_distance: float = 1.0, protocol: str = "paper"):
         """``confidence``: ``(S, 22)`` of this scene; defaults to 1.0 where the target category is in frame."""
         self.scene = scene
         self.config = config
@@ -261,6 +261,7 @@ class TSRMRewardReference:
                     confidence[seen[:, o], c] = 1.0
         self.confidence = np.asarray(confidence)
         self.success_distance = success_distance
+        self.protocol = protocol
         self.floor = scene_floor(scene) if config.uses("explore") else None
         self._dist_cache: dict[int, np.ndarray] = {}
 
@@ -276,7 +277,8 @@ class TSRMRewardReference:
         if self.config.uses("distance") and self.target not in self._dist_cache:  # BFS once per target
             sc = self.scene
             self._dist_cache[self.target] = pose_distance_reference(
-                sc.next_state, sc.x, sc.z, sc.rotation, sc.success_mask(self.target, self.success_distance))
+                sc.next_state, sc.x, sc.z, sc.rotation,
+                sc.success_table(self.protocol, self.success_distance)[:, self.target])
         self.pathfinding = bool(above_threshold(self.confidence[start_state, self.target], self.config.c_target))
         self.switch_step = 0 if self.pathfinding else -1
         self.steps = 0

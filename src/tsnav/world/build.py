@@ -23,7 +23,7 @@ from ..atomic import atomic_write_text
 from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
-from ..data.writer import (GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
+from ..data.writer import (DEFAULT_COMPRESSION, DEFAULT_COMPRESSION_LEVEL, GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
                            scene_folder, write_graph, write_json, write_states)
 from ..render.gl import Renderer
 from ..data.names import scene_info
@@ -38,7 +38,10 @@ class BuildConfig:
     image_size: int = 64  #: side of the square frames, pixels
     store_images: bool = True  #: write images.hdf5 and depth.hdf5 (needed for pretraining and features)
     depth_dtype: str = "float16"  #: dtype of depth.hdf5 (metres); float16 keeps datasets small
-    compression: str | None = None  #: HDF5 filter for images (None or "gzip"; lzf output is not byte-reproducible)
+    #: HDF5 filter of images.hdf5 / depth.hdf5 (tsnav.data.writer.FRAME_COMPRESSIONS: "gzip", "lzf" or None for
+    #: raw frames; only filters stock h5py reads) and the gzip level
+    compression: str | None = DEFAULT_COMPRESSION
+    compression_level: int = DEFAULT_COMPRESSION_LEVEL
     compact: bool = False  #: small rooms (the `tiny` preset)
     world: str = "procedural"  #: layout source: "procedural" or "ithor-real" (tsnav.world.presets.WORLDS)
     #: version of the ithor-real rules (tsnav.world.real.VERSIONS; None: the newest); 1 rebuilds worlds made
@@ -106,7 +109,8 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
         boxes = np.full((V, O, 4), -1, np.int16)
         with scene_folder(final) as tmp:
             with ExitStack() as stack:
-                frames = stack.enter_context(FrameWriter(tmp, cfg.depth_dtype, cfg.compression)) if cfg.store_images else None
+                frames = (stack.enter_context(FrameWriter(tmp, cfg.depth_dtype, cfg.compression, cfg.compression_level))
+                          if cfg.store_images else None)
                 chunk = renderer.tiles * 4
                 for start in range(0, V, chunk):
                     t1 = time.perf_counter()

@@ -27,6 +27,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenes", default=None, help="comma-separated scene names instead of the preset's")
     p.add_argument("--size", type=int, default=None, help="image side in pixels (default: the preset's)")
     p.add_argument("--no-images", action="store_true", help="do not store images.hdf5 / depth.hdf5")
+    p.add_argument("--no-compression", action="store_true",
+                   help="store frames raw (default: gzip level 1, about 4.5x smaller at 128 px; stock h5py reads both)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
     p.add_argument("--seed", type=int, default=0, help="world seed (same name + seed = same scene)")
     p.add_argument("--compact", action="store_true", default=None, help="small rooms (default: the preset's)")
@@ -57,6 +59,7 @@ def run(args) -> int:
     if args.preset not in PRESETS:
         raise CommandError(f"unknown preset {args.preset!r} (choose from {', '.join(PRESETS)})")
     cfg = BuildConfig.from_preset(args.preset, store_images=not args.no_images, seed=args.seed,
+                                  **({"compression": None} if args.no_compression else {}),
                                   **({"image_size": args.size} if args.size else {}),
                                   **({"compact": True} if args.compact else {}),
                                   **({"world_version": args.world_version} if args.world_version is not None else {}))

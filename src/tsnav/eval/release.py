@@ -1,0 +1,376 @@
+"""``tsnav release``: the trained agent that ships with tsnav, and the one command that evaluates it.
+
+A shipped agent is a folder of ``tsnav/agent/weights/<name>/`` (package data, nothing downloaded):
+
+* ``config.json``: the training run's resolved configuration (``format: tsnav-train-run``), its feature cache
+  renamed to the shipped encoder's, so that the folder loads as a run (:func:`tsnav.rl.checkpoint.load_policy`);
+* ``best/model.safetensors`` and ``best/state.json``: the policy (LSTM actor-critic, paper III-D) chosen on
+  validation episodes; no optimizer state;
+* ``encoder.safetensors``: the DE-MAE ViT encoder (paper III-C) in float16 (:data:`ENCODER_DTYPE`; it is read
+  back into float32; ``tests/test_release.py`` holds its features to those of the float32 encoder);
+* ``card.json`` and ``card.md``: the model card (world and its version, rooms, protocol, detector, budget in
+  updates / episodes / env steps, validation and test figures under both success protocols, the command that
+  trained it).
+
+The detector is not copied: the card names a detector shipped with tsnav (:mod:`tsnav.detect.shipped`), whose
+fingerprint must match the one recorded at packing.
+
+``tsnav release eval`` builds the 20 real test rooms (``ithor-real`` at the card's frame size), writes the
+shipped detector's tables and the shipped encoder's features into them, draws the test episodes exactly as the
+experiments do (250 per room type, seed 0) and evaluates the agent greedily, beside the scripted explorer with
+the same stage switch and the random policy; every stage is skipped when its output exists, so a second run
+only evaluates. ``tsnav release pack`` makes such a folder from a training run and a pretraining run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..atomic import atomic_path, atomic_write_text
+from ..checkpoint import load_tensors, save_tensors
+from ..errors import CommandError
+from ..metrics import METRICS
+from ..protocol import PROTOCOLS, check_protocol, protocol_line
+
+#: Where shipped agents live (package data of ``tsnav.agent``).
+WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
+#: dtype the encoder is stored in; weights are read back into float32.
+ENCODER_DTYPE = torch.float16
+CARD_FORMAT = "tsnav-agent-card"
+#: Fields a card must give when packing.
+CARD_REQUIRED = ("name", "summary", "world_preset", "world_version", "image_size", "detector_shipped",
+                 "detector_fingerprint", "detections", "protocol", "budget")
+#: Episodes of the release evaluation per split: (per room type, seed). Test: the experiments' list (``tsnav
+#: experiment``, 250 per room type, seed 0); val: the convergence runs' list (100 per room type, seed 0).
+SPLIT_EPISODES = {"test": (250, 0), "val": (100, 0)}
+
+
+def shipped_agents() -> dict[str, Path]:
+    """Name -> folder of every agent shipped in the package."""
+    if not WEIGHTS.is_dir():
+        return {}
+    return {p.name: p for p in sorted(WEIGHTS.iterdir()) if (p / "card.json").exists()}
+
+
+def default_agent() -> str | None:
+    """The agent ``tsnav release eval`` uses unless told otherwise: the one the card marks ``default``, else the
+    newest by name."""
+    agents = shipped_agents()
+    for name, p in agents.items():
+        if read_card(p).get("default"):
+            return name
+    return next(reversed(agents), None) if agents else None
+
+
+def agent_folder(name: str | None) -> Path:
+    """The folder of shipped agent ``name`` (default :func:`default_agent`), or a folder path given directly."""
+    if name and Path(name).is_dir():
+        folder = Path(name)
+    else:
+        agents = shipped_agents()
+        name = name or default_agent()
+        if name is None:
+            raise CommandError("no agent ships with this tsnav (tsnav release pack makes one)")
+        if name not in agents:
+            raise CommandError(f"no shipped agent named {name!r} (choose from {', '.join(agents) or 'none'})")
+        folder = agents[name]
+    for f in ("card.json", "config.json", "encoder.safetensors", "best/model.safetensors", "best/state.json"):
+        if not (folder / f).exists():
+            raise CommandError(f"{folder}: not a complete shipped agent (no {f})")
+    return folder
+
+
+def read_card(folder: str | Path) -> dict:
+    p = Path(folder) / "card.json"
+    try:
+        card = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise CommandError(f"{p}: missing") from None
+    except json.JSONDecodeError as e:
+        raise CommandError(f"{p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    if card.get("format") != CARD_FORMAT:
+        raise CommandError(f"{p}: not a tsnav agent card")
+    return card
+
+
+# -- packing ---------------------------------------------------------------------------------------------------
+
+def pack_encoder(src: str | Path, dst: str | Path) -> None:
+    """Copy a ``tsnav`` encoder file with its floating-point tensors stored as :data:`ENCODER_DTYPE`."""
+    sd, meta = load_tensors(src)
+    if meta.get("format") != "tsnav-encoder":
+        raise CommandError(f"{src}: not a tsnav encoder file")
+    small = {k: (v.to(ENCODER_DTYPE) if v.is_floating_point() else v).contiguous() for k, v in sd.items()}
+    save_tensors(dst, small, {**meta, "stored_dtype": str(ENCODER_DTYPE).replace("torch.", "")})
+
+
+def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: str | Path, card: dict) -> Path:
+    """Write a shipped-agent folder ``out`` from training run ``run`` (its ``checkpoint`` folder), the pretraining
+    run ``encoder_run`` (``encoder.safetensors``) and the model-card fields ``card`` (written as given, plus the
+    files' provenance). The folder is assembled under a temporary name and renamed when whole; an existing
+    ``out`` is refused."""
+    from ..pretrain.features import load_encoder
+
+    out = Path(out)
+    if out.exists():
+        raise CommandError(f"{out}: exists; remove it or choose another name")
+    run, checkpoint, encoder_run = Path(run), Path(checkpoint), Path(encoder_run)
+    cfg = json.loads((run / "config.json").read_text())
+    if cfg.get("format") != "tsnav-train-run":
+        raise CommandError(f"{run}: not a training run (config.json)")
+    tmp = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "best").mkdir(parents=True)
+    pack_encoder(encoder_run / "encoder.safetensors", tmp / "encoder.safetensors")
+    enc = load_encoder(str(tmp / "encoder.safetensors"))
+    features = f"{card.get('encoder_id', 'demae')}-{enc.fingerprint[:10]}"
+    cfg["train"]["features"] = features
+    cfg["shipped"] = {"trained_features": json.loads((run / "config.json").read_text())["train"]["features"]}
+    (tmp / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
+    shutil.copy2(checkpoint / "model.safetensors", tmp / "best" / "model.safetensors")
+    state = json.loads((checkpoint / "state.json").read_text())
+    state.pop("optimizer", None)
+    (tmp / "best" / "state.json").write_text(json.dumps(state, indent=1) + "\n")
+    full = {"format": CARD_FORMAT, **card, "features": features, "encoder_fingerprint": enc.fingerprint,
+            "encoder": {"arch": enc.arch, "method": enc.method, "img_size": enc.img_size, "config": enc.config,
+                        "stored_dtype": "float16"},
+            "policy_update": int(state.get("progress", state).get("update", -1))}
+    (tmp / "card.json").write_text(json.dumps(full, indent=1) + "\n")
+    (tmp / "card.md").write_text(card_markdown(full))
+    tmp.rename(out)
+    return out
+
+
+def card_markdown(card: dict) -> str:
+    """The model card as Markdown (what a reader of the weights folder sees first)."""
+    lines = [f"# tsnav agent `{card.get('name', '?')}`", "", card.get("summary", ""), ""]
+    rows = [("world", card.get("world")), ("rooms", card.get("rooms")), ("frames", card.get("frames")),
+            ("detector", card.get("detector")), ("encoder", card.get("encoder_text")),
+            ("policy", card.get("policy_text")), ("reward", card.get("reward")),
+            ("training protocol", card.get("protocol")), ("budget", card.get("budget")),
+            ("checkpoint", card.get("checkpoint_text")), ("machine", card.get("machine"))]
+    lines += ["| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows if v]
+    for title, key in (("Validation", "val"), ("Test", "test")):
+        figs = card.get("figures", {}).get(key)
+        if not figs:
+            continue
+        lines += ["", f"## {title} ({figs.get('episodes', '?')} episodes, greedy)", "",
+                  "| protocol | policy | subset | " + " | ".join(METRICS) + " |",
+                  "|---|---|---|" + "---:|" * len(METRICS)]
+        for row in figs.get("rows", []):
+            for sub in ("ALL", "L>=5"):
+                m = row["metrics"].get(sub)
+                if m:
+                    lines.append(f"| {row['protocol']} | {row['policy']} | {sub} | "
+                                 + " | ".join(f"{100 * m[k]:.2f}" for k in METRICS) + " |")
+    if card.get("commands"):
+        lines += ["", "## How it was made", ""] + [f"    {c}" for c in card["commands"]]
+    lines += ["", "Evaluate it from a fresh clone: `tsnav release eval` (builds the test rooms, the detector's "
+              "tables and the features it needs, then prints this table)."]
+    if card.get("notes"):
+        lines += ["", "## Notes", ""] + [f"- {n}" for n in card["notes"]]
+    return "\n".join(lines) + "\n"
+
+
+# -- evaluation ------------------------------------------------------------------------------------------------
+
+def say(msg: str) -> None:
+    print(f"[release] {msg}", flush=True)
+
+
+def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test") -> list[str]:
+    """Build the world's rooms of ``split`` into ``data`` (finished rooms are skipped); returns their names."""
+    from ..data.names import ithor_scenes
+    from ..world.build import BuildConfig, build_dataset
+
+    world = card.get("world_preset", "ithor-real")
+    names = list(card.get(f"{split}_rooms") or ithor_scenes(split=split))
+    cfg = BuildConfig.from_preset(world, image_size=int(card.get("image_size", 128)),
+                                  world_version=card.get("world_version"))
+    t0 = time.perf_counter()
+    stats = build_dataset(data, preset=world, scenes=names, cfg=cfg, workers=workers)
+    built = sum(not s.skipped for s in stats)
+    if built:
+        say(f"world: built {built} of {len(names)} test rooms in {time.perf_counter() - t0:.0f} s")
+    return names
+
+
+def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test") -> str:
+    """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's."""
+    from ..pretrain.features import cache_features, load_encoder
+
+    enc = load_encoder(str(folder / "encoder.safetensors"))
+    if enc.fingerprint != card["encoder_fingerprint"]:
+        raise CommandError(f"{folder / 'encoder.safetensors'}: its weights do not match the card's fingerprint "
+                           f"({enc.fingerprint} vs {card['encoder_fingerprint']})")
+    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=True)
+    return card["features"]
+
+
+def ensure_release_detections(data: Path, card: dict) -> str:
+    """Write the card's shipped detector's tables into the test rooms (refusing tables of another detector)."""
+    from ..detect.shipped import shipped_meta
+
+    det = card["detector_shipped"]
+    if shipped_meta(det).get("fingerprint") != card["detector_fingerprint"]:
+        raise CommandError(f"the shipped detector {det!r} is not the one this agent was trained with "
+                           f"({card['detector_fingerprint']})")
+    from ..data.reader import load_scene, list_scenes
+    from ..detect.shipped import shipped_detector
+    from .detector_stage import learned_tables, write_learned_tables
+
+    have, _ = learned_tables(data, card["detections"])
+    if any(fp is None for fp in have.values()):
+        size = load_scene(list_scenes(data)[0]).image_size
+        write_learned_tables(data, card["detections"], shipped_detector(size, det), say=say,
+                             source=f"the shipped detector {det}")
+    return card["detections"]
+
+
+def protocol_kwargs(protocol: str) -> dict:
+    """Keyword arguments of :func:`~tsnav.eval.runner.evaluate_to_folder` for a success protocol: named
+    explicitly, so that an agent trained under the other one is evaluated across protocols."""
+    return {"protocol": check_protocol(protocol)}
+
+
+def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") -> Path:
+    """The episode list of ``split`` drawn under ``protocol`` (:data:`SPLIT_EPISODES`), made once."""
+    from .stage_cache import ensure_episodes
+
+    per, seed = SPLIT_EPISODES[split]
+    return ensure_episodes(data, split, out / f"episodes_{split}_{protocol}.json", per, seed=seed, protocol=protocol)
+
+
+def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], baselines: bool = True,
+                 batch_size: int = 4096, split: str = "test") -> list[dict]:
+    """Evaluate the shipped agent (greedy) on the test episodes of each protocol, and beside it the scripted
+    explorer with the same stage switch and the random policy; each evaluation folder is kept under ``out``."""
+    from .runner import evaluate_to_folder
+
+    card = read_card(folder)
+    rows = []
+    for protocol in protocols:
+        eps = release_episodes(data, out, protocol, split)
+        todo = [("agent", dict(run=str(folder), checkpoint="best"))]
+        if baselines:
+            todo += [("scripted explorer", dict(policy="explorer", detections=card["detections"])),
+                     ("random", dict(policy="random"))]
+        for label, kw in todo:
+            ev = out / protocol / label.split()[-1]
+            summary = evaluate_to_folder(ev, data, eps, label=label, batch_size=batch_size,
+                                         **protocol_kwargs(protocol), **kw)
+            rows.append({"protocol": protocol, "policy": label, "episodes": _count(ev),
+                         "metrics": {k: summary[k] for k in ("ALL", "L>=5")}})
+    return rows
+
+
+def _count(ev: Path) -> int:
+    return sum(1 for line in (ev / "records.jsonl").read_text().splitlines() if line.strip())
+
+
+def format_rows(rows: list[dict]) -> str:
+    """The printed table: one line per (protocol, policy), ALL and L>=5 metrics in percent."""
+    head = f"{'protocol':<9} {'policy':<18} {'eps':>5}  " + "  ".join(f"{m:>6}" for m in METRICS) + "   L>=5: " \
+        + "  ".join(f"{m:>6}" for m in ("SR", "SPL"))
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        a, l5 = r["metrics"]["ALL"], r["metrics"]["L>=5"]
+        lines.append(f"{r['protocol']:<9} {r['policy']:<18} {r['episodes']:>5}  "
+                     + "  ".join(f"{100 * a[k]:6.2f}" for k in METRICS) + "         "
+                     + "  ".join(f"{100 * l5[k]:6.2f}" for k in ("SR", "SPL")))
+    return "\n".join(lines)
+
+
+def build_parser(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    ev = sub.add_parser("eval", help="evaluate a shipped agent on the real test rooms (builds what it needs)")
+    ev.add_argument("--agent", default=None, help="shipped agent name or folder (default: the default one; "
+                                                  "`tsnav release list`)")
+    ev.add_argument("--data", default="out/release/world", help="world folder for the test rooms "
+                                                                 "(default out/release/world; reused)")
+    ev.add_argument("--out", default="out/release/eval", help="evaluation folders and results.json "
+                                                               "(default out/release/eval)")
+    ev.add_argument("--protocol", default="both", choices=("both", *PROTOCOLS),
+                    help="success protocol(s) to evaluate under (default both)")
+    ev.add_argument("--no-baselines", action="store_true", help="only the agent (no explorer / random rows)")
+    ev.add_argument("--split", default="test", choices=tuple(SPLIT_EPISODES),
+                    help="rooms to evaluate on (default test; val: the validation rooms)")
+    ev.add_argument("--update-card", action="store_true",
+                    help="write the figures into the agent's card (card.json / card.md) as those of --split")
+    ev.add_argument("--workers", type=int, default=2, help="world-building processes (default 2)")
+    ev.add_argument("--threads", type=int, default=2, help="torch threads for features (default 2)")
+    sub.add_parser("list", help="the shipped agents and their cards' headline figures")
+    pk = sub.add_parser("pack", help="make a shipped-agent folder from a training run and its encoder")
+    pk.add_argument("--run", required=True, help="training run folder (config.json)")
+    pk.add_argument("--checkpoint", default=None, help="checkpoint folder (default RUN/best)")
+    pk.add_argument("--encoder-run", required=True, help="pretraining run folder (encoder.safetensors)")
+    pk.add_argument("--card", required=True, help="JSON file of the model card's fields (name, summary, world, "
+                                                  "detector_shipped, detections, figures, commands, ...)")
+    pk.add_argument("--out", required=True, help="folder to create (e.g. src/tsnav/agent/weights/NAME)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.action == "list":
+        for name, p in shipped_agents().items():
+            card = read_card(p)
+            print(f"{name}{' (default)' if card.get('default') else ''}: {card.get('summary', '')}")
+        return 0
+    if args.action == "pack":
+        try:
+            fields = json.loads(Path(args.card).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise CommandError(f"--card {args.card}: cannot read a JSON object ({e})") from None
+        missing = [k for k in CARD_REQUIRED if k not in fields]
+        if missing:
+            raise CommandError(f"--card {args.card}: missing fields {', '.join(missing)}")
+        ck = Path(args.checkpoint) if args.checkpoint else Path(args.run) / "best"
+        out = pack(args.run, ck, args.encoder_run, args.out, fields)
+        print(f"wrote {out} ({sum(f.stat().st_size for f in out.rglob('*') if f.is_file()) / 1e6:.1f} MB)")
+        return 0
+    folder = agent_folder(args.agent)
+    card = read_card(folder)
+    torch.set_num_threads(max(1, args.threads))
+    data, out = Path(args.data), Path(args.out)
+    protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
+    t0 = time.perf_counter()
+    times = {}
+    say(f"agent {folder.name}: {card.get('summary', '')}")
+    split = args.split
+    ensure_test_world(data, card, args.workers, split)
+    times["world"] = time.perf_counter() - t0
+    ensure_release_detections(data, card)
+    times["detections"] = time.perf_counter() - t0 - sum(times.values())
+    ensure_release_features(data, folder, card, split=split)
+    times["features"] = time.perf_counter() - t0 - sum(times.values())
+    rows = release_rows(folder, data, out, protocols, baselines=not args.no_baselines, split=split)
+    times["evaluation"] = time.perf_counter() - t0 - sum(times.values())
+    res = {"agent": folder.name, "card": card.get("name"), "split": split, "rows": rows, "seconds": times}
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.json", json.dumps(res, indent=1) + "\n")
+    if args.update_card:
+        figs = card.setdefault("figures", {})
+        figs[split] = {"episodes": max(r["episodes"] for r in rows), "rows": rows}
+        atomic_write_text(folder / "card.json", json.dumps(card, indent=1) + "\n")
+        atomic_write_text(folder / "card.md", card_markdown(card))
+        say(f"card of {folder.name}: {split} figures written")
+    print(f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
+          f"detector {card['detector_shipped']} (stages: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()) + ")")
+    trained = json.loads((folder / "config.json").read_text())["train"].get("protocol", "paper")
+    for p in protocols:
+        print(protocol_line(p, trained))
+    print(format_rows(rows))
+    print(f"wrote {out / 'results.json'}")
+    return 0
+
+
+def ensure_names(data: Path, split: str = "test") -> list[str]:
+    from ..data.reader import list_scenes
+
+    return [p.name for p in list_scenes(data, split=split)]
