@@ -300,9 +300,9 @@ class BatchEnv:
     and ``switch_state`` (the switching frame's state). The stage is kept by :attr:`stage`, a
     :class:`~tsnav.sim.stage.StageSwitch` (``stage`` when given, e.g. an evaluation's at its own C_target, else
     one over the bank's confidence and C_target) that only the env resets and updates; a reward with
-    ``uses_stage`` is handed its ``searching`` mask (module docstring). With ``autoreset`` (default) finished rows immediately start a new episode from
-    ``sampler`` and ``obs`` shows its first state ("same-step" auto-reset); without it finished rows stay
-    frozen (``active`` False) until :meth:`reset`.
+    ``uses_stage`` is handed its ``searching`` mask (module docstring). With ``autoreset`` (default) finished
+    rows immediately start a new episode from ``sampler`` and ``obs`` shows its first state ("same-step"
+    auto-reset); without it finished rows stay frozen (``active`` False) until :meth:`reset`.
     """
 
     def __init__(self, bank: SceneBank, num_envs: int, sampler: EpisodeSampler | None = None,

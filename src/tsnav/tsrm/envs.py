@@ -28,9 +28,9 @@ argument           meaning
 
 ``info`` holds every reward term of the step as ``reward/<term>`` (``explore``, ``distance``, ``collision``,
 ``slack``, ``success``; zeros for terms the variant switches off); the stage itself is the wrapped
-``BatchEnv``'s (``env.unwrapped.batch.stage``). The rewards are those of the batched trainer (:mod:`tsnav.rl`) for the same
-episodes and actions: the same :class:`~tsnav.tsrm.reward.TSRMReward` over the same bank, handed the stage by
-the env's one stage switch (:attr:`~tsnav.sim.batch.BatchEnv.stage`).
+``BatchEnv``'s (``env.unwrapped.batch.stage``). The rewards are those of the batched trainer (:mod:`tsnav.rl`)
+for the same episodes and actions: the same :class:`~tsnav.tsrm.reward.TSRMReward` over the same bank, handed
+the stage by the env's one stage switch (:attr:`~tsnav.sim.batch.BatchEnv.stage`).
 """
 
 from __future__ import annotations
