@@ -27,15 +27,19 @@ sys.path.insert(0, str(Path(__file__).parent))
 from bench_sim import ACTION_P, scenes  # noqa: E402  (the same four rooms as the stepping benchmark)
 from tsnav.sim.batch import BatchEnv, SceneBank, SparseReward
 from tsnav.sim.episodes import TrainingSampler
+from tsnav.sim.stage import StageSwitch
 from tsnav.tsrm.area import AreaConfig
 from tsnav.tsrm.reward import RewardConfig, TSRMReward, TSRMRewardReference
 
 MAX_STEPS = 30
 
 
-def bench_batch(bank, b, seconds, reward_fn):
-    """Steps/s of BatchEnv (auto-reset, 30-step episodes) and, for TSRM, the share of searching steps."""
-    env = BatchEnv(bank, b, sampler=TrainingSampler(bank), reward_fn=reward_fn, max_steps=MAX_STEPS, seed=0)
+def bench_batch(bank, b, seconds, reward_fn, confidence=None):
+    """Steps/s of BatchEnv (auto-reset, 30-step episodes; its stage switch over ``confidence``, default the
+    bank's) and, for TSRM, the share of searching steps."""
+    stage = StageSwitch(bank, confidence=confidence) if confidence is not None else None
+    env = BatchEnv(bank, b, sampler=TrainingSampler(bank), reward_fn=reward_fn, max_steps=MAX_STEPS, seed=0,
+                   stage=stage)
     env.reset()
     rng = np.random.default_rng(1)
     acts = rng.choice(6, size=(256, b), p=ACTION_P)
@@ -43,7 +47,7 @@ def bench_batch(bank, b, seconds, reward_fn):
     while time.perf_counter() - t0 < seconds:
         for k in range(32):
             if isinstance(reward_fn, TSRMReward):
-                searching += int((reward_fn.stage == 0).sum())
+                searching += int(env.stage.searching.sum())
             env.step(acts[(steps // b + k) % 256])
         steps += 32 * b
     rate = steps / (time.perf_counter() - t0)
@@ -106,10 +110,10 @@ def main():
         for b in (64, 1024):
             bare, _ = best_of(lambda: bench_batch(bank, b, args.seconds, None), args.repeats)
             sparse, _ = best_of(lambda: bench_batch(bank, b, args.seconds, SparseReward()), args.repeats)
-            fine, share = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank, confidence=conf)),
+            fine, share = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank), conf),
                                   args.repeats)
             cfg16 = RewardConfig(area=AreaConfig(sample_size=1 / 16))
-            coarse, _ = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank, cfg16, confidence=conf)),
+            coarse, _ = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank, cfg16), conf),
                                 args.repeats)
             print(f"{b:>6} {bare:>12,.0f} {sparse:>12,.0f} {fine:>12,.0f} {share:>8.0%} {fine / ref:>6.0f}x "
                   f"{bare / fine:>5.1f}x {coarse:>12,.0f} {coarse / ref:>6.0f}x {bare / coarse:>5.1f}x")

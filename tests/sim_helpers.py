@@ -76,3 +76,49 @@ def oracle_factory(bank, seed=0, c_target=None):
     from tsnav.eval.policies import OraclePolicy
 
     return OraclePolicy(bank)
+
+
+class StagedReward:
+    """A stage reward (``uses_stage``, e.g. the TSRM reward) stepped outside an env the way
+    :class:`~tsnav.sim.batch.BatchEnv` steps it: one :class:`~tsnav.sim.stage.StageSwitch` (over ``confidence``,
+    default the bank's rule) reset before the reward, its ``searching`` mask handed in, updated after each
+    step with the same step and movement counters. Exposes the switch's ``stage`` / ``switch_step`` and the
+    reward's other attributes."""
+
+    def __init__(self, reward, confidence=None):
+        from tsnav.sim.stage import StageSwitch
+
+        self.reward = reward
+        self.switch = StageSwitch(reward.bank, confidence=confidence)
+        self.steps = np.zeros(0, dtype=np.int64)
+        self.path_length = np.zeros(0, dtype=np.int64)
+
+    def reset(self, mask, scene_idx, target, start_state):
+        mask = np.asarray(mask, dtype=bool)
+        if len(mask) != len(self.steps):
+            self.steps = np.zeros(len(mask), dtype=np.int64)
+            self.path_length = np.zeros(len(mask), dtype=np.int64)
+        self.steps[mask] = 0
+        self.path_length[mask] = 0
+        self.switch.reset(mask, start_state, target)
+        self.reward.reset(mask, scene_idx, target, start_state, searching=self.switch.searching)
+
+    def step(self, prev_state, action, new_state, collided, done, success):
+        from tsnav.constants import DONE
+
+        self.steps += 1
+        self.path_length += np.asarray(action) != DONE
+        out = self.reward.step(prev_state, action, new_state, collided, done, success, searching=self.switch.searching)
+        self.switch.update(new_state, self.steps, self.path_length)
+        return out
+
+    @property
+    def stage(self):
+        return self.switch.stage
+
+    @property
+    def switch_step(self):
+        return self.switch.switch_step
+
+    def __getattr__(self, name):
+        return getattr(self.reward, name)

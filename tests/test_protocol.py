@@ -186,6 +186,7 @@ def test_tsrm_distance_term_follows_the_protocol(banks, tiny_scenes):
     """The TSRM reward's distance fields come from the bank's success mask: under lineage they equal the slow
     reference's BFS towards the visibility map's states, and the distance term matches the reference's."""
     from tsnav.tsrm.distance import bank_pose_distance
+    from sim_helpers import StagedReward
     from tsnav.tsrm.reward import RewardConfig, TSRMReward, TSRMRewardReference
 
     bank = banks["lineage"]
@@ -193,7 +194,7 @@ def test_tsrm_distance_term_follows_the_protocol(banks, tiny_scenes):
     sc = tiny_scenes[0]
     lo = bank.offsets[0]
     cfg = RewardConfig(variant="distance")
-    fast = TSRMReward(bank, cfg)
+    fast = StagedReward(TSRMReward(bank, cfg))
     targets = np.flatnonzero(sc.success_table("lineage").any(axis=0))[:3]
     rng = np.random.default_rng(0)
     for c in targets:

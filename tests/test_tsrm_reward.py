@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from sim_helpers import StagedReward
 from tsnav.constants import (CATEGORY_INDEX, DONE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES, ROTATE_LEFT,
                              ROTATE_RIGHT)
 from tsnav.data.toy import toy_scene
@@ -23,6 +24,7 @@ def room():
 
 def run(reward, scene, start, target, actions):
     """Step one episode (row 0 of a batch of 1) through ``actions``; returns per-step rewards and terms."""
+    reward = reward if isinstance(reward, StagedReward) else StagedReward(reward)  # the stage an env would hand in
     reward.reset(np.ones(1, bool), np.zeros(1, int), np.array([target]), np.array([start]))
     s = start
     out = []
@@ -41,9 +43,9 @@ def test_protocol_and_config_errors():
     with pytest.raises(ValueError, match="unknown reward variant 'full'"):
         RewardConfig(variant="full")
     with pytest.raises(ValueError, match="c_target"):
-        RewardConfig(c_target=1.5)
+        SceneBank([room()], cache=False, c_target=1.5)  # C_target's one home below the user's configs
     with pytest.raises(ValueError, match="confidence must have shape"):
-        TSRMReward(bank, confidence=np.zeros((3, NUM_CATEGORIES)))
+        StagedReward(TSRMReward(bank), confidence=np.zeros((3, NUM_CATEGORIES)))
     assert RewardConfig(area={"sample_size": 1 / 64}).area.sample_size == 1 / 64  # from saved JSON
 
 
@@ -91,7 +93,7 @@ def test_stage_switch_is_irreversible_and_switching_step_explores():
     seen = sc.index("1.00|1.00|0|0")
     conf[seen, BOWL] = 0.9
     conf[sc.index("1.00|1.00|315|0"), BOWL] = 0.7  # not above C_target = 0.7
-    rew = TSRMReward(bank, RewardConfig(), confidence=conf)
+    rew = StagedReward(TSRMReward(bank, RewardConfig()), confidence=conf)
     start = sc.index("1.00|1.00|270|0")
     steps = run(rew, sc, start, BOWL, [ROTATE_RIGHT, ROTATE_RIGHT, MOVE_AHEAD, ROTATE_LEFT, MOVE_AHEAD])
     # steps 1, 2 are taken in the searching stage (step 2 reaches the switching frame); the rest pathfinding
@@ -113,7 +115,7 @@ def test_distance_reward_telescopes():
     bank = SceneBank([sc], cache=False)
     conf = np.ones((sc.num_states, NUM_CATEGORIES), np.float32)  # pathfinding from the start frame
     cfg = RewardConfig()
-    rew = TSRMReward(bank, cfg, confidence=conf)
+    rew = StagedReward(TSRMReward(bank, cfg), confidence=conf)
     d = bank_pose_distance(bank)[:, BOWL]
     rng = np.random.default_rng(0)
     acts = rng.choice(5, 40)
@@ -129,7 +131,7 @@ def test_distance_reward_telescopes():
 def test_success_and_done():
     sc = room()
     bank = SceneBank([sc], cache=False)
-    rew = TSRMReward(bank)
+    rew = StagedReward(TSRMReward(bank))
     rew.reset(np.ones(2, bool), np.zeros(2, int), np.array([BOWL, BOWL]), np.array([0, 1]))
     r, terms = rew.step(np.array([0, 1]), np.array([DONE, DONE]), np.array([0, 1]), np.zeros(2, bool),
                         np.ones(2, bool), np.array([True, False]))
@@ -165,7 +167,7 @@ def test_fast_matches_reference_on_random_walks(variant):
     rng = np.random.default_rng(7)
     conf = rng.uniform(0, 0.75, (bank.num_states, NUM_CATEGORIES)).astype(np.float32)  # ~7% of frames switch
     cfg = RewardConfig(variant=variant)
-    fast = TSRMReward(bank, cfg, confidence=conf)
+    fast = StagedReward(TSRMReward(bank, cfg), confidence=conf)
     n = 12
     scene_idx = np.arange(n) % 2
     target = rng.choice([BOWL, CHAIR], n)
@@ -239,6 +241,6 @@ def test_inside_batch_env_with_autoreset():
         assert np.allclose(r, sum(info["reward_terms"].values()), atol=1e-5)
         # rows that just restarted have step 0 and a fresh stage of their new start frame
         fresh = term | trunc
-        assert (rew.steps[fresh] == 0).all()
-        assert (rew.stage[fresh] == bank.stage_mask[obs["state"][fresh], BOWL]).all()
+        assert (env.steps[fresh] == 0).all()
+        assert (env.stage.stage[fresh] == bank.stage_mask[obs["state"][fresh], BOWL]).all()
     assert (rew.searched_area >= 0).all()

@@ -36,7 +36,7 @@ from matplotlib.patches import Rectangle
 from tqdm import tqdm
 
 from ..atomic import atomic_save_figure, atomic_write_json
-from ..constants import NUM_CATEGORIES, ROOM_TARGETS, SUCCESS_DISTANCE, TARGET_CATEGORIES, room_target_mask
+from ..constants import C_TARGET, NUM_CATEGORIES, ROOM_TARGETS, SUCCESS_DISTANCE, TARGET_CATEGORIES, room_target_mask
 from ..data.detections import Detections, load_detections
 from ..data.reader import list_scenes, load_scene
 from .data import read_images
@@ -133,7 +133,7 @@ def _keys(d: dict) -> dict:
     return {f"{k:g}": float(v) for k, v in d.items()}
 
 
-def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: float = 0.7,
+def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: float = C_TARGET,
                   thresholds: Sequence[float] = FP_THRESHOLDS) -> SwitchReport:
     """Reach and false positives (module docstring) of per-scene tables ``detections`` aligned with
     ``scenes``."""
@@ -237,7 +237,7 @@ def format_subsets(report: dict) -> str:
     return "\n".join(lines)
 
 
-def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], c_target: float = 0.7,
+def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], c_target: float = C_TARGET,
                             thresholds: Sequence[float] = FP_THRESHOLDS) -> dict:
     """Slow reference for :func:`switch_report` (loops over scenes, classes and states); returns
     ``{"pairs", "reached", "reached_in_view", "episode_pairs", "episode_reached", "fp_state_any",
@@ -377,7 +377,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--name", default="learned", help="table name detections_<name>.hdf5 (default learned)")
     ap.add_argument("--split", default="val", help="scenes of this split (default val)")
     ap.add_argument("--out", required=True, help="output folder")
-    ap.add_argument("--c-target", type=float, default=0.7, help="switch threshold for reach (paper: 0.7)")
+    ap.add_argument("--c-target", type=float, default=C_TARGET, help=f"switch threshold for reach (paper: {C_TARGET})")
     ap.add_argument("--gallery-per-scene", type=int, default=1, help="gallery frames per scene (default 1)")
     args = ap.parse_args(argv)
     paths = [p for p in list_scenes(args.data, split=args.split) if (p / f"detections_{args.name}.hdf5").exists()]

@@ -21,7 +21,6 @@ from matplotlib.figure import Figure
 from ..atomic import atomic_save_figure
 from ..constants import ACTIONS, C_TARGET, DONE
 from ..tsrm.plot import draw_episode
-from ..tsrm.reward import RewardConfig
 from ..world.show import render_views
 from ..metrics import EpisodeRecord
 from .runner import Trajectory
@@ -156,7 +155,7 @@ def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence
         title = (f"{tr.scene} ({r.room_type}), target {tr.target}: {outcome}; {r.path_length} moves, "
                  f"optimal {r.optimal_length}")
         map_png = draw_episode(scene, local, tr.target, out_dir / f"{stem}_map.png", confidence=conf[lo:hi],
-                               config=RewardConfig(c_target=c_target), title=title)
+                               c_target=c_target, title=title)
         marks = key_frames(tr)
         labels = [f"{lab}, t={f}" + (f"\n{ACTIONS[tr.actions[f]]}" if f < len(tr.actions) else "")
                   for lab, f in marks]

@@ -43,14 +43,15 @@ def make_observer(bank: SceneBank, cfg: TrainConfig, features: torch.Tensor | No
 
 
 def make_reward(bank: SceneBank, cfg: TrainConfig) -> TSRMReward:
-    """The reward variant ``cfg.reward`` with the paper's constants and ``cfg.c_target``."""
-    return TSRMReward(bank, RewardConfig(variant=cfg.reward, c_target=cfg.c_target))
+    """The reward variant ``cfg.reward`` with the paper's constants (its stage comes from the env's switch,
+    at the bank's C_target: ``cfg.c_target``, :func:`load_bank`)."""
+    return TSRMReward(bank, RewardConfig(variant=cfg.reward))
 
 
 def make_train_env(bank: SceneBank, cfg: TrainConfig, num_envs: int, seed: int) -> BatchEnv:
     """Auto-resetting training env of ``num_envs`` episodes, truncated at ``cfg.max_steps``."""
-    sim = SimConfig(success_distance=cfg.success_distance, c_target=cfg.c_target, max_steps=cfg.max_steps,
-                    autoreset=True, protocol=cfg.protocol)
+    sim = SimConfig(success_distance=cfg.success_distance, max_steps=cfg.max_steps, autoreset=True,
+                    protocol=cfg.protocol)
     return make_env(bank, num_envs, sim, reward_fn=make_reward(bank, cfg), seed=seed)
 
 

@@ -3,7 +3,7 @@
 :class:`EpisodeStats` follows the ``B`` rows of a :class:`~tsnav.sim.batch.BatchEnv` with auto-reset and
 collects one entry per finished episode (array operations per step, no loop over episodes). The two-stage
 bookkeeping is the env's (paper III-B / IV-A; ``info["entered"]``, ``switch_length``, ``switch_state`` from
-the env's one :class:`~tsnav.sim.stage.StageSwitch`, the reward's during training): an episode enters the
+the env's one :class:`~tsnav.sim.stage.StageSwitch`, whose stage the reward is handed): an episode enters the
 pathfinding stage at the first frame (the start included) whose target confidence exceeds C_target; searching
 length = movement actions before that frame. Training episodes are truncated at ``max_steps`` (30), so these figures are lower
 than the 100-step test figures.

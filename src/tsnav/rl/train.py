@@ -43,9 +43,9 @@ def feature_info(cfg: TrainConfig) -> dict:
 
 def resolved_config(cfg: TrainConfig, agent: AgentConfig) -> dict:
     """Everything the run depends on, as saved in ``config.json``."""
-    reward = RewardConfig(variant=cfg.reward, c_target=cfg.c_target)
-    sim = SimConfig(success_distance=cfg.success_distance, c_target=cfg.c_target, max_steps=cfg.max_steps,
-                    autoreset=True, protocol=cfg.protocol)
+    reward = RewardConfig(variant=cfg.reward)
+    sim = SimConfig(success_distance=cfg.success_distance, max_steps=cfg.max_steps, autoreset=True,
+                    protocol=cfg.protocol)
     return {"format": RUN_FORMAT, "train": cfg.to_dict(), "agent": asdict(agent), "reward": asdict(reward),
             "sim": asdict(sim), "features": feature_info(cfg), "budget": cfg.budget,
             "detections": cfg.detections, "protocol": cfg.protocol,

@@ -34,6 +34,8 @@ Reward plug-in (stable interface; the TSRM reward of :mod:`tsnav.tsrm` implement
         def step(self, prev_state, action, new_state, collided, done, success)
             -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
 
+    # a reward that reads the stage also sets ``uses_stage = True`` and takes ``searching=`` in both
+
 * ``reset`` is called by :meth:`BatchEnv.reset` (``mask`` all True) and after every auto-reset (``mask``
   marks the rows that start a new episode). All arguments are full ``(B,)`` arrays: ``mask`` bool,
   ``scene_idx`` int64 index into ``bank.scenes``, ``target`` int64 category id, ``start_state`` int64 global
@@ -44,9 +46,12 @@ Reward plug-in (stable interface; the TSRM reward of :mod:`tsnav.tsrm` implement
   terms ``{name: (B,) float32}`` (e.g. ``slack``, ``success``) that the env passes on in ``info``. Rows whose
   episode had already finished before this step (only without auto-reset) are passed with
   ``new_state == prev_state`` and ``done`` True; the env zeroes their reward and terms.
-* A reward that follows the two stages (paper III-B) exposes its :class:`~tsnav.sim.stage.StageSwitch` as
-  ``switch`` and keeps it up to date in ``reset`` / ``step`` (the TSRM reward does); the env then reports
-  that one in ``info`` instead of keeping a second (one stage switch per env).
+* A reward that follows the two stages (paper III-B) declares it with ``uses_stage = True`` (as habitat-lab's
+  measures declare the measures they depend on); the env then passes the stage of its one
+  :class:`~tsnav.sim.stage.StageSwitch` (:attr:`BatchEnv.stage`) as a keyword ``searching``, a ``(B,)`` bool
+  array: in ``reset`` the stage of the start frames (the switch was reset first), in ``step`` the stage in
+  which this step's action was chosen (the switch is updated after the reward). The env is the only owner of
+  the switch: it resets and updates it; rewards only read the mask they are handed.
 """
 
 from __future__ import annotations
@@ -95,8 +100,6 @@ class SimConfig:
     protocol: str = DEFAULT_PROTOCOL
     """Success protocol (:mod:`tsnav.protocol`): ``paper`` (in view within ``success_distance``) or
     ``lineage`` (the visibility map, as the lineage's evaluator reads it; ``success_distance`` unused)."""
-    c_target: float = C_TARGET
-    """Stage-switch threshold C_target on the target confidence (paper IV-A: 0.7)."""
     max_steps: int = 100
     """Actions per episode before truncation (paper: 100 at test time; the lineage trains with 30)."""
     autoreset: bool = True
@@ -144,7 +147,9 @@ class SceneBank:
         confidence: ``(S, C)`` float32 detector confidence of each target category, or None (filled by the
             detector stage); :attr:`stage_confidence` falls back to ``in_frame`` as 1.0 / 0.0.
         detections: ``(S, C, 6)`` float32 rows (score, label, x0, y0, x1, y1) or None.
-        c_target: the stage-switch threshold C_target (paper IV-A: 0.7).
+        c_target: the stage-switch threshold C_target (paper IV-A: 0.7); its one home below the user's
+            configs (``TrainConfig.c_target``, ``EvalConfig.c_target``): :attr:`stage_mask`, the env's
+            :class:`~tsnav.sim.stage.StageSwitch` and the searching lengths read it here.
     """
 
     def __init__(self, scenes: Sequence[Scene], success_distance: float = SUCCESS_DISTANCE,
@@ -157,6 +162,8 @@ class SceneBank:
         self.protocol = check_protocol(protocol)
         self.scenes = list(scenes)
         self.success_distance = float(success_distance)
+        if not 0.0 <= c_target <= 1.0:
+            raise ValueError(f"c_target must be in [0, 1], got {c_target}")
         self.c_target = float(c_target)
         sizes = np.array([s.num_states for s in self.scenes], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -291,18 +298,18 @@ class BatchEnv:
     ``reward_terms`` (dict), and the two-stage state of the episode after this step (paper III-B):
     ``entered`` (in the pathfinding stage), ``switch_length`` (movement actions before the switching frame)
     and ``switch_state`` (the switching frame's state). The stage is kept by :attr:`stage`, a
-    :class:`~tsnav.sim.stage.StageSwitch`: the reward's own when it has one (``reward_fn.switch``, updated by
-    the reward), else ``stage`` when given, else one over the bank's confidence and C_target (both updated
-    here). With ``autoreset`` (default) finished rows immediately start a new episode from
-    ``sampler`` and ``obs`` shows its first state ("same-step" auto-reset); without it finished rows stay
-    frozen (``active`` False) until :meth:`reset`.
+    :class:`~tsnav.sim.stage.StageSwitch` (``stage`` when given, e.g. an evaluation's at its own C_target, else
+    one over the bank's confidence and C_target) that only the env resets and updates; a reward with
+    ``uses_stage`` is handed its ``searching`` mask (module docstring). With ``autoreset`` (default) finished
+    rows immediately start a new episode from ``sampler`` and ``obs`` shows its first state ("same-step"
+    auto-reset); without it finished rows stay frozen (``active`` False) until :meth:`reset`.
     """
 
     def __init__(self, bank: SceneBank, num_envs: int, sampler: EpisodeSampler | None = None,
                  reward_fn: RewardFn | None = None, max_steps: int = 100, autoreset: bool = True,
                  seed: int | None = None, stage: StageSwitch | None = None):
-        """``stage``: the stage switch to keep (e.g. an evaluation's at its own C_target); not together with
-        a reward that keeps its own."""
+        """``stage``: the stage switch to keep (e.g. an evaluation's at its own C_target); default: one over
+        the bank's rule (``bank.stage_mask``)."""
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if max_steps < 1:
@@ -325,13 +332,8 @@ class BatchEnv:
         self._ns = bank.next_state.astype(np.int64).reshape(-1)  # flat (S*6,)
         self._succ = bank.success.reshape(-1)  # flat (S*C,)
         self._arange = np.arange(b, dtype=np.int64)
-        reward_stage = getattr(reward_fn, "switch", None)
-        if reward_stage is not None and stage is not None:
-            raise ValueError("BatchEnv: the reward keeps its own stage switch; do not pass stage= as well")
-        if reward_stage is not None and reward_stage.c_target != bank.c_target:
-            raise ValueError(f"the reward's C_target {reward_stage.c_target} differs from the bank's {bank.c_target}")
-        self._keeps_stage = reward_stage is None  # else the reward resets and updates it
-        self.stage: StageSwitch = reward_stage if reward_stage is not None else (stage or StageSwitch(bank, num_envs=b))
+        self.stage: StageSwitch = stage or StageSwitch(bank, num_envs=b)
+        self._reward_uses_stage = bool(getattr(reward_fn, "uses_stage", False))
 
     # -- episodes -----------------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, episodes: tuple | None = None) -> dict[str, np.ndarray]:
@@ -370,10 +372,10 @@ class BatchEnv:
         self.steps[rows] = 0
         self.path_length[rows] = 0
         self.active[rows] = True
-        if self._keeps_stage:
-            self.stage.reset(mask, self.state, self.target)
+        self.stage.reset(mask, self.state, self.target)
         if self.reward_fn is not None:
-            self.reward_fn.reset(mask.copy(), self.scene.copy(), self.target.copy(), self.state.copy())
+            kw = {"searching": self.stage.searching} if self._reward_uses_stage else {}
+            self.reward_fn.reset(mask.copy(), self.scene.copy(), self.target.copy(), self.state.copy(), **kw)
 
     def _obs(self) -> dict[str, np.ndarray]:
         return {"state": self.state.copy(), "target": self.target.copy(), "scene": self.scene.copy(),
@@ -405,14 +407,14 @@ class BatchEnv:
         truncated = moving & (self.steps >= self.max_steps)
         finished = terminated | truncated
         if self.reward_fn is not None:
-            reward, terms = self.reward_fn.step(prev, a, new, collided, finished | ~active, success)
+            kw = {"searching": self.stage.searching} if self._reward_uses_stage else {}  # before this step's update
+            reward, terms = self.reward_fn.step(prev, a, new, collided, finished | ~active, success, **kw)
             reward = np.where(active, np.asarray(reward, dtype=np.float32), np.float32(0.0))
             terms = {k: np.where(active, np.asarray(v, dtype=np.float32), np.float32(0.0)) for k, v in terms.items()}
         else:
             reward = np.zeros(self.num_envs, dtype=np.float32)
             terms = {}
-        if self._keeps_stage:
-            self.stage.update(new, self.steps, self.path_length, active=active)
+        self.stage.update(new, self.steps, self.path_length, active=active)
         stage = self.stage
         info = {"collided": collided, "failed": failed, "success": success, "steps": self.steps.copy(),
                 "path_length": self.path_length.copy(), "final_state": new, "active": active.copy(),

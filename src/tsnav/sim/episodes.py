@@ -135,21 +135,21 @@ class TrainingSampler:
 def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sampler: EpisodeSampler | None = None,
              reward_fn: RewardFn | None = None, seed: int | None = None) -> BatchEnv:
     """A :class:`BatchEnv` over ``scenes_or_bank`` (a :class:`SceneBank` or a list of scenes) configured by
-    ``config``; ``sampler`` defaults to the :class:`TrainingSampler`. With a bank, ``config``'s success distance
-    and C_target must be the bank's (``ValueError`` otherwise: they are properties of the bank)."""
+    ``config``; ``sampler`` defaults to the :class:`TrainingSampler`. With a bank, ``config``'s protocol and
+    success distance must be the bank's (``ValueError`` otherwise: they are properties of the bank); C_target
+    is the bank's alone (``SceneBank(c_target=)``, default 0.7)."""
     given = config is not None
     config = config or SimConfig()
     if isinstance(scenes_or_bank, SceneBank):
         bank = scenes_or_bank
-        for name in ("protocol", "success_distance", "c_target"):  # the bank's are in force: never ignore a config's
+        for name in ("protocol", "success_distance"):  # the bank's are in force: never ignore a config's
             if name == "success_distance" and bank.protocol != "paper":
                 continue  # only the paper rule has a radius
             if given and getattr(config, name) != getattr(bank, name):
                 raise ValueError(f"SimConfig.{name} = {getattr(config, name)} differs from the bank's "
                                  f"{getattr(bank, name)}; build the bank with it or pass the scenes instead")
     else:
-        bank = SceneBank(scenes_or_bank, success_distance=config.success_distance, c_target=config.c_target,
-                         protocol=config.protocol)
+        bank = SceneBank(scenes_or_bank, success_distance=config.success_distance, protocol=config.protocol)
     if sampler is None:
         sampler = TrainingSampler(bank)
     return BatchEnv(bank, num_envs, sampler=sampler, reward_fn=reward_fn, max_steps=config.max_steps,

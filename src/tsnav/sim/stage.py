@@ -6,9 +6,16 @@ paper IV-A). The confidence is the detector's when the bank has one installed, e
 "target in frame" flag as 1.0 / 0.0 (``SceneBank.stage_confidence``).
 
 :class:`StageSwitch` follows ``B`` episodes in the manner of a habitat measure: :meth:`~StageSwitch.reset`
-when episodes start, :meth:`~StageSwitch.update` after every step. The TSRM reward (which term a step earns),
-the training statistics (SSR, SSSPL, NSNPL of training episodes), the evaluation runner and the episode
-pictures all read the stage from it; :func:`switch_frame` is the same rule over one recorded path.
+when episodes start, :meth:`~StageSwitch.update` after every step. Its one owner is the env
+(:class:`~tsnav.sim.batch.BatchEnv` steps it and hands its :attr:`~StageSwitch.searching` mask to a reward that
+declares it uses the stage, as habitat-lab's measures declare what they depend on): the TSRM reward (which
+term a step earns), the training statistics (SSR, SSSPL, NSNPL of training episodes), the evaluation runner
+and the episode pictures all read the stage from the env's switch; :func:`switch_frame` is the same rule over
+one recorded path.
+
+The threshold has one home: the bank's ``c_target`` (:class:`~tsnav.sim.batch.SceneBank`, built from the
+run's ``TrainConfig.c_target`` / an evaluation's ``EvalConfig.c_target``); a switch over the bank applies
+``bank.stage_mask`` and keeps no copy of it.
 """
 
 from __future__ import annotations
@@ -16,6 +23,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..constants import C_TARGET, NUM_CATEGORIES
+
+SEARCHING, PATHFINDING = 0, 1
+"""The two stages of paper III-B as the values of :attr:`StageSwitch.stage`."""
 
 
 def above_threshold(confidence: np.ndarray, c_target: float = C_TARGET) -> np.ndarray:
@@ -42,14 +52,19 @@ class StageSwitch:
 
     def __init__(self, bank, c_target: float | None = None, confidence: np.ndarray | None = None,
                  num_envs: int = 0):
-        """``c_target`` defaults to the bank's; ``confidence`` ``(S, 22)`` to ``bank.stage_confidence``."""
-        self.c_target = float(bank.c_target if c_target is None else c_target)
-        if not 0.0 <= self.c_target <= 1.0:
-            raise ValueError(f"c_target must be in [0, 1], got {self.c_target}")
-        conf = bank.stage_confidence if confidence is None else np.asarray(confidence, dtype=np.float32)
-        if conf.shape != (bank.num_states, NUM_CATEGORIES):
-            raise ValueError(f"confidence must have shape ({bank.num_states}, {NUM_CATEGORIES}), got {conf.shape}")
-        self.switches = above_threshold(conf, self.c_target)  # (S, C): this frame starts the pathfinding stage
+        """Without ``c_target`` and ``confidence`` the switch applies the bank's own rule (``bank.stage_mask``:
+        ``bank.stage_confidence`` above ``bank.c_target``). Either overrides the bank's for this switch (an
+        evaluation at its own C_target, a test's confidence table)."""
+        if c_target is None and confidence is None:
+            self.switches = bank.stage_mask  # (S, C): this frame starts the pathfinding stage
+        else:
+            c = float(bank.c_target if c_target is None else c_target)
+            if not 0.0 <= c <= 1.0:
+                raise ValueError(f"c_target must be in [0, 1], got {c}")
+            conf = bank.stage_confidence if confidence is None else np.asarray(confidence, dtype=np.float32)
+            if conf.shape != (bank.num_states, NUM_CATEGORIES):
+                raise ValueError(f"confidence must have shape ({bank.num_states}, {NUM_CATEGORIES}), got {conf.shape}")
+            self.switches = above_threshold(conf, c)
         self._alloc(num_envs)
 
     def _alloc(self, b: int) -> None:
@@ -63,6 +78,11 @@ class StageSwitch:
     def searching(self) -> np.ndarray:
         """``(B,)`` bool: the episode is still in the searching stage."""
         return ~self.entered
+
+    @property
+    def stage(self) -> np.ndarray:
+        """``(B,)`` int8 stage of every episode: :data:`SEARCHING` or :data:`PATHFINDING`."""
+        return np.where(self.entered, PATHFINDING, SEARCHING).astype(np.int8)
 
     def reset(self, mask: np.ndarray, start_state: np.ndarray, target: np.ndarray) -> None:
         """Start the episodes where ``mask`` is True from global ``start_state`` with category ``target``

@@ -20,15 +20,17 @@ argument           meaning
                    ``detections`` observation. Required with ``data`` / ``scenes`` (a one-line ``ValueError``
                    otherwise: no silent fallback to ground-truth visibility, issue 14); a given ``bank`` keeps
                    what its caller installed; the analytic toy room (no world) has no detector
-``c_target``       stage-switch threshold C_target (default 0.7, paper IV-A)
+``c_target``       stage-switch threshold C_target of the bank the env builds (default 0.7, paper IV-A); a
+                   given ``bank`` carries its own (``SceneBank(c_target=)``), so not both
 ``protocol``       success protocol (:mod:`tsnav.protocol`): ``"paper"`` (default; in view within 1.0 m) or
                    ``"lineage"`` (the 1.5 m visibility map); a given ``bank`` keeps its own
 =================  ==========================================================================================
 
 ``info`` holds every reward term of the step as ``reward/<term>`` (``explore``, ``distance``, ``collision``,
-``slack``, ``success``; zeros for terms the variant switches off) and the episode's stage as ``stage``
-(0 searching, 1 pathfinding). The rewards are those of the batched trainer (:mod:`tsnav.rl`) for the same
-episodes and actions: the same :class:`~tsnav.tsrm.reward.TSRMReward` over the same bank.
+``slack``, ``success``; zeros for terms the variant switches off); the stage itself is the wrapped
+``BatchEnv``'s (``env.unwrapped.batch.stage``). The rewards are those of the batched trainer (:mod:`tsnav.rl`)
+for the same episodes and actions: the same :class:`~tsnav.tsrm.reward.TSRMReward` over the same bank, handed
+the stage by the env's one stage switch (:attr:`~tsnav.sim.batch.BatchEnv.stage`).
 """
 
 from __future__ import annotations
@@ -42,30 +44,29 @@ from .reward import VARIANTS, RewardConfig, TSRMReward
 REWARDS = VARIANTS + ("sparse",)
 
 
-def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_target: float, bank: SceneBank | None,
-                     scenes, data, split, success_distance: float, protocol: str | None = None
+def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_target: float | None,
+                     bank: SceneBank | None, scenes, data, split, success_distance: float, protocol: str | None = None
                      ) -> tuple[SceneBank, RewardFn]:
-    if isinstance(reward, RewardConfig):
-        c_target = reward.c_target
-    elif reward not in REWARDS:
+    if not isinstance(reward, RewardConfig) and reward not in REWARDS:
         raise ValueError(f"unknown reward {reward!r} (choose from {', '.join(REWARDS)})")
-    if bank is not None and bank.c_target != c_target:
-        raise ValueError(f"c_target {c_target} differs from the given bank's {bank.c_target}")
+    if bank is not None and c_target is not None:
+        raise ValueError("a given bank carries its own c_target (SceneBank(c_target=...)); pass one or the other")
     if bank is not None and protocol is not None and bank.protocol != protocol:
         raise ValueError(f"protocol {protocol!r} differs from the given bank's {bank.protocol!r}")
     if detections is None and (data is not None or scenes is not None) and bank is None:
         raise ValueError("name the detection table the env reads: detections='learned' or detections='oracle' "
                          "(`tsnav detect`); there is no fallback to ground truth")
-    bank = make_bank(bank, scenes, data, split, success_distance, c_target=c_target, protocol=protocol or "paper")
+    bank = make_bank(bank, scenes, data, split, success_distance, c_target=C_TARGET if c_target is None else c_target,
+                     protocol=protocol or "paper")
     if detections is not None:
         bank.install_detections(detections)
     if reward == "sparse":
         return bank, SparseReward()
-    config = reward if isinstance(reward, RewardConfig) else RewardConfig(variant=reward, c_target=c_target)
+    config = reward if isinstance(reward, RewardConfig) else RewardConfig(variant=reward)
     return bank, TSRMReward(bank, config)
 
 
-def make_objectnav(reward: str | RewardConfig = "tsrm", detections: str | None = None, c_target: float = C_TARGET,
+def make_objectnav(reward: str | RewardConfig = "tsrm", detections: str | None = None, c_target: float | None = None,
                    data: str | None = None, split: str | None = "train", scenes=None, bank: SceneBank | None = None,
                    success_distance: float = SUCCESS_DISTANCE, protocol: str | None = None, **kwargs) -> ObjectNavEnv:
     """One episode at a time with ``reward`` (see the module docstring); other arguments as
@@ -76,7 +77,7 @@ def make_objectnav(reward: str | RewardConfig = "tsrm", detections: str | None =
 
 
 def make_objectnav_vector(num_envs: int = 1, reward: str | RewardConfig = "tsrm", detections: str | None = None,
-                          c_target: float = C_TARGET, data: str | None = None, split: str | None = "train",
+                          c_target: float | None = None, data: str | None = None, split: str | None = "train",
                           scenes=None, bank: SceneBank | None = None, success_distance: float = SUCCESS_DISTANCE,
                           protocol: str | None = None, **kwargs) -> ObjectNavVectorEnv:
     """``num_envs`` episodes stepped together with ``reward``; other arguments as

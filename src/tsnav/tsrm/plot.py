@@ -76,11 +76,12 @@ def _fill(ax, geom, **kw) -> None:
 
 def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Path,
                  confidence: np.ndarray | None = None, config: RewardConfig = RewardConfig(),
-                 title: str | None = None, dpi: int = 120) -> Path:
+                 title: str | None = None, dpi: int = 120, c_target: float = C_TARGET) -> Path:
     """Write a PNG of one episode of ``scene`` and return its path.
 
     ``states``: scene-local state ids of the frames, start first; ``target``: category name or id;
-    ``confidence``: ``(S, 22)`` target confidence per state (default: 1.0 where the category is in frame).
+    ``confidence``: ``(S, 22)`` target confidence per state (default: 1.0 where the category is in frame);
+    the stages switch above ``c_target``; ``config.area`` is the observable trapezoid.
     """
     g = CATEGORY_INDEX[target] if isinstance(target, str) else int(target)
     states = np.asarray(states, dtype=np.int64)
@@ -93,7 +94,7 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
         confidence = np.zeros((scene.num_states, len(TARGET_CATEGORIES)), dtype=np.float32)
         cols = np.flatnonzero(scene.object_category == g)
         confidence[:, g] = seen[:, cols].any(axis=1) if len(cols) else 0.0
-    st = episode_stages(states, g, confidence, config.c_target)
+    st = episode_stages(states, g, confidence, c_target)
     region = searched_region(scene, states[st.searching_frames], config)
 
     fig = Figure(figsize=(7.5, 5.5), layout="constrained")

@@ -18,7 +18,9 @@ term            value                                                           
 
 Stages (III-B, "Dividing point"): an episode starts in the searching stage and enters the pathfinding stage,
 for good, at the first frame whose detector confidence for the target exceeds ``C_target = 0.7``; the start
-frame counts (:class:`tsnav.sim.stage.StageSwitch` owns the rule and the per-episode stage). A step is
+frame counts (:class:`tsnav.sim.stage.StageSwitch` holds the rule and the per-episode stage). The reward keeps
+no stage of its own: the env that owns the switch (:class:`~tsnav.sim.batch.BatchEnv`) hands it the
+``searching`` mask in ``reset`` and ``step`` (``TSRMReward.uses_stage``). A step is
 *taken in* the stage of the frame where its action was chosen, so the step that reaches the switching frame
 still earns the exploration reward (it is the searching action that found the target) and every later step
 earns the distance reward. An episode whose start frame already shows the
@@ -42,8 +44,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..constants import C_TARGET, DONE, NUM_CATEGORIES
-from ..sim.stage import StageSwitch, above_threshold
+from ..constants import C_TARGET, NUM_CATEGORIES
+from ..sim.stage import PATHFINDING, SEARCHING, above_threshold  # noqa: F401 (the stages, re-exported)
 from ..sim.paths import UNREACHABLE
 from .area import AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, scene_floor
 from .distance import bank_pose_distance, distance_delta, pose_distance_reference, pose_nodes
@@ -58,7 +60,6 @@ VARIANT_TERMS = {
     "distance": ("distance", "collision", "slack", "success"),
     "tsrm": TERMS,
 }
-SEARCHING, PATHFINDING = 0, 1
 
 
 @dataclass(frozen=True)
@@ -78,8 +79,6 @@ class RewardConfig:
     """Added at every step (III-D (iv))."""
     success_reward: float = 5.0
     """Added when Done succeeds (III-D (v))."""
-    c_target: float = C_TARGET
-    """C_target: the first frame with target confidence above it starts the pathfinding stage (IV-A)."""
     area: AreaConfig = field(default_factory=AreaConfig)
     """Observable trapezoid (1/4 m at horizon 0, 0.25/3 m at horizon 30) and the fast raster's sample size."""
     exact_area: bool = False
@@ -89,8 +88,6 @@ class RewardConfig:
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown reward variant {self.variant!r} (choose from {', '.join(VARIANTS)})")
-        if not 0.0 <= self.c_target <= 1.0:
-            raise ValueError(f"c_target must be in [0, 1], got {self.c_target}")
         if isinstance(self.area, dict):  # from a saved JSON config
             object.__setattr__(self, "area", AreaConfig(**self.area))
 
@@ -101,20 +98,21 @@ class RewardConfig:
 
 class TSRMReward:
     """Batched reward of :class:`RewardConfig` over a :class:`~tsnav.sim.batch.SceneBank`; implements the
-    ``RewardFn`` protocol of :mod:`tsnav.sim.batch` (``reset`` / ``step`` on ``(B,)`` arrays).
+    ``RewardFn`` protocol of :mod:`tsnav.sim.batch` (``reset`` / ``step`` on ``(B,)`` arrays) with the stage
+    as an input: ``uses_stage`` asks the env for the ``searching`` mask of its
+    :class:`~tsnav.sim.stage.StageSwitch` (the env's :attr:`~tsnav.sim.batch.BatchEnv.stage` holds the stage,
+    the switching step and the step counters; the reward reads nothing else of it).
 
-    Per-episode state, readable for logging and pictures: :attr:`stage` ``(B,)`` (0 searching, 1
-    pathfinding), :attr:`switch_step` ``(B,)`` step index of the frame that started pathfinding (0 = start
-    frame, -1 = not yet), :attr:`steps`, :attr:`searched_area` (m^2), and :attr:`coverage` (the raster of
-    ``RG_t``, :meth:`~tsnav.tsrm.area.BatchCoverage.region_mask`) when the fast area is in use.
+    Per-episode state, readable for logging and pictures: :attr:`searched_area` (m^2), and :attr:`coverage`
+    (the raster of ``RG_t``, :meth:`~tsnav.tsrm.area.BatchCoverage.region_mask`) when the fast area is in use.
     """
 
-    def __init__(self, bank, config: RewardConfig = RewardConfig(), confidence: np.ndarray | None = None):
-        """``confidence``: ``(total_S, 22)`` detector confidence per state and category (cached detector output);
-        defaults to ``bank.stage_confidence`` (the detector's when installed, else ground-truth in-frame)."""
+    uses_stage = True
+    """Take the env's ``searching`` mask in :meth:`reset` and :meth:`step` (:mod:`tsnav.sim.batch`)."""
+
+    def __init__(self, bank, config: RewardConfig = RewardConfig()):
         self.bank = bank
         self.config = config
-        self.switch = StageSwitch(bank, config.c_target, confidence)
         self.dist = bank_pose_distance(bank) if config.uses("distance") else None
         node_of, _ = pose_nodes(bank.x, bank.z, bank.rotation, bank.scene_of)
         # Pose nodes are numbered scene by scene; the collision memory indexes them per scene.
@@ -135,24 +133,11 @@ class TSRMReward:
         self.batch_size = b
         self.scene = np.zeros(b, dtype=np.int64)
         self.target = np.zeros(b, dtype=np.int64)
-        self.switch._alloc(b)
-        self.steps = np.zeros(b, dtype=np.int64)
-        self.path_length = np.zeros(b, dtype=np.int64)
         self.collided_at = np.zeros((b, self.nodes_per_scene), dtype=bool)
         # States whose view is already in RG (exploration only): revisiting one adds no area, skip its stencil.
         self.viewed = np.zeros((b, self.states_per_scene if self.config.uses("explore") else 0), dtype=bool)
         self.coverage = BatchCoverage(self.area_index, b) if self.area_index is not None else None
         self._exact: list[ExactSearchedRegion | None] = [None] * b
-
-    @property
-    def stage(self) -> np.ndarray:
-        """``(B,)`` int8 stage of every episode: :data:`SEARCHING` or :data:`PATHFINDING`."""
-        return np.where(self.switch.entered, PATHFINDING, SEARCHING).astype(np.int8)
-
-    @property
-    def switch_step(self) -> np.ndarray:
-        """``(B,)`` step index of the frame that started pathfinding (0 = start frame, -1 = not yet)."""
-        return self.switch.switch_step
 
     @property
     def searched_area(self) -> np.ndarray:
@@ -174,22 +159,20 @@ class TSRMReward:
         return np.array([self._exact[b].add(float(bank.x[s]), float(bank.z[s]), int(bank.rotation[s]),
                                             int(bank.horizon[s])) for b, s in zip(rows, states)])
 
-    def reset(self, mask: np.ndarray, scene_idx: np.ndarray, target: np.ndarray, start_state: np.ndarray) -> None:
-        """Start episodes where ``mask`` is True (``(B,)`` arrays; global start state ids)."""
+    def reset(self, mask: np.ndarray, scene_idx: np.ndarray, target: np.ndarray, start_state: np.ndarray,
+              searching: np.ndarray) -> None:
+        """Start episodes where ``mask`` is True (``(B,)`` arrays; global start state ids); ``searching``: the
+        env's stage of the start frames (False where the start frame already switched to pathfinding)."""
         mask = np.asarray(mask, dtype=bool)
         if len(mask) != self.batch_size:
             self._alloc(len(mask))
         rows = np.flatnonzero(mask)
-        target_all = target
         scene_idx = np.asarray(scene_idx, dtype=np.int64)[rows]
         target = np.asarray(target, dtype=np.int64)[rows]
         start = np.asarray(start_state, dtype=np.int64)[rows]
         self.scene[rows] = scene_idx
         self.target[rows] = target
-        self.steps[rows] = 0
-        self.path_length[rows] = 0
-        self.switch.reset(mask, start_state, target_all)
-        at_start = self.switch.entered[rows]
+        at_start = ~np.asarray(searching, dtype=bool)[rows]
         self.collided_at[rows] = False
         if self.config.uses("explore"):
             if self.coverage is not None:
@@ -202,8 +185,10 @@ class TSRMReward:
             self.viewed[rows[search], self.state_local[start[search]]] = True
             self._add_views(rows[search], start[search])  # the start view, without reward
 
-    def step(self, prev_state, action, new_state, collided, done, success) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Reward of one step of every episode: ``(reward (B,) float32, {term: (B,) float32})``."""
+    def step(self, prev_state, action, new_state, collided, done, success, searching
+             ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Reward of one step of every episode: ``(reward (B,) float32, {term: (B,) float32})``; ``searching``:
+        the env's ``(B,)`` stage in which this step's action was chosen (before the switch sees the new frame)."""
         cfg = self.config
         prev = np.asarray(prev_state, dtype=np.int64)
         new = np.asarray(new_state, dtype=np.int64)
@@ -212,9 +197,7 @@ class TSRMReward:
         b = len(prev)
         if b != self.batch_size:
             raise ValueError(f"step got {b} episodes but reset was called with {self.batch_size}")
-        self.steps += 1
-        self.path_length += np.asarray(action) != DONE  # movement actions, as BatchEnv counts them
-        searching = self.switch.searching  # the stage in which this step's action was chosen
+        searching = np.asarray(searching, dtype=bool)
         terms = {k: np.zeros(b, dtype=np.float64) for k in TERMS}
         if cfg.uses("explore"):
             fresh = np.zeros(b, dtype=bool)
@@ -226,7 +209,6 @@ class TSRMReward:
             rows = np.flatnonzero(~searching)
             terms["distance"][rows] = cfg.k_distance * distance_delta(self.dist, prev[rows], new[rows],
                                                                        self.target[rows])
-        self.switch.update(new, self.steps, self.path_length)
         rows = np.flatnonzero(collided)
         if len(rows):
             nodes = self.node_local[prev[rows]]
@@ -249,10 +231,12 @@ class TSRMRewardReference:
     poses. Slow; the reference that :class:`TSRMReward` is tested against. State ids are scene-local."""
 
     def __init__(self, scene, config: RewardConfig = RewardConfig(), confidence: np.ndarray | None = None,
-                 success_distance: float = 1.0, protocol: str = "paper"):
-        """``confidence``: ``(S, 22)`` of this scene; defaults to 1.0 where the target category is in frame."""
+                 success_distance: float = 1.0, protocol: str = "paper", c_target: float = C_TARGET):
+        """``confidence``: ``(S, 22)`` of this scene; defaults to 1.0 where the target category is in frame.
+        The reference follows its own stages (the rule of III-B at ``c_target``), independently of any env."""
         self.scene = scene
         self.config = config
+        self.c_target = c_target
         if confidence is None:
             seen = scene.visible_at_any_range()
             confidence = np.zeros((scene.num_states, NUM_CATEGORIES), dtype=np.float32)
@@ -279,7 +263,7 @@ class TSRMRewardReference:
             self._dist_cache[self.target] = pose_distance_reference(
                 sc.next_state, sc.x, sc.z, sc.rotation,
                 sc.success_table(self.protocol, self.success_distance)[:, self.target])
-        self.pathfinding = bool(above_threshold(self.confidence[start_state, self.target], self.config.c_target))
+        self.pathfinding = bool(above_threshold(self.confidence[start_state, self.target], self.c_target))
         self.switch_step = 0 if self.pathfinding else -1
         self.steps = 0
         self.collision_poses: set = set()
@@ -299,7 +283,7 @@ class TSRMRewardReference:
                 before = self.region.area
                 self.region.add(sc.x[new_state], sc.z[new_state], sc.rotation[new_state], sc.horizon[new_state])
                 terms["explore"] = cfg.k_explore * (self.region.area - before)
-            if above_threshold(self.confidence[new_state, self.target], cfg.c_target):
+            if above_threshold(self.confidence[new_state, self.target], self.c_target):
                 self.pathfinding = True
                 self.switch_step = self.steps
         elif cfg.uses("distance"):
