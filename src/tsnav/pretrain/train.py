@@ -48,7 +48,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..constants import NUM_CATEGORIES
-from ..distributed import DistInfo, init_distributed, resolve_device
+from ..distributed import DistInfo, barrier, init_distributed, resolve_device
 from ..schedule import warmup_cosine
 from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_checkpoints, load_tensors,
                           optimizer_file, optimizer_from_tensors, optimizer_to_tensors, read_json, resume_newest,
@@ -342,15 +342,9 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
     _check_config(out, cfg, model_cfg, write=False)
     prog = read_progress(out)
     if prog and prog.get("finished"):
-        if di.rank == 0 and progress:
-            print(f"{out}: pretraining already finished ({prog['step']} steps); nothing to do")
-        return {"step": prog["step"], "total_steps": prog["total_steps"], "finished": True,
-                "loss": prog.get("loss")}, None
+        return _finished_summary(out, prog, say=di.rank == 0 and progress), None
     sup = cfg.method == "resnet18-sup"
-    images = data if isinstance(data, RGBDImages) else RGBDImages(
-        data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
-    if images.img_size != cfg.img_size or (sup and not images.with_labels):
-        raise ValueError("the given RGBDImages do not match the config (img_size / labels)")
+    images = _train_images(cfg, data)
     model = build_model(cfg).to(device)
     if di.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
@@ -360,9 +354,8 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
     groups, names = param_groups(model, cfg.weight_decay)
     opt = torch.optim.AdamW(groups, lr=b.peak_lr, betas=cfg.betas, foreach=True)
     start = 0 if prog is None else _resume(out, prog, b, model, opt, names, device, di)
-    ddp = model
-    if b.world > 1:
-        ddp = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    ddp = model if b.world == 1 else nn.parallel.DistributedDataParallel(
+        model, device_ids=[device.index] if device.type == "cuda" else None)
     aug_cfg = AugmentConfig(flip_prob=cfg.flip_prob, crop=cfg.method == "demae-crop", crop_scale=cfg.crop_scale)
     L = 0 if sup else model.config.num_patches
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
@@ -374,8 +367,7 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
         if di.rank == 0:
             _save_checkpoint(out, model, opt, names, model_cfg, cfg.method, b, step, finished, loss_value)
 
-    step, last_loss = start, None
-    consistent = True
+    step, last_loss, consistent = start, None, True
     end = b.total if stop_at is None else min(b.total, stop_at)
     model.train()
     try:
@@ -405,8 +397,7 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
                 log.step(step, losses, opt.param_groups[0]["lr"])
             if step % cfg.checkpoint_every == 0 and step < end:
                 save_checkpoint(step, False, last_loss)
-                if b.world > 1:
-                    dist.barrier()
+                barrier(di)
             if _stop_requested(stop, b.world, device) and step < end:
                 save_checkpoint(step, False, last_loss)
                 raise KeyboardInterrupt("stop requested")
@@ -422,9 +413,25 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
         if finished:
             _write_final(out, model, model_cfg, cfg, images)
         save_checkpoint(step, finished, last_loss)
-    if b.world > 1:
-        dist.barrier()
+    barrier(di)
     return {"step": step, "total_steps": b.total, "finished": finished, "loss": last_loss}, model
+
+
+def _finished_summary(out: Path, prog: dict, say: bool) -> dict:
+    """The summary of a finished run (which is not retrained); ``say`` prints so in one line."""
+    if say:
+        print(f"{out}: pretraining already finished ({prog['step']} steps); nothing to do")
+    return {"step": prog["step"], "total_steps": prog["total_steps"], "finished": True, "loss": prog.get("loss")}
+
+
+def _train_images(cfg: PretrainConfig, data: str | Path | RGBDImages) -> RGBDImages:
+    """The training images of ``data`` (a dataset folder, or images loaded already that must match ``cfg``)."""
+    sup = cfg.method == "resnet18-sup"
+    images = data if isinstance(data, RGBDImages) else RGBDImages(
+        data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
+    if images.img_size != cfg.img_size or (sup and not images.with_labels):
+        raise ValueError("the given RGBDImages do not match the config (img_size / labels)")
+    return images
 
 
 @dataclass(frozen=True)
