@@ -96,6 +96,30 @@ def test_stage_bookkeeping_matches_reference(bank, episodes):
     assert 0 < sum(r.entered_pathfinding for r in recs) < len(recs)
 
 
+def test_stage_lengths_one_function_two_ways_for_unreachable_starts():
+    """The searching / pathfinding lengths of training statistics and evaluation records come from one function
+    (rl/stats.py); the two differ only in what an unreachable optimal search length becomes (kept as
+    UNREACHABLE for the statistics, -1 in records), named by ``unreachable``. Values by hand."""
+    from tsnav.rl.stats import stage_lengths
+
+    dist = np.array([[3, 0], [1, 2], [0, 5]])  # state x target
+    search_dist = np.array([[2, 0], [UNREACHABLE, 1], [0, 4]])
+    start, target = np.array([0, 1, 2]), np.array([0, 0, 1])
+    L, entered = np.array([7, 4, 6]), np.array([True, False, True])
+    switch_length, switch_state = np.array([3, 0, 0]), np.array([1, 1, 2])
+    kept = stage_lengths(dist, search_dist, start, target, L, entered, switch_length, switch_state)
+    assert kept["search_length"].tolist() == [3, 4, 0]
+    assert kept["optimal_search_length"].tolist() == [2, UNREACHABLE, 4]
+    assert kept["nav_length"].tolist() == [4, 0, 6]
+    assert kept["optimal_nav_length"].tolist() == [1, 0, 5]
+    written = stage_lengths(dist, search_dist, start, target, L, entered, switch_length, switch_state,
+                            unreachable=-1)
+    assert written["optimal_search_length"].tolist() == [2, -1, 4]
+    for k in ("search_length", "nav_length", "optimal_nav_length"):
+        assert np.array_equal(written[k], kept[k])
+    assert all(v.dtype == np.int64 for v in (*kept.values(), *written.values()))
+
+
 def test_detector_confidence_drives_the_switch(episodes):
     b = SceneBank(toy_scenes(), cache=False)
     conf = np.where(b.in_frame, 0.9, 0.1).astype(np.float32)

@@ -1,4 +1,4 @@
-"""Devices and data parallelism for every trainer under ``torchrun`` (gloo on the CPU, NCCL on GPUs), or in
+"""Devices, CPU threads and data parallelism for every trainer under ``torchrun`` (gloo on the CPU, NCCL on GPUs), or in
 processes started here (:func:`run_ranks`: ``tsnav train --procs N`` on one machine's CPU cores).
 
 The batched agent trainer steps its own episodes on every rank and averages gradients with one all-reduce per
@@ -21,6 +21,14 @@ from typing import Any, Callable
 
 import torch
 import torch.distributed as dist
+
+
+def set_threads(n: int) -> int:
+    """Set this process's torch intra-op CPU threads to ``n`` (at least 1); returns the number set. The one
+    place tsnav sets them (trainers, their workers and ranks, commands)."""
+    n = max(1, int(n))
+    torch.set_num_threads(n)
+    return n
 
 
 def resolve_device(name: str) -> torch.device:

@@ -220,95 +220,22 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
     if (dst / COMPLETE_MARKER).exists() and not cfg.overwrite:
         stats.skipped = True
         return stats
-    for name in (L.GRAPH_FILE, L.GRID_FILE):
-        if not (src / name).exists():
-            raise SceneFormatError(f"{src / name}: missing file")
-    vis_path = next((src / n for n in (L.VISIBLE_MAP_FILE, L.VISIBLE_MAP_FILE_SAVN) if (src / n).exists()), None)
-    meta_path = src / L.METADATA_FILE if (src / L.METADATA_FILE).exists() else None
-    if vis_path is None and meta_path is None:
-        raise SceneFormatError(f"{src}: no {L.VISIBLE_MAP_FILE}, {L.VISIBLE_MAP_FILE_SAVN} or {L.METADATA_FILE}")
+    vis_path, meta_path = _sources(src)
 
     # States and transitions exactly as the reader sees the lineage folder (validates graph.json).
     base = load_scene(src)
     S = base.num_states
     grid = _read_grid(src / L.GRID_FILE)
-    def codes(x, z):  # integer centimetres -> one int64 per position
-        return np.round(np.asarray(x, np.float64) * 100).astype(np.int64) * 1_000_003 + np.round(
-            np.asarray(z, np.float64) * 100).astype(np.int64)
+    _check_grid(src, base, grid)
+    vis_path, vis, raw = _read_visibility(vis_path, meta_path)
+    order, records, visible = _object_table(base, vis_path, vis, meta_path, raw)
+    distance = None if raw is None else _distances(base, records)
 
-    off = ~np.isin(codes(base.x, base.z), codes(grid[:, 0], grid[:, 2]))
-    if off.any():
-        i = int(np.flatnonzero(off)[0])
-        raise SceneFormatError(f"{src / L.GRID_FILE}: position of state {base.keys[i]} (graph.json) is not in the grid")
-
-    vis = None
-    if vis_path is not None:
-        vis = _check_visible_map(vis_path, _load_json(vis_path))
-    raw, meta_objects = None, {}
-    if meta_path is not None:
-        m = _load_json(meta_path)
-        if _is_raw_metadata(m):
-            raw = m
-        elif vis is None:
-            vis_path, vis = meta_path, _check_visible_map(meta_path, m)  # SAVN's swapped-in visibility map
-    if raw is not None:
-        meta_objects, mrows, moids = _objects_from_metadata(meta_path, raw, base)
-
-    # Object table: metadata objects, then visibility-map ids not in the metadata.
-    order = sorted(meta_objects)
-    if vis is not None:
-        seen = set(order)
-        order += sorted(k for k in vis if k not in seen)
-    records = [_object_record(oid, meta_objects.get(oid)) for oid in order]
-    col = {oid: j for j, oid in enumerate(order)}
-    O = len(order)
-    visible = np.zeros((S, O), dtype=bool)
-    if vis is not None:
-        for oid, keys in vis.items():
-            if keys:
-                visible[_state_ids(base, keys, f"{vis_path} (object {oid})"), col[oid]] = True
-    elif raw is not None and mrows:
-        visible[np.asarray(mrows), np.array([col[o] for o in moids])] = True
-
-    distance = None
-    if raw is not None:
-        pos = np.stack([base.x, base.z], 1).astype(np.float64)
-        has = np.array(["bbox" in r for r in records], dtype=bool)
-        distance = np.full((S, O), np.nan, dtype=np.float32)
-        if has.any():
-            b = [records[j]["bbox"] for j in np.flatnonzero(has)]
-            distance[:, has] = box_distance(pos, np.array([x["center"] for x in b], np.float64),
-                                            np.array([x["size"] for x in b], np.float64), np.zeros(len(b)))
-
-    stats.states, stats.positions, stats.objects = S, len(grid), O
+    stats.states, stats.positions, stats.objects = S, len(grid), len(order)
     stats.distances = distance is not None
     with scene_folder(dst) as tmp:
-        image_size = 0
-        carried = []
-        for name, channels in ((L.IMAGES_FILE, True), (L.DEPTH_FILE, False)):
-            if (src / name).exists():
-                size, warn = _check_images(src / name, base, name, channels)
-                image_size = image_size or size
-                stats.warnings += warn
-                carried.append(name)
-        for name in L.EXTRA_FILES + L.DETECTION_FILES:
-            if (src / name).exists():
-                carried.append(name)
-        if raw is not None:
-            carried.append(L.METADATA_FILE)
-        det_path = next((src / n for n in L.DETECTION_FILES if (src / n).exists()), None)
-        if det_path is not None:
-            try:
-                with h5py.File(det_path, "r") as f:
-                    det_keys = sorted(f.keys())
-            except OSError as e:
-                raise SceneFormatError(f"{det_path}: unreadable HDF5 ({_one_line(e)})") from None
-            _state_ids(base, det_keys, str(det_path))
-            det = L.read_detections_22x264(det_path, image_size=cfg.detection_image_size, keys=base.keys)
-            write_detections(tmp, L.DETECTIONS_LINEAGE_NAME, det)
-            if len(det_keys) < S:
-                stats.warnings.append(f"{det_path.name}: no detections for {S - len(det_keys)} of {S} states")
-            stats.detections = True
+        image_size, carried = _carried_files(src, base, raw, stats)
+        _import_detections(src, tmp, base, cfg.detection_image_size, image_size, stats)
         if cfg.copy_mode != "none":
             for name in carried:
                 _place(src / name, tmp / name, cfg.copy_mode)
@@ -323,34 +250,160 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
                 vmap = L.visible_object_map(order, base.keys, visible)
             write_json(tmp / L.VISIBLE_MAP_FILE, vmap)
         if distance is not None:
+            O = len(order)
             write_states(tmp, base.keys, order, np.full((S, O), -1, np.int32), np.full((S, O, 4), -1, np.int16),
                          distance, image_size=image_size)
-        floor = L.derive_floor(grid[:, [0, 2]], GRID_SIZE)
-        room_type, split = lineage_scene_info(dst.name)
-        meta = {
-            "format": "tsnav-scene", "version": 1, "name": dst.name, "room_type": room_type, "split": split,
-            "rooms": [], "floor": [p.tolist() for p in floor], "furniture": [], "objects": records,
-            "image_size": image_size, "num_states": S, "num_positions": int(len(grid)),
-            "visibility": {"distance": VISIBILITY_DISTANCE,
-                           "rule": "AI2-THOR's visible flag (in view, within 1.5 m) from the lineage's data"},
-            "source": {"format": "ai2thor-offline-data", "path": str(src.resolve()), "files": sorted(carried),
-                       "config": asdict(cfg)},
-            "derived": {
-                "floor": "union of 0.25 m squares centred on grid.json positions, holes filled",
-                "objects": "visible_object_map ids (Type|x|y|z)" + (" and metadata.json objects" if raw else ""),
-                "distance": ("floor plane, state position to the footprint of the object's axis-aligned box"
-                             if distance is not None else "unknown: success uses the visibility map alone"),
-                "detections": L.DETECTIONS_LINEAGE_FILE if stats.detections else None,
-            },
-            "warnings": stats.warnings,
-        }
-        write_json(tmp / "scene.json", meta)
+        write_json(tmp / "scene.json", _scene_meta(src, dst, grid, records, image_size, S, raw is not None,
+                                                   distance is not None, carried, cfg, stats))
         check = load_scene(tmp)  # the result must read back as a tsnav scene
         if check.num_states != S or not check.floor:
             raise SceneFormatError(f"{dst}: imported scene does not read back")
     stats.image_size = image_size
     stats.files = sorted(p.name for p in dst.iterdir())
     return stats
+
+
+def _sources(src: Path) -> tuple[Path | None, Path | None]:
+    """The scene's visibility map (the lineage's or SAVN's name) and ``metadata.json``, each None when absent;
+    :class:`SceneFormatError` when ``graph.json`` or ``grid.json`` is missing or neither of the two is there."""
+    for name in (L.GRAPH_FILE, L.GRID_FILE):
+        if not (src / name).exists():
+            raise SceneFormatError(f"{src / name}: missing file")
+    vis_path = next((src / n for n in (L.VISIBLE_MAP_FILE, L.VISIBLE_MAP_FILE_SAVN) if (src / n).exists()), None)
+    meta_path = src / L.METADATA_FILE if (src / L.METADATA_FILE).exists() else None
+    if vis_path is None and meta_path is None:
+        raise SceneFormatError(f"{src}: no {L.VISIBLE_MAP_FILE}, {L.VISIBLE_MAP_FILE_SAVN} or {L.METADATA_FILE}")
+    return vis_path, meta_path
+
+
+def _check_grid(src: Path, base, grid: np.ndarray) -> None:
+    """:class:`SceneFormatError` when the position of a state of ``graph.json`` is not in ``grid.json``."""
+    def codes(x, z):  # integer centimetres -> one int64 per position
+        return np.round(np.asarray(x, np.float64) * 100).astype(np.int64) * 1_000_003 + np.round(
+            np.asarray(z, np.float64) * 100).astype(np.int64)
+
+    off = ~np.isin(codes(base.x, base.z), codes(grid[:, 0], grid[:, 2]))
+    if off.any():
+        i = int(np.flatnonzero(off)[0])
+        raise SceneFormatError(f"{src / L.GRID_FILE}: position of state {base.keys[i]} (graph.json) is not in the grid")
+
+
+def _read_visibility(vis_path: Path | None, meta_path: Path | None) -> tuple[Path | None, dict | None, dict | None]:
+    """``(path, visibility map, raw metadata)``: the map (objectId -> state keys) and the lineage's raw per-state
+    metadata, each None when the scene has none. A ``metadata.json`` that is not raw metadata is SAVN's
+    swapped-in visibility map, used when there is no other."""
+    vis = None
+    if vis_path is not None:
+        vis = _check_visible_map(vis_path, _load_json(vis_path))
+    raw = None
+    if meta_path is not None:
+        m = _load_json(meta_path)
+        if _is_raw_metadata(m):
+            raw = m
+        elif vis is None:
+            vis_path, vis = meta_path, _check_visible_map(meta_path, m)  # SAVN's swapped-in visibility map
+    return vis_path, vis, raw
+
+
+def _object_table(base, vis_path: Path | None, vis: dict | None, meta_path: Path | None,
+                  raw: dict | None) -> tuple[list[str], list[dict], np.ndarray]:
+    """Object ids (metadata objects, then visibility-map ids not in the metadata), their ``scene.json`` records
+    and the ``(S, O)`` visible flags (from the map, else from the raw metadata's ``visible``)."""
+    meta_objects, mrows, moids = {}, [], []
+    if raw is not None:
+        meta_objects, mrows, moids = _objects_from_metadata(meta_path, raw, base)
+    order = sorted(meta_objects)
+    if vis is not None:
+        seen = set(order)
+        order += sorted(k for k in vis if k not in seen)
+    records = [_object_record(oid, meta_objects.get(oid)) for oid in order]
+    col = {oid: j for j, oid in enumerate(order)}
+    visible = np.zeros((base.num_states, len(order)), dtype=bool)
+    if vis is not None:
+        for oid, keys in vis.items():
+            if keys:
+                visible[_state_ids(base, keys, f"{vis_path} (object {oid})"), col[oid]] = True
+    elif raw is not None and mrows:
+        visible[np.asarray(mrows), np.array([col[o] for o in moids])] = True
+    return order, records, visible
+
+
+def _distances(base, records: list[dict]) -> np.ndarray:
+    """``(S, O)`` floor-plane distances (m) from each state's position to each object's box footprint (NaN for an
+    object without a box)."""
+    S, O = base.num_states, len(records)
+    pos = np.stack([base.x, base.z], 1).astype(np.float64)
+    has = np.array([("bbox" in r) for r in records], dtype=bool)
+    distance = np.full((S, O), np.nan, dtype=np.float32)
+    if has.any():
+        b = [records[j]["bbox"] for j in np.flatnonzero(has)]
+        distance[:, has] = box_distance(pos, np.array([x["center"] for x in b], np.float64),
+                                        np.array([x["size"] for x in b], np.float64), np.zeros(len(b)))
+    return distance
+
+
+def _carried_files(src: Path, base, raw: dict | None, stats: ImportStats) -> tuple[int, list[str]]:
+    """The frame size of the lineage's images (0 without) and the names of its files to carry over; the images
+    and depth files are checked against the states (warnings go to ``stats``)."""
+    image_size = 0
+    carried = []
+    for name, channels in ((L.IMAGES_FILE, True), (L.DEPTH_FILE, False)):
+        if (src / name).exists():
+            size, warn = _check_images(src / name, base, name, channels)
+            image_size = image_size or size
+            stats.warnings += warn
+            carried.append(name)
+    for name in L.EXTRA_FILES + L.DETECTION_FILES:
+        if (src / name).exists():
+            carried.append(name)
+    if raw is not None:
+        carried.append(L.METADATA_FILE)
+    return image_size, carried
+
+
+def _import_detections(src: Path, tmp: Path, base, detection_image_size: int, image_size: int,
+                       stats: ImportStats) -> None:
+    """The lineage's 22 x 264 detection table (when the scene has one) as ``detections_lineage.hdf5``."""
+    det_path = next((src / n for n in L.DETECTION_FILES if (src / n).exists()), None)
+    if det_path is None:
+        return
+    S = base.num_states
+    try:
+        with h5py.File(det_path, "r") as f:
+            det_keys = sorted(f.keys())
+    except OSError as e:
+        raise SceneFormatError(f"{det_path}: unreadable HDF5 ({_one_line(e)})") from None
+    _state_ids(base, det_keys, str(det_path))
+    det = L.read_detections_22x264(det_path, image_size=detection_image_size, keys=base.keys)
+    write_detections(tmp, L.DETECTIONS_LINEAGE_NAME, det)
+    if len(det_keys) < S:
+        stats.warnings.append(f"{det_path.name}: no detections for {S - len(det_keys)} of {S} states")
+    stats.detections = True
+
+
+def _scene_meta(src: Path, dst: Path, grid: np.ndarray, records: list[dict], image_size: int, S: int,
+                has_metadata: bool, has_distances: bool, carried: list[str], cfg: ImportConfig,
+                stats: ImportStats) -> dict:
+    """``scene.json`` of the imported scene: floor from the grid, objects, where it came from, what was derived."""
+    floor = L.derive_floor(grid[:, [0, 2]], GRID_SIZE)
+    room_type, split = lineage_scene_info(dst.name)
+    return {
+        "format": "tsnav-scene", "version": 1, "name": dst.name, "room_type": room_type, "split": split,
+        "rooms": [], "floor": [p.tolist() for p in floor], "furniture": [], "objects": records,
+        "image_size": image_size, "num_states": S, "num_positions": int(len(grid)),
+        "visibility": {"distance": VISIBILITY_DISTANCE,
+                       "rule": "AI2-THOR's visible flag (in view, within 1.5 m) from the lineage's data"},
+        "source": {"format": "ai2thor-offline-data", "path": str(src.resolve()), "files": sorted(carried),
+                   "config": asdict(cfg)},
+        "derived": {
+            "floor": "union of 0.25 m squares centred on grid.json positions, holes filled",
+            "objects": "visible_object_map ids (Type|x|y|z)" + (" and metadata.json objects" if has_metadata else ""),
+            "distance": ("floor plane, state position to the footprint of the object's axis-aligned box"
+                         if has_distances else "unknown: success uses the visibility map alone"),
+            "detections": L.DETECTIONS_LINEAGE_FILE if stats.detections else None,
+        },
+        "warnings": stats.warnings,
+    }
 
 
 def find_lineage_scenes(src: str | Path) -> list[Path]:

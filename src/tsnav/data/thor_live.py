@@ -191,184 +191,268 @@ def export_live(controller, scene_name: str, out_dir: str | Path, size: int | No
     ev = controller.reset(scene_name)
     if ev is not None:  # fail before the walk when the settings are wrong
         _check_frames(ev, cfg.size, scene_name)
+    agent = _Agent(controller, stats, _reachable_positions(controller, stats, scene_name))
+
+    # --- 1. walk the action graph; keep its largest strongly connected set of states.
+    valid, move_to = _walk(agent)
+    states = _States.of(agent.raw, valid, move_to, scene_name)
+    stats.dropped = states.dropped
+
+    # --- 2. render every kept state; 3. distances, visibility map and the remaining files.
+    with scene_folder(final) as tmp, FrameWriter(tmp, cfg.depth_dtype) as frames:
+        objects, pixels, boxes, thor_visible, ev = _render(agent, states, frames, cfg, scene_name)
+        frames.close()
+        min_px = _write_tables(tmp, states, objects, pixels, boxes, thor_visible, cfg)
+        write_json(tmp / "scene.json", _scene_meta(scene_name, controller, ev, states, objects, min_px, cfg))
+        if load_scene(tmp).num_states != states.count:
+            raise SceneFormatError(f"{final}: exported scene does not read back")
+    stats.states, stats.positions, stats.objects = states.count, int(len(states.positions)), len(objects)
+    stats.seconds = time.perf_counter() - t0
+    return stats
+
+
+def _reachable_positions(controller, stats: LiveStats, scene_name: str) -> np.ndarray:
+    """``(P, 3)`` reachable positions (metres), one per 2-decimal (x, z): the state key's precision."""
     ev = _step(controller, stats, action="GetReachablePositions")
     reach = ev.metadata.get("actionReturn") if _ok(ev) else None
     if not reach:
         raise LiveExportError(f"{scene_name}: GetReachablePositions failed or returned no position")
     raw = np.array([[p["x"], p["y"], p["z"]] for p in reach], dtype=np.float64)
-    # One position per 2-decimal (x, z): the state key's precision.
     codes = _cm(raw[:, 0]) * 1_000_003 + _cm(raw[:, 2])
     _, first = np.unique(codes, return_index=True)
-    raw = raw[np.sort(first)]
-    P = len(raw)
-    pcode = {(int(a), int(b)): i for i, (a, b) in enumerate(zip(_cm(raw[:, 0]), _cm(raw[:, 2])))}
-    R, H = len(ROTATIONS), len(HORIZONS)
+    return raw[np.sort(first)]
 
-    def teleport(i: int, rot: int, hor: int):
-        x, y, z = raw[i]
-        return _step(controller, stats, action="Teleport", position=dict(x=float(x), y=float(y), z=float(z)),
-                     rotation=dict(x=0.0, y=float(rot), z=0.0), horizon=float(hor), standing=True)
 
-    def pose_ok(ev, i: int, rot: int, hor: int) -> bool:
+class _Agent:
+    """The controller's agent over the reachable positions ``raw``: teleports and the check of where it landed."""
+
+    def __init__(self, controller, stats: LiveStats, raw: np.ndarray):
+        self.controller, self.stats, self.raw = controller, stats, raw
+        self.pcode = {(int(a), int(b)): i for i, (a, b) in enumerate(zip(_cm(raw[:, 0]), _cm(raw[:, 2])))}
+        """Position index of each (x, z) in centimetres."""
+
+    def step(self, **action):
+        return _step(self.controller, self.stats, **action)
+
+    def teleport(self, i: int, rot: int, hor: int):
+        x, y, z = self.raw[i]
+        return self.step(action="Teleport", position=dict(x=float(x), y=float(y), z=float(z)),
+                         rotation=dict(x=0.0, y=float(rot), z=0.0), horizon=float(hor), standing=True)
+
+    def pose_ok(self, ev, i: int, rot: int, hor: int) -> bool:
+        """The action succeeded and the agent stands at position ``i`` with that rotation and horizon."""
         pose = agent_pose(ev.metadata)
-        return (_ok(ev) and pose is not None and abs(pose[0] - raw[i, 0]) < 0.01 and abs(pose[2] - raw[i, 2]) < 0.01
-                and pose[3:] == (rot, hor))
+        return (_ok(ev) and pose is not None and abs(pose[0] - self.raw[i, 0]) < 0.01
+                and abs(pose[2] - self.raw[i, 2]) < 0.01 and pose[3:] == (rot, hor))
 
-    # --- 1. walk the action graph: which (position, rotation) exist and which MoveAhead succeed.
+
+def _walk(agent: _Agent) -> tuple[np.ndarray, np.ndarray]:
+    """Which (position, rotation) exist (``(P, R)`` bool: the teleport there succeeds) and where a MoveAhead from
+    each lands (``(P, R)`` position index, -1: it fails or leaves the grid)."""
+    raw = agent.raw
+    P, R = len(raw), len(ROTATIONS)
     valid = np.zeros((P, R), dtype=bool)
     move_to = np.full((P, R), -1, dtype=np.int64)
     for i in range(P):
         for ri, rot in enumerate(ROTATIONS):
-            if not pose_ok(teleport(i, rot, 0), i, rot, 0):
+            if not agent.pose_ok(agent.teleport(i, rot, 0), i, rot, 0):
                 continue
             valid[i, ri] = True
             diag = rot % 90 != 0
-            ev = _step(controller, stats, action="MoveAhead", moveMagnitude=GRID_SIZE * (math.sqrt(2) if diag else 1.0))
+            ev = agent.step(action="MoveAhead", moveMagnitude=GRID_SIZE * (math.sqrt(2) if diag else 1.0))
             if not _ok(ev):
                 continue
             ex, ez = int(round(math.sin(math.radians(rot)))), int(round(math.cos(math.radians(rot))))
             target = (int(_cm(raw[i, 0])) + 25 * ex, int(_cm(raw[i, 2])) + 25 * ez)
             p = ev.metadata.get("agent", {}).get("position", {})
             landed = (int(_cm(p.get("x", 1e9))), int(_cm(p.get("z", 1e9))))
-            if target in pcode and abs(landed[0] - target[0]) <= 1 and abs(landed[1] - target[1]) <= 1:
-                move_to[i, ri] = pcode[target]
-    # State ids: (position, rotation, horizon) -> i * R * H + ri * H + hi
-    sid = lambda i, ri, hi: (i * R + ri) * H + hi  # noqa: E731
-    edges = []
-    for i, ri in zip(*np.nonzero(valid)):
-        for hi in range(H):
-            a = sid(i, ri, hi)
-            for d in (1, -1):
-                rj = (ri + d) % R
-                if valid[i, rj]:
-                    edges.append((a, sid(i, rj, hi)))
-            if hi + 1 < H:
-                edges.append((a, sid(i, ri, hi + 1)))
-                edges.append((sid(i, ri, hi + 1), a))
-            j = move_to[i, ri]
-            if j >= 0 and valid[j, ri]:
-                edges.append((a, sid(j, ri, hi)))
-    g = nx.DiGraph()
-    g.add_nodes_from(sid(i, ri, hi) for i, ri in zip(*np.nonzero(valid)) for hi in range(H))
-    g.add_edges_from(edges)
-    if g.number_of_nodes() == 0:
-        raise LiveExportError(f"{scene_name}: no teleport to a reachable position succeeded")
-    keep = max(nx.strongly_connected_components(g), key=len)
-    stats.dropped = g.number_of_nodes() - len(keep)
-    kept = np.array(sorted(keep), dtype=np.int64)
-    pos_i, rot_i, hor_i = kept // (R * H), (kept // H) % R, kept % H
-    # key positions: two decimals, no negative zero (Unity reports -1e-7 for 0; the key must read 0.00)
-    kx, kz = np.round(raw[:, 0], 2) + 0.0, np.round(raw[:, 2], 2) + 0.0
-    keys = np.array([state_key(kx[i], kz[i], ROTATIONS[r], HORIZONS[h]) for i, r, h in zip(pos_i, rot_i, hor_i)])
-    key_of = dict(zip(kept.tolist(), keys.tolist()))
-    kept_edges = [(key_of[a], key_of[b]) for a, b in g.subgraph(keep).edges()]
-    positions = np.unique(pos_i)
+            if target in agent.pcode and abs(landed[0] - target[0]) <= 1 and abs(landed[1] - target[1]) <= 1:
+                move_to[i, ri] = agent.pcode[target]
+    return valid, move_to
 
-    # --- 2. render every kept state.
-    V = len(kept)
-    with scene_folder(final) as tmp, FrameWriter(tmp, cfg.depth_dtype) as frames:
-        objects: list[dict] | None = None
-        lut_cols: dict[str, int] = {}
-        thor_visible = None
-        pixels = boxes = None
-        ids_buf: list[np.ndarray] = []
-        buf_start = 0
 
-        def flush(upto: int):
-            nonlocal buf_start, ids_buf
-            if not ids_buf:
-                return
-            ids = np.stack(ids_buf)
-            O = len(objects)
-            lut = np.arange(O + 1, dtype=np.int64) - 1  # id map holds column + 1 (0 = no object)
-            px, bx = object_stats(ids, lut, O) if O else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
-            pixels[buf_start:upto] = px
-            boxes[buf_start:upto] = bx
-            buf_start, ids_buf = upto, []
+@dataclass
+class _States:
+    """The kept states: the largest strongly connected set of the walked action graph."""
 
-        for v in range(V):
-            i, ri, hi = int(pos_i[v]), int(rot_i[v]), int(hor_i[v])
-            ev = teleport(i, ROTATIONS[ri], HORIZONS[hi])
-            if not pose_ok(ev, i, ROTATIONS[ri], HORIZONS[hi]):
-                raise LiveExportError(f"{scene_name}: teleport to state {keys[v]} failed while rendering")
-            if objects is None:
-                objects = _object_table(ev, cfg)
-                lut_cols = {o["objectId"]: j for j, o in enumerate(objects)}
-                O = len(objects)
-                thor_visible = np.zeros((V, O), bool)
-                pixels = np.zeros((V, O), np.int32)
-                boxes = np.full((V, O, 4), -1, np.int16)
-                _check_frames(ev, cfg.size, scene_name)
-            frame, depth = np.asarray(ev.frame), np.asarray(ev.depth_frame)
-            if frame.shape != (cfg.size, cfg.size, 3):
-                raise LiveExportError(f"{scene_name}: frame of {keys[v]} is {frame.shape}, expected ({cfg.size}, {cfg.size}, 3)")
-            frames.add(keys[v], frame.astype(np.uint8), depth)
-            idmap = np.zeros(frame.shape[:2], np.int64)
-            masks = ev.instance_masks
-            for oid, j in lut_cols.items():
-                m = masks.get(oid) if hasattr(masks, "get") else None
-                if m is not None:
-                    idmap[np.asarray(m, dtype=bool)] = j + 1
-            ids_buf.append(idmap)
-            for oid in visible_object_ids(ev.metadata):
-                j = lut_cols.get(oid)
-                if j is not None:
-                    thor_visible[v, j] = True
-            if len(ids_buf) >= cfg.chunk:
-                flush(v + 1)
-        flush(V)
-        frames.close()
+    pos_i: np.ndarray
+    """Position index of each kept state (in state-id order)."""
+    rot_i: np.ndarray
+    hor_i: np.ndarray
+    keys: np.ndarray
+    """State keys of the kept states (same order)."""
+    edges: list
+    """(key, key) edges among them."""
+    kx: np.ndarray
+    """x of every reachable position as the key writes it (two decimals, no negative zero)."""
+    kz: np.ndarray
+    y: np.ndarray
+    """Height of every reachable position (metres)."""
+    dropped: int
+    """States outside the kept set."""
 
-        # --- 3. distances, visibility map and the remaining files.
+    @property
+    def count(self) -> int:
+        return int(len(self.keys))
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Indices of the positions with a kept state."""
+        return np.unique(self.pos_i)
+
+    @classmethod
+    def of(cls, raw: np.ndarray, valid: np.ndarray, move_to: np.ndarray, scene_name: str) -> "_States":
+        R, H = len(ROTATIONS), len(HORIZONS)
+        # State ids: (position, rotation, horizon) -> i * R * H + ri * H + hi
+        sid = lambda i, ri, hi: (i * R + ri) * H + hi  # noqa: E731
+        edges = []
+        for i, ri in zip(*np.nonzero(valid)):
+            for hi in range(H):
+                a = sid(i, ri, hi)
+                for d in (1, -1):
+                    rj = (ri + d) % R
+                    if valid[i, rj]:
+                        edges.append((a, sid(i, rj, hi)))
+                if hi + 1 < H:
+                    edges.append((a, sid(i, ri, hi + 1)))
+                    edges.append((sid(i, ri, hi + 1), a))
+                j = move_to[i, ri]
+                if j >= 0 and valid[j, ri]:
+                    edges.append((a, sid(j, ri, hi)))
+        g = nx.DiGraph()
+        g.add_nodes_from(sid(i, ri, hi) for i, ri in zip(*np.nonzero(valid)) for hi in range(H))
+        g.add_edges_from(edges)
+        if g.number_of_nodes() == 0:
+            raise LiveExportError(f"{scene_name}: no teleport to a reachable position succeeded")
+        keep = max(nx.strongly_connected_components(g), key=len)
+        kept = np.array(sorted(keep), dtype=np.int64)
+        pos_i, rot_i, hor_i = kept // (R * H), (kept // H) % R, kept % H
+        # key positions: two decimals, no negative zero (Unity reports -1e-7 for 0; the key must read 0.00)
+        kx, kz = np.round(raw[:, 0], 2) + 0.0, np.round(raw[:, 2], 2) + 0.0
+        keys = np.array([state_key(kx[i], kz[i], ROTATIONS[r], HORIZONS[h]) for i, r, h in zip(pos_i, rot_i, hor_i)])
+        key_of = dict(zip(kept.tolist(), keys.tolist()))
+        kept_edges = [(key_of[a], key_of[b]) for a, b in g.subgraph(keep).edges()]
+        return cls(pos_i, rot_i, hor_i, keys, kept_edges, kx, kz, raw[:, 1], g.number_of_nodes() - len(keep))
+
+
+def _render(agent: _Agent, states: _States, frames: FrameWriter, cfg: LiveConfig, scene_name: str):
+    """Teleport to every kept state and write its frames; returns the object table (from the first state's
+    metadata), per state and object the visible pixels, boxes and AI2-THOR's ``visible`` flag, and the last
+    event."""
+    V = states.count
+    objects: list[dict] | None = None
+    lut_cols: dict[str, int] = {}
+    thor_visible = None
+    pixels = boxes = None
+    ids_buf: list[np.ndarray] = []
+    buf_start = 0
+
+    def flush(upto: int):
+        nonlocal buf_start, ids_buf
+        if not ids_buf:
+            return
+        ids = np.stack(ids_buf)
         O = len(objects)
-        boxes3 = [_aabb(o) for o in objects]
-        distance = np.full((V, O), np.nan, np.float32)
-        has = np.array([b is not None for b in boxes3], bool)
-        if has.any():
-            bb = [b for b in boxes3 if b is not None]
-            agent = np.stack([kx[pos_i], kz[pos_i]], 1)
-            distance[:, has] = box_distance(agent, np.array([b[0] for b in bb]), np.array([b[1] for b in bb]), np.zeros(len(bb)))
-        min_px = cfg.min_pixels()
-        vis = (pixels >= min_px) & (distance <= cfg.visibility_distance)
-        order = np.argsort(keys, kind="stable")
-        keys_s = keys[order]
-        vis_map = visible_object_map([o["objectId"] for o in objects], keys_s, vis[order])
-        write_json(tmp / "visible_object_map_1.5.json", vis_map)
-        write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(raw[i, 1]), "z": float(kz[i])} for i in positions])
-        write_graph(tmp, keys_s.tolist(), sorted(kept_edges))
-        write_states(tmp, keys_s, [o["objectId"] for o in objects], pixels[order], boxes[order], distance[order],
-                     image_size=cfg.size, min_pixels=min_px, extra={"thor_visible": thor_visible[order]})
-        room_type, split = lineage_scene_info(scene_name)
-        records = []
-        for o, b in zip(objects, boxes3):
-            rec = {"objectId": o["objectId"], "objectType": o.get("objectType", o["objectId"].split("|")[0])}
-            if isinstance(o.get("position"), dict):
-                rec["position"] = {a: float(o["position"][a]) for a in "xyz"}
-            if b is not None:
-                rec["bbox"] = {"center": b[0], "size": b[1], "yaw": 0.0}
-            if isinstance(o.get("axisAlignedBoundingBox"), dict):
-                rec["axisAlignedBoundingBox"] = o["axisAlignedBoundingBox"]
-            records.append(rec)
-        bounds = scene_bounds(ev.metadata)
-        meta = {
-            "format": "tsnav-scene", "version": 1, "name": scene_name, "room_type": room_type, "split": split,
-            "rooms": [], "floor": [p.tolist() for p in derive_floor(np.stack([kx[positions], kz[positions]], 1))], "furniture": [],
-            "objects": records, "scene_bounds": bounds, "image_size": cfg.size,
-            "visibility": {"min_pixels": min_px, "min_pixel_fraction": cfg.min_pixel_fraction,
-                           "distance": cfg.visibility_distance},
-            "num_states": int(V), "num_positions": int(len(positions)),
-            "source": {"format": "ai2thor-live", "controller": type(controller).__name__,
-                       "settings": controller_settings(cfg.size), "config": asdict(cfg)},
-            "derived": {"floor": "union of 0.25 m squares centred on the reachable positions, holes filled",
-                        "distance": "floor plane, agent position to the footprint of the object's axis-aligned box",
-                        "visible": "instance mask >= min_pixels and distance <= 1.5 m"},
-        }
-        write_json(tmp / "scene.json", meta)
-        if load_scene(tmp).num_states != V:
-            raise SceneFormatError(f"{final}: exported scene does not read back")
-    stats.states, stats.positions, stats.objects = int(V), int(len(positions)), len(objects)
-    stats.seconds = time.perf_counter() - t0
-    return stats
+        lut = np.arange(O + 1, dtype=np.int64) - 1  # id map holds column + 1 (0 = no object)
+        px, bx = object_stats(ids, lut, O) if O else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
+        pixels[buf_start:upto] = px
+        boxes[buf_start:upto] = bx
+        buf_start, ids_buf = upto, []
+
+    ev = None
+    for v in range(V):
+        i, ri, hi = int(states.pos_i[v]), int(states.rot_i[v]), int(states.hor_i[v])
+        key = states.keys[v]
+        ev = agent.teleport(i, ROTATIONS[ri], HORIZONS[hi])
+        if not agent.pose_ok(ev, i, ROTATIONS[ri], HORIZONS[hi]):
+            raise LiveExportError(f"{scene_name}: teleport to state {key} failed while rendering")
+        if objects is None:
+            objects = _object_table(ev, cfg)
+            lut_cols = {o["objectId"]: j for j, o in enumerate(objects)}
+            O = len(objects)
+            thor_visible = np.zeros((V, O), bool)
+            pixels = np.zeros((V, O), np.int32)
+            boxes = np.full((V, O, 4), -1, np.int16)
+            _check_frames(ev, cfg.size, scene_name)
+        frame, depth = np.asarray(ev.frame), np.asarray(ev.depth_frame)
+        if frame.shape != (cfg.size, cfg.size, 3):
+            raise LiveExportError(f"{scene_name}: frame of {key} is {frame.shape}, expected ({cfg.size}, {cfg.size}, 3)")
+        frames.add(key, frame.astype(np.uint8), depth)
+        idmap = np.zeros(frame.shape[:2], np.int64)
+        masks = ev.instance_masks
+        for oid, j in lut_cols.items():
+            m = masks.get(oid) if hasattr(masks, "get") else None
+            if m is not None:
+                idmap[np.asarray(m, dtype=bool)] = j + 1
+        ids_buf.append(idmap)
+        for oid in visible_object_ids(ev.metadata):
+            j = lut_cols.get(oid)
+            if j is not None:
+                thor_visible[v, j] = True
+        if len(ids_buf) >= cfg.chunk:
+            flush(v + 1)
+    flush(V)
+    return objects, pixels, boxes, thor_visible, ev
+
+
+def _write_tables(tmp: Path, states: _States, objects: list[dict], pixels: np.ndarray, boxes: np.ndarray,
+                  thor_visible: np.ndarray, cfg: LiveConfig) -> int:
+    """Object distances, then ``visible_object_map_1.5.json``, ``grid.json``, ``graph.json`` and ``states.hdf5``
+    (states in key order); returns the ``min_pixels`` used."""
+    V, O = states.count, len(objects)
+    kx, kz, pos_i, keys = states.kx, states.kz, states.pos_i, states.keys
+    boxes3 = [_aabb(o) for o in objects]
+    distance = np.full((V, O), np.nan, np.float32)
+    has = np.array([b is not None for b in boxes3], bool)
+    if has.any():
+        bb = [b for b in boxes3 if b is not None]
+        agent = np.stack([kx[pos_i], kz[pos_i]], 1)
+        distance[:, has] = box_distance(agent, np.array([b[0] for b in bb]), np.array([b[1] for b in bb]), np.zeros(len(bb)))
+    min_px = cfg.min_pixels()
+    vis = (pixels >= min_px) & (distance <= cfg.visibility_distance)
+    order = np.argsort(keys, kind="stable")
+    keys_s = keys[order]
+    vis_map = visible_object_map([o["objectId"] for o in objects], keys_s, vis[order])
+    write_json(tmp / "visible_object_map_1.5.json", vis_map)
+    write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(states.y[i]), "z": float(kz[i])}
+                                   for i in states.positions])
+    write_graph(tmp, keys_s.tolist(), sorted(states.edges))
+    write_states(tmp, keys_s, [o["objectId"] for o in objects], pixels[order], boxes[order], distance[order],
+                 image_size=cfg.size, min_pixels=min_px, extra={"thor_visible": thor_visible[order]})
+    return min_px
+
+
+def _scene_meta(scene_name: str, controller, ev, states: _States, objects: list[dict], min_px: int,
+                cfg: LiveConfig) -> dict:
+    """``scene.json``: the objects with their boxes, the floor derived from the reachable grid, the scene bounds
+    of the last event, the visibility rule and where the scene came from."""
+    room_type, split = lineage_scene_info(scene_name)
+    records = []
+    for o in objects:
+        b = _aabb(o)
+        rec = {"objectId": o["objectId"], "objectType": o.get("objectType", o["objectId"].split("|")[0])}
+        if isinstance(o.get("position"), dict):
+            rec["position"] = {a: float(o["position"][a]) for a in "xyz"}
+        if b is not None:
+            rec["bbox"] = {"center": b[0], "size": b[1], "yaw": 0.0}
+        if isinstance(o.get("axisAlignedBoundingBox"), dict):
+            rec["axisAlignedBoundingBox"] = o["axisAlignedBoundingBox"]
+        records.append(rec)
+    positions = states.positions
+    floor = derive_floor(np.stack([states.kx[positions], states.kz[positions]], 1))
+    return {
+        "format": "tsnav-scene", "version": 1, "name": scene_name, "room_type": room_type, "split": split,
+        "rooms": [], "floor": [p.tolist() for p in floor], "furniture": [],
+        "objects": records, "scene_bounds": scene_bounds(ev.metadata), "image_size": cfg.size,
+        "visibility": {"min_pixels": min_px, "min_pixel_fraction": cfg.min_pixel_fraction,
+                       "distance": cfg.visibility_distance},
+        "num_states": states.count, "num_positions": int(len(positions)),
+        "source": {"format": "ai2thor-live", "controller": type(controller).__name__,
+                   "settings": controller_settings(cfg.size), "config": asdict(cfg)},
+        "derived": {"floor": "union of 0.25 m squares centred on the reachable positions, holes filled",
+                    "distance": "floor plane, agent position to the footprint of the object's axis-aligned box",
+                    "visible": "instance mask >= min_pixels and distance <= 1.5 m"},
+    }
 
 
 def _object_table(ev, cfg: LiveConfig) -> list[dict]:

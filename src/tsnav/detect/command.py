@@ -23,12 +23,12 @@ import signal
 import threading
 from pathlib import Path
 
-import torch
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
 from ..data.detections import check_name, load_detections, read_fingerprint, write_detections
 from ..data.reader import list_scenes, load_scene
+from ..distributed import set_threads
 from ..errors import CommandError
 from .evaluate import evaluate_detections
 from .learned import LearnedDetector
@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--data {root}: no such dataset folder")
     if args.threads < 1:
         raise CommandError("--threads must be at least 1")
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     _sigterm_interrupts()
     name = check_name(args.name or ("learned" if args.detector == "shipped" else args.detector))
     scenes = list_scenes(root, split=args.split)

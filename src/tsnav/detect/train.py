@@ -41,6 +41,7 @@ from tqdm import tqdm
 from ..atomic import atomic_write_json
 from ..checkpoint import (CHECKPOINTS, STATE_FILE, list_checkpoints, load_tensors, optimizer_file, read_json,
                           resume_newest, save_checkpoint as save_checkpoint_folder, set_aside, weights_digest)
+from ..distributed import set_threads
 from ..errors import from_fields
 from ..schedule import warmup_cosine
 from .data import FrameSet, load_frames, make_batch
@@ -374,7 +375,7 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     train_cfg = train_cfg or DetectorTrainConfig()
     if not train_cfg.repeat_threshold >= 0:
         raise ValueError(f"repeat_threshold must be >= 0, got {train_cfg.repeat_threshold}")
-    torch.set_num_threads(max(1, int(train_cfg.threads)))
+    set_threads(train_cfg.threads)
     found = resume_state(ckpt)
     opt_state = None
     if found is not None:

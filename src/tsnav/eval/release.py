@@ -35,6 +35,7 @@ import torch
 
 from ..atomic import atomic_path, atomic_write_text
 from ..checkpoint import load_tensors, save_tensors
+from ..distributed import set_threads
 from ..errors import CommandError
 from ..metrics import METRICS
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
@@ -336,7 +337,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     folder = agent_folder(args.agent)
     card = read_card(folder)
-    torch.set_num_threads(max(1, args.threads))
+    set_threads(args.threads)
     data, out = Path(args.data), Path(args.out)
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
     t0 = time.perf_counter()

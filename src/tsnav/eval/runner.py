@@ -39,6 +39,7 @@ from ..sim.episodes import Episode, episodes_to_arrays, read_episodes
 from ..sim.paths import UNREACHABLE, distance_fields
 from ..sim.stage import StageSwitch, switch_frame
 from ..protocol import check_protocol, protocol_of
+from ..rl.stats import stage_lengths
 from ..metrics import EpisodeRecord, read_records, summarize, write_json, write_records
 from .outcomes import OUTCOMES_FILE, outcome_summary
 from .policies import make_policy
@@ -72,19 +73,19 @@ def evaluate(bank: SceneBank, episodes: list[Episode], policy, config: EvalConfi
     for lo in range(0, len(episodes), config.batch_size):
         hi = min(lo + config.batch_size, len(episodes))
         cols = _run_chunk(bank, scene_idx[lo:hi], target[lo:hi], start[lo:hi], policy, switch, config)
-        opt_search = search_dist[start[lo:hi], target[lo:hi]]
+        lengths = stage_lengths(bank.dist, search_dist, start[lo:hi], target[lo:hi], cols["path_length"],
+                                cols["entered"], cols["switch_length"], cols["switch_state"], unreachable=-1)
         for j in range(hi - lo):
             e = episodes[lo + j]
             nav = bool(cols["entered"][j])
-            L = int(cols["path_length"][j])
-            Ls = int(cols["switch_length"][j]) if nav else L
-            os_ = int(opt_search[j])
             records.append(EpisodeRecord(
-                success=bool(cols["success"][j]), path_length=L, optimal_length=int(e.optimal_length),
-                entered_pathfinding=nav, pathfinding_start_step=int(cols["switch_step"][j]) if nav else None,
-                search_path_length=Ls, optimal_search_length=-1 if os_ == UNREACHABLE else os_,
-                pathfinding_path_length=(L - Ls) if nav else None,
-                optimal_pathfinding_length=int(cols["switch_opt"][j]) if nav else None,
+                success=bool(cols["success"][j]), path_length=int(cols["path_length"][j]),
+                optimal_length=int(e.optimal_length), entered_pathfinding=nav,
+                pathfinding_start_step=int(cols["switch_step"][j]) if nav else None,
+                search_path_length=int(lengths["search_length"][j]),
+                optimal_search_length=int(lengths["optimal_search_length"][j]),
+                pathfinding_path_length=int(lengths["nav_length"][j]) if nav else None,
+                optimal_pathfinding_length=int(lengths["optimal_nav_length"][j]) if nav else None,
                 room_type=e.room_type, scene=e.scene, target=e.target, start=e.start,
                 steps=int(cols["steps"][j]), episode=lo + j))
     return records
@@ -111,9 +112,8 @@ def _run_chunk(bank, scene_idx, target, start, policy, switch: StageSwitch, conf
         success[fin] = info["success"][fin]
         steps[act] = info["steps"][act]
         path_length[act] = info["path_length"][act]
-    switch_opt = bank.dist[switch.switch_state, target]
     return {"entered": switch.entered.copy(), "switch_step": switch.switch_step.copy(),
-            "switch_length": switch.switch_length.copy(), "switch_opt": switch_opt, "success": success,
+            "switch_length": switch.switch_length.copy(), "switch_state": switch.switch_state.copy(), "success": success,
             "steps": steps, "path_length": path_length}
 
 

@@ -48,7 +48,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..constants import NUM_CATEGORIES
-from ..distributed import DistInfo, init_distributed, resolve_device
+from ..distributed import DistInfo, barrier, init_distributed, resolve_device
 from ..schedule import warmup_cosine
 from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_checkpoints, load_tensors,
                           optimizer_file, optimizer_from_tensors, optimizer_to_tensors, read_json, resume_newest,
@@ -336,125 +336,50 @@ class _StopRequest:
 
 
 def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopRequest | None = None):
+    """:func:`train_model` in this process: set up, resume, the loop of optimiser steps, the final files."""
     mc = model_config(cfg)
     model_cfg = {} if mc is None else mc.to_dict()
     _check_config(out, cfg, model_cfg, write=False)
     prog = read_progress(out)
     if prog and prog.get("finished"):
-        if di.rank == 0 and progress:
-            print(f"{out}: pretraining already finished ({prog['step']} steps); nothing to do")
-        return {"step": prog["step"], "total_steps": prog["total_steps"], "finished": True,
-                "loss": prog.get("loss")}, None
+        return _finished_summary(out, prog, say=di.rank == 0 and progress), None
     sup = cfg.method == "resnet18-sup"
-    images = data if isinstance(data, RGBDImages) else RGBDImages(
-        data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
-    if images.img_size != cfg.img_size or (sup and not images.with_labels):
-        raise ValueError("the given RGBDImages do not match the config (img_size / labels)")
+    images = _train_images(cfg, data)
     model = build_model(cfg).to(device)
     if di.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         _check_config(out, cfg, model_cfg, write=True)
 
-    B, W, A = cfg.batch_size, di.world, cfg.accum_iter
-    G = B * W * A  # images per optimiser step
-    n = len(images)
-    steps_per_epoch = n // G
-    if steps_per_epoch < 1:
-        raise ValueError(f"{n} train images are fewer than one global batch of {G} "
-                         f"(batch {B} x {W} processes x {A} accumulation)")
-    total = cfg.steps if cfg.steps is not None else cfg.epochs * steps_per_epoch
-    warmup = max(1, int(round(cfg.warmup_fraction * total)))
-    peak = cfg.resolved_base_lr * G / 256
+    b = _Batches.of(cfg, len(images), di.world)
     groups, names = param_groups(model, cfg.weight_decay)
-    opt = torch.optim.AdamW(groups, lr=peak, betas=cfg.betas, foreach=True)
-    start = 0
-    if prog is not None and int(prog.get("global_batch", G)) != G:
-        raise ValueError(f"{out} was trained with a global batch of {prog['global_batch']} images "
-                         f"({prog.get('world_size')} processes); resume with the same number of processes")
-    if prog is not None and int(prog.get("images", n)) != n:
-        raise ValueError(f"{out} was trained on {prog['images']} images, the dataset now has {n}; "
-                         f"use a new --out folder")
-    if prog is not None:  # resume (from the checkpoint before the newest when that one is broken)
-        c, (rec, sd, ot) = resume_newest(_candidates(out), lambda c: _read_checkpoint(out, c),
-                                         on_broken=lambda c: _set_aside(out, c) if di.rank == 0 else None,
-                                         label=_label)
-        legacy = read_legacy_progress(out) if c[0] == "legacy" else None
-        if legacy is not None and rec.get("step") != legacy.get("step") and di.rank == 0:
-            atomic_write_json(out / LEGACY_PROGRESS, rec)  # the legacy run now continues from its previous record
-        model.load_state_dict(sd)
-        optimizer_from_tensors(opt, names, {k: v.to(device) for k, v in ot.items()}, rec["optimizer"])
-        start = int(rec["step"])
-        torch.set_rng_state(torch.tensor(rec["rng"]["torch"], dtype=torch.uint8))
-    ddp = model
-    if W > 1:
-        ddp = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    opt = torch.optim.AdamW(groups, lr=b.peak_lr, betas=cfg.betas, foreach=True)
+    start = 0 if prog is None else _resume(out, prog, b, model, opt, names, device, di)
+    ddp = model if b.world == 1 else nn.parallel.DistributedDataParallel(
+        model, device_ids=[device.index] if device.type == "cuda" else None)
     aug_cfg = AugmentConfig(flip_prob=cfg.flip_prob, crop=cfg.method == "demae-crop", crop_scale=cfg.crop_scale)
     L = 0 if sup else model.config.num_patches
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
-
-    def micro_batches(first: int):
-        """Index arrays of this process, one per micro-step, from optimiser step ``first`` on."""
-        perm, perm_epoch = None, -1
-        for s in range(first, total):
-            epoch, k = divmod(s, steps_per_epoch)
-            if epoch != perm_epoch:
-                perm, perm_epoch = epoch_permutation(n, cfg.seed, epoch), epoch
-            block = perm[k * G:(k + 1) * G]
-            for m in range(A):
-                yield block[m * B * W:(m + 1) * B * W][di.rank::W]
-
-    if cfg.num_workers > 0:
-        loader = iter(torch.utils.data.DataLoader(BatchView(images), sampler=micro_batches(start), batch_size=None,
-                                                  num_workers=cfg.num_workers, persistent_workers=False))
-    else:
-        loader = (images.get(idx) for idx in micro_batches(start))
-
-    writer = bar = None
-    if di.rank == 0:
-        # lazy: torch.utils.tensorboard takes about 2.3 s to import (`python -X importtime`); only logging runs need it
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(log_dir=str(out / "tb"), purge_step=start)
-        bar = tqdm(total=total, initial=start, desc=f"pretrain {cfg.method}", unit="step", disable=not progress,
-                   dynamic_ncols=True)
+    loader = _loader(images, b, cfg, start, di.rank)
+    log = _PretrainLog(out, cfg, b, start, progress) if di.rank == 0 else None
 
     def save_checkpoint(step: int, finished: bool, loss_value: float | None) -> None:
-        if di.rank != 0:
-            return
-        ot, ometa = optimizer_to_tensors(opt, names)
-        state = {
-            "step": step, "epoch": step // steps_per_epoch, "total_steps": total, "finished": finished,
-            "optimizer": ometa, "loss": loss_value, "world_size": W, "global_batch": G, "images": n,
-            "rng": {"torch": torch.get_rng_state().tolist()}}
-        save_checkpoint_folder(out / CHECKPOINTS, step, model.state_dict(),
-                               {"config": json.dumps(model_cfg), "method": cfg.method, "step": str(step)}, state, ot)
+        if di.rank == 0:
+            _save_checkpoint(out, model, opt, names, model_cfg, cfg.method, b, step, finished, loss_value)
 
-    step, last_loss, t0, seen = start, None, time.perf_counter(), 0
-    consistent = True
-    end = total if stop_at is None else min(total, stop_at)
+    step, last_loss, consistent = start, None, True
+    end = b.total if stop_at is None else min(b.total, stop_at)
     model.train()
     try:
         while step < end:
+            # one global batch: flips, crops and masking noise drawn for all of it (this process takes its
+            # share), gradients accumulated over accum_iter micro-steps, one AdamW step at the scheduled rate
             gen = torch.Generator().manual_seed(step_seed(cfg.seed, step))
-            aug = draw_augment(gen, G, aug_cfg)
-            noise = torch.rand(G, L, generator=gen) if L else None
+            aug = draw_augment(gen, b.global_batch, aug_cfg)
+            noise = torch.rand(b.global_batch, L, generator=gen) if L else None
             for g in opt.param_groups:
-                g["lr"] = warmup_cosine(step, total, peak, warmup, cfg.min_lr)
-            sums: dict[str, torch.Tensor] = {}
-            for m in range(A):
-                batch = next(loader)
-                pos = np.arange(m * B * W, (m + 1) * B * W)[di.rank::W]  # positions in the global batch
-                rgb, depth = prepare_batch(batch, slice_augment(aug, torch.from_numpy(pos)), device)
-                labels = batch["labels"].to(device) if sup else None
-                nz = noise[torch.from_numpy(pos)].to(device) if noise is not None else None
-                sync = contextlib.nullcontext() if (W == 1 or m == A - 1) else ddp.no_sync()
-                with sync:
-                    with autocast:
-                        loss, parts = compute_loss(ddp, cfg.method, rgb, depth, labels, nz)
-                    (loss / A).backward()
-                for k, v in {"total": loss.detach(), **parts}.items():
-                    sums[k] = sums.get(k, 0) + v.float() / A
+                g["lr"] = warmup_cosine(step, b.total, b.peak_lr, b.warmup, cfg.min_lr)
+            sums = _accumulate(ddp, cfg.method, loader, b, aug, noise, autocast, device, di.rank)
             if not all(torch.isfinite(v).all() for v in sums.values()):
                 raise FloatingPointError(f"non-finite loss at step {step}; lower --base-lr")
             consistent = False  # weights / optimiser state are between steps until step += 1
@@ -462,35 +387,18 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
             opt.zero_grad(set_to_none=True)
             step += 1
             consistent = True
-            seen += G
+
+            # log, checkpoint, and stop when asked to (every process at the same step)
+            losses = None
             if step % cfg.log_every == 0 or step == end:
-                vals = torch.stack([sums[k] for k in sorted(sums)]).to(device)
-                if W > 1:
-                    dist.all_reduce(vals)
-                    vals /= W
-                logged = dict(zip(sorted(sums), vals.tolist()))
-                last_loss = logged["total"]
-                if di.rank == 0:
-                    dt = time.perf_counter() - t0
-                    ips = seen / max(dt, 1e-9)
-                    for k, v in logged.items():
-                        writer.add_scalar(f"losses/{k}", v, step)
-                    writer.add_scalar("charts/lr", opt.param_groups[0]["lr"], step)
-                    writer.add_scalar("charts/images_per_s", ips, step)
-                    bar.set_postfix(loss=f"{last_loss:.4f}", img_s=f"{ips:.1f}")
-                t0, seen = time.perf_counter(), 0
-            if bar is not None:
-                bar.update(1)
+                losses = _mean_losses(sums, b.world, device)
+                last_loss = losses["total"]
+            if log is not None:
+                log.step(step, losses, opt.param_groups[0]["lr"])
             if step % cfg.checkpoint_every == 0 and step < end:
                 save_checkpoint(step, False, last_loss)
-                if W > 1:
-                    dist.barrier()
-            want_stop = stop is not None and stop.signum is not None
-            if W > 1:  # every process stops at the same step, or the others would wait forever
-                flag = torch.tensor([float(want_stop)], device=device)
-                dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-                want_stop = bool(flag.item())
-            if want_stop and step < end:
+                barrier(di)
+            if _stop_requested(stop, b.world, device) and step < end:
                 save_checkpoint(step, False, last_loss)
                 raise KeyboardInterrupt("stop requested")
     except KeyboardInterrupt:
@@ -498,22 +406,213 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
             save_checkpoint(step, False, last_loss)
         raise
     finally:
-        if bar is not None:
-            bar.close()
-        if writer is not None:
-            writer.close()
-    finished = step >= total
+        if log is not None:
+            log.close()
+    finished = step >= b.total
     if di.rank == 0:
         if finished:
-            save_tensors(out / "model.safetensors", model.state_dict(),
-                         {"config": json.dumps(model_cfg), "method": cfg.method})
-            save_encoder(model, out / "encoder.safetensors", cfg.method)
-            if not sup and cfg.viz_images > 0:
-                write_reconstructions(model, cfg, out / "recon.png", images)
+            _write_final(out, model, model_cfg, cfg, images)
         save_checkpoint(step, finished, last_loss)
-    if W > 1:
-        dist.barrier()
-    return {"step": step, "total_steps": total, "finished": finished, "loss": last_loss}, model
+    barrier(di)
+    return {"step": step, "total_steps": b.total, "finished": finished, "loss": last_loss}, model
+
+
+def _finished_summary(out: Path, prog: dict, say: bool) -> dict:
+    """The summary of a finished run (which is not retrained); ``say`` prints so in one line."""
+    if say:
+        print(f"{out}: pretraining already finished ({prog['step']} steps); nothing to do")
+    return {"step": prog["step"], "total_steps": prog["total_steps"], "finished": True, "loss": prog.get("loss")}
+
+
+def _train_images(cfg: PretrainConfig, data: str | Path | RGBDImages) -> RGBDImages:
+    """The training images of ``data`` (a dataset folder, or images loaded already that must match ``cfg``)."""
+    sup = cfg.method == "resnet18-sup"
+    images = data if isinstance(data, RGBDImages) else RGBDImages(
+        data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
+    if images.img_size != cfg.img_size or (sup and not images.with_labels):
+        raise ValueError("the given RGBDImages do not match the config (img_size / labels)")
+    return images
+
+
+@dataclass(frozen=True)
+class _Batches:
+    """How a run cuts its training images into optimiser steps (see the module docstring)."""
+
+    batch: int
+    """Images per process and micro-step (``batch_size``)."""
+    world: int
+    """Processes."""
+    accum: int
+    """Micro-steps per optimiser step (``accum_iter``)."""
+    images: int
+    """Training images."""
+    total: int
+    """Optimiser steps of the whole run."""
+    warmup: int
+    """Warm-up steps of the learning rate."""
+    peak_lr: float
+    """``base_lr * global batch / 256``."""
+
+    @property
+    def global_batch(self) -> int:
+        """Images per optimiser step."""
+        return self.batch * self.world * self.accum
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return self.images // self.global_batch
+
+    @classmethod
+    def of(cls, cfg: PretrainConfig, n: int, world: int) -> "_Batches":
+        B, W, A = cfg.batch_size, world, cfg.accum_iter
+        G = B * W * A
+        steps_per_epoch = n // G
+        if steps_per_epoch < 1:
+            raise ValueError(f"{n} train images are fewer than one global batch of {G} "
+                             f"(batch {B} x {W} processes x {A} accumulation)")
+        total = cfg.steps if cfg.steps is not None else cfg.epochs * steps_per_epoch
+        warmup = max(1, int(round(cfg.warmup_fraction * total)))
+        return cls(B, W, A, n, total, warmup, cfg.resolved_base_lr * G / 256)
+
+
+def _resume(out: Path, prog: dict, b: _Batches, model: nn.Module, opt: torch.optim.Optimizer, names: list[str],
+            device: torch.device, di: DistInfo) -> int:
+    """Load model, optimiser and RNG state of the newest readable checkpoint of ``out`` (a broken newest one is
+    set aside by rank 0); returns its step. The global batch and the image count must be the run's."""
+    G, n = b.global_batch, b.images
+    if int(prog.get("global_batch", G)) != G:
+        raise ValueError(f"{out} was trained with a global batch of {prog['global_batch']} images "
+                         f"({prog.get('world_size')} processes); resume with the same number of processes")
+    if int(prog.get("images", n)) != n:
+        raise ValueError(f"{out} was trained on {prog['images']} images, the dataset now has {n}; "
+                         f"use a new --out folder")
+    c, (rec, sd, ot) = resume_newest(_candidates(out), lambda c: _read_checkpoint(out, c),
+                                     on_broken=lambda c: _set_aside(out, c) if di.rank == 0 else None,
+                                     label=_label)
+    legacy = read_legacy_progress(out) if c[0] == "legacy" else None
+    if legacy is not None and rec.get("step") != legacy.get("step") and di.rank == 0:
+        atomic_write_json(out / LEGACY_PROGRESS, rec)  # the legacy run now continues from its previous record
+    model.load_state_dict(sd)
+    optimizer_from_tensors(opt, names, {k: v.to(device) for k, v in ot.items()}, rec["optimizer"])
+    torch.set_rng_state(torch.tensor(rec["rng"]["torch"], dtype=torch.uint8))
+    return int(rec["step"])
+
+
+def _micro_batches(b: _Batches, seed: int, first: int, rank: int):
+    """Index arrays of process ``rank``, one per micro-step, from optimiser step ``first`` on: each global
+    batch is the next block of its epoch's permutation, each micro-batch a slice of it, of which the process
+    takes every ``world``-th image."""
+    G, BW = b.global_batch, b.batch * b.world
+    perm, perm_epoch = None, -1
+    for s in range(first, b.total):
+        epoch, k = divmod(s, b.steps_per_epoch)
+        if epoch != perm_epoch:
+            perm, perm_epoch = epoch_permutation(b.images, seed, epoch), epoch
+        block = perm[k * G:(k + 1) * G]
+        for m in range(b.accum):
+            yield block[m * BW:(m + 1) * BW][rank::b.world]
+
+
+def _loader(images: RGBDImages, b: _Batches, cfg: PretrainConfig, first: int, rank: int):
+    """This process's micro-batches from optimiser step ``first`` on (loaded by ``num_workers`` processes)."""
+    if cfg.num_workers > 0:
+        return iter(torch.utils.data.DataLoader(BatchView(images), sampler=_micro_batches(b, cfg.seed, first, rank),
+                                                batch_size=None, num_workers=cfg.num_workers,
+                                                persistent_workers=False))
+    return (images.get(idx) for idx in _micro_batches(b, cfg.seed, first, rank))
+
+
+def _accumulate(ddp: nn.Module, method: str, loader, b: _Batches, aug, noise: torch.Tensor | None, autocast,
+                device: torch.device, rank: int) -> dict[str, torch.Tensor]:
+    """Forward and backward of this process's share of one global batch over ``accum`` micro-steps (DDP
+    all-reduces the gradients on the last); returns the loss parts averaged over the micro-steps."""
+    sums: dict[str, torch.Tensor] = {}
+    for m in range(b.accum):
+        batch = next(loader)
+        pos = np.arange(m * b.batch * b.world, (m + 1) * b.batch * b.world)[rank::b.world]  # in the global batch
+        rgb, depth = prepare_batch(batch, slice_augment(aug, torch.from_numpy(pos)), device)
+        labels = batch["labels"].to(device) if method == "resnet18-sup" else None
+        nz = noise[torch.from_numpy(pos)].to(device) if noise is not None else None
+        sync = contextlib.nullcontext() if (b.world == 1 or m == b.accum - 1) else ddp.no_sync()
+        with sync:
+            with autocast:
+                loss, parts = compute_loss(ddp, method, rgb, depth, labels, nz)
+            (loss / b.accum).backward()
+        for k, v in {"total": loss.detach(), **parts}.items():
+            sums[k] = sums.get(k, 0) + v.float() / b.accum
+    return sums
+
+
+def _mean_losses(sums: dict[str, torch.Tensor], world: int, device: torch.device) -> dict[str, float]:
+    """The step's loss parts averaged over the processes (an all-reduce every process takes part in)."""
+    vals = torch.stack([sums[k] for k in sorted(sums)]).to(device)
+    if world > 1:
+        dist.all_reduce(vals)
+        vals /= world
+    return dict(zip(sorted(sums), vals.tolist()))
+
+
+def _stop_requested(stop: _StopRequest | None, world: int, device: torch.device) -> bool:
+    """Whether a signal asked any process to stop (every process gets the same answer)."""
+    want_stop = stop is not None and stop.signum is not None
+    if world > 1:  # every process stops at the same step, or the others would wait forever
+        flag = torch.tensor([float(want_stop)], device=device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        want_stop = bool(flag.item())
+    return want_stop
+
+
+class _PretrainLog:
+    """Rank 0's TensorBoard scalars (``losses/...``, ``charts/lr``, ``charts/images_per_s``) and progress bar."""
+
+    def __init__(self, out: Path, cfg: PretrainConfig, b: _Batches, start: int, progress: bool):
+        # lazy: torch.utils.tensorboard takes about 2.3 s to import (`python -X importtime`); only logging runs need it
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(log_dir=str(out / "tb"), purge_step=start)
+        self.bar = tqdm(total=b.total, initial=start, desc=f"pretrain {cfg.method}", unit="step",
+                        disable=not progress, dynamic_ncols=True)
+        self.images_per_step = b.global_batch
+        self.t0, self.seen = time.perf_counter(), 0
+
+    def step(self, step: int, losses: dict[str, float] | None, lr: float) -> None:
+        """One optimiser step done; ``losses`` (on log steps) are written with the rate and images per second
+        since the last log step."""
+        self.seen += self.images_per_step
+        if losses is not None:
+            ips = self.seen / max(time.perf_counter() - self.t0, 1e-9)
+            for k, v in losses.items():
+                self.writer.add_scalar(f"losses/{k}", v, step)
+            self.writer.add_scalar("charts/lr", lr, step)
+            self.writer.add_scalar("charts/images_per_s", ips, step)
+            self.bar.set_postfix(loss=f"{losses['total']:.4f}", img_s=f"{ips:.1f}")
+            self.t0, self.seen = time.perf_counter(), 0
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+        self.writer.close()
+
+
+def _save_checkpoint(out: Path, model: nn.Module, opt: torch.optim.Optimizer, names: list[str], model_cfg: dict,
+                     method: str, b: _Batches, step: int, finished: bool, loss_value: float | None) -> None:
+    """The checkpoint of ``step`` (state: progress, optimiser groups, the torch RNG state)."""
+    ot, ometa = optimizer_to_tensors(opt, names)
+    state = {
+        "step": step, "epoch": step // b.steps_per_epoch, "total_steps": b.total, "finished": finished,
+        "optimizer": ometa, "loss": loss_value, "world_size": b.world, "global_batch": b.global_batch,
+        "images": b.images, "rng": {"torch": torch.get_rng_state().tolist()}}
+    save_checkpoint_folder(out / CHECKPOINTS, step, model.state_dict(),
+                           {"config": json.dumps(model_cfg), "method": method, "step": str(step)}, state, ot)
+
+
+def _write_final(out: Path, model: nn.Module, model_cfg: dict, cfg: PretrainConfig, images: RGBDImages) -> None:
+    """A finished run's model and encoder files (and reconstructions of a few images, MAE methods)."""
+    save_tensors(out / "model.safetensors", model.state_dict(),
+                 {"config": json.dumps(model_cfg), "method": cfg.method})
+    save_encoder(model, out / "encoder.safetensors", cfg.method)
+    if cfg.method != "resnet18-sup" and cfg.viz_images > 0:
+        write_reconstructions(model, cfg, out / "recon.png", images)
 
 
 def write_reconstructions(model: MaskedAutoencoderViT, cfg: PretrainConfig, path: Path,

@@ -28,11 +28,12 @@ import torch
 import torch.multiprocessing as mp
 
 from ..agent.model import ActorCritic, AgentConfig
+from ..distributed import set_threads
 from .assemble import load_bank, make_model, make_observer, make_train_env
-from .checkpoint import resume_checkpoint, save_checkpoint
+from .checkpoint import save_checkpoint
 from .config import TrainConfig
-from .logger import LogWindow, RunLogger
-from .progress import ProgressBar, new_progress
+from .logger import LogWindow
+from .progress import RunOutput, budget_used, resume_progress
 from .rollout import RolloutCollector, collect_and_loss
 
 
@@ -81,7 +82,7 @@ def a3c_update(local: ActorCritic, shared: ActorCritic, optimizer: torch.optim.O
 
 def _worker(wid: int, cfg_d: dict, agent_d: dict, scenes, shared: ActorCritic, optimizer: SharedAdam,
             features: torch.Tensor, counters, out_queue, stop, seed: int) -> None:
-    torch.set_num_threads(1)
+    set_threads(1)
     try:
         cfg = TrainConfig.from_dict(cfg_d)
         torch.manual_seed(seed)
@@ -108,112 +109,127 @@ def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, prog
               scenes=None, poll_seconds: float = 0.2) -> dict:
     """Train (or resume) the A3C run in ``run_dir`` with ``cfg.workers`` processes; returns the progress."""
     run_dir = Path(run_dir)
-    torch.set_num_threads(cfg.threads)
+    set_threads(cfg.threads)
     bank, det = load_bank(cfg, scenes)
     observer = make_observer(bank, cfg, det_features=det)
     features = observer.features.share_memory_()
     shared = make_model(agent, observer, cfg.seed)
     shared.share_memory()
     optimizer = SharedAdam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
-    progress = new_progress()
-    progress["sessions"] = 0
+
     plain = torch.optim.Adam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
-    found = resume_checkpoint(run_dir, shared, plain)  # load_state_dict copies into the shared parameters
-    if found is not None:
+    progress, state = resume_progress(run_dir, shared, plain, sessions=0)  # copies into the shared parameters
+    if state is not None:
         optimizer.load_shared(plain)
-        progress.update(found[1]["progress"])
-    if cfg.budget_reached(progress):
-        if not progress.get("finished"):
-            progress["finished"] = True
-            save_checkpoint(run_dir, progress, shared, optimizer, milestone_every=cfg.milestone_every)
+
+    def checkpoint(model: ActorCritic) -> None:
+        save_checkpoint(run_dir, progress, model, optimizer, milestone_every=cfg.milestone_every)
+
+    if budget_used(cfg, progress, lambda: checkpoint(shared)):
         return progress
-    progress["finished"] = False
     session = progress["sessions"]
     progress["sessions"] += 1
 
-    ctx = mp.get_context("spawn")
-    counters = ctx.Array("d", [progress["update"], progress["env_steps"], progress["episodes"]])
-    out_queue = ctx.Queue()
-    stop = ctx.Event()
-    procs = []
-    for w in range(cfg.workers):
-        seed = int(np.random.SeedSequence([cfg.seed, w, session]).generate_state(1)[0])
-        p = ctx.Process(target=_worker, args=(w, cfg.to_dict(), agent.__dict__.copy(), scenes, shared, optimizer,
-                                              features, counters, out_queue, stop, seed), daemon=True)
-        p.start()
-        procs.append(p)
-
-    logger = RunLogger(run_dir, progress["update"])
-    bar = ProgressBar(cfg, progress, enabled=progress_bar)
+    workers = _Workers(cfg, agent, scenes, shared, optimizer, features, progress, session)
+    out = RunOutput(run_dir, cfg, progress, progress_bar=progress_bar)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
-    window = LogWindow(progress["env_steps"], cfg.protocol)
     last_log = progress["update"] // cfg.log_every
     last_ckpt = progress["update"] // cfg.checkpoint_every
 
-    def drain(block: float = 0.0) -> None:
+    def snapshot() -> None:  # the workers' shared counters and this session's seconds into ``progress``
+        progress["update"], progress["env_steps"], progress["episodes"] = workers.counts()
+        progress["seconds"] = seconds0 + time.perf_counter() - t_start
+
+    try:
+        while True:
+            time.sleep(poll_seconds)
+            workers.drain(out.window)
+            snapshot()
+            if cfg.budget_reached(progress):
+                break
+            log = progress["update"] // cfg.log_every > last_log and bool(out.window)
+            if log:
+                last_log = progress["update"] // cfg.log_every
+            out.show(progress, log)
+            if progress["update"] // cfg.checkpoint_every > last_ckpt:
+                last_ckpt = progress["update"] // cfg.checkpoint_every
+                checkpoint(_copy(shared))
+            workers.check(out.window)
+        workers.finish(out.window)  # budget used up: stop the workers, keep the updates they finish meanwhile
+        snapshot()
+        out.show(progress, log=bool(out.window))
+    finally:
+        workers.close()
+        out.close()
+    progress["finished"] = cfg.budget_reached(progress)
+    checkpoint(_copy(shared))
+    return progress
+
+
+class _Workers:
+    """The worker processes of one session (spawned), their shared counters (updates, environment steps,
+    episodes) and the queue of their messages (loss parts and finished episodes, or an error)."""
+
+    def __init__(self, cfg: TrainConfig, agent: AgentConfig, scenes, shared: ActorCritic, optimizer: SharedAdam,
+                 features: torch.Tensor, progress: dict, session: int):
+        ctx = mp.get_context("spawn")
+        self.counters = ctx.Array("d", [progress["update"], progress["env_steps"], progress["episodes"]])
+        self.queue = ctx.Queue()
+        self.stop = ctx.Event()
+        self.procs = []
+        for w in range(cfg.workers):
+            seed = int(np.random.SeedSequence([cfg.seed, w, session]).generate_state(1)[0])
+            p = ctx.Process(target=_worker, args=(w, cfg.to_dict(), agent.__dict__.copy(), scenes, shared, optimizer,
+                                                  features, self.counters, self.queue, self.stop, seed), daemon=True)
+            p.start()
+            self.procs.append(p)
+
+    def counts(self) -> tuple[int, int, int]:
+        """Updates, environment steps and finished episodes so far (all workers, resumed sessions included)."""
+        with self.counters.get_lock():
+            return tuple(int(v) for v in self.counters[:])
+
+    def drain(self, window: LogWindow, block: float = 0.0) -> None:
+        """Add the queued messages to ``window`` (waiting up to ``block`` seconds for each); a worker's error is
+        raised here."""
         while True:
             try:
-                msg = out_queue.get(timeout=block) if block else out_queue.get_nowait()
+                msg = self.queue.get(timeout=block) if block else self.queue.get_nowait()
             except queue_mod.Empty:
                 return
             if "error" in msg:
                 raise RuntimeError(f"A3C worker {msg['worker']} failed:\n{msg['error']}")
             window.add(msg["parts"], {k: np.asarray(v) for k, v in msg["episodes"].items()})
 
-    def snapshot() -> None:
-        with counters.get_lock():
-            progress["update"], progress["env_steps"], progress["episodes"] = (int(v) for v in counters[:])
-        progress["seconds"] = seconds0 + time.perf_counter() - t_start
+    def check(self, window: LogWindow) -> None:
+        """``RuntimeError`` when a worker has exited with an error (its queued message first, when it sent one)."""
+        dead = [p for p in self.procs if p.exitcode not in (None, 0)]
+        if dead:
+            self.drain(window)
+            raise RuntimeError(f"an A3C worker exited with code {dead[0].exitcode}")
 
-    try:
-        while True:
-            time.sleep(poll_seconds)
-            drain()
-            snapshot()
-            if cfg.budget_reached(progress):
-                break
-            if progress["update"] // cfg.log_every > last_log and window:
-                last_log = progress["update"] // cfg.log_every
-                record = window.record(progress)
-                logger.log(record)
-                bar.update(progress, {k: f"{record[k]:.3g}" for k in ("SR", "return") if k in record})
-            else:
-                bar.update(progress)
-            if progress["update"] // cfg.checkpoint_every > last_ckpt:
-                last_ckpt = progress["update"] // cfg.checkpoint_every
-                save_checkpoint(run_dir, progress, _copy(shared), optimizer, milestone_every=cfg.milestone_every)
-            dead = [p for p in procs if p.exitcode not in (None, 0)]
-            if dead:
-                drain()
-                raise RuntimeError(f"an A3C worker exited with code {dead[0].exitcode}")
-        # budget used up: stop the workers, keep the updates they finish meanwhile
-        stop.set()
-        deadline = time.time() + 60
-        while any(p.is_alive() for p in procs) and time.time() < deadline:
-            drain(block=0.1)
-        drain()
-        snapshot()
-        if window:
-            logger.log(window.record(progress))
-        bar.update(progress)
-    finally:
-        stop.set()
-        for p in procs:
+    def finish(self, window: LogWindow, timeout: float = 60) -> None:
+        """Ask the workers to stop and gather what they send until they have (at most ``timeout`` seconds)."""
+        self.stop.set()
+        deadline = time.time() + timeout
+        while any(p.is_alive() for p in self.procs) and time.time() < deadline:
+            self.drain(window, block=0.1)
+        self.drain(window)
+
+    def close(self) -> None:
+        """Stop every worker: joined when it ends, terminated when it does not."""
+        self.stop.set()
+        for p in self.procs:
             if p.is_alive():
                 try:  # unblock a worker waiting on a full queue
                     while True:
-                        out_queue.get_nowait()
+                        self.queue.get_nowait()
                 except (queue_mod.Empty, OSError, ValueError):
                     pass
                 p.join(timeout=5)
             if p.is_alive():
                 p.terminate()
                 p.join(timeout=5)
-        bar.close()
-        logger.close()
-    progress["finished"] = cfg.budget_reached(progress)
-    save_checkpoint(run_dir, progress, _copy(shared), optimizer, milestone_every=cfg.milestone_every)
-    return progress
 
 
 def _copy(shared: ActorCritic) -> ActorCritic:

@@ -38,13 +38,11 @@ import torch.distributed as dist
 from ..agent.model import AgentConfig
 from ..checkpoint import weights_digest
 from ..distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
-                           init_distributed, resolve_device, run_ranks)
+                           init_distributed, resolve_device, run_ranks, set_threads)
 from .assemble import load_bank, make_model, make_observer, make_train_env
-from .checkpoint import (checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, resume_checkpoint,
-                         rng_state, set_rng_state, write_rng)
+from .checkpoint import checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, rng_state, set_rng_state, write_rng
 from .config import TrainConfig
-from .logger import LogWindow, RunLogger
-from .progress import ProgressBar, new_progress
+from .progress import RunOutput, budget_used, new_progress, resume_progress  # noqa: F401 (new_progress: tests)
 from .rollout import RolloutCollector, collect_and_loss
 
 
@@ -69,14 +67,8 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
            on_update=None, scenes=None) -> dict:
     """:func:`train_batched` in this process, as one rank of the process group when there is one."""
     run_dir = Path(run_dir)
-    device = resolve_device(cfg.device)
-    info = init_distributed(device)
-    device = device_for(info, device)
-    if info.world != cfg.procs:
-        raise ValueError(f"this run is configured for procs={cfg.procs} but runs in {info.world} process(es)")
-    if cfg.num_envs % info.world:
-        raise ValueError(f"num_envs {cfg.num_envs} does not split evenly over {info.world} processes")
-    torch.set_num_threads(cfg.threads)
+    info, device = _join(cfg)
+    set_threads(cfg.threads)
     bank, det_features = load_bank(cfg, scenes)
     observer = make_observer(bank, cfg, det_features=det_features, device=device)
     model = make_model(agent, observer, cfg.seed).to(device)
@@ -85,34 +77,25 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
     env = make_train_env(bank, cfg, cfg.num_envs // info.world, seed=cfg.seed * 1000 + info.rank)
     torch.manual_seed(cfg.seed * 1000 + 7919 * info.rank + 1)  # dropout and action sampling
 
-    progress = new_progress()
-    found = resume_checkpoint(run_dir, model, optimizer, aside=info.is_main)
-    if found is not None:
-        state = found[1]
-        progress.update(state["progress"])
-        rng = state["rng"].get(info.rank)
-        if rng is not None:
-            set_rng_state(rng, env.np_random)
-        else:  # a rank that did not exist when the checkpoint was written
-            torch.manual_seed(cfg.seed * 1000 + 7919 * info.rank + progress["update"])
-            env.np_random = np.random.default_rng([cfg.seed, info.rank, progress["update"]])
-    if cfg.budget_reached(progress):
-        if not progress.get("finished"):
-            progress["finished"] = True
-            _checkpoint(run_dir, progress, model, optimizer, env, info, cfg.milestone_every)
+    progress, state = resume_progress(run_dir, model, optimizer, aside=info.is_main)
+    if state is not None:
+        _restore_rng(state["rng"].get(info.rank), env, cfg.seed, info.rank, progress["update"])
+
+    def checkpoint() -> None:
+        _checkpoint(run_dir, progress, model, optimizer, env, info, cfg.milestone_every)
+
+    if budget_used(cfg, progress, checkpoint):
         return progress
-    progress["finished"] = False
 
     collector = RolloutCollector(env, observer, model, precision=cfg.precision)
     collector.start()
-    logger = RunLogger(run_dir, progress["update"], enabled=info.is_main)
-    bar = ProgressBar(cfg, progress, enabled=progress_bar and info.is_main)
+    out = RunOutput(run_dir, cfg, progress, main=info.is_main, progress_bar=progress_bar)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
-    window = LogWindow(progress["env_steps"], cfg.protocol)
     steps_per_update = cfg.num_envs * cfg.rollout_steps
     cpu0 = time.process_time()
     try:
         while True:
+            # 1-2. rollout, advantages and loss; 3. backward, all-reduce, clip; 4. Adam step
             model.train()
             ro, loss, parts = collect_and_loss(collector, cfg)
             optimizer.zero_grad(set_to_none=True)
@@ -121,7 +104,8 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
             parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
             optimizer.step()
 
-            cpu = time.process_time()  # every rank's CPU time: steps per CPU-second show how the ranks scale
+            # counters over all ranks (every rank's CPU time: steps per CPU-second show how the ranks scale)
+            cpu = time.process_time()
             episodes, seconds, cpu_s = all_sum([ro.episodes, time.perf_counter() - t_start if info.is_main else 0.0,
                                                 cpu - cpu0], info, device)
             cpu0 = cpu
@@ -129,18 +113,15 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
             progress["env_steps"] += steps_per_update
             progress["episodes"] += int(episodes)
             progress["seconds"] = seconds0 + seconds
-            window.add(parts, collector.stats.pop(), cpu_s)
+            out.window.add(parts, collector.stats.pop(), cpu_s)
+
+            # log, and checkpoint at every boundary (log windows never span a checkpoint)
             reached = cfg.budget_reached(progress)
             boundary = reached or progress["update"] % cfg.checkpoint_every == 0
-            if progress["update"] % cfg.log_every == 0 or boundary:  # windows never span a checkpoint
-                record = window.record(progress)
-                logger.log(record)
-                bar.update(progress, {k: f"{record[k]:.3g}" for k in ("SR", "return") if k in record})
-            else:
-                bar.update(progress)
+            out.show(progress, log=progress["update"] % cfg.log_every == 0 or boundary)
             if boundary:
                 progress["finished"] = reached
-                _checkpoint(run_dir, progress, model, optimizer, env, info, cfg.milestone_every)
+                checkpoint()
                 if not reached:
                     collector.start()  # fresh episodes: a resumed run starts here too
             if on_update is not None:
@@ -148,9 +129,31 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
             if reached:
                 break
     finally:
-        bar.close()
-        logger.close()
+        out.close()
     return progress
+
+
+def _join(cfg: TrainConfig) -> tuple[DistInfo, torch.device]:
+    """This process in the run's process group (one of ``cfg.procs`` processes, each stepping an equal share of
+    the ``num_envs`` episodes) and its device."""
+    device = resolve_device(cfg.device)
+    info = init_distributed(device)
+    device = device_for(info, device)
+    if info.world != cfg.procs:
+        raise ValueError(f"this run is configured for procs={cfg.procs} but runs in {info.world} process(es)")
+    if cfg.num_envs % info.world:
+        raise ValueError(f"num_envs {cfg.num_envs} does not split evenly over {info.world} processes")
+    return info, device
+
+
+def _restore_rng(rng: dict | None, env, seed: int, rank: int, update: int) -> None:
+    """Restore this rank's RNG states from the checkpoint it resumes (``rng``); a rank that did not exist when
+    the checkpoint was written (None) seeds its streams from the seed, its rank and the update instead."""
+    if rng is not None:
+        set_rng_state(rng, env.np_random)
+    else:
+        torch.manual_seed(seed * 1000 + 7919 * rank + update)
+        env.np_random = np.random.default_rng([seed, rank, update])
 
 
 def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo,

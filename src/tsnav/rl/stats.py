@@ -20,6 +20,29 @@ FIELDS = ("success", "path_length", "optimal_length", "entered", "search_length"
           "nav_length", "optimal_nav_length", "steps", "return")
 
 
+def stage_lengths(dist: np.ndarray, search_dist: np.ndarray, start: np.ndarray, target: np.ndarray,
+                  path_length: np.ndarray, entered: np.ndarray, switch_length: np.ndarray, switch_state: np.ndarray,
+                  unreachable: int | None = None) -> dict[str, np.ndarray]:
+    """Searching and pathfinding lengths of ``K`` finished episodes (paper III-B / IV-A), as ``(K,)`` int64
+    arrays: ``search_length`` (LSearch: movement actions before the switching frame; all of them when the
+    episode never switched), ``optimal_search_length`` (L*Search: ``search_dist[start, target]``),
+    ``nav_length`` (LNav: the movement actions after it) and ``optimal_nav_length`` (L*Nav: ``dist`` from the
+    switching state to the target); both pathfinding lengths are 0 where the episode never switched.
+
+    ``start``, ``target``, ``switch_state`` are global state / category ids; ``path_length`` L, ``entered``
+    Nav, ``switch_length`` and ``switch_state`` as :class:`~tsnav.sim.stage.StageSwitch` keeps them.
+    A start from which no switching frame can be reached has ``optimal_search_length`` UNREACHABLE; with
+    ``unreachable`` given it stands there instead (the evaluation records write -1; the training statistics
+    keep UNREACHABLE and :func:`summarize` counts it 0)."""
+    ls = np.where(entered, switch_length, path_length)
+    opt_s = search_dist[start, target].astype(np.int64)
+    if unreachable is not None:
+        opt_s = np.where(opt_s == UNREACHABLE, unreachable, opt_s)
+    return {"search_length": ls, "optimal_search_length": opt_s,
+            "nav_length": np.where(entered, path_length - ls, 0),
+            "optimal_nav_length": np.where(entered, dist[switch_state, target], 0).astype(np.int64)}
+
+
 class EpisodeStats:
     """Per-row accumulators over a batch of training episodes; :meth:`pop` returns the finished ones."""
 
@@ -58,12 +81,10 @@ class EpisodeStats:
             g, s0 = self.target[r], self.start[r]
             L = info["path_length"][r].astype(np.int64)
             entered = info["entered"][r].copy()
-            ls = np.where(entered, info["switch_length"][r], L)
             entry = {"success": info["success"][r].astype(bool), "path_length": L,
                      "optimal_length": self.bank.dist[s0, g].astype(np.int64), "entered": entered,
-                     "search_length": ls, "optimal_search_length": self.search_dist[s0, g].astype(np.int64),
-                     "nav_length": np.where(entered, L - ls, 0),
-                     "optimal_nav_length": np.where(entered, self.bank.dist[info["switch_state"][r], g], 0).astype(np.int64),
+                     **stage_lengths(self.bank.dist, self.search_dist, s0, g, L, entered, info["switch_length"][r],
+                                     info["switch_state"][r]),
                      "steps": info["steps"][r].astype(np.int64), "return": self.ret[r].copy()}
             for k, v in self.terms.items():
                 entry[f"reward/{k}"] = v[r].copy()

@@ -119,112 +119,175 @@ def _box(cx, cy, cz, sx, sy, sz, role):
 
 
 def shape(category: str, size, rng: np.random.Generator) -> list:
-    """Local boxes of one model: base at y = 0, front towards local +z; ``role`` names a material slot."""
+    """Local boxes of one model: base at y = 0, front towards local +z; ``role`` names a material slot.
+    ``rng`` is not drawn from (the shapes are fixed by the size)."""
     w, h, d = size
-    leg = 0.05
-    if category in ("DiningTable", "Desk", "CoffeeTable", "SideTable"):
-        top = 0.04
-        out = [_box(0, h - top / 2, 0, w, top, d, "main")]
-        for sx in (-1, 1):
-            for sz in (-1, 1):
-                out.append(_box(sx * (w / 2 - leg), (h - top) / 2, sz * (d / 2 - leg), leg, h - top, leg, "main"))
-        if category == "Desk":
-            out.append(_box(w / 2 - 0.22, (h - top) / 2, 0, 0.4, h - top, d - 0.05, "main"))
-        return out
-    if category == "Chair":
-        seat = 0.46
-        out = [_box(0, seat - 0.025, 0, w, 0.05, d, "main"), _box(0, (seat + h) / 2, -d / 2 + 0.03, w, h - seat, 0.05, "main")]
-        for sx in (-1, 1):
-            for sz in (-1, 1):
-                out.append(_box(sx * (w / 2 - 0.03), seat / 2, sz * (d / 2 - 0.03), 0.04, seat, 0.04, "main"))
-        return out
-    if category in ("Sofa", "ArmChair"):
-        arm = 0.18
-        return [_box(0, 0.22, 0.05, w, 0.44, d - 0.1, "main"), _box(0, h / 2, -d / 2 + 0.1, w, h, 0.2, "main"),
-                _box(-w / 2 + arm / 2, 0.3, 0.0, arm, 0.6, d, "main"), _box(w / 2 - arm / 2, 0.3, 0.0, arm, 0.6, d, "main"),
-                _box(0, 0.47, 0.08, w - 2 * arm, 0.08, d - 0.3, "accent")]
-    if category == "Bed":
-        return [_box(0, 0.2, 0, w, 0.4, d, "main"), _box(0, h - 0.1, 0.05, w - 0.04, 0.2, d - 0.1, "accent"),
-                _box(0, 0.5, -d / 2 + 0.04, w, 1.0, 0.08, "main"), _box(0, h + 0.05, -d / 2 + 0.3, w * 0.7, 0.12, 0.35, "accent")]
-    if category in ("CounterTop", "Cabinet", "Vanity", "Stove", "KitchenIsland"):
-        out = [_box(0, (h - 0.04) / 2, 0, w, h - 0.04, d, "main"), _box(0, h - 0.02, 0, w + 0.02, 0.04, d + 0.02, "accent")]
-        n = max(1, int(w / 0.5))
-        for i in range(n):
-            x = -w / 2 + (i + 0.5) * w / n
-            out.append(_box(x, h * 0.55, d / 2 + 0.005, w / n - 0.04, h * 0.7, 0.01, "trim"))
-        if category == "Stove":
-            out.append(_box(0, h + 0.35, -d / 2 + 0.03, w, 0.7, 0.06, "trim"))
-        return out
-    if category in ("ShelvingUnit", "Wardrobe", "Dresser", "TVStand"):
-        out = [_box(-w / 2 + 0.02, h / 2, 0, 0.04, h, d, "main"), _box(w / 2 - 0.02, h / 2, 0, 0.04, h, d, "main"),
-               _box(0, h - 0.02, 0, w, 0.04, d, "main"), _box(0, h / 2, -d / 2 + 0.01, w, h, 0.02, "main")]
-        if category in ("Wardrobe", "Dresser", "TVStand"):
-            out.append(_box(0, h / 2, d / 2 - 0.02, w - 0.06, h - 0.06, 0.03, "accent"))
-        n = max(2, int(h / 0.4))
-        for i in range(n):
-            out.append(_box(0, i * h / n + 0.02, 0, w - 0.06, 0.03, d - 0.02, "main"))
-        return out
-    if category == "Toilet":
-        return [_box(0, 0.2, 0.05, w * 0.8, 0.4, d * 0.7, "main"), _box(0, 0.42, 0.05, w, 0.05, d * 0.75, "main"),
-                _box(0, 0.6, -d / 2 + 0.1, w, 0.4, 0.2, "main")]
-    if category == "Bathtub":
-        return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h - 0.01, 0, w - 0.12, 0.02, d - 0.12, "accent")]
-    # ---- target objects
-    if category == "Fridge":
-        return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h * 0.78, d / 2 + 0.01, w - 0.04, h * 0.4, 0.02, "main"),
-                _box(w / 2 - 0.08, h * 0.6, d / 2 + 0.04, 0.03, 0.4, 0.04, "trim")]
-    if category == "Microwave":
-        return [_box(0, h / 2, 0, w, h, d, "main"), _box(-0.06, h / 2, d / 2 + 0.005, w * 0.62, h * 0.7, 0.01, "screen"),
-                _box(w / 2 - 0.07, h / 2, d / 2 + 0.005, 0.08, h * 0.7, 0.01, "trim")]
-    if category == "Television":
-        return [_box(0, 0.05 + h / 2, 0, w, h, d, "trim"), _box(0, 0.05 + h / 2, d / 2 + 0.003, w - 0.04, h - 0.04, 0.005, "screen"),
-                _box(0, 0.025, 0, w * 0.3, 0.05, 0.2, "trim")]
-    if category == "Laptop":
-        return [_box(0, 0.01, 0.02, w, 0.02, d * 0.9, "main"), _box(0, h / 2, -d / 2 + 0.01, w, h, 0.015, "main"),
-                _box(0, h / 2, -d / 2 + 0.02, w - 0.03, h - 0.04, 0.004, "screen")]
-    if category == "FloorLamp":
-        return [_box(0, 0.02, 0, w * 0.8, 0.04, d * 0.8, "trim"), _box(0, h / 2, 0, 0.035, h, 0.035, "trim"),
-                _box(0, h - 0.15, 0, w, 0.3, d, "lamp")]
-    if category == "DeskLamp":
-        return [_box(0, 0.015, 0, w, 0.03, d, "trim"), _box(0, h * 0.45, 0, 0.025, h * 0.9, 0.025, "trim"),
-                _box(0, h - 0.07, 0.03, w * 0.9, 0.14, d * 0.9, "lamp")]
-    if category == "GarbageCan":
-        return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h + 0.01, 0, w + 0.02, 0.02, d + 0.02, "trim")]
-    if category in ("CoffeeMachine", "Toaster", "Kettle", "AlarmClock"):
-        out = [_box(0, h / 2, 0, w, h, d, "main")]
-        if category == "CoffeeMachine":
-            out += [_box(0, h * 0.3, d / 2 - 0.02, w * 0.6, h * 0.35, 0.06, "screen"), _box(0, h * 0.85, 0.02, w, h * 0.3, d, "trim")]
-        elif category == "Toaster":
-            out += [_box(-w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen"), _box(w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen")]
-        elif category == "Kettle":
-            out += [_box(0, h + 0.03, -d / 2 + 0.03, 0.03, 0.06, 0.06, "trim"), _box(0, h * 0.7, d / 2 + 0.03, 0.04, 0.04, 0.06, "main")]
-        else:
-            out += [_box(0, h / 2, d / 2 + 0.003, w * 0.75, h * 0.6, 0.006, "screen")]
-        return out
-    if category in ("Bowl", "Pot"):
-        wall = 0.015
-        return [_box(0, 0.01, 0, w * 0.6, 0.02, d * 0.6, "main"),
-                _box(0, h / 2, -d / 2 + wall / 2, w, h, wall, "main"), _box(0, h / 2, d / 2 - wall / 2, w, h, wall, "main"),
-                _box(-w / 2 + wall / 2, h / 2, 0, wall, h, d, "main"), _box(w / 2 - wall / 2, h / 2, 0, wall, h, d, "main")] + (
-            [_box(w / 2 + 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim"), _box(-w / 2 - 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim")]
-            if category == "Pot" else [])
-    if category == "Pan":
-        return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h * 0.7, d / 2 + 0.1, 0.03, 0.02, 0.2, "trim")]
-    if category == "Sink":
-        return [_box(0, -0.0, 0, w, 0.02, d, "trim"), _box(0, 0.12, -d / 2 - 0.03, 0.04, 0.25, 0.04, "metal"),
-                _box(0, 0.23, -d / 2 + 0.05, 0.03, 0.03, 0.14, "metal")]
-    if category == "StoveBurner":
-        return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h, 0, w * 0.55, 0.006, d * 0.55, "trim")]
-    if category == "LightSwitch":
-        return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h / 2, d / 2 + 0.004, w * 0.3, h * 0.45, 0.008, "trim")]
-    if category in ("Book", "CellPhone", "RemoteControl", "Plate"):
-        out = [_box(0, h / 2, 0, w, h, d, "main")]
-        if category == "CellPhone":
-            out.append(_box(0, h + 0.001, 0, w * 0.9, 0.002, d * 0.9, "screen"))
-        if category == "RemoteControl":
-            out.append(_box(0, h + 0.003, -0.03, w * 0.6, 0.006, d * 0.5, "trim"))
-        return out
+    return SHAPES.get(category, _block)(category, w, h, d)
+
+
+# ---- furniture
+def _table(category, w, h, d):
+    leg, top = 0.05, 0.04
+    out = [_box(0, h - top / 2, 0, w, top, d, "main")]
+    for sx in (-1, 1):
+        for sz in (-1, 1):
+            out.append(_box(sx * (w / 2 - leg), (h - top) / 2, sz * (d / 2 - leg), leg, h - top, leg, "main"))
+    if category == "Desk":
+        out.append(_box(w / 2 - 0.22, (h - top) / 2, 0, 0.4, h - top, d - 0.05, "main"))
+    return out
+
+
+def _chair(category, w, h, d):
+    seat = 0.46
+    out = [_box(0, seat - 0.025, 0, w, 0.05, d, "main"), _box(0, (seat + h) / 2, -d / 2 + 0.03, w, h - seat, 0.05, "main")]
+    for sx in (-1, 1):
+        for sz in (-1, 1):
+            out.append(_box(sx * (w / 2 - 0.03), seat / 2, sz * (d / 2 - 0.03), 0.04, seat, 0.04, "main"))
+    return out
+
+
+def _sofa(category, w, h, d):
+    arm = 0.18
+    return [_box(0, 0.22, 0.05, w, 0.44, d - 0.1, "main"), _box(0, h / 2, -d / 2 + 0.1, w, h, 0.2, "main"),
+            _box(-w / 2 + arm / 2, 0.3, 0.0, arm, 0.6, d, "main"), _box(w / 2 - arm / 2, 0.3, 0.0, arm, 0.6, d, "main"),
+            _box(0, 0.47, 0.08, w - 2 * arm, 0.08, d - 0.3, "accent")]
+
+
+def _bed(category, w, h, d):
+    return [_box(0, 0.2, 0, w, 0.4, d, "main"), _box(0, h - 0.1, 0.05, w - 0.04, 0.2, d - 0.1, "accent"),
+            _box(0, 0.5, -d / 2 + 0.04, w, 1.0, 0.08, "main"), _box(0, h + 0.05, -d / 2 + 0.3, w * 0.7, 0.12, 0.35, "accent")]
+
+
+def _counter(category, w, h, d):
+    out = [_box(0, (h - 0.04) / 2, 0, w, h - 0.04, d, "main"), _box(0, h - 0.02, 0, w + 0.02, 0.04, d + 0.02, "accent")]
+    n = max(1, int(w / 0.5))
+    for i in range(n):
+        x = -w / 2 + (i + 0.5) * w / n
+        out.append(_box(x, h * 0.55, d / 2 + 0.005, w / n - 0.04, h * 0.7, 0.01, "trim"))
+    if category == "Stove":
+        out.append(_box(0, h + 0.35, -d / 2 + 0.03, w, 0.7, 0.06, "trim"))
+    return out
+
+
+def _shelves(category, w, h, d):
+    out = [_box(-w / 2 + 0.02, h / 2, 0, 0.04, h, d, "main"), _box(w / 2 - 0.02, h / 2, 0, 0.04, h, d, "main"),
+           _box(0, h - 0.02, 0, w, 0.04, d, "main"), _box(0, h / 2, -d / 2 + 0.01, w, h, 0.02, "main")]
+    if category in ("Wardrobe", "Dresser", "TVStand"):
+        out.append(_box(0, h / 2, d / 2 - 0.02, w - 0.06, h - 0.06, 0.03, "accent"))
+    n = max(2, int(h / 0.4))
+    for i in range(n):
+        out.append(_box(0, i * h / n + 0.02, 0, w - 0.06, 0.03, d - 0.02, "main"))
+    return out
+
+
+def _toilet(category, w, h, d):
+    return [_box(0, 0.2, 0.05, w * 0.8, 0.4, d * 0.7, "main"), _box(0, 0.42, 0.05, w, 0.05, d * 0.75, "main"),
+            _box(0, 0.6, -d / 2 + 0.1, w, 0.4, 0.2, "main")]
+
+
+def _bathtub(category, w, h, d):
+    return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h - 0.01, 0, w - 0.12, 0.02, d - 0.12, "accent")]
+
+
+# ---- target objects
+def _fridge(category, w, h, d):
+    return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h * 0.78, d / 2 + 0.01, w - 0.04, h * 0.4, 0.02, "main"),
+            _box(w / 2 - 0.08, h * 0.6, d / 2 + 0.04, 0.03, 0.4, 0.04, "trim")]
+
+
+def _microwave(category, w, h, d):
+    return [_box(0, h / 2, 0, w, h, d, "main"), _box(-0.06, h / 2, d / 2 + 0.005, w * 0.62, h * 0.7, 0.01, "screen"),
+            _box(w / 2 - 0.07, h / 2, d / 2 + 0.005, 0.08, h * 0.7, 0.01, "trim")]
+
+
+def _television(category, w, h, d):
+    return [_box(0, 0.05 + h / 2, 0, w, h, d, "trim"), _box(0, 0.05 + h / 2, d / 2 + 0.003, w - 0.04, h - 0.04, 0.005, "screen"),
+            _box(0, 0.025, 0, w * 0.3, 0.05, 0.2, "trim")]
+
+
+def _laptop(category, w, h, d):
+    return [_box(0, 0.01, 0.02, w, 0.02, d * 0.9, "main"), _box(0, h / 2, -d / 2 + 0.01, w, h, 0.015, "main"),
+            _box(0, h / 2, -d / 2 + 0.02, w - 0.03, h - 0.04, 0.004, "screen")]
+
+
+def _floor_lamp(category, w, h, d):
+    return [_box(0, 0.02, 0, w * 0.8, 0.04, d * 0.8, "trim"), _box(0, h / 2, 0, 0.035, h, 0.035, "trim"),
+            _box(0, h - 0.15, 0, w, 0.3, d, "lamp")]
+
+
+def _desk_lamp(category, w, h, d):
+    return [_box(0, 0.015, 0, w, 0.03, d, "trim"), _box(0, h * 0.45, 0, 0.025, h * 0.9, 0.025, "trim"),
+            _box(0, h - 0.07, 0.03, w * 0.9, 0.14, d * 0.9, "lamp")]
+
+
+def _garbage_can(category, w, h, d):
+    return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h + 0.01, 0, w + 0.02, 0.02, d + 0.02, "trim")]
+
+
+def _appliance(category, w, h, d):
+    out = [_box(0, h / 2, 0, w, h, d, "main")]
+    if category == "CoffeeMachine":
+        out += [_box(0, h * 0.3, d / 2 - 0.02, w * 0.6, h * 0.35, 0.06, "screen"), _box(0, h * 0.85, 0.02, w, h * 0.3, d, "trim")]
+    elif category == "Toaster":
+        out += [_box(-w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen"), _box(w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen")]
+    elif category == "Kettle":
+        out += [_box(0, h + 0.03, -d / 2 + 0.03, 0.03, 0.06, 0.06, "trim"), _box(0, h * 0.7, d / 2 + 0.03, 0.04, 0.04, 0.06, "main")]
+    else:
+        out += [_box(0, h / 2, d / 2 + 0.003, w * 0.75, h * 0.6, 0.006, "screen")]
+    return out
+
+
+def _vessel(category, w, h, d):
+    wall = 0.015
+    return [_box(0, 0.01, 0, w * 0.6, 0.02, d * 0.6, "main"),
+            _box(0, h / 2, -d / 2 + wall / 2, w, h, wall, "main"), _box(0, h / 2, d / 2 - wall / 2, w, h, wall, "main"),
+            _box(-w / 2 + wall / 2, h / 2, 0, wall, h, d, "main"), _box(w / 2 - wall / 2, h / 2, 0, wall, h, d, "main")] + (
+        [_box(w / 2 + 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim"), _box(-w / 2 - 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim")]
+        if category == "Pot" else [])
+
+
+def _pan(category, w, h, d):
+    return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h * 0.7, d / 2 + 0.1, 0.03, 0.02, 0.2, "trim")]
+
+
+def _sink(category, w, h, d):
+    return [_box(0, -0.0, 0, w, 0.02, d, "trim"), _box(0, 0.12, -d / 2 - 0.03, 0.04, 0.25, 0.04, "metal"),
+            _box(0, 0.23, -d / 2 + 0.05, 0.03, 0.03, 0.14, "metal")]
+
+
+def _stove_burner(category, w, h, d):
+    return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h, 0, w * 0.55, 0.006, d * 0.55, "trim")]
+
+
+def _light_switch(category, w, h, d):
+    return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h / 2, d / 2 + 0.004, w * 0.3, h * 0.45, 0.008, "trim")]
+
+
+def _flat(category, w, h, d):
+    out = [_box(0, h / 2, 0, w, h, d, "main")]
+    if category == "CellPhone":
+        out.append(_box(0, h + 0.001, 0, w * 0.9, 0.002, d * 0.9, "screen"))
+    if category == "RemoteControl":
+        out.append(_box(0, h + 0.003, -0.03, w * 0.6, 0.006, d * 0.5, "trim"))
+    return out
+
+
+def _block(category, w, h, d):
     return [_box(0, h / 2, 0, w, h, d, "main")]
+
+
+#: The model of each category (:func:`shape`); a category not listed is one box.
+SHAPES = {
+    **dict.fromkeys(("DiningTable", "Desk", "CoffeeTable", "SideTable"), _table), "Chair": _chair,
+    **dict.fromkeys(("Sofa", "ArmChair"), _sofa), "Bed": _bed,
+    **dict.fromkeys(("CounterTop", "Cabinet", "Vanity", "Stove", "KitchenIsland"), _counter),
+    **dict.fromkeys(("ShelvingUnit", "Wardrobe", "Dresser", "TVStand"), _shelves), "Toilet": _toilet,
+    "Bathtub": _bathtub, "Fridge": _fridge, "Microwave": _microwave, "Television": _television, "Laptop": _laptop,
+    "FloorLamp": _floor_lamp, "DeskLamp": _desk_lamp, "GarbageCan": _garbage_can,
+    **dict.fromkeys(("CoffeeMachine", "Toaster", "Kettle", "AlarmClock"), _appliance),
+    **dict.fromkeys(("Bowl", "Pot"), _vessel), "Pan": _pan, "Sink": _sink, "StoveBurner": _stove_burner,
+    "LightSwitch": _light_switch, **dict.fromkeys(("Book", "CellPhone", "RemoteControl", "Plate"), _flat),
+}
 
 
 #: material roles per category (main, accent, trim); "screen", "lamp" and "metal" are fixed roles.
