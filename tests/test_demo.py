@@ -16,9 +16,10 @@ from tsnav.rl.train import train_run
 from rl_helpers import RecordingTrainer
 
 TINY = DemoConfig(preset="tiny", detector="train", train_rooms_per_type=1, gallery=2,
-                  scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
-                                pretrain_batch_size=8, test_per_room_type=5, updates_per_job=2, num_envs=4,
-                                detector_steps=4, detector_batch_size=8, detector_states_per_scene=24))
+                  scale=SCALES["demo"].override(pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2,
+                                                              batch_size=8), test_per_room_type=5,
+                                                train=dict(updates=2, num_envs=4),
+                                                detector=dict(steps=4, batch_size=8, max_states_per_scene=24)))
 
 #: Copy the tiny world into a demo folder without the learned tables other tests may have written (the demo
 #: then trains its own detector).
@@ -63,7 +64,7 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     assert orc["detections"] == "oracle" and orc["protocol"] == "lineage" and orc["trained_protocol"] == "paper"
     assert len(trainer.calls) == 1 and trainer.calls[0][0] == "tsrm"
     log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines() if line.strip()]
-    assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.updates_per_job == 2  # trained for real
+    assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.train.updates == 2  # trained for real
     assert json.loads((out / "stages" / "train.json").read_text())["update"] == 2
     ckpts = sorted(p.name for p in (out / "run" / "checkpoints").iterdir())
     for name in ("agent", "explorer", "random"):
@@ -71,7 +72,7 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
         assert m["detections"] == "learned" and (out / "eval" / name / "trajectories.jsonl").exists()
     # the detector stage trained the learned detector (its steps) and its tables are in every room
     det = json.loads((out / "stages" / "detector.json").read_text())
-    assert det["steps"] == TINY.scale.detector_steps and det["fingerprint"].startswith("learned-")
+    assert det["steps"] == TINY.scale.detector.steps and det["fingerprint"].startswith("learned-")
     from tsnav.data.detections import read_fingerprint
     from tsnav.data.reader import list_scenes
 
@@ -109,7 +110,7 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
     from tsnav.checkpoint import weights_digest
     from tsnav.rl.checkpoint import load_model
 
-    cfg = replace(TINY, scale=replace(TINY.scale, updates_per_job=3, minutes_per_job=None, milestone_every=1))
+    cfg = replace(TINY, scale=TINY.scale.override(train=dict(updates=3, minutes=None, milestone_every=1)))
     tables, digests, detectors = [], [], []
     for k in range(2):
         out = tmp_path / f"demo{k}"

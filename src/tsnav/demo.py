@@ -89,7 +89,7 @@ class DemoConfig:
     """Processes building the world."""
     train_rooms_per_type: int | None = None
     """Training rooms used per room type (the smallest ones); None: all training rooms."""
-    scale: ScaleConfig = field(default_factory=lambda: replace(SCALES["demo"]))
+    scale: ScaleConfig = field(default_factory=lambda: SCALES["demo"])
     """Sizes of pretraining, training and evaluation (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps,
     ``DEMO_UPDATES`` updates of batched A2C, 100 test episodes per room type)."""
     detections: str = "learned"
@@ -99,7 +99,7 @@ class DemoConfig:
     instance size and distance)."""
     detector: str = "shipped"
     """Where the learned detector comes from: ``shipped`` (:mod:`tsnav.detect.shipped`, 128-px worlds) or
-    ``train`` (trained here on the training rooms, ``scale.detector_steps`` steps)."""
+    ``train`` (trained here on the training rooms, ``scale.detector.steps`` steps)."""
     seed: int = 0
     """Seed of the training run and of the random policy."""
     gallery: int = 6
@@ -142,7 +142,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                         "under both")
     p.add_argument("--detector-steps", type=int, default=None,
                    help=f"training steps of the learned detector with --detector train (default "
-                        f"{SCALES['demo'].detector_steps})")
+                        f"{SCALES['demo'].detector.steps})")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -269,7 +269,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         prog = read_progress(es.spec)
         return {"steps": prog["step"], "loss": prog.get("loss")}
 
-    st.run("pretrain", f"DE-MAE, {sc.vit_model} at {sc.img_size}x{sc.img_size}, {sc.pretrain_steps} steps -> {es.spec}",
+    st.run("pretrain", f"DE-MAE, {sc.pretrain.model} at {sc.pretrain.img_size}x{sc.pretrain.img_size}, {sc.pretrain.steps} steps -> {es.spec}",
            do_pretrain, lambda m: (Path(es.spec) / "encoder.safetensors").exists())
 
     # 3. features ---------------------------------------------------------------------------------------
@@ -320,14 +320,14 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         if m.get("source", "train") != "train":  # markers written before the shipped detector have no source
             return False
         meta = read_meta(det_dir) if is_checkpoint(det_dir) else {}
-        return meta.get("step") == sc.detector_steps and meta.get("calibrated_step") == sc.detector_steps
+        return meta.get("step") == sc.detector.steps and meta.get("calibrated_step") == sc.detector.steps
 
     if learned and shipped:
         st.run("detector", f"learned detector shipped with tsnav ({DEFAULT_SHIPPED}; trained on the ithor-real "
                            "training rooms apart from the agent, as the paper's DETR): nothing trained here",
                do_detector, detector_ok)
     elif learned:
-        st.run("detector", f"learned detector, {sc.detector_steps} steps on the training rooms (one thread), "
+        st.run("detector", f"learned detector, {sc.detector.steps} steps on the training rooms (one thread), "
                            f"temperature fitted on the val rooms -> {det_dir}", do_detector, detector_ok)
     else:
         st.header("detector", "not used (--detections oracle)")
@@ -394,7 +394,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
               flush=True)
         return {"budget": budget, "log_lines": len(log), **last, "checkpoint": checkpoint}
 
-    budget = {"updates": sc.updates_per_job, "minutes": sc.minutes_per_job, "episodes": sc.episodes_per_job}
+    budget = sc.budget
     shown = ", ".join(f"{v:g} {k}" for k, v in budget.items() if v is not None) or "1.5 M episodes"
     st.run("train", f"TSRM agent, batched A2C, {shown}, best milestone on validation -> {run_dir}", do_train,
            lambda m: m.get("budget") == budget and "checkpoint" in m and (run_dir / "config.json").exists())
@@ -488,23 +488,24 @@ def run(args) -> int:
     if args.detector_steps is not None:
         if args.detector_steps < 1:
             raise CommandError("--detector-steps must be >= 1")
-        cfg.scale.detector_steps = args.detector_steps
+        cfg.scale = cfg.scale.override(detector=dict(steps=args.detector_steps))
     if args.train_updates is not None or args.train_minutes is not None:  # asked for: replaces the default
         if args.train_updates is not None and args.train_updates < 1:
             raise CommandError("--train-updates must be >= 1")
         if args.train_minutes is not None and not args.train_minutes > 0:
             raise CommandError("--train-minutes must be positive")
-        cfg.scale.updates_per_job, cfg.scale.minutes_per_job = args.train_updates, args.train_minutes
+        cfg.scale = cfg.scale.override(train=dict(updates=args.train_updates, minutes=args.train_minutes))
     if args.pretrain_steps is not None:
         if args.pretrain_steps < 1:
             raise CommandError("--pretrain-steps must be >= 1")
-        cfg.scale.pretrain_steps = args.pretrain_steps
+        cfg.scale = cfg.scale.override(pretrain=dict(steps=args.pretrain_steps))
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     if args.procs is not None:
-        if args.procs < 1 or cfg.scale.num_envs % args.procs:
-            raise CommandError(f"--procs must be >= 1 and divide the {cfg.scale.num_envs} training episodes per update")
-        cfg.scale.procs = args.procs
+        if args.procs < 1 or cfg.scale.train.num_envs % args.procs:
+            raise CommandError(f"--procs must be >= 1 and divide the {cfg.scale.train.num_envs} training episodes "
+                               "per update")
+        cfg.scale = cfg.scale.override(train=dict(procs=args.procs))
 
     print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)

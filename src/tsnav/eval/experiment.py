@@ -27,7 +27,7 @@ detector is never overwritten: one-line error naming it). Each table's quality o
 reach of C_target, false positives) is written to ``OUT/detector_quality.json`` and printed under the table.
 
 A job is one (row, seed): (pretrain the row's encoder if needed) -> cache its features (once per encoder) ->
-train the agent, keeping a milestone every ``ScaleConfig.milestone_every`` updates -> score the milestones (and
+train the agent, keeping a milestone every ``ScaleConfig.train.milestone_every`` updates -> score the milestones (and
 the newest two checkpoints) greedily on validation episodes and keep the best as ``train/best`` (issue 15;
 :func:`tsnav.eval.select.select_checkpoint`, resumed from ``train/selection.json``) -> evaluate that checkpoint.
 ``--checkpoint latest`` skips selection and evaluates the last checkpoint (as folders from before selection did;
@@ -71,7 +71,7 @@ import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Callable
@@ -139,19 +139,18 @@ def default_train_fn() -> TrainFn:
 
 def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, features: str, seed: int):
     """The :class:`~tsnav.rl.config.TrainConfig` and :class:`~tsnav.agent.AgentConfig` of one job."""
-    episodes, updates, minutes = scale.episodes_per_job, scale.updates_per_job, scale.minutes_per_job
+    base = scale.train
+    budget = {}
     if cfg.updates_per_job is not None or cfg.minutes_per_job is not None:  # asked for: replaces the scale's
-        episodes, updates, minutes = None, cfg.updates_per_job, cfg.minutes_per_job
-    milestones = scale.milestone_every if cfg.checkpoint == "best" else None
+        budget = dict(episodes=None, updates=cfg.updates_per_job, minutes=cfg.minutes_per_job)
+    milestones = base.milestone_every if cfg.checkpoint == "best" else None
     # checkpoints land on multiples of checkpoint_every (100 by default); milestones must be among them
     every = math.gcd(TrainConfig.checkpoint_every, milestones) if milestones else TrainConfig.checkpoint_every
-    tc = TrainConfig(data=str(Path(cfg.data).resolve()), features=features, detections=row.detections_of(cfg.detections),
-                     split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
-                     num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
-                     minutes=minutes, episodes=episodes, updates=updates, device=cfg.device,
-                     checkpoint_every=every, milestone_every=milestones, protocol=cfg.protocol,
-                     procs=(cfg.procs or scale.procs) if scale.algo == "batched" else 1)
-    return tc, agent_config(scale.agent_preset)
+    tc = replace(base, data=str(Path(cfg.data).resolve()), features=features,
+                 detections=row.detections_of(cfg.detections), split="train", reward=row.reward, seed=seed,
+                 c_target=row.c_target, device=cfg.device, checkpoint_every=every, milestone_every=milestones,
+                 protocol=cfg.protocol, procs=(cfg.procs or base.procs) if base.algo == "batched" else 1, **budget)
+    return tc, agent_config(base.preset)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..data.detections import detections_path, read_fingerprint, write_detections
@@ -29,7 +29,7 @@ def say(msg: str) -> None:
 
 def ensure_world(data: str | Path, preset: str, build: bool = False, workers: int | None = None) -> str:
     """The world preset of the dataset at ``data`` (from its ``index.json``); with ``build``, ``preset`` (the
-    scale's world, :attr:`ScaleConfig.world`) is first built there when the folder does not exist. Prints a note
+    scale's world, ``ScaleConfig.world``) is first built there when the folder does not exist. Prints a note
     when the dataset holds another world than ``preset``."""
     root = Path(data)
     if build and not root.exists():
@@ -123,8 +123,8 @@ class EncoderSpec:
     model: str = "vit_base"
     patch_size: int = 16
     img_size: int = 224
-    pretrain: dict | None = None
-    """``PretrainConfig`` fields of the run in ``pretrain_dir/<id>`` (None: use ``spec`` as it is)."""
+    pretrain: PretrainConfig | None = None
+    """The pretraining run in ``pretrain_dir/<id>`` (None: use ``spec`` as it is)."""
 
 
 def encoder_spec(enc: str, scale: ScaleConfig, pretrain_dir: Path, cfg: ExperimentConfig) -> EncoderSpec:
@@ -135,27 +135,27 @@ def encoder_spec(enc: str, scale: ScaleConfig, pretrain_dir: Path, cfg: Experime
         return EncoderSpec("vc1", f"vit:{cfg.vc1_weights}", "vit_base", 16, 224)
     if enc == "resnet18":
         if cfg.resnet18_weights:
-            return EncoderSpec("resnet18", f"resnet18:{cfg.resnet18_weights}", img_size=scale.img_size)
+            return EncoderSpec("resnet18", f"resnet18:{cfg.resnet18_weights}", img_size=scale.pretrain.img_size)
         method = "resnet18-sup"
     elif enc in ("demae", "mae", "demae-crop"):
         method = enc
     else:
         raise ValueError(f"unknown encoder {enc!r}")
     run = pretrain_dir / method
-    sup = method == "resnet18-sup"
-    steps = scale.resnet_pretrain_steps if sup and scale.resnet_pretrain_steps is not None else scale.pretrain_steps
-    pre = dict(method=method, model=scale.vit_model, patch_size=scale.patch_size, img_size=scale.img_size,
-               steps=steps, batch_size=scale.pretrain_batch_size, base_lr=None if sup else scale.pretrain_base_lr,
-               device=cfg.device)
-    return EncoderSpec(enc, str(run), scale.vit_model, scale.patch_size, scale.img_size, pre)
+    pre = scale.pretrain
+    if method == "resnet18-sup":  # MAE's own learning rate; its own step budget when the scale names one
+        steps = scale.resnet_pretrain_steps if scale.resnet_pretrain_steps is not None else pre.steps
+        pre = replace(pre, steps=steps, base_lr=None)
+    pre = replace(pre, method=method, device=cfg.device)
+    return EncoderSpec(enc, str(run), pre.model, pre.patch_size, pre.img_size, pre)
 
 
 def ensure_encoder(es: EncoderSpec, data: str | Path) -> None:
     """Run (or resume, or skip when finished) the pretraining run of ``es``."""
     if es.pretrain is None:
         return
-    say(f"pretrain {es.pretrain['method']} -> {es.spec}")
-    res = train(PretrainConfig(**es.pretrain), data, es.spec, progress=True)
+    say(f"pretrain {es.pretrain.method} -> {es.spec}")
+    res = train(es.pretrain, data, es.spec, progress=True)
     if not res["finished"]:
         raise RuntimeError(f"pretraining {es.spec} did not finish")
 
