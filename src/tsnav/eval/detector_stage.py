@@ -36,7 +36,7 @@ from ..data.detections import detections_path, load_detections, read_fingerprint
 from ..data.reader import list_scenes, load_scene
 from ..detect.evaluate import evaluate_detections
 from ..detect.learned import LearnedDetector
-from ..detect.shipped import DEFAULT_SHIPPED, shipped_detector
+from ..detect.shipped import DEFAULT_SHIPPED, shipped_detector, shipped_meta
 from ..detect.model import DetectorConfig
 from ..detect.quality import switch_report
 from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
@@ -124,6 +124,21 @@ def tables_complete(data: str | Path, name: str) -> str | None:
     used as they are), else None (errors of :func:`learned_tables`)."""
     have, kinds = learned_tables(data, name)
     return kinds[0] if kinds and all(fp is not None for fp in have.values()) else None
+
+
+def complete_tables(data: str | Path, name: str, source: str | None = None) -> str | None:
+    """:func:`tables_complete` under the one rule on a complete set of tables from another source than the one
+    asked for (``source``: ``shipped`` or ``train``, :data:`~tsnav.eval.experiment_config.DETECTOR_SOURCES`; None:
+    any): the shipped detector's tables are not taken by a run that trains its detector, nor another learned
+    detector's by a run that asks for the shipped one; one-line error, the tables are kept."""
+    ready = tables_complete(data, name)
+    shipped_fp = shipped_meta()["fingerprint"]
+    if ready and source is not None and (ready == shipped_fp) != (source == "shipped"):
+        have = "the shipped detector's" if ready == shipped_fp else f"another learned detector's ({ready})"
+        other = "train" if source == "shipped" else "shipped"
+        raise CommandError(f"every room of {data} holds {have} detections_{name}.hdf5, not from --detector {source}: "
+                           f"use another --out or --data (tables are never overwritten), or --detector {other}")
+    return ready
 
 
 def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | Path, scale: ScaleConfig,

@@ -16,7 +16,10 @@ from ..metrics import METRICS
 from ..pretrain.train import PretrainConfig
 from ..rl.config import TrainConfig
 
+#: The paper's experiments (``tsnav experiment``).
 EXPERIMENTS = ("ablation", "pretraining", "threshold")
+#: The demo's experiment (``tsnav demo``): the last row of Table II, TSRM + DE-MAE, at the ``demo`` scale.
+DEMO = "demo"
 
 #: Training updates of the demo's agent (64 episodes x 30 steps each): the same table on any machine.
 #: About 2.5 minutes with 2 torch threads on an idle 2-core machine (154 s measured in `make demo`, 2026-12-01).
@@ -190,10 +193,12 @@ def experiment_rows(name: str, vc1: bool = False) -> list[Row]:
         return rows + [Row("mae", "Standard MAE (ViT)", "mae", "baseline"),
                        Row("demae_crop", "DE-MAE (ViT) w/ crop", "demae-crop", "baseline"),
                        Row("demae", "DE-MAE (ViT) w/o crop", "demae", "baseline")]
+    if name == DEMO:
+        return [Row("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm")]
     if name == "threshold":
         return [Row(f"c{int(round(100 * c)):02d}", f"C_target = {c:.1f}", "demae", "tsrm", c)
                 for c in np.round(np.arange(0.1, 0.91, 0.1), 2).tolist()]
-    raise ValueError(f"unknown experiment {name!r} (choose from {', '.join(EXPERIMENTS)})")
+    raise ValueError(f"unknown experiment {name!r} (choose from {', '.join(EXPERIMENTS + (DEMO,))})")
 
 
 #: Per experiment: evaluation split, metrics in the table, check-mark columns, row shown in the gallery.
@@ -204,6 +209,8 @@ EXPERIMENT_INFO = {
                         baseline_row="resnet18", description="Paper Table III: pretraining methods of the image encoder, baseline reward."),
     "threshold": dict(split="val", metrics=list(METRICS), flags=[], gallery_row="c70",
                       baseline_row="c70", description="Paper Fig. 4: the stage-switch threshold C_target swept on validation episodes."),
+    DEMO: dict(split="test", metrics=list(METRICS), flags=[], gallery_row="tsrm_demae", baseline_row="tsrm_demae",
+               description="tsnav demo: TSRM + DE-MAE (paper Table II, last row) at the demo scale."),
 }
 
 
@@ -212,7 +219,7 @@ class ExperimentConfig:
     """A resolved experiment (saved as ``experiment.json``)."""
 
     experiment: str
-    """``ablation``, ``pretraining`` or ``threshold``."""
+    """``ablation``, ``pretraining``, ``threshold`` or ``demo``."""
     data: str
     """Dataset root (train scenes for pretraining and training, test / val scenes for evaluation)."""
     out: str
@@ -266,6 +273,9 @@ class ExperimentConfig:
     protocol: str = "paper"
     """Success protocol (:mod:`tsnav.protocol`) of the episode lists, the training runs and the evaluations:
     ``paper`` (in view within 1.0 m) or ``lineage`` (the 1.5 m visibility map, as the lineage's evaluator)."""
+    train_data: str | None = None
+    """Dataset root of the training rooms when they are not ``data``'s own (the demo's ``train_world``: some of
+    ``data``'s training rooms, linked); None: ``data``."""
     reuse_from: tuple[str, ...] = ()
     """Other experiment folders whose finished jobs may be reused: a job whose training configuration (budget
     included) equals one of theirs copies that trained run instead of training again, then selects its checkpoint
