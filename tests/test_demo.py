@@ -9,16 +9,17 @@ from dataclasses import replace
 
 import pytest
 
-from tsnav.demo import STAGES, DemoConfig, run_demo, train_subset
+from tsnav.demo import STEPS, DemoConfig, run_demo, train_subset
 from tsnav.eval.experiment_config import SCALES
 from tsnav.rl.train import train_run
 
 from rl_helpers import RecordingTrainer
 
 TINY = DemoConfig(preset="tiny", detector="train", train_rooms_per_type=1, gallery=2,
-                  scale=replace(SCALES["demo"], vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2,
-                                pretrain_batch_size=8, test_per_room_type=5, updates_per_job=2, num_envs=4,
-                                detector_steps=4, detector_batch_size=8, detector_states_per_scene=24))
+                  scale=SCALES["demo"].override(pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2,
+                                                              batch_size=8), test_per_room_type=5,
+                                                train=dict(updates=2, num_envs=4),
+                                                detector=dict(steps=4, batch_size=8, max_states_per_scene=24)))
 
 #: Copy the tiny world into a demo folder without the learned tables other tests may have written (the demo
 #: then trains its own detector).
@@ -51,7 +52,7 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)  # the world stage then only checks it
     trainer = CountedTrainer()
     res = run_demo(out, TINY, train_fn=trainer)
-    assert [res["stages"][s][0] for s in STAGES] == ["done"] * len(STAGES)
+    assert [res["steps"][s][0] for s in STEPS] == ["done"] * len(STEPS)
     assert list(res["results"]) == ["paper", "lineage"]
     for protocol, rows in res["results"].items():
         assert list(rows) == ["agent (TSRM, DE-MAE)", "agent on the oracle table", "scripted explorer", "random"]
@@ -63,15 +64,15 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     assert orc["detections"] == "oracle" and orc["protocol"] == "lineage" and orc["trained_protocol"] == "paper"
     assert len(trainer.calls) == 1 and trainer.calls[0][0] == "tsrm"
     log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines() if line.strip()]
-    assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.updates_per_job == 2  # trained for real
-    assert json.loads((out / "stages" / "train.json").read_text())["update"] == 2
+    assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.train.updates == 2  # trained for real
+    assert json.loads((out / "steps" / "train" / "DONE").read_text())["update"] == 2
     ckpts = sorted(p.name for p in (out / "run" / "checkpoints").iterdir())
     for name in ("agent", "explorer", "random"):
         m = json.loads((out / "eval" / name / "metrics.json").read_text())
         assert m["detections"] == "learned" and (out / "eval" / name / "trajectories.jsonl").exists()
     # the detector stage trained the learned detector (its steps) and its tables are in every room
-    det = json.loads((out / "stages" / "detector.json").read_text())
-    assert det["steps"] == TINY.scale.detector_steps and det["fingerprint"].startswith("learned-")
+    det = json.loads((out / "steps" / "detector" / "DONE").read_text())
+    assert det["steps"] == TINY.scale.detector.steps and det["fingerprint"].startswith("learned-")
     from tsnav.data.detections import read_fingerprint
     from tsnav.data.reader import list_scenes
 
@@ -91,14 +92,14 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     # a second run reuses every stage and trains nothing
     again = CountedTrainer()
     res2 = run_demo(out, TINY, train_fn=again)
-    assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES)
+    assert [res2["steps"][s][0] for s in STEPS] == ["reused"] * len(STEPS)
     assert again.calls == [] and res2["results"] == res["results"]
     assert sorted(p.name for p in (out / "run" / "checkpoints").iterdir()) == ckpts
 
     # a lost evaluation is redone, and the report after it
     shutil.rmtree(out / "eval" / "random")
     res3 = run_demo(out, TINY, train_fn=again)
-    st = {s: res3["stages"][s][0] for s in STAGES}
+    st = {s: res3["steps"][s][0] for s in STEPS}
     assert st["train"] == "reused" and st["evaluate"] == "done" and st["report"] == "done"
     assert (out / "eval" / "random" / "metrics.json").exists()
 
@@ -109,7 +110,7 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
     from tsnav.checkpoint import weights_digest
     from tsnav.rl.checkpoint import load_model
 
-    cfg = replace(TINY, scale=replace(TINY.scale, updates_per_job=3, minutes_per_job=None, milestone_every=1))
+    cfg = replace(TINY, scale=TINY.scale.override(train=dict(updates=3, minutes=None, milestone_every=1)))
     tables, digests, detectors = [], [], []
     for k in range(2):
         out = tmp_path / f"demo{k}"
@@ -120,7 +121,7 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
         tables.append(text.split("results on the test episodes")[1].split("report:")[0])
         digests.append(weights_digest(load_model(out / "run")[0].state_dict()))
         assert res["results"]["paper"]["agent (TSRM, DE-MAE)"]["ALL"]["episodes"] > 0
-        marker = json.loads((out / "stages" / "train.json").read_text())
+        marker = json.loads((out / "steps" / "train" / "DONE").read_text())
         assert marker["update"] == 3
         # the milestones of updates 1-3 were scored on the val rooms; the evaluated agent is the one kept as best
         sel = json.loads((out / "run" / "selection.json").read_text())
@@ -129,7 +130,7 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
         best = weights_digest(load_model(out / "run", out / "run" / "best")[0].state_dict())
         assert best == sel["scores"][sel["best"]]["digest"]
         digests.append(best)
-        detectors.append(json.loads((out / "stages" / "detector.json").read_text())["fingerprint"])
+        detectors.append(json.loads((out / "steps" / "detector" / "DONE").read_text())["fingerprint"])
     # the same detector (weights and temperature) and so the same tables, trained on one thread
     assert detectors[0] == detectors[1]
     assert digests[:2] == digests[2:]  # the latest and the selected agent of each run
@@ -143,7 +144,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
     shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)
     trainer = CountedTrainer()
     res = run_demo(out, replace(TINY, detections="oracle"), train_fn=trainer)
-    assert res["stages"]["detector"][0] == "-" and not (out / "detector").exists()
+    assert res["steps"]["detector"][0] == "-" and not (out / "detector").exists()
     assert trainer.detections == ["oracle"]
     assert json.loads((out / "eval" / "agent" / "metrics.json").read_text())["detections"] == "oracle"
     assert list(res["results"]["lineage"]) == ["agent (TSRM, DE-MAE)", "scripted explorer", "random"]
@@ -173,7 +174,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
     run_demo(out2, TINY, train_fn=trainer)
     assert "no detector trained" in capsys.readouterr().out and not (out2 / "detector").exists()
     assert trainer.detections == ["learned"]
-    assert json.loads((out2 / "stages" / "detections.json").read_text())["fingerprint"] == made["fingerprint"]
+    assert json.loads((out2 / "steps" / "detections" / "DONE").read_text())["fingerprint"] == made["fingerprint"]
 
 
 def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsys):
@@ -194,18 +195,18 @@ def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsy
     cfg = replace(TINY, preset="tiny-real", detector="shipped", train_rooms_per_type=None)
     trainer = CountedTrainer()
     res = run_demo(out, cfg, train_fn=trainer)
-    assert [res["stages"][s][0] for s in STAGES] == ["done"] * len(STAGES)
-    marker = json.loads((out / "stages" / "detector.json").read_text())
+    assert [res["steps"][s][0] for s in STEPS] == ["done"] * len(STEPS)
+    marker = json.loads((out / "steps" / "detector" / "DONE").read_text())
     assert marker["source"] == "shipped" and marker["fingerprint"] == shipped_meta()["fingerprint"]
     assert not (out / "detector").exists() and trainer.detections == ["learned"]
     assert all(read_fingerprint(p, "learned") == marker["fingerprint"] for p in list_scenes(out / "world"))
-    quality = json.loads((out / "stages" / "detections.json").read_text())["quality"]
+    quality = json.loads((out / "steps" / "detections" / "DONE").read_text())["quality"]
     assert quality["reach"] == 1.0  # the val bathroom's three targets all pass C_target
     # the switch fires, so the scripted explorer (Done only after the switch) succeeds on the test bathroom
     assert res["results"]["paper"]["scripted explorer"]["ALL"]["SR"] > 0.5
     capsys.readouterr()
     res2 = run_demo(out, cfg, train_fn=trainer)  # everything reused, the shipped detector's marker included
-    assert [res2["stages"][s][0] for s in STAGES] == ["reused"] * len(STAGES) and len(trainer.calls) == 1
+    assert [res2["steps"][s][0] for s in STEPS] == ["reused"] * len(STEPS) and len(trainer.calls) == 1
     # switching the detector source in the same folder: refused in one line, the tables are kept
     before = {p.name: read_fingerprint(p, "learned") for p in list_scenes(out / "world")}
     with pytest.raises(CommandError, match=r"holds the shipped detector's detections_learned.hdf5, not from "

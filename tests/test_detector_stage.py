@@ -5,7 +5,6 @@ the file); the detector's quality on the val rooms is recorded."""
 
 import json
 import shutil
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -19,7 +18,7 @@ from tsnav.eval.detector_stage import (detection_quality, detector_configs, ensu
 from tsnav.eval.experiment_config import SCALES, ScaleConfig
 from tsnav.eval.stage_cache import ensure_oracle_detections
 
-SMALL = replace(ScaleConfig(), detector_steps=3, detector_batch_size=8, detector_states_per_scene=24)
+SMALL = ScaleConfig().override(detector=dict(steps=3, batch_size=8, max_states_per_scene=24))
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -46,8 +45,8 @@ def test_tables_trained_when_missing_then_reused(world, tmp_path):
     fp = done["fingerprint"]
     assert set(_fps(world).values()) == {fp} and tables_complete(world, "learned") == fp
     det = LearnedDetector.load(det_dir)
-    assert det.fingerprint == fp and det.meta["step"] == SMALL.detector_steps
-    assert det.meta["calibrated_step"] == SMALL.detector_steps and det.meta["calibration_split"] == "val"
+    assert det.fingerprint == fp and det.meta["step"] == SMALL.detector.steps
+    assert det.meta["calibrated_step"] == SMALL.detector.steps and det.meta["calibration_split"] == "val"
     assert det.model.cfg.stem == 1 and det.model.cfg.image_size == 64
     # what was written is the detector's own table
     scene = list_scenes(world)[0]
@@ -55,7 +54,7 @@ def test_tables_trained_when_missing_then_reused(world, tmp_path):
 
     # present in every scene: used as they are, nothing trained (another, empty detector folder stays untouched)
     other = tmp_path / "other"
-    again = ensure_learned_detections(world, "learned", other, replace(SMALL, detector_steps=5), progress=False,
+    again = ensure_learned_detections(world, "learned", other, SMALL.override(detector=dict(steps=5)), progress=False,
                                       say=lambda m: None)
     assert again == {"fingerprint": fp, "written": 0, "trained": False} and not other.exists()
 
@@ -92,7 +91,7 @@ def test_tables_of_another_detector_are_refused(world, tmp_path):
     # table, nothing written or overwritten
     (scenes[0] / "detections_learned.hdf5").unlink()
     with pytest.raises(CommandError, match=r"detections_learned.hdf5 was made by another learned detector") as e:
-        ensure_learned_detections(world, "learned", tmp_path / "det5", replace(SMALL, detector_steps=5),
+        ensure_learned_detections(world, "learned", tmp_path / "det5", SMALL.override(detector=dict(steps=5)),
                                   progress=False, say=lambda m: None)
     assert len(str(e.value).splitlines()) == 1 and str(world) in str(e.value)
     assert not (scenes[0] / "detections_learned.hdf5").exists()
@@ -112,7 +111,7 @@ def test_tables_of_another_detector_are_refused(world, tmp_path):
     shutil.copytree(world, other)
     for p in list_scenes(other):
         (p / "detections_learned.hdf5").unlink()
-    ensure_learned_detections(other, "learned", tmp_path / "det5", replace(SMALL, detector_steps=5),
+    ensure_learned_detections(other, "learned", tmp_path / "det5", SMALL.override(detector=dict(steps=5)),
                               progress=False, say=lambda m: None)
     shutil.copy(other / scenes[3].name / "detections_learned.hdf5", scenes[3] / "detections_learned.hdf5")
     with pytest.raises(CommandError, match="another learned detector .* than other scenes'"):
@@ -133,9 +132,9 @@ def test_scales_size_the_detector_by_frame_side():
     """64-px worlds (demo, small) use stem 1, the 128-px ithor-real scales stem 2; budgets are in steps."""
     assert SCALES["demo"].detector_model["stem"] == 1 and SCALES["small"].detector_model["stem"] == 1
     assert SCALES["medium"].detector_model["stem"] == 2 and SCALES["paper"].detector_model["stem"] == 2
-    assert all(isinstance(sc.detector_steps, int) and sc.detector_steps > 0 for sc in SCALES.values())
+    assert all(isinstance(sc.detector.steps, int) and sc.detector.steps > 0 for sc in SCALES.values())
     tc, mc = detector_configs(SCALES["medium"], 128)
-    assert mc.image_size == 128 and mc.grid == 16 and tc.threads == 1 and tc.steps == SCALES["medium"].detector_steps
+    assert mc.image_size == 128 and mc.grid == 16 and tc.threads == 1 and tc.steps == SCALES["medium"].detector.steps
     assert np.array_equal(mc.widths, SCALES["medium"].detector_model["widths"])
     # the 128-px scales train what `tsnav detect` trains on a 128-px world, the 64-px ones its small default
     from tsnav.detect.model import default_config

@@ -21,9 +21,9 @@ from tsnav.metrics import METRICS
 
 from rl_helpers import RecordingTrainer
 
-TINY = ScaleConfig(vit_model="vit_micro", patch_size=8, img_size=32, pretrain_steps=2, pretrain_batch_size=8,
-                   feature_batch_size=256, num_envs=4, updates_per_job=2, test_per_room_type=6,
-                   val_per_room_type=6, detector_steps=4, detector_batch_size=8, detector_states_per_scene=24)
+TINY = ScaleConfig().override(pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8),
+                              feature_batch_size=256, train=dict(num_envs=4, updates=2), test_per_room_type=6,
+                              val_per_room_type=6, detector=dict(steps=4, batch_size=8, max_states_per_scene=24))
 
 
 class StandInTrainer(RecordingTrainer):
@@ -305,7 +305,7 @@ def test_training_budget_in_updates_or_minutes():
 
     assert budget() == (None, 1000)
     for name, sc in SCALES.items():  # no scale trains for a number of minutes
-        assert sc.minutes_per_job is None and (sc.updates_per_job or sc.episodes_per_job), name
+        assert sc.train.minutes is None and (sc.train.updates or sc.train.episodes), name
     assert budget(minutes_per_job=2.5) == (2.5, None)
     assert budget(updates_per_job=700) == (None, 700)
     assert budget(updates_per_job=700, minutes_per_job=3.0) == (3.0, 700)
@@ -323,12 +323,12 @@ def test_jobs_keep_milestones_for_selection():
 
     row = experiment_rows("ablation")[0]
     for name, sc in SCALES.items():
-        if sc.updates_per_job and sc.milestone_every:
-            assert 3 <= sc.updates_per_job // sc.milestone_every <= 10, name
+        if sc.train.updates and sc.train.milestone_every:
+            assert 3 <= sc.train.updates // sc.train.milestone_every <= 10, name
     cfg = ExperimentConfig(experiment="ablation", data="d", out="o")
     tc, _ = train_config_for(cfg, SCALES["small"], row, "f", 0)
     assert (tc.milestone_every, tc.checkpoint_every) == (200, 100)
-    tc, _ = train_config_for(cfg, replace(SCALES["small"], milestone_every=30), row, "f", 0)
+    tc, _ = train_config_for(cfg, SCALES["small"].override(train=dict(milestone_every=30)), row, "f", 0)
     assert (tc.milestone_every, tc.checkpoint_every) == (30, 10)
     tc, _ = train_config_for(replace(cfg, checkpoint="latest"), SCALES["small"], row, "f", 0)
     assert (tc.milestone_every, tc.checkpoint_every) == (None, 100)
@@ -371,7 +371,7 @@ def test_pretraining_experiment_with_the_real_trainer(tmp_path, exp_world, pretr
 
     from tsnav.rl.checkpoint import read_run_config
 
-    scale = replace(TINY, minutes_per_job=None, updates_per_job=2, num_envs=4, milestone_every=1)
+    scale = TINY.override(train=dict(minutes=None, updates=2, num_envs=4, milestone_every=1))
     out = tmp_path / "pre"
     cfg = ExperimentConfig(experiment="pretraining", data=str(exp_world), out=str(out), seeds=1, device="cpu",
                            pretrain_dir=str(pretrain_dir), parallel=2)

@@ -1,7 +1,8 @@
 """``tsnav demo``: the main job, end to end on the embedded world, in about ten minutes of a 2-core CPU.
 
-Stages (each prints progress; each is skipped on a second run when its marker ``OUT/stages/<stage>.json``
-exists and its outputs are still there, and every underlying step resumes after an interruption):
+Steps (each prints progress; each is skipped on a second run when its marker ``OUT/steps/<step>/DONE`` exists and
+its outputs are still there - folders of earlier versions, with ``OUT/stages/<step>.json``, are resumed from
+those - and every underlying step resumes after an interruption):
 
  1. world        build the ``demo-real`` preset: 28 of the real iTHOR rooms (``ithor-real``;   OUT/world
                  16 train, 4 val, 8 test; 128x128 frames)
@@ -30,11 +31,11 @@ exists and its outputs are still there, and every underlying step resumes after 
 The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
 keeps only the smallest ones per room type, for shorter runs); the val and test rooms are never seen in training.
 
-The demo is one row of the paper's experiments (TSRM + DE-MAE, :mod:`tsnav.eval.experiment`) at the ``demo``
-scale (:data:`tsnav.eval.experiment_config.SCALES`): its encoder, feature cache, training configuration and
-evaluation come from the experiment's own functions (``encoder_spec`` / ``ensure_encoder`` /
-``ensure_features`` / ``train_config_for`` / ``evaluate_to_folder``); what the demo adds is the world, the
-scripted baselines beside the agent, the stage markers and the printed table.
+The demo is the ``demo`` experiment (:mod:`tsnav.eval.experiment`): one row of the paper's (TSRM + DE-MAE) at the
+``demo`` scale (:data:`tsnav.eval.experiment_config.SCALES`), run as a job list of the experiments
+(:class:`~tsnav.eval.experiment.JobList`, ``DONE`` markers). Its encoder, feature cache, detection tables,
+training and checkpoint selection are the experiment's (:class:`~tsnav.eval.experiment.Experiment`); what the
+demo adds is the world, the scripted baselines beside the agent under both protocols, and the printed table.
 """
 
 from __future__ import annotations
@@ -42,40 +43,32 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .constants import C_TARGET
 from .data.detections import read_fingerprint
 from .data.reader import list_scenes, load_scene
-from .detect.oracle import OracleConfig
 from .errors import CommandError
-from .eval.experiment import DEFAULT_THREADS, SELECT_SEED, set_threads, train_config_for
-from .eval.experiment_config import DEMO_UPDATES, DETECTOR_SOURCES, SCALES, ExperimentConfig, Row, ScaleConfig
+from .eval.experiment import (DEFAULT_THREADS, SELECT_SEED, Experiment, JobList, Step, set_threads)
+from .eval.experiment_config import DEMO, DEMO_UPDATES, DETECTOR_SOURCES, SCALES, ExperimentConfig, ScaleConfig
 from .eval.report import build_report
 from .eval.runner import evaluate_to_folder
-from .eval.select import chosen, select_checkpoint
 from .detect.shipped import DEFAULT_SHIPPED, shipped_meta
 from .detect.train import is_checkpoint, read_meta
-from .eval.detector_stage import (ensure_detector, ensure_learned_detections, ensure_shipped_detections,
-                                  record_quality, tables_complete)
+from .eval.detector_stage import complete_tables, ensure_detector, record_quality, tables_complete
 from .eval.tables import quality_line
-from .eval.stage_cache import (encoder_spec, ensure_encoder, ensure_episodes, ensure_features,
-                               ensure_oracle_detections, episodes_name)
+from .eval.stage_cache import encoder_spec, ensure_episodes, ensure_oracle_detections, episodes_name
 from .metrics import METRICS, write_json
 from .protocol import DEFAULT_PROTOCOL, PROTOCOLS, check_protocol, protocol_line
 from .pretrain.train import read_progress
 from .rl.logger import read_log
-from .rl.train import train_run
 from .sim.episodes import read_episodes
 from .world.build import BuildConfig, build_dataset
 from .world.presets import preset_scenes
 
-STAGES = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "report")
-
-
-#: The experiment row the demo trains: TSRM + DE-MAE (paper Table II, last row).
-ROW = Row("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm")
+#: The demo's steps, in order (the pipeline's steps; "stage" names the paper's searching / pathfinding stages).
+STEPS = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "report")
 
 
 @dataclass
@@ -89,7 +82,7 @@ class DemoConfig:
     """Processes building the world."""
     train_rooms_per_type: int | None = None
     """Training rooms used per room type (the smallest ones); None: all training rooms."""
-    scale: ScaleConfig = field(default_factory=lambda: replace(SCALES["demo"]))
+    scale: ScaleConfig = field(default_factory=lambda: SCALES["demo"])
     """Sizes of pretraining, training and evaluation (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps,
     ``DEMO_UPDATES`` updates of batched A2C, 100 test episodes per room type)."""
     detections: str = "learned"
@@ -99,7 +92,7 @@ class DemoConfig:
     instance size and distance)."""
     detector: str = "shipped"
     """Where the learned detector comes from: ``shipped`` (:mod:`tsnav.detect.shipped`, 128-px worlds) or
-    ``train`` (trained here on the training rooms, ``scale.detector_steps`` steps)."""
+    ``train`` (trained here on the training rooms, ``scale.detector.steps`` steps)."""
     seed: int = 0
     """Seed of the training run and of the random policy."""
     gallery: int = 6
@@ -142,55 +135,11 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                         "under both")
     p.add_argument("--detector-steps", type=int, default=None,
                    help=f"training steps of the learned detector with --detector train (default "
-                        f"{SCALES['demo'].detector_steps})")
+                        f"{SCALES['demo'].detector.steps})")
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Stage bookkeeping
-# ---------------------------------------------------------------------------------------------------------
-
-
-class Stages:
-    """Markers ``OUT/stages/<name>.json`` (seconds, summary) and the progress lines of the demo."""
-
-    def __init__(self, out: Path):
-        self.dir = out / "stages"
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.times: dict[str, tuple[str, float]] = {}
-
-    def marker(self, name: str) -> dict | None:
-        p = self.dir / f"{name}.json"
-        try:
-            return json.loads(p.read_text()) if p.exists() else None
-        except json.JSONDecodeError:
-            return None
-
-    def header(self, name: str, what: str) -> None:
-        k = STAGES.index(name) + 1
-        print(f"\n[{k}/{len(STAGES)}] {name}: {what}", flush=True)
-
-    def run(self, name: str, what: str, fn, valid=lambda m: True) -> dict:
-        """Run ``fn() -> summary dict`` unless a valid marker exists and no earlier stage ran in this call (the
-        underlying steps skip what is already on disk, so a rerun after an upstream change is cheap)."""
-        self.header(name, what)
-        m = self.marker(name)
-        upstream_ran = any(status == "done" for status, _ in self.times.values())
-        if m is not None and not upstream_ran and valid(m):
-            print(f"    reused (made by an earlier run in {m.get('seconds', 0):.0f} s)", flush=True)
-            self.times[name] = ("reused", 0.0)
-            return m
-        t0 = time.perf_counter()
-        summary = fn() or {}
-        dt = time.perf_counter() - t0
-        m = {**summary, "seconds": dt}
-        write_json(self.dir / f"{name}.json", m)
-        self.times[name] = ("done", dt)
-        print(f"    done in {dt:.0f} s", flush=True)
-        return m
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Stages
+# Steps
 # ---------------------------------------------------------------------------------------------------------
 
 
@@ -216,20 +165,32 @@ def train_subset(world: Path, dest: Path, per_type: int | None) -> list[str]:
     return sorted(names)
 
 
-def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> dict:
-    """Run the demo into ``out``; returns ``{"stages": {name: (status, seconds)}, "results": {label: summary}}``.
+class DemoExperiment(Experiment):
+    """The ``demo`` experiment in the demo's folder layout: its one job's run is ``OUT/run``, its evaluation
+    ``OUT/eval/agent``, its checkpoint-selection episodes ``OUT/val_episodes*.json``."""
 
-    ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
-    cfg = cfg or DemoConfig()
+    def train_dir(self, job) -> Path:
+        return self.out / "run"
+
+    def eval_dir(self, job) -> Path:
+        return self.out / "eval" / "agent"
+
+    @property
+    def select_file(self) -> Path:
+        return self.out / episodes_name("val", self.cfg.protocol)
+
+
+def check_demo(out: Path, cfg: DemoConfig) -> None:
+    """Refuse, in one line and before any work, what the demo cannot run: an unknown detector source, the shipped
+    detector on a world of another frame size, a folder holding another preset's world."""
     check_protocol(cfg.protocol)
     if cfg.detector not in DETECTOR_SOURCES:
         raise CommandError(f"unknown detector source {cfg.detector!r} (choose from {', '.join(DETECTOR_SOURCES)})")
-    if cfg.detections != "oracle" and cfg.detector == "shipped":  # refused before any work
+    if cfg.detections != "oracle" and cfg.detector == "shipped":
         size, want = BuildConfig.from_preset(cfg.preset).image_size, shipped_meta()["model"]["image_size"]
         if size != want:
             raise CommandError(f"the shipped detector reads {want}x{want} frames (the ithor-real rooms), the "
                                f"{cfg.preset} world has {size}x{size}: use --detector train, or --preset demo-real")
-    out = Path(out)
     index = out / "world" / "index.json"
     if index.exists():  # a world of another preset is never mixed with this one (names overlap): refused
         try:
@@ -239,208 +200,220 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
         if was != cfg.preset:
             raise CommandError(f"{out / 'world'} holds the {was!r} world, not {cfg.preset!r}: use another --out "
                                f"(or --preset {was})")
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "demo_config.json", asdict(cfg))
-    world = out / "world"
-    sub = out / "train_world"
-    st = Stages(out)
-    t_all = time.perf_counter()
 
-    # 1. world ------------------------------------------------------------------------------------------
-    def do_world():
-        build_dataset(world, cfg.preset, workers=cfg.world_workers)
-        names = train_subset(world, sub, cfg.train_rooms_per_type)
-        return {"scenes": len(list_scenes(world)), "train_rooms": names}
 
-    def world_ok(m):
-        return world.is_dir() and len(list_scenes(world)) == len(preset_scenes(cfg.preset)) and sub.is_dir()
+class Demo:
+    """The demo's steps over its experiment (:class:`DemoExperiment`, one job) and its folder ``out``."""
 
-    wm = st.run("world", f"build the `{cfg.preset}` world into {world} (finished rooms are reused)", do_world, world_ok)
-    print(f"    {wm['scenes']} rooms; training on {', '.join(wm['train_rooms'])}", flush=True)
+    def __init__(self, out: Path, cfg: DemoConfig, train_fn=None):
+        self.out, self.cfg, self.sc = out, cfg, cfg.scale
+        self.world, self.sub, self.det_dir = out / "world", out / "train_world", out / "detector"
+        self.exp = DemoExperiment(ExperimentConfig(
+            experiment=DEMO, data=str(self.world), train_data=str(self.sub), out=str(out), scale="demo",
+            detections=cfg.detections, detector=cfg.detector, detector_dir=str(self.det_dir), device="cpu",
+            sample=cfg.sample, protocol=cfg.protocol, seed_offset=cfg.seed), train_fn=train_fn, scale=cfg.scale)
+        self.job = self.exp.jobs[0]
+        self.es = encoder_spec(self.job.row.encoder, self.sc, self.exp.pretrain_dir, self.exp.cfg)
+        self.ep_files = {p: out / episodes_name("test", p) for p in PROTOCOLS}
+        self.val_file = self.exp.select_file
+        self.run_dir = self.exp.train_dir(self.job)
+        self.policies = eval_policies(cfg.detections)
+        self.results: dict[str, dict] = {}
+        self.jobs = JobList(self.steps(), say=lambda m: print(m, flush=True))
 
-    # 2. pretrain ---------------------------------------------------------------------------------------
-    sc = cfg.scale
-    exp = ExperimentConfig(experiment="demo", data=str(sub), out=str(out), scale="demo", detections=cfg.detections,
-                           device="cpu", protocol=cfg.protocol)
-    es = encoder_spec(ROW.encoder, sc, out / "pretrain", exp)
+    def step(self, name: str, what: str, run, valid=lambda m: True, show=None) -> Step:
+        return Step(name, what, self.out / "steps" / name, run, valid, show, legacy=self.out / "stages" / f"{name}.json")
 
-    def do_pretrain():
-        ensure_encoder(es, sub)
-        prog = read_progress(es.spec)
+    def steps(self) -> list[Step]:
+        cfg, sc, es = self.cfg, self.sc, self.es
+        learned, shipped = cfg.detections != "oracle", cfg.detector == "shipped"
+        if not learned:
+            detector = self.step("detector", "not used (--detections oracle)", None)
+        elif shipped:
+            detector = self.step("detector", f"learned detector shipped with tsnav ({DEFAULT_SHIPPED}; trained on the "
+                                 "ithor-real training rooms apart from the agent, as the paper's DETR): nothing "
+                                 "trained here", self.detector, self.detector_ok)
+        else:
+            detector = self.step("detector", f"learned detector, {sc.detector.steps} steps on the training rooms (one "
+                                 f"thread), temperature fitted on the val rooms -> {self.det_dir}", self.detector,
+                                 self.detector_ok)
+        what = "the learned detector's table per room" if learned else "the oracle detector's table per room"
+        budget = ", ".join(f"{v:g} {k}" for k, v in sc.budget.items() if v is not None) or "1.5 M episodes"
+        return [
+            self.step("world", f"build the `{cfg.preset}` world into {self.world} (finished rooms are reused)",
+                      self.build_world, self.world_ok,
+                      lambda m: print(f"    {m['scenes']} rooms; training on {', '.join(m['train_rooms'])}", flush=True)),
+            self.step("pretrain", f"DE-MAE, {sc.pretrain.model} at {sc.pretrain.img_size}x{sc.pretrain.img_size}, "
+                      f"{sc.pretrain.steps} steps -> {es.spec}", self.pretrain,
+                      lambda m: (Path(es.spec) / "encoder.safetensors").exists()),
+            self.step("features", "encode every state of the training, validation and test rooms once",
+                      self.features, self.features_ok),
+            detector,
+            self.step("detections", f"detections: {cfg.detections} (named explicitly), {what} (confidence drives the "
+                      f"stage switch, C_target {C_TARGET:g}); quality on the val rooms", self.detections,
+                      lambda m: "quality" in m and all(read_fingerprint(p, cfg.detections) == m.get("fingerprint")
+                                                       for p in list_scenes(self.world))),
+            self.step("episodes", f"{sc.test_per_room_type} test episodes per room type under each protocol "
+                      f"({', '.join(PROTOCOLS)}) and {sc.val_per_room_type} validation episodes per room type ("
+                      f"{cfg.protocol})", self.episodes,
+                      lambda m: all(f.exists() for f in self.ep_files.values()) and self.val_file.exists()
+                      and "by_protocol" in m, self.show_episodes),
+            self.step("train", f"TSRM agent, batched A2C, {budget}, best milestone on validation -> {self.run_dir}",
+                      self.train, lambda m: m.get("budget") == sc.budget and "checkpoint" in m
+                      and (self.run_dir / "config.json").exists()),
+            self.step("evaluate", "on the test episodes of each protocol: " + ", ".join(lab for lab, _, _ in self.policies),
+                      self.evaluate, self.evaluate_ok),
+            self.step("report", f"HTML report -> {self.out / 'report' / 'index.html'}", self.report,
+                      lambda m: (self.out / "report" / "index.html").exists()),
+        ]
+
+    # 1. world -------------------------------------------------------------------------------------------
+    def build_world(self) -> dict:
+        build_dataset(self.world, self.cfg.preset, workers=self.cfg.world_workers)
+        names = train_subset(self.world, self.sub, self.cfg.train_rooms_per_type)
+        return {"scenes": len(list_scenes(self.world)), "train_rooms": names}
+
+    def world_ok(self, m: dict) -> bool:
+        return (self.world.is_dir() and len(list_scenes(self.world)) == len(preset_scenes(self.cfg.preset))
+                and self.sub.is_dir())
+
+    # 2. pretrain, 3. features ---------------------------------------------------------------------------
+    def pretrain(self) -> dict:
+        self.exp.encoder(self.job.row.encoder)
+        prog = read_progress(self.es.spec)
         return {"steps": prog["step"], "loss": prog.get("loss")}
 
-    st.run("pretrain", f"DE-MAE, {sc.vit_model} at {sc.img_size}x{sc.img_size}, {sc.pretrain_steps} steps -> {es.spec}",
-           do_pretrain, lambda m: (Path(es.spec) / "encoder.safetensors").exists())
+    def features(self) -> dict:
+        name = self.exp.features(self.es, ["train", "test", "val"])
+        return {"name": name, "scenes": sum(len(list_scenes(d, s)) for d, s in ((self.sub, "train"),
+                                                                                 (self.world, "test"),
+                                                                                 (self.world, "val")))}
 
-    # 3. features ---------------------------------------------------------------------------------------
-    def do_features():
-        name = ensure_features(es, sub, ["train"], sc.feature_batch_size, exp.device)
-        ensure_features(es, world, ["test", "val"], sc.feature_batch_size, exp.device)
-        return {"name": name, "scenes": sum(len(list_scenes(d, s)) for d, s in ((sub, "train"), (world, "test"),
-                                                                                 (world, "val")))}
-
-    def features_ok(m):
-        rooms = list_scenes(sub, "train") + list_scenes(world, "test") + list_scenes(world, "val")
+    def features_ok(self, m: dict) -> bool:
+        rooms = list_scenes(self.sub, "train") + list_scenes(self.world, "test") + list_scenes(self.world, "val")
         return "name" in m and all((p / f"features_{m['name']}.hdf5").exists() for p in rooms)
 
-    fm = st.run("features", "encode every state of the training, validation and test rooms once", do_features, features_ok)
-
-    # 4. detector ---------------------------------------------------------------------------------------
-    det_dir = out / "detector"
-    learned = cfg.detections != "oracle"
-    shipped = cfg.detector == "shipped"
-    shipped_fp = shipped_meta()["fingerprint"]
-
-    def do_detector():
-        ready = tables_complete(world, cfg.detections)
-        if ready and (ready == shipped_fp) != shipped:  # tables of the other source than the one asked for
-            have = "the shipped detector's" if ready == shipped_fp else f"another learned detector's ({ready})"
-            raise CommandError(f"every room of {world} holds {have} detections_{cfg.detections}.hdf5, not from "
-                               f"--detector {cfg.detector}: use another --out (they are never overwritten)")
+    # 4. detector, 5. detections -------------------------------------------------------------------------
+    def detector(self) -> dict:
+        cfg = self.cfg
+        ready = complete_tables(self.world, cfg.detections, cfg.detector)  # the one rule on foreign tables
         if ready:  # every room already has a learned table (e.g. written by an experiment): used as it is
             print(f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
                   flush=True)
             return {"fingerprint": ready, "tables": "existing"}
-        if shipped:  # loaded (and its weights checked) by the detections stage
+        if cfg.detector == "shipped":  # loaded (and its weights checked) by the detections step
             meta = shipped_meta()
             print(f"    shipped detector {DEFAULT_SHIPPED}: step {meta['step']}, trained on "
                   f"{len(meta['train_scenes'])} ithor-real training rooms, temperature {meta['temperature']:.3f} "
-                  f"({shipped_fp})", flush=True)
-            return {"fingerprint": shipped_fp, "source": "shipped", "steps": meta["step"],
+                  f"({meta['fingerprint']})", flush=True)
+            return {"fingerprint": meta["fingerprint"], "source": "shipped", "steps": meta["step"],
                     "temperature": meta["temperature"]}
-        det = ensure_detector(sub, world, det_dir, sc, say=lambda m: print(m, flush=True))
+        det = ensure_detector(self.sub, self.world, self.det_dir, self.sc, say=lambda m: print(m, flush=True))
         return {"fingerprint": det.fingerprint, "source": "train", "steps": det.meta.get("step"),
                 "temperature": det.temperature}
 
-    def detector_ok(m):
+    def detector_ok(self, m: dict) -> bool:
         if m.get("tables") == "existing":
-            return tables_complete(world, cfg.detections) == m.get("fingerprint")
-        if shipped:
-            return m.get("source") == "shipped" and m.get("fingerprint") == shipped_fp
+            return tables_complete(self.world, self.cfg.detections) == m.get("fingerprint")
+        if self.cfg.detector == "shipped":
+            return m.get("source") == "shipped" and m.get("fingerprint") == shipped_meta()["fingerprint"]
         if m.get("source", "train") != "train":  # markers written before the shipped detector have no source
             return False
-        meta = read_meta(det_dir) if is_checkpoint(det_dir) else {}
-        return meta.get("step") == sc.detector_steps and meta.get("calibrated_step") == sc.detector_steps
+        meta = read_meta(self.det_dir) if is_checkpoint(self.det_dir) else {}
+        return meta.get("step") == self.sc.detector.steps and meta.get("calibrated_step") == self.sc.detector.steps
 
-    if learned and shipped:
-        st.run("detector", f"learned detector shipped with tsnav ({DEFAULT_SHIPPED}; trained on the ithor-real "
-                           "training rooms apart from the agent, as the paper's DETR): nothing trained here",
-               do_detector, detector_ok)
-    elif learned:
-        st.run("detector", f"learned detector, {sc.detector_steps} steps on the training rooms (one thread), "
-                           f"temperature fitted on the val rooms -> {det_dir}", do_detector, detector_ok)
-    else:
-        st.header("detector", "not used (--detections oracle)")
-        st.times["detector"] = ("-", 0.0)
+    def detections(self) -> dict:
+        done = self.exp.ensure_detections(self.cfg.detections)
+        quality = record_quality(self.out, self.world, [self.cfg.detections], say=lambda m: print(m, flush=True))
+        return {"written": done["written"], "fingerprint": done["fingerprint"], "quality": quality[self.cfg.detections]}
 
-    # 5. detections -------------------------------------------------------------------------------------
-    def do_detections():
-        if learned and shipped:
-            done = ensure_shipped_detections(world, cfg.detections, say=lambda m: print(m, flush=True))
-            fingerprint, written = done["fingerprint"], done["written"]
-        elif learned:
-            done = ensure_learned_detections(world, cfg.detections, det_dir, sc, train_root=sub,
-                                             say=lambda m: print(m, flush=True))
-            fingerprint, written = done["fingerprint"], done["written"]
-        else:
-            written, fingerprint = ensure_oracle_detections(world, cfg.detections), OracleConfig().fingerprint()
-        quality = record_quality(out, world, [cfg.detections], say=lambda m: print(m, flush=True))
-        return {"written": written, "fingerprint": fingerprint, "quality": quality[cfg.detections]}
-
-    what = ("the learned detector's table per room" if learned else "the oracle detector's table per room")
-    dm = st.run("detections", f"detections: {cfg.detections} (named explicitly), {what} (confidence drives the stage "
-                         f"switch, C_target {C_TARGET:g}); quality on the val rooms", do_detections,
-           lambda m: "quality" in m and all(read_fingerprint(p, cfg.detections) == m.get("fingerprint")
-                                            for p in list_scenes(world)))
-
-    # 6. episodes ---------------------------------------------------------------------------------------
-    ep_files = {p: out / episodes_name("test", p) for p in PROTOCOLS}
-    ep_file = ep_files[DEFAULT_PROTOCOL]
-    val_file = out / episodes_name("val", cfg.protocol)
-
-    def do_episodes():
-        for p, f in ep_files.items():
-            ensure_episodes(world, "test", f, sc.test_per_room_type, protocol=p)
-        ensure_episodes(world, "val", val_file, sc.val_per_room_type, seed=SELECT_SEED, protocol=cfg.protocol)
-        test = {p: read_episodes(f)[0] for p, f in ep_files.items()}
-        return {"episodes": len(test[DEFAULT_PROTOCOL]), "val_episodes": len(read_episodes(val_file)[0]),
+    # 6. episodes ----------------------------------------------------------------------------------------
+    def episodes(self) -> dict:
+        sc = self.sc
+        for p, f in self.ep_files.items():
+            ensure_episodes(self.world, "test", f, sc.test_per_room_type, protocol=p)
+        ensure_episodes(self.world, "val", self.val_file, sc.val_per_room_type, seed=SELECT_SEED,
+                        protocol=self.cfg.protocol)
+        test = {p: read_episodes(f)[0] for p, f in self.ep_files.items()}
+        return {"episodes": len(test[DEFAULT_PROTOCOL]), "val_episodes": len(read_episodes(self.val_file)[0]),
                 "by_protocol": {p: {"episodes": len(e), "start_success": sum(x.optimal_length == 0 for x in e)}
                                 for p, e in test.items()}}
 
-    em = st.run("episodes", f"{sc.test_per_room_type} test episodes per room type under each protocol "
-                f"({', '.join(PROTOCOLS)}) and {sc.val_per_room_type} validation episodes per room type ("
-                f"{cfg.protocol})", do_episodes,
-                lambda m: all(f.exists() for f in ep_files.values()) and val_file.exists() and "by_protocol" in m)
-    for p, f in ep_files.items():
-        b = em["by_protocol"][p]
-        print(f"    {p}: {b['episodes']} test episodes in {f}"
-              + (f" ({b['start_success']} start already succeeds)" if b["start_success"] else ""), flush=True)
-    print(f"    {em['val_episodes']} in {val_file} (checkpoint selection, protocol {cfg.protocol})", flush=True)
+    def show_episodes(self, m: dict) -> None:
+        for p, f in self.ep_files.items():
+            b = m["by_protocol"][p]
+            print(f"    {p}: {b['episodes']} test episodes in {f}"
+                  + (f" ({b['start_success']} start already succeeds)" if b["start_success"] else ""), flush=True)
+        print(f"    {m['val_episodes']} in {self.val_file} (checkpoint selection, protocol {self.cfg.protocol})",
+              flush=True)
 
-    # 7. train ------------------------------------------------------------------------------------------
-    run_dir = out / "run"
-
-    def do_train():
-        tc, agent = train_config_for(exp, sc, ROW, fm["name"], cfg.seed)
-        (train_fn or train_run)(tc, agent, run_dir)
-        log = read_log(run_dir)
+    # 7. train -------------------------------------------------------------------------------------------
+    def train(self) -> dict:
+        """The experiment's job: trained, then its milestones scored greedily on the val rooms' episodes and the
+        best kept as run/best (resumed from run/selection.json when interrupted there)."""
+        self.exp.train_job(self.job, self.jobs.markers["features"]["name"])
+        log = read_log(self.run_dir)
         last = {k: log[-1][k] for k in ("update", "env_steps", "episodes", "SR") if log and k in log[-1]}
-        # milestones scored greedily on the val rooms' episodes; the best is kept as run/best and evaluated
-        # (resumed from run/selection.json when interrupted here)
-        sel = select_checkpoint(run_dir, world, val_file, seed=cfg.seed, max_steps=sc.max_steps, c_target=ROW.c_target)
-        checkpoint = chosen(sel)
-        print(f"    best of {checkpoint['candidates']} checkpoints on validation: {sel['best']} (update "
+        checkpoint = self.exp.choose_checkpoint(self.job)
+        print(f"    best of {checkpoint['candidates']} checkpoints on validation: {checkpoint['name']} (update "
               f"{checkpoint['update']}, SR {100 * checkpoint['val_SR']:.1f}, SPL {100 * checkpoint['val_SPL']:.1f})",
               flush=True)
-        return {"budget": budget, "log_lines": len(log), **last, "checkpoint": checkpoint}
+        return {"budget": self.sc.budget, "log_lines": len(log), **last, "checkpoint": checkpoint}
 
-    budget = {"updates": sc.updates_per_job, "minutes": sc.minutes_per_job, "episodes": sc.episodes_per_job}
-    shown = ", ".join(f"{v:g} {k}" for k, v in budget.items() if v is not None) or "1.5 M episodes"
-    st.run("train", f"TSRM agent, batched A2C, {shown}, best milestone on validation -> {run_dir}", do_train,
-           lambda m: m.get("budget") == budget and "checkpoint" in m and (run_dir / "config.json").exists())
+    # 8. evaluate ----------------------------------------------------------------------------------------
+    def folder(self, name: str, protocol: str) -> Path:
+        return self.out / "eval" / (name if protocol == DEFAULT_PROTOCOL else f"{name}_{protocol}")
 
-    # 8. evaluate ---------------------------------------------------------------------------------------
-    policies = eval_policies(cfg.detections)
-    results: dict[str, dict] = {}
-
-    def folder(name: str, protocol: str) -> Path:
-        return out / "eval" / (name if protocol == DEFAULT_PROTOCOL else f"{name}_{protocol}")
-
-    def do_eval():
-        if any(det == "oracle" for _, _, det in policies):
-            ensure_oracle_detections(world, "oracle")
+    def evaluate(self) -> dict:
+        cfg = self.cfg
+        if any(det == "oracle" for _, _, det in self.policies):
+            ensure_oracle_detections(self.world, "oracle")
         for p in PROTOCOLS:
-            for label, name, det in policies:
+            for label, name, det in self.policies:
                 print(f"    {label} ({p}) ...", flush=True)
-                results.setdefault(p, {})[label] = evaluate_to_folder(
-                    folder(name, p), world, ep_files[p], policy="agent" if name.startswith("agent") else name,
-                    run=run_dir if name.startswith("agent") else None, detections=det or cfg.detections,
-                    seed=cfg.seed, label=label if p == DEFAULT_PROTOCOL else f"{label} [{p}]", sample=cfg.sample,
-                    protocol=p)
-        return {"policies": [n for _, n, _ in policies], "protocols": list(PROTOCOLS), "sample": cfg.sample}
+                agent = name.startswith("agent")
+                self.results.setdefault(p, {})[label] = evaluate_to_folder(
+                    self.folder(name, p), self.world, self.ep_files[p], policy="agent" if agent else name,
+                    run=self.run_dir if agent else None, detections=det or cfg.detections, seed=cfg.seed,
+                    label=label if p == DEFAULT_PROTOCOL else f"{label} [{p}]", sample=cfg.sample, protocol=p)
+        return {"policies": [n for _, n, _ in self.policies], "protocols": list(PROTOCOLS), "sample": cfg.sample}
 
-    st.run("evaluate", "on the test episodes of each protocol: " + ", ".join(lab for lab, _, _ in policies), do_eval,
-           lambda m: m.get("policies") == [n for _, n, _ in policies] and m.get("sample", True) == cfg.sample
-           and m.get("protocols") == list(PROTOCOLS)
-           and all((folder(n, p) / "metrics.json").exists() for _, n, _ in policies for p in PROTOCOLS))
-    if not results:
-        for p in PROTOCOLS:
-            for label, name, _ in policies:
-                results.setdefault(p, {})[label] = json.loads((folder(name, p) / "metrics.json").read_text())["metrics"]
+    def evaluate_ok(self, m: dict) -> bool:
+        return (m.get("policies") == [n for _, n, _ in self.policies] and m.get("sample", True) == self.cfg.sample
+                and m.get("protocols") == list(PROTOCOLS)
+                and all((self.folder(n, p) / "metrics.json").exists() for _, n, _ in self.policies for p in PROTOCOLS))
 
-    # 9. report -----------------------------------------------------------------------------------------
-    def do_report():
-        index = build_report(out, out / "report", gallery=cfg.gallery, title=f"tsnav demo: TSRM + DE-MAE on the {cfg.preset} world")
+    def read_results(self) -> dict[str, dict]:
+        """The evaluations' summaries: protocol -> label -> summary (read back when the step was reused)."""
+        if not self.results:
+            for p in PROTOCOLS:
+                for label, name, _ in self.policies:
+                    metrics = json.loads((self.folder(name, p) / "metrics.json").read_text())["metrics"]
+                    self.results.setdefault(p, {})[label] = metrics
+        return self.results
+
+    # 9. report ------------------------------------------------------------------------------------------
+    def report(self) -> dict:
+        index = build_report(self.out, self.out / "report", gallery=self.cfg.gallery,
+                             title=f"tsnav demo: TSRM + DE-MAE on the {self.cfg.preset} world")
         return {"index": str(index)}
 
-    rm = st.run("report", f"HTML report -> {out / 'report' / 'index.html'}", do_report,
-                lambda m: (out / "report" / "index.html").exists())
 
-    total = time.perf_counter() - t_all
-    _print_results(results, st, total, rm.get("index", str(out / "report" / "index.html")), cfg.protocol)
-    print(f"detections: {quality_line(dm['quality'])}", flush=True)
-    return {"stages": st.times, "results": results, "seconds": total}
-
+def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> dict:
+    """Run the demo into ``out``; returns ``{"steps": {name: (status, seconds)}, "results": {protocol: {label:
+    summary}}, "seconds"}``. ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
+    cfg, out = cfg or DemoConfig(), Path(out)
+    check_demo(out, cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "demo_config.json", asdict(cfg))
+    t_all = time.perf_counter()
+    demo = Demo(out, cfg, train_fn)
+    markers = demo.jobs.run()
+    results, total = demo.read_results(), time.perf_counter() - t_all
+    _print_results(results, demo.jobs.times, total, markers["report"].get("index", str(out / "report" / "index.html")),
+                   cfg.protocol)
+    print(f"detections: {quality_line(markers['detections']['quality'])}", flush=True)
+    return {"steps": demo.jobs.times, "results": results, "seconds": total}
 
 def eval_policies(detections: str) -> list[tuple[str, str, str | None]]:
     """The demo's rows: ``(label, folder name, detection table or None for the demo's own)``: the agent, the
@@ -472,10 +445,10 @@ def results_table(results: dict[str, dict], trained: str) -> str:
     return "\n".join(lines)
 
 
-def _print_results(results: dict, st: Stages, total: float, index: str, trained: str = DEFAULT_PROTOCOL) -> None:
-    print("\nstage        status    seconds")
-    for name in STAGES:
-        status, sec = st.times.get(name, ("-", 0.0))
+def _print_results(results: dict, times: dict, total: float, index: str, trained: str = DEFAULT_PROTOCOL) -> None:
+    print("\nstep         status    seconds")
+    for name in STEPS:
+        status, sec = times.get(name, ("-", 0.0))
         print(f"{name:<12} {status:<8} {sec:8.0f}")
     print(f"{'total':<12} {'':<8} {total:8.0f}")
     print(results_table(results, trained))
@@ -488,23 +461,24 @@ def run(args) -> int:
     if args.detector_steps is not None:
         if args.detector_steps < 1:
             raise CommandError("--detector-steps must be >= 1")
-        cfg.scale.detector_steps = args.detector_steps
+        cfg.scale = cfg.scale.override(detector=dict(steps=args.detector_steps))
     if args.train_updates is not None or args.train_minutes is not None:  # asked for: replaces the default
         if args.train_updates is not None and args.train_updates < 1:
             raise CommandError("--train-updates must be >= 1")
         if args.train_minutes is not None and not args.train_minutes > 0:
             raise CommandError("--train-minutes must be positive")
-        cfg.scale.updates_per_job, cfg.scale.minutes_per_job = args.train_updates, args.train_minutes
+        cfg.scale = cfg.scale.override(train=dict(updates=args.train_updates, minutes=args.train_minutes))
     if args.pretrain_steps is not None:
         if args.pretrain_steps < 1:
             raise CommandError("--pretrain-steps must be >= 1")
-        cfg.scale.pretrain_steps = args.pretrain_steps
+        cfg.scale = cfg.scale.override(pretrain=dict(steps=args.pretrain_steps))
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     if args.procs is not None:
-        if args.procs < 1 or cfg.scale.num_envs % args.procs:
-            raise CommandError(f"--procs must be >= 1 and divide the {cfg.scale.num_envs} training episodes per update")
-        cfg.scale.procs = args.procs
+        if args.procs < 1 or cfg.scale.train.num_envs % args.procs:
+            raise CommandError(f"--procs must be >= 1 and divide the {cfg.scale.train.num_envs} training episodes "
+                               "per update")
+        cfg.scale = cfg.scale.override(train=dict(procs=args.procs))
 
     print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)

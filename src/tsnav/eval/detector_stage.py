@@ -23,6 +23,7 @@ positives: :mod:`tsnav.detect.evaluate`, :mod:`tsnav.detect.quality`); experimen
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -31,11 +32,11 @@ from tqdm import tqdm
 
 from ..atomic import atomic_write_json
 from ..constants import C_TARGET
-from ..data.detections import load_detections, read_fingerprint, write_detections
+from ..data.detections import detections_path, load_detections, read_fingerprint, write_detections
 from ..data.reader import list_scenes, load_scene
 from ..detect.evaluate import evaluate_detections
 from ..detect.learned import LearnedDetector
-from ..detect.shipped import DEFAULT_SHIPPED, shipped_detector
+from ..detect.shipped import DEFAULT_SHIPPED, shipped_detector, shipped_meta
 from ..detect.model import DetectorConfig
 from ..detect.quality import switch_report
 from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
@@ -63,8 +64,7 @@ class one_thread:
 
 def detector_configs(scale: ScaleConfig, image_size: int) -> tuple[DetectorTrainConfig, DetectorConfig]:
     """Training settings and the architecture of a new detector at ``scale`` for ``image_size``-px frames."""
-    tc = DetectorTrainConfig(steps=scale.detector_steps, batch_size=scale.detector_batch_size,
-                             max_states_per_scene=scale.detector_states_per_scene, threads=1)
+    tc = replace(scale.detector, threads=1)
     mc = DetectorConfig.from_dict({**scale.detector_model, "image_size": image_size})
     return tc, mc
 
@@ -72,7 +72,7 @@ def detector_configs(scale: ScaleConfig, image_size: int) -> tuple[DetectorTrain
 def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir: str | Path, scale: ScaleConfig,
                     progress: bool = True, say: Callable[[str], None] = print) -> LearnedDetector:
     """Train (resume; nothing when finished) the learned detector in ``detector_dir`` on the train rooms of
-    ``train_root`` up to ``scale.detector_steps`` steps, fit its temperature on the val rooms of ``calib_root``
+    ``train_root`` up to ``scale.detector.steps`` steps, fit its temperature on the val rooms of ``calib_root``
     (once per step count) and load it. A folder trained on other rooms is refused (one line)."""
     detector_dir = Path(detector_dir)
     train = list_scenes(train_root, split="train")
@@ -99,10 +99,6 @@ def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir
     return LearnedDetector.load(detector_dir)
 
 
-def _table(p: Path, name: str) -> str:
-    return str(p / f"detections_{name}.hdf5")
-
-
 def learned_tables(data: str | Path, name: str) -> tuple[dict[Path, str | None], list[str]]:
     """(fingerprint of every scene's ``detections_<name>.hdf5`` or None, the one learned detector's fingerprint
     as a list of at most one). One-line error when a table was made by an oracle or the scenes' tables by two
@@ -113,12 +109,12 @@ def learned_tables(data: str | Path, name: str) -> tuple[dict[Path, str | None],
     have = {p: read_fingerprint(p, name) for p in paths}
     for p, fp in have.items():
         if fp is not None and not fp.startswith(LEARNED_PREFIX):
-            raise CommandError(f"{_table(p, name)} was made by another detector ({fp}), not a learned one; "
+            raise CommandError(f"{detections_path(p, name)} was made by another detector ({fp}), not a learned one; "
                                f"remove it or use another --detections name")
     kinds = sorted({fp for fp in have.values() if fp is not None})
     if len(kinds) > 1:
         odd = next(p for p, fp in have.items() if fp == kinds[1])
-        raise CommandError(f"{_table(odd, name)} was made by another learned detector ({kinds[1]}) than other "
+        raise CommandError(f"{detections_path(odd, name)} was made by another learned detector ({kinds[1]}) than other "
                            f"scenes' ({kinds[0]}); remove the stale tables")
     return have, kinds
 
@@ -128,6 +124,21 @@ def tables_complete(data: str | Path, name: str) -> str | None:
     used as they are), else None (errors of :func:`learned_tables`)."""
     have, kinds = learned_tables(data, name)
     return kinds[0] if kinds and all(fp is not None for fp in have.values()) else None
+
+
+def complete_tables(data: str | Path, name: str, source: str | None = None) -> str | None:
+    """:func:`tables_complete` under the one rule on a complete set of tables from another source than the one
+    asked for (``source``: ``shipped`` or ``train``, :data:`~tsnav.eval.experiment_config.DETECTOR_SOURCES`; None:
+    any): the shipped detector's tables are not taken by a run that trains its detector, nor another learned
+    detector's by a run that asks for the shipped one; one-line error, the tables are kept."""
+    ready = tables_complete(data, name)
+    shipped_fp = shipped_meta()["fingerprint"]
+    if ready and source is not None and (ready == shipped_fp) != (source == "shipped"):
+        have = "the shipped detector's" if ready == shipped_fp else f"another learned detector's ({ready})"
+        other = "train" if source == "shipped" else "shipped"
+        raise CommandError(f"every room of {data} holds {have} detections_{name}.hdf5, not from --detector {source}: "
+                           f"use another --out or --data (tables are never overwritten), or --detector {other}")
+    return ready
 
 
 def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | Path, scale: ScaleConfig,
@@ -165,7 +176,7 @@ def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, prog
     have, kinds = learned_tables(data, name)
     if kinds and det.fingerprint != kinds[0]:
         odd = next(p for p, fp in have.items() if fp is not None)
-        raise CommandError(f"{_table(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
+        raise CommandError(f"{detections_path(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
                            f"{source} ({det.fingerprint}); it is not overwritten: remove it, or write the "
                            f"missing tables with its own detector (tsnav detect)")
     scenes = [load_scene(p) for p, fp in have.items() if fp is None]

@@ -27,7 +27,7 @@ detector is never overwritten: one-line error naming it). Each table's quality o
 reach of C_target, false positives) is written to ``OUT/detector_quality.json`` and printed under the table.
 
 A job is one (row, seed): (pretrain the row's encoder if needed) -> cache its features (once per encoder) ->
-train the agent, keeping a milestone every ``ScaleConfig.milestone_every`` updates -> score the milestones (and
+train the agent, keeping a milestone every ``ScaleConfig.train.milestone_every`` updates -> score the milestones (and
 the newest two checkpoints) greedily on validation episodes and keep the best as ``train/best`` (issue 15;
 :func:`tsnav.eval.select.select_checkpoint`, resumed from ``train/selection.json``) -> evaluate that checkpoint.
 ``--checkpoint latest`` skips selection and evaluates the last checkpoint (as folders from before selection did;
@@ -71,7 +71,7 @@ import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Callable
@@ -92,8 +92,8 @@ from .report import build_report
 from .runner import evaluate_to_folder
 from .select import chosen, select_checkpoint
 from .detector_stage import QUALITY_FILE, record_quality
-from .stage_cache import (encoder_spec, ensure_detections, ensure_encoder, ensure_episodes, ensure_features,
-                          ensure_world, say)
+from .stage_cache import (EncoderSpec, encoder_spec, ensure_detections, ensure_encoder, ensure_episodes,
+                          ensure_features, ensure_world, say)
 from ..rl.done_dips import DIP_DONE_SHARE, run_done_dips
 from .claims import ALPHA as CLAIMS_ALPHA, check_claims, claims_markdown, summary_line
 from .tables import (SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line, welch_against,
@@ -139,19 +139,101 @@ def default_train_fn() -> TrainFn:
 
 def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, features: str, seed: int):
     """The :class:`~tsnav.rl.config.TrainConfig` and :class:`~tsnav.agent.AgentConfig` of one job."""
-    episodes, updates, minutes = scale.episodes_per_job, scale.updates_per_job, scale.minutes_per_job
+    base = scale.train
+    budget = {}
     if cfg.updates_per_job is not None or cfg.minutes_per_job is not None:  # asked for: replaces the scale's
-        episodes, updates, minutes = None, cfg.updates_per_job, cfg.minutes_per_job
-    milestones = scale.milestone_every if cfg.checkpoint == "best" else None
+        budget = dict(episodes=None, updates=cfg.updates_per_job, minutes=cfg.minutes_per_job)
+    milestones = base.milestone_every if cfg.checkpoint == "best" else None
     # checkpoints land on multiples of checkpoint_every (100 by default); milestones must be among them
     every = math.gcd(TrainConfig.checkpoint_every, milestones) if milestones else TrainConfig.checkpoint_every
-    tc = TrainConfig(data=str(Path(cfg.data).resolve()), features=features, detections=row.detections_of(cfg.detections),
-                     split="train", algo=scale.algo, reward=row.reward, preset=scale.agent_preset, lr=scale.lr,
-                     num_envs=scale.num_envs, workers=scale.workers, seed=seed, c_target=row.c_target,
-                     minutes=minutes, episodes=episodes, updates=updates, device=cfg.device,
-                     checkpoint_every=every, milestone_every=milestones, protocol=cfg.protocol,
-                     procs=(cfg.procs or scale.procs) if scale.algo == "batched" else 1)
-    return tc, agent_config(scale.agent_preset)
+    tc = replace(base, data=str(Path(cfg.train_data or cfg.data).resolve()), features=features,
+                 detections=row.detections_of(cfg.detections), split="train", reward=row.reward, seed=seed,
+                 c_target=row.c_target, device=cfg.device, checkpoint_every=every, milestone_every=milestones,
+                 protocol=cfg.protocol, procs=(cfg.procs or base.procs) if base.algo == "batched" else 1, **budget)
+    return tc, agent_config(base.preset)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The job list: steps whose DONE file (written last, atomically) marks them finished
+# ---------------------------------------------------------------------------------------------------------
+
+#: The marker of a finished step or job: ``<folder>/DONE``, a JSON summary written last and atomically.
+DONE = "DONE"
+
+
+def read_done(folder: str | Path, legacy: str | Path | None = None) -> dict | None:
+    """The summary in ``folder/DONE`` (else in the ``legacy`` marker file, when given), or None when there is none
+    or it is unreadable."""
+    for p in (Path(folder) / DONE, legacy):
+        if p is not None and Path(p).exists():
+            try:
+                m = json.loads(Path(p).read_text())
+            except (OSError, ValueError):
+                return None
+            return m if isinstance(m, dict) else None
+    return None
+
+
+def write_done(folder: str | Path, summary: dict) -> dict:
+    """Mark a step finished: ``folder/DONE`` holds ``summary`` (atomic; call it after the step's outputs)."""
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    write_json(Path(folder) / DONE, summary)
+    return summary
+
+
+@dataclass
+class Step:
+    """One entry of a :class:`JobList`: ``run() -> summary`` (None: the step does not apply and is shown as
+    ``-``), its ``DONE`` in ``folder``, ``valid(marker)`` whether a finished step's outputs are still there,
+    ``show(marker)`` what is printed after it ran or was reused."""
+
+    name: str
+    what: str
+    folder: Path
+    run: Callable[[], dict] | None
+    valid: Callable[[dict], bool] = lambda m: True
+    show: Callable[[dict], None] | None = None
+    legacy: Path | None = None
+    """A marker file of an earlier layout, read when ``DONE`` is missing (the demo's ``stages/<name>.json``)."""
+
+
+class JobList:
+    """Runs steps in order, numbered ``[k/n]``. A step is reused when its marker is valid and no earlier step ran
+    in this call (``chained``: each step reads what the ones before wrote; the underlying work skips what is on
+    disk, so a rerun after an upstream change is cheap), else it runs and its ``DONE`` is written (with its
+    seconds). ``times``: name -> (``done`` / ``reused`` / ``-``, seconds); ``markers``: name -> summary."""
+
+    def __init__(self, steps: list[Step], chained: bool = True, say: Callable[[str], None] = say):
+        self.steps, self.chained, self.say = steps, chained, say
+        self.times: dict[str, tuple[str, float]] = {}
+        self.markers: dict[str, dict] = {}
+
+    def run_step(self, k: int, step: Step) -> dict:
+        self.say(f"\n[{k}/{len(self.steps)}] {step.name}: {step.what}")
+        if step.run is None:
+            self.times[step.name] = ("-", 0.0)
+            return {}
+        m = read_done(step.folder, step.legacy)
+        upstream_ran = self.chained and any(status == "done" for status, _ in self.times.values())
+        if m is not None and not upstream_ran and step.valid(m):
+            self.say(f"    reused (made by an earlier run in {m.get('seconds', 0):.0f} s)")
+            self.times[step.name] = ("reused", 0.0)
+        else:
+            t0 = time.perf_counter()
+            summary = step.run() or {}
+            dt = time.perf_counter() - t0
+            m = write_done(step.folder, {**summary, "seconds": dt})
+            self.times[step.name] = ("done", dt)
+            self.say(f"    done in {dt:.0f} s")
+        self.markers[step.name] = m
+        if step.show is not None:
+            step.show(m)
+        return m
+
+    def run(self) -> dict[str, dict]:
+        for k, step in enumerate(self.steps, 1):
+            self.run_step(k, step)
+        return self.markers
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -185,8 +267,8 @@ class Experiment:
     """Runs the jobs of one experiment; see the module docstring."""
 
     def __init__(self, cfg: ExperimentConfig, train_fn: TrainFn | None = None, scale: ScaleConfig | None = None):
-        if cfg.experiment not in EXPERIMENTS:
-            raise ValueError(f"unknown experiment {cfg.experiment!r} (choose from {', '.join(EXPERIMENTS)})")
+        if cfg.experiment not in EXPERIMENT_INFO:
+            raise ValueError(f"unknown experiment {cfg.experiment!r} (choose from {', '.join(EXPERIMENT_INFO)})")
         if cfg.scale not in SCALES and scale is None:
             raise ValueError(f"unknown scale {cfg.scale!r} (choose from {', '.join(SCALES)})")
         if cfg.seeds < 1:
@@ -238,13 +320,26 @@ class Experiment:
         write_json(p, doc)
 
     def done(self, job: Job) -> bool:
-        return (self.out / job.dir / "DONE").exists()
+        return read_done(self.out / job.dir) is not None
+
+    @property
+    def train_root(self) -> Path:
+        """Dataset root of the training rooms (pretraining, features, detector and agent training)."""
+        return Path(self.cfg.train_data or self.cfg.data)
+
+    def train_dir(self, job: Job) -> Path:
+        """The job's run folder."""
+        return self.out / job.dir / "train"
+
+    def eval_dir(self, job: Job) -> Path:
+        """The job's evaluation folder."""
+        return self.out / job.dir / "eval"
 
     def write_tables(self) -> dict:
         """Aggregate the finished jobs into ``results.json``, ``table.md``, ``table.csv`` (and ``threshold.png``)."""
         per_row: dict[str, list[dict]] = {}
         for j in self.jobs:
-            m = self.out / j.dir / "eval" / "metrics.json"
+            m = self.eval_dir(j) / "metrics.json"
             if self.done(j) and m.exists():
                 per_row.setdefault(j.row.id, []).append(json.loads(m.read_text())["metrics"])
         results = aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
@@ -308,7 +403,7 @@ class Experiment:
         for j in self.jobs:
             if self.done(j):
                 out["jobs"] += 1
-                d = run_done_dips(self.out / j.dir / "train")
+                d = run_done_dips(self.train_dir(j))
                 if d:
                     out["with_dips"].append({"row": j.row.id, "seed": j.seed, "dips": d})
         return out
@@ -329,7 +424,7 @@ class Experiment:
         ensure_world(cfg.data, scale.world)
         say(f"[{cfg.experiment}] detections ({', '.join(self.detection_names)}) and {split} episodes")
         for name in self.detection_names:
-            ensure_detections(cfg.data, name, self.detector_dir, scale, shipped=cfg.detector == "shipped")
+            self.ensure_detections(name)
         record_quality(self.out, cfg.data, self.detection_names, say=say)
         ensure_episodes(cfg.data, split, self.episodes_file,
                         scale.test_per_room_type if split == "test" else scale.val_per_room_type, protocol=cfg.protocol)
@@ -342,11 +437,32 @@ class Experiment:
         features = {}
         todo = [j for j in self.jobs if not self.done(j)]
         for enc in dict.fromkeys(j.row.encoder for j in todo):
-            es = encoder_spec(enc, scale, self.pretrain_dir, cfg)
-            ensure_encoder(es, cfg.data)
+            es = self.encoder(enc)
             say(f"[{cfg.experiment}] features of {enc} for the {' and '.join(splits)} scenes")
-            features[enc] = ensure_features(es, cfg.data, splits, scale.feature_batch_size, cfg.device)
+            features[enc] = self.features(es, splits)
         return features
+
+    def ensure_detections(self, name: str) -> dict:
+        """The table ``name`` in every scene (:func:`~tsnav.eval.stage_cache.ensure_detections`: the one rule on
+        tables of another source, the detector trained on the training rooms when needed)."""
+        return ensure_detections(self.cfg.data, name, self.detector_dir, self.scale,
+                                 shipped=self.cfg.detector == "shipped", train_root=self.train_root)
+
+    def encoder(self, enc: str) -> EncoderSpec:
+        """The encoder ``enc`` of the rows, pretrained on the training rooms (resumed; nothing when finished)."""
+        es = encoder_spec(enc, self.scale, self.pretrain_dir, self.cfg)
+        ensure_encoder(es, self.train_root)
+        return es
+
+    def features(self, es: EncoderSpec, splits: list[str]) -> str:
+        """Cache the features of ``es`` for the scenes of ``splits`` (the train split from the training rooms);
+        returns the cache name."""
+        bs, device = self.scale.feature_batch_size, self.cfg.device
+        if self.cfg.train_data and "train" in splits:
+            name = ensure_features(es, self.train_root, ["train"], bs, device)
+            rest = [s for s in splits if s != "train"]
+            return ensure_features(es, self.cfg.data, rest, bs, device) if rest else name
+        return ensure_features(es, self.cfg.data, splits, bs, device)
 
     @property
     def detection_names(self) -> list[str]:
@@ -366,7 +482,7 @@ class Experiment:
         """Select the job's checkpoint (``best``: :func:`~tsnav.eval.select.select_checkpoint` on the selection
         episodes, resumed from ``train/selection.json``; ``latest``: the last trained); returns what was used
         (checkpoint name, update, and for ``best`` the validation SR / SPL)."""
-        run = self.out / job.dir / "train"
+        run = self.train_dir(job)
         if self.cfg.checkpoint == "best":
             say(f"[{self.cfg.experiment}] selecting {job.row.id}_s{job.seed}'s checkpoint on {self.select_file.name}")
             sel = select_checkpoint(run, self.cfg.data, self.select_file, seed=job.seed, max_steps=self.scale.max_steps,
@@ -376,29 +492,33 @@ class Experiment:
         return {"kind": "latest", "name": ck.name,
                 "update": int(json.loads((ck / "state.json").read_text())["progress"]["update"])}
 
-    def run_job(self, job: Job, features: str) -> dict:
-        """Train (resumable) and evaluate one job; writes ``DONE`` last."""
-        jd = self.out / job.dir
+    def train_job(self, job: Job, features: str) -> TrainConfig:
+        """Train the job's agent (resumable; a finished run of ``reuse_from`` with this very configuration is
+        copied instead); returns its training configuration."""
         tc, agent = train_config_for(self.cfg, self.scale, job.row, features, job.seed)
-        train_fn = self._train_fn or default_train_fn()
-        t0 = time.perf_counter()
-        src = None if (jd / "train").exists() else self.reusable_run(tc)
+        run = self.train_dir(job)
+        src = None if run.exists() else self.reusable_run(tc)
         if src is not None:  # finished there with this very configuration and budget: nothing to train
             say(f"[{self.cfg.experiment}] {job.row.id}_s{job.seed}: reusing the trained run {src}")
-            copy_run(src, jd / "train")
+            copy_run(src, run)
         else:
-            train_fn(tc, agent, jd / "train")
+            (self._train_fn or default_train_fn())(tc, agent, run)
+        return tc
+
+    def run_job(self, job: Job, features: str) -> dict:
+        """Train (resumable) and evaluate one job; writes ``DONE`` last."""
+        t0 = time.perf_counter()
+        self.train_job(job, features)
         checkpoint = self.choose_checkpoint(job)
         t1 = time.perf_counter()
-        summary = evaluate_to_folder(jd / "eval", self.cfg.data, self.episodes_file, run=jd / "train",
+        summary = evaluate_to_folder(self.eval_dir(job), self.cfg.data, self.episodes_file, run=self.train_dir(job),
                                      detections=job.row.detections_of(self.cfg.detections),
                                      c_target=job.row.c_target, seed=job.seed,
                                      label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps,
                                      sample=self.cfg.sample, checkpoint=checkpoint["kind"])
-        done = {"row": job.row.id, "seed": job.seed, "checkpoint": checkpoint, "train_seconds": t1 - t0,
-                "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}}
-        write_json(jd / "DONE", done)
-        return done
+        return write_done(self.out / job.dir, {
+            "row": job.row.id, "seed": job.seed, "checkpoint": checkpoint, "train_seconds": t1 - t0,
+            "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}})
 
     def run(self) -> dict:
         """Run every unfinished job (one after another, or ``cfg.parallel`` at once); returns ``results.json``'s

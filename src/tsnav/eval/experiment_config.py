@@ -6,14 +6,20 @@ A row is one line of a paper table (Table II ablation, Table III pretraining) or
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..constants import C_TARGET
+from ..detect.train import DetectorTrainConfig
 from ..metrics import METRICS
+from ..pretrain.train import PretrainConfig
+from ..rl.config import TrainConfig
 
+#: The paper's experiments (``tsnav experiment``).
 EXPERIMENTS = ("ablation", "pretraining", "threshold")
+#: The demo's experiment (``tsnav demo``): the last row of Table II, TSRM + DE-MAE, at the ``demo`` scale.
+DEMO = "demo"
 
 #: Training updates of the demo's agent (64 episodes x 30 steps each): the same table on any machine.
 #: About 2.5 minutes with 2 torch threads on an idle 2-core machine (154 s measured in `make demo`, 2026-12-01).
@@ -34,74 +40,78 @@ DETECTOR_128_STEPS = 9000
 
 
 
+def _pretrain() -> PretrainConfig:
+    """Pretraining of the ``small`` scale: ViT-Tiny at 64x64, 800 steps of 64 images, a larger learning rate
+    (1.5e-3 per 256 images) than MAE's for short CPU runs. ``method`` and ``device`` are the job's."""
+    return PretrainConfig(model="vit_tiny", patch_size=16, img_size=64, steps=800, batch_size=64, base_lr=1.5e-3)
+
+
+def _train() -> TrainConfig:
+    """Agent training of the ``small`` scale: batched A2C over 64 episodes of the ``cpu`` network, lr 1e-3
+    (paper: 1e-4 for 14 A3C workers of one episode each; on the 80 real rooms 1e-3 reached a higher validation
+    plateau in a third of the updates, docs/RESULTS.md "Convergence on the 80 real rooms"), 1000 updates per job
+    (about 1.9 M environment steps), a milestone every 200 updates for validation-based selection (issue 15).
+    The job fills in its data, features, detections, reward, seed, C_target and protocol."""
+    return TrainConfig(algo="batched", preset="cpu", lr=1e-3, num_envs=64, procs=1, workers=14, updates=1000,
+                       milestone_every=200)
+
+
+def _detector() -> DetectorTrainConfig:
+    """The learned detector's training (issue 14 item 4): 2500 steps of 64 frames on one torch thread (a budget
+    in steps, so the same detector on a busy and an idle machine)."""
+    return DetectorTrainConfig(steps=2500, batch_size=64, max_states_per_scene=None, threads=1)
+
+
 @dataclass
 class ScaleConfig:
-    """Sizes of every stage at one scale (``small``: 2-core CPU; ``paper``: the paper's settings)."""
+    """Sizes of every stage at one scale (``small``: 2-core CPU; ``paper``: the paper's settings): the
+    configurations of the three trainers, and the sizes of the steps around them. A scale that differs from
+    another says so with :meth:`override` (``dataclasses.replace`` of the nested configurations); each job
+    completes its trainer's configuration with ``dataclasses.replace`` too (:func:`tsnav.eval.stage_cache.encoder_spec`,
+    :func:`tsnav.eval.experiment.train_config_for`, :func:`tsnav.eval.detector_stage.detector_configs`)."""
 
-    vit_model: str = "vit_tiny"
-    """ViT size of the MAE-family encoders (paper: ViT-Base)."""
-    patch_size: int = 16
-    """ViT patch side, pixels."""
-    img_size: int = 64
-    """Encoder input side, pixels (frames are resized to it; paper: 224)."""
-    pretrain_steps: int | None = 800
-    """Optimiser steps of each pretraining run; None: ``PretrainConfig.epochs`` passes over the data."""
-    pretrain_batch_size: int = 64
-    """Images per pretraining step."""
-    pretrain_base_lr: float | None = 1.5e-3
-    """Pretraining learning rate per 256 images of the MAE-family methods; None: MAE's 1.5e-4. Short CPU runs
-    use a larger one."""
-    resnet_pretrain_steps: int | None = 400
-    """Optimiser steps of the supervised ResNet18 baseline (used when no ImageNet weights are given); None: as
-    ``pretrain_steps``."""
-    feature_batch_size: int = 128
-    """Frames per encoder call when caching features."""
-    algo: str = "batched"
-    """Trainer: ``batched`` (synchronous A2C over many episodes) or ``a3c`` (paper: 14 asynchronous workers)."""
-    agent_preset: str = "cpu"
-    """Agent network size (:data:`tsnav.agent.PRESETS`; paper: ``paper``)."""
-    lr: float = 1e-3
-    """Adam learning rate of the agent (paper: 1e-4 for 14 A3C workers of one episode each). The batched trainer
-    averages each update over 64-256 episodes; on the 80 real rooms 1e-3 reached a higher validation plateau in
-    a third of the updates that 1e-4 needed (docs/RESULTS.md, "Convergence on the 80 real rooms")."""
-    num_envs: int = 64
-    """Episodes stepped together by the batched trainer (per update, over all its processes)."""
-    procs: int = 1
-    """CPU processes the batched trainer shares each update's episodes over (:attr:`TrainConfig.procs`; 2 uses
-    both cores of a 2-core machine). Part of the agent's identity: another value trains another agent."""
-    workers: int = 14
-    """A3C workers (paper: 14)."""
-    updates_per_job: int | None = 1000
-    """Training budget per job in optimizer updates (the default kind of budget: the same agent on a busy and an
-    idle machine; 1000 updates of 64 episodes x 30 steps are about 1.9 M environment steps)."""
-    episodes_per_job: int | None = None
-    """Training budget per job in finished training episodes (paper: 1.5 M)."""
-    milestone_every: int | None = 200
-    """Updates between the milestone checkpoints a job keeps for validation-based selection (issue 15; a handful
-    per job); None: no milestones, selection then chooses among the two newest checkpoints."""
-    minutes_per_job: float | None = None
-    """Training budget per job in minutes, only when asked for (the result then depends on the machine's load).
-    Training stops at the first budget reached; with none set, the paper's 1.5 M episodes."""
-    test_per_room_type: int = 250
-    """Test episodes per room type (the lineage: 250)."""
-    val_per_room_type: int = 100
-    """Validation episodes per room type (threshold sweep)."""
-    max_steps: int = 100
-    """Evaluation episode length (paper: 100)."""
-    detector_steps: int = 2500
-    """Optimiser steps of the learned detector (issue 14 item 4: trained on the train rooms when the dataset has no
-    learned tables; a budget in steps, so the same detector on a busy and an idle machine)."""
-    detector_batch_size: int = 64
-    """Frames per detector training step."""
-    detector_states_per_scene: int | None = None
-    """Random states per train room the detector trains on; None: every state."""
+    pretrain: PretrainConfig = field(default_factory=_pretrain)
+    """Pretraining of the MAE-family encoders (and of the supervised ResNet18 baseline, with
+    ``resnet_pretrain_steps`` and MAE's own learning rate). ``steps`` None: ``epochs`` passes over the data."""
+    train: TrainConfig = field(default_factory=_train)
+    """Agent training per job: trainer, network preset, lr, episodes per update (``num_envs``), processes
+    (``procs``: part of the agent's identity), A3C ``workers``, the budget (``updates``, ``episodes``; ``minutes``
+    only when asked for, the result then depends on the machine's load; none: the paper's 1.5 M episodes) and
+    ``milestone_every`` (None: selection among the two newest checkpoints)."""
+    detector: DetectorTrainConfig = field(default_factory=_detector)
+    """The learned detector's training, when the dataset lacks learned tables (``max_states_per_scene``: random
+    states per train room; None: every state)."""
     detector_model: dict = field(default_factory=lambda: {"stem": 1})
     """:class:`~tsnav.detect.model.DetectorConfig` fields of a new detector besides the input side (taken from the
     train frames): 64-px worlds use ``stem`` 1, 128-px worlds ``stem`` 2 (space-to-depth: a 128-px frame then costs
     what a 64-px one does)."""
+    resnet_pretrain_steps: int | None = 400
+    """Optimiser steps of the supervised ResNet18 baseline (used when no ImageNet weights are given); None: as
+    ``pretrain.steps``."""
+    feature_batch_size: int = 128
+    """Frames per encoder call when caching features."""
+    test_per_room_type: int = 250
+    """Test episodes per room type (the lineage: 250)."""
+    val_per_room_type: int = 100
+    """Validation episodes per room type (threshold sweep, checkpoint selection)."""
+    max_steps: int = 100
+    """Evaluation episode length (paper: 100)."""
     world: str = "demo"
     """World preset (``tsnav world --preset``) the scale runs on: built into ``--data`` when that folder does not
     exist yet. Paper: ``ithor-real``, the real iTHOR scenes rebuilt from their recorded layouts."""
+
+    def override(self, pretrain: dict | None = None, train: dict | None = None, detector: dict | None = None,
+                 **fields) -> "ScaleConfig":
+        """A copy with fields of the nested configurations (``pretrain``, ``train``, ``detector``: field -> value)
+        and of the scale itself replaced (``dataclasses.replace``, so every configuration checks its values)."""
+        return replace(self, **fields,
+                       **{k: replace(getattr(self, k), **v) for k, v in
+                          (("pretrain", pretrain), ("train", train), ("detector", detector)) if v})
+
+    @property
+    def budget(self) -> dict:
+        """The training budget per job as the demo's markers record it: updates, minutes, episodes."""
+        return {"updates": self.train.updates, "minutes": self.train.minutes, "episodes": self.train.episodes}
 
 
 #: Where missing learned detection tables come from (``ExperimentConfig.detector``, ``DemoConfig.detector``):
@@ -109,21 +119,24 @@ class ScaleConfig:
 DETECTOR_SOURCES = ("train", "shipped")
 
 
+#: The four scales. ``demo``: the scale of ``tsnav demo`` (its one row in about ten minutes); ``small``: a 2-core
+#: CPU in about two hours; ``medium``: the budget at which TSRM + DE-MAE's validation curve on the 80 training
+#: rooms has plateaued (issue 15, items 3-4; MEDIUM_UPDATES); ``paper``: the paper's settings.
+SMALL = ScaleConfig()
 SCALES = {
-    "demo": ScaleConfig(pretrain_steps=300, updates_per_job=DEMO_UPDATES, test_per_room_type=100),
-    "small": ScaleConfig(),
-    # The budget at which TSRM + DE-MAE's validation curve on the 80 training rooms has plateaued (issue 15,
-    # items 3-4; MEDIUM_UPDATES).
-    "medium": ScaleConfig(updates_per_job=MEDIUM_UPDATES, milestone_every=250, num_envs=256, test_per_room_type=250,
-                          val_per_room_type=100, world="ithor-real", detector_steps=DETECTOR_128_STEPS,
-                          detector_states_per_scene=1600, detector_model=dict(DETECTOR_128)),
-    "paper": ScaleConfig(vit_model="vit_base", patch_size=16, img_size=224, pretrain_steps=None, pretrain_batch_size=64,
-                         pretrain_base_lr=None, feature_batch_size=64, algo="a3c", agent_preset="paper", lr=1e-4,
-                         num_envs=16, workers=14, updates_per_job=None, episodes_per_job=1_500_000,
-                         milestone_every=None,
-                         test_per_room_type=250, val_per_room_type=250, world="ithor-real",
-                         detector_steps=DETECTOR_128_STEPS, detector_states_per_scene=1600,
-                         detector_model=dict(DETECTOR_128)),
+    "demo": SMALL.override(pretrain=dict(steps=300), train=dict(updates=DEMO_UPDATES), test_per_room_type=100),
+    "small": SMALL,
+    "medium": SMALL.override(train=dict(updates=MEDIUM_UPDATES, milestone_every=250, num_envs=256),
+                             detector=dict(steps=DETECTOR_128_STEPS, max_states_per_scene=1600),
+                             test_per_room_type=250, val_per_room_type=100, world="ithor-real",
+                             detector_model=dict(DETECTOR_128)),
+    "paper": SMALL.override(pretrain=dict(model="vit_base", patch_size=16, img_size=224, steps=None, batch_size=64,
+                                          base_lr=None),
+                            train=dict(algo="a3c", preset="paper", lr=1e-4, num_envs=16, workers=14, updates=None,
+                                       episodes=1_500_000, milestone_every=None),
+                            detector=dict(steps=DETECTOR_128_STEPS, max_states_per_scene=1600),
+                            feature_batch_size=64, test_per_room_type=250, val_per_room_type=250, world="ithor-real",
+                            detector_model=dict(DETECTOR_128)),
 }
 
 
@@ -180,10 +193,12 @@ def experiment_rows(name: str, vc1: bool = False) -> list[Row]:
         return rows + [Row("mae", "Standard MAE (ViT)", "mae", "baseline"),
                        Row("demae_crop", "DE-MAE (ViT) w/ crop", "demae-crop", "baseline"),
                        Row("demae", "DE-MAE (ViT) w/o crop", "demae", "baseline")]
+    if name == DEMO:
+        return [Row("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm")]
     if name == "threshold":
         return [Row(f"c{int(round(100 * c)):02d}", f"C_target = {c:.1f}", "demae", "tsrm", c)
                 for c in np.round(np.arange(0.1, 0.91, 0.1), 2).tolist()]
-    raise ValueError(f"unknown experiment {name!r} (choose from {', '.join(EXPERIMENTS)})")
+    raise ValueError(f"unknown experiment {name!r} (choose from {', '.join(EXPERIMENTS + (DEMO,))})")
 
 
 #: Per experiment: evaluation split, metrics in the table, check-mark columns, row shown in the gallery.
@@ -194,6 +209,8 @@ EXPERIMENT_INFO = {
                         baseline_row="resnet18", description="Paper Table III: pretraining methods of the image encoder, baseline reward."),
     "threshold": dict(split="val", metrics=list(METRICS), flags=[], gallery_row="c70",
                       baseline_row="c70", description="Paper Fig. 4: the stage-switch threshold C_target swept on validation episodes."),
+    DEMO: dict(split="test", metrics=list(METRICS), flags=[], gallery_row="tsrm_demae", baseline_row="tsrm_demae",
+               description="tsnav demo: TSRM + DE-MAE (paper Table II, last row) at the demo scale."),
 }
 
 
@@ -202,7 +219,7 @@ class ExperimentConfig:
     """A resolved experiment (saved as ``experiment.json``)."""
 
     experiment: str
-    """``ablation``, ``pretraining`` or ``threshold``."""
+    """``ablation``, ``pretraining``, ``threshold`` or ``demo``."""
     data: str
     """Dataset root (train scenes for pretraining and training, test / val scenes for evaluation)."""
     out: str
@@ -244,7 +261,7 @@ class ExperimentConfig:
     parallel: int = 1
     """Jobs trained at once, each in its own process (use 2 on two idle cores; progress bars are then off)."""
     procs: int | None = None
-    """Overrides the scale's :attr:`ScaleConfig.procs`: processes of each batched training job (one job at a time,
+    """Overrides the scale's ``ScaleConfig.train.procs``: processes of each batched training job (one job at a time,
     ``parallel`` 1)."""
     checkpoint: str = "best"
     """Checkpoint each job evaluates: ``best`` (issue 15: the job's milestones are scored greedily on validation
@@ -256,6 +273,9 @@ class ExperimentConfig:
     protocol: str = "paper"
     """Success protocol (:mod:`tsnav.protocol`) of the episode lists, the training runs and the evaluations:
     ``paper`` (in view within 1.0 m) or ``lineage`` (the 1.5 m visibility map, as the lineage's evaluator)."""
+    train_data: str | None = None
+    """Dataset root of the training rooms when they are not ``data``'s own (the demo's ``train_world``: some of
+    ``data``'s training rooms, linked); None: ``data``."""
     reuse_from: tuple[str, ...] = ()
     """Other experiment folders whose finished jobs may be reused: a job whose training configuration (budget
     included) equals one of theirs copies that trained run instead of training again, then selects its checkpoint

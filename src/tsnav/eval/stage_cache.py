@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..data.detections import detections_path, read_fingerprint, write_detections
@@ -19,7 +19,7 @@ from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, read_episodes, write_episodes
 from ..world.build import build_dataset
-from .detector_stage import ensure_learned_detections, ensure_shipped_detections
+from .detector_stage import complete_tables, ensure_learned_detections, ensure_shipped_detections
 from .experiment_config import ExperimentConfig, ScaleConfig
 
 
@@ -29,7 +29,7 @@ def say(msg: str) -> None:
 
 def ensure_world(data: str | Path, preset: str, build: bool = False, workers: int | None = None) -> str:
     """The world preset of the dataset at ``data`` (from its ``index.json``); with ``build``, ``preset`` (the
-    scale's world, :attr:`ScaleConfig.world`) is first built there when the folder does not exist. Prints a note
+    scale's world, ``ScaleConfig.world``) is first built there when the folder does not exist. Prints a note
     when the dataset holds another world than ``preset``."""
     root = Path(data)
     if build and not root.exists():
@@ -66,26 +66,32 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
 
 
 def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | None = None,
-                      scale: ScaleConfig | None = None, shipped: bool = False) -> None:
-    """Oracle tables are computed when missing; any other name is a learned detector's table: used as it is when
-    every scene holds one of the same detector, else the detector in ``detector_dir`` is trained at ``scale`` and
-    writes the missing ones (:func:`tsnav.eval.detector_stage.ensure_learned_detections`; without a
+                      scale: ScaleConfig | None = None, shipped: bool = False,
+                      train_root: str | Path | None = None) -> dict:
+    """Every scene's table ``detections_<name>.hdf5``; returns ``{"fingerprint", "written"}``. Oracle tables are
+    computed when missing; any other name is a learned detector's table: used as it is when every scene holds one
+    of the same detector (from the source asked for: :func:`~tsnav.eval.detector_stage.complete_tables`), else the
+    detector in ``detector_dir`` is trained at ``scale`` on the train rooms of ``train_root`` (default ``data``)
+    and writes the missing ones (:func:`tsnav.eval.detector_stage.ensure_learned_detections`; without a
     ``detector_dir`` every scene must already have its table). ``shipped``: the missing learned tables are written
     by the detector that comes with tsnav (:mod:`tsnav.detect.shipped`) instead, nothing trained."""
     if name == "oracle":
         n = ensure_oracle_detections(data, name)
         if n:
             say(f"detections: oracle tables written for {n} scenes")
-        return
+        return {"fingerprint": OracleConfig().fingerprint(), "written": n}
+    trains = detector_dir is not None and scale is not None
+    if shipped or trains:
+        complete_tables(data, name, "shipped" if shipped else "train")  # the one rule on foreign tables
     if shipped:
-        ensure_shipped_detections(data, name, say=say)
-        return
-    if detector_dir is None or scale is None:
+        return ensure_shipped_detections(data, name, say=say)
+    if not trains:
         missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
         if missing:
             raise CommandError(f"scene {missing[0]} has no detections_{name}.hdf5 (run `tsnav detect --name {name}`)")
-        return
-    ensure_learned_detections(data, name, detector_dir, scale, say=say)
+        return {"fingerprint": None, "written": 0}
+    done = ensure_learned_detections(data, name, detector_dir, scale, say=say, train_root=train_root)
+    return {"fingerprint": done["fingerprint"], "written": done["written"]}
 
 
 def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_type: int, seed: int = 0,
@@ -123,8 +129,9 @@ class EncoderSpec:
     model: str = "vit_base"
     patch_size: int = 16
     img_size: int = 224
-    pretrain: dict | None = None
-    """``PretrainConfig`` fields of the run in ``pretrain_dir/<id>`` (None: use ``spec`` as it is)."""
+    pretrain: PretrainConfig | dict | None = None
+    """The pretraining run in ``pretrain_dir/<id>`` (or its ``PretrainConfig`` fields; None: use ``spec`` as it
+    is)."""
 
 
 def encoder_spec(enc: str, scale: ScaleConfig, pretrain_dir: Path, cfg: ExperimentConfig) -> EncoderSpec:
@@ -135,27 +142,28 @@ def encoder_spec(enc: str, scale: ScaleConfig, pretrain_dir: Path, cfg: Experime
         return EncoderSpec("vc1", f"vit:{cfg.vc1_weights}", "vit_base", 16, 224)
     if enc == "resnet18":
         if cfg.resnet18_weights:
-            return EncoderSpec("resnet18", f"resnet18:{cfg.resnet18_weights}", img_size=scale.img_size)
+            return EncoderSpec("resnet18", f"resnet18:{cfg.resnet18_weights}", img_size=scale.pretrain.img_size)
         method = "resnet18-sup"
     elif enc in ("demae", "mae", "demae-crop"):
         method = enc
     else:
         raise ValueError(f"unknown encoder {enc!r}")
     run = pretrain_dir / method
-    sup = method == "resnet18-sup"
-    steps = scale.resnet_pretrain_steps if sup and scale.resnet_pretrain_steps is not None else scale.pretrain_steps
-    pre = dict(method=method, model=scale.vit_model, patch_size=scale.patch_size, img_size=scale.img_size,
-               steps=steps, batch_size=scale.pretrain_batch_size, base_lr=None if sup else scale.pretrain_base_lr,
-               device=cfg.device)
-    return EncoderSpec(enc, str(run), scale.vit_model, scale.patch_size, scale.img_size, pre)
+    pre = scale.pretrain
+    if method == "resnet18-sup":  # MAE's own learning rate; its own step budget when the scale names one
+        steps = scale.resnet_pretrain_steps if scale.resnet_pretrain_steps is not None else pre.steps
+        pre = replace(pre, steps=steps, base_lr=None)
+    pre = replace(pre, method=method, device=cfg.device)
+    return EncoderSpec(enc, str(run), pre.model, pre.patch_size, pre.img_size, pre)
 
 
 def ensure_encoder(es: EncoderSpec, data: str | Path) -> None:
     """Run (or resume, or skip when finished) the pretraining run of ``es``."""
     if es.pretrain is None:
         return
-    say(f"pretrain {es.pretrain['method']} -> {es.spec}")
-    res = train(PretrainConfig(**es.pretrain), data, es.spec, progress=True)
+    pre = es.pretrain if isinstance(es.pretrain, PretrainConfig) else PretrainConfig(**es.pretrain)
+    say(f"pretrain {pre.method} -> {es.spec}")
+    res = train(pre, data, es.spec, progress=True)
     if not res["finished"]:
         raise RuntimeError(f"pretraining {es.spec} did not finish")
 
