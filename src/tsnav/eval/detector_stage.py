@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from ..atomic import atomic_write_json
+from ..distributed import set_threads
 from ..constants import C_TARGET
 from ..data.detections import detections_path, load_detections, read_fingerprint, write_detections
 from ..data.reader import list_scenes, load_scene
@@ -55,10 +56,10 @@ class one_thread:
 
     def __enter__(self):
         self.before = torch.get_num_threads()
-        torch.set_num_threads(1)
+        set_threads(1)
 
     def __exit__(self, *exc):
-        torch.set_num_threads(self.before)
+        set_threads(self.before)
         return False
 
 

@@ -76,10 +76,9 @@ from functools import partial
 from pathlib import Path
 from typing import Callable
 
-import torch
-
 from ..agent import agent_config
 from ..atomic import atomic_write_text
+from ..distributed import set_threads as distributed_set_threads
 from ..errors import CommandError
 from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
@@ -118,9 +117,7 @@ def default_threads() -> int:
 
 def set_threads(n: int | None) -> int:
     """Set torch's CPU threads (None: :func:`default_threads`); returns the number set."""
-    n = default_threads() if n is None else n
-    torch.set_num_threads(n)
-    return n
+    return distributed_set_threads(default_threads() if n is None else n)
 
 
 # ---------------------------------------------------------------------------------------------------------
