@@ -76,7 +76,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from tsnav.agent import agent_config
-    from tsnav.eval.stage_cache import ensure_detections
+    from tsnav.pipeline.steps import ensure_detections
     from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.a3c import train_a3c
     from tsnav.rl.batched import train_batched

@@ -38,7 +38,7 @@ def main() -> None:
     from tsnav.agent import agent_config
     from tsnav.agent.memory import TargetMemoryAggregator
     from tsnav.pretrain.pixels import cache_pixel_features
-    from tsnav.eval.stage_cache import ensure_detections
+    from tsnav.pipeline.steps import ensure_detections
     from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
     from tsnav.rl.config import TrainConfig
     from tsnav.rl.rollout import RolloutCollector, collect_and_loss

@@ -21,7 +21,7 @@ mkdir -p "$W"
 "$PY" - "$W" <<'EOF'
 import sys
 from pathlib import Path
-from tsnav.eval.stage_cache import EncoderSpec, ensure_encoder, ensure_features
+from tsnav.pipeline.steps import EncoderSpec, ensure_encoder, ensure_features
 w = Path(sys.argv[1])
 pre = dict(method="demae", model="vit_tiny", patch_size=16, img_size=64, steps=800, batch_size=64, base_lr=1.5e-3,
            device="cpu")

@@ -48,7 +48,7 @@ PIXEL_FEATURES = "rltest_px"
 def pixel_world(tiny_world):
     """The tiny world with :data:`PIXEL_FEATURES` cached (4x4 colour grids: agents train in seconds) and the
     oracle detector's tables ``detections_oracle.hdf5`` (the agent needs a named detection table)."""
-    from tsnav.eval.stage_cache import ensure_oracle_detections
+    from tsnav.pipeline.steps import ensure_oracle_detections
     from tsnav.pretrain.pixels import cache_pixel_features
 
     cache_pixel_features(tiny_world, PIXEL_FEATURES, grid=4)

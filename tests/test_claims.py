@@ -11,10 +11,10 @@ import pytest
 from scipy.stats import t as student
 
 from tsnav.cli import main
-from tsnav.eval.claims import (CLAIMS, PAPER_TABLE_II, check_claims, claims_html, claims_markdown, summary_line,
+from tsnav.report.claims import (CLAIMS, PAPER_TABLE_II, check_claims, claims_html, claims_markdown, summary_line,
                                 verdict)
-from tsnav.eval.experiment_config import experiment_rows
-from tsnav.eval.tables import aggregate, welch
+from tsnav.pipeline.config import experiment_rows
+from tsnav.report.tables import aggregate, welch
 
 METRICS = ["SR", "SPL", "SSR", "SSSPL", "NSNPL"]
 

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from tsnav.cli import main
-from tsnav.eval.convergence import plateaued
+from tsnav.pipeline.convergence import plateaued
 
 from conftest import PIXEL_FEATURES as FEATS
 

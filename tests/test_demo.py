@@ -9,8 +9,8 @@ from dataclasses import replace
 
 import pytest
 
-from tsnav.demo import STEPS, DemoConfig, run_demo, train_subset
-from tsnav.eval.experiment_config import SCALES
+from tsnav.pipeline.demo import STEPS, DemoConfig, run_demo, train_subset
+from tsnav.pipeline.config import SCALES
 from tsnav.rl.train import train_run
 
 from rl_helpers import RecordingTrainer
@@ -161,7 +161,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
         run_demo(out2, TINY, train_fn=CountedTrainer())
 
     # learned tables of one detector in every room (an experiment's): used as they are
-    from tsnav.eval.detector_stage import ensure_learned_detections
+    from tsnav.pipeline.detector_steps import ensure_learned_detections
 
     from tsnav.data.reader import list_scenes
 
@@ -223,7 +223,7 @@ def test_default_threads_do_not_depend_on_the_load(monkeypatch):
     """The default thread count of the demo and the experiments is fixed per machine, not the cores that happen
     to be idle: another count trains another agent (seen here: 2 threads on an idle machine and 1 on a busy one
     gave SR 52.0 and 55.0)."""
-    import tsnav.eval.experiment as experiment
+    import tsnav.pipeline.experiment as experiment
 
     monkeypatch.setattr(experiment.os, "cpu_count", lambda: 2)
     assert experiment.default_threads() == experiment.DEFAULT_THREADS == 2
@@ -235,7 +235,7 @@ def test_default_threads_do_not_depend_on_the_load(monkeypatch):
 
 def test_results_table_has_one_block_per_protocol():
     """The table assembly on hand-made summaries: a header per protocol, the paper block laid out as before."""
-    from tsnav.demo import results_table
+    from tsnav.pipeline.demo import results_table
     from tsnav.metrics import METRICS
 
     def summ(sr, n):

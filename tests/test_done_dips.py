@@ -41,7 +41,7 @@ def test_run_folder(tmp_path):
 
 
 def test_experiment_line():
-    from tsnav.eval.experiment import dips_line
+    from tsnav.pipeline.experiment import dips_line
 
     assert dips_line({"jobs": 3, "with_dips": []}).endswith(": 0 of 3 jobs.")
     line = dips_line({"jobs": 3, "with_dips": [{"row": "tsrm", "seed": 1, "dips": [

@@ -14,9 +14,9 @@ import shutil
 import numpy as np
 import pytest
 
-from tsnav.eval.experiment import Experiment, train_config_for
-from tsnav.eval.experiment_config import ExperimentConfig, ScaleConfig, experiment_rows
-from tsnav.eval.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
+from tsnav.pipeline.experiment import Experiment, train_config_for
+from tsnav.pipeline.config import ExperimentConfig, ScaleConfig, experiment_rows
+from tsnav.report.tables import CSV_FIELDS, aggregate, csv_table, markdown_table, mean_ci
 from tsnav.metrics import METRICS
 
 from rl_helpers import RecordingTrainer
@@ -124,7 +124,7 @@ def test_welch_against_the_baseline():
     freedom, two-sided Student t tail); too few seeds give no p-value; the Markdown lists every other row."""
     from scipy.stats import t as student
 
-    from tsnav.eval.tables import welch, welch_against, welch_markdown
+    from tsnav.report.tables import welch, welch_against, welch_markdown
 
     a, b = [50.0, 60.0, 70.0], [72.0, 75.0, 81.0, 77.0]
     va, vb = np.var(a, ddof=1) / len(a), np.var(b, ddof=1) / len(b)
@@ -252,7 +252,7 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     doc["config"]["checkpoint"] = "best"
     (out / "experiment.json").write_text(json.dumps(doc))
 
-    from tsnav.eval.report import build_report
+    from tsnav.report.html import build_report
 
     html = build_report(out, gallery=2).read_text()
     assert "Experiment: ablation" in html and "14 of 14 jobs finished" in html and "&#10003;" in html
@@ -294,7 +294,7 @@ def test_threshold_experiment_plot(tmp_path, exp_world, pretrain_dir):
 def test_training_budget_in_updates_or_minutes():
     """Budgets are in updates by default (the same agent on a busy machine); --updates-per-job or
     --minutes-per-job replace the scale's; with both, the first reached stops training."""
-    from tsnav.eval.experiment_config import SCALES
+    from tsnav.pipeline.config import SCALES
 
     row = experiment_rows("ablation")[0]
     scale = ScaleConfig()  # small: 1000 updates, no minute limit
@@ -319,7 +319,7 @@ def test_jobs_keep_milestones_for_selection():
     """Each scale keeps a handful of milestones per job, on checkpoint updates; --checkpoint latest keeps none."""
     from dataclasses import replace
 
-    from tsnav.eval.experiment_config import SCALES
+    from tsnav.pipeline.config import SCALES
 
     row = experiment_rows("ablation")[0]
     for name, sc in SCALES.items():

@@ -23,8 +23,9 @@ LAYERS: list[set[str]] = [
     {"detect", "pretrain"},
     {"agent"},
     {"rl"},
-    {"eval"},
-    {"demo"},
+    {"eval", "thor"},
+    {"report"},
+    {"pipeline"},
     {"cli"},
     {"__main__"},
 ]

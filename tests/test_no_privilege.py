@@ -13,7 +13,7 @@ from tsnav.agent import DetectionTable
 from tsnav.data.detections import read_fingerprint, write_detections
 from tsnav.data.reader import list_scenes, load_scene
 from tsnav.detect.oracle import GroundTruth, OracleConfig, oracle_detections, oracle_features
-from tsnav.eval.stage_cache import ensure_oracle_detections
+from tsnav.pipeline.steps import ensure_oracle_detections
 from tsnav.rl.assemble import load_bank, make_observer
 from tsnav.rl.config import TrainConfig
 from tsnav.sim.batch import SceneBank

@@ -203,8 +203,8 @@ def test_real_scene_build_is_deterministic(tmp_path):
 
 def test_paper_scale_runs_on_ithor_real(tmp_path, tiny_world, capsys):
     from tsnav.cli import main
-    from tsnav.eval.experiment_config import SCALES
-    from tsnav.eval.stage_cache import ensure_world
+    from tsnav.pipeline.config import SCALES
+    from tsnav.pipeline.steps import ensure_world
 
     assert SCALES["paper"].world == "ithor-real" and SCALES["small"].world == "demo"
     # A missing --data folder: the one-line error names the scale's world and --build-world.

@@ -12,7 +12,7 @@ import torch
 
 from tsnav.cli import main
 from tsnav.data.reader import list_scenes, load_scene
-from tsnav.eval import release
+from tsnav.pipeline import release
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -23,8 +23,8 @@ TRAIN_ROOM, TEST_ROOM = "FloorPlan408", "FloorPlan424"  # the tiny-real preset's
 def packed(tiny_real, tmp_path_factory):
     """A tiny agent trained two updates on one real room with a 2-step DE-MAE encoder, packed."""
     from tsnav.detect.shipped import shipped_meta
-    from tsnav.eval.stage_cache import EncoderSpec, ensure_encoder, ensure_features
-    from tsnav.eval.detector_stage import write_learned_tables
+    from tsnav.pipeline.steps import EncoderSpec, ensure_encoder, ensure_features
+    from tsnav.pipeline.detector_steps import write_learned_tables
     from tsnav.detect.shipped import shipped_detector
 
     root = tmp_path_factory.mktemp("release")

@@ -10,11 +10,11 @@ from PIL import Image
 
 from tsnav.cli import main
 from tsnav.constants import CATEGORY_INDEX, DONE
-from tsnav.eval.gallery import key_frames, select_episodes
+from tsnav.report.gallery import key_frames, select_episodes
 from tsnav.eval.runner import read_trajectories, record_trajectories, write_trajectories
 from tsnav.metrics import EpisodeRecord, read_records
 from tsnav.eval.policies import make_policy
-from tsnav.eval.report import build_report, plot_learning_curves, scan
+from tsnav.report.html import build_report, plot_learning_curves, scan
 from tsnav.eval.runner import EvalConfig, evaluate
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.episodes import make_episodes, write_episodes
@@ -162,7 +162,7 @@ def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
     gets the very same episodes."""
     from test_experiment import StandInTrainer
     from tsnav.agent import agent_config
-    from tsnav.eval.stage_cache import ensure_oracle_detections
+    from tsnav.pipeline.steps import ensure_oracle_detections
     from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.config import TrainConfig
 
@@ -189,7 +189,7 @@ def test_pretrain_progress_is_read_progress_without_torch(tmp_path):
     import sys
 
     from tsnav.checkpoint_layout import read_progress
-    from tsnav.eval.report import _pretrain_progress
+    from tsnav.report.html import _pretrain_progress
     from tsnav.pretrain import train
 
     assert train.read_progress is read_progress
@@ -206,6 +206,6 @@ def test_pretrain_progress_is_read_progress_without_torch(tmp_path):
     (run / "checkpoints" / "ckpt_000000004" / "state.json").write_text("[]")
     (run / "progress.json").write_text("{")
     assert _pretrain_progress(run) == {}
-    code = "import sys, tsnav.eval.report, tsnav.checkpoint_layout; print('torch' in sys.modules)"
+    code = "import sys, tsnav.report.html, tsnav.checkpoint_layout; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"

@@ -99,9 +99,9 @@ def test_experiments_take_the_shipped_tables(tmp_path, tiny_real, tiny_world):
     """``tsnav experiment ... --detector shipped``: the missing learned tables are written by the shipped detector
     (nothing trained, no detector folder); a 64-px world is refused in one line; another source is refused."""
     from tsnav.data.detections import read_fingerprint
-    from tsnav.eval.experiment import Experiment
-    from tsnav.eval.experiment_config import ExperimentConfig
-    from tsnav.eval.stage_cache import ensure_detections
+    from tsnav.pipeline.experiment import Experiment
+    from tsnav.pipeline.config import ExperimentConfig
+    from tsnav.pipeline.steps import ensure_detections
 
     data = tmp_path / "data"
     val = next(p for p in list_scenes(tiny_real) if load_scene(p).meta.get("split") == "val")

@@ -160,7 +160,7 @@ def test_gymnasium_numpy_loop_sees_the_stored_frames(tiny_world):
     import subprocess
     import sys
 
-    from tsnav.eval.stage_cache import ensure_oracle_detections
+    from tsnav.pipeline.steps import ensure_oracle_detections
 
     ensure_oracle_detections(tiny_world, "oracle")
     code = (

@@ -15,7 +15,7 @@ from tsnav.data.reader import list_scenes, load_scene
 from tsnav.metrics import read_records, summarize
 from tsnav.eval.policies import ExplorerPolicy, OraclePolicy
 from tsnav.eval.runner import evaluate
-from tsnav.eval.stage_cache import ensure_oracle_detections
+from tsnav.pipeline.steps import ensure_oracle_detections
 from tsnav.sim.batch import BatchEnv, SceneBank
 from tsnav.sim.episodes import TrainingSampler, make_episodes
 from tsnav.sim.gym_env import ENV_ID

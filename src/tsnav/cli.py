@@ -1,7 +1,7 @@
-"""The ``tsnav`` command: one entry point, one subcommand per stage of the data flow.
+"""The ``tsnav`` command: one entry point, one subcommand per step of the data flow.
 
 Each subcommand lives in its own module exposing ``build_parser(parser)`` and ``run(args) -> int``; the
-module is imported only when its subcommand runs, so a missing optional dependency of one stage never
+module is imported only when its subcommand runs, so a missing optional dependency of one step never
 breaks the others.
 """
 
@@ -24,13 +24,13 @@ COMMANDS = {
     "features": ("tsnav.pretrain.features", "cache encoder features for every state of a dataset"),
     "train": ("tsnav.rl.command", "train a navigation agent (A3C or batched A2C)"),
     "select": ("tsnav.eval.select", "choose a run's best checkpoint on validation episodes (kept as RUN/best)"),
-    "convergence": ("tsnav.eval.convergence", "train in chunks, score each on validation episodes, plot the curve"),
-    "experiment": ("tsnav.eval.experiment", "run one of the paper's experiments (ablation, pretraining, threshold)"),
-    "claims": ("tsnav.eval.claims", "read finished experiments against the paper's claims (Welch tests)"),
-    "report": ("tsnav.eval.report", "write an HTML report for a run or experiment folder"),
-    "thor": ("tsnav.eval.thor_command", "import AI2-THOR offline data or export from a live AI2-THOR"),
-    "demo": ("tsnav.demo", "the main job: world, pretraining, detections, training, evaluation, report"),
-    "release": ("tsnav.eval.release", "evaluate the trained agent that ships with tsnav on the real test rooms"),
+    "convergence": ("tsnav.pipeline.convergence", "train in chunks, score each on validation episodes, plot the curve"),
+    "experiment": ("tsnav.pipeline.experiment", "run one of the paper's experiments (ablation, pretraining, threshold)"),
+    "claims": ("tsnav.report.claims", "read finished experiments against the paper's claims (Welch tests)"),
+    "report": ("tsnav.report.html", "write an HTML report for a run or experiment folder"),
+    "thor": ("tsnav.thor.command", "import AI2-THOR offline data or export from a live AI2-THOR"),
+    "demo": ("tsnav.pipeline.demo", "the main job: world, pretraining, detections, training, evaluation, report"),
+    "release": ("tsnav.pipeline.release", "evaluate the trained agent that ships with tsnav on the real test rooms"),
 }
 
 

@@ -1,4 +1,4 @@
-"""Agent stage of tsnav (paper III-D): observations from cached features and detections, the IOM target
+"""The agent of tsnav (paper III-D): observations from cached features and detections, the IOM target
 memory, and the LSTM actor-critic."""
 
 from .memory import MemoryState, TargetMemoryAggregator, relative_pose

@@ -4,7 +4,7 @@ tsnav scene folders already hold the lineage's files (``graph.json``, ``grid.jso
 ``visible_object_map_1.5.json``, ``images.hdf5``); of what the lineage's agents additionally read, the
 22 x 264 DETR table is written here from a tsnav detection table (:mod:`tsnav.data.detections`); the rest
 (ResNet features, optimal actions, episode lists) by ``tsnav thor export-lineage``
-(:mod:`tsnav.eval.lineage_export`). :func:`check_lineage_layout` lists every way a scene folder departs from
+(:mod:`tsnav.thor.lineage_export`). :func:`check_lineage_layout` lists every way a scene folder departs from
 the layout of :mod:`tsnav.data.lineage` (key formats, JSON shapes, HDF5 dataset names, shapes, dtypes and
 contents), as SAVN's ``OfflineControllerWithSmallRotation`` and the VTNet / DOA / IOM readers would meet it;
 :func:`check_lineage_dataset` does so for every scene of a dataset and its episode lists.

@@ -1,4 +1,4 @@
-"""detect stage of tsnav: per-state, per-class detection tables (DESIGN.md "Detector", paper III-B / Fig. 2).
+"""Detection in tsnav: per-state, per-class detection tables (DESIGN.md "Detector", paper III-B / Fig. 2).
 
 The table's file format (``detections_<name>.hdf5``) belongs to the data layer: :mod:`tsnav.data.detections`;
 :meth:`tsnav.sim.batch.SceneBank.install_detections` puts it into a bank.

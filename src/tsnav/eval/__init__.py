@@ -1,1 +1,2 @@
-"""eval stage of tsnav (see docs/ARCHITECTURE.md)."""
+"""Evaluation: the batched runner and its policies (random, oracle, explorer, trained agent), episode outcomes,
+checkpoint selection and ``tsnav eval``."""

@@ -367,7 +367,7 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
                        protocol: str | None = None) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
-    :mod:`tsnav.eval.report` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
+    :mod:`tsnav.report.html` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
     lineage's test-time rule) unless ``sample``; ``checkpoint`` names which of the run's checkpoints
     (``auto`` / ``best`` / ``latest`` / a folder, as :func:`~tsnav.rl.checkpoint.resolve_checkpoint`), recorded so
     that a re-roll loads the same one. ``success_distance`` (metres) defaults to the episode list's;

@@ -1,1 +1,1 @@
-"""render stage of tsnav (see docs/ARCHITECTURE.md)."""
+"""Headless OpenGL rendering of the worlds (RGB, depth, instance ids)."""

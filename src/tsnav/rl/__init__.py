@@ -1,1 +1,1 @@
-"""rl stage of tsnav (see docs/ARCHITECTURE.md)."""
+"""Agent training: the A3C and batched trainers, rollouts and loss, checkpoints, run logs (docs/ARCHITECTURE.md)."""

@@ -1,4 +1,4 @@
-"""sim stage of tsnav: batched simulator over offline scenes, shortest paths, episodes, Gymnasium env.
+"""The simulator of tsnav: batched simulator over offline scenes, shortest paths, episodes, Gymnasium env.
 
 Importing this package registers the Gymnasium env id ``tsnav/ObjectNav-v0`` (see :mod:`tsnav.sim.gym_env`
 and :mod:`tsnav.tsrm.envs`); ``gym.make("tsnav.sim:tsnav/ObjectNav-v0", ...)`` imports it by itself.

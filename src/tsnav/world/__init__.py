@@ -1,1 +1,1 @@
-"""world stage of tsnav (see docs/ARCHITECTURE.md)."""
+"""Worlds: the real iTHOR rooms from their recorded layouts and procedural houses, navigation grids, builds, fidelity."""

@@ -33,10 +33,10 @@ the newest two checkpoints) greedily on validation episodes and keep the best as
 ``--checkpoint latest`` skips selection and evaluates the last checkpoint (as folders from before selection did;
 the two kinds are not mixed in one folder). The threshold experiment reports validation episodes too: its
 selection episodes are other episodes (another seed) of the same validation rooms, so its table is slightly
-optimistic for every row alike. The shared stages run once and are reused: pretraining runs live in
+optimistic for every row alike. The shared steps run once and are reused: pretraining runs live in
 ``--pretrain-dir`` (default ``OUT/pretrain``), feature caches are ``features_<encoder>-<fingerprint>.hdf5`` in
 the scene folders (so identical encoders share them across experiments), detection tables and episode lists
-are made once. Every stage resumes after an interruption; a job whose folder holds ``DONE`` is skipped.
+are made once. Every step resumes after an interruption; a job whose folder holds ``DONE`` is skipped.
 
 Output folder::
 
@@ -83,19 +83,19 @@ from ..errors import CommandError
 from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
 from ..rl.train import train_run
-from .experiment_config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
+from .config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
                                 ScaleConfig, experiment_rows)
 from ..metrics import METRICS, write_json
 from ..protocol import check_protocol, protocol_line
-from .report import build_report
-from .runner import evaluate_to_folder
-from .select import chosen, select_checkpoint
-from .detector_stage import QUALITY_FILE, record_quality
-from .stage_cache import (EncoderSpec, encoder_spec, ensure_detections, ensure_encoder, ensure_episodes,
+from ..report.html import build_report
+from ..eval.runner import evaluate_to_folder
+from ..eval.select import chosen, select_checkpoint
+from .detector_steps import QUALITY_FILE, record_quality
+from .steps import (EncoderSpec, encoder_spec, ensure_detections, ensure_encoder, ensure_episodes,
                           ensure_features, ensure_world, say)
 from ..rl.done_dips import DIP_DONE_SHARE, run_done_dips
-from .claims import ALPHA as CLAIMS_ALPHA, check_claims, claims_markdown, summary_line
-from .tables import (SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line, welch_against,
+from ..report.claims import ALPHA as CLAIMS_ALPHA, check_claims, claims_markdown, summary_line
+from ..report.tables import (SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line, welch_against,
                      welch_markdown)
 
 
@@ -413,7 +413,7 @@ class Experiment:
         except ValueError:
             return {}
 
-    # -- stages ----------------------------------------------------------------------------------------------
+    # -- steps -----------------------------------------------------------------------------------------------
     def prepare(self) -> dict[str, str]:
         """Detections, episode list, encoders and feature caches; returns encoder id -> feature name."""
         cfg, scale = self.cfg, self.scale
@@ -440,7 +440,7 @@ class Experiment:
         return features
 
     def ensure_detections(self, name: str) -> dict:
-        """The table ``name`` in every scene (:func:`~tsnav.eval.stage_cache.ensure_detections`: the one rule on
+        """The table ``name`` in every scene (:func:`~tsnav.pipeline.steps.ensure_detections`: the one rule on
         tables of another source, the detector trained on the training rooms when needed)."""
         return ensure_detections(self.cfg.data, name, self.detector_dir, self.scale,
                                  shipped=self.cfg.detector == "shipped", train_root=self.train_root)

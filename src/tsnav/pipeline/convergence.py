@@ -27,8 +27,8 @@ from ..atomic import atomic_save_figure, atomic_write_json
 from ..errors import CommandError
 from ..rl.config import PRECISIONS, TrainConfig
 from ..rl.train import train_run
-from .select import select_checkpoint
-from .stage_cache import ensure_episodes, episodes_name
+from ..eval.select import select_checkpoint
+from .steps import ensure_episodes, episodes_name
 
 #: Validation metrics drawn on the curve (paper IV-A).
 CURVE_METRICS = ("SR", "SPL", "SSSPL", "NSNPL")

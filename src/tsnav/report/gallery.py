@@ -23,7 +23,7 @@ from ..constants import ACTIONS, C_TARGET, DONE
 from ..tsrm.plot import draw_episode
 from ..world.show import render_views
 from ..metrics import EpisodeRecord
-from .runner import Trajectory
+from ..eval.runner import Trajectory
 
 
 def select_episodes(records: Sequence[EpisodeRecord], n: int = 6, seed: int = 0) -> list[int]:

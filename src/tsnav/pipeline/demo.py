@@ -31,10 +31,10 @@ those - and every underlying step resumes after an interruption):
 The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
 keeps only the smallest ones per room type, for shorter runs); the val and test rooms are never seen in training.
 
-The demo is the ``demo`` experiment (:mod:`tsnav.eval.experiment`): one row of the paper's (TSRM + DE-MAE) at the
-``demo`` scale (:data:`tsnav.eval.experiment_config.SCALES`), run as a job list of the experiments
-(:class:`~tsnav.eval.experiment.JobList`, ``DONE`` markers). Its encoder, feature cache, detection tables,
-training and checkpoint selection are the experiment's (:class:`~tsnav.eval.experiment.Experiment`); what the
+The demo is the ``demo`` experiment (:mod:`tsnav.pipeline.experiment`): one row of the paper's (TSRM + DE-MAE) at the
+``demo`` scale (:data:`tsnav.pipeline.config.SCALES`), run as a job list of the experiments
+(:class:`~tsnav.pipeline.experiment.JobList`, ``DONE`` markers). Its encoder, feature cache, detection tables,
+training and checkpoint selection are the experiment's (:class:`~tsnav.pipeline.experiment.Experiment`); what the
 demo adds is the world, the scripted baselines beside the agent under both protocols, and the printed table.
 """
 
@@ -46,26 +46,26 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from .constants import C_TARGET
-from .data.detections import read_fingerprint
-from .data.reader import list_scenes, load_scene
-from .errors import CommandError
-from .eval.experiment import (DEFAULT_THREADS, SELECT_SEED, Experiment, JobList, Step, set_threads)
-from .eval.experiment_config import DEMO, DEMO_UPDATES, DETECTOR_SOURCES, SCALES, ExperimentConfig, ScaleConfig
-from .eval.report import build_report
-from .eval.runner import evaluate_to_folder
-from .detect.shipped import DEFAULT_SHIPPED, shipped_meta
-from .detect.train import is_checkpoint, read_meta
-from .eval.detector_stage import complete_tables, ensure_detector, record_quality, tables_complete
-from .eval.tables import quality_line
-from .eval.stage_cache import encoder_spec, ensure_episodes, ensure_oracle_detections, episodes_name
-from .metrics import METRICS, write_json
-from .protocol import DEFAULT_PROTOCOL, PROTOCOLS, check_protocol, protocol_line
-from .pretrain.train import read_progress
-from .rl.logger import read_log
-from .sim.episodes import read_episodes
-from .world.build import BuildConfig, build_dataset
-from .world.presets import preset_scenes
+from ..constants import C_TARGET
+from ..data.detections import read_fingerprint
+from ..data.reader import list_scenes, load_scene
+from ..errors import CommandError
+from .experiment import (DEFAULT_THREADS, SELECT_SEED, Experiment, JobList, Step, set_threads)
+from .config import DEMO, DEMO_UPDATES, DETECTOR_SOURCES, SCALES, ExperimentConfig, ScaleConfig
+from ..report.html import build_report
+from ..eval.runner import evaluate_to_folder
+from ..detect.shipped import DEFAULT_SHIPPED, shipped_meta
+from ..detect.train import is_checkpoint, read_meta
+from .detector_steps import complete_tables, ensure_detector, record_quality, tables_complete
+from ..report.tables import quality_line
+from .steps import encoder_spec, ensure_episodes, ensure_oracle_detections, episodes_name
+from ..metrics import METRICS, write_json
+from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS, check_protocol, protocol_line
+from ..pretrain.train import read_progress
+from ..rl.logger import read_log
+from ..sim.episodes import read_episodes
+from ..world.build import BuildConfig, build_dataset
+from ..world.presets import preset_scenes
 
 #: The demo's steps, in order (the pipeline's steps; "stage" names the paper's searching / pathfinding stages).
 STEPS = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "report")
@@ -401,7 +401,7 @@ class Demo:
 
 def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> dict:
     """Run the demo into ``out``; returns ``{"steps": {name: (status, seconds)}, "results": {protocol: {label:
-    summary}}, "seconds"}``. ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.eval.experiment`)."""
+    summary}}, "seconds"}``. ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.pipeline.experiment`)."""
     cfg, out = cfg or DemoConfig(), Path(out)
     check_demo(out, cfg)
     out.mkdir(parents=True, exist_ok=True)

@@ -13,10 +13,10 @@ from tsnav.data.detections import load_detections, read_fingerprint
 from tsnav.data.reader import list_scenes
 from tsnav.detect.learned import LearnedDetector
 from tsnav.errors import CommandError
-from tsnav.eval.detector_stage import (detection_quality, detector_configs, ensure_detector,
+from tsnav.pipeline.detector_steps import (detection_quality, detector_configs, ensure_detector,
                                        ensure_learned_detections, record_quality, tables_complete)
-from tsnav.eval.experiment_config import SCALES, ScaleConfig
-from tsnav.eval.stage_cache import ensure_oracle_detections
+from tsnav.pipeline.config import SCALES, ScaleConfig
+from tsnav.pipeline.steps import ensure_oracle_detections
 
 SMALL = ScaleConfig().override(detector=dict(steps=3, batch_size=8, max_states_per_scene=24))
 

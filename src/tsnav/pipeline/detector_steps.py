@@ -1,4 +1,4 @@
-"""The learned detector as a stage of the experiments and the demo (issue 14 item 4; paper III-B: a real
+"""The learned detector as a pipeline step of the experiments and the demo (issue 14 item 4; paper III-B: a real
 detector's confidence drives the stage switch and its table feeds the agent's target memory).
 
 :func:`ensure_detector` trains (or resumes, or finds finished) the grid detector of :mod:`tsnav.detect` in a
@@ -42,8 +42,8 @@ from ..detect.model import DetectorConfig
 from ..detect.quality import switch_report
 from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
 from ..errors import CommandError
-from .experiment_config import ScaleConfig
-from .tables import quality_line
+from .config import ScaleConfig
+from ..report.tables import quality_line
 
 #: Prefix of every learned detector's fingerprint (:func:`tsnav.detect.train.weights_fingerprint`).
 LEARNED_PREFIX = "learned-"
@@ -129,7 +129,7 @@ def tables_complete(data: str | Path, name: str) -> str | None:
 
 def complete_tables(data: str | Path, name: str, source: str | None = None) -> str | None:
     """:func:`tables_complete` under the one rule on a complete set of tables from another source than the one
-    asked for (``source``: ``shipped`` or ``train``, :data:`~tsnav.eval.experiment_config.DETECTOR_SOURCES`; None:
+    asked for (``source``: ``shipped`` or ``train``, :data:`~tsnav.pipeline.config.DETECTOR_SOURCES`; None:
     any): the shipped detector's tables are not taken by a run that trains its detector, nor another learned
     detector's by a run that asks for the shipped one; one-line error, the tables are kept."""
     ready = tables_complete(data, name)

@@ -2,8 +2,8 @@
 
 Each claim of the paper's ablation (Table II), pretraining comparison (Table III) and threshold choice (Fig. 4)
 is written here as "row B scores higher than row A on these metrics". :func:`check_claims` takes the
-``results.json`` of finished experiments (:func:`tsnav.eval.tables.aggregate`), computes per claim, metric and
-episode subset the difference of the per-seed means and Welch's p-value (:func:`tsnav.eval.tables.welch`), puts
+``results.json`` of finished experiments (:func:`tsnav.report.tables.aggregate`), computes per claim, metric and
+episode subset the difference of the per-seed means and Welch's p-value (:func:`tsnav.report.tables.welch`), puts
 the paper's own difference beside it, and gives a verdict:
 
 - ``supported``: same sign as the claim, p < :data:`ALPHA`;

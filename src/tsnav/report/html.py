@@ -6,7 +6,7 @@ links; no scripts, no external style sheets or fonts). It shows what it finds un
 
 * **results**: every evaluation folder (``metrics.json`` + ``records.jsonl``) as one row of a table of SR, SPL,
   SSR, SSSPL and NSNPL for ALL episodes and for ``L* >= 5`` (paper IV-A), in percent;
-* **experiments** (folders with ``experiment.json``, :mod:`tsnav.eval.experiment`): the paper-style table with
+* **experiments** (folders with ``experiment.json``, :mod:`tsnav.pipeline.experiment`): the paper-style table with
   the mean and 95 % t-interval over seeds, learning curves of every job, and the threshold plot (Fig. 4);
 * **training runs** (``config.json`` of format ``tsnav-train-run`` and ``log.jsonl``): learning curves - return
   and reward per term, SR / SPL / SSR / SSSPL / NSNPL of the training episodes on the fly, losses;
@@ -14,7 +14,7 @@ links; no scripts, no external style sheets or fonts). It shows what it finds un
 * **gallery**: for each evaluation, a few successes and failures - top-down map with the path coloured by
   stage, the searched region and the stage switch (:func:`tsnav.tsrm.plot.draw_episode`) beside the agent's
   first-person frames at key steps. Trajectories come from ``trajectories.jsonl`` when the evaluation wrote
-  one, else the episodes are re-rolled with the same policy and seed (:mod:`tsnav.eval.gallery`).
+  one, else the episodes are re-rolled with the same policy and seed (:mod:`tsnav.report.gallery`).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from ..errors import CommandError
 from ..rl.logger import read_log
 from .gallery import write_gallery
 from ..metrics import METRICS, format_table
-from .runner import eval_trajectories
+from ..eval.runner import eval_trajectories
 from .claims import ALPHA, check_claims, claims_html, plot_claims, summary_line
 from .tables import quality_line
 

@@ -1,5 +1,5 @@
-"""Stages an experiment's jobs share, each made once and reused (resumable): detection tables, episode
-lists, pretrained encoders and their feature caches (see :mod:`tsnav.eval.experiment`)."""
+"""Steps an experiment's jobs share, each made once and reused (resumable): detection tables, episode
+lists, pretrained encoders and their feature caches (see :mod:`tsnav.pipeline.experiment`)."""
 
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, read_episodes, write_episodes
 from ..world.build import build_dataset
-from .detector_stage import complete_tables, ensure_learned_detections, ensure_shipped_detections
-from .experiment_config import ExperimentConfig, ScaleConfig
+from .detector_steps import complete_tables, ensure_learned_detections, ensure_shipped_detections
+from .config import ExperimentConfig, ScaleConfig
 
 
 def say(msg: str) -> None:
@@ -70,9 +70,9 @@ def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | No
                       train_root: str | Path | None = None) -> dict:
     """Every scene's table ``detections_<name>.hdf5``; returns ``{"fingerprint", "written"}``. Oracle tables are
     computed when missing; any other name is a learned detector's table: used as it is when every scene holds one
-    of the same detector (from the source asked for: :func:`~tsnav.eval.detector_stage.complete_tables`), else the
+    of the same detector (from the source asked for: :func:`~tsnav.pipeline.detector_steps.complete_tables`), else the
     detector in ``detector_dir`` is trained at ``scale`` on the train rooms of ``train_root`` (default ``data``)
-    and writes the missing ones (:func:`tsnav.eval.detector_stage.ensure_learned_detections`; without a
+    and writes the missing ones (:func:`tsnav.pipeline.detector_steps.ensure_learned_detections`; without a
     ``detector_dir`` every scene must already have its table). ``shipped``: the missing learned tables are written
     by the detector that comes with tsnav (:mod:`tsnav.detect.shipped`) instead, nothing trained."""
     if name == "oracle":

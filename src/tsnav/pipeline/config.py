@@ -1,7 +1,7 @@
 """The paper's experiments as data: scales, rows, and the resolved configuration of an experiment.
 
 A row is one line of a paper table (Table II ablation, Table III pretraining) or one point of Fig. 4
-(threshold); :func:`experiment_rows` lists them. The jobs that run them live in :mod:`tsnav.eval.experiment`.
+(threshold); :func:`experiment_rows` lists them. The jobs that run them live in :mod:`tsnav.pipeline.experiment`.
 """
 
 from __future__ import annotations
@@ -64,11 +64,11 @@ def _detector() -> DetectorTrainConfig:
 
 @dataclass
 class ScaleConfig:
-    """Sizes of every stage at one scale (``small``: 2-core CPU; ``paper``: the paper's settings): the
+    """Sizes of every pipeline step at one scale (``small``: 2-core CPU; ``paper``: the paper's settings): the
     configurations of the three trainers, and the sizes of the steps around them. A scale that differs from
     another says so with :meth:`override` (``dataclasses.replace`` of the nested configurations); each job
-    completes its trainer's configuration with ``dataclasses.replace`` too (:func:`tsnav.eval.stage_cache.encoder_spec`,
-    :func:`tsnav.eval.experiment.train_config_for`, :func:`tsnav.eval.detector_stage.detector_configs`)."""
+    completes its trainer's configuration with ``dataclasses.replace`` too (:func:`tsnav.pipeline.steps.encoder_spec`,
+    :func:`tsnav.pipeline.experiment.train_config_for`, :func:`tsnav.pipeline.detector_steps.detector_configs`)."""
 
     pretrain: PretrainConfig = field(default_factory=_pretrain)
     """Pretraining of the MAE-family encoders (and of the supervised ResNet18 baseline, with

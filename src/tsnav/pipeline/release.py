@@ -18,7 +18,7 @@ fingerprint must match the one recorded at packing.
 ``tsnav release eval`` builds the 20 real test rooms (``ithor-real`` at the card's frame size), writes the
 shipped detector's tables and the shipped encoder's features into them, draws the test episodes exactly as the
 experiments do (250 per room type, seed 0) and evaluates the agent greedily, beside the scripted explorer with
-the same stage switch and the random policy; every stage is skipped when its output exists, so a second run
+the same stage switch and the random policy; every step is skipped when its output exists, so a second run
 only evaluates. ``tsnav release pack`` makes such a folder from a training run and a pretraining run.
 """
 
@@ -225,7 +225,7 @@ def ensure_release_detections(data: Path, card: dict) -> str:
                            f"({card['detector_fingerprint']})")
     from ..data.reader import load_scene, list_scenes
     from ..detect.shipped import shipped_detector
-    from .detector_stage import learned_tables, write_learned_tables
+    from .detector_steps import learned_tables, write_learned_tables
 
     have, _ = learned_tables(data, card["detections"])
     if any(fp is None for fp in have.values()):
@@ -243,7 +243,7 @@ def protocol_kwargs(protocol: str) -> dict:
 
 def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") -> Path:
     """The episode list of ``split`` drawn under ``protocol`` (:data:`SPLIT_EPISODES`), made once."""
-    from .stage_cache import ensure_episodes
+    from .steps import ensure_episodes
 
     per, seed = SPLIT_EPISODES[split]
     return ensure_episodes(data, split, out / f"episodes_{split}_{protocol}.json", per, seed=seed, protocol=protocol)
@@ -253,7 +253,7 @@ def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], base
                  batch_size: int = 4096, split: str = "test") -> list[dict]:
     """Evaluate the shipped agent (greedy) on the test episodes of each protocol, and beside it the scripted
     explorer with the same stage switch and the random policy; each evaluation folder is kept under ``out``."""
-    from .runner import evaluate_to_folder
+    from ..eval.runner import evaluate_to_folder
 
     card = read_card(folder)
     rows = []
@@ -362,7 +362,7 @@ def run(args: argparse.Namespace) -> int:
         atomic_write_text(folder / "card.md", card_markdown(card))
         say(f"card of {folder.name}: {split} figures written")
     print(f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
-          f"detector {card['detector_shipped']} (stages: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()) + ")")
+          f"detector {card['detector_shipped']} (steps: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()) + ")")
     trained = json.loads((folder / "config.json").read_text())["train"].get("protocol", "paper")
     for p in protocols:
         print(protocol_line(p, trained))

@@ -1,0 +1,1 @@
+"""Presentation: the paper-style tables, the claims read against the paper, galleries and the HTML report."""
