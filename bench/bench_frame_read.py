@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import h5py
-import numpy as np
 
 from tsnav.data.reader import list_scenes, load_scene, read_stack, read_stack_reference
 from tsnav.data.writer import FrameWriter

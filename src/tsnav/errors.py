@@ -19,3 +19,20 @@ def from_fields(cls: type[T], d: dict, what: str) -> T:
     if unknown:
         raise ValueError(f"unknown {what} field(s): {', '.join(sorted(unknown))}")
     return cls(**d)
+
+
+def read_json(path, error: type[Exception] = CommandError, missing: str | None = None):
+    """The JSON document in file ``path``; a file that is not valid JSON raises ``error`` in one line naming the
+    file, the problem and its line, and so does a missing file when ``missing`` says how (e.g. "missing file");
+    otherwise FileNotFoundError passes through."""
+    import json
+
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        if missing is None:
+            raise
+        raise error(f"{path}: {missing}") from None
+    except json.JSONDecodeError as e:
+        raise error(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None

@@ -15,7 +15,6 @@ Files read (per scene folder):
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import numpy as np
 
 from ..constants import (CATEGORY_INDEX, DONE, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES,
                          ROTATE_LEFT, ROTATE_RIGHT, ROTATE_STEP, SUCCESS_DISTANCE, parse_state_keys)
+from ..errors import read_json
 from ..protocol import DEFAULT_PROTOCOL, PAPER, check_protocol
 
 COMPLETE_MARKER = "COMPLETE"
@@ -161,13 +161,7 @@ class Scene:
 
 
 def _load_json(path: Path):
-    if not path.exists():
-        raise SceneFormatError(f"{path}: missing file")
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except json.JSONDecodeError as e:
-        raise SceneFormatError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    return read_json(path, SceneFormatError, missing="missing file")
 
 
 def edge_actions(x0, z0, r0, h0, x1, z1, r1, h1) -> np.ndarray:

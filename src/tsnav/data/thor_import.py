@@ -26,7 +26,6 @@ temporary folder, checked with ``load_scene`` and renamed when complete (``COMPL
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from dataclasses import asdict, dataclass, field
@@ -36,6 +35,7 @@ import h5py
 import numpy as np
 
 from ..constants import GRID_SIZE, VISIBILITY_DISTANCE
+from ..errors import read_json
 from . import lineage as L
 from .detections import write_detections
 from .names import lineage_scene_info
@@ -76,13 +76,7 @@ def _one_line(e: BaseException) -> str:
 
 
 def _load_json(path: Path):
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except FileNotFoundError:
-        raise SceneFormatError(f"{path}: missing file") from None
-    except json.JSONDecodeError as e:
-        raise SceneFormatError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    return read_json(path, SceneFormatError, missing="missing file")
 
 
 def _read_grid(path: Path) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 from ..atomic import atomic_write_text
 from ..constants import ACTION_ORDER, C_TARGET, CATEGORY_INDEX, OLD_ACTION_ORDER, action_permutation
 from ..data.reader import is_complete, load_scene
-from ..errors import CommandError
+from ..errors import CommandError, read_json
 from ..sim.batch import BatchEnv, SceneBank
 from ..sim.episodes import Episode, episodes_to_arrays, read_episodes
 from ..sim.paths import UNREACHABLE, distance_fields
@@ -274,10 +274,7 @@ def run_protocol(run: str | Path) -> str:
     path = Path(run) / "config.json"
     if not path.exists():
         raise CommandError(f"{run}: not a training run (no config.json)")
-    try:
-        cfg = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise CommandError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    cfg = read_json(path)
     return protocol_of(cfg.get("train", {}))
 
 

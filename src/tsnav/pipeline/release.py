@@ -30,13 +30,12 @@ import shutil
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from ..atomic import atomic_path, atomic_write_text
+from ..atomic import atomic_write_text
 from ..checkpoint import load_tensors, save_tensors
 from ..distributed import set_threads
-from ..errors import CommandError
+from ..errors import CommandError, read_json
 from ..metrics import METRICS
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
 
@@ -90,12 +89,7 @@ def agent_folder(name: str | None) -> Path:
 
 def read_card(folder: str | Path) -> dict:
     p = Path(folder) / "card.json"
-    try:
-        card = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise CommandError(f"{p}: missing") from None
-    except json.JSONDecodeError as e:
-        raise CommandError(f"{p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    card = read_json(p, missing="missing")
     if card.get("format") != CARD_FORMAT:
         raise CommandError(f"{p}: not a tsnav agent card")
     return card

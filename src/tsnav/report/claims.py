@@ -45,7 +45,7 @@ from matplotlib.figure import Figure
 from scipy.stats import t as student
 
 from ..atomic import atomic_save_figure, atomic_write_text
-from ..errors import CommandError
+from ..errors import CommandError, read_json
 from .tables import SUBSETS, finite, welch
 
 #: Significance level of the verdicts (two-sided Welch test over the per-seed values).
@@ -311,10 +311,7 @@ def load_results(exp_dir: str | Path) -> dict:
     path = Path(exp_dir) / "results.json"
     if not path.is_file():
         raise CommandError(f"{exp_dir}: no results.json (run `tsnav experiment ... --out {exp_dir}` first)")
-    try:
-        res = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise CommandError(f"{path}: not valid JSON ({e.msg}, line {e.lineno})") from None
+    res = read_json(path)
     if not isinstance(res, dict) or not isinstance(res.get("rows"), list) or "experiment" not in res:
         raise CommandError(f"{path}: not an experiment's results (no 'rows' / 'experiment')")
     for r in res["rows"]:

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..atomic import atomic_write_text
 from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, TARGET_CATEGORIES, room_target_mask
+from ..errors import read_json
 from ..protocol import spec
 from .batch import BatchEnv, EpisodeSampler, RewardFn, SceneBank, SimConfig
 from .paths import UNREACHABLE
@@ -251,11 +252,7 @@ def write_episodes(path: str | Path, episodes: list[Episode], **meta) -> None:
 def read_episodes(path: str | Path) -> tuple[list[Episode], dict]:
     """Read an episode list: ``(episodes, meta)``; ``ValueError`` naming the file when malformed."""
     path = Path(path)
-    try:
-        with open(path) as f:
-            doc = json.load(f)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    doc = read_json(path, ValueError)
     if not isinstance(doc, dict) or doc.get("format") != EPISODES_FORMAT:
         raise ValueError(f"{path}: not a tsnav episode list (missing \"format\": \"{EPISODES_FORMAT}\")")
     try:
