@@ -246,26 +246,32 @@ def load_scene(path: str | Path) -> Scene:
     pixels = np.full((n, len(object_ids)), -1, dtype=np.int32)
     boxes = np.full((n, len(object_ids), 4), -1, dtype=np.int16)
     image_size = int(meta.get("image_size", 0))
-    st_path = path / "states.hdf5"
-    if st_path.exists():
-        try:
-            with h5py.File(st_path, "r") as f:
-                st_keys = f["keys"][()].astype(str)
-                st_objs = f["object_ids"][()].astype(str)
-                rows = ids(st_keys, "key", "states.hdf5")
-                cols = np.array([col[o] for o in st_objs], dtype=np.int64)
-                distance[np.ix_(rows, cols)] = f["distance"][()]
-                pixels[np.ix_(rows, cols)] = f["pixels"][()]
-                boxes[rows[:, None], cols[None, :]] = f["boxes"][()]
-                image_size = int(f.attrs.get("image_size", image_size))
-        except (OSError, KeyError) as e:
-            raise SceneFormatError(f"{st_path}: unreadable ({e})") from None
+    if (path / "states.hdf5").exists():
+        image_size = _read_object_states(path / "states.hdf5", ids, col, distance, pixels, boxes, image_size)
 
     floor = [np.asarray(p, dtype=np.float64) for p in meta.get("floor", [])]
     return Scene(name=str(meta.get("name", path.name)), path=path, keys=keys, x=x, z=z, rotation=rot,
                  horizon=hor, next_state=next_state, object_ids=object_ids, object_category=cat,
                  visible=visible, distance=distance, pixels=pixels, boxes=boxes, floor=floor,
                  image_size=image_size, meta=meta)
+
+
+def _read_object_states(st_path: Path, ids, col: dict, distance: np.ndarray, pixels: np.ndarray, boxes: np.ndarray,
+                        image_size: int) -> int:
+    """Fill the per state and object ``distance``, ``pixels`` and ``boxes`` from ``states.hdf5`` (``ids``: state
+    keys to rows, ``col``: object id to column); returns the image size it records (else ``image_size``)."""
+    try:
+        with h5py.File(st_path, "r") as f:
+            st_keys = f["keys"][()].astype(str)
+            st_objs = f["object_ids"][()].astype(str)
+            rows = ids(st_keys, "key", "states.hdf5")
+            cols = np.array([col[o] for o in st_objs], dtype=np.int64)
+            distance[np.ix_(rows, cols)] = f["distance"][()]
+            pixels[np.ix_(rows, cols)] = f["pixels"][()]
+            boxes[rows[:, None], cols[None, :]] = f["boxes"][()]
+            return int(f.attrs.get("image_size", image_size))
+    except (OSError, KeyError) as e:
+        raise SceneFormatError(f"{st_path}: unreadable ({e})") from None
 
 
 def is_complete(path: str | Path) -> bool:

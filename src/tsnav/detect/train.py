@@ -376,26 +376,7 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     if not train_cfg.repeat_threshold >= 0:
         raise ValueError(f"repeat_threshold must be >= 0, got {train_cfg.repeat_threshold}")
     set_threads(train_cfg.threads)
-    found = resume_state(ckpt)
-    opt_state = None
-    if found is not None:
-        _, model, meta, opt_state = found
-        stored = DetectorTrainConfig.from_dict(meta["train"])
-        stored.steps, stored.threads = train_cfg.steps, train_cfg.threads
-        start = int(meta["step"])
-        if train_cfg.repeat_threshold > 0 and train_cfg.repeat_threshold != stored.repeat_threshold:
-            stored.repeat_threshold = train_cfg.repeat_threshold
-            meta.setdefault("sampling_changes", []).append({"step": start,
-                                                           "repeat_threshold": train_cfg.repeat_threshold})
-        train_cfg = stored
-    else:
-        if model_cfg is None:
-            model_cfg = DetectorConfig()
-        torch.manual_seed(train_cfg.seed)
-        model = GridDetector(model_cfg)
-        meta = {"format": FORMAT, "model": model_cfg.to_dict(), "step": 0, "temperature": 1.0,
-                "calibrated_step": -1, "min_score": 0.05, "history": []}
-        start = 0
+    model, meta, opt_state, train_cfg, start = _resume_or_start(ckpt, train_cfg, model_cfg)
     if start >= train_cfg.steps:
         return TrainResult(ckpt, start, start, 0.0, meta["history"][-1] if meta["history"] else {})
     if frames is None:
@@ -447,6 +428,32 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     save()
     model.eval()
     return TrainResult(ckpt, start, step, time.perf_counter() - t0, last)
+
+
+def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: DetectorConfig | None):
+    """``(model, meta, optimizer state or None, train config, start step)``: the checkpoint's, keeping its settings
+    except ``steps`` and ``threads`` (and a new ``repeat_threshold``, recorded), or a fresh model at step 0."""
+    found = resume_state(ckpt)
+    opt_state = None
+    if found is not None:
+        _, model, meta, opt_state = found
+        stored = DetectorTrainConfig.from_dict(meta["train"])
+        stored.steps, stored.threads = train_cfg.steps, train_cfg.threads
+        start = int(meta["step"])
+        if train_cfg.repeat_threshold > 0 and train_cfg.repeat_threshold != stored.repeat_threshold:
+            stored.repeat_threshold = train_cfg.repeat_threshold
+            meta.setdefault("sampling_changes", []).append({"step": start,
+                                                           "repeat_threshold": train_cfg.repeat_threshold})
+        train_cfg = stored
+    else:
+        if model_cfg is None:
+            model_cfg = DetectorConfig()
+        torch.manual_seed(train_cfg.seed)
+        model = GridDetector(model_cfg)
+        meta = {"format": FORMAT, "model": model_cfg.to_dict(), "step": 0, "temperature": 1.0,
+                "calibrated_step": -1, "min_score": 0.05, "history": []}
+        start = 0
+    return model, meta, opt_state, train_cfg, start
 
 
 def calibrate(root: str | Path, ckpt: str | Path, split: str = "val", frames: FrameSet | None = None,

@@ -330,56 +330,15 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
     say = print if progress else (lambda *a, **k: None)
     sections: list[tuple[str, str, str]] = []  # (anchor, heading, html)
 
-    # --- results of plain evaluations
     if found.evals:
-        rows = []
-        for d in found.evals:
-            m = json.loads((d / "metrics.json").read_text())
-            rows.append((_eval_label(d, root), m["metrics"]))
-        body = metrics_table_html(rows)
-        body += ("<p class='note'>SR, SPL (Anderson et al.), SSR (share of episodes that entered the pathfinding "
-                 "stage), SSSPL (searching success weighted by searching path length), NSNPL (pathfinding "
-                 "efficiency over the episodes that entered that stage); paper IV-A. K = episodes. "
-                 "L&ge;5: episodes whose optimal path has at least 5 actions. Protocol: paper = Done succeeds "
-                 "with the target in view within 1.0 m; lineage = the target listed in the 1.5 m visibility map, "
-                 "start-success episodes kept, SPL and L&ge;5 counted as the lineage's evaluator does "
-                 "(tsnav.protocol).</p>")
-        details = []
-        for d in found.evals:
-            m = json.loads((d / "metrics.json").read_text())
-
-            details.append(f"<details><summary>{_e(_eval_label(d, root))}: per room type</summary>"
-                           f"<pre>{_e(format_table(m['metrics'], m.get('trained_protocol')))}</pre></details>")
-        sections.append(("results", "Results", body + "".join(details)))
-
-    # --- experiments
+        sections.append(("results", "Results", _results_html(found.evals, root)))
     for d in found.experiments:
         say(f"report: experiment {d}")
         sections.append(_experiment_section(d, root, assets, gallery))
-
-    # --- training runs
     if found.train_runs:
-        parts = []
-        for d in found.train_runs:
-            log = read_log(d)
-            lab = _label(d, root)
-            png = plot_learning_curves(log, assets.name(f"curves_{lab}"), title=f"{lab}: {_train_caption(d)}")
-            last = log[-1] if log else {}
-            summary = (f"{last.get('update', 0)} updates, {last.get('env_steps', 0):,} environment steps, "
-                       f"{last.get('episodes', 0):,} episodes, {last.get('seconds', 0) / 60:.1f} min"
-                       if log else "no log lines yet")
-            parts.append(f"<h3>{_e(lab)}</h3><p class='meta'>{_e(_train_caption(d))}; {_e(summary)}</p>"
-                         + (f"<figure><img src='{png.name}' alt='learning curves'><figcaption>Return and reward per "
-                            "term of the training episodes, their SR / SPL / SSR / SSSPL / NSNPL on the fly "
-                            "(training episodes are cut at 30 steps, so these run below the test figures), "
-                            "and the actor-critic losses.</figcaption></figure>" if png else ""))
-        sections.append(("training", "Training", "".join(parts)))
-
-    # --- pretraining runs
+        sections.append(("training", "Training", _training_html(found.train_runs, root, assets)))
     if found.pretrain_runs:
         sections.append(("pretraining", "Pretraining", _pretrain_html(found.pretrain_runs, root, assets)))
-
-    # --- gallery of plain evaluations
     if found.evals and gallery > 0:
         parts = []
         for d in found.evals[:max_gallery_evals]:
@@ -398,6 +357,47 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
     index = out / "index.html"
     atomic_write_text(index, doc)
     return index
+
+
+def _results_html(evals: list[Path], root: Path) -> str:
+    """The results of plain evaluations: one metrics table, its note, and per room type under each."""
+    rows = []
+    for d in evals:
+        m = json.loads((d / "metrics.json").read_text())
+        rows.append((_eval_label(d, root), m["metrics"]))
+    body = metrics_table_html(rows)
+    body += ("<p class='note'>SR, SPL (Anderson et al.), SSR (share of episodes that entered the pathfinding "
+             "stage), SSSPL (searching success weighted by searching path length), NSNPL (pathfinding "
+             "efficiency over the episodes that entered that stage); paper IV-A. K = episodes. "
+             "L&ge;5: episodes whose optimal path has at least 5 actions. Protocol: paper = Done succeeds "
+             "with the target in view within 1.0 m; lineage = the target listed in the 1.5 m visibility map, "
+             "start-success episodes kept, SPL and L&ge;5 counted as the lineage's evaluator does "
+             "(tsnav.protocol).</p>")
+    details = []
+    for d in evals:
+        m = json.loads((d / "metrics.json").read_text())
+        details.append(f"<details><summary>{_e(_eval_label(d, root))}: per room type</summary>"
+                       f"<pre>{_e(format_table(m['metrics'], m.get('trained_protocol')))}</pre></details>")
+    return body + "".join(details)
+
+
+def _training_html(runs: list[Path], root: Path, assets: "_Assets") -> str:
+    """Learning curves and a summary line of each training run."""
+    parts = []
+    for d in runs:
+        log = read_log(d)
+        lab = _label(d, root)
+        png = plot_learning_curves(log, assets.name(f"curves_{lab}"), title=f"{lab}: {_train_caption(d)}")
+        last = log[-1] if log else {}
+        summary = (f"{last.get('update', 0)} updates, {last.get('env_steps', 0):,} environment steps, "
+                   f"{last.get('episodes', 0):,} episodes, {last.get('seconds', 0) / 60:.1f} min"
+                   if log else "no log lines yet")
+        parts.append(f"<h3>{_e(lab)}</h3><p class='meta'>{_e(_train_caption(d))}; {_e(summary)}</p>"
+                     + (f"<figure><img src='{png.name}' alt='learning curves'><figcaption>Return and reward per "
+                        "term of the training episodes, their SR / SPL / SSR / SSSPL / NSNPL on the fly "
+                        "(training episodes are cut at 30 steps, so these run below the test figures), "
+                        "and the actor-critic losses.</figcaption></figure>" if png else ""))
+    return "".join(parts)
 
 
 def _pretrain_progress(d: Path) -> dict:
