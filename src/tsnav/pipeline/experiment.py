@@ -192,6 +192,9 @@ class Step:
     show: Callable[[dict], None] | None = None
     legacy: Path | None = None
     """A marker file of an earlier layout, read when ``DONE`` is missing (the demo's ``stages/<name>.json``)."""
+    writes_done: bool = False
+    """``run`` writes the step's ``DONE`` itself (an experiment's job, whose marker is its result) and returns
+    that marker; the job list then keeps it as it is."""
 
 
 class JobList:
@@ -219,7 +222,7 @@ class JobList:
             t0 = time.perf_counter()
             summary = step.run() or {}
             dt = time.perf_counter() - t0
-            m = write_done(step.folder, {**summary, "seconds": dt})
+            m = summary if step.writes_done else write_done(step.folder, {**summary, "seconds": dt})
             self.times[step.name] = ("done", dt)
             self.say(f"    done in {dt:.0f} s")
         self.markers[step.name] = m
@@ -547,10 +550,13 @@ class Experiment:
                                      features[job.row.encoder], threads)] = job
                 for k, fut in enumerate(as_completed(futs), 1):
                     report(k, futs[fut], fut.result())
-        else:
-            for k, job in enumerate(todo, 1):
-                say(f"[{name}] job {k}/{len(todo)}: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
-                report(k, job, self.run_job(job, features[job.row.encoder]))
+        else:  # one job list: the jobs still to run, each marked by the DONE its run writes
+            steps = [Step(f"{name} job {job.row.id}_s{job.seed}",
+                          f"{job.row.label}, seed {job.seed} -> {self.out / job.dir}", self.out / job.dir,
+                          partial(self.run_job, job, features[job.row.encoder]),
+                          show=partial(report, k, job), writes_done=True)
+                     for k, job in enumerate(todo, 1)]
+            JobList(steps, chained=False).run()
         return self.write_tables()
 
 
