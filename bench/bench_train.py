@@ -33,6 +33,25 @@ from pathlib import Path
 PAPER_EPISODES = 1_500_000
 
 
+def training_world(tmp: Path, data: str | None, features: str | None, detections: str) -> tuple[Path, str]:
+    """The benchmarks' training data: ``data`` (default: the ``tiny`` world built in ``tmp``), its feature cache
+    ``features`` (default: pooled pixels, cached here) and, for ``oracle``, its oracle detection tables."""
+    from tsnav.pipeline.steps import ensure_detections
+    from tsnav.pretrain.pixels import cache_pixel_features
+
+    if data is None:
+        from tsnav.world.build import build_dataset
+
+        data = tmp / "world"
+        build_dataset(data, "tiny", workers=1, progress=False)
+    if features is None:
+        features = "bench_pixels"
+        cache_pixel_features(data, features, grid=4, split="train")
+    if detections == "oracle":
+        ensure_detections(data, "oracle")
+    return Path(data), features
+
+
 def _summary(name: str, run: Path, progress: dict, wall: float) -> dict:
     from tsnav.rl.logger import read_log
 
@@ -76,26 +95,13 @@ def main() -> None:
     args = ap.parse_args()
 
     from tsnav.agent import agent_config
-    from tsnav.pipeline.steps import ensure_detections
-    from tsnav.pretrain.pixels import cache_pixel_features
     from tsnav.rl.a3c import train_a3c
     from tsnav.rl.batched import train_batched
     from tsnav.rl.config import TrainConfig
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_train_"))
     try:
-        data = args.data
-        if data is None:
-            from tsnav.world.build import build_dataset
-
-            data = tmp / "world"
-            build_dataset(data, "tiny", workers=1, progress=False)
-        features = args.features
-        if features is None:
-            features = "bench_pixels"
-            cache_pixel_features(data, features, grid=4, split="train")
-        if args.detections == "oracle":
-            ensure_detections(data, "oracle")
+        data, features = training_world(tmp, args.data, args.features, args.detections)
         agent = agent_config(args.preset)
         minutes = args.seconds / 60.0
         base = dict(data=str(data), features=features, detections=args.detections, reward="tsrm", preset=args.preset, lr=1e-4,

@@ -16,12 +16,16 @@ import argparse
 import os
 import shutil
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 
 def main() -> None:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_train import training_world  # the same training data as the training benchmark
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None)
     ap.add_argument("--features", default=None)
@@ -37,8 +41,6 @@ def main() -> None:
 
     from tsnav.agent import agent_config
     from tsnav.agent.memory import TargetMemoryAggregator
-    from tsnav.pretrain.pixels import cache_pixel_features
-    from tsnav.pipeline.steps import ensure_detections
     from tsnav.rl.assemble import load_bank, make_model, make_observer, make_train_env
     from tsnav.rl.config import TrainConfig
     from tsnav.rl.rollout import RolloutCollector, collect_and_loss
@@ -46,17 +48,7 @@ def main() -> None:
     torch.set_num_threads(1)
     tmp = Path(tempfile.mkdtemp(prefix="bench_update_"))
     try:
-        data, features = args.data, args.features
-        if data is None:
-            from tsnav.world.build import build_dataset
-
-            data = tmp / "world"
-            build_dataset(data, "tiny", workers=1, progress=False)
-        if features is None:
-            features = "bench_pixels"
-            cache_pixel_features(data, features, grid=4, split="train")
-        if args.detections == "oracle":
-            ensure_detections(data, "oracle")
+        data, features = training_world(tmp, args.data, args.features, args.detections)
         cfg = TrainConfig(data=str(data), features=features, detections=args.detections, reward="tsrm",
                           algo="batched", num_envs=args.num_envs,
                           rollout_steps=args.rollout_steps, device="cpu")
