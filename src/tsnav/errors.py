@@ -22,9 +22,9 @@ def from_fields(cls: type[T], d: dict, what: str) -> T:
 
 
 def read_json(path, error: type[Exception] = CommandError, missing: str | None = None):
-    """The JSON document in file ``path``; a file that is not valid JSON raises ``error`` in one line naming the
-    file, the problem and its line, and so does a missing file when ``missing`` says how (e.g. "missing file");
-    otherwise FileNotFoundError passes through."""
+    """The JSON document in file ``path``. A file that cannot be read or is not valid JSON raises ``error`` in one
+    line naming the file and the problem (with its line and column); a missing file does so when ``missing``
+    says how (e.g. "missing file"), else FileNotFoundError passes through."""
     import json
 
     try:
@@ -35,4 +35,6 @@ def read_json(path, error: type[Exception] = CommandError, missing: str | None =
             raise
         raise error(f"{path}: {missing}") from None
     except json.JSONDecodeError as e:
-        raise error(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+        raise error(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise error(f"{path}: cannot read: {e}") from None

@@ -30,6 +30,7 @@ from shapely.ops import unary_union
 from ..atomic import atomic_save_figure, atomic_write_text
 from ..constants import GRID_SIZE, MOVE_AHEAD, ROTATIONS
 from ..data.reader import is_complete, load_scene
+from ..errors import read_json
 from .navgrid import AGENT_RADIUS
 from .spec import box_footprint
 
@@ -94,14 +95,7 @@ def parse_trajectories(doc, where: str) -> dict[str, list[Triple]]:
 def load_trajectories(path: str | Path) -> dict[str, list[Triple]]:
     """Read and check a trajectories file; :class:`TrajectoriesError` (one line) when it is malformed."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise TrajectoriesError(f"{path}: no such trajectories file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise TrajectoriesError(f"{path}: cannot read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise TrajectoriesError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    doc = read_json(path, TrajectoriesError, missing="no such trajectories file")
     return parse_trajectories(doc, str(path))
 
 

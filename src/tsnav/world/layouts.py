@@ -25,6 +25,7 @@ from pathlib import Path
 
 from ..atomic import atomic_write_bytes
 from ..data.names import scene_base_name
+from ..errors import read_json
 
 #: Package-data file of the packed layouts (inside ``tsnav/world/data``).
 PACKED_NAME = "ithor_layouts.json.gz"
@@ -156,14 +157,7 @@ def parse_layout(data, where: str, expect_scene: str | None = None) -> Layout:
 def read_layout_file(path: str | Path) -> Layout:
     """Read and check one source layout file (``FloorPlanN.json`` or ``FloorPlanN_physics.json``)."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise LayoutError(f"{path}: no such layout file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise LayoutError(f"{path}: cannot read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise LayoutError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    data = read_json(path, LayoutError, missing="no such layout file")
     stem = scene_base_name(path.name.split(".")[0])
     return parse_layout(data, str(path), stem if _NAME.fullmatch(stem) else None)
 
