@@ -44,7 +44,7 @@ from .tables import quality_line
 
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
-SKIP_DIRS = {"checkpoints", "tb", "report", "__pycache__", "stages"}
+SKIP_DIRS = {"checkpoints", "tb", "report", "__pycache__", "stages", "steps"}
 MAX_DEPTH = 5
 
 
