@@ -1,4 +1,4 @@
-"""``tsnav demo``: the main job, end to end on the embedded world, in about ten minutes of a 2-core CPU.
+"""``tsnav demo``: the main job, end to end on the embedded world, in about 13 minutes of an idle 2-core CPU.
 
 Steps (each prints progress; each is skipped on a second run when its marker ``OUT/steps/<step>/DONE`` exists and
 its outputs are still there - folders of earlier versions, with ``OUT/stages/<step>.json``, are resumed from
@@ -73,7 +73,7 @@ STEPS = ("world", "pretrain", "features", "detector", "detections", "episodes", 
 
 @dataclass
 class DemoConfig:
-    """The demo: a world preset and the ``demo`` scale of the experiments (about ten minutes of a 2-core CPU)."""
+    """The demo: a world preset and the ``demo`` scale of the experiments (about 13 minutes of an idle 2-core CPU)."""
 
     preset: str = "demo-real"
     """World preset (``tsnav world --preset``): ``demo-real`` (28 real iTHOR rooms at 128x128) or ``demo`` (20
