@@ -132,6 +132,7 @@ class SparseReward:
         return slack + win, {"slack": slack, "success": win}
 
     def reset_one(self, scene_idx: int, target: int, start_state: int) -> None:
+        """:meth:`reset` of one episode (nothing to keep)."""
         return None
 
     def step_one(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
