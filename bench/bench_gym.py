@@ -1,17 +1,24 @@
 """The Gymnasium frame path, as another learner sees it: ``gym.make`` / ``gym.make_vec`` of
 ``tsnav/ObjectNav-v0`` stepped with random actions, rgb + depth + detections observations, the paper's TSRM
-reward. Prints steps/s of today's frame path (``frames="memory"``, ``obs_layout="standard"``) against the
-first release's (``frames="hdf5"``: one HDF5 dataset read per state and frame; ``obs_layout="legacy"``)
-in one run, and their ratio. Goals (issue 26): >= 20 k env-steps/s with 64 envs and >= 5 k steps/s for the
-single env, on one core, on the demo's rooms.
+reward. Prints steps/s of this checkout's default path ("after") against a "before" in one run, and their
+ratio. Goals (issue 26): >= 20 k env-steps/s with 64 envs and >= 5 k steps/s for the single env, on one
+core, on the demo's rooms.
+
+"before" is another checkout's default path with ``--before-src OTHER/src`` (e.g. the main branch: the same
+loops, that code), else this checkout's first-release path (``frames="hdf5"``: one HDF5 dataset read per
+state and frame; ``obs_layout="legacy"``). Every measurement runs in its own process (``PYTHONPATH`` = the
+src folder it measures), in the order before, after, after, before (``--rounds 2``, the default; 1: before,
+after), so that a load that drifts during the run weighs on both alike; the table gives the mean of each
+path's rounds.
 
 The loops use only ``gymnasium`` and ``numpy`` (the ``"tsnav.sim:"`` prefix of the id makes Gymnasium import
-the package that registers it), as a user of another RL library would; only the timing fills the new path's
-frame cache before the timed loop (its time is printed). Rates are given per wall second and per CPU second
-of this process: on a shared machine the second is what one core of its own would deliver.
+the package that registers it), as a user of another RL library would; the single env's random actions are
+drawn in advance (a list of ints), the vector env's per step. Only the timing fills the frame cache before
+the timed loop (its time is printed). Rates are given per wall second and per CPU second of the measuring
+process: on a shared machine the second is what one core of its own would deliver.
 
     tsnav world --preset demo-real --out W && tsnav detect --data W --detector shipped
-    .venv/bin/python bench/bench_gym.py --data W [--split train] [--detections learned] [--seconds 5]
+    .venv/bin/python bench/bench_gym.py --data W [--before-src OTHER/src] [--split train] [--seconds 5]
     .venv/bin/python bench/bench_gym.py --data W --memory   # peak RSS of a 64-env vector env, cache filled
 
 With ``--memory`` it only builds the new path's vector env, fills its frame cache, steps it, and prints the
@@ -22,9 +29,14 @@ states) at the world's frame size.
 from __future__ import annotations
 
 import argparse
+import itertools
+import json
 import os
 import resource
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -33,12 +45,14 @@ import numpy as np
 
 ENV_ID = "tsnav.sim:tsnav/ObjectNav-v0"
 TRAIN_STATES_ITHOR_REAL = 266_288
-PATHS = {"before": {"frames": "hdf5", "obs_layout": "legacy"}, "after": {"frames": "memory", "obs_layout": "standard"}}
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+#: The first release's frame path, this checkout's "before" without --before-src.
+FIRST_RELEASE = {"frames": "hdf5", "obs_layout": "legacy"}
 
 
 def _fill(env) -> None:
-    """Fill the frame cache of the new path before timing (the loops time the steady state; construction and
-    this fill are printed as warm-up). The one call outside gymnasium / numpy, and only for the timing."""
+    """Fill the frame cache before timing (the loops time the steady state; construction and this fill are
+    printed as warm-up). The one call outside gymnasium / numpy, and only for the timing."""
     cache = getattr(getattr(env.unwrapped, "obs_source", None), "cache", None)
     if cache is not None:
         cache.load()
@@ -62,12 +76,12 @@ def single(kw: dict, seconds: float, warmup: int) -> tuple[float, float, float]:
     t0 = time.perf_counter()
     env = gym.make(ENV_ID, **kw)
     _fill(env)
-    rng = np.random.default_rng(0)
+    it = itertools.cycle(np.random.default_rng(0).integers(0, 6, 1 << 16).tolist())
     env.reset(seed=0)
     warm = time.perf_counter() - t0
 
     def step():
-        obs, r, term, trunc, info = env.step(int(rng.integers(0, 6)))
+        obs, r, term, trunc, info = env.step(next(it))
         if term or trunc:
             env.reset()
 
@@ -92,6 +106,27 @@ def vector(kw: dict, num_envs: int, seconds: float, warmup: int) -> tuple[float,
     wall, cpu = _timed(step, seconds, warmup, 10)
     envs.close()
     return wall * num_envs, cpu * num_envs, warm
+
+
+def child(args) -> None:
+    """One measurement (``--child single|vector``) in this process; prints one JSON line."""
+    kw = {"data": args.data, "split": args.split, "reward": args.reward, "detections": args.detections,
+          **json.loads(args.kwargs)}
+    if args.child == "single":
+        wall, cpu, warm = single(kw, args.seconds, args.warmup)
+    else:
+        wall, cpu, warm = vector(kw, args.num_envs, args.seconds, max(1, args.warmup // 4))
+    print(json.dumps({"wall": wall, "cpu": cpu, "warm": warm}))
+
+
+def measure(args, kind: str, src: str, kwargs: dict) -> dict:
+    """Run one measurement in a child process with ``src`` first on its ``PYTHONPATH``."""
+    cmd = [sys.executable, __file__, "--child", kind, "--kwargs", json.dumps(kwargs), "--data", args.data,
+           "--split", args.split, "--reward", args.reward, "--detections", args.detections,
+           "--num-envs", str(args.num_envs), "--seconds", str(args.seconds), "--warmup", str(args.warmup)]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([src] + [p for p in [os.environ.get("PYTHONPATH")] if p])}
+    out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
 
 
 def _rss_gib() -> float:
@@ -135,30 +170,39 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=64)
     ap.add_argument("--seconds", type=float, default=5.0, help="timed seconds per measurement")
     ap.add_argument("--warmup", type=int, default=200, help="untimed steps first")
+    ap.add_argument("--before-src", default=None,
+                    help="another checkout's src folder: its default path is 'before' (default: this checkout's "
+                         "first-release path, frames='hdf5', obs_layout='legacy')")
+    ap.add_argument("--rounds", type=int, default=2, choices=(1, 2),
+                    help="2: before, after, after, before (the default); 1: before, after")
     ap.add_argument("--memory", action="store_true", help="measure peak RSS of the new path only")
+    ap.add_argument("--child", choices=("single", "vector"), help=argparse.SUPPRESS)
+    ap.add_argument("--kwargs", default="{}", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.child:
+        return child(args)
     if args.memory:
         return memory(args)
-    common = dict(data=args.data, split=args.split, reward=args.reward, detections=args.detections)
-    print(f"{args.data} split {args.split}, reward {args.reward}, detections {args.detections}; load average "
-          f"{os.getloadavg()[0]:.1f}")
+    paths = {"before": (args.before_src, {}) if args.before_src else (SRC, FIRST_RELEASE), "after": (SRC, {})}
+    print(f"{args.data} split {args.split}, reward {args.reward}, detections {args.detections}; before: "
+          f"{args.before_src + ' (its default path)' if args.before_src else 'this checkout, ' + str(FIRST_RELEASE)}"
+          f"; after: {SRC} (default path); load average {os.getloadavg()[0]:.1f}", flush=True)
+    order = ["before", "after"] + (["after", "before"] if args.rounds == 2 else [])
     rows = []
-    for what, fn in (("single env", lambda kw: single(kw, args.seconds, args.warmup)),
-                     (f"vector env, {args.num_envs} envs",
-                      lambda kw: vector(kw, args.num_envs, args.seconds, max(1, args.warmup // 4)))):
-        rate = {}
-        for name, kw in PATHS.items():
-            wall, cpu, warm = fn({**common, **kw})
-            rate[name] = (wall, cpu)
-            print(f"  {what:22s} {name:6s} ({kw['frames']}, {kw['obs_layout']}): {wall:10,.0f} steps/s wall, "
-                  f"{cpu:10,.0f} per CPU second (construction + cache fill {warm:.1f} s)", flush=True)
-        rows.append((what, rate["before"], rate["after"]))
-    print("\n| env | before steps/s (wall / CPU) | after steps/s (wall / CPU) | ratio (wall / CPU) |")
+    for what, kind in (("single env", "single"), (f"vector env, {args.num_envs} envs", "vector")):
+        got: dict[str, list] = {"before": [], "after": []}
+        for name in order:
+            src, kw = paths[name]
+            r = measure(args, kind, src, kw)
+            got[name].append((r["wall"], r["cpu"]))
+            print(f"  {what:22s} {name:6s}: {r['wall']:10,.0f} steps/s wall, {r['cpu']:10,.0f} per CPU second "
+                  f"(construction + cache fill {r['warm']:.1f} s; load average {os.getloadavg()[0]:.1f})", flush=True)
+        rows.append((what, *(tuple(float(np.mean(v)) for v in zip(*got[n])) for n in ("before", "after"))))
+    print(f"\n| env | before steps/s (wall / per CPU s) | after steps/s (wall / per CPU s) | ratio (wall / per CPU s) |")
     print("| --- | --- | --- | --- |")
     for what, (bw, bc), (aw, ac) in rows:
         print(f"| {what} | {bw:,.0f} / {bc:,.0f} | {aw:,.0f} / {ac:,.0f} | {aw / bw:.1f}x / {ac / bc:.1f}x |")
-    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB; load average "
-          f"{os.getloadavg()[0]:.1f}")
+    print(f"load average {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

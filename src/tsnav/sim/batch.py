@@ -46,6 +46,12 @@ Reward plug-in (stable interface; the TSRM reward of :mod:`tsnav.tsrm` implement
   terms ``{name: (B,) float32}`` (e.g. ``slack``, ``success``) that the env passes on in ``info``. Rows whose
   episode had already finished before this step (only without auto-reset) are passed with
   ``new_state == prev_state`` and ``done`` True; the env zeroes their reward and terms.
+* Optionally, for a batch of one (the single Gymnasium env, :meth:`BatchEnv.step_one`), the same in Python
+  scalars: ``reset_one(scene_idx, target, start_state)`` and ``step_one(prev_state, action, new_state,
+  collided, done, success) -> (float, {name: float})``, the float32 values of ``step`` as Python floats (with
+  ``searching=`` a bool where the reward uses the stage). A reward without them is called through ``step``
+  with ``(1,)`` arrays. The TSRM reward and :class:`SparseReward` have them; ``tests/test_gym_fast.py`` holds
+  them equal to ``reset`` / ``step``.
 * A reward that follows the two stages (paper III-B) declares it with ``uses_stage = True`` (as habitat-lab's
   measures declare the measures they depend on); the env then passes the stage of its one
   :class:`~tsnav.sim.stage.StageSwitch` (:attr:`BatchEnv.stage`) as a keyword ``searching``, a ``(B,)`` bool
@@ -124,6 +130,17 @@ class SparseReward:
         slack = np.full(n, self.slack, dtype=np.float32)
         win = np.where(success, np.float32(self.success), np.float32(0.0)).astype(np.float32)
         return slack + win, {"slack": slack, "success": win}
+
+    def reset_one(self, scene_idx: int, target: int, start_state: int) -> None:
+        """:meth:`reset` of one episode (nothing to keep)."""
+        return None
+
+    def step_one(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
+                 ) -> tuple[float, dict[str, float]]:
+        """:meth:`step` of one episode in Python scalars (the float32 values of ``step``, as Python floats)."""
+        slack = np.float32(self.slack)
+        win = np.float32(self.success) if success else np.float32(0.0)
+        return float(slack + win), {"slack": float(slack), "success": float(win)}
 
 
 class SceneBank:
@@ -303,6 +320,9 @@ class BatchEnv:
     ``uses_stage`` is handed its ``searching`` mask (module docstring). With ``autoreset`` (default) finished
     rows immediately start a new episode from ``sampler`` and ``obs`` shows its first state ("same-step"
     auto-reset); without it finished rows stay frozen (``active`` False) until :meth:`reset`.
+
+    :meth:`step_one` / :meth:`reset_one` are :meth:`step` / :meth:`reset` for ``num_envs`` = 1 in Python
+    scalars (the single Gymnasium env), with the same outcome bit for bit.
     """
 
     def __init__(self, bank: SceneBank, num_envs: int, sampler: EpisodeSampler | None = None,
@@ -425,3 +445,86 @@ class BatchEnv:
         if self.autoreset and finished.any():
             self._start_rows(finished)
         return self._obs(), reward, terminated, truncated, info
+
+    # -- one episode in scalars ---------------------------------------------------------------------------
+    # The single Gymnasium env's path (tsnav.sim.gym_env): a batch of one stepped in Python scalars, where the
+    # array code above costs a microsecond per operation on (1,) arrays. reset / step above are the
+    # references; tests/test_gym_fast.py holds them equal, state and outputs, bit for bit.
+    def reset_one(self) -> None:
+        """:meth:`reset` of a batch of one (``num_envs`` = 1) with an episode from the sampler: the same draws,
+        the same episode and the same state of the env, its stage switch and its reward."""
+        if self.num_envs != 1:
+            raise ValueError(f"reset_one needs num_envs == 1, got {self.num_envs}")
+        if self.sampler is None:
+            raise ValueError("BatchEnv has no episode sampler: pass episodes= to reset()")
+        sample_one = getattr(self.sampler, "sample_one", None)
+        if sample_one is not None:
+            scene, target, start = sample_one(self.np_random)
+        else:
+            scene, target, start = (int(v[0]) for v in self.sampler.sample(1, self.np_random))
+        self.scene[0], self.target[0], self.state[0], self.start[0] = scene, target, start, start
+        self.steps[0] = 0
+        self.path_length[0] = 0
+        self.active[0] = True
+        searching = self.stage.reset_one(start, target)
+        if self.reward_fn is not None:
+            kw = {"searching": searching} if self._reward_uses_stage else {}
+            if hasattr(self.reward_fn, "reset_one"):
+                self.reward_fn.reset_one(scene, target, start, **kw)
+            else:
+                kw = {"searching": np.array([searching])} if self._reward_uses_stage else {}
+                self.reward_fn.reset(np.ones(1, dtype=bool), self.scene.copy(), self.target.copy(),
+                                     self.state.copy(), **kw)
+
+    def step_one(self, action: int) -> tuple[float, bool, bool, dict]:
+        """:meth:`step` of a batch of one (``num_envs`` = 1) in Python scalars: ``(reward, terminated,
+        truncated, info)`` with every ``(1,)`` array of :meth:`step` as its Python scalar (the reward and its
+        terms as the Python float of their float32 value); no observation dict (read :attr:`state`,
+        :attr:`target`). The same state afterwards as ``step(np.array([action]))``."""
+        if self.num_envs != 1:
+            raise ValueError(f"step_one needs num_envs == 1, got {self.num_envs}")
+        a = int(action)
+        if not 0 <= a < NUM_ACTIONS:
+            raise ValueError(f"actions must be in [0, {NUM_ACTIONS})")
+        active = bool(self.active[0])
+        prev = int(self.state[0])
+        moved = int(self._ns[prev * NUM_ACTIONS + a])
+        new = moved if active else prev
+        is_done = a == DONE
+        moving = active and not is_done
+        failed = moving and moved == prev  # lastActionSuccess False
+        collided = failed and a == MOVE_AHEAD  # a failed MoveAhead only (step)
+        steps = int(self.steps[0]) + active
+        path_length = int(self.path_length[0]) + moving
+        self.steps[0] = steps
+        self.path_length[0] = path_length
+        terminated = active and is_done
+        success = terminated and bool(self._succ[new * NUM_CATEGORIES + int(self.target[0])])
+        truncated = moving and steps >= self.max_steps
+        finished = terminated or truncated
+        stage = self.stage
+        if self.reward_fn is not None:
+            searching = not stage.entered[0]  # before this step's update
+            if hasattr(self.reward_fn, "step_one"):
+                kw = {"searching": searching} if self._reward_uses_stage else {}
+                reward, terms = self.reward_fn.step_one(prev, a, new, collided, finished or not active, success, **kw)
+            else:
+                kw = {"searching": np.array([searching])} if self._reward_uses_stage else {}
+                r, t = self.reward_fn.step(np.array([prev]), np.array([a]), np.array([new]), np.array([collided]),
+                                           np.array([finished or not active]), np.array([success]), **kw)
+                reward = float(np.asarray(r, dtype=np.float32)[0])
+                terms = {k: float(np.asarray(v, dtype=np.float32)[0]) for k, v in t.items()}
+            if not active:
+                reward, terms = 0.0, dict.fromkeys(terms, 0.0)
+        else:
+            reward, terms = 0.0, {}
+        stage.update_one(new, steps, path_length, active)
+        info = {"collided": collided, "failed": failed, "success": success, "steps": steps,
+                "path_length": path_length, "final_state": new, "active": active, "reward_terms": terms,
+                "entered": bool(stage.entered[0]), "switch_length": int(stage.switch_length[0]),
+                "switch_state": int(stage.switch_state[0])}
+        self.state[0] = new
+        self.active[0] = active and not finished
+        if self.autoreset and finished:
+            self._start_rows(np.ones(1, dtype=bool))
+        return reward, terminated, truncated, info

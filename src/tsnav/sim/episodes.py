@@ -132,6 +132,16 @@ class TrainingSampler:
         start = t.starts[t.ptr[pair] + (u[1] * self._counts[pair]).astype(np.int64)]
         return scene, t.pair_target[pair], start
 
+    def sample_one(self, rng: np.random.Generator) -> tuple[int, int, int]:
+        """One episode as Python ints: the same draws from ``rng`` and the same episode as ``sample(1, rng)``
+        (the single Gymnasium env's path; ``tests/test_gym_fast.py`` holds them equal)."""
+        t = self.table
+        scene = int(self.scenes[rng.integers(0, len(self.scenes), size=1)[0]])
+        u0, u1 = rng.random((2, 1))[:, 0]
+        pair = int(t.scene_ptr[scene]) + int(u0 * self._npairs[scene])
+        start = int(t.starts[int(t.ptr[pair]) + int(u1 * self._counts[pair])])
+        return scene, int(t.pair_target[pair]), start
+
 
 def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sampler: EpisodeSampler | None = None,
              reward_fn: RewardFn | None = None, seed: int | None = None) -> BatchEnv:

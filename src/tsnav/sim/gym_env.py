@@ -20,6 +20,7 @@ of ``tsnav.data.toy``.
 | Observation (``obs_layout="standard"``, default) | ``Dict`` of images ``(H, W, C)`` and 1-D vectors only, what Stable-Baselines3's ``MultiInputPolicy``, RLlib and CleanRL-style encoders take unwrapped: ``rgb`` ``Box(0, 255, (H, W, 3), uint8)`` from ``images.hdf5`` (zeros when absent); ``depth`` ``Box(0, 1000, (H, W, 1))`` metres from ``depth.hdf5`` in the dtype the files store (float16 for the worlds of this project, float32 otherwise; zeros when absent); ``target`` ``Discrete(22)`` category id; ``detections`` ``Box(-1, 10000, (132,), float32)``: the 22 per-class rows (score, label, x0, y0, x1, y1) of the detector stage flattened row by row (``reshape(22, 6)`` restores them; zeros when absent) |
 | Observation (``obs_layout="legacy"``) | the first release's: ``depth`` ``(H, W)`` float32, ``detections`` ``(22, 6)`` float32, ``rgb`` and ``target`` as above |
 | Frames (``frames=``) | ``"memory"`` (default): each scene's frames are read once, on the first visit to one of its states, into two arrays indexed by state (:class:`FrameCache`; ``H * W * 5`` bytes a state with float16 depth: 80 KiB at 128 px, 20 KiB at 64 px; the 80 training rooms of ``ithor-real`` at 128 px hold 266 k states, 21.8 GB once all are visited); ``"hdf5"``: one HDF5 dataset read per state and frame, no cache (the slow reference, for little memory) |
+| Stepping (``stepping=``, single env) | ``"scalar"`` (default): the batch of one is stepped in Python scalars (:meth:`BatchEnv.step_one <tsnav.sim.batch.BatchEnv.step_one>`, the reward's ``step_one``) and its observation read with :meth:`Observations.one`, since numpy costs about a microsecond per operation on ``(1,)`` arrays; ``"batch"``: through the ``(1,)`` arrays of :meth:`BatchEnv.step <tsnav.sim.batch.BatchEnv.step>` (the reference; the same observations, rewards and ``info`` bit for bit, ``tests/test_gym_fast.py``) |
 | Reward | a :class:`~tsnav.sim.batch.RewardFn`: through the registered id the paper's TSRM reward by default (:mod:`tsnav.tsrm.envs`); the classes alone default to :class:`~tsnav.sim.batch.SparseReward` (-0.01 per step, +5 on success) |
 | Start | a random training episode (scene, a reachable target present in it, a start state at horizon 0 or 30 that is not a success state), or ``reset(options={"episode": (scene_name, target_name, start_key)})`` |
 | Termination | the agent outputs Done (success when the target is in view within the success distance) |
@@ -29,7 +30,9 @@ of ``tsnav.data.toy``.
 action, looks past the horizon limits included), ``success``, ``steps``, ``path_length`` and each reward term
 of the step as ``reward/<term>``. The vector env auto-resets in the same step (``AutoresetMode.SAME_STEP``): the returned
 observation of a finished sub-env is its next episode's first one, and ``info["final_obs"]`` /
-``info["final_info"]`` hold the last ones, as Gymnasium's ``SyncVectorEnv`` does in that mode.
+``info["final_info"]`` hold the last ones, as Gymnasium's ``SyncVectorEnv`` does in that mode. Every array of
+an observation or ``info`` is new at every step (none is a view of the env's own state or of the frame cache),
+so a learner may keep them.
 """
 
 from __future__ import annotations
@@ -82,6 +85,11 @@ FRAME_SOURCES = ("memory", "hdf5")
 #: Stable-Baselines3, RLlib and CleanRL-style code build a policy from unwrapped; ``"legacy"`` is the layout
 #: of the first release (``depth`` ``(H, W)``, ``detections`` ``(22, 6)``).
 OBS_LAYOUTS = ("standard", "legacy")
+#: How the single env steps its batch of one: ``"scalar"`` (default) in Python scalars
+#: (:meth:`BatchEnv.step_one <tsnav.sim.batch.BatchEnv.step_one>`, :meth:`Observations.one`); ``"batch"``
+#: through the ``(1,)`` arrays of :meth:`BatchEnv.step <tsnav.sim.batch.BatchEnv.step>` and
+#: :meth:`Observations.gather`, the reference (bit-identical, ``tests/test_gym_fast.py``).
+STEPPINGS = ("scalar", "batch")
 
 
 def observation_space(height: int, width: int, layout: str = "standard", depth_dtype=np.float32) -> spaces.Dict:
@@ -233,7 +241,8 @@ class Observations:
 
     def gather(self, state: np.ndarray, target: np.ndarray) -> dict[str, np.ndarray]:
         """Batched observation in the env's layout: ``{"rgb": (B,H,W,3), "depth": (B,H,W,1), "target": (B,),
-        "detections": (B,132)}`` (``"legacy"``: ``depth`` ``(B,H,W)`` float32, ``detections`` ``(B,22,6)``)."""
+        "detections": (B,132)}`` (``"legacy"``: ``depth`` ``(B,H,W)`` float32, ``detections`` ``(B,22,6)``);
+        every array new (``target`` a copy, so the env's own arrays never leak into an observation)."""
         state = np.asarray(state, dtype=np.int64)
         n = len(state)
         rgb, depth = (self.cache.gather(state) if self.cache is not None
@@ -244,8 +253,27 @@ class Observations:
                else np.zeros((n, NUM_CATEGORIES, 6), dtype=np.float32))
         if self.layout == "standard":
             depth, det = depth[..., None], det.reshape(n, NUM_CATEGORIES * 6)
-        return {"rgb": rgb, "depth": depth, "target": np.asarray(target, dtype=np.int64),
+        return {"rgb": rgb, "depth": depth, "target": np.array(target, dtype=np.int64),
                 "detections": np.ascontiguousarray(det, dtype=np.float32)}
+
+    def one(self, state: int, target: int) -> dict[str, Any]:
+        """One env's observation of global ``state`` with ``target``: ``single(gather([state], [target]), 0)``
+        in its values, dtypes and shapes (new arrays), read from the frame cache without the batch's index
+        arrays; ``frames="hdf5"`` reads through :meth:`gather`, the reference."""
+        cache = self.cache
+        if cache is None:
+            return self.single(self.gather(np.array([state]), np.array([target])), 0)
+        if not cache.loaded[self.bank.scene_of[state]]:
+            cache.load([self.bank.scene_of[state]])
+        rgb = cache.rgb[state].copy()
+        depth = cache.depth[state]
+        depth = depth.copy() if depth.dtype == self.depth_dtype else depth.astype(self.depth_dtype)
+        det = self.bank.detections
+        det = (np.zeros((NUM_CATEGORIES, 6), dtype=np.float32) if det is None
+               else det[state].astype(np.float32))  # a new array (the bank's table is float32)
+        if self.layout == "standard":
+            depth, det = depth[..., None], det.reshape(NUM_CATEGORIES * 6)
+        return {"rgb": rgb, "depth": depth, "target": int(target), "detections": det}
 
     def single(self, obs: dict[str, np.ndarray], j: int) -> dict[str, Any]:
         """Row ``j`` of a batched observation as one env's observation."""
@@ -257,6 +285,10 @@ class Observations:
             if f is not None:
                 f.close()
         self._files.clear()
+
+
+#: ``info`` keys of the vector env and their Gymnasium ``"_key"`` masks.
+_MASK = {k: f"_{k}" for k in ("state", "scene", "collided", "failed", "success", "steps", "path_length")}
 
 
 def _episode_option(bank: SceneBank, ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -271,7 +303,9 @@ def _episode_option(bank: SceneBank, ep) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 class ObjectNavEnv(gym.Env):
-    """One object-navigation episode at a time (see the module docstring for the spaces and dynamics)."""
+    """One object-navigation episode at a time (see the module docstring for the spaces and dynamics): a
+    :class:`BatchEnv` of one, stepped in scalars (``stepping="scalar"``) or through its arrays (``"batch"``,
+    the reference)."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
@@ -279,10 +313,13 @@ class ObjectNavEnv(gym.Env):
                  bank: SceneBank | None = None, max_steps: int = 100, reward_fn: RewardFn | None = None,
                  success_distance: float = SUCCESS_DISTANCE, image_size: int | None = None,
                  episode_config: EpisodeConfig | None = None, render_mode: str | None = None,
-                 frames: str = "memory", obs_layout: str = "standard"):
+                 frames: str = "memory", obs_layout: str = "standard", stepping: str = "scalar"):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if stepping not in STEPPINGS:
+            raise ValueError(f"unknown stepping {stepping!r} (choose from {', '.join(STEPPINGS)})")
         self.render_mode = render_mode
+        self.stepping = stepping
         self.bank = make_bank(bank, scenes, data, split, success_distance)
         self.sampler = TrainingSampler(self.bank, episode_config)
         self.batch = BatchEnv(self.bank, 1, sampler=self.sampler, reward_fn=reward_fn or SparseReward(),
@@ -291,9 +328,13 @@ class ObjectNavEnv(gym.Env):
         self.observation_space = self.obs_source.space
         self.action_space = spaces.Discrete(NUM_ACTIONS)
         self._last_obs: dict | None = None
+        self._term_keys: dict[str, str] = {}
 
     def _obs(self) -> dict[str, Any]:
-        obs = self.obs_source.single(self.obs_source.gather(self.batch.state, self.batch.target), 0)
+        if self.stepping == "scalar":
+            obs = self.obs_source.one(int(self.batch.state[0]), int(self.batch.target[0]))
+        else:
+            obs = self.obs_source.single(self.obs_source.gather(self.batch.state, self.batch.target), 0)
         self._last_obs = obs
         return obs
 
@@ -306,15 +347,19 @@ class ObjectNavEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.batch.np_random = self.np_random
-        episodes = None
         if options and "episode" in options:
-            episodes = _episode_option(self.bank, options["episode"])
-        self.batch.reset(episodes=episodes)
+            self.batch.reset(episodes=_episode_option(self.bank, options["episode"]))
+        elif self.stepping == "scalar":
+            self.batch.reset_one()
+        else:
+            self.batch.reset()
         return self._obs(), self._info()
 
     def step(self, action):
         if not (type(action) is int and 0 <= action < NUM_ACTIONS) and not self.action_space.contains(action):
             raise ValueError(f"action must be an int in [0, {NUM_ACTIONS}), got {action!r}")
+        if self.stepping == "scalar":
+            return self._step_scalar(int(action))
         _, reward, term, trunc, info = self.batch.step(np.array([int(action)]))
         out = {"state": int(info["final_state"][0]), "scene": self.bank.names[int(self.batch.scene[0])],
                "collided": bool(info["collided"][0]), "failed": bool(info["failed"][0]),
@@ -322,6 +367,20 @@ class ObjectNavEnv(gym.Env):
                "steps": int(info["steps"][0]), "path_length": int(info["path_length"][0])}
         out.update({f"reward/{k}": float(v[0]) for k, v in info["reward_terms"].items()})
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), out
+
+    def _step_scalar(self, action: int):
+        """:meth:`step` through :meth:`BatchEnv.step_one <tsnav.sim.batch.BatchEnv.step_one>` and
+        :meth:`Observations.one`: the same observation, reward, flags and ``info`` as ``stepping="batch"``."""
+        reward, term, trunc, info = self.batch.step_one(action)
+        out = {"state": info["final_state"], "scene": self.bank.names[self.batch.scene[0]],
+               "collided": info["collided"], "failed": info["failed"], "success": info["success"],
+               "steps": info["steps"], "path_length": info["path_length"]}
+        keys = self._term_keys
+        for k, v in info["reward_terms"].items():
+            if k not in keys:
+                keys[k] = f"reward/{k}"
+            out[keys[k]] = v
+        return self._obs(), reward, term, trunc, out
 
     def render(self):
         if self.render_mode == "rgb_array":
@@ -351,6 +410,7 @@ class ObjectNavVectorEnv(VectorEnv):
         self.single_action_space = spaces.Discrete(NUM_ACTIONS)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._term_keys: dict[str, tuple[str, str]] = {}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -369,12 +429,15 @@ class ObjectNavVectorEnv(VectorEnv):
         _, reward, term, trunc, info = self.batch.step(actions)
         obs = self.obs_source.gather(self.batch.state, self.batch.target)
         every = np.ones(self.num_envs, dtype=bool)
-        infos: dict[str, Any] = {}
-        for k, v in {"state": self.batch.state.copy(), "scene": self.batch.scene.copy(),
-                     "collided": info["collided"], "failed": info["failed"], "success": info["success"],
-                     "steps": info["steps"], "path_length": info["path_length"],
-                     **{f"reward/{k}": v for k, v in info["reward_terms"].items()}}.items():
-            infos[k], infos[f"_{k}"] = v, every
+        infos: dict[str, Any] = {"state": self.batch.state.copy(), "_state": every,
+                                 "scene": self.batch.scene.copy(), "_scene": every}
+        for k in ("collided", "failed", "success", "steps", "path_length"):
+            infos[k], infos[_MASK[k]] = info[k], every
+        keys = self._term_keys
+        for k, v in info["reward_terms"].items():
+            if k not in keys:
+                keys[k] = (f"reward/{k}", f"_reward/{k}")
+            infos[keys[k][0]], infos[keys[k][1]] = v, every
         fin = term | trunc
         if fin.any():
             # Gymnasium's SAME_STEP convention: final_obs is an object array of single observations,
@@ -382,12 +445,15 @@ class ObjectNavVectorEnv(VectorEnv):
             rows = np.flatnonzero(fin)
             last = self.obs_source.gather(info["final_state"][rows], target[rows])
             final_obs = np.full(self.num_envs, None, dtype=object)
-            for k, j in enumerate(rows):
-                final_obs[j] = self.obs_source.single(last, k)
+            rgb, depth, det, tgt = last["rgb"], last["depth"], last["detections"], last["target"].tolist()
+            for k, j in enumerate(rows.tolist()):  # Observations.single, row by row
+                final_obs[j] = {"rgb": rgb[k], "depth": depth[k], "target": tgt[k], "detections": det[k]}
             final_info: dict[str, Any] = {}
-            for k, v in {"state": info["final_state"], "success": info["success"], "steps": info["steps"],
-                         "path_length": info["path_length"]}.items():
-                final_info[k], final_info[f"_{k}"] = np.where(fin, v, 0).astype(v.dtype), fin.copy()
+            for k, v in (("state", info["final_state"]), ("success", info["success"]), ("steps", info["steps"]),
+                         ("path_length", info["path_length"])):
+                out = np.zeros_like(v)
+                out[rows] = v[rows]
+                final_info[k], final_info[_MASK[k]] = out, fin.copy()
             infos["final_obs"], infos["_final_obs"] = final_obs, fin.copy()
             infos["final_info"], infos["_final_info"] = final_info, fin.copy()
         return obs, reward.astype(np.float64), term, trunc, infos

@@ -114,3 +114,27 @@ class StageSwitch:
             self.switch_length[new] = np.asarray(path_length)[new]
         self.switch_state[new] = new_state[new]
         return new
+
+    # -- one episode in scalars (the single Gymnasium env; references: reset / update above) -----------------
+    def reset_one(self, start_state: int, target: int) -> bool:
+        """:meth:`reset` of a batch of one episode (``B`` = 1), in Python scalars; returns whether it starts in
+        the searching stage (``searching[0]``)."""
+        if len(self.entered) != 1:
+            self._alloc(1)
+        at_start = bool(self.switches[start_state, target])
+        self.target[0] = target
+        self.entered[0] = at_start
+        self.switch_step[0] = 0 if at_start else -1
+        self.switch_length[0] = 0
+        self.switch_state[0] = start_state
+        return not at_start
+
+    def update_one(self, new_state: int, steps: int, path_length: int, active: bool) -> bool:
+        """:meth:`update` of a batch of one episode, in Python scalars; returns whether it switched now."""
+        new = active and not self.entered[0] and bool(self.switches[new_state, self.target[0]])
+        if new:
+            self.entered[0] = True
+            self.switch_step[0] = steps
+            self.switch_length[0] = path_length
+            self.switch_state[0] = new_state
+        return new

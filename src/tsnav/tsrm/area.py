@@ -461,6 +461,27 @@ class BatchCoverage:
             self.samples[episodes] += gained
         return gained * self.index.config.sample_size ** 2
 
+    def reset_one(self, episode: int, scene: int) -> None:
+        """:meth:`reset` of the one episode ``episode`` in scene ``scene`` (scalars; the single Gymnasium env's
+        path, held equal to :meth:`reset` by ``tests/test_gym_fast.py``)."""
+        self.covered[episode] = self.index.off_floor[scene]
+        self.scene[episode] = scene
+        self.samples[episode] = 0
+
+    def add_one(self, episode: int, state: int) -> float:
+        """:meth:`add` of one episode and one global state id, in scalars: the same gained area (m^2) as
+        ``add([episode], [state])[0]`` without the batch's index arrays (the single Gymnasium env's path)."""
+        idx = self.index
+        group, row = int(idx.group[state]), int(idx.stencil[state])
+        cells = idx.offsets[group][row] + (idx.lead + episode * idx.row_len + int(idx.anchor[state]))
+        old = self._flat[cells]
+        upd = old | idx.masks[group][row]
+        np.bitwise_xor(upd, old, out=old)  # the samples this view adds
+        gained = int(popcount(old).sum(dtype=np.int64))
+        self._flat[cells] = upd
+        self.samples[episode] += gained
+        return gained * idx.config.sample_size ** 2
+
     def area(self) -> np.ndarray:
         """``Area(RG_t)`` of every episode, square metres."""
         return self.samples * self.index.config.sample_size ** 2

@@ -98,7 +98,8 @@ class RewardConfig:
 
 class TSRMReward:
     """Batched reward of :class:`RewardConfig` over a :class:`~tsnav.sim.batch.SceneBank`; implements the
-    ``RewardFn`` protocol of :mod:`tsnav.sim.batch` (``reset`` / ``step`` on ``(B,)`` arrays) with the stage
+    ``RewardFn`` protocol of :mod:`tsnav.sim.batch` (``reset`` / ``step`` on ``(B,)`` arrays; ``reset_one`` /
+    ``step_one``, the same for a batch of one in Python scalars, for the single Gymnasium env) with the stage
     as an input: ``uses_stage`` asks the env for the ``searching`` mask of its
     :class:`~tsnav.sim.stage.StageSwitch` (the env's :attr:`~tsnav.sim.batch.BatchEnv.stage` holds the stage,
     the switching step and the step counters; the reward reads nothing else of it).
@@ -223,6 +224,71 @@ class TSRMReward:
         out = {k: v.astype(np.float32) for k, v in terms.items()}
         reward = sum(terms.values()).astype(np.float32)
         return reward, out
+
+
+    # -- one episode in scalars (the single Gymnasium env; references: reset / step above) ---------------------
+    def _add_view_one(self, state: int) -> float:
+        if self.coverage is not None:
+            return self.coverage.add_one(0, state)
+        bank = self.bank
+        return self._exact[0].add(float(bank.x[state]), float(bank.z[state]), int(bank.rotation[state]),
+                                  int(bank.horizon[state]))
+
+    def reset_one(self, scene_idx: int, target: int, start_state: int, searching: bool) -> None:
+        """:meth:`reset` of a batch of one episode, in Python scalars: the same state as
+        ``reset([True], [scene_idx], [target], [start_state], searching=[searching])``
+        (``tests/test_gym_fast.py`` holds them equal)."""
+        if self.batch_size != 1:
+            self._alloc(1)
+        self.scene[0] = scene_idx
+        self.target[0] = target
+        self.collided_at[0] = False
+        if self.config.uses("explore"):
+            if self.coverage is not None:
+                self.coverage.reset_one(0, scene_idx)
+            else:
+                self._exact[0] = self._exact_region(int(scene_idx))
+            self.viewed[0] = False
+            if searching:
+                self.viewed[0, self.state_local[start_state]] = True
+                self._add_view_one(start_state)  # the start view, without reward
+
+    def step_one(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool,
+                 searching: bool) -> tuple[float, dict[str, float]]:
+        """:meth:`step` of a batch of one episode, in Python scalars: ``(reward, {term: value})``, the float32
+        values of ``step`` as Python floats, computed in the same order (terms in float64, their sum rounded to
+        float32), so they are bit-identical (``tests/test_gym_fast.py``)."""
+        if self.batch_size != 1:
+            raise ValueError(f"step_one needs a batch of one episode; reset was called with {self.batch_size}")
+        cfg = self.config
+        if getattr(self, "_one_config", None) is not cfg:  # per config: which terms are on, constants in float32
+            self._one_config = cfg
+            self._one_on = tuple(cfg.uses(k) for k in TERMS)
+            self._one_f32 = {v: float(np.float32(v)) for v in (cfg.slack, cfg.success_reward, cfg.collision_penalty)}
+        explore = distance = collision = 0.0
+        on_explore, on_distance, _, _, _ = self._one_on
+        if on_explore and searching:
+            local = self.state_local[new_state]
+            if not self.viewed[0, local]:
+                self.viewed[0, local] = True
+                explore = cfg.k_explore * self._add_view_one(new_state)
+        if on_distance and not searching:
+            target = int(self.target[0])
+            d0, d1 = int(self.dist[prev_state, target]), int(self.dist[new_state, target])
+            delta = float(d0 - d1) if d0 != UNREACHABLE and d1 != UNREACHABLE else 0.0  # distance_delta
+            distance = cfg.k_distance * delta
+        if collided:
+            node = self.node_local[prev_state]
+            repeat = bool(self.collided_at[0, node])
+            self.collided_at[0, node] = True
+            collision = cfg.collision_penalty if repeat else 0.0
+        values = [v if on else 0.0 for v, on in zip((explore, distance, collision, cfg.slack,
+                                                     cfg.success_reward if success else 0.0), self._one_on)]
+        reward = float(np.float32(sum(values)))
+        f32 = self._one_f32
+        # float32 of each term: the constants looked up, zeros kept (with their sign), the rest converted
+        return reward, {k: (v if v == 0.0 else f32[v] if v in f32 else float(np.float32(v)))
+                        for k, v in zip(TERMS, values)}
 
 
 class TSRMRewardReference:
