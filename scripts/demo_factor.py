@@ -1,0 +1,136 @@
+"""One factor of issue 23 at the demo's scale: the demo's agent (TSRM + DE-MAE, 28 real rooms, 1000 updates) with
+one setting changed, over several seeds, against the demo itself over the same seeds.
+
+    python scripts/demo_factor.py BASE VARIANT SEED [SEED ...]
+    python scripts/demo_factor.py BASE --table VARIANT [VARIANT ...]
+
+VARIANT is one of :data:`VARIANTS` (``p16-64``: the demo as it is, a 4x4 token grid; ``p16-128``: the same ViT-Tiny
+on the world's own 128-px frames, an 8x8 grid). Each (variant, seed) is a demo folder ``BASE/VARIANT-sSEED``; the
+first folder made (``BASE/p16-64-s0``, i.e. ``tsnav demo`` itself) owns the world, the others link to it, and the
+seeds of one variant share its pretraining (``BASE/pretrain-VARIANT``), as the experiments' seeds do. Every step
+resumes. ``--table`` prints the per-seed figures of both protocols and each variant's mean with its 95 % t-interval,
+and writes them to ``BASE/factor.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from tsnav.metrics import write_json
+from tsnav.pipeline.config import SCALES
+from tsnav.pipeline.demo import DemoConfig, run_demo
+from tsnav.protocol import PROTOCOLS
+
+#: Variant name -> fields of the demo scale's configurations changed (:meth:`ScaleConfig.override`): the demo as it
+#: is; the encoder on the world's own 128-px frames (an 8x8 token grid instead of 4x4); patch 8 at 64 px (8x8 as
+#: well); training episodes of 100 actions (the test length) instead of the lineage's 30.
+VARIANTS = {
+    "p16-64": {},
+    "p16-128": {"pretrain": {"img_size": 128}},
+    "p8-64": {"pretrain": {"patch_size": 8}},
+    "ep100": {"train": {"max_steps": 100}},
+}
+#: Variants whose encoder is the demo's own (they share its pretraining and features).
+SAME_ENCODER = ("p16-64", "ep100")
+OWNER = "p16-64-s0"
+
+
+def folder(base: Path, variant: str, seed: int) -> Path:
+    return base / f"{variant}-s{seed}"
+
+
+def prepare(base: Path, variant: str, seed: int) -> Path:
+    """The run folder, linked to the owner's world and the variant's shared pretraining."""
+    out = folder(base, variant, seed)
+    if out.name == OWNER:
+        return out
+    owner = base / OWNER
+    if not (owner / "steps" / "world" / "DONE").exists():
+        raise SystemExit(f"run {owner} first (it builds the world the other folders share)")
+    out.mkdir(parents=True, exist_ok=True)
+    if not (out / "world").exists():
+        (out / "world").symlink_to((owner / "world").resolve(), target_is_directory=True)
+    shared = base / f"pretrain-{variant}"
+    if variant in SAME_ENCODER:
+        shared = owner / "pretrain"
+    shared.mkdir(parents=True, exist_ok=True)
+    if not (out / "pretrain").exists():
+        (out / "pretrain").symlink_to(shared.resolve(), target_is_directory=True)
+    return out
+
+
+def run(base: Path, variant: str, seeds: list[int]) -> None:
+    if variant not in VARIANTS:
+        raise SystemExit(f"unknown variant {variant!r} (choose from {', '.join(VARIANTS)})")
+    for seed in seeds:
+        out = prepare(base, variant, seed)
+        scale = SCALES["demo"].override(**VARIANTS[variant])
+        print(f"=== {out}", flush=True)
+        run_demo(out, DemoConfig(scale=scale, seed=seed))
+
+
+def table(base: Path, variants: list[str]) -> None:
+    rows, report, outcomes = [], {}, {}
+    labels = {"agent": "agent", "agent_oracle": "agent, oracle table"}
+    for variant in variants:
+        per_seed = {}
+        for d in sorted(p for p in base.glob(f"{variant}-s*") if p.is_dir()):
+            seed = int(d.name.rsplit("-s", 1)[1])
+            figs = {}
+            for p in PROTOCOLS:
+                for name in labels:
+                    f = d / "eval" / (name if p == "paper" else f"{name}_{p}") / "metrics.json"
+                    if f.exists():
+                        m = json.loads(f.read_text())["metrics"]["ALL"]
+                        figs[f"{name}/{p}"] = (100 * m["SR"], 100 * m["SPL"])
+                        o = f.parent / "outcomes.json"
+                        if o.exists() and name == "agent" and p == "paper":
+                            outcomes[(variant, seed)] = json.loads(o.read_text())
+            if figs:
+                per_seed[seed] = figs
+        report[variant] = {str(s): {k: list(v) for k, v in f.items()} for s, f in per_seed.items()}
+        keys = sorted({k for f in per_seed.values() for k in f})
+        for k in keys:
+            vals = np.array([f[k] for f in per_seed.values() if k in f])
+            n = len(vals)
+            mean = vals.mean(0)
+            half = (1.96 if n < 2 else {2: 12.71, 3: 4.30, 4: 3.18, 5: 2.78}.get(n, 2.57)) * (
+                vals.std(0, ddof=1) / np.sqrt(n) if n > 1 else np.zeros(2))
+            rows.append((variant, k, n, " ".join(f"{a:.2f}/{b:.2f}" for a, b in vals), mean, half))
+    print("| variant | policy / protocol | seeds | per seed SR/SPL | mean SR +- 95% | mean SPL +- 95% |")
+    print("| --- | --- | ---: | --- | --- | --- |")
+    for v, k, n, per, mean, half in rows:
+        print(f"| {v} | {k} | {n} | {per} | {mean[0]:.2f} +- {half[0]:.2f} | {mean[1]:.2f} +- {half[1]:.2f} |")
+    print("\n| variant | seed | switched | success after the switch | step limit after the switch | passed a success "
+          "state without Done | never switched, step limit | RotateLeft / RotateRight / MoveAhead share |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
+    for (v, seed), o in sorted(outcomes.items()):
+        a, c, sh = o["after_switch"], o["counts"], o["action_shares"]
+        print(f"| {v} | {seed} | {o['switched']} | {a['success']} | {c.get('step limit, switched', 0)} | "
+              f"{a['failures'].get('passed a success state without Done', 0)} | {c.get('step limit, never switched', 0)} | "
+              f"{sh['RotateLeft']:.2f} / {sh['RotateRight']:.2f} / {sh['MoveAhead']:.2f} |")
+        report[v][str(seed)]["outcomes_paper"] = {k: o[k] for k in ("switched", "counts", "after_switch", "action_shares")}
+    write_json(base / "factor.json", report)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("base", type=Path)
+    p.add_argument("variant", nargs="?")
+    p.add_argument("seeds", nargs="*", type=int)
+    p.add_argument("--table", nargs="+", metavar="VARIANT")
+    a = p.parse_args(argv)
+    if a.table:
+        table(a.base, a.table)
+    else:
+        run(a.base, a.variant, a.seeds or [0])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
