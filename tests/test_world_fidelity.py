@@ -198,11 +198,13 @@ def test_scene_spec_from_json_lays_out_again():
 def drift_room():
     """A hand-made bedroom (3 x 3 m floor box, walls inset to 0.1 .. 2.9 except z = 2.765 at the cabinet's back):
     a moveable chair whose box (0.85 .. 1.15) covers real positions, a fixed cabinet whose face (z = 2.465) lies
-    0.215 m from the target of a real blocked move, a ball (pickupable) lying 0.58 m from another leak's target."""
+    0.215 m from the target of a real blocked move, with a drawer inside its box, a ball (pickupable) lying 0.58 m
+    from another leak's target."""
     chair = obj("Chair|+01.00|+00.00|+01.00", (1.0, 0.45, 1.0), (0.3, 0.9, 0.3), [FLOOR_ID], moveable=True)
     cab = obj("Cabinet|+02.00|+00.40|+02.61", (2.0, 0.4, 2.615), (0.6, 0.8, 0.3))
+    drawer = obj("Drawer|+02.00|+00.60|+02.54", (2.0, 0.6, 2.54), (0.5, 0.2, 0.15))  # inside the cabinet's box
     ball = obj("BasketBall|+01.20|+00.12|+02.25", (1.2, 0.12, 2.25), (0.24, 0.24, 0.24), [FLOOR_ID], pickupable=True)
-    lay = layout(chair, cab, ball, scene="FloorPlan301")
+    lay = layout(chair, cab, drawer, ball, scene="FloorPlan301")
     flags = {o.object_id: {"pickupable": o.pickupable, "moveable": o.moveable} for o in lay.objects}
     triples = [(f"{x:.2f}|1.00|90|0", "MoveAhead", f"{x + 0.25:.2f}|1.00|90|0") for x in (0.5, 0.75, 1.0, 1.25)]
     triples += [("2.00|2.00|0|0", "MoveAhead", "2.00|2.00|0|0"),  # blocked by the cabinet in the real room
@@ -214,7 +216,7 @@ def test_drift_what_ifs_on_a_hand_made_layout():
     """By hand: the real agents walked (0.5, 1) -> (1.5, 1) through the chair's box: tsnav lacks (0.75, 1), (1, 1)
     and (1.25, 1) (0.1 m from the box, one inside it), so no real move is kept; no shift of at most 0.1 m clears
     them, its removal brings all back. (2, 2) -> (2, 2.25) was blocked in the real room: moving the cabinet 0.04 m
-    towards it (0.175 < 0.19) blocks it, 0.02 m (0.195) does not. Nothing recorded explains (0.5, 2) -> (0.5, 2.25):
+    towards it (0.175 < 0.19) blocks it, 0.02 m (0.195) does not; its drawer moves with it. Nothing recorded explains (0.5, 2) -> (0.5, 2.25):
     the ball, 0.58 m from its target, is named as the suspect."""
     spec, triples, flags = drift_room()
     pos, move = reachable_positions(spec)
@@ -227,6 +229,7 @@ def test_drift_what_ifs_on_a_hand_made_layout():
     assert chair["best"]["what_if"] == "removed" and chair["best"]["shift"] is None
     assert chair["best"]["change"] == {"positions_kept": 3, "moves_kept": 4, "blocked_kept": 0}
     assert cab["id"].startswith("Cabinet|") and cab["moveable"] is False and cab["leaks_near"] == 1
+    assert cab["parts"] == ["Drawer|+02.00|+00.60|+02.54"] and chair["parts"] == []  # the drawer goes with it
     assert cab["best"]["what_if"] == "moved" and cab["best"]["shift"] == [0.0, -0.04]
     assert cab["best"]["change"] == {"positions_kept": 0, "moves_kept": 0, "blocked_kept": 1}
     w = d["without_drift"]

@@ -416,7 +416,9 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
 
     The objects looked at are the blocking ones nearer than their clearance to a real position tsnav lacks, and those
     that a shift of :data:`DRIFT_SHIFTS` brings within their clearance of the target of a real blocked move tsnav
-    lets through (a leak). Per object (``objects``): ``moveable``, whether the metadata (``flags``: id ->
+    lets through (a leak), each with its ``parts`` (the smaller blocking objects whose footprints lie inside its
+    own, such as a dresser's drawers), which every what-if moves or removes with it. Per object (``objects``): ``moveable``,
+    whether the metadata (``flags``: id ->
     ``{"pickupable", "moveable"}``) lets it move (None: not known); ``real_inside``, the real positions inside its
     footprint (where it cannot have stood); ``missing_near`` and ``leaks_near``; ``without``, the figures without
     it; ``best``, the what-if (a shift along x or z, or, when it does better, its removal) that gains most and
@@ -455,25 +457,39 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
     def score(f):
         return (f.positions_kept - f0.positions_kept + f.blocked_kept - f0.blocked_kept, f.moves_kept - f0.moves_kept)
 
-    missing_near = {oid: sum(dist(oid, c) < clear - 1e-9 for c in f0.missing) for oid, (_, _, clear) in bl.items()}
+    # An object's parts (the drawers of a dresser, a sink's basin) go with it: the smaller blocking objects whose
+    # footprints lie (at least 90 % of their area) inside its own; each what-if moves or removes a whole group.
+    shape = {oid: unary_union(polys) for oid, (_, polys, _) in bl.items()}
+    owner = {}
+    for oid in bl:
+        hosts = [h for h in bl if h != oid and shape[h].area > shape[oid].area
+                 and shape[h].intersection(shape[oid]).area >= 0.9 * shape[oid].area]
+        owner[oid] = max(hosts, key=lambda h: (shape[h].area, h)) if hosts else oid
+    groups = {o: [o] + sorted(p for p in bl if owner[p] == o and p != o) for o in bl if owner[o] == o}
+
+    def near(members, cells, slack):
+        return {c for c in cells for m in members if dist(m, c) < bl[m][2] + slack - 1e-9}
+
     targets = {(c, r): (c[0] + step(r)[0], c[1] + step(r)[1]) for c, r in f0.leaks}
-    leaks_near = {oid: sum(dist(oid, t) < clear + DRIFT_SHIFTS[-1] - 1e-9 for t in targets.values())
-                  for oid, (_, _, clear) in bl.items()}
-    looked = sorted((oid for oid in bl if missing_near[oid] or leaks_near[oid]),
+    missing_near = {o: len(near(ms, f0.missing, 0.0)) for o, ms in groups.items()}
+    leaks_near = {o: sum(bool(near(ms, [t], DRIFT_SHIFTS[-1])) for t in targets.values()) for o, ms in groups.items()}
+    looked = sorted((o for o in groups if missing_near[o] or leaks_near[o]),
                     key=lambda o: (-missing_near[o] - leaks_near[o], o))
     objects, options = [], []
     for oid in looked:
-        gone = fid(relaid(spec, remove={oid}))
-        best = None  # (score, order, what-if, f): shifts, smallest first, then the removal
-        tries = [((dx, dz), {"shifts": {oid: (dx, dz)}}) for d in DRIFT_SHIFTS
-                 for dx, dz in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d))] + [(None, {"remove": {oid}})]
+        ms = groups[oid]
+        gone = fid(relaid(spec, remove=set(ms)))
+        best = None  # (score, order, shift, what-if, f): shifts, smallest first, then the removal
+        tries = [((dx, dz), {"shifts": {m: (dx, dz) for m in ms}}) for d in DRIFT_SHIFTS
+                 for dx, dz in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d))] + [(None, {"remove": set(ms)})]
         for n, (shift, kw) in enumerate(tries):
             f = gone if shift is None else fid(relaid(spec, **kw))
             if lossless(f) and score(f) > (0, 0) and (best is None or score(f) > best[0]):
                 best = (score(f), n, shift, kw, f)
-        e = {"id": oid, "category": bl[oid][0], "moveable": moveable(oid),
-             "real_inside": sum(dist(oid, c) <= 1e-9 for c in real), "missing_near": missing_near[oid],
-             "leaks_near": leaks_near[oid], "without": _figures(gone, f0) if gone is not None else None, "best": None}
+        e = {"id": oid, "category": bl[oid][0], "parts": ms[1:], "moveable": moveable(oid),
+             "real_inside": len({c for c in real for m in ms if dist(m, c) <= 1e-9}),
+             "missing_near": missing_near[oid], "leaks_near": leaks_near[oid],
+             "without": _figures(gone, f0) if gone is not None else None, "best": None}
         if best is not None:
             _, _, shift, kw, f = best
             e["best"] = {"what_if": "removed" if shift is None else "moved",
@@ -496,7 +512,8 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
                             "suspects": [{"id": oid, "distance": d} for d, oid in sus]})
     return {"objects": objects,
             "without_drift": {"applied": applied, "removed": sorted(remove),
-                              "shifted": {k: [round(v, 3) + 0.0 for v in d] for k, d in sorted(shifts.items())},
+                              "shifted": {k: [round(v, 3) + 0.0 for v in d] for k, d in sorted(shifts.items())
+                                        if k in groups},
                               **_figures(f, f0)},
             "unexplained_leaks": unexplained}
 
@@ -544,7 +561,8 @@ def markdown_drift(scenes: list[dict]) -> str:
             b = e["best"]
             what = ("none" if b is None else "removed" if b["shift"] is None
                     else f"moved ({b['shift'][0]:+.2f}, {b['shift'][1]:+.2f}) m")
-            lines.append(f"| {name} | {e['id']} | {mv[e['moveable']]} | {e['real_inside']} | {e['missing_near']} / "
+            obj = e["id"] + (f" (+{len(e['parts'])} parts)" if e["parts"] else "")
+            lines.append(f"| {name} | {obj} | {mv[e['moveable']]} | {e['real_inside']} | {e['missing_near']} / "
                          f"{e['leaks_near']} | {figs(e['without']) if e['without'] else '-'} | {what} | "
                          f"{figs(b) if b else '-'} |")
         w = d["without_drift"]
