@@ -416,16 +416,16 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
 
     The objects looked at are the blocking ones nearer than their clearance to a real position tsnav lacks, and those
     that a shift of :data:`DRIFT_SHIFTS` brings within their clearance of the target of a real blocked move tsnav
-    lets through (a leak), each with its ``parts`` (the smaller blocking objects whose footprints lie inside its
-    own, such as a dresser's drawers), which every what-if moves or removes with it. Per object (``objects``): ``moveable``,
-    whether the metadata (``flags``: id ->
-    ``{"pickupable", "moveable"}``) lets it move (None: not known); ``real_inside``, the real positions inside its
-    footprint (where it cannot have stood); ``missing_near`` and ``leaks_near``; ``without``, the figures without
-    it; ``best``, the what-if (a shift along x or z, or, when it does better, its removal) that gains most and
-    loses no real position, move or blocked move kept, or None. ``without_drift``: the figures with those best
-    what-ifs applied together, best first, each kept only while the whole loses nothing: the figure the scene would
-    reach without that drift. ``unexplained_leaks``: the leaks it still lets through, with the pickupable or
-    moveable floor objects within :data:`SUSPECT_RADIUS` of their target (``suspects``).
+    lets through (a leak), each with its ``parts`` (the blocking objects no larger whose footprints lie inside its
+    own, such as a dresser's drawers), which every what-if moves or removes with it. Per object (``objects``):
+    ``moveable``, whether the metadata (``flags``: id -> ``{"pickupable", "moveable"}``) lets it move (None: not
+    known); ``real_inside``, the real positions inside its footprint (where it cannot have stood); ``missing_near``
+    and ``leaks_near``; ``without``, the figures without it; ``best``, the what-if (a shift along x or z, or, when
+    it does better, its removal) that gains most and loses no real position, move or blocked move kept, or None.
+    ``without_drift``: the figures with those best what-ifs applied together, best first, each kept only while the
+    whole loses nothing: the figure the scene would reach without that drift. ``unexplained_leaks``: the leaks it
+    still lets through, with the pickupable or moveable floor objects within :data:`SUSPECT_RADIUS` of their target
+    (``suspects``).
 
     ``base``: ``(positions, move)`` of ``spec`` when already laid out."""
     flags = flags or {}
@@ -457,15 +457,23 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
     def score(f):
         return (f.positions_kept - f0.positions_kept + f.blocked_kept - f0.blocked_kept, f.moves_kept - f0.moves_kept)
 
-    # An object's parts (the drawers of a dresser, a sink's basin) go with it: the smaller blocking objects whose
-    # footprints lie (at least 90 % of their area) inside its own; each what-if moves or removes a whole group.
+    # An object's parts (the drawers of a dresser, a sink's basin, the other shelves of a stack) go with it: the
+    # blocking objects no larger (ties: lower id) whose footprints lie, at least 90 % of their area, inside its own;
+    # each what-if moves or removes a whole group.
     shape = {oid: unary_union(polys) for oid, (_, polys, _) in bl.items()}
+    size = {oid: (round(shape[oid].area, 6), oid) for oid in bl}
     owner = {}
     for oid in bl:
-        hosts = [h for h in bl if h != oid and shape[h].area > shape[oid].area
+        hosts = [h for h in bl if size[h] > size[oid]
                  and shape[h].intersection(shape[oid]).area >= 0.9 * shape[oid].area]
-        owner[oid] = max(hosts, key=lambda h: (shape[h].area, h)) if hosts else oid
-    groups = {o: [o] + sorted(p for p in bl if owner[p] == o and p != o) for o in bl if owner[o] == o}
+        owner[oid] = max(hosts, key=size.get) if hosts else oid
+
+    def root(oid):
+        while owner[oid] != oid:
+            oid = owner[oid]
+        return oid
+
+    groups = {o: [o] + sorted(p for p in bl if p != o and root(p) == o) for o in bl if owner[o] == o}
 
     def near(members, cells, slack):
         return {c for c in cells for m in members if dist(m, c) < bl[m][2] + slack - 1e-9}
