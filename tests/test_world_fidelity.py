@@ -311,6 +311,11 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     # the drift what-ifs: the missing position is off the floor (no object behind it), the blocked move is blocked
     assert s["drift"]["objects"] == [] and s["drift"]["unexplained_leaks"] == []
     assert s["drift"]["without_drift"]["applied"] == [] and doc["summary"]["without_drift"]["positions"] == 75.0
+    assert main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tfile), "--no-pictures",
+                 "--no-drift", "--out", str(tmp_path / "rep2")]) == 0
+    doc2 = json.loads((tmp_path / "rep2" / "fidelity.json").read_text())
+    assert "drift" not in doc2["scenes"][0] and "without_drift" not in doc2["summary"]
+    assert not (tmp_path / "rep2" / "FloorPlan408.png").exists()
     assert doc["absent"] == ["FloorPlan999"]
     assert (tmp_path / "rep" / "FloorPlan408.png").stat().st_size > 1000
     assert "| FloorPlan408 | 75.0 (3/4)" in (tmp_path / "rep" / "fidelity.md").read_text()
