@@ -14,6 +14,10 @@ are measured, all over the file's triples:
 
 Rotations and look actions depend on no geometry and are not measured. Positions tsnav has but no real agent
 reached are listed too; they are weak evidence (real agents only went where they went).
+
+Pose drift (:func:`drift_whatifs`): the scene is laid out again without each object behind a disagreement, or with
+it moved a few centimetres, to show which poses the figures hang on and what the scene would reach without that
+drift (what-ifs only: no rule moves a recorded object).
 """
 
 from __future__ import annotations
