@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -216,8 +217,8 @@ def test_drift_what_ifs_on_a_hand_made_layout():
     """By hand: the real agents walked (0.5, 1) -> (1.5, 1) through the chair's box: tsnav lacks (0.75, 1), (1, 1)
     and (1.25, 1) (0.1 m from the box, one inside it), so no real move is kept; no shift of at most 0.1 m clears
     them, its removal brings all back. (2, 2) -> (2, 2.25) was blocked in the real room: moving the cabinet 0.04 m
-    towards it (0.175 < 0.19) blocks it, 0.02 m (0.195) does not; its drawer moves with it. Nothing recorded explains (0.5, 2) -> (0.5, 2.25):
-    the ball, 0.58 m from its target, is named as the suspect."""
+    towards it (0.175 < 0.19) blocks it, 0.02 m (0.195) does not; its drawer moves with it. Nothing recorded
+    explains (0.5, 2) -> (0.5, 2.25): the ball, 0.58 m from its target, is named as the suspect."""
     spec, triples, flags = drift_room()
     pos, move = reachable_positions(spec)
     f0 = measure(spec.name, pos, move, triples)
@@ -316,6 +317,14 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     doc2 = json.loads((tmp_path / "rep2" / "fidelity.json").read_text())
     assert "drift" not in doc2["scenes"][0] and "without_drift" not in doc2["summary"]
     assert not (tmp_path / "rep2" / "FloorPlan408.png").exists()
+    # a scene.json that does not give back its own graph (its furniture dropped) gets no what-ifs, and says why
+    shutil.copytree(tmp_path / "w" / "FloorPlan408", tmp_path / "w3" / "FloorPlan408")
+    sj = tmp_path / "w3" / "FloorPlan408" / "scene.json"
+    sj.write_text(json.dumps({**json.loads(sj.read_text()), "furniture": []}))
+    assert main(["world", "fidelity", "--data", str(tmp_path / "w3"), "--trajectories", str(tfile),
+                 "--no-pictures"]) == 0
+    s3 = json.loads((tmp_path / "w3" / "fidelity" / "fidelity.json").read_text())["scenes"][0]
+    assert s3["drift"] is None and "does not lay out again" in s3["drift_note"]
     assert doc["absent"] == ["FloorPlan999"]
     assert (tmp_path / "rep" / "FloorPlan408.png").stat().st_size > 1000
     assert "| FloorPlan408 | 75.0 (3/4)" in (tmp_path / "rep" / "fidelity.md").read_text()

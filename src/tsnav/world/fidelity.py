@@ -625,14 +625,18 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
         js["missing_by_cause"] = blame(explained)
         js["generator"] = scene.meta.get("generator", {"world": "procedural"} if "parts" in scene.meta else None)
         if drift:
-            spec = SceneSpec.from_json(scene.meta)
-            again = reachable_positions(spec)
-            if np.array_equal(again[0], positions) and np.array_equal(again[1], move):
+            try:
+                spec = SceneSpec.from_json(scene.meta)
+                again = reachable_positions(spec)
+            except (KeyError, TypeError, ValueError, IndexError):
+                spec, again = None, (None, None)
+            if spec is not None and np.array_equal(again[0], positions) and np.array_equal(again[1], move):
                 flags = layout_flags(name) if (js["generator"] or {}).get("world") == "ithor-real" else {}
                 js["drift"] = drift_whatifs(spec, triples[name], flags, base=(positions, move))
             else:
                 js["drift"] = None
-                js["drift_note"] = "scene.json does not lay out again to the scene's graph (built by other rules)"
+                js["drift_note"] = ("scene.json does not lay out again to the scene's graph (built by other rules, or "
+                                    "incomplete)")
         scenes_json.append(js)
         if pictures:
             save_fidelity_png(out / f"{name}.png", scene.meta, fid, positions, triples[name])
