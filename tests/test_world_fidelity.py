@@ -5,15 +5,18 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
 
 from tsnav.cli import main
 from tsnav.world.build import BuildConfig, build_dataset
-from tsnav.world.fidelity import (TrajectoriesError, load_trajectories, measure, parse_trajectories, scene_moves)
+from tsnav.world.fidelity import (DRIFT_SHIFTS, TrajectoriesError, drift_whatifs, load_trajectories, markdown_drift,
+                                  measure, parse_trajectories, relaid, scene_moves)
 from tsnav.world.layouts import parse_layout
 from tsnav.world.navgrid import reachable_positions
+from tsnav.world.spec import SceneSpec
 from tsnav.world.real import (CAPSULE_BOTTOM, CLEARANCE, SEAT_CLEARANCE, TOILET_SIZE, WALL_INSET, blocks,
                               counter_boxes, footprints, low_clearance, outer_rect, real_spec, spec_from_layout)
 
@@ -182,6 +185,74 @@ def test_measure_by_hand():
     assert s["positions"] == pytest.approx(75.0) and s["blocked_blocked"] == pytest.approx(50.0)
 
 
+def test_scene_spec_from_json_lays_out_again():
+    """A spec written to scene.json and read back (:meth:`SceneSpec.from_json`) gives the same JSON and the same
+    reachable positions and moves (the fidelity report's what-ifs start from it)."""
+    spec = real_spec("FloorPlan408")
+    meta = json.loads(json.dumps({**spec.to_json(), "num_states": 1, "figures": {}}))
+    back = SceneSpec.from_json(meta)
+    assert json.loads(json.dumps(back.to_json())) == json.loads(json.dumps(spec.to_json()))
+    (p0, m0), (p1, m1) = reachable_positions(spec), reachable_positions(back)
+    assert np.array_equal(p0, p1) and np.array_equal(m0, m1)
+
+
+def drift_room():
+    """A hand-made bedroom (3 x 3 m floor box, walls inset to 0.1 .. 2.9 except z = 2.765 at the cabinet's back):
+    a moveable chair whose box (0.85 .. 1.15) covers real positions, a fixed cabinet whose face (z = 2.465) lies
+    0.215 m from the target of a real blocked move, with a drawer inside its box, a ball (pickupable) lying 0.58 m
+    from another leak's target."""
+    chair = obj("Chair|+01.00|+00.00|+01.00", (1.0, 0.45, 1.0), (0.3, 0.9, 0.3), [FLOOR_ID], moveable=True)
+    cab = obj("Cabinet|+02.00|+00.40|+02.61", (2.0, 0.4, 2.615), (0.6, 0.8, 0.3))
+    drawer = obj("Drawer|+02.00|+00.60|+02.54", (2.0, 0.6, 2.54), (0.5, 0.2, 0.15))  # inside the cabinet's box
+    ball = obj("BasketBall|+01.20|+00.12|+02.25", (1.2, 0.12, 2.25), (0.24, 0.24, 0.24), [FLOOR_ID], pickupable=True)
+    lay = layout(chair, cab, drawer, ball, scene="FloorPlan301")
+    flags = {o.object_id: {"pickupable": o.pickupable, "moveable": o.moveable} for o in lay.objects}
+    triples = [(f"{x:.2f}|1.00|90|0", "MoveAhead", f"{x + 0.25:.2f}|1.00|90|0") for x in (0.5, 0.75, 1.0, 1.25)]
+    triples += [("2.00|2.00|0|0", "MoveAhead", "2.00|2.00|0|0"),  # blocked by the cabinet in the real room
+                ("0.50|2.00|0|0", "MoveAhead", "0.50|2.00|0|0")]  # blocked by nothing recorded
+    return spec_from_layout(lay, "bedroom", "train"), triples, flags
+
+
+def test_drift_what_ifs_on_a_hand_made_layout():
+    """By hand: the real agents walked (0.5, 1) -> (1.5, 1) through the chair's box: tsnav lacks (0.75, 1), (1, 1)
+    and (1.25, 1) (0.1 m from the box, one inside it), so no real move is kept; no shift of at most 0.1 m clears
+    them, its removal brings all back. (2, 2) -> (2, 2.25) was blocked in the real room: moving the cabinet 0.04 m
+    towards it (0.175 < 0.19) blocks it, 0.02 m (0.195) does not; its drawer moves with it. Nothing recorded
+    explains (0.5, 2) -> (0.5, 2.25): the ball, 0.58 m from its target, is named as the suspect."""
+    spec, triples, flags = drift_room()
+    pos, move = reachable_positions(spec)
+    f0 = measure(spec.name, pos, move, triples)
+    assert (f0.positions_kept, f0.positions, f0.moves_kept, f0.blocked_kept, f0.blocked) == (4, 7, 0, 0, 2)
+    d = drift_whatifs(spec, triples, flags)
+    chair, cab = d["objects"]
+    assert chair["id"].startswith("Chair|") and chair["moveable"] is True and chair["real_inside"] == 1
+    assert chair["missing_near"] == 3 and chair["without"]["positions"] == 100.0
+    assert chair["best"]["what_if"] == "removed" and chair["best"]["shift"] is None
+    assert chair["best"]["change"] == {"positions_kept": 3, "moves_kept": 4, "blocked_kept": 0}
+    assert cab["id"].startswith("Cabinet|") and cab["moveable"] is False and cab["leaks_near"] == 1
+    assert cab["parts"] == ["Drawer|+02.00|+00.60|+02.54"] and chair["parts"] == []  # the drawer goes with it
+    assert cab["best"]["what_if"] == "moved" and cab["best"]["shift"] == [0.0, -0.04]
+    assert cab["best"]["change"] == {"positions_kept": 0, "moves_kept": 0, "blocked_kept": 1}
+    w = d["without_drift"]
+    assert w["applied"] == [chair["id"], cab["id"]] and w["removed"] == [chair["id"]]
+    assert w["shifted"] == {cab["id"]: [0.0, -0.04]}
+    assert (w["positions"], w["moves_kept"], w["blocked_blocked"]) == (100.0, 100.0, 50.0)
+    (leak,) = d["unexplained_leaks"]
+    assert leak["from"] == [0.5, 2.0] and leak["heading"] == 0 and leak["to"] == [0.5, 2.25]
+    assert [s["id"] for s in leak["suspects"]] == ["BasketBall|+01.20|+00.12|+02.25"]
+    assert leak["suspects"][0]["distance"] == pytest.approx(0.58)
+    # the what-ifs leave the spec as it was, and relaid() moves exactly the named object
+    assert reachable_positions(spec)[0].shape == pos.shape
+    moved = relaid(spec, remove={chair["id"]}, shifts={cab["id"]: (0.0, -DRIFT_SHIFTS[1])})
+    assert [f.id for f in moved.furniture if f.id == chair["id"]] == []
+    c0 = next(f for f in spec.furniture if f.id == cab["id"]).center
+    c1 = next(f for f in moved.furniture if f.id == cab["id"]).center
+    assert c1 == pytest.approx((c0[0], c0[1], c0[2] - 0.04))
+    md = markdown_drift([{"scene": "FloorPlan301", **f0.to_json(), "drift": d}])
+    assert "| FloorPlan301 | Chair|+01.00|+00.00|+01.00 | yes | 1 | 3 / 0 |" in md and "moved (+0.00, -0.04) m" in md
+    assert "**without drift** (1 removed, 1 moved)" in md and "BasketBall|+01.20|+00.12|+02.25 (0.58 m)" in md
+
+
 def test_trajectories_one_line_errors(tmp_path):
     def bad(content, match):
         p = tmp_path / "t.json"
@@ -238,6 +309,22 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     assert s["counts"]["positions"] == 4 and s["counts"]["positions_kept"] == 3
     assert s["moves_kept"] == 100.0 and s["blocked_blocked"] == 100.0
     assert s["missing_positions"] == [{"position": [far, 0.0], "causes": ["wall"]}]
+    # the drift what-ifs: the missing position is off the floor (no object behind it), the blocked move is blocked
+    assert s["drift"]["objects"] == [] and s["drift"]["unexplained_leaks"] == []
+    assert s["drift"]["without_drift"]["applied"] == [] and doc["summary"]["without_drift"]["positions"] == 75.0
+    assert main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tfile), "--no-pictures",
+                 "--no-drift", "--out", str(tmp_path / "rep2")]) == 0
+    doc2 = json.loads((tmp_path / "rep2" / "fidelity.json").read_text())
+    assert "drift" not in doc2["scenes"][0] and "without_drift" not in doc2["summary"]
+    assert not (tmp_path / "rep2" / "FloorPlan408.png").exists()
+    # a scene.json that does not give back its own graph (its furniture dropped) gets no what-ifs, and says why
+    shutil.copytree(tmp_path / "w" / "FloorPlan408", tmp_path / "w3" / "FloorPlan408")
+    sj = tmp_path / "w3" / "FloorPlan408" / "scene.json"
+    sj.write_text(json.dumps({**json.loads(sj.read_text()), "furniture": []}))
+    assert main(["world", "fidelity", "--data", str(tmp_path / "w3"), "--trajectories", str(tfile),
+                 "--no-pictures"]) == 0
+    s3 = json.loads((tmp_path / "w3" / "fidelity" / "fidelity.json").read_text())["scenes"][0]
+    assert s3["drift"] is None and "does not lay out again" in s3["drift_note"]
     assert doc["absent"] == ["FloorPlan999"]
     assert (tmp_path / "rep" / "FloorPlan408.png").stat().st_size > 1000
     assert "| FloorPlan408 | 75.0 (3/4)" in (tmp_path / "rep" / "fidelity.md").read_text()

@@ -14,13 +14,17 @@ are measured, all over the file's triples:
 
 Rotations and look actions depend on no geometry and are not measured. Positions tsnav has but no real agent
 reached are listed too; they are weak evidence (real agents only went where they went).
+
+Pose drift (:func:`drift_whatifs`): the scene is laid out again without each object behind a disagreement, or with
+it moved a few centimetres, to show which poses the figures hang on and what the scene would reach without that
+drift (what-ifs only: no rule moves a recorded object).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,8 +35,8 @@ from ..atomic import atomic_save_figure, atomic_write_text
 from ..constants import GRID_SIZE, MOVE_AHEAD, ROTATIONS
 from ..data.reader import is_complete, load_scene
 from ..errors import read_json
-from .navgrid import AGENT_RADIUS
-from .spec import box_footprint
+from .navgrid import AGENT_RADIUS, reachable_positions
+from .spec import SceneSpec, box_footprint
 
 #: Action names a trajectories file may hold (the lineage's, plus Done).
 ACTIONS = ("MoveAhead", "RotateLeft", "RotateRight", "LookUp", "LookDown", "Done")
@@ -323,10 +327,12 @@ def save_fidelity_png(path: str | Path, meta: dict, fid: SceneFidelity, position
 # ------------------------------------------------------------------------------------------------ causes
 def explain_missing(meta: dict, cells: list[Cell], clearance: float) -> list[dict]:
     """Why tsnav lacks each real position of ``cells``, from a scene's ``scene.json`` (``meta``): the blocking
-    footprints (furniture ids, target objects standing on the floor) nearer than ``clearance`` to it, ``"wall"``
+    footprints (furniture ids, target objects standing on the floor) nearer than ``clearance`` (or the object's own
+    smaller clearance, ``navigation.clearances``) to it, ``"wall"``
     when it is nearer than that to the room's outline or outside it, or nothing (then the position is cut off
     from the kept connected set). One dict ``{"position": [x, z], "causes": [...]}`` per cell."""
     floor = unary_union([Polygon(p) for p in meta.get("floor", [])]) if meta.get("floor") else None
+    own = (meta.get("navigation") or {}).get("clearances", {})
     obstacles = [(f["id"], Polygon(f["footprint"])) for f in meta.get("furniture", []) if f.get("blocks", True)]
     for o in meta.get("objects", []):
         b = o.get("bbox")
@@ -338,7 +344,8 @@ def explain_missing(meta: dict, cells: list[Cell], clearance: float) -> list[dic
         causes = []
         if floor is not None and (not floor.contains(p) or floor.exterior.distance(p) < clearance - 1e-9):
             causes.append("wall")
-        causes += sorted({oid for oid, poly in obstacles if poly.distance(p) < clearance - 1e-9})
+        causes += sorted({oid for oid, poly in obstacles
+                          if poly.distance(p) < min(clearance, own.get(oid, clearance)) - 1e-9})
         out.append({"position": [c[0] * GRID_SIZE, c[1] * GRID_SIZE], "causes": causes})
     return out
 
@@ -352,11 +359,245 @@ def blame(explained: list[dict]) -> dict[str, int]:
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
+# ------------------------------------------------------------------------------------------------ drift
+#: Shifts tried for an object next to a leaked blocked move, metres, along +x, -x, +z and -z: the poses drifted by
+#: this much between the lineage's AI2-THOR 2.0.2 data and the ai2thor 5 metadata (``docs/WORLD.md``, FloorPlan30's
+#: island). Only objects that a shift of at most the largest can bring within the clearance of a leak are tried.
+DRIFT_SHIFTS = (0.02, 0.04, 0.06, 0.08, 0.1)
+#: Objects that may have stood elsewhere (pickupable or moveable per the metadata) within this distance of the
+#: target of a leak no shift explains are named as suspects, metres.
+SUSPECT_RADIUS = 1.0
+
+
+def blockers(spec: SceneSpec) -> dict[str, tuple[str, list, float]]:
+    """``{id: (category, footprint polygons, clearance)}`` of the blocking furniture and floor-standing target
+    objects of ``spec``, with the clearance the navgrid keeps from each (the spec's, or the object's own smaller
+    one)."""
+    nav = spec.navigation or {}
+    base = float(nav.get("clearance", AGENT_RADIUS))
+    own = nav.get("clearances", {})
+    out: dict[str, tuple[str, list, float]] = {}
+    for f in spec.furniture:
+        if f.blocks:
+            out.setdefault(f.id, (f.category, [], min(base, own.get(f.id, base))))[1].append(Polygon(f.footprint()))
+    for o in spec.objects:
+        if o.support == "floor":
+            out.setdefault(o.objectId, (o.objectType, [], min(base, own.get(o.objectId, base))))[1].append(
+                Polygon(box_footprint(o.center, o.size, o.yaw)))
+    return out
+
+
+def relaid(spec: SceneSpec, remove=(), shifts: dict[str, tuple[float, float]] | None = None) -> SceneSpec:
+    """A what-if copy of ``spec``: without the furniture and objects whose id is in ``remove``, and with those of
+    ``shifts`` (id -> ``(dx, dz)``, metres) moved. Render parts are kept as they are (the navgrid ignores them)."""
+    remove, shifts = set(remove), shifts or {}
+
+    def moved(oid, c):
+        dx, dz = shifts.get(oid, (0.0, 0.0))
+        return (c[0] + dx, c[1], c[2] + dz)
+
+    return replace(spec, furniture=[replace(f, center=moved(f.id, f.center)) for f in spec.furniture
+                                    if f.id not in remove],
+                   objects=[replace(o, center=moved(o.objectId, o.center)) for o in spec.objects
+                            if o.objectId not in remove])
+
+
+def _figures(f: SceneFidelity, base: SceneFidelity) -> dict:
+    s = f.shares()
+    return {"positions": round(s["positions"], 2), "moves_kept": round(s["moves_kept"], 2),
+            "blocked_blocked": round(s["blocked_blocked"], 2),
+            "counts": {"positions_kept": f.positions_kept, "moves_kept": f.moves_kept, "blocked_kept": f.blocked_kept},
+            "change": {"positions_kept": f.positions_kept - base.positions_kept,
+                       "moves_kept": f.moves_kept - base.moves_kept,
+                       "blocked_kept": f.blocked_kept - base.blocked_kept}}
+
+
+def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict] | None = None,
+                  base: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """Which objects' poses stand between ``spec`` and the real trajectories ``triples``, by what-ifs: the scene laid
+    out again without an object, or with it moved a few centimetres (:func:`relaid`). What-ifs only: no rule moves
+    an object.
+
+    The objects looked at are the blocking ones nearer than their clearance to a real position tsnav lacks, and those
+    that a shift of :data:`DRIFT_SHIFTS` brings within their clearance of the target of a real blocked move tsnav
+    lets through (a leak), each with its ``parts`` (the blocking objects no larger whose footprints lie inside its
+    own, such as a dresser's drawers), which every what-if moves or removes with it. Per object (``objects``):
+    ``moveable``, whether the metadata (``flags``: id -> ``{"pickupable", "moveable"}``) lets it move (None: not
+    known); ``real_inside``, the real positions inside its footprint (where it cannot have stood); ``missing_near``
+    and ``leaks_near``; ``without``, the figures without it; ``best``, the what-if (a shift along x or z, or, when
+    it does better, its removal) that gains most and loses no real position, move or blocked move kept, or None.
+    ``without_drift``: the figures with those best what-ifs applied together, best first, each kept only while the
+    whole loses nothing: the figure the scene would reach without that drift. ``unexplained_leaks``: the leaks it
+    still lets through, with the pickupable or moveable floor objects within :data:`SUSPECT_RADIUS` of their target
+    (``suspects``).
+
+    ``base``: ``(positions, move)`` of ``spec`` when already laid out."""
+    flags = flags or {}
+    g = GRID_SIZE
+
+    def fid(s: SceneSpec) -> SceneFidelity | None:
+        try:
+            p, m = reachable_positions(s)
+        except ValueError:  # the what-if leaves no reachable position
+            return None
+        return measure(spec.name, p, m, triples)
+
+    pos, move = base if base is not None else reachable_positions(spec)
+    f0 = measure(spec.name, pos, move, triples)
+    bl = blockers(spec)
+    real = {cell(*map(float, k.split("|")[:2])) for t in triples for k in (t[0], t[2])}
+
+    def dist(oid, c):
+        return min(poly.distance(Point(c[0] * g, c[1] * g)) for poly in bl[oid][1])
+
+    def moveable(oid):
+        fl = flags.get(oid)
+        return None if fl is None else bool(fl.get("pickupable") or fl.get("moveable"))
+
+    def lossless(f):
+        return (f is not None and f.positions_kept >= f0.positions_kept and f.moves_kept >= f0.moves_kept
+                and f.blocked_kept >= f0.blocked_kept)
+
+    def score(f):
+        return (f.positions_kept - f0.positions_kept + f.blocked_kept - f0.blocked_kept, f.moves_kept - f0.moves_kept)
+
+    # An object's parts (the drawers of a dresser, a sink's basin, the other shelves of a stack) go with it: the
+    # blocking objects no larger (ties: lower id) whose footprints lie, at least 90 % of their area, inside its own;
+    # each what-if moves or removes a whole group.
+    shape = {oid: unary_union(polys) for oid, (_, polys, _) in bl.items()}
+    size = {oid: (round(shape[oid].area, 6), oid) for oid in bl}
+    owner = {}
+    for oid in bl:
+        hosts = [h for h in bl if size[h] > size[oid]
+                 and shape[h].intersection(shape[oid]).area >= 0.9 * shape[oid].area]
+        owner[oid] = max(hosts, key=size.get) if hosts else oid
+
+    def root(oid):
+        while owner[oid] != oid:
+            oid = owner[oid]
+        return oid
+
+    groups = {o: [o] + sorted(p for p in bl if p != o and root(p) == o) for o in bl if owner[o] == o}
+
+    def near(members, cells, slack):
+        return {c for c in cells for m in members if dist(m, c) < bl[m][2] + slack - 1e-9}
+
+    targets = {(c, r): (c[0] + step(r)[0], c[1] + step(r)[1]) for c, r in f0.leaks}
+    missing_near = {o: len(near(ms, f0.missing, 0.0)) for o, ms in groups.items()}
+    leaks_near = {o: sum(bool(near(ms, [t], DRIFT_SHIFTS[-1])) for t in targets.values()) for o, ms in groups.items()}
+    looked = sorted((o for o in groups if missing_near[o] or leaks_near[o]),
+                    key=lambda o: (-missing_near[o] - leaks_near[o], o))
+    objects, options = [], []
+    for oid in looked:
+        ms = groups[oid]
+        gone = fid(relaid(spec, remove=set(ms)))
+        best = None  # (score, order, shift, what-if, f): shifts, smallest first, then the removal
+        tries = [((dx, dz), {"shifts": {m: (dx, dz) for m in ms}}) for d in DRIFT_SHIFTS
+                 for dx, dz in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d))] + [(None, {"remove": set(ms)})]
+        for n, (shift, kw) in enumerate(tries):
+            f = gone if shift is None else fid(relaid(spec, **kw))
+            if lossless(f) and score(f) > (0, 0) and (best is None or score(f) > best[0]):
+                best = (score(f), n, shift, kw, f)
+        e = {"id": oid, "category": bl[oid][0], "parts": ms[1:], "moveable": moveable(oid),
+             "real_inside": len({c for c in real for m in ms if dist(m, c) <= 1e-9}),
+             "missing_near": missing_near[oid], "leaks_near": leaks_near[oid],
+             "without": _figures(gone, f0) if gone is not None else None, "best": None}
+        if best is not None:
+            _, _, shift, kw, f = best
+            e["best"] = {"what_if": "removed" if shift is None else "moved",
+                         "shift": None if shift is None else [round(v, 3) + 0.0 for v in shift], **_figures(f, f0)}
+            options.append((best[0], oid, kw))
+        objects.append(e)
+    remove, shifts, applied, f = set(), {}, [], f0
+    for sc, oid, kw in sorted(options, key=lambda t: (t[0][0], t[0][1]), reverse=True):
+        r2, s2 = remove | kw.get("remove", set()), {**shifts, **kw.get("shifts", {})}
+        f2 = fid(relaid(spec, remove=r2, shifts=s2))
+        if lossless(f2) and score(f2) > score(f):
+            remove, shifts, f = r2, s2, f2
+            applied.append(oid)
+    unexplained = []
+    for (c, r), t in sorted(targets.items()):
+        if (c, r) not in f.leaks:
+            continue
+        sus = sorted((round(dist(oid, t), 3), oid) for oid in bl if moveable(oid) and dist(oid, t) < SUSPECT_RADIUS)
+        unexplained.append({"from": [c[0] * g, c[1] * g], "heading": r, "to": [t[0] * g, t[1] * g],
+                            "suspects": [{"id": oid, "distance": d} for d, oid in sus]})
+    return {"objects": objects,
+            "without_drift": {"applied": applied, "removed": sorted(remove),
+                              "shifted": {k: [round(v, 3) + 0.0 for v in d] for k, d in sorted(shifts.items())
+                                        if k in groups},
+                              **_figures(f, f0)},
+            "unexplained_leaks": unexplained}
+
+
+def drift_total(results: list[SceneFidelity], scenes: list[dict]) -> dict:
+    """The shares over all ``results`` with each scene's ``without_drift`` counts (a scene without ``drift``
+    counts as it is)."""
+    tot = SceneFidelity("all")
+    for r, js in zip(results, scenes):
+        c = ((js.get("drift") or {}).get("without_drift") or {}).get("counts", {})
+        for k in ("positions", "moves", "blocked"):
+            setattr(tot, k, getattr(tot, k) + getattr(r, k))
+        for k in ("positions_kept", "moves_kept", "blocked_kept"):
+            setattr(tot, k, getattr(tot, k) + c.get(k, getattr(r, k)))
+    return {k: round(v, 2) for k, v in tot.shares().items()}
+
+
+def layout_flags(name: str) -> dict[str, dict]:
+    """``{objectId: {"pickupable", "moveable"}}`` of packaged real layout ``name`` (empty when there is none)."""
+    from .layouts import layout_names, load_layout
+
+    if name not in layout_names():
+        return {}
+    return {o.object_id: {"pickupable": o.pickupable, "moveable": o.moveable} for o in load_layout(name).objects}
+
+
+def markdown_drift(scenes: list[dict]) -> str:
+    """The ``drift`` what-ifs of the scenes of ``fidelity.json`` as a Markdown table (one row per object, then the
+    scene without its drift), followed by the leaks no what-if explains."""
+    lines = ["| scene | object | moveable | real positions inside | missing / leaks near | without it (positions / "
+             "moves kept / blocked blocked %) | best what-if | its figures |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    loose = []
+    mv = {True: "yes", False: "no", None: "?"}
+
+    def figs(e):
+        return f"{e['positions']:.1f} / {e['moves_kept']:.1f} / {e['blocked_blocked']:.1f}"
+
+    for js in scenes:
+        d = js.get("drift")
+        if not d:
+            continue
+        name = js["scene"]
+        for e in d["objects"]:
+            b = e["best"]
+            what = ("none" if b is None else "removed" if b["shift"] is None
+                    else f"moved ({b['shift'][0]:+.2f}, {b['shift'][1]:+.2f}) m")
+            obj = e["id"] + (f" (+{len(e['parts'])} parts)" if e["parts"] else "")
+            lines.append(f"| {name} | {obj} | {mv[e['moveable']]} | {e['real_inside']} | {e['missing_near']} / "
+                         f"{e['leaks_near']} | {figs(e['without']) if e['without'] else '-'} | {what} | "
+                         f"{figs(b) if b else '-'} |")
+        w = d["without_drift"]
+        if w["applied"]:
+            lines.append(f"| {name} | **without drift** ({len(w['removed'])} removed, {len(w['shifted'])} moved) | | | "
+                         f"| was {figs(js)} | | **{figs(w)}** |")
+        for u in d["unexplained_leaks"]:
+            sus = ", ".join(f"{s['id']} ({s['distance']:.2f} m)" for s in u["suspects"]) or "none"
+            loose.append(f"- {name}: ({u['from'][0]:.2f}, {u['from'][1]:.2f}) heading {u['heading']}; pickupable or "
+                         f"moveable objects within {SUSPECT_RADIUS:g} m of its target: {sus}")
+    out = "\n".join(lines) + "\n"
+    if loose:
+        out += "\nReal blocked moves let through that no what-if explains:\n\n" + "\n".join(loose) + "\n"
+    return out
+
 # ------------------------------------------------------------------------------------------------ report
 def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path | None = None,
-                    pictures: bool = True) -> tuple[list[SceneFidelity], Path]:
+                    pictures: bool = True, drift: bool = True) -> tuple[list[SceneFidelity], Path]:
     """Measure every scene of ``trajectories`` that the dataset ``data`` holds; write ``fidelity.json``,
     ``fidelity.md`` and (with ``pictures``) ``SCENE.png`` per scene into ``out`` (default ``DATA/fidelity``).
+    With ``drift``, each scene's ``drift`` holds :func:`drift_whatifs` (the scene laid out again from its
+    ``scene.json``; the metadata's pickupable / moveable flags of a real iTHOR scene's packaged layout), or None
+    with ``drift_note`` when the scene does not lay out again to its own graph.
     Returns the per-scene results and the output folder. A trajectories file naming no scene of ``data`` is an
     error (one line); scenes of the file that ``data`` lacks are listed in the JSON as ``absent``."""
     data = Path(data)
@@ -383,18 +624,39 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
         js["missing_positions"] = explained
         js["missing_by_cause"] = blame(explained)
         js["generator"] = scene.meta.get("generator", {"world": "procedural"} if "parts" in scene.meta else None)
+        if drift:
+            try:
+                spec = SceneSpec.from_json(scene.meta)
+                again = reachable_positions(spec)
+            except (KeyError, TypeError, ValueError, IndexError):
+                spec, again = None, (None, None)
+            if spec is not None and np.array_equal(again[0], positions) and np.array_equal(again[1], move):
+                flags = layout_flags(name) if (js["generator"] or {}).get("world") == "ithor-real" else {}
+                js["drift"] = drift_whatifs(spec, triples[name], flags, base=(positions, move))
+            else:
+                js["drift"] = None
+                js["drift_note"] = ("scene.json does not lay out again to the scene's graph (built by other rules, or "
+                                    "incomplete)")
         scenes_json.append(js)
         if pictures:
             save_fidelity_png(out / f"{name}.png", scene.meta, fid, positions, triples[name])
     doc = {"format": "tsnav-fidelity", "version": 1, "data": str(data), "trajectories": str(trajectories),
            "summary": summary(results), "scenes": scenes_json, "absent": absent}
+    if any(js.get("drift") for js in scenes_json):
+        doc["summary"]["without_drift"] = drift_total(results, scenes_json)
     atomic_write_text(out / "fidelity.json", json.dumps(doc, indent=1))
     md = markdown_table(results)
+    if "without_drift" in doc["summary"]:
+        t = doc["summary"]["without_drift"]
+        md += ("\n## Pose drift: what-ifs\n\n" + markdown_drift(scenes_json) + f"\nAll scenes without the drift above: "
+               f"positions {t['positions']:.1f} %, moves kept {t['moves_kept']:.1f} %, blocked blocked "
+               f"{t['blocked_blocked']:.1f} %.\n")
     if absent:
         md += f"\nScenes of the trajectories file not in {data}: {', '.join(absent)}\n"
     atomic_write_text(out / "fidelity.md", md)
     return results, out
 
 
-__all__ = ["SceneFidelity", "TrajectoriesError", "blame", "explain_missing", "fidelity_report", "load_trajectories",
-           "markdown_table", "measure", "parse_trajectories", "save_fidelity_png", "scene_moves", "step", "summary"]
+__all__ = ["SceneFidelity", "TrajectoriesError", "blame", "blockers", "drift_total", "drift_whatifs", "explain_missing",
+           "fidelity_report", "layout_flags", "load_trajectories", "markdown_drift", "markdown_table", "measure",
+           "parse_trajectories", "relaid", "save_fidelity_png", "scene_moves", "step", "summary"]

@@ -114,6 +114,25 @@ class SceneSpec:
             **({"navigation": self.navigation} if self.navigation is not None else {}),
         }
 
+    @classmethod
+    def from_json(cls, meta: dict) -> "SceneSpec":
+        """The spec a ``scene.json`` (:meth:`to_json`, plus the writer's extra keys, which are ignored) describes:
+        enough to lay the scene out again (:mod:`~tsnav.world.navgrid`), e.g. for a what-if without one object.
+        The parts come back rounded to 10 micrometres, as written."""
+        furniture = [Furniture(f["id"], f["category"], tuple(f["center"]), tuple(f["size"]), f["yaw"],
+                               bool(f.get("blocks", True)), f.get("surface"), int(f.get("inst", 0)))
+                     for f in meta.get("furniture", [])]
+        objects = [ObjectInstance(o["objectId"], o["objectType"], tuple(o["bbox"]["center"]), tuple(o["bbox"]["size"]),
+                                  o["bbox"].get("yaw", 0.0), o["support"], int(o.get("inst", 0)))
+                   for o in meta.get("objects", [])]
+        parts = [Part(tuple(r[0:3]), tuple(r[3:6]), r[6], tuple(r[7:10]), tuple(r[10:13]), int(r[13]), r[14],
+                      int(r[15])) for r in meta.get("parts", [])]
+        return cls(name=meta["name"], room_type=meta["room_type"], split=meta["split"], seed=meta.get("seed", 0),
+                   rooms=meta.get("rooms", []), floor=meta.get("floor", []), doors=meta.get("doors", []),
+                   furniture=furniture, objects=objects, parts=parts, instances=list(meta.get("instances", [""])),
+                   light=meta.get("light", {}), wall_height=meta.get("wall_height", 2.6),
+                   generator=meta.get("generator"), navigation=meta.get("navigation"))
+
 
 def box_footprint(center, size, yaw: float, pad: float = 0.0) -> list[list[float]]:
     cx, _, cz = center
