@@ -291,3 +291,48 @@ def test_vector_env_equals_a_loop_over_batch_env(world):
     assert ended > n
     frames.close()
     envs.close()
+
+
+def test_scalar_path_calls_a_subclass_step_override(world):
+    """A reward subclass that overrides only the array ``step`` / ``reset`` (shaping of its own) is called through
+    them on the scalar path too: its inherited ``step_one`` / ``reset_one`` would skip the override."""
+    from dataclasses import dataclass
+
+    from tsnav.sim.batch import SceneBank, SparseReward, scalar_method
+    from tsnav.sim.gym_env import ObjectNavEnv
+    from tsnav.tsrm.reward import TSRMReward
+
+    @dataclass
+    class Shaped(SparseReward):
+        def step(self, prev_state, action, new_state, collided, done, success):
+            r, t = super().step(prev_state, action, new_state, collided, done, success)
+            return r + np.float32(1.0), {**t, "bonus": np.ones_like(r)}
+
+    class CountedResets(TSRMReward):
+        def reset(self, *args, **kwargs):
+            self.resets = getattr(self, "resets", 0) + 1
+            return super().reset(*args, **kwargs)
+
+    assert scalar_method(SparseReward(), "step_one", "step") is not None
+    assert scalar_method(Shaped(), "step_one", "step") is None and scalar_method(None, "step_one", "step") is None
+    bank = SceneBank.from_root(world, None)
+    counted = CountedResets(bank)
+    assert scalar_method(counted, "reset_one", "reset") is None
+    assert scalar_method(counted, "step_one", "step") is not None
+    for reward_fn in (Shaped, lambda: CountedResets(bank)):
+        envs = [ObjectNavEnv(bank=bank, reward_fn=reward_fn(), stepping=m, max_steps=6) for m in ("scalar", "batch")]
+        for env in envs:
+            env.reset(seed=1)
+        rng = np.random.default_rng(0)
+        for _ in range(40):
+            a = int(rng.integers(0, 6))
+            (o1, r1, t1, u1, i1), (o2, r2, t2, u2, i2) = (env.step(a) for env in envs)
+            assert (r1, t1, u1) == (r2, t2, u2)
+            _same_info(i1, i2)
+            if t1 or u1:
+                for env in envs:
+                    env.reset()
+        if isinstance(envs[0].batch.reward_fn, Shaped):
+            assert "reward/bonus" in i1 and r1 > 0.9
+        else:
+            assert envs[0].batch.reward_fn.resets == envs[1].batch.reward_fn.resets > 1
