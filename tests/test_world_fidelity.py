@@ -330,8 +330,8 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     assert s["drift"]["objects"] == [] and s["drift"]["unexplained_leaks"] == []
     assert s["drift"]["without_drift"]["applied"] == [] and doc["summary"]["without_drift"]["positions"] == 75.0
     md = (tmp_path / "rep" / "fidelity.md").read_text()
-    assert "## Pose drift: what-ifs" in md and "fitted to these same trajectories" in md and "upper bound" in md
-    assert "fitted to these trajectories, an upper bound" in capsys.readouterr().out
+    assert "## Pose drift: what-ifs" in md and "fitted to these same trajectories" in md and "not a measurement" in md
+    assert "fitted to these trajectories, not measured" in capsys.readouterr().out
     assert main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tfile), "--no-pictures",
                  "--no-drift", "--out", str(tmp_path / "rep2")]) == 0
     doc2 = json.loads((tmp_path / "rep2" / "fidelity.json").read_text())

@@ -54,7 +54,7 @@ def run_fidelity(args) -> int:
           f" %, blocked blocked {pct(c['blocked_kept'], c['blocked']):.1f} %; report in {out}")
     w = json.loads((out / "fidelity.json").read_text())["summary"].get("without_drift")
     if w:
-        print(f"without the pose drift its what-ifs find (fitted to these trajectories, an upper bound): "
+        print(f"without the pose drift its what-ifs find (fitted to these trajectories, not measured): "
               f"positions {w['positions']:.1f} %, moves kept {w['moves_kept']:.1f} %, blocked blocked "
               f"{w['blocked_blocked']:.1f} % (fidelity.md, 'Pose drift')")
     return 0

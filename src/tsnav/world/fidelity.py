@@ -422,8 +422,8 @@ def keeps_all(f: SceneFidelity, f0: SceneFidelity) -> bool:
 #: What the report says of its drift what-ifs, under their table (``fidelity.md``).
 FITTED_NOTE = ("The what-ifs are fitted to these same trajectories: per object the best of {n} shifts (up to {d:g} m "
                "along +-x or +-z) or its removal, kept when it loses no real position, move or blocked move; "
-               "the figures without drift (removals included) are an upper bound on what pose drift explains, "
-               "not a measurement.")
+               "the figures without drift (removals included) are the best these what-ifs reach on the trajectories "
+               "that chose them, not a measurement.")
 
 
 def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict] | None = None,
