@@ -116,7 +116,9 @@ def child(args) -> None:
         wall, cpu, warm = single(kw, args.seconds, args.warmup)
     else:
         wall, cpu, warm = vector(kw, args.num_envs, args.seconds, max(1, args.warmup // 4))
-    print(json.dumps({"wall": wall, "cpu": cpu, "warm": warm}))
+    import tsnav  # imported by gymnasium through the env id; which checkout answered
+
+    print(json.dumps({"wall": wall, "cpu": cpu, "warm": warm, "src": str(Path(tsnav.__file__).resolve().parents[1])}))
 
 
 def measure(args, kind: str, src: str, kwargs: dict) -> dict:
@@ -126,7 +128,10 @@ def measure(args, kind: str, src: str, kwargs: dict) -> dict:
            "--num-envs", str(args.num_envs), "--seconds", str(args.seconds), "--warmup", str(args.warmup)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([src] + [p for p in [os.environ.get("PYTHONPATH")] if p])}
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    got = json.loads(out.strip().splitlines()[-1])
+    if Path(got["src"]) != Path(src).resolve():  # e.g. a --before-src without tsnav: the installed one answers
+        raise SystemExit(f"bench_gym: the measurement meant for {src} imported tsnav from {got['src']}")
+    return got
 
 
 def _rss_gib() -> float:
@@ -183,6 +188,8 @@ def main() -> None:
         return child(args)
     if args.memory:
         return memory(args)
+    if args.before_src and not (Path(args.before_src) / "tsnav" / "__init__.py").is_file():
+        raise SystemExit(f"bench_gym: --before-src {args.before_src} holds no tsnav package (give a checkout's src)")
     paths = {"before": (args.before_src, {}) if args.before_src else (SRC, FIRST_RELEASE), "after": (SRC, {})}
     print(f"{args.data} split {args.split}, reward {args.reward}, detections {args.detections}; before: "
           f"{args.before_src + ' (its default path)' if args.before_src else 'this checkout, ' + str(FIRST_RELEASE)}"
