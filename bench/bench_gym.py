@@ -6,10 +6,10 @@ core, on the demo's rooms.
 
 "before" is another checkout's default path with ``--before-src OTHER/src`` (e.g. the main branch: the same
 loops, that code), else this checkout's first-release path (``frames="hdf5"``: one HDF5 dataset read per
-state and frame; ``obs_layout="legacy"``). Every measurement runs in its own process (``PYTHONPATH`` = the
-src folder it measures), in the order before, after, after, before (``--rounds 2``, the default; 1: before,
-after), so that a load that drifts during the run weighs on both alike; the table gives the mean of each
-path's rounds.
+state and frame; ``obs_layout="legacy"``; the single env with ``stepping="batch"``). Every measurement runs in
+its own process (``PYTHONPATH`` = the src folder it measures), in the order before, after, after, before
+(``--rounds 2``, the default; 1: before, after), so that a load that drifts during the run weighs on both
+alike; the table gives the mean of each path's rounds.
 
 The loops use only ``gymnasium`` and ``numpy`` (the ``"tsnav.sim:"`` prefix of the id makes Gymnasium import
 the package that registers it), as a user of another RL library would; the single env's random actions are
@@ -46,8 +46,10 @@ import numpy as np
 ENV_ID = "tsnav.sim:tsnav/ObjectNav-v0"
 TRAIN_STATES_ITHOR_REAL = 266_288
 SRC = str(Path(__file__).resolve().parents[1] / "src")
-#: The first release's frame path, this checkout's "before" without --before-src.
+#: The first release's frame path, this checkout's "before" without --before-src (the single env also steps
+#: through the (1,) arrays, as the first release did).
 FIRST_RELEASE = {"frames": "hdf5", "obs_layout": "legacy"}
+FIRST_RELEASE_SINGLE = {**FIRST_RELEASE, "stepping": "batch"}
 
 
 def _fill(env) -> None:
@@ -116,7 +118,9 @@ def child(args) -> None:
         wall, cpu, warm = single(kw, args.seconds, args.warmup)
     else:
         wall, cpu, warm = vector(kw, args.num_envs, args.seconds, max(1, args.warmup // 4))
-    print(json.dumps({"wall": wall, "cpu": cpu, "warm": warm}))
+    import tsnav  # imported by gymnasium through the env id; which checkout answered
+
+    print(json.dumps({"wall": wall, "cpu": cpu, "warm": warm, "src": str(Path(tsnav.__file__).resolve().parents[1])}))
 
 
 def measure(args, kind: str, src: str, kwargs: dict) -> dict:
@@ -126,7 +130,10 @@ def measure(args, kind: str, src: str, kwargs: dict) -> dict:
            "--num-envs", str(args.num_envs), "--seconds", str(args.seconds), "--warmup", str(args.warmup)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([src] + [p for p in [os.environ.get("PYTHONPATH")] if p])}
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    got = json.loads(out.strip().splitlines()[-1])
+    if Path(got["src"]) != Path(src).resolve():  # e.g. a --before-src without tsnav: the installed one answers
+        raise SystemExit(f"bench_gym: the measurement meant for {src} imported tsnav from {got['src']}")
+    return got
 
 
 def _rss_gib() -> float:
@@ -183,6 +190,8 @@ def main() -> None:
         return child(args)
     if args.memory:
         return memory(args)
+    if args.before_src and not (Path(args.before_src) / "tsnav" / "__init__.py").is_file():
+        raise SystemExit(f"bench_gym: --before-src {args.before_src} holds no tsnav package (give a checkout's src)")
     paths = {"before": (args.before_src, {}) if args.before_src else (SRC, FIRST_RELEASE), "after": (SRC, {})}
     print(f"{args.data} split {args.split}, reward {args.reward}, detections {args.detections}; before: "
           f"{args.before_src + ' (its default path)' if args.before_src else 'this checkout, ' + str(FIRST_RELEASE)}"
@@ -193,7 +202,7 @@ def main() -> None:
         got: dict[str, list] = {"before": [], "after": []}
         for name in order:
             src, kw = paths[name]
-            r = measure(args, kind, src, kw)
+            r = measure(args, kind, src, FIRST_RELEASE_SINGLE if kw is FIRST_RELEASE and kind == "single" else kw)
             got[name].append((r["wall"], r["cpu"]))
             print(f"  {what:22s} {name:6s}: {r['wall']:10,.0f} steps/s wall, {r['cpu']:10,.0f} per CPU second "
                   f"(construction + cache fill {r['warm']:.1f} s; load average {os.getloadavg()[0]:.1f})", flush=True)

@@ -291,3 +291,86 @@ def test_vector_env_equals_a_loop_over_batch_env(world):
     assert ended > n
     frames.close()
     envs.close()
+
+
+def test_scalar_path_calls_a_subclass_step_override(world):
+    """A reward subclass that overrides only the array ``step`` / ``reset`` (shaping of its own) is called through
+    them on the scalar path too: its inherited ``step_one`` / ``reset_one`` would skip the override."""
+    from dataclasses import dataclass
+
+    from tsnav.sim.batch import SceneBank, SparseReward, scalar_method
+    from tsnav.sim.gym_env import ObjectNavEnv
+    from tsnav.tsrm.reward import TSRMReward
+
+    @dataclass
+    class Shaped(SparseReward):
+        def step(self, prev_state, action, new_state, collided, done, success):
+            r, t = super().step(prev_state, action, new_state, collided, done, success)
+            return r + np.float32(1.0), {**t, "bonus": np.ones_like(r)}
+
+    class CountedResets(TSRMReward):
+        def reset(self, *args, **kwargs):
+            self.resets = getattr(self, "resets", 0) + 1
+            return super().reset(*args, **kwargs)
+
+    assert scalar_method(SparseReward(), "step_one", "step") is not None
+    assert scalar_method(Shaped(), "step_one", "step") is None and scalar_method(None, "step_one", "step") is None
+    bank = SceneBank.from_root(world, None)
+    counted = CountedResets(bank)
+    assert scalar_method(counted, "reset_one", "reset") is None
+    assert scalar_method(counted, "step_one", "step") is not None
+    for reward_fn in (Shaped, lambda: CountedResets(bank)):
+        envs = [ObjectNavEnv(bank=bank, reward_fn=reward_fn(), stepping=m, max_steps=6) for m in ("scalar", "batch")]
+        for env in envs:
+            env.reset(seed=1)
+        rng = np.random.default_rng(0)
+        for _ in range(40):
+            a = int(rng.integers(0, 6))
+            (o1, r1, t1, u1, i1), (o2, r2, t2, u2, i2) = (env.step(a) for env in envs)
+            assert (r1, t1, u1) == (r2, t2, u2)
+            _same_info(i1, i2)
+            if t1 or u1:
+                for env in envs:
+                    env.reset()
+        if isinstance(envs[0].batch.reward_fn, Shaped):
+            assert "reward/bonus" in i1 and r1 > 0.9
+        else:
+            assert envs[0].batch.reward_fn.resets == envs[1].batch.reward_fn.resets > 1
+
+
+def test_tsrm_step_one_equals_step_on_any_input(world):
+    """``TSRMReward.step_one`` against ``step`` on inputs the env's random walks seldom give: a distance table with
+    unreachable entries (``step_one`` writes ``distance_delta``'s rule out again), arbitrary jumps, collisions
+    and stages, and success; rewards, terms (their signs too) and the reward's state."""
+    from tsnav.sim.batch import SceneBank
+    from tsnav.sim.paths import UNREACHABLE
+    from tsnav.tsrm.reward import RewardConfig, TSRMReward
+
+    bank = SceneBank.from_root(world, None)
+    lo, hi = int(bank.offsets[0]), int(bank.offsets[1])
+    target = int(np.flatnonzero(bank.present[0])[0])
+    for variant in ("tsrm", "distance", "baseline"):
+        fast, ref = (TSRMReward(bank, RewardConfig(variant=variant)) for _ in range(2))
+        rng = np.random.default_rng(7)
+        if fast.dist is not None:
+            dist = fast.dist.copy()
+            dist[rng.random(dist.shape) < 0.3] = UNREACHABLE
+            fast.dist = ref.dist = dist
+        fast.reset_one(0, target, lo, searching=True)
+        ref.reset(np.ones(1, dtype=bool), np.array([0]), np.array([target]), np.array([lo]), searching=np.array([True]))
+        unreachable = 0
+        for _ in range(400):
+            prev, new = (int(v) for v in rng.integers(lo, hi, 2))
+            a, collided, success, searching = int(rng.integers(0, 6)), *(bool(v) for v in rng.random(3) < 0.3)
+            r1, t1 = fast.step_one(prev, a, new, collided, False, success, searching=searching)
+            r2, t2 = ref.step(np.array([prev]), np.array([a]), np.array([new]), np.array([collided]), np.array([False]),
+                              np.array([success]), searching=np.array([searching]))
+            assert type(r1) is float and r1 == float(r2[0]) and np.signbit(r1) == np.signbit(r2[0])
+            assert list(t1) == list(t2) and all(t1[k] == float(t2[k][0]) and np.signbit(t1[k]) == np.signbit(t2[k][0])
+                                                for k in t1)
+            if fast.dist is not None and not searching:
+                unreachable += UNREACHABLE in (int(fast.dist[prev, target]), int(fast.dist[new, target]))
+        for k in ("collided_at", "viewed"):
+            assert np.array_equal(getattr(fast, k), getattr(ref, k)), k
+        assert np.array_equal(fast.searched_area, ref.searched_area)
+        assert fast.dist is None or unreachable > 20

@@ -12,8 +12,8 @@ import pytest
 
 from tsnav.cli import main
 from tsnav.world.build import BuildConfig, build_dataset
-from tsnav.world.fidelity import (DRIFT_SHIFTS, TrajectoriesError, drift_whatifs, load_trajectories, markdown_drift,
-                                  measure, parse_trajectories, relaid, scene_moves)
+from tsnav.world.fidelity import (DRIFT_SHIFTS, TrajectoriesError, drift_whatifs, keeps_all, load_trajectories,
+                                  markdown_drift, measure, parse_trajectories, relaid, scene_moves)
 from tsnav.world.layouts import parse_layout
 from tsnav.world.navgrid import reachable_positions
 from tsnav.world.spec import SceneSpec
@@ -253,6 +253,23 @@ def test_drift_what_ifs_on_a_hand_made_layout():
     assert "**without drift** (1 removed, 1 moved)" in md and "BasketBall|+01.20|+00.12|+02.25 (0.58 m)" in md
 
 
+def test_drift_what_if_that_swaps_a_position_is_not_lossless():
+    """A what-if that brings one real position back and loses another keeps the counts but not the positions: it
+    loses something (the what-ifs compare sets, not counts)."""
+    triples = [("0.00|0.00|90|0", "MoveAhead", "0.25|0.00|90|0"), ("0.50|0.00|0|0", "RotateLeft", "0.50|0.00|315|0"),
+               ("0.75|0.00|0|0", "RotateLeft", "0.75|0.00|315|0")]
+
+    def fid(*xs):
+        move = np.full((len(xs), 8), -1)
+        move[0, 2] = 1  # (0, 0) -> (0.25, 0) heading 90
+        return measure("s", np.array([[x, 0.0] for x in xs]), move, triples)
+
+    base, swapped, more = fid(0.0, 0.25, 0.5), fid(0.0, 0.25, 0.75), fid(0.0, 0.25, 0.5, 0.75)
+    assert [(f.positions_kept, f.moves_kept) for f in (base, swapped, more)] == [(3, 1), (3, 1), (4, 1)]
+    assert keeps_all(base, base) and not keeps_all(swapped, base) and not keeps_all(base, swapped)
+    assert keeps_all(more, base) and not keeps_all(base, more)
+
+
 def test_trajectories_one_line_errors(tmp_path):
     def bad(content, match):
         p = tmp_path / "t.json"
@@ -312,6 +329,9 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     # the drift what-ifs: the missing position is off the floor (no object behind it), the blocked move is blocked
     assert s["drift"]["objects"] == [] and s["drift"]["unexplained_leaks"] == []
     assert s["drift"]["without_drift"]["applied"] == [] and doc["summary"]["without_drift"]["positions"] == 75.0
+    md = (tmp_path / "rep" / "fidelity.md").read_text()
+    assert "## Pose drift: what-ifs" in md and "fitted to these same trajectories" in md and "not a measurement" in md
+    assert "fitted to these trajectories, not measured" in capsys.readouterr().out
     assert main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tfile), "--no-pictures",
                  "--no-drift", "--out", str(tmp_path / "rep2")]) == 0
     doc2 = json.loads((tmp_path / "rep2" / "fidelity.json").read_text())

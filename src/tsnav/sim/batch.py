@@ -50,8 +50,10 @@ Reward plug-in (stable interface; the TSRM reward of :mod:`tsnav.tsrm` implement
   scalars: ``reset_one(scene_idx, target, start_state)`` and ``step_one(prev_state, action, new_state,
   collided, done, success) -> (float, {name: float})``, the float32 values of ``step`` as Python floats (with
   ``searching=`` a bool where the reward uses the stage). A reward without them is called through ``step``
-  with ``(1,)`` arrays. The TSRM reward and :class:`SparseReward` have them; ``tests/test_gym_fast.py`` holds
-  them equal to ``reset`` / ``step``.
+  with ``(1,)`` arrays, and so is one whose class overrides ``step`` (``reset``) below the class that defines
+  ``step_one`` (``reset_one``), e.g. a subclass of :class:`SparseReward` that shapes ``step``: the inherited
+  scalar method would skip the override (:func:`scalar_method`). The TSRM reward and :class:`SparseReward`
+  have them; ``tests/test_gym_fast.py`` holds them equal to ``reset`` / ``step``.
 * A reward that follows the two stages (paper III-B) declares it with ``uses_stage = True`` (as habitat-lab's
   measures declare the measures they depend on); the env then passes the stage of its one
   :class:`~tsnav.sim.stage.StageSwitch` (:attr:`BatchEnv.stage`) as a keyword ``searching``, a ``(B,)`` bool
@@ -85,6 +87,17 @@ class RewardFn(Protocol):
     def step(self, prev_state: np.ndarray, action: np.ndarray, new_state: np.ndarray, collided: np.ndarray,
              done: np.ndarray, success: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         ...
+
+
+def scalar_method(fn, one: str, reference: str):
+    """``fn``'s scalar method ``one`` (``"step_one"`` / ``"reset_one"``) when the class that defines it also
+    defines its array ``reference`` (``"step"`` / ``"reset"``), else None: a subclass that overrides only the
+    array method must be called through it, or its override would be skipped (the scalar path's fallback)."""
+    def owner(name):
+        return next((k for k in type(fn).__mro__ if name in vars(k)), None)
+
+    found = owner(one)
+    return getattr(fn, one) if found is not None and found is owner(reference) else None
 
 
 @runtime_checkable
@@ -354,6 +367,8 @@ class BatchEnv:
         self._arange = np.arange(b, dtype=np.int64)
         self.stage: StageSwitch = stage or StageSwitch(bank, num_envs=b)
         self._reward_uses_stage = bool(getattr(reward_fn, "uses_stage", False))
+        self._reward_reset_one = scalar_method(reward_fn, "reset_one", "reset")
+        self._reward_step_one = scalar_method(reward_fn, "step_one", "step")
 
     # -- episodes -----------------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, episodes: tuple | None = None) -> dict[str, np.ndarray]:
@@ -469,8 +484,8 @@ class BatchEnv:
         searching = self.stage.reset_one(start, target)
         if self.reward_fn is not None:
             kw = {"searching": searching} if self._reward_uses_stage else {}
-            if hasattr(self.reward_fn, "reset_one"):
-                self.reward_fn.reset_one(scene, target, start, **kw)
+            if self._reward_reset_one is not None:
+                self._reward_reset_one(scene, target, start, **kw)
             else:
                 kw = {"searching": np.array([searching])} if self._reward_uses_stage else {}
                 self.reward_fn.reset(np.ones(1, dtype=bool), self.scene.copy(), self.target.copy(),
@@ -505,9 +520,9 @@ class BatchEnv:
         stage = self.stage
         if self.reward_fn is not None:
             searching = not stage.entered[0]  # before this step's update
-            if hasattr(self.reward_fn, "step_one"):
+            if self._reward_step_one is not None:
                 kw = {"searching": searching} if self._reward_uses_stage else {}
-                reward, terms = self.reward_fn.step_one(prev, a, new, collided, finished or not active, success, **kw)
+                reward, terms = self._reward_step_one(prev, a, new, collided, finished or not active, success, **kw)
             else:
                 kw = {"searching": np.array([searching])} if self._reward_uses_stage else {}
                 r, t = self.reward_fn.step(np.array([prev]), np.array([a]), np.array([new]), np.array([collided]),
