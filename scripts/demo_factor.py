@@ -9,7 +9,8 @@ on the world's own 128-px frames, an 8x8 grid). Each (variant, seed) is a demo f
 first folder made (``BASE/p16-64-s0``, i.e. ``tsnav demo`` itself) owns the world, the others link to it, and the
 seeds of one variant share its pretraining (``BASE/pretrain-VARIANT``), as the experiments' seeds do. Every step
 resumes. ``--table`` prints the per-seed figures of both protocols and each variant's mean with its 95 % t-interval,
-and writes them to ``BASE/factor.json``.
+and writes them to ``BASE/factor.json``; it also evaluates each finished agent by sampling its actions (3 rolls
+of the paper test episodes, ``OUT/eval_sampled``) beside the demo's greedy figures.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tsnav.eval.runner import evaluate_to_folder
 from tsnav.metrics import write_json
 from tsnav.pipeline.config import SCALES
 from tsnav.pipeline.demo import DemoConfig, run_demo
@@ -38,6 +40,8 @@ VARIANTS = {
 #: Variants whose encoder is the demo's own (they share its pretraining and features).
 SAME_ENCODER = ("p16-64", "ep100")
 OWNER = "p16-64-s0"
+#: Student's t quantile (two-sided 95 %) by sample size.
+T95 = {2: 12.71, 3: 4.30, 4: 3.18, 5: 2.78, 6: 2.57}
 
 
 def folder(base: Path, variant: str, seed: int) -> Path:
@@ -74,6 +78,20 @@ def run(base: Path, variant: str, seeds: list[int]) -> None:
         run_demo(out, DemoConfig(scale=scale, seed=seed))
 
 
+def sampled(out: Path, rolls: int = 3) -> list[tuple[float, float]]:
+    """The agent of a finished run folder evaluated by sampling its actions (seeds 0 .. rolls-1) on the paper
+    test episodes, written to ``OUT/eval_sampled/sSEED`` (made when missing): ``[(SR, SPL), ...]`` in percent."""
+    figs = []
+    for k in range(rolls):
+        f = out / "eval_sampled" / f"s{k}"
+        if not (f / "metrics.json").exists():
+            evaluate_to_folder(f, out / "world", out / "test_episodes.json", policy="agent", run=out / "run",
+                               detections="learned", seed=k, sample=True)
+        m = json.loads((f / "metrics.json").read_text())["metrics"]["ALL"]
+        figs.append((100 * m["SR"], 100 * m["SPL"]))
+    return figs
+
+
 def table(base: Path, variants: list[str]) -> None:
     rows, report, outcomes = [], {}, {}
     labels = {"agent": "agent", "agent_oracle": "agent, oracle table"}
@@ -92,6 +110,8 @@ def table(base: Path, variants: list[str]) -> None:
                         if o.exists() and name == "agent" and p == "paper":
                             outcomes[(variant, seed)] = json.loads(o.read_text())
             if figs:
+                if (d / "eval" / "agent" / "metrics.json").exists():
+                    figs["agent sampled x3/paper"] = tuple(np.mean(sampled(d), axis=0))
                 per_seed[seed] = figs
         report[variant] = {str(s): {k: list(v) for k, v in f.items()} for s, f in per_seed.items()}
         keys = sorted({k for f in per_seed.values() for k in f})
@@ -99,13 +119,25 @@ def table(base: Path, variants: list[str]) -> None:
             vals = np.array([f[k] for f in per_seed.values() if k in f])
             n = len(vals)
             mean = vals.mean(0)
-            half = (1.96 if n < 2 else {2: 12.71, 3: 4.30, 4: 3.18, 5: 2.78}.get(n, 2.57)) * (
-                vals.std(0, ddof=1) / np.sqrt(n) if n > 1 else np.zeros(2))
+            half = T95.get(n, 2.57) * (vals.std(0, ddof=1) / np.sqrt(n)) if n > 1 else np.zeros(2)
             rows.append((variant, k, n, " ".join(f"{a:.2f}/{b:.2f}" for a, b in vals), mean, half))
     print("| variant | policy / protocol | seeds | per seed SR/SPL | mean SR +- 95% | mean SPL +- 95% |")
     print("| --- | --- | ---: | --- | --- | --- |")
     for v, k, n, per, mean, half in rows:
         print(f"| {v} | {k} | {n} | {per} | {mean[0]:.2f} +- {half[0]:.2f} | {mean[1]:.2f} +- {half[1]:.2f} |")
+    ref = variants[0]
+    print(f"\n| variant | policy / protocol | paired difference against {ref} per seed (SR) | mean SR +- 95% | mean SPL +- 95% |")
+    print("| --- | --- | --- | --- | --- |")
+    for v in variants[1:]:
+        for k in sorted({k for f in report[v].values() for k in f}):
+            pairs = [(np.array(report[v][s][k]), np.array(report[ref][s][k])) for s in report[v]
+                     if s in report[ref] and k in report[ref][s]]
+            if len(pairs) < 2:
+                continue
+            d = np.array([a - b for a, b in pairs])
+            half = T95.get(len(d), 2.57) * d.std(0, ddof=1) / np.sqrt(len(d))
+            print(f"| {v} | {k} | {' '.join(f'{x:+.2f}' for x in d[:, 0])} | {d[:, 0].mean():+.2f} +- {half[0]:.2f} | "
+                  f"{d[:, 1].mean():+.2f} +- {half[1]:.2f} |")
     print("\n| variant | seed | switched | success after the switch | step limit after the switch | passed a success "
           "state without Done | never switched, step limit | RotateLeft / RotateRight / MoveAhead share |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
