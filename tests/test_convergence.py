@@ -39,6 +39,14 @@ def test_convergence_curve_resumes(pixel_world, tmp_path, capsys):
     other = tmp_path / "conv_ent"
     assert main([*args[:8], str(other), *args[9:], "--updates", "2", "--entropy-coef", "0.05"]) == 0
     assert json.loads((other / "run" / "config.json").read_text())["train"]["entropy_coef"] == 0.05
+    # so does the training episode length (issue 23: 100-action episodes); 0 is refused in one line
+    assert json.loads((out / "run" / "config.json").read_text())["train"]["max_steps"] == 30
+    longer = tmp_path / "conv_ep100"
+    assert main([*args[:8], str(longer), *args[9:], "--updates", "2", "--max-steps", "100"]) == 0
+    assert json.loads((longer / "run" / "config.json").read_text())["train"]["max_steps"] == 100
+    capsys.readouterr()
+    assert main(args + ["--updates", "6", "--max-steps", "0"]) == 2
+    assert "--max-steps must be >= 1" in capsys.readouterr().err
 
 
 def test_plateau_rule():

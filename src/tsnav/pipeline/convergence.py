@@ -118,6 +118,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="rollout forward passes in float32 (default) or bfloat16 autocast")
     parser.add_argument("--procs", type=int, default=1,
                         help="CPU processes sharing each update's episodes (default 1; 2 uses both cores)")
+    parser.add_argument("--max-steps", type=int, default=30,
+                        help="training episode length in actions (default 30, the lineage's; the validation episodes "
+                             "always allow 100, the paper's test length)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
     parser.add_argument("--protocol", default="paper",
@@ -132,11 +135,14 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--updates, --chunk and --val-per-room-type must be >= 1")
     if not args.entropy_coef >= 0:
         raise CommandError(f"--entropy-coef must be >= 0, got {args.entropy_coef}")
+    if args.max_steps < 1:
+        raise CommandError(f"--max-steps must be >= 1, got {args.max_steps}")
     try:
         cfg = TrainConfig(data=str(Path(args.data).resolve()), features=args.features, detections=args.detections,
                           algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
                           seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef,
-                          precision=args.precision, procs=args.procs, protocol=args.protocol)
+                          precision=args.precision, procs=args.procs, protocol=args.protocol,
+                          max_steps=args.max_steps)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
                         patience=args.patience)
