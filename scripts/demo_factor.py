@@ -26,6 +26,7 @@ from tsnav.eval.runner import evaluate_to_folder
 from tsnav.metrics import write_json
 from tsnav.pipeline.config import SCALES
 from tsnav.pipeline.demo import DemoConfig, run_demo
+from tsnav.pipeline.experiment import set_threads
 from tsnav.protocol import PROTOCOLS
 
 #: Variant name -> fields of the demo scale's configurations changed (:meth:`ScaleConfig.override`): the demo as it
@@ -36,9 +37,11 @@ VARIANTS = {
     "p16-128": {"pretrain": {"img_size": 128}},
     "p8-64": {"pretrain": {"patch_size": 8}},
     "ep100": {"train": {"max_steps": 100}},
+    "lin": {"protocol": "lineage"},
+    "lin-ep100": {"protocol": "lineage", "train": {"max_steps": 100}},
 }
 #: Variants whose encoder is the demo's own (they share its pretraining and features).
-SAME_ENCODER = ("p16-64", "ep100")
+SAME_ENCODER = ("p16-64", "ep100", "lin", "lin-ep100")
 OWNER = "p16-64-s0"
 #: Student's t quantile (two-sided 95 %) by sample size.
 T95 = {2: 12.71, 3: 4.30, 4: 3.18, 5: 2.78, 6: 2.57}
@@ -68,14 +71,17 @@ def prepare(base: Path, variant: str, seed: int) -> Path:
     return out
 
 
-def run(base: Path, variant: str, seeds: list[int]) -> None:
+def run(base: Path, variant: str, seeds: list[int], threads: int | None = None) -> None:
     if variant not in VARIANTS:
         raise SystemExit(f"unknown variant {variant!r} (choose from {', '.join(VARIANTS)})")
+    spec = dict(VARIANTS[variant])
+    protocol = spec.pop("protocol", "paper")
+    print(f"torch threads: {set_threads(threads)}", flush=True)
     for seed in seeds:
         out = prepare(base, variant, seed)
-        scale = SCALES["demo"].override(**VARIANTS[variant])
+        scale = SCALES["demo"].override(**spec)
         print(f"=== {out}", flush=True)
-        run_demo(out, DemoConfig(scale=scale, seed=seed))
+        run_demo(out, DemoConfig(scale=scale, seed=seed, protocol=protocol))
 
 
 def sampled(out: Path, rolls: int = 3) -> list[tuple[float, float]]:
@@ -156,11 +162,14 @@ def main(argv=None) -> int:
     p.add_argument("variant", nargs="?")
     p.add_argument("seeds", nargs="*", type=int)
     p.add_argument("--table", nargs="+", metavar="VARIANT")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads of the runs (default: the demo's 2; another count trains other agents, so "
+                        "compare only runs made with the same count)")
     a = p.parse_args(argv)
     if a.table:
         table(a.base, a.table)
     else:
-        run(a.base, a.variant, a.seeds or [0])
+        run(a.base, a.variant, a.seeds or [0], a.threads)
     return 0
 
 
