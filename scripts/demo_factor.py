@@ -92,7 +92,7 @@ def sampled(out: Path, rolls: int = 3) -> list[tuple[float, float]]:
         f = out / "eval_sampled" / f"s{k}"
         if not (f / "metrics.json").exists():
             evaluate_to_folder(f, out / "world", out / "test_episodes.json", policy="agent", run=out / "run",
-                               detections="learned", seed=k, sample=True)
+                               detections="learned", seed=k, sample=True, protocol="paper")
         m = json.loads((f / "metrics.json").read_text())["metrics"]["ALL"]
         figs.append((100 * m["SR"], 100 * m["SPL"]))
     return figs
