@@ -100,14 +100,13 @@ def sampled(out: Path, rolls: int = 3) -> list[tuple[float, float]]:
 
 def table(base: Path, variants: list[str]) -> None:
     rows, report, outcomes = [], {}, {}
-    labels = {"agent": "agent", "agent_oracle": "agent, oracle table"}
     for variant in variants:
         per_seed = {}
         for d in sorted(p for p in base.glob(f"{variant}-s*") if p.is_dir()):
             seed = int(d.name.rsplit("-s", 1)[1])
             figs = {}
             for p in PROTOCOLS:
-                for name in labels:
+                for name in ("agent", "agent_oracle"):
                     f = d / "eval" / (name if p == "paper" else f"{name}_{p}") / "metrics.json"
                     if f.exists():
                         m = json.loads(f.read_text())["metrics"]["ALL"]

@@ -50,7 +50,8 @@ from ..constants import C_TARGET
 from ..data.detections import read_fingerprint
 from ..data.reader import list_scenes, load_scene
 from ..errors import CommandError
-from .experiment import (DEFAULT_THREADS, SELECT_SEED, Experiment, JobList, Step, set_threads)
+from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
+                          set_threads)
 from .config import DEMO, DEMO_UPDATES, DETECTOR_SOURCES, SCALES, ExperimentConfig, ScaleConfig
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
@@ -115,11 +116,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--procs", type=int, default=None,
                    help="CPU processes of the agent's training (default 1; 2 uses both cores; the table is the same "
                         "on every run for a given value, but differs between values)")
-    p.add_argument("--threads", type=int, default=None,
-                   help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
-                        "count, because another count sums floats in another order and trains another agent)")
-    p.add_argument("--sample", action="store_true",
-                   help="evaluate the agent by sampling its actions instead of the greedy argmax (the default)")
+    add_threads_and_sample(p)
     p.add_argument("--detections", choices=("learned", "oracle"), default="learned",
                    help="learned (default): the learned detector's table (see --detector); oracle: "
                         "the oracle's table (hand-made confidence from instance size and distance)")
@@ -434,7 +431,7 @@ def results_table(results: dict[str, dict], trained: str) -> str:
     width = max(len(k) for k in labels) if labels else 10
     lines = []
     for protocol, rows in results.items():
-        lines += [f"\nresults on the test episodes (percent; paper IV-A metrics)",
+        lines += ["\nresults on the test episodes (percent; paper IV-A metrics)",
                   f"{protocol_line(protocol)}; agent trained under {trained}",
                   f"{'policy':<{width}}  subset " + " ".join(f"{m:>6}" for m in METRICS) + "      K"]
         for label, s in rows.items():

@@ -597,6 +597,15 @@ def _job_process(cfg: ExperimentConfig, scale: ScaleConfig, index: int, features
 # ---------------------------------------------------------------------------------------------------------
 
 
+def add_threads_and_sample(parser: argparse.ArgumentParser) -> None:
+    """``--threads`` and ``--sample``, as ``tsnav experiment`` and ``tsnav demo`` both take them."""
+    parser.add_argument("--threads", type=int, default=None,
+                        help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
+                             "count, because another count sums floats in another order and trains another agent)")
+    parser.add_argument("--sample", action="store_true",
+                        help="evaluate the agents by sampling their actions instead of the greedy argmax (the default)")
+
+
 def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("experiment", choices=EXPERIMENTS, help="ablation (Table II), pretraining (Table III), "
                         "threshold (Fig. 4)")
@@ -637,12 +646,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--procs", type=int, default=None,
                         help="processes of each batched training job (default: the scale's, 1); 2 uses both cores "
                              "of a 2-core machine; another value trains other agents")
-    parser.add_argument("--threads", type=int, default=None,
-                        help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
-                             "count, because another count trains other agents)")
-    parser.add_argument("--sample", action="store_true",
-                        help="evaluate agents by sampling their actions instead of the greedy argmax (the lineage's "
-                             "test-time rule, the default)")
+    add_threads_and_sample(parser)
     parser.add_argument("--checkpoint", choices=CHECKPOINTS, default="best",
                         help="checkpoint each job evaluates: best (default; the job's milestones scored greedily on "
                              "validation episodes) or latest (the last trained)")
