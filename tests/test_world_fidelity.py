@@ -253,6 +253,38 @@ def test_drift_what_ifs_on_a_hand_made_layout():
     assert "**without drift** (1 removed, 1 moved)" in md and "BasketBall|+01.20|+00.12|+02.25 (0.58 m)" in md
 
 
+def test_drift_marks_name_the_objects_on_the_picture(tmp_path):
+    """The picture marks what the what-ifs name: the chair (removed, a real position inside) at its own footprint,
+    the cabinet with its drawer at theirs and moved 0.04 m to -z (dashed); both are kept together (``*``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from tsnav.world.fidelity import blockers, draw_fidelity, drift_marks
+
+    spec, triples, flags = drift_room()
+    pos, move = reachable_positions(spec)
+    f0 = measure(spec.name, pos, move, triples)
+    d = drift_whatifs(spec, triples, flags)
+    bl = blockers(spec)
+    chair, cab = drift_marks(d, spec)
+    assert chair["label"] == "Chair*: removed, 1 real inside" and chair["moved"] is None
+    assert chair["footprints"] == [list(p.exterior.coords)[:-1] for p in bl[chair["id"]][1]]
+    assert cab["label"] == "Cabinet*: moved -0.04 z" and len(cab["footprints"]) == 2  # the drawer goes with it
+    for fp, mv in zip(cab["footprints"], cab["moved"]):
+        np.testing.assert_allclose(mv, [(x, z - 0.04) for x, z in fp], atol=1e-12)
+    # an object with neither a gaining what-if nor real positions inside is not marked
+    quiet = {**d, "objects": [{**d["objects"][1], "best": None, "real_inside": 0}]}
+    assert drift_marks(quiet, spec) == []
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    draw_fidelity(ax, spec.to_json(), f0, pos, triples, drift=d, spec=spec)
+    texts = [t.get_text() for t in ax.texts]
+    assert "Chair*: removed, 1 real inside" in texts and "Cabinet*: moved -0.04 z" in texts
+    labels = ax.get_legend_handles_labels()[1]
+    assert any(lab.startswith("object a drift what-if names (2)\n") for lab in labels)
+
+
 def test_drift_what_if_that_swaps_a_position_is_not_lossless():
     """A what-if that brings one real position back and loses another keeps the counts but not the positions: it
     loses something (the what-ifs compare sets, not counts)."""

@@ -245,11 +245,14 @@ def markdown_table(results: list[SceneFidelity]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ picture
-def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, triples: list[Triple]) -> None:
+def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, triples: list[Triple],
+                  drift: dict | None = None, spec: SceneSpec | None = None) -> None:
     """Top-down map of one scene's disagreements on ``ax``: the room (floor polygon, blocking footprints filled
     and labelled, others outlined), tsnav's positions (grey dots), real positions tsnav has (small green dots),
     real positions tsnav lacks (red crosses), tsnav positions no real agent stood on (hollow blue circles),
-    real moves that are no tsnav edge (orange segments), real blocked moves tsnav lets through (magenta arrows)."""
+    real moves that are no tsnav edge (orange segments), real blocked moves tsnav lets through (magenta arrows).
+    With the scene's :func:`drift_whatifs` (``drift``) and its ``spec``, the objects it names are drawn too
+    (:func:`draw_drift`)."""
     from matplotlib.patches import Polygon as MplPolygon
 
     g = GRID_SIZE
@@ -297,6 +300,8 @@ def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, tri
         m = np.array(fid.missing, dtype=np.float64) * g
         ax.scatter(m[:, 0], m[:, 1], s=26, marker="x", c="#d62728", linewidths=1.3, zorder=7,
                    label=f"real position tsnav lacks ({len(m)})")
+    if drift and spec is not None:
+        draw_drift(ax, drift, spec)
     pts = [pos] + [np.asarray(p, dtype=np.float64) for p in meta.get("floor", [])]
     if fid.missing:
         pts.append(np.array(fid.missing, dtype=np.float64) * g)
@@ -310,8 +315,56 @@ def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, tri
                  f"blocked {s['blocked_blocked']:.1f} %", fontsize=7.5)
 
 
+def drift_marks(drift: dict, spec: SceneSpec) -> list[dict]:
+    """What :func:`draw_drift` draws for a scene's :func:`drift_whatifs`: per object it names whose what-if gains
+    something, or that has real positions inside it, ``{"id", "category", "label", "footprints", "moved"}``:
+    its footprints (parts included), the same moved by its best what-if's shift (None when removed or no what-if)
+    and a label (category, the what-if, real positions inside; ``*`` when it is part of the scene's
+    ``without_drift``)."""
+    bl = blockers(spec)
+    applied = set((drift.get("without_drift") or {}).get("applied", []))
+    marks = []
+    for e in drift.get("objects", []):
+        b = e.get("best")
+        if b is None and not e.get("real_inside"):
+            continue
+        polys = [list(poly.exterior.coords)[:-1] for oid in [e["id"], *e.get("parts", [])] if oid in bl
+                 for poly in bl[oid][1]]
+        what = ("no what-if" if b is None else "removed" if b["shift"] is None
+                else f"moved {b['shift'][0]:+.2f} x" if b["shift"][0] else f"moved {b['shift'][1]:+.2f} z")
+        label = e["category"] + ("*" if e["id"] in applied else "") + f": {what}"
+        if e.get("real_inside"):
+            label += f", {e['real_inside']} real inside"
+        moved = None
+        if b is not None and b["shift"] is not None:
+            dx, dz = b["shift"]
+            moved = [[(x + dx, z + dz) for x, z in fp] for fp in polys]
+        marks.append({"id": e["id"], "category": e["category"], "label": label, "footprints": polys, "moved": moved})
+    return marks
+
+
+def draw_drift(ax, drift: dict, spec: SceneSpec) -> None:
+    """The objects of :func:`drift_marks` on ``ax``: each footprint outlined in violet and labelled, and where
+    its best what-if moves it, the moved footprint dashed."""
+    from matplotlib.patches import Polygon as MplPolygon
+
+    marks = drift_marks(drift, spec)
+    for m in marks:
+        for fp in m["footprints"]:
+            ax.add_patch(MplPolygon(fp, closed=True, fill=False, edgecolor="#6a1b9a", lw=1.3, zorder=8))
+        for fp in m["moved"] or []:
+            ax.add_patch(MplPolygon(fp, closed=True, fill=False, edgecolor="#6a1b9a", lw=0.9, ls="--", zorder=8))
+        allp = np.concatenate([np.asarray(fp) for fp in m["footprints"]])
+        ax.text(allp[:, 0].max() + 0.05, allp[:, 1].max(), m["label"], fontsize=5.5, color="#6a1b9a",
+                ha="left", va="bottom", zorder=9,
+                bbox=dict(boxstyle="round,pad=0.15", facecolor="white", edgecolor="none", alpha=0.75))
+    if marks:
+        ax.plot([], [], color="#6a1b9a", lw=1.3, label=f"object a drift what-if names ({len(marks)})\n"
+                                                        f"dashed: moved; *: kept together")
+
+
 def save_fidelity_png(path: str | Path, meta: dict, fid: SceneFidelity, positions: np.ndarray,
-                      triples: list[Triple]) -> Path:
+                      triples: list[Triple], drift: dict | None = None, spec: SceneSpec | None = None) -> Path:
     """One scene's :func:`draw_fidelity` map as a PNG (written atomically)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -319,7 +372,7 @@ def save_fidelity_png(path: str | Path, meta: dict, fid: SceneFidelity, position
     fig = Figure(figsize=(8.0, 6.0), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_axes((0.07, 0.07, 0.6, 0.86))
-    draw_fidelity(ax, meta, fid, positions, triples)
+    draw_fidelity(ax, meta, fid, positions, triples, drift=drift, spec=spec)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
     return atomic_save_figure(fig, path)
 
@@ -637,6 +690,7 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
         js["missing_positions"] = explained
         js["missing_by_cause"] = blame(explained)
         js["generator"] = scene.meta.get("generator", {"world": "procedural"} if "parts" in scene.meta else None)
+        spec = None
         if drift:
             try:
                 spec = SceneSpec.from_json(scene.meta)
@@ -652,7 +706,8 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
                                     "incomplete)")
         scenes_json.append(js)
         if pictures:
-            save_fidelity_png(out / f"{name}.png", scene.meta, fid, positions, triples[name])
+            save_fidelity_png(out / f"{name}.png", scene.meta, fid, positions, triples[name],
+                              drift=js.get("drift"), spec=spec)
     doc = {"format": "tsnav-fidelity", "version": 1, "data": str(data), "trajectories": str(trajectories),
            "summary": summary(results), "scenes": scenes_json, "absent": absent}
     if any(js.get("drift") for js in scenes_json):
@@ -673,6 +728,7 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
     return results, out
 
 
-__all__ = ["SceneFidelity", "TrajectoriesError", "blame", "blockers", "drift_total", "drift_whatifs", "explain_missing",
-           "fidelity_report", "keeps_all", "layout_flags", "load_trajectories", "markdown_drift", "markdown_table",
-           "measure", "parse_trajectories", "relaid", "save_fidelity_png", "scene_moves", "step", "summary"]
+__all__ = ["SceneFidelity", "TrajectoriesError", "blame", "blockers", "draw_drift", "drift_marks", "drift_total",
+           "drift_whatifs", "explain_missing", "fidelity_report", "keeps_all", "layout_flags", "load_trajectories",
+           "markdown_drift", "markdown_table", "measure", "parse_trajectories", "relaid", "save_fidelity_png",
+           "scene_moves", "step", "summary"]
