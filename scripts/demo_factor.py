@@ -28,6 +28,7 @@ from tsnav.pipeline.config import SCALES
 from tsnav.pipeline.demo import DemoConfig, run_demo
 from tsnav.pipeline.experiment import set_threads
 from tsnav.protocol import PROTOCOLS
+from tsnav.report.tables import mean_ci
 
 #: Variant name -> fields of the demo scale's configurations changed (:meth:`ScaleConfig.override`): the demo as it
 #: is; the encoder on the world's own 128-px frames (an 8x8 token grid instead of 4x4); patch 8 at 64 px (8x8 as
@@ -43,8 +44,13 @@ VARIANTS = {
 #: Variants whose encoder is the demo's own (they share its pretraining and features).
 SAME_ENCODER = ("p16-64", "ep100", "lin", "lin-ep100")
 OWNER = "p16-64-s0"
-#: Student's t quantile (two-sided 95 %) by sample size.
-T95 = {2: 12.71, 3: 4.30, 4: 3.18, 5: 2.78, 6: 2.57}
+
+
+def columns_ci(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column of ``vals`` ``(seeds, metrics)``: the mean and the half-width of its 95 % t-interval
+    (:func:`tsnav.report.tables.mean_ci`; 0 with one seed)."""
+    cols = [mean_ci(vals[:, j]) for j in range(vals.shape[1])]
+    return np.array([m for m, _ in cols]), np.array([h or 0.0 for _, h in cols])
 
 
 def folder(base: Path, variant: str, seed: int) -> Path:
@@ -123,8 +129,7 @@ def table(base: Path, variants: list[str]) -> None:
         for k in keys:
             vals = np.array([f[k] for f in per_seed.values() if k in f])
             n = len(vals)
-            mean = vals.mean(0)
-            half = T95.get(n, 2.57) * (vals.std(0, ddof=1) / np.sqrt(n)) if n > 1 else np.zeros(2)
+            mean, half = columns_ci(vals)
             rows.append((variant, k, n, " ".join(f"{a:.2f}/{b:.2f}" for a, b in vals), mean, half))
     print("| variant | policy / protocol | seeds | per seed SR/SPL | mean SR +- 95% | mean SPL +- 95% |")
     print("| --- | --- | ---: | --- | --- | --- |")
@@ -140,7 +145,7 @@ def table(base: Path, variants: list[str]) -> None:
             if len(pairs) < 2:
                 continue
             d = np.array([a - b for a, b in pairs])
-            half = T95.get(len(d), 2.57) * d.std(0, ddof=1) / np.sqrt(len(d))
+            _, half = columns_ci(d)
             print(f"| {v} | {k} | {' '.join(f'{x:+.2f}' for x in d[:, 0])} | {d[:, 0].mean():+.2f} +- {half[0]:.2f} | "
                   f"{d[:, 1].mean():+.2f} +- {half[1]:.2f} |")
     print("\n| variant | seed | switched | success after the switch | step limit after the switch | passed a success "

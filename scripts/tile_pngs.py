@@ -14,6 +14,8 @@ from pathlib import Path
 
 from PIL import Image
 
+from tsnav.atomic import atomic_path
+
 
 def tile(paths: list[Path], cols: int, scale: float) -> Image.Image:
     images = [Image.open(p).convert("RGB") for p in paths]
@@ -41,9 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.cols < 1 or not args.scale > 0:
         print("tile_pngs: --cols must be >= 1 and --scale positive", file=sys.stderr)
         return 2
-    tmp = args.out.with_name(args.out.name + ".tmp.png")
-    tile(args.pictures, args.cols, args.scale).save(tmp, optimize=True)
-    tmp.replace(args.out)
+    with atomic_path(args.out) as tmp:
+        tile(args.pictures, args.cols, args.scale).save(tmp, format="PNG", optimize=True)
     print(f"{args.out}: {len(args.pictures)} pictures")
     return 0
 

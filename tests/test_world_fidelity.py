@@ -253,7 +253,7 @@ def test_drift_what_ifs_on_a_hand_made_layout():
     assert "**without drift** (1 removed, 1 moved)" in md and "BasketBall|+01.20|+00.12|+02.25 (0.58 m)" in md
 
 
-def test_drift_marks_name_the_objects_on_the_picture(tmp_path):
+def test_drift_marks_name_the_objects_on_the_picture():
     """The picture marks what the what-ifs name: the chair (removed, a real position inside) at its own footprint,
     the cabinet with its drawer at theirs and moved 0.04 m to -z (dashed); both are kept together (``*``)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
