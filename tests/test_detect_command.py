@@ -74,3 +74,7 @@ def test_bad_input_is_one_line(world, tmp_path, capsys):
     assert main(["detect", "--data", str(world), "--detector", "learned", "--repeat-threshold", "-0.5"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--repeat-threshold must be >= 0" in err and len(err.splitlines()) == 1
+    for flag, value, says in (("--hard-negative-weight", "-2", ">= 0"), ("--hard-negative-threshold", "1.5", "(0, 1)")):
+        assert main(["detect", "--data", str(world), "--detector", "learned", flag, value]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"{flag} must be" in err and says in err and len(err.splitlines()) == 1

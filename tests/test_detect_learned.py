@@ -3,7 +3,9 @@ resume), calibration, tables."""
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -13,9 +15,11 @@ from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
 from tsnav.detect.model import (DetectorConfig, GridDetector, default_config, dense_targets, dense_targets_reference,
                                 detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
-from tsnav.detect.train import (DetectorTrainConfig, apply_gains, batch_plan, calibrate, default_train_steps,
-                                fit_temperature, load_model, lr_at, predict, read_meta, repeat_factors,
+from tsnav.detect.train import (HARD_NEGATIVES, DetectorTrainConfig, apply_gains, batch_plan, calibrate,
+                                classes_with_pixels, default_train_steps, fit_temperature, hard_negative_rows,
+                                hard_negative_rows_reference, load_model, lr_at, predict, read_meta, repeat_factors,
                                 repeat_factors_reference, sample_weighted, train_detector)
+from tsnav.checkpoint import BrokenCheckpoint
 
 torch.set_num_threads(1)
 
@@ -326,3 +330,77 @@ def test_learned_table(tiny_world, tiny_frames, tiny_scenes, tmp_path):
     logits, _, _ = predict(det.model, img)
     np.testing.assert_allclose(table.scores[:5], 1 / (1 + np.exp(-logits / t)), rtol=1e-5, atol=1e-6)
     assert table.fingerprint == read_meta(tmp_path / "c")["fingerprint"]
+
+
+def test_hard_negative_rows_by_hand_and_against_reference(tiny_frames):
+    scores = np.array([[0.9, 0.1, 0.2], [0.6, 0.4, 0.0], [0.3, 0.2, 0.1], [0.1, 0.8, 0.1]])
+    seen = np.array([[True, False, False], [False, False, False], [False, False, False], [False, True, False]])
+    # frame 0: its 0.9 is a class in view; frame 1: class 0 scores 0.6 with nothing of it in view -> hard;
+    # frame 2: nothing above 0.5; frame 3: the 0.8 is seen.
+    np.testing.assert_array_equal(hard_negative_rows(scores, seen, 0.5), [False, True, False, False])
+    np.testing.assert_array_equal(hard_negative_rows(scores, seen, 0.25), [False, True, True, False])
+    rng = np.random.default_rng(0)
+    sc, se = rng.random((300, 22)), rng.random((300, 22)) < 0.2
+    for t in (0.3, 0.7, 0.95):
+        np.testing.assert_array_equal(hard_negative_rows(sc, se, t), hard_negative_rows_reference(sc, se, t))
+    with pytest.raises(ValueError, match="shape"):
+        hard_negative_rows(sc, se[:, :3], 0.5)
+    # A class counts as in view when any of its objects has a pixel, even below the presence threshold.
+    seen = classes_with_pixels(tiny_frames)
+    assert (seen >= tiny_frames.present).all()
+    partial = tiny_frames.obj_state == 1
+    if partial.any():
+        i, k = map(int, np.argwhere(partial)[0])
+        assert seen[i, tiny_frames.obj_category[i, k]]
+
+
+def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_world, tiny_frames, tmp_path):
+    small = DetectorConfig(widths=(8, 16, 32), dim=32)
+    base = dict(batch_size=8, warmup=2, checkpoint_every=2, threads=1)
+    for name in ("once", "twice"):
+        train_detector(tiny_world, tmp_path / name, DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames,
+                       progress=False)
+    model3 = load_model(tmp_path / "twice")[0]
+    scores = 1 / (1 + np.exp(-predict(model3, tiny_frames.images)[0].astype(np.float64)))
+    seen = classes_with_pixels(tiny_frames)
+    # A threshold at the median of each frame's highest score of a class not in view makes about half the frames hard.
+    thr = float(np.median(np.where(seen, 0.0, scores).max(axis=1)))
+    expect = hard_negative_rows(scores, seen, thr)
+    assert 0 < expect.sum() < len(expect)
+    hard_cfg = dict(hard_negative_weight=5.0, hard_negative_threshold=thr)
+    train_detector(tiny_world, tmp_path / "once", DetectorTrainConfig(steps=7, **hard_cfg), frames=tiny_frames,
+                   progress=False)
+    rec = json.loads((tmp_path / "once" / HARD_NEGATIVES).read_text())
+    assert rec["step"] == 3 and rec["threshold"] == thr and rec["scenes"] == list(tiny_frames.scenes)
+    assert rec["rows"] == np.flatnonzero(expect).tolist() and rec["count"] == int(expect.sum())
+    meta = read_meta(tmp_path / "once")
+    assert meta["sampling_changes"] == [{"step": 3, "hard_negative_weight": 5.0, "hard_negative_threshold": thr}]
+    assert meta["train"]["hard_negative_weight"] == 5.0 and meta["hard_negatives"] == int(expect.sum())
+    # The same fine-tune interrupted after step 6 (its last checkpoint lost) resumes from step 6 with the rows
+    # mined at step 3, not mined again, and ends on the same weights.
+    train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=7, **hard_cfg), frames=tiny_frames,
+                   progress=False)
+    shutil.rmtree(tmp_path / "twice" / "checkpoints" / "ckpt_000000007")
+    assert read_meta(tmp_path / "twice")["step"] == 6
+    r = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=7), frames=tiny_frames,
+                       progress=False)
+    assert (r.start_step, r.step) == (6, 7)
+    assert json.loads((tmp_path / "twice" / HARD_NEGATIVES).read_text()) == rec
+    assert len(read_meta(tmp_path / "twice")["sampling_changes"]) == 1
+    for (k, a), b in zip(load_model(tmp_path / "once")[0].state_dict().items(),
+                         load_model(tmp_path / "twice")[0].state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=k)
+    # The weights are used: the same steps without hard-negative sampling train another detector.
+    train_detector(tiny_world, tmp_path / "plain", DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames,
+                   progress=False)
+    train_detector(tiny_world, tmp_path / "plain", DetectorTrainConfig(steps=7), frames=tiny_frames, progress=False)
+    assert not torch.equal(load_model(tmp_path / "plain")[0].class_bias, load_model(tmp_path / "once")[0].class_bias)
+    # A damaged record is named, not silently mined again; bad settings are refused.
+    (tmp_path / "twice" / HARD_NEGATIVES).write_text("{")
+    with pytest.raises(BrokenCheckpoint, match=HARD_NEGATIVES):
+        train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8), frames=tiny_frames,
+                       progress=False)
+    for bad in (dict(hard_negative_weight=-1.0), dict(hard_negative_threshold=1.0)):
+        with pytest.raises(ValueError, match="hard_negative"):
+            train_detector(tiny_world, tmp_path / "bad", DetectorTrainConfig(steps=2, **bad), small,
+                           frames=tiny_frames, progress=False)

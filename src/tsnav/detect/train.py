@@ -91,6 +91,15 @@ class DetectorTrainConfig:
     loaded training frames that show class ``c`` (:func:`repeat_factors`), so frames with rare classes (a phone,
     an alarm clock) come more often; 0 draws frames uniformly (the behaviour before this field). Given nonzero
     for an existing checkpoint, it replaces the stored value from the checkpoint's step on (a fine-tune)."""
+    hard_negative_weight: float = 0.0
+    """Hard-negative sampling (issue 23: the switch's false positives): when positive, the frames on which the
+    model, as it stands when this weight is first given, scores some class with no pixel in view above
+    ``hard_negative_threshold`` (:func:`hard_negative_rows`, with the checkpoint's temperature when it is
+    calibrated at that step) are drawn ``hard_negative_weight`` times as often as before (on top of
+    ``repeat_threshold``'s weights). The mined rows are kept in the checkpoint folder (``hard_negatives.json``),
+    so a resumed run draws the same batches; 0 disables it."""
+    hard_negative_threshold: float = 0.5
+    """Score above which a class with no pixel in view makes a frame a hard negative."""
     threads: int = 1
     """torch CPU threads. One is the safe default: on a busy machine two threads were measured 30x slower
     per step than one (threads spin waiting for each other)."""
@@ -146,6 +155,69 @@ def repeat_factors_reference(present, threshold: float) -> np.ndarray:
             if present[i, c]:
                 out[i] = max(out[i], r)
     return out
+
+
+def classes_with_pixels(frames: "FrameSet") -> np.ndarray:
+    """``(N, 22)`` bool: some object of the class has at least one pixel in the frame (``obj_state`` > 0), so a
+    high score there is not a hallucination even when the object is too small to count as present."""
+    seen = np.zeros(frames.present.shape, bool)
+    rows, cols = np.nonzero(frames.obj_state > 0)
+    cat = frames.obj_category[rows, cols].astype(np.int64)
+    ok = cat >= 0
+    seen[rows[ok], cat[ok]] = True
+    return seen | frames.present
+
+
+def hard_negative_rows(scores: np.ndarray, seen: np.ndarray, threshold: float) -> np.ndarray:
+    """``(N,)`` bool: frames where some class with no pixel in view (``~seen``) scores above ``threshold``."""
+    scores = np.asarray(scores)
+    seen = np.asarray(seen, dtype=bool)
+    if scores.shape != seen.shape:
+        raise ValueError(f"scores {scores.shape} and classes in view {seen.shape} differ in shape")
+    return ((scores > threshold) & ~seen).any(axis=1)
+
+
+def hard_negative_rows_reference(scores, seen, threshold: float) -> np.ndarray:
+    """Loop reference of :func:`hard_negative_rows`."""
+    n, k = np.asarray(scores).shape
+    out = np.zeros(n, bool)
+    for i in range(n):
+        for c in range(k):
+            if not seen[i][c] and scores[i][c] > threshold:
+                out[i] = True
+    return out
+
+
+#: File of a detector folder holding the mined hard-negative rows (:attr:`DetectorTrainConfig.hard_negative_weight`).
+HARD_NEGATIVES = "hard_negatives.json"
+
+
+def _frames_id(frames: "FrameSet") -> dict:
+    return {"scenes": list(frames.scenes), "offsets": [int(x) for x in frames.offsets]}
+
+
+def mined_hard_negatives(ckpt: Path, model: GridDetector, meta: dict, frames: "FrameSet", threshold: float,
+                         batch_size: int = 256, progress: bool = False) -> np.ndarray:
+    """The hard-negative rows of ``frames`` (``(N,)`` bool): read from ``ckpt/hard_negatives.json`` when it was
+    mined on the same frames with the same threshold, else mined with ``model`` now and written there. The
+    model's scores use its temperature when it was calibrated at its current step, else 1."""
+    path = Path(ckpt) / HARD_NEGATIVES
+    if path.exists():
+        rec = read_json(path)
+        if rec.get("threshold") == threshold and {k: rec.get(k) for k in ("scenes", "offsets")} == _frames_id(frames):
+            rows = np.zeros(len(frames), bool)
+            rows[np.asarray(rec["rows"], dtype=np.int64)] = True
+            return rows
+    t = float(meta.get("temperature", 1.0)) if meta.get("calibrated_step") == meta.get("step") else 1.0
+    chunks = []
+    for a in tqdm(range(0, len(frames), 4096), desc="mining hard negatives", unit="chunk", disable=not progress):
+        logits = predict(model, frames.images[a:a + 4096], batch_size)[0]
+        chunks.append(1.0 / (1.0 + np.exp(-logits.astype(np.float64) / t)))
+    rows = hard_negative_rows(np.concatenate(chunks), classes_with_pixels(frames), threshold)
+    _atomic_json(path, {"format": "tsnav-hard-negatives", "step": int(meta.get("step", 0)), "threshold": threshold,
+                        "temperature": t, **_frames_id(frames), "count": int(rows.sum()),
+                        "rows": np.flatnonzero(rows).tolist()})
+    return rows
 
 
 def batch_plan(step: int, n: int, cfg: DetectorTrainConfig, weights: np.ndarray | None = None
@@ -375,6 +447,10 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     train_cfg = train_cfg or DetectorTrainConfig()
     if not train_cfg.repeat_threshold >= 0:
         raise ValueError(f"repeat_threshold must be >= 0, got {train_cfg.repeat_threshold}")
+    if not train_cfg.hard_negative_weight >= 0:
+        raise ValueError(f"hard_negative_weight must be >= 0, got {train_cfg.hard_negative_weight}")
+    if not 0 < train_cfg.hard_negative_threshold < 1:
+        raise ValueError(f"hard_negative_threshold must be in (0, 1), got {train_cfg.hard_negative_threshold}")
     set_threads(train_cfg.threads)
     model, meta, opt_state, train_cfg, start = _resume_or_start(ckpt, train_cfg, model_cfg)
     if start >= train_cfg.steps:
@@ -384,6 +460,12 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     if frames.images.shape[1] != model.cfg.image_size:
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
     weights = repeat_factors(frames.present, train_cfg.repeat_threshold) if train_cfg.repeat_threshold > 0 else None
+    if train_cfg.hard_negative_weight > 0:
+        hard = mined_hard_negatives(ckpt, model, meta, frames, train_cfg.hard_negative_threshold, progress=progress)
+        base = np.ones(len(frames)) if weights is None else weights
+        weights = base * np.where(hard, train_cfg.hard_negative_weight, 1.0)
+        meta["hard_negatives"] = int(hard.sum())
+    meta.setdefault("history", [])
     opt = torch.optim.AdamW(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
     if start > 0 and opt_state is not None:
         opt.load_state_dict({"state": opt_state, "param_groups": meta["param_groups"]})
@@ -432,7 +514,8 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
 
 def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: DetectorConfig | None):
     """``(model, meta, optimizer state or None, train config, start step)``: the checkpoint's, keeping its settings
-    except ``steps`` and ``threads`` (and a new ``repeat_threshold``, recorded), or a fresh model at step 0."""
+    except ``steps`` and ``threads`` (and a new ``repeat_threshold`` or hard-negative sampling, recorded), or a fresh
+    model at step 0."""
     found = resume_state(ckpt)
     opt_state = None
     if found is not None:
@@ -444,6 +527,11 @@ def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: Dete
             stored.repeat_threshold = train_cfg.repeat_threshold
             meta.setdefault("sampling_changes", []).append({"step": start,
                                                            "repeat_threshold": train_cfg.repeat_threshold})
+        hard = (train_cfg.hard_negative_weight, train_cfg.hard_negative_threshold)
+        if hard[0] > 0 and hard != (stored.hard_negative_weight, stored.hard_negative_threshold):
+            stored.hard_negative_weight, stored.hard_negative_threshold = hard
+            meta.setdefault("sampling_changes", []).append({"step": start, "hard_negative_weight": hard[0],
+                                                           "hard_negative_threshold": hard[1]})
         train_cfg = stored
     else:
         if model_cfg is None:
