@@ -3,7 +3,8 @@
 ``rotations EVAL_DIR ...``: how an evaluated agent turns. Per ``tsnav eval`` folder (its ``trajectories.jsonl``):
 the share of each rotation among all actions, and the runs of one rotation repeated 5-7 times in a row. With
 45-degree turns, k turns one way reach what 8 - k turns the other way reach, so such a run of length L could have
-been 8 - L turns the other way: the "steps a two-handed agent would save" column is the sum of 2 L - 8 over them.
+been 8 - L turns the other way: "steps in them" is the share of all steps inside such runs, and "saved steps" the
+sum of 2 L - 8 over them, what turning the other way would have saved.
 
 ``reach --data WORLD --episodes LIST --detections NAME ...``: the share of an episode list whose target's score
 in the named detection table passes C_target (0.7) at some state of the episode's room, the ceiling of the stage
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import sys
 from pathlib import Path
 
@@ -25,6 +25,8 @@ import numpy as np
 
 from tsnav.constants import ACTIONS, C_TARGET, CATEGORY_INDEX
 from tsnav.data.detections import load_detections
+from tsnav.eval.runner import read_trajectories
+from tsnav.sim.episodes import read_episodes
 
 LEFT, RIGHT = ACTIONS.index("RotateLeft"), ACTIONS.index("RotateRight")
 TURNS = 8  # 360 / 45-degree rotations
@@ -32,7 +34,7 @@ TURNS = 8  # 360 / 45-degree rotations
 
 def rotation_figures(actions_per_episode) -> dict:
     """Rotation shares and the steps that turning the other way would save (module docstring)."""
-    steps = left = right = saved = long_runs = 0
+    steps = left = right = saved = long_runs = in_runs = 0
     for actions in actions_per_episode:
         steps += len(actions)
         left += sum(a == LEFT for a in actions)
@@ -41,34 +43,34 @@ def rotation_figures(actions_per_episode) -> dict:
             n = len(list(run))
             if a in (LEFT, RIGHT) and TURNS // 2 < n < TURNS:
                 long_runs += 1
+                in_runs += n
                 saved += 2 * n - TURNS
     return {"steps": steps, "RotateLeft": left / steps if steps else 0.0,
-            "RotateRight": right / steps if steps else 0.0, "runs_5_to_7": long_runs, "saved_steps": saved,
+            "RotateRight": right / steps if steps else 0.0, "runs_5_to_7": long_runs,
+            "in_runs_share": in_runs / steps if steps else 0.0, "saved_steps": saved,
             "saved_share": saved / steps if steps else 0.0}
 
 
 def read_actions(folder: Path) -> list[list[int]]:
+    """Action ids (``constants.ACTIONS`` order) of every episode of a ``tsnav eval`` folder."""
     path = folder / "trajectories.jsonl"
     if not path.exists():
         raise SystemExit(f"{folder}: no trajectories.jsonl (a `tsnav eval` output folder?)")
-    out = []
-    for line in path.read_text().splitlines():
-        t = json.loads(line)
-        order = t.get("action_order", ",".join(ACTIONS)).split(",")
-        if order != list(ACTIONS):
-            raise SystemExit(f"{path}: action order {order} is not {list(ACTIONS)}")
-        out.append(t["actions"])
-    return out
+    try:
+        return [list(t.actions) for t in read_trajectories(path)]
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
 
 
-def reach_share(data: Path, episodes: list[dict], name: str, c_target: float = C_TARGET) -> float:
-    """Share of ``episodes`` whose target scores above ``c_target`` somewhere in its room's ``name`` table."""
+def reach_share(data: Path, episodes, name: str, c_target: float = C_TARGET) -> float:
+    """Share of ``episodes`` (:class:`~tsnav.sim.episodes.Episode`) whose target scores above ``c_target``
+    somewhere in its room's ``name`` table."""
     best: dict[str, np.ndarray] = {}
     hit = 0
     for e in episodes:
-        if e["scene"] not in best:
-            best[e["scene"]] = load_detections(data / e["scene"], name).scores.max(axis=0)
-        hit += bool(best[e["scene"]][CATEGORY_INDEX[e["target"]]] > c_target)
+        if e.scene not in best:
+            best[e.scene] = load_detections(data / e.scene, name).scores.max(axis=0)
+        hit += bool(best[e.scene][CATEGORY_INDEX[e.target]] > c_target)
     return hit / len(episodes)
 
 
@@ -83,18 +85,23 @@ def main(argv=None) -> int:
     q.add_argument("--detections", nargs="+", required=True)
     a = p.parse_args(argv)
     if a.cmd == "rotations":
-        print(f"{'eval':56s} {'left %':>7s} {'right %':>8s} {'runs 5-7':>9s} {'saved steps':>12s}")
+        print(f"{'eval':56s} {'left %':>7s} {'right %':>8s} {'runs 5-7':>9s} {'steps in them':>14s} "
+              f"{'saved steps':>12s}")
         for f in a.evals:
             r = rotation_figures(read_actions(Path(f)))
             print(f"{f[-56:]:56s} {100 * r['RotateLeft']:7.1f} {100 * r['RotateRight']:8.1f} {r['runs_5_to_7']:9d} "
-                  f"{r['saved_steps']:6d} ({100 * r['saved_share']:.1f} % of {r['steps']})")
+                  f"{100 * r['in_runs_share']:12.1f} % {r['saved_steps']:6d} ({100 * r['saved_share']:.1f} % of "
+                  f"{r['steps']})")
         return 0
     data = Path(a.data)
     if not data.is_dir():
         raise SystemExit(f"--data {data}: no such folder")
-    episodes = json.loads(Path(a.episodes).read_text())["episodes"]
-    for name in a.detections:
-        print(f"{name}: {100 * reach_share(data, episodes, name):.1f} % of {len(episodes)} episodes")
+    try:
+        episodes, _ = read_episodes(a.episodes)
+        for name in a.detections:
+            print(f"{name}: {100 * reach_share(data, episodes, name):.1f} % of {len(episodes)} episodes")
+    except (ValueError, FileNotFoundError) as e:
+        raise SystemExit(str(e)) from None
     return 0
 
 

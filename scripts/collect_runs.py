@@ -15,12 +15,12 @@ The output is written atomically; nothing is written when a folder is missing or
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import defaultdict
 from pathlib import Path
 
 from tsnav.atomic import atomic_write_json
+from tsnav.errors import CommandError, read_json
 
 METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
 
@@ -34,11 +34,9 @@ def _pair(text: str, what: str) -> tuple[str, str]:
 
 def _read(path: Path) -> dict:
     try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise SystemExit(f"{path}: no such file") from None
-    except json.JSONDecodeError as e:
-        raise SystemExit(f"{path}: not JSON ({e})") from None
+        return read_json(path, missing="no such file")
+    except CommandError as e:
+        raise SystemExit(str(e)) from None
 
 
 def eval_figures(folder: Path) -> dict:
@@ -76,7 +74,8 @@ def table(runs: dict) -> str:
         base = name.rsplit("-s", 1)[0] if "-s" in name else name
         for tag, t in r["test"].items():
             a = t["ALL"]
-            lines.append(f"{name:32s} {tag:24s} {100 * a['SR']:7.2f} {100 * a['SPL']:7.2f} {100 * a.get('SSR', 0):7.2f}")
+            lines.append(f"{name:32s} {tag:24s} {100 * a['SR']:7.2f} {100 * a['SPL']:7.2f} "
+                         f"{100 * a.get('SSR', 0):7.2f}")
             groups[base][tag].append((a["SR"], a["SPL"]))
     lines.append("means over seeds:")
     for base, tags in groups.items():

@@ -20,13 +20,13 @@ import sys
 from dataclasses import replace
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from tsnav.data.detections import Detections, load_detections
 from tsnav.data.reader import list_scenes, load_scene
 from tsnav.detect.data import read_images
 from tsnav.detect.evaluate import evaluate_detections
+from tsnav.distributed import set_threads
 from tsnav.detect.learned import LearnedDetector
 from tsnav.detect.quality import switch_report
 from tsnav.detect.shipped import shipped_detector
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     p.add_argument("--table", default=None, help="the rooms' stored table of that detector (default: --shipped)")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
-    torch.set_num_threads(max(1, a.threads))
+    set_threads(a.threads)
     folders = list_scenes(a.data, a.split)
     if not folders:
         raise SystemExit(f"--data {a.data}: no {a.split} scenes")

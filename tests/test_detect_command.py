@@ -57,6 +57,13 @@ def test_learned_command_trains_resumes_and_refuses_stale_tables(world, capsys):
     assert "made by another detector" in capsys.readouterr().err
     assert main(args + ["--train-steps", "4", "--no-eval", "--overwrite"]) == 0
     assert "5 scenes written" in capsys.readouterr().out
+    # Hard-negative sampling from the command line: applies from the checkpoint's step, mined and recorded there.
+    assert main(args + ["--train-steps", "5", "--no-eval", "--overwrite", "--hard-negative-weight", "3",
+                        "--hard-negative-threshold", "0.2"]) == 0
+    meta = json.loads((ck / "checkpoints" / "ckpt_000000005" / "state.json").read_text())
+    assert meta["train"]["hard_negative_weight"] == 3.0 and meta["train"]["hard_negative_threshold"] == 0.2
+    assert meta["sampling_changes"][-1] == {"step": 4, "hard_negative_weight": 3.0, "hard_negative_threshold": 0.2}
+    assert json.loads((ck / "hard_negatives.json").read_text())["step"] == 4
 
 
 def test_bad_input_is_one_line(world, tmp_path, capsys):
@@ -74,7 +81,11 @@ def test_bad_input_is_one_line(world, tmp_path, capsys):
     assert main(["detect", "--data", str(world), "--detector", "learned", "--repeat-threshold", "-0.5"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--repeat-threshold must be >= 0" in err and len(err.splitlines()) == 1
-    for flag, value, says in (("--hard-negative-weight", "-2", ">= 0"), ("--hard-negative-threshold", "1.5", "(0, 1)")):
-        assert main(["detect", "--data", str(world), "--detector", "learned", flag, value]) == 2
+    for flags, says in ((["--hard-negative-weight", "-2"], "--hard-negative-weight must be a finite number >= 0"),
+                        (["--hard-negative-weight", "inf"], "--hard-negative-weight must be a finite number >= 0"),
+                        (["--hard-negative-weight", "4", "--hard-negative-threshold", "1.5"],
+                         "--hard-negative-threshold must be in (0, 1)"),
+                        (["--hard-negative-threshold", "0.6"], "--hard-negative-threshold needs --hard-negative-weight")):
+        assert main(["detect", "--data", str(world), "--detector", "learned", *flags]) == 2
         err = capsys.readouterr().err.strip()
-        assert f"{flag} must be" in err and says in err and len(err.splitlines()) == 1
+        assert says in err and len(err.splitlines()) == 1

@@ -345,13 +345,25 @@ def test_hard_negative_rows_by_hand_and_against_reference(tiny_frames):
         np.testing.assert_array_equal(hard_negative_rows(sc, se, t), hard_negative_rows_reference(sc, se, t))
     with pytest.raises(ValueError, match="shape"):
         hard_negative_rows(sc, se[:, :3], 0.5)
-    # A class counts as in view when any of its objects has a pixel, even below the presence threshold.
+    # A class counts as in view when any of its objects has a pixel, even below the presence threshold; padding
+    # columns (category -1) and objects with no pixel do not count.
+    n, z = 3, np.zeros
+    fs = FrameSet(images=z((n, 8, 8, 3), np.uint8), present=z((n, NUM_CATEGORIES), bool),
+                  boxes=z((n, NUM_CATEGORIES, 4), np.float32), obj_boxes=z((n, 3, 4), np.float32),
+                  obj_category=np.array([[2, 5, -1]] * n, np.int16),
+                  obj_state=np.array([[1, 0, 2], [0, 2, 0], [0, 0, 0]], np.int8), scenes=["a"],
+                  offsets=np.array([0, n]))
+    fs.present[1, 5] = True
+    fs.present[2, 7] = True  # present with no object column: still seen
+    want = z((n, NUM_CATEGORIES), bool)
+    want[0, 2] = want[1, 5] = want[2, 7] = True
+    np.testing.assert_array_equal(classes_with_pixels(fs), want)
     seen = classes_with_pixels(tiny_frames)
-    assert (seen >= tiny_frames.present).all()
-    partial = tiny_frames.obj_state == 1
-    if partial.any():
-        i, k = map(int, np.argwhere(partial)[0])
-        assert seen[i, tiny_frames.obj_category[i, k]]
+    ref = tiny_frames.present.copy()
+    for i, k in zip(*np.nonzero(tiny_frames.obj_state > 0)):
+        if tiny_frames.obj_category[i, k] >= 0:
+            ref[i, tiny_frames.obj_category[i, k]] = True
+    np.testing.assert_array_equal(seen, ref)
 
 
 def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_world, tiny_frames, tmp_path):
@@ -390,17 +402,37 @@ def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_
     for (k, a), b in zip(load_model(tmp_path / "once")[0].state_dict().items(),
                          load_model(tmp_path / "twice")[0].state_dict().values()):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=k)
-    # The weights are used: the same steps without hard-negative sampling train another detector.
-    train_detector(tiny_world, tmp_path / "plain", DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames,
+    # The factor is used: the same fine-tune with weight 1 (the same draws, every frame weighing 1) ends elsewhere,
+    # and its batches hold fewer hard frames than weight 5's.
+    train_detector(tiny_world, tmp_path / "w1", DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames,
                    progress=False)
-    train_detector(tiny_world, tmp_path / "plain", DetectorTrainConfig(steps=7), frames=tiny_frames, progress=False)
-    assert not torch.equal(load_model(tmp_path / "plain")[0].class_bias, load_model(tmp_path / "once")[0].class_bias)
-    # A damaged record is named, not silently mined again; bad settings are refused.
-    (tmp_path / "twice" / HARD_NEGATIVES).write_text("{")
-    with pytest.raises(BrokenCheckpoint, match=HARD_NEGATIVES):
-        train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8), frames=tiny_frames,
-                       progress=False)
-    for bad in (dict(hard_negative_weight=-1.0), dict(hard_negative_threshold=1.0)):
+    train_detector(tiny_world, tmp_path / "w1", DetectorTrainConfig(steps=7, hard_negative_weight=1.0,
+                                                                    hard_negative_threshold=thr),
+                   frames=tiny_frames, progress=False)
+    assert not torch.equal(load_model(tmp_path / "w1")[0].class_bias, load_model(tmp_path / "once")[0].class_bias)
+    cfg = DetectorTrainConfig(batch_size=2000)
+    share = [expect[batch_plan(3, len(expect), cfg, np.where(expect, w, 1.0))[0]].mean() for w in (1.0, 5.0)]
+    h = expect.mean()
+    assert share[0] == pytest.approx(h, abs=0.05) and share[1] == pytest.approx(5 * h / (5 * h + 1 - h), abs=0.05)
+    # A resumed run needs the rows its sampling began with: a missing or damaged record is named, not mined again.
+    saved = (tmp_path / "twice" / HARD_NEGATIVES).read_text()
+    for damage in (None, "{", json.dumps({**rec, "step": 4}), json.dumps({**rec, "rows": [10 ** 6]})):
+        if damage is None:
+            (tmp_path / "twice" / HARD_NEGATIVES).unlink()
+        else:
+            (tmp_path / "twice" / HARD_NEGATIVES).write_text(damage)
+        with pytest.raises(BrokenCheckpoint, match=HARD_NEGATIVES):
+            train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8), frames=tiny_frames,
+                           progress=False)
+    (tmp_path / "twice" / HARD_NEGATIVES).write_text(saved)
+    # A new setting begins anew at its step: its rows are mined with the model of that step.
+    train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8, hard_negative_weight=2.0,
+                                                                       hard_negative_threshold=thr),
+                   frames=tiny_frames, progress=False)
+    assert json.loads((tmp_path / "twice" / HARD_NEGATIVES).read_text())["step"] == 7
+    assert read_meta(tmp_path / "twice")["sampling_changes"][-1]["step"] == 7
+    for bad in (dict(hard_negative_weight=-1.0), dict(hard_negative_weight=float("inf")),
+                dict(hard_negative_threshold=1.0)):
         with pytest.raises(ValueError, match="hard_negative"):
             train_detector(tiny_world, tmp_path / "bad", DetectorTrainConfig(steps=2, **bad), small,
                            frames=tiny_frames, progress=False)

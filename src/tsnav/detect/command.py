@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import threading
 from pathlib import Path
@@ -57,10 +58,13 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                         "from that checkpoint's step on")
     p.add_argument("--hard-negative-weight", type=float, default=None,
                    help="learned: draw the training frames on which the checkpoint, as it stands, scores a class with "
-                        "no pixel in view above --hard-negative-threshold this many times as often (e.g. 4; 0 or "
-                        "absent: off); the mined frames are kept beside the checkpoint (hard_negatives.json)")
-    p.add_argument("--hard-negative-threshold", type=float, default=0.5,
-                   help="learned: score that makes such a frame a hard negative (default 0.5)")
+                        "no pixel in view above --hard-negative-threshold this many times as often (e.g. 4); given "
+                        "for an existing checkpoint it applies from that checkpoint's step on (absent or 0: the "
+                        "checkpoint's own setting, off for a new one); the mined frames are kept beside the "
+                        "checkpoint (hard_negatives.json)")
+    p.add_argument("--hard-negative-threshold", type=float, default=None,
+                   help="learned, with --hard-negative-weight: score that makes such a frame a hard negative "
+                        "(default 0.5)")
     p.add_argument("--stem", type=int, default=None,
                    help="learned, new checkpoint: space-to-depth factor of the input (default: frame side / 64, so "
                         "128px frames cost what 64px ones do)")
@@ -102,10 +106,14 @@ def _learned(args, root: Path):
         raise CommandError("--batch-size must be at least 1")
     if args.repeat_threshold is not None and not args.repeat_threshold >= 0:
         raise CommandError(f"--repeat-threshold must be >= 0, got {args.repeat_threshold}")
-    if args.hard_negative_weight is not None and not args.hard_negative_weight >= 0:
-        raise CommandError(f"--hard-negative-weight must be >= 0, got {args.hard_negative_weight}")
-    if not 0 < args.hard_negative_threshold < 1:
-        raise CommandError(f"--hard-negative-threshold must be in (0, 1), got {args.hard_negative_threshold}")
+    if args.hard_negative_weight is not None and not (args.hard_negative_weight >= 0
+                                                      and math.isfinite(args.hard_negative_weight)):
+        raise CommandError(f"--hard-negative-weight must be a finite number >= 0, got {args.hard_negative_weight}")
+    if args.hard_negative_threshold is not None:
+        if not args.hard_negative_weight:
+            raise CommandError("--hard-negative-threshold needs --hard-negative-weight")
+        if not 0 < args.hard_negative_threshold < 1:
+            raise CommandError(f"--hard-negative-threshold must be in (0, 1), got {args.hard_negative_threshold}")
     if ckpt.exists() and not ckpt.is_dir():
         raise CommandError(f"--checkpoint {ckpt} is a file; give a checkpoint folder")
     if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
@@ -118,7 +126,7 @@ def _learned(args, root: Path):
     tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene,
                              repeat_threshold=args.repeat_threshold or 0.0,
                              hard_negative_weight=args.hard_negative_weight or 0.0,
-                             hard_negative_threshold=args.hard_negative_threshold)
+                             hard_negative_threshold=args.hard_negative_threshold or 0.5)
     if args.batch_size:
         tc.batch_size = args.batch_size
     res = train_detector(root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet)

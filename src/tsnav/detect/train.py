@@ -27,6 +27,7 @@ the checkpoint before in ``DIR/previous/``) are still read, resumed and calibrat
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import time
@@ -39,8 +40,9 @@ from scipy.optimize import minimize_scalar
 from tqdm import tqdm
 
 from ..atomic import atomic_write_json
-from ..checkpoint import (CHECKPOINTS, STATE_FILE, list_checkpoints, load_tensors, optimizer_file, read_json,
-                          resume_newest, save_checkpoint as save_checkpoint_folder, set_aside, weights_digest)
+from ..checkpoint import (CHECKPOINTS, STATE_FILE, BrokenCheckpoint, list_checkpoints, load_tensors, optimizer_file,
+                          read_json, resume_newest, save_checkpoint as save_checkpoint_folder, set_aside,
+                          weights_digest)
 from ..distributed import set_threads
 from ..errors import from_fields
 from ..schedule import warmup_cosine
@@ -96,8 +98,9 @@ class DetectorTrainConfig:
     model, as it stands when this weight is first given, scores some class with no pixel in view above
     ``hard_negative_threshold`` (:func:`hard_negative_rows`, with the checkpoint's temperature when it is
     calibrated at that step) are drawn ``hard_negative_weight`` times as often as before (on top of
-    ``repeat_threshold``'s weights). The mined rows are kept in the checkpoint folder (``hard_negatives.json``),
-    so a resumed run draws the same batches; 0 disables it."""
+    ``repeat_threshold``'s weights). The mined rows are kept in the checkpoint folder (``hard_negatives.json``,
+    :func:`mined_hard_negatives`), so a resumed run draws the same batches. Given for an existing checkpoint it
+    applies from that checkpoint's step on; 0 keeps the checkpoint's own setting."""
     hard_negative_threshold: float = 0.5
     """Score above which a class with no pixel in view makes a frame a hard negative."""
     threads: int = 1
@@ -193,31 +196,56 @@ HARD_NEGATIVES = "hard_negatives.json"
 
 
 def _frames_id(frames: "FrameSet") -> dict:
-    return {"scenes": list(frames.scenes), "offsets": [int(x) for x in frames.offsets]}
+    """What identifies a training frame set in ``hard_negatives.json``: its scenes, their row ranges, and a digest of
+    its ground truth (so a world rendered anew with the same state counts does not pass for the old one)."""
+    digest = hashlib.sha256()
+    for a in (frames.present, frames.obj_state, frames.obj_category):
+        digest.update(np.ascontiguousarray(a).tobytes())
+    return {"scenes": list(frames.scenes), "offsets": [int(x) for x in frames.offsets],
+            "ground_truth": digest.hexdigest()[:16]}
 
 
 def mined_hard_negatives(ckpt: Path, model: GridDetector, meta: dict, frames: "FrameSet", threshold: float,
-                         batch_size: int = 256, progress: bool = False) -> np.ndarray:
-    """The hard-negative rows of ``frames`` (``(N,)`` bool): read from ``ckpt/hard_negatives.json`` when it was
-    mined on the same frames with the same threshold, else mined with ``model`` now and written there. The
-    model's scores use its temperature when it was calibrated at its current step, else 1."""
+                         start: int, batch_size: int = 256, progress: bool = False) -> np.ndarray:
+    """The hard-negative rows of ``frames`` (``(N,)`` bool) of the hard-negative sampling that began at step
+    ``meta["hard_negatives_step"]``.
+
+    A run that begins it now (no such step in ``meta``) mines the rows with ``model`` (scores at the checkpoint's
+    temperature when it is calibrated at this step, else 1), writes them to ``ckpt/hard_negatives.json`` and
+    records ``start`` in ``meta``. A resumed run reads them back; a record that is missing, damaged, of another
+    step, threshold or frame set raises :class:`BrokenCheckpoint` naming the file, so a resumed run never draws
+    other batches than the uninterrupted one."""
     path = Path(ckpt) / HARD_NEGATIVES
-    if path.exists():
-        rec = read_json(path)
-        if rec.get("threshold") == threshold and {k: rec.get(k) for k in ("scenes", "offsets")} == _frames_id(frames):
-            rows = np.zeros(len(frames), bool)
-            rows[np.asarray(rec["rows"], dtype=np.int64)] = True
-            return rows
+    began = meta.get("hard_negatives_step")
+    if began is not None:
+        rec = read_json(path) if path.exists() else None
+        if rec is None:
+            raise BrokenCheckpoint(f"{path}: missing; the hard-negative sampling of this checkpoint began at step "
+                                   f"{began} and its rows are needed to resume it")
+        ident = _frames_id(frames)
+        if (rec.get("step") != began or rec.get("threshold") != threshold
+                or {k: rec.get(k) for k in ident} != ident):
+            raise BrokenCheckpoint(f"{path}: mined for another step, threshold or frame set than this run's "
+                                   f"(step {rec.get('step')} threshold {rec.get('threshold')} against {began}, "
+                                   f"{threshold})")
+        rows = np.asarray(rec.get("rows", []))
+        if rows.ndim != 1 or (rows.size and (rows.dtype.kind not in "iu" or rows.min() < 0
+                                             or rows.max() >= len(frames))):
+            raise BrokenCheckpoint(f"{path}: its rows are not frame indices below {len(frames)}")
+        hard = np.zeros(len(frames), bool)
+        hard[rows.astype(np.int64)] = True
+        return hard
     t = float(meta.get("temperature", 1.0)) if meta.get("calibrated_step") == meta.get("step") else 1.0
     chunks = []
     for a in tqdm(range(0, len(frames), 4096), desc="mining hard negatives", unit="chunk", disable=not progress):
         logits = predict(model, frames.images[a:a + 4096], batch_size)[0]
         chunks.append(1.0 / (1.0 + np.exp(-logits.astype(np.float64) / t)))
-    rows = hard_negative_rows(np.concatenate(chunks), classes_with_pixels(frames), threshold)
-    _atomic_json(path, {"format": "tsnav-hard-negatives", "step": int(meta.get("step", 0)), "threshold": threshold,
-                        "temperature": t, **_frames_id(frames), "count": int(rows.sum()),
-                        "rows": np.flatnonzero(rows).tolist()})
-    return rows
+    hard = hard_negative_rows(np.concatenate(chunks), classes_with_pixels(frames), threshold)
+    _atomic_json(path, {"format": "tsnav-hard-negatives", "step": int(start), "threshold": threshold,
+                        "temperature": t, **_frames_id(frames), "count": int(hard.sum()),
+                        "rows": np.flatnonzero(hard).tolist()})
+    meta["hard_negatives_step"] = int(start)
+    return hard
 
 
 def batch_plan(step: int, n: int, cfg: DetectorTrainConfig, weights: np.ndarray | None = None
@@ -447,8 +475,8 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     train_cfg = train_cfg or DetectorTrainConfig()
     if not train_cfg.repeat_threshold >= 0:
         raise ValueError(f"repeat_threshold must be >= 0, got {train_cfg.repeat_threshold}")
-    if not train_cfg.hard_negative_weight >= 0:
-        raise ValueError(f"hard_negative_weight must be >= 0, got {train_cfg.hard_negative_weight}")
+    if not (train_cfg.hard_negative_weight >= 0 and math.isfinite(train_cfg.hard_negative_weight)):
+        raise ValueError(f"hard_negative_weight must be a finite number >= 0, got {train_cfg.hard_negative_weight}")
     if not 0 < train_cfg.hard_negative_threshold < 1:
         raise ValueError(f"hard_negative_threshold must be in (0, 1), got {train_cfg.hard_negative_threshold}")
     set_threads(train_cfg.threads)
@@ -461,7 +489,8 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
     weights = repeat_factors(frames.present, train_cfg.repeat_threshold) if train_cfg.repeat_threshold > 0 else None
     if train_cfg.hard_negative_weight > 0:
-        hard = mined_hard_negatives(ckpt, model, meta, frames, train_cfg.hard_negative_threshold, progress=progress)
+        hard = mined_hard_negatives(ckpt, model, meta, frames, train_cfg.hard_negative_threshold, start,
+                                    progress=progress)
         base = np.ones(len(frames)) if weights is None else weights
         weights = base * np.where(hard, train_cfg.hard_negative_weight, 1.0)
         meta["hard_negatives"] = int(hard.sum())
@@ -532,6 +561,7 @@ def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: Dete
             stored.hard_negative_weight, stored.hard_negative_threshold = hard
             meta.setdefault("sampling_changes", []).append({"step": start, "hard_negative_weight": hard[0],
                                                            "hard_negative_threshold": hard[1]})
+            meta.pop("hard_negatives_step", None)  # a new setting mines its rows anew, at this step
         train_cfg = stored
     else:
         if model_cfg is None:
