@@ -12,35 +12,35 @@ protocol": the breakdown of its wrong Dones.)
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
+from tsnav.atomic import atomic_write_json
 from tsnav.constants import DONE, TARGET_CATEGORIES
 from tsnav.data.detections import load_detections
 from tsnav.data.reader import load_scene
+from tsnav.eval.runner import read_trajectories
 
 
 def failed_dones(data: Path, eval_dir: Path, detections: str) -> list[dict]:
-    """One row per switched episode of ``eval_dir`` that ended in a failed Done: target, score, in_view, dist."""
+    """One row per switched episode of ``eval_dir`` (``switch_frame`` >= 0) that ended in a failed Done: target,
+    score, in_view, dist."""
     scenes, rows = {}, []
-    with open(eval_dir / "trajectories.jsonl") as f:
-        for line in f:
-            t = json.loads(line)
-            if t["success"] or not t["actions"] or t["actions"][-1] != DONE or t.get("switch_frame") is None:
-                continue
-            if t["scene"] not in scenes:
-                s = load_scene(data / t["scene"])
-                scenes[t["scene"]] = (s, load_detections(data / t["scene"], detections), s.visible_at_any_range())
-            s, det, seen = scenes[t["scene"]]
-            i, c = s.index(t["keys"][-1]), TARGET_CATEGORIES.index(t["target"])
-            objs = np.flatnonzero(s.object_category == c)
-            vis = seen[i, objs]
-            rows.append({"target": t["target"], "score": float(det.scores[i, c]), "in_view": bool(vis.any()),
-                         "dist": float(s.distance[i, objs][vis].min()) if vis.any() else None})
+    for t in read_trajectories(eval_dir / "trajectories.jsonl"):
+        if t.success or not t.actions or t.actions[-1] != DONE or t.switch_frame < 0:
+            continue
+        if t.scene not in scenes:
+            s = load_scene(data / t.scene)
+            scenes[t.scene] = (s, load_detections(data / t.scene, detections), s.visible_at_any_range())
+        s, det, seen = scenes[t.scene]
+        i, c = s.index(t.keys[-1]), TARGET_CATEGORIES.index(t.target)
+        objs = np.flatnonzero(s.object_category == c)
+        vis = seen[i, objs]
+        rows.append({"target": t.target, "score": float(det.scores[i, c]), "in_view": bool(vis.any()),
+                     "dist": float(s.distance[i, objs][vis].min()) if vis.any() else None})
     return rows
 
 
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
           f"(score there: median {np.median(gone) if gone else float('nan'):.2f})")
     print(" by target:", Counter(r["target"] for r in rows).most_common(8))
     if a.json:
-        a.json.write_text(json.dumps({"n": len(rows), "in_view": len(inv), "rows": rows}))
+        atomic_write_json(a.json, {"n": len(rows), "in_view": len(inv), "rows": rows})
     return 0
 
 
