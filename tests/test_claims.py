@@ -223,3 +223,29 @@ def test_claims_command_two_experiments_and_bad_outputs(tmp_path, capsys):
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and out.read_text() == md
     assert not (tmp_path / "x.txt").exists()
+
+
+def test_claims_command_under_the_other_protocol(tmp_path, capsys):
+    """``--protocol`` reads the same checkpoints' evaluation under the other success protocol (results.json's
+    ``other_protocols``, written by ``tsnav experiment``); an experiment not evaluated there is named in one line."""
+    res = _ablation({"baseline": [_summary(SSR=x) for x in (0.5, 0.52)],
+                     "explore": [_summary(SSR=x) for x in (0.5, 0.51)]})
+    lin = _ablation({"baseline": [_summary(SSR=x) for x in (0.5, 0.52)],
+                     "explore": [_summary(SSR=x) for x in (0.8, 0.82)]})
+    res.update(experiment="ablation", protocol="paper")
+    lin.update(experiment="ablation", protocol="lineage", trained_protocol="paper")
+    d = tmp_path / "abl"
+    d.mkdir()
+    (d / "results.json").write_text(json.dumps({**res, "other_protocols": {"lineage": lin}}))
+    js_paper, js_lin = tmp_path / "paper.json", tmp_path / "lineage.json"
+    assert main(["claims", str(d), "--subset", "ALL", "--json", str(js_paper)]) == 0
+    assert main(["claims", str(d), "--subset", "ALL", "--json", str(js_lin), "--protocol", "lineage"]) == 0
+    assert main(["claims", str(d), "--subset", "ALL", "--protocol", "paper"]) == 0  # its own: the main results
+    capsys.readouterr()
+    paper, lineage = (_by(json.loads(f.read_text()), "exploration", "SSR") for f in (js_paper, js_lin))
+    assert math.isclose(paper["diff"], -0.5) and math.isclose(lineage["diff"], 30.0)
+    # trained under paper and never evaluated under lineage: one line that says how to get it
+    (d / "results.json").write_text(json.dumps(res))
+    assert main(["claims", str(d), "--protocol", "lineage"]) == 2
+    err = capsys.readouterr().err
+    assert "no results under the lineage protocol" in err and len(err.strip().splitlines()) == 1

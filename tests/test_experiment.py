@@ -184,6 +184,7 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     assert (pretrain_dir / "demae" / "encoder.safetensors").exists()
     assert (pretrain_dir / "resnet18-sup" / "encoder.safetensors").exists()
     md = (out / "table.md").read_text()
+    md, other_md = md.split("### The same agents under the `lineage` protocol")
     table, welch_part = md.split("Welch's t-test")
     welch_part, claims_part = welch_part.split("Against the paper's claims")
     assert "**exploration reward raises search success" in claims_part and "| NSNPL | +2.3 |" in claims_part
@@ -199,6 +200,23 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     assert "- detections_learned on" in md and "- detections_oracle on" in md and "reach of 0.7" in md
     rows = list(csv.DictReader(open(out / "table.csv")))
     assert len(rows) == 7 * 2 * len(METRICS)
+    # the same checkpoints under the other protocol: its own episode list, a folder per job, a second table
+    assert json.loads((out / "episodes_test_lineage.json").read_text())["protocol"] == "lineage"
+    for j in json.loads((out / "experiment.json").read_text())["jobs"]:
+        main_eval, other = (json.loads((out / j["dir"] / e / "metrics.json").read_text()) for e in ("eval", "eval_lineage"))
+        assert (other["protocol"], other["trained_protocol"], main_eval["protocol"]) == ("lineage", "paper", "paper")
+        assert (other["run"], other["checkpoint"], other["detections"]) == (main_eval["run"], "best",
+                                                                          main_eval["detections"])
+    lin = json.loads((out / "results.json").read_text())["other_protocols"]["lineage"]
+    assert lin["protocol"] == "lineage" and lin["trained_protocol"] == "paper" and [r["n"] for r in lin["rows"]] == [2] * 7
+    sr = {r["row"]: r["metrics"]["ALL"]["SR"]["values"] for r in lin["rows"]}
+    assert sr["tsrm"] == [
+        100 * json.loads((out / "jobs" / f"tsrm_s{k}" / "eval_lineage" / "metrics.json").read_text())["metrics"]["ALL"]["SR"]
+        for k in (0, 1)]
+    assert "protocol: lineage (agent trained under paper) - Done succeeds" in other_md
+    assert other_md.count("| TSRM + DE-MAE, oracle switch |") == 3 and "under `lineage`:" in other_md  # table, 2 Welch
+    assert "Against the paper's claims under `lineage`" in other_md
+    assert len(list(csv.DictReader(open(out / "table_lineage.csv")))) == 7 * 2 * len(METRICS)
 
     # every job evaluated the checkpoint chosen on the validation episodes (its `best`), and says which
     sel_eps = json.loads((out / "episodes_select.json").read_text())
@@ -219,6 +237,13 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     assert again.calls == [("explore", again.calls[0][1], 0.7, 1)]
     printed = capsys.readouterr().out
     assert "13 finished, 1 to run" in printed and "selecting explore_s1" in printed
+    assert "explore_s1 under the lineage protocol" in printed  # a job run again is evaluated there again
+    # an evaluation under the other protocol that is missing (interrupted, or a folder from before) is made
+    shutil.rmtree(out / "jobs" / "baseline_s1" / "eval_lineage")
+    Experiment(cfg, train_fn=again, scale=TINY).run()
+    printed = capsys.readouterr().out
+    assert "14 finished, 0 to run" in printed and "baseline_s1 under the lineage protocol" in printed
+    assert (out / "jobs" / "baseline_s1" / "eval_lineage" / "metrics.json").exists()
     assert not re.search(r"^ +\S+: SR [0-9.]+, SPL [0-9.]+$", printed, re.M)  # select_checkpoint's score line
     for f in ("DONE", "train/selection.json"):
         (out / "jobs" / "tsrm_s0" / f).unlink()
@@ -367,8 +392,6 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
 
 def test_pretraining_experiment_with_the_real_trainer(tmp_path, exp_world, pretrain_dir):
     """The default trainer (tsnav.rl.train.train_run), two updates per job, two jobs at once in worker processes."""
-    from dataclasses import replace
-
     from tsnav.rl.checkpoint import read_run_config
 
     scale = TINY.override(train=dict(minutes=None, updates=2, num_envs=4, milestone_every=1))

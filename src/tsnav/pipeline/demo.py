@@ -169,7 +169,8 @@ class DemoExperiment(Experiment):
     def train_dir(self, job) -> Path:
         return self.out / "run"
 
-    def eval_dir(self, job) -> Path:
+    def eval_dir(self, job, protocol: str | None = None) -> Path:
+        """The agent's evaluation under the training protocol (the demo evaluates every protocol itself)."""
         return self.out / "eval" / "agent"
 
     @property

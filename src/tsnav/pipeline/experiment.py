@@ -43,13 +43,18 @@ Output folder::
     OUT/experiment.json          resolved configuration, rows, jobs (rewritten at every start)
     OUT/detector/                the learned detector's checkpoints (``--detector-dir``), when trained here
     OUT/detector_quality.json    each detection table measured on the val rooms
-    OUT/episodes_<split>.json    the fixed evaluation episodes
+    OUT/episodes_<split>.json    the fixed evaluation episodes (the experiment's success protocol)
+    OUT/episodes_<split>_<p>.json
+                                 the same rooms' episodes under the other protocol ``p`` (:mod:`tsnav.protocol`)
     OUT/episodes_select.json     validation episodes that choose each job's checkpoint (``--checkpoint best``)
     OUT/jobs/<row>_s<seed>/      train/ (run folder of the trainer; selection.json, best/), eval/ (records.jsonl,
                                  metrics.json, trajectories.jsonl), DONE (summary with the checkpoint used,
-                                 written last)
+                                 written last), eval_<p>/ (the same checkpoint under the other protocol ``p``,
+                                 evaluated once every job is done)
     OUT/results.json, OUT/table.md, OUT/table.csv
-                                 mean and 95 % t-interval over seeds per row, rewritten after every job
+                                 mean and 95 % t-interval over seeds per row, rewritten after every job;
+                                 table.md has a second table per other protocol (results.json
+                                 ``other_protocols``, table_<p>.csv)
     OUT/threshold.png            (threshold) each metric over C_target, best point marked with a red star
 
 Scales: ``demo`` is the scale of ``tsnav demo`` (its one row, TSRM + DE-MAE, in about ten minutes); ``small``
@@ -86,7 +91,7 @@ from ..rl.train import train_run
 from .config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
                                 ScaleConfig, experiment_rows)
 from ..metrics import METRICS, write_json
-from ..protocol import check_protocol, protocol_line
+from ..protocol import PROTOCOLS, check_protocol, protocol_line
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..eval.select import chosen, select_checkpoint
@@ -331,18 +336,32 @@ class Experiment:
         """The job's run folder."""
         return self.out / job.dir / "train"
 
-    def eval_dir(self, job: Job) -> Path:
-        """The job's evaluation folder."""
-        return self.out / job.dir / "eval"
+    def eval_dir(self, job: Job, protocol: str | None = None) -> Path:
+        """The job's evaluation folder under ``protocol`` (default: the experiment's own, ``eval``; another
+        protocol's is ``eval_<protocol>``)."""
+        if protocol is None or protocol == self.cfg.protocol:
+            return self.out / job.dir / "eval"
+        return self.out / job.dir / f"eval_{protocol}"
 
-    def write_tables(self) -> dict:
-        """Aggregate the finished jobs into ``results.json``, ``table.md``, ``table.csv`` (and ``threshold.png``)."""
+    @property
+    def other_protocols(self) -> list[str]:
+        """The success protocols the jobs are evaluated under besides the one they are trained under."""
+        return [p for p in PROTOCOLS if p != self.cfg.protocol]
+
+    def aggregate_protocol(self, protocol: str | None = None) -> dict:
+        """The finished jobs' evaluations under ``protocol`` (default the experiment's), aggregated per row
+        (:func:`~tsnav.report.tables.aggregate`); jobs not yet evaluated under it are left out."""
         per_row: dict[str, list[dict]] = {}
         for j in self.jobs:
-            m = self.eval_dir(j) / "metrics.json"
+            m = self.eval_dir(j, protocol) / "metrics.json"
             if self.done(j) and m.exists():
                 per_row.setdefault(j.row.id, []).append(json.loads(m.read_text())["metrics"])
-        results = aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
+        return aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
+
+    def write_tables(self) -> dict:
+        """Aggregate the finished jobs into ``results.json``, ``table.md``, ``table.csv`` (and ``threshold.png``),
+        with a table per other success protocol (``table_<p>.csv``, ``results.json`` ``other_protocols``)."""
+        results = self.aggregate_protocol()
         results["experiment"] = self.cfg.experiment
         results["detections"] = self.cfg.detections
         results["protocol"] = self.cfg.protocol
@@ -368,6 +387,26 @@ class Experiment:
         if checks:
             text += (f"\nAgainst the paper's claims (`tsnav claims`; verdicts at p < {CLAIMS_ALPHA}):\n\n"
                      + claims_markdown(checks) + f"\n{summary_line(checks)}\n")
+        others = {}
+        for p in self.other_protocols:
+            res = self.aggregate_protocol(p)
+            if not any(r["n"] for r in res["rows"]):
+                continue  # evaluated under the other protocols once every job is done
+            res.update(experiment=self.cfg.experiment, detections=self.cfg.detections, protocol=p,
+                       trained_protocol=self.cfg.protocol, welch=welch_against(res, self.info["baseline_row"]))
+            others[p] = res
+            text += (f"\n### The same agents under the `{p}` protocol\n\nSuccess {protocol_line(p, self.cfg.protocol)}"
+                     f"; the checkpoints chosen under {self.cfg.protocol}.\n\n" + markdown_table(res))
+            if res["welch"]:
+                text += (f"\nDifferences against '{res['welch']['baseline']}' under `{p}`:\n\n" + welch_markdown(res)
+                         + "\n" + welch_markdown(res, "L>=5"))
+            checks = check_claims({self.cfg.experiment: res})
+            if checks:
+                text += (f"\nAgainst the paper's claims under `{p}` (`tsnav claims --protocol {p}`):\n\n"
+                         + claims_markdown(checks) + f"\n{summary_line(checks)}\n")
+            atomic_write_text(self.out / f"table_{p}.csv", csv_table(res))
+        if others:
+            results["other_protocols"] = others
         atomic_write_text(self.out / "table.md", text)
         atomic_write_text(self.out / "table.csv", csv_table(results))
         write_json(self.out / "results.json", results)
@@ -426,8 +465,10 @@ class Experiment:
         for name in self.detection_names:
             self.ensure_detections(name)
         record_quality(self.out, cfg.data, self.detection_names, say=say)
-        ensure_episodes(cfg.data, split, self.episodes_file,
-                        scale.test_per_room_type if split == "test" else scale.val_per_room_type, protocol=cfg.protocol)
+        per_type = scale.test_per_room_type if split == "test" else scale.val_per_room_type
+        ensure_episodes(cfg.data, split, self.episodes_file, per_type, protocol=cfg.protocol)
+        for p in self.other_protocols:
+            ensure_episodes(cfg.data, split, self.episodes_file_of(p), per_type, protocol=p)
         splits = ["train", split]
         if cfg.checkpoint == "best":
             say(f"[{cfg.experiment}] validation episodes for checkpoint selection")
@@ -473,6 +514,13 @@ class Experiment:
     def episodes_file(self) -> Path:
         return self.out / f"episodes_{self.info['split']}.json"
 
+    def episodes_file_of(self, protocol: str) -> Path:
+        """The evaluation episodes under ``protocol``: the experiment's own file, or ``episodes_<split>_<p>.json``
+        (the same rooms, count and seed, drawn under the other protocol's rule)."""
+        if protocol == self.cfg.protocol:
+            return self.episodes_file
+        return self.out / f"episodes_{self.info['split']}_{protocol}.json"
+
     @property
     def select_file(self) -> Path:
         """Validation episodes on which each job's checkpoints are scored (``checkpoint == "best"``)."""
@@ -506,19 +554,46 @@ class Experiment:
         return tc
 
     def run_job(self, job: Job, features: str) -> dict:
-        """Train (resumable) and evaluate one job; writes ``DONE`` last."""
+        """Train (resumable) and evaluate one job; writes ``DONE`` last. Evaluations of an earlier run of the job
+        under the other protocols are removed first (:meth:`evaluate_other_protocols` makes them again)."""
+        for p in self.other_protocols:
+            shutil.rmtree(self.eval_dir(job, p), ignore_errors=True)
         t0 = time.perf_counter()
         self.train_job(job, features)
         checkpoint = self.choose_checkpoint(job)
         t1 = time.perf_counter()
-        summary = evaluate_to_folder(self.eval_dir(job), self.cfg.data, self.episodes_file, run=self.train_dir(job),
-                                     detections=job.row.detections_of(self.cfg.detections),
-                                     c_target=job.row.c_target, seed=job.seed,
-                                     label=f"{job.row.label} (seed {job.seed})", max_steps=self.scale.max_steps,
-                                     sample=self.cfg.sample, checkpoint=checkpoint["kind"])
+        summary = self.evaluate(job, checkpoint["kind"])
         return write_done(self.out / job.dir, {
             "row": job.row.id, "seed": job.seed, "checkpoint": checkpoint, "train_seconds": t1 - t0,
             "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}})
+
+    def evaluate(self, job: Job, checkpoint: str, protocol: str | None = None) -> dict:
+        """Evaluate the job's chosen checkpoint (``best`` / ``latest``) on the evaluation episodes of ``protocol``
+        (default the experiment's) into :meth:`eval_dir`; returns the summary."""
+        p = protocol or self.cfg.protocol
+        return evaluate_to_folder(self.eval_dir(job, p), self.cfg.data, self.episodes_file_of(p),
+                                  run=self.train_dir(job), detections=job.row.detections_of(self.cfg.detections),
+                                  c_target=job.row.c_target, seed=job.seed,
+                                  label=f"{job.row.label} (seed {job.seed})" + ("" if p == self.cfg.protocol else
+                                                                                f" [{p}]"),
+                                  max_steps=self.scale.max_steps, sample=self.cfg.sample, checkpoint=checkpoint,
+                                  protocol=None if p == self.cfg.protocol else p)
+
+    def evaluate_other_protocols(self) -> int:
+        """Evaluate every finished job's checkpoint under the other protocols where that is not done yet (one
+        after another: about a second per thousand episodes); returns how many evaluations ran."""
+        ran = 0
+        for job in self.jobs:
+            done = read_done(self.out / job.dir)
+            if done is None:
+                continue
+            for p in self.other_protocols:
+                if (self.eval_dir(job, p) / "metrics.json").exists():
+                    continue
+                say(f"[{self.cfg.experiment}] {job.row.id}_s{job.seed} under the {p} protocol")
+                self.evaluate(job, done.get("checkpoint", {}).get("kind", self.cfg.checkpoint), p)
+                ran += 1
+        return ran
 
     def run(self) -> dict:
         """Run every unfinished job (one after another, or ``cfg.parallel`` at once); returns ``results.json``'s
@@ -557,6 +632,8 @@ class Experiment:
                           show=partial(report, k, job), writes_done=True)
                      for k, job in enumerate(todo, 1)]
             JobList(steps, chained=False).run()
+        if self.evaluate_other_protocols():
+            say(f"[{self.cfg.experiment}] evaluated under {', '.join(self.other_protocols)} as well")
         return self.write_tables()
 
 

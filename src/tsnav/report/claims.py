@@ -46,6 +46,7 @@ from scipy.stats import t as student
 
 from ..atomic import atomic_save_figure, atomic_write_text
 from ..errors import CommandError, read_json
+from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS
 from .tables import SUBSETS, finite, welch
 
 #: Significance level of the verdicts (two-sided Welch test over the per-seed values).
@@ -320,10 +321,27 @@ def load_results(exp_dir: str | Path) -> dict:
     return res
 
 
+def results_under(res: dict, protocol: str | None, exp_dir: str | Path = "") -> dict:
+    """An experiment's results under ``protocol`` (None: its own): the main results when it trained under that
+    protocol, else the evaluation of the same checkpoints under it (``other_protocols``); one-line error when the
+    experiment was not evaluated under it."""
+    own = res.get("protocol", DEFAULT_PROTOCOL)
+    if protocol is None or protocol == own:
+        return res
+    other = res.get("other_protocols", {}).get(protocol)
+    if not isinstance(other, dict) or not isinstance(other.get("rows"), list):
+        raise CommandError(f"{exp_dir}: no results under the {protocol} protocol (trained under {own}; running "
+                           f"`tsnav experiment` again on this folder evaluates its finished jobs under {protocol})")
+    return other
+
+
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("experiments", nargs="+", metavar="EXP_DIR",
                    help="experiment folders (`tsnav experiment ... --out EXP_DIR`) holding results.json")
     p.add_argument("--subset", choices=(*SUBSETS, "both"), default="both", help="episode subset(s) to check")
+    p.add_argument("--protocol", choices=PROTOCOLS, default=None,
+                   help="success protocol whose results to check (default: each experiment's own, the one it trained "
+                        "under; the other is read from results.json's other_protocols)")
     p.add_argument("--out", help="also write the table (Markdown) to this file")
     p.add_argument("--json", dest="json_out", help="also write the checks as JSON to this file")
     p.add_argument("--plot", help="also draw the checks of the first subset (ALL unless --subset L>=5) as a forest plot "
@@ -338,7 +356,7 @@ def run(args) -> int:
         raise CommandError(f"{args.plot}: the plot is written as .png, .pdf or .svg")
     results: dict[str, dict] = {}
     for d in args.experiments:
-        res = load_results(d)
+        res = results_under(load_results(d), getattr(args, "protocol", None), d)
         if res["experiment"] in results:
             raise CommandError(f"{d}: a second '{res['experiment']}' experiment (give one folder per experiment)")
         results[res["experiment"]] = res
