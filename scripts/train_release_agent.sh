@@ -40,8 +40,11 @@ F=$(cat "$W/features.txt")
 #    updates scored greedily on 400 val episodes; the best is RUN/best
 "$T" convergence --data "$W/real128" --features "$F" --detections learned4 --out "$W/conv" --updates 4000 \
   --chunk 250 --patience 6 --num-envs 256 --preset cpu --lr 1e-3 --seed 1 --val-per-room-type 100 --protocol lineage
-# 5. pack (policy, float16 encoder, model card) and write the val and test figures into the card
-"$T" release pack --run "$W/conv/run" --encoder-run "$W/pre/demae-p16" --card "$HERE/scripts/release_card.json" \
-  --out "$HERE/src/tsnav/agent/weights/$NAME"
-"$T" release eval --agent "$NAME" --split val --data "$W/real128" --out "$W/release_val" --update-card
-"$T" release eval --agent "$NAME" --split test --data "$W/real128" --out "$W/release_test" --update-card
+# 5. pack (policy, float16 encoder, model card; skipped when the folder exists, as the shipped one does: pass another
+#    NAME to pack a new agent beside it) and write the val and test figures into the card
+if [ ! -e "$HERE/src/tsnav/agent/weights/$NAME" ]; then
+  "$T" release pack --run "$W/conv/run" --encoder-run "$W/pre/demae-p16" --card "$HERE/scripts/release_card.json" \
+    --out "$HERE/src/tsnav/agent/weights/$NAME"
+fi
+"$T" release eval --agent "$NAME" --split val --data "$W/real128" --out "$W/release_val" --update-card --threads 1
+"$T" release eval --agent "$NAME" --split test --data "$W/real128" --out "$W/release_test" --update-card --threads 1

@@ -240,10 +240,18 @@ def test_claims_command_under_the_other_protocol(tmp_path, capsys):
     js_paper, js_lin = tmp_path / "paper.json", tmp_path / "lineage.json"
     assert main(["claims", str(d), "--subset", "ALL", "--json", str(js_paper)]) == 0
     assert main(["claims", str(d), "--subset", "ALL", "--json", str(js_lin), "--protocol", "lineage"]) == 0
-    assert main(["claims", str(d), "--subset", "ALL", "--protocol", "paper"]) == 0  # its own: the main results
+    js_own = tmp_path / "own.json"
+    assert main(["claims", str(d), "--subset", "ALL", "--json", str(js_own), "--protocol", "paper"]) == 0
     capsys.readouterr()
-    paper, lineage = (_by(json.loads(f.read_text()), "exploration", "SSR") for f in (js_paper, js_lin))
-    assert math.isclose(paper["diff"], -0.5) and math.isclose(lineage["diff"], 30.0)
+    paper, lineage, own = (_by(json.loads(f.read_text()), "exploration", "SSR") for f in (js_paper, js_lin, js_own))
+    assert math.isclose(paper["diff"], -0.5) and math.isclose(lineage["diff"], 30.0) and own == paper
+    # a damaged second table is refused in one line too
+    (d / "results.json").write_text(json.dumps({**res, "other_protocols": {"lineage": {"rows": [{"row": 1}]}}}))
+    assert main(["claims", str(d), "--protocol", "lineage"]) == 2
+    assert "no results under the lineage protocol" in capsys.readouterr().err
+    (d / "results.json").write_text(json.dumps({**res, "other_protocols": None}))
+    assert main(["claims", str(d), "--protocol", "lineage"]) == 2
+    assert "no results under the lineage protocol" in capsys.readouterr().err
     # trained under paper and never evaluated under lineage: one line that says how to get it
     (d / "results.json").write_text(json.dumps(res))
     assert main(["claims", str(d), "--protocol", "lineage"]) == 2

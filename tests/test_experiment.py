@@ -150,7 +150,7 @@ def test_welch_against_the_baseline():
     assert welch_against(res, "nosuch") == {} and welch_markdown({"welch": {}}) == ""
 
 
-def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, capsys):
+def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, capsys, monkeypatch):
     out = tmp_path / "ablation"
     cfg = ExperimentConfig(experiment="ablation", data=str(exp_world), out=str(out), scale="small", seeds=2,
                            device="cpu", pretrain_dir=str(pretrain_dir))
@@ -244,6 +244,29 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     printed = capsys.readouterr().out
     assert "14 finished, 0 to run" in printed and "baseline_s1 under the lineage protocol" in printed
     assert (out / "jobs" / "baseline_s1" / "eval_lineage" / "metrics.json").exists()
+    # a job that cannot be evaluated there is named, left out of the second table (which says so), and the main
+    # table is written all the same
+    shutil.rmtree(out / "jobs" / "baseline_s1" / "eval_lineage")
+    real_evaluate = Experiment.evaluate
+
+    def failing(self, job, checkpoint, protocol=None):
+        if protocol == "lineage" and job.row.id == "baseline" and job.seed == 1:
+            raise ValueError("cannot load this run")
+        return real_evaluate(self, job, checkpoint, protocol)
+
+    monkeypatch.setattr(Experiment, "evaluate", failing)
+    (out / "table.md").unlink()
+    Experiment(cfg, train_fn=again, scale=TINY).run()
+    monkeypatch.undo()
+    assert "baseline_s1 not evaluated under lineage: cannot load this run" in capsys.readouterr().out
+    md_again = (out / "table.md").read_text()
+    assert ("Not every finished job is evaluated under `lineage` yet (fewer seeds than above): baseline (ResNet18, "
+            "baseline reward).") in md_again
+    lin = json.loads((out / "results.json").read_text())["other_protocols"]["lineage"]
+    assert lin["incomplete_rows"] == ["baseline (ResNet18, baseline reward)"] and lin["rows"][0]["n"] == 1
+    assert [r["n"] for r in json.loads((out / "results.json").read_text())["rows"]] == [2] * 7
+    Experiment(cfg, train_fn=again, scale=TINY).run()  # evaluated there on the next run
+    assert "incomplete_rows" not in json.loads((out / "results.json").read_text())["other_protocols"]["lineage"]
     assert not re.search(r"^ +\S+: SR [0-9.]+, SPL [0-9.]+$", printed, re.M)  # select_checkpoint's score line
     for f in ("DONE", "train/selection.json"):
         (out / "jobs" / "tsrm_s0" / f).unlink()

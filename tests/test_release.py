@@ -116,6 +116,23 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     assert card["figures"]["test"]["rows"] == again["rows"]
     sr = 100 * again["rows"][0]["metrics"]["ALL"]["SR"]
     assert f"| paper | agent | ALL | {sr:.2f} |" in (packed["out"] / "card.md").read_text()
+    # an agent of another rules version never reuses these rooms, nor a list drawn on another world: one line each
+    from tsnav.errors import CommandError
+
+    with pytest.raises(CommandError, match=r"another ithor-real rules version than this agent's \(version 2\)"):
+        release.ensure_test_world(world, {**card, "world_version": 2}, 1)
+    with pytest.raises(CommandError, match="was drawn on .* not on .*elsewhere"):
+        release.release_episodes(packed["root"] / "elsewhere", ev, "paper")
+    assert release.release_episodes(world, ev, "paper") == ev / "episodes_test_paper.json"
+
+
+def test_release_folders_by_version_agent_and_split():
+    from pathlib import Path
+
+    assert release.release_folders({"world_version": 2}, "a", "test") == (
+        Path("out/release/world-v2"), Path("out/release/eval/a/test"))
+    assert release.release_folders({}, "a", "val") == (Path("out/release/world-v1"), Path("out/release/eval/a/val"))
+    assert release.release_folders({"world_version": 2}, "a", "test", "W", "E") == (Path("W"), Path("E"))
 
 
 def test_one_line_errors(packed, tmp_path, capsys):

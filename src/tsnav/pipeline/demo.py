@@ -170,8 +170,15 @@ class DemoExperiment(Experiment):
         return self.out / "run"
 
     def eval_dir(self, job, protocol: str | None = None) -> Path:
-        """The agent's evaluation under the training protocol (the demo evaluates every protocol itself)."""
-        return self.out / "eval" / "agent"
+        """The agent's evaluation folder under ``protocol``, named as :meth:`Demo.folder` names it (``eval/agent``
+        for the paper protocol; None: that one, as before protocols)."""
+        p = protocol or DEFAULT_PROTOCOL
+        return self.out / "eval" / ("agent" if p == DEFAULT_PROTOCOL else f"agent_{p}")
+
+    @property
+    def other_protocols(self) -> list[str]:
+        """None: the demo evaluates every policy under every protocol itself (its evaluate step)."""
+        return []
 
     @property
     def select_file(self) -> Path:

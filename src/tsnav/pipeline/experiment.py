@@ -391,12 +391,18 @@ class Experiment:
         for p in self.other_protocols:
             res = self.aggregate_protocol(p)
             if not any(r["n"] for r in res["rows"]):
+                (self.out / f"table_{p}.csv").unlink(missing_ok=True)  # not one job evaluated there (yet)
                 continue  # evaluated under the other protocols once every job is done
             res.update(experiment=self.cfg.experiment, detections=self.cfg.detections, protocol=p,
                        trained_protocol=self.cfg.protocol, welch=welch_against(res, self.info["baseline_row"]))
             others[p] = res
             text += (f"\n### The same agents under the `{p}` protocol\n\nSuccess {protocol_line(p, self.cfg.protocol)}"
                      f"; the checkpoints chosen under {self.cfg.protocol}.\n\n" + markdown_table(res))
+            short = [r["label"] for r, m in zip(res["rows"], results["rows"]) if r["n"] < m["n"]]
+            if short:
+                res["incomplete_rows"] = short
+                text += (f"\nNot every finished job is evaluated under `{p}` yet (fewer seeds than above): "
+                         + ", ".join(short) + ".\n")
             if res["welch"]:
                 text += (f"\nDifferences against '{res['welch']['baseline']}' under `{p}`:\n\n" + welch_markdown(res)
                          + "\n" + welch_markdown(res, "L>=5"))
@@ -581,7 +587,9 @@ class Experiment:
 
     def evaluate_other_protocols(self) -> int:
         """Evaluate every finished job's checkpoint under the other protocols where that is not done yet (one
-        after another: about a second per thousand episodes); returns how many evaluations ran."""
+        after another; each loads the job's rooms again, seconds to a minute); returns how many evaluations ran.
+        A job that cannot be evaluated (e.g. a folder from an older tsnav whose run no longer loads) is named in
+        one line and left out of the second table; the main table is written either way."""
         ran = 0
         for job in self.jobs:
             done = read_done(self.out / job.dir)
@@ -591,7 +599,11 @@ class Experiment:
                 if (self.eval_dir(job, p) / "metrics.json").exists():
                     continue
                 say(f"[{self.cfg.experiment}] {job.row.id}_s{job.seed} under the {p} protocol")
-                self.evaluate(job, done.get("checkpoint", {}).get("kind", self.cfg.checkpoint), p)
+                try:
+                    self.evaluate(job, done.get("checkpoint", {}).get("kind", self.cfg.checkpoint), p)
+                except (CommandError, ValueError, OSError, KeyError) as e:
+                    say(f"[{self.cfg.experiment}] {job.row.id}_s{job.seed} not evaluated under {p}: {e}")
+                    continue
                 ran += 1
         return ran
 

@@ -190,7 +190,14 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
     cfg = BuildConfig.from_preset(world, image_size=int(card.get("image_size", 128)),
                                   world_version=card.get("world_version"))
     t0 = time.perf_counter()
-    stats = build_dataset(data, preset=world, scenes=names, cfg=cfg, workers=workers)
+    try:
+        stats = build_dataset(data, preset=world, scenes=names, cfg=cfg, workers=workers)
+    except ValueError as e:
+        if "version" not in str(e):
+            raise
+        raise CommandError(f"{data} holds rooms of another {world} rules version than this agent's (version "
+                           f"{card.get('world_version')}): pass --data and --out with new folders, or remove "
+                           f"{data}") from None
     built = sum(not s.skipped for s in stats)
     if built:
         say(f"world: built {built} of {len(names)} test rooms in {time.perf_counter() - t0:.0f} s")
@@ -239,8 +246,16 @@ def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") 
     """The episode list of ``split`` drawn under ``protocol`` (:data:`SPLIT_EPISODES`), made once."""
     from .steps import ensure_episodes
 
+    from ..sim.episodes import read_episodes
+
     per, seed = SPLIT_EPISODES[split]
-    return ensure_episodes(data, split, out / f"episodes_{split}_{protocol}.json", per, seed=seed, protocol=protocol)
+    path = out / f"episodes_{split}_{protocol}.json"
+    if path.exists():  # a list drawn on another world is never reused (its starts belong to other rooms)
+        drawn_on = read_episodes(path)[1].get("data")
+        if drawn_on and Path(drawn_on) != Path(data).resolve():
+            raise CommandError(f"{path} was drawn on {drawn_on}, not on {Path(data).resolve()}: pass another --out "
+                               f"(or remove {out})")
+    return ensure_episodes(data, split, path, per, seed=seed, protocol=protocol)
 
 
 def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], baselines: bool = True,
@@ -288,10 +303,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     ev = sub.add_parser("eval", help="evaluate a shipped agent on the real test rooms (builds what it needs)")
     ev.add_argument("--agent", default=None, help="shipped agent name or folder (default: the default one; "
                                                   "`tsnav release list`)")
-    ev.add_argument("--data", default="out/release/world", help="world folder for the test rooms "
-                                                                 "(default out/release/world; reused)")
-    ev.add_argument("--out", default="out/release/eval", help="evaluation folders and results.json "
-                                                               "(default out/release/eval)")
+    ev.add_argument("--data", default=None, help="world folder for the rooms (default out/release/world-vN, N the "
+                                                  "rules version of the agent's card; reused)")
+    ev.add_argument("--out", default=None, help="evaluation folders, episode lists and results.json (default "
+                                                 "out/release/eval/AGENT/SPLIT)")
     ev.add_argument("--protocol", default="both", choices=("both", *PROTOCOLS),
                     help="success protocol(s) to evaluate under (default both)")
     ev.add_argument("--no-baselines", action="store_true", help="only the agent (no explorer / random rows)")
@@ -332,7 +347,7 @@ def run(args: argparse.Namespace) -> int:
     folder = agent_folder(args.agent)
     card = read_card(folder)
     set_threads(args.threads)
-    data, out = Path(args.data), Path(args.out)
+    data, out = release_folders(card, folder.name, args.split, args.data, args.out)
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
     t0 = time.perf_counter()
     times = {}
@@ -363,6 +378,15 @@ def run(args: argparse.Namespace) -> int:
     print(format_rows(rows))
     print(f"wrote {out / 'results.json'}")
     return 0
+
+
+def release_folders(card: dict, agent: str, split: str, data: str | None = None, out: str | None = None
+                    ) -> tuple[Path, Path]:
+    """The world and evaluation folders of ``tsnav release eval``: given ones, else ``out/release/world-vN`` (the
+    card's rules version, so that agents of different versions never share rooms) and
+    ``out/release/eval/AGENT/SPLIT`` (so that agents and splits never share episode lists or results)."""
+    world = Path(data) if data else Path("out/release") / f"world-v{int(card.get('world_version') or 1)}"
+    return world, Path(out) if out else Path("out/release/eval") / agent / split
 
 
 def ensure_names(data: Path, split: str = "test") -> list[str]:

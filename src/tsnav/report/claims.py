@@ -328,8 +328,10 @@ def results_under(res: dict, protocol: str | None, exp_dir: str | Path = "") -> 
     own = res.get("protocol", DEFAULT_PROTOCOL)
     if protocol is None or protocol == own:
         return res
-    other = res.get("other_protocols", {}).get(protocol)
-    if not isinstance(other, dict) or not isinstance(other.get("rows"), list):
+    others = res.get("other_protocols")
+    other = others.get(protocol) if isinstance(others, dict) else None
+    if not isinstance(other, dict) or not isinstance(other.get("rows"), list) or not all(
+            isinstance(r, dict) and "row" in r and isinstance(r.get("metrics"), dict) for r in other["rows"]):
         raise CommandError(f"{exp_dir}: no results under the {protocol} protocol (trained under {own}; running "
                            f"`tsnav experiment` again on this folder evaluates its finished jobs under {protocol})")
     return other
