@@ -304,6 +304,8 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
 
     html = build_report(out, gallery=2).read_text()
     assert "Experiment: ablation" in html and "14 of 14 jobs finished" in html and "&#10003;" in html
+    other_html = html.split("The same agents under the lineage protocol")[1].split("</table>")[0]
+    assert "protocol: lineage (agent trained under paper)" in other_html and other_html.count("<tr>") == 2 + 7
     assert "TSRM + DE-MAE, oracle switch" in html and "detections_learned on" in html
     assert "Against the paper's claims" in html and "exploration reward raises search success" in html
     assert "alt='claims'" in html

@@ -39,6 +39,7 @@ from ..rl.logger import read_log
 from .gallery import write_gallery
 from ..metrics import METRICS, format_table
 from ..eval.runner import eval_trajectories
+from ..protocol import protocol_line
 from .claims import ALPHA, check_claims, claims_html, plot_claims, summary_line
 from .tables import quality_line
 
@@ -470,6 +471,15 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> t
                      "seed), in percent. Files: " + ", ".join(
                          f"<code>{_e(f)}</code>" for f in ("table.md", "table.csv", "results.json") if (d / f).exists())
                      + ".</p>")
+    for p, other in (results.get("other_protocols") or {}).items():
+        if not isinstance(other, dict) or not other.get("rows"):
+            continue
+        short = other.get("incomplete_rows") or []
+        parts.append(f"<h3>The same agents under the {_e(p)} protocol</h3><p class='meta'>"
+                     f"{_e(protocol_line(p, other.get('trained_protocol')))}; the checkpoints chosen under "
+                     f"{_e(other.get('trained_protocol', '?'))}"
+                     + (f". Fewer seeds than above: {_e(', '.join(short))}" if short else "") + ".</p>"
+                     + experiment_table_html(other))
     checks = check_claims({name: results}) if results.get("rows") else []
     if checks:
         parts.append("<h3>Against the paper's claims</h3><p class='note'>Per claim of the paper, our difference "
