@@ -25,12 +25,13 @@ import numpy as np
 
 
 def noisy_table(scene_dir: str, sigma: float, seed: int, shipped: str, name: str) -> str:
+    from dataclasses import replace
+
     from tsnav.distributed import set_threads
 
     set_threads(1)
-    from tsnav.data.detections import Detections, detections_path, write_detections
+    from tsnav.data.detections import detections_path, write_detections
     from tsnav.data.reader import load_scene
-    from tsnav.detect.data import read_images
     from tsnav.detect.shipped import shipped_detector
 
     scene = load_scene(scene_dir)
@@ -39,16 +40,14 @@ def noisy_table(scene_dir: str, sigma: float, seed: int, shipped: str, name: str
     det = shipped_detector(scene.image_size, shipped)
     digest = hashlib.sha256(f"{seed}:{scene.name}".encode()).digest()
     rng = np.random.default_rng(int.from_bytes(digest[:8], "little"))
-    parts = []
-    for a in range(0, scene.num_states, 1024):
-        img = read_images(scene.path, scene.keys[a:a + 1024]).astype(np.float32)
-        img += rng.normal(0.0, sigma, img.shape).astype(np.float32)
-        parts.append(det.detect_images(np.clip(np.rint(img), 0, 255).astype(np.uint8), 256))
-    sc, lb, bx, ft = (np.concatenate([p[i] for p in parts]) for i in range(4))
-    cfg = dict(det.config(), frame_noise={"sigma": sigma, "seed": seed, "kind": "gaussian, per pixel and channel"})
-    write_detections(scene_dir, name, Detections(keys=scene.keys, scores=sc, labels=lb, boxes=bx, features=ft,
-                                                  detector="learned", config=cfg, fingerprint=det.fingerprint,
-                                                  image_size=det.image_size))
+
+    def noisy(img: np.ndarray) -> np.ndarray:
+        x = img.astype(np.float32) + rng.normal(0.0, sigma, img.shape).astype(np.float32)
+        return np.clip(np.rint(x), 0, 255).astype(np.uint8)
+
+    table = det.detect_scene(scene, chunk=1024, transform=noisy)
+    cfg = dict(table.config, frame_noise={"sigma": sigma, "seed": seed, "kind": "gaussian, per pixel and channel"})
+    write_detections(scene_dir, name, replace(table, config=cfg))
     return f"{scene.name}: written"
 
 

@@ -66,8 +66,11 @@ class LearnedDetector:
         boxes = np.where(keep[..., None], boxes, -1.0).astype(np.float32)
         return scores.astype(np.float32), labels, boxes, feats
 
-    def detect_scene(self, scene: Scene, batch_size: int = 256, chunk: int = 2048, bar=None) -> Detections:
-        """The detection table of every state of ``scene`` (frames read ``chunk`` at a time)."""
+    def detect_scene(self, scene: Scene, batch_size: int = 256, chunk: int = 2048, bar=None,
+                     transform=None) -> Detections:
+        """The detection table of every state of ``scene`` (frames read ``chunk`` at a time). ``transform``, when
+        given, maps each chunk of uint8 frames ``(n, H, W, 3)`` to the frames the detector sees (the same shape and
+        dtype; e.g. ``scripts/noisy_tables.py``'s pixel noise), called once per chunk in state order."""
         if scene.image_size != self.image_size:
             raise ValueError(f"scene {scene.name} has {scene.image_size}px frames; the detector takes "
                              f"{self.image_size}px")
@@ -78,6 +81,8 @@ class LearnedDetector:
         feats = np.empty((S, NUM_CATEGORIES, self.model.cfg.dim), np.float16)
         for a in range(0, S, chunk):
             img = read_images(scene.path, scene.keys[a:a + chunk])
+            if transform is not None:
+                img = transform(img)
             sc, lb, bx, ft = self.detect_images(img, batch_size)
             n = len(img)
             scores[a:a + n], labels[a:a + n], boxes[a:a + n], feats[a:a + n] = sc, lb, bx, ft

@@ -358,6 +358,20 @@ class Experiment:
                 per_row.setdefault(j.row.id, []).append(json.loads(m.read_text())["metrics"])
         return aggregate(self.rows, per_row, self.info["metrics"], self.info["flags"])
 
+    def other_protocol_results(self, protocol: str, results: dict) -> dict | None:
+        """The finished jobs under ``protocol`` (not the experiment's own) aggregated as ``results.json`` holds them
+        in ``other_protocols``, with the rows that have fewer seeds than in ``results`` (the experiment's own table)
+        as ``incomplete_rows``; None before any job is evaluated there."""
+        res = self.aggregate_protocol(protocol)
+        if not any(r["n"] for r in res["rows"]):
+            return None
+        res.update(experiment=self.cfg.experiment, detections=self.cfg.detections, protocol=protocol,
+                   trained_protocol=self.cfg.protocol, welch=welch_against(res, self.info["baseline_row"]))
+        short = [r["label"] for r, m in zip(res["rows"], results["rows"]) if r["n"] < m["n"]]
+        if short:
+            res["incomplete_rows"] = short
+        return res
+
     def write_tables(self) -> dict:
         """Aggregate the finished jobs into ``results.json``, ``table.md``, ``table.csv`` (and ``threshold.png``),
         with a table per other success protocol (``table_<p>.csv``, ``results.json`` ``other_protocols``)."""
@@ -378,38 +392,28 @@ class Experiment:
                 + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
                 + ".\n" + "".join(f"\n- {quality_line(q)}" for q in quality.values()) + ("\n" if quality else ""))
         if results["welch"]:
-            text += (f"\nDifferences against '{results['welch']['baseline']}' in percentage points, Welch's t-test "
-                     "p-value over the per-seed values:\n\n" + welch_markdown(results) + "\n"
-                     + welch_markdown(results, "L>=5"))
+            text += welch_text(results, f"Differences against '{results['welch']['baseline']}' in percentage points, "
+                                        "Welch's t-test p-value over the per-seed values")
         if dips["jobs"]:
             text += "\n" + dips_line(dips) + "\n"
-        checks = check_claims({self.cfg.experiment: results})
-        if checks:
-            text += (f"\nAgainst the paper's claims (`tsnav claims`; verdicts at p < {CLAIMS_ALPHA}):\n\n"
-                     + claims_markdown(checks) + f"\n{summary_line(checks)}\n")
+        text += claims_text(self.cfg.experiment, results,
+                            f"Against the paper's claims (`tsnav claims`; verdicts at p < {CLAIMS_ALPHA})")
         others = {}
         for p in self.other_protocols:
-            res = self.aggregate_protocol(p)
-            if not any(r["n"] for r in res["rows"]):
+            res = self.other_protocol_results(p, results)
+            if res is None:
                 (self.out / f"table_{p}.csv").unlink(missing_ok=True)  # not one job evaluated there (yet)
-                continue  # evaluated under the other protocols once every job is done
-            res.update(experiment=self.cfg.experiment, detections=self.cfg.detections, protocol=p,
-                       trained_protocol=self.cfg.protocol, welch=welch_against(res, self.info["baseline_row"]))
+                continue
             others[p] = res
             text += (f"\n### The same agents under the `{p}` protocol\n\nSuccess {protocol_line(p, self.cfg.protocol)}"
                      f"; the checkpoints chosen under {self.cfg.protocol}.\n\n" + markdown_table(res))
-            short = [r["label"] for r, m in zip(res["rows"], results["rows"]) if r["n"] < m["n"]]
-            if short:
-                res["incomplete_rows"] = short
+            if res.get("incomplete_rows"):
                 text += (f"\nNot every finished job is evaluated under `{p}` yet (fewer seeds than above): "
-                         + ", ".join(short) + ".\n")
+                         + ", ".join(res["incomplete_rows"]) + ".\n")
             if res["welch"]:
-                text += (f"\nDifferences against '{res['welch']['baseline']}' under `{p}`:\n\n" + welch_markdown(res)
-                         + "\n" + welch_markdown(res, "L>=5"))
-            checks = check_claims({self.cfg.experiment: res})
-            if checks:
-                text += (f"\nAgainst the paper's claims under `{p}` (`tsnav claims --protocol {p}`):\n\n"
-                         + claims_markdown(checks) + f"\n{summary_line(checks)}\n")
+                text += welch_text(res, f"Differences against '{res['welch']['baseline']}' under `{p}`")
+            text += claims_text(self.cfg.experiment, res,
+                                f"Against the paper's claims under `{p}` (`tsnav claims --protocol {p}`)")
             atomic_write_text(self.out / f"table_{p}.csv", csv_table(res))
         if others:
             results["other_protocols"] = others
@@ -647,6 +651,20 @@ class Experiment:
         if self.evaluate_other_protocols():
             say(f"[{self.cfg.experiment}] evaluated under {', '.join(self.other_protocols)} as well")
         return self.write_tables()
+
+
+def welch_text(results: dict, intro: str) -> str:
+    """``table.md``'s differences from the baseline row (ALL and L>=5) under a heading line ``intro``."""
+    return f"\n{intro}:\n\n" + welch_markdown(results) + "\n" + welch_markdown(results, "L>=5")
+
+
+def claims_text(experiment: str, results: dict, intro: str) -> str:
+    """``table.md``'s check of the paper's claims on ``results`` under a heading line ``intro`` ('' when no claim
+    concerns the experiment)."""
+    checks = check_claims({experiment: results})
+    if not checks:
+        return ""
+    return f"\n{intro}:\n\n" + claims_markdown(checks) + f"\n{summary_line(checks)}\n"
 
 
 def copy_run(src: Path, dst: Path) -> None:

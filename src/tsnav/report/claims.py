@@ -315,10 +315,17 @@ def load_results(exp_dir: str | Path) -> dict:
     res = read_json(path)
     if not isinstance(res, dict) or not isinstance(res.get("rows"), list) or "experiment" not in res:
         raise CommandError(f"{path}: not an experiment's results (no 'rows' / 'experiment')")
-    for r in res["rows"]:
-        if not isinstance(r, dict) or "row" not in r or not isinstance(r.get("metrics"), dict):
-            raise CommandError(f"{path}: a row without 'row' / 'metrics' ({str(r)[:60]})")
+    bad = _bad_row(res["rows"])
+    if bad is not None:
+        raise CommandError(f"{path}: a row without 'row' / 'metrics' ({str(res['rows'][bad])[:60]})")
     return res
+
+
+def _bad_row(rows: list) -> int | None:
+    """The index of the first entry of a results table's ``rows`` that is not a row (a dict with 'row' and
+    'metrics'), else None."""
+    return next((i for i, r in enumerate(rows)
+                 if not isinstance(r, dict) or "row" not in r or not isinstance(r.get("metrics"), dict)), None)
 
 
 def results_under(res: dict, protocol: str | None, exp_dir: str | Path = "") -> dict:
@@ -330,8 +337,7 @@ def results_under(res: dict, protocol: str | None, exp_dir: str | Path = "") -> 
         return res
     others = res.get("other_protocols")
     other = others.get(protocol) if isinstance(others, dict) else None
-    if not isinstance(other, dict) or not isinstance(other.get("rows"), list) or not all(
-            isinstance(r, dict) and "row" in r and isinstance(r.get("metrics"), dict) for r in other["rows"]):
+    if not isinstance(other, dict) or not isinstance(other.get("rows"), list) or _bad_row(other["rows"]) is not None:
         raise CommandError(f"{exp_dir}: no results under the {protocol} protocol (trained under {own}; running "
                            f"`tsnav experiment` again on this folder evaluates its finished jobs under {protocol})")
     return other
