@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from tsnav.agent import (NO_ACTION, ActorCritic, AgentObs, DetectionTable, MemoryState, Observer,
+from tsnav.agent import (NO_ACTION, ActorCritic, AgentObs, AgentState, DetectionTable, MemoryState, Observer,
                          TargetMemoryAggregator, agent_config, relative_pose, roi_pool)
+from tsnav.agent.model import BLOCKED_MOVE
 from tsnav.detect.oracle import oracle_detections
 from tsnav.sim.batch import SceneBank
 
@@ -139,6 +140,46 @@ def test_model_shapes_init_and_dropout():
     assert model.dropout.p == 0.45 and agent_config().dropout == 0.45
     with pytest.raises(ValueError, match="dropout"):
         agent_config("cpu", dropout=1.5)
+
+
+def test_blocked_move_has_its_own_previous_action_id():
+    """AgentConfig.blocked_action (a deviation, off by default): a MoveAhead after which the position (x, z) is the
+    one it was taken from is BLOCKED_MOVE; a MoveAhead that moved, a rotation in place, an episode start and rows
+    of a reset keep their ids; the flag off leaves the paper's input (and its embedding size) as it was."""
+    torch.manual_seed(0)
+    plain = ActorCritic(agent_config("cpu"), (8, 2, 2), det_dim=8)
+    model = ActorCritic(agent_config("cpu", blocked_action=True), (8, 2, 2), det_dim=8).eval()
+    assert plain.action_embed.num_embeddings == NO_ACTION + 1 and model.action_embed.num_embeddings == NO_ACTION + 2
+    assert plain.initial_state(2).prev_position is None
+    b = 5
+    obs = _obs(b, seed=1)
+    state = model.initial_state(b)
+    assert model.previous_action_ids(obs, state).tolist() == [NO_ACTION] * b  # nothing blocked at a start
+    with torch.no_grad():
+        _, _, state = model(obs, state)
+    torch.testing.assert_close(state.prev_position, obs.pose[:, :2])
+    state = state.with_action(torch.tensor([0, 0, 1, 0, 0]))  # MoveAhead, MoveAhead, RotateLeft, MoveAhead x2
+    nxt = _obs(b, seed=2)
+    pose = obs.pose.clone()
+    pose[1, 0] += 0.25  # row 1 moved along x
+    pose[3, 1] -= 0.25  # row 3 moved along z
+    pose[:, 2] += 45.0  # headings do not matter
+    nxt.pose = pose
+    state = state.reset(np.array([False, False, False, False, True]))  # row 4 starts a new episode
+    assert model.previous_action_ids(nxt, state).tolist() == [BLOCKED_MOVE, 0, 1, 0, NO_ACTION]
+    # the reference: one row at a time, by the rule's words
+    want = [BLOCKED_MOVE if int(state.prev_action[i]) == 0 and bool((nxt.pose[i, :2] == state.prev_position[i]).all())
+            else int(state.prev_action[i]) for i in range(b)]
+    assert model.previous_action_ids(nxt, state).tolist() == want
+    # the id reaches the network: the blocked row differs from the same row taken as moved, the others do not
+    moved = AgentState(state.h, state.c, state.memory, state.prev_action, state.prev_position + 1.0)
+    with torch.no_grad():
+        la, _, _ = model(nxt, state)
+        lc, _, _ = model(nxt, moved)
+    assert not torch.allclose(la[0], lc[0]) and torch.allclose(la[1:], lc[1:])
+    assert plain.previous_action_ids(nxt, plain.initial_state(b)).tolist() == [NO_ACTION] * b
+    with pytest.raises(ValueError, match="previous position"):
+        model.previous_action_ids(nxt, AgentState(state.h, state.c, state.memory, state.prev_action))
 
 
 def test_roi_pool():

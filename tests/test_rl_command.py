@@ -226,3 +226,45 @@ def test_protocol_of_a_run_is_recorded_and_checked(trained, tmp_path, capsys):
                  "--detections", "oracle", "--protocol", "1.5m", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "unknown success protocol '1.5m'" in err
+
+
+def test_blocked_action_run(trained, tmp_path, capsys):
+    """`tsnav train --blocked-action` (a deviation from the paper, off by default): recorded in the run's agent
+    config, kept on resume without the flag, refused for a run trained without it; the trained agent evaluates
+    with it (its previous position travels with the per-episode state)."""
+    world, plain = trained
+    run = tmp_path / "blocked"
+
+    def args(out):
+        return ["train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
+                "--out", str(out), "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5", "--lr", "1e-3",
+                "--quiet"]
+
+    assert main(args(run) + ["--updates", "2", "--blocked-action"]) == 0
+    assert json.loads((run / "config.json").read_text())["agent"]["blocked_action"] is True
+    assert json.loads((plain / "config.json").read_text())["agent"]["blocked_action"] is False
+    assert main(["train", "--out", str(run), "--updates", "3", "--quiet"]) == 0
+    assert json.loads((run / "config.json").read_text())["agent"]["blocked_action"] is True
+    capsys.readouterr()
+    assert main(["train", "--out", str(plain), "--blocked-action", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "without --blocked-action" in err and len(err.splitlines()) == 1
+    # a run written before the field existed resumes (the missing field is its default)
+    old = tmp_path / "old"
+    assert main(args(old) + ["--updates", "1"]) == 0
+    cfg = json.loads((old / "config.json").read_text())
+    del cfg["agent"]["blocked_action"]
+    (old / "config.json").write_text(json.dumps(cfg))
+    assert main(["train", "--out", str(old), "--updates", "2", "--quiet"]) == 0
+    assert "after 2 updates" in capsys.readouterr().out
+    bank = SceneBank.from_root(world, "test")
+    pol = load_policy(run, bank, greedy=True)
+    assert pol.model.config.blocked_action and pol.model.action_embed.num_embeddings == 8
+    eps = tmp_path / "eps.json"
+    assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "3", "--out", str(eps)]) == 0
+    episodes, _ = read_episodes(eps)
+    together = evaluate(bank, episodes, pol, EvalConfig(max_steps=15))
+    alone = [evaluate(bank, [e], load_policy(run, bank, greedy=True), EvalConfig(max_steps=15))[0]
+             for e in episodes[:3]]
+    for a, b in zip(alone, together[:3]):
+        assert (a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)

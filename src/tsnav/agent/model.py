@@ -3,6 +3,7 @@
     i_t  = ReLU(Linear(flatten(ReLU(Conv1x1(encoder features)))))          image embedding
     F_t  = TargetMemoryAggregator(memory, pose_t, target)                     target orientation embedding
     PA   = Embedding(previous action)                                         previous-action embedding
+           (``blocked_action``, off by default: a MoveAhead that left the pose unchanged has an id of its own)
     s_t  = ReLU(cat(i_t, F_t, PA) W)                                          eq. (10)
     h_t  = LSTMCell(Dropout(s_t), h_{t-1})                                    policy network
     pi(a_t | s_t) = softmax(Linear(h_t)),  V(s_t) = Linear(h_t)               actor (6 actions), critic
@@ -10,6 +11,11 @@
 The recurrent state (:class:`AgentState`: LSTM state, target memory, previous action) is passed in and out
 explicitly; :meth:`AgentState.reset` clears the rows whose episode ended (LSTM state multiplied by 1 - done,
 memory emptied, previous action set to "none").
+
+``AgentConfig.blocked_action`` is a deviation from the paper, off by default and in every preset: the agent's
+previous-action input tells a MoveAhead that moved it from one that did not (its pose, an input of the target
+memory already, unchanged: AI2-THOR's ``lastActionSuccess``). Greedy agents without it were seen pressing MoveAhead
+into a blocked cell for the rest of an episode (docs/RESULTS.md, issue 23, session 15).
 """
 
 from __future__ import annotations
@@ -20,12 +26,14 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..constants import NUM_ACTIONS, NUM_CATEGORIES
+from ..constants import MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES
 from .memory import MemoryState, TargetMemoryAggregator
 from .observe import AgentObs
 
 #: Previous-action id at the start of an episode (no action yet).
 NO_ACTION = NUM_ACTIONS
+#: Previous-action id of a MoveAhead that left the agent where it was (``AgentConfig.blocked_action`` only).
+BLOCKED_MOVE = NUM_ACTIONS + 1
 
 
 @dataclass
@@ -55,6 +63,9 @@ class AgentConfig:
     """LSTM hidden size."""
     dropout: float = 0.45
     """Dropout on s_t during training (paper IV-A: 0.45)."""
+    blocked_action: bool = False
+    """Deviation from the paper (off by default): a MoveAhead after which the agent's position is unchanged is its
+    own previous-action id (:data:`BLOCKED_MOVE`), so that the policy knows the move failed."""
 
     def __post_init__(self):
         if not 0.0 <= self.dropout < 1.0:
@@ -82,13 +93,15 @@ def agent_config(preset: str = "paper", **overrides) -> AgentConfig:
 
 @dataclass
 class AgentState:
-    """Recurrent state of ``B`` episodes: LSTM ``h``, ``c`` ``(B, hidden)``, the target memory and the
-    previous action ``(B,)`` (:data:`NO_ACTION` at an episode start)."""
+    """Recurrent state of ``B`` episodes: LSTM ``h``, ``c`` ``(B, hidden)``, the target memory, the
+    previous action ``(B,)`` (:data:`NO_ACTION` at an episode start) and, for ``AgentConfig.blocked_action``,
+    the position ``(B, 2)`` (x, z) the previous action was taken from (None otherwise)."""
 
     h: torch.Tensor
     c: torch.Tensor
     memory: MemoryState
     prev_action: torch.Tensor
+    prev_position: torch.Tensor | None = None
 
     @property
     def batch_size(self) -> int:
@@ -101,19 +114,21 @@ class AgentState:
                                device=self.h.device)
         keep = (~done).to(self.h.dtype)[:, None]
         return AgentState(h=self.h * keep, c=self.c * keep, memory=self.memory.clear(done),
-                          prev_action=torch.where(done, torch.full_like(self.prev_action, NO_ACTION), self.prev_action))
+                          prev_action=torch.where(done, torch.full_like(self.prev_action, NO_ACTION), self.prev_action),
+                          prev_position=self.prev_position)
 
     def with_action(self, action: torch.Tensor) -> "AgentState":
         """The state after ``action`` ``(B,)`` was output (the next step's previous action)."""
-        return AgentState(self.h, self.c, self.memory, action.to(self.prev_action.device).long())
+        return AgentState(self.h, self.c, self.memory, action.to(self.prev_action.device).long(), self.prev_position)
 
     def detach(self) -> "AgentState":
         """Cut the graph (truncated backpropagation through time at a rollout boundary)."""
-        return AgentState(self.h.detach(), self.c.detach(), self.memory, self.prev_action)
+        return AgentState(self.h.detach(), self.c.detach(), self.memory, self.prev_action, self.prev_position)
 
     def index(self, rows) -> "AgentState":
         rows = torch.as_tensor(rows)
-        return AgentState(self.h[rows], self.c[rows], self.memory.index(rows), self.prev_action[rows])
+        return AgentState(self.h[rows], self.c[rows], self.memory.index(rows), self.prev_action[rows],
+                          None if self.prev_position is None else self.prev_position[rows])
 
 
 def _init(module: nn.Module, gain: float) -> None:
@@ -137,7 +152,7 @@ class ActorCritic(nn.Module):
         self.image = nn.Linear(config.conv_channels * h * w, config.image_dim)
         self.memory = TargetMemoryAggregator(det_dim, config.memory_dim, config.memory_heads, config.target_dim,
                                              NUM_CATEGORIES)
-        self.action_embed = nn.Embedding(NUM_ACTIONS + 1, config.action_dim)
+        self.action_embed = nn.Embedding(NUM_ACTIONS + 1 + int(config.blocked_action), config.action_dim)
         self.state = nn.Linear(config.image_dim + config.target_dim + config.action_dim, config.state_dim)
         self.dropout = nn.Dropout(config.dropout)
         self.lstm = nn.LSTMCell(config.state_dim, config.hidden)
@@ -161,7 +176,8 @@ class ActorCritic(nn.Module):
         return AgentState(h=torch.zeros(batch, cfg.hidden, device=device),
                           c=torch.zeros(batch, cfg.hidden, device=device),
                           memory=MemoryState.empty(batch, cfg.memory_slots, self.det_dim, device),
-                          prev_action=torch.full((batch,), NO_ACTION, dtype=torch.long, device=device))
+                          prev_action=torch.full((batch,), NO_ACTION, dtype=torch.long, device=device),
+                          prev_position=torch.zeros(batch, 2, device=device) if cfg.blocked_action else None)
 
     def forward(self, obs: AgentObs, state: AgentState) -> tuple[torch.Tensor, torch.Tensor, AgentState]:
         """One step: ``(logits (B, 6), value (B,), new state)``. The new state holds the updated LSTM state
@@ -171,10 +187,22 @@ class ActorCritic(nn.Module):
         x = torch.relu(self.conv(obs.image))  # [B, k, h, w]
         i_t = torch.relu(self.image(x.flatten(1)))  # [B, image_dim]
         f_t = self.memory(memory, obs.pose, obs.target)  # [B, target_dim]
-        pa = self.action_embed(state.prev_action)  # [B, action_dim]
+        pa = self.action_embed(self.previous_action_ids(obs, state))  # [B, action_dim]
         s_t = torch.relu(self.state(torch.cat([i_t, f_t, pa], dim=1)))  # [B, state_dim], eq. (10)
         h, c = self.lstm(self.dropout(s_t), (state.h, state.c))
-        return self.actor(h), self.critic(h)[:, 0], AgentState(h, c, memory, state.prev_action)
+        here = obs.pose[:, :2].detach().clone() if self.config.blocked_action else None
+        return self.actor(h), self.critic(h)[:, 0], AgentState(h, c, memory, state.prev_action, here)
+
+    def previous_action_ids(self, obs: AgentObs, state: AgentState) -> torch.Tensor:
+        """``(B,)`` ids of the previous-action embedding: the previous action, or with ``blocked_action``
+        :data:`BLOCKED_MOVE` where it was a MoveAhead and the position (x, z) is the one it was taken from."""
+        if not self.config.blocked_action:
+            return state.prev_action
+        if state.prev_position is None:
+            raise ValueError("blocked_action: the agent state has no previous position (made by another network?)")
+        stayed = (obs.pose[:, :2] == state.prev_position).all(dim=1)
+        return torch.where((state.prev_action == MOVE_AHEAD) & stayed,
+                           torch.full_like(state.prev_action, BLOCKED_MOVE), state.prev_action)
 
     def describe(self) -> dict:
         """JSON-able description that rebuilds the network: config, feature shape, detection feature size."""

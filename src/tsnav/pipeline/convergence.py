@@ -70,9 +70,11 @@ def plateaued(points: list[dict], patience: int | None) -> bool:
 
 
 def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: int, val_per_room_type: int = 50,
-                    patience: int | None = None, max_steps: int = 100, say=print) -> list[dict]:
+                    patience: int | None = None, max_steps: int = 100, say=print,
+                    agent_overrides: dict | None = None) -> list[dict]:
     """Train ``cfg`` (its ``updates`` the total) in chunks of ``chunk`` updates under ``OUT/run``, scoring each
-    chunk's checkpoint on validation episodes; returns the curve points. Resumes whatever was done before."""
+    chunk's checkpoint on validation episodes; returns the curve points. Resumes whatever was done before.
+    ``agent_overrides``: fields of the agent preset's :class:`~tsnav.agent.AgentConfig` to change."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     total = int(cfg.updates)
@@ -83,7 +85,7 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
     for end in list(range(chunk, total, chunk)) + [total]:
         c = TrainConfig.from_dict({**cfg.to_dict(), "updates": end, "episodes": None, "minutes": None,
                                    "checkpoint_every": chunk, "milestone_every": chunk})
-        train_run(c, agent_config(preset), run, progress_bar=False)
+        train_run(c, agent_config(preset, **(agent_overrides or {})), run, progress_bar=False)
         sel = select_checkpoint(run, cfg.data, val, max_steps=max_steps, progress=say)
         points = curve_points(sel)
         atomic_write_json(out / "curve.json", {"points": points, "best": sel["best"], "chunk": chunk,
@@ -121,6 +123,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=30,
                         help="training episode length in actions (default 30, the lineage's; the validation episodes "
                              "always allow 100, the paper's test length)")
+    parser.add_argument("--blocked-action", action="store_true",
+                        help="a deviation from the paper: the previous-action input tells a MoveAhead that left the "
+                             "agent where it was (AgentConfig.blocked_action)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
     parser.add_argument("--protocol", default="paper",
@@ -145,7 +150,8 @@ def run(args: argparse.Namespace) -> int:
                           max_steps=args.max_steps)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
-                        patience=args.patience)
+                        patience=args.patience,
+                        agent_overrides={"blocked_action": True} if args.blocked_action else None)
     except (FileNotFoundError, ValueError) as e:
         raise CommandError(str(e)) from None
     print(f"curve: {Path(args.out) / 'curve.png'}, best checkpoint: {Path(args.out) / 'run' / 'best'}")

@@ -43,6 +43,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--c-target", type=float, default=None, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
     parser.add_argument("--preset", default=None, help="agent size: paper or cpu (default: paper)")
+    parser.add_argument("--blocked-action", action="store_true", default=None,
+                        help="a deviation from the paper: the previous-action input tells a MoveAhead that left the "
+                             "agent where it was (AgentConfig.blocked_action); new runs only")
     parser.add_argument("--detections", default=None,
                         help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle; "
                              "required (the agent never falls back to ground truth)")
@@ -84,6 +87,8 @@ def resolve(args: argparse.Namespace):
             given["data"] = str(Path(given["data"]).resolve())
         if "preset" in given and given["preset"] != cfg.preset:
             raise CommandError(f"{out} was trained with --preset {cfg.preset}; use another --out")
+        if args.blocked_action and not agent.blocked_action:
+            raise CommandError(f"{out} was trained without --blocked-action; use another --out")
         cfg = replace(cfg, **given, **({"episodes": None, "updates": None, "minutes": None, **budget} if budget else {}))
         return cfg, agent
     for need in ("data", "features", "detections"):  # detections: no fallback to ground truth (issue 14)
@@ -94,7 +99,7 @@ def resolve(args: argparse.Namespace):
     given["data"] = str(Path(given["data"]).resolve())
     preset = given.get("preset", "paper")
     try:
-        agent = agent_config(preset)
+        agent = agent_config(preset, blocked_action=bool(args.blocked_action))
     except ValueError as e:
         raise CommandError(str(e)) from None
     return TrainConfig(**given, **budget), agent

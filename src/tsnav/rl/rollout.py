@@ -90,7 +90,8 @@ class RolloutCollector:
             return self.model(obs, state)
         with torch.autocast(self.device.type, dtype=torch.bfloat16):
             logits, value, new = self.model(obs, state)
-        return logits.float(), value.float(), AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action)
+        return logits.float(), value.float(), AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action,
+                                                        new.prev_position)
 
     def start(self) -> None:
         """Begin fresh episodes in every row (drawn from the env's sampler and RNG)."""

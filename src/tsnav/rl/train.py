@@ -57,7 +57,8 @@ def check_resume(run_dir: Path, cfg: TrainConfig, agent: AgentConfig) -> None:
     old = read_run_config(run_dir)
     old_cfg = TrainConfig.from_dict(old["train"])
     diff = [k for k, v in cfg.identity().items() if old_cfg.identity().get(k) != v]
-    diff += [f"agent.{k}" for k, v in asdict(agent).items() if old["agent"].get(k) != v]
+    old_agent = asdict(AgentConfig(**old["agent"]))  # fields added since (at their defaults) compare equal
+    diff += [f"agent.{k}" for k, v in asdict(agent).items() if old_agent.get(k) != v]
     if diff:
         raise ValueError(f"{run_dir} holds a run with another configuration ({', '.join(diff)}); "
                          f"use another --out or the same settings")
