@@ -1,4 +1,4 @@
-"""Two diagnostics behind docs/RESULTS.md's issue 23 sections (analysis only: nothing here reaches an agent).
+"""Three diagnostics behind docs/RESULTS.md's issue 23 sections (analysis only: nothing here reaches an agent).
 
 ``rotations EVAL_DIR ...``: how an evaluated agent turns. Per ``tsnav eval`` folder (its ``trajectories.jsonl``):
 the share of each rotation among all actions, and the runs of one rotation repeated 5-7 times in a row. With
@@ -10,8 +10,14 @@ sum of 2 L - 8 over them, what turning the other way would have saved.
 in the named detection table passes C_target (0.7) at some state of the episode's room, the ceiling of the stage
 switch for any searcher with that table.
 
+``outcomes EVAL_DIR ...``: how episodes end, from the trajectories alone. Per ``tsnav eval`` folder: episodes
+that switched to pathfinding or not, each ending in a success, a failed Done or the step limit; the share of
+MoveAheads that left the agent in the same state (blocked); the episodes with at least 10 blocked MoveAheads; and
+the step-limit failures that end in a loop (at most 10 distinct states in their last 40 frames).
+
     python scripts/agent_diagnostics.py rotations EVAL_A EVAL_B
     python scripts/agent_diagnostics.py reach --data WORLD --episodes TEST.json --detections learned4 oracle
+    python scripts/agent_diagnostics.py outcomes EVAL_A EVAL_B
 """
 
 from __future__ import annotations
@@ -23,13 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from tsnav.constants import ACTIONS, C_TARGET, CATEGORY_INDEX
+from tsnav.constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, MOVE_AHEAD
 from tsnav.data.detections import load_detections
 from tsnav.eval.runner import read_trajectories
 from tsnav.sim.episodes import read_episodes
 
 LEFT, RIGHT = ACTIONS.index("RotateLeft"), ACTIONS.index("RotateRight")
 TURNS = 8  # 360 / 45-degree rotations
+LOOP_FRAMES, LOOP_STATES, MANY_BLOCKED = 40, 10, 10
 
 
 def rotation_figures(actions_per_episode) -> dict:
@@ -49,6 +56,37 @@ def rotation_figures(actions_per_episode) -> dict:
             "RotateRight": right / steps if steps else 0.0, "runs_5_to_7": long_runs,
             "in_runs_share": in_runs / steps if steps else 0.0, "saved_steps": saved,
             "saved_share": saved / steps if steps else 0.0}
+
+
+def outcome(t) -> str:
+    """``success``, ``done`` (a Done that failed) or ``limit`` (the episode ran out of steps) of a trajectory."""
+    if t.success:
+        return "success"
+    return "done" if t.actions and t.actions[-1] == DONE else "limit"
+
+
+def outcome_figures(trajectories) -> dict:
+    """The ``outcomes`` figures (module docstring) of :class:`~tsnav.eval.runner.Trajectory` objects."""
+    ends = {f"{sw}_{o}": 0 for sw in ("switched", "unswitched") for o in ("success", "done", "limit")}
+    moves = {o: [0, 0] for o in ("success", "done", "limit")}  # MoveAheads, blocked ones
+    many = loops = episodes = 0
+    for t in trajectories:
+        episodes += 1
+        o = outcome(t)
+        ends[f"{'switched' if t.switch_frame >= 0 else 'unswitched'}_{o}"] += 1
+        blocked = 0
+        for i, a in enumerate(t.actions):
+            if a == MOVE_AHEAD:
+                moves[o][0] += 1
+                if t.keys[i + 1] == t.keys[i]:
+                    blocked += 1
+        moves[o][1] += blocked
+        many += blocked >= MANY_BLOCKED
+        loops += o == "limit" and len(set(t.keys[-LOOP_FRAMES:])) <= LOOP_STATES
+    total = [sum(m[0] for m in moves.values()), sum(m[1] for m in moves.values())]
+    return {"episodes": episodes, **ends,
+            "blocked_share": {o: m[1] / m[0] if m[0] else 0.0 for o, m in {**moves, "all": total}.items()},
+            "many_blocked": many, "limit_loops": loops}
 
 
 def read_actions(folder: Path) -> list[list[int]]:
@@ -83,7 +121,25 @@ def main(argv=None) -> int:
     q.add_argument("--data", required=True)
     q.add_argument("--episodes", required=True)
     q.add_argument("--detections", nargs="+", required=True)
+    o = sub.add_parser("outcomes", help="how episodes end; blocked MoveAheads and loops")
+    o.add_argument("evals", nargs="+", help="tsnav eval output folders")
     a = p.parse_args(argv)
+    if a.cmd == "outcomes":
+        for f in a.evals:
+            path = Path(f) / "trajectories.jsonl"
+            if not path.exists():
+                raise SystemExit(f"{f}: no trajectories.jsonl (a `tsnav eval` output folder?)")
+            r = outcome_figures(read_trajectories(path))
+            b = r["blocked_share"]
+            print(f"{f}: {r['episodes']} episodes")
+            for sw in ("switched", "unswitched"):
+                print(f"  {sw:10s}  success {r[sw + '_success']:5d}  failed Done {r[sw + '_done']:5d}  "
+                      f"step limit {r[sw + '_limit']:5d}")
+            print(f"  blocked MoveAheads: {100 * b['all']:.1f} % (in successes {100 * b['success']:.1f} %, failed "
+                  f"Dones {100 * b['done']:.1f} %, step-limit failures {100 * b['limit']:.1f} %); episodes with >= "
+                  f"{MANY_BLOCKED} blocked: {r['many_blocked']}; step-limit failures ending in a loop: "
+                  f"{r['limit_loops']}")
+        return 0
     if a.cmd == "rotations":
         print(f"{'eval':56s} {'left %':>7s} {'right %':>8s} {'runs 5-7':>9s} {'steps in them':>14s} "
               f"{'saved steps':>12s}")

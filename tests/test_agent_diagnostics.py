@@ -1,0 +1,61 @@
+"""``scripts/agent_diagnostics.py outcomes`` (issue 23 analysis): outcome counts, blocked MoveAheads and loops of
+hand-made trajectories, and the command on a real evaluation folder of the tiny world."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from tsnav.cli import main
+from tsnav.constants import DONE, MOVE_AHEAD, ROTATE_LEFT
+from tsnav.eval.runner import Trajectory
+
+SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "agent_diagnostics.py"
+
+
+@pytest.fixture(scope="module")
+def diag():
+    spec = importlib.util.spec_from_file_location("agent_diagnostics", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _traj(keys, actions, switch=-1, success=False):
+    return Trajectory(episode=0, scene="S", target="Bowl", keys=keys, actions=actions, switch_frame=switch,
+                      success=success)
+
+
+def test_outcome_figures_by_hand(diag):
+    F, L, D = MOVE_AHEAD, ROTATE_LEFT, DONE
+    stuck = _traj(["a"] + ["a"] * 100, [F] * 100, switch=0)  # 100 blocked MoveAheads: a loop at the step limit
+    walk = _traj([f"s{i}" for i in range(101)], [F] * 100)  # 100 moves, never blocked, never switched
+    found = _traj(["a", "b", "b", "b", "c"], [F, L, F, D], switch=1, success=True)  # one blocked of three
+    wrong = _traj(["a", "a", "b"], [F, D], switch=0)  # a failed Done after a blocked move
+    r = diag.outcome_figures([stuck, walk, found, wrong])
+    assert r["episodes"] == 4
+    assert (r["switched_limit"], r["unswitched_limit"], r["switched_success"], r["switched_done"]) == (1, 1, 1, 1)
+    assert r["unswitched_success"] == r["unswitched_done"] == 0
+    assert r["blocked_share"]["limit"] == pytest.approx(100 / 200)
+    assert r["blocked_share"]["success"] == pytest.approx(1 / 2)
+    assert r["blocked_share"]["done"] == pytest.approx(1.0)
+    assert r["blocked_share"]["all"] == pytest.approx(102 / 203)
+    assert r["many_blocked"] == 1 and r["limit_loops"] == 1
+    assert diag.outcome(found) == "success" and diag.outcome(wrong) == "done" and diag.outcome(walk) == "limit"
+
+
+def test_outcomes_command_on_an_evaluation(diag, tiny_world, tmp_path, capsys):
+    eps = tmp_path / "eps.json"
+    assert main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "4", "--out",
+                 str(eps)]) == 0
+    ev = tmp_path / "eval"
+    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "random", "--out",
+                 str(ev)]) == 0
+    capsys.readouterr()
+    assert diag.main(["outcomes", str(ev)]) == 0
+    out = capsys.readouterr().out
+    n = json.loads((ev / "metrics.json").read_text())["metrics"]["ALL"]["episodes"]
+    assert f"{n} episodes" in out and "blocked MoveAheads" in out
+    with pytest.raises(SystemExit, match="no trajectories.jsonl"):
+        diag.main(["outcomes", str(tmp_path)])
