@@ -13,11 +13,14 @@ switch for any searcher with that table.
 ``outcomes EVAL_DIR ...``: how episodes end, from the trajectories alone. Per ``tsnav eval`` folder: episodes
 that switched to pathfinding or not, each ending in a success, a failed Done or the step limit; the share of
 MoveAheads that left the agent in the same state (blocked); the episodes with at least 10 blocked MoveAheads; and
-the step-limit failures that end in a loop (at most 10 distinct states in their last 40 frames).
+the step-limit failures that end in a loop (at most 10 distinct states in their last 40 frames). With ``--data``,
+the switched episodes are also split by whether some instance of the target was in the frame (at any range) at the
+state where the switch fired: a true switch, or one made by a false positive (ground truth read for this analysis
+only).
 
     python scripts/agent_diagnostics.py rotations EVAL_A EVAL_B
     python scripts/agent_diagnostics.py reach --data WORLD --episodes TEST.json --detections learned4 oracle
-    python scripts/agent_diagnostics.py outcomes EVAL_A EVAL_B
+    python scripts/agent_diagnostics.py outcomes EVAL_A EVAL_B [--data WORLD]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import numpy as np
 
 from tsnav.constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, MOVE_AHEAD
 from tsnav.data.detections import load_detections
+from tsnav.data.reader import load_scene
 from tsnav.eval.runner import read_trajectories
 from tsnav.sim.episodes import read_episodes
 
@@ -89,6 +93,24 @@ def outcome_figures(trajectories) -> dict:
             "many_blocked": many, "limit_loops": loops}
 
 
+def switch_truth(data: Path, trajectories) -> dict:
+    """Switched episodes by outcome, split by whether the target was in the frame where the switch fired:
+    ``{"true": {outcome: n}, "false": {outcome: n}}``."""
+    out = {k: {"success": 0, "done": 0, "limit": 0} for k in ("true", "false")}
+    seen: dict[str, tuple] = {}
+    for t in trajectories:
+        if t.switch_frame < 0:
+            continue
+        if t.scene not in seen:
+            scene = load_scene(data / t.scene)
+            seen[t.scene] = (scene, scene.visible_at_any_range())
+        scene, visible = seen[t.scene]
+        objs = np.flatnonzero(scene.object_category == CATEGORY_INDEX[t.target])
+        true = bool(visible[scene.index(t.keys[t.switch_frame]), objs].any())
+        out["true" if true else "false"][outcome(t)] += 1
+    return out
+
+
 def read_actions(folder: Path) -> list[list[int]]:
     """Action ids (``constants.ACTIONS`` order) of every episode of a ``tsnav eval`` folder."""
     path = folder / "trajectories.jsonl"
@@ -123,13 +145,15 @@ def main(argv=None) -> int:
     q.add_argument("--detections", nargs="+", required=True)
     o = sub.add_parser("outcomes", help="how episodes end; blocked MoveAheads and loops")
     o.add_argument("evals", nargs="+", help="tsnav eval output folders")
+    o.add_argument("--data", default=None, help="the evaluated world: also split the switches into true and false")
     a = p.parse_args(argv)
     if a.cmd == "outcomes":
         for f in a.evals:
             path = Path(f) / "trajectories.jsonl"
             if not path.exists():
                 raise SystemExit(f"{f}: no trajectories.jsonl (a `tsnav eval` output folder?)")
-            r = outcome_figures(read_trajectories(path))
+            trajectories = read_trajectories(path)
+            r = outcome_figures(trajectories)
             b = r["blocked_share"]
             print(f"{f}: {r['episodes']} episodes")
             for sw in ("switched", "unswitched"):
@@ -139,6 +163,9 @@ def main(argv=None) -> int:
                   f"Dones {100 * b['done']:.1f} %, step-limit failures {100 * b['limit']:.1f} %); episodes with >= "
                   f"{MANY_BLOCKED} blocked: {r['many_blocked']}; step-limit failures ending in a loop: "
                   f"{r['limit_loops']}")
+            if a.data is not None:
+                for k, v in switch_truth(Path(a.data), trajectories).items():
+                    print(f"  {k} switches: success {v['success']}, failed Done {v['done']}, step limit {v['limit']}")
         return 0
     if a.cmd == "rotations":
         print(f"{'eval':56s} {'left %':>7s} {'right %':>8s} {'runs 5-7':>9s} {'steps in them':>14s} "

@@ -57,5 +57,15 @@ def test_outcomes_command_on_an_evaluation(diag, tiny_world, tmp_path, capsys):
     out = capsys.readouterr().out
     n = json.loads((ev / "metrics.json").read_text())["metrics"]["ALL"]["episodes"]
     assert f"{n} episodes" in out and "blocked MoveAheads" in out
+    # with --data, the switched episodes split into true and false switches, by outcome
+    from tsnav.eval.runner import read_trajectories
+    traj = read_trajectories(ev / "trajectories.jsonl")
+    r, split = diag.outcome_figures(traj), diag.switch_truth(tiny_world, traj)
+    for o in ("success", "done", "limit"):
+        assert split["true"][o] + split["false"][o] == r[f"switched_{o}"]
+    assert diag.main(["outcomes", str(ev), "--data", str(tiny_world)]) == 0
+    printed = capsys.readouterr().out
+    assert "true switches" in printed
+    assert sum(split["true"].values()) + sum(split["false"].values()) > 0, printed  # some episodes switched
     with pytest.raises(SystemExit, match="no trajectories.jsonl"):
         diag.main(["outcomes", str(tmp_path)])

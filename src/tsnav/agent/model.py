@@ -190,7 +190,7 @@ class ActorCritic(nn.Module):
         pa = self.action_embed(self.previous_action_ids(obs, state))  # [B, action_dim]
         s_t = torch.relu(self.state(torch.cat([i_t, f_t, pa], dim=1)))  # [B, state_dim], eq. (10)
         h, c = self.lstm(self.dropout(s_t), (state.h, state.c))
-        here = obs.pose[:, :2].detach().clone() if self.config.blocked_action else None
+        here = obs.pose[:, :2] if self.config.blocked_action else None  # where the next action is taken from
         return self.actor(h), self.critic(h)[:, 0], AgentState(h, c, memory, state.prev_action, here)
 
     def previous_action_ids(self, obs: AgentObs, state: AgentState) -> torch.Tensor:

@@ -150,8 +150,7 @@ def run(args: argparse.Namespace) -> int:
                           max_steps=args.max_steps)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
-                        patience=args.patience,
-                        agent_overrides={"blocked_action": True} if args.blocked_action else None)
+                        patience=args.patience, agent_overrides={"blocked_action": args.blocked_action})
     except (FileNotFoundError, ValueError) as e:
         raise CommandError(str(e)) from None
     print(f"curve: {Path(args.out) / 'curve.png'}, best checkpoint: {Path(args.out) / 'run' / 'best'}")

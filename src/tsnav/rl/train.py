@@ -54,11 +54,9 @@ def resolved_config(cfg: TrainConfig, agent: AgentConfig) -> dict:
 
 def check_resume(run_dir: Path, cfg: TrainConfig, agent: AgentConfig) -> None:
     """``ValueError`` naming the differing fields when ``run_dir`` holds a run with another configuration."""
-    old = read_run_config(run_dir)
-    old_cfg = TrainConfig.from_dict(old["train"])
+    old_cfg, old_agent = stored_config(run_dir)  # fields added since (at their defaults) compare equal
     diff = [k for k, v in cfg.identity().items() if old_cfg.identity().get(k) != v]
-    old_agent = asdict(AgentConfig(**old["agent"]))  # fields added since (at their defaults) compare equal
-    diff += [f"agent.{k}" for k, v in asdict(agent).items() if old_agent.get(k) != v]
+    diff += [f"agent.{k}" for k, v in asdict(agent).items() if getattr(old_agent, k) != v]
     if diff:
         raise ValueError(f"{run_dir} holds a run with another configuration ({', '.join(diff)}); "
                          f"use another --out or the same settings")
