@@ -87,7 +87,7 @@ def run(base: Path, variant: str, seeds: list[int], threads: int | None = None) 
         out = prepare(base, variant, seed)
         scale = SCALES["demo"].override(**spec)
         print(f"=== {out}", flush=True)
-        run_demo(out, DemoConfig(scale=scale, seed=seed, protocol=protocol))
+        run_demo(out, DemoConfig(preset="demo-real", scale=scale, seed=seed, protocol=protocol))
 
 
 def sampled(out: Path, rolls: int = 3) -> list[tuple[float, float]]:

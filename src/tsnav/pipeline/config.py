@@ -24,6 +24,18 @@ DEMO = "demo"
 #: Training updates of the demo's agent (64 episodes x 30 steps each): the same table on any machine.
 #: About 2.5 minutes with 2 torch threads on an idle 2-core machine (154 s measured in `make demo`, 2026-12-01).
 DEMO_UPDATES = 1000
+#: The quick demo (``tsnav demo`` on its default world, ``demo-real-small``), sized so that its steps take at most
+#: 5 minutes of an idle 2-core machine (issue 26): DE-MAE for ``QUICK_DEMO_PRETRAIN_STEPS`` steps, then
+#: ``QUICK_DEMO_UPDATES`` updates of ``QUICK_DEMO_ENVS`` episodes shared by ``QUICK_DEMO_PROCS`` processes (both
+#: cores: 64 episodes per process cost one process's 64, so an update holds twice the episodes in the same time),
+#: a milestone every ``QUICK_DEMO_MILESTONES`` updates.
+QUICK_DEMO_PRETRAIN_STEPS = 200
+QUICK_DEMO_UPDATES = 300
+QUICK_DEMO_ENVS = 128
+QUICK_DEMO_PROCS = 2
+QUICK_DEMO_MILESTONES = 100
+#: The quick demo's world preset (``tsnav demo``'s default).
+QUICK_DEMO_PRESET = "demo-real-small"
 #: Updates per job of the ``medium`` scale (256 episodes x 30 steps each = 7680 env steps per update; 2000
 #: updates = 15.4 M env steps, about 0.68 M training episodes). Measured with `tsnav convergence` on the 80
 #: ``ithor-real`` train rooms (TSRM + DE-MAE, learned switch, lr 1e-3, 400 greedy val episodes, docs/RESULTS.md
@@ -112,6 +124,16 @@ class ScaleConfig:
     def budget(self) -> dict:
         """The training budget per job as the demo's markers record it: updates, minutes, episodes."""
         return {"updates": self.train.updates, "minutes": self.train.minutes, "episodes": self.train.episodes}
+
+
+def demo_scale(preset: str) -> "ScaleConfig":
+    """The demo's sizes on world ``preset``: ``SCALES["demo"]``, with the quick demo's shorter training
+    (:data:`QUICK_DEMO_UPDATES`) on its rooms (:data:`QUICK_DEMO_PRESET`)."""
+    if preset == QUICK_DEMO_PRESET:
+        return SCALES["demo"].override(pretrain=dict(steps=QUICK_DEMO_PRETRAIN_STEPS),
+                                       train=dict(updates=QUICK_DEMO_UPDATES, num_envs=QUICK_DEMO_ENVS,
+                                                  procs=QUICK_DEMO_PROCS, milestone_every=QUICK_DEMO_MILESTONES))
+    return SCALES["demo"]
 
 
 #: Where missing learned detection tables come from (``ExperimentConfig.detector``, ``DemoConfig.detector``):

@@ -1,13 +1,16 @@
-"""``tsnav demo``: the main job, end to end on the embedded world, in about 13 minutes of an idle 2-core CPU.
+"""``tsnav demo``: the main job, end to end on the embedded world, in about 5 minutes of an idle 2-core CPU.
 
 Steps (each prints progress; each is skipped on a second run when its marker ``OUT/steps/<step>/DONE`` exists and
 its outputs are still there - folders of earlier versions, with ``OUT/stages/<step>.json``, are resumed from
 those - and every underlying step resumes after an interruption):
 
- 1. world        build the ``demo-real`` preset: 28 of the real iTHOR rooms (``ithor-real``;   OUT/world
-                 16 train, 4 val, 8 test; 128x128 frames)
- 2. pretrain     DE-MAE on the training frames (ViT-Tiny, 64x64, a couple of minutes)           OUT/pretrain/demae
- 3. features     cache the encoder's features of the training, val and test scenes              */features_demae-<fp>.hdf5
+ 1. world        build the ``demo-real-small`` preset: 16 of the real iTHOR rooms               OUT/world
+                 (``ithor-real``; 8 train, 4 val, 4 test; 128x128 frames); ``--preset demo-real``
+                 is the longer demo of 28 rooms
+ 2. pretrain     DE-MAE on the training frames (ViT-Tiny, 64x64, one thread), while a process of OUT/pretrain/demae
+                 its own writes the shipped detector's tables (step 5) on the other core
+ 3. features     cache the encoder's features of the training, val and test rooms once (one      */features_demae-<fp>.hdf5
+                 process per core, :mod:`tsnav.scene_pool`)
  4. detector     the learned detector (issue 14): by default the one shipped with tsnav         (package) or OUT/detector
                  (:mod:`tsnav.detect.shipped`, trained on the 80 ithor-real training rooms, as
                  the paper's DETR is trained apart from the agent); ``--detector train`` trains
@@ -20,8 +23,9 @@ those - and every underlying step resumes after an interruption):
                  paper's 1.0 m rule, and the lineage's 1.5 m visibility map with its             OUT/test_episodes_lineage.json,
                  start-success episodes), and val episodes for checkpoint selection under the    OUT/val_episodes*.json
                  training protocol (``--protocol``, default paper)
- 7. train        a TSRM agent with the batched A2C trainer (1000 updates, a few minutes); its    OUT/run
-                 milestones (every 200 updates) scored greedily on the val episodes, the best
+ 7. train        a TSRM agent with the batched A2C trainer (on demo-real-small 300 updates of    OUT/run
+                 128 episodes over two processes, about two minutes; on demo-real 1000 updates
+                 of 64 in one); its milestones scored greedily on the val episodes, the best
                  kept as OUT/run/best and evaluated
  8. evaluate     the agent, the same agent reading the oracle's table instead of the learned   OUT/eval/<policy>,
                  one, the scripted explorer and the random policy on the test episodes, under   OUT/eval/<policy>_lineage
@@ -42,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -52,12 +57,14 @@ from ..data.reader import list_scenes, load_scene
 from ..errors import CommandError
 from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
                           set_threads)
-from .config import DEMO, DEMO_UPDATES, DETECTOR_SOURCES, SCALES, ExperimentConfig, ScaleConfig
+from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, QUICK_DEMO_PRETRAIN_STEPS, QUICK_DEMO_UPDATES, SCALES,
+                     ExperimentConfig, ScaleConfig, demo_scale)
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..detect.shipped import DEFAULT_SHIPPED, shipped_meta
 from ..detect.train import is_checkpoint, read_meta
-from .detector_steps import complete_tables, ensure_detector, record_quality, tables_complete
+from .detector_steps import (complete_tables, ensure_detector, ensure_shipped_detections, one_thread,
+                             record_quality, tables_complete)
 from ..report.tables import quality_line
 from .steps import encoder_spec, ensure_episodes, ensure_oracle_detections, episodes_name
 from ..metrics import METRICS, write_json
@@ -74,18 +81,21 @@ STEPS = ("world", "pretrain", "features", "detector", "detections", "episodes", 
 
 @dataclass
 class DemoConfig:
-    """The demo: a world preset and the ``demo`` scale of the experiments (about 13 minutes of an idle 2-core CPU)."""
+    """The demo: a world preset and the ``demo`` scale of the experiments (on ``demo-real-small``, about 5 minutes of an
+    idle 2-core CPU; on ``demo-real`` about 13)."""
 
-    preset: str = "demo-real"
-    """World preset (``tsnav world --preset``): ``demo-real`` (28 real iTHOR rooms at 128x128) or ``demo`` (20
-    procedural rooms at 64x64, with ``detector="train"``)."""
+    preset: str = QUICK_DEMO_PRESET
+    """World preset (``tsnav world --preset``): ``demo-real-small`` (16 real iTHOR rooms at 128x128, the quick
+    demo), ``demo-real`` (28 real rooms, the demo of before issue 26) or ``demo`` (20 procedural rooms at 64x64,
+    with ``detector="train"``)."""
     world_workers: int = 2
     """Processes building the world."""
     train_rooms_per_type: int | None = None
     """Training rooms used per room type (the smallest ones); None: all training rooms."""
-    scale: ScaleConfig = field(default_factory=lambda: SCALES["demo"])
-    """Sizes of pretraining, training and evaluation (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps,
-    ``DEMO_UPDATES`` updates of batched A2C, 100 test episodes per room type)."""
+    scale: ScaleConfig | None = None
+    """Sizes of pretraining, training and evaluation; None: :func:`~tsnav.pipeline.config.demo_scale` of the
+    preset (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps, ``DEMO_UPDATES`` updates of batched A2C, 100
+    test episodes per room type; on ``demo-real-small`` ``QUICK_DEMO_UPDATES`` updates)."""
     detections: str = "learned"
     """Detection tables the agent and the stage switch read, named explicitly (the agent never falls back to
     ground truth): ``learned`` (issue 14 item 4: the learned detector's, shipped or trained here, see ``detector``) or
@@ -104,15 +114,22 @@ class DemoConfig:
     """Success protocol the agent is trained and its checkpoint selected under (:mod:`tsnav.protocol`); every
     policy is evaluated under both protocols either way."""
 
+    def __post_init__(self):
+        if self.scale is None:
+            self.scale = demo_scale(self.preset)
+
 
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/demo", help="folder for the world, runs and report (default out/demo)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for world building")
     p.add_argument("--train-updates", type=int, default=None,
-                   help=f"training budget of the agent in updates (default {DEMO_UPDATES}: the same table on any machine)")
+                   help=f"training budget of the agent in updates (default {QUICK_DEMO_UPDATES} on {QUICK_DEMO_PRESET}, "
+                        f"{SCALES['demo'].train.updates} on the other worlds: the same table on any machine)")
     p.add_argument("--train-minutes", type=float, default=None,
                    help="training budget in minutes instead (the table then depends on the machine's load)")
-    p.add_argument("--pretrain-steps", type=int, default=None, help="DE-MAE steps (default 300)")
+    p.add_argument("--pretrain-steps", type=int, default=None,
+                   help=f"DE-MAE steps (default {QUICK_DEMO_PRETRAIN_STEPS} on {QUICK_DEMO_PRESET}, "
+                        f"{SCALES['demo'].pretrain.steps} on the other worlds)")
     p.add_argument("--procs", type=int, default=None,
                    help="CPU processes of the agent's training (default 1; 2 uses both cores; the table is the same "
                         "on every run for a given value, but differs between values)")
@@ -120,8 +137,9 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detections", choices=("learned", "oracle"), default="learned",
                    help="learned (default): the learned detector's table (see --detector); oracle: "
                         "the oracle's table (hand-made confidence from instance size and distance)")
-    p.add_argument("--preset", choices=("demo-real", "demo"), default="demo-real",
-                   help="world: demo-real (default; 28 real iTHOR rooms at 128x128) or demo (20 procedural rooms "
+    p.add_argument("--preset", choices=(QUICK_DEMO_PRESET, "demo-real", "demo"), default=QUICK_DEMO_PRESET,
+                   help=f"world: {QUICK_DEMO_PRESET} (default; 16 real iTHOR rooms at 128x128, about 5 minutes), "
+                        "demo-real (28 real rooms, a longer training: about 13 minutes) or demo (20 procedural rooms "
                         "at 64x64; needs --detector train)")
     p.add_argument("--detector", choices=DETECTOR_SOURCES, default="shipped",
                    help="shipped (default): the detector that comes with tsnav, trained on the 80 ithor-real "
@@ -195,7 +213,7 @@ def check_demo(out: Path, cfg: DemoConfig) -> None:
         size, want = BuildConfig.from_preset(cfg.preset).image_size, shipped_meta()["model"]["image_size"]
         if size != want:
             raise CommandError(f"the shipped detector reads {want}x{want} frames (the ithor-real rooms), the "
-                               f"{cfg.preset} world has {size}x{size}: use --detector train, or --preset demo-real")
+                               f"{cfg.preset} world has {size}x{size}: use --detector train, or --preset {QUICK_DEMO_PRESET}")
     index = out / "world" / "index.json"
     if index.exists():  # a world of another preset is never mixed with this one (names overlap): refused
         try:
@@ -224,6 +242,8 @@ class Demo:
         self.run_dir = self.exp.train_dir(self.job)
         self.policies = eval_policies(cfg.detections)
         self.results: dict[str, dict] = {}
+        self.background = None  # the process writing detection tables during pretraining
+        self.wrote_in_background = False
         self.jobs = JobList(self.steps(), say=lambda m: print(m, flush=True))
 
     def step(self, name: str, what: str, run, valid=lambda m: True, show=None) -> Step:
@@ -284,9 +304,34 @@ class Demo:
 
     # 2. pretrain, 3. features ---------------------------------------------------------------------------
     def pretrain(self) -> dict:
-        self.exp.encoder(self.job.row.encoder)
+        """DE-MAE on one thread while another process writes the shipped detector's tables on the other core (the
+        two need only the world; pretraining gains nothing from a second thread); the detections step then finds
+        them written, or writes what is missing."""
+        self.start_background_tables()
+        with one_thread():
+            self.exp.encoder(self.job.row.encoder)
         prog = read_progress(self.es.spec)
         return {"steps": prog["step"], "loss": prog.get("loss")}
+
+    def start_background_tables(self) -> None:
+        """Start writing the shipped detector's missing tables in a process of its own (one thread)."""
+        if self.cfg.detections == "oracle" or self.cfg.detector != "shipped" or self.background is not None:
+            return
+        self.background = mp.get_context("spawn").Process(
+            target=write_tables_quietly, args=(str(self.world), self.cfg.detections), daemon=True)
+        self.background.start()
+        self.wrote_in_background = True
+
+    def join_background_tables(self) -> None:
+        """Wait for the tables' process; a failure there is said in one line (the detections step then writes the
+        missing tables itself, and a real problem is raised there)."""
+        if self.background is None:
+            return
+        self.background.join()
+        if self.background.exitcode != 0:
+            print(f"    the detection tables' background process failed (exit code {self.background.exitcode}); "
+                  "writing the missing tables here", flush=True)
+        self.background = None
 
     def features(self) -> dict:
         name = self.exp.features(self.es, ["train", "test", "val"])
@@ -301,13 +346,16 @@ class Demo:
     # 4. detector, 5. detections -------------------------------------------------------------------------
     def detector(self) -> dict:
         cfg = self.cfg
+        self.join_background_tables()
         ready = complete_tables(self.world, cfg.detections, cfg.detector)  # the one rule on foreign tables
-        if ready:  # every room already has a learned table (e.g. written by an experiment): used as it is
+        if ready and not self.wrote_in_background:  # every room already has a learned table (e.g. written by an experiment): used as it is
             print(f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
                   flush=True)
             return {"fingerprint": ready, "tables": "existing"}
         if cfg.detector == "shipped":  # loaded (and its weights checked) by the detections step
             meta = shipped_meta()
+            if self.wrote_in_background:
+                print("    its tables were written during pretraining, by a process of their own", flush=True)
             print(f"    shipped detector {DEFAULT_SHIPPED}: step {meta['step']}, trained on "
                   f"{len(meta['train_scenes'])} ithor-real training rooms, temperature {meta['temperature']:.3f} "
                   f"({meta['fingerprint']})", flush=True)
@@ -328,6 +376,7 @@ class Demo:
         return meta.get("step") == self.sc.detector.steps and meta.get("calibrated_step") == self.sc.detector.steps
 
     def detections(self) -> dict:
+        self.join_background_tables()
         done = self.exp.ensure_detections(self.cfg.detections)
         quality = record_quality(self.out, self.world, [self.cfg.detections], say=lambda m: print(m, flush=True))
         return {"written": done["written"], "fingerprint": done["fingerprint"], "quality": quality[self.cfg.detections]}
@@ -402,6 +451,13 @@ class Demo:
         index = build_report(self.out, self.out / "report", gallery=self.cfg.gallery,
                              title=f"tsnav demo: TSRM + DE-MAE on the {self.cfg.preset} world")
         return {"index": str(index)}
+
+
+def write_tables_quietly(world: str, name: str) -> None:
+    """The shipped detector's missing tables ``detections_<name>.hdf5`` in every room of ``world``, one thread, no
+    output (the demo's background process; the detections step prints their quality)."""
+    set_threads(1)
+    ensure_shipped_detections(world, name, progress=False, say=lambda m: None, workers=1)
 
 
 def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> dict:

@@ -44,6 +44,7 @@ from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_m
 from ..errors import CommandError
 from .config import ScaleConfig
 from ..report.tables import quality_line
+from ..scene_pool import map_scenes
 
 #: Prefix of every learned detector's fingerprint (:func:`tsnav.detect.train.weights_fingerprint`).
 LEARNED_PREFIX = "learned-"
@@ -144,20 +145,21 @@ def complete_tables(data: str | Path, name: str, source: str | None = None) -> s
 
 def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | Path, scale: ScaleConfig,
                               progress: bool = True, say: Callable[[str], None] = print,
-                              train_root: str | Path | None = None) -> dict:
+                              train_root: str | Path | None = None, workers: int = 1) -> dict:
     """Give every scene of ``data`` a learned table ``detections_<name>.hdf5`` (module docstring; the detector
-    trains on the train rooms of ``train_root``, default ``data``, and is calibrated on the val rooms of ``data``);
-    returns ``{"fingerprint", "written", "trained"}`` (``trained``: the detector folder was used)."""
+    trains on the train rooms of ``train_root``, default ``data``, and is calibrated on the val rooms of ``data``;
+    ``workers`` processes write the tables); returns ``{"fingerprint", "written", "trained"}`` (``trained``: the
+    detector folder was used)."""
     have, kinds = learned_tables(data, name)
     if not any(fp is None for fp in have.values()):
         return {"fingerprint": kinds[0], "written": 0, "trained": False}
     det = ensure_detector(train_root or data, data, detector_dir, scale, progress=progress, say=say)
-    return {**write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir)),
-            "trained": True}
+    return {**write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir),
+                                   workers=workers), "trained": True}
 
 
 def ensure_shipped_detections(data: str | Path, name: str, progress: bool = True,
-                              say: Callable[[str], None] = print) -> dict:
+                              say: Callable[[str], None] = print, workers: int = 1) -> dict:
     """Like :func:`ensure_learned_detections`, with the detector shipped in the package
     (:mod:`tsnav.detect.shipped`, loaded for the scenes' frame size) writing the missing tables: nothing is
     trained. Returns ``{"fingerprint", "written"}``."""
@@ -166,14 +168,16 @@ def ensure_shipped_detections(data: str | Path, name: str, progress: bool = True
         return {"fingerprint": kinds[0], "written": 0}
     det = shipped_detector(load_scene(next(iter(have))).image_size)
     return write_learned_tables(data, name, det, progress=progress, say=say,
-                                source=f"the shipped detector {DEFAULT_SHIPPED}")
+                                source=f"the shipped detector {DEFAULT_SHIPPED}", workers=workers)
 
 
 def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, progress: bool = True,
-                         say: Callable[[str], None] = print, source: str = "the given detector") -> dict:
+                         say: Callable[[str], None] = print, source: str = "the given detector",
+                         workers: int = 1) -> dict:
     """Write the tables of detector ``det`` into the scenes of ``data`` that lack ``detections_<name>.hdf5``
-    (one thread); a table made by another detector is refused in one line and never overwritten (``source``
-    names ``det`` in that line). Returns ``{"fingerprint", "written"}``."""
+    (one torch thread per scene; ``workers`` processes share the scenes, :func:`tsnav.scene_pool.map_scenes`: the
+    same tables for every value); a table made by another detector is refused in one line and never overwritten
+    (``source`` names ``det`` in that line). Returns ``{"fingerprint", "written"}``."""
     have, kinds = learned_tables(data, name)
     if kinds and det.fingerprint != kinds[0]:
         odd = next(p for p, fp in have.items() if fp is not None)
@@ -184,13 +188,29 @@ def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, prog
     bar = tqdm(total=sum(s.num_states for s in scenes), desc=f"detect {name}", unit="state", disable=not progress,
                dynamic_ncols=True)
     try:
-        with one_thread():
-            for s in scenes:
-                write_detections(s.path, name, det.detect_scene(s, bar=bar))
+        if workers > 1 and len(scenes) > 1:
+            for i, n in map_scenes(_detect_task, [(s.path, name) for s in scenes], _same, det, workers):
+                bar.update(n)
+        else:
+            with one_thread():
+                for s in scenes:
+                    write_detections(s.path, name, det.detect_scene(s, bar=bar))
     finally:
         bar.close()
     say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
     return {"fingerprint": det.fingerprint, "written": len(scenes)}
+
+
+def _same(x):
+    return x
+
+
+def _detect_task(det: LearnedDetector, task) -> int:
+    """One scene's table, in a worker of :func:`write_learned_tables`; returns its number of states."""
+    path, name = task
+    scene = load_scene(path)
+    write_detections(path, name, det.detect_scene(scene))
+    return scene.num_states
 
 
 def detection_quality(data: str | Path, name: str, split: str = "val", c_target: float = C_TARGET) -> dict:

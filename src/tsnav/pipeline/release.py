@@ -207,12 +207,14 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
 def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test") -> str:
     """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's."""
     from ..pretrain.features import cache_features, load_encoder
+    from ..scene_pool import default_workers
 
     enc = load_encoder(str(folder / "encoder.safetensors"))
     if enc.fingerprint != card["encoder_fingerprint"]:
         raise CommandError(f"{folder / 'encoder.safetensors'}: its weights do not match the card's fingerprint "
                            f"({enc.fingerprint} vs {card['encoder_fingerprint']})")
-    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=True)
+    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=True,
+                   workers=default_workers())  # one thread per process, as the agent's own features were cached
     return card["features"]
 
 
@@ -227,12 +229,13 @@ def ensure_release_detections(data: Path, card: dict) -> str:
     from ..data.reader import load_scene, list_scenes
     from ..detect.shipped import shipped_detector
     from .detector_steps import learned_tables, write_learned_tables
+    from ..scene_pool import default_workers
 
     have, _ = learned_tables(data, card["detections"])
     if any(fp is None for fp in have.values()):
         size = load_scene(list_scenes(data)[0]).image_size
         write_learned_tables(data, card["detections"], shipped_detector(size, det), say=say,
-                             source=f"the shipped detector {det}")
+                             source=f"the shipped detector {det}", workers=default_workers())
     return card["detections"]
 
 

@@ -15,6 +15,7 @@ from ..errors import CommandError
 from ..protocol import DEFAULT_PROTOCOL, protocol_of
 from ..pretrain.features import cache_features, load_encoder
 from ..distributed import resolve_device
+from ..scene_pool import default_workers
 from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
 from ..sim.episodes import make_episodes, read_episodes, write_episodes
@@ -67,14 +68,17 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
 
 def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | None = None,
                       scale: ScaleConfig | None = None, shipped: bool = False,
-                      train_root: str | Path | None = None) -> dict:
+                      train_root: str | Path | None = None, workers: int | None = None) -> dict:
     """Every scene's table ``detections_<name>.hdf5``; returns ``{"fingerprint", "written"}``. Oracle tables are
     computed when missing; any other name is a learned detector's table: used as it is when every scene holds one
     of the same detector (from the source asked for: :func:`~tsnav.pipeline.detector_steps.complete_tables`), else the
     detector in ``detector_dir`` is trained at ``scale`` on the train rooms of ``train_root`` (default ``data``)
     and writes the missing ones (:func:`tsnav.pipeline.detector_steps.ensure_learned_detections`; without a
     ``detector_dir`` every scene must already have its table). ``shipped``: the missing learned tables are written
-    by the detector that comes with tsnav (:mod:`tsnav.detect.shipped`) instead, nothing trained."""
+    by the detector that comes with tsnav (:mod:`tsnav.detect.shipped`) instead, nothing trained. ``workers``:
+    processes writing the learned tables, one thread each (None: every core, :func:`tsnav.scene_pool.default_workers`;
+    the same tables for every value)."""
+    workers = default_workers() if workers is None else workers
     if name == "oracle":
         n = ensure_oracle_detections(data, name)
         if n:
@@ -84,13 +88,14 @@ def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | No
     if shipped or trains:
         complete_tables(data, name, "shipped" if shipped else "train")  # the one rule on foreign tables
     if shipped:
-        return ensure_shipped_detections(data, name, say=say)
+        return ensure_shipped_detections(data, name, say=say, workers=workers)
     if not trains:
         missing = [p.name for p in list_scenes(data) if not detections_path(p, name).exists()]
         if missing:
             raise CommandError(f"scene {missing[0]} has no detections_{name}.hdf5 (run `tsnav detect --name {name}`)")
         return {"fingerprint": None, "written": 0}
-    done = ensure_learned_detections(data, name, detector_dir, scale, say=say, train_root=train_root)
+    done = ensure_learned_detections(data, name, detector_dir, scale, say=say, train_root=train_root,
+                                     workers=workers)
     return {"fingerprint": done["fingerprint"], "written": done["written"]}
 
 
@@ -169,11 +174,15 @@ def ensure_encoder(es: EncoderSpec, data: str | Path) -> None:
 
 
 def ensure_features(es: EncoderSpec, data: str | Path, splits: list[str], batch_size: int = 128,
-                    device: str = "auto") -> str:
+                    device: str = "auto", workers: int | None = None) -> str:
     """Cache the features of ``es`` for the scenes of ``splits``; returns the cache name
-    ``<id>-<fingerprint>`` (identical encoders share a cache)."""
+    ``<id>-<fingerprint>`` (identical encoders share a cache). ``workers``: processes encoding the scenes on one
+    thread each (:func:`~tsnav.pretrain.features.cache_features`); None: every core on a CPU
+    (:func:`tsnav.scene_pool.default_workers`), this process alone on a GPU."""
     enc = load_encoder(es.spec, es.model, es.patch_size, es.img_size, resolve_device(device))
+    if workers is None:
+        workers = default_workers() if enc.device.type == "cpu" else 0
     name = f"{es.id}-{enc.fingerprint[:10]}"
     for s in splits:
-        cache_features(enc, data, name, batch_size=batch_size, split=s, progress=True)
+        cache_features(enc, data, name, batch_size=batch_size, split=s, progress=True, workers=workers)
     return name

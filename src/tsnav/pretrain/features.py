@@ -41,6 +41,7 @@ from ..data import lineage as L
 from ..data.reader import list_scenes, load_scene, read_stack
 from ..checkpoint import load_tensors, weights_digest
 from ..distributed import resolve_device
+from ..scene_pool import map_scenes
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
 from .resnet import ResNet18, load_resnet_weights
@@ -181,9 +182,12 @@ def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_si
 
 
 def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: int = 64, split: str | None = None,
-                   overwrite: bool = False, progress: bool = True) -> list[Path]:
+                   overwrite: bool = False, progress: bool = True, workers: int = 0) -> list[Path]:
     """Write ``features_<name>.hdf5`` into every complete scene of ``root`` (or of ``split``); resumable.
 
+    ``workers`` >= 1: the scenes are encoded by that many processes on one torch thread each
+    (:func:`tsnav.scene_pool.map_scenes`; 1: in this process, on one thread; the files are the same bytes for
+    every value). 0 (the default): in this process on the caller's torch threads, one scene after the other.
     Returns the feature files (written or already present).
     """
     scenes = [p for p in list_scenes(root, split=split)]
@@ -209,14 +213,32 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
     bar = tqdm(total=sum(len(k) for _, k in scenes_keys), desc=f"features {name}", unit="img",
                disable=not progress, dynamic_ncols=True)
     try:
-        for p, keys in scenes_keys:
-            feats = scene_features(encoder, p, keys, batch_size, bar)
-            f = p / f"features_{name}.hdf5"
-            write_feature_file(f, feats, keys, encoder.attrs())
-            written.append(f)
+        if workers >= 1:
+            tasks = [(p, keys, batch_size, name) for p, keys in scenes_keys]
+            for i, f in map_scenes(_feature_task, tasks, _same, encoder, workers):
+                written.append(f)
+                bar.update(len(scenes_keys[i][1]))
+        else:
+            for p, keys in scenes_keys:
+                feats = scene_features(encoder, p, keys, batch_size, bar)
+                f = p / f"features_{name}.hdf5"
+                write_feature_file(f, feats, keys, encoder.attrs())
+                written.append(f)
     finally:
         bar.close()
     return sorted(written)
+
+
+def _same(x):
+    return x
+
+
+def _feature_task(encoder: Encoder, task) -> Path:
+    """One scene's feature file, in a worker of :func:`cache_features`."""
+    p, keys, batch_size, name = task
+    f = p / f"features_{name}.hdf5"
+    write_feature_file(f, scene_features(encoder, p, keys, batch_size), keys, encoder.attrs())
+    return f
 
 
 def write_feature_file(path: str | Path, features: np.ndarray, keys, attrs: dict) -> None:

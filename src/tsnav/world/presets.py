@@ -28,6 +28,11 @@ PRESETS = {
                                                          302, 310, 316, 320, 321, 322, 328, 403, 408, 412, 419, 423,
                                                          424, 426)],
                   "compact": False, "image_size": 128, "world": "ithor-real"},
+    # the quick demo's real rooms (the default of tsnav demo): of demo-real, the 2 smallest training rooms of each
+    # type, its 4 validation rooms and its smaller test room of each type (16 rooms, 23.5 k states)
+    "demo-real-small": {"scenes": [f"FloorPlan{i}" for i in (11, 17, 24, 27, 206, 217, 221, 226, 302, 316, 321, 328,
+                                                               408, 419, 423, 424)],
+                        "compact": False, "image_size": 128, "world": "ithor-real"},
     "ithor": {"scenes": ithor_scenes(), "compact": False, "image_size": 128},
     # the 120 real iTHOR scenes rebuilt from their recorded object layouts (same names and splits as ithor)
     "ithor-real": {"scenes": ithor_scenes(), "compact": False, "image_size": 128, "world": "ithor-real"},

@@ -1,0 +1,66 @@
+"""Per-scene work over several CPU processes: the feature caches and detection tables of many rooms (issue 26, both
+cores in every long stage).
+
+Each room is independent: a worker computes one room's array on **one torch thread** and writes its file
+atomically, so the files are the same bytes whatever the number of workers, and the same as the one-thread loop
+in this process (``workers=1``, the reference :func:`map_scenes` falls back to; tests hold the two together).
+Workers are started with ``spawn`` (no forked torch state); the model they run is sent to each worker once, when it
+starts, by multiprocessing's own transport in memory (nothing written to disk, nothing a user exchanges).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from typing import Any, Callable, Iterable, Iterator
+
+import torch
+
+from .distributed import set_threads
+
+#: The state a worker keeps between its tasks (set once by :func:`_init`).
+_STATE: dict[str, Any] = {}
+
+
+def default_workers() -> int:
+    """Worker processes for per-scene work: the CPU cores this process may use."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        n = os.cpu_count() or 1
+    return max(1, n)
+
+
+def _init(setup: Callable[[Any], Any], arg: Any) -> None:
+    set_threads(1)
+    _STATE["ctx"] = setup(arg)
+
+
+def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Callable[[Any], Any], arg: Any,
+               workers: int = 1) -> Iterator[tuple[int, Any]]:
+    """Yield ``(index, fn(ctx, item))`` for every item, where ``ctx = setup(arg)`` is built once per process.
+
+    ``workers`` <= 1, or a single item: in this process on one torch thread (the caller's count restored), in
+    order. Otherwise a ``spawn`` pool of ``min(workers, len(items))`` processes on one thread each; results come in
+    the order they finish. ``fn`` and ``setup`` must be module-level functions (they are sent by name). An error
+    in a worker is raised here, the pool stopped.
+    """
+    items = list(items)
+    n = min(max(1, workers), len(items))
+    if n <= 1:
+        before = torch.get_num_threads()
+        set_threads(1)
+        try:
+            ctx = setup(arg)
+            for i, item in enumerate(items):
+                yield i, fn(ctx, item)
+        finally:
+            set_threads(before)
+        return
+    with mp.get_context("spawn").Pool(n, initializer=_init, initargs=(setup, arg)) as pool:
+        yield from pool.imap_unordered(_indexed, [(i, fn, item) for i, item in enumerate(items)])
+
+
+def _indexed(task: tuple[int, Callable[[Any, Any], Any], Any]) -> tuple[int, Any]:
+    i, fn, item = task
+    return i, fn(_STATE["ctx"], item)

@@ -1,0 +1,88 @@
+"""Per-scene work over processes (:mod:`tsnav.scene_pool`): the feature caches and detection tables written by two
+worker processes are the same bytes as those of the one-thread loop in this process (the reference), and an error
+in a worker reaches the caller."""
+
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from tsnav.data.reader import list_scenes
+from tsnav.detect.learned import LearnedDetector
+from tsnav.detect.model import DetectorConfig, GridDetector
+from tsnav.pipeline.detector_steps import write_learned_tables
+from tsnav.pretrain.features import cache_features, load_encoder
+from tsnav.pretrain.model import vit_tiny
+from tsnav.pretrain.synthetic import write_synthetic_dataset
+from tsnav.pretrain.train import save_encoder
+from tsnav.scene_pool import default_workers, map_scenes
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _square(ctx, x):
+    return ctx * x * x
+
+
+def _fail_on_three(ctx, x):
+    if x == 3:
+        raise ValueError("item three")
+    return x
+
+
+def _ident(x):
+    return x
+
+
+def _datasets(path):
+    with h5py.File(path, "r") as f:
+        return {k: f[k][()] for k in sorted(f.keys())}
+
+
+def test_map_scenes_in_process_and_in_workers():
+    want = {i: 10 * x * x for i, x in enumerate(range(6))}
+    assert dict(map_scenes(_square, range(6), _ident, 10, workers=1)) == want
+    assert dict(map_scenes(_square, range(6), _ident, 10, workers=2)) == want
+    assert torch.get_num_threads() == 1  # the caller's count is restored after the in-process loop
+    with pytest.raises(ValueError, match="item three"):
+        list(map_scenes(_fail_on_three, range(6), _ident, None, workers=2))
+    assert default_workers() >= 1
+
+
+def test_features_from_two_workers_equal_the_one_thread_loop(tmp_path):
+    torch.manual_seed(5)
+    save_encoder(vit_tiny(patch_size=8, img_size=16), tmp_path / "enc.safetensors", "demae")
+    enc = load_encoder(str(tmp_path / "enc.safetensors"))
+    roots = {}
+    for workers in (0, 2):
+        roots[workers] = write_synthetic_dataset(tmp_path / f"data{workers}", size=16)
+        files = cache_features(enc, roots[workers], "t", batch_size=5, progress=False, workers=workers)
+        assert len(files) == 3
+    for a, b in zip(list_scenes(roots[0]), list_scenes(roots[2])):
+        da, db = _datasets(a / "features_t.hdf5"), _datasets(b / "features_t.hdf5")
+        assert da.keys() == db.keys()
+        for k in da:
+            np.testing.assert_array_equal(da[k], db[k])
+
+
+def test_tables_from_two_workers_equal_the_one_thread_loop(tiny_world, tmp_path):
+    torch.manual_seed(2)
+    scene = list_scenes(tiny_world)[0]
+    from tsnav.data.reader import load_scene
+
+    size = load_scene(scene).image_size
+    det = LearnedDetector(GridDetector(DetectorConfig(image_size=size)).eval(), temperature=1.0)
+    roots = {}
+    for workers in (1, 2):
+        roots[workers] = tmp_path / f"w{workers}"
+        shutil.copytree(tiny_world, roots[workers], ignore=shutil.ignore_patterns("detections_*", "features_*"))
+        out = write_learned_tables(roots[workers], "learned", det, progress=False, say=lambda m: None,
+                                   workers=workers)
+        assert out["written"] == len(list_scenes(tiny_world))
+    for a, b in zip(list_scenes(roots[1]), list_scenes(roots[2])):
+        da, db = _datasets(a / "detections_learned.hdf5"), _datasets(b / "detections_learned.hdf5")
+        assert da.keys() == db.keys() and da
+        for k in da:
+            np.testing.assert_array_equal(da[k], db[k])
