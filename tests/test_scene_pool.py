@@ -17,7 +17,7 @@ from tsnav.pretrain.features import cache_features, load_encoder
 from tsnav.pretrain.model import vit_tiny
 from tsnav.pretrain.synthetic import write_synthetic_dataset
 from tsnav.pretrain.train import save_encoder
-from tsnav.scene_pool import default_workers, map_scenes
+from tsnav.scene_pool import as_is, default_workers, map_scenes
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -32,10 +32,6 @@ def _fail_on_three(ctx, x):
     return x
 
 
-def _ident(x):
-    return x
-
-
 def _datasets(path):
     with h5py.File(path, "r") as f:
         return {k: f[k][()] for k in sorted(f.keys())}
@@ -43,11 +39,11 @@ def _datasets(path):
 
 def test_map_scenes_in_process_and_in_workers():
     want = {i: 10 * x * x for i, x in enumerate(range(6))}
-    assert dict(map_scenes(_square, range(6), _ident, 10, workers=1)) == want
-    assert dict(map_scenes(_square, range(6), _ident, 10, workers=2)) == want
+    assert dict(map_scenes(_square, range(6), as_is, 10, workers=1)) == want
+    assert dict(map_scenes(_square, range(6), as_is, 10, workers=2)) == want
     assert torch.get_num_threads() == 1  # the caller's count is restored after the in-process loop
     with pytest.raises(ValueError, match="item three"):
-        list(map_scenes(_fail_on_three, range(6), _ident, None, workers=2))
+        list(map_scenes(_fail_on_three, range(6), as_is, None, workers=2))
     assert default_workers() >= 1
 
 

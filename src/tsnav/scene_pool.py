@@ -31,6 +31,11 @@ def default_workers() -> int:
     return max(1, n)
 
 
+def as_is(x: Any) -> Any:
+    """The ``setup`` of :func:`map_scenes` when the object sent to the workers is their context as it is."""
+    return x
+
+
 def _init(setup: Callable[[Any], Any], arg: Any) -> None:
     set_threads(1)
     _STATE["ctx"] = setup(arg)

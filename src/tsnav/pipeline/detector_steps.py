@@ -44,7 +44,7 @@ from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_m
 from ..errors import CommandError
 from .config import ScaleConfig
 from ..report.tables import quality_line
-from ..scene_pool import map_scenes
+from ..scene_pool import as_is, map_scenes
 
 #: Prefix of every learned detector's fingerprint (:func:`tsnav.detect.train.weights_fingerprint`).
 LEARNED_PREFIX = "learned-"
@@ -189,7 +189,7 @@ def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, prog
                dynamic_ncols=True)
     try:
         if workers > 1 and len(scenes) > 1:
-            for i, n in map_scenes(_detect_task, [(s.path, name) for s in scenes], _same, det, workers):
+            for i, n in map_scenes(_detect_task, [(s.path, name) for s in scenes], as_is, det, workers):
                 bar.update(n)
         else:
             with one_thread():
@@ -199,10 +199,6 @@ def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, prog
         bar.close()
     say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
     return {"fingerprint": det.fingerprint, "written": len(scenes)}
-
-
-def _same(x):
-    return x
 
 
 def _detect_task(det: LearnedDetector, task) -> int:

@@ -41,7 +41,7 @@ from ..data import lineage as L
 from ..data.reader import list_scenes, load_scene, read_stack
 from ..checkpoint import load_tensors, weights_digest
 from ..distributed import resolve_device
-from ..scene_pool import map_scenes
+from ..scene_pool import as_is, map_scenes
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
 from .resnet import ResNet18, load_resnet_weights
@@ -215,7 +215,7 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
     try:
         if workers >= 1:
             tasks = [(p, keys, batch_size, name) for p, keys in scenes_keys]
-            for i, f in map_scenes(_feature_task, tasks, _same, encoder, workers):
+            for i, f in map_scenes(_feature_task, tasks, as_is, encoder, workers):
                 written.append(f)
                 bar.update(len(scenes_keys[i][1]))
         else:
@@ -227,10 +227,6 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
     finally:
         bar.close()
     return sorted(written)
-
-
-def _same(x):
-    return x
 
 
 def _feature_task(encoder: Encoder, task) -> Path:
