@@ -82,3 +82,18 @@ def test_tables_from_two_workers_equal_the_one_thread_loop(tiny_world, tmp_path)
         assert da.keys() == db.keys() and da
         for k in da:
             np.testing.assert_array_equal(da[k], db[k])
+
+
+def test_features_command_takes_workers(tmp_path, capsys):
+    from tsnav.cli import main
+
+    root = write_synthetic_dataset(tmp_path / "data", size=16)
+    torch.manual_seed(1)
+    save_encoder(vit_tiny(patch_size=8, img_size=16), tmp_path / "enc.safetensors", "demae")
+    assert main(["features", "--encoder", str(tmp_path / "enc.safetensors"), "--data", str(root),
+                 "--workers", "-1"]) == 2
+    assert "--workers must be >= 0" in capsys.readouterr().err
+    assert main(["features", "--encoder", str(tmp_path / "enc.safetensors"), "--data", str(root), "--name", "w",
+                 "--workers", "2", "--quiet"]) == 0
+    assert "features_w.hdf5 in 3 scenes" in capsys.readouterr().out
+    assert all((p / "features_w.hdf5").exists() for p in list_scenes(root))

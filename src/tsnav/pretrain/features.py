@@ -41,6 +41,7 @@ from ..data import lineage as L
 from ..data.reader import list_scenes, load_scene, read_stack
 from ..checkpoint import load_tensors, weights_digest
 from ..distributed import resolve_device
+from ..errors import CommandError
 from ..scene_pool import as_is, map_scenes
 from .data import normalize_rgb, resize_rgb
 from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
@@ -319,12 +320,20 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--overwrite", action="store_true", help="recompute files made by another encoder")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="CPU processes sharing the scenes, one torch thread each (e.g. 2 on a 2-core machine; "
+                             "the files are the same for any value); 0 (default): this process alone")
     parser.add_argument("--quiet", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.workers < 0:
+        raise CommandError("--workers must be >= 0")
     enc = load_encoder(args.encoder, args.model, args.patch, args.img_size, resolve_device(args.device))
+    if args.workers and enc.device.type != "cpu":
+        raise CommandError("--workers shares the scenes over CPU processes: use it with --device cpu")
     name = args.name or default_name(args.encoder)
-    files = cache_features(enc, args.data, name, args.batch_size, args.split, args.overwrite, not args.quiet)
+    files = cache_features(enc, args.data, name, args.batch_size, args.split, args.overwrite, not args.quiet,
+                           workers=args.workers)
     print(f"features_{name}.hdf5 in {len(files)} scenes ({enc.arch}, {enc.method}, input {enc.img_size}px)")
     return 0
