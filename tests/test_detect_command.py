@@ -57,6 +57,20 @@ def test_learned_command_trains_resumes_and_refuses_stale_tables(world, capsys):
     assert "made by another detector" in capsys.readouterr().err
     assert main(args + ["--train-steps", "4", "--no-eval", "--overwrite"]) == 0
     assert "5 scenes written" in capsys.readouterr().out
+    # Two worker processes write the same tables as this process did
+    one = {p.name: load_detections(p, "learned") for p in list_scenes(world)}
+    for p in list_scenes(world):
+        (p / "detections_learned.hdf5").unlink()
+    assert main(args + ["--no-eval", "--workers", "2"]) == 0
+    assert "5 scenes written" in capsys.readouterr().out
+    for p in list_scenes(world):
+        two = load_detections(p, "learned")
+        assert two.fingerprint == one[p.name].fingerprint
+        np.testing.assert_array_equal(two.scores, one[p.name].scores)
+        np.testing.assert_array_equal(two.boxes, one[p.name].boxes)
+        np.testing.assert_array_equal(two.features, one[p.name].features)
+    assert main(args + ["--no-eval", "--workers", "0"]) == 2
+    assert "--workers must be at least 1" in capsys.readouterr().err
     # Hard-negative sampling from the command line: applies from the checkpoint's step, mined and recorded there.
     assert main(args + ["--train-steps", "5", "--no-eval", "--overwrite", "--hard-negative-weight", "3",
                         "--hard-negative-threshold", "0.2"]) == 0

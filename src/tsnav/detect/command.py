@@ -30,6 +30,7 @@ from ..atomic import atomic_write_text
 from ..data.detections import check_name, load_detections, read_fingerprint, write_detections
 from ..data.reader import list_scenes, load_scene
 from ..distributed import set_threads
+from ..scene_pool import as_is, map_scenes
 from ..errors import CommandError
 from .evaluate import evaluate_detections
 from .learned import LearnedDetector
@@ -84,6 +85,9 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation")
     p.add_argument("--overwrite", action="store_true", help="replace tables made by another detector")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="learned and shipped detectors: CPU processes sharing the rooms' tables, one thread each "
+                        "(e.g. 2 on a 2-core machine; the same tables for any value; default 1: this process)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -98,7 +102,15 @@ def _tick(det, bar):
     return det
 
 
-def _learned(args, root: Path):
+def _table_task(det: LearnedDetector, task) -> int:
+    """One room's table, in a worker of ``--workers``; returns its number of states."""
+    path, name = task
+    scene = load_scene(path)
+    write_detections(path, name, det.detect_scene(scene))
+    return scene.num_states
+
+
+def _learned(args, root: Path) -> LearnedDetector:
     ckpt = Path(args.checkpoint) if args.checkpoint else root / "detectors" / "learned"
     if args.train_steps is not None and args.train_steps < 1:
         raise CommandError("--train-steps must be at least 1")
@@ -140,8 +152,7 @@ def _learned(args, root: Path):
         print(f"temperature {t:.3f} (fitted on val scenes)")
     except ValueError as e:
         print(f"no calibration ({e}); temperature 1")
-    det = LearnedDetector.load(ckpt)
-    return det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
+    return LearnedDetector.load(ckpt)
 
 
 def _model_config(args, root: Path):
@@ -185,19 +196,21 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--data {root}: no such dataset folder")
     if args.threads < 1:
         raise CommandError("--threads must be at least 1")
+    if args.workers < 1:
+        raise CommandError("--workers must be at least 1")
     set_threads(args.threads)
     _sigterm_interrupts()
     name = check_name(args.name or ("learned" if args.detector == "shipped" else args.detector))
     scenes = list_scenes(root, split=args.split)
     if not scenes:
         raise CommandError(f"{root}: no complete scene folder" + (f" of split {args.split}" if args.split else ""))
+    det = None
     if args.detector == "oracle":
         fingerprint, detect = _oracle(args)
-    elif args.detector == "shipped":
-        det = shipped_detector(load_scene(scenes[0]).image_size, name=args.shipped)
-        fingerprint, detect = det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
     else:
-        fingerprint, detect = _learned(args, root)
+        det = (shipped_detector(load_scene(scenes[0]).image_size, name=args.shipped) if args.detector == "shipped"
+               else _learned(args, root))
+        fingerprint, detect = det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
 
     todo, done = [], 0
     for p in scenes:
@@ -213,8 +226,12 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=sum(s.num_states for s in loaded), desc=f"detect {name}", unit="state",
                disable=args.quiet, dynamic_ncols=True)
     try:
-        for s in loaded:
-            write_detections(s.path, name, detect(s, bar))
+        if det is not None and args.workers > 1 and len(loaded) > 1:  # one room per process, one thread each
+            for _, n in map_scenes(_table_task, [(s.path, name) for s in loaded], as_is, det, args.workers):
+                bar.update(n)
+        else:
+            for s in loaded:
+                write_detections(s.path, name, detect(s, bar))
     finally:
         bar.close()
     print(f"detections_{name}.hdf5: {len(loaded)} scenes written, {done} already done "
