@@ -6,7 +6,7 @@ one setting changed, over several seeds, against the demo itself over the same s
 
 VARIANT is one of :data:`VARIANTS` (``p16-64``: the demo as it is, a 4x4 token grid; ``p16-128``: the same ViT-Tiny
 on the world's own 128-px frames, an 8x8 grid). Each (variant, seed) is a demo folder ``BASE/VARIANT-sSEED``; the
-first folder made (``BASE/p16-64-s0``, i.e. ``tsnav demo`` itself) owns the world, the others link to it, and the
+first folder made (``BASE/p16-64-s0``, i.e. ``tsnav demo --preset demo-real``) owns the world, the others link to it, and the
 seeds of one variant share its pretraining (``BASE/pretrain-VARIANT``), as the experiments' seeds do. Every step
 resumes. ``--table`` prints the per-seed figures of both protocols and each variant's mean with its 95 % t-interval,
 and writes them to ``BASE/factor.json``; it also evaluates each finished agent by sampling its actions (3 rolls

@@ -192,10 +192,12 @@ def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsy
 
     out = tmp_path / "real"
     shutil.copytree(tiny_real, out / "world")
-    cfg = replace(TINY, preset="tiny-real", detector="shipped", train_rooms_per_type=None)
+    cfg = replace(TINY, preset="tiny-real", detector="shipped", train_rooms_per_type=None,
+                  tables_beside_pretraining=True)
     trainer = CountedTrainer()
     res = run_demo(out, cfg, train_fn=trainer)
     assert [res["steps"][s][0] for s in STEPS] == ["done"] * len(STEPS)
+    assert "its tables were written during pretraining" in capsys.readouterr().out  # by the background process
     marker = json.loads((out / "steps" / "detector" / "DONE").read_text())
     assert marker["source"] == "shipped" and marker["fingerprint"] == shipped_meta()["fingerprint"]
     assert not (out / "detector").exists() and trainer.detections == ["learned"]

@@ -2,7 +2,9 @@
 worker processes are the same bytes as those of the one-thread loop in this process (the reference), and an error
 in a worker reaches the caller."""
 
+import os
 import shutil
+from concurrent.futures.process import BrokenProcessPool
 
 import h5py
 import numpy as np
@@ -17,7 +19,7 @@ from tsnav.pretrain.features import cache_features, load_encoder
 from tsnav.pretrain.model import vit_tiny
 from tsnav.pretrain.synthetic import write_synthetic_dataset
 from tsnav.pretrain.train import save_encoder
-from tsnav.scene_pool import as_is, default_workers, map_scenes
+from tsnav.scene_pool import as_is, map_scenes
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -32,6 +34,12 @@ def _fail_on_three(ctx, x):
     return x
 
 
+def _die_on_two(ctx, x):
+    if x == 2:
+        os._exit(3)
+    return x
+
+
 def _datasets(path):
     with h5py.File(path, "r") as f:
         return {k: f[k][()] for k in sorted(f.keys())}
@@ -39,12 +47,26 @@ def _datasets(path):
 
 def test_map_scenes_in_process_and_in_workers():
     want = {i: 10 * x * x for i, x in enumerate(range(6))}
-    assert dict(map_scenes(_square, range(6), as_is, 10, workers=1)) == want
+    torch.set_num_threads(3)
+    try:
+        assert dict(map_scenes(_square, range(6), as_is, 10, workers=1)) == want
+        assert torch.get_num_threads() == 3  # the caller's count is restored after the in-process loop
+    finally:
+        torch.set_num_threads(1)
     assert dict(map_scenes(_square, range(6), as_is, 10, workers=2)) == want
-    assert torch.get_num_threads() == 1  # the caller's count is restored after the in-process loop
     with pytest.raises(ValueError, match="item three"):
         list(map_scenes(_fail_on_three, range(6), as_is, None, workers=2))
-    assert default_workers() >= 1
+    with pytest.raises(BrokenProcessPool):  # a worker that dies outright stops the pool instead of hanging it
+        list(map_scenes(_die_on_two, range(4), as_is, None, workers=2))
+
+
+def test_default_workers_follow_the_cores_with_a_cap(monkeypatch):
+    import tsnav.scene_pool as sp
+
+    monkeypatch.setattr(sp.os, "sched_getaffinity", lambda pid: set(range(64)))
+    assert sp.default_workers() == sp.MAX_DEFAULT_WORKERS
+    monkeypatch.setattr(sp.os, "sched_getaffinity", lambda pid: {0, 1})
+    assert sp.default_workers() == 2
 
 
 def test_features_from_two_workers_equal_the_one_thread_loop(tmp_path):

@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
+import sys
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Iterable, Iterator
 
 import torch
@@ -22,13 +25,18 @@ from .distributed import set_threads
 _STATE: dict[str, Any] = {}
 
 
+#: At most this many default workers: each holds a copy of the model and one room's frames.
+MAX_DEFAULT_WORKERS = 8
+
+
 def default_workers() -> int:
-    """Worker processes for per-scene work: the CPU cores this process may use."""
+    """Worker processes for per-scene work: the CPU cores this process may use, at most
+    :data:`MAX_DEFAULT_WORKERS`."""
     try:
         n = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         n = os.cpu_count() or 1
-    return max(1, n)
+    return max(1, min(n, MAX_DEFAULT_WORKERS))
 
 
 def as_is(x: Any) -> Any:
@@ -37,8 +45,14 @@ def as_is(x: Any) -> Any:
 
 
 def _init(setup: Callable[[Any], Any], arg: Any) -> None:
+    signal.signal(signal.SIGTERM, _exit_on_term)  # a terminated worker unwinds: atomic writes remove their temp files
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     set_threads(1)
     _STATE["ctx"] = setup(arg)
+
+
+def _exit_on_term(signum, frame):
+    sys.exit(128 + signum)
 
 
 def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Callable[[Any], Any], arg: Any,
@@ -48,7 +62,8 @@ def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Calla
     ``workers`` <= 1, or a single item: in this process on one torch thread (the caller's count restored), in
     order. Otherwise a ``spawn`` pool of ``min(workers, len(items))`` processes on one thread each; results come in
     the order they finish. ``fn`` and ``setup`` must be module-level functions (they are sent by name). An error
-    in a worker is raised here, the pool stopped.
+    in a worker is raised here (a worker that dies outright: ``BrokenProcessPool``); the items not started are
+    cancelled and the running ones finished before it propagates.
     """
     items = list(items)
     n = min(max(1, workers), len(items))
@@ -62,10 +77,22 @@ def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Calla
         finally:
             set_threads(before)
         return
-    with mp.get_context("spawn").Pool(n, initializer=_init, initargs=(setup, arg)) as pool:
-        yield from pool.imap_unordered(_indexed, [(i, fn, item) for i, item in enumerate(items)])
+    pool = ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_init, initargs=(setup, arg))
+    try:
+        pending = {pool.submit(fn_at, fn, item): i for i, item in enumerate(items)}
+        while pending:  # a worker that dies without an exception breaks the pool: BrokenProcessPool, no hang
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for f in done:
+                yield pending.pop(f), f.result()
+    except BaseException:  # an error or Ctrl-C here: the workers are stopped (SIGTERM; their temp files removed)
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            if proc.is_alive():
+                proc.terminate()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _indexed(task: tuple[int, Callable[[Any, Any], Any], Any]) -> tuple[int, Any]:
-    i, fn, item = task
-    return i, fn(_STATE["ctx"], item)
+def fn_at(fn: Callable[[Any, Any], Any], item: Any) -> Any:
+    """``fn(ctx, item)`` in a worker, with the worker's context."""
+    return fn(_STATE["ctx"], item)

@@ -47,6 +47,8 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import signal
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -57,7 +59,8 @@ from ..data.reader import list_scenes, load_scene
 from ..errors import CommandError
 from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
                           set_threads)
-from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, QUICK_DEMO_PRETRAIN_STEPS, QUICK_DEMO_UPDATES, SCALES,
+from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, QUICK_DEMO_PRETRAIN_STEPS, QUICK_DEMO_PROCS,
+                     QUICK_DEMO_UPDATES, SCALES,
                      ExperimentConfig, ScaleConfig, demo_scale)
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
@@ -114,9 +117,15 @@ class DemoConfig:
     """Success protocol the agent is trained and its checkpoint selected under (:mod:`tsnav.protocol`); every
     policy is evaluated under both protocols either way."""
 
+    tables_beside_pretraining: bool | None = None
+    """Write the shipped detector's tables in a process of their own while DE-MAE pretrains on one thread; None:
+    on the quick demo's world only (on the others pretraining keeps the demo's threads, and so their encoders)."""
+
     def __post_init__(self):
         if self.scale is None:
             self.scale = demo_scale(self.preset)
+        if self.tables_beside_pretraining is None:
+            self.tables_beside_pretraining = self.preset == QUICK_DEMO_PRESET
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -131,7 +140,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                    help=f"DE-MAE steps (default {QUICK_DEMO_PRETRAIN_STEPS} on {QUICK_DEMO_PRESET}, "
                         f"{SCALES['demo'].pretrain.steps} on the other worlds)")
     p.add_argument("--procs", type=int, default=None,
-                   help="CPU processes of the agent's training (default 1; 2 uses both cores; the table is the same "
+                   help=f"CPU processes of the agent's training (default {QUICK_DEMO_PROCS} on {QUICK_DEMO_PRESET}, 1 "
+                        "on the other worlds; the table is the same "
                         "on every run for a given value, but differs between values)")
     add_threads_and_sample(p)
     p.add_argument("--detections", choices=("learned", "oracle"), default="learned",
@@ -307,20 +317,24 @@ class Demo:
         """DE-MAE on one thread while another process writes the shipped detector's tables on the other core (the
         two need only the world; pretraining gains nothing from a second thread); the detections step then finds
         them written, or writes what is missing."""
-        self.start_background_tables()
-        with one_thread():
+        if self.start_background_tables():
+            with one_thread():  # the other core writes the tables
+                self.exp.encoder(self.job.row.encoder)
+        else:
             self.exp.encoder(self.job.row.encoder)
         prog = read_progress(self.es.spec)
         return {"steps": prog["step"], "loss": prog.get("loss")}
 
-    def start_background_tables(self) -> None:
-        """Start writing the shipped detector's missing tables in a process of its own (one thread)."""
-        if self.cfg.detections == "oracle" or self.cfg.detector != "shipped" or self.background is not None:
-            return
+    def start_background_tables(self) -> bool:
+        """Start writing the shipped detector's missing tables in a process of its own (one thread) when
+        ``tables_beside_pretraining``; returns whether it started."""
+        if (self.cfg.detections == "oracle" or self.cfg.detector != "shipped" or self.background is not None
+                or not self.cfg.tables_beside_pretraining):
+            return False
         self.background = mp.get_context("spawn").Process(
             target=write_tables_quietly, args=(str(self.world), self.cfg.detections), daemon=True)
         self.background.start()
-        self.wrote_in_background = True
+        return True
 
     def join_background_tables(self) -> None:
         """Wait for the tables' process; a failure there is said in one line (the detections step then writes the
@@ -331,6 +345,8 @@ class Demo:
         if self.background.exitcode != 0:
             print(f"    the detection tables' background process failed (exit code {self.background.exitcode}); "
                   "writing the missing tables here", flush=True)
+        else:
+            self.wrote_in_background = True
         self.background = None
 
     def features(self) -> dict:
@@ -456,6 +472,8 @@ class Demo:
 def write_tables_quietly(world: str, name: str) -> None:
     """The shipped detector's missing tables ``detections_<name>.hdf5`` in every room of ``world``, one thread, no
     output (the demo's background process; the detections step prints their quality)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the demo's: it stops this process (SIGTERM)
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))  # unwinds: no temp files left
     set_threads(1)
     ensure_shipped_detections(world, name, progress=False, say=lambda m: None, workers=1)
 
