@@ -30,10 +30,9 @@ from ..atomic import atomic_write_text
 from ..data.detections import check_name, load_detections, read_fingerprint, write_detections
 from ..data.reader import list_scenes, load_scene
 from ..distributed import set_threads
-from ..scene_pool import as_is, map_scenes
 from ..errors import CommandError
 from .evaluate import evaluate_detections
-from .learned import LearnedDetector
+from .learned import LearnedDetector, write_scene_tables
 from .model import default_config
 from .oracle import OracleConfig, oracle_detections
 from .shipped import DEFAULT_SHIPPED, SHIPPED, shipped_detector
@@ -100,14 +99,6 @@ def _tick(det, bar):
     if bar is not None:
         bar.update(det.num_states)
     return det
-
-
-def _table_task(det: LearnedDetector, task) -> int:
-    """One room's table, in a worker of ``--workers``; returns its number of states."""
-    path, name = task
-    scene = load_scene(path)
-    write_detections(path, name, det.detect_scene(scene))
-    return scene.num_states
 
 
 def _learned(args, root: Path) -> LearnedDetector:
@@ -204,13 +195,13 @@ def run(args: argparse.Namespace) -> int:
     scenes = list_scenes(root, split=args.split)
     if not scenes:
         raise CommandError(f"{root}: no complete scene folder" + (f" of split {args.split}" if args.split else ""))
-    det = None
+    det, oracle = None, None  # a learned (or shipped) detector, or the oracle's per-scene function
     if args.detector == "oracle":
-        fingerprint, detect = _oracle(args)
+        fingerprint, oracle = _oracle(args)
     else:
         det = (shipped_detector(load_scene(scenes[0]).image_size, name=args.shipped) if args.detector == "shipped"
                else _learned(args, root))
-        fingerprint, detect = det.fingerprint, (lambda scene, bar: det.detect_scene(scene, bar=bar))
+        fingerprint = det.fingerprint
 
     todo, done = [], 0
     for p in scenes:
@@ -226,12 +217,11 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=sum(s.num_states for s in loaded), desc=f"detect {name}", unit="state",
                disable=args.quiet, dynamic_ncols=True)
     try:
-        if det is not None and args.workers > 1 and len(loaded) > 1:  # one room per process, one thread each
-            for _, n in map_scenes(_table_task, [(s.path, name) for s in loaded], as_is, det, args.workers):
-                bar.update(n)
+        if det is not None:
+            write_scene_tables(det, loaded, name, bar, args.workers)
         else:
             for s in loaded:
-                write_detections(s.path, name, detect(s, bar))
+                write_detections(s.path, name, oracle(s, bar))
     finally:
         bar.close()
     print(f"detections_{name}.hdf5: {len(loaded)} scenes written, {done} already done "

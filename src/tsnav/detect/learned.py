@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from ..constants import NUM_CATEGORIES
-from ..data.reader import Scene
+from ..data.reader import Scene, load_scene
 from .data import read_images
 from .model import GridDetector, unit_to_pixel
-from ..data.detections import Detections
+from ..data.detections import Detections, write_detections
+from ..scene_pool import as_is, map_scenes
 from .train import load_model, predict, weights_fingerprint
 
 
@@ -91,3 +92,24 @@ class LearnedDetector:
         return Detections(keys=scene.keys, scores=scores, labels=labels, boxes=boxes, features=feats,
                           detector="learned", config=self.config(), fingerprint=self.fingerprint,
                           image_size=self.image_size)
+
+
+def write_scene_tables(det: LearnedDetector, scenes: list[Scene], name: str, bar=None, workers: int = 1) -> None:
+    """Write ``det``'s table ``detections_<name>.hdf5`` into every scene of ``scenes``. ``workers`` > 1: the scenes
+    are shared by that many processes on one torch thread each (:func:`tsnav.scene_pool.map_scenes`; the same
+    tables as here on one thread); else here, on the caller's threads. ``bar`` (tqdm) counts states."""
+    if workers > 1 and len(scenes) > 1:
+        for _, n in map_scenes(_scene_table, [(s.path, name) for s in scenes], as_is, det, workers):
+            if bar is not None:
+                bar.update(n)
+        return
+    for s in scenes:
+        write_detections(s.path, name, det.detect_scene(s, bar=bar))
+
+
+def _scene_table(det: LearnedDetector, task) -> int:
+    """One room's table, in a worker of :func:`write_scene_tables`; returns its number of states."""
+    path, name = task
+    scene = load_scene(path)
+    write_detections(path, name, det.detect_scene(scene))
+    return scene.num_states

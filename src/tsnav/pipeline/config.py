@@ -21,8 +21,9 @@ EXPERIMENTS = ("ablation", "pretraining", "threshold")
 #: The demo's experiment (``tsnav demo``): the last row of Table II, TSRM + DE-MAE, at the ``demo`` scale.
 DEMO = "demo"
 
-#: Training updates of the demo's agent (64 episodes x 30 steps each): the same table on any machine.
-#: About 2.5 minutes with 2 torch threads on an idle 2-core machine (154 s measured in `make demo`, 2026-12-01).
+#: Training updates of the demo's agent on the longer demo's worlds (``demo-real``, ``demo``; 64 episodes x 30 steps
+#: each, one process of one thread): the same table on any machine. About 7 minutes on an idle 2-core machine
+#: (417 s with checkpoint selection in `make demo` at main b6fda99, 2026-12-03).
 DEMO_UPDATES = 1000
 #: The quick demo (``tsnav demo`` on its default world, ``demo-real-small``), sized so that its steps take at most
 #: 5 minutes of an idle 2-core machine (issue 26): DE-MAE for ``QUICK_DEMO_PRETRAIN_STEPS`` steps, then

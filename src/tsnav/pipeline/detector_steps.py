@@ -33,10 +33,10 @@ from tqdm import tqdm
 from ..atomic import atomic_write_json
 from ..distributed import set_threads
 from ..constants import C_TARGET
-from ..data.detections import detections_path, load_detections, read_fingerprint, write_detections
+from ..data.detections import detections_path, load_detections, read_fingerprint
 from ..data.reader import list_scenes, load_scene
 from ..detect.evaluate import evaluate_detections
-from ..detect.learned import LearnedDetector
+from ..detect.learned import LearnedDetector, write_scene_tables
 from ..detect.shipped import DEFAULT_SHIPPED, shipped_detector, shipped_meta
 from ..detect.model import DetectorConfig
 from ..detect.quality import switch_report
@@ -44,7 +44,6 @@ from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_m
 from ..errors import CommandError
 from .config import ScaleConfig
 from ..report.tables import quality_line
-from ..scene_pool import as_is, map_scenes
 
 #: Prefix of every learned detector's fingerprint (:func:`tsnav.detect.train.weights_fingerprint`).
 LEARNED_PREFIX = "learned-"
@@ -188,25 +187,12 @@ def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, prog
     bar = tqdm(total=sum(s.num_states for s in scenes), desc=f"detect {name}", unit="state", disable=not progress,
                dynamic_ncols=True)
     try:
-        if workers > 1 and len(scenes) > 1:
-            for i, n in map_scenes(_detect_task, [(s.path, name) for s in scenes], as_is, det, workers):
-                bar.update(n)
-        else:
-            with one_thread():
-                for s in scenes:
-                    write_detections(s.path, name, det.detect_scene(s, bar=bar))
+        with one_thread():
+            write_scene_tables(det, scenes, name, bar, workers)
     finally:
         bar.close()
     say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
     return {"fingerprint": det.fingerprint, "written": len(scenes)}
-
-
-def _detect_task(det: LearnedDetector, task) -> int:
-    """One scene's table, in a worker of :func:`write_learned_tables`; returns its number of states."""
-    path, name = task
-    scene = load_scene(path)
-    write_detections(path, name, det.detect_scene(scene))
-    return scene.num_states
 
 
 def detection_quality(data: str | Path, name: str, split: str = "val", c_target: float = C_TARGET) -> dict:
