@@ -64,7 +64,7 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     assert orc["detections"] == "oracle" and orc["protocol"] == "lineage" and orc["trained_protocol"] == "paper"
     assert len(trainer.calls) == 1 and trainer.calls[0][0] == "tsrm"
     log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines() if line.strip()]
-    assert [r["update"] for r in log if "update" in r][-1] == TINY.scale.train.updates == 2  # trained for real
+    assert [r["update"] for r in log if "update" in r][-1] == TINY.sizes.train.updates == 2  # trained for real
     assert json.loads((out / "steps" / "train" / "DONE").read_text())["update"] == 2
     ckpts = sorted(p.name for p in (out / "run" / "checkpoints").iterdir())
     for name in ("agent", "explorer", "random"):
@@ -72,7 +72,7 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
         assert m["detections"] == "learned" and (out / "eval" / name / "trajectories.jsonl").exists()
     # the detector stage trained the learned detector (its steps) and its tables are in every room
     det = json.loads((out / "steps" / "detector" / "DONE").read_text())
-    assert det["steps"] == TINY.scale.detector.steps and det["fingerprint"].startswith("learned-")
+    assert det["steps"] == TINY.sizes.detector.steps and det["fingerprint"].startswith("learned-")
     from tsnav.data.detections import read_fingerprint
     from tsnav.data.reader import list_scenes
 
@@ -110,7 +110,7 @@ def test_demo_with_the_real_trainer_prints_the_same_table_twice(tmp_path, tiny_w
     from tsnav.checkpoint import weights_digest
     from tsnav.rl.checkpoint import load_model
 
-    cfg = replace(TINY, scale=TINY.scale.override(train=dict(updates=3, minutes=None, milestone_every=1)))
+    cfg = replace(TINY, scale=TINY.sizes.override(train=dict(updates=3, minutes=None, milestone_every=1)))
     tables, digests, detectors = [], [], []
     for k in range(2):
         out = tmp_path / f"demo{k}"
@@ -167,7 +167,7 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
 
     for p in list_scenes(out2 / "world"):
         (p / "detections_learned.hdf5").unlink()
-    made = ensure_learned_detections(out2 / "world", "learned", tmp_path / "exp_detector", TINY.scale, progress=False,
+    made = ensure_learned_detections(out2 / "world", "learned", tmp_path / "exp_detector", TINY.sizes, progress=False,
                                      say=lambda m: None)
     capsys.readouterr()
     trainer = CountedTrainer()
@@ -257,3 +257,18 @@ def test_results_table_has_one_block_per_protocol():
     assert paper_rows[1].startswith("agent   L>=5    25.00") and paper_rows[1].endswith("     20")
     assert blocks[1].splitlines()[3].startswith("agent   ALL     75.00")
     assert len(paper_rows) == 4 and "random" in paper_rows[2]
+
+
+def test_replacing_the_preset_takes_its_sizes():
+    """``DemoConfig`` resolves its sizes when read, so ``dataclasses.replace`` with another preset gets that
+    preset's budget and table writing (it kept the first preset's before); explicit sizes are kept."""
+    from tsnav.pipeline.config import demo_scale
+    from tsnav.pipeline.demo import QUICK_DEMO_PRESET
+
+    quick = DemoConfig()
+    longer = replace(quick, preset="demo-real")
+    assert quick.sizes == demo_scale(QUICK_DEMO_PRESET) and longer.sizes == demo_scale("demo-real")
+    assert quick.sizes.train.updates != longer.sizes.train.updates
+    assert quick.tables_beside and not longer.tables_beside
+    assert replace(TINY, preset="demo-real").sizes == TINY.sizes  # given sizes stay
+    assert not replace(quick, tables_beside_pretraining=False).tables_beside

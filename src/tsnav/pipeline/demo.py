@@ -98,7 +98,9 @@ class DemoConfig:
     scale: ScaleConfig | None = None
     """Sizes of pretraining, training and evaluation; None: :func:`~tsnav.pipeline.config.demo_scale` of the
     preset (``SCALES["demo"]``: ViT-Tiny at 64x64, 300 DE-MAE steps, ``DEMO_UPDATES`` updates of batched A2C, 100
-    test episodes per room type; on ``demo-real-small`` ``QUICK_DEMO_UPDATES`` updates)."""
+    test episodes per room type; on ``demo-real-small`` ``QUICK_DEMO_UPDATES`` updates). Read the sizes in use
+    through :attr:`sizes`: None stays None, so that ``dataclasses.replace(cfg, preset=...)`` takes the new
+    preset's sizes."""
     detections: str = "learned"
     """Detection tables the agent and the stage switch read, named explicitly (the agent never falls back to
     ground truth): ``learned`` (issue 14 item 4: the learned detector's, shipped or trained here, see ``detector``) or
@@ -119,13 +121,20 @@ class DemoConfig:
 
     tables_beside_pretraining: bool | None = None
     """Write the shipped detector's tables in a process of their own while DE-MAE pretrains on one thread; None:
-    on the quick demo's world only (on the others pretraining keeps the demo's threads, and so their encoders)."""
+    on the quick demo's world only (on the others pretraining keeps the demo's threads, and so their encoders).
+    Read through :attr:`tables_beside`."""
 
-    def __post_init__(self):
-        if self.scale is None:
-            self.scale = demo_scale(self.preset)
-        if self.tables_beside_pretraining is None:
-            self.tables_beside_pretraining = self.preset == QUICK_DEMO_PRESET
+    @property
+    def sizes(self) -> ScaleConfig:
+        """The sizes in use: :attr:`scale`, or the preset's (:func:`~tsnav.pipeline.config.demo_scale`)."""
+        return self.scale if self.scale is not None else demo_scale(self.preset)
+
+    @property
+    def tables_beside(self) -> bool:
+        """:attr:`tables_beside_pretraining`, or whether the preset is the quick demo's."""
+        if self.tables_beside_pretraining is not None:
+            return self.tables_beside_pretraining
+        return self.preset == QUICK_DEMO_PRESET
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -239,12 +248,12 @@ class Demo:
     """The demo's steps over its experiment (:class:`DemoExperiment`, one job) and its folder ``out``."""
 
     def __init__(self, out: Path, cfg: DemoConfig, train_fn=None):
-        self.out, self.cfg, self.sc = out, cfg, cfg.scale
+        self.out, self.cfg, self.sc = out, cfg, cfg.sizes
         self.world, self.sub, self.det_dir = out / "world", out / "train_world", out / "detector"
         self.exp = DemoExperiment(ExperimentConfig(
             experiment=DEMO, data=str(self.world), train_data=str(self.sub), out=str(out), scale="demo",
             detections=cfg.detections, detector=cfg.detector, detector_dir=str(self.det_dir), device="cpu",
-            sample=cfg.sample, protocol=cfg.protocol, seed_offset=cfg.seed), train_fn=train_fn, scale=cfg.scale)
+            sample=cfg.sample, protocol=cfg.protocol, seed_offset=cfg.seed), train_fn=train_fn, scale=cfg.sizes)
         self.job = self.exp.jobs[0]
         self.es = encoder_spec(self.job.row.encoder, self.sc, self.exp.pretrain_dir, self.exp.cfg)
         self.ep_files = {p: out / episodes_name("test", p) for p in PROTOCOLS}
@@ -329,7 +338,7 @@ class Demo:
         """Start writing the shipped detector's missing tables in a process of its own (one thread) when
         ``tables_beside_pretraining``; returns whether it started."""
         if (self.cfg.detections == "oracle" or self.cfg.detector != "shipped" or self.background is not None
-                or not self.cfg.tables_beside_pretraining):
+                or not self.cfg.tables_beside):
             return False
         self.background = mp.get_context("spawn").Process(
             target=write_tables_quietly, args=(str(self.world), self.cfg.detections), daemon=True)
@@ -484,7 +493,8 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     cfg, out = cfg or DemoConfig(), Path(out)
     check_demo(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "demo_config.json", asdict(cfg))
+    write_json(out / "demo_config.json", {**asdict(cfg), "scale": asdict(cfg.sizes),  # the sizes in use
+                                          "tables_beside_pretraining": cfg.tables_beside})
     t_all = time.perf_counter()
     demo = Demo(out, cfg, train_fn)
     markers = demo.jobs.run()
@@ -540,24 +550,24 @@ def run(args) -> int:
     if args.detector_steps is not None:
         if args.detector_steps < 1:
             raise CommandError("--detector-steps must be >= 1")
-        cfg.scale = cfg.scale.override(detector=dict(steps=args.detector_steps))
+        cfg.scale = cfg.sizes.override(detector=dict(steps=args.detector_steps))
     if args.train_updates is not None or args.train_minutes is not None:  # asked for: replaces the default
         if args.train_updates is not None and args.train_updates < 1:
             raise CommandError("--train-updates must be >= 1")
         if args.train_minutes is not None and not args.train_minutes > 0:
             raise CommandError("--train-minutes must be positive")
-        cfg.scale = cfg.scale.override(train=dict(updates=args.train_updates, minutes=args.train_minutes))
+        cfg.scale = cfg.sizes.override(train=dict(updates=args.train_updates, minutes=args.train_minutes))
     if args.pretrain_steps is not None:
         if args.pretrain_steps < 1:
             raise CommandError("--pretrain-steps must be >= 1")
-        cfg.scale = cfg.scale.override(pretrain=dict(steps=args.pretrain_steps))
+        cfg.scale = cfg.sizes.override(pretrain=dict(steps=args.pretrain_steps))
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     if args.procs is not None:
-        if args.procs < 1 or cfg.scale.train.num_envs % args.procs:
-            raise CommandError(f"--procs must be >= 1 and divide the {cfg.scale.train.num_envs} training episodes "
+        if args.procs < 1 or cfg.sizes.train.num_envs % args.procs:
+            raise CommandError(f"--procs must be >= 1 and divide the {cfg.sizes.train.num_envs} training episodes "
                                "per update")
-        cfg.scale = cfg.scale.override(train=dict(procs=args.procs))
+        cfg.scale = cfg.sizes.override(train=dict(procs=args.procs))
 
     print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)
