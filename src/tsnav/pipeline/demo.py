@@ -50,7 +50,7 @@ import multiprocessing as mp
 import signal
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from ..constants import C_TARGET
