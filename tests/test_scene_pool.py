@@ -119,3 +119,40 @@ def test_features_command_takes_workers(tmp_path, capsys):
                  "--workers", "2", "--quiet"]) == 0
     assert "features_w.hdf5 in 3 scenes" in capsys.readouterr().out
     assert all((p / "features_w.hdf5").exists() for p in list_scenes(root))
+
+
+def test_workers_start_from_a_script_on_standard_input(tmp_path):
+    """A script piped to ``python -`` (as ``scripts/train_release_agent.sh`` runs its pretraining step) has
+    ``__main__.__file__ == '<stdin>'``; spawned workers used to die re-running that path (BrokenProcessPool)."""
+    import subprocess
+    import sys
+
+    script = ("import operator\n"
+              "from tsnav.scene_pool import as_is, map_scenes\n"
+              "print(sorted(map_scenes(operator.mul, range(5), as_is, 3, workers=2)))\n"
+              "import __main__; print(__main__.__file__)\n")  # restored after the pool started
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    r = subprocess.run([sys.executable, "-"], input=script, capture_output=True, text=True, cwd=tmp_path, env=env,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split("\n")[:2] == ["[(0, 0), (1, 3), (2, 6), (3, 9), (4, 12)]", "<stdin>"]
+
+
+def test_spawnable_main_hides_only_a_main_file_that_is_not_there(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from tsnav.distributed import spawnable_main
+
+    for path, hidden in (("<stdin>", True), (str(tmp_path / "gone.py"), True), (__file__, False)):
+        main = types.ModuleType("__main__")
+        main.__file__, main.__spec__ = path, None
+        monkeypatch.setitem(sys.modules, "__main__", main)
+        with spawnable_main():
+            assert hasattr(main, "__file__") != hidden, path
+        assert main.__file__ == path
+    main = types.ModuleType("__main__")  # python -c: no file at all
+    main.__spec__ = None
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    with spawnable_main():
+        assert not hasattr(main, "__file__")

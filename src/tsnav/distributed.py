@@ -14,6 +14,7 @@ import shutil
 import sys
 import tempfile
 import traceback
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -140,6 +141,26 @@ def _rank_main(fn: Callable[..., Any], rank: int, world: int, init_file: str, ar
         sys.exit(1)
 
 
+@contextmanager
+def spawnable_main():
+    """While processes are started with ``spawn``: hide a ``__main__`` whose file does not exist (a script piped to
+    ``python -``, whose ``__file__`` is ``<stdin>``). A spawned child re-runs the parent's main file by path; with
+    none on disk it dies at start (``FileNotFoundError: '<stdin>'``), which breaks a process pool. The functions
+    tsnav sends to its children live in importable modules, so the children need nothing of such a main; a main
+    that is a real file, a module (``python -m``) or absent (``python -c``) is left as it is."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    hide = (path is not None and getattr(main, "__spec__", None) is None
+            and not os.path.isfile(path if os.path.isabs(path) else os.path.join(os.getcwd(), path)))
+    if hide:
+        del main.__file__
+    try:
+        yield
+    finally:
+        if hide:
+            main.__file__ = path
+
+
 def run_ranks(fn: Callable[..., Any], procs: int, *args, rank0_kwargs: dict | None = None, **kwargs) -> Any:
     """Run ``fn(*args, **kwargs)`` as ``procs`` ranks of one gloo process group on this machine's CPU cores and
     return rank 0's result.
@@ -162,8 +183,9 @@ def run_ranks(fn: Callable[..., Any], procs: int, *args, rank0_kwargs: dict | No
     children = [ctx.Process(target=_rank_main, args=(fn, r, procs, init_file, args, kwargs), daemon=True)
                 for r in range(1, procs)]
     try:
-        for c in children:
-            c.start()
+        with spawnable_main():
+            for c in children:
+                c.start()
         dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=0, world_size=procs,
                                 timeout=timedelta(seconds=GROUP_TIMEOUT_S))
         try:

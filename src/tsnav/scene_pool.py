@@ -19,7 +19,7 @@ from typing import Any, Callable, Iterable, Iterator
 
 import torch
 
-from .distributed import set_threads
+from .distributed import set_threads, spawnable_main
 
 #: The state a worker keeps between its tasks (set once by :func:`_init`).
 _STATE: dict[str, Any] = {}
@@ -79,7 +79,8 @@ def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Calla
         return
     pool = ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_init, initargs=(setup, arg))
     try:
-        pending = {pool.submit(fn_at, fn, item): i for i, item in enumerate(items)}
+        with spawnable_main():  # the workers start at the first submits
+            pending = {pool.submit(fn_at, fn, item): i for i, item in enumerate(items)}
         while pending:  # a worker that dies without an exception breaks the pool: BrokenProcessPool, no hang
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:
