@@ -4,6 +4,7 @@ in a worker reaches the caller."""
 
 import os
 import shutil
+import time
 from concurrent.futures.process import BrokenProcessPool
 
 import h5py
@@ -34,6 +35,14 @@ def _fail_on_three(ctx, x):
     return x
 
 
+def _fail_or_sleep(ctx, x):
+    if x == 0:
+        time.sleep(1.0)
+        raise ValueError("first item")
+    time.sleep(600)
+    return x
+
+
 def _die_on_two(ctx, x):
     if x == 2:
         os._exit(3)
@@ -58,6 +67,14 @@ def test_map_scenes_in_process_and_in_workers():
         list(map_scenes(_fail_on_three, range(6), as_is, None, workers=2))
     with pytest.raises(BrokenProcessPool):  # a worker that dies outright stops the pool instead of hanging it
         list(map_scenes(_die_on_two, range(4), as_is, None, workers=2))
+
+
+def test_an_error_stops_the_other_workers():
+    """A worker's error terminates the others (SIGTERM) instead of waiting for their items: the 600 s item is cut."""
+    t = time.monotonic()
+    with pytest.raises(ValueError, match="first item"):
+        list(map_scenes(_fail_or_sleep, range(2), as_is, None, workers=2))
+    assert time.monotonic() - t < 300
 
 
 def test_default_workers_follow_the_cores_with_a_cap(monkeypatch):

@@ -86,12 +86,22 @@ def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Calla
             for f in done:
                 yield pending.pop(f), f.result()
     except BaseException:  # an error or Ctrl-C here: the workers are stopped (SIGTERM; their temp files removed)
-        for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            if proc.is_alive():
-                proc.terminate()
+        _terminate_workers(pool)
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _terminate_workers(pool: ProcessPoolExecutor) -> None:
+    """SIGTERM to the pool's live workers: ``terminate_workers()`` where Python has it (3.14 and later); before
+    that the executor keeps its processes only in the private ``_processes`` mapping, read here and nowhere else."""
+    public = getattr(pool, "terminate_workers", None)
+    if public is not None:
+        public()
+        return
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        if proc.is_alive():
+            proc.terminate()
 
 
 def fn_at(fn: Callable[[Any, Any], Any], item: Any) -> Any:
