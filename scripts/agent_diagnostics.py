@@ -1,4 +1,4 @@
-"""Three diagnostics behind docs/RESULTS.md's issue 23 sections (analysis only: nothing here reaches an agent).
+"""Four diagnostics behind docs/RESULTS.md's issue 23 sections (analysis only: nothing here reaches an agent).
 
 ``rotations EVAL_DIR ...``: how an evaluated agent turns. Per ``tsnav eval`` folder (its ``trajectories.jsonl``):
 the share of each rotation among all actions, and the runs of one rotation repeated 5-7 times in a row. With
@@ -18,9 +18,15 @@ the switched episodes are also split by whether some instance of the target was 
 state where the switch fired: a true switch, or one made by a false positive (ground truth read for this analysis
 only).
 
+``switches EVAL_A EVAL_B``: where the stage switch fires in one evaluation and not in the other, by target: two
+``tsnav eval`` folders of the same episode list (e.g. the scripted explorer on the learned table and on the
+oracle's), per target the episodes, those whose switch never fired in each, and those that fired only in B (what
+A's table misses where B's finds the target).
+
     python scripts/agent_diagnostics.py rotations EVAL_A EVAL_B
     python scripts/agent_diagnostics.py reach --data WORLD --episodes TEST.json --detections learned4 oracle
     python scripts/agent_diagnostics.py outcomes EVAL_A EVAL_B [--data WORLD]
+    python scripts/agent_diagnostics.py switches EVAL_A EVAL_B
 """
 
 from __future__ import annotations
@@ -134,6 +140,28 @@ def reach_share(data: Path, episodes, name: str, c_target: float = C_TARGET) -> 
     return hit / len(episodes)
 
 
+def switch_misses(a, b) -> dict:
+    """Trajectories ``a`` and ``b`` of the same episode list (matched by episode index): ``{"both": n, "a_only": n,
+    "b_only": n, "neither": n, "targets": {target: [episodes, a never, b never, b only]}}``, where "a never" counts
+    the episodes whose switch never fired in ``a`` and "b only" those whose switch fired in ``b`` and not in ``a``."""
+    bi = {t.episode: t for t in b}
+    if sorted(bi) != sorted(t.episode for t in a):
+        raise ValueError("the two evaluations are not of the same episode list")
+    out = {"both": 0, "a_only": 0, "b_only": 0, "neither": 0, "targets": {}}
+    for t in a:
+        u = bi[t.episode]
+        if t.target != u.target or t.scene != u.scene:
+            raise ValueError(f"episode {t.episode}: another room or target in the second evaluation")
+        fa, fb = t.switch_frame >= 0, u.switch_frame >= 0
+        out["both" if fa and fb else "a_only" if fa else "b_only" if fb else "neither"] += 1
+        row = out["targets"].setdefault(t.target, [0, 0, 0, 0])
+        row[0] += 1
+        row[1] += not fa
+        row[2] += not fb
+        row[3] += fb and not fa
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -146,7 +174,26 @@ def main(argv=None) -> int:
     o = sub.add_parser("outcomes", help="how episodes end; blocked MoveAheads and loops")
     o.add_argument("evals", nargs="+", help="tsnav eval output folders")
     o.add_argument("--data", default=None, help="the evaluated world: also split the switches into true and false")
+    w = sub.add_parser("switches", help="where the switch fires in one evaluation and not in another, by target")
+    w.add_argument("eval_a")
+    w.add_argument("eval_b")
     a = p.parse_args(argv)
+    if a.cmd == "switches":
+        runs = []
+        for f in (a.eval_a, a.eval_b):
+            path = Path(f) / "trajectories.jsonl"
+            if not path.exists():
+                raise SystemExit(f"{f}: no trajectories.jsonl (a `tsnav eval` output folder?)")
+            runs.append(read_trajectories(path))
+        try:
+            r = switch_misses(*runs)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
+        print(f"switch fired in both {r['both']}, only A {r['a_only']}, only B {r['b_only']}, neither {r['neither']}")
+        print(f"{'target':16s} {'episodes':>8s} {'A never':>8s} {'B never':>8s} {'B only':>7s}")
+        for k, v in sorted(r["targets"].items(), key=lambda kv: (-kv[1][3], -kv[1][1], kv[0])):
+            print(f"{k:16s} {v[0]:8d} {v[1]:8d} {v[2]:8d} {v[3]:7d}")
+        return 0
     if a.cmd == "outcomes":
         for f in a.evals:
             path = Path(f) / "trajectories.jsonl"

@@ -69,3 +69,26 @@ def test_outcomes_command_on_an_evaluation(diag, tiny_world, tmp_path, capsys):
     assert sum(split["true"].values()) + sum(split["false"].values()) > 0, printed  # some episodes switched
     with pytest.raises(SystemExit, match="no trajectories.jsonl"):
         diag.main(["outcomes", str(tmp_path)])
+
+
+def test_switch_misses_by_hand(diag, tmp_path, capsys):
+    def t(ep, target, switch):
+        return Trajectory(episode=ep, scene="S", target=target, keys=["a", "a"], actions=[DONE], switch_frame=switch)
+
+    a = [t(0, "Plate", -1), t(1, "Plate", 3), t(2, "Bowl", -1), t(3, "Bowl", -1)]
+    b = [t(0, "Plate", 2), t(1, "Plate", 1), t(2, "Bowl", -1), t(3, "Bowl", 5)]
+    r = diag.switch_misses(a, b)
+    assert (r["both"], r["a_only"], r["b_only"], r["neither"]) == (1, 0, 2, 1)
+    assert r["targets"] == {"Plate": [2, 1, 0, 1], "Bowl": [2, 2, 1, 1]}
+    with pytest.raises(ValueError, match="same episode list"):
+        diag.switch_misses(a, b[:3])
+    with pytest.raises(ValueError, match="another room or target"):
+        diag.switch_misses(a, [t(0, "Bowl", 1)] + b[1:])
+    for name, trajs in (("A", a), ("B", b)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "trajectories.jsonl").write_text("".join(x.to_json() + "\n" for x in trajs))
+    assert diag.main(["switches", str(tmp_path / "A"), str(tmp_path / "B")]) == 0
+    out = capsys.readouterr().out
+    assert "only B 2, neither 1" in out and out.index("Bowl") < out.index("Plate")  # equal "B only": most A misses first
+    with pytest.raises(SystemExit, match="no trajectories.jsonl"):
+        diag.main(["switches", str(tmp_path / "A"), str(tmp_path)])
