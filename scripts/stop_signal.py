@@ -30,7 +30,7 @@ import numpy as np
 from tsnav.atomic import atomic_write_json
 from tsnav.constants import C_TARGET, DONE, TARGET_CATEGORIES
 from tsnav.data.detections import load_detections
-from tsnav.data.reader import load_scene
+from tsnav.data.reader import list_scenes, load_scene
 from tsnav.protocol import LINEAGE, PROTOCOLS
 
 BANDS = ((0.0, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 2.5), (2.5, 99.0))
@@ -43,16 +43,9 @@ def auc(pos: np.ndarray, neg: np.ndarray) -> float:
     if not len(pos) or not len(neg):
         return float("nan")
     allv = np.concatenate([pos, neg])
-    order = np.argsort(allv, kind="mergesort")
-    ranks = np.empty(len(allv))
-    sv = allv[order]
-    i = 0
-    while i < len(sv):  # average ranks over ties
-        j = i
-        while j + 1 < len(sv) and sv[j + 1] == sv[i]:
-            j += 1
-        ranks[order[i:j + 1]] = (i + j) / 2.0 + 1.0
-        i = j + 1
+    _, inv, counts = np.unique(allv, return_inverse=True, return_counts=True)
+    first = np.cumsum(counts) - counts  # 0-based rank of each distinct value's first occurrence
+    ranks = (first + (counts + 1) / 2.0)[inv.reshape(-1)]  # ties share their average 1-based rank
     return float((ranks[:len(pos)].sum() - len(pos) * (len(pos) + 1) / 2.0) / (len(pos) * len(neg)))
 
 
@@ -90,7 +83,7 @@ def confident_rows(data: Path, detections: str, protocol: str, threshold: float)
     """One row per (room, state, category) with the table's score above ``threshold``, for the categories the
     room holds (:func:`_row`)."""
     rows = []
-    for scene_dir in sorted(p for p in data.iterdir() if (p / "states.hdf5").is_file()):
+    for scene_dir in list_scenes(data):
         s, det, ok, seen = _scene(scene_dir, detections, protocol)
         for c in sorted(set(int(v) for v in s.object_category if v >= 0)):
             rows.extend(_row(s, det, ok, seen, int(i), c) for i in np.flatnonzero(det.scores[:, c] > threshold))
@@ -163,8 +156,7 @@ def summary(rows: list[dict], dones: list[dict] | None = None, threshold: float 
     y = np.array([r["success"] for r in rows])
     bands = {}
     for lo, hi in BANDS:
-        sel = [r for r in rows if r["dist"] is not None and lo < r["dist"] <= hi] if lo else \
-              [r for r in rows if r["dist"] is not None and r["dist"] <= hi]
+        sel = [r for r in rows if r["dist"] is not None and (lo == 0 or lo < r["dist"]) and r["dist"] <= hi]
         bands[f"{lo:g}-{hi:g} m" if hi < 99 else f"> {lo:g} m"] = {
             "states": len(sel), "success": int(sum(r["success"] for r in sel))}
     bands["not in view"] = {"states": sum(r["dist"] is None for r in rows),

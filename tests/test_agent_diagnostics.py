@@ -1,7 +1,6 @@
 """``scripts/agent_diagnostics.py outcomes`` (issue 23 analysis): outcome counts, blocked MoveAheads and loops of
 hand-made trajectories, and the command on a real evaluation folder of the tiny world."""
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -10,16 +9,14 @@ import pytest
 from tsnav.cli import main
 from tsnav.constants import DONE, MOVE_AHEAD, ROTATE_LEFT
 from tsnav.eval.runner import Trajectory
+from script_helpers import load_script
 
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "agent_diagnostics.py"
 
 
 @pytest.fixture(scope="module")
 def diag():
-    spec = importlib.util.spec_from_file_location("agent_diagnostics", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT)
 
 
 def _traj(keys, actions, switch=-1, success=False):

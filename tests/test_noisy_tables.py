@@ -2,7 +2,6 @@
 the clean tables of the others under the new name. With no noise it writes exactly the shipped detector's own table;
 with noise it is the same on every run and records the noise; bad input gets one line."""
 
-import importlib.util
 import shutil
 from pathlib import Path
 
@@ -11,6 +10,7 @@ import pytest
 
 from tsnav.data.detections import load_detections
 from tsnav.data.reader import list_scenes
+from script_helpers import load_script
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -18,10 +18,7 @@ SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "noisy_tables.py"
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("noisy_tables", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT)
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,5 @@
 """ResNet18 baseline: torchvision layout and numbers, weight loading, supervised pretraining on the world."""
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -11,6 +10,7 @@ from safetensors.torch import load_file, save_file
 from tsnav.pretrain.resnet import ResNet18, load_resnet_weights
 from tsnav.pretrain.synthetic import write_synthetic_dataset
 from tsnav.pretrain.train import PretrainConfig, train
+from script_helpers import load_script
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -19,10 +19,7 @@ FIX = Path(__file__).parent / "fixtures" / "pretrain"
 
 
 def _formula():
-    spec = importlib.util.spec_from_file_location("make_resnet_fixture", FIX / "make_resnet_fixture.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.formula_state
+    return load_script(FIX / "make_resnet_fixture.py").formula_state
 
 
 def test_torchvision_layout_and_features(tmp_path):

@@ -140,19 +140,23 @@ def test_features_command_takes_workers(tmp_path, capsys):
 
 def test_workers_start_from_a_script_on_standard_input(tmp_path):
     """A script piped to ``python -`` (as ``scripts/train_release_agent.sh`` runs its pretraining step) has
-    ``__main__.__file__ == '<stdin>'``; spawned workers used to die re-running that path (BrokenProcessPool)."""
+    ``__main__.__file__ == '<stdin>'``; spawned workers used to die re-running that path (BrokenProcessPool). The
+    scene pool and the world's builders start from such a script (``distributed.spawnable_main`` at every spawn
+    site: these two, the ranks, the experiment's job pool, the A3C workers, the demo's table writer)."""
     import subprocess
     import sys
 
     script = ("import operator\n"
               "from tsnav.scene_pool import as_is, map_scenes\n"
               "print(sorted(map_scenes(operator.mul, range(5), as_is, 3, workers=2)))\n"
-              "import __main__; print(__main__.__file__)\n")  # restored after the pool started
+              "import __main__; print(__main__.__file__)\n"  # restored after the pool started
+              "from tsnav.world.build import build_dataset\n"  # the world's pool of builders, the other spawn site
+              "print(len(build_dataset('world', 'tiny', workers=2, progress=False)))\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     r = subprocess.run([sys.executable, "-"], input=script, capture_output=True, text=True, cwd=tmp_path, env=env,
                        timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
-    assert r.stdout.split("\n")[:2] == ["[(0, 0), (1, 3), (2, 6), (3, 9), (4, 12)]", "<stdin>"]
+    assert r.stdout.split("\n")[:3] == ["[(0, 0), (1, 3), (2, 6), (3, 9), (4, 12)]", "<stdin>", "5"]
 
 
 def test_spawnable_main_hides_only_a_main_file_that_is_not_there(tmp_path, monkeypatch):

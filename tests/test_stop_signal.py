@@ -2,21 +2,18 @@
 leave-one-room-out regression finds a signal that is there, and on a built world its counts are consistent with the
 protocol (success states only within 1.5 m under ``lineage``)."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from script_helpers import load_script
 
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "stop_signal.py"
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("stop_signal", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT)
 
 
 def test_auc_matches_the_all_pairs_reference():

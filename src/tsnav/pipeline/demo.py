@@ -56,6 +56,7 @@ from pathlib import Path
 from ..constants import C_TARGET
 from ..data.detections import read_fingerprint
 from ..data.reader import list_scenes, load_scene
+from ..distributed import spawnable_main
 from ..errors import CommandError
 from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
                           set_threads)
@@ -342,7 +343,8 @@ class Demo:
             return False
         self.background = mp.get_context("spawn").Process(
             target=write_tables_quietly, args=(str(self.world), self.cfg.detections), daemon=True)
-        self.background.start()
+        with spawnable_main():
+            self.background.start()
         return True
 
     def join_background_tables(self) -> None:

@@ -84,6 +84,7 @@ from typing import Callable
 from ..agent import agent_config
 from ..atomic import atomic_write_text
 from ..distributed import set_threads as distributed_set_threads
+from ..distributed import spawnable_main
 from ..errors import CommandError
 from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
@@ -635,10 +636,11 @@ class Experiment:
             threads = max(1, default_threads() // self.cfg.parallel)
             with ProcessPoolExecutor(self.cfg.parallel, mp_context=mp.get_context("spawn")) as pool:
                 futs = {}
-                for job in todo:
-                    say(f"[{name}] queued: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
-                    futs[pool.submit(_job_process, self.cfg, self.scale, self.jobs.index(job),
-                                     features[job.row.encoder], threads)] = job
+                with spawnable_main():  # the workers start at the submits
+                    for job in todo:
+                        say(f"[{name}] queued: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
+                        futs[pool.submit(_job_process, self.cfg, self.scale, self.jobs.index(job),
+                                         features[job.row.encoder], threads)] = job
                 for k, fut in enumerate(as_completed(futs), 1):
                     report(k, futs[fut], fut.result())
         else:  # one job list: the jobs still to run, each marked by the DONE its run writes

@@ -28,7 +28,7 @@ import torch
 import torch.multiprocessing as mp
 
 from ..agent.model import ActorCritic, AgentConfig
-from ..distributed import set_threads
+from ..distributed import set_threads, spawnable_main
 from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import save_checkpoint
 from .config import TrainConfig
@@ -181,7 +181,8 @@ class _Workers:
             seed = int(np.random.SeedSequence([cfg.seed, w, session]).generate_state(1)[0])
             p = ctx.Process(target=_worker, args=(w, cfg.to_dict(), agent.__dict__.copy(), scenes, shared, optimizer,
                                                   features, self.counters, self.queue, self.stop, seed), daemon=True)
-            p.start()
+            with spawnable_main():
+                p.start()
             self.procs.append(p)
 
     def counts(self) -> tuple[int, int, int]:

@@ -23,6 +23,7 @@ from ..atomic import atomic_write_text
 from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
+from ..distributed import spawnable_main
 from ..data.writer import (DEFAULT_COMPRESSION, DEFAULT_COMPRESSION_LEVEL, GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
                            scene_folder, write_graph, write_json, write_states)
 from ..render.gl import Renderer
@@ -263,7 +264,9 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
         else:
             Renderer(16, 1).release()  # fail fast, in this process, when EGL is missing
             ctx = mp.get_context("spawn")
-            with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.image_size, cfg.tiles)) as pool:
+            with spawnable_main():  # the pool starts its workers here
+                pool = ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.image_size, cfg.tiles))
+            with pool:
                 for r in pool.imap_unordered(_build_one, todo):
                     results.append(r)
                     bar.set_postfix(states=sum(x.states for x in results))
