@@ -475,3 +475,27 @@ def test_pretraining_reuses_the_ablations_jobs(tmp_path, exp_world, pretrain_dir
                                        reuse_from=(str(tmp_path),), **base), train_fn=StandInTrainer(), scale=TINY)
     with pytest.raises(ValueError, match="not an experiment folder"):
         exp3.reusable_run(tc1)
+
+
+def test_rows_option_runs_a_subset_and_adds_the_rest_later(tmp_path, exp_world, pretrain_dir, capsys):
+    """--rows: only the named rows are trained and tabulated; a second call into the same folder with the other
+    rows trains only those and finds the first call's jobs done; an unknown id is refused in one line."""
+    base = dict(experiment="pretraining", data=str(exp_world), out=str(tmp_path / "pre"), seeds=1, device="cpu",
+                pretrain_dir=str(pretrain_dir))
+    first = StandInTrainer()
+    res = Experiment(ExperimentConfig(rows=("mae", "demae_crop"), **base), train_fn=first, scale=TINY).run()
+    assert [r["row"] for r in res["rows"]] == ["mae", "demae_crop"] and len(first.calls) == 2
+    assert res.get("welch", {}) == {}  # the baseline row is not among them
+    second = StandInTrainer()
+    res = Experiment(ExperimentConfig(**base), train_fn=second, scale=TINY).run()
+    assert [r["row"] for r in res["rows"]] == ["resnet18", "mae", "demae_crop", "demae"]
+    assert sorted(c[1].split("-")[0] for c in second.calls) == ["demae", "resnet18"]  # the other two only
+    assert all(r["n"] == 1 for r in res["rows"]) and res["welch"]["baseline"] == "resnet18"
+    with pytest.raises(ValueError, match="no row 'dino'.*its rows: resnet18, mae, demae_crop, demae"):
+        Experiment(ExperimentConfig(rows=("dino",), **base))
+    from tsnav.cli import main
+    capsys.readouterr()
+    assert main(["experiment", "pretraining", "--data", str(exp_world), "--out", str(tmp_path / "o"),
+                 "--rows", "mae,dino"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no row 'dino'" in err and len(err.splitlines()) == 1

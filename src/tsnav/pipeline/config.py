@@ -293,6 +293,9 @@ class ExperimentConfig:
     sample: bool = False
     """Evaluate the agents by sampling their actions (seeded) instead of the greedy argmax, the lineage's
     test-time rule."""
+    rows: tuple = ()
+    """Ids of the rows to run (:attr:`Row.id`); empty: all of the experiment's. Not part of the folder's identity:
+    another call with other rows adds them to the same folder, and the tables show the rows of the last call."""
     protocol: str = "paper"
     """Success protocol (:mod:`tsnav.protocol`) of the episode lists, the training runs and the evaluations:
     ``paper`` (in view within 1.0 m) or ``lineage`` (the 1.5 m visibility map, as the lineage's evaluator)."""

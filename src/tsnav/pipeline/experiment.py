@@ -295,6 +295,13 @@ class Experiment:
         self.scale = scale or SCALES[cfg.scale]
         self.info = EXPERIMENT_INFO[cfg.experiment]
         self.rows = experiment_rows(cfg.experiment, vc1=bool(cfg.vc1_weights))
+        if cfg.rows:
+            ids = [r.id for r in self.rows]
+            unknown = [r for r in cfg.rows if r not in ids]
+            if unknown:
+                raise ValueError(f"--rows: no row {', '.join(map(repr, unknown))} in the {cfg.experiment} experiment "
+                                 f"(its rows: {', '.join(ids)})")
+            self.rows = [r for r in self.rows if r.id in cfg.rows]
         self.jobs = [Job(r, cfg.seed_offset + s) for s in range(cfg.seeds) for r in self.rows]
         self.out = Path(cfg.out)
         self.pretrain_dir = Path(cfg.pretrain_dir) if cfg.pretrain_dir else self.out / "pretrain"
@@ -763,6 +770,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="success protocol of episodes, training and evaluation: paper (in view within 1.0 m, "
                              "the default) or lineage (the 1.5 m visibility map, as the lineage's evaluator; "
                              "start-success episodes kept); recorded in experiment.json and results.json")
+    parser.add_argument("--rows", default=None, metavar="ID[,ID...]",
+                        help="run only these rows, by id (pretraining: resnet18, mae, demae_crop, demae; ablation: "
+                             "baseline, explore, distance, tsrm, demae, tsrm_demae, tsrm_demae_oracle; default: all); "
+                             "a later call with other rows adds them to the same folder")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
     parser.add_argument("--reuse-from", action="append", default=[], metavar="EXPERIMENT_DIR",
                         help="another experiment folder whose finished jobs with the same training configuration "
@@ -793,6 +804,7 @@ def run(args: argparse.Namespace) -> int:
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
                            procs=args.procs, sample=args.sample, checkpoint=args.checkpoint, protocol=args.protocol,
+                           rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()) if args.rows else (),
                            reuse_from=tuple(str(Path(d).resolve()) for d in args.reuse_from))
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
