@@ -1,6 +1,6 @@
 """Shared fixtures. ``tiny_world``: the `tiny` preset built once per test session (a few seconds); ``tiny_real``:
 the `tiny-real` preset (three real bathrooms at 128x128, about ten seconds), also once;
-``pixel_world``: the same with small pixel features cached for the agent tests; ``one_torch_thread``: small
+``tiny_real_learned4``: a copy of it with the shipped detector's tables; ``pixel_world``: the same with small pixel features cached for the agent tests; ``one_torch_thread``: small
 networks run fastest on one thread and do not fight other processes for the cores (modules opt in with
 ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``)."""
 
@@ -30,6 +30,21 @@ def tiny_real(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("tiny_real")
     build_dataset(root, "tiny-real", workers=1, progress=False)
+    return root
+
+
+@pytest.fixture(scope="session")
+def tiny_real_learned4(tiny_real, tmp_path_factory):
+    """A copy of ``tiny_real`` with the shipped ``learned4`` detector's tables (and no other tables or features),
+    for the scripts that derive new tables from it; each test writes its tables under its own names."""
+    import shutil
+
+    from tsnav.detect.shipped import shipped_detector
+    from tsnav.pipeline.detector_steps import write_learned_tables
+
+    root = tmp_path_factory.mktemp("tiny_real_learned4") / "world"
+    shutil.copytree(tiny_real, root, ignore=shutil.ignore_patterns("detections_*", "features_*"))
+    write_learned_tables(root, "learned4", shipped_detector(128, "learned4"), progress=False)
     return root
 
 

@@ -2,7 +2,6 @@
 was, and on a built world the written tables carry the maps and the switch report runs before and after."""
 
 import json
-import shutil
 
 import numpy as np
 import pytest
@@ -34,14 +33,8 @@ def test_platt_fit_matches_the_reference(mod):
 
 
 @pytest.fixture(scope="module")
-def world(tiny_real, tmp_path_factory):
-    from tsnav.detect.shipped import shipped_detector
-    from tsnav.pipeline.detector_steps import write_learned_tables
-
-    root = tmp_path_factory.mktemp("calib") / "world"
-    shutil.copytree(tiny_real, root, ignore=shutil.ignore_patterns("detections_*", "features_*"))
-    write_learned_tables(root, "learned4", shipped_detector(128, "learned4"), progress=False)
-    return root
+def world(tiny_real_learned4):
+    return tiny_real_learned4
 
 
 def test_identity_and_written_tables(mod, world, tmp_path, capsys):

@@ -2,7 +2,6 @@
 the clean tables of the others under the new name. With no noise it writes exactly the shipped detector's own table;
 with noise it is the same on every run and records the noise; bad input gets one line."""
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -22,14 +21,8 @@ def _script():
 
 
 @pytest.fixture(scope="module")
-def world(tiny_real, tmp_path_factory):
-    from tsnav.detect.shipped import shipped_detector
-    from tsnav.pipeline.detector_steps import write_learned_tables
-
-    root = tmp_path_factory.mktemp("noisy") / "world"
-    shutil.copytree(tiny_real, root, ignore=shutil.ignore_patterns("detections_*", "features_*"))
-    write_learned_tables(root, "learned4", shipped_detector(128, "learned4"), progress=False)
-    return root
+def world(tiny_real_learned4):
+    return tiny_real_learned4
 
 
 def test_noisy_tables(world, capsys):
