@@ -23,9 +23,9 @@ from ..atomic import atomic_write_text
 from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
-from ..distributed import spawnable_main
 from ..data.writer import (DEFAULT_COMPRESSION, DEFAULT_COMPRESSION_LEVEL, GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
                            scene_folder, write_graph, write_json, write_states)
+from ..distributed import spawnable_main
 from ..render.gl import Renderer
 from ..data.names import scene_info
 from .navgrid import graph_edges, reachable_positions, state_keys, state_poses
