@@ -141,7 +141,7 @@ def test_features_command_takes_workers(tmp_path, capsys):
 def test_workers_start_from_a_script_on_standard_input(tmp_path):
     """A script piped to ``python -`` (as ``scripts/train_release_agent.sh`` runs its pretraining step) has
     ``__main__.__file__ == '<stdin>'``; spawned workers used to die re-running that path (BrokenProcessPool). The
-    scene pool and the world's builders start from such a script (``distributed.spawnable_main`` at every spawn
+    scene pool and the world's builders start from such a script (``distributed.spawn_context()`` at every spawn
     site: these two, the ranks, the experiment's job pool, the A3C workers, the demo's table writer)."""
     import subprocess
     import sys
@@ -177,3 +177,26 @@ def test_spawnable_main_hides_only_a_main_file_that_is_not_there(tmp_path, monke
     monkeypatch.setitem(sys.modules, "__main__", main)
     with spawnable_main():
         assert not hasattr(main, "__file__")
+
+
+def test_spawn_context_starts_children_of_a_main_that_is_not_on_disk(monkeypatch):
+    """``distributed.spawn_context()`` (the context of every tsnav spawn site) starts a child where the plain
+    ``spawn`` context's child dies re-running the parent's missing main file."""
+    import multiprocessing
+    import sys
+    import time
+    import types
+
+    from tsnav.distributed import spawn_context
+
+    main = types.ModuleType("__main__")
+    main.__file__, main.__spec__ = "<stdin>", None
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    codes = {}
+    for name, ctx in (("plain", multiprocessing.get_context("spawn")), ("tsnav", spawn_context())):
+        p = ctx.Process(target=time.sleep, args=(0,))
+        p.start()
+        p.join(120)
+        codes[name] = p.exitcode
+        assert main.__file__ == "<stdin>"
+    assert codes["plain"] != 0 and codes["tsnav"] == 0, codes

@@ -161,6 +161,29 @@ def spawnable_main():
             main.__file__ = path
 
 
+class _SpawnableProcess(multiprocessing.context.SpawnProcess):
+    """A ``spawn`` process whose start hides a missing main file (:func:`spawnable_main`)."""
+
+    def start(self) -> None:
+        with spawnable_main():
+            super().start()
+
+
+class _SpawnableContext(multiprocessing.context.SpawnContext):
+    Process = _SpawnableProcess
+
+
+_SPAWN = _SpawnableContext()
+
+
+def spawn_context() -> multiprocessing.context.SpawnContext:
+    """The ``spawn`` multiprocessing context every tsnav process is started from: its processes (and so the
+    workers of a ``Pool`` or ``ProcessPoolExecutor`` given it as context) start under :func:`spawnable_main`,
+    so a parent run as ``python -`` can start them. Used wherever tsnav starts processes, in place of
+    ``multiprocessing.get_context("spawn")``."""
+    return _SPAWN
+
+
 def run_ranks(fn: Callable[..., Any], procs: int, *args, rank0_kwargs: dict | None = None, **kwargs) -> Any:
     """Run ``fn(*args, **kwargs)`` as ``procs`` ranks of one gloo process group on this machine's CPU cores and
     return rank 0's result.
@@ -179,13 +202,12 @@ def run_ranks(fn: Callable[..., Any], procs: int, *args, rank0_kwargs: dict | No
         return fn(*args, **{**kwargs, **(rank0_kwargs or {})})
     tmp = Path(tempfile.mkdtemp(prefix="tsnav_ranks_"))
     init_file = str(tmp / "rendezvous")
-    ctx = multiprocessing.get_context("spawn")
+    ctx = spawn_context()
     children = [ctx.Process(target=_rank_main, args=(fn, r, procs, init_file, args, kwargs), daemon=True)
                 for r in range(1, procs)]
     try:
-        with spawnable_main():
-            for c in children:
-                c.start()
+        for c in children:
+            c.start()
         dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=0, world_size=procs,
                                 timeout=timedelta(seconds=GROUP_TIMEOUT_S))
         try:

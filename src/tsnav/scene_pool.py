@@ -10,7 +10,6 @@ starts, by multiprocessing's own transport in memory (nothing written to disk, n
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
 import signal
 import sys
@@ -19,7 +18,7 @@ from typing import Any, Callable, Iterable, Iterator
 
 import torch
 
-from .distributed import set_threads, spawnable_main
+from .distributed import set_threads, spawn_context
 
 #: The state a worker keeps between its tasks (set once by :func:`_init`).
 _STATE: dict[str, Any] = {}
@@ -77,10 +76,9 @@ def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Calla
         finally:
             set_threads(before)
         return
-    pool = ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_init, initargs=(setup, arg))
+    pool = ProcessPoolExecutor(n, mp_context=spawn_context(), initializer=_init, initargs=(setup, arg))
     try:
-        with spawnable_main():  # the workers start at the first submits
-            pending = {pool.submit(fn_at, fn, item): i for i, item in enumerate(items)}
+        pending = {pool.submit(fn_at, fn, item): i for i, item in enumerate(items)}
         while pending:  # a worker that dies without an exception breaks the pool: BrokenProcessPool, no hang
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:

@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import signal
 import sys
 import time
@@ -56,7 +55,7 @@ from pathlib import Path
 from ..constants import C_TARGET
 from ..data.detections import read_fingerprint
 from ..data.reader import list_scenes, load_scene
-from ..distributed import spawnable_main
+from ..distributed import spawn_context
 from ..errors import CommandError
 from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
                           set_threads)
@@ -341,10 +340,9 @@ class Demo:
         if (self.cfg.detections == "oracle" or self.cfg.detector != "shipped" or self.background is not None
                 or not self.cfg.tables_beside):
             return False
-        self.background = mp.get_context("spawn").Process(
+        self.background = spawn_context().Process(
             target=write_tables_quietly, args=(str(self.world), self.cfg.detections), daemon=True)
-        with spawnable_main():
-            self.background.start()
+        self.background.start()
         return True
 
     def join_background_tables(self) -> None:

@@ -71,7 +71,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import multiprocessing as mp
 import os
 import shutil
 import time
@@ -84,7 +83,7 @@ from typing import Callable
 from ..agent import agent_config
 from ..atomic import atomic_write_text
 from ..distributed import set_threads as distributed_set_threads
-from ..distributed import spawnable_main
+from ..distributed import spawn_context
 from ..errors import CommandError
 from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
@@ -641,13 +640,12 @@ class Experiment:
 
         if self.cfg.parallel > 1 and len(todo) > 1 and self._train_fn is None:
             threads = max(1, default_threads() // self.cfg.parallel)
-            with ProcessPoolExecutor(self.cfg.parallel, mp_context=mp.get_context("spawn")) as pool:
+            with ProcessPoolExecutor(self.cfg.parallel, mp_context=spawn_context()) as pool:
                 futs = {}
-                with spawnable_main():  # the workers start at the submits
-                    for job in todo:
-                        say(f"[{name}] queued: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
-                        futs[pool.submit(_job_process, self.cfg, self.scale, self.jobs.index(job),
-                                         features[job.row.encoder], threads)] = job
+                for job in todo:
+                    say(f"[{name}] queued: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
+                    futs[pool.submit(_job_process, self.cfg, self.scale, self.jobs.index(job),
+                                     features[job.row.encoder], threads)] = job
                 for k, fut in enumerate(as_completed(futs), 1):
                     report(k, futs[fut], fut.result())
         else:  # one job list: the jobs still to run, each marked by the DONE its run writes

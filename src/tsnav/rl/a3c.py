@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.multiprocessing as mp
+import torch.multiprocessing  # noqa: F401  (registers the shared-memory transport of tensors sent to the workers)
 
 from ..agent.model import ActorCritic, AgentConfig
-from ..distributed import set_threads, spawnable_main
+from ..distributed import set_threads, spawn_context
 from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import save_checkpoint
 from .config import TrainConfig
@@ -172,7 +172,7 @@ class _Workers:
 
     def __init__(self, cfg: TrainConfig, agent: AgentConfig, scenes, shared: ActorCritic, optimizer: SharedAdam,
                  features: torch.Tensor, progress: dict, session: int):
-        ctx = mp.get_context("spawn")
+        ctx = spawn_context()
         self.counters = ctx.Array("d", [progress["update"], progress["env_steps"], progress["episodes"]])
         self.queue = ctx.Queue()
         self.stop = ctx.Event()
@@ -181,8 +181,7 @@ class _Workers:
             seed = int(np.random.SeedSequence([cfg.seed, w, session]).generate_state(1)[0])
             p = ctx.Process(target=_worker, args=(w, cfg.to_dict(), agent.__dict__.copy(), scenes, shared, optimizer,
                                                   features, self.counters, self.queue, self.stop, seed), daemon=True)
-            with spawnable_main():
-                p.start()
+            p.start()
             self.procs.append(p)
 
     def counts(self) -> tuple[int, int, int]:

@@ -8,7 +8,6 @@ Files follow the lineage layout (DESIGN.md "The offline dataset").
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import os
 import shutil
 import time
@@ -25,7 +24,7 @@ from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
 from ..data.writer import (DEFAULT_COMPRESSION, DEFAULT_COMPRESSION_LEVEL, GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
                            scene_folder, write_graph, write_json, write_states)
-from ..distributed import spawnable_main
+from ..distributed import spawn_context
 from ..render.gl import Renderer
 from ..data.names import scene_info
 from .navgrid import graph_edges, reachable_positions, state_keys, state_poses
@@ -263,9 +262,7 @@ def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str
                 renderer.release()
         else:
             Renderer(16, 1).release()  # fail fast, in this process, when EGL is missing
-            ctx = mp.get_context("spawn")
-            with spawnable_main():  # the pool starts its workers here
-                pool = ctx.Pool(workers, initializer=_init_worker, initargs=(cfg.image_size, cfg.tiles))
+            pool = spawn_context().Pool(workers, initializer=_init_worker, initargs=(cfg.image_size, cfg.tiles))
             with pool:
                 for r in pool.imap_unordered(_build_one, todo):
                     results.append(r)
