@@ -56,17 +56,22 @@ def zoom_crops(img: np.ndarray) -> np.ndarray:
     return np.stack(out, axis=1).reshape(n, len(CROPS), s, s, 3)
 
 
-def scene_logits(det, scene, chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
-    """Plain ``(S, 22)`` and crop ``(S, 5, 22)`` presence logits of every state of ``scene``."""
+def scene_logits(det, scene, chunk: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain ``(S, 22)`` and crop ``(S, 5, 22)`` presence logits of every state of ``scene``, and the crops' boxes
+    ``(S, 5, 22, 4)`` float16 in the frame's unit coordinates."""
     plain = np.empty((scene.num_states, 22), np.float32)
     crops = np.empty((scene.num_states, len(CROPS), 22), np.float32)
+    boxes = np.empty((scene.num_states, len(CROPS), 22, 4), np.float16)
+    offset = np.array([[c / 2, r / 2, c / 2, r / 2] for r, c in CROPS], np.float32)[None, :, None, :]
     for a in range(0, scene.num_states, chunk):
         img = read_images(scene.path, scene.keys[a:a + chunk])
         m = len(img)
         plain[a:a + m] = predict(det.model, img)[0]
         z = zoom_crops(img)
-        crops[a:a + m] = predict(det.model, z.reshape(-1, *z.shape[2:]))[0].reshape(m, len(CROPS), 22)
-    return plain, crops
+        lg, bx, _ = predict(det.model, z.reshape(-1, *z.shape[2:]))
+        crops[a:a + m] = lg.reshape(m, len(CROPS), 22)
+        boxes[a:a + m] = bx.reshape(m, len(CROPS), 22, 4) / 2 + offset
+    return plain, crops, boxes
 
 
 def combine(plain: np.ndarray, crops: np.ndarray, margin: float | None) -> np.ndarray:
@@ -110,9 +115,9 @@ def main(argv=None) -> int:
             z = np.load(c)
             pl, cr = z["plain"], z["crops"]
         else:
-            pl, cr = scene_logits(det, s)
+            pl, cr, bx = scene_logits(det, s)
             tmp = c.with_suffix(".tmp.npz")
-            np.savez(tmp, plain=pl, crops=cr)
+            np.savez(tmp, plain=pl, crops=cr, boxes=bx)
             tmp.replace(c)
         again = scored(t, pl, det.temperature).scores
         if not np.allclose(again, t.scores, atol=1e-4):
