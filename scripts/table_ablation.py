@@ -1,0 +1,124 @@
+"""Which of a learned detector's errors cost a trained agent (issue 23, analysis): tables that mend one kind of error.
+
+From a learned detector's table L and the oracle's table O of the same rooms (both with 64-wide per-class features),
+per state and class, with "in view" the oracle's ground truth (the class has pixels in the frame):
+
+- ``NAME-nofp``:   L, with every class not in view removed (score 0, no label, no box): L without false positives;
+- ``NAME-recall``: L, with every class in view given O's score, label and box: the oracle's recall and confidence
+  on what is there, L's false positives elsewhere;
+- ``NAME-both``:   both: O's scores, labels and boxes with L's per-class features;
+- ``NAME-score``:  ``recall``'s scores and labels, L's boxes where L has one (O's where it has none);
+- ``NAME-raise``:  as ``score`` but never lowering L's score (the larger of the two in view);
+- ``NAME-box``:    L's scores and labels, O's box wherever L keeps a detection of a class in view.
+
+O's confidence falls with the true distance (``tsnav.detect.oracle``), so ``recall`` / ``score`` / ``raise`` also
+hand the agent a distance-aware score: read their gains as an upper bound of what recall alone is worth.
+
+``--features oracle`` takes O's features in the mended cells too. An agent trained on L is then evaluated on each
+(``tsnav eval --run AGENT --detections NAME-...``) to see which kind of error its figures pay for.
+
+    python scripts/table_ablation.py --data WORLD --learned learned4 --oracle oracle --name ab [--split test]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+from tsnav.data.detections import Detections, detections_path, load_detections, write_detections
+from tsnav.data.reader import list_scenes, load_scene
+from tsnav.detect.oracle import ground_truth
+
+KINDS = ("nofp", "recall", "both", "score", "raise", "box")
+
+
+def mend(learned: Detections, oracle: Detections, present: np.ndarray, kind: str,
+         oracle_features: bool = False) -> Detections:
+    """``learned`` with one kind of error mended (module docstring); ``present`` ``(S, 22)`` bool in-view flags."""
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    if learned.scores.shape != oracle.scores.shape or not np.array_equal(learned.keys, oracle.keys):
+        raise ValueError("the learned and oracle tables are not of the same states")
+    if learned.features.shape != oracle.features.shape:
+        raise ValueError(f"feature shapes differ: {learned.features.shape} against {oracle.features.shape}")
+    scores, labels = learned.scores.copy(), learned.labels.copy()
+    boxes, feats = learned.boxes.copy(), learned.features.copy()
+    if kind in ("nofp", "both"):
+        off = ~present
+        scores[off], labels[off], boxes[off] = 0.0, -1, -1.0
+        if oracle_features:
+            feats[off] = oracle.features[off]
+    if kind in ("recall", "both"):
+        on = present
+        scores[on], labels[on], boxes[on] = oracle.scores[on], oracle.labels[on], oracle.boxes[on]
+        if oracle_features:
+            feats[on] = oracle.features[on]
+    if kind in ("score", "raise"):
+        on = present if kind == "score" else present & (oracle.scores > scores)
+        scores[on], labels[on] = oracle.scores[on], oracle.labels[on]
+        nobox = on & (learned.labels < 0)
+        boxes[nobox] = oracle.boxes[nobox]
+        if oracle_features:
+            feats[on] = oracle.features[on]
+    if kind == "box":
+        on = present & (learned.labels >= 0)
+        boxes[on] = oracle.boxes[on]
+    return replace(learned, scores=scores, labels=labels, boxes=boxes, features=feats,
+                   config=dict(learned.config, table_ablation={"kind": kind, "oracle_features": oracle_features}))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", required=True)
+    p.add_argument("--learned", default="learned4")
+    p.add_argument("--oracle", default="oracle")
+    p.add_argument("--name", default="ab")
+    p.add_argument("--split", default=None, help="only these rooms (default: every room of --data)")
+    p.add_argument("--features", choices=("learned", "oracle"), default="learned")
+    p.add_argument("--band", default=None, metavar="LO,HI",
+                   help="mend only the in-view cells whose oracle score lies in [LO, HI) (e.g. 0.7,1.01: the ones "
+                        "the oracle would switch on)")
+    p.add_argument("--kinds", default=",".join(KINDS), help="tables to write (default all)")
+    a = p.parse_args(argv)
+    dirs = list_scenes(a.data, a.split) if a.split else list_scenes(a.data)
+    if not dirs:
+        print(f"table_ablation: --data {a.data}: no rooms", file=sys.stderr)
+        return 2
+    kinds = [k.strip() for k in a.kinds.split(",") if k.strip()]
+    bad = [k for k in kinds if k not in KINDS]
+    if bad:
+        print(f"table_ablation: --kinds: unknown {bad[0]!r} (known: {', '.join(KINDS)})", file=sys.stderr)
+        return 2
+    band = None
+    if a.band:
+        try:
+            band = tuple(float(x) for x in a.band.split(","))
+            assert len(band) == 2 and band[0] < band[1]
+        except (ValueError, AssertionError):
+            print(f"table_ablation: --band {a.band!r}: expected LO,HI with LO < HI", file=sys.stderr)
+            return 2
+    n = 0
+    for d in dirs:
+        todo = [k for k in kinds if not detections_path(d, f"{a.name}-{k}").exists()]
+        if not todo:
+            continue
+        try:
+            L, O = load_detections(d, a.learned), load_detections(d, a.oracle)
+        except (OSError, ValueError) as e:
+            print(f"table_ablation: {e}", file=sys.stderr)
+            return 2
+        present = ground_truth(load_scene(d)).present
+        if band is not None:
+            present = present & (O.scores >= band[0]) & (O.scores < band[1])
+        for k in todo:
+            write_detections(d, f"{a.name}-{k}", mend(L, O, present, k, a.features == "oracle"))
+        n += 1
+    print(f"wrote {', '.join(f'{a.name}-{k}' for k in kinds)} in {n} of {len(dirs)} rooms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
