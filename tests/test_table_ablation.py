@@ -1,0 +1,65 @@
+"""scripts/table_ablation.py: each kind of mended table changes only the cells it names, as a cell-by-cell rule says."""
+
+import numpy as np
+import pytest
+from script_helpers import load_script
+
+from tsnav.data.detections import Detections
+
+
+@pytest.fixture(scope="module")
+def mod():
+    return load_script("table_ablation")
+
+
+def _table(rng, S, score_lo=0.0):
+    scores = rng.uniform(score_lo, 1.0, (S, 22)).astype(np.float32)
+    keep = scores >= 0.05
+    labels = np.where(keep, np.arange(22)[None, :], -1).astype(np.int16)
+    boxes = np.where(keep[..., None], rng.uniform(0, 100, (S, 22, 4)), -1.0).astype(np.float32)
+    return Detections(keys=np.array([f"s{i}" for i in range(S)]), scores=scores, labels=labels, boxes=boxes,
+                      features=rng.normal(size=(S, 22, 4)).astype(np.float16))
+
+
+def expected(L, O, present, kind):
+    """The rule of each kind, one cell at a time."""
+    sc, lb, bx = L.scores.copy(), L.labels.copy(), L.boxes.copy()
+    for i in range(sc.shape[0]):
+        for c in range(22):
+            p = present[i, c]
+            if kind in ("nofp", "both") and not p:
+                sc[i, c], lb[i, c], bx[i, c] = 0.0, -1, -1.0
+            if kind in ("recall", "both") and p:
+                sc[i, c], lb[i, c], bx[i, c] = O.scores[i, c], O.labels[i, c], O.boxes[i, c]
+            if kind in ("score", "raise") and p and (kind == "score" or O.scores[i, c] > L.scores[i, c]):
+                sc[i, c], lb[i, c] = O.scores[i, c], O.labels[i, c]
+                if L.labels[i, c] < 0:
+                    bx[i, c] = O.boxes[i, c]
+            if kind == "box" and p and L.labels[i, c] >= 0:
+                bx[i, c] = O.boxes[i, c]
+    return sc, lb, bx
+
+
+def test_each_kind_follows_its_rule(mod):
+    rng = np.random.default_rng(0)
+    L, O = _table(rng, 6), _table(rng, 6)
+    O.scores[:, ::2] = 0.0  # the oracle scores nothing where nothing is in view
+    O.labels[:, ::2], O.boxes[:, ::2] = -1, -1.0
+    present = O.scores > 0
+    for kind in mod.KINDS:
+        got = mod.mend(L, O, present, kind)
+        sc, lb, bx = expected(L, O, present, kind)
+        assert np.array_equal(got.scores, sc) and np.array_equal(got.labels, lb), kind
+        assert np.array_equal(got.boxes, bx) and np.array_equal(got.features, L.features), kind
+        assert got.config["table_ablation"]["kind"] == kind
+    both = mod.mend(L, O, present, "both", oracle_features=True)
+    assert np.array_equal(both.features, O.features)
+
+
+def test_refuses_tables_of_other_states(mod):
+    rng = np.random.default_rng(1)
+    L, O = _table(rng, 3), _table(rng, 4)
+    with pytest.raises(ValueError, match="same states"):
+        mod.mend(L, O, np.zeros((3, 22), bool), "nofp")
+    with pytest.raises(ValueError, match="kind"):
+        mod.mend(L, L, np.zeros((3, 22), bool), "all")
