@@ -33,7 +33,7 @@ from ..distributed import set_threads
 from ..errors import CommandError
 from .evaluate import evaluate_detections
 from .learned import LearnedDetector, write_scene_tables
-from .model import default_config
+from .model import LossWeights, default_config
 from .oracle import OracleConfig, oracle_detections
 from .shipped import DEFAULT_SHIPPED, SHIPPED, shipped_detector
 from .train import DetectorTrainConfig, calibrate, default_train_steps, is_checkpoint, read_meta, train_detector
@@ -65,6 +65,13 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hard-negative-threshold", type=float, default=None,
                    help="learned, with --hard-negative-weight: score that makes such a frame a hard negative "
                         "(default 0.5)")
+    p.add_argument("--presence-pos-weight", type=float, default=None,
+                   help="learned: weight of the classes in view in the presence cross-entropy (default 1; e.g. 4 "
+                        "favours recall of targets in view over false positives); given for an existing checkpoint "
+                        "it applies from that checkpoint's step on (recorded in its loss_changes)")
+    p.add_argument("--focal-alpha", type=float, default=None,
+                   help="learned: focal-loss weight of the positive cells (default 0.25); like "
+                        "--presence-pos-weight for an existing checkpoint")
     p.add_argument("--stem", type=int, default=None,
                    help="learned, new checkpoint: space-to-depth factor of the input (default: frame side / 64, so "
                         "128px frames cost what 64px ones do)")
@@ -117,6 +124,11 @@ def _learned(args, root: Path) -> LearnedDetector:
             raise CommandError("--hard-negative-threshold needs --hard-negative-weight")
         if not 0 < args.hard_negative_threshold < 1:
             raise CommandError(f"--hard-negative-threshold must be in (0, 1), got {args.hard_negative_threshold}")
+    if args.presence_pos_weight is not None and not (args.presence_pos_weight > 0
+                                                     and math.isfinite(args.presence_pos_weight)):
+        raise CommandError(f"--presence-pos-weight must be a finite number > 0, got {args.presence_pos_weight}")
+    if args.focal_alpha is not None and not 0 < args.focal_alpha < 1:
+        raise CommandError(f"--focal-alpha must be in (0, 1), got {args.focal_alpha}")
     if ckpt.exists() and not ckpt.is_dir():
         raise CommandError(f"--checkpoint {ckpt} is a file; give a checkpoint folder")
     if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
@@ -132,6 +144,13 @@ def _learned(args, root: Path) -> LearnedDetector:
                              hard_negative_threshold=args.hard_negative_threshold or 0.5)
     if args.batch_size:
         tc.batch_size = args.batch_size
+    if args.presence_pos_weight is not None or args.focal_alpha is not None:
+        loss = LossWeights()
+        if args.presence_pos_weight is not None:
+            loss.presence_pos_weight = args.presence_pos_weight
+        if args.focal_alpha is not None:
+            loss.focal_alpha = args.focal_alpha
+        tc.loss = loss
     res = train_detector(root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet)
     if res.step > res.start_step:
         print(f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "

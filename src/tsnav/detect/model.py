@@ -299,6 +299,9 @@ class LossWeights:
     """Focal loss weight of positive cells (RetinaNet: 0.25)."""
     focal_gamma: float = 2.0
     """Focal loss focusing exponent (RetinaNet: 2)."""
+    presence_pos_weight: float = 1.0
+    """Weight of the present classes in the presence cross-entropy (``pos_weight``; issue 23: an agent pays for
+    targets in view that score low far more than for false positives); 1 weighs both alike."""
 
 
 def focal_loss(logits: torch.Tensor, positive: torch.Tensor, alpha: float, gamma: float) -> torch.Tensor:
@@ -322,7 +325,11 @@ def detection_loss(model: GridDetector, x: torch.Tensor, present: torch.Tensor, 
     fl = focal_loss(cell_logits, positive, w.focal_alpha, w.focal_gamma)
     cells = (fl * (~ignore)).sum() / npos
     presence_logit, _, _ = model.pool(cell_logits, cell_boxes, feats)
-    bce = F.binary_cross_entropy_with_logits(presence_logit, present.float())
+    if w.presence_pos_weight == 1.0:
+        bce = F.binary_cross_entropy_with_logits(presence_logit, present.float())
+    else:
+        bce = F.binary_cross_entropy_with_logits(presence_logit, present.float(),
+                                                 pos_weight=presence_logit.new_tensor(w.presence_pos_weight))
     if positive.any():
         pb, tb = cell_boxes[positive], target[positive]
         l1 = (pb - tb).abs().sum(-1).mean()

@@ -543,7 +543,8 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
 
 def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: DetectorConfig | None):
     """``(model, meta, optimizer state or None, train config, start step)``: the checkpoint's, keeping its settings
-    except ``steps`` and ``threads`` (and a new ``repeat_threshold`` or hard-negative sampling, recorded), or a fresh
+    except ``steps`` and ``threads`` (and a new ``repeat_threshold``, hard-negative sampling or loss weights other than
+    the defaults, recorded in ``sampling_changes`` / ``loss_changes``), or a fresh
     model at step 0."""
     found = resume_state(ckpt)
     opt_state = None
@@ -556,6 +557,9 @@ def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: Dete
             stored.repeat_threshold = train_cfg.repeat_threshold
             meta.setdefault("sampling_changes", []).append({"step": start,
                                                            "repeat_threshold": train_cfg.repeat_threshold})
+        if train_cfg.loss != LossWeights() and train_cfg.loss != stored.loss:
+            stored.loss = train_cfg.loss
+            meta.setdefault("loss_changes", []).append({"step": start, **asdict(train_cfg.loss)})
         hard = (train_cfg.hard_negative_weight, train_cfg.hard_negative_threshold)
         if hard[0] > 0 and hard != (stored.hard_negative_weight, stored.hard_negative_threshold):
             stored.hard_negative_weight, stored.hard_negative_threshold = hard
