@@ -99,7 +99,9 @@ def test_bad_input_is_one_line(world, tmp_path, capsys):
                         (["--hard-negative-weight", "inf"], "--hard-negative-weight must be a finite number >= 0"),
                         (["--hard-negative-weight", "4", "--hard-negative-threshold", "1.5"],
                          "--hard-negative-threshold must be in (0, 1)"),
-                        (["--hard-negative-threshold", "0.6"], "--hard-negative-threshold needs --hard-negative-weight")):
+                        (["--hard-negative-threshold", "0.6"], "--hard-negative-threshold needs --hard-negative-weight"),
+                        (["--presence-pos-weight", "0"], "--presence-pos-weight must be a finite number > 0"),
+                        (["--focal-alpha", "1"], "--focal-alpha must be in (0, 1)")):
         assert main(["detect", "--data", str(world), "--detector", "learned", *flags]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and len(err.splitlines()) == 1

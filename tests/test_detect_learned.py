@@ -3,6 +3,7 @@ resume), calibration, tables."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -13,7 +14,7 @@ import torch
 
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
-from tsnav.detect.model import (DetectorConfig, GridDetector, default_config, dense_targets, dense_targets_reference,
+from tsnav.detect.model import (DetectorConfig, GridDetector, LossWeights, default_config, dense_targets, dense_targets_reference,
                                 detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
 from tsnav.detect.train import (HARD_NEGATIVES, DetectorTrainConfig, apply_gains, batch_plan, calibrate,
                                 classes_with_pixels, default_train_steps, fit_temperature, hard_negative_rows,
@@ -436,3 +437,32 @@ def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_
         with pytest.raises(ValueError, match="hard_negative"):
             train_detector(tiny_world, tmp_path / "bad", DetectorTrainConfig(steps=2, **bad), small,
                            frames=tiny_frames, progress=False)
+
+
+def test_presence_pos_weight_weighs_the_present_classes(tiny_world, tiny_frames, tmp_path):
+    """The presence term with ``presence_pos_weight`` k is the cross-entropy with the present classes' terms
+    multiplied by k, written out; a fine-tune that gives it (or ``focal_alpha``) is recorded from its step on."""
+    torch.manual_seed(0)
+    m = GridDetector(DetectorConfig(widths=(8, 16, 32), dim=32)).eval()
+    x = m.normalize(torch.from_numpy(tiny_frames.images[:4]))
+    present = torch.from_numpy(tiny_frames.present[:4])
+    empty = torch.full((4, 1, 4), -1.0), torch.full((4, 1), -1, dtype=torch.long), torch.zeros(4, 1, dtype=torch.long)
+    z = m(x)[0].detach().double()
+    y = present.double()
+    for k in (1.0, 3.0):
+        _, terms = detection_loss(m, x, present, *empty, LossWeights(presence_pos_weight=k))
+        by_hand = -(k * y * torch.log(torch.sigmoid(z)) + (1 - y) * torch.log(1 - torch.sigmoid(z))).mean()
+        assert terms["bce"] == pytest.approx(float(by_hand), rel=1e-5), k
+    base = dict(batch_size=8, warmup=2, checkpoint_every=2, threads=1)
+    small = DetectorConfig(widths=(8, 16, 32), dim=32)
+    train_detector(tiny_world, tmp_path / "d", DetectorTrainConfig(steps=2, **base), small, frames=tiny_frames,
+                   progress=False)
+    train_detector(tiny_world, tmp_path / "d", DetectorTrainConfig(steps=4, **base), frames=tiny_frames,
+                   progress=False)
+    assert "loss_changes" not in read_meta(tmp_path / "d")  # the defaults change nothing
+    w = LossWeights(presence_pos_weight=4.0, focal_alpha=0.5)
+    train_detector(tiny_world, tmp_path / "d", DetectorTrainConfig(steps=6, loss=w, **base), frames=tiny_frames,
+                   progress=False)
+    meta = read_meta(tmp_path / "d")
+    assert meta["loss_changes"] == [{"step": 4, **dataclasses.asdict(w)}]
+    assert meta["train"]["loss"]["presence_pos_weight"] == 4.0 and meta["train"]["loss"]["focal_alpha"] == 0.5
