@@ -18,6 +18,11 @@ hand the agent a distance-aware score: read their gains as an upper bound of wha
 (``tsnav eval --run AGENT --detections NAME-...``) to see which kind of error its figures pay for.
 
     python scripts/table_ablation.py --data WORLD --learned learned4 --oracle oracle --name ab [--split test]
+    python scripts/table_ablation.py --data WORLD --split test --recall learned4,learned4pc   # the figures below
+
+``--recall`` writes nothing: per table, over the cells of the room's possible targets, the share of "near" cells (in
+view, the oracle scoring >= 0.7) the table scores >= 0.7 and their mean score, the share of "far" cells (in view,
+below that) it scores under the oracle's stand-in, and the share of absent cells above 0.7 (:func:`state_recall`).
 """
 
 from __future__ import annotations
@@ -70,6 +75,29 @@ def mend(learned: Detections, oracle: Detections, present: np.ndarray, kind: str
                    config=dict(learned.config, table_ablation={"kind": kind, "oracle_features": oracle_features}))
 
 
+def state_recall(scenes, tables, oracles) -> dict:
+    """Per-state recall of the targets in view, against the oracle's stand-in score (module docstring)."""
+    from tsnav.detect.quality import scene_targets
+
+    t = dict(near=0, near_hit=0, near_sum=0.0, far=0, far_below=0, absent=0, absent_fp=0)
+    for s, d, o in zip(scenes, tables, oracles):
+        present = ground_truth(s).present
+        targets = scene_targets(s)[None, :]
+        near = present & targets & (o.scores >= 0.7)
+        far = present & targets & (o.scores < 0.7)
+        absent = ~present & targets
+        t["near"] += int(near.sum())
+        t["near_hit"] += int((near & (d.scores >= 0.7)).sum())
+        t["near_sum"] += float(d.scores[near].sum())
+        t["far"] += int(far.sum())
+        t["far_below"] += int((far & (d.scores < o.scores)).sum())
+        t["absent"] += int(absent.sum())
+        t["absent_fp"] += int((absent & (d.scores > 0.7)).sum())
+    return {"near_cells": t["near"], "near_recall": t["near_hit"] / max(t["near"], 1),
+            "near_mean_score": t["near_sum"] / max(t["near"], 1), "far_cells": t["far"],
+            "far_below_oracle": t["far_below"] / max(t["far"], 1), "absent_above": t["absent_fp"] / max(t["absent"], 1)}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
@@ -82,11 +110,26 @@ def main(argv=None) -> int:
                    help="mend only the in-view cells whose oracle score lies in [LO, HI) (e.g. 0.7,1.01: the ones "
                         "the oracle would switch on)")
     p.add_argument("--kinds", default=",".join(KINDS), help="tables to write (default all)")
+    p.add_argument("--recall", default=None, metavar="TABLE[,TABLE...]",
+                   help="only report these tables' per-state recall against --oracle (writes nothing)")
     a = p.parse_args(argv)
     dirs = list_scenes(a.data, a.split) if a.split else list_scenes(a.data)
     if not dirs:
         print(f"table_ablation: --data {a.data}: no rooms", file=sys.stderr)
         return 2
+    if a.recall:
+        try:
+            scenes = [load_scene(d) for d in dirs]
+            oracles = [load_detections(d, a.oracle) for d in dirs]
+            for name in [n.strip() for n in a.recall.split(",") if n.strip()]:
+                r = state_recall(scenes, [load_detections(d, name) for d in dirs], oracles)
+                print(f"{name}: near cells {r['near_cells']} scoring >= 0.7 {100 * r['near_recall']:.1f} % (mean "
+                      f"{r['near_mean_score']:.3f}); far cells {r['far_cells']} under the oracle's score "
+                      f"{100 * r['far_below_oracle']:.1f} %; absent target cells above 0.7 {100 * r['absent_above']:.2f} %")
+        except (OSError, ValueError) as e:
+            print(f"table_ablation: {e}", file=sys.stderr)
+            return 2
+        return 0
     kinds = [k.strip() for k in a.kinds.split(",") if k.strip()]
     bad = [k for k in kinds if k not in KINDS]
     if bad:

@@ -63,3 +63,41 @@ def test_refuses_tables_of_other_states(mod):
         mod.mend(L, O, np.zeros((3, 22), bool), "nofp")
     with pytest.raises(ValueError, match="kind"):
         mod.mend(L, L, np.zeros((3, 22), bool), "all")
+
+
+def test_state_recall_on_real_rooms_against_cell_loops(mod, tiny_real_learned4):
+    """``state_recall`` on the tiny real rooms with the shipped detector's tables, against the same counts made one
+    cell at a time; the oracle against itself recalls every near cell."""
+    from tsnav.data.detections import load_detections
+    from tsnav.data.reader import list_scenes, load_scene
+    from tsnav.detect.oracle import ground_truth, oracle_detections
+    from tsnav.detect.quality import scene_targets
+
+    dirs = list_scenes(tiny_real_learned4)
+    scenes = [load_scene(d) for d in dirs]
+    tables = [load_detections(d, "learned4") for d in dirs]
+    oracles = [oracle_detections(s) for s in scenes]
+    got = mod.state_recall(scenes, tables, oracles)
+    near = near_hit = far = far_below = absent = absent_fp = 0
+    for s, d, o in zip(scenes, tables, oracles):
+        present, targets = ground_truth(s).present, scene_targets(s)
+        for i in range(s.num_states):
+            for c in range(22):
+                if not targets[c]:
+                    continue
+                if present[i, c] and o.scores[i, c] >= 0.7:
+                    near += 1
+                    near_hit += d.scores[i, c] >= 0.7
+                elif present[i, c]:
+                    far += 1
+                    far_below += d.scores[i, c] < o.scores[i, c]
+                else:
+                    absent += 1
+                    absent_fp += d.scores[i, c] > 0.7
+    assert near > 0 and far > 0 and absent > 0
+    assert got["near_cells"] == near and got["far_cells"] == far
+    assert got["near_recall"] == pytest.approx(near_hit / near)
+    assert got["far_below_oracle"] == pytest.approx(far_below / far)
+    assert got["absent_above"] == pytest.approx(absent_fp / absent)
+    itself = mod.state_recall(scenes, oracles, oracles)
+    assert itself["near_recall"] == 1.0 and itself["far_below_oracle"] == 0.0 and itself["absent_above"] == 0.0
