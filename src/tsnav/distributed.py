@@ -161,6 +161,30 @@ def spawnable_main():
             main.__file__ = path
 
 
+def trim_memory() -> bool:
+    """Give the memory this process has freed back to the system: ``gc.collect()``, then glibc's ``malloc_trim(0)``.
+
+    glibc keeps freed heap memory mapped (its mmap threshold rises after a large free, so arrays allocated later
+    come from the heap), so a long-lived process that once held a large dataset keeps its peak RSS after letting it
+    go: the `tsnav experiment` parent held 11 GB after its in-process pretraining while its jobs ran beside it.
+    Called after such stages. Returns whether memory was trimmed (False where there is no glibc)."""
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):  # musl and other C libraries have no malloc_trim
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)
+    return True
+
+
 class _SpawnableProcess(multiprocessing.context.SpawnProcess):
     """A ``spawn`` process whose start hides a missing main file (:func:`spawnable_main`)."""
 

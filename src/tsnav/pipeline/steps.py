@@ -14,7 +14,7 @@ from ..detect.oracle import OracleConfig, oracle_detections
 from ..errors import CommandError
 from ..protocol import DEFAULT_PROTOCOL, protocol_of
 from ..pretrain.features import cache_features, load_encoder
-from ..distributed import resolve_device
+from ..distributed import resolve_device, trim_memory
 from ..scene_pool import default_workers
 from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
@@ -169,6 +169,7 @@ def ensure_encoder(es: EncoderSpec, data: str | Path) -> None:
     pre = es.pretrain if isinstance(es.pretrain, PretrainConfig) else PretrainConfig(**es.pretrain)
     say(f"pretrain {pre.method} -> {es.spec}")
     res = train(pre, data, es.spec, progress=True)
+    trim_memory()  # the training images are freed: hand their memory back before the next stages
     if not res["finished"]:
         raise RuntimeError(f"pretraining {es.spec} did not finish")
 
