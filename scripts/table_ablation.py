@@ -17,8 +17,15 @@ hand the agent a distance-aware score: read their gains as an upper bound of wha
 ``--features oracle`` takes O's features in the mended cells too. An agent trained on L is then evaluated on each
 (``tsnav eval --run AGENT --detections NAME-...``) to see which kind of error its figures pay for.
 
+Two comparisons that need no oracle: ``--shift B[,B...]`` writes ``NAME-shiftB``, L with every presence logit raised
+by B (:func:`shifted`: a raise of absent classes as much as present ones), and ``--features-from TABLE`` writes
+``NAME``: L's scores, labels and boxes with TABLE's per-class features (:func:`with_features`: another detector's
+scores read by an agent trained on TABLE's features).
+
     python scripts/table_ablation.py --data WORLD --learned learned4 --oracle oracle --name ab [--split test]
     python scripts/table_ablation.py --data WORLD --split test --recall learned4,learned4pc   # the figures below
+    python scripts/table_ablation.py --data WORLD --learned learned4 --name learned4 --shift 1,2,3
+    python scripts/table_ablation.py --data WORLD --learned learned6 --features-from learned4 --name l6s
 
 ``--recall`` writes nothing: per table, over the cells of the room's possible targets, the share of "near" cells (in
 view, the oracle scoring >= 0.7) the table scores >= 0.7 and their mean score, the share of "far" cells (in view,
@@ -36,6 +43,7 @@ import numpy as np
 from tsnav.data.detections import Detections, detections_path, load_detections, write_detections
 from tsnav.data.reader import list_scenes, load_scene
 from tsnav.detect.oracle import ground_truth
+from tsnav.detect.quality import scene_targets
 
 KINDS = ("nofp", "recall", "both", "score", "raise", "box")
 
@@ -75,10 +83,23 @@ def mend(learned: Detections, oracle: Detections, present: np.ndarray, kind: str
                    config=dict(learned.config, table_ablation={"kind": kind, "oracle_features": oracle_features}))
 
 
+def shifted(table: Detections, b: float, eps: float = 1e-6) -> Detections:
+    """``table`` with every presence logit raised by ``b`` (labels and boxes as they were)."""
+    p = np.clip(table.scores.astype(np.float64), eps, 1 - eps)
+    z = np.log(p) - np.log1p(-p) + b
+    return replace(table, scores=(1.0 / (1.0 + np.exp(-z))).astype(np.float32),
+                   config=dict(table.config, logit_shift=b))
+
+
+def with_features(table: Detections, features_of: Detections) -> Detections:
+    """``table``'s scores, labels and boxes with the per-class features of ``features_of`` (the same states)."""
+    if not np.array_equal(table.keys, features_of.keys):
+        raise ValueError("the two tables are not of the same states")
+    return replace(table, features=features_of.features, config=dict(table.config, features_from=features_of.config))
+
+
 def state_recall(scenes, tables, oracles) -> dict:
     """Per-state recall of the targets in view, against the oracle's stand-in score (module docstring)."""
-    from tsnav.detect.quality import scene_targets
-
     t = dict(near=0, near_hit=0, near_sum=0.0, far=0, far_below=0, absent=0, absent_fp=0)
     for s, d, o in zip(scenes, tables, oracles):
         present = ground_truth(s).present
@@ -112,6 +133,10 @@ def main(argv=None) -> int:
     p.add_argument("--kinds", default=",".join(KINDS), help="tables to write (default all)")
     p.add_argument("--recall", default=None, metavar="TABLE[,TABLE...]",
                    help="only report these tables' per-state recall against --oracle (writes nothing)")
+    p.add_argument("--shift", default=None, metavar="B[,B...]",
+                   help="only write --learned with its logits raised by B, as NAME-shiftB (no oracle needed)")
+    p.add_argument("--features-from", default=None, metavar="TABLE",
+                   help="only write --learned's scores with TABLE's per-class features, as NAME (no oracle needed)")
     a = p.parse_args(argv)
     dirs = list_scenes(a.data, a.split) if a.split else list_scenes(a.data)
     if not dirs:
@@ -130,6 +155,26 @@ def main(argv=None) -> int:
             print(f"table_ablation: {e}", file=sys.stderr)
             return 2
         return 0
+    if a.shift or a.features_from:
+        try:
+            shifts = [float(x) for x in a.shift.split(",")] if a.shift else []
+        except ValueError:
+            print(f"table_ablation: --shift {a.shift!r}: expected numbers separated by commas", file=sys.stderr)
+            return 2
+        try:
+            for d in dirs:
+                L = load_detections(d, a.learned)
+                for b in shifts:
+                    name = f"{a.name}-shift{b:g}".replace(".", "p")
+                    if not detections_path(d, name).exists():
+                        write_detections(d, name, shifted(L, b))
+                if a.features_from and not detections_path(d, a.name).exists():
+                    write_detections(d, a.name, with_features(L, load_detections(d, a.features_from)))
+        except (OSError, ValueError) as e:
+            print(f"table_ablation: {e}", file=sys.stderr)
+            return 2
+        print(f"wrote the tables of {len(dirs)} rooms")
+        return 0
     kinds = [k.strip() for k in a.kinds.split(",") if k.strip()]
     bad = [k for k in kinds if k not in KINDS]
     if bad:
@@ -139,8 +184,9 @@ def main(argv=None) -> int:
     if a.band:
         try:
             band = tuple(float(x) for x in a.band.split(","))
-            assert len(band) == 2 and band[0] < band[1]
-        except (ValueError, AssertionError):
+        except ValueError:
+            band = ()
+        if len(band) != 2 or not band[0] < band[1]:
             print(f"table_ablation: --band {a.band!r}: expected LO,HI with LO < HI", file=sys.stderr)
             return 2
     n = 0

@@ -1,5 +1,7 @@
 """scripts/table_ablation.py: each kind of mended table changes only the cells it names, as a cell-by-cell rule says."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from script_helpers import load_script
@@ -101,3 +103,21 @@ def test_state_recall_on_real_rooms_against_cell_loops(mod, tiny_real_learned4):
     assert got["absent_above"] == pytest.approx(absent_fp / absent)
     itself = mod.state_recall(scenes, oracles, oracles)
     assert itself["near_recall"] == 1.0 and itself["far_below_oracle"] == 0.0 and itself["absent_above"] == 0.0
+
+
+def test_shift_and_borrowed_features(mod):
+    """``shifted`` raises every logit by b (a score of 0.5 becomes sigmoid(b)); ``with_features`` swaps the
+    features only, and refuses a table of other states."""
+    rng = np.random.default_rng(2)
+    L, A = _table(rng, 5, score_lo=0.01), _table(rng, 5)
+    for b in (0.0, 1.0, -2.0):
+        got = mod.shifted(L, b).scores.astype(np.float64)
+        z = np.log(L.scores.astype(np.float64)) - np.log1p(-L.scores.astype(np.float64))
+        np.testing.assert_allclose(got, 1 / (1 + np.exp(-(z + b))), rtol=1e-6)
+    half = replace(L, scores=np.full_like(L.scores, 0.5))
+    np.testing.assert_allclose(mod.shifted(half, 1.0).scores, 1 / (1 + np.exp(-1.0)), rtol=1e-6)
+    h = mod.with_features(L, A)
+    assert np.array_equal(h.features, A.features) and np.array_equal(h.scores, L.scores)
+    assert np.array_equal(h.boxes, L.boxes) and np.array_equal(h.labels, L.labels)
+    with pytest.raises(ValueError, match="same states"):
+        mod.with_features(L, _table(rng, 4))
