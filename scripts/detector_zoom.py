@@ -10,11 +10,10 @@ frame's. Printed per combination: presence AP (all, and for small objects), reac
 pairs and false-positive states (:mod:`tsnav.detect.quality`).
 
     python scripts/detector_zoom.py --data WORLD --split val --shipped learned4 --cache DIR [--margin 0 0.5 1 2]
-        [--write NAME --margin-write M]
 
 The logits of every state are kept in ``--cache`` (one ``.npz`` per room), so a second call with other margins reads
 no frame. It reads the frames of the split once and runs the detector six times per state (about 6x the cost of a
-table). ``--write NAME`` writes the split's rooms' tables with the chosen margin under NAME (scores only differ).
+table). It writes no table (the combination was not worth one: docs/RESULTS.md, "zoomed crops").
 """
 
 from __future__ import annotations
@@ -30,7 +29,7 @@ import torch
 from tqdm import tqdm
 
 from tsnav.atomic import atomic_write_json
-from tsnav.data.detections import Detections, detections_path, load_detections, write_detections
+from tsnav.data.detections import Detections, load_detections
 from tsnav.data.reader import list_scenes, load_scene
 from tsnav.detect.data import read_images
 from tsnav.detect.evaluate import evaluate_detections
@@ -56,22 +55,17 @@ def zoom_crops(img: np.ndarray) -> np.ndarray:
     return np.stack(out, axis=1).reshape(n, len(CROPS), s, s, 3)
 
 
-def scene_logits(det, scene, chunk: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Plain ``(S, 22)`` and crop ``(S, 5, 22)`` presence logits of every state of ``scene``, and the crops' boxes
-    ``(S, 5, 22, 4)`` float16 in the frame's unit coordinates."""
+def scene_logits(det, scene, chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Plain ``(S, 22)`` and crop ``(S, 5, 22)`` presence logits of every state of ``scene``."""
     plain = np.empty((scene.num_states, 22), np.float32)
     crops = np.empty((scene.num_states, len(CROPS), 22), np.float32)
-    boxes = np.empty((scene.num_states, len(CROPS), 22, 4), np.float16)
-    offset = np.array([[c / 2, r / 2, c / 2, r / 2] for r, c in CROPS], np.float32)[None, :, None, :]
     for a in range(0, scene.num_states, chunk):
         img = read_images(scene.path, scene.keys[a:a + chunk])
         m = len(img)
         plain[a:a + m] = predict(det.model, img)[0]
         z = zoom_crops(img)
-        lg, bx, _ = predict(det.model, z.reshape(-1, *z.shape[2:]))
-        crops[a:a + m] = lg.reshape(m, len(CROPS), 22)
-        boxes[a:a + m] = bx.reshape(m, len(CROPS), 22, 4) / 2 + offset
-    return plain, crops, boxes
+        crops[a:a + m] = predict(det.model, z.reshape(-1, *z.shape[2:]))[0].reshape(m, len(CROPS), 22)
+    return plain, crops
 
 
 def combine(plain: np.ndarray, crops: np.ndarray, margin: float | None) -> np.ndarray:
@@ -94,8 +88,6 @@ def main(argv=None) -> int:
     p.add_argument("--table", default=None, help="the rooms' stored table of that detector (default: --shipped)")
     p.add_argument("--cache", required=True, type=Path, help="folder for the rooms' logits (read when present)")
     p.add_argument("--margin", type=float, nargs="*", default=[0.0, 0.5, 1.0, 2.0])
-    p.add_argument("--write", default=None, metavar="NAME", help="write the split's tables under NAME")
-    p.add_argument("--margin-write", type=float, default=1.0)
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
@@ -115,9 +107,9 @@ def main(argv=None) -> int:
             z = np.load(c)
             pl, cr = z["plain"], z["crops"]
         else:
-            pl, cr, bx = scene_logits(det, s)
+            pl, cr = scene_logits(det, s)
             tmp = c.with_suffix(".tmp.npz")
-            np.savez(tmp, plain=pl, crops=cr, boxes=bx)
+            np.savez(tmp, plain=pl, crops=cr)
             tmp.replace(c)
         again = scored(t, pl, det.temperature).scores
         if not np.allclose(again, t.scores, atol=1e-4):
@@ -144,14 +136,6 @@ def main(argv=None) -> int:
               + ", ".join(f"> {k}: {v:.2f} %" for k, v in fp.items()), flush=True)
     if a.json:
         atomic_write_json(a.json, out)
-    if a.write:
-        for f, t, (pl, cr) in zip(folders, tables, logits):
-            if detections_path(f, a.write).exists():
-                continue
-            d = scored(t, combine(pl, cr, a.margin_write), det.temperature)
-            write_detections(f, a.write, replace(d, config=dict(d.config, zoom={
-                "crops": out["crops"], "margin": a.margin_write, "from": a.table or a.shipped})))
-        print(f"wrote {a.write} tables of the {a.split} rooms in {a.data}")
     print(json.dumps(out["rows"]["plain"]))
     return 0
 
