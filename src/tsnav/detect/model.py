@@ -325,7 +325,7 @@ def detection_loss(model: GridDetector, x: torch.Tensor, present: torch.Tensor, 
     fl = focal_loss(cell_logits, positive, w.focal_alpha, w.focal_gamma)
     cells = (fl * (~ignore)).sum() / npos
     presence_logit, _, _ = model.pool(cell_logits, cell_boxes, feats)
-    if w.presence_pos_weight == 1.0:
+    if w.presence_pos_weight == 1.0:  # the call every existing detector was trained with, kept bit for bit
         bce = F.binary_cross_entropy_with_logits(presence_logit, present.float())
     else:
         bce = F.binary_cross_entropy_with_logits(presence_logit, present.float(),
