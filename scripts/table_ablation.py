@@ -30,6 +30,12 @@ scores read by an agent trained on TABLE's features).
 ``--recall`` writes nothing: per table, over the cells of the room's possible targets, the share of "near" cells (in
 view, the oracle scoring >= 0.7) the table scores >= 0.7 and their mean score, the share of "far" cells (in view,
 below that) it scores under the oracle's stand-in, and the share of absent cells above 0.7 (:func:`state_recall`).
+With ``--curve B[,B...]`` the same figures for the table with every logit raised by each B (:func:`shifted`): recall
+against false positives, the way to tell a detector that ranks better from one that only sits at a lower threshold.
+``--by-class`` adds the near cells and their recall per class and per band of the target's visible pixels
+(:func:`near_recall_by`).
+
+    python scripts/table_ablation.py --data WORLD --split val --recall learned4,learned6 --curve=-1,-0.5,0,0.5,1
 """
 
 from __future__ import annotations
@@ -119,6 +125,39 @@ def state_recall(scenes, tables, oracles) -> dict:
             "far_below_oracle": t["far_below"] / max(t["far"], 1), "absent_above": t["absent_fp"] / max(t["absent"], 1)}
 
 
+#: Bands of the target's visible pixels (the frame's, at its own size) for :func:`near_recall_by`.
+PIXEL_BANDS = (0, 50, 100, 200, 400, 800, 1600)
+
+
+def near_recall_by(scenes, tables, oracles) -> dict:
+    """Near cells (as :func:`state_recall`) and those the table scores >= 0.7, per class ``(22,)`` and per band of
+    :data:`PIXEL_BANDS` of the ground-truth instance's visible pixels (the last band open above)."""
+    out = {k: np.zeros((22,), np.int64) for k in ("class_near", "class_hit")}
+    out.update({k: np.zeros((len(PIXEL_BANDS),), np.int64) for k in ("band_near", "band_hit")})
+    for s, d, o in zip(scenes, tables, oracles):
+        g = ground_truth(s)
+        near = g.present & scene_targets(s)[None, :] & (o.scores >= 0.7)
+        hit = near & (d.scores >= 0.7)
+        out["class_near"] += near.sum(0)
+        out["class_hit"] += hit.sum(0)
+        band = np.searchsorted(PIXEL_BANDS, g.pixels, side="right") - 1
+        out["band_near"] += np.bincount(band[near], minlength=len(PIXEL_BANDS))
+        out["band_hit"] += np.bincount(band[hit], minlength=len(PIXEL_BANDS))
+    return out
+
+
+def _print_by(name: str, by: dict) -> None:
+    from tsnav.constants import TARGET_CATEGORIES
+    order = np.argsort(-(by["class_near"] - by["class_hit"]), kind="stable")
+    cls = [f"{TARGET_CATEGORIES[c]} {100 * by['class_hit'][c] / by['class_near'][c]:.1f} % of {by['class_near'][c]}"
+           for c in order if by["class_near"][c]]
+    print(f"  {name} per class (most misses first): " + "; ".join(cls))
+    edges = list(PIXEL_BANDS) + [None]
+    bands = [f"{edges[i]}-{edges[i + 1] if edges[i + 1] else ''} px {100 * by['band_hit'][i] / by['band_near'][i]:.1f} % "
+             f"of {by['band_near'][i]}" for i in range(len(PIXEL_BANDS)) if by["band_near"][i]]
+    print(f"  {name} per band of visible pixels: " + "; ".join(bands))
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
@@ -133,6 +172,10 @@ def main(argv=None) -> int:
     p.add_argument("--kinds", default=",".join(KINDS), help="tables to write (default all)")
     p.add_argument("--recall", default=None, metavar="TABLE[,TABLE...]",
                    help="only report these tables' per-state recall against --oracle (writes nothing)")
+    p.add_argument("--curve", default=None, metavar="B[,B...]",
+                   help="with --recall: the figures of each table with its logits raised by each B (0: as it is; write --curve=-1,0,1 when the first is negative)")
+    p.add_argument("--by-class", action="store_true",
+                   help="with --recall: near cells and recall per class and per band of visible pixels")
     p.add_argument("--shift", default=None, metavar="B[,B...]",
                    help="only write --learned with its logits raised by B, as NAME-shiftB (no oracle needed)")
     p.add_argument("--features-from", default=None, metavar="TABLE",
@@ -144,13 +187,24 @@ def main(argv=None) -> int:
         return 2
     if a.recall:
         try:
+            curve = [float(x) for x in a.curve.split(",")] if a.curve else [0.0]
+        except ValueError:
+            print(f"table_ablation: --curve {a.curve!r}: expected numbers separated by commas", file=sys.stderr)
+            return 2
+        try:
             scenes = [load_scene(d) for d in dirs]
             oracles = [load_detections(d, a.oracle) for d in dirs]
             for name in [n.strip() for n in a.recall.split(",") if n.strip()]:
-                r = state_recall(scenes, [load_detections(d, name) for d in dirs], oracles)
-                print(f"{name}: near cells {r['near_cells']} scoring >= 0.7 {100 * r['near_recall']:.1f} % (mean "
-                      f"{r['near_mean_score']:.3f}); far cells {r['far_cells']} under the oracle's score "
-                      f"{100 * r['far_below_oracle']:.1f} %; absent target cells above 0.7 {100 * r['absent_above']:.2f} %")
+                tables = [load_detections(d, name) for d in dirs]
+                for b in curve:
+                    r = state_recall(scenes, [shifted(t, b) for t in tables] if b else tables, oracles)
+                    label = name if not b else f"{name} {b:+g}"
+                    print(f"{label}: near cells {r['near_cells']} scoring >= 0.7 {100 * r['near_recall']:.1f} % (mean "
+                          f"{r['near_mean_score']:.3f}); far cells {r['far_cells']} under the oracle's score "
+                          f"{100 * r['far_below_oracle']:.1f} %; absent target cells above 0.7 "
+                          f"{100 * r['absent_above']:.2f} %")
+                if a.by_class:
+                    _print_by(name, near_recall_by(scenes, tables, oracles))
         except (OSError, ValueError) as e:
             print(f"table_ablation: {e}", file=sys.stderr)
             return 2

@@ -121,3 +121,60 @@ def test_shift_and_borrowed_features(mod):
     assert np.array_equal(h.boxes, L.boxes) and np.array_equal(h.labels, L.labels)
     with pytest.raises(ValueError, match="same states"):
         mod.with_features(L, _table(rng, 4))
+
+
+def test_near_recall_by_class_and_band_against_cell_loops(mod, tiny_real_learned4):
+    """``near_recall_by`` counts the same near cells as ``state_recall``, split per class and per pixel band, as a
+    cell-by-cell loop does."""
+    from tsnav.data.detections import load_detections
+    from tsnav.data.reader import list_scenes, load_scene
+    from tsnav.detect.oracle import ground_truth, oracle_detections
+    from tsnav.detect.quality import scene_targets
+
+    dirs = list_scenes(tiny_real_learned4)
+    scenes = [load_scene(d) for d in dirs]
+    tables = [load_detections(d, "learned4") for d in dirs]
+    oracles = [oracle_detections(s) for s in scenes]
+    got = mod.near_recall_by(scenes, tables, oracles)
+    cn, ch = np.zeros(22, int), np.zeros(22, int)
+    bn, bh = np.zeros(len(mod.PIXEL_BANDS), int), np.zeros(len(mod.PIXEL_BANDS), int)
+    for s, d, o in zip(scenes, tables, oracles):
+        g, targets = ground_truth(s), scene_targets(s)
+        for i in range(s.num_states):
+            for c in range(22):
+                if targets[c] and g.present[i, c] and o.scores[i, c] >= 0.7:
+                    b = max(k for k, lo in enumerate(mod.PIXEL_BANDS) if g.pixels[i, c] >= lo)
+                    hit = d.scores[i, c] >= 0.7
+                    cn[c] += 1
+                    ch[c] += hit
+                    bn[b] += 1
+                    bh[b] += hit
+    assert cn.sum() > 0 and 0 < ch.sum() <= cn.sum()
+    assert np.array_equal(got["class_near"], cn) and np.array_equal(got["class_hit"], ch)
+    assert np.array_equal(got["band_near"], bn) and np.array_equal(got["band_hit"], bh)
+    r = mod.state_recall(scenes, tables, oracles)
+    assert r["near_cells"] == cn.sum() and r["near_recall"] == pytest.approx(ch.sum() / cn.sum())
+
+
+def test_recall_curve_command(mod, tiny_real_learned4, tmp_path, capsys):
+    """``--recall T --curve`` prints one line per shift (recall cannot fall as the logits rise) and ``--by-class``
+    its breakdown; a bad ``--curve`` is one clear error."""
+    import re
+
+    from tsnav.data.detections import write_detections
+    from tsnav.data.reader import list_scenes, load_scene
+    from tsnav.detect.oracle import oracle_detections
+
+    import shutil
+
+    world = tmp_path / "world"
+    shutil.copytree(tiny_real_learned4, world)  # the session fixture stays as it was
+    for d in list_scenes(world):
+        write_detections(d, "oracle", oracle_detections(load_scene(d)))
+    assert mod.main(["--data", str(world), "--recall", "learned4", "--curve=-1,0,1", "--by-class"]) == 0
+    out = capsys.readouterr().out
+    rec = [float(x) for x in re.findall(r"scoring >= 0.7 ([0-9.]+) %", out)]
+    assert len(rec) == 3 and rec[0] <= rec[1] <= rec[2] and rec[0] < rec[2]
+    assert "learned4 -1:" in out and "learned4 +1:" in out and "per class" in out and "per band" in out
+    assert mod.main(["--data", str(world), "--recall", "learned4", "--curve", "a"]) == 2
+    assert "--curve 'a'" in capsys.readouterr().err
