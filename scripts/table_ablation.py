@@ -33,7 +33,9 @@ below that) it scores under the oracle's stand-in, and the share of absent cells
 With ``--curve B[,B...]`` the same figures for the table with every logit raised by each B (:func:`shifted`): recall
 against false positives, the way to tell a detector that ranks better from one that only sits at a lower threshold.
 ``--by-class`` adds the near cells and their recall per class and per band of the target's visible pixels
-(:func:`near_recall_by`).
+(:func:`near_recall_by`), and ``--misses PNG`` draws a sheet of near cells the (first) table misses, for
+``--misses-class`` (:func:`near_misses`; the frame with the ground-truth box in red, the table's score, the visible
+pixels and the distance under it).
 
     python scripts/table_ablation.py --data WORLD --split val --recall learned4,learned6 --curve=-1,-0.5,0,0.5,1
 """
@@ -146,6 +148,51 @@ def near_recall_by(scenes, tables, oracles) -> dict:
     return out
 
 
+def near_misses(scenes, tables, oracles, category: int, per_room: int = 3, seed: int = 0) -> list[tuple]:
+    """Up to ``per_room`` random (scene, state) near cells of ``category`` per room that the table scores < 0.7:
+    ``(scene, state, score, pixels, distance, box)``."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for s, d, o in zip(scenes, tables, oracles):
+        if not scene_targets(s)[category]:
+            continue
+        g = ground_truth(s)
+        miss = np.flatnonzero(g.present[:, category] & (o.scores[:, category] >= 0.7) & (d.scores[:, category] < 0.7))
+        for i in sorted(rng.choice(miss, min(per_room, len(miss)), replace=False)) if len(miss) else []:
+            out.append((s, int(i), float(d.scores[i, category]), int(g.pixels[i, category]),
+                        float(g.distance[i, category]), g.boxes[i, category]))
+    return out
+
+
+def draw_misses(misses, path, columns: int = 6, limit: int = 24, scale: int = 2) -> int:
+    """A sheet of up to ``limit`` of :func:`near_misses`' frames (written atomically); returns how many it holds."""
+    import os
+
+    from PIL import Image, ImageDraw
+
+    from tsnav.detect.data import read_images
+
+    misses = misses[:limit]
+    if not misses:
+        return 0
+    frames = [read_images(m[0].path, m[0].keys[m[1]:m[1] + 1])[0] for m in misses]
+    side = frames[0].shape[0] * scale
+    rows = (len(frames) + columns - 1) // columns
+    sheet = Image.new("RGB", (columns * (side + 4), rows * (side + 16)), "white")
+    for k, (m, f) in enumerate(zip(misses, frames)):
+        im = Image.fromarray(f).resize((side, side), Image.NEAREST)
+        b = m[5] * scale
+        ImageDraw.Draw(im).rectangle([b[0], b[1], b[2] + scale - 1, b[3] + scale - 1], outline=(255, 0, 0))
+        x, y = (k % columns) * (side + 4), (k // columns) * (side + 16)
+        sheet.paste(im, (x, y))
+        ImageDraw.Draw(sheet).text((x, y + side + 2), f"{m[0].name} s={m[2]:.2f} px={m[3]} d={m[4]:.1f}m",
+                                   fill=(0, 0, 0))
+    tmp = f"{path}.tmp.png"
+    sheet.save(tmp)
+    os.replace(tmp, path)
+    return len(frames)
+
+
 def _print_by(name: str, by: dict) -> None:
     from tsnav.constants import TARGET_CATEGORIES
     order = np.argsort(-(by["class_near"] - by["class_hit"]), kind="stable")
@@ -174,6 +221,9 @@ def main(argv=None) -> int:
                    help="only report these tables' per-state recall against --oracle (writes nothing)")
     p.add_argument("--curve", default=None, metavar="B[,B...]",
                    help="with --recall: the figures of each table with its logits raised by each B (0: as it is; write --curve=-1,0,1 when the first is negative)")
+    p.add_argument("--misses", default=None, metavar="PNG",
+                   help="with --recall: draw near cells of --misses-class the first table scores < 0.7 in this PNG")
+    p.add_argument("--misses-class", default="Laptop", help="target class of --misses (default Laptop)")
     p.add_argument("--by-class", action="store_true",
                    help="with --recall: near cells and recall per class and per band of visible pixels")
     p.add_argument("--shift", default=None, metavar="B[,B...]",
@@ -191,10 +241,16 @@ def main(argv=None) -> int:
         except ValueError:
             print(f"table_ablation: --curve {a.curve!r}: expected numbers separated by commas", file=sys.stderr)
             return 2
+        from tsnav.constants import CATEGORY_INDEX
+        if a.misses and a.misses_class not in CATEGORY_INDEX:
+            print(f"table_ablation: --misses-class {a.misses_class!r}: not a target class", file=sys.stderr)
+            return 2
+        category = CATEGORY_INDEX.get(a.misses_class)
         try:
             scenes = [load_scene(d) for d in dirs]
             oracles = [load_detections(d, a.oracle) for d in dirs]
-            for name in [n.strip() for n in a.recall.split(",") if n.strip()]:
+            names = [n.strip() for n in a.recall.split(",") if n.strip()]
+            for name in names:
                 tables = [load_detections(d, name) for d in dirs]
                 for b in curve:
                     r = state_recall(scenes, [shifted(t, b) for t in tables] if b else tables, oracles)
@@ -205,6 +261,9 @@ def main(argv=None) -> int:
                           f"{100 * r['absent_above']:.2f} %")
                 if a.by_class:
                     _print_by(name, near_recall_by(scenes, tables, oracles))
+                if a.misses and name == names[0]:
+                    n = draw_misses(near_misses(scenes, tables, oracles, category), a.misses)
+                    print(f"{name}: {n} missed near {a.misses_class} cells drawn in {a.misses}")
         except (OSError, ValueError) as e:
             print(f"table_ablation: {e}", file=sys.stderr)
             return 2

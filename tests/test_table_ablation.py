@@ -178,3 +178,32 @@ def test_recall_curve_command(mod, tiny_real_learned4, tmp_path, capsys):
     assert "learned4 -1:" in out and "learned4 +1:" in out and "per class" in out and "per band" in out
     assert mod.main(["--data", str(world), "--recall", "learned4", "--curve", "a"]) == 2
     assert "--curve 'a'" in capsys.readouterr().err
+
+    # --misses: every drawn cell is a near cell the table scores under 0.7
+    from PIL import Image
+
+    from tsnav.constants import TARGET_CATEGORIES
+    from tsnav.data.detections import load_detections
+    from tsnav.detect.oracle import ground_truth
+
+    dirs = list_scenes(world)
+    scenes = [load_scene(d) for d in dirs]
+    tables = [load_detections(d, "learned4") for d in dirs]
+    oracles = [load_detections(d, "oracle") for d in dirs]
+    counts = {c: len(mod.near_misses(scenes, tables, oracles, c)) for c in range(22)}
+    c = max(counts, key=counts.get)
+    assert counts[c] > 0
+    for s, i, score, px, dist, box in mod.near_misses(scenes, tables, oracles, c):
+        g = ground_truth(s)
+        assert g.present[i, c] and load_detections(s.path, "oracle").scores[i, c] >= 0.7 and score < 0.7
+        assert px == g.pixels[i, c] and np.array_equal(box, g.boxes[i, c])
+    png = tmp_path / "misses.png"
+    assert mod.main(["--data", str(world), "--recall", "learned4", "--misses", str(png),
+                     "--misses-class", TARGET_CATEGORIES[c]]) == 0
+    n = min(counts[c], 24)
+    assert f"{n} missed near" in capsys.readouterr().out
+    w, h = Image.open(png).size
+    assert w == 6 * (2 * scenes[0].image_size + 4) and h == -(-n // 6) * (2 * scenes[0].image_size + 16)
+    assert mod.main(["--data", str(world), "--recall", "learned4", "--misses", str(png),
+                     "--misses-class", "Unicorn"]) == 2
+    assert "not a target class" in capsys.readouterr().err
