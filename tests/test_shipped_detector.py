@@ -32,6 +32,10 @@ def test_weights_match_their_fingerprint_and_provenance(name):
     # learned4 continues learned3 with stronger class balancing
     assert shipped.DEFAULT_SHIPPED == "learned4" and shipped.shipped_meta("learned4")["step"] == 41000
     assert shipped.shipped_meta("learned3")["step"] == 29000
+    # learned6 continues learned4 with the classes in view weighted 4x in the presence loss
+    l6 = shipped.shipped_meta("learned6")
+    assert l6["step"] == 43000 and l6["loss_changes"][0]["step"] == 41000
+    assert l6["loss_changes"][0]["presence_pos_weight"] == 4.0
     with pytest.raises(CommandError, match="no shipped detector named 'learned9'"):
         shipped.shipped_detector(name="learned9")
 
