@@ -3,15 +3,24 @@
 # skipped when its output exists; run it again after an interruption. About 3 hours of the 2-core machine.
 #
 #   bash scripts/train_release_agent.sh WORK_DIR [NAME]
+#   RECIPE=learned6 bash scripts/train_release_agent.sh WORK_DIR tsrm-demae-learned6
 #
 # WORK_DIR gets the 120-room world (30 GB at 128 px), the pretraining run, the training run and the evaluations;
 # the packed agent is written to src/tsnav/agent/weights/NAME (default tsrm-demae-learned4-v2).
+# RECIPE picks the agent: learned4 (the default, tsrm-demae-learned4-v2) or learned6 (tsrm-demae-learned6: the
+# shipped learned6 detector's tables, --blocked-action, seed 3; trained in two legs, 2000 then 4000 updates).
 # The shipped run was trained in three legs (--updates 2000, then 3000, then 4000, resumed in the same folder); the
 # learning rate is constant and the trainer resumes bit for bit (tested), so one run to 4000 updates should give the
 # same agent on this machine (not re-run here).
 set -euo pipefail
 W=${1:?usage: train_release_agent.sh WORK_DIR [NAME]}
-NAME=${2:-tsrm-demae-learned4-v2}
+RECIPE=${RECIPE:-learned4}
+case "$RECIPE" in
+  learned4) NAME=${2:-tsrm-demae-learned4-v2}; DET=learned4; SEED=1; FLAGS=(); CARD=release_card.json; CONV=conv ;;
+  learned6) NAME=${2:-tsrm-demae-learned6}; DET=learned6; SEED=3; FLAGS=(--blocked-action); CARD=release_card_learned6.json
+            CONV=conv-learned6 ;;
+  *) echo "RECIPE must be learned4 or learned6, got $RECIPE" >&2; exit 2 ;;
+esac
 HERE="$(cd "$(dirname "$0")/.." && pwd)"
 T="$HERE/.venv/bin/tsnav"
 PY="$HERE/.venv/bin/python"
@@ -19,7 +28,7 @@ mkdir -p "$W"
 # 1. the 120 real iTHOR rooms at 128x128 with the rules the agent was trained on (version 2, the default)
 "$T" world --preset ithor-real --world-version 2 --out "$W/real128" --workers 2
 # 2. the shipped detector's tables (learned4; its confidence drives the stage switch, paper III-B)
-"$T" detect --data "$W/real128" --detector shipped --shipped learned4 --name learned4 --threads 1 --quiet
+"$T" detect --data "$W/real128" --detector shipped --shipped "$DET" --name "$DET" --threads 1 --quiet
 # 3. DE-MAE pretraining at the medium scale (ViT-Tiny, 64 px, patch 16, 800 steps of 64 frames) and its features
 "$PY" - "$W" <<'EOF'
 import sys
@@ -38,12 +47,13 @@ EOF
 F=$(cat "$W/features.txt")
 # 4. TSRM training under the lineage success protocol with the batched trainer (256 episodes x 30 steps per update, lr 1e-3, cpu preset), every 250
 #    updates scored greedily on 400 val episodes; the best is RUN/best
-"$T" convergence --data "$W/real128" --features "$F" --detections learned4 --out "$W/conv" --updates 4000 \
-  --chunk 250 --patience 6 --num-envs 256 --preset cpu --lr 1e-3 --seed 1 --val-per-room-type 100 --protocol lineage
+"$T" convergence --data "$W/real128" --features "$F" --detections "$DET" --out "$W/$CONV" --updates 4000 \
+  --chunk 250 --patience 6 --num-envs 256 --preset cpu --lr 1e-3 --seed "$SEED" --val-per-room-type 100 \
+  --protocol lineage "${FLAGS[@]}"
 # 5. pack (policy, float16 encoder, model card; skipped when the folder exists, as the shipped one does: pass another
 #    NAME to pack a new agent beside it) and write the val and test figures into the card
 if [ ! -e "$HERE/src/tsnav/agent/weights/$NAME" ]; then
-  "$T" release pack --run "$W/conv/run" --encoder-run "$W/pre/demae-p16" --card "$HERE/scripts/release_card.json" \
+  "$T" release pack --run "$W/$CONV/run" --encoder-run "$W/pre/demae-p16" --card "$HERE/scripts/$CARD" \
     --out "$HERE/src/tsnav/agent/weights/$NAME"
 fi
 "$T" release eval --agent "$NAME" --split val --data "$W/real128" --out "$W/release_val" --update-card --threads 1
