@@ -155,12 +155,18 @@ def test_one_line_errors(packed, tmp_path, capsys):
     assert "missing fields" in capsys.readouterr().err and not (tmp_path / "new").exists()
 
 
-def test_the_shipped_agent_is_whole_and_matches_its_card():
+def test_one_shipped_agent_is_the_default():
+    agents = release.shipped_agents()
+    marked = [n for n, p in agents.items() if release.read_card(p).get("default")]
+    assert marked == [release.default_agent()] == ["tsrm-demae-learned6"]
+
+
+@pytest.mark.parametrize("name", sorted(release.shipped_agents()))
+def test_the_shipped_agents_are_whole_and_match_their_cards(name):
     from tsnav.detect.shipped import shipped_meta
     from tsnav.pretrain.features import load_encoder
     from tsnav.rl.checkpoint import load_model
 
-    name = release.default_agent()
     assert name in release.shipped_agents()
     folder = release.agent_folder(name)
     card = release.read_card(folder)
