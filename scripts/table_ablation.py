@@ -220,7 +220,8 @@ def main(argv=None) -> int:
     p.add_argument("--recall", default=None, metavar="TABLE[,TABLE...]",
                    help="only report these tables' per-state recall against --oracle (writes nothing)")
     p.add_argument("--curve", default=None, metavar="B[,B...]",
-                   help="with --recall: the figures of each table with its logits raised by each B (0: as it is; write --curve=-1,0,1 when the first is negative)")
+                   help="with --recall: the figures of each table with its logits raised by each B (0: as it is; "
+                        "write --curve=-1,0,1 when the first is negative)")
     p.add_argument("--misses", default=None, metavar="PNG",
                    help="with --recall: draw near cells of --misses-class the first table scores < 0.7 in this PNG")
     p.add_argument("--misses-class", default="Laptop", help="target class of --misses (default Laptop)")
@@ -234,6 +235,10 @@ def main(argv=None) -> int:
     dirs = list_scenes(a.data, a.split) if a.split else list_scenes(a.data)
     if not dirs:
         print(f"table_ablation: --data {a.data}: no rooms", file=sys.stderr)
+        return 2
+    if (a.curve or a.by_class or a.misses) and not a.recall:
+        print("table_ablation: --curve, --by-class and --misses report on --recall TABLE[,TABLE...]; give it",
+              file=sys.stderr)
         return 2
     if a.recall:
         try:

@@ -207,3 +207,5 @@ def test_recall_curve_command(mod, tiny_real_learned4, tmp_path, capsys):
     assert mod.main(["--data", str(world), "--recall", "learned4", "--misses", str(png),
                      "--misses-class", "Unicorn"]) == 2
     assert "not a target class" in capsys.readouterr().err
+    assert mod.main(["--data", str(world), "--by-class"]) == 2
+    assert "give it" in capsys.readouterr().err
