@@ -288,6 +288,17 @@ def _count(ev: Path) -> int:
     return sum(1 for line in (ev / "records.jsonl").read_text().splitlines() if line.strip())
 
 
+def headline(card: dict) -> str:
+    """The card's test figures in one line: the agent's SR / SPL under each protocol and its detector."""
+    rows = [r for r in card.get("figures", {}).get("test", {}).get("rows", []) if r.get("policy") == "agent"]
+    if not rows:
+        return f"detector {card.get('detector_shipped', '?')}; no test figures in its card yet"
+    figs = ", ".join(f"{r['protocol']} {100 * r['metrics']['ALL']['SR']:.2f} / {100 * r['metrics']['ALL']['SPL']:.2f}"
+                     for r in rows)
+    n = card["figures"]["test"].get("episodes", "?")
+    return f"test SR / SPL ({n} episodes): {figs}; detector {card.get('detector_shipped', '?')}"
+
+
 def format_rows(rows: list[dict]) -> str:
     """The printed table: one line per (protocol, policy), ALL and L>=5 metrics in percent."""
     head = f"{'protocol':<9} {'policy':<18} {'eps':>5}  " + "  ".join(f"{m:>6}" for m in METRICS) + "   L>=5: " \
@@ -334,6 +345,7 @@ def run(args: argparse.Namespace) -> int:
         for name, p in shipped_agents().items():
             card = read_card(p)
             print(f"{name}{' (default)' if card.get('default') else ''}: {card.get('summary', '')}")
+            print(f"    {headline(card)}")
         return 0
     if args.action == "pack":
         try:
