@@ -43,6 +43,7 @@ pixels and the distance under it).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from dataclasses import replace
 
@@ -106,11 +107,16 @@ def with_features(table: Detections, features_of: Detections) -> Detections:
     return replace(table, features=features_of.features, config=dict(table.config, features_from=features_of.config))
 
 
-def state_recall(scenes, tables, oracles) -> dict:
+def _truths(scenes, truths):
+    """The scenes' ground truths (:func:`~tsnav.detect.oracle.ground_truth`), or ``truths`` when the caller has them."""
+    return truths if truths is not None else [ground_truth(s) for s in scenes]
+
+
+def state_recall(scenes, tables, oracles, truths=None) -> dict:
     """Per-state recall of the targets in view, against the oracle's stand-in score (module docstring)."""
     t = dict(near=0, near_hit=0, near_sum=0.0, far=0, far_below=0, absent=0, absent_fp=0)
-    for s, d, o in zip(scenes, tables, oracles):
-        present = ground_truth(s).present
+    for s, d, o, g in zip(scenes, tables, oracles, _truths(scenes, truths)):
+        present = g.present
         targets = scene_targets(s)[None, :]
         near = present & targets & (o.scores >= 0.7)
         far = present & targets & (o.scores < 0.7)
@@ -131,13 +137,12 @@ def state_recall(scenes, tables, oracles) -> dict:
 PIXEL_BANDS = (0, 50, 100, 200, 400, 800, 1600)
 
 
-def near_recall_by(scenes, tables, oracles) -> dict:
+def near_recall_by(scenes, tables, oracles, truths=None) -> dict:
     """Near cells (as :func:`state_recall`) and those the table scores >= 0.7, per class ``(22,)`` and per band of
     :data:`PIXEL_BANDS` of the ground-truth instance's visible pixels (the last band open above)."""
     out = {k: np.zeros((22,), np.int64) for k in ("class_near", "class_hit")}
     out.update({k: np.zeros((len(PIXEL_BANDS),), np.int64) for k in ("band_near", "band_hit")})
-    for s, d, o in zip(scenes, tables, oracles):
-        g = ground_truth(s)
+    for s, d, o, g in zip(scenes, tables, oracles, _truths(scenes, truths)):
         near = g.present & scene_targets(s)[None, :] & (o.scores >= 0.7)
         hit = near & (d.scores >= 0.7)
         out["class_near"] += near.sum(0)
@@ -148,15 +153,15 @@ def near_recall_by(scenes, tables, oracles) -> dict:
     return out
 
 
-def near_misses(scenes, tables, oracles, category: int, per_room: int = 3, seed: int = 0) -> list[tuple]:
+def near_misses(scenes, tables, oracles, category: int, per_room: int = 3, seed: int = 0,
+                truths=None) -> list[tuple]:
     """Up to ``per_room`` random (scene, state) near cells of ``category`` per room that the table scores < 0.7:
     ``(scene, state, score, pixels, distance, box)``."""
     rng = np.random.default_rng(seed)
     out = []
-    for s, d, o in zip(scenes, tables, oracles):
+    for s, d, o, g in zip(scenes, tables, oracles, _truths(scenes, truths)):
         if not scene_targets(s)[category]:
             continue
-        g = ground_truth(s)
         miss = np.flatnonzero(g.present[:, category] & (o.scores[:, category] >= 0.7) & (d.scores[:, category] < 0.7))
         for i in sorted(rng.choice(miss, min(per_room, len(miss)), replace=False)) if len(miss) else []:
             out.append((s, int(i), float(d.scores[i, category]), int(g.pixels[i, category]),
@@ -166,8 +171,6 @@ def near_misses(scenes, tables, oracles, category: int, per_room: int = 3, seed:
 
 def draw_misses(misses, path, columns: int = 6, limit: int = 24, scale: int = 2) -> int:
     """A sheet of up to ``limit`` of :func:`near_misses`' frames (written atomically); returns how many it holds."""
-    import os
-
     from PIL import Image, ImageDraw
 
     from tsnav.detect.data import read_images
@@ -254,20 +257,21 @@ def main(argv=None) -> int:
         try:
             scenes = [load_scene(d) for d in dirs]
             oracles = [load_detections(d, a.oracle) for d in dirs]
+            truths = [ground_truth(s) for s in scenes]  # once, for every table and shift below
             names = [n.strip() for n in a.recall.split(",") if n.strip()]
             for name in names:
                 tables = [load_detections(d, name) for d in dirs]
                 for b in curve:
-                    r = state_recall(scenes, [shifted(t, b) for t in tables] if b else tables, oracles)
+                    r = state_recall(scenes, [shifted(t, b) for t in tables] if b else tables, oracles, truths)
                     label = name if not b else f"{name} {b:+g}"
                     print(f"{label}: near cells {r['near_cells']} scoring >= 0.7 {100 * r['near_recall']:.1f} % (mean "
                           f"{r['near_mean_score']:.3f}); far cells {r['far_cells']} under the oracle's score "
                           f"{100 * r['far_below_oracle']:.1f} %; absent target cells above 0.7 "
                           f"{100 * r['absent_above']:.2f} %")
                 if a.by_class:
-                    _print_by(name, near_recall_by(scenes, tables, oracles))
+                    _print_by(name, near_recall_by(scenes, tables, oracles, truths))
                 if a.misses and name == names[0]:
-                    n = draw_misses(near_misses(scenes, tables, oracles, category), a.misses)
+                    n = draw_misses(near_misses(scenes, tables, oracles, category, truths=truths), a.misses)
                     print(f"{name}: {n} missed near {a.misses_class} cells drawn in {a.misses}")
         except (OSError, ValueError) as e:
             print(f"table_ablation: {e}", file=sys.stderr)

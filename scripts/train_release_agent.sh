@@ -8,10 +8,10 @@
 # WORK_DIR gets the 120-room world (30 GB at 128 px), the pretraining run, the training run and the evaluations;
 # the packed agent is written to src/tsnav/agent/weights/NAME (default tsrm-demae-learned4-v2).
 # RECIPE picks the agent: learned4 (the default, tsrm-demae-learned4-v2) or learned6 (tsrm-demae-learned6: the
-# shipped learned6 detector's tables, --blocked-action, seed 3; trained in two legs, 2000 then 4000 updates).
-# The shipped run was trained in three legs (--updates 2000, then 3000, then 4000, resumed in the same folder); the
-# learning rate is constant and the trainer resumes bit for bit (tested), so one run to 4000 updates should give the
-# same agent on this machine (not re-run here).
+# shipped learned6 detector's tables, --blocked-action, seed 3). Both shipped runs were trained in legs resumed in the
+# same folder (learned4: 2000, 3000, 4000 updates; learned6: 2000, then 4000); this script runs one leg to 4000.
+# The learning rate is constant and the trainer resumes bit for bit (tested), so one run to 4000 updates should give
+# the same agent on this machine (not re-run here for either recipe).
 set -euo pipefail
 W=${1:?usage: train_release_agent.sh WORK_DIR [NAME]}
 RECIPE=${RECIPE:-learned4}
