@@ -53,20 +53,24 @@ class AgentObs:
 
 def load_bank_features(bank, name: str) -> torch.Tensor:
     """``(total_S, C, h, w)`` float16 tensor of the caches ``features_<name>.hdf5`` of every scene of ``bank``,
-    in global state order. Raises ``FileNotFoundError`` / ``ValueError`` naming the scene when a cache is
+    in global state order (``features_<name>-mirror.hdf5`` for a mirrored scene, :meth:`Scene.cache_name`). Raises ``FileNotFoundError`` / ``ValueError`` naming the scene when a cache is
     missing, was written for other states, or has another shape than the others."""
     out = None
     shape = None
     for i, scene in enumerate(bank.scenes):
-        feats, keys, _ = read_features(scene.path, name)
+        own = scene.cache_name(name)  # a mirrored scene reads the features of its flipped frames
+        if own != name and not (scene.path / f"features_{own}.hdf5").exists():
+            raise FileNotFoundError(f"{scene.path}/features_{own}.hdf5: no features of the mirrored room (run "
+                                    f"`tsnav features --mirror --name {name}` with the encoder of {name})")
+        feats, keys, _ = read_features(scene.path, own)
         if len(keys) != scene.num_states or not np.array_equal(keys, scene.keys):
-            raise ValueError(f"{scene.path}/features_{name}.hdf5 does not match the scene's states "
+            raise ValueError(f"{scene.path}/features_{own}.hdf5 does not match the scene's states "
                              f"(recompute it with `tsnav features --overwrite`)")
         if shape is None:
             shape = feats.shape[1:]
             out = torch.empty((bank.num_states,) + tuple(shape), dtype=torch.float16)
         elif feats.shape[1:] != shape:
-            raise ValueError(f"{scene.path}/features_{name}.hdf5 has feature shape {feats.shape[1:]}, "
+            raise ValueError(f"{scene.path}/features_{own}.hdf5 has feature shape {feats.shape[1:]}, "
                              f"other scenes {shape}")
         out[int(bank.offsets[i]):int(bank.offsets[i + 1])] = torch.from_numpy(np.ascontiguousarray(feats))
     return out

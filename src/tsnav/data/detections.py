@@ -193,12 +193,17 @@ def load_detections(scene_dir: str | Path, name: str) -> Detections:
 
 def load_scene_detections(scenes: Sequence, name: str) -> Detections:
     """The tables of ``scenes`` (:class:`~tsnav.data.reader.Scene` objects) concatenated in that order,
-    each checked against its scene's state keys."""
+    each checked against its scene's state keys; a mirrored scene's is ``<name>-mirror``
+    (:meth:`~tsnav.data.reader.Scene.cache_name`)."""
     parts = []
     for s in scenes:
-        d = load_detections(s.path, name)
+        own = s.cache_name(name)  # a mirrored scene reads the table of its flipped frames
+        if own != name and not detections_path(s.path, own).exists():
+            raise FileNotFoundError(f"{detections_path(s.path, own)}: no table of the mirrored room (run `tsnav "
+                                    f"detect --mirror --name {name}` with the detector of {name})")
+        d = load_detections(s.path, own)
         if len(d.keys) != len(s.keys) or not (d.keys == s.keys).all():
-            raise ValueError(f"{detections_path(s.path, name)}: its states do not match scene {s.name} "
+            raise ValueError(f"{detections_path(s.path, own)}: its states do not match scene {s.name} "
                              f"(rerun `tsnav detect`)")
         parts.append(d)
     return Detections.concatenate(parts)

@@ -28,6 +28,12 @@ from ..protocol import DEFAULT_PROTOCOL, PAPER, check_protocol
 
 COMPLETE_MARKER = "COMPLETE"
 
+#: Suffix of a mirrored scene's name and of the caches written for it (``features_<name>-mirror.hdf5``,
+#: ``detections_<name>-mirror.hdf5``): :meth:`Scene.mirrored`.
+MIRROR_SUFFIX = "-mirror"
+#: Action ids as seen in the mirror image: RotateLeft and RotateRight trade places, the rest keep theirs.
+MIRROR_ACTIONS = np.array([MOVE_AHEAD, ROTATE_RIGHT, ROTATE_LEFT, LOOK_UP, LOOK_DOWN, DONE], dtype=np.int64)
+
 
 class SceneFormatError(ValueError):
     """A scene folder is missing a file or holds malformed content."""
@@ -55,6 +61,7 @@ class Scene:
         floor: list of floor polygons, each ``(N, 2)`` float array of (x, z) metres.
         image_size: side of the square frames the tables refer to, pixels.
         meta: the parsed ``scene.json`` (empty dict when absent).
+        mirror: the scene is the mirror image of its folder's room (:meth:`mirrored`).
     """
 
     name: str
@@ -74,6 +81,7 @@ class Scene:
     floor: list = field(default_factory=list)
     image_size: int = 0
     meta: dict = field(default_factory=dict)
+    mirror: bool = False
 
     @property
     def num_states(self) -> int:
@@ -146,6 +154,41 @@ class Scene:
     def categories_present(self) -> list[int]:
         """Indices of target categories with at least one instance in the scene."""
         return sorted(set(int(c) for c in self.object_category if c >= 0))
+
+    def mirrored(self) -> "Scene":
+        """The mirror image of the room across the z axis (a deviation from the paper: training-data augmentation).
+
+        The same states, ids and keys; each state is the mirror of the state of the same id: position ``(-x, z)``,
+        rotation ``-r`` (mod 360), the same horizon, so every heading and MoveAhead stays consistent with
+        :data:`~tsnav.constants.ROTATIONS`' convention. RotateLeft and RotateRight trade their successors
+        (:data:`MIRROR_ACTIONS`); MoveAhead, the looks and Done keep theirs, so path lengths, visibility, distances
+        and success are those of the room. Boxes and floor polygons are mirrored; ``meta`` is the room's (its
+        object poses are not mirrored; ``meta["mirror"]`` says so). The frames of the mirrored scene are its
+        folder's frames flipped left to right: caches made from them carry :data:`MIRROR_SUFFIX`
+        (:meth:`cache_name`). Mirroring twice gives the room back.
+        """
+        boxes = self.boxes.copy()
+        seen = boxes[..., 0] >= 0
+        w = self.image_size - 1
+        x0, x1 = boxes[..., 0].copy(), boxes[..., 2].copy()
+        boxes[..., 0] = np.where(seen, w - x1, x0)
+        boxes[..., 2] = np.where(seen, w - x0, x1)
+        name = self.name[:-len(MIRROR_SUFFIX)] if self.mirror else self.name + MIRROR_SUFFIX
+        meta = {k: v for k, v in self.meta.items() if k != "mirror"}
+        if not self.mirror:
+            meta["mirror"] = True
+        return Scene(name=name, path=self.path, keys=self.keys, x=(-self.x).astype(self.x.dtype) + 0.0,
+                     z=self.z, rotation=((360 - self.rotation.astype(np.int64)) % 360).astype(self.rotation.dtype),
+                     horizon=self.horizon, next_state=self.next_state[:, MIRROR_ACTIONS].copy(),
+                     object_ids=self.object_ids, object_category=self.object_category, visible=self.visible,
+                     distance=self.distance, pixels=self.pixels, boxes=boxes,
+                     floor=[np.stack([-p[:, 0], p[:, 1]], axis=1) + 0.0 for p in self.floor],
+                     image_size=self.image_size, meta=meta, mirror=not self.mirror)
+
+    def cache_name(self, name: str) -> str:
+        """The name under which this scene's caches ``name`` are stored: ``name`` + :data:`MIRROR_SUFFIX` for a
+        mirrored scene (features and detections of the flipped frames), else ``name``."""
+        return name + MIRROR_SUFFIX if self.mirror else name
 
     @property
     def room_type(self) -> str:

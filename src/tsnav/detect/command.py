@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from ..atomic import atomic_write_text
 from ..data.detections import check_name, load_detections, read_fingerprint, write_detections
-from ..data.reader import list_scenes, load_scene
+from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene
 from ..distributed import set_threads
 from ..errors import CommandError
 from .evaluate import evaluate_detections
@@ -90,6 +90,10 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation")
     p.add_argument("--overwrite", action="store_true", help="replace tables made by another detector")
+    p.add_argument("--mirror", action="store_true",
+                   help="the tables of the rooms' mirror images (frames flipped left to right), written as "
+                        "detections_<name>-mirror.hdf5, for training on mirrored rooms (`tsnav train --mirror`); the "
+                        "evaluation then scores them against the mirrored ground truth")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--workers", type=int, default=1,
                    help="learned and shipped detectors: CPU processes sharing the rooms' tables, one thread each "
@@ -200,6 +204,12 @@ def _sigterm_interrupts() -> None:
         signal.signal(signal.SIGTERM, handler)
 
 
+def _load(path: Path, mirror: bool):
+    """The room of ``path``, or its mirror image (:meth:`~tsnav.data.reader.Scene.mirrored`)."""
+    scene = load_scene(path)
+    return scene.mirrored() if mirror else scene
+
+
 def run(args: argparse.Namespace) -> int:
     root = Path(args.data)
     if not root.is_dir():
@@ -222,40 +232,41 @@ def run(args: argparse.Namespace) -> int:
                else _learned(args, root))
         fingerprint = det.fingerprint
 
+    own = name + MIRROR_SUFFIX if args.mirror else name  # the tables' file name
     todo, done = [], 0
     for p in scenes:
-        fp = read_fingerprint(p, name)
+        fp = read_fingerprint(p, own)
         if fp == fingerprint:
             done += 1
         elif fp is not None and not args.overwrite:
-            raise CommandError(f"{p / f'detections_{name}.hdf5'} was made by another detector ({fp}); use "
+            raise CommandError(f"{p / f'detections_{own}.hdf5'} was made by another detector ({fp}); use "
                                f"--overwrite or another --name")
         else:
             todo.append(p)
-    loaded = [load_scene(p) for p in todo]
-    bar = tqdm(total=sum(s.num_states for s in loaded), desc=f"detect {name}", unit="state",
+    loaded = [_load(p, args.mirror) for p in todo]
+    bar = tqdm(total=sum(s.num_states for s in loaded), desc=f"detect {own}", unit="state",
                disable=args.quiet, dynamic_ncols=True)
     try:
         if det is not None:
             write_scene_tables(det, loaded, name, bar, args.workers)
         else:
             for s in loaded:
-                write_detections(s.path, name, oracle(s, bar))
+                write_detections(s.path, own, oracle(s, bar))
     finally:
         bar.close()
-    print(f"detections_{name}.hdf5: {len(loaded)} scenes written, {done} already done "
+    print(f"detections_{own}.hdf5: {len(loaded)} scenes written, {done} already done "
           f"({sum(s.num_states for s in loaded)} states)")
 
     if not args.no_eval:
-        eval_scenes = [load_scene(p) for p in list_scenes(root, split=args.eval_split)]
-        eval_scenes = [s for s in eval_scenes if (s.path / f"detections_{name}.hdf5").exists()]
+        eval_scenes = [_load(p, args.mirror) for p in list_scenes(root, split=args.eval_split)]
+        eval_scenes = [s for s in eval_scenes if (s.path / f"detections_{own}.hdf5").exists()]
         if not eval_scenes:
-            print(f"no {args.eval_split} scene with detections_{name}.hdf5: nothing to evaluate")
+            print(f"no {args.eval_split} scene with detections_{own}.hdf5: nothing to evaluate")
             return 0
-        report = evaluate_detections(eval_scenes, [load_detections(s.path, name) for s in eval_scenes])
-        print(f"evaluation of {name} on {args.eval_split} scenes:")
+        report = evaluate_detections(eval_scenes, [load_detections(s.path, own) for s in eval_scenes])
+        print(f"evaluation of {own} on {args.eval_split} scenes:")
         print(report.format())
-        out = root / "detectors" / f"{name}_eval_{args.eval_split}.json"
+        out = root / "detectors" / f"{own}_eval_{args.eval_split}.json"
         atomic_write_text(out, json.dumps({"detector": args.detector, "name": name, "fingerprint": fingerprint,
                                            **report.to_json()}, indent=1))
         print(f"saved {out}")

@@ -69,8 +69,9 @@ class LearnedDetector:
 
     def detect_scene(self, scene: Scene, batch_size: int = 256, chunk: int = 2048, bar=None,
                      transform=None) -> Detections:
-        """The detection table of every state of ``scene`` (frames read ``chunk`` at a time). ``transform``, when
-        given, maps each chunk of uint8 frames ``(n, H, W, 3)`` to the frames the detector sees (the same shape and
+        """The detection table of every state of ``scene`` (frames read ``chunk`` at a time; a mirrored scene's
+        frames flipped left to right, :meth:`Scene.mirrored <tsnav.data.reader.Scene.mirrored>`, its table's
+        ``config["mirror"]`` true). ``transform``, when given, maps each chunk of uint8 frames ``(n, H, W, 3)`` to the frames the detector sees (the same shape and
         dtype; e.g. ``scripts/noisy_tables.py``'s pixel noise), called once per chunk in state order."""
         if scene.image_size != self.image_size:
             raise ValueError(f"scene {scene.name} has {scene.image_size}px frames; the detector takes "
@@ -82,6 +83,8 @@ class LearnedDetector:
         feats = np.empty((S, NUM_CATEGORIES, self.model.cfg.dim), np.float16)
         for a in range(0, S, chunk):
             img = read_images(scene.path, scene.keys[a:a + chunk])
+            if scene.mirror:
+                img = np.ascontiguousarray(img[:, :, ::-1])
             if transform is not None:
                 img = transform(img)
             sc, lb, bx, ft = self.detect_images(img, batch_size)
@@ -89,27 +92,30 @@ class LearnedDetector:
             scores[a:a + n], labels[a:a + n], boxes[a:a + n], feats[a:a + n] = sc, lb, bx, ft
             if bar is not None:
                 bar.update(n)
+        config = dict(self.config(), mirror=True) if scene.mirror else self.config()
         return Detections(keys=scene.keys, scores=scores, labels=labels, boxes=boxes, features=feats,
-                          detector="learned", config=self.config(), fingerprint=self.fingerprint,
+                          detector="learned", config=config, fingerprint=self.fingerprint,
                           image_size=self.image_size)
 
 
 def write_scene_tables(det: LearnedDetector, scenes: list[Scene], name: str, bar=None, workers: int = 1) -> None:
-    """Write ``det``'s table ``detections_<name>.hdf5`` into every scene of ``scenes``. ``workers`` > 1: the scenes
+    """Write ``det``'s table ``detections_<name>.hdf5`` into every scene of ``scenes`` (``<name>-mirror`` for a
+    mirrored scene, of its flipped frames). ``workers`` > 1: the scenes
     are shared by that many processes on one torch thread each (:func:`tsnav.scene_pool.map_scenes`; the same
     tables as here on one thread); else here, on the caller's threads. ``bar`` (tqdm) counts states."""
     if workers > 1 and len(scenes) > 1:
-        for _, n in map_scenes(_scene_table, [(s.path, name) for s in scenes], as_is, det, workers):
+        for _, n in map_scenes(_scene_table, [(s.path, name, s.mirror) for s in scenes], as_is, det, workers):
             if bar is not None:
                 bar.update(n)
         return
     for s in scenes:
-        write_detections(s.path, name, det.detect_scene(s, bar=bar))
+        write_detections(s.path, s.cache_name(name), det.detect_scene(s, bar=bar))
 
 
 def _scene_table(det: LearnedDetector, task) -> int:
     """One room's table, in a worker of :func:`write_scene_tables`; returns its number of states."""
-    path, name = task
+    path, name, mirror = task
     scene = load_scene(path)
-    write_detections(path, name, det.detect_scene(scene))
+    scene = scene.mirrored() if mirror else scene
+    write_detections(path, scene.cache_name(name), det.detect_scene(scene))
     return scene.num_states

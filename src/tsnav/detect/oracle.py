@@ -208,4 +208,5 @@ def oracle_detections(scene: Scene, cfg: OracleConfig | None = None) -> Detectio
     labels = np.where(gt.present, np.arange(NUM_CATEGORIES, dtype=np.int16)[None, :], -1).astype(np.int16)
     return Detections(keys=scene.keys, scores=conf, labels=labels, boxes=gt.boxes,
                       features=oracle_features(gt, conf, scene.image_size, cfg.seed), detector="oracle",
-                      config=asdict(cfg), fingerprint=cfg.fingerprint(), image_size=scene.image_size)
+                      config=dict(asdict(cfg), mirror=True) if scene.mirror else asdict(cfg),
+                      fingerprint=cfg.fingerprint(), image_size=scene.image_size)

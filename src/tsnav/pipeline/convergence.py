@@ -126,6 +126,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blocked-action", action="store_true",
                         help="a deviation from the paper: the previous-action input tells a MoveAhead that left the "
                              "agent where it was (AgentConfig.blocked_action)")
+    parser.add_argument("--mirror", action="store_true",
+                        help="a deviation from the paper: also train on the mirror image of every training room "
+                             "(TrainConfig.mirror; needs `tsnav features --mirror` and `tsnav detect --mirror`)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
     parser.add_argument("--protocol", default="paper",
@@ -147,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
                           algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
                           seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef,
                           precision=args.precision, procs=args.procs, protocol=args.protocol,
-                          max_steps=args.max_steps)
+                          max_steps=args.max_steps, mirror=args.mirror)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
                         patience=args.patience, agent_overrides={"blocked_action": args.blocked_action})

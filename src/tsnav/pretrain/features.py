@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from ..atomic import atomic_path
 from ..data import lineage as L
-from ..data.reader import list_scenes, load_scene, read_stack
+from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene, read_stack
 from ..checkpoint import load_tensors, weights_digest
 from ..distributed import resolve_device
 from ..errors import CommandError
@@ -156,24 +156,29 @@ def default_name(spec: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
 
 
-def iter_scene_features(encoder: Encoder, scene_dir: Path, keys, batch_size: int = 64):
+def iter_scene_features(encoder: Encoder, scene_dir: Path, keys, batch_size: int = 64, mirror: bool = False):
     """Yield ``(start, features)`` batches: float32 ``(b, C, h, w)`` features of the frames ``keys[start:start + b]``
-    of ``scene_dir/images.hdf5``, each frame resized to ``encoder.img_size`` and ImageNet-normalised."""
+    of ``scene_dir/images.hdf5``, each frame resized to ``encoder.img_size`` and ImageNet-normalised; with
+    ``mirror``, each frame flipped left to right first (the frames of :meth:`Scene.mirrored
+    <tsnav.data.reader.Scene.mirrored>`)."""
     with h5py.File(scene_dir / "images.hdf5", "r") as fi:
         missing = [k for k in keys[:] if k not in fi]
         if missing:
             raise ValueError(f"{scene_dir}: images.hdf5 lacks state {missing[0]!r} ({len(missing)} missing)")
         for a in range(0, len(keys), batch_size):
             rgb = torch.from_numpy(read_stack(fi, keys[a:a + batch_size])).permute(0, 3, 1, 2)
+            if mirror:
+                rgb = rgb.flip(-1)
             x = normalize_rgb(resize_rgb(rgb, encoder.img_size).to(encoder.device))
             yield a, encoder.encode(x).float().cpu().numpy()
 
 
 def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
-                   bar=None) -> np.ndarray:
-    """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order."""
+                   bar=None, mirror: bool = False) -> np.ndarray:
+    """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order
+    (flipped left to right first with ``mirror``)."""
     out = None
-    for a, f in iter_scene_features(encoder, scene_dir, keys, batch_size):
+    for a, f in iter_scene_features(encoder, scene_dir, keys, batch_size, mirror):
         if out is None:
             out = np.empty((len(keys),) + f.shape[1:], dtype=np.float16)
         out[a:a + len(f)] = f.astype(np.float16)
@@ -183,8 +188,12 @@ def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_si
 
 
 def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: int = 64, split: str | None = None,
-                   overwrite: bool = False, progress: bool = True, workers: int = 0) -> list[Path]:
+                   overwrite: bool = False, progress: bool = True, workers: int = 0, mirror: bool = False
+                   ) -> list[Path]:
     """Write ``features_<name>.hdf5`` into every complete scene of ``root`` (or of ``split``); resumable.
+
+    ``mirror``: the features of the frames flipped left to right, as ``features_<name>-mirror.hdf5`` (file
+    attribute ``mirror`` = 1), which :meth:`Scene.mirrored <tsnav.data.reader.Scene.mirrored>` scenes read.
 
     ``workers`` >= 1: the scenes are encoded by that many processes on one torch thread each
     (:func:`tsnav.scene_pool.map_scenes`; 1: in this process, on one thread; the files are the same bytes for
@@ -199,11 +208,17 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
         raise ValueError(f"{root}: scene {no_img[0]} has no images.hdf5 (build the world with images)")
     written = []
     todo = []
+    file_name = name + MIRROR_SUFFIX if mirror else name
+    attrs = dict(encoder.attrs(), mirror=1) if mirror else encoder.attrs()
     for p in scenes:
-        f = p / f"features_{name}.hdf5"
+        f = p / f"features_{file_name}.hdf5"
         if f.exists() and not overwrite:
             with h5py.File(f, "r") as h:
                 fp = h.attrs.get("fingerprint")
+                fm = int(h.attrs.get("mirror", 0))
+            if fm != int(mirror):
+                raise ValueError(f"{f} holds features of {'flipped' if fm else 'unflipped'} frames; use another "
+                                 f"--name or --overwrite")
             if fp != encoder.fingerprint:
                 raise ValueError(f"{f} was made by another encoder ({h5py_str(fp)}); use another --name or "
                                  f"--overwrite")
@@ -211,19 +226,19 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
             continue
         todo.append(p)
     scenes_keys = [(p, load_scene(p).keys) for p in todo]
-    bar = tqdm(total=sum(len(k) for _, k in scenes_keys), desc=f"features {name}", unit="img",
+    bar = tqdm(total=sum(len(k) for _, k in scenes_keys), desc=f"features {file_name}", unit="img",
                disable=not progress, dynamic_ncols=True)
     try:
         if workers >= 1:
-            tasks = [(p, keys, batch_size, name) for p, keys in scenes_keys]
+            tasks = [(p, keys, batch_size, file_name, mirror, attrs) for p, keys in scenes_keys]
             for i, f in map_scenes(_feature_task, tasks, as_is, encoder, workers):
                 written.append(f)
                 bar.update(len(scenes_keys[i][1]))
         else:
             for p, keys in scenes_keys:
-                feats = scene_features(encoder, p, keys, batch_size, bar)
-                f = p / f"features_{name}.hdf5"
-                write_feature_file(f, feats, keys, encoder.attrs())
+                feats = scene_features(encoder, p, keys, batch_size, bar, mirror)
+                f = p / f"features_{file_name}.hdf5"
+                write_feature_file(f, feats, keys, attrs)
                 written.append(f)
     finally:
         bar.close()
@@ -232,9 +247,9 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
 
 def _feature_task(encoder: Encoder, task) -> Path:
     """One scene's feature file, in a worker of :func:`cache_features`."""
-    p, keys, batch_size, name = task
-    f = p / f"features_{name}.hdf5"
-    write_feature_file(f, scene_features(encoder, p, keys, batch_size), keys, encoder.attrs())
+    p, keys, batch_size, file_name, mirror, attrs = task
+    f = p / f"features_{file_name}.hdf5"
+    write_feature_file(f, scene_features(encoder, p, keys, batch_size, mirror=mirror), keys, attrs)
     return f
 
 
@@ -320,6 +335,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--overwrite", action="store_true", help="recompute files made by another encoder")
+    parser.add_argument("--mirror", action="store_true",
+                        help="the features of the frames flipped left to right, written as features_<name>-mirror.hdf5 "
+                             "(for training on mirrored rooms: `tsnav train --mirror`)")
     parser.add_argument("--workers", type=int, default=0,
                         help="CPU processes sharing the scenes, one torch thread each (e.g. 2 on a 2-core machine; "
                              "the files are the same for any value); 0 (default): this process alone")
@@ -334,6 +352,6 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--workers shares the scenes over CPU processes: use it with --device cpu")
     name = args.name or default_name(args.encoder)
     files = cache_features(enc, args.data, name, args.batch_size, args.split, args.overwrite, not args.quiet,
-                           workers=args.workers)
-    print(f"features_{name}.hdf5 in {len(files)} scenes ({enc.arch}, {enc.method}, input {enc.img_size}px)")
+                           workers=args.workers, mirror=args.mirror)
+    print(f"features_{name}{MIRROR_SUFFIX if args.mirror else ''}.hdf5 in {len(files)} scenes ({enc.arch}, {enc.method}, input {enc.img_size}px)")
     return 0

@@ -12,7 +12,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..data.reader import list_scenes, load_scene, read_stack
+from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene, read_stack
 from .data import IMAGENET_MEAN, IMAGENET_STD
 from .features import write_feature_file
 
@@ -31,18 +31,22 @@ def pooled_pixels(rgb: np.ndarray, grid: int) -> np.ndarray:
     return x.transpose(0, 3, 1, 2)
 
 
-def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, split: str | None = None) -> list[Path]:
-    """Write ``features_<name>.hdf5`` of pooled pixels into every complete scene of ``root`` that lacks it."""
+def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, split: str | None = None,
+                         mirror: bool = False) -> list[Path]:
+    """Write ``features_<name>.hdf5`` of pooled pixels into every complete scene of ``root`` that lacks it; with
+    ``mirror``, those of the frames flipped left to right as ``features_<name>-mirror.hdf5``."""
     out = []
     for p in list_scenes(root, split):
-        f = p / f"features_{name}.hdf5"
+        f = p / f"features_{name}{MIRROR_SUFFIX if mirror else ''}.hdf5"
         if not f.exists():
             keys = load_scene(p).keys
             with h5py.File(p / "images.hdf5", "r") as fi:
                 rgb = read_stack(fi, keys)
+            if mirror:
+                rgb = np.ascontiguousarray(rgb[:, :, ::-1])
             feats = pooled_pixels(rgb, grid).astype(np.float16)
-            write_feature_file(f, feats, keys, {"encoder": f"pixels:{grid}", "arch": "pixels",
-                                                "method": "pooled-pixels", "img_size": int(rgb.shape[1]),
-                                                "fingerprint": f"pixels-{grid}"})
+            attrs = {"encoder": f"pixels:{grid}", "arch": "pixels", "method": "pooled-pixels",
+                     "img_size": int(rgb.shape[1]), "fingerprint": f"pixels-{grid}"}
+            write_feature_file(f, feats, keys, dict(attrs, mirror=1) if mirror else attrs)
         out.append(f)
     return out

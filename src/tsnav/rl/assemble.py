@@ -7,7 +7,8 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic, AgentConfig
-from ..agent.observe import NO_DETECTIONS, DetectionTable, Observer, load_bank_features
+from ..agent.observe import NO_DETECTIONS
+from ..data.reader import list_scenes, load_scene, DetectionTable, Observer, load_bank_features
 from ..sim.batch import BatchEnv, SceneBank, SimConfig
 from ..sim.episodes import make_env
 from ..tsrm.reward import RewardConfig, TSRMReward
@@ -15,13 +16,18 @@ from .config import TrainConfig
 
 
 def load_bank(cfg: TrainConfig, scenes=None) -> tuple[SceneBank, np.ndarray | None]:
-    """The training bank (scenes of ``cfg.split`` under ``cfg.data``, or ``scenes``), with the detection
-    tables ``cfg.detections`` installed; returns ``(bank, detection features or None)``."""
+    """The training bank (scenes of ``cfg.split`` under ``cfg.data``, or ``scenes``; with ``cfg.mirror`` each
+    followed by its mirror image, after all of them), with the detection tables ``cfg.detections`` installed;
+    returns ``(bank, detection features or None)``."""
     if scenes is None:
-        bank = SceneBank.from_root(cfg.data, cfg.split, success_distance=cfg.success_distance, c_target=cfg.c_target,
-                                   protocol=cfg.protocol)
-    else:
-        bank = SceneBank(scenes, success_distance=cfg.success_distance, c_target=cfg.c_target, protocol=cfg.protocol)
+        paths = list_scenes(cfg.data, cfg.split)
+        if not paths:
+            raise ValueError(f"{cfg.data}: no complete scenes" + (f" in split {cfg.split!r}" if cfg.split else ""))
+        scenes = [load_scene(p) for p in paths]
+    scenes = list(scenes)
+    if cfg.mirror:
+        scenes = scenes + [s.mirrored() for s in scenes]
+    bank = SceneBank(scenes, success_distance=cfg.success_distance, c_target=cfg.c_target, protocol=cfg.protocol)
     return bank, install(bank, cfg.detections)
 
 

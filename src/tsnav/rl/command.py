@@ -49,6 +49,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detections", default=None,
                         help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle; "
                              "required (the agent never falls back to ground truth)")
+    parser.add_argument("--mirror", action="store_true", default=None,
+                        help="a deviation from the paper: also train on the mirror image of every training room "
+                             "(TrainConfig.mirror; needs `tsnav features --mirror` and `tsnav detect --mirror`)")
     parser.add_argument("--protocol", default=None,
                         help="success protocol: paper (in view within 1.0 m, the default) or lineage (the 1.5 m "
                              "visibility map, as the lineage's evaluator); sets the success mask of the reward and "
@@ -73,7 +76,7 @@ _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
            "milestone_every": "milestone_every",
-           "device": "device", "precision": "precision", "protocol": "protocol"}
+           "device": "device", "precision": "precision", "protocol": "protocol", "mirror": "mirror"}
 
 
 def resolve(args: argparse.Namespace):

@@ -100,6 +100,12 @@ class TrainConfig:
     bfloat16 instructions. Evaluation always runs in float32."""
     device: str = "auto"
     """``auto`` (CUDA when available), ``cpu`` or ``cuda`` (batched trainer; A3C workers run on the CPU)."""
+    mirror: bool = False
+    """A deviation from the paper (training-data augmentation), off by default: also train on the mirror image of
+    every training room (:meth:`Scene.mirrored <tsnav.data.reader.Scene.mirrored>`: RotateLeft and RotateRight
+    trade places, frames flipped left to right), which doubles the rooms; it needs the features and detection
+    tables of the flipped frames (``tsnav features --mirror``, ``tsnav detect --mirror``). Evaluation is on the
+    rooms as they are."""
 
     def __post_init__(self):
         if self.algo not in ALGOS:

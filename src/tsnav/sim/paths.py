@@ -16,6 +16,7 @@ import numpy as np
 from scipy import sparse
 
 from ..atomic import atomic_path
+from ..data.reader import MIRROR_ACTIONS
 
 UNREACHABLE = np.iinfo(np.int32).max
 
@@ -223,4 +224,6 @@ def scene_distance_fields(scene, success_distance: float = 1.0, cache: bool = Tr
     if cache and scene.path is not None and (scene.path / "graph.json").exists():
         name = "lineage" if protocol == "lineage" else f"{success_distance:.2f}m"
         cache_file = scene.path / f"shortest_paths_{name}.npz"
-    return cached_distance_fields(scene.next_state, success, cache_file)
+    # A mirrored scene has the room's path lengths: read and write the room's cache with the room's graph.
+    next_state = scene.next_state[:, MIRROR_ACTIONS] if getattr(scene, "mirror", False) else scene.next_state
+    return cached_distance_fields(next_state, success, cache_file)
