@@ -7,8 +7,8 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic, AgentConfig
-from ..agent.observe import NO_DETECTIONS
-from ..data.reader import list_scenes, load_scene, DetectionTable, Observer, load_bank_features
+from ..agent.observe import NO_DETECTIONS, DetectionTable, Observer, load_bank_features
+from ..data.reader import list_scenes, load_scene
 from ..sim.batch import BatchEnv, SceneBank, SimConfig
 from ..sim.episodes import make_env
 from ..tsrm.reward import RewardConfig, TSRMReward
