@@ -267,7 +267,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"evaluation of {own} on {args.eval_split} scenes:")
         print(report.format())
         out = root / "detectors" / f"{own}_eval_{args.eval_split}.json"
-        atomic_write_text(out, json.dumps({"detector": args.detector, "name": name, "fingerprint": fingerprint,
+        atomic_write_text(out, json.dumps({"detector": args.detector, "name": own, "fingerprint": fingerprint,
                                            **report.to_json()}, indent=1))
         print(f"saved {out}")
     return 0
