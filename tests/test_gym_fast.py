@@ -136,7 +136,8 @@ def test_single_env_scalar_path_exact_area_and_lineage_protocol(world):
     """The shapely searched region (``exact_area``) and the lineage's success protocol through both paths."""
     from tsnav.tsrm.reward import RewardConfig
 
-    _run_pair(dict(data=str(world), split=None, reward=RewardConfig(variant="tsrm", exact_area=True),
+    _run_pair(dict(data=str(world), split=None, reward=RewardConfig(variant="tsrm", exact_area=True,
+                                                                  distance_increase_scale=1.5),
                    detections="oracle", max_steps=8), steps=60, seed=2)
     _run_pair(dict(data=str(world), split=None, reward="tsrm", detections="oracle", protocol="lineage",
                    c_target=0.5, max_steps=15), steps=200, seed=9)

@@ -324,3 +324,28 @@ def test_bf16_run_resumes_exactly(world, tmp_path):
     assert any(not torch.equal(wa[k], wc[k]) for k in wc)  # the precision changes the arithmetic
     with pytest.raises(ValueError, match="unknown precision"):
         _cfg(world, precision="half")
+
+
+def test_distance_increase_scale_reaches_the_reward_and_the_run(world, tmp_path, capsys):
+    """The deviation ``distance_increase_scale`` (off at 1.0): the trainer's reward uses it, config.json records
+    it, a resume with another value is refused, and ``tsnav train`` keeps the run's own value on resume."""
+    from tsnav.cli import main
+    from tsnav.rl.assemble import make_reward
+    from tsnav.rl.train import train_run
+
+    cfg = _cfg(world, updates=2, distance_increase_scale=2.0)
+    bank, _ = load_bank(cfg)
+    assert make_reward(bank, cfg).config.distance_increase_scale == 2.0
+    assert make_reward(bank, replace(cfg, distance_increase_scale=1.0)).config == \
+        make_reward(bank, TrainConfig(data=cfg.data)).config  # the paper's reward by default
+    with pytest.raises(ValueError, match="distance_increase_scale"):
+        _cfg(world, distance_increase_scale=-0.5)
+    out = tmp_path / "run"
+    assert train_run(cfg, agent_config("cpu"), out, progress_bar=False)["update"] == 2
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["train"]["distance_increase_scale"] == 2.0 and saved["reward"]["distance_increase_scale"] == 2.0
+    with pytest.raises(ValueError, match="distance_increase_scale"):
+        train_run(replace(cfg, distance_increase_scale=1.0, updates=3), agent_config("cpu"), out, progress_bar=False)
+    assert main(["train", "--out", str(out), "--updates", "3", "--quiet"]) == 0
+    assert "after 3 updates" in capsys.readouterr().out
+    assert json.loads((out / "config.json").read_text())["train"]["distance_increase_scale"] == 2.0

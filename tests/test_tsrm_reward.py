@@ -128,6 +128,45 @@ def test_distance_reward_telescopes():
     assert total == pytest.approx(cfg.k_distance * (int(d[start]) - int(d[end])), abs=1e-5)
 
 
+def test_distance_increase_scale_charges_the_long_way_round():
+    """With the paper's symmetric term a turn the long way (three lefts) earns what the short way (one right) does;
+    with ``distance_increase_scale`` each step that moves away costs ``(scale - 1) * K_d`` more, and a shortest
+    path keeps its full reward."""
+    sc = room()
+    bank = SceneBank([sc], cache=False)
+    conf = np.ones((sc.num_states, NUM_CATEGORIES), np.float32)  # pathfinding from the start frame
+    d = bank_pose_distance(bank)[:, BOWL]
+    start = sc.index("3.00|0.00|270|0")  # facing -x; the bowl at (4, 3) is best faced at 0 (+z)
+    short, long_ = [ROTATE_RIGHT] * 2, [ROTATE_LEFT] * 6  # 270 -> 315 -> 0, or 270 -> 225 -> ... -> 0
+
+    def end(acts):
+        s = start
+        for a in acts:
+            s = sc.next_state[s, a]
+        return s
+    assert end(short) == end(long_) and d[end(short)] == d[start] - 2
+    assert d[sc.next_state[start, ROTATE_LEFT]] == d[start] + 1  # the first left moves away, the rest come back
+    k = RewardConfig().k_distance
+    with pytest.raises(ValueError, match="distance_increase_scale"):
+        RewardConfig(distance_increase_scale=-1.0)
+    for scale in (1.0, 2.0):
+        cfg = RewardConfig(distance_increase_scale=scale)
+        got = {}
+        for name, acts in (("short", short), ("long", long_)):
+            steps = run(StagedReward(TSRMReward(bank, cfg), confidence=conf), sc, start, BOWL, acts)
+            got[name] = sum(t["distance"] for _, t in steps)
+            ref = TSRMRewardReference(sc, cfg, confidence=conf)
+            ref.reset(BOWL, start)
+            s, total = start, 0.0
+            for a in acts:
+                n = int(sc.next_state[s, a])
+                total += ref.step(s, a, n, False, False, False)[1]["distance"]
+                s = n
+            assert total == pytest.approx(got[name], abs=1e-6)
+        assert got["short"] == pytest.approx(2 * k, abs=1e-6)
+        assert got["long"] == pytest.approx(2 * k - (scale - 1.0) * k, abs=1e-6)  # one step of increase
+
+
 def test_success_and_done():
     sc = room()
     bank = SceneBank([sc], cache=False)
@@ -158,15 +197,15 @@ def test_each_variant_switches_off_exactly_its_terms():
             assert r == pytest.approx(sum(t.values()), abs=1e-6)
 
 
-@pytest.mark.parametrize("variant", ["tsrm", "baseline"])
-def test_fast_matches_reference_on_random_walks(variant):
+@pytest.mark.parametrize("variant,scale", [("tsrm", 1.0), ("baseline", 1.0), ("tsrm", 2.5)])
+def test_fast_matches_reference_on_random_walks(variant, scale):
     a = room()
     b = toy_scene(3.0, 2.0, objects={"Bowl|1": (0.0, 2.0), "Chair|1": (3.0, 0.0)}, name="B")
     scenes = [a, b]
     bank = SceneBank(scenes, cache=False)
     rng = np.random.default_rng(7)
     conf = rng.uniform(0, 0.75, (bank.num_states, NUM_CATEGORIES)).astype(np.float32)  # ~7% of frames switch
-    cfg = RewardConfig(variant=variant)
+    cfg = RewardConfig(variant=variant, distance_increase_scale=scale)
     fast = StagedReward(TSRMReward(bank, cfg), confidence=conf)
     n = 12
     scene_idx = np.arange(n) % 2

@@ -129,6 +129,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mirror", action="store_true",
                         help="a deviation from the paper: also train on the mirror image of every training room "
                              "(TrainConfig.mirror; needs `tsnav features --mirror` and `tsnav detect --mirror`)")
+    parser.add_argument("--distance-increase-scale", type=float, default=1.0,
+                        help="a deviation from the paper when not 1.0 (the default): multiply the distance reward of "
+                             "a step that increases the distance to the target by this "
+                             "(TrainConfig.distance_increase_scale)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
     parser.add_argument("--protocol", default="paper",
@@ -150,7 +154,8 @@ def run(args: argparse.Namespace) -> int:
                           algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
                           seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef,
                           precision=args.precision, procs=args.procs, protocol=args.protocol,
-                          max_steps=args.max_steps, mirror=args.mirror)
+                          max_steps=args.max_steps, mirror=args.mirror,
+                          distance_increase_scale=args.distance_increase_scale)
         agent_config(args.preset)
         run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
                         patience=args.patience, agent_overrides={"blocked_action": args.blocked_action})

@@ -11,7 +11,7 @@ from ..agent.observe import NO_DETECTIONS, DetectionTable, Observer, load_bank_f
 from ..data.reader import list_scenes, load_scene
 from ..sim.batch import BatchEnv, SceneBank, SimConfig
 from ..sim.episodes import make_env
-from ..tsrm.reward import RewardConfig, TSRMReward
+from ..tsrm.reward import TSRMReward
 from .config import TrainConfig
 
 
@@ -51,7 +51,7 @@ def make_observer(bank: SceneBank, cfg: TrainConfig, features: torch.Tensor | No
 def make_reward(bank: SceneBank, cfg: TrainConfig) -> TSRMReward:
     """The reward variant ``cfg.reward`` with the paper's constants (its stage comes from the env's switch,
     at the bank's C_target: ``cfg.c_target``, :func:`load_bank`)."""
-    return TSRMReward(bank, RewardConfig(variant=cfg.reward))
+    return TSRMReward(bank, cfg.reward_config())
 
 
 def make_train_env(bank: SceneBank, cfg: TrainConfig, num_envs: int, seed: int) -> BatchEnv:

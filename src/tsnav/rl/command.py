@@ -52,6 +52,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mirror", action="store_true", default=None,
                         help="a deviation from the paper: also train on the mirror image of every training room "
                              "(TrainConfig.mirror; needs `tsnav features --mirror` and `tsnav detect --mirror`)")
+    parser.add_argument("--distance-increase-scale", type=float, default=None,
+                        help="a deviation from the paper (default 1.0, the paper's symmetric distance reward): "
+                             "multiply the distance reward of a step that increases the distance to the target by "
+                             "this (TrainConfig.distance_increase_scale)")
     parser.add_argument("--protocol", default=None,
                         help="success protocol: paper (in view within 1.0 m, the default) or lineage (the 1.5 m "
                              "visibility map, as the lineage's evaluator); sets the success mask of the reward and "
@@ -76,7 +80,8 @@ _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
            "milestone_every": "milestone_every",
-           "device": "device", "precision": "precision", "protocol": "protocol", "mirror": "mirror"}
+           "device": "device", "precision": "precision", "protocol": "protocol", "mirror": "mirror",
+           "distance_increase_scale": "distance_increase_scale"}
 
 
 def resolve(args: argparse.Namespace):

@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass
 from ..constants import C_TARGET
 from ..errors import from_fields
 from ..protocol import DEFAULT_PROTOCOL, check_protocol
-from ..tsrm.reward import VARIANTS
+from ..tsrm.reward import VARIANTS, RewardConfig
 
 ALGOS = ("a3c", "batched")
 #: Arithmetic of the network's forward passes while training: ``fp32``, or ``bf16`` (autocast: matrix products in
@@ -107,6 +107,12 @@ class TrainConfig:
     tables of the flipped frames (``tsnav features --mirror``, ``tsnav detect --mirror``). Evaluation is on the
     rooms as they are."""
 
+    distance_increase_scale: float = 1.0
+    """A deviation from the paper when not 1.0, off by default: the distance reward of a pathfinding step that
+    increases the distance to the target is multiplied by this (:attr:`RewardConfig.distance_increase_scale
+    <tsnav.tsrm.reward.RewardConfig.distance_increase_scale>`), so that a detour, such as turning the long way
+    round, costs more than the slack alone."""
+
     def __post_init__(self):
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algo {self.algo!r} (choose from {', '.join(ALGOS)})")
@@ -120,6 +126,8 @@ class TrainConfig:
                      "threads", "procs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.distance_increase_scale >= 0:
+            raise ValueError(f"distance_increase_scale must be >= 0, got {self.distance_increase_scale}")
         if not self.lr > 0:
             raise ValueError(f"lr must be positive, got {self.lr}")
         if not 0.0 <= self.c_target <= 1.0:
@@ -168,3 +176,8 @@ class TrainConfig:
     def identity(self) -> dict:
         """The fields that define the run (everything but the budget)."""
         return {k: v for k, v in asdict(self).items() if k not in BUDGET_FIELDS}
+
+    def reward_config(self):
+        """The :class:`~tsnav.tsrm.reward.RewardConfig` of this run: variant ``reward``, the paper's constants, and
+        ``distance_increase_scale``."""
+        return RewardConfig(variant=self.reward, distance_increase_scale=self.distance_increase_scale)

@@ -16,7 +16,6 @@ from ..data.reader import list_scenes
 from ..checkpoint import atomic_write_json
 from ..pretrain.features import h5py_str
 from ..sim.batch import SimConfig
-from ..tsrm.reward import RewardConfig
 from .a3c import train_a3c
 from .batched import train_batched
 from .checkpoint import read_run_config
@@ -43,7 +42,7 @@ def feature_info(cfg: TrainConfig) -> dict:
 
 def resolved_config(cfg: TrainConfig, agent: AgentConfig) -> dict:
     """Everything the run depends on, as saved in ``config.json``."""
-    reward = RewardConfig(variant=cfg.reward)
+    reward = cfg.reward_config()
     sim = SimConfig(success_distance=cfg.success_distance, max_steps=cfg.max_steps, autoreset=True,
                     protocol=cfg.protocol)
     return {"format": RUN_FORMAT, "train": cfg.to_dict(), "agent": asdict(agent), "reward": asdict(reward),

@@ -73,6 +73,12 @@ class RewardConfig:
     """K_e, reward per square metre of newly searched floor (eq. ExploreReward)."""
     k_distance: float = 0.15
     """K_d, reward per pose-graph action of progress towards the nearest success pose (eq. DistanceReward)."""
+    distance_increase_scale: float = 1.0
+    """A deviation from the paper when not 1.0 (the paper's eq. DistanceReward is symmetric): the distance term of a
+    step that *increases* ``d`` is multiplied by this. With 1.0 the term is a difference of potentials, so a turn
+    the long way round (three turns instead of one) earns the same sum as the short way and costs only the slack;
+    with a scale above 1 every step off a shortest path costs ``(scale - 1) * K_d`` more, while every shortest path
+    keeps its full reward (along one, ``d`` never increases)."""
     collision_penalty: float = -0.1
     """Added when an action fails again at a (position, rotation) where one already failed (III-D (iii))."""
     slack: float = -0.01
@@ -88,6 +94,8 @@ class RewardConfig:
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown reward variant {self.variant!r} (choose from {', '.join(VARIANTS)})")
+        if not self.distance_increase_scale >= 0:
+            raise ValueError(f"distance_increase_scale must be >= 0, got {self.distance_increase_scale}")
         if isinstance(self.area, dict):  # from a saved JSON config
             object.__setattr__(self, "area", AreaConfig(**self.area))
 
@@ -208,8 +216,10 @@ class TSRMReward:
             terms["explore"][rows] = cfg.k_explore * self._add_views(rows, new[rows])
         if cfg.uses("distance"):
             rows = np.flatnonzero(~searching)
-            terms["distance"][rows] = cfg.k_distance * distance_delta(self.dist, prev[rows], new[rows],
-                                                                       self.target[rows])
+            delta = distance_delta(self.dist, prev[rows], new[rows], self.target[rows])
+            if cfg.distance_increase_scale != 1.0:
+                delta = np.where(delta < 0, cfg.distance_increase_scale * delta, delta)
+            terms["distance"][rows] = cfg.k_distance * delta
         rows = np.flatnonzero(collided)
         if len(rows):
             nodes = self.node_local[prev[rows]]
@@ -276,6 +286,8 @@ class TSRMReward:
             target = int(self.target[0])
             d0, d1 = int(self.dist[prev_state, target]), int(self.dist[new_state, target])
             delta = float(d0 - d1) if d0 != UNREACHABLE and d1 != UNREACHABLE else 0.0  # distance_delta
+            if delta < 0 and cfg.distance_increase_scale != 1.0:
+                delta = cfg.distance_increase_scale * delta
             distance = cfg.k_distance * delta
         if collided:
             node = self.node_local[prev_state]
@@ -355,7 +367,8 @@ class TSRMRewardReference:
         elif cfg.uses("distance"):
             d0, d1 = self._d(prev_state), self._d(new_state)
             if d0 != UNREACHABLE and d1 != UNREACHABLE:
-                terms["distance"] = cfg.k_distance * (d0 - d1)
+                scale = cfg.distance_increase_scale if d1 > d0 else 1.0  # an increase may cost more (a deviation)
+                terms["distance"] = cfg.k_distance * scale * (d0 - d1)
         if collided:
             pose = self._pose(prev_state)
             if pose in self.collision_poses:
