@@ -91,7 +91,12 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
         atomic_write_json(out / "curve.json", {"points": points, "best": sel["best"], "chunk": chunk,
                                                "protocol": cfg.protocol, "train": c.to_dict()})
         plot_curve(points, out / "curve.png",
-                   title=f"{cfg.reward} reward, features {cfg.features}, protocol {cfg.protocol}")
+                   title=f"{cfg.reward} reward, features {cfg.features}, protocol {cfg.protocol}"
+                         + "".join(f", {label}" for on, label in (
+                             (cfg.distance_increase_scale != 1.0,
+                              f"distance increase x{cfg.distance_increase_scale:g}"),
+                             (cfg.mirror, "mirror"),
+                             ((agent_overrides or {}).get("blocked_action"), "blocked-action")) if on))
         last = points[-1]
         say(f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
             + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in CURVE_METRICS) + f" (protocol {cfg.protocol})")
