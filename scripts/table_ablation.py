@@ -20,12 +20,15 @@ hand the agent a distance-aware score: read their gains as an upper bound of wha
 Two comparisons that need no oracle: ``--shift B[,B...]`` writes ``NAME-shiftB``, L with every presence logit raised
 by B (:func:`shifted`: a raise of absent classes as much as present ones), and ``--features-from TABLE`` writes
 ``NAME``: L's scores, labels and boxes with TABLE's per-class features (:func:`with_features`: another detector's
-scores read by an agent trained on TABLE's features).
+scores read by an agent trained on TABLE's features). ``--flip-average MIRROR`` writes ``NAME``: L's presence logits
+averaged with those of MIRROR, the same detector run on the frames flipped left to right (``tsnav detect --mirror``
+writes it as ``<name>-mirror``): test-time flip augmentation (:func:`flip_averaged`).
 
     python scripts/table_ablation.py --data WORLD --learned learned4 --oracle oracle --name ab [--split test]
     python scripts/table_ablation.py --data WORLD --split test --recall learned4,learned4pc   # the figures below
     python scripts/table_ablation.py --data WORLD --learned learned4 --name learned4 --shift 1,2,3
     python scripts/table_ablation.py --data WORLD --learned learned6 --features-from learned4 --name l6s
+    python scripts/table_ablation.py --data WORLD --learned learned6 --flip-average learned6-mirror --name learned6-tta
 
 ``--recall`` writes nothing: per table, over the cells of the room's possible targets, the share of "near" cells (in
 view, the oracle scoring >= 0.7) the table scores >= 0.7 and their mean score, the share of "far" cells (in view,
@@ -105,6 +108,22 @@ def with_features(table: Detections, features_of: Detections) -> Detections:
     if not np.array_equal(table.keys, features_of.keys):
         raise ValueError("the two tables are not of the same states")
     return replace(table, features=features_of.features, config=dict(table.config, features_from=features_of.config))
+
+
+def flip_averaged(table: Detections, mirror: Detections, eps: float = 1e-6) -> Detections:
+    """Test-time flip augmentation: ``table``'s presence logits averaged with those of ``mirror``, the same detector's
+    table of the frames flipped left to right (``tsnav detect --mirror``; presence does not depend on the flip).
+    Labels, boxes and features stay ``table``'s; a class gets a label where either table kept one."""
+    if not np.array_equal(table.keys, mirror.keys) or table.scores.shape != mirror.scores.shape:
+        raise ValueError("the table and its mirror table are not of the same states")
+    if not mirror.config.get("mirror"):
+        raise ValueError("the second table was not made from flipped frames (tsnav detect --mirror)")
+    z = [np.log(np.clip(t.scores.astype(np.float64), eps, 1 - eps)) - np.log1p(-np.clip(t.scores.astype(np.float64),
+                                                                                          eps, 1 - eps))
+         for t in (table, mirror)]
+    scores = (1.0 / (1.0 + np.exp(-(z[0] + z[1]) / 2))).astype(np.float32)
+    labels = np.where((table.labels < 0) & (mirror.labels >= 0), mirror.labels, table.labels)
+    return replace(table, scores=scores, labels=labels, config=dict(table.config, flip_average=True))
 
 
 def _truths(scenes, truths):
@@ -232,6 +251,9 @@ def main(argv=None) -> int:
                    help="with --recall: near cells and recall per class and per band of visible pixels")
     p.add_argument("--shift", default=None, metavar="B[,B...]",
                    help="only write --learned with its logits raised by B, as NAME-shiftB (no oracle needed)")
+    p.add_argument("--flip-average", default=None, metavar="MIRROR_TABLE",
+                   help="only write --learned's presence logits averaged with MIRROR_TABLE's (the same detector on "
+                        "the flipped frames: `tsnav detect --mirror` writes it as <name>-mirror), as NAME")
     p.add_argument("--features-from", default=None, metavar="TABLE",
                    help="only write --learned's scores with TABLE's per-class features, as NAME (no oracle needed)")
     a = p.parse_args(argv)
@@ -277,7 +299,7 @@ def main(argv=None) -> int:
             print(f"table_ablation: {e}", file=sys.stderr)
             return 2
         return 0
-    if a.shift or a.features_from:
+    if a.shift or a.features_from or a.flip_average:
         try:
             shifts = [float(x) for x in a.shift.split(",")] if a.shift else []
         except ValueError:
@@ -290,6 +312,8 @@ def main(argv=None) -> int:
                     name = f"{a.name}-shift{b:g}".replace(".", "p")
                     if not detections_path(d, name).exists():
                         write_detections(d, name, shifted(L, b))
+                if a.flip_average and not detections_path(d, a.name).exists():
+                    write_detections(d, a.name, flip_averaged(L, load_detections(d, a.flip_average)))
                 if a.features_from and not detections_path(d, a.name).exists():
                     write_detections(d, a.name, with_features(L, load_detections(d, a.features_from)))
         except (OSError, ValueError) as e:

@@ -123,6 +123,32 @@ def test_shift_and_borrowed_features(mod):
         mod.with_features(L, _table(rng, 4))
 
 
+def test_flip_average_cell_by_cell(mod):
+    """``flip_averaged``: per cell, sigmoid of the mean of the two logits (the geometric mean of the odds); labels
+    where either table has one; boxes and features the first table's; refuses a table not made from flipped frames
+    and one of other states."""
+    import math
+
+    rng = np.random.default_rng(4)
+    L, M = _table(rng, 6, score_lo=0.01), _table(rng, 6, score_lo=0.01)
+    M = replace(M, labels=np.where(rng.uniform(size=M.labels.shape) < 0.5, M.labels, -1).astype(np.int16),
+                config={"mirror": True})
+    got = mod.flip_averaged(L, M)
+    for i in range(6):
+        for c in range(22):
+            a, b = float(L.scores[i, c]), float(M.scores[i, c])
+            odds = math.sqrt(a / (1 - a) * b / (1 - b))
+            assert got.scores[i, c] == pytest.approx(odds / (1 + odds), rel=1e-5)
+            assert got.labels[i, c] == (L.labels[i, c] if L.labels[i, c] >= 0 else M.labels[i, c])
+    assert np.array_equal(got.boxes, L.boxes) and np.array_equal(got.features, L.features)
+    same = mod.flip_averaged(L, replace(L, config={"mirror": True}))
+    np.testing.assert_allclose(same.scores, L.scores, rtol=1e-5)
+    with pytest.raises(ValueError, match="flipped frames"):
+        mod.flip_averaged(L, replace(M, config={}))
+    with pytest.raises(ValueError, match="same states"):
+        mod.flip_averaged(L, replace(_table(rng, 5), config={"mirror": True}))
+
+
 def test_near_recall_by_class_and_band_against_cell_loops(mod, tiny_real_learned4):
     """``near_recall_by`` counts the same near cells as ``state_recall``, split per class and per pixel band, as a
     cell-by-cell loop does."""
