@@ -76,9 +76,9 @@ class RewardConfig:
     distance_increase_scale: float = 1.0
     """A deviation from the paper when not 1.0 (the paper's eq. DistanceReward is symmetric): the distance term of a
     step that *increases* ``d`` is multiplied by this. With 1.0 the term is a difference of potentials, so a turn
-    the long way round (three turns instead of one) earns the same sum as the short way and costs only the slack;
-    with a scale above 1 every step off a shortest path costs ``(scale - 1) * K_d`` more, while every shortest path
-    keeps its full reward (along one, ``d`` never increases)."""
+    the long way round (six 45-degree turns instead of two) earns the same sum as the short way and costs only the
+    slack; with a scale above 1 every step off a shortest path costs ``(scale - 1) * K_d`` more, while every shortest
+    path keeps its full reward (along one, ``d`` never increases). Measured at 2: no gain (docs/RESULTS.md)."""
     collision_penalty: float = -0.1
     """Added when an action fails again at a (position, rotation) where one already failed (III-D (iii))."""
     slack: float = -0.01
