@@ -95,12 +95,19 @@ def mend(learned: Detections, oracle: Detections, present: np.ndarray, kind: str
                    config=dict(learned.config, table_ablation={"kind": kind, "oracle_features": oracle_features}))
 
 
+def _logit(scores: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    """Presence logits of ``scores`` (float64, clipped to [eps, 1 - eps])."""
+    p = np.clip(scores.astype(np.float64), eps, 1 - eps)
+    return np.log(p) - np.log1p(-p)
+
+
+def _sigmoid(z: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
+
+
 def shifted(table: Detections, b: float, eps: float = 1e-6) -> Detections:
     """``table`` with every presence logit raised by ``b`` (labels and boxes as they were)."""
-    p = np.clip(table.scores.astype(np.float64), eps, 1 - eps)
-    z = np.log(p) - np.log1p(-p) + b
-    return replace(table, scores=(1.0 / (1.0 + np.exp(-z))).astype(np.float32),
-                   config=dict(table.config, logit_shift=b))
+    return replace(table, scores=_sigmoid(_logit(table.scores, eps) + b), config=dict(table.config, logit_shift=b))
 
 
 def with_features(table: Detections, features_of: Detections) -> Detections:
@@ -118,10 +125,7 @@ def flip_averaged(table: Detections, mirror: Detections, eps: float = 1e-6) -> D
         raise ValueError("the table and its mirror table are not of the same states")
     if not mirror.config.get("mirror"):
         raise ValueError("the second table was not made from flipped frames (tsnav detect --mirror)")
-    z = [np.log(np.clip(t.scores.astype(np.float64), eps, 1 - eps)) - np.log1p(-np.clip(t.scores.astype(np.float64),
-                                                                                          eps, 1 - eps))
-         for t in (table, mirror)]
-    scores = (1.0 / (1.0 + np.exp(-(z[0] + z[1]) / 2))).astype(np.float32)
+    scores = _sigmoid((_logit(table.scores, eps) + _logit(mirror.scores, eps)) / 2)
     labels = np.where((table.labels < 0) & (mirror.labels >= 0), mirror.labels, table.labels)
     return replace(table, scores=scores, labels=labels, config=dict(table.config, flip_average=True))
 

@@ -82,6 +82,9 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
                           protocol=cfg.protocol)
     run = out / "run"
     points: list[dict] = []
+    deviations = ([f"distance increase x{cfg.distance_increase_scale:g}"] if cfg.distance_increase_scale != 1.0 else [])
+    deviations += ["mirror"] if cfg.mirror else []
+    deviations += ["blocked-action"] if (agent_overrides or {}).get("blocked_action") else []
     for end in list(range(chunk, total, chunk)) + [total]:
         c = TrainConfig.from_dict({**cfg.to_dict(), "updates": end, "episodes": None, "minutes": None,
                                    "checkpoint_every": chunk, "milestone_every": chunk})
@@ -90,13 +93,8 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
         points = curve_points(sel)
         atomic_write_json(out / "curve.json", {"points": points, "best": sel["best"], "chunk": chunk,
                                                "protocol": cfg.protocol, "train": c.to_dict()})
-        plot_curve(points, out / "curve.png",
-                   title=f"{cfg.reward} reward, features {cfg.features}, protocol {cfg.protocol}"
-                         + "".join(f", {label}" for on, label in (
-                             (cfg.distance_increase_scale != 1.0,
-                              f"distance increase x{cfg.distance_increase_scale:g}"),
-                             (cfg.mirror, "mirror"),
-                             ((agent_overrides or {}).get("blocked_action"), "blocked-action")) if on))
+        plot_curve(points, out / "curve.png", title=", ".join(
+            [f"{cfg.reward} reward", f"features {cfg.features}", f"protocol {cfg.protocol}"] + deviations))
         last = points[-1]
         say(f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
             + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in CURVE_METRICS) + f" (protocol {cfg.protocol})")
