@@ -21,10 +21,9 @@ import numpy as np
 import torch
 
 from tsnav.errors import CommandError
-from tsnav.eval.outcomes import OUTCOMES_FILE, outcome_summary
 from tsnav.eval.runner import (EvalConfig, config_dict, load_bank_for_episodes, record_trajectories, resolve_protocol,
-                               write_trajectories)
-from tsnav.metrics import summarize, write_json, write_records
+                               write_evaluation)
+from tsnav.metrics import summarize
 from tsnav.rl.checkpoint import load_policy
 from tsnav.rl.policy import AgentPolicy
 from tsnav.sim.episodes import read_episodes
@@ -83,11 +82,7 @@ def evaluate_ensemble(out: Path, data: Path, episodes_file: Path, runs: list[Pat
             "data": str(Path(data).resolve()), "protocol": protocol, "trained_protocol": trained,
             "success_distance": float(emeta.get("success_distance", 1.0)), "detections": None,
             "config": config_dict(config), "label": f"ensemble of {len(runs)}"}
-    write_records(out / "records.jsonl", records)
-    write_trajectories(out / "trajectories.jsonl", trajectories)
-    write_json(out / OUTCOMES_FILE, outcome_summary(records, trajectories))
-    write_json(out / "metrics.json", {**meta, "metrics": summary, "seconds": time.perf_counter() - t0,
-                                      "detector_confidence": bank.confidence is not None})
+    write_evaluation(out, meta, summary, records, trajectories, bank, time.perf_counter() - t0)
     return summary
 
 

@@ -391,9 +391,15 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     t0 = time.perf_counter()
     records, trajectories = record_trajectories(bank, episodes, pol, config)
     summary = summarize(records, config.min_optimal_length, protocol=protocol)
+    write_evaluation(out_dir, meta, summary, records, trajectories, bank, time.perf_counter() - t0)
+    return summary
+
+
+def write_evaluation(out_dir: Path, meta: dict, summary: dict, records, trajectories, bank, seconds: float) -> None:
+    """The files of an evaluation folder: ``records.jsonl``, ``trajectories.jsonl``, ``outcomes.json`` and
+    ``metrics.json`` (``meta`` with the metrics, the time taken and whether the bank had a detector's confidence)."""
     write_records(out_dir / "records.jsonl", records)
     write_trajectories(out_dir / "trajectories.jsonl", trajectories)
     write_json(out_dir / OUTCOMES_FILE, outcome_summary(records, trajectories))
-    write_json(out_dir / "metrics.json", {**meta, "metrics": summary, "seconds": time.perf_counter() - t0,
+    write_json(out_dir / "metrics.json", {**meta, "metrics": summary, "seconds": seconds,
                                           "detector_confidence": bank.confidence is not None})
-    return summary
