@@ -477,6 +477,37 @@ def test_pretraining_reuses_the_ablations_jobs(tmp_path, exp_world, pretrain_dir
         exp3.reusable_run(tc1)
 
 
+def test_blocked_action_experiment(tmp_path, exp_world, pretrain_dir, capsys):
+    """--blocked-action (a deviation): every job's agent gets the flag, table.md and results.json say so, the folder
+    refuses a resume without it, and --reuse-from does not copy a run whose agent lacks it."""
+    from dataclasses import replace
+
+    from tsnav.rl.checkpoint import read_run_config
+
+    base = dict(data=str(exp_world), seeds=1, device="cpu", pretrain_dir=str(pretrain_dir), rows=("baseline",))
+    row = experiment_rows("ablation")[0]
+    cfg = ExperimentConfig(experiment="ablation", out=str(tmp_path / "flag"), blocked_action=True, **base)
+    _, agent = train_config_for(cfg, TINY, row, "f", 0)
+    _, plain = train_config_for(replace(cfg, blocked_action=False), TINY, row, "f", 0)
+    assert agent.blocked_action and not plain.blocked_action
+    assert replace(agent, blocked_action=False) == plain  # nothing else changes
+    trainer = StandInTrainer()
+    res = Experiment(cfg, train_fn=trainer, scale=TINY).run()
+    assert res["blocked_action"] is True and trainer.calls
+    run = read_run_config(tmp_path / "flag" / "jobs" / "baseline_s0" / "train")
+    assert run["agent"]["blocked_action"] is True
+    assert "`--blocked-action`, a deviation" in (tmp_path / "flag" / "table.md").read_text()
+    with pytest.raises(ValueError, match="another blocked_action"):
+        Experiment(replace(cfg, blocked_action=False), train_fn=StandInTrainer(), scale=TINY).run()
+    # a plain experiment beside it: the flagged run is not reused for it, an identical one would be
+    plain_exp = Experiment(ExperimentConfig(experiment="ablation", out=str(tmp_path / "plain"),
+                                            reuse_from=(str(tmp_path / "flag"),), **base),
+                           train_fn=StandInTrainer(), scale=TINY)
+    tc, plain_agent = train_config_for(plain_exp.cfg, TINY, row, run["train"]["features"], 0)
+    assert plain_exp.reusable_run(tc, plain_agent) is None
+    assert plain_exp.reusable_run(tc, agent) == tmp_path / "flag" / "jobs" / "baseline_s0" / "train"
+
+
 def test_rows_option_runs_a_subset_and_adds_the_rest_later(tmp_path, exp_world, pretrain_dir, capsys):
     """--rows: only the named rows are trained and tabulated; a second call into the same folder with the other
     rows trains only those and finds the first call's jobs done; an unknown id is refused in one line."""

@@ -299,6 +299,9 @@ class ExperimentConfig:
     protocol: str = "paper"
     """Success protocol (:mod:`tsnav.protocol`) of the episode lists, the training runs and the evaluations:
     ``paper`` (in view within 1.0 m) or ``lineage`` (the 1.5 m visibility map, as the lineage's evaluator)."""
+    blocked_action: bool = False
+    """A deviation from the paper (:attr:`tsnav.agent.AgentConfig.blocked_action`, ``--blocked-action``): every job's
+    agent is told when its last MoveAhead left it where it was, as the shipped agent is; named in ``table.md``."""
     train_data: str | None = None
     """Dataset root of the training rooms when they are not ``data``'s own (the demo's ``train_world``: some of
     ``data``'s training rooms, linked); None: ``data``."""

@@ -152,7 +152,7 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
                  detections=row.detections_of(cfg.detections), split="train", reward=row.reward, seed=seed,
                  c_target=row.c_target, device=cfg.device, checkpoint_every=every, milestone_every=milestones,
                  protocol=cfg.protocol, procs=(cfg.procs or base.procs) if base.algo == "batched" else 1, **budget)
-    return tc, agent_config(base.preset)
+    return tc, agent_config(base.preset, **({"blocked_action": True} if cfg.blocked_action else {}))
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -258,10 +258,10 @@ class Job:
 
 #: experiment.json fields that must match when an experiment folder is resumed.
 IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample",
-            "checkpoint", "protocol")
+            "checkpoint", "protocol", "blocked_action")
 #: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled, and
 #: the latest checkpoint was evaluated).
-LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest", "protocol": "paper"}
+LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest", "protocol": "paper", "blocked_action": False}
 #: ``ExperimentConfig.checkpoint`` values.
 CHECKPOINTS = ("best", "latest")
 #: Seed of the selection episodes (the threshold experiment's evaluation episodes on val use seed 0).
@@ -386,6 +386,7 @@ class Experiment:
         results["experiment"] = self.cfg.experiment
         results["detections"] = self.cfg.detections
         results["protocol"] = self.cfg.protocol
+        results["blocked_action"] = self.cfg.blocked_action
         results["welch"] = welch_against(results, self.info["baseline_row"])
         quality = self.quality()
         if quality:
@@ -394,6 +395,8 @@ class Experiment:
         results["done_dips"] = dips
         text = (f"## {self.cfg.experiment}: {self.info['description']}\n\n"
                 + f"Success {protocol_line(self.cfg.protocol, self.cfg.protocol)}.\n\n" + markdown_table(results)
+                + ("\nEvery agent is told when its last MoveAhead failed (`--blocked-action`, a deviation from the "
+                   "paper).\n" if self.cfg.blocked_action else "")
                 + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
                 + f"Detections: {self.cfg.detections}"
                 + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
@@ -431,10 +434,11 @@ class Experiment:
             plot_threshold(results, self.out / "threshold.png")
         return results
 
-    def reusable_run(self, tc: TrainConfig) -> Path | None:
+    def reusable_run(self, tc: TrainConfig, agent=None) -> Path | None:
         """A finished job's ``train`` folder in one of ``cfg.reuse_from`` whose training configuration equals
-        ``tc`` (budget included), or None."""
+        ``tc`` (budget included) and, when given, whose agent configuration equals ``agent``, or None."""
         want = json.loads(json.dumps(tc.to_dict()))  # as config.json holds it (tuples become lists)
+        want_agent = None if agent is None else json.loads(json.dumps(asdict(agent)))
         for other in self.cfg.reuse_from:
             root = Path(other)
             if not (root / "experiment.json").exists():
@@ -443,12 +447,13 @@ class Experiment:
                 job_dir = cfg_file.parent.parent
                 if not (job_dir / "DONE").exists():
                     continue
-                try:  # through TrainConfig, so that fields added since (at their defaults) compare equal
-                    have = json.loads(json.dumps(TrainConfig.from_dict(json.loads(cfg_file.read_text())["train"])
-                                                 .to_dict()))
+                try:  # through the config classes, so that fields added since (at their defaults) compare equal
+                    stored = json.loads(cfg_file.read_text())
+                    have = json.loads(json.dumps(TrainConfig.from_dict(stored["train"]).to_dict()))
+                    have_agent = json.loads(json.dumps(asdict(type(agent)(**stored["agent"])))) if agent else None
                 except (ValueError, KeyError, TypeError):
                     continue
-                if have == want:
+                if have == want and have_agent == want_agent:
                     return cfg_file.parent
         return None
 
@@ -562,7 +567,7 @@ class Experiment:
         copied instead); returns its training configuration."""
         tc, agent = train_config_for(self.cfg, self.scale, job.row, features, job.seed)
         run = self.train_dir(job)
-        src = None if run.exists() else self.reusable_run(tc)
+        src = None if run.exists() else self.reusable_run(tc, agent)
         if src is not None:  # finished there with this very configuration and budget: nothing to train
             say(f"[{self.cfg.experiment}] {job.row.id}_s{job.seed}: reusing the trained run {src}")
             copy_run(src, run)
@@ -772,6 +777,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="run only these rows, by id (pretraining: resnet18, mae, demae_crop, demae; ablation: "
                              "baseline, explore, distance, tsrm, demae, tsrm_demae, tsrm_demae_oracle; default: all); "
                              "a later call with other rows adds them to the same folder")
+    parser.add_argument("--blocked-action", action="store_true",
+                        help="a deviation from the paper: every agent is told when its last MoveAhead left it where "
+                             "it was (AgentConfig.blocked_action, as the shipped agent); part of the folder's identity")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
     parser.add_argument("--reuse-from", action="append", default=[], metavar="EXPERIMENT_DIR",
                         help="another experiment folder whose finished jobs with the same training configuration "
@@ -802,6 +810,7 @@ def run(args: argparse.Namespace) -> int:
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
                            procs=args.procs, sample=args.sample, checkpoint=args.checkpoint, protocol=args.protocol,
+                           blocked_action=args.blocked_action,
                            rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()) if args.rows else (),
                            reuse_from=tuple(str(Path(d).resolve()) for d in args.reuse_from))
     if args.threads is not None and args.threads < 1:
