@@ -36,6 +36,10 @@ def test_weights_match_their_fingerprint_and_provenance(name):
     l6 = shipped.shipped_meta("learned6")
     assert l6["step"] == 43000 and l6["loss_changes"][0]["step"] == 41000
     assert l6["loss_changes"][0]["presence_pos_weight"] == 4.0
+    # learned7: a wider backbone trained from nothing with learned6's loss
+    l7 = shipped.shipped_meta("learned7")
+    assert l7["model"]["widths"] == [64, 128, 256] and l7["step"] == 18000
+    assert l7["train"]["loss"]["presence_pos_weight"] == 4.0 and l7["train"]["loss"]["focal_alpha"] == 0.5
     with pytest.raises(CommandError, match="no shipped detector named 'learned9'"):
         shipped.shipped_detector(name="learned9")
 

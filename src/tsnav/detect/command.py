@@ -84,7 +84,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                         "or more)")
     p.add_argument("--shipped", choices=sorted(SHIPPED), default=DEFAULT_SHIPPED,
                    help=f"shipped: which shipped detector (default {DEFAULT_SHIPPED}; learned3 wrote the tables of the "
-                        "medium-scale experiments; learned6 favours recall, see tsnav.detect.shipped)")
+                        "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
+                        "see tsnav.detect.shipped)")
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")

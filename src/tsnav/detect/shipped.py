@@ -3,9 +3,9 @@ here on the 80 training rooms of the ``ithor-real`` world at 128x128 and calibra
 
 The paper's stage switch reads a DETR that was trained before, and apart from, the navigation agent; the
 shipped weights play that part for the 128-px real rooms, so that a short job (``tsnav demo``) can use a
-detector that took two to three hours of one CPU core to train. Nothing is downloaded. Three are kept, 1.9 MB
-of float32 each with their checkpoint JSON (training configuration and rooms, temperature, fingerprint,
-provenance):
+detector that took two to three hours of one CPU core to train. Nothing is downloaded. Four are kept (1.9 MB of
+float32 each, 6.8 MB for the wider ``learned7``) with their checkpoint JSON (training configuration and rooms,
+temperature, fingerprint, provenance):
 
 * ``learned4`` (the default, ``weights/ithor-real-128``): presence AP 0.743 on the val rooms, 90.4 % of val
   (scene, target) pairs reach C_target = 0.7 (BENCHMARKS.md);
@@ -13,6 +13,10 @@ provenance):
   weighted 4x in the presence loss; it ranks like ``learned4`` at a lower threshold (more targets in view pass
   C_target, and ten times the false positives: 3 % of absent target cells above 0.7 on the test rooms against
   0.3 %); agents trained on its tables score higher under ``lineage`` (docs/RESULTS.md);
+* ``learned7`` (``weights/ithor-real-128-learned7``): a backbone twice as wide (64, 128, 256 channels) trained from
+  nothing for 18,000 steps with ``learned6``'s loss; val presence AP 0.820, every val (scene, target) pair reaches
+  C_target; at equal false positives about 4 points more of the targets in view pass 0.7 than with ``learned6``
+  (docs/RESULTS.md); four times the compute per frame;
 * ``learned3`` (``weights/ithor-real-128-learned3``): AP 0.713, reach 87.2 %; the tables of the medium-scale
   experiments of docs/RESULTS.md are its tables (``tsnav detect --detector shipped --shipped learned3``
   writes them again).
@@ -32,7 +36,7 @@ from .train import read_meta
 _WEIGHTS = Path(__file__).parent / "weights"
 #: Shipped checkpoint folders (``model.safetensors`` and ``state.json``) by name.
 SHIPPED = {"learned4": _WEIGHTS / "ithor-real-128", "learned3": _WEIGHTS / "ithor-real-128-learned3",
-           "learned6": _WEIGHTS / "ithor-real-128-learned6"}
+           "learned6": _WEIGHTS / "ithor-real-128-learned6", "learned7": _WEIGHTS / "ithor-real-128-learned7"}
 #: The one used unless another is named.
 DEFAULT_SHIPPED = "learned4"
 #: The default's folder.
