@@ -1,7 +1,8 @@
 """Evaluate an ensemble of trained agents: at every step each member runs on the same observation with its own LSTM
 state and target memory, the action is the argmax of the members' summed action probabilities (or summed
 log-probabilities, ``--average logprob``), and every member is told that action as its previous action (an issue 23
-analysis; nothing here is shipped).
+analysis; nothing here is shipped). The stage switch follows the first member's detection table; every member
+reads its own training table and features.
 
 Writes what ``tsnav eval`` writes (``records.jsonl``, ``trajectories.jsonl``, ``outcomes.json``, ``metrics.json``
 with ``policy: ensemble`` and the members' runs), so ``scripts/agent_diagnostics.py`` reads the folder. A one-member
@@ -48,18 +49,11 @@ class EnsemblePolicy:
 
     @torch.no_grad()
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        n = len(obs["state"])
-        score, states = 0.0, []
-        for m in self.members:
-            if m.state is None or m.state.batch_size != n:
-                m.reset(np.ones(n, dtype=bool))
-            logits, _, state = m.model(m.observer(obs["state"], obs["target"]), m.state)
-            f = torch.softmax if self.average == "prob" else torch.log_softmax
-            score = score + f(logits.float(), dim=1)
-            states.append(state)
-        action = score.argmax(dim=1)
-        for m, state in zip(self.members, states):
-            m.state = state.with_action(action)
+        norm = torch.softmax if self.average == "prob" else torch.log_softmax
+        steps = [m.logits(obs) for m in self.members]
+        action = sum(norm(logits.float(), dim=1) for logits, _ in steps).argmax(dim=1)
+        for m, (_, state) in zip(self.members, steps):
+            m.commit(state, action)
         return action.cpu().numpy().astype(np.int64)
 
 

@@ -68,20 +68,15 @@ def test_the_summed_probabilities_decide(ens):
     and tells both members that action."""
     import torch
 
-    class Member:
+    class Member:  # the two methods of AgentPolicy the ensemble calls
         def __init__(self, logits):
-            self.logits, self.state, self.told = torch.tensor([logits]), None, None
-            self.model = lambda obs, state: (self.logits, None, self)
-            self.observer = lambda s, t: None
+            self.out, self.told = torch.tensor([logits]), None
 
-        def reset(self, mask):
-            self.state = self
+        def logits(self, obs):
+            return self.out, "state"
 
-        batch_size = 1
-
-        def with_action(self, action):
+        def commit(self, state, action):
             self.told = int(action[0])
-            return self
 
     a, b = Member([3.0, 0.0, 0.0, 0.0, 0.0, 0.0]), Member([0.0, 2.0, 2.1, 0.0, 0.0, 0.0])
     obs = {"state": np.array([0]), "target": np.array([0])}

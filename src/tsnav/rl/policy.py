@@ -33,14 +33,25 @@ class AgentPolicy:
             self.state = self.state.reset(torch.from_numpy(mask).to(self.observer.device))
 
     @torch.no_grad()
-    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+    def logits(self, obs: dict[str, np.ndarray]) -> tuple[torch.Tensor, AgentState]:
+        """The action logits ``(B, 6)`` for the observation batch and the recurrent state after this step, not
+        kept yet: :meth:`commit` keeps it with the action taken (so that several policies can choose together)."""
         n = len(obs["state"])
         if self.state is None or self.state.batch_size != n:
             self.reset(np.ones(n, dtype=bool))
         logits, _, state = self.model(self.observer(obs["state"], obs["target"]), self.state)
+        return logits, state
+
+    def commit(self, state: AgentState, action: torch.Tensor) -> None:
+        """Keep the state of :meth:`logits` with the action taken as the previous action."""
+        self.state = state.with_action(action)
+
+    @torch.no_grad()
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        logits, state = self.logits(obs)
         if self.greedy:
             action = logits.argmax(dim=1)
         else:
             action = torch.multinomial(torch.softmax(logits, dim=1), 1, generator=self.generator)[:, 0]
-        self.state = state.with_action(action)
+        self.commit(state, action)
         return action.cpu().numpy().astype(np.int64)
