@@ -4,12 +4,15 @@
 #
 #   bash scripts/train_release_agent.sh WORK_DIR [NAME]
 #   RECIPE=learned6 bash scripts/train_release_agent.sh WORK_DIR tsrm-demae-learned6
+#   RECIPE=learned7 bash scripts/train_release_agent.sh WORK_DIR tsrm-demae-learned7
 #
 # WORK_DIR gets the 120-room world (30 GB at 128 px), the pretraining run, the training run and the evaluations;
 # the packed agent is written to src/tsnav/agent/weights/NAME (default tsrm-demae-learned4-v2).
-# RECIPE picks the agent: learned4 (the default, tsrm-demae-learned4-v2) or learned6 (tsrm-demae-learned6: the
-# shipped learned6 detector's tables, --blocked-action, seed 3). Both shipped runs were trained in legs resumed in the
-# same folder (learned4: 2000, 3000, 4000 updates; learned6: 2000, then 4000); this script runs one leg to 4000.
+# RECIPE picks the agent: learned4 (tsrm-demae-learned4-v2), learned6 (tsrm-demae-learned6: the shipped learned6
+# detector's tables, --blocked-action, seed 3) or learned7 (tsrm-demae-learned7, the shipped default: learned7's
+# tables, --blocked-action, seed 3, and the checkpoint chosen afterwards on 2000 val episodes instead of the training's
+# 400). The shipped runs were trained in legs resumed in the same folder (learned4: 2000, 3000, 4000 updates;
+# learned6 and learned7: 2000, then 4000); this script runs one leg to 4000.
 # The learning rate is constant and the trainer resumes bit for bit (tested), so one run to 4000 updates should give
 # the same agent on this machine (not re-run here for either recipe).
 set -euo pipefail
@@ -19,8 +22,11 @@ case "$RECIPE" in
   learned4) NAME=${2:-tsrm-demae-learned4-v2}; DET=learned4; SEED=1; FLAGS=(); CARD=release_card.json; CONV=conv ;;
   learned6) NAME=${2:-tsrm-demae-learned6}; DET=learned6; SEED=3; FLAGS=(--blocked-action); CARD=release_card_learned6.json
             CONV=conv-learned6 ;;
-  *) echo "RECIPE must be learned4 or learned6, got $RECIPE" >&2; exit 2 ;;
+  learned7) NAME=${2:-tsrm-demae-learned7}; DET=learned7; SEED=3; FLAGS=(--blocked-action); CARD=release_card_learned7.json
+            CONV=conv-learned7; SELECT=500 ;;
+  *) echo "RECIPE must be learned4, learned6 or learned7, got $RECIPE" >&2; exit 2 ;;
 esac
+SELECT=${SELECT:-}
 HERE="$(cd "$(dirname "$0")/.." && pwd)"
 T="$HERE/.venv/bin/tsnav"
 PY="$HERE/.venv/bin/python"
@@ -50,6 +56,13 @@ F=$(cat "$W/features.txt")
 "$T" convergence --data "$W/real128" --features "$F" --detections "$DET" --out "$W/$CONV" --updates 4000 \
   --chunk 250 --patience 6 --num-envs 256 --preset cpu --lr 1e-3 --seed "$SEED" --val-per-room-type 100 \
   --protocol lineage "${FLAGS[@]}"
+# 4b. (learned7) score every milestone again on 2000 val episodes (500 per room type, another seed than the training's
+#     400) and keep the best as RUN/best
+if [ -n "$SELECT" ]; then
+  [ -e "$W/val_select_lineage.json" ] || "$T" episodes --data "$W/real128" --split val --per-room-type "$SELECT" --seed 1 \
+    --protocol lineage --out "$W/val_select_lineage.json"
+  "$T" select --run "$W/$CONV/run" --data "$W/real128" --episodes "$W/val_select_lineage.json"
+fi
 # 5. pack (policy, float16 encoder, model card; skipped when the folder exists, as the shipped one does: pass another
 #    NAME to pack a new agent beside it) and write the val and test figures into the card
 if [ ! -e "$HERE/src/tsnav/agent/weights/$NAME" ]; then

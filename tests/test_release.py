@@ -158,12 +158,13 @@ def test_one_line_errors(packed, tmp_path, capsys):
 def test_one_shipped_agent_is_the_default(capsys):
     agents = release.shipped_agents()
     marked = [n for n, p in agents.items() if release.read_card(p).get("default")]
-    assert marked == [release.default_agent()] == ["tsrm-demae-learned6"]
+    assert marked == [release.default_agent()] == ["tsrm-demae-learned7"]
     # `tsnav release list`: each agent, the default marked, and its cards' test figures in one line
     assert main(["release", "list"]) == 0
     out = capsys.readouterr().out
-    assert "tsrm-demae-learned6 (default):" in out and "tsrm-demae-learned4-v2:" in out
-    assert "lineage 79.80 / 39.56" in out and "lineage 73.00 / 37.11" in out and "detector learned6" in out
+    assert "tsrm-demae-learned7 (default):" in out and "tsrm-demae-learned6:" in out and "tsrm-demae-learned4-v2:" in out
+    assert "lineage 82.20 / 41.72" in out and "lineage 79.80 / 39.56" in out and "lineage 73.00 / 37.11" in out
+    assert "detector learned7" in out and "detector learned6" in out
     assert "no test figures" in release.headline({"detector_shipped": "learned4"})
 
 
