@@ -508,6 +508,35 @@ def test_blocked_action_experiment(tmp_path, exp_world, pretrain_dir, capsys):
     assert plain_exp.reusable_run(tc, agent) == tmp_path / "flag" / "jobs" / "baseline_s0" / "train"
 
 
+def test_select_per_room_type(tmp_path, exp_world, pretrain_dir):
+    """--select-per-room-type: the selection episodes hold that many per room type, table.md and results.json say so,
+    the folder refuses a resume with another value, and a count below 1 is refused before any work."""
+    from dataclasses import replace
+
+    from tsnav.sim.episodes import read_episodes
+
+    cfg = ExperimentConfig(experiment="ablation", data=str(exp_world), out=str(tmp_path / "sel"), seeds=1,
+                           device="cpu", pretrain_dir=str(pretrain_dir), rows=("baseline",), select_per_room_type=3)
+    res = Experiment(cfg, train_fn=StandInTrainer(), scale=TINY).run()
+    assert res["select_per_room_type"] == 3
+    eps, meta = read_episodes(tmp_path / "sel" / "episodes_select.json")
+    per_type = {}
+    for e in eps:
+        per_type[e.room_type] = per_type.get(e.room_type, 0) + 1
+    assert per_type and max(per_type.values()) == 3 and meta["per_room_type"] == 3
+    assert "chosen on 3 validation episodes per room type" in (tmp_path / "sel" / "table.md").read_text()
+    with pytest.raises(ValueError, match="another select_per_room_type"):
+        Experiment(replace(cfg, select_per_room_type=None), train_fn=StandInTrainer(), scale=TINY).run()
+    with pytest.raises(ValueError, match="--select-per-room-type must be >= 1"):
+        Experiment(replace(cfg, out=str(tmp_path / "zero"), select_per_room_type=0), train_fn=StandInTrainer(),
+                   scale=TINY)
+    # without the option the scale's count is used, and the table says nothing
+    res = Experiment(replace(cfg, out=str(tmp_path / "plain"), select_per_room_type=None), train_fn=StandInTrainer(),
+                     scale=TINY).run()
+    assert res["select_per_room_type"] == TINY.val_per_room_type
+    assert "validation episodes per room type" not in (tmp_path / "plain" / "table.md").read_text()
+
+
 def test_rows_option_runs_a_subset_and_adds_the_rest_later(tmp_path, exp_world, pretrain_dir, capsys):
     """--rows: only the named rows are trained and tabulated; a second call into the same folder with the other
     rows trains only those and finds the first call's jobs done; an unknown id is refused in one line."""

@@ -302,6 +302,10 @@ class ExperimentConfig:
     blocked_action: bool = False
     """A deviation from the paper (:attr:`tsnav.agent.AgentConfig.blocked_action`, ``--blocked-action``): every job's
     agent is told when its last MoveAhead left it where it was, as the shipped agent is; named in ``table.md``."""
+    select_per_room_type: int | None = None
+    """Validation episodes per room type on which each job's milestones are scored (``checkpoint == "best"``);
+    None: the scale's ``val_per_room_type`` (100 at the medium scale). The shipped agent was chosen on 500
+    (``--select-per-room-type 500``: 2000 episodes of the 20 val rooms). Part of the folder's identity."""
     train_data: str | None = None
     """Dataset root of the training rooms when they are not ``data``'s own (the demo's ``train_world``: some of
     ``data``'s training rooms, linked); None: ``data``."""

@@ -258,10 +258,11 @@ class Job:
 
 #: experiment.json fields that must match when an experiment folder is resumed.
 IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample",
-            "checkpoint", "protocol", "blocked_action")
+            "checkpoint", "protocol", "blocked_action", "select_per_room_type")
 #: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled, and
 #: the latest checkpoint was evaluated).
-LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest", "protocol": "paper", "blocked_action": False}
+LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest", "protocol": "paper", "blocked_action": False,
+                   "select_per_room_type": None}
 #: ``ExperimentConfig.checkpoint`` values.
 CHECKPOINTS = ("best", "latest")
 #: Seed of the selection episodes (the threshold experiment's evaluation episodes on val use seed 0).
@@ -286,6 +287,8 @@ class Experiment:
             raise ValueError(f"--minutes-per-job must be positive, got {cfg.minutes_per_job}")
         if cfg.updates_per_job is not None and cfg.updates_per_job < 1:
             raise ValueError(f"--updates-per-job must be >= 1, got {cfg.updates_per_job}")
+        if cfg.select_per_room_type is not None and cfg.select_per_room_type < 1:
+            raise ValueError(f"--select-per-room-type must be >= 1, got {cfg.select_per_room_type}")
         if cfg.detector not in DETECTOR_SOURCES:
             raise ValueError(f"--detector must be train or shipped, got {cfg.detector!r}")
         if cfg.checkpoint not in CHECKPOINTS:
@@ -387,6 +390,7 @@ class Experiment:
         results["detections"] = self.cfg.detections
         results["protocol"] = self.cfg.protocol
         results["blocked_action"] = self.cfg.blocked_action
+        results["select_per_room_type"] = self.select_per_room_type
         results["welch"] = welch_against(results, self.info["baseline_row"])
         quality = self.quality()
         if quality:
@@ -397,6 +401,8 @@ class Experiment:
                 + f"Success {protocol_line(self.cfg.protocol, self.cfg.protocol)}.\n\n" + markdown_table(results)
                 + ("\nEvery agent is told when its last MoveAhead failed (`--blocked-action`, a deviation from the "
                    "paper).\n" if self.cfg.blocked_action else "")
+                + (f"\nEach job's checkpoint is chosen on {self.select_per_room_type} validation episodes per room type "
+                   "(`--select-per-room-type`).\n" if self.cfg.select_per_room_type is not None else "")
                 + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
                 + f"Detections: {self.cfg.detections}"
                 + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
@@ -494,7 +500,7 @@ class Experiment:
         splits = ["train", split]
         if cfg.checkpoint == "best":
             say(f"[{cfg.experiment}] validation episodes for checkpoint selection")
-            ensure_episodes(cfg.data, "val", self.select_file, scale.val_per_room_type, seed=SELECT_SEED,
+            ensure_episodes(cfg.data, "val", self.select_file, self.select_per_room_type, seed=SELECT_SEED,
                             protocol=cfg.protocol)
             splits = list(dict.fromkeys([*splits, "val"]))
         features = {}
@@ -542,6 +548,12 @@ class Experiment:
         if protocol == self.cfg.protocol:
             return self.episodes_file
         return self.out / f"episodes_{self.info['split']}_{protocol}.json"
+
+    @property
+    def select_per_room_type(self) -> int:
+        """Validation episodes per room type of :attr:`select_file` (``--select-per-room-type``, else the scale's)."""
+        n = self.cfg.select_per_room_type
+        return self.scale.val_per_room_type if n is None else n
 
     @property
     def select_file(self) -> Path:
@@ -780,6 +792,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blocked-action", action="store_true",
                         help="a deviation from the paper: every agent is told when its last MoveAhead left it where "
                              "it was (AgentConfig.blocked_action, as the shipped agent); part of the folder's identity")
+    parser.add_argument("--select-per-room-type", type=int, default=None, metavar="N",
+                        help="validation episodes per room type on which each job's milestones are scored "
+                             "(--checkpoint best; default: the scale's, 100 at the medium scale; the shipped agent "
+                             "was chosen on 500); part of the folder's identity")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
     parser.add_argument("--reuse-from", action="append", default=[], metavar="EXPERIMENT_DIR",
                         help="another experiment folder whose finished jobs with the same training configuration "
@@ -810,7 +826,7 @@ def run(args: argparse.Namespace) -> int:
                            detections=args.detections, vc1_weights=args.vc1_weights,
                            resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
                            procs=args.procs, sample=args.sample, checkpoint=args.checkpoint, protocol=args.protocol,
-                           blocked_action=args.blocked_action,
+                           blocked_action=args.blocked_action, select_per_room_type=args.select_per_room_type,
                            rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()) if args.rows else (),
                            reuse_from=tuple(str(Path(d).resolve()) for d in args.reuse_from))
     if args.threads is not None and args.threads < 1:
