@@ -108,7 +108,7 @@ def test_experiments_take_the_shipped_tables(tmp_path, tiny_real, tiny_world):
     (nothing trained, no detector folder); a 64-px world is refused in one line; another source is refused."""
     from tsnav.data.detections import read_fingerprint
     from tsnav.pipeline.experiment import Experiment
-    from tsnav.pipeline.config import ExperimentConfig
+    from tsnav.pipeline.config import ExperimentConfig, ScaleConfig
     from tsnav.pipeline.steps import ensure_detections
 
     data = tmp_path / "data"
@@ -120,5 +120,15 @@ def test_experiments_take_the_shipped_tables(tmp_path, tiny_real, tiny_world):
     ensure_detections(data, "learned", None, None, shipped=True)  # complete: nothing to write, no error
     with pytest.raises(CommandError, match="reads 128x128 frames"):
         ensure_detections(tiny_world, "shipped_y", None, None, shipped=True)
+    # a table named after a shipped detector is that detector's: written by it, and taken as shipped when complete
+    ensure_detections(data, "learned3", None, None, shipped=True)
+    assert read_fingerprint(data / val.name, "learned3") == shipped.shipped_meta("learned3")["fingerprint"]
+    ensure_detections(data, "learned3", None, None, shipped=True)  # complete: no "another detector's" error
+    with pytest.raises(CommandError, match="holds the shipped detector's detections_learned3.hdf5, not from --detector train"):
+        ensure_detections(data, "learned3", tmp_path / "det", ScaleConfig(), shipped=False)
+    # another shipped detector's tables under a shipped detector's name are refused in one line, not overwritten
+    shutil.copy(data / val.name / "detections_learned3.hdf5", data / val.name / "detections_learned7.hdf5")
+    with pytest.raises(CommandError, match="another learned detector's .* not from --detector shipped"):
+        ensure_detections(data, "learned7", None, None, shipped=True)
     with pytest.raises(ValueError, match="--detector must be train or shipped"):
         Experiment(ExperimentConfig(experiment="ablation", data=str(data), out=str(tmp_path / "x"), detector="bogus"))

@@ -767,7 +767,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", choices=DETECTOR_SOURCES, default="train",
                         help="where missing learned tables come from: train (default: the detector in "
                              "--detector-dir, trained here) or shipped (the detector that comes with tsnav, for the "
-                             "128-px ithor-real rooms: the medium scale's tables in minutes instead of hours)")
+                             "128-px ithor-real rooms: the medium scale's tables in minutes instead of hours; "
+                             "--detections learned3/4/6/7 take the shipped detector of that name, any other name "
+                             "learned4)")
     parser.add_argument("--vc1-weights", default=None, help="VC-1 ViT-Base weights: adds the VC-1 row (pretraining)")
     parser.add_argument("--resnet18-weights", default=None,
                         help="torchvision ResNet18 weights (ImageNet, as in the paper) for the baseline encoder")
