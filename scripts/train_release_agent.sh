@@ -2,14 +2,14 @@
 # How the agent shipped in src/tsnav/agent/weights/ was made (issue 23 section 4). Every step is resumable and
 # skipped when its output exists; run it again after an interruption. About 3 hours of the 2-core machine.
 #
-#   bash scripts/train_release_agent.sh WORK_DIR [NAME]
+#   bash scripts/train_release_agent.sh WORK_DIR [NAME]                  # the default agent, RECIPE=learned7
 #   RECIPE=learned6 bash scripts/train_release_agent.sh WORK_DIR tsrm-demae-learned6
-#   RECIPE=learned7 bash scripts/train_release_agent.sh WORK_DIR tsrm-demae-learned7
+#   RECIPE=learned4 bash scripts/train_release_agent.sh WORK_DIR tsrm-demae-learned4-v2
 #
 # WORK_DIR gets the 120-room world (30 GB at 128 px), the pretraining run, the training run and the evaluations;
-# the packed agent is written to src/tsnav/agent/weights/NAME (default tsrm-demae-learned4-v2).
+# the packed agent is written to src/tsnav/agent/weights/NAME (default: the recipe's name).
 # RECIPE picks the agent: learned4 (tsrm-demae-learned4-v2), learned6 (tsrm-demae-learned6: the shipped learned6
-# detector's tables, --blocked-action, seed 3) or learned7 (tsrm-demae-learned7, the shipped default: learned7's
+# detector's tables, --blocked-action, seed 3) or learned7 (the default: tsrm-demae-learned7, the shipped default; learned7's
 # tables, --blocked-action, seed 3, and the checkpoint chosen afterwards on 2000 val episodes instead of the training's
 # 400). The shipped runs were trained in legs resumed in the same folder (learned4: 2000, 3000, 4000 updates;
 # learned6 and learned7: 2000, then 4000); this script runs one leg to 4000.
@@ -17,7 +17,7 @@
 # the same agent on this machine (not re-run here for either recipe).
 set -euo pipefail
 W=${1:?usage: train_release_agent.sh WORK_DIR [NAME]}
-RECIPE=${RECIPE:-learned4}
+RECIPE=${RECIPE:-learned7}
 case "$RECIPE" in
   learned4) NAME=${2:-tsrm-demae-learned4-v2}; DET=learned4; SEED=1; FLAGS=(); CARD=release_card.json; CONV=conv ;;
   learned6) NAME=${2:-tsrm-demae-learned6}; DET=learned6; SEED=3; FLAGS=(--blocked-action); CARD=release_card_learned6.json
