@@ -18,8 +18,8 @@ from pathlib import Path
 from tsnav.errors import CommandError, read_json
 
 
-def read_selection(path: str) -> tuple[list[int], list[float], list[float], str, int]:
-    """(updates, SR %, SPL %, chosen milestone name, episodes) of one ``selection.json``."""
+def read_selection(path: str) -> tuple[list[int], list[float], list[float], int, int]:
+    """(updates, SR %, SPL %, update of the chosen milestone, episodes) of one ``selection.json``."""
     doc = read_json(Path(path), CommandError, missing="no such file")
     try:
         scores = doc["scores"]
@@ -30,7 +30,11 @@ def read_selection(path: str) -> tuple[list[int], list[float], list[float], str,
         raise CommandError(f"{path}: not a selection.json of tsnav select ({e})") from None
     if not rows:
         raise CommandError(f"{path}: no scored milestone")
-    return [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], best, rows[0][3]
+    if best not in scores:
+        raise CommandError(f"{path}: its chosen milestone {best!r} is not among its scored ones (a selection "
+                           "still running?)")
+    return ([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], int(scores[best]["update"]),
+            rows[0][3])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             updates, sr, spl, best, n = sel
             for ax, ys in zip(axes, (sr, spl)):
                 ax.plot(updates, ys, style, color=colour, marker=".", label=f"{label}, {n} val episodes")
-                b = updates.index(int(best.rsplit("_", 1)[-1]))
+                b = updates.index(best)
                 ax.plot([updates[b]], [ys[b]], "o", ms=11, mfc="none", mec=colour)
     for ax, name in zip(axes, ("SR", "SPL")):
         ax.set_xlabel("update")

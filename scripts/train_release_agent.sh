@@ -18,6 +18,7 @@
 set -euo pipefail
 W=${1:?usage: train_release_agent.sh WORK_DIR [NAME]}
 RECIPE=${RECIPE:-learned7}
+SELECT=
 case "$RECIPE" in
   learned4) NAME=${2:-tsrm-demae-learned4-v2}; DET=learned4; SEED=1; FLAGS=(); CARD=release_card.json; CONV=conv ;;
   learned6) NAME=${2:-tsrm-demae-learned6}; DET=learned6; SEED=3; FLAGS=(--blocked-action); CARD=release_card_learned6.json
@@ -26,14 +27,13 @@ case "$RECIPE" in
             CONV=conv-learned7; SELECT=500 ;;
   *) echo "RECIPE must be learned4, learned6 or learned7, got $RECIPE" >&2; exit 2 ;;
 esac
-SELECT=${SELECT:-}
 HERE="$(cd "$(dirname "$0")/.." && pwd)"
 T="$HERE/.venv/bin/tsnav"
 PY="$HERE/.venv/bin/python"
 mkdir -p "$W"
 # 1. the 120 real iTHOR rooms at 128x128 with the rules the agent was trained on (version 2, the default)
 "$T" world --preset ithor-real --world-version 2 --out "$W/real128" --workers 2
-# 2. the shipped detector's tables (learned4; its confidence drives the stage switch, paper III-B)
+# 2. the recipe's shipped detector's tables (its confidence drives the stage switch, paper III-B)
 "$T" detect --data "$W/real128" --detector shipped --shipped "$DET" --name "$DET" --threads 1 --quiet
 # 3. DE-MAE pretraining at the medium scale (ViT-Tiny, 64 px, patch 16, 800 steps of 64 frames) and its features
 "$PY" - "$W" <<'EOF'
@@ -57,16 +57,23 @@ F=$(cat "$W/features.txt")
   --chunk 250 --patience 6 --num-envs 256 --preset cpu --lr 1e-3 --seed "$SEED" --val-per-room-type 100 \
   --protocol lineage "${FLAGS[@]}"
 # 4b. (learned7) score every milestone again on 2000 val episodes (500 per room type, another seed than the training's
-#     400) and keep the best as RUN/best
+#     400) in a copy of the run, RUN-select, whose best is packed (the run keeps the training's own selection, so a
+#     second call of this script skips both)
+RUN="$W/$CONV/run"
 if [ -n "$SELECT" ]; then
   [ -e "$W/val_select_lineage.json" ] || "$T" episodes --data "$W/real128" --split val --per-room-type "$SELECT" --seed 1 \
     --protocol lineage --out "$W/val_select_lineage.json"
-  "$T" select --run "$W/$CONV/run" --data "$W/real128" --episodes "$W/val_select_lineage.json"
+  if [ ! -e "$W/$CONV/run-select" ]; then
+    rm -rf "$W/$CONV/run-select.tmp"
+    cp -r "$RUN" "$W/$CONV/run-select.tmp" && mv "$W/$CONV/run-select.tmp" "$W/$CONV/run-select"
+  fi
+  RUN="$W/$CONV/run-select"
+  "$T" select --run "$RUN" --data "$W/real128" --episodes "$W/val_select_lineage.json"
 fi
 # 5. pack (policy, float16 encoder, model card; skipped when the folder exists, as the shipped one does: pass another
 #    NAME to pack a new agent beside it) and write the val and test figures into the card
 if [ ! -e "$HERE/src/tsnav/agent/weights/$NAME" ]; then
-  "$T" release pack --run "$W/$CONV/run" --encoder-run "$W/pre/demae-p16" --card "$HERE/scripts/$CARD" \
+  "$T" release pack --run "$RUN" --encoder-run "$W/pre/demae-p16" --card "$HERE/scripts/$CARD" \
     --out "$HERE/src/tsnav/agent/weights/$NAME"
 fi
 "$T" release eval --agent "$NAME" --split val --data "$W/real128" --out "$W/release_val" --update-card --threads 1

@@ -527,14 +527,28 @@ def test_select_per_room_type(tmp_path, exp_world, pretrain_dir):
     assert "chosen on 3 validation episodes per room type" in (tmp_path / "sel" / "table.md").read_text()
     with pytest.raises(ValueError, match="another select_per_room_type"):
         Experiment(replace(cfg, select_per_room_type=None), train_fn=StandInTrainer(), scale=TINY).run()
-    with pytest.raises(ValueError, match="--select-per-room-type must be >= 1"):
-        Experiment(replace(cfg, out=str(tmp_path / "zero"), select_per_room_type=0), train_fn=StandInTrainer(),
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="--select-per-room-type must be an integer >= 1"):
+            Experiment(replace(cfg, out=str(tmp_path / "zero"), select_per_room_type=bad), train_fn=StandInTrainer(),
+                       scale=TINY)
+    with pytest.raises(ValueError, match="needs --checkpoint best"):
+        Experiment(replace(cfg, out=str(tmp_path / "latest"), checkpoint="latest"), train_fn=StandInTrainer(),
                    scale=TINY)
+    assert not (tmp_path / "zero").exists() and not (tmp_path / "latest").exists()
     # without the option the scale's count is used, and the table says nothing
-    res = Experiment(replace(cfg, out=str(tmp_path / "plain"), select_per_room_type=None), train_fn=StandInTrainer(),
-                     scale=TINY).run()
+    plain = replace(cfg, out=str(tmp_path / "plain"), select_per_room_type=None)
+    res = Experiment(plain, train_fn=StandInTrainer(), scale=TINY).run()
     assert res["select_per_room_type"] == TINY.val_per_room_type
     assert "validation episodes per room type" not in (tmp_path / "plain" / "table.md").read_text()
+    # naming the scale's own count is the same folder; so is a folder written before the option existed
+    trainer = StandInTrainer()
+    Experiment(replace(plain, select_per_room_type=TINY.val_per_room_type), train_fn=trainer, scale=TINY).run()
+    meta = tmp_path / "plain" / "experiment.json"
+    doc = json.loads(meta.read_text())
+    doc["config"].pop("select_per_room_type")
+    meta.write_text(json.dumps(doc))
+    Experiment(plain, train_fn=trainer, scale=TINY).run()
+    assert trainer.calls == []  # nothing trained again
 
 
 def test_rows_option_runs_a_subset_and_adds_the_rest_later(tmp_path, exp_world, pretrain_dir, capsys):

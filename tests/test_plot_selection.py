@@ -19,7 +19,7 @@ def test_reads_the_files_and_writes_a_png(tmp_path, capsys):
     large = _selection(tmp_path / "b.json", {250: 0.72, 500: 0.78, 750: 0.79}, "ckpt_000000750", 2000)
     updates, sr, spl, best, n = mod.read_selection(str(small))
     assert updates == [250, 500, 750] and sr == [70.0, 80.0, 75.0] and spl == [35.0, 40.0, 37.5]
-    assert best == "ckpt_000000500" and n == 400
+    assert best == 500 and n == 400
     out = tmp_path / "sel.png"
     assert mod.main(["--out", str(out), "--run", f"seed 0={small},{large}"]) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -30,8 +30,10 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     good = _selection(tmp_path / "a.json", {250: 0.7}, "ckpt_000000250", 400)
     bad = tmp_path / "bad.json"
     bad.write_text('{"best": "x"}')
+    running = _selection(tmp_path / "running.json", {250: 0.7}, None, 400)  # a selection still running
     out = tmp_path / "sel.png"
-    for run in (f"seed 0={good}", f"seed 0={good},{bad}", f"seed 0={good},{tmp_path / 'missing.json'}"):
+    for run in (f"seed 0={good}", f"seed 0={good},{bad}", f"seed 0={good},{tmp_path / 'missing.json'}",
+                f"seed 0={good},{running}"):
         assert mod.main(["--out", str(out), "--run", run]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("plot_selection: error:") and len(err.splitlines()) == 1

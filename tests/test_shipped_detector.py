@@ -96,6 +96,10 @@ def test_detect_command_writes_the_shipped_tables(tmp_path, tiny_real, tiny_worl
     assert main(["detect", "--data", str(data), "--detector", "shipped", "--shipped", "learned3", "--name", "l3",
                  "--no-eval", "--threads", "1"]) == 0
     assert read_fingerprint(data / val.name, "l3") == shipped.shipped_meta("learned3")["fingerprint"]
+    # without --shipped, a table named after a shipped detector is written by that detector
+    assert main(["detect", "--data", str(data), "--detector", "shipped", "--name", "learned3", "--no-eval",
+                 "--threads", "1"]) == 0
+    assert read_fingerprint(data / val.name, "learned3") == shipped.shipped_meta("learned3")["fingerprint"]
     capsys.readouterr()
     assert main(["detect", "--data", str(tiny_world), "--detector", "shipped", "--no-eval", "--name", "shipped_x"]) == 2
     err = capsys.readouterr().err.strip()
@@ -124,11 +128,14 @@ def test_experiments_take_the_shipped_tables(tmp_path, tiny_real, tiny_world):
     ensure_detections(data, "learned3", None, None, shipped=True)
     assert read_fingerprint(data / val.name, "learned3") == shipped.shipped_meta("learned3")["fingerprint"]
     ensure_detections(data, "learned3", None, None, shipped=True)  # complete: no "another detector's" error
-    with pytest.raises(CommandError, match="holds the shipped detector's detections_learned3.hdf5, not from --detector train"):
-        ensure_detections(data, "learned3", tmp_path / "det", ScaleConfig(), shipped=False)
+    # a run that trains its detector refuses the default shipped detector's tables, as it always did
+    with pytest.raises(CommandError, match="holds the shipped detector's detections_learned.hdf5, not from --detector train"):
+        ensure_detections(data, "learned", tmp_path / "det", ScaleConfig(), shipped=False)
+    assert not (tmp_path / "det").exists()
     # another shipped detector's tables under a shipped detector's name are refused in one line, not overwritten
     shutil.copy(data / val.name / "detections_learned3.hdf5", data / val.name / "detections_learned7.hdf5")
     with pytest.raises(CommandError, match="another learned detector's .* not from --detector shipped"):
         ensure_detections(data, "learned7", None, None, shipped=True)
+    assert read_fingerprint(data / val.name, "learned7") == shipped.shipped_meta("learned3")["fingerprint"]
     with pytest.raises(ValueError, match="--detector must be train or shipped"):
         Experiment(ExperimentConfig(experiment="ablation", data=str(data), out=str(tmp_path / "x"), detector="bogus"))

@@ -82,8 +82,9 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                    help="learned, new checkpoint: output cells of stride 4 after the stem instead of 8 (an FPN-style "
                         "lateral from the second stage; better for small objects; default on for frames of 128px "
                         "or more)")
-    p.add_argument("--shipped", choices=sorted(SHIPPED), default=DEFAULT_SHIPPED,
-                   help=f"shipped: which shipped detector (default {DEFAULT_SHIPPED}; learned3 wrote the tables of the "
+    p.add_argument("--shipped", choices=sorted(SHIPPED), default=None,
+                   help=f"shipped: which shipped detector (default: the one --name names, if any, else "
+                        f"{DEFAULT_SHIPPED}; learned3 wrote the tables of the "
                         "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
                         "see tsnav.detect.shipped)")
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
@@ -229,7 +230,8 @@ def run(args: argparse.Namespace) -> int:
     if args.detector == "oracle":
         fingerprint, oracle = _oracle(args)
     else:
-        det = (shipped_detector(load_scene(scenes[0]).image_size, name=args.shipped) if args.detector == "shipped"
+        which = args.shipped or (name if name in SHIPPED else DEFAULT_SHIPPED)
+        det = (shipped_detector(load_scene(scenes[0]).image_size, name=which) if args.detector == "shipped"
                else _learned(args, root))
         fingerprint = det.fingerprint
 

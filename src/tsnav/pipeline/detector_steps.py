@@ -139,7 +139,9 @@ def complete_tables(data: str | Path, name: str, source: str | None = None) -> s
     any): the shipped detector's tables are not taken by a run that trains its detector, nor another learned
     detector's by a run that asks for the shipped one; one-line error, the tables are kept."""
     ready = tables_complete(data, name)
-    shipped_fp = shipped_meta(shipped_for(name))["fingerprint"]
+    # --detector shipped takes the tables of the shipped detector it would write them with (shipped_for); a run
+    # that trains its detector refuses the default shipped detector's, as before tables were named after detectors
+    shipped_fp = shipped_meta(shipped_for(name) if source == "shipped" else None)["fingerprint"]
     if ready and source is not None and (ready == shipped_fp) != (source == "shipped"):
         have = "the shipped detector's" if ready == shipped_fp else f"another learned detector's ({ready})"
         other = "train" if source == "shipped" else "shipped"

@@ -287,14 +287,21 @@ class Experiment:
             raise ValueError(f"--minutes-per-job must be positive, got {cfg.minutes_per_job}")
         if cfg.updates_per_job is not None and cfg.updates_per_job < 1:
             raise ValueError(f"--updates-per-job must be >= 1, got {cfg.updates_per_job}")
-        if cfg.select_per_room_type is not None and cfg.select_per_room_type < 1:
-            raise ValueError(f"--select-per-room-type must be >= 1, got {cfg.select_per_room_type}")
+        if cfg.select_per_room_type is not None:
+            if isinstance(cfg.select_per_room_type, bool) or not isinstance(cfg.select_per_room_type, int) \
+                    or cfg.select_per_room_type < 1:
+                raise ValueError(f"--select-per-room-type must be an integer >= 1, got {cfg.select_per_room_type!r}")
+            if cfg.checkpoint != "best":
+                raise ValueError("--select-per-room-type needs --checkpoint best (with latest no checkpoint is "
+                                 "selected)")
         if cfg.detector not in DETECTOR_SOURCES:
             raise ValueError(f"--detector must be train or shipped, got {cfg.detector!r}")
         if cfg.checkpoint not in CHECKPOINTS:
             raise ValueError(f"--checkpoint must be one of {', '.join(CHECKPOINTS)}, got {cfg.checkpoint!r}")
-        self.cfg = cfg
         self.scale = scale or SCALES[cfg.scale]
+        if cfg.select_per_room_type == self.scale.val_per_room_type:  # the scale's own count: the same folder
+            cfg = replace(cfg, select_per_room_type=None)
+        self.cfg = cfg
         self.info = EXPERIMENT_INFO[cfg.experiment]
         self.rows = experiment_rows(cfg.experiment, vc1=bool(cfg.vc1_weights))
         if cfg.rows:
@@ -390,7 +397,8 @@ class Experiment:
         results["detections"] = self.cfg.detections
         results["protocol"] = self.cfg.protocol
         results["blocked_action"] = self.cfg.blocked_action
-        results["select_per_room_type"] = self.select_per_room_type
+        if self.cfg.checkpoint == "best":
+            results["select_per_room_type"] = self.select_per_room_type
         results["welch"] = welch_against(results, self.info["baseline_row"])
         quality = self.quality()
         if quality:
