@@ -35,7 +35,7 @@ from .evaluate import evaluate_detections
 from .learned import LearnedDetector, write_scene_tables
 from .model import LossWeights, default_config
 from .oracle import OracleConfig, oracle_detections
-from .shipped import DEFAULT_SHIPPED, SHIPPED, shipped_detector
+from .shipped import DEFAULT_SHIPPED, SHIPPED, shipped_detector, shipped_for
 from .train import DetectorTrainConfig, calibrate, default_train_steps, is_checkpoint, read_meta, train_detector
 
 
@@ -230,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
     if args.detector == "oracle":
         fingerprint, oracle = _oracle(args)
     else:
-        which = args.shipped or (name if name in SHIPPED else DEFAULT_SHIPPED)
+        which = args.shipped or shipped_for(name)
         det = (shipped_detector(load_scene(scenes[0]).image_size, name=which) if args.detector == "shipped"
                else _learned(args, root))
         fingerprint = det.fingerprint

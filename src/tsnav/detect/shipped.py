@@ -43,6 +43,13 @@ DEFAULT_SHIPPED = "learned4"
 SHIPPED_DIR = SHIPPED[DEFAULT_SHIPPED]
 
 
+def shipped_for(table: str) -> str:
+    """The shipped detector whose tables are named ``table``: the shipped detector of that name when there is one
+    (``detections_learned7.hdf5`` is ``learned7``'s), else :data:`DEFAULT_SHIPPED`. ``tsnav detect --detector
+    shipped`` without ``--shipped`` and ``tsnav experiment --detector shipped`` write and accept tables by it."""
+    return table if table in SHIPPED else DEFAULT_SHIPPED
+
+
 def _folder(name: str | None) -> Path:
     name = name or DEFAULT_SHIPPED
     if name not in SHIPPED:

@@ -37,7 +37,7 @@ from ..data.detections import detections_path, load_detections, read_fingerprint
 from ..data.reader import list_scenes, load_scene
 from ..detect.evaluate import evaluate_detections
 from ..detect.learned import LearnedDetector, write_scene_tables
-from ..detect.shipped import DEFAULT_SHIPPED, SHIPPED, shipped_detector, shipped_meta
+from ..detect.shipped import shipped_detector, shipped_for, shipped_meta
 from ..detect.model import DetectorConfig
 from ..detect.quality import switch_report
 from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
@@ -127,12 +127,6 @@ def tables_complete(data: str | Path, name: str) -> str | None:
     return kinds[0] if kinds and all(fp is not None for fp in have.values()) else None
 
 
-def shipped_for(name: str) -> str:
-    """The shipped detector that ``--detector shipped`` uses for the table ``name``: the shipped detector of that
-    name when there is one (``learned7``'s tables are ``learned7``'s), else :data:`DEFAULT_SHIPPED`."""
-    return name if name in SHIPPED else DEFAULT_SHIPPED
-
-
 def complete_tables(data: str | Path, name: str, source: str | None = None) -> str | None:
     """:func:`tables_complete` under the one rule on a complete set of tables from another source than the one
     asked for (``source``: ``shipped`` or ``train``, :data:`~tsnav.pipeline.config.DETECTOR_SOURCES`; None:
@@ -168,7 +162,7 @@ def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | P
 def ensure_shipped_detections(data: str | Path, name: str, progress: bool = True,
                               say: Callable[[str], None] = print, workers: int = 1) -> dict:
     """Like :func:`ensure_learned_detections`, with the detector shipped in the package
-    (:mod:`tsnav.detect.shipped`, :func:`shipped_for` ``name``, loaded for the scenes' frame size) writing the
+    (:mod:`tsnav.detect.shipped`, :func:`~tsnav.detect.shipped.shipped_for` ``name``, loaded for the scenes' frame size) writing the
     missing tables: nothing is trained. Returns ``{"fingerprint", "written"}``."""
     have, kinds = learned_tables(data, name)
     if not any(fp is None for fp in have.values()):
