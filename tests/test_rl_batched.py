@@ -311,6 +311,80 @@ def test_bf16_rollout_agrees_with_its_float32_replay(world):
     assert (g16.norm() / g32.norm() - 1).abs() < 0.05
 
 
+@pytest.mark.parametrize("seeded", [False, True])
+def test_policy_is_torch_categorical_bit_for_bit(seeded):
+    """The collector's :class:`Policy` against ``torch.distributions.Categorical``: the same actions from the same
+    random state, the same log-probabilities, entropies and Done probabilities, and the same gradient of a loss
+    that mixes them, bit for bit."""
+    from tsnav.rl.rollout import Policy
+
+    base = torch.randn(64, 6, dtype=torch.float64).float() * 3
+    base[0] = torch.tensor([30.0, -30.0, 0.0, 0.0, 1e-3, -1e-3])  # near-one-hot row
+
+    def run(make):
+        logits = base.clone().requires_grad_()
+        scaled = logits * 1.5  # not a leaf, as the network's output
+        gen = torch.Generator().manual_seed(7) if seeded else None
+        torch.manual_seed(3)
+        pol = make(scaled)
+        if isinstance(pol, Policy):
+            action = pol.sample(gen)
+        else:
+            action = pol.sample() if gen is None else torch.multinomial(pol.probs.detach(), 1, generator=gen)[:, 0]
+        done = pol.probs.detach()[:, DONE]
+        logp, ent = pol.log_prob(action), pol.entropy()
+        ((logp * torch.linspace(-1, 1, 64)).sum() - 0.01 * ent.sum()).backward()
+        return action, logp, ent, done, logits.grad
+
+    fast, slow = run(Policy), run(lambda lg: torch.distributions.Categorical(logits=lg))
+    assert len(set(fast[0].tolist())) > 1
+    for a, b in zip(fast, slow):
+        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b)
+    with pytest.raises(RuntimeError):  # invalid logits still fail loudly
+        Policy(torch.full((2, 6), float("nan"))).sample()
+
+
+@pytest.mark.parametrize("preset", ["paper", "cpu"])
+def test_bf16_cast_once_is_autocasts_per_step_cast_bit_for_bit(world, preset):
+    """The fast path (the weights cast to bfloat16 once per rollout) against its reference (autocast's cast at
+    every step): the same actions, log-probabilities, values and, after the backward of the loss, the same
+    gradient of every parameter, bit for bit, with dropout on and with the truncated episodes' bootstrap passes."""
+    from tsnav.rl.rollout import a2c_loss
+
+    cfg = _cfg(world, num_envs=12, max_steps=7)
+    bank, _ = load_bank(cfg)
+    obs_fn = make_observer(bank, cfg)
+    model = make_model(agent_config(preset), obs_fn, 0)
+    model.train()
+    names = model.autocast_weights()
+    assert "lstm.weight_hh" in names and "image.weight" in names
+    assert not {"action_embed.weight", "memory.query.weight", "memory.nothing", "memory.attn.in_proj_bias"} & set(names)
+
+    def run(cast_once):
+        col = RolloutCollector(make_train_env(bank, cfg, 12, seed=5), obs_fn, model, precision="bf16",
+                               cast_once=cast_once)
+        torch.manual_seed(1)
+        out = []
+        for _ in range(2):  # the second rollout starts from the first one's recurrent state
+            ro = col.collect(9)
+            assert col.low is None
+            adv, ret = gae(ro.reward, ro.value, ro.bootstrap, ro.terminated, ro.finished)
+            model.zero_grad(set_to_none=True)
+            a2c_loss(ro, adv, ret)[0].backward()
+            out.append((ro, {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}))
+        return out
+
+    fast, slow = run(True), run(False)
+    assert sum(int(ro.finished.sum()) for ro, _ in fast) > 0  # episodes ended (truncations bootstrap)
+    for (ra, ga), (rb, gb) in zip(fast, slow):
+        assert np.array_equal(ra.actions, rb.actions)
+        for k in ("logp", "entropy", "value", "bootstrap"):
+            assert torch.equal(getattr(ra, k), getattr(rb, k)), k
+        assert ga.keys() == gb.keys() and len(ga) == len(list(model.parameters()))
+        for k in ga:
+            assert torch.equal(ga[k], gb[k]), k
+
+
 def test_bf16_run_resumes_exactly(world, tmp_path):
     cfg = _cfg(world, updates=6, precision="bf16")
     agent = agent_config("cpu")

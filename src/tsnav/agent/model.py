@@ -204,6 +204,16 @@ class ActorCritic(nn.Module):
         return torch.where((state.prev_action == MOVE_AHEAD) & stayed,
                            torch.full_like(state.prev_action, BLOCKED_MOVE), state.prev_action)
 
+    def autocast_weights(self) -> list[str]:
+        """Names of the parameters whose every use in :meth:`forward` is an operand of a matrix product that
+        ``torch.autocast`` runs in bfloat16 (convolution, linear layers, the attention's projections, the LSTM
+        cell), so that casting them once per rollout gives what autocast's per-step cast gives
+        (``RolloutCollector(cast_once=True)``). Left out: the embeddings (autocast keeps them in float32), the
+        attention's input bias (its value part is added in float32) and the memory's ``nothing`` vector."""
+        keep = ("conv.", "image.", "memory.node.", "memory.attn.in_proj_weight", "memory.attn.out_proj.",
+                "memory.out.", "state.", "lstm.", "actor.", "critic.")
+        return [name for name, _ in self.named_parameters() if name.startswith(keep)]
+
     def describe(self) -> dict:
         """JSON-able description that rebuilds the network: config, feature shape, detection feature size."""
         return {"agent": asdict(self.config), "feature_shape": list(self.feature_shape), "det_dim": self.det_dim}

@@ -68,10 +68,13 @@ class RolloutCollector:
     """Steps ``env`` with ``model`` and keeps the observation and recurrent state between rollouts."""
 
     def __init__(self, env: BatchEnv, observer: Observer, model: ActorCritic, stats: EpisodeStats | None = None,
-                 generator: torch.Generator | None = None, precision: str = "fp32"):
+                 generator: torch.Generator | None = None, precision: str = "fp32", cast_once: bool = True):
         if precision not in PRECISIONS:
             raise ValueError(f"unknown precision {precision!r} (choose from {', '.join(PRECISIONS)})")
         self.precision = precision
+        self.cast_once = bool(cast_once)
+        self.params: dict[str, torch.Tensor] = {}
+        self.low: dict[str, torch.Tensor] | None = None  # bf16 weights of the running rollout (cast_once)
         self.env = env
         self.observer = observer
         self.model = model
@@ -85,11 +88,22 @@ class RolloutCollector:
         return next(self.model.parameters()).device
 
     def forward(self, obs, state: AgentState) -> tuple[torch.Tensor, torch.Tensor, AgentState]:
-        """The model's step in the collector's precision; logits, value and LSTM state come back as float32."""
+        """The model's step in the collector's precision; logits, value and LSTM state come back as float32.
+
+        In bf16 the step runs under ``torch.autocast``. Autocast casts every float32 weight to bfloat16 at every
+        step (its cast cache lives for one context); with ``cast_once`` the weights that only feed matrix products
+        (:meth:`ActorCritic.autocast_weights`) are cast once per rollout instead (:meth:`collect`) and handed to
+        each step through :class:`CastOnce`, whose backward returns the gradient in float32 as autocast's cast
+        does: the same values, the same graph shape, so the same rollout and gradients bit for bit (held
+        together with the per-step cast by ``tests/test_rl_batched.py``)."""
         if self.precision == "fp32":
             return self.model(obs, state)
         with torch.autocast(self.device.type, dtype=torch.bfloat16):
-            logits, value, new = self.model(obs, state)
+            if self.low is None:
+                logits, value, new = self.model(obs, state)
+            else:
+                weights = {name: CastOnce.apply(self.params[name], low) for name, low in self.low.items()}
+                logits, value, new = torch.func.functional_call(self.model, weights, (obs, state), strict=False)
         return logits.float(), value.float(), AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action,
                                                         new.prev_position)
 
@@ -103,6 +117,17 @@ class RolloutCollector:
         """Run ``steps`` steps; the model must be in the mode wanted (``train()`` for dropout)."""
         if self.obs is None:
             self.start()
+        if self.precision == "bf16" and self.cast_once:  # the weights are fixed during a rollout
+            self.params = dict(self.model.named_parameters())
+            with torch.no_grad():
+                self.low = {name: self.params[name].detach().to(torch.bfloat16)
+                            for name in self.model.autocast_weights()}
+        try:
+            return self._collect(steps)
+        finally:
+            self.low = None  # the next rollout casts the weights the optimizer has changed
+
+    def _collect(self, steps: int) -> Rollout:
         dev = self.device
         b = self.env.num_envs
         logps, ents, values, rewards, boots, terms, fins = [], [], [], [], [], [], []
@@ -115,13 +140,10 @@ class RolloutCollector:
         for t in range(steps):
             o = self.observer(obs["state"], obs["target"])
             logits, value, state = self.forward(o, state)
-            dist = torch.distributions.Categorical(logits=logits)
-            if self.generator is None:
-                action = dist.sample()
-            else:
-                action = torch.multinomial(dist.probs.detach(), 1, generator=self.generator)[:, 0]
+            pol = Policy(logits)
+            action = pol.sample(self.generator)
             state = state.with_action(action)
-            done_prob += float(dist.probs.detach()[:, DONE].mean())
+            done_prob += float(pol.probs.detach()[:, DONE].mean())
             target = obs["target"]
             states.append(obs["state"])
             targets.append(target)
@@ -137,8 +159,8 @@ class RolloutCollector:
             fin = term | trunc
             episodes += self.stats.step(reward, term, trunc, info, obs)
             state = state.reset(torch.from_numpy(fin).to(dev))
-            logps.append(dist.log_prob(action))
-            ents.append(dist.entropy())
+            logps.append(pol.log_prob(action))
+            ents.append(pol.entropy())
             values.append(value)
             rewards.append(torch.from_numpy(np.asarray(reward, dtype=np.float32)).to(dev))
             boots.append(boot)
@@ -156,6 +178,49 @@ class RolloutCollector:
                        bootstrap=boot, terminated=torch.stack(terms), finished=fin, episodes=episodes,
                        states=np.stack(states), targets=np.stack(targets), actions=np.stack(actions), start=start,
                        done_prob=done_prob / steps)
+
+
+class Policy:
+    """The categorical policy of ``(B, A)`` logits: what ``torch.distributions.Categorical(logits=logits)`` computes
+    for the collector (sampling, log-probabilities, entropy), by the same operators in the same order, so the same
+    actions, values and gradients bit for bit, without the distribution object's argument checks and lazy
+    properties (a tenth of a small batch's step; ``tests/test_rl_batched.py`` holds the two together). Invalid
+    logits still fail loudly, in ``torch.multinomial``."""
+
+    def __init__(self, logits: torch.Tensor):
+        self.logits = logits - logits.logsumexp(dim=-1, keepdim=True)
+        self.probs = torch.nn.functional.softmax(self.logits, dim=-1)
+
+    def sample(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """``(B,)`` actions: ``Categorical.sample()`` without a generator, else ``torch.multinomial`` with it."""
+        if generator is not None:
+            return torch.multinomial(self.probs.detach(), 1, generator=generator)[:, 0]
+        probs_2d = self.probs.reshape(-1, self.probs.shape[-1])
+        return torch.multinomial(probs_2d, 1, True).T.reshape(self.probs.shape[:-1])
+
+    def log_prob(self, action: torch.Tensor) -> torch.Tensor:
+        value = action.long().unsqueeze(-1)
+        value, log_pmf = torch.broadcast_tensors(value, self.logits)
+        return log_pmf.gather(-1, value[..., :1]).squeeze(-1)
+
+    def entropy(self) -> torch.Tensor:
+        p_log_p = torch.clamp(self.logits, min=torch.finfo(self.logits.dtype).min) * self.probs
+        return -p_log_p.sum(-1)
+
+
+class CastOnce(torch.autograd.Function):
+    """``CastOnce.apply(weight, low)`` -> ``low``, a bfloat16 copy of the float32 ``weight`` made beforehand, in
+    place of autocast's per-use cast ``weight.to(bfloat16)``: the forward returns the copy, the backward returns
+    the incoming gradient in float32 for ``weight`` (as autocast's cast, ``ToCopyBackward``, does)."""
+
+    @staticmethod
+    def forward(ctx, weight: torch.Tensor, low: torch.Tensor) -> torch.Tensor:
+        ctx.dtype = weight.dtype
+        return low.view_as(low)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return grad.to(ctx.dtype), None
 
 
 def gae(reward: torch.Tensor, value: torch.Tensor, bootstrap: torch.Tensor, terminated: torch.Tensor,
