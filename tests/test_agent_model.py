@@ -245,3 +245,29 @@ def test_memory_attention_fast_path_equals_multihead_attention(dim, heads):
     assert torch.allclose(outs[0], outs[1], atol=1e-10)
     for g0, g1 in zip(*grads):
         assert torch.allclose(g0, g1, atol=1e-10)
+
+
+@pytest.mark.parametrize("dim,heads,dtype", [(64, 2, torch.float32), (256, 4, torch.float32), (64, 2, torch.bfloat16)])
+def test_memory_attention_products_are_einsums_bit_for_bit(dim, heads, dtype):
+    """``attend``'s batched matrix products against the einsums they stand for (``attend_einsum``): the same
+    output and gradients of the queries, the nodes and every attention weight, bit for bit (bf16: under autocast,
+    as the trainer's bf16 rollouts run)."""
+    torch.manual_seed(1)
+    agg = TargetMemoryAggregator(feat_dim=8, dim=dim, heads=heads, out_dim=32)
+    with torch.no_grad():
+        agg.attn.in_proj_bias.normal_()
+    b, m = 29, 8
+    q0, n0 = torch.randn(b, dim), torch.relu(torch.randn(b, m, dim))
+    pad = torch.rand(b, m) < 0.5
+    pad[:, 0] = False
+    res = []
+    for fn in (agg.attend, agg.attend_einsum):
+        agg.zero_grad()
+        q, nodes = (q0 * 1.0).requires_grad_(), (n0 * 1.0).requires_grad_()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
+            out = fn(q * 2.0, nodes * 1.0, pad)  # non-leaf inputs, as in the network
+        (out.float() * torch.linspace(-1, 1, dim)).sum().backward()
+        res.append([out.detach(), q.grad, nodes.grad] + [p.grad.clone() for p in agg.attn.parameters()])
+    assert res[0][0].dtype == dtype
+    for x, y in zip(*res):
+        assert torch.equal(x, y)

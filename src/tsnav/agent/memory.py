@@ -135,7 +135,26 @@ class TargetMemoryAggregator(nn.Module):
             score_hm = (W_q,h q + b_q,h) . (W_k,h n_m + b_k,h) / sqrt(e) = (W_k,h^T Q_h) . n_m / sqrt(e) + const_h
             out_h    = sum_m a_hm (W_v,h n_m + b_v,h) = W_v,h (sum_m a_hm n_m) + b_v,h       (sum_m a_hm = 1)
 
-        (the constant of each head does not change its softmax)."""
+        (the constant of each head does not change its softmax).
+
+        The four products are the batched matrix products that ``torch.einsum`` makes of them (the same operands,
+        strides and results; ``tests/test_agent_model.py`` holds them to :meth:`attend_einsum` bit for bit),
+        written out so that each step records a third of the autograd nodes einsum's reshapes cost."""
+        a = self.attn
+        b, d = q.shape
+        heads = a.num_heads
+        e = d // heads
+        w_q, w_k, w_v = a.in_proj_weight.chunk(3)
+        b_q, _, b_v = a.in_proj_bias.chunk(3)
+        qh = torch.nn.functional.linear(q, w_q, b_q).view(b, heads, e)  # [B, H, e]
+        u = torch.bmm(qh.transpose(0, 1), w_k.view(heads, e, d)).transpose(0, 1) * (1.0 / math.sqrt(e))  # [B, H, d]
+        score = torch.bmm(u, nodes.transpose(1, 2)).masked_fill(pad[:, None, :], float("-inf"))  # [B, H, M]
+        z = torch.bmm(torch.softmax(score, dim=-1), nodes)  # [B, H, d]
+        v = torch.bmm(z.transpose(0, 1), w_v.view(heads, e, d).transpose(1, 2)).transpose(0, 1) + b_v.view(heads, e)
+        return a.out_proj(v.reshape(b, d))  # v: [B, H, e]
+
+    def attend_einsum(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
+        """Reference of :meth:`attend` as the formulas read, with ``torch.einsum``."""
         a = self.attn
         b, d = q.shape
         heads = a.num_heads
