@@ -7,7 +7,8 @@ first, so start-up is excluded) and overall (start-up included), mean training e
 second, and the projected wall time of the paper's 1.5 M training episodes at that rate.
 
 The batched trainer runs once per ``--procs`` value (data-parallel processes sharing each update's episodes,
-``TrainConfig.procs``); each row also gives its env steps per CPU-second of all its processes (how it would run
+``TrainConfig.procs``; with ``--ranks split staggered``, N > 1 processes also run in the mode where each steps
+``--num-envs`` episodes of its own and a round applies their gradients in turn, ``TrainConfig.ranks``); each row also gives its env steps per CPU-second of all its processes (how it would run
 with an idle core per process: on a shared machine the wall-clock rate of N processes is capped by the cores
 left free), the load average over its run, and, for N > 1, the ratio of its steps/s to the same setting with
 one process, measured in the same session. "idle x" = N x (steps per CPU-second of N processes) / (that of
@@ -15,7 +16,7 @@ one): the speed-up projected for an idle core per process (all-reduce waits excl
 is itself inflated by the other jobs' use of the caches, so compare ratios measured in one session).
 
     .venv/bin/python bench/bench_train.py --data /tmp/demo --features NAME [--seconds 60] [--workers 2]
-        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c] [--procs 1 2] [--log-every 5]
+        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c] [--procs 1 2] [--ranks split staggered] [--log-every 5]
 
 Without --data a tiny world is built in a temporary folder with pooled-pixel features.
 """
@@ -88,6 +89,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the batched trainer's process (default 1)")
     ap.add_argument("--procs", type=int, nargs="+", default=[1],
                     help="batched trainer: data-parallel processes (each value is run; e.g. 1 2 for the ratio)")
+    ap.add_argument("--ranks", nargs="+", default=["split"], choices=("split", "staggered"),
+                    help="how N > 1 processes share the work (TrainConfig.ranks; default split)")
     ap.add_argument("--no-a3c", action="store_true", help="batched trainer only (ratios are then to the first batch size)")
     ap.add_argument("--log-every", type=int, default=5,
                     help="updates per log window (the steady rate averages the windows after the first)")
@@ -116,15 +119,19 @@ def main() -> None:
         for b in args.num_envs:
             for prec in args.precision:
                 one = None
-                for n in args.procs:
+                for n, mode in [(n, m) for n in args.procs for m in (args.ranks if n > 1 else ["split"])]:
                     t = time.perf_counter()
-                    run = tmp / f"batched{b}_{prec}_p{n}"
+                    run = tmp / f"batched{b}_{prec}_p{n}_{mode}"
                     load0 = os.getloadavg()[0]
+                    every = -(-args.log_every // n) * n if mode == "staggered" else args.log_every
                     p = train_batched(TrainConfig(algo="batched", num_envs=b, precision=prec, threads=args.threads,
-                                                  procs=n, **base), agent, run, progress_bar=False)
-                    r = _summary(f"batched A2C, {n} proc x {b // n} episodes, {prec}", run, p, time.perf_counter() - t)
+                                                  procs=n, ranks=mode, **{**base, "log_every": every}), agent, run,
+                                      progress_bar=False)
+                    rows = f"{b} episodes each, staggered" if mode == "staggered" else f"{b // n} episodes"
+                    r = _summary(f"batched A2C, {n} proc x {rows}, {prec}", run, p, time.perf_counter() - t)
                     r["load_1min"] = [load0, os.getloadavg()[0]]
                     r["procs"] = n
+                    r["ranks"] = mode
                     if n == 1:
                         one = r
                     r["x_1_proc"] = r["steps_per_s_steady"] / one["steps_per_s_steady"] if one else float("nan")
@@ -135,13 +142,13 @@ def main() -> None:
         ref = results[0]["steps_per_s_steady"]
         print(f"data {data}, features {features}, agent preset {args.preset}, reward tsrm, "
               f"rollout {args.rollout_steps} steps, {args.threads} thread(s), {args.seconds:.0f} s per trainer")
-        head = (f"{'trainer':<46} {'steps/s':>9} {'(overall)':>10} {'x A3C':>6} {'x 1 proc':>8} {'steps/CPU-s':>11} "
+        head = (f"{'trainer':<62} {'steps/s':>9} {'(overall)':>10} {'x A3C':>6} {'x 1 proc':>8} {'steps/CPU-s':>11} "
                 f"{'(x 1 proc)':>10} {'idle x':>6} {'load':>9} {'ep len':>7} {'ep/s':>7} {'h for 1.5M ep':>14}")
         print(head)
         print("-" * len(head))
         for r in results:
             load = "-" if "load_1min" not in r else "{:.1f}-{:.1f}".format(*r["load_1min"])
-            print(f"{r['trainer']:<46} {r['steps_per_s_steady']:9.0f} {r['steps_per_s_overall']:10.0f} "
+            print(f"{r['trainer']:<62} {r['steps_per_s_steady']:9.0f} {r['steps_per_s_overall']:10.0f} "
                   f"{r['steps_per_s_steady'] / ref:6.1f} {r.get('x_1_proc', float('nan')):8.2f} "
                   f"{r.get('steps_per_cpu_s', float('nan')):11.0f} {r.get('cpu_x_1_proc', float('nan')):10.2f} "
                   f"{r.get('projected_x_1_proc', float('nan')):6.2f} "

@@ -16,7 +16,7 @@ from tsnav.rl.batched import train_batched
 from tsnav.rl.checkpoint import load_checkpoint
 from tsnav.rl.config import TrainConfig
 from tsnav.rl.logger import read_log
-from tsnav.rl.rollout import Rollout, RolloutCollector, a2c_loss, gae
+from tsnav.rl.rollout import Rollout, RolloutCollector, a2c_loss, collect_and_loss, gae
 from tsnav.rl.train import check_resume
 
 from conftest import PIXEL_FEATURES as FEATS
@@ -144,6 +144,80 @@ def test_two_process_run_is_deterministic_and_resumes_exactly(pixel_world, tmp_p
     # draws other episodes
     train_batched(replace(cfg, updates=3, procs=1), agent, tmp_path / "d", progress_bar=False)
     assert [r["loss"] for r in read_log(tmp_path / "d")] != [r["loss"] for r in la[:2]]
+
+
+def _staggered_reference(cfg: TrainConfig, agent, rounds: int) -> dict:
+    """``ranks="staggered"`` computed in one process: per round, each "rank" (its own env seed, torch RNG stream
+    and collector) collects a rollout from the same weights and computes its gradient; then the gradients are
+    clipped and stepped by Adam one after another, rank 0's first."""
+    bank, det = load_bank(cfg)
+    observer = make_observer(bank, cfg, det_features=det)
+    model = make_model(agent, observer, cfg.seed)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
+    cols, rngs = [], []
+    for r in range(cfg.procs):
+        torch.manual_seed(cfg.seed * 1000 + 7919 * r + 1)
+        col = RolloutCollector(make_train_env(bank, cfg, cfg.num_envs, seed=cfg.seed * 1000 + r), observer, model)
+        col.start()
+        cols.append(col)
+        rngs.append(torch.get_rng_state())
+    for _ in range(rounds):
+        grads = []
+        for r, col in enumerate(cols):
+            torch.set_rng_state(rngs[r])
+            model.train()
+            _, loss, _ = collect_and_loss(col, cfg)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            grads.append([p.grad.clone() for p in model.parameters()])
+            rngs[r] = torch.get_rng_state()
+        for g in grads:
+            for p, gp in zip(model.parameters(), g):
+                p.grad = gp
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+            opt.step()
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def test_staggered_ranks_apply_each_ranks_update_in_turn(pixel_world, tmp_path):
+    """``ranks="staggered"`` on two processes: each rank steps all ``num_envs`` episodes, a round makes two
+    updates, and the weights are those of the one-process reference above, bit for bit; the run resumes exactly
+    after an interruption; its boundaries must fall on rounds."""
+    agent = agent_config("cpu")
+    cfg = _cfg(pixel_world, procs=2, ranks="staggered", updates=4, checkpoint_every=4)
+    p = train_batched(cfg, agent, tmp_path / "a", progress_bar=False)
+    assert (p["update"], p["env_steps"]) == (4, 4 * 8 * 6)
+    want = _staggered_reference(cfg, agent, rounds=2)
+    got = _weights(tmp_path / "a")[0]
+    assert _same(got, want)
+    # not what split computes (two rows each, one update per round)
+    train_batched(replace(cfg, ranks="split"), agent, tmp_path / "s", progress_bar=False)
+    assert not _same(_weights(tmp_path / "s")[0], got)
+
+    cfg = replace(cfg, updates=6, checkpoint_every=2)
+    full = train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
+    seen = []
+
+    def kill(progress):
+        seen.append(progress["update"])
+        if progress["update"] == 4:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        train_batched(cfg, agent, tmp_path / "c", progress_bar=False, on_update=kill)
+    assert seen == [2, 4]
+    resumed = train_batched(cfg, agent, tmp_path / "c", progress_bar=False)
+    assert (resumed["update"], resumed["episodes"]) == (6, full["episodes"])
+    assert _same(_weights(tmp_path / "b")[0], _weights(tmp_path / "c")[0])
+    assert _same(_weights(tmp_path / "b")[1], _weights(tmp_path / "c")[1])
+
+    for name, kw in (("checkpoint_every", {"checkpoint_every": 3}), ("log_every", {"log_every": 5}),
+                     ("milestone_every", {"milestone_every": 7}), ("updates", {"updates": 9})):
+        with pytest.raises(ValueError, match=f"{name} must be a multiple of procs=2"):
+            _cfg(pixel_world, procs=2, ranks="staggered", **{"updates": 4, "checkpoint_every": 2, **kw})
+    with pytest.raises(ValueError, match="unknown ranks mode 'both'"):
+        _cfg(pixel_world, ranks="both")
+    _cfg(pixel_world, procs=2, ranks="staggered", num_envs=9, checkpoint_every=2)  # each rank steps all 9: no split needed
 
 
 def _fail_on_rank1():

@@ -101,6 +101,29 @@ def allreduce_gradients(model: torch.nn.Module, info: DistInfo) -> None:
         i += n
 
 
+def gather_gradients(model: torch.nn.Module, info: DistInfo) -> list[torch.Tensor]:
+    """Every rank's gradients of ``model``, flat, in rank order (one all-gather; every parameter must have a
+    gradient). Without a process group: this process's alone."""
+    grads = [p.grad for p in model.parameters()]
+    if any(g is None for g in grads):
+        raise ValueError("gather_gradients: a parameter has no gradient (it did not take part in the loss)")
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    if not info.enabled:
+        return [flat]
+    out = [torch.empty_like(flat) for _ in range(info.world)]
+    dist.all_gather(out, flat)
+    return out
+
+
+def set_gradients(model: torch.nn.Module, flat: torch.Tensor) -> None:
+    """Copy a flat gradient (:func:`gather_gradients`' layout) into the parameters' gradients."""
+    i = 0
+    for p in model.parameters():
+        n = p.numel()
+        p.grad.copy_(flat[i:i + n].view_as(p))
+        i += n
+
+
 def all_sum(values: list[float], info: DistInfo, device: torch.device) -> list[float]:
     """Sum a few numbers over ranks."""
     if not info.enabled:

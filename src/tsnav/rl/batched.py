@@ -12,6 +12,14 @@ rows of the per-row rollout loss, so the average of the N ranks' gradients is th
 means the same for every N. A run is deterministic for a given (seed, procs); the episodes drawn, and so the
 run, differ between values of ``procs`` (``procs`` = 1 is the single-process trainer, bit-identical to it).
 
+With ``ranks`` = ``staggered`` the N processes each step ``num_envs`` episodes of their own instead, and a round
+(one rollout per rank, from the same weights) gathers their N gradients and applies them one after another, in
+rank order, each clipped and stepped by Adam as one process's would be: N updates of ``num_envs`` episodes per
+round, where rank r's gradient was computed on weights r updates old (A3C's workers apply gradients of weights as
+old as that). Every rank keeps the same replica of the weights and the optimizer. This mode is not bounded by the
+work of a rank that does not shrink with its rows, which bounds ``split``; it is another algorithm than one
+process (staler gradients), and deterministic for a given (seed, procs) as ``split`` is.
+
 Each update, top to bottom:
 
 1. collect a rollout of ``T`` steps (auto-reset; truncated episodes bootstrap from the critic),
@@ -38,7 +46,7 @@ import torch.distributed as dist
 from ..agent.model import AgentConfig
 from ..checkpoint import weights_digest
 from ..distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
-                           init_distributed, resolve_device, run_ranks, set_threads)
+                           gather_gradients, init_distributed, resolve_device, run_ranks, set_gradients, set_threads)
 from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, rng_state, set_rng_state, write_rng
 from .config import TrainConfig
@@ -74,7 +82,9 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
     model = make_model(agent, observer, cfg.seed).to(device)
     broadcast_model(model, info)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
-    env = make_train_env(bank, cfg, cfg.num_envs // info.world, seed=cfg.seed * 1000 + info.rank)
+    staggered = cfg.ranks == "staggered"
+    rows = cfg.num_envs if staggered else cfg.num_envs // info.world
+    env = make_train_env(bank, cfg, rows, seed=cfg.seed * 1000 + info.rank)
     torch.manual_seed(cfg.seed * 1000 + 7919 * info.rank + 1)  # dropout and action sampling
 
     progress, state = resume_progress(run_dir, model, optimizer, aside=info.is_main)
@@ -91,7 +101,8 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
     collector.start()
     out = RunOutput(run_dir, cfg, progress, main=info.is_main, progress_bar=progress_bar)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
-    steps_per_update = cfg.num_envs * cfg.rollout_steps
+    updates_per_round = info.world if staggered else 1
+    steps_per_round = cfg.num_envs * cfg.rollout_steps * updates_per_round
     cpu0 = time.process_time()
     try:
         while True:
@@ -100,17 +111,25 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
             ro, loss, parts = collect_and_loss(collector, cfg)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            allreduce_gradients(model, info)
-            parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
-            optimizer.step()
+            if staggered:  # every rank's gradient in turn (each one's update as one process makes it)
+                norms = []
+                for flat in gather_gradients(model, info):
+                    set_gradients(model, flat)
+                    norms.append(float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)))
+                    optimizer.step()
+                parts["grad_norm"] = sum(norms) / len(norms)
+            else:
+                allreduce_gradients(model, info)
+                parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
+                optimizer.step()
 
             # counters over all ranks (every rank's CPU time: steps per CPU-second show how the ranks scale)
             cpu = time.process_time()
             episodes, seconds, cpu_s = all_sum([ro.episodes, time.perf_counter() - t_start if info.is_main else 0.0,
                                                 cpu - cpu0], info, device)
             cpu0 = cpu
-            progress["update"] += 1
-            progress["env_steps"] += steps_per_update
+            progress["update"] += updates_per_round
+            progress["env_steps"] += steps_per_round
             progress["episodes"] += int(episodes)
             progress["seconds"] = seconds0 + seconds
             out.window.add(parts, collector.stats.pop(), cpu_s)

@@ -16,7 +16,7 @@ from pathlib import Path
 from ..agent import agent_config
 from ..constants import C_TARGET
 from ..errors import CommandError
-from .config import PRECISIONS, TrainConfig
+from .config import PRECISIONS, RANK_MODES, TrainConfig
 from .checkpoint import latest_checkpoint
 from .train import stored_config, train_run
 
@@ -39,6 +39,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--procs", type=int, default=None,
                         help="batched: CPU processes sharing each update's episodes (default 1; 2 uses both cores "
                              "of a 2-core machine; the run is deterministic for a given seed and --procs)")
+    parser.add_argument("--ranks", default=None, choices=RANK_MODES,
+                        help="batched, --procs > 1: split (default) shares each update's episodes over the processes; "
+                             "staggered gives each process --num-envs episodes of its own and applies their gradients "
+                             "in turn (--procs updates per round, A3C-like staleness; BENCHMARKS.md)")
     parser.add_argument("--workers", type=int, default=None, help="a3c: worker processes (paper: 14)")
     parser.add_argument("--c-target", type=float, default=None, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--seed", type=int, default=None, help="seed (default: 0)")
@@ -76,7 +80,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 #: command-line option -> TrainConfig field
 _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "algo", "lr": "lr",
-           "num_envs": "num_envs", "procs": "procs", "workers": "workers", "c_target": "c_target", "seed": "seed",
+           "num_envs": "num_envs", "procs": "procs", "ranks": "ranks", "workers": "workers", "c_target": "c_target", "seed": "seed",
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
            "milestone_every": "milestone_every",

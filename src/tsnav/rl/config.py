@@ -13,6 +13,8 @@ ALGOS = ("a3c", "batched")
 #: Arithmetic of the network's forward passes while training: ``fp32``, or ``bf16`` (autocast: matrix products in
 #: bfloat16, weights, optimizer and recurrent state in float32).
 PRECISIONS = ("fp32", "bf16")
+#: How the processes of a batched run share its updates (:attr:`TrainConfig.ranks`).
+RANK_MODES = ("split", "staggered")
 #: Fields that may change when a run is resumed (its budget); every other field must match the saved config.
 BUDGET_FIELDS = ("episodes", "updates", "minutes")
 #: Paper IV-A: the agent is trained for 1.5 M episodes.
@@ -59,11 +61,18 @@ class TrainConfig:
     """Training episode length: truncated after this many actions (the lineage trains with 30)."""
     num_envs: int = 16
     """Batched trainer: episodes stepped together per update, over all processes (each steps ``num_envs /
-    procs`` of them)."""
+    procs`` of them; with ``ranks`` ``staggered`` each process steps ``num_envs`` for its own update)."""
     procs: int = 1
     """Batched trainer: CPU processes sharing the episodes of an update, gradients averaged (``tsnav train
     --procs N`` starts them; ``torchrun`` may launch them instead). Part of the run's identity: a run is
     deterministic for a given (seed, procs)."""
+    ranks: str = "split"
+    """Batched trainer with ``procs`` > 1, how the processes share the work (:data:`RANK_MODES`): ``split`` (default)
+    -- they share the ``num_envs`` episodes of each update and average their gradients, so N processes compute one
+    process's update; ``staggered`` -- each steps ``num_envs`` episodes of its own, and every round applies the N
+    gradients one after another (N updates of ``num_envs`` episodes per round; rank r's gradient was computed on
+    weights r updates old, as an A3C worker's is). ``split`` is bounded by the work of a rank that does not shrink
+    with its rows (BENCHMARKS.md); ``staggered`` is not. Part of the run's identity."""
     workers: int = 14
     """A3C: worker processes, one episode each (paper: 14)."""
     seed: int = 0
@@ -136,8 +145,16 @@ class TrainConfig:
             raise ValueError("gamma must be in (0, 1] and gae_tau in [0, 1]")
         if self.procs > 1 and self.algo != "batched":
             raise ValueError(f"procs applies to the batched trainer (A3C runs --workers processes), got algo {self.algo!r}")
-        if self.num_envs % self.procs:
+        if self.ranks not in RANK_MODES:
+            raise ValueError(f"unknown ranks mode {self.ranks!r} (choose from {', '.join(RANK_MODES)})")
+        if self.ranks == "split" and self.num_envs % self.procs:
             raise ValueError(f"num_envs {self.num_envs} does not split evenly over procs={self.procs} processes")
+        if self.ranks == "staggered" and self.procs > 1:  # a round makes procs updates: boundaries fall on rounds
+            for name in ("checkpoint_every", "log_every", "milestone_every", "updates"):
+                v = getattr(self, name)
+                if v is not None and v % self.procs:
+                    raise ValueError(f"ranks 'staggered' makes {self.procs} updates per round: {name} must be a "
+                                     f"multiple of procs={self.procs}, got {v}")
         if self.milestone_every is not None and self.milestone_every < 1:
             raise ValueError(f"milestone_every must be >= 1, got {self.milestone_every}")
         for name in BUDGET_FIELDS:
