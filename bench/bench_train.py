@@ -8,15 +8,17 @@ second, and the projected wall time of the paper's 1.5 M training episodes at th
 
 The batched trainer runs once per ``--procs`` value (data-parallel processes sharing each update's episodes,
 ``TrainConfig.procs``; with ``--ranks split staggered``, N > 1 processes also run in the mode where each steps
-``--num-envs`` episodes of its own and a round applies their gradients in turn, ``TrainConfig.ranks``); each row also gives its env steps per CPU-second of all its processes (how it would run
-with an idle core per process: on a shared machine the wall-clock rate of N processes is capped by the cores
-left free), the load average over its run, and, for N > 1, the ratio of its steps/s to the same setting with
-one process, measured in the same session. "idle x" = N x (steps per CPU-second of N processes) / (that of
-one): the speed-up projected for an idle core per process (all-reduce waits excluded; on a busy machine CPU time
-is itself inflated by the other jobs' use of the caches, so compare ratios measured in one session).
+``--num-envs`` episodes of its own and a round applies their gradients in turn, ``TrainConfig.ranks``); each row
+also gives its env steps per CPU-second of all its processes (how it would run with an idle core per process: on a
+shared machine the wall-clock rate of N processes is capped by the cores left free), the load average over its run,
+and, for N > 1, the ratio of its steps/s to the same setting with one process, measured in the same session. "idle
+x" = N x (steps per CPU-second of N processes) / (that of one): the speed-up projected for an idle core per process
+(all-reduce waits excluded; on a busy machine CPU time is itself inflated by the other jobs' use of the caches, so
+compare ratios measured in one session).
 
     .venv/bin/python bench/bench_train.py --data /tmp/demo --features NAME [--seconds 60] [--workers 2]
-        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c] [--procs 1 2] [--ranks split staggered] [--log-every 5]
+        [--num-envs 64 256] [--preset cpu] [--precision fp32 bf16] [--threads 1] [--no-a3c] [--procs 1 2]
+        [--ranks split staggered] [--log-every 5]
 
 Without --data a tiny world is built in a temporary folder with pooled-pixel features.
 """

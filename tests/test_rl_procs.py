@@ -217,7 +217,7 @@ def test_staggered_ranks_apply_each_ranks_update_in_turn(pixel_world, tmp_path):
             _cfg(pixel_world, procs=2, ranks="staggered", **{"updates": 4, "checkpoint_every": 2, **kw})
     with pytest.raises(ValueError, match="unknown ranks mode 'both'"):
         _cfg(pixel_world, ranks="both")
-    _cfg(pixel_world, procs=2, ranks="staggered", num_envs=9, checkpoint_every=2)  # each rank steps all 9: no split needed
+    _cfg(pixel_world, procs=2, ranks="staggered", num_envs=9, checkpoint_every=2)  # each rank steps all 9: no split
 
 
 def _fail_on_rank1():

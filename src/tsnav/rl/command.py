@@ -80,7 +80,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 #: command-line option -> TrainConfig field
 _FIELDS = {"data": "data", "features": "features", "reward": "reward", "algo": "algo", "lr": "lr",
-           "num_envs": "num_envs", "procs": "procs", "ranks": "ranks", "workers": "workers", "c_target": "c_target", "seed": "seed",
+           "num_envs": "num_envs", "procs": "procs", "ranks": "ranks", "workers": "workers", "c_target": "c_target",
+           "seed": "seed",
            "preset": "preset", "detections": "detections", "split": "split", "rollout_steps": "rollout_steps",
            "max_steps": "max_steps", "checkpoint_every": "checkpoint_every", "log_every": "log_every",
            "milestone_every": "milestone_every",
