@@ -94,10 +94,15 @@ def allreduce_gradients(model: torch.nn.Module, info: DistInfo) -> None:
     flat = torch.cat([g.reshape(-1) for g in grads])
     dist.all_reduce(flat)
     flat /= info.world
+    _copy_flat(flat, grads)
+
+
+def _copy_flat(flat: torch.Tensor, tensors: list[torch.Tensor]) -> None:
+    """Copy consecutive slices of ``flat`` into ``tensors`` (the layout of ``torch.cat`` of their flattenings)."""
     i = 0
-    for g in grads:
-        n = g.numel()
-        g.copy_(flat[i:i + n].view_as(g))
+    for t in tensors:
+        n = t.numel()
+        t.copy_(flat[i:i + n].view_as(t))
         i += n
 
 
@@ -117,11 +122,7 @@ def gather_gradients(model: torch.nn.Module, info: DistInfo) -> list[torch.Tenso
 
 def set_gradients(model: torch.nn.Module, flat: torch.Tensor) -> None:
     """Copy a flat gradient (:func:`gather_gradients`' layout) into the parameters' gradients."""
-    i = 0
-    for p in model.parameters():
-        n = p.numel()
-        p.grad.copy_(flat[i:i + n].view_as(p))
-        i += n
+    _copy_flat(flat, [p.grad for p in model.parameters()])
 
 
 def all_sum(values: list[float], info: DistInfo, device: torch.device) -> list[float]:

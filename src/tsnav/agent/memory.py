@@ -129,7 +129,7 @@ class TargetMemoryAggregator(nn.Module):
     def attend(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
         """``self.attn`` with the single query ``q`` ``(B, d)`` over ``nodes`` ``(B, M, d)``, slots where ``pad``
         ``(B, M)`` is True left out: ``(B, d)``. The same function as :meth:`attend_reference` (the module's own
-        forward; ``tests/test_agent.py`` holds them together) with the key and value projections moved to the
+        forward; ``tests/test_agent_model.py`` holds them together) with the key and value projections moved to the
         query side, so that no projection of the ``M`` nodes is computed:
 
             score_hm = (W_q,h q + b_q,h) . (W_k,h n_m + b_k,h) / sqrt(e) = (W_k,h^T Q_h) . n_m / sqrt(e) + const_h
@@ -140,33 +140,33 @@ class TargetMemoryAggregator(nn.Module):
         The four products are the batched matrix products that ``torch.einsum`` makes of them (the same operands,
         strides and results; ``tests/test_agent_model.py`` holds them to :meth:`attend_einsum` bit for bit),
         written out so that each step records a third of the autograd nodes einsum's reshapes cost."""
+        qh, w_k, w_v, b_v, scale = self._query_heads(q)
+        u = torch.bmm(qh.transpose(0, 1), w_k).transpose(0, 1) * scale  # [B, H, d]
+        score = torch.bmm(u, nodes.transpose(1, 2)).masked_fill(pad[:, None, :], float("-inf"))  # [B, H, M]
+        z = torch.bmm(torch.softmax(score, dim=-1), nodes)  # [B, H, d]
+        v = torch.bmm(z.transpose(0, 1), w_v.transpose(1, 2)).transpose(0, 1) + b_v  # [B, H, e]
+        return self.attn.out_proj(v.reshape(q.shape))
+
+    def _query_heads(self, q: torch.Tensor):
+        """What both forms of :meth:`attend` start from: the per-head queries ``(B, H, e)``, the key and value
+        weights as ``(H, e, d)``, the value bias ``(H, e)`` and the score scale ``1 / sqrt(e)``."""
         a = self.attn
         b, d = q.shape
         heads = a.num_heads
         e = d // heads
         w_q, w_k, w_v = a.in_proj_weight.chunk(3)
         b_q, _, b_v = a.in_proj_bias.chunk(3)
-        qh = torch.nn.functional.linear(q, w_q, b_q).view(b, heads, e)  # [B, H, e]
-        u = torch.bmm(qh.transpose(0, 1), w_k.view(heads, e, d)).transpose(0, 1) * (1.0 / math.sqrt(e))  # [B, H, d]
-        score = torch.bmm(u, nodes.transpose(1, 2)).masked_fill(pad[:, None, :], float("-inf"))  # [B, H, M]
-        z = torch.bmm(torch.softmax(score, dim=-1), nodes)  # [B, H, d]
-        v = torch.bmm(z.transpose(0, 1), w_v.view(heads, e, d).transpose(1, 2)).transpose(0, 1) + b_v.view(heads, e)
-        return a.out_proj(v.reshape(b, d))  # v: [B, H, e]
+        qh = torch.nn.functional.linear(q, w_q, b_q).view(b, heads, e)
+        return qh, w_k.view(heads, e, d), w_v.view(heads, e, d), b_v.view(heads, e), 1.0 / math.sqrt(e)
 
     def attend_einsum(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
         """Reference of :meth:`attend` as the formulas read, with ``torch.einsum``."""
-        a = self.attn
-        b, d = q.shape
-        heads = a.num_heads
-        e = d // heads
-        w_q, w_k, w_v = a.in_proj_weight.chunk(3)
-        b_q, _, b_v = a.in_proj_bias.chunk(3)
-        qh = torch.nn.functional.linear(q, w_q, b_q).view(b, heads, e)  # [B, H, e]
-        u = torch.einsum("bhe,hed->bhd", qh, w_k.view(heads, e, d)) * (1.0 / math.sqrt(e))  # [B, H, d]
+        qh, w_k, w_v, b_v, scale = self._query_heads(q)
+        u = torch.einsum("bhe,hed->bhd", qh, w_k) * scale  # [B, H, d]
         score = torch.einsum("bhd,bmd->bhm", u, nodes).masked_fill(pad[:, None, :], float("-inf"))
         z = torch.einsum("bhm,bmd->bhd", torch.softmax(score, dim=-1), nodes)  # [B, H, d]
-        v = torch.einsum("bhd,hed->bhe", z, w_v.view(heads, e, d)) + b_v.view(heads, e)  # [B, H, e]
-        return a.out_proj(v.reshape(b, d))
+        v = torch.einsum("bhd,hed->bhe", z, w_v) + b_v  # [B, H, e]
+        return self.attn.out_proj(v.reshape(q.shape))
 
     def attend_reference(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
         """Slow reference of :meth:`attend`: ``torch.nn.MultiheadAttention``'s own forward."""

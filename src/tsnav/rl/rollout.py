@@ -73,8 +73,7 @@ class RolloutCollector:
             raise ValueError(f"unknown precision {precision!r} (choose from {', '.join(PRECISIONS)})")
         self.precision = precision
         self.cast_once = bool(cast_once)
-        self.params: dict[str, torch.Tensor] = {}
-        self.low: dict[str, torch.Tensor] | None = None  # bf16 weights of the running rollout (cast_once)
+        self.low: dict[str, tuple] | None = None  # name -> (weight, its bf16 copy) during a rollout (cast_once)
         self.env = env
         self.observer = observer
         self.model = model
@@ -102,7 +101,7 @@ class RolloutCollector:
             if self.low is None:
                 logits, value, new = self.model(obs, state)
             else:
-                weights = {name: CastOnce.apply(self.params[name], low) for name, low in self.low.items()}
+                weights = {name: CastOnce.apply(w, low) for name, (w, low) in self.low.items()}
                 logits, value, new = torch.func.functional_call(self.model, weights, (obs, state), strict=False)
         return logits.float(), value.float(), AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action,
                                                         new.prev_position)
@@ -118,9 +117,9 @@ class RolloutCollector:
         if self.obs is None:
             self.start()
         if self.precision == "bf16" and self.cast_once:  # the weights are fixed during a rollout
-            self.params = dict(self.model.named_parameters())
+            params = dict(self.model.named_parameters())
             with torch.no_grad():
-                self.low = {name: self.params[name].detach().to(torch.bfloat16)
+                self.low = {name: (params[name], params[name].detach().to(torch.bfloat16))
                             for name in self.model.autocast_weights()}
         try:
             return self._collect(steps)
