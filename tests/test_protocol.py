@@ -201,7 +201,7 @@ def test_tsrm_distance_term_follows_the_protocol(banks, tiny_scenes):
         ref = TSRMRewardReference(sc, cfg, protocol="lineage")
         start = int(rng.integers(sc.num_states))
         ref.reset(int(c), start)
-        np.testing.assert_array_equal(ref._dist_cache[int(c)], d[lo:lo + sc.num_states, c])
+        np.testing.assert_array_equal(ref.term["distance"]._dist_cache[int(c)], d[lo:lo + sc.num_states, c])
         fast.reset(np.ones(1, bool), np.zeros(1, np.int64), np.array([c]), np.array([start + lo]))
         s = start
         for a in rng.choice(5, 15):

@@ -27,7 +27,7 @@ argument           meaning
 =================  ==========================================================================================
 
 ``info`` holds every reward term of the step as ``reward/<term>`` (``explore``, ``distance``, ``collision``,
-``slack``, ``success``; zeros for terms the variant switches off); the stage itself is the wrapped
+``slack``, ``success`` and any registered term; zeros for terms the variant switches off); the stage itself is the wrapped
 ``BatchEnv``'s (``env.unwrapped.batch.stage``). The rewards are those of the batched trainer (:mod:`tsnav.rl`)
 for the same episodes and actions: the same :class:`~tsnav.tsrm.reward.TSRMReward` over the same bank, handed
 the stage by the env's one stage switch (:attr:`~tsnav.sim.batch.BatchEnv.stage`).
@@ -36,12 +36,13 @@ the stage by the env's one stage switch (:attr:`~tsnav.sim.batch.BatchEnv.stage`
 from __future__ import annotations
 
 from ..constants import C_TARGET, SUCCESS_DISTANCE
-from ..sim.batch import RewardFn, SceneBank, SparseReward
+from ..sim.batch import RewardFn, SceneBank
 from ..sim.gym_env import ObjectNavEnv, ObjectNavVectorEnv, make_bank
 from .reward import VARIANTS, RewardConfig, TSRMReward
 
-#: Reward names the env accepts: the paper's variants and the sparse reward.
-REWARDS = VARIANTS + ("sparse",)
+#: Reward names the env accepts: the variants of :mod:`tsnav.tsrm.terms` (the paper's four and the sparse reward,
+#: plus any registered), a live view.
+REWARDS = VARIANTS
 
 
 def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_target: float | None,
@@ -60,8 +61,6 @@ def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_targe
                      protocol=protocol or "paper")
     if detections is not None:
         bank.install_detections(detections)
-    if reward == "sparse":
-        return bank, SparseReward()
     config = reward if isinstance(reward, RewardConfig) else RewardConfig(variant=reward)
     return bank, TSRMReward(bank, config)
 
