@@ -16,14 +16,20 @@ print percentages. Every metric is reported for ALL episodes and for those with 
 (:mod:`tsnav.protocol`, :func:`long_episode`).
 
 Records are exchanged as JSON Lines, one :class:`EpisodeRecord` per line.
+
+The metrics are one registry (:data:`METRIC_REGISTRY`, names in :data:`METRICS`): each :class:`Metric` is a
+function of the episodes' columns (:class:`EpisodeArrays`). Every table (``format_table``, the HTML report,
+the release and demo tables), the training log's ``metrics/`` group (:mod:`tsnav.rl.logger`), the convergence
+curves (``Metric.curve``) and the claims read it; :func:`register_metric` adds one
+(``docs/howto/add-a-metric.md``).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -31,8 +37,8 @@ from .atomic import atomic_write_text
 from .errors import from_fields
 from .protocol import DEFAULT_PROTOCOL, check_protocol, protocol_line, protocol_of, spec
 
-#: Metric names, in the paper's table order.
-METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
+#: The paper's five metrics, in its table order (the columns of its Tables II and III).
+PAPER_METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
 
 
 @dataclass
@@ -82,28 +88,133 @@ def ratio(opt: np.ndarray, actual: np.ndarray) -> np.ndarray:
     return np.where(den > 0, opt / np.where(den > 0, den, 1.0), 1.0)
 
 
+@dataclass(frozen=True)
+class EpisodeArrays:
+    """The columns every metric reads, ``(K,)`` float64 arrays over ``K`` episodes (lengths in movement actions,
+    see :class:`EpisodeRecord`), and the success ``protocol`` they were counted under."""
+
+    success: np.ndarray
+    """Suc_i (1.0 / 0.0)."""
+    entered: np.ndarray
+    """Nav_i: the episode entered the pathfinding stage (1.0 / 0.0)."""
+    path_length: np.ndarray
+    """L_i."""
+    optimal_length: np.ndarray
+    """L*_i."""
+    search_length: np.ndarray
+    """LSearch_i."""
+    optimal_search_length: np.ndarray
+    """L*Search_i."""
+    nav_length: np.ndarray
+    """LNav_i (0 where never entered)."""
+    optimal_nav_length: np.ndarray
+    """L*Nav_i (0 where never entered)."""
+    protocol: str = DEFAULT_PROTOCOL
+
+    @property
+    def k_nav(self) -> float:
+        """K_Nav: episodes that entered the pathfinding stage."""
+        return float(self.entered.sum())
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One evaluation metric: a name, what it means, and its value over a set of episodes (a fraction in [0, 1];
+    tables print percentages). Registered metrics are computed by :func:`metric_values` for every evaluation,
+    selection and training log."""
+
+    name: str
+    """Column name in every table and JSON file (``metrics.json``, ``log.jsonl``, ``results.json``)."""
+    doc: str
+    """One line: what it measures (and the paper's section, if it is the paper's)."""
+    value: Callable[[EpisodeArrays], float]
+    """The metric over ``K >= 1`` episodes (``K = 0`` gives 0 without calling it)."""
+    curve: bool = True
+    """Drawn on the convergence curves (``tsnav convergence``)."""
+
+
+def _spl(e: EpisodeArrays) -> float:
+    off = spec(e.protocol).length_offset
+    return float(np.mean(e.success * ratio(e.optimal_length + off, e.path_length + off)))
+
+
+def _nsnpl(e: EpisodeArrays) -> float:
+    k_nav = e.k_nav
+    return float(np.sum(e.success * e.entered * ratio(e.optimal_nav_length, e.nav_length)) / k_nav) if k_nav else 0.0
+
+
+#: Every metric by name, in table order (the paper's five first).
+METRIC_REGISTRY: dict[str, Metric] = {}
+
+
+def register_metric(metric: Metric) -> Metric:
+    """Add ``metric`` to every table, log and curve (after the ones registered before it)."""
+    if not isinstance(metric, Metric):
+        raise ValueError(f"{metric!r} is not a tsnav.metrics.Metric")
+    if metric.name in METRIC_REGISTRY and METRIC_REGISTRY[metric.name] != metric:
+        raise ValueError(f"metric {metric.name!r} is already registered")
+    METRIC_REGISTRY[metric.name] = metric
+    return metric
+
+
+class _Names(Sequence):
+    """The registry's names, a live read-only view (iterates, indexes and compares like a tuple)."""
+
+    def __getitem__(self, i):
+        return tuple(METRIC_REGISTRY)[i]
+
+    def __len__(self) -> int:
+        return len(METRIC_REGISTRY)
+
+    def __contains__(self, name) -> bool:
+        return name in METRIC_REGISTRY
+
+    def __eq__(self, other) -> bool:
+        return tuple(self) == tuple(other) if isinstance(other, (tuple, list, _Names)) else NotImplemented
+
+    def __hash__(self):
+        return hash(tuple(self))
+
+    def __repr__(self) -> str:
+        return repr(tuple(self))
+
+
+#: Names of the registered metrics, in table order (a live view of :data:`METRIC_REGISTRY`).
+METRICS = _Names()
+
+for _m in (Metric("SR", "success rate: share of successful episodes (IV-A)", lambda e: float(np.mean(e.success))),
+           Metric("SPL", "success weighted by path length (Anderson et al.; IV-A; the lineage's under `lineage`)",
+                  _spl),
+           Metric("SSR", "searching success rate: share of episodes that entered the pathfinding stage (IV-A)",
+                  lambda e: float(np.mean(e.entered)), curve=False),
+           Metric("SSSPL", "searching success weighted by searching path length (IV-A)",
+                  lambda e: float(np.mean(e.entered * ratio(e.optimal_search_length, e.search_length)))),
+           Metric("NSNPL", "navigation success weighted by navigation path length, over the K_Nav episodes that "
+                  "entered the pathfinding stage (IV-A)", _nsnpl)):
+    register_metric(_m)
+
+
+def curve_metrics() -> tuple[str, ...]:
+    """Names of the registered metrics drawn on convergence curves (``Metric.curve``)."""
+    return tuple(m.name for m in METRIC_REGISTRY.values() if m.curve)
+
+
 def metric_values(success, entered, path_length, optimal_length, search_length, optimal_search_length,
                   nav_length, optimal_nav_length, protocol: str = DEFAULT_PROTOCOL) -> dict[str, float]:
-    """The five metrics of paper IV-A over ``K`` episodes given as ``(K,)`` arrays (the one definition; the
-    record-based functions below and the training statistics of :mod:`tsnav.rl.stats` use it). Lengths are
-    movement-action counts; ``entered`` is Nav_i. Every metric is 0 when ``K = 0``; NSNPL is 0 when no
-    episode entered the pathfinding stage.
+    """Every registered metric (the paper's five of IV-A, and any added) over ``K`` episodes given as ``(K,)``
+    arrays (the one definition; the record-based functions below and the training statistics of
+    :mod:`tsnav.rl.stats` use it). Lengths are movement-action counts; ``entered`` is Nav_i. Every metric is 0
+    when ``K = 0``; NSNPL is 0 when no episode entered the pathfinding stage.
 
     Under the ``lineage`` protocol SPL is the lineage's ``compute_spl``: both lengths count one more
     (states on the shortest path, start included, over actions output with Done), ``(L* + 1) / (L + 1)`` on
     success (:mod:`tsnav.protocol`); the other metrics are the paper's under both."""
-    suc = np.asarray(success, dtype=np.float64)
-    nav = np.asarray(entered, dtype=np.float64)
-    if len(suc) == 0:
+    cols = [np.asarray(c, dtype=np.float64) for c in (success, entered, path_length, optimal_length, search_length,
+                                                      optimal_search_length, nav_length, optimal_nav_length)]
+    if len(cols[0]) == 0:
         return dict.fromkeys(METRICS, 0.0)
-    k_nav = float(nav.sum())
-    off = spec(protocol).length_offset
-    return {"SR": float(np.mean(suc)),
-            "SPL": float(np.mean(suc * ratio(np.asarray(optimal_length, dtype=np.float64) + off,
-                                             np.asarray(path_length, dtype=np.float64) + off))),
-            "SSR": float(np.mean(nav)),
-            "SSSPL": float(np.mean(nav * ratio(optimal_search_length, search_length))),
-            "NSNPL": float(np.sum(suc * nav * ratio(optimal_nav_length, nav_length)) / k_nav) if k_nav else 0.0}
+    episodes = EpisodeArrays(*cols, protocol=protocol)
+    return {name: m.value(episodes) for name, m in METRIC_REGISTRY.items()}
 
 
 def _col(records: Sequence[EpisodeRecord], name: str, default=0) -> np.ndarray:

@@ -25,20 +25,20 @@ from matplotlib.figure import Figure
 from ..agent import agent_config
 from ..atomic import atomic_save_figure, atomic_write_json
 from ..errors import CommandError
+from ..metrics import curve_metrics
 from ..rl.config import PRECISIONS, TrainConfig
 from ..rl.train import train_run
 from ..eval.select import select_checkpoint
 from .steps import ensure_episodes, episodes_name
 
-#: Validation metrics drawn on the curve (paper IV-A).
-CURVE_METRICS = ("SR", "SPL", "SSSPL", "NSNPL")
-
 
 def curve_points(selection: dict) -> list[dict]:
     """The scored checkpoints of a selection (:func:`select_checkpoint`), by update: update, env steps,
-    episodes and the validation metrics (ALL episodes, fractions)."""
+    episodes and the validation metrics drawn on curves (ALL episodes, fractions; ``Metric.curve`` of
+    :mod:`tsnav.metrics`)."""
     pts = [{"update": v["update"], "env_steps": v["env_steps"], "episodes": v["episodes"],
-            **{m: v["metrics"]["ALL"][m] for m in CURVE_METRICS}} for v in selection["scores"].values()]
+            **{m: v["metrics"]["ALL"][m] for m in curve_metrics() if m in v["metrics"]["ALL"]}}
+           for v in selection["scores"].values()]
     return sorted(pts, key=lambda p: p["update"])
 
 
@@ -48,7 +48,7 @@ def plot_curve(points: list[dict], path: str | Path, title: str = "") -> Path:
     FigureCanvasAgg(fig)
     for ax, key, label in ((fig.add_subplot(1, 2, 1), "env_steps", "environment steps"),
                            (fig.add_subplot(1, 2, 2), "episodes", "training episodes")):
-        for m in CURVE_METRICS:
+        for m in (m for m in curve_metrics() if all(m in p for p in points)):  # scored before a metric was added
             ax.plot([p[key] for p in points], [100 * p[m] for p in points], marker="o", ms=3, label=m)
         ax.set_xlabel(label)
         ax.set_ylabel("validation, %")
@@ -97,7 +97,7 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
             [f"{cfg.reward} reward", f"features {cfg.features}", f"protocol {cfg.protocol}"] + deviations))
         last = points[-1]
         say(f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
-            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in CURVE_METRICS) + f" (protocol {cfg.protocol})")
+            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in curve_metrics() if m in last) + f" (protocol {cfg.protocol})")
         if plateaued(points, patience):
             say(f"validation SR has not risen for {patience} chunks: stopping at update {last['update']}")
             break

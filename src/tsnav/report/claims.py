@@ -46,12 +46,14 @@ from scipy.stats import t as student
 
 from ..atomic import atomic_save_figure, atomic_write_text
 from ..errors import CommandError, read_json
+from ..metrics import PAPER_METRICS
 from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS
 from .tables import SUBSETS, finite, welch
 
 #: Significance level of the verdicts (two-sided Welch test over the per-seed values).
 ALPHA = 0.05
-METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
+#: The paper's five metrics (:mod:`tsnav.metrics`): the columns of its Table II, compared by the claims below.
+METRICS = PAPER_METRICS
 
 #: The paper's Table II (AI2-THOR, percent): row id -> subset -> metric -> value.
 PAPER_TABLE_II = {

@@ -12,13 +12,21 @@ import time
 from pathlib import Path
 
 from ..atomic import atomic_write_bytes
+from ..metrics import METRICS
 from .stats import concat, summarize
 
 
-#: TensorBoard group of each key (cleanrl-style tags: charts/..., losses/..., reward/..., metrics/...).
+#: TensorBoard group of each key (cleanrl-style tags: charts/..., losses/..., reward/..., metrics/...); every
+#: metric of :data:`tsnav.metrics.METRICS` goes to ``metrics/`` (:func:`tag_group`).
 _GROUPS = {"loss": "losses", "policy_loss": "losses", "value_loss": "losses", "entropy": "losses",
-           "grad_norm": "losses", "SR": "metrics", "SPL": "metrics", "SSR": "metrics", "SSSPL": "metrics",
-           "NSNPL": "metrics"}
+           "grad_norm": "losses"}
+
+
+def tag_group(key: str) -> str:
+    """TensorBoard group of a log key: ``reward``, ``losses``, ``metrics`` (a registered metric) or ``charts``."""
+    if key.startswith("reward/") or key == "return":
+        return "reward"
+    return "metrics" if key in METRICS else _GROUPS.get(key, "charts")
 
 
 class RunLogger:
@@ -56,8 +64,7 @@ class RunLogger:
             step = int(record["env_steps"])
             for k, v in record.items():
                 if isinstance(v, (int, float)) and not isinstance(v, bool) and k not in ("update", "env_steps"):
-                    group = "reward" if k.startswith("reward/") or k == "return" else _GROUPS.get(k, "charts")
-                    tag = f"{group}/{k.split('/', 1)[-1]}"
+                    tag = f"{tag_group(k)}/{k.split('/', 1)[-1]}"
                     self.tb.add_scalar(tag, v, step)
             self.tb.flush()
 
