@@ -97,7 +97,8 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
             [f"{cfg.reward} reward", f"features {cfg.features}", f"protocol {cfg.protocol}"] + deviations))
         last = points[-1]
         say(f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
-            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in curve_metrics() if m in last) + f" (protocol {cfg.protocol})")
+            + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in curve_metrics() if m in last)
+            + f" (protocol {cfg.protocol})")
         if plateaued(points, patience):
             say(f"validation SR has not risen for {patience} chunks: stopping at update {last['update']}")
             break
