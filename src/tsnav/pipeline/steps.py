@@ -13,6 +13,7 @@ from ..data.reader import list_scenes, load_scene
 from ..detect.oracle import OracleConfig, oracle_detections
 from ..errors import CommandError
 from ..protocol import DEFAULT_PROTOCOL, protocol_of
+from ..pretrain.encoders import encoder_kind
 from ..pretrain.features import cache_features, load_encoder
 from ..distributed import resolve_device, trim_memory
 from ..scene_pool import default_workers
@@ -140,22 +141,21 @@ class EncoderSpec:
 
 
 def encoder_spec(enc: str, scale: ScaleConfig, pretrain_dir: Path, cfg: ExperimentConfig) -> EncoderSpec:
-    """The :class:`EncoderSpec` of an encoder id of the rows at a scale."""
-    if enc == "vc1":
-        if not cfg.vc1_weights:
-            raise ValueError("the VC-1 row needs --vc1-weights PATH")
-        return EncoderSpec("vc1", f"vit:{cfg.vc1_weights}", "vit_base", 16, 224)
-    if enc == "resnet18":
-        if cfg.resnet18_weights:
-            return EncoderSpec("resnet18", f"resnet18:{cfg.resnet18_weights}", img_size=scale.pretrain.img_size)
-        method = "resnet18-sup"
-    elif enc in ("demae", "mae", "demae-crop"):
-        method = enc
-    else:
-        raise ValueError(f"unknown encoder {enc!r}")
+    """The :class:`EncoderSpec` of an encoder id of the rows at a scale, from the encoder registry
+    (:mod:`tsnav.pretrain.encoders`): the weights its ``weights_option`` names when given (required when the
+    encoder has no pretraining method), else its pretraining run ``pretrain_dir/<method>`` at the scale."""
+    kind = encoder_kind(enc)
+    weights = getattr(cfg, kind.weights_option) if kind.weights_option else None
+    if not kind.pretrained and not weights:
+        raise ValueError(f"the {kind.label or enc} row needs --{kind.weights_option.replace('_', '-')} PATH")
+    if weights:
+        if kind.pretrained:  # given weights replace the pretraining; the scale's input size
+            return EncoderSpec(enc, f"{kind.arch}:{weights}", img_size=scale.pretrain.img_size)
+        return EncoderSpec(enc, f"{kind.arch}:{weights}", "vit_base", 16, 224)
+    method = kind.method
     run = pretrain_dir / method
     pre = scale.pretrain
-    if method == "resnet18-sup":  # MAE's own learning rate; its own step budget when the scale names one
+    if kind.own_steps:  # the method's own learning rate; its own step budget when the scale names one
         steps = scale.resnet_pretrain_steps if scale.resnet_pretrain_steps is not None else pre.steps
         pre = replace(pre, steps=steps, base_lr=None)
     pre = replace(pre, method=method, device=cfg.device)

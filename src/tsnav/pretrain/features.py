@@ -44,8 +44,8 @@ from ..distributed import resolve_device
 from ..errors import CommandError
 from ..scene_pool import as_is, map_scenes
 from .data import normalize_rgb, resize_rgb
-from .model import SIZES, MAEConfig, MaskedAutoencoderViT, load_encoder_weights, make_config
-from .resnet import ResNet18, load_resnet_weights
+from .archs import ENCODER_ARCHS, arch_of, seeded_untrained, untrained_names
+from .model import SIZES
 
 
 @dataclass
@@ -81,36 +81,20 @@ def _fingerprint(module: nn.Module) -> str:
     return weights_digest(module.state_dict(), skip=("decoder", "mask_token", "fc."))[:16]
 
 
-def _vit_from_config(cfg: dict) -> MaskedAutoencoderViT:
-    c = MAEConfig.from_dict(cfg)
-    # the decoder is not needed for features: keep it tiny
-    c.decoder_embed_dim, c.decoder_depth, c.decoder_num_heads, c.use_depth = 16, 0, 1, False
-    return MaskedAutoencoderViT(c)
-
-
 def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_size: int = 224,
                  device: str | torch.device = "cpu") -> Encoder:
-    """Build the frozen encoder named by ``spec`` (see the module docstring for the forms)."""
+    """Build the frozen encoder named by ``spec`` (see the module docstring for the forms); the architectures
+    are those of :mod:`tsnav.pretrain.archs` (``<arch>:PATH`` for foreign weights of a registered one)."""
     kind, _, rest = spec.partition(":")
     if kind == "untrained" and rest:
-        torch.manual_seed(0)
-        if rest == "resnet18":
-            m, arch, cfg, size = ResNet18(), "resnet18", {}, img_size
-        elif rest in SIZES:
-            c = make_config(rest, patch_size, img_size)
-            m, arch, cfg, size = _vit_from_config(c.to_dict()), "vit", c.to_dict(), img_size
-        else:
-            raise ValueError(f"unknown encoder {spec!r}: untrained:resnet18 or untrained:<{'|'.join(SIZES)}>")
-        method = "untrained"
-    elif kind == "resnet18" and rest:
-        m = ResNet18()
-        load_resnet_weights(m, rest)
-        arch, method, cfg, size = "resnet18", "torchvision", {}, img_size
-    elif kind == "vit" and rest:
-        c = make_config(model, patch_size, img_size)
-        m = _vit_from_config(c.to_dict())
-        load_encoder_weights(m, rest)
-        arch, method, cfg, size = "vit", "timm", c.to_dict(), img_size
+        got = seeded_untrained(rest, patch_size, img_size)
+        if got is None:
+            raise ValueError(f"unknown encoder {spec!r}: untrained:<{'|'.join(untrained_names())}>")
+        (m, arch, cfg), size, method = got, img_size, "untrained"
+    elif kind in ENCODER_ARCHS and rest:
+        a = ENCODER_ARCHS[kind]
+        m, cfg = a.from_weights(rest, model, patch_size, img_size)
+        arch, method, size = kind, a.foreign_method, img_size
     else:
         path = Path(spec)
         if path.is_dir():
@@ -124,20 +108,15 @@ def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_s
         if meta.get("format") != "tsnav-encoder":
             raise ValueError(f"{path}: not a tsnav encoder file (use vit:PATH or resnet18:PATH for other weights)")
         arch, method = meta["arch"], meta.get("method", "?")
-        if arch == "resnet18":
-            m, cfg, size = ResNet18(), {}, img_size
-            missing = set(m.encoder_state_dict()) - set(sd)
-            if missing:
-                raise ValueError(f"{path}: missing keys {sorted(missing)[:5]}")
-            m.load_state_dict(sd, strict=False)
-        else:
-            cfg = json.loads(meta["config"])
-            m = _vit_from_config(cfg)
-            own = m.encoder_state_dict()
-            if set(own) != set(sd):
-                raise ValueError(f"{path}: keys do not match the ViT in its metadata")
-            m.load_state_dict(sd, strict=False)
-            size = int(cfg["img_size"])
+        cfg = json.loads(meta.get("config") or "{}")
+        m, size = arch_of(arch).from_file(cfg, img_size)
+        own = m.encoder_state_dict()
+        if arch == "vit" and set(own) != set(sd):
+            raise ValueError(f"{path}: keys do not match the ViT in its metadata")
+        missing = set(own) - set(sd)
+        if missing:
+            raise ValueError(f"{path}: missing keys {sorted(missing)[:5]}")
+        m.load_state_dict(sd, strict=False)
     m = m.to(device).eval()
     for p in m.parameters():
         p.requires_grad_(False)
@@ -147,7 +126,7 @@ def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_s
 def default_name(spec: str) -> str:
     """Feature-file name of an encoder spec: run folder name, file stem, or ``untrained_<size>``."""
     kind, _, rest = spec.partition(":")
-    if kind in ("untrained", "vit", "resnet18") and rest:
+    if (kind == "untrained" or kind in ENCODER_ARCHS) and rest:
         base = rest if kind == "untrained" else Path(rest).stem
         name = f"{kind}_{base}"
     else:

@@ -47,7 +47,6 @@ import torch.nn as nn
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from ..constants import NUM_CATEGORIES
 from ..distributed import DistInfo, barrier, init_distributed, resolve_device
 from ..schedule import warmup_cosine
 from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_checkpoints, load_tensors,
@@ -55,12 +54,11 @@ from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_check
                           save_checkpoint as save_checkpoint_folder, save_tensors, set_aside)
 from ..checkpoint_layout import LEGACY_PROGRESS, read_legacy_progress, read_progress  # noqa: F401 - read_progress: API
 from .data import AugmentConfig, BatchView, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
-from .model import SIZES, MaskedAutoencoderViT, make_config
-from .resnet import ResNet18
+from .archs import arch_of, vit_mae_config
+from .encoders import METHODS, method_kind  # noqa: F401 (METHODS: the registry's method names, re-exported)
+from .model import SIZES, MaskedAutoencoderViT
 from .viz import reconstruction_grid
 
-
-METHODS = ("demae", "mae", "demae-crop", "resnet18-sup")
 #: Config fields that may change between an interrupted run and its resumption.
 RESUMABLE_FIELDS = {"checkpoint_every", "log_every", "num_workers", "preload", "device", "viz_images"}
 
@@ -124,17 +122,15 @@ class PretrainConfig:
     """``auto`` (CUDA when present), ``cpu`` or ``cuda``."""
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"unknown method {self.method!r} (choose from {', '.join(METHODS)})")
-        if self.method != "resnet18-sup" and self.model not in SIZES:
+        kind = method_kind(self.method)  # ValueError naming the methods
+        if kind.arch == "vit" and self.model not in SIZES:
             raise ValueError(f"unknown model {self.model!r} (choose from {', '.join(SIZES)})")
         if self.batch_size < 1 or self.accum_iter < 1:
             raise ValueError("batch_size and accum_iter must be >= 1")
         if self.steps is not None and self.steps < 1:
             raise ValueError("steps must be >= 1")
-        if self.img_size % (32 if self.method == "resnet18-sup" else self.patch_size):
-            if self.method != "resnet18-sup":
-                raise ValueError(f"img_size {self.img_size} must be a multiple of patch {self.patch_size}")
+        if kind.arch == "vit" and self.img_size % self.patch_size:
+            raise ValueError(f"img_size {self.img_size} must be a multiple of patch {self.patch_size}")
         self.betas = tuple(self.betas)
         self.crop_scale = tuple(self.crop_scale)
 
@@ -142,7 +138,7 @@ class PretrainConfig:
     def resolved_base_lr(self) -> float:
         if self.base_lr is not None:
             return self.base_lr
-        return 1e-3 if self.method == "resnet18-sup" else 1.5e-4
+        return method_kind(self.method).base_lr
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -161,28 +157,27 @@ class PretrainConfig:
 
 
 def model_config(cfg: PretrainConfig):
-    """The :class:`MAEConfig` of a ViT method (None for ``resnet18-sup``)."""
-    if cfg.method == "resnet18-sup":
+    """The :class:`MAEConfig` of a ViT method (None for other architectures, e.g. ``resnet18-sup``)."""
+    if method_kind(cfg.method).arch != "vit":
         return None
-    return make_config(cfg.model, cfg.patch_size, cfg.img_size, mask_ratio=cfg.mask_ratio,
-                       norm_pix_loss=cfg.norm_pix_loss, use_depth=cfg.method in ("demae", "demae-crop"),
-                       depth_weight=cfg.depth_weight)
+    return vit_mae_config(cfg)
+
+
+def _model_config_dict(cfg: PretrainConfig) -> dict:
+    """The network's own config as saved in ``config.json`` ({} when its architecture has none)."""
+    return arch_of(method_kind(cfg.method).arch).model_config(cfg)
 
 
 def build_model(cfg: PretrainConfig) -> nn.Module:
-    """The network a method trains, initialised from ``torch.manual_seed(cfg.seed)``."""
+    """The network a method trains (its encoder's architecture, :mod:`tsnav.pretrain.archs`), initialised from
+    ``torch.manual_seed(cfg.seed)``."""
     torch.manual_seed(cfg.seed)
-    if cfg.method == "resnet18-sup":
-        return ResNet18(num_classes=NUM_CATEGORIES)
-    return MaskedAutoencoderViT(model_config(cfg))
+    return arch_of(method_kind(cfg.method).arch).build(cfg)
 
 
 def encoder_metadata(model: nn.Module, method: str) -> dict[str, str]:
     """safetensors metadata that lets :func:`tsnav.pretrain.features.load_encoder` rebuild the encoder."""
-    if isinstance(model, ResNet18):
-        return {"format": "tsnav-encoder", "arch": "resnet18", "method": method, "config": "{}"}
-    return {"format": "tsnav-encoder", "arch": "vit", "method": method,
-            "config": json.dumps(model.config.to_dict(), sort_keys=True)}
+    return arch_of(method_kind(method).arch).metadata(model, method)
 
 
 def save_encoder(model: nn.Module, path: str | Path, method: str) -> None:
@@ -228,13 +223,14 @@ def param_groups(model: nn.Module, weight_decay: float) -> tuple[list[dict], lis
 def compute_loss(model: nn.Module, method: str, rgb: torch.Tensor, depth: torch.Tensor,
                  labels: torch.Tensor | None, noise: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
     """Loss of one micro-batch and its parts for logging."""
-    if method == "resnet18-sup":
+    kind = method_kind(method)
+    if kind.labels:  # supervised: the visible target categories of the frame
         logits = model(rgb)
         loss = F.binary_cross_entropy_with_logits(logits.float(), labels)
         return loss, {"bce": loss.detach()}
-    out = model(rgb, depth if method != "mae" else None, noise=noise)
+    out = model(rgb, depth if kind.depth else None, noise=noise)
     parts = {"rgb": out.loss_rgb.detach()}
-    if method != "mae":
+    if kind.depth:
         parts["depth"] = out.loss_depth.detach()
     return out.loss, parts
 
@@ -337,13 +333,12 @@ class _StopRequest:
 
 def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopRequest | None = None):
     """:func:`train_model` in this process: set up, resume, the loop of optimiser steps, the final files."""
-    mc = model_config(cfg)
-    model_cfg = {} if mc is None else mc.to_dict()
+    model_cfg = _model_config_dict(cfg)
     _check_config(out, cfg, model_cfg, write=False)
     prog = read_progress(out)
     if prog and prog.get("finished"):
         return _finished_summary(out, prog, say=di.rank == 0 and progress), None
-    sup = cfg.method == "resnet18-sup"
+    kind = method_kind(cfg.method)
     images = _train_images(cfg, data)
     model = build_model(cfg).to(device)
     if di.rank == 0:
@@ -356,8 +351,8 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
     start = 0 if prog is None else _resume(out, prog, b, model, opt, names, device, di)
     ddp = model if b.world == 1 else nn.parallel.DistributedDataParallel(
         model, device_ids=[device.index] if device.type == "cuda" else None)
-    aug_cfg = AugmentConfig(flip_prob=cfg.flip_prob, crop=cfg.method == "demae-crop", crop_scale=cfg.crop_scale)
-    L = 0 if sup else model.config.num_patches
+    aug_cfg = AugmentConfig(flip_prob=cfg.flip_prob, crop=kind.crop, crop_scale=cfg.crop_scale)
+    L = model.config.num_patches if kind.arch == "vit" and not kind.labels else 0
     autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
                 else contextlib.nullcontext())
     loader = _loader(images, b, cfg, start, di.rank)
@@ -426,7 +421,7 @@ def _finished_summary(out: Path, prog: dict, say: bool) -> dict:
 
 def _train_images(cfg: PretrainConfig, data: str | Path | RGBDImages) -> RGBDImages:
     """The training images of ``data`` (a dataset folder, or images loaded already that must match ``cfg``)."""
-    sup = cfg.method == "resnet18-sup"
+    sup = method_kind(cfg.method).labels
     images = data if isinstance(data, RGBDImages) else RGBDImages(
         data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
     if images.img_size != cfg.img_size or (sup and not images.with_labels):
@@ -531,7 +526,7 @@ def _accumulate(ddp: nn.Module, method: str, loader, b: _Batches, aug, noise: to
         batch = next(loader)
         pos = np.arange(m * b.batch * b.world, (m + 1) * b.batch * b.world)[rank::b.world]  # in the global batch
         rgb, depth = prepare_batch(batch, slice_augment(aug, torch.from_numpy(pos)), device)
-        labels = batch["labels"].to(device) if method == "resnet18-sup" else None
+        labels = batch["labels"].to(device) if method_kind(method).labels else None
         nz = noise[torch.from_numpy(pos)].to(device) if noise is not None else None
         sync = contextlib.nullcontext() if (b.world == 1 or m == b.accum - 1) else ddp.no_sync()
         with sync:
@@ -611,7 +606,7 @@ def _write_final(out: Path, model: nn.Module, model_cfg: dict, cfg: PretrainConf
     save_tensors(out / "model.safetensors", model.state_dict(),
                  {"config": json.dumps(model_cfg), "method": cfg.method})
     save_encoder(model, out / "encoder.safetensors", cfg.method)
-    if cfg.method != "resnet18-sup" and cfg.viz_images > 0:
+    if model_config(cfg) is not None and not method_kind(cfg.method).labels and cfg.viz_images > 0:
         write_reconstructions(model, cfg, out / "recon.png", images)
 
 

@@ -38,6 +38,7 @@ from ..errors import CommandError
 from ..rl.logger import read_log
 from .gallery import write_gallery
 from ..metrics import METRICS, format_table
+from ..pretrain.encoders import describe_pretraining
 from ..eval.runner import eval_trajectories
 from ..protocol import protocol_line
 from .claims import ALPHA, check_claims, claims_html, plot_claims, summary_line
@@ -417,8 +418,7 @@ def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
         prog = _pretrain_progress(d)
         lab = _label(d, root)
         loss = prog.get("loss")
-        arch = ("ResNet18" if cfg.get("method") == "resnet18-sup"
-                else f"{cfg.get('model')}, patch {cfg.get('patch_size')}")
+        arch = describe_pretraining(cfg)
         info = (f"method {cfg.get('method')}, {arch}, "
                 f"{cfg.get('img_size')}px, {prog.get('step', 0)}/{prog.get('total_steps', '?')} steps"
                 + (f", last loss {loss:.4f}" if isinstance(loss, (int, float)) else ""))
