@@ -9,7 +9,8 @@ The table's file format (``detections_<name>.hdf5``) belongs to the data layer: 
 * :mod:`.train`     training, checkpoints, temperature scaling
 * :mod:`.learned`   the learned detector's tables
 * :mod:`.evaluate`  per-class AP and reliability tables
-* :mod:`.command`   ``tsnav detect``
+* :mod:`.registry`  the detectors by name (oracle, learned, shipped): how each is opened and writes its tables
+* :mod:`.command`   ``tsnav detect`` (its `--detector` choices are the registry's)
 
 Heavy dependencies (torch) load only with the modules that need them.
 """

@@ -4,7 +4,7 @@
     tsnav detect --data DIR --detector learned [--checkpoint CKPT] [--train-steps N]
     tsnav detect --data DIR --detector shipped
 
-``oracle`` reads the renderer's instance statistics (:mod:`tsnav.detect.oracle`). ``learned`` trains the
+The detectors are those of :mod:`tsnav.detect.registry`. ``oracle`` reads the renderer's instance statistics (:mod:`tsnav.detect.oracle`). ``learned`` trains the
 grid detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/learned``) is missing or
 has fewer than ``--train-steps`` steps (resumable: rerun the command after an interruption), fits its
 temperature on the VAL scenes, then detects in every scene. ``shipped`` detects with the learned detector that
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import threading
 from pathlib import Path
@@ -27,21 +26,18 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
-from ..data.detections import check_name, load_detections, read_fingerprint, write_detections
+from ..data.detections import check_name, load_detections, read_fingerprint
 from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene
 from ..distributed import set_threads
 from ..errors import CommandError
 from .evaluate import evaluate_detections
-from .learned import LearnedDetector, write_scene_tables
-from .model import LossWeights, default_config
-from .oracle import OracleConfig, oracle_detections
-from .shipped import DEFAULT_SHIPPED, SHIPPED, shipped_detector, shipped_for
-from .train import DetectorTrainConfig, calibrate, default_train_steps, is_checkpoint, read_meta, train_detector
+from .registry import DETECTORS, detector_kind
+from .shipped import DEFAULT_SHIPPED, SHIPPED
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="dataset root (one folder per scene)")
-    p.add_argument("--detector", required=True, choices=("oracle", "learned", "shipped"),
+    p.add_argument("--detector", required=True, choices=tuple(DETECTORS),
                    help="which detector (shipped: the learned detector that comes with tsnav, for 128-px ithor-real "
                         "rooms; nothing trained, table name learned by default)")
     p.add_argument("--checkpoint", default=None,
@@ -103,99 +99,6 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-def _oracle(args):
-    cfg = OracleConfig()
-    return cfg.fingerprint(), (lambda scene, bar: _tick(oracle_detections(scene, cfg), bar))
-
-
-def _tick(det, bar):
-    if bar is not None:
-        bar.update(det.num_states)
-    return det
-
-
-def _learned(args, root: Path) -> LearnedDetector:
-    ckpt = Path(args.checkpoint) if args.checkpoint else root / "detectors" / "learned"
-    if args.train_steps is not None and args.train_steps < 1:
-        raise CommandError("--train-steps must be at least 1")
-    if args.batch_size is not None and args.batch_size < 1:
-        raise CommandError("--batch-size must be at least 1")
-    if args.repeat_threshold is not None and not args.repeat_threshold >= 0:
-        raise CommandError(f"--repeat-threshold must be >= 0, got {args.repeat_threshold}")
-    if args.hard_negative_weight is not None and not (args.hard_negative_weight >= 0
-                                                      and math.isfinite(args.hard_negative_weight)):
-        raise CommandError(f"--hard-negative-weight must be a finite number >= 0, got {args.hard_negative_weight}")
-    if args.hard_negative_threshold is not None:
-        if not args.hard_negative_weight:
-            raise CommandError("--hard-negative-threshold needs --hard-negative-weight")
-        if not 0 < args.hard_negative_threshold < 1:
-            raise CommandError(f"--hard-negative-threshold must be in (0, 1), got {args.hard_negative_threshold}")
-    if args.presence_pos_weight is not None and not (args.presence_pos_weight > 0
-                                                     and math.isfinite(args.presence_pos_weight)):
-        raise CommandError(f"--presence-pos-weight must be a finite number > 0, got {args.presence_pos_weight}")
-    if args.focal_alpha is not None and not 0 < args.focal_alpha < 1:
-        raise CommandError(f"--focal-alpha must be in (0, 1), got {args.focal_alpha}")
-    if ckpt.exists() and not ckpt.is_dir():
-        raise CommandError(f"--checkpoint {ckpt} is a file; give a checkpoint folder")
-    if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
-        raise CommandError(f"--checkpoint {ckpt} is a folder that holds no detector checkpoint")
-    model_cfg = _model_config(args, root)
-    steps = args.train_steps
-    if steps is None:  # an existing checkpoint: finish its own target (a no-op when it is finished)
-        steps = (int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt)
-                 else default_train_steps(model_cfg.image_size))
-    tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene,
-                             repeat_threshold=args.repeat_threshold or 0.0,
-                             hard_negative_weight=args.hard_negative_weight or 0.0,
-                             hard_negative_threshold=args.hard_negative_threshold or 0.5)
-    if args.batch_size:
-        tc.batch_size = args.batch_size
-    if args.presence_pos_weight is not None or args.focal_alpha is not None:
-        loss = LossWeights()
-        if args.presence_pos_weight is not None:
-            loss.presence_pos_weight = args.presence_pos_weight
-        if args.focal_alpha is not None:
-            loss.focal_alpha = args.focal_alpha
-        tc.loss = loss
-    res = train_detector(root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet)
-    if res.step > res.start_step:
-        print(f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "
-              f"(last loss {res.last.get('loss', float('nan')):.3f}); checkpoint {ckpt}")
-    else:
-        print(f"detector checkpoint {ckpt} at step {res.step}")
-    try:
-        t = calibrate(root, ckpt, split="val", progress=not args.quiet)
-        print(f"temperature {t:.3f} (fitted on val scenes)")
-    except ValueError as e:
-        print(f"no calibration ({e}); temperature 1")
-    return LearnedDetector.load(ckpt)
-
-
-def _model_config(args, root: Path):
-    """Architecture of a new checkpoint: :func:`~tsnav.detect.model.default_config` of the train scenes' frame
-    side, changed by ``--stem`` / ``--widths`` / ``--fine``."""
-
-    train = list_scenes(root, split="train")
-    if not train:
-        raise CommandError(f"{root}: no complete train scene to train the detector on")
-    size = load_scene(train[0]).image_size
-    cfg = default_config(size)
-    stem = cfg.stem = args.stem if args.stem is not None else cfg.stem
-    if args.widths:
-        try:
-            widths = tuple(int(w) for w in args.widths.split(","))
-        except ValueError:
-            widths = ()
-        if len(widths) != 3 or min(widths) < 1:
-            raise CommandError(f"--widths {args.widths!r}: give three positive channel counts, e.g. 24,48,96")
-        cfg.widths = widths
-    if args.fine is not None:
-        cfg.fine = bool(args.fine)
-    if stem < 1 or size % (8 * stem) or size < 16 * stem:
-        raise CommandError(f"--stem {stem} does not fit {size}px frames (the side must be a multiple of 8 x stem)")
-    return cfg
-
-
 def _sigterm_interrupts() -> None:
     """Turn SIGTERM into KeyboardInterrupt so that training saves a checkpoint before the process ends
     (background jobs ignore SIGINT)."""
@@ -222,18 +125,13 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--workers must be at least 1")
     set_threads(args.threads)
     _sigterm_interrupts()
-    name = check_name(args.name or ("learned" if args.detector == "shipped" else args.detector))
+    kind = detector_kind(args.detector)
+    name = check_name(args.name or kind.table)
     scenes = list_scenes(root, split=args.split)
     if not scenes:
         raise CommandError(f"{root}: no complete scene folder" + (f" of split {args.split}" if args.split else ""))
-    det, oracle = None, None  # a learned (or shipped) detector, or the oracle's per-scene function
-    if args.detector == "oracle":
-        fingerprint, oracle = _oracle(args)
-    else:
-        which = args.shipped or shipped_for(name)
-        det = (shipped_detector(load_scene(scenes[0]).image_size, name=which) if args.detector == "shipped"
-               else _learned(args, root))
-        fingerprint = det.fingerprint
+    maker = kind.open(args, root, scenes, name)  # the detector, ready to write tables (trained first if needed)
+    fingerprint = maker.fingerprint
 
     own = name + MIRROR_SUFFIX if args.mirror else name  # the tables' file name
     todo, done = [], 0
@@ -250,11 +148,7 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=sum(s.num_states for s in loaded), desc=f"detect {own}", unit="state",
                disable=args.quiet, dynamic_ncols=True)
     try:
-        if det is not None:
-            write_scene_tables(det, loaded, name, bar, args.workers)
-        else:
-            for s in loaded:
-                write_detections(s.path, own, oracle(s, bar))
+        maker.write(loaded, name, own, bar, args.workers)
     finally:
         bar.close()
     print(f"detections_{own}.hdf5: {len(loaded)} scenes written, {done} already done "
