@@ -1,6 +1,8 @@
-"""Load a file of ``scripts/`` (or any Python file) as a module, for tests of code that is not in the package."""
+"""Load a Python file as a module (tests of code that is not in the package, e.g. fixture makers), and the
+analyses of ``tsnav analyze`` as fresh modules."""
 from __future__ import annotations
 
+import importlib
 import importlib.util
 from pathlib import Path
 from types import ModuleType
@@ -17,3 +19,8 @@ def load_script(path: str | Path, name: str | None = None) -> ModuleType:
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def load_analysis(name: str) -> ModuleType:
+    """The module of ``tsnav analyze`` analysis ``name`` (``tsnav.analyze.<name>``), executed fresh on each call."""
+    return importlib.reload(importlib.import_module(f"tsnav.analyze.{name}"))

@@ -1,22 +1,20 @@
-"""``scripts/agent_diagnostics.py outcomes`` (issue 23 analysis): outcome counts, blocked MoveAheads and loops of
+"""``tsnav analyze agent-diagnostics outcomes`` (issue 23 analysis): outcome counts, blocked MoveAheads and loops of
 hand-made trajectories, and the command on a real evaluation folder of the tiny world."""
 
 import json
-from pathlib import Path
 
 import pytest
 
 from tsnav.cli import main
 from tsnav.constants import DONE, MOVE_AHEAD, ROTATE_LEFT
 from tsnav.eval.runner import Trajectory
-from script_helpers import load_script
+from script_helpers import load_analysis
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "agent_diagnostics.py"
 
 
 @pytest.fixture(scope="module")
 def diag():
-    return load_script(SCRIPT)
+    return load_analysis("agent_diagnostics")
 
 
 def _traj(keys, actions, switch=-1, success=False):

@@ -1,11 +1,11 @@
-"""scripts/class_calibration.py: the Platt fit against a generic optimiser, the identity map leaves a table as it
+"""tsnav analyze class-calibration: the Platt fit against a generic optimiser, the identity map leaves a table as it
 was, and on a built world the written tables carry the maps and the switch report runs before and after."""
 
 import json
 
 import numpy as np
 import pytest
-from script_helpers import load_script
+from script_helpers import load_analysis
 
 from tsnav.constants import TARGET_CATEGORIES
 from tsnav.data.detections import load_detections
@@ -14,7 +14,7 @@ from tsnav.data.reader import list_scenes
 
 @pytest.fixture(scope="module")
 def mod():
-    return load_script("class_calibration")
+    return load_analysis("class_calibration")
 
 
 def test_platt_fit_matches_the_reference(mod):

@@ -1,14 +1,14 @@
-"""scripts/detector_zoom.py: the enlarged crops against a pixel-by-pixel bilinear reference, and the combination of
+"""tsnav analyze detector-zoom: the enlarged crops against a pixel-by-pixel bilinear reference, and the combination of
 the frame's and the crops' logits."""
 
 import numpy as np
 import pytest
-from script_helpers import load_script
+from script_helpers import load_analysis
 
 
 @pytest.fixture(scope="module")
 def mod():
-    return load_script("detector_zoom")
+    return load_analysis("detector_zoom")
 
 
 def bilinear_2x_reference(crop: np.ndarray) -> np.ndarray:

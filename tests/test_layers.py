@@ -26,6 +26,7 @@ LAYERS: list[set[str]] = [
     {"eval", "thor"},
     {"report"},
     {"pipeline"},
+    {"analyze"},
     {"cli"},
     {"__main__"},
 ]

@@ -1,10 +1,10 @@
-"""scripts/merge_rows.py: rows of another experiment's results copied into a table, per seed, in the experiment's
+"""tsnav analyze merge-rows: rows of another experiment's results copied into a table, per seed, in the experiment's
 row order, with Welch's tests recomputed; refusals in one line, nothing written on a refusal."""
 
 import json
 
 import pytest
-from script_helpers import load_script
+from script_helpers import load_analysis
 
 
 def _row(rid, label, vals, metrics=("SR", "SPL")):
@@ -24,7 +24,7 @@ def _results(exp, rows, metrics=("SR", "SPL"), protocol="lineage", other=True):
 
 
 def test_merge_copies_per_seed_values_in_row_order(tmp_path, capsys):
-    mod = load_script("merge_rows")
+    mod = load_analysis("merge_rows")
     t3 = tmp_path / "t3"
     t3.mkdir()
     (t3 / "results.json").write_text(json.dumps(_results("pretraining", [
@@ -54,7 +54,7 @@ def test_merge_copies_per_seed_values_in_row_order(tmp_path, capsys):
 
 
 def test_merge_refusals(tmp_path, capsys):
-    mod = load_script("merge_rows")
+    mod = load_analysis("merge_rows")
     t3 = tmp_path / "t3.json"
     t3.write_text(json.dumps(_results("pretraining", [_row("mae", "MAE", [60.0, 62.0, 64.0])])))
     two = tmp_path / "two.json"

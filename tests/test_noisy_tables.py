@@ -1,23 +1,21 @@
-"""``scripts/noisy_tables.py`` (issue 23 analysis): tables of the shipped detector on noisy frames for one split and
+"""``tsnav analyze noisy-tables`` (issue 23 analysis): tables of the shipped detector on noisy frames for one split and
 the clean tables of the others under the new name. With no noise it writes exactly the shipped detector's own table;
 with noise it is the same on every run and records the noise; bad input gets one line."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tsnav.data.detections import load_detections
 from tsnav.data.reader import list_scenes
-from script_helpers import load_script
+from script_helpers import load_analysis
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "noisy_tables.py"
 
 
 def _script():
-    return load_script(SCRIPT)
+    return load_analysis("noisy_tables")
 
 
 @pytest.fixture(scope="module")

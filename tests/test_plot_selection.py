@@ -1,9 +1,9 @@
-"""scripts/plot_selection.py: a run's milestones on two validation sets, read from selection.json files; the chosen
+"""tsnav analyze plot-selection: a run's milestones on two validation sets, read from selection.json files; the chosen
 milestone and the episode counts come from the files; bad input is refused in one line and nothing is written."""
 
 import json
 
-from script_helpers import load_script
+from script_helpers import load_analysis
 
 
 def _selection(path, srs, best, episodes):
@@ -14,7 +14,7 @@ def _selection(path, srs, best, episodes):
 
 
 def test_reads_the_files_and_writes_a_png(tmp_path, capsys):
-    mod = load_script("plot_selection")
+    mod = load_analysis("plot_selection")
     small = _selection(tmp_path / "a.json", {500: 0.8, 250: 0.7, 750: 0.75}, "ckpt_000000500", 400)
     large = _selection(tmp_path / "b.json", {250: 0.72, 500: 0.78, 750: 0.79}, "ckpt_000000750", 2000)
     updates, sr, spl, best, n = mod.read_selection(str(small))
@@ -26,7 +26,7 @@ def test_reads_the_files_and_writes_a_png(tmp_path, capsys):
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):
-    mod = load_script("plot_selection")
+    mod = load_analysis("plot_selection")
     good = _selection(tmp_path / "a.json", {250: 0.7}, "ckpt_000000250", 400)
     bad = tmp_path / "bad.json"
     bad.write_text('{"best": "x"}')

@@ -1,4 +1,4 @@
-"""``scripts/policy_ensemble.py`` (issue 23 analysis): a one-member ensemble is the agent itself (the reference:
+"""``tsnav analyze policy-ensemble`` (issue 23 analysis): a one-member ensemble is the agent itself (the reference:
 ``tsnav eval --run``), a run doubled is the run, two different runs give a valid evaluation folder, bad input is
 one line."""
 
@@ -11,14 +11,14 @@ from tsnav.cli import main
 from tsnav.eval.runner import read_trajectories
 
 from conftest import PIXEL_FEATURES as FEATS
-from script_helpers import load_script
+from script_helpers import load_analysis
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
 def ens():
-    return load_script("policy_ensemble")
+    return load_analysis("policy_ensemble")
 
 
 @pytest.fixture(scope="module")

@@ -1,19 +1,17 @@
-"""``scripts/stop_signal.py`` (issue 23, the stop decision): its rank AUC agrees with the all-pairs reference, the
+"""``tsnav analyze stop-signal`` (issue 23, the stop decision): its rank AUC agrees with the all-pairs reference, the
 leave-one-room-out regression finds a signal that is there, and on a built world its counts are consistent with the
 protocol (success states only within 1.5 m under ``lineage``)."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
-from script_helpers import load_script
+from script_helpers import load_analysis
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "stop_signal.py"
 
 
 def _script():
-    return load_script(SCRIPT)
+    return load_analysis("stop_signal")
 
 
 def test_auc_matches_the_all_pairs_reference():

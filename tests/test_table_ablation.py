@@ -1,17 +1,17 @@
-"""scripts/table_ablation.py: each kind of mended table changes only the cells it names, as a cell-by-cell rule says."""
+"""tsnav analyze table-ablation: each kind of mended table changes only the cells it names, as a cell-by-cell rule says."""
 
 from dataclasses import replace
 
 import numpy as np
 import pytest
-from script_helpers import load_script
+from script_helpers import load_analysis
 
 from tsnav.data.detections import Detections
 
 
 @pytest.fixture(scope="module")
 def mod():
-    return load_script("table_ablation")
+    return load_analysis("table_ablation")
 
 
 def _table(rng, S, score_lo=0.0):

@@ -31,6 +31,7 @@ COMMANDS = {
     "thor": ("tsnav.thor.command", "import AI2-THOR offline data or export from a live AI2-THOR"),
     "demo": ("tsnav.pipeline.demo", "the main job: world, pretraining, detections, training, evaluation, report"),
     "release": ("tsnav.pipeline.release", "evaluate the trained agent that ships with tsnav on the real test rooms"),
+    "analyze": ("tsnav.analyze.command", "the analyses behind docs/RESULTS.md (`tsnav analyze` lists them)"),
 }
 
 

@@ -23,10 +23,10 @@ only).
 oracle's), per target the episodes, those whose switch never fired in each, and those that fired only in B (what
 A's table misses where B's finds the target).
 
-    python scripts/agent_diagnostics.py rotations EVAL_A EVAL_B
-    python scripts/agent_diagnostics.py reach --data WORLD --episodes TEST.json --detections learned4 oracle
-    python scripts/agent_diagnostics.py outcomes EVAL_A EVAL_B [--data WORLD]
-    python scripts/agent_diagnostics.py switches EVAL_A EVAL_B
+    tsnav analyze agent-diagnostics rotations EVAL_A EVAL_B
+    tsnav analyze agent-diagnostics reach --data WORLD --episodes TEST.json --detections learned4 oracle
+    tsnav analyze agent-diagnostics outcomes EVAL_A EVAL_B [--data WORLD]
+    tsnav analyze agent-diagnostics switches EVAL_A EVAL_B
 """
 
 from __future__ import annotations
@@ -38,11 +38,11 @@ from pathlib import Path
 
 import numpy as np
 
-from tsnav.constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, MOVE_AHEAD
-from tsnav.data.detections import load_detections
-from tsnav.data.reader import load_scene
-from tsnav.eval.runner import read_trajectories
-from tsnav.sim.episodes import read_episodes
+from ..constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, MOVE_AHEAD
+from ..data.detections import load_detections
+from ..data.reader import load_scene
+from ..eval.runner import read_trajectories
+from ..sim.episodes import read_episodes
 
 LEFT, RIGHT = ACTIONS.index("RotateLeft"), ACTIONS.index("RotateRight")
 TURNS = 8  # 360 / 45-degree rotations
@@ -163,7 +163,7 @@ def switch_misses(a, b) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="tsnav analyze agent-diagnostics", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("rotations", help="how evaluated agents turn")
     r.add_argument("evals", nargs="+", help="tsnav eval output folders")
@@ -233,7 +233,3 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError) as e:
         raise SystemExit(str(e)) from None
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

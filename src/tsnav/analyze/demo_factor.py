@@ -1,8 +1,8 @@
 """One factor of issue 23 at the demo's scale: the demo's agent (TSRM + DE-MAE, 28 real rooms, 1000 updates) with
 one setting changed, over several seeds, against the demo itself over the same seeds.
 
-    python scripts/demo_factor.py BASE VARIANT SEED [SEED ...]
-    python scripts/demo_factor.py BASE --table VARIANT [VARIANT ...]
+    tsnav analyze demo-factor BASE VARIANT SEED [SEED ...]
+    tsnav analyze demo-factor BASE --table VARIANT [VARIANT ...]
 
 VARIANT is one of :data:`VARIANTS` (``p16-64``: the demo as it is, a 4x4 token grid; ``p16-128``: the same ViT-Tiny
 on the world's own 128-px frames, an 8x8 grid). Each (variant, seed) is a demo folder ``BASE/VARIANT-sSEED``; the
@@ -22,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tsnav.eval.runner import evaluate_to_folder
-from tsnav.metrics import write_json
-from tsnav.pipeline.config import SCALES
-from tsnav.pipeline.demo import DemoConfig, run_demo
-from tsnav.pipeline.experiment import set_threads
-from tsnav.protocol import PROTOCOLS
-from tsnav.report.tables import mean_ci
+from ..eval.runner import evaluate_to_folder
+from ..metrics import write_json
+from ..pipeline.config import SCALES
+from ..pipeline.demo import DemoConfig, run_demo
+from ..distributed import set_threads
+from ..protocol import PROTOCOLS
+from ..report.tables import mean_ci
 
 #: Variant name -> fields of the demo scale's configurations changed (:meth:`ScaleConfig.override`): the demo as it
 #: is; the encoder on the world's own 128-px frames (an 8x8 token grid instead of 4x4); patch 8 at 64 px (8x8 as
@@ -161,7 +161,7 @@ def table(base: Path, variants: list[str]) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="tsnav analyze demo-factor", description=__doc__.splitlines()[0])
     p.add_argument("base", type=Path)
     p.add_argument("variant", nargs="?")
     p.add_argument("seeds", nargs="*", type=int)
@@ -175,7 +175,3 @@ def main(argv=None) -> int:
     else:
         run(a.base, a.variant, a.seeds or [0], a.threads)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

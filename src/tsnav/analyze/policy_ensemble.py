@@ -5,10 +5,10 @@ analysis; nothing here is shipped). The stage switch follows the first member's 
 reads its own training table and features.
 
 Writes what ``tsnav eval`` writes (``records.jsonl``, ``trajectories.jsonl``, ``outcomes.json``, ``metrics.json``
-with ``policy: ensemble`` and the members' runs), so ``scripts/agent_diagnostics.py`` reads the folder. A one-member
+with ``policy: ensemble`` and the members' runs), so ``tsnav analyze agent-diagnostics`` reads the folder. A one-member
 ensemble acts exactly as ``tsnav eval --run`` does (tested).
 
-    python scripts/policy_ensemble.py --data WORLD --episodes TEST.json --run RUN_A --run RUN_B --out OUT
+    tsnav analyze policy-ensemble --data WORLD --episodes TEST.json --run RUN_A --run RUN_B --out OUT
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tsnav.errors import CommandError
-from tsnav.eval.runner import (EvalConfig, config_dict, load_bank_for_episodes, record_trajectories, resolve_protocol,
+from ..errors import CommandError
+from ..eval.runner import (EvalConfig, config_dict, load_bank_for_episodes, record_trajectories, resolve_protocol,
                                write_evaluation)
-from tsnav.metrics import summarize
-from tsnav.rl.checkpoint import load_policy
-from tsnav.rl.policy import AgentPolicy
-from tsnav.sim.episodes import read_episodes
+from ..metrics import summarize
+from ..rl.checkpoint import load_policy
+from ..rl.policy import AgentPolicy
+from ..sim.episodes import read_episodes
 
 AVERAGES = ("prob", "logprob")
 
@@ -81,7 +81,7 @@ def evaluate_ensemble(out: Path, data: Path, episodes_file: Path, runs: list[Pat
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p = argparse.ArgumentParser(prog="tsnav analyze policy-ensemble", description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="dataset root (scene folders)")
     p.add_argument("--episodes", type=Path, required=True, help="episode list JSON")
     p.add_argument("--run", type=Path, action="append", required=True, help="a member's `tsnav train` run folder "
@@ -104,7 +104,3 @@ def main(argv: list[str] | None = None) -> int:
     print(f"ensemble of {len(a.run)} ({a.average}), {m['episodes']} episodes: SR {100 * m['SR']:.2f}  "
           f"SPL {100 * m['SPL']:.2f}  -> {a.out}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -8,7 +8,7 @@ like the val rooms' (tune ``--sigma`` with ``python -m tsnav.detect.quality --sp
 tables of the other splits under the new name, so that an agent trains on the noisy tables and is selected and
 tested on the clean ones:
 
-    python scripts/noisy_tables.py --data WORLD --from learned4 --name learned4n --sigma 16 [--workers 2]
+    tsnav analyze noisy-tables --data WORLD --from learned4 --name learned4n --sigma 16 [--workers 2]
 
 Each scene's noise comes from its own generator (seed, scene name), so the tables are the same on every run; the
 table's config records the noise. A scene whose table exists is skipped.
@@ -27,12 +27,12 @@ import numpy as np
 def noisy_table(scene_dir: str, sigma: float, seed: int, shipped: str, name: str) -> str:
     from dataclasses import replace
 
-    from tsnav.distributed import set_threads
+    from ..distributed import set_threads
 
     set_threads(1)
-    from tsnav.data.detections import detections_path, write_detections
-    from tsnav.data.reader import load_scene
-    from tsnav.detect.shipped import shipped_detector
+    from ..data.detections import detections_path, write_detections
+    from ..data.reader import load_scene
+    from ..detect.shipped import shipped_detector
 
     scene = load_scene(scene_dir)
     if detections_path(scene_dir, name).exists():
@@ -52,7 +52,7 @@ def noisy_table(scene_dir: str, sigma: float, seed: int, shipped: str, name: str
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="tsnav analyze noisy-tables", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="world folder (120 rooms)")
     p.add_argument("--from", dest="source", default="learned4", help="clean table linked into the other splits")
     p.add_argument("--shipped", default="learned4", help="shipped detector that writes the noisy tables")
@@ -62,8 +62,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2)
     a = p.parse_args(argv)
-    from tsnav.data.detections import detections_path, load_detections, write_detections
-    from tsnav.data.reader import list_scenes
+    from ..data.detections import detections_path, load_detections, write_detections
+    from ..data.reader import list_scenes
 
     if not a.sigma >= 0:
         print(f"error: --sigma must be >= 0, got {a.sigma}", file=sys.stderr)
@@ -93,7 +93,3 @@ def main(argv=None) -> int:
         for msg in map(noisy_table, *args):
             print(msg, flush=True)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

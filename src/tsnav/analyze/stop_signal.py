@@ -4,7 +4,7 @@ the state is a success state or not under the protocol; this script measures how
 numbers (score, box size and position, the camera's horizon) separate the two, per distance of the nearest
 instance in view.
 
-    python scripts/stop_signal.py --data WORLD --detections learned4 [--compare oracle] [--protocol lineage]
+    tsnav analyze stop-signal --data WORLD --detections learned4 [--compare oracle] [--protocol lineage]
         [--eval EVAL_FOLDER] [--json OUT.json]
 
 Reported per table: the share of confident states that are success states (what "Done at the first confident
@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from tsnav.atomic import atomic_write_json
-from tsnav.constants import C_TARGET, DONE, TARGET_CATEGORIES
-from tsnav.data.detections import load_detections
-from tsnav.data.reader import list_scenes, load_scene
-from tsnav.protocol import LINEAGE, PROTOCOLS
+from ..atomic import atomic_write_json
+from ..constants import C_TARGET, DONE, TARGET_CATEGORIES
+from ..data.detections import load_detections
+from ..data.reader import list_scenes, load_scene
+from ..protocol import LINEAGE, PROTOCOLS
 
 BANDS = ((0.0, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, 2.5), (2.5, 99.0))
 FEATURES = ("score", "area", "height", "width", "bottom", "top", "horizon")
@@ -92,7 +92,7 @@ def confident_rows(data: Path, detections: str, protocol: str, threshold: float)
 
 def done_rows(data: Path, eval_dir: Path, detections: str, protocol: str) -> list[dict]:
     """One row (:func:`_row`) per episode of a `tsnav eval` output that ended in Done, at its last state."""
-    from tsnav.eval.runner import read_trajectories
+    from ..eval.runner import read_trajectories
 
     scenes, rows = {}, []
     for t in read_trajectories(eval_dir / "trajectories.jsonl"):
@@ -205,7 +205,7 @@ def show(name: str, s: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="tsnav analyze stop-signal", description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, type=Path, help="a built world (scene folders with states.hdf5)")
     ap.add_argument("--detections", required=True, help="the detection table the agent reads (e.g. learned4)")
     ap.add_argument("--compare", default=None, help="a second table, e.g. oracle")
@@ -230,7 +230,3 @@ def main(argv: list[str] | None = None) -> int:
     if a.json:
         atomic_write_json(a.json, result)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

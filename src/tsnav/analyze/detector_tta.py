@@ -6,7 +6,7 @@ with the detector's own temperature; boxes are the plain frame's. Printed beside
 (mean over the 22 classes), reach of C_target over (scene, target) pairs and false-positive states
 (:mod:`tsnav.detect.quality`), as ``python -m tsnav.detect.quality`` reports them.
 
-    python scripts/detector_tta.py --data WORLD --split val --shipped learned4 [--threads 1]
+    tsnav analyze detector-tta --data WORLD --split val --shipped learned4 [--threads 1]
 
 The plain row is the rooms' stored table (``--table``), checked against the detector's own scores on the frames.
 It reads the frames of every state of the split once (about 15 minutes for the 20 val rooms at 128 px on one
@@ -22,15 +22,15 @@ from dataclasses import replace
 import numpy as np
 from tqdm import tqdm
 
-from tsnav.data.detections import Detections, load_detections
-from tsnav.data.reader import list_scenes, load_scene
-from tsnav.detect.data import read_images
-from tsnav.detect.evaluate import evaluate_detections
-from tsnav.distributed import set_threads
-from tsnav.detect.learned import LearnedDetector
-from tsnav.detect.quality import switch_report
-from tsnav.detect.shipped import shipped_detector
-from tsnav.detect.train import predict
+from ..data.detections import Detections, load_detections
+from ..data.reader import list_scenes, load_scene
+from ..detect.data import read_images
+from ..detect.evaluate import evaluate_detections
+from ..distributed import set_threads
+from ..detect.learned import LearnedDetector
+from ..detect.quality import switch_report
+from ..detect.shipped import shipped_detector
+from ..detect.train import predict
 
 
 def tables(det: LearnedDetector, scene, plain: Detections, chunk: int = 2048) -> dict[str, Detections]:
@@ -55,7 +55,7 @@ def tables(det: LearnedDetector, scene, plain: Detections, chunk: int = 2048) ->
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="tsnav analyze detector-tta", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="world with the split's rooms at the detector's frame size")
     p.add_argument("--split", default="val")
     p.add_argument("--shipped", default="learned4", help="shipped detector name (tsnav.detect.shipped)")
@@ -80,7 +80,3 @@ def main(argv=None) -> int:
         print(f"{k:10s} presence AP {np.nanmean(e.presence_ap):.3f}; reach {r.reached}/{r.pairs} "
               f"(episode pairs {r.episode_reached}/{r.episode_pairs}); false-positive states {fp}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

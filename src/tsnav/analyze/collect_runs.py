@@ -5,7 +5,7 @@ points and the chosen milestone). Each ``--eval NAME:TAG=DIR`` names a ``tsnav e
 (``metrics.json``: ALL and L>=5; ``outcomes.json``: how the episodes ended, after the switch) are filed under run
 NAME as TAG. ``--setting KEY=VALUE`` records the setting in words (world, features, commands), as a reader needs it.
 
-    python scripts/collect_runs.py --out docs/results/X.json --title "..." \\
+    tsnav analyze collect-runs --out docs/results/X.json --title "..." \\
         --setting "command=tsnav convergence ..." --run learned4-s0=OUT0 --eval learned4-s0:lineage=EVAL0 ...
 
 ``--table`` prints the test SR / SPL per (run, tag) and the mean over runs sharing a prefix before ``-s``.
@@ -19,8 +19,8 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-from tsnav.atomic import atomic_write_json
-from tsnav.errors import CommandError, read_json
+from ..atomic import atomic_write_json
+from ..errors import CommandError, read_json
 
 METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
 
@@ -87,7 +87,7 @@ def table(runs: dict) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="tsnav analyze collect-runs", description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True, help="JSON file to write")
     p.add_argument("--title", required=True, help="what the runs measure")
     p.add_argument("--setting", action="append", default=[], help="KEY=VALUE, the setting in words (repeatable)")
@@ -115,7 +115,3 @@ def main(argv=None) -> int:
         print(table(collected))
     print(f"wrote {a.out}", file=sys.stderr)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -3,7 +3,7 @@
 Trains one short batched run per reward variant with one fixed seed and prints, per log line, the policy's
 mean Done probability, training SR, return, exploration reward per episode, entropy and episode length.
 
-    python scripts/done_collapse.py --data REAL128 --features demae-16fd32e89d --detections learned \\
+    tsnav analyze done-collapse --data REAL128 --features demae-16fd32e89d --detections learned \\
         --out collapse baseline distance explore tsrm tsrm_ent05
 """
 
@@ -15,17 +15,17 @@ from pathlib import Path
 
 import torch
 
-from tsnav.agent import agent_config
-from tsnav.rl.config import TrainConfig
-from tsnav.rl.train import train_run
+from ..agent import agent_config
+from ..rl.config import TrainConfig
+from ..rl.train import train_run
 
 #: TrainConfig fields each variant changes.
 VARIANTS = {"tsrm": {}, "baseline": {"reward": "baseline"}, "explore": {"reward": "explore"},
             "distance": {"reward": "distance"}, "tsrm_ent05": {"entropy_coef": 0.05}}
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="tsnav analyze done-collapse", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--features", required=True)
     p.add_argument("--detections", required=True)
@@ -37,7 +37,7 @@ def main() -> None:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("variants", nargs="+", choices=sorted(VARIANTS))
-    a = p.parse_args()
+    a = p.parse_args(argv)
     torch.set_num_threads(1)
     for name in a.variants:
         base = TrainConfig(data=str(Path(a.data).resolve()), features=a.features, detections=a.detections,
@@ -51,7 +51,4 @@ def main() -> None:
             d = json.loads(line)
             print(name, d["update"], round(d["done_prob"], 4), round(d["SR"], 3), round(d["return"], 2),
                   round(d.get("reward/explore", 0.0), 2), round(d["entropy"], 3), round(d["length"], 1), flush=True)
-
-
-if __name__ == "__main__":
-    main()
+    return 0

@@ -1,6 +1,6 @@
 """Validation curves of several `tsnav convergence` folders in one picture, with reference lines.
 
-    python scripts/compare_curves.py --out docs/convergence_real_rooms.png \\
+    tsnav analyze compare-curves --out docs/convergence_real_rooms.png \\
         --curve "lr 1e-4=CONV_A" --curve "lr 1e-3=CONV_B" --ref "scripted explorer, learned switch=36.5"
 
 Each ``--curve LABEL=FOLDER`` reads FOLDER/curve.json (written by `tsnav convergence`); each ``--ref LABEL=VALUE``
@@ -17,7 +17,7 @@ from pathlib import Path
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from tsnav.atomic import atomic_save_figure
+from ..atomic import atomic_save_figure
 
 
 def split_pair(text: str, what: str) -> tuple[str, str]:
@@ -27,13 +27,13 @@ def split_pair(text: str, what: str) -> tuple[str, str]:
     return label, value
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="tsnav analyze compare-curves", description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True, help="PNG to write")
     p.add_argument("--curve", action="append", default=[], help="LABEL=FOLDER of a `tsnav convergence` run")
     p.add_argument("--ref", action="append", default=[], help="LABEL=PERCENT: a reference SR line")
     p.add_argument("--title", default="")
-    a = p.parse_args()
+    a = p.parse_args(argv)
     curves = []
     for c in a.curve:
         label, folder = split_pair(c, "--curve")
@@ -65,7 +65,4 @@ def main() -> None:
     fig.tight_layout()
     atomic_save_figure(fig, a.out, dpi=100)
     print(f"wrote {a.out}")
-
-
-if __name__ == "__main__":
-    main()
+    return 0

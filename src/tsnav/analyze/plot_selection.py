@@ -5,7 +5,7 @@ Each ``--run LABEL=SMALL,LARGE`` names two selection files of one run (the same 
 lists); the figure has SR and SPL per update, one colour per run, dashed for SMALL and solid for LARGE, the chosen
 milestone of each ringed. The number of episodes of each list is read from the files.
 
-    python scripts/plot_selection.py --out docs/X.png --title "..." \\
+    tsnav analyze plot-selection --out docs/X.png --title "..." \\
         --run "seed 3=RUN/selection.json,RUN2K/selection.json" --run "seed 2=..."
 """
 
@@ -15,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from tsnav.errors import CommandError, read_json
+from ..errors import CommandError, read_json
 
 
 def read_selection(path: str) -> tuple[list[int], list[float], list[float], int, int]:
@@ -38,7 +38,7 @@ def read_selection(path: str) -> tuple[list[int], list[float], list[float], int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="tsnav analyze plot-selection", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--title", default="milestones scored on two validation sets")
     ap.add_argument("--run", action="append", required=True, metavar="LABEL=SMALL,LARGE")
@@ -81,7 +81,3 @@ def main(argv: list[str] | None = None) -> int:
     tmp.replace(out)
     print(f"wrote {out}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -10,7 +10,7 @@ the switch figures of :func:`tsnav.detect.quality.switch_report` before and afte
 cross-fitted (two folds of rooms: each half's tables recalibrated with the other half's fit) so that they are not
 in-sample:
 
-    python scripts/class_calibration.py --data WORLD --from learned4 --fit-split val --json OUT.json \\
+    tsnav analyze class-calibration --data WORLD --from learned4 --fit-split val --json OUT.json \\
         [--name learned4pc]
 
 With ``--name`` the map fitted on all fit-split rooms is applied to every room's table and written under that name
@@ -29,12 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from tsnav.atomic import atomic_write_json
-from tsnav.constants import NUM_CATEGORIES, TARGET_CATEGORIES
-from tsnav.data.detections import detections_path, load_detections, write_detections
-from tsnav.data.reader import list_scenes, load_scene
-from tsnav.detect.oracle import ground_truth
-from tsnav.detect.quality import scene_targets, switch_report
+from ..atomic import atomic_write_json
+from ..constants import NUM_CATEGORIES, TARGET_CATEGORIES
+from ..data.detections import detections_path, load_detections, write_detections
+from ..data.reader import list_scenes, load_scene
+from ..detect.oracle import ground_truth
+from ..detect.quality import scene_targets, switch_report
 
 EPS = 1e-6
 
@@ -132,7 +132,7 @@ def _line(name: str, f: dict) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="tsnav analyze class-calibration", description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, type=Path, help="a built world")
     ap.add_argument("--from", dest="source", default="learned4", help="the tables to recalibrate")
     ap.add_argument("--fit-split", default="val", help="rooms the maps are fitted on (default val)")
@@ -193,7 +193,3 @@ def main(argv=None) -> int:
         atomic_write_json(a.json, out)
     print(json.dumps(out["maps"]))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

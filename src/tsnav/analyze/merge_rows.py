@@ -6,7 +6,7 @@ Table III's "Baseline (ResNet18)" and "DE-MAE (ViT) w/o crop" rows are, job for 
 jobs from another experiment folder; when that folder no longer exists but its ``results.json`` (or the copy
 committed under ``docs/results/``) does, this script copies the rows' per-seed figures instead:
 
-    python scripts/merge_rows.py --into T3 --from docs/results/table2_lineage_2026-12-03.json \\
+    tsnav analyze merge-rows --into T3 --from docs/results/table2_lineage_2026-12-03.json \\
         --map resnet18=baseline --map demae=demae --out T3_FULL
 
 ``--into``: an experiment folder (or its ``results.json``) that ran the other rows (``tsnav experiment pretraining
@@ -23,10 +23,10 @@ import json
 import sys
 from pathlib import Path
 
-from tsnav.atomic import atomic_write_json, atomic_write_text
-from tsnav.pipeline.config import EXPERIMENT_INFO, experiment_rows
-from tsnav.pipeline.experiment import claims_text, welch_text
-from tsnav.report.tables import markdown_table, welch_against
+from ..atomic import atomic_write_json, atomic_write_text
+from ..pipeline.config import EXPERIMENT_INFO, experiment_rows
+from ..pipeline.experiment import claims_text, welch_text
+from ..report.tables import markdown_table, welch_against
 
 
 def _load(path: Path) -> dict:
@@ -139,7 +139,7 @@ def table_text(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="tsnav analyze merge-rows", description=__doc__.split("\n\n")[0])
     ap.add_argument("--into", required=True, type=Path, help="experiment folder or results.json with the other rows")
     ap.add_argument("--from", dest="src", required=True, type=Path, help="results.json holding the rows to copy")
     ap.add_argument("--map", action="append", default=[], required=True, metavar="TARGET=SOURCE",
@@ -159,7 +159,3 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write_text(args.out / "table.md", text)
     print(text)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

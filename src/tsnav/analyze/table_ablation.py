@@ -24,11 +24,11 @@ scores read by an agent trained on TABLE's features). ``--flip-average MIRROR`` 
 averaged with those of MIRROR, the same detector run on the frames flipped left to right (``tsnav detect --mirror``
 writes it as ``<name>-mirror``): test-time flip augmentation (:func:`flip_averaged`).
 
-    python scripts/table_ablation.py --data WORLD --learned learned4 --oracle oracle --name ab [--split test]
-    python scripts/table_ablation.py --data WORLD --split test --recall learned4,learned4pc   # the figures below
-    python scripts/table_ablation.py --data WORLD --learned learned4 --name learned4 --shift 1,2,3
-    python scripts/table_ablation.py --data WORLD --learned learned6 --features-from learned4 --name l6s
-    python scripts/table_ablation.py --data WORLD --learned learned6 --flip-average learned6-mirror --name learned6-tta
+    tsnav analyze table-ablation --data WORLD --learned learned4 --oracle oracle --name ab [--split test]
+    tsnav analyze table-ablation --data WORLD --split test --recall learned4,learned4pc   # the figures below
+    tsnav analyze table-ablation --data WORLD --learned learned4 --name learned4 --shift 1,2,3
+    tsnav analyze table-ablation --data WORLD --learned learned6 --features-from learned4 --name l6s
+    tsnav analyze table-ablation --data WORLD --learned learned6 --flip-average learned6-mirror --name learned6-tta
 
 ``--recall`` writes nothing: per table, over the cells of the room's possible targets, the share of "near" cells (in
 view, the oracle scoring >= 0.7) the table scores >= 0.7 and their mean score, the share of "far" cells (in view,
@@ -40,7 +40,7 @@ against false positives, the way to tell a detector that ranks better from one t
 ``--misses-class`` (:func:`near_misses`; the frame with the ground-truth box in red, the table's score, the visible
 pixels and the distance under it).
 
-    python scripts/table_ablation.py --data WORLD --split val --recall learned4,learned6 --curve=-1,-0.5,0,0.5,1
+    tsnav analyze table-ablation --data WORLD --split val --recall learned4,learned6 --curve=-1,-0.5,0,0.5,1
 """
 
 from __future__ import annotations
@@ -52,10 +52,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from tsnav.data.detections import Detections, detections_path, load_detections, write_detections
-from tsnav.data.reader import list_scenes, load_scene
-from tsnav.detect.oracle import ground_truth
-from tsnav.detect.quality import scene_targets
+from ..data.detections import Detections, detections_path, load_detections, write_detections
+from ..data.reader import list_scenes, load_scene
+from ..detect.oracle import ground_truth
+from ..detect.quality import scene_targets
 
 KINDS = ("nofp", "recall", "both", "score", "raise", "box")
 
@@ -196,7 +196,7 @@ def draw_misses(misses, path, columns: int = 6, limit: int = 24, scale: int = 2)
     """A sheet of up to ``limit`` of :func:`near_misses`' frames (written atomically); returns how many it holds."""
     from PIL import Image, ImageDraw
 
-    from tsnav.detect.data import read_images
+    from ..detect.data import read_images
 
     misses = misses[:limit]
     if not misses:
@@ -220,7 +220,7 @@ def draw_misses(misses, path, columns: int = 6, limit: int = 24, scale: int = 2)
 
 
 def _print_by(name: str, by: dict) -> None:
-    from tsnav.constants import TARGET_CATEGORIES
+    from ..constants import TARGET_CATEGORIES
     order = np.argsort(-(by["class_near"] - by["class_hit"]), kind="stable")
     cls = [f"{TARGET_CATEGORIES[c]} {100 * by['class_hit'][c] / by['class_near'][c]:.1f} % of {by['class_near'][c]}"
            for c in order if by["class_near"][c]]
@@ -232,7 +232,7 @@ def _print_by(name: str, by: dict) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="tsnav analyze table-ablation", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--learned", default="learned4")
     p.add_argument("--oracle", default="oracle")
@@ -275,7 +275,7 @@ def main(argv=None) -> int:
         except ValueError:
             print(f"table_ablation: --curve {a.curve!r}: expected numbers separated by commas", file=sys.stderr)
             return 2
-        from tsnav.constants import CATEGORY_INDEX
+        from ..constants import CATEGORY_INDEX
         if a.misses and a.misses_class not in CATEGORY_INDEX:
             print(f"table_ablation: --misses-class {a.misses_class!r}: not a target class", file=sys.stderr)
             return 2
@@ -357,7 +357,3 @@ def main(argv=None) -> int:
         n += 1
     print(f"wrote {', '.join(f'{a.name}-{k}' for k in kinds)} in {n} of {len(dirs)} rooms")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

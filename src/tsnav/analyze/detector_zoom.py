@@ -9,7 +9,7 @@ chances of a false positive), and turned into a score with the detector's own te
 frame's. Printed per combination: presence AP (all, and for small objects), reach of C_target over (scene, target)
 pairs and false-positive states (:mod:`tsnav.detect.quality`).
 
-    python scripts/detector_zoom.py --data WORLD --split val --shipped learned4 --cache DIR [--margin 0 0.5 1 2]
+    tsnav analyze detector-zoom --data WORLD --split val --shipped learned4 --cache DIR [--margin 0 0.5 1 2]
 
 The logits of every state are kept in ``--cache`` (one ``.npz`` per room), so a second call with other margins reads
 no frame. It reads the frames of the split once and runs the detector six times per state (about 6x the cost of a
@@ -28,15 +28,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tsnav.atomic import atomic_write_json
-from tsnav.data.detections import Detections, load_detections
-from tsnav.data.reader import list_scenes, load_scene
-from tsnav.detect.data import read_images
-from tsnav.detect.evaluate import evaluate_detections
-from tsnav.detect.quality import subset_report, switch_report
-from tsnav.detect.shipped import shipped_detector
-from tsnav.detect.train import predict
-from tsnav.distributed import set_threads
+from ..atomic import atomic_write_json
+from ..data.detections import Detections, load_detections
+from ..data.reader import list_scenes, load_scene
+from ..detect.data import read_images
+from ..detect.evaluate import evaluate_detections
+from ..detect.quality import subset_report, switch_report
+from ..detect.shipped import shipped_detector
+from ..detect.train import predict
+from ..distributed import set_threads
 
 CROPS = ((0, 0), (0, 1), (1, 0), (1, 1), (0.5, 0.5))  # (row, column) of a crop, in half-frame units
 
@@ -81,7 +81,7 @@ def scored(table: Detections, logits: np.ndarray, temperature: float) -> Detecti
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="tsnav analyze detector-zoom", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="world with the split's rooms at the detector's frame size")
     p.add_argument("--split", default="val")
     p.add_argument("--shipped", default="learned4", help="shipped detector name (tsnav.detect.shipped)")
@@ -138,7 +138,3 @@ def main(argv=None) -> int:
         atomic_write_json(a.json, out)
     print(json.dumps(out["rows"]["plain"]))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -2,7 +2,7 @@
 that did not succeed, the target at the final state, whether some instance of it is in the frame at any range,
 the nearest such instance's distance, and the score the named detection table gives it there.
 
-    python scripts/wrong_done.py --data WORLD --eval EVAL_FOLDER --detections learned4 [--json OUT.json]
+    tsnav analyze wrong-done --data WORLD --eval EVAL_FOLDER --detections learned4 [--json OUT.json]
 
 EVAL_FOLDER is a `tsnav eval` output (its trajectories.jsonl). The ground-truth visibility and distances are read
 for this analysis only; nothing here reaches an agent. (RESULTS.md, "the detector's share under the lineage
@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from tsnav.atomic import atomic_write_json
-from tsnav.constants import DONE, TARGET_CATEGORIES
-from tsnav.data.detections import load_detections
-from tsnav.data.reader import load_scene
-from tsnav.eval.runner import read_trajectories
+from ..atomic import atomic_write_json
+from ..constants import DONE, TARGET_CATEGORIES
+from ..data.detections import load_detections
+from ..data.reader import load_scene
+from ..eval.runner import read_trajectories
 
 
 def failed_dones(data: Path, eval_dir: Path, detections: str) -> list[dict]:
@@ -45,7 +45,7 @@ def failed_dones(data: Path, eval_dir: Path, detections: str) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="tsnav analyze wrong-done", description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, type=Path)
     ap.add_argument("--eval", required=True, type=Path, dest="eval_dir")
     ap.add_argument("--detections", required=True)
@@ -66,7 +66,3 @@ def main(argv: list[str] | None = None) -> int:
     if a.json:
         atomic_write_json(a.json, {"n": len(rows), "in_view": len(inv), "rows": rows})
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
