@@ -13,9 +13,8 @@ field                      used by
 ``model_config(cfg)``      the network's own config, saved in ``config.json`` and in the encoder file ({}: none)
 ``from_file(cfg, size)``   :func:`tsnav.pretrain.features.load_encoder` on an encoder file: the network before
                            its weights are loaded, and its input size
-``untrained(name, ...)``   ``untrained:NAME`` specs (None when ``NAME`` is not one of this architecture)
-``from_weights(path, ..)`` ``<arch>:PATH`` specs: weights in a foreign layout (torchvision, timm)
-``size_multiple(cfg)``     the input size must be a multiple of this
+``untrained(name, ...)``   ``untrained:NAME`` specs (None when ``NAME`` is not one of this architecture; optional)
+``from_weights(path, ..)`` ``<arch>:PATH`` specs: weights in a foreign layout (torchvision, timm; optional)
 =========================  =================================================================================
 """
 
@@ -40,11 +39,10 @@ class EncoderArch:
 
     name: str
     build: Callable[[object], nn.Module]
-    model_config: Callable[[object], dict]
     from_file: Callable[[dict, int], tuple[nn.Module, int]]
-    untrained: Callable[[str, int, int], tuple[nn.Module, dict] | None]
-    from_weights: Callable[[str, str, int, int], tuple[nn.Module, str, dict]]
-    size_multiple: Callable[[object], int]
+    model_config: Callable[[object], dict] = lambda cfg: {}
+    untrained: Callable[[str, int, int], tuple[nn.Module, dict] | None] | None = None
+    from_weights: Callable[[str, str, int, int], tuple[nn.Module, dict]] | None = None
     foreign_method: str = "foreign"
     """``Encoder.method`` of weights loaded by ``from_weights``."""
 
@@ -108,9 +106,9 @@ def _vit_from_file(cfg: dict, img_size: int):
 
 
 register_arch(EncoderArch(
-    "vit", build=lambda cfg: MaskedAutoencoderViT(vit_mae_config(cfg)),
-    model_config=lambda cfg: vit_mae_config(cfg).to_dict(), from_file=_vit_from_file, untrained=_vit_untrained,
-    from_weights=_vit_from_weights, size_multiple=lambda cfg: cfg.patch_size, foreign_method="timm"))
+    "vit", build=lambda cfg: MaskedAutoencoderViT(vit_mae_config(cfg)), from_file=_vit_from_file,
+    model_config=lambda cfg: vit_mae_config(cfg).to_dict(), untrained=_vit_untrained, from_weights=_vit_from_weights,
+    foreign_method="timm"))
 
 
 # -- ResNet18 (torchvision layout) --------------------------------------------------------------------------
@@ -121,21 +119,24 @@ def _resnet_from_weights(path: str, model: str, patch_size: int, img_size: int):
 
 
 register_arch(EncoderArch(
-    "resnet18", build=lambda cfg: ResNet18(num_classes=NUM_CATEGORIES), model_config=lambda cfg: {},
+    "resnet18", build=lambda cfg: ResNet18(num_classes=NUM_CATEGORIES),
     from_file=lambda cfg, img_size: (ResNet18(), img_size),
     untrained=lambda name, patch_size, img_size: (ResNet18(), {}) if name == "resnet18" else None,
-    from_weights=_resnet_from_weights, size_multiple=lambda cfg: 32, foreign_method="torchvision"))
+    from_weights=_resnet_from_weights, foreign_method="torchvision"))
 
 
 def untrained_names() -> list[str]:
     """The ``untrained:NAME`` names every architecture accepts (for error messages)."""
-    return ["resnet18"] + list(SIZES) + [a for a in ENCODER_ARCHS if a not in ("vit", "resnet18")]
+    return ["resnet18"] + list(SIZES) + [a for a, arch in ENCODER_ARCHS.items()
+                                         if arch.untrained is not None and a not in ("vit", "resnet18")]
 
 
 def seeded_untrained(name: str, patch_size: int, img_size: int):
     """``untrained:NAME``: the first architecture that knows ``NAME``, initialised from ``torch.manual_seed(0)``;
     ``(module, arch, config)`` or None."""
     for arch in ENCODER_ARCHS.values():
+        if arch.untrained is None:
+            continue
         torch.manual_seed(0)
         got = arch.untrained(name, patch_size, img_size)
         if got is not None:

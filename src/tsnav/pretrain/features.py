@@ -91,7 +91,7 @@ def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_s
         if got is None:
             raise ValueError(f"unknown encoder {spec!r}: untrained:<{'|'.join(untrained_names())}>")
         (m, arch, cfg), size, method = got, img_size, "untrained"
-    elif kind in ENCODER_ARCHS and rest:
+    elif kind in ENCODER_ARCHS and ENCODER_ARCHS[kind].from_weights is not None and rest:
         a = ENCODER_ARCHS[kind]
         m, cfg = a.from_weights(rest, model, patch_size, img_size)
         arch, method, size = kind, a.foreign_method, img_size
