@@ -81,11 +81,16 @@ def test_add_an_encoder(pixel_world, tmp_path, registries, capsys):
 
 
 def test_add_a_metric(pixel_world, tmp_path, registries, capsys):
+    from tsnav.cli import main
     from tsnav.metrics import METRICS, curve_metrics
     from tsnav.rl.logger import tag_group
 
-    ns = run_page("add-a-metric.md", {"WORLD": repr(str(pixel_world)), "PER_ROOM_TYPE": "4",
-                                      "FEATURES": repr(PIXEL_FEATURES), "UPDATES": "2"}, tmp_path)
+    # the page's `tsnav episodes` line, with 4 episodes per room type
+    (tmp_path / "work").mkdir()
+    assert main(["episodes", "--data", str(pixel_world), "--split", "val", "--per-room-type", "4",
+                 "--out", str(tmp_path / "work" / "val_episodes.json")]) == 0
+    ns = run_page("add-a-metric.md", {"WORLD": repr(str(pixel_world)), "FEATURES": repr(PIXEL_FEATURES),
+                                      "UPDATES": "2"}, tmp_path)
     out = capsys.readouterr().out
     assert "NSR" in METRICS and "NSR" in curve_metrics() and tag_group("NSR") == "metrics"
     summary = ns["summary"]
