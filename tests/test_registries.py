@@ -98,7 +98,8 @@ def test_detector_registry_is_the_detect_commands_choices():
     assert [DETECTORS[k].trained for k in DETECTORS] == [False, True, True]
     with pytest.raises(ValueError, match="unknown detector 'yolo'"):
         detector_kind("yolo")
-    out = subprocess.run([sys.executable, "-m", "tsnav", "detect", "--help"], capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-m", "tsnav", "detect", "--help"], capture_output=True, text=True,
+                         check=True)
     assert "{oracle,learned,shipped}" in out.stdout
 
 

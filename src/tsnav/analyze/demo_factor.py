@@ -6,7 +6,8 @@ one setting changed, over several seeds, against the demo itself over the same s
 
 VARIANT is one of :data:`VARIANTS` (``p16-64``: the demo as it is, a 4x4 token grid; ``p16-128``: the same ViT-Tiny
 on the world's own 128-px frames, an 8x8 grid). Each (variant, seed) is a demo folder ``BASE/VARIANT-sSEED``; the
-first folder made (``BASE/p16-64-s0``, i.e. ``tsnav demo --preset demo-real``) owns the world, the others link to it, and the
+first folder made (``BASE/p16-64-s0``, i.e. ``tsnav demo --preset demo-real``) owns the world, the others link to it,
+and the
 seeds of one variant share its pretraining (``BASE/pretrain-VARIANT``), as the experiments' seeds do. Every step
 resumes. ``--table`` prints the per-seed figures of both protocols and each variant's mean with its 95 % t-interval,
 and writes them to ``BASE/factor.json``; it also evaluates each finished agent by sampling its actions (3 rolls
@@ -136,7 +137,8 @@ def table(base: Path, variants: list[str]) -> None:
     for v, k, n, per, mean, half in rows:
         print(f"| {v} | {k} | {n} | {per} | {mean[0]:.2f} +- {half[0]:.2f} | {mean[1]:.2f} +- {half[1]:.2f} |")
     ref = variants[0]
-    print(f"\n| variant | policy / protocol | paired difference against {ref} per seed (SR) | mean SR +- 95% | mean SPL +- 95% |")
+    print(f"\n| variant | policy / protocol | paired difference against {ref} per seed (SR) | mean SR +- 95% "
+          "| mean SPL +- 95% |")
     print("| --- | --- | --- | --- | --- |")
     for v in variants[1:]:
         for k in sorted({k for f in report[v].values() for k in f}):
@@ -154,9 +156,11 @@ def table(base: Path, variants: list[str]) -> None:
     for (v, seed), o in sorted(outcomes.items()):
         a, c, sh = o["after_switch"], o["counts"], o["action_shares"]
         print(f"| {v} | {seed} | {o['switched']} | {a['success']} | {c.get('step limit, switched', 0)} | "
-              f"{a['failures'].get('passed a success state without Done', 0)} | {c.get('step limit, never switched', 0)} | "
+              f"{a['failures'].get('passed a success state without Done', 0)} | "
+              f"{c.get('step limit, never switched', 0)} | "
               f"{sh['RotateLeft']:.2f} / {sh['RotateRight']:.2f} / {sh['MoveAhead']:.2f} |")
-        report[v][str(seed)]["outcomes_paper"] = {k: o[k] for k in ("switched", "counts", "after_switch", "action_shares")}
+        report[v][str(seed)]["outcomes_paper"] = {k: o[k] for k in ("switched", "counts", "after_switch",
+                                                                       "action_shares")}
     write_json(base / "factor.json", report)
 
 

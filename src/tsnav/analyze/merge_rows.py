@@ -79,7 +79,8 @@ def _merge_one(into: dict, src: dict, mapping: dict[str, str], order: list, wher
                 raise ValueError(f"{where}: source row {mapping[r.id]!r} lacks {missing[0][1]} on {missing[0][0]}")
             merged.append({"row": r.id, "label": r.label, "flags": r.flags, "c_target": r.c_target,
                            "encoder": r.encoder, "reward": r.reward, "detections": r.detections, "n": sr["n"],
-                           "metrics": {sub: {m: sr["metrics"][sub][m] for m in out["metrics"]} for sub in out["subsets"]},
+                           "metrics": {sub: {m: sr["metrics"][sub][m] for m in out["metrics"]}
+                                       for sub in out["subsets"]},
                            "merged_from": {"row": mapping[r.id], "label": sr.get("label"),
                                            "experiment": src.get("experiment")}})
         elif r.id in have:

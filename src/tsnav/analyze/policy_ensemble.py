@@ -81,7 +81,8 @@ def evaluate_ensemble(out: Path, data: Path, episodes_file: Path, runs: list[Pat
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze policy-ensemble", description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p = argparse.ArgumentParser(prog="tsnav analyze policy-ensemble", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="dataset root (scene folders)")
     p.add_argument("--episodes", type=Path, required=True, help="episode list JSON")
     p.add_argument("--run", type=Path, action="append", required=True, help="a member's `tsnav train` run folder "

@@ -221,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.eval_dir is not None and not (a.eval_dir / "trajectories.jsonl").is_file():
         print(f"stop_signal: {a.eval_dir} has no trajectories.jsonl (a `tsnav eval` output folder)", file=sys.stderr)
         return 2
-    result = {"data": str(a.data), "eval": str(a.eval_dir) if a.eval_dir else None, "protocol": a.protocol, "threshold": a.threshold, "tables": {}}
+    result = {"data": str(a.data), "eval": str(a.eval_dir) if a.eval_dir else None, "protocol": a.protocol,
+              "threshold": a.threshold, "tables": {}}
     for name in [a.detections] + ([a.compare] if a.compare else []):
         dones = done_rows(a.data, a.eval_dir, name, a.protocol) if a.eval_dir else None
         s = summary(confident_rows(a.data, name, a.protocol, a.threshold), dones, a.threshold)

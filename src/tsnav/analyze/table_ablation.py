@@ -226,7 +226,8 @@ def _print_by(name: str, by: dict) -> None:
            for c in order if by["class_near"][c]]
     print(f"  {name} per class (most misses first): " + "; ".join(cls))
     edges = list(PIXEL_BANDS) + [None]
-    bands = [f"{edges[i]}-{edges[i + 1] if edges[i + 1] else ''} px {100 * by['band_hit'][i] / by['band_near'][i]:.1f} % "
+    bands = [f"{edges[i]}-{edges[i + 1] if edges[i + 1] else ''} px "
+             f"{100 * by['band_hit'][i] / by['band_near'][i]:.1f} % "
              f"of {by['band_near'][i]}" for i in range(len(PIXEL_BANDS)) if by["band_near"][i]]
     print(f"  {name} per band of visible pixels: " + "; ".join(bands))
 
