@@ -21,8 +21,8 @@ from pathlib import Path
 
 from ..atomic import atomic_write_json
 from ..errors import CommandError, read_json
+from ..metrics import METRICS
 
-METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
 
 
 def _pair(text: str, what: str) -> tuple[str, str]:
