@@ -24,7 +24,6 @@ from ..errors import CommandError, read_json
 from ..metrics import METRICS
 
 
-
 def _pair(text: str, what: str) -> tuple[str, str]:
     key, sep, value = text.partition("=")
     if not sep or not key or not value:
