@@ -225,15 +225,17 @@ class TSRMReward:
             raise ValueError(f"step_one needs a batch of one episode; reset was called with {self.batch_size}")
         if getattr(self, "_one_names", None) != len(TERM_CLASSES):  # per set of terms: slots, constants in float32
             self._one_names = len(TERM_CLASSES)
-            self._one_slots = [self.term.get(k) for k in TERMS]
+            self._one_names_list = tuple(TERMS)
+            self._one_calls = [(self._one_names_list.index(t.name), t.step_one) for t in self.terms]
             self._one_f32 = {v: float(np.float32(v)) for t in self.terms for v in t.constants()}
-        values = [0.0 if t is None else t.step_one(prev_state, action, new_state, collided, done, success, searching)
-                  for t in self._one_slots]
+        values = [0.0] * len(self._one_names_list)  # terms off in this variant stay 0.0
+        for i, step_one in self._one_calls:
+            values[i] = step_one(prev_state, action, new_state, collided, done, success, searching)
         reward = float(np.float32(sum(values)))
         f32 = self._one_f32
         # float32 of each term: the constants looked up, zeros kept (with their sign), the rest converted
         return reward, {k: (v if v == 0.0 else f32[v] if v in f32 else float(np.float32(v)))
-                        for k, v in zip(TERMS, values)}
+                        for k, v in zip(self._one_names_list, values)}
 
 
 class TSRMRewardReference:
