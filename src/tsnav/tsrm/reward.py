@@ -9,8 +9,8 @@ term            value                                                           
                 stage (eq. ExploreReward, K_e = 0.1; :mod:`tsnav.tsrm.area`)                     tsrm
 ``distance``    ``K_d * (d(p_{t-1}, g) - d(p_t, g))`` if the step was taken in the pathfinding  distance,
                 stage (eq. DistanceReward, K_d = 0.15; :mod:`tsnav.tsrm.distance`)               tsrm
-``collision``   -0.1 when a MoveAhead fails at a (position, rotation) where this episode         all
-                already had a failed MoveAhead; the first there is free (III-D (iii)). A LookUp
+``collision``   -0.1 when a MoveAhead fails at a (position, rotation) where this episode         all but
+                already had a failed MoveAhead; the first there is free (III-D (iii)). A LookUp  sparse
                 at horizon 0 or LookDown at 30 also fails but is no collision (``sim.batch``)
 ``slack``       -0.01 at every step, the final one included (III-D (iv))                         all
 ``success``     +5 when Done succeeds (III-D (v))                                                all
