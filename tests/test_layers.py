@@ -27,7 +27,7 @@ LAYERS: list[set[str]] = [
     {"report"},
     {"pipeline"},
     {"cli"},
-    {"__main__"},
+    {"__main__", "cli_reference"},
 ]
 RANK = {pkg: i for i, layer in enumerate(LAYERS) for pkg in layer}
 
