@@ -99,3 +99,40 @@ def test_version_licence_and_citation_agree():
     assert "ithor_layouts.json.gz" in notice and "MIT License" in notice and "Apache License" in notice
     readme = (ROOT / "README.md").read_text()
     assert "@misc{" in readme and "Yanwei Zheng" in readme and len(readme.splitlines()) <= 150
+
+
+USER_PAGES = ["README.md", "docs/getting-started.md", "docs/concepts.md", "docs/RESULTS.md",
+              *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs" / "howto").glob("*.md"))]
+
+
+def doc_commands(text: str) -> list[str]:
+    """Every ``tsnav ...`` command line of the page's code blocks (continuations joined, comments dropped)."""
+    out = []
+    for lang, body in re.findall(r"^```(\w*)[^\n]*\n(.*?)^```", text, re.S | re.M):
+        if lang in ("python", "json", "bibtex", "text"):  # text: diagrams
+            continue
+        for line in body.replace("\\\n", " ").splitlines():
+            line = line.split(" #")[0].strip()
+            if line.startswith("tsnav "):
+                out.append(line)
+    return out
+
+
+@pytest.mark.parametrize("page", USER_PAGES)
+def test_every_command_of_the_user_pages_parses(page):
+    """The commands a user copies from these pages are accepted by today's parsers (options renamed or removed
+    fail here)."""
+    import shlex
+
+    text = (ROOT / page).read_text()
+    settings = dict(re.findall(r"^([A-Z_][A-Z0-9_]*)=(\S+)", text, re.M))  # a how-to's scale settings
+    commands = doc_commands(text)
+    assert commands
+    for line in commands:
+        argv = shlex.split(re.sub(r"\$\{?(\w+)\}?", lambda m: settings.get(m.group(1), "X"), line))
+        assert argv[1] in COMMANDS, f"{page}: unknown command in `{line}`"
+        parser = cli_reference.command_parser(argv[1])
+        try:
+            parser.parse_args(argv[2:])
+        except SystemExit:
+            pytest.fail(f"{page}: `{line}` does not parse")
