@@ -136,3 +136,13 @@ def test_every_command_of_the_user_pages_parses(page):
             parser.parse_args(argv[2:])
         except SystemExit:
             pytest.fail(f"{page}: `{line}` does not parse")
+
+
+@pytest.mark.parametrize("page", [*USER_PAGES, "docs/COMMANDS.md", "BENCHMARKS.md", "CHANGELOG.md"])
+def test_links_of_the_user_pages_resolve(page):
+    """Every relative link of the page names a file or folder of the checkout."""
+    path = ROOT / page
+    for target in re.findall(r"\]\(([^)\s]+)\)", path.read_text()):
+        if target.startswith(("http://", "https://", "#", "mailto:")):
+            continue
+        assert (path.parent / target.split("#")[0]).exists(), f"{page}: broken link {target}"
