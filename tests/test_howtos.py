@@ -126,7 +126,7 @@ def test_reproduce_table2(tiny_real, tmp_path, capsys, monkeypatch):
     tiny = config.ScaleConfig().override(
         pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8), feature_batch_size=256,
         train=dict(num_envs=4, updates=2, milestone_every=1), test_per_room_type=6, val_per_room_type=6,
-        detector=dict(steps=4, batch_size=8, max_states_per_scene=24))
+        detector=dict(steps=4, batch_size=8, max_states_per_scene=24), resnet_pretrain_steps=2)
     monkeypatch.setitem(config.SCALES, "medium", tiny)
     _copy_world(tiny_real, tmp_path / "work" / "world")
     env = run_page(HOWTO / "reproduce-table2.md",
