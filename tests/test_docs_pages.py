@@ -57,8 +57,11 @@ def test_results_page_reads_its_figures_from_the_files(tmp_path):
     row["metrics"]["ALL"]["SR"] = 0.12345
     index_path = root / "docs" / "results" / "index.json"
     index = json.loads(index_path.read_text())
-    index["table1"]["robothor"] = {"tsrm-demae-learned7": {"lineage": {"agent": {
-        "metrics": {"ALL": {"SR": 0.5, "SPL": 0.25}, "L>=5": {"SR": 0.4, "SPL": 0.2}}}}}}
+    # a RoboTHOR evaluation as `tsnav release eval` writes it (results.json), named by the index
+    rob = {"rows": [{"protocol": "lineage", "policy": "agent", "episodes": 10,
+                     "metrics": {"ALL": {"SR": 0.5, "SPL": 0.25}, "L>=5": {"SR": 0.4, "SPL": 0.2}}}]}
+    (root / "docs" / "results" / "robothor_test.json").write_text(json.dumps(rob))
+    index["table1"]["robothor"] = {"tsrm-demae-learned7": "robothor_test.json"}
     index_path.write_text(json.dumps(index))
     card_path.write_text(json.dumps(card))
     text = results_page.render(root, weights)

@@ -68,9 +68,12 @@ def _sr_spl(row: dict | None, subset: str) -> str:
     return f"{_pct(m['SR'])} / {_pct(m['SPL'])}"
 
 
-def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = None) -> list[str]:
+def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = None,
+                results: Path | None = None) -> list[str]:
     """The rows of Table I: the published methods, then tsnav's agents and references per protocol. ``select``
-    (the index's ``readme`` entry) keeps only the published methods, agents, references and protocols it names."""
+    (the index's ``readme`` entry) keeps only the published methods, agents, references and protocols it names.
+    RoboTHOR figures come from the files the index's ``table1.robothor`` names per agent (the ``results.json`` of
+    ``tsnav release eval`` on RoboTHOR, copied to ``docs/results/``); an agent without one is "not yet measured"."""
     spec = index["table1"]
     keep = select or {}
     lines = ["| method | measured on | iTHOR ALL | iTHOR L>=5 | RoboTHOR ALL | RoboTHOR L>=5 |",
@@ -82,7 +85,8 @@ def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = Non
         name = f"**{r['method']}**" if r.get("ours") else r["method"]
         lines.append(f"| {name} | published (paper's Table I) | {_pair(it, 0, 1)} | {_pair(it, 2, 3)} | "
                      f"{_pair(rb, 0, 1)} | {_pair(rb, 2, 3)} |")
-    robothor = spec.get("robothor") or {}
+    robothor = {name: json.loads((results / f).read_text())["rows"]
+                for name, f in (spec.get("robothor") or {}).items()}
     ref = spec["reference_agent"]
     rows = ([(name, "agent") for name in keep.get("agents", spec["agents"])]
             + [(ref, p) for p in keep.get("references", spec["references"])])
@@ -98,7 +102,8 @@ def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = Non
                 label = (f"{policy} (map + shortest path, `{card.get('detector_shipped', '?')}` switch)"
                          if policy == "scripted explorer" else policy)
             n = card.get("figures", {}).get("test", {}).get("episodes", "?")
-            rob = robothor.get(name, {}).get(protocol, {}).get(policy)
+            rob = next((r for r in robothor.get(name, []) if (r["protocol"], r["policy"]) == (protocol, policy)),
+                       None)
             rob_cells = (f"{_sr_spl(rob, 'ALL')} | {_sr_spl(rob, 'L>=5')}" if rob
                          else "not yet measured | not yet measured")
             lines.append(f"| {label} | {n} test episodes, `{protocol}` | {_sr_spl(row, 'ALL')} | "
@@ -106,13 +111,13 @@ def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = Non
     return lines
 
 
-def table1(index: dict, cards: dict, paper: dict) -> list[str]:
+def table1(index: dict, cards: dict, paper: dict, results: Path) -> list[str]:
     """Table I: the paper's and its peers' published SR / SPL beside tsnav's agents from their model cards."""
     return (["## Table I: comparison with the published methods", "",
              "SR / SPL in percent. The published rows are copied from the paper's Table I (each method on its own "
              "AI2-THOR and RoboTHOR test episodes, counted by the lineage's evaluator). tsnav's rows are measured here "
              f"on {index['episodes']}, under the protocol each row names; RoboTHOR is not measured yet.", ""]
-            + table1_rows(index, cards, paper)
+            + table1_rows(index, cards, paper, results=results)
             + ["", "The scripted explorer holds the room's map and walks the true shortest path once its detector "
                "switch fires: an upper reference, not a learned agent. Under `lineage`, L>=5 is the lineage's bucket "
                "(its `best_path_len` >= 5, i.e. an optimal path of at least 4 actions)."])
@@ -225,7 +230,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
              PROTOCOL_SENTENCE, "",
              "How every figure here was reached, with the runs that led to them and the settings since replaced: "
              "[the results notebook](history/RESULTS.md). Speed: [BENCHMARKS.md](../BENCHMARKS.md).", ""]
-    lines += table1(index, cards, paper) + [""]
+    lines += table1(index, cards, paper, results) + [""]
     lines += experiment_table("Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []),
                               paper, results) + [""]
     lines += experiment_table("Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []),
@@ -244,7 +249,8 @@ def readme_table(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     """The README's short Table I: the rows the index's ``readme`` entry names."""
     root = Path(root) if root else repo_root()
     index = json.loads((root / "docs" / "results" / "index.json").read_text())
-    return "\n".join(table1_rows(index, read_cards(weights), published_figures(), select=index["readme"]))
+    return "\n".join(table1_rows(index, read_cards(weights), published_figures(), select=index["readme"],
+                                  results=root / "docs" / "results"))
 
 
 def with_readme_table(readme: str, table: str) -> str:
