@@ -1,6 +1,8 @@
 # make demo : set up everything on a fresh Debian machine, then run the main job.
 # make test : the same set-up, then the whole test suite.
 # make bench: the same set-up, then the speed benchmarks of bench/ with their defaults (figures: BENCHMARKS.md).
+# make docs : render the generated pages again (docs/COMMANDS.md from the CLI; docs/RESULTS.md and README.md's
+#             Table I from docs/results/ and the model cards); tests/test_docs_pages.py fails while one is stale.
 PY ?= python3
 # The exact torch build set-up installs before the package: 2.13.0 is the small CPU build that lies on this
 # disk (pip takes it from there). pyproject.toml only declares the range the code works with (torch>=2.1), so
@@ -11,7 +13,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test bench docs clean
 
 setup: $(STAMP)
 
@@ -37,6 +39,10 @@ bench: setup
 	@for f in bench/*.py; do \
 	  case " $(NEEDS_ARGS) " in *" $$f "*) echo "== $$f skipped: needs arguments (BENCHMARKS.md)"; continue;; esac; \
 	  echo "== $$f"; $(BIN)/python $$f || exit 1; done
+
+docs: setup
+	$(BIN)/python -m tsnav.cli_reference
+	$(BIN)/python -m tsnav.report.results_page
 
 clean:
 	rm -rf $(VENV) out runs

@@ -28,7 +28,7 @@ LAYERS: list[set[str]] = [
     {"pipeline"},
     {"analyze"},
     {"cli"},
-    {"__main__"},
+    {"__main__", "cli_reference"},
 ]
 RANK = {pkg: i for i, layer in enumerate(LAYERS) for pkg in layer}
 

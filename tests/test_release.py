@@ -60,6 +60,9 @@ def test_pack_writes_a_loadable_agent_folder(packed):
     assert not (out / "best" / "optimizer.safetensors").exists()
     assert card["policy_update"] == json.loads((packed["ck"] / "state.json").read_text())["progress"]["update"] == 2
     assert "tsnav release eval" in (out / "card.md").read_text()
+    # the card records the tsnav version that packed it (one source: tsnav.__version__, also pyproject's)
+    import tsnav
+    assert card["tsnav_version"] == tsnav.__version__ and f"tsnav {tsnav.__version__}" in (out / "card.md").read_text()
     # the policy weights are the checkpoint's, byte for byte
     assert (out / "best" / "model.safetensors").read_bytes() == (packed["ck"] / "model.safetensors").read_bytes()
     # the encoder is stored in float16 and loads into float32

@@ -10,7 +10,7 @@ A shipped agent is a folder of ``tsnav/agent/weights/<name>/`` (package data, no
   back into float32; ``tests/test_release.py`` holds its features to those of the float32 encoder);
 * ``card.json`` and ``card.md``: the model card (world and its version, rooms, protocol, detector, budget in
   updates / episodes / env steps, validation and test figures under both success protocols, the command that
-  trained it).
+  trained it), and the version of tsnav that packed it (``tsnav_version``; cards packed before 0.2.0 have none).
 
 The detector is not copied: the card names a detector shipped with tsnav (:mod:`tsnav.detect.shipped`), whose
 fingerprint must match the one recorded at packing.
@@ -32,6 +32,7 @@ from pathlib import Path
 
 import torch
 
+from .. import __version__
 from ..atomic import atomic_write_text
 from ..checkpoint import load_tensors, save_tensors
 from ..distributed import set_threads
@@ -133,7 +134,8 @@ def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: 
     state = json.loads((checkpoint / "state.json").read_text())
     state.pop("optimizer", None)
     (tmp / "best" / "state.json").write_text(json.dumps(state, indent=1) + "\n")
-    full = {"format": CARD_FORMAT, **card, "features": features, "encoder_fingerprint": enc.fingerprint,
+    full = {"format": CARD_FORMAT, **card, "tsnav_version": __version__, "features": features,
+            "encoder_fingerprint": enc.fingerprint,
             "encoder": {"arch": enc.arch, "method": enc.method, "img_size": enc.img_size, "config": enc.config,
                         "stored_dtype": "float16"},
             "policy_update": int(state.get("progress", state).get("update", -1))}
@@ -150,7 +152,8 @@ def card_markdown(card: dict) -> str:
             ("detector", card.get("detector")), ("encoder", card.get("encoder_text")),
             ("policy", card.get("policy_text")), ("reward", card.get("reward")),
             ("training protocol", card.get("protocol")), ("budget", card.get("budget")),
-            ("checkpoint", card.get("checkpoint_text")), ("machine", card.get("machine"))]
+            ("checkpoint", card.get("checkpoint_text")), ("machine", card.get("machine")),
+            ("packed with", f"tsnav {card['tsnav_version']}" if card.get("tsnav_version") else None)]
     lines += ["| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows if v]
     for title, key in (("Validation", "val"), ("Test", "test")):
         figs = card.get("figures", {}).get(key)

@@ -55,29 +55,25 @@ ALPHA = 0.05
 #: The paper's five metrics (:mod:`tsnav.metrics`): the columns of its Table II, compared by the claims below.
 METRICS = PAPER_METRICS
 
+#: The paper's published figures (Tables I-III, percent), typed once in ``report/data/paper.json``.
+PUBLISHED_FILE = Path(__file__).resolve().parent / "data" / "paper.json"
+
+
+def published_figures() -> dict:
+    """The paper's Tables I-III as printed (``report/data/paper.json``; the results page reads the same file)."""
+    return json.loads(PUBLISHED_FILE.read_text())
+
+
+def _paper_table(key: str) -> dict:
+    table = published_figures()[key]
+    return {rid: {subset: dict(zip(table["columns"], vals)) for subset, vals in row.items()}
+            for rid, row in table["rows"].items()}
+
+
 #: The paper's Table II (AI2-THOR, percent): row id -> subset -> metric -> value.
-PAPER_TABLE_II = {
-    rid: {"ALL": dict(zip(METRICS, a)), "L>=5": dict(zip(METRICS, b))}
-    for rid, a, b in [
-        ("baseline", (81.92, 47.15, 95.49, 43.87, 48.06), (75.76, 48.37, 93.76, 45.84, 49.72)),
-        ("explore", (82.95, 46.63, 96.63, 46.06, 48.23), (77.74, 48.18, 95.21, 47.39, 49.68)),
-        ("distance", (84.28, 48.87, 95.98, 45.63, 50.40), (78.93, 50.74, 94.83, 46.95, 52.38)),
-        ("tsrm", (85.70, 49.63, 97.06, 47.08, 51.56), (80.46, 51.61, 96.81, 47.92, 53.45)),
-        ("demae", (83.21, 49.35, 96.60, 46.20, 50.29), (77.97, 51.40, 95.12, 47.28, 52.63)),
-        ("tsrm_demae", (86.73, 50.48, 97.79, 47.56, 52.56), (81.71, 52.09, 97.03, 49.20, 54.10)),
-    ]
-}
+PAPER_TABLE_II = _paper_table("table2")
 #: The paper's Table III (AI2-THOR, percent, SR and SPL): row id -> subset -> metric -> value.
-PAPER_TABLE_III = {
-    rid: {"ALL": dict(zip(("SR", "SPL"), a)), "L>=5": dict(zip(("SR", "SPL"), b))}
-    for rid, a, b in [
-        ("resnet18", (81.92, 47.15), (75.76, 48.37)),
-        ("vc1", (82.12, 48.19), (76.46, 49.76)),
-        ("mae", (82.76, 47.84), (76.98, 49.61)),
-        ("demae_crop", (82.33, 48.36), (77.05, 49.91)),
-        ("demae", (83.21, 49.35), (77.97, 51.40)),
-    ]
-}
+PAPER_TABLE_III = _paper_table("table3")
 PAPER = {"ablation": PAPER_TABLE_II, "pretraining": PAPER_TABLE_III}
 
 

@@ -1,0 +1,295 @@
+"""docs/RESULTS.md, rendered: the paper's tables with tsnav's measured figures beside its published ones.
+
+One command renders the page from three sources and nothing else, so that no figure is typed twice:
+
+* ``docs/results/index.json``: which result file stands for which table, and each table's setting and command
+  (words only);
+* the result files it names (``docs/results/*.json``, written by ``tsnav experiment``: per-seed figures, means and
+  95 % intervals under every protocol);
+* the shipped agents' model cards (``tsnav/agent/weights/*/card.json``, written by ``tsnav release eval
+  --update-card``), and the paper's published figures (``report/data/paper.json``, :func:`published_figures`).
+
+``python -m tsnav.report.results_page`` writes the page and the short Table I of README.md (between
+:data:`README_BEGIN` and :data:`README_END`); ``--check`` exits with 1 when a committed page differs from what it
+renders (``tests/test_docs_pages.py`` runs the same comparison).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from ..atomic import atomic_write_text
+from .claims import published_figures
+
+#: Where the shipped agents' cards live (package data of ``tsnav.agent``; read as JSON files, no import).
+WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
+METRICS = ("SR", "SPL", "SSR", "SSSPL", "NSNPL")
+PROTOCOL_SENTENCE = (
+    "Two success rules are used (`--protocol`): `paper`, the paper's own (Done with the target in view within 1.0 m, "
+    "III-A), and `lineage`, the rule of the evaluator the Table I methods share (Done where an object of the target's "
+    "type is listed in AI2-THOR's `visible_object_map_1.5.json`); the headline agent is trained and measured under "
+    "`lineage`.")
+
+
+def repo_root() -> Path:
+    """The checkout this module runs from (``src/tsnav/report`` -> the folder holding ``docs/``)."""
+    return Path(__file__).resolve().parents[3]
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.2f}"
+
+
+def _pair(vals, i: int, j: int) -> str:
+    return f"{vals[i]:.2f} / {vals[j]:.2f}"
+
+
+def read_cards(weights: Path = WEIGHTS) -> dict[str, dict]:
+    """Name -> model card of every shipped agent folder under ``weights``, the default one first."""
+    cards = {p.name: json.loads((p / "card.json").read_text())
+             for p in sorted(weights.iterdir()) if (p / "card.json").exists()}
+    return dict(sorted(cards.items(), key=lambda kv: not kv[1].get("default")))
+
+
+def _card_row(card: dict, protocol: str, policy: str, split: str = "test") -> dict | None:
+    for r in card.get("figures", {}).get(split, {}).get("rows", []):
+        if r["protocol"] == protocol and r["policy"] == policy:
+            return r
+    return None
+
+
+def _sr_spl(row: dict | None, subset: str) -> str:
+    if row is None:
+        return "not measured"
+    m = row["metrics"][subset]
+    return f"{_pct(m['SR'])} / {_pct(m['SPL'])}"
+
+
+def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = None,
+                results: Path | None = None) -> list[str]:
+    """The rows of Table I: the published methods, then tsnav's agents and references per protocol. ``select``
+    (the index's ``readme`` entry) keeps only the published methods, agents, references and protocols it names.
+    RoboTHOR figures come from the files the index's ``table1.robothor`` names per agent (the ``results.json`` of
+    ``tsnav release eval`` on RoboTHOR, copied to ``docs/results/``); an agent without one is "not yet measured"."""
+    spec = index["table1"]
+    keep = select or {}
+    lines = ["| method | measured on | iTHOR ALL | iTHOR L>=5 | RoboTHOR ALL | RoboTHOR L>=5 |",
+             "| --- | --- | ---: | ---: | ---: | ---: |"]
+    for r in paper["table1"]["rows"]:
+        if select and r["method"] not in keep["published"]:
+            continue
+        it, rb = r["ithor"], r["robothor"]
+        name = f"**{r['method']}**" if r.get("ours") else r["method"]
+        lines.append(f"| {name} | published (paper's Table I) | {_pair(it, 0, 1)} | {_pair(it, 2, 3)} | "
+                     f"{_pair(rb, 0, 1)} | {_pair(rb, 2, 3)} |")
+    robothor = {name: json.loads((results / f).read_text())["rows"]
+                for name, f in (spec.get("robothor") or {}).items()}
+    ref = spec["reference_agent"]
+    rows = ([(name, "agent") for name in keep.get("agents", spec["agents"])]
+            + [(ref, p) for p in keep.get("references", spec["references"])])
+    for protocol in keep.get("protocols", ("lineage", "paper")):
+        for name, policy in rows:
+            card = cards[name]
+            row = _card_row(card, protocol, policy)
+            if policy == "agent":
+                label = f"tsnav `{name}`"
+                if card.get("default") and protocol == "lineage":
+                    label = f"**{label}** (shipped default)"
+            else:
+                label = (f"{policy} (map + shortest path, `{card.get('detector_shipped', '?')}` switch)"
+                         if policy == "scripted explorer" else policy)
+            n = card.get("figures", {}).get("test", {}).get("episodes", "?")
+            rob = next((r for r in robothor.get(name, []) if (r["protocol"], r["policy"]) == (protocol, policy)),
+                       None)
+            rob_cells = (f"{_sr_spl(rob, 'ALL')} | {_sr_spl(rob, 'L>=5')}" if rob
+                         else "not yet measured | not yet measured")
+            lines.append(f"| {label} | {n} test episodes, `{protocol}` | {_sr_spl(row, 'ALL')} | "
+                         f"{_sr_spl(row, 'L>=5')} | {rob_cells} |")
+    return lines
+
+
+def table1(index: dict, cards: dict, paper: dict, results: Path) -> list[str]:
+    """Table I: the paper's and its peers' published SR / SPL beside tsnav's agents from their model cards."""
+    return (["## Table I: comparison with the published methods", "",
+             "SR / SPL in percent. The published rows are copied from the paper's Table I (each method on its own "
+             "AI2-THOR and RoboTHOR test episodes, counted by the lineage's evaluator). tsnav's rows are measured here "
+             f"on {index['episodes']}, under the protocol each row names; RoboTHOR is not measured yet.", ""]
+            + table1_rows(index, cards, paper, results=results)
+            + ["", "The scripted explorer holds the room's map and walks the true shortest path once its detector "
+               "switch fires: an upper reference, not a learned agent. Under `lineage`, L>=5 is the lineage's bucket "
+               "(its `best_path_len` >= 5, i.e. an optimal path of at least 4 actions)."])
+
+
+def _cell(metrics: dict, subset: str, metric: str) -> str:
+    v = (metrics.get(subset) or {}).get(metric) or {}
+    if v.get("mean") is None:
+        return "-"
+    ci = v.get("ci95")
+    return f"{v['mean']:.2f}" + (f" ± {ci:.2f}" if ci is not None else "")
+
+
+def experiment_table(title: str, paper_key: str, entries: list[dict], paper: dict, results: Path) -> list[str]:
+    """Table II or III: for each listed result file, the paper's ALL figures beside tsnav's under the protocol the
+    agents were trained under, then tsnav's under the other protocol."""
+    lines = [f"## {title}", ""]
+    published = paper[paper_key]
+    cols = published["columns"]
+    if not entries:
+        return lines + ["Not run yet."]
+    for e in entries:
+        res = json.loads((results / e["file"]).read_text())
+        proto = res.get("protocol", "paper")
+        lines += [f"Measured at {e['setting']}; {res['rows'][0].get('n', '?')} seeds per row, mean ± half-width "
+                  f"of the 95 % t-interval, in percent, on the test episodes of Table I (ALL episodes). "
+                  f"Per seed, L>=5, Welch tests and claim checks: [{e['details']}](results/{e['details']}); "
+                  f"data: [{e['file']}](results/{e['file']}).", "",
+                  "```", e["command"], "```", "",
+                  f"| row | " + " | ".join(f"{m} paper | {m} tsnav `{proto}`" for m in cols) + " |",
+                  "| --- | " + " | ".join("---: | ---:" for _ in cols) + " |"]
+        seen = set()
+        for row in res["rows"]:
+            rid = row["row"]
+            pub = published["rows"].get(rid, {}).get("ALL")
+            seen.add(rid)
+            cells = [f"{pub[i]:.2f} | {_cell(row['metrics'], 'ALL', m)}" if pub else
+                     f"- | {_cell(row['metrics'], 'ALL', m)}" for i, m in enumerate(cols)]
+            lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
+        for rid, pub in published["rows"].items():
+            if rid not in seen:
+                label = published.get("labels", {}).get(rid, rid)
+                lines.append(f"| {label} (published; not run here) | "
+                             + " | ".join(f"{pub['ALL'][i]:.2f} | -" for i in range(len(cols))) + " |")
+        for other, ores in (res.get("other_protocols") or {}).items():
+            lines += ["", f"The same agents under `{other}` (tsnav only; trained under `{proto}`):", "",
+                      "| row | " + " | ".join(cols) + " |", "| --- | " + " | ".join("---:" for _ in cols) + " |"]
+            for row in ores["rows"]:
+                lines.append(f"| {row['label']} | " + " | ".join(_cell(row["metrics"], "ALL", m) for m in cols)
+                             + " |")
+        lines.append("")
+    return lines[:-1]
+
+
+def fig4(index: dict, results: Path) -> list[str]:
+    lines = ["## Fig. 4: the dividing-point threshold C_target", ""]
+    if not index.get("fig4"):
+        return lines + [f"Fig. 4 is {index.get('fig4_not_run', 'not run yet.')}"]
+    for e in index["fig4"]:
+        res = json.loads((results / e["file"]).read_text())
+        lines += [f"Measured at {e['setting']} on validation episodes, under `{res.get('protocol', 'paper')}`; "
+                  f"data: [{e['file']}](results/{e['file']}).", "", "```", e["command"], "```", "",
+                  "| C_target | " + " | ".join(METRICS) + " |", "| ---: | " + " | ".join("---:" for _ in METRICS) + " |"]
+        for row in res["rows"]:
+            lines.append(f"| {row.get('c_target', row['label'])} | "
+                         + " | ".join(_cell(row["metrics"], "ALL", m) for m in METRICS) + " |")
+        lines.append("")
+    return lines[:-1]
+
+
+def shipped_agents(cards: dict) -> list[str]:
+    """One block per shipped agent: what it is, and its test figures from its card."""
+    lines = ["## The shipped agents", "",
+             "Each agent ships inside the package (`src/tsnav/agent/weights/NAME/`: policy, float16 encoder, model "
+             "card); `tsnav release eval --agent NAME` measures it again from nothing. Figures from the cards, in "
+             "percent, test episodes of Table I."]
+    for name, card in cards.items():
+        test = card.get("figures", {}).get("test", {})
+        ver = f" Packed with tsnav {card['tsnav_version']}." if card.get("tsnav_version") else ""
+        lines += ["", f"### `{name}`{' (default)' if card.get('default') else ''}", "",
+                  f"{card.get('summary', '')}. Detector `{card.get('detector_shipped', '?')}`; checkpoint of update "
+                  f"{card.get('policy_update', '?')}; model card: "
+                  f"[card.md](../src/tsnav/agent/weights/{name}/card.md).{ver}"]
+        if not test:
+            lines += ["", "No test figures in its card yet."]
+            continue
+        lines += ["", "| protocol | policy | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
+                  "| --- | --- | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |"]
+        for r in test["rows"]:
+            a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
+            lines.append(f"| {r['protocol']} | {r['policy']} | " + " | ".join(_pct(a[m]) for m in METRICS)
+                         + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |")
+    return lines
+
+
+def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
+    """The whole page, from ``root/docs/results`` (index and result files), the cards under ``weights`` and the
+    paper's figures."""
+    root = Path(root) if root else repo_root()
+    results = root / "docs" / "results"
+    index = json.loads((results / "index.json").read_text())
+    paper = published_figures()
+    cards = read_cards(weights)
+    lines = ["# Results", "",
+             "<!-- generated by `python -m tsnav.report.results_page` from docs/results/index.json, the result files "
+             "it names and the shipped agents' model cards; do not edit by hand -->", "",
+             "The paper's tables with tsnav's measured figures beside the published ones. tsnav's figures come from "
+             "its embedded world (the real iTHOR rooms rebuilt from their recorded layouts, no Unity) on a CPU, with "
+             "smaller networks and budgets than the paper's GPU runs; each table says how it was made.", "",
+             PROTOCOL_SENTENCE, "",
+             "How every figure here was reached, with the runs that led to them and the settings since replaced: "
+             "[the results notebook](history/RESULTS.md). Speed: [BENCHMARKS.md](../BENCHMARKS.md).", ""]
+    lines += table1(index, cards, paper, results) + [""]
+    lines += experiment_table("Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []),
+                              paper, results) + [""]
+    lines += experiment_table("Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []),
+                              paper, results) + [""]
+    lines += fig4(index, results) + [""]
+    lines += shipped_agents(cards)
+    return "\n".join(lines) + "\n"
+
+
+#: The README's copy of Table I (the index's ``readme`` selection) sits between these two lines.
+README_BEGIN = "<!-- Table I: rendered by `python -m tsnav.report.results_page`; do not edit by hand -->"
+README_END = "<!-- end of Table I -->"
+
+
+def readme_table(root: Path | None = None, weights: Path = WEIGHTS) -> str:
+    """The README's short Table I: the rows the index's ``readme`` entry names."""
+    root = Path(root) if root else repo_root()
+    index = json.loads((root / "docs" / "results" / "index.json").read_text())
+    return "\n".join(table1_rows(index, read_cards(weights), published_figures(), select=index["readme"],
+                                  results=root / "docs" / "results"))
+
+
+def with_readme_table(readme: str, table: str) -> str:
+    """``readme`` with the text between :data:`README_BEGIN` and :data:`README_END` replaced by ``table``."""
+    if README_BEGIN not in readme or README_END not in readme:
+        raise ValueError(f"README.md has no Table I block (the lines {README_BEGIN!r} ... {README_END!r})")
+    head, rest = readme.split(README_BEGIN, 1)
+    _, tail = rest.split(README_END, 1)
+    return f"{head}{README_BEGIN}\n{table}\n{README_END}{tail}"
+
+
+def pages(root: Path) -> dict[Path, str]:
+    """Every file this module renders, path -> text: docs/RESULTS.md and README.md with its Table I."""
+    readme = root / "README.md"
+    return {root / "docs" / "RESULTS.md": render(root),
+            readme: with_readme_table(readme.read_text(), readme_table(root))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m tsnav.report.results_page", description=__doc__.splitlines()[0])
+    p.add_argument("--root", default=None, help="the checkout (default: the one this module runs from)")
+    p.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page is stale")
+    args = p.parse_args(argv)
+    root = Path(args.root) if args.root else repo_root()
+    stale = []
+    for out, text in pages(root).items():
+        if args.check:
+            if not out.exists() or out.read_text() != text:
+                stale.append(out)
+            continue
+        atomic_write_text(out, text)
+        print(f"wrote {out} ({text.count(chr(10))} lines)")
+    if stale:
+        print(f"stale: {', '.join(map(str, stale))}; run python -m tsnav.report.results_page", file=sys.stderr)
+        return 1
+    if args.check:
+        print("docs/RESULTS.md and README.md's Table I are up to date")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,151 @@
+"""The generated pages are what their generators render (run `make docs` when one of these fails), and the version,
+licence and citation agree with each other."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+import tsnav
+from tsnav import cli_reference
+from tsnav.cli import COMMANDS
+from tsnav.report import results_page
+from tsnav.report.claims import PAPER_TABLE_II, published_figures
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_command_reference_is_current():
+    assert (ROOT / "docs" / "COMMANDS.md").read_text() == cli_reference.render(), \
+        "docs/COMMANDS.md is stale: run python -m tsnav.cli_reference (or make docs)"
+
+
+def test_command_reference_names_every_option():
+    text = cli_reference.render()
+    for name in COMMANDS:
+        parser = cli_reference.command_parser(name)
+        assert f"## `tsnav {name}`" in text
+        stack = [parser]
+        while stack:
+            p = stack.pop()
+            for a in p._actions:
+                if a.option_strings and a.help != "==SUPPRESS==":
+                    assert all(f"`{o}`" in text for o in a.option_strings if o not in ("-h", "--help")), (name, a)
+                if hasattr(a, "choices") and isinstance(a.choices, dict):
+                    stack += list(a.choices.values())
+
+
+def test_results_page_and_readme_table_are_current():
+    for path, text in results_page.pages(ROOT).items():
+        assert path.read_text() == text, f"{path} is stale: run python -m tsnav.report.results_page (or make docs)"
+
+
+def test_results_page_reads_its_figures_from_the_files(tmp_path):
+    """Figures come from the cards, the result files and paper.json: change one in a copy and the page follows;
+    a RoboTHOR result named by the index replaces "not yet measured"."""
+    root = tmp_path / "repo"
+    shutil.copytree(ROOT / "docs" / "results", root / "docs" / "results")
+    weights = tmp_path / "weights"
+    shutil.copytree(results_page.WEIGHTS, weights, ignore=shutil.ignore_patterns("*.safetensors", "best"))
+    card_path = weights / "tsrm-demae-learned7" / "card.json"
+    card = json.loads(card_path.read_text())
+    row = next(r for r in card["figures"]["test"]["rows"] if r["protocol"] == "lineage" and r["policy"] == "agent")
+    row["metrics"]["ALL"]["SR"] = 0.12345
+    index_path = root / "docs" / "results" / "index.json"
+    index = json.loads(index_path.read_text())
+    # a RoboTHOR evaluation as `tsnav release eval` writes it (results.json), named by the index
+    rob = {"rows": [{"protocol": "lineage", "policy": "agent", "episodes": 10,
+                     "metrics": {"ALL": {"SR": 0.5, "SPL": 0.25}, "L>=5": {"SR": 0.4, "SPL": 0.2}}}]}
+    (root / "docs" / "results" / "robothor_test.json").write_text(json.dumps(rob))
+    index["table1"]["robothor"] = {"tsrm-demae-learned7": "robothor_test.json"}
+    index_path.write_text(json.dumps(index))
+    card_path.write_text(json.dumps(card))
+    text = results_page.render(root, weights)
+    line = next(l for l in text.splitlines() if l.startswith("| **tsnav `tsrm-demae-learned7`**"))
+    assert "| 12.35 / 41.72 |" in line and "| 50.00 / 25.00 | 40.00 / 20.00 |" in line
+    assert "not yet measured" in text  # the other rows
+    # the paper's figures: from paper.json, once
+    assert "| **TSRM + DE-MAE (the paper)** | published (paper's Table I) | 86.73 / 50.48 | 81.71 / 52.09 |" in text
+    assert PAPER_TABLE_II["tsrm_demae"]["ALL"]["SR"] == published_figures()["table2"]["rows"]["tsrm_demae"]["ALL"][0]
+    # Table II: the paper's value beside tsnav's mean and interval, from the result file
+    res = json.loads((root / "docs" / "results" / index["table2"][0]["file"]).read_text())
+    base = next(r for r in res["rows"] if r["row"] == "baseline")["metrics"]["ALL"]["SR"]
+    assert f"| baseline (ResNet18, baseline reward) | 81.92 | {base['mean']:.2f} ± {base['ci95']:.2f} |" in text
+    # the README block is replaced, not duplicated, and a README without one is refused in one line
+    readme = f"a\n{results_page.README_BEGIN}\nold\n{results_page.README_END}\nb\n"
+    new = results_page.with_readme_table(readme, "T")
+    assert new == f"a\n{results_page.README_BEGIN}\nT\n{results_page.README_END}\nb\n"
+    with pytest.raises(ValueError, match="no Table I block"):
+        results_page.with_readme_table("a\n", "T")
+
+
+def test_the_pages_have_no_figure_typed_twice_in_the_readme():
+    """Every SR / SPL pair in README.md sits inside the rendered Table I block."""
+    readme = (ROOT / "README.md").read_text()
+    outside = readme.split(results_page.README_BEGIN)[0] + readme.split(results_page.README_END)[1]
+    assert not re.findall(r"\b\d{2}\.\d{2} / \d{2}\.\d{2}\b", outside)
+
+
+def test_version_licence_and_citation_agree():
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert 'dynamic = ["version"]' in pyproject and 'version = {attr = "tsnav.__version__"}' in pyproject
+    assert re.search(r'^license = "Apache-2.0"$', pyproject, re.M)
+    assert "Apache License" in (ROOT / "LICENSE").read_text().splitlines()[1]
+    cff = (ROOT / "CITATION.cff").read_text()
+    assert re.search(rf'^version: "{re.escape(tsnav.__version__)}"$', cff, re.M) and "license: Apache-2.0" in cff
+    assert f"## {tsnav.__version__}" in (ROOT / "CHANGELOG.md").read_text()
+    notice = (ROOT / "NOTICE").read_text()
+    assert "ithor_layouts.json.gz" in notice and "MIT License" in notice and "Apache License" in notice
+    readme = (ROOT / "README.md").read_text()
+    assert "@misc{" in readme and "Yanwei Zheng" in readme and len(readme.splitlines()) <= 150
+
+
+USER_PAGES = ["README.md", "docs/getting-started.md", "docs/concepts.md", "docs/RESULTS.md",
+              *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs" / "howto").glob("*.md"))]
+
+
+def doc_commands(text: str) -> list[str]:
+    """Every ``tsnav ...`` command line of the page's code blocks (continuations joined, comments dropped)."""
+    out = []
+    for lang, body in re.findall(r"^```(\w*)[^\n]*\n(.*?)^```", text, re.S | re.M):
+        if lang in ("python", "json", "bibtex", "text"):  # text: diagrams
+            continue
+        for line in body.replace("\\\n", " ").splitlines():
+            line = line.split(" #")[0].strip()
+            if line.startswith("tsnav "):
+                out.append(line)
+    return out
+
+
+@pytest.mark.parametrize("page", USER_PAGES)
+def test_every_command_of_the_user_pages_parses(page):
+    """The commands a user copies from these pages are accepted by today's parsers (options renamed or removed
+    fail here)."""
+    import shlex
+
+    text = (ROOT / page).read_text()
+    settings = dict(re.findall(r"^([A-Z_][A-Z0-9_]*)=(\S+)", text, re.M))  # a how-to's scale settings
+    commands = doc_commands(text)
+    assert commands
+    for line in commands:
+        argv = shlex.split(re.sub(r"\$\{?(\w+)\}?", lambda m: settings.get(m.group(1), "X"), line))
+        assert argv[1] in COMMANDS, f"{page}: unknown command in `{line}`"
+        parser = cli_reference.command_parser(argv[1])
+        try:
+            parser.parse_args(argv[2:])
+        except SystemExit:
+            pytest.fail(f"{page}: `{line}` does not parse")
+
+
+@pytest.mark.parametrize("page", [*USER_PAGES, "docs/COMMANDS.md", "BENCHMARKS.md", "CHANGELOG.md"])
+def test_links_of_the_user_pages_resolve(page):
+    """Every relative link of the page names a file or folder of the checkout."""
+    path = ROOT / page
+    for target in re.findall(r"\]\(([^)\s]+)\)", path.read_text()):
+        if target.startswith(("http://", "https://", "#", "mailto:")):
+            continue
+        assert (path.parent / target.split("#")[0]).exists(), f"{page}: broken link {target}"
