@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from ..atomic import atomic_write_text
 from ..data.detections import check_name, load_detections, read_fingerprint, write_detections
+from ..constants import check_same_class_set
 from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene
 from ..distributed import set_threads
 from ..errors import CommandError
@@ -178,8 +179,9 @@ def _model_config(args, root: Path):
     train = list_scenes(root, split="train")
     if not train:
         raise CommandError(f"{root}: no complete train scene to train the detector on")
-    size = load_scene(train[0]).image_size
-    cfg = default_config(size)
+    first = load_scene(train[0])
+    size = first.image_size
+    cfg = default_config(size, first.class_set.name)
     stem = cfg.stem = args.stem if args.stem is not None else cfg.stem
     if args.widths:
         try:
@@ -234,6 +236,11 @@ def run(args: argparse.Namespace) -> int:
         det = (shipped_detector(load_scene(scenes[0]).image_size, name=which) if args.detector == "shipped"
                else _learned(args, root))
         fingerprint = det.fingerprint
+        try:
+            check_same_class_set(det.class_set, load_scene(scenes[0]).class_set, f"the {args.detector} detector",
+                                 f"{root}")
+        except ValueError as e:
+            raise CommandError(str(e)) from None
 
     own = name + MIRROR_SUFFIX if args.mirror else name  # the tables' file name
     todo, done = [], 0

@@ -101,13 +101,15 @@ def load_frames(root: str | Path, split: str, max_states_per_scene: int | None =
     if not paths:
         raise ValueError(f"{root}: no complete scene of split {split!r}")
     images, targets, names, sizes = [], [], [], []
-    size = None
+    size, classes = None, None
     for p in tqdm(paths, desc=f"frames {split}", unit="scene", disable=not progress, dynamic_ncols=True):
         s = load_scene(p)
         if size is None:
-            size = s.image_size
+            size, classes = s.image_size, s.class_set
         elif s.image_size != size:
             raise ValueError(f"scene {s.name} has {s.image_size}px frames, others {size}px")
+        elif s.class_set != classes:
+            raise ValueError(f"scene {s.name} uses class set {s.class_set.name}, others {classes.name}")
         rows = np.arange(s.num_states)
         if max_states_per_scene is not None and s.num_states > max_states_per_scene:
             rng = np.random.default_rng([seed, len(names)])

@@ -40,7 +40,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..constants import NUM_CATEGORIES
+from ..constants import DEFAULT_CLASS_SET, NUM_CATEGORIES, class_set as get_class_set
 
 
 @dataclass
@@ -54,8 +54,12 @@ class DetectorConfig:
     so that training fits in minutes on 2 CPU cores)."""
     dim: int = 64
     """Channels of the per-cell feature; also the size of the per-class feature stored in the table."""
-    num_classes: int = NUM_CATEGORIES
-    """Number of classes (the 22 target classes)."""
+    num_classes: int | None = None
+    """Number of classes: the class set's (None), 22 for ``ithor22``; a value that differs from it is refused."""
+    class_set: str = DEFAULT_CLASS_SET
+    """The target classes the detector scores (:class:`~tsnav.constants.ClassSet` name: ``ithor22`` or
+    ``robothor12``); checkpoints written before class sets existed are ``ithor22``. Its tables are written and
+    read only for scenes of this class set."""
     stem: int = 1
     """Space-to-depth factor of the input (pixel unshuffle): with 2, a 128x128 frame enters the backbone as 12
     channels at 64x64, so the network costs about what it costs at 64x64 yet sees every pixel."""
@@ -64,6 +68,14 @@ class DetectorConfig:
     stage's feature is upsampled (nearest) and added to a 1x1 projection of the second stage's (an FPN-style
     lateral), then smoothed by a conv3x3-BN-ReLU; small objects (a phone, a remote) then own cells of their
     own. Checkpoints written before this field have ``fine`` False."""
+
+    def __post_init__(self) -> None:
+        n = get_class_set(self.class_set).size
+        if self.num_classes is None:
+            self.num_classes = n
+        elif int(self.num_classes) != n:
+            raise ValueError(f"detector config: num_classes {self.num_classes} but class set {self.class_set} "
+                             f"has {n} classes")
 
     @property
     def grid(self) -> int:
@@ -83,18 +95,21 @@ class DetectorConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["widths"] = list(self.widths)
+        if d["class_set"] == DEFAULT_CLASS_SET:  # absent reads as ithor22: iTHOR checkpoints keep their bytes
+            del d["class_set"]
         return d
 
 
-def default_config(image_size: int) -> DetectorConfig:
+def default_config(image_size: int, class_set: str = DEFAULT_CLASS_SET) -> DetectorConfig:
     """The architecture ``tsnav detect --detector learned`` gives a new checkpoint for ``image_size`` px
     frames: a space-to-depth stem of ``image_size / 64`` (a 128px frame costs what a 64px one does); from 128px
     on, the wider backbone (32, 64, 128) with the fine (stride-4) grid, the best measured on the `ithor-real`
-    world (BENCHMARKS.md, "Learned detector"); below, the small default (16, 32, 64) of the demo world."""
+    world (BENCHMARKS.md, "Learned detector"); below, the small default (16, 32, 64) of the demo world. The classes
+    are ``class_set``'s (the train scenes')."""
     stem = max(1, image_size // 64)
     if image_size >= 128:
-        return DetectorConfig(image_size=image_size, stem=stem, widths=(32, 64, 128), fine=True)
-    return DetectorConfig(image_size=image_size, stem=stem)
+        return DetectorConfig(image_size=image_size, stem=stem, widths=(32, 64, 128), fine=True, class_set=class_set)
+    return DetectorConfig(image_size=image_size, stem=stem, class_set=class_set)
 
 
 def _conv(cin: int, cout: int, stride: int, dilation: int = 1) -> nn.Sequential:

@@ -487,6 +487,9 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
         frames = load_frames(root, "train", train_cfg.max_states_per_scene, train_cfg.seed, progress)
     if frames.images.shape[1] != model.cfg.image_size:
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
+    if frames.present.shape[1] != model.cfg.num_classes:
+        raise ValueError(f"the train scenes have {frames.present.shape[1]} target classes but the detector scores "
+                         f"{model.cfg.num_classes} (class set {model.cfg.class_set})")
     weights = repeat_factors(frames.present, train_cfg.repeat_threshold) if train_cfg.repeat_threshold > 0 else None
     if train_cfg.hard_negative_weight > 0:
         hard = mined_hard_negatives(ckpt, model, meta, frames, train_cfg.hard_negative_threshold, start,

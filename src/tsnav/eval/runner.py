@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..constants import ACTION_ORDER, C_TARGET, CATEGORY_INDEX, OLD_ACTION_ORDER, action_permutation
+from ..constants import ACTION_ORDER, C_TARGET, OLD_ACTION_ORDER, action_permutation
 from ..data.reader import is_complete, load_scene
 from ..errors import CommandError, read_json
 from ..sim.batch import BatchEnv, SceneBank
@@ -212,7 +212,7 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
                 frames = np.concatenate([s, [final]])
             else:
                 frames = np.array([bank.global_state(bank.scene_index(r.scene), r.start)], dtype=np.int64)
-            g = CATEGORY_INDEX[r.target]
+            g = bank.class_set.index[r.target]
             sw = switch_frame(conf[frames, g], config.c_target)
             hit = bank.success[frames, g]
             d = int(bank.dist[frames[sw], g]) if sw >= 0 else -1
