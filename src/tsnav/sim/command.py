@@ -6,7 +6,7 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
-from ..constants import SUCCESS_DISTANCE
+from ..constants import DEFAULT_CLASS_SET, SUCCESS_DISTANCE
 from ..errors import CommandError
 from ..protocol import DEFAULT_PROTOCOL, check_protocol, protocol_of
 from .batch import SceneBank
@@ -53,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     meta = {"split": args.split, "seed": args.seed, "protocol": protocol, "success_distance": args.success_distance,
             "per_room_type": args.per_room_type, "start_horizon": config.start_horizon,
             "room_targets": config.room_targets, "data": str(Path(args.data).resolve())}
+    if bank.class_set.name != DEFAULT_CLASS_SET:  # absent means ithor22 (lists written before class sets)
+        meta["class_set"] = bank.class_set.name
     if out.exists():
         try:
             old, old_meta = read_episodes(out)

@@ -179,6 +179,19 @@ class Episode:
     optimal_length: int
     """L*: movement actions to the nearest success state (Done not counted)."""
     room_type: str = "unknown"
+    optimal_metres: float | None = None
+    """Episodes converted from another benchmark's (:mod:`tsnav.sim.challenge`): the shortest walk in metres along
+    the grid to a success position (turns free); None (not written) otherwise."""
+    challenge: dict | None = None
+    """The source episode's own record (id, start pose, its navmesh ``shortest_path_length``), for episodes
+    converted from the RoboTHOR challenge's; None (not written) otherwise."""
+
+    def to_json(self) -> dict:
+        """The episode as a JSON object; the optional fields only when set, so lists without them read as before."""
+        return {k: v for k, v in asdict(self).items() if v is not None or k not in _OPTIONAL}
+
+
+_OPTIONAL = ("optimal_metres", "challenge")
 
 
 def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
@@ -258,7 +271,7 @@ def write_episodes(path: str | Path, episodes: list[Episode], **meta) -> None:
     """Write an episode list as JSON, atomically; ``meta`` (split, seed, success_distance, ...) is stored."""
     path = Path(path)
     doc = {"format": EPISODES_FORMAT, "version": EPISODES_VERSION, **meta,
-           "episodes": [asdict(e) for e in episodes]}
+           "episodes": [e.to_json() for e in episodes]}
     atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 
 
