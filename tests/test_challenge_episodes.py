@@ -28,8 +28,9 @@ SCENE = "FloorPlan_Val1_1"
 
 
 def scene():
-    """2 x 1.5 m room; an Apple in the far corner, a HousePlant on the left wall; three blocked cells."""
-    return toy_scene(2.0, 1.5, {"Apple|1": (2.0, 1.5), "HousePlant|1": (0.0, 0.75)},
+    """2 x 1.5 m room; an Apple in the far corner, a HousePlant on the left wall, a Vase too far away to be seen
+    from any state; three blocked cells."""
+    return toy_scene(2.0, 1.5, {"Apple|1": (2.0, 1.5), "HousePlant|1": (0.0, 0.75), "Vase|1": (9.0, 9.0)},
                      blocked=[(1.0, 0.5), (1.0, 0.75), (1.0, 1.0)], name=SCENE, class_set="robothor12")
 
 
@@ -47,6 +48,7 @@ RECORDS = [
     record(4, "Mug", 0.5, 0.5, 60),                # no Mug in the room
     record(5, "Apple", 1.75, 1.25, 60, 0.3),       # -> 45: facing the Apple 0.35 m away (already succeeds)
     record(6, "Apple", 0.5, 0.5, 90, 1.0, "FloorPlan_Val2_1"),  # a scene not in the dataset
+    record(7, "Vase", 0.5, 0.5, 0),                # a Vase no state sees
 ]
 
 
@@ -65,14 +67,15 @@ def test_conversion_counts_and_protocols():
         bank = SceneBank([scene()], protocol=protocol)
         eps, st = challenge_episodes(RECORDS, bank)
         assert [e.challenge["id"].rsplit("_", 1)[1] for e in eps] == kept_ids
-        assert st.read == 7 and st.kept == len(kept_ids)
-        dropped = {"start not a state": 2, "target not in scene": 1, "scene not in DATA": 1}
+        assert st.read == 8 and st.kept == len(kept_ids)
+        dropped = {"start not a state": 2, "target not in scene": 1, "scene not in DATA": 1,
+                   "target has no success state": 1}
         if protocol == "paper":
             dropped["start already succeeds"] = 1
         assert st.dropped == dropped
-        assert st.per_scene[SCENE]["start not a state"] == 2 and st.per_scene[SCENE]["read"] == 6
+        assert st.per_scene[SCENE]["start not a state"] == 2 and st.per_scene[SCENE]["read"] == 7
         assert st.per_scene["FloorPlan_Val2_1"] == Counter({"read": 1, "scene not in DATA": 1})
-        assert st.starts_on_graph == (4, 6) and "4 / 6 starts are states" in st.summary()
+        assert st.starts_on_graph == (5, 7) and "5 / 7 starts are states" in st.summary()
         assert st.start_success == (protocol == "lineage")
         a, b = eps[0], eps[1]
         assert (a.start, a.target) == ("0.00|0.00|45|30", "Apple") and a.challenge["initial_orientation"] == 30
@@ -145,7 +148,7 @@ def test_command_writes_both_protocols_and_reports(tmp_path, capsys):
         assert main(["thor", "challenge-episodes", "--challenge", str(challenge), "--split", "val", "--data",
                      str(data), "--protocol", protocol, "--out", str(out)]) == 0
         text = capsys.readouterr().out
-        assert "4 / 6 starts are states" in text and f"{SCENE}: {n} of 6 kept" in text and "2 start not a state" in text
+        assert "5 / 7 starts are states" in text and f"{SCENE}: {n} of 7 kept" in text and "2 start not a state" in text
         eps, meta = read_episodes(out)
         assert len(eps) == n and meta["protocol"] == protocol and meta["class_set"] == "robothor12"
         assert meta["conversion"]["per_scene"][SCENE]["start not a state"] == 2

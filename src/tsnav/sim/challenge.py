@@ -18,7 +18,8 @@ start becomes a tsnav start state by these rules:
 An episode is dropped, counted by reason and per scene (:class:`ChallengeImport`), when its scene is not in the
 dataset, its target type is not a class of the scenes' class set, its start is not a state of the built graph
 (``start not a state``: the position is not reachable in tsnav's grid), the scene has no instance of the target
-or the start cannot reach a success state, or - under the ``paper`` protocol only - the start already succeeds.
+(``target not in scene``) or no state where Done would succeed for it (``target has no success state``: no
+instance is ever in view within the protocol's radius), the start cannot reach a success state, or - under the ``paper`` protocol only - the start already succeeds.
 Under ``lineage`` such a start is kept with L* = 0 (:mod:`tsnav.protocol`), as :mod:`tsnav.sim.lineage` keeps the
 lineage's.
 
@@ -100,8 +101,8 @@ class ChallengeImport:
     kept: int = 0
     dropped: dict = field(default_factory=dict)
     """reason -> count: ``scene not in DATA``, ``target not a class of <set>``, ``start off the 0.25 m grid``,
-    ``horizon not 0 or 30``, ``start not a state``, ``target not in scene``, ``target unreachable``, ``start
-    already succeeds`` (``paper`` only)."""
+    ``horizon not 0 or 30``, ``start not a state``, ``target not in scene``, ``target has no success state``,
+    ``target unreachable``, ``start already succeeds`` (``paper`` only)."""
     per_scene: dict = field(default_factory=dict)
     """scene -> {"read", "kept", "start not a state", ...}: the same counts per scene."""
     start_success: int = 0
@@ -230,8 +231,11 @@ def challenge_episodes(records: list[dict], bank: SceneBank) -> tuple[list[Episo
         except KeyError:
             stats.drop(scene, "start not a state")
             continue
-        if not bank.present[i, c] or not bank.success[bank.offsets[i]:bank.offsets[i + 1], c].any():
+        if not bank.present[i, c]:
             stats.drop(scene, "target not in scene")
+            continue
+        if not bank.success[bank.offsets[i]:bank.offsets[i + 1], c].any():
+            stats.drop(scene, "target has no success state")
             continue
         d = int(bank.dist[s, c])
         if d == UNREACHABLE:
