@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_text
+from ..constants import DEFAULT_CLASS_SET
 from ..errors import read_json
 from ..protocol import spec
 from .batch import BatchEnv, EpisodeSampler, RewardFn, SceneBank, SimConfig
@@ -265,6 +266,12 @@ def episodes_to_arrays(bank: SceneBank, episodes: list[Episode], check: bool = T
             raise ValueError(f"episode {i} ({e.scene}, {e.target}, {e.start}): stored optimal length "
                              f"{e.optimal_length} but the dataset gives {got}; regenerate the episode list")
     return scene_idx, target, start
+
+
+def class_set_meta(bank: SceneBank) -> dict:
+    """The episode list's record of the bank's class set: ``{"class_set": name}``, or ``{}`` for ``ithor22`` (lists
+    without the key read as ``ithor22``, so iTHOR lists are written as before)."""
+    return {} if bank.class_set.name == DEFAULT_CLASS_SET else {"class_set": bank.class_set.name}
 
 
 def write_episodes(path: str | Path, episodes: list[Episode], **meta) -> None:
