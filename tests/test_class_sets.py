@@ -130,6 +130,12 @@ def test_oracle_table_shape_round_trip_and_mismatch_refused(tmp_path):
                     class_set="robothor12")
     with pytest.raises(ValueError, match="class sets differ"):
         Detections.concatenate([det, ith])
+    # the lineage's 22 x 264 table is iTHOR's: a RoboTHOR table is not written into it
+    from tsnav.data.lineage import table_to_22x264
+
+    assert table_to_22x264(ith).shape == (i.num_states, 22, 264)
+    with pytest.raises(ValueError, match="iTHOR's 22 classes; this detection table is of class set robothor12"):
+        table_to_22x264(det)
 
 
 def test_episode_tools_use_the_class_set_names():
