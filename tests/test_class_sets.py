@@ -215,3 +215,35 @@ def test_ithor_agent_description_is_unchanged():
     assert b.class_set == "ithor22"
     r = ActorCritic.from_description({**a.describe(), "class_set": "robothor12"})
     assert r.memory.query.weight.shape[0] == 12 and r.describe()["class_set"] == "robothor12"
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_learned_detector_takes_the_train_scenes_class_set(two_worlds, tmp_path, capsys):
+    from tsnav.cli import main
+    from tsnav.detect.learned import LearnedDetector
+    from tsnav.detect.model import DetectorConfig
+    from tsnav.detect.train import DetectorTrainConfig, train_detector
+
+    world, ithor = two_worlds["robothor"], two_worlds["ithor"]
+    ckpt = tmp_path / "det"
+    assert main(["detect", "--data", str(world), "--detector", "learned", "--checkpoint", str(ckpt),
+                 "--name", "learned", "--train-steps", "2", "--no-eval", "--quiet"]) == 0
+    det = LearnedDetector.load(ckpt)
+    assert det.class_set == "robothor12" and det.model.cfg.num_classes == 12
+    table = load_detections(world / "FloorPlan_Train1_1", "learned")
+    assert table.class_set == "robothor12" and table.scores.shape[1] == 12 and table.features.shape[1] == 12
+    SceneBank.from_root(world).install_detections("learned")
+    capsys.readouterr()
+    # the RoboTHOR detector on iTHOR scenes: one line, nothing written
+    assert main(["detect", "--data", str(ithor), "--detector", "learned", "--checkpoint", str(ckpt),
+                 "--name", "learned", "--no-eval", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "class set robothor12" in err and "ithor22" in err and len(err.splitlines()) == 1
+    assert not (ithor / "FloorPlan_Train1_1" / "detections_learned.hdf5").exists()
+    # a 22-class detector is not trained on RoboTHOR frames
+    with pytest.raises(ValueError, match="12 target classes but the detector scores 22"):
+        train_detector(world, tmp_path / "det22", DetectorTrainConfig(steps=1), model_cfg=DetectorConfig(image_size=32),
+                       progress=False)
+    with pytest.raises(ValueError, match="num_classes 22 but class set robothor12 has 12"):
+        DetectorConfig(num_classes=22, class_set="robothor12")
+    assert "class_set" not in DetectorConfig().to_dict() and DetectorConfig.from_dict({"num_classes": 22}).num_classes == 22
