@@ -247,3 +247,17 @@ def test_learned_detector_takes_the_train_scenes_class_set(two_worlds, tmp_path,
     with pytest.raises(ValueError, match="num_classes 22 but class set robothor12 has 12"):
         DetectorConfig(num_classes=22, class_set="robothor12")
     assert "class_set" not in DetectorConfig().to_dict() and DetectorConfig.from_dict({"num_classes": 22}).num_classes == 22
+
+
+def test_gymnasium_spaces_follow_the_class_set(two_worlds):
+    import gymnasium as gym
+
+    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data=str(two_worlds["robothor"]), split="train", reward="tsrm",
+                   detections="oracle")
+    assert env.observation_space["target"].n == 12 and env.observation_space["detections"].shape == (72,)
+    obs, info = env.reset(seed=0, options={"episode": ("FloorPlan_Train1_1", "Apple", "0.00|0.00|45|0")})
+    assert obs["target"] == 1 and info["target_name"] == "Apple" and obs["detections"].shape == (72,)
+    assert env.observation_space.contains(obs)
+    with pytest.raises(ValueError, match="class set robothor12"):
+        env.reset(options={"episode": ("FloorPlan_Train1_1", "Chair", "0.00|0.00|45|0")})
+    env.close()
