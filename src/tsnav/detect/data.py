@@ -47,8 +47,8 @@ class FrameSet:
 
     Attributes:
         images: ``(N, H, W, 3)`` uint8.
-        present: ``(N, 22)`` bool, the class is in view (ground truth of :mod:`tsnav.detect.oracle`).
-        boxes: ``(N, 22, 4)`` float32 normalised continuous ground-truth box per class (0 where absent).
+        present: ``(N, C)`` bool, the class is in view (ground truth of :mod:`tsnav.detect.oracle`).
+        boxes: ``(N, C, 4)`` float32 normalised continuous ground-truth box per class (0 where absent).
         obj_boxes: ``(N, K, 4)`` float32 normalised continuous box of every target object (0 if not in view).
         obj_category: ``(N, K)`` int16 class of each object column (-1: padding).
         obj_state: ``(N, K)`` int8: 0 not in view, 1 fewer than ``min_pixels`` pixels, 2 visible.
@@ -135,7 +135,7 @@ def flip_boxes(boxes: torch.Tensor) -> torch.Tensor:
 @dataclass
 class Batch:
     """A training batch: uint8 ``images`` ``[B, H, W, 3]``; ``present`` ``[B, 22]``; ``boxes``
-    ``[B, 22, 4]``; ``obj_boxes`` ``[B, K, 4]``; ``obj_category``, ``obj_state`` ``[B, K]`` (see
+    ``[B, C, 4]``; ``obj_boxes`` ``[B, K, 4]``; ``obj_category``, ``obj_state`` ``[B, K]`` (see
     :class:`FrameSet`)."""
 
     images: torch.Tensor

@@ -174,8 +174,8 @@ class DetectionReport:
     """Evaluation of a detector on a set of scenes.
 
     Attributes:
-        presence_ap, box_ap: ``(22,)`` per-class AP (NaN where the class never appears).
-        positives: ``(22,)`` present (state, class) pairs per class.
+        presence_ap, box_ap: ``(C,)`` per-class AP (NaN where the class never appears).
+        positives: ``(C,)`` present (state, class) pairs per class.
         reliability: :class:`Reliability` over every (state, class) pair.
         reliability_present: the same over the classes that have an instance in each pair's scene.
         scenes: names of the scenes evaluated; states: their number of states.

@@ -1,4 +1,5 @@
-"""A small CPU-trainable dense detector (FCOS / CenterNet family) for the 22 target classes.
+"""A small CPU-trainable dense detector (FCOS / CenterNet family) for the target classes of a class set (C: the 22
+of ``ithor22``, the 12 of ``robothor12``; ``DetectorConfig.class_set``).
 
 Why not DETR (the paper's detector, Fig. 2): DETR needs an ImageNet-pretrained backbone and hundreds of GPU
 epochs (its set-based loss converges slowly); neither pretrained weights nor a GPU are available here. A
@@ -13,8 +14,8 @@ Architecture, for ``S x S`` frames (64 x 64 by default), ``G = S / 8`` cells a s
 * neck: 1x1 conv to ``dim`` channels + ReLU: the per-cell feature ``[N, dim, G, G]``; with
   ``DetectorConfig.fine`` the grid is twice as fine (``G = S / 4``): the neck's output is upsampled and added
   to a 1x1 projection of the stride-4 stage, then smoothed by a conv3x3-BN-ReLU (one FPN level);
-* heads (1x1 convs): a logit per class and cell ``[N, 22, G, G]``, and per class and cell a box as offsets
-  of its four edges from the cell centre, in frame units ``[N, 22, 4, G, G]``.
+* heads (1x1 convs): a logit per class and cell ``[N, C, G, G]``, and per class and cell a box as offsets
+  of its four edges from the cell centre, in frame units ``[N, C, 4, G, G]``.
 
 Per image and class (:meth:`GridDetector.forward`): the presence logit is ``logsumexp`` over the cells of
 the class's cell logits plus a learned class bias (a smooth max); the box and the feature are those of
@@ -159,7 +160,7 @@ class GridDetector(nn.Module):
         return (rgb.permute(0, 3, 1, 2).float() / 255.0 - 0.5) / 0.25
 
     def dense(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Normalised ``[N, 3, S, S]`` -> (cell logits ``[N, 22, L]``, cell boxes ``[N, 22, L, 4]`` normalised
+        """Normalised ``[N, 3, S, S]`` -> (cell logits ``[N, C, L]``, cell boxes ``[N, C, L, 4]`` normalised
         ``[x0, y0, x1, y1]`` (corners ordered, not clipped), cell features ``[N, L, dim]``), ``L = G * G``."""
         if self.cfg.stem > 1:
             x = F.pixel_unshuffle(x, self.cfg.stem)
@@ -170,8 +171,8 @@ class GridDetector(nn.Module):
         else:
             f = self.neck(self.backbone(x))  # [N, dim, G, G]
         N, C = x.shape[0], self.cfg.num_classes
-        logits = self.cls_head(f).flatten(2)  # [N, 22, L]
-        d = self.box_head(f).reshape(N, C, 4, -1).transpose(2, 3)  # [N, 22, L, 4]
+        logits = self.cls_head(f).flatten(2)  # [N, C, L]
+        d = self.box_head(f).reshape(N, C, 4, -1).transpose(2, 3)  # [N, C, L, 4]
         raw = d + self.centres.repeat(1, 2)  # edges = cell centre + offsets
         lo = torch.minimum(raw[..., :2], raw[..., 2:])
         hi = torch.maximum(raw[..., :2], raw[..., 2:])
@@ -179,17 +180,17 @@ class GridDetector(nn.Module):
 
     def pool(self, logits: torch.Tensor, boxes: torch.Tensor, feats: torch.Tensor
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Per image and class: (presence logit ``[N, 22]`` = logsumexp over cells + class bias, box of the
-        best cell ``[N, 22, 4]`` clipped to [0, 1], feature of the best cell ``[N, 22, dim]``)."""
+        """Per image and class: (presence logit ``[N, C]`` = logsumexp over cells + class bias, box of the
+        best cell ``[N, C, 4]`` clipped to [0, 1], feature of the best cell ``[N, C, dim]``)."""
         presence = torch.logsumexp(logits, dim=-1) + self.class_bias
-        best = logits.argmax(dim=-1)  # [N, 22]
+        best = logits.argmax(dim=-1)  # [N, C]
         box = torch.gather(boxes, 2, best[..., None, None].expand(-1, -1, 1, 4)).squeeze(2).clamp(0, 1)
         feat = torch.gather(feats, 1, best[..., None].expand(-1, -1, feats.shape[-1]))
         return presence, box, feat
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Normalised ``[N, 3, S, S]`` -> (presence logits ``[N, 22]``, boxes ``[N, 22, 4]`` normalised
-        continuous ``[x0, y0, x1, y1]`` in [0, 1], features ``[N, 22, dim]``)."""
+        """Normalised ``[N, 3, S, S]`` -> (presence logits ``[N, C]``, boxes ``[N, C, 4]`` normalised
+        continuous ``[x0, y0, x1, y1]`` in [0, 1], features ``[N, C, dim]``)."""
         return self.pool(*self.dense(x))
 
 
@@ -205,7 +206,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
         grid: cells per side.
 
     Returns:
-        positive ``[B, 22, L]`` bool, ignore ``[B, 22, L]`` bool, box target ``[B, 22, L, 4]`` (the smallest
+        positive ``[B, C, L]`` bool, ignore ``[B, C, L]`` bool, box target ``[B, C, L, 4]`` (the smallest
         visible box of the class that claims the cell; zeros where not positive).
     """
     B, K = category.shape
@@ -218,7 +219,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     my = ((boxes[..., 1] + boxes[..., 3]) / 2 * grid).floor().clamp(0, grid - 1)
     centre_cell = (my * grid + mx).long()  # [B, K]
     claims = inside | (torch.arange(L, device=boxes.device) == centre_cell[..., None])  # [B, K, L]
-    # Each object has one class: reduce over objects into per-class maps by scatter (no [B, K, 22, L] tensor).
+    # Each object has one class: reduce over objects into per-class maps by scatter (no [B, K, C, L] tensor).
     # Objects without a target class (-1) go to a dummy class row ``num_classes`` that is dropped at the end.
     cls = torch.where(category >= 0, category, torch.full_like(category, num_classes)).long()
     index = cls[..., None].expand(-1, -1, L)  # [B, K, L]
@@ -229,7 +230,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     masked = torch.where(vis, area[..., None], inf)  # [B, K, L]
     smallest = torch.full((B, num_classes + 1, L), float("inf"), device=boxes.device)
     smallest = smallest.scatter_reduce(1, index, masked, reduce="amin")  # [B, 23, L]
-    positive = torch.isfinite(smallest[:, :num_classes])  # [B, 22, L]
+    positive = torch.isfinite(smallest[:, :num_classes])  # [B, C, L]
     # The first object of the class whose area is the smallest (the reference's tie rule).
     first = torch.where(vis & (masked == torch.gather(smallest, 1, index)),
                         torch.arange(K, device=boxes.device)[None, :, None], K)  # [B, K, L]
@@ -239,7 +240,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     weak_c = weak_c.scatter_reduce(1, index, weak.long(), reduce="amax")[:, :num_classes].bool()
     ignore = weak_c & ~positive
     target = torch.gather(boxes[:, None, :, :].expand(-1, num_classes, -1, -1), 2,
-                          k[..., None].expand(-1, -1, -1, 4))  # [B, 22, L, 4]
+                          k[..., None].expand(-1, -1, -1, 4))  # [B, C, L, 4]
     target = torch.where(positive[..., None], target, torch.zeros_like(target))
     return positive, ignore, target
 
@@ -331,7 +332,7 @@ def focal_loss(logits: torch.Tensor, positive: torch.Tensor, alpha: float, gamma
 def detection_loss(model: GridDetector, x: torch.Tensor, present: torch.Tensor, boxes: torch.Tensor,
                    category: torch.Tensor, state: torch.Tensor, w: LossWeights | None = None
                    ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss and its terms for normalised frames ``x`` with per-image ``present`` ``[B, 22]`` and
+    """Total loss and its terms for normalised frames ``x`` with per-image ``present`` ``[B, C]`` and
     per-object ``boxes`` / ``category`` / ``state`` ``[B, K, ...]`` (see :func:`dense_targets`)."""
     w = w or LossWeights()
     cell_logits, cell_boxes, feats = model.dense(x)

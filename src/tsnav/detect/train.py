@@ -161,7 +161,7 @@ def repeat_factors_reference(present, threshold: float) -> np.ndarray:
 
 
 def classes_with_pixels(frames: "FrameSet") -> np.ndarray:
-    """``(N, 22)`` bool: some object of the class has at least one pixel in the frame (``obj_state`` > 0), so a
+    """``(N, C)`` bool: some object of the class has at least one pixel in the frame (``obj_state`` > 0), so a
     high score there is not a hallucination even when the object is too small to count as present."""
     seen = np.zeros(frames.present.shape, bool)
     rows, cols = np.nonzero(frames.obj_state > 0)
@@ -438,7 +438,7 @@ def fit_temperature(logits: np.ndarray, present: np.ndarray, bounds: tuple[float
 @torch.no_grad()
 def predict(model: GridDetector, images: np.ndarray, batch_size: int = 256
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(logits ``(N, 22)`` float32, normalised boxes ``(N, 22, 4)`` float32, features ``(N, 22, dim)`` float32)
+    """(logits ``(N, C)`` float32, normalised boxes ``(N, 22, 4)`` float32, features ``(N, 22, dim)`` float32)
     of uint8 frames ``(N, H, W, 3)``, in batches, in eval mode."""
     model.eval()
     n = len(images)
