@@ -166,6 +166,12 @@ def test_command_writes_both_protocols_and_reports(tmp_path, capsys):
                  str(data), "--out", str(tmp_path / "x.json")]) == 2
     err = capsys.readouterr().err.strip()
     assert "no challenge episode files" in err and len(err.splitlines()) == 1
+    ithor = tmp_path / "ithor"
+    write_scene_folder(toy_scene(name=SCENE), ithor / SCENE)
+    assert main(["thor", "challenge-episodes", "--challenge", str(challenge), "--split", "val", "--data",
+                 str(ithor), "--out", str(tmp_path / "y.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "declares class set ithor22" in err and "robothor12" in err and len(err.splitlines()) == 1
 
 
 def test_plain_episode_lists_are_written_as_before(tmp_path):

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..constants import ROBOTHOR12
 from ..data.lineage import GRAPH_FILE
 from ..data.lineage_splits import SplitFormatError
 from ..data.thor_export import check_lineage_dataset, check_lineage_layout, export_detections_22x264
@@ -243,8 +244,12 @@ def _challenge_episodes(args) -> int:
     if not have:
         raise CommandError(f"--data {data}: holds none of the {len(names)} scenes of the challenge's {args.split} "
                            f"split (e.g. {names[0]})")
-    bank = SceneBank([load_scene(data / n) for n in have], success_distance=args.success_distance,
-                     protocol=protocol)
+    scenes = [load_scene(data / n) for n in have]
+    other = [s for s in scenes if s.class_set is not ROBOTHOR12]
+    if other:
+        raise CommandError(f"{other[0].path}: declares class set {other[0].class_set.name}, but the challenge's 12 "
+                           f"target types are robothor12's (scene.json \"class_set\": \"robothor12\")")
+    bank = SceneBank(scenes, success_distance=args.success_distance, protocol=protocol)
     eps, st = challenge_episodes(records, bank)
     print(st.summary())
     for scene, c in sorted(st.per_scene.items()):
