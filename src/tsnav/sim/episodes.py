@@ -16,6 +16,10 @@ Episode lists are JSON::
      "seed": 0, "per_room_type": 250, "start_horizon": null,
      "episodes": [{"scene": "FloorPlan1", "target": "Bowl", "start": "0.50|3.50|315|0",
                    "optimal_length": 7, "room_type": "kitchen"}, ...]}
+
+A list of scenes of another class set than ``ithor22`` records it (``"class_set": "robothor12"``; absent means
+``ithor22``). Lists converted from the RoboTHOR challenge's (:mod:`tsnav.sim.challenge`) add per episode
+``optimal_metres`` and ``challenge`` (the source record); other lists do not carry these keys.
 """
 
 from __future__ import annotations
