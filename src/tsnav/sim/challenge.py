@@ -141,7 +141,7 @@ class ChallengeImport:
                 "per_scene": {s: dict(sorted(c.items())) for s, c in sorted(self.per_scene.items())}}
 
 
-def position_graph(bank: SceneBank) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def position_graph(bank: SceneBank) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """``(src, dst, metres, positions)``: the directed MoveAhead edges between the bank's positions
     (``bank.position`` ids; one edge per distinct pair) with their lengths in metres, and the number of positions."""
     s = np.flatnonzero(bank.next_state[:, MOVE_AHEAD] != np.arange(bank.num_states))
@@ -151,7 +151,7 @@ def position_graph(bank: SceneBank) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     pz = np.zeros_like(px)
     px[bank.position], pz[bank.position] = bank.x, bank.z
     metres = np.hypot(px[pairs[:, 1]] - px[pairs[:, 0]], pz[pairs[:, 1]] - pz[pairs[:, 0]])
-    return pairs[:, 0], pairs[:, 1], metres, np.array(len(px))
+    return pairs[:, 0], pairs[:, 1], metres, len(px)
 
 
 def grid_metres(bank: SceneBank, target: int) -> np.ndarray:
@@ -160,7 +160,6 @@ def grid_metres(bank: SceneBank, target: int) -> np.ndarray:
     be reached). One multi-source Dijkstra on the reversed position graph (scipy); slow reference:
     :func:`grid_metres_reference`."""
     src, dst, metres, n = position_graph(bank)
-    n = int(n)
     goal = np.unique(bank.position[bank.success[:, target]])
     if len(goal) == 0:
         return np.full(bank.num_states, np.inf)
