@@ -6,6 +6,9 @@ faces +x; RotateRight adds 45 degrees, RotateLeft subtracts 45; a positive horiz
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from functools import cached_property
+
 import numpy as np
 
 #: Grid step of reachable positions, metres.
@@ -79,15 +82,85 @@ ROOM_TARGETS = {
     "bathroom": ("GarbageCan", "LightSwitch", "Sink"),
 }
 
+#: The 12 target types of the RoboTHOR ObjectNav challenge (``../shared/robothor/README.md``), sorted.
+ROBOTHOR_CATEGORIES = (
+    "AlarmClock", "Apple", "BaseballBat", "BasketBall", "Bowl", "GarbageCan", "HousePlant", "Laptop", "Mug",
+    "SprayBottle", "Television", "Vase",
+)
 
-def room_target_mask(room_type: str) -> np.ndarray:
-    """``(22,)`` bool: the classes :data:`ROOM_TARGETS` allows as targets in a room of ``room_type``; every class
-    when the room type is unknown (no restriction)."""
-    if room_type not in ROOM_TARGETS:
-        return np.ones(NUM_CATEGORIES, dtype=bool)
-    mask = np.zeros(NUM_CATEGORIES, dtype=bool)
-    mask[[CATEGORY_INDEX[c] for c in ROOM_TARGETS[room_type]]] = True
-    return mask
+
+@dataclass(frozen=True)
+class ClassSet:
+    """A named list of target classes: the columns of every per-category table (success masks, distance fields,
+    detection tables) and the target ids of episodes and agents are indices into :attr:`categories`.
+
+    A scene folder declares its class set in ``scene.json`` (``"class_set"``; absent means :data:`ITHOR22`, the
+    setting of every folder written before class sets existed); detection tables, detectors and agent
+    checkpoints record the one they were made for, and a mismatch is refused in one line
+    (:func:`check_same_class_set`).
+    """
+
+    name: str
+    categories: tuple[str, ...]
+    room_targets: dict = field(default_factory=dict, compare=False, hash=False)
+    """Per-room-type target lists (the lineage's, for ``ithor22``); a room type not listed allows every class."""
+
+    @property
+    def size(self) -> int:
+        return len(self.categories)
+
+    @cached_property
+    def index(self) -> dict[str, int]:
+        """Category name -> column."""
+        return {c: i for i, c in enumerate(self.categories)}
+
+    def room_target_mask(self, room_type: str) -> np.ndarray:
+        """``(size,)`` bool: the classes allowed as targets in a room of ``room_type`` (all when it has no list)."""
+        if room_type not in self.room_targets:
+            return np.ones(self.size, dtype=bool)
+        idx = self.index
+        mask = np.zeros(self.size, dtype=bool)
+        mask[[idx[c] for c in self.room_targets[room_type]]] = True
+        return mask
+
+
+#: iTHOR's 22 classes (the lineage's and the paper's AI2-Thor setting; the default everywhere).
+ITHOR22 = ClassSet("ithor22", TARGET_CATEGORIES, ROOM_TARGETS)
+#: The RoboTHOR challenge's 12 target types (its apartments have no room types: every class is a target).
+ROBOTHOR12 = ClassSet("robothor12", ROBOTHOR_CATEGORIES)
+CLASS_SETS = {c.name: c for c in (ITHOR22, ROBOTHOR12)}
+DEFAULT_CLASS_SET = ITHOR22.name
+
+
+def class_set(name: "str | ClassSet | None") -> ClassSet:
+    """The :class:`ClassSet` called ``name`` (None: the default, ``ithor22``); ``ValueError`` in one line when
+    unknown."""
+    if isinstance(name, ClassSet):
+        return name
+    if name is None:
+        return ITHOR22
+    if name not in CLASS_SETS:
+        raise ValueError(f"unknown class set {name!r} (choose from {', '.join(CLASS_SETS)})")
+    return CLASS_SETS[name]
+
+
+def class_set_of(meta: dict | None) -> ClassSet:
+    """The class set recorded in a file's metadata (``"class_set"``); absent means ``ithor22``."""
+    return class_set((meta or {}).get("class_set") or DEFAULT_CLASS_SET)
+
+
+def check_same_class_set(have: "str | ClassSet", need: "str | ClassSet", what: str, where: str) -> None:
+    """``ValueError`` in one line when ``what`` (made for ``have``) is used on ``where`` (of ``need``)."""
+    a, b = class_set(have).name, class_set(need).name
+    if a != b:
+        raise ValueError(f"{what} is for class set {a} but {where} uses {b} (class sets must match: "
+                         f"{class_set(a).size} vs {class_set(b).size} target classes)")
+
+
+def room_target_mask(room_type: str, classes: "str | ClassSet | None" = None) -> np.ndarray:
+    """``(C,)`` bool: the classes the class set's room lists (:data:`ROOM_TARGETS` for ``ithor22``) allow as
+    targets in a room of ``room_type``; every class when the room type is unknown (no restriction)."""
+    return class_set(classes).room_target_mask(room_type)
 
 
 def state_key(x: float, z: float, rotation: int, horizon: int) -> str:

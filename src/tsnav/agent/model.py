@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..constants import MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES
+from ..constants import DEFAULT_CLASS_SET, MOVE_AHEAD, NUM_ACTIONS, class_set as get_class_set
 from .memory import MemoryState, TargetMemoryAggregator
 from .observe import AgentObs
 
@@ -139,19 +139,23 @@ def _init(module: nn.Module, gain: float) -> None:
 
 class ActorCritic(nn.Module):
     """LSTM actor-critic over :class:`AgentObs` (see the module docstring). ``feature_shape = (C, h, w)`` of the
-    encoder features, ``det_dim`` = size of the detection feature. Orthogonal initialisation (gain sqrt 2 for
-    ReLU layers, 0.01 for the actor, 1 for the critic), zero biases."""
+    encoder features, ``det_dim`` = size of the detection feature, ``class_set`` = the target classes (a
+    :class:`~tsnav.constants.ClassSet` name: ``ithor22``, 22 target embeddings, or ``robothor12``, 12; recorded by
+    :meth:`describe`, and an agent is only run on scenes of its class set). Orthogonal initialisation (gain sqrt 2
+    for ReLU layers, 0.01 for the actor, 1 for the critic), zero biases."""
 
-    def __init__(self, config: AgentConfig, feature_shape: tuple[int, int, int], det_dim: int):
+    def __init__(self, config: AgentConfig, feature_shape: tuple[int, int, int], det_dim: int,
+                 class_set: str = DEFAULT_CLASS_SET):
         super().__init__()
         self.config = config
+        self.class_set = get_class_set(class_set).name
         self.feature_shape = tuple(int(v) for v in feature_shape)
         self.det_dim = int(det_dim)
         c, h, w = self.feature_shape
         self.conv = nn.Conv2d(c, config.conv_channels, 1)
         self.image = nn.Linear(config.conv_channels * h * w, config.image_dim)
         self.memory = TargetMemoryAggregator(det_dim, config.memory_dim, config.memory_heads, config.target_dim,
-                                             NUM_CATEGORIES)
+                                             get_class_set(class_set).size)
         self.action_embed = nn.Embedding(NUM_ACTIONS + 1 + int(config.blocked_action), config.action_dim)
         self.state = nn.Linear(config.image_dim + config.target_dim + config.action_dim, config.state_dim)
         self.dropout = nn.Dropout(config.dropout)
@@ -215,9 +219,14 @@ class ActorCritic(nn.Module):
         return [name for name, _ in self.named_parameters() if name.startswith(keep)]
 
     def describe(self) -> dict:
-        """JSON-able description that rebuilds the network: config, feature shape, detection feature size."""
-        return {"agent": asdict(self.config), "feature_shape": list(self.feature_shape), "det_dim": self.det_dim}
+        """JSON-able description that rebuilds the network: config, feature shape, detection feature size and,
+        beyond ``ithor22`` (the meaning of a description without it), the class set."""
+        d = {"agent": asdict(self.config), "feature_shape": list(self.feature_shape), "det_dim": self.det_dim}
+        if self.class_set != DEFAULT_CLASS_SET:
+            d["class_set"] = self.class_set
+        return d
 
     @classmethod
     def from_description(cls, d: dict) -> "ActorCritic":
-        return cls(AgentConfig(**d["agent"]), tuple(d["feature_shape"]), int(d["det_dim"]))
+        return cls(AgentConfig(**d["agent"]), tuple(d["feature_shape"]), int(d["det_dim"]),
+                   d.get("class_set", DEFAULT_CLASS_SET))

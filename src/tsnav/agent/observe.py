@@ -10,7 +10,7 @@ batch of global state ids of a :class:`~tsnav.sim.batch.SceneBank`.
 * :class:`Observer` turns ``(state, target)`` arrays into an :class:`AgentObs` with gathers only. The
   detection feature of a box is the image feature map averaged over the box (area-weighted over the grid
   cells it covers), standing in for DETR's 256-d decoder feature of the lineage; the detector's own per-class
-  features ``(S, 22, D)`` (``tsnav.detect`` tables) are used instead when given.
+  features ``(S, C, D)`` (``tsnav.detect`` tables) are used instead when given.
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..constants import NUM_CATEGORIES
 from ..pretrain.features import read_features
 
 
@@ -82,7 +81,8 @@ NO_DETECTIONS = ("no detection table installed in the scene bank: the agent read
 
 
 class DetectionTable:
-    """Per-state, per-category detection of the target: ``score (S, 22)`` and ``box (S, 22, 4)`` (fractions).
+    """Per-state, per-category detection of the target: ``score (S, C)`` and ``box (S, C, 4)`` (fractions), ``C`` the
+    bank's class set's size (22 for ``ithor22``, 12 for ``robothor12``); ``class_set`` its name.
 
     From ``bank.detections`` (rows score, label, x0, y0, x1, y1 in pixels), the table of a named detector
     (``tsnav detect``; ``oracle`` when asked for by name). There is no fallback to ground truth: a bank without
@@ -92,7 +92,7 @@ class DetectionTable:
     """
 
     def __init__(self, bank, features: np.ndarray | None = None):
-        """``features``: optional ``(S, 22, D)`` per-class detection features, row-aligned with the bank."""
+        """``features``: optional ``(S, C, D)`` per-class detection features, row-aligned with the bank."""
         if bank.detections is None:
             raise ValueError(NO_DETECTIONS)
         det = bank.detections
@@ -100,9 +100,10 @@ class DetectionTable:
         self.score = det[..., 0].astype(np.float32)
         self.box = np.clip(det[..., 2:6] / side[:, None, None], 0.0, 1.0).astype(np.float32)
         self.source = "detector"
+        self.class_set = bank.class_set.name
         self.box[self.score <= 0] = 0.0
-        if features is not None and np.shape(features)[:2] != (bank.num_states, NUM_CATEGORIES):
-            raise ValueError(f"detection features must have shape ({bank.num_states}, {NUM_CATEGORIES}, D), "
+        if features is not None and np.shape(features)[:2] != (bank.num_states, bank.num_categories):
+            raise ValueError(f"detection features must have shape ({bank.num_states}, {bank.num_categories}, D), "
                              f"got {np.shape(features)}")
         self.features = None if features is None else torch.as_tensor(np.asarray(features, dtype=np.float16))
 
@@ -147,6 +148,11 @@ class Observer:
     def feature_shape(self) -> tuple[int, int, int]:
         """``(C, h, w)`` of the image features."""
         return tuple(self.features.shape[1:])
+
+    @property
+    def class_set(self) -> str:
+        """Name of the bank's class set: the agent's target ids index its classes."""
+        return self.bank.class_set.name
 
     @property
     def det_dim(self) -> int:

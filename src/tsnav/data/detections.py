@@ -1,26 +1,28 @@
 """The per-state detection table stored with each scene (DESIGN.md "Detector").
 
 The lineage (SAVN -> ... -> IOM, the paper's Fig. 2 "DETR" box) caches, for every state of a scene, the
-best detection of each of the 22 target classes. This project stores it per scene folder as
+best detection of each of the 22 target classes (``C`` classes of the scene's class set below: 22 for
+``ithor22``, 12 for RoboTHOR's ``robothor12``). This project stores it per scene folder as
 ``detections_<name>.hdf5`` (``name`` = the detector, e.g. ``oracle`` or ``learned``):
 
 =============  =====================  ==================================================================
 dataset        shape / dtype          content
 =============  =====================  ==================================================================
 ``keys``       ``(S,)`` bytes         state keys, sorted, the order of ``Scene.keys`` (row = state id)
-``scores``     ``(S, 22)`` float32    confidence in [0, 1] that the class is in view (paper III-B uses it
+``scores``     ``(S, C)`` float32     confidence in [0, 1] that the class is in view (paper III-B uses it
                                       for the stage switch, C_target = 0.7)
-``labels``     ``(S, 22)`` int16      the category index ``c`` in column ``c`` when a detection is kept,
+``labels``     ``(S, C)`` int16       the category index ``c`` in column ``c`` when a detection is kept,
                                       -1 when there is none
-``boxes``      ``(S, 22, 4)`` float32 ``[x0, y0, x1, y1]`` in pixels of the frame, inclusive corners (the
+``boxes``      ``(S, C, 4)`` float32  ``[x0, y0, x1, y1]`` in pixels of the frame, inclusive corners (the
                                       convention of ``Scene.boxes``); -1 where the label is -1
-``features``   ``(S, 22, F)`` float16 per-class feature vector (the lineage's DETR decoder feature is
+``features``   ``(S, C, F)`` float16  per-class feature vector (the lineage's DETR decoder feature is
                                       256-d; this project's detectors give 64-d, see their modules)
 =============  =====================  ==================================================================
 
 File attributes: ``detector`` (kind, e.g. ``oracle``), ``name``, ``fingerprint`` (identifies the exact
 detector: config and weights), ``config`` (JSON of the detector's resolved configuration),
-``image_size``.
+``image_size``, ``class_set`` (:class:`~tsnav.constants.ClassSet` name; absent: ``ithor22``). A table is read
+only for scenes of its class set (:func:`load_scene_detections`).
 
 Files are written to a temporary name and renamed, so a file that exists is complete.
 """
@@ -37,7 +39,7 @@ import h5py
 import numpy as np
 
 from ..atomic import atomic_path
-from ..constants import NUM_CATEGORIES
+from ..constants import DEFAULT_CLASS_SET, check_same_class_set, class_set as get_class_set
 
 
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
@@ -59,16 +61,17 @@ def detections_path(scene_dir: str | Path, name: str) -> Path:
 class Detections:
     """Best detection per class for every state of a scene (or of several scenes, concatenated).
 
-    Attributes (``S`` states, 22 classes, ``F`` feature size):
+    Attributes (``S`` states, ``C`` classes of ``class_set``, ``F`` feature size):
         keys: ``(S,)`` str state keys (sorted per scene, the order of ``Scene.keys``).
-        scores: ``(S, 22)`` float32 confidence in [0, 1].
-        labels: ``(S, 22)`` int16 category index, -1 where no detection is kept.
-        boxes: ``(S, 22, 4)`` float32 ``[x0, y0, x1, y1]`` pixels, inclusive corners; -1 without detection.
-        features: ``(S, 22, F)`` float16 per-class feature.
+        scores: ``(S, C)`` float32 confidence in [0, 1].
+        labels: ``(S, C)`` int16 category index, -1 where no detection is kept.
+        boxes: ``(S, C, 4)`` float32 ``[x0, y0, x1, y1]`` pixels, inclusive corners; -1 without detection.
+        features: ``(S, C, F)`` float16 per-class feature.
         detector: the detector kind (``oracle`` / ``learned``).
         config: the detector's resolved configuration (JSON-able dict).
         fingerprint: identifies the detector (config hash, plus the weights' hash for learned ones).
         image_size: side of the square frames the boxes refer to, pixels.
+        class_set: name of the class set whose classes are the columns (``ithor22``: 22, ``robothor12``: 12).
     """
 
     keys: np.ndarray
@@ -80,8 +83,10 @@ class Detections:
     config: dict = field(default_factory=dict)
     fingerprint: str = ""
     image_size: int = 0
+    class_set: str = DEFAULT_CLASS_SET
 
     def __post_init__(self) -> None:
+        self.class_set = get_class_set(self.class_set).name
         self.keys = np.asarray(self.keys, dtype=str)
         self.scores = np.asarray(self.scores, dtype=np.float32)
         self.labels = np.asarray(self.labels, dtype=np.int16)
@@ -99,7 +104,7 @@ class Detections:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first array whose shape or values break the table contract."""
-        S, C = len(self.keys), NUM_CATEGORIES
+        S, C = len(self.keys), get_class_set(self.class_set).size
         for name, arr, shape in (("scores", self.scores, (S, C)), ("labels", self.labels, (S, C)),
                                  ("boxes", self.boxes, (S, C, 4))):
             if arr.shape != shape:
@@ -113,7 +118,7 @@ class Detections:
             raise ValueError("detections: labels must be the column's category index or -1")
 
     def rows(self) -> np.ndarray:
-        """``(S, 22, 6)`` float32 rows ``(score, label, x0, y0, x1, y1)`` (the form of
+        """``(S, C, 6)`` float32 rows ``(score, label, x0, y0, x1, y1)`` (the form of
         :meth:`tsnav.sim.batch.SceneBank.set_detections`)."""
         return np.concatenate([self.scores[..., None], self.labels[..., None].astype(np.float32), self.boxes],
                               axis=-1).astype(np.float32)
@@ -123,6 +128,9 @@ class Detections:
         """Stack the tables of several scenes (in the given order); they must share the feature size."""
         if not parts:
             raise ValueError("detections: nothing to concatenate")
+        sets = {p.class_set for p in parts}
+        if len(sets) > 1:
+            raise ValueError(f"detections: class sets differ between scenes ({sorted(sets)})")
         dims = {p.feature_dim for p in parts}
         if len(dims) > 1:
             raise ValueError(f"detections: feature sizes differ between scenes ({sorted(dims)})")
@@ -132,7 +140,8 @@ class Detections:
                    labels=np.concatenate([p.labels for p in parts]),
                    boxes=np.concatenate([p.boxes for p in parts]),
                    features=np.concatenate([p.features for p in parts]),
-                   detector=p0.detector, config=p0.config, fingerprint=p0.fingerprint, image_size=p0.image_size)
+                   detector=p0.detector, config=p0.config, fingerprint=p0.fingerprint, image_size=p0.image_size,
+                   class_set=p0.class_set)
 
 
 def _attr_str(x) -> str:
@@ -156,6 +165,8 @@ def write_detections(scene_dir: str | Path, name: str, det: Detections) -> Path:
             f.attrs["fingerprint"] = det.fingerprint
             f.attrs["config"] = json.dumps(det.config, sort_keys=True)
             f.attrs["image_size"] = int(det.image_size)
+            if det.class_set != DEFAULT_CLASS_SET:  # absent reads as ithor22: iTHOR tables keep their bytes
+                f.attrs["class_set"] = det.class_set
     return path
 
 
@@ -184,7 +195,8 @@ def load_detections(scene_dir: str | Path, name: str) -> Detections:
                               boxes=f["boxes"][()], features=f["features"][()],
                               detector=_attr_str(f.attrs.get("detector", "")), config=json.loads(cfg),
                               fingerprint=_attr_str(f.attrs.get("fingerprint", "")),
-                              image_size=int(f.attrs.get("image_size", 0)))
+                              image_size=int(f.attrs.get("image_size", 0)),
+                              class_set=_attr_str(f.attrs.get("class_set", DEFAULT_CLASS_SET)))
     except (OSError, KeyError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: unreadable detection table ({e})") from None
     except ValueError as e:
@@ -193,7 +205,7 @@ def load_detections(scene_dir: str | Path, name: str) -> Detections:
 
 def load_scene_detections(scenes: Sequence, name: str) -> Detections:
     """The tables of ``scenes`` (:class:`~tsnav.data.reader.Scene` objects) concatenated in that order,
-    each checked against its scene's state keys; a mirrored scene's is ``<name>-mirror``
+    each checked against its scene's state keys and class set; a mirrored scene's is ``<name>-mirror``
     (:meth:`~tsnav.data.reader.Scene.cache_name`)."""
     parts = []
     for s in scenes:
@@ -202,6 +214,7 @@ def load_scene_detections(scenes: Sequence, name: str) -> Detections:
             raise FileNotFoundError(f"{detections_path(s.path, own)}: no table of the mirrored room (run `tsnav "
                                     f"detect --mirror --name {name}` with the detector of {name})")
         d = load_detections(s.path, own)
+        check_same_class_set(d.class_set, s.class_set, str(detections_path(s.path, own)), f"scene {s.name}")
         if len(d.keys) != len(s.keys) or not (d.keys == s.keys).all():
             raise ValueError(f"{detections_path(s.path, own)}: its states do not match scene {s.name} "
                              f"(rerun `tsnav detect`)")

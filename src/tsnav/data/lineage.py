@@ -42,7 +42,7 @@ import numpy as np
 import shapely
 
 from ..atomic import atomic_path
-from ..constants import GRID_SIZE, NUM_CATEGORIES
+from ..constants import DEFAULT_CLASS_SET, GRID_SIZE, NUM_CATEGORIES
 from .detections import Detections
 from .reader import SceneFormatError
 
@@ -179,6 +179,9 @@ def table_to_22x264(det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> np.ndarra
     ``detr_padding`` option). Label 0 is never written: the lineage's readers that gather rows with
     ``for cate_id in range(23): table[cate_id - 1] = ...`` would file a label-0 row under the last class.
     """
+    if getattr(det, "class_set", DEFAULT_CLASS_SET) != DEFAULT_CLASS_SET:
+        raise ValueError(f"the lineage's table holds iTHOR's 22 classes; this detection table is of class set "
+                         f"{det.class_set}")
     feats = np.asarray(det.features)
     F = feats.shape[2]
     if F > FEATURE_DIM:

@@ -21,8 +21,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..constants import (CATEGORY_INDEX, DONE, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES,
-                         ROTATE_LEFT, ROTATE_RIGHT, ROTATE_STEP, SUCCESS_DISTANCE, parse_state_keys)
+from ..constants import (DONE, GRID_SIZE, ITHOR22, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, ROTATE_LEFT,
+                         ROTATE_RIGHT, ROTATE_STEP, SUCCESS_DISTANCE, ClassSet, class_set_of, parse_state_keys)
 from ..errors import read_json
 from ..protocol import DEFAULT_PROTOCOL, PAPER, check_protocol
 
@@ -51,7 +51,7 @@ class Scene:
         next_state: ``(S, 6)`` int32 state reached by each action of ``constants.ACTIONS``; the state itself
             when the action fails (a MoveAhead collision, or a look past horizons 0 / 30) and for Done.
         object_ids: ``(O,)`` AI2-THOR-style object ids; object_category: ``(O,)`` index into
-            ``TARGET_CATEGORIES`` (-1 for non-target objects).
+            ``class_set.categories`` (-1 for non-target objects).
         visible: ``(S, O)`` bool, from ``visible_object_map_1.5.json`` (in view and within 1.5 m).
         distance: ``(S, O)`` float32 metres on the floor plane from the agent position to the nearest point of
             the object's footprint (the success distance of paper III-A),
@@ -62,6 +62,8 @@ class Scene:
         image_size: side of the square frames the tables refer to, pixels.
         meta: the parsed ``scene.json`` (empty dict when absent).
         mirror: the scene is the mirror image of its folder's room (:meth:`mirrored`).
+        class_set: the target classes (:class:`~tsnav.constants.ClassSet`) that ``scene.json`` declares
+            (``"class_set"``; absent: ``ithor22``); ``C`` below is its size (22 or 12).
     """
 
     name: str
@@ -82,6 +84,12 @@ class Scene:
     image_size: int = 0
     meta: dict = field(default_factory=dict)
     mirror: bool = False
+    class_set: ClassSet = ITHOR22
+
+    @property
+    def num_categories(self) -> int:
+        """``C``: columns of the per-category tables (the class set's size)."""
+        return self.class_set.size
 
     @property
     def num_states(self) -> int:
@@ -105,7 +113,7 @@ class Scene:
         return idx_c.astype(np.int64)
 
     def category_visible_within(self, distance: float = SUCCESS_DISTANCE) -> np.ndarray:
-        """``(S, 22)`` bool: some instance of the category is in view and within ``distance`` metres.
+        """``(S, C)`` bool: some instance of the category is in view and within ``distance`` metres.
 
         This is the success condition of the paper (section III-A) with ``distance`` = 1.0 m. When the
         scene has no distances (imported without metadata) it falls back to the 1.5 m visibility map.
@@ -117,7 +125,7 @@ class Scene:
         return self._per_category(obj_ok)
 
     def success_table(self, protocol: str = DEFAULT_PROTOCOL, distance: float = SUCCESS_DISTANCE) -> np.ndarray:
-        """``(S, 22)`` bool: Done in a state succeeds for the category under the success ``protocol``
+        """``(S, C)`` bool: Done in a state succeeds for the category under the success ``protocol``
         (:mod:`tsnav.protocol`) - the one place that turns a protocol into a success mask.
 
         ``paper``: :meth:`category_visible_within` ``(distance)`` (1.0 m, paper III-A). ``lineage``: some object id
@@ -130,13 +138,13 @@ class Scene:
         return self._per_category(self.visible)
 
     def _per_category(self, obj_ok: np.ndarray) -> np.ndarray:
-        """``(S, O)`` per-object flags -> ``(S, 22)``: any object of the category."""
-        out = np.zeros((self.num_states, NUM_CATEGORIES), dtype=bool)
+        """``(S, O)`` per-object flags -> ``(S, C)``: any object of the category."""
+        out = np.zeros((self.num_states, self.num_categories), dtype=bool)
         tgt = self.object_category >= 0
         if tgt.any():
             cats = self.object_category[tgt]
             # Scatter-or over objects of the same category: one column per object, reduced per category.
-            onehot = np.zeros((tgt.sum(), NUM_CATEGORIES), dtype=np.int32)
+            onehot = np.zeros((tgt.sum(), self.num_categories), dtype=np.int32)
             onehot[np.arange(tgt.sum()), cats] = 1
             out = (obj_ok[:, tgt].astype(np.int32) @ onehot) > 0
         return out
@@ -148,7 +156,7 @@ class Scene:
 
     def success_mask(self, category: str | int, distance: float = SUCCESS_DISTANCE) -> np.ndarray:
         """``(S,)`` bool: Done in this state succeeds for ``category`` (name or index)."""
-        c = CATEGORY_INDEX[category] if isinstance(category, str) else int(category)
+        c = self.class_set.index[category] if isinstance(category, str) else int(category)
         return self.category_visible_within(distance)[:, c]
 
     def categories_present(self) -> list[int]:
@@ -183,7 +191,7 @@ class Scene:
                      object_ids=self.object_ids, object_category=self.object_category, visible=self.visible,
                      distance=self.distance, pixels=self.pixels, boxes=boxes,
                      floor=[np.stack([-p[:, 0], p[:, 1]], axis=1) + 0.0 for p in self.floor],
-                     image_size=self.image_size, meta=meta, mirror=not self.mirror)
+                     image_size=self.image_size, meta=meta, mirror=not self.mirror, class_set=self.class_set)
 
     def cache_name(self, name: str) -> str:
         """The name under which this scene's caches ``name`` are stored: ``name`` + :data:`MIRROR_SUFFIX` for a
@@ -277,7 +285,11 @@ def load_scene(path: str | Path) -> Scene:
     seen = set(object_ids)
     object_ids += sorted(k for k in vis_map if k not in seen)
     object_ids = np.array(object_ids, dtype=str) if object_ids else np.zeros(0, dtype="<U1")
-    cat = np.array([CATEGORY_INDEX.get(str(o).split("|")[0], -1) for o in object_ids], dtype=np.int16)
+    try:
+        classes = class_set_of(meta)
+    except ValueError as e:
+        raise SceneFormatError(f"{path / 'scene.json'}: {e}") from None
+    cat = object_categories(object_ids, classes)
 
     visible = np.zeros((n, len(object_ids)), dtype=bool)
     col = {o: j for j, o in enumerate(object_ids.tolist())}
@@ -296,7 +308,14 @@ def load_scene(path: str | Path) -> Scene:
     return Scene(name=str(meta.get("name", path.name)), path=path, keys=keys, x=x, z=z, rotation=rot,
                  horizon=hor, next_state=next_state, object_ids=object_ids, object_category=cat,
                  visible=visible, distance=distance, pixels=pixels, boxes=boxes, floor=floor,
-                 image_size=image_size, meta=meta)
+                 image_size=image_size, meta=meta, class_set=classes)
+
+
+def object_categories(object_ids, classes: ClassSet) -> np.ndarray:
+    """``(O,)`` int16 column in ``classes`` of each object, from the type its id starts with (``Mug|+01.00|...``,
+    as AI2-THOR forms ids); -1 for a non-target object."""
+    idx = classes.index
+    return np.array([idx.get(str(o).split("|")[0], -1) for o in object_ids], dtype=np.int16)
 
 
 def _read_object_states(st_path: Path, ids, col: dict, distance: np.ndarray, pixels: np.ndarray, boxes: np.ndarray,

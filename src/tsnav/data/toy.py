@@ -12,19 +12,23 @@ from pathlib import Path
 import numpy as np
 
 from ..constants import (
-    CATEGORY_INDEX, GRID_SIZE, HORIZONS, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, ROTATE_LEFT,
-    ROTATE_RIGHT, ROTATIONS, VISIBILITY_DISTANCE, state_key,
+    GRID_SIZE, HORIZONS, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, ROTATE_LEFT,
+    ROTATE_RIGHT, ROTATIONS, VISIBILITY_DISTANCE, ClassSet, class_set as get_class_set, state_key,
 )
-from .reader import Scene
+from .reader import Scene, object_categories
 
 
 def toy_scene(width: float = 2.0, depth: float = 1.5, objects: dict[str, tuple[float, float]] | None = None,
-              blocked: list[tuple[float, float]] | None = None, name: str = "Toy") -> Scene:
+              blocked: list[tuple[float, float]] | None = None, name: str = "Toy",
+              class_set: str | ClassSet | None = None) -> Scene:
     """A ``width`` x ``depth`` metre room with positions every 0.25 m from (0, 0).
 
     ``objects`` maps an object id (``Category|n``) to its (x, z) centre; ``blocked`` lists grid positions
-    that are not reachable. Distances are horizontal from the agent to the object centre.
+    that are not reachable. Distances are horizontal from the agent to the object centre. ``class_set`` names
+    the scene's target classes (default ``ithor22``; ``robothor12`` for RoboTHOR's), recorded in its meta as
+    ``scene.json`` records it.
     """
+    classes = get_class_set(class_set)
     objects = {"Bowl|1": (width, depth)} if objects is None else objects
     blocked = set() if blocked is None else {(round(x, 2), round(z, 2)) for x, z in blocked}
     nx, nz = int(round(width / GRID_SIZE)) + 1, int(round(depth / GRID_SIZE)) + 1
@@ -50,7 +54,7 @@ def toy_scene(width: float = 2.0, depth: float = 1.5, objects: dict[str, tuple[f
         if k in index:
             nxt[i, MOVE_AHEAD] = index[k]
     oids = np.array(list(objects), dtype=str)
-    cat = np.array([CATEGORY_INDEX.get(o.split("|")[0], -1) for o in oids], dtype=np.int16)
+    cat = object_categories(oids, classes)
     centers = np.array([objects[o] for o in oids], dtype=np.float64).reshape(-1, 2)
     dx = centers[None, :, 0] - x[:, None]
     dz = centers[None, :, 1] - z[:, None]
@@ -66,7 +70,9 @@ def toy_scene(width: float = 2.0, depth: float = 1.5, objects: dict[str, tuple[f
     meta = {"name": name, "room_type": "toy", "split": "train", "visibility": {"min_pixels": 1},
             "objects": [{"objectId": o, "objectType": o.split("|")[0],
                          "position": {"x": float(c[0]), "y": 0.5, "z": float(c[1])}} for o, c in zip(oids, centers)]}
+    if class_set is not None:
+        meta["class_set"] = classes.name
     return Scene(name=name, path=Path("."), keys=keys, x=x.astype(np.float32), z=z.astype(np.float32),
                  rotation=rot.astype(np.int16), horizon=hor.astype(np.int16), next_state=nxt, object_ids=oids,
                  object_category=cat, visible=visible, distance=dist.astype(np.float32), pixels=pixels,
-                 boxes=boxes, floor=floor, image_size=64, meta=meta)
+                 boxes=boxes, floor=floor, image_size=64, meta=meta, class_set=classes)

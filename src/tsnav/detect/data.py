@@ -47,8 +47,8 @@ class FrameSet:
 
     Attributes:
         images: ``(N, H, W, 3)`` uint8.
-        present: ``(N, 22)`` bool, the class is in view (ground truth of :mod:`tsnav.detect.oracle`).
-        boxes: ``(N, 22, 4)`` float32 normalised continuous ground-truth box per class (0 where absent).
+        present: ``(N, C)`` bool, the class is in view (ground truth of :mod:`tsnav.detect.oracle`).
+        boxes: ``(N, C, 4)`` float32 normalised continuous ground-truth box per class (0 where absent).
         obj_boxes: ``(N, K, 4)`` float32 normalised continuous box of every target object (0 if not in view).
         obj_category: ``(N, K)`` int16 class of each object column (-1: padding).
         obj_state: ``(N, K)`` int8: 0 not in view, 1 fewer than ``min_pixels`` pixels, 2 visible.
@@ -101,13 +101,15 @@ def load_frames(root: str | Path, split: str, max_states_per_scene: int | None =
     if not paths:
         raise ValueError(f"{root}: no complete scene of split {split!r}")
     images, targets, names, sizes = [], [], [], []
-    size = None
+    size, classes = None, None
     for p in tqdm(paths, desc=f"frames {split}", unit="scene", disable=not progress, dynamic_ncols=True):
         s = load_scene(p)
         if size is None:
-            size = s.image_size
+            size, classes = s.image_size, s.class_set
         elif s.image_size != size:
             raise ValueError(f"scene {s.name} has {s.image_size}px frames, others {size}px")
+        elif s.class_set != classes:
+            raise ValueError(f"scene {s.name} uses class set {s.class_set.name}, others {classes.name}")
         rows = np.arange(s.num_states)
         if max_states_per_scene is not None and s.num_states > max_states_per_scene:
             rng = np.random.default_rng([seed, len(names)])
@@ -133,7 +135,7 @@ def flip_boxes(boxes: torch.Tensor) -> torch.Tensor:
 @dataclass
 class Batch:
     """A training batch: uint8 ``images`` ``[B, H, W, 3]``; ``present`` ``[B, 22]``; ``boxes``
-    ``[B, 22, 4]``; ``obj_boxes`` ``[B, K, 4]``; ``obj_category``, ``obj_state`` ``[B, K]`` (see
+    ``[B, C, 4]``; ``obj_boxes`` ``[B, K, 4]``; ``obj_category``, ``obj_state`` ``[B, K]`` (see
     :class:`FrameSet`)."""
 
     images: torch.Tensor

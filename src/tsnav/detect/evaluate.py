@@ -25,7 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..constants import NUM_CATEGORIES, TARGET_CATEGORIES
+from ..constants import DEFAULT_CLASS_SET, class_set as get_class_set
 from .oracle import ground_truth
 from ..data.detections import Detections
 
@@ -174,8 +174,8 @@ class DetectionReport:
     """Evaluation of a detector on a set of scenes.
 
     Attributes:
-        presence_ap, box_ap: ``(22,)`` per-class AP (NaN where the class never appears).
-        positives: ``(22,)`` present (state, class) pairs per class.
+        presence_ap, box_ap: ``(C,)`` per-class AP (NaN where the class never appears).
+        positives: ``(C,)`` present (state, class) pairs per class.
         reliability: :class:`Reliability` over every (state, class) pair.
         reliability_present: the same over the classes that have an instance in each pair's scene.
         scenes: names of the scenes evaluated; states: their number of states.
@@ -188,6 +188,12 @@ class DetectionReport:
     reliability_present: Reliability
     scenes: list = field(default_factory=list)
     states: int = 0
+    class_set: str = DEFAULT_CLASS_SET
+
+    @property
+    def categories(self) -> tuple[str, ...]:
+        """Names of the classes, the order of the per-class arrays."""
+        return get_class_set(self.class_set).categories
 
     @property
     def mean_presence_ap(self) -> float:
@@ -208,7 +214,7 @@ class DetectionReport:
 
         return {"scenes": self.scenes, "states": self.states,
                 "classes": {c: {"positives": int(self.positives[i]), "presence_ap": nn(self.presence_ap[i]),
-                                "box_ap50": nn(self.box_ap[i])} for i, c in enumerate(TARGET_CATEGORIES)},
+                                "box_ap50": nn(self.box_ap[i])} for i, c in enumerate(self.categories)},
                 "mean_presence_ap": nn(self.mean_presence_ap), "mean_box_ap50": nn(self.mean_box_ap),
                 "reliability": rel(self.reliability), "reliability_present": rel(self.reliability_present)}
 
@@ -216,7 +222,7 @@ class DetectionReport:
         """Per-class AP table and reliability table as text."""
         lines = [f"{len(self.scenes)} scenes, {self.states} states",
                  f"{'class':<14} {'positives':>9} {'presence AP':>12} {'box AP@0.5':>11}"]
-        for i, c in enumerate(TARGET_CATEGORIES):
+        for i, c in enumerate(self.categories):
             if self.positives[i] == 0:
                 continue
             lines.append(f"{c:<14} {int(self.positives[i]):9d} {self.presence_ap[i]:12.3f} {self.box_ap[i]:11.3f}")
@@ -243,18 +249,19 @@ def evaluate_detections(scenes: Sequence, detections: Sequence[Detections], iou:
         gt = ground_truth(s)
         present.append(gt.present)
         gt_boxes.append(gt.boxes)
-        mask = np.zeros(NUM_CATEGORIES, bool)
+        mask = np.zeros(s.num_categories, bool)
         mask[s.categories_present()] = True
         in_scene.append(np.broadcast_to(mask, gt.present.shape))
     det = Detections.concatenate(list(detections))
+    C = get_class_set(det.class_set).size
     present = np.concatenate(present)
     gt_boxes = np.concatenate(gt_boxes)
     in_scene = np.concatenate(in_scene)
     overlap = box_iou(det.boxes, gt_boxes) >= iou
     kept = det.labels >= 0
-    p_ap = np.full(NUM_CATEGORIES, np.nan)
-    b_ap = np.full(NUM_CATEGORIES, np.nan)
-    for c in range(NUM_CATEGORIES):
+    p_ap = np.full(C, np.nan)
+    b_ap = np.full(C, np.nan)
+    for c in range(C):
         npos = int(present[:, c].sum())
         if npos == 0:
             continue
@@ -264,4 +271,4 @@ def evaluate_detections(scenes: Sequence, detections: Sequence[Detections], iou:
     return DetectionReport(presence_ap=p_ap, box_ap=b_ap, positives=present.sum(0),
                            reliability=reliability_table(det.scores, present, bins),
                            reliability_present=reliability_table(det.scores[in_scene], present[in_scene], bins),
-                           scenes=[s.name for s in scenes], states=int(len(present)))
+                           scenes=[s.name for s in scenes], states=int(len(present)), class_set=det.class_set)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..constants import NUM_CATEGORIES
+from ..constants import check_same_class_set
 from ..data.reader import Scene, load_scene
 from .data import read_images
 from .model import GridDetector, unit_to_pixel
@@ -48,6 +48,15 @@ class LearnedDetector:
     def image_size(self) -> int:
         return self.model.cfg.image_size
 
+    @property
+    def class_set(self) -> str:
+        """The class set whose classes the detector scores (its columns)."""
+        return self.model.cfg.class_set
+
+    @property
+    def num_classes(self) -> int:
+        return int(self.model.cfg.num_classes)
+
     def config(self) -> dict:
         return {"model": self.model.cfg.to_dict(), "temperature": self.temperature, "min_score": self.min_score,
                 "step": self.meta.get("step"), "train": self.meta.get("train"),
@@ -55,14 +64,14 @@ class LearnedDetector:
 
     def detect_images(self, images: np.ndarray, batch_size: int = 256
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(scores ``(N, 22)``, labels ``(N, 22)``, pixel boxes ``(N, 22, 4)``, features ``(N, 22, dim)``) of
+        """(scores ``(N, C)``, labels ``(N, C)``, pixel boxes ``(N, C, 4)``, features ``(N, C, dim)``) of
         uint8 frames ``(N, H, W, 3)``."""
         if images.ndim != 4 or images.shape[1:] != (self.image_size, self.image_size, 3):
             raise ValueError(f"frames must be (N, {self.image_size}, {self.image_size}, 3), got {images.shape}")
         logits, unit, feats = predict(self.model, images, batch_size)
         scores = 1.0 / (1.0 + np.exp(-logits.astype(np.float64) / self.temperature))
         keep = scores >= self.min_score
-        labels = np.where(keep, np.arange(NUM_CATEGORIES, dtype=np.int16)[None, :], -1).astype(np.int16)
+        labels = np.where(keep, np.arange(self.num_classes, dtype=np.int16)[None, :], -1).astype(np.int16)
         boxes = np.clip(unit_to_pixel(unit, self.image_size), 0, self.image_size - 1)
         boxes = np.where(keep[..., None], boxes, -1.0).astype(np.float32)
         return scores.astype(np.float32), labels, boxes, feats
@@ -76,11 +85,12 @@ class LearnedDetector:
         if scene.image_size != self.image_size:
             raise ValueError(f"scene {scene.name} has {scene.image_size}px frames; the detector takes "
                              f"{self.image_size}px")
-        S = scene.num_states
-        scores = np.empty((S, NUM_CATEGORIES), np.float32)
-        labels = np.empty((S, NUM_CATEGORIES), np.int16)
-        boxes = np.empty((S, NUM_CATEGORIES, 4), np.float32)
-        feats = np.empty((S, NUM_CATEGORIES, self.model.cfg.dim), np.float16)
+        check_same_class_set(self.class_set, scene.class_set, "the detector", f"scene {scene.name}")
+        S, C = scene.num_states, self.num_classes
+        scores = np.empty((S, C), np.float32)
+        labels = np.empty((S, C), np.int16)
+        boxes = np.empty((S, C, 4), np.float32)
+        feats = np.empty((S, C, self.model.cfg.dim), np.float16)
         for a in range(0, S, chunk):
             img = read_images(scene.path, scene.keys[a:a + chunk])
             if scene.mirror:
@@ -95,7 +105,7 @@ class LearnedDetector:
         config = dict(self.config(), mirror=True) if scene.mirror else self.config()
         return Detections(keys=scene.keys, scores=scores, labels=labels, boxes=boxes, features=feats,
                           detector="learned", config=config, fingerprint=self.fingerprint,
-                          image_size=self.image_size)
+                          image_size=self.image_size, class_set=self.class_set)
 
 
 def write_scene_tables(det: LearnedDetector, scenes: list[Scene], name: str, bar=None, workers: int = 1) -> None:

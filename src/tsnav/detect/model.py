@@ -1,4 +1,5 @@
-"""A small CPU-trainable dense detector (FCOS / CenterNet family) for the 22 target classes.
+"""A small CPU-trainable dense detector (FCOS / CenterNet family) for the target classes of a class set (C: the 22
+of ``ithor22``, the 12 of ``robothor12``; ``DetectorConfig.class_set``).
 
 Why not DETR (the paper's detector, Fig. 2): DETR needs an ImageNet-pretrained backbone and hundreds of GPU
 epochs (its set-based loss converges slowly); neither pretrained weights nor a GPU are available here. A
@@ -13,8 +14,8 @@ Architecture, for ``S x S`` frames (64 x 64 by default), ``G = S / 8`` cells a s
 * neck: 1x1 conv to ``dim`` channels + ReLU: the per-cell feature ``[N, dim, G, G]``; with
   ``DetectorConfig.fine`` the grid is twice as fine (``G = S / 4``): the neck's output is upsampled and added
   to a 1x1 projection of the stride-4 stage, then smoothed by a conv3x3-BN-ReLU (one FPN level);
-* heads (1x1 convs): a logit per class and cell ``[N, 22, G, G]``, and per class and cell a box as offsets
-  of its four edges from the cell centre, in frame units ``[N, 22, 4, G, G]``.
+* heads (1x1 convs): a logit per class and cell ``[N, C, G, G]``, and per class and cell a box as offsets
+  of its four edges from the cell centre, in frame units ``[N, C, 4, G, G]``.
 
 Per image and class (:meth:`GridDetector.forward`): the presence logit is ``logsumexp`` over the cells of
 the class's cell logits plus a learned class bias (a smooth max); the box and the feature are those of
@@ -40,7 +41,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..constants import NUM_CATEGORIES
+from ..constants import DEFAULT_CLASS_SET, NUM_CATEGORIES, class_set as get_class_set
 
 
 @dataclass
@@ -54,8 +55,12 @@ class DetectorConfig:
     so that training fits in minutes on 2 CPU cores)."""
     dim: int = 64
     """Channels of the per-cell feature; also the size of the per-class feature stored in the table."""
-    num_classes: int = NUM_CATEGORIES
-    """Number of classes (the 22 target classes)."""
+    num_classes: int | None = None
+    """Number of classes: the class set's (None), 22 for ``ithor22``; a value that differs from it is refused."""
+    class_set: str = DEFAULT_CLASS_SET
+    """The target classes the detector scores (:class:`~tsnav.constants.ClassSet` name: ``ithor22`` or
+    ``robothor12``); checkpoints written before class sets existed are ``ithor22``. Its tables are written and
+    read only for scenes of this class set."""
     stem: int = 1
     """Space-to-depth factor of the input (pixel unshuffle): with 2, a 128x128 frame enters the backbone as 12
     channels at 64x64, so the network costs about what it costs at 64x64 yet sees every pixel."""
@@ -64,6 +69,14 @@ class DetectorConfig:
     stage's feature is upsampled (nearest) and added to a 1x1 projection of the second stage's (an FPN-style
     lateral), then smoothed by a conv3x3-BN-ReLU; small objects (a phone, a remote) then own cells of their
     own. Checkpoints written before this field have ``fine`` False."""
+
+    def __post_init__(self) -> None:
+        n = get_class_set(self.class_set).size
+        if self.num_classes is None:
+            self.num_classes = n
+        elif int(self.num_classes) != n:
+            raise ValueError(f"detector config: num_classes {self.num_classes} but class set {self.class_set} "
+                             f"has {n} classes")
 
     @property
     def grid(self) -> int:
@@ -83,18 +96,21 @@ class DetectorConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["widths"] = list(self.widths)
+        if d["class_set"] == DEFAULT_CLASS_SET:  # absent reads as ithor22: iTHOR checkpoints keep their bytes
+            del d["class_set"]
         return d
 
 
-def default_config(image_size: int) -> DetectorConfig:
+def default_config(image_size: int, class_set: str = DEFAULT_CLASS_SET) -> DetectorConfig:
     """The architecture ``tsnav detect --detector learned`` gives a new checkpoint for ``image_size`` px
     frames: a space-to-depth stem of ``image_size / 64`` (a 128px frame costs what a 64px one does); from 128px
     on, the wider backbone (32, 64, 128) with the fine (stride-4) grid, the best measured on the `ithor-real`
-    world (BENCHMARKS.md, "Learned detector"); below, the small default (16, 32, 64) of the demo world."""
+    world (BENCHMARKS.md, "Learned detector"); below, the small default (16, 32, 64) of the demo world. The classes
+    are ``class_set``'s (the train scenes')."""
     stem = max(1, image_size // 64)
     if image_size >= 128:
-        return DetectorConfig(image_size=image_size, stem=stem, widths=(32, 64, 128), fine=True)
-    return DetectorConfig(image_size=image_size, stem=stem)
+        return DetectorConfig(image_size=image_size, stem=stem, widths=(32, 64, 128), fine=True, class_set=class_set)
+    return DetectorConfig(image_size=image_size, stem=stem, class_set=class_set)
 
 
 def _conv(cin: int, cout: int, stride: int, dilation: int = 1) -> nn.Sequential:
@@ -144,7 +160,7 @@ class GridDetector(nn.Module):
         return (rgb.permute(0, 3, 1, 2).float() / 255.0 - 0.5) / 0.25
 
     def dense(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Normalised ``[N, 3, S, S]`` -> (cell logits ``[N, 22, L]``, cell boxes ``[N, 22, L, 4]`` normalised
+        """Normalised ``[N, 3, S, S]`` -> (cell logits ``[N, C, L]``, cell boxes ``[N, C, L, 4]`` normalised
         ``[x0, y0, x1, y1]`` (corners ordered, not clipped), cell features ``[N, L, dim]``), ``L = G * G``."""
         if self.cfg.stem > 1:
             x = F.pixel_unshuffle(x, self.cfg.stem)
@@ -155,8 +171,8 @@ class GridDetector(nn.Module):
         else:
             f = self.neck(self.backbone(x))  # [N, dim, G, G]
         N, C = x.shape[0], self.cfg.num_classes
-        logits = self.cls_head(f).flatten(2)  # [N, 22, L]
-        d = self.box_head(f).reshape(N, C, 4, -1).transpose(2, 3)  # [N, 22, L, 4]
+        logits = self.cls_head(f).flatten(2)  # [N, C, L]
+        d = self.box_head(f).reshape(N, C, 4, -1).transpose(2, 3)  # [N, C, L, 4]
         raw = d + self.centres.repeat(1, 2)  # edges = cell centre + offsets
         lo = torch.minimum(raw[..., :2], raw[..., 2:])
         hi = torch.maximum(raw[..., :2], raw[..., 2:])
@@ -164,17 +180,17 @@ class GridDetector(nn.Module):
 
     def pool(self, logits: torch.Tensor, boxes: torch.Tensor, feats: torch.Tensor
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Per image and class: (presence logit ``[N, 22]`` = logsumexp over cells + class bias, box of the
-        best cell ``[N, 22, 4]`` clipped to [0, 1], feature of the best cell ``[N, 22, dim]``)."""
+        """Per image and class: (presence logit ``[N, C]`` = logsumexp over cells + class bias, box of the
+        best cell ``[N, C, 4]`` clipped to [0, 1], feature of the best cell ``[N, C, dim]``)."""
         presence = torch.logsumexp(logits, dim=-1) + self.class_bias
-        best = logits.argmax(dim=-1)  # [N, 22]
+        best = logits.argmax(dim=-1)  # [N, C]
         box = torch.gather(boxes, 2, best[..., None, None].expand(-1, -1, 1, 4)).squeeze(2).clamp(0, 1)
         feat = torch.gather(feats, 1, best[..., None].expand(-1, -1, feats.shape[-1]))
         return presence, box, feat
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Normalised ``[N, 3, S, S]`` -> (presence logits ``[N, 22]``, boxes ``[N, 22, 4]`` normalised
-        continuous ``[x0, y0, x1, y1]`` in [0, 1], features ``[N, 22, dim]``)."""
+        """Normalised ``[N, 3, S, S]`` -> (presence logits ``[N, C]``, boxes ``[N, C, 4]`` normalised
+        continuous ``[x0, y0, x1, y1]`` in [0, 1], features ``[N, C, dim]``)."""
         return self.pool(*self.dense(x))
 
 
@@ -190,7 +206,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
         grid: cells per side.
 
     Returns:
-        positive ``[B, 22, L]`` bool, ignore ``[B, 22, L]`` bool, box target ``[B, 22, L, 4]`` (the smallest
+        positive ``[B, C, L]`` bool, ignore ``[B, C, L]`` bool, box target ``[B, C, L, 4]`` (the smallest
         visible box of the class that claims the cell; zeros where not positive).
     """
     B, K = category.shape
@@ -203,7 +219,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     my = ((boxes[..., 1] + boxes[..., 3]) / 2 * grid).floor().clamp(0, grid - 1)
     centre_cell = (my * grid + mx).long()  # [B, K]
     claims = inside | (torch.arange(L, device=boxes.device) == centre_cell[..., None])  # [B, K, L]
-    # Each object has one class: reduce over objects into per-class maps by scatter (no [B, K, 22, L] tensor).
+    # Each object has one class: reduce over objects into per-class maps by scatter (no [B, K, C, L] tensor).
     # Objects without a target class (-1) go to a dummy class row ``num_classes`` that is dropped at the end.
     cls = torch.where(category >= 0, category, torch.full_like(category, num_classes)).long()
     index = cls[..., None].expand(-1, -1, L)  # [B, K, L]
@@ -214,7 +230,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     masked = torch.where(vis, area[..., None], inf)  # [B, K, L]
     smallest = torch.full((B, num_classes + 1, L), float("inf"), device=boxes.device)
     smallest = smallest.scatter_reduce(1, index, masked, reduce="amin")  # [B, 23, L]
-    positive = torch.isfinite(smallest[:, :num_classes])  # [B, 22, L]
+    positive = torch.isfinite(smallest[:, :num_classes])  # [B, C, L]
     # The first object of the class whose area is the smallest (the reference's tie rule).
     first = torch.where(vis & (masked == torch.gather(smallest, 1, index)),
                         torch.arange(K, device=boxes.device)[None, :, None], K)  # [B, K, L]
@@ -224,7 +240,7 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     weak_c = weak_c.scatter_reduce(1, index, weak.long(), reduce="amax")[:, :num_classes].bool()
     ignore = weak_c & ~positive
     target = torch.gather(boxes[:, None, :, :].expand(-1, num_classes, -1, -1), 2,
-                          k[..., None].expand(-1, -1, -1, 4))  # [B, 22, L, 4]
+                          k[..., None].expand(-1, -1, -1, 4))  # [B, C, L, 4]
     target = torch.where(positive[..., None], target, torch.zeros_like(target))
     return positive, ignore, target
 
@@ -316,7 +332,7 @@ def focal_loss(logits: torch.Tensor, positive: torch.Tensor, alpha: float, gamma
 def detection_loss(model: GridDetector, x: torch.Tensor, present: torch.Tensor, boxes: torch.Tensor,
                    category: torch.Tensor, state: torch.Tensor, w: LossWeights | None = None
                    ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss and its terms for normalised frames ``x`` with per-image ``present`` ``[B, 22]`` and
+    """Total loss and its terms for normalised frames ``x`` with per-image ``present`` ``[B, C]`` and
     per-object ``boxes`` / ``category`` / ``state`` ``[B, K, ...]`` (see :func:`dense_targets`)."""
     w = w or LossWeights()
     cell_logits, cell_boxes, feats = model.dense(x)

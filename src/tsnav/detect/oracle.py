@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..constants import NUM_CATEGORIES
+from ..constants import ITHOR22
 from ..data.reader import Scene
 from ..data.detections import Detections
 
@@ -74,14 +74,14 @@ class OracleConfig:
 
 @dataclass
 class GroundTruth:
-    """Per state and class ground truth of a scene (``S`` states, 22 classes).
+    """Per state and class ground truth of a scene (``S`` states, ``C`` classes of the scene's class set).
 
     Attributes:
-        present: ``(S, 22)`` bool, an instance shows at least ``min_pixels``.
-        boxes: ``(S, 22, 4)`` float32 box of the ground-truth instance, inclusive pixel corners; -1 if absent.
-        pixels: ``(S, 22)`` int32 visible pixels of that instance (0 if absent).
-        distance: ``(S, 22)`` float32 its distance from the camera, metres (NaN if absent or unknown).
-        instance: ``(S, 22)`` int64 its object column in the scene, -1 if absent.
+        present: ``(S, C)`` bool, an instance shows at least ``min_pixels``.
+        boxes: ``(S, C, 4)`` float32 box of the ground-truth instance, inclusive pixel corners; -1 if absent.
+        pixels: ``(S, C)`` int32 visible pixels of that instance (0 if absent).
+        distance: ``(S, C)`` float32 its distance from the camera, metres (NaN if absent or unknown).
+        instance: ``(S, C)`` int64 its object column in the scene, -1 if absent.
     """
 
     present: np.ndarray
@@ -98,18 +98,18 @@ def min_pixels(scene: Scene) -> int:
 
 def ground_truth(scene: Scene) -> GroundTruth:
     """Ground truth of every state of ``scene``: presence, instance and box per class (batched over states;
-    the loop runs over the 22 classes)."""
-    S = scene.num_states
-    present = np.zeros((S, NUM_CATEGORIES), bool)
-    boxes = np.full((S, NUM_CATEGORIES, 4), -1.0, np.float32)
-    pixels = np.zeros((S, NUM_CATEGORIES), np.int32)
-    distance = np.full((S, NUM_CATEGORIES), np.nan, np.float32)
-    instance = np.full((S, NUM_CATEGORIES), -1, np.int64)
+    the loop runs over the scene's classes)."""
+    S, C = scene.num_states, scene.num_categories
+    present = np.zeros((S, C), bool)
+    boxes = np.full((S, C, 4), -1.0, np.float32)
+    pixels = np.zeros((S, C), np.int32)
+    distance = np.full((S, C), np.nan, np.float32)
+    instance = np.full((S, C), -1, np.int64)
     if (scene.pixels < 0).all() and scene.pixels.size:
         raise ValueError(f"scene {scene.name}: no per-state pixel counts (states.hdf5) for ground truth")
     vis = scene.pixels >= min_pixels(scene)
     rows = np.arange(S)
-    for c in range(NUM_CATEGORIES):
+    for c in range(C):
         cols = np.flatnonzero(scene.object_category == c)
         if cols.size == 0:
             continue
@@ -129,12 +129,12 @@ def ground_truth(scene: Scene) -> GroundTruth:
 
 def ground_truth_reference(scene: Scene) -> GroundTruth:
     """Slow reference for :func:`ground_truth`: loops over states and objects."""
-    S = scene.num_states
-    present = np.zeros((S, NUM_CATEGORIES), bool)
-    boxes = np.full((S, NUM_CATEGORIES, 4), -1.0, np.float32)
-    pixels = np.zeros((S, NUM_CATEGORIES), np.int32)
-    distance = np.full((S, NUM_CATEGORIES), np.nan, np.float32)
-    instance = np.full((S, NUM_CATEGORIES), -1, np.int64)
+    S, C = scene.num_states, scene.num_categories
+    present = np.zeros((S, C), bool)
+    boxes = np.full((S, C, 4), -1.0, np.float32)
+    pixels = np.zeros((S, C), np.int32)
+    distance = np.full((S, C), np.nan, np.float32)
+    instance = np.full((S, C), -1, np.int64)
     mp = min_pixels(scene)
     for s in range(S):
         best: dict[int, tuple] = {}
@@ -171,24 +171,25 @@ def oracle_confidence(pixels: np.ndarray, distance: np.ndarray, image_size: int,
     return np.where(pixels > 0, conf, 0.0).astype(np.float32)
 
 
-def category_code(seed: int = 0) -> np.ndarray:
-    """``(22, 32)`` fixed category code of the oracle feature: random signs scaled to unit norm."""
+def category_code(seed: int = 0, num_categories: int = ITHOR22.size) -> np.ndarray:
+    """``(C, 32)`` fixed category code of the oracle feature: random signs scaled to unit norm (C = 22 by
+    default; another class set's code is drawn the same way at its own size)."""
     rng = np.random.default_rng(seed)
-    return (rng.integers(0, 2, size=(NUM_CATEGORIES, _CODE_DIM)) * 2 - 1).astype(np.float32) / np.sqrt(_CODE_DIM)
+    return (rng.integers(0, 2, size=(num_categories, _CODE_DIM)) * 2 - 1).astype(np.float32) / np.sqrt(_CODE_DIM)
 
 
 def oracle_features(gt: GroundTruth, conf: np.ndarray, image_size: int, seed: int = 0) -> np.ndarray:
-    """``(S, 22, 64)`` float16 oracle feature (layout in the module docstring): a function of the box, the
+    """``(S, C, 64)`` float16 oracle feature (layout in the module docstring): a function of the box, the
     visible pixel fraction and ``conf`` only (``gt.distance`` is not read)."""
-    S = gt.present.shape[0]
+    S, C = gt.present.shape
     W = float(image_size)
     pres = gt.present[..., None].astype(np.float32)
-    code = category_code(seed)[None] * conf[..., None]  # (S, 22, 32)
+    code = category_code(seed, C)[None] * conf[..., None]  # (S, C, 32)
     b = gt.boxes.astype(np.float32)
     x0, y0, x1, y1 = b[..., 0], b[..., 1], b[..., 2] + 1, b[..., 3] + 1
-    g = np.stack([(x0 + x1) / 2 / W, (y0 + y1) / 2 / W, (x1 - x0) / W, (y1 - y0) / W], axis=-1)  # (S, 22, 4)
-    ang = np.pi * g[..., None, :] * (2.0 ** np.arange(_FOURIER_OCTAVES, dtype=np.float32))[:, None]  # (S,22,3,4)
-    four = np.concatenate([np.sin(ang), np.cos(ang)], axis=-2).reshape(S, NUM_CATEGORIES, -1) * pres
+    g = np.stack([(x0 + x1) / 2 / W, (y0 + y1) / 2 / W, (x1 - x0) / W, (y1 - y0) / W], axis=-1)  # (S, C, 4)
+    ang = np.pi * g[..., None, :] * (2.0 ** np.arange(_FOURIER_OCTAVES, dtype=np.float32))[:, None]  # (S,C,3,4)
+    four = np.concatenate([np.sin(ang), np.cos(ang)], axis=-2).reshape(S, C, -1) * pres
     frac = gt.pixels.astype(np.float32) / W ** 2
     no_distance = np.zeros_like(frac)  # slot 59: the true distance until version 1; nothing privileged now
     tail = np.stack([conf, gt.present.astype(np.float32), np.sqrt(frac), no_distance, x0 / W, y0 / W, x1 / W, y1 / W],
@@ -205,8 +206,9 @@ def oracle_detections(scene: Scene, cfg: OracleConfig | None = None) -> Detectio
         raise ValueError(f"scene {scene.name}: unknown image size (scene.json / states.hdf5)")
     gt = ground_truth(scene)
     conf = oracle_confidence(gt.pixels, gt.distance, scene.image_size, cfg)
-    labels = np.where(gt.present, np.arange(NUM_CATEGORIES, dtype=np.int16)[None, :], -1).astype(np.int16)
+    labels = np.where(gt.present, np.arange(scene.num_categories, dtype=np.int16)[None, :], -1).astype(np.int16)
+    # The columns are the scene's class set's (recorded in the table, which only scenes of that set read).
     return Detections(keys=scene.keys, scores=conf, labels=labels, boxes=gt.boxes,
                       features=oracle_features(gt, conf, scene.image_size, cfg.seed), detector="oracle",
                       config=dict(asdict(cfg), mirror=True) if scene.mirror else asdict(cfg),
-                      fingerprint=cfg.fingerprint(), image_size=scene.image_size)
+                      fingerprint=cfg.fingerprint(), image_size=scene.image_size, class_set=scene.class_set.name)

@@ -36,7 +36,7 @@ from matplotlib.patches import Rectangle
 from tqdm import tqdm
 
 from ..atomic import atomic_save_figure, atomic_write_json
-from ..constants import C_TARGET, NUM_CATEGORIES, ROOM_TARGETS, SUCCESS_DISTANCE, TARGET_CATEGORIES, room_target_mask
+from ..constants import C_TARGET, DEFAULT_CLASS_SET, SUCCESS_DISTANCE, class_set as get_class_set
 from ..data.detections import Detections, load_detections
 from ..data.reader import list_scenes, load_scene
 from .data import read_images
@@ -56,11 +56,11 @@ NEAR_DISTANCE = 1.5
 
 
 def scene_targets(scene) -> np.ndarray:
-    """``(22,)`` bool: classes an episode in ``scene`` can target (an instance in the scene and in the room
-    type's target list; every present class when the room type is unknown)."""
-    mask = np.zeros(NUM_CATEGORIES, bool)
+    """``(C,)`` bool: classes an episode in ``scene`` can target (an instance in the scene and in the room
+    type's target list of its class set; every present class when the room type is unknown)."""
+    mask = np.zeros(scene.num_categories, bool)
     mask[scene.categories_present()] = True
-    return mask & room_target_mask(scene.room_type)
+    return mask & scene.class_set.room_target_mask(scene.room_type)
 
 
 @dataclass
@@ -71,7 +71,7 @@ class SwitchReport:
         c_target: the switch threshold used for reach.
         pairs: (scene, target) pairs; reached: of them, with some state above ``c_target``; reached_in_view:
             with some state above ``c_target`` where the target is in view.
-        class_pairs, class_reached: ``(22,)`` the same per class.
+        class_pairs, class_reached: ``(C,)`` the same per class (of ``class_set``).
         episode_pairs: pairs with a success state (target in view within ``SUCCESS_DISTANCE``), the pairs
             episodes ask for; episode_reached: of them, with some state above ``c_target``.
         fp_state_any: ``{t: share of states where some class not in view scores > t}``.
@@ -95,6 +95,7 @@ class SwitchReport:
     scenes: list = field(default_factory=list)
     episode_pairs: int = 0
     episode_reached: int = 0
+    class_set: str = DEFAULT_CLASS_SET
 
     @property
     def reach(self) -> float:
@@ -109,7 +110,7 @@ class SwitchReport:
                 "reached_in_view": self.reached_in_view, "reach": self.reach, "episode_pairs": self.episode_pairs,
                 "episode_reached": self.episode_reached, "episode_reach": self.episode_reach,
                 "classes": {c: {"pairs": int(self.class_pairs[i]), "reached": int(self.class_reached[i])}
-                            for i, c in enumerate(TARGET_CATEGORIES) if self.class_pairs[i]},
+                            for i, c in enumerate(get_class_set(self.class_set).categories) if self.class_pairs[i]},
                 "false_positives": {"state_any": _keys(self.fp_state_any), "state_target": _keys(self.fp_state_target),
                                     "pair_any": _keys(self.fp_pair_any), "pair_target": _keys(self.fp_pair_target)},
                 "states": self.states, "scenes": self.scenes}
@@ -141,8 +142,9 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
         raise ValueError(f"{len(scenes)} scenes but {len(detections)} detection tables")
     if not scenes:
         raise ValueError("nothing to evaluate: no scenes")
-    class_pairs = np.zeros(NUM_CATEGORIES, np.int64)
-    class_reached = np.zeros(NUM_CATEGORIES, np.int64)
+    classes = scenes[0].class_set
+    class_pairs = np.zeros(classes.size, np.int64)
+    class_reached = np.zeros(classes.size, np.int64)
     in_view_reached = 0
     episode_pairs = episode_reached = 0
     n_states = 0
@@ -154,7 +156,7 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
     for s, d in zip(scenes, detections):
         if len(d.keys) != len(s.keys) or not (d.keys == s.keys).all():
             raise ValueError(f"detections of scene {s.name} do not match its states")
-        present = ground_truth(s).present  # (S, 22)
+        present = ground_truth(s).present  # (S, C)
         tgt = scene_targets(s)
         above = d.scores > c_target
         class_pairs += tgt
@@ -184,11 +186,11 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
                         fp_pair_any={t: share(v, neg_any) for t, v in fp_p_any.items()},
                         fp_pair_target={t: share(v, neg_tgt) for t, v in fp_p_tgt.items()},
                         states=n_states, scenes=[s.name for s in scenes], episode_pairs=episode_pairs,
-                        episode_reached=episode_reached)
+                        episode_reached=episode_reached, class_set=classes.name)
 
 
 def subset_ap(scores: np.ndarray, present: np.ndarray, subset: np.ndarray) -> np.ndarray:
-    """``(22,)`` presence AP per class counting only the in-view (state, class) pairs of ``subset`` as
+    """``(C,)`` presence AP per class counting only the in-view (state, class) pairs of ``subset`` as
     positives: in-view pairs outside it are left out (neither positive nor negative), pairs not in view are the
     negatives (COCO's area ranges, applied to presence). NaN for a class without positives in ``subset``."""
     out = np.full(present.shape[1], np.nan)
@@ -223,7 +225,8 @@ def subset_report(scenes: Sequence, detections: Sequence[Detections]) -> dict:
         ap = subset_ap(scores, present, sub)
         out[name] = {"mean_presence_ap": float(np.nanmean(ap)) if np.isfinite(ap).any() else None,
                      "positives": int((present & sub).sum()),
-                     "classes": {c: float(ap[i]) for i, c in enumerate(TARGET_CATEGORIES) if np.isfinite(ap[i])}}
+                     "classes": {c: float(ap[i]) for i, c in enumerate(scenes[0].class_set.categories)
+                                 if np.isfinite(ap[i])}}
     return out
 
 
@@ -247,8 +250,9 @@ def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], 
     neg_any = neg_tgt = 0
     for s, d in zip(scenes, detections):
         gt = ground_truth(s).present
+        rooms = s.class_set.room_targets
         targets = [c for c in s.categories_present()
-                   if s.room_type not in ROOM_TARGETS or TARGET_CATEGORIES[c] in ROOM_TARGETS[s.room_type]]
+                   if s.room_type not in rooms or s.class_set.categories[c] in rooms[s.room_type]]
         success = s.category_visible_within(SUCCESS_DISTANCE)
         for c in targets:
             pairs += 1
@@ -261,12 +265,12 @@ def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], 
         for i in range(len(gt)):
             states += 1
             for t in thresholds:
-                bad = [c for c in range(NUM_CATEGORIES) if not gt[i, c] and d.scores[i, c] > t]
+                bad = [c for c in range(s.num_categories) if not gt[i, c] and d.scores[i, c] > t]
                 cnt["sa"][t] += bool(bad)
                 cnt["st"][t] += any(c in targets for c in bad)
                 cnt["pa"][t] += len(bad)
                 cnt["pt"][t] += sum(c in targets for c in bad)
-            neg_any += sum(not gt[i, c] for c in range(NUM_CATEGORIES))
+            neg_any += sum(not gt[i, c] for c in range(s.num_categories))
             neg_tgt += sum(not gt[i, c] for c in targets)
     return {"pairs": pairs, "reached": reached, "reached_in_view": in_view, "episode_pairs": episode_pairs,
             "episode_reached": episode_reached, "fp_state_any": {t: v / states for t, v in cnt["sa"].items()},
@@ -358,9 +362,9 @@ def detection_gallery(scenes: Sequence, detections: Sequence[Detections], picks:
                 col = "#ff9900"
             ax.add_patch(Rectangle((x0 - 0.5, y0 - 0.5), x1 - x0 + 1, y1 - y0 + 1, fill=False, ec=col,
                                             lw=1.4))
-            ax.text(x0, max(y0 - 1, 0), f"{TARGET_CATEGORIES[c]} {d.scores[j, c]:.2f}", color="black",
+            ax.text(x0, max(y0 - 1, 0), f"{s.class_set.categories[c]} {d.scores[j, c]:.2f}", color="black",
                     fontsize=5.5, va="bottom", bbox=dict(facecolor=col, alpha=0.8, pad=0.6, lw=0))
-        missed = [TARGET_CATEGORIES[c] for c in np.flatnonzero(gt.present[j]) if d.scores[j, c] < min_score]
+        missed = [s.class_set.categories[c] for c in np.flatnonzero(gt.present[j]) if d.scores[j, c] < min_score]
         ax.set_title(f"{s.name} {s.keys[j]}" + (f"\nmissed: {', '.join(missed)}" if missed else "\n"),
                      fontsize=6.5)
     if title:

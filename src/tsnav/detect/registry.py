@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..constants import check_same_class_set
 from ..data.detections import write_detections
 from ..data.reader import list_scenes, load_scene
 from ..errors import CommandError
@@ -95,15 +96,25 @@ def _network_maker(det) -> TableMaker:
         det, loaded, name, bar, workers))
 
 
+def _same_classes(det, what: str, root: Path, scenes: list):
+    """``det`` when it detects the class set of the scenes; a one-line error naming both sets otherwise."""
+    try:
+        check_same_class_set(det.class_set, load_scene(scenes[0]).class_set, what, f"{root}")
+    except ValueError as e:
+        raise CommandError(str(e)) from None
+    return det
+
+
 def _open_shipped(args, root: Path, scenes: list, name: str) -> TableMaker:
     from .shipped import shipped_detector, shipped_for
 
     which = getattr(args, "shipped", None) or shipped_for(name)
-    return _network_maker(shipped_detector(load_scene(scenes[0]).image_size, name=which))
+    det = shipped_detector(load_scene(scenes[0]).image_size, name=which)
+    return _network_maker(_same_classes(det, "the shipped detector", root, scenes))
 
 
 def _open_learned(args, root: Path, scenes: list, name: str) -> TableMaker:
-    return _network_maker(_learned(args, root))
+    return _network_maker(_same_classes(_learned(args, root), "the learned detector", root, scenes))
 
 
 def _learned(args, root: Path):
@@ -179,8 +190,8 @@ def _model_config(args, root: Path):
     train = list_scenes(root, split="train")
     if not train:
         raise CommandError(f"{root}: no complete train scene to train the detector on")
-    size = load_scene(train[0]).image_size
-    cfg = default_config(size)
+    first = load_scene(train[0])
+    cfg = default_config(first.image_size, first.class_set.name)
     stem = cfg.stem = args.stem if args.stem is not None else cfg.stem
     if args.widths:
         try:

@@ -161,7 +161,7 @@ def repeat_factors_reference(present, threshold: float) -> np.ndarray:
 
 
 def classes_with_pixels(frames: "FrameSet") -> np.ndarray:
-    """``(N, 22)`` bool: some object of the class has at least one pixel in the frame (``obj_state`` > 0), so a
+    """``(N, C)`` bool: some object of the class has at least one pixel in the frame (``obj_state`` > 0), so a
     high score there is not a hallucination even when the object is too small to count as present."""
     seen = np.zeros(frames.present.shape, bool)
     rows, cols = np.nonzero(frames.obj_state > 0)
@@ -438,7 +438,7 @@ def fit_temperature(logits: np.ndarray, present: np.ndarray, bounds: tuple[float
 @torch.no_grad()
 def predict(model: GridDetector, images: np.ndarray, batch_size: int = 256
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(logits ``(N, 22)`` float32, normalised boxes ``(N, 22, 4)`` float32, features ``(N, 22, dim)`` float32)
+    """(logits ``(N, C)`` float32, normalised boxes ``(N, 22, 4)`` float32, features ``(N, 22, dim)`` float32)
     of uint8 frames ``(N, H, W, 3)``, in batches, in eval mode."""
     model.eval()
     n = len(images)
@@ -487,6 +487,9 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
         frames = load_frames(root, "train", train_cfg.max_states_per_scene, train_cfg.seed, progress)
     if frames.images.shape[1] != model.cfg.image_size:
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
+    if frames.present.shape[1] != model.cfg.num_classes:
+        raise ValueError(f"the train scenes have {frames.present.shape[1]} target classes but the detector scores "
+                         f"{model.cfg.num_classes} (class set {model.cfg.class_set})")
     weights = repeat_factors(frames.present, train_cfg.repeat_threshold) if train_cfg.repeat_threshold > 0 else None
     if train_cfg.hard_negative_weight > 0:
         hard = mined_hard_negatives(ckpt, model, meta, frames, train_cfg.hard_negative_threshold, start,

@@ -31,7 +31,8 @@ from typing import Sequence
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..constants import ACTION_ORDER, C_TARGET, CATEGORY_INDEX, OLD_ACTION_ORDER, action_permutation
+from ..constants import (ACTION_ORDER, C_TARGET, OLD_ACTION_ORDER, action_permutation, check_same_class_set,
+                         class_set_of)
 from ..data.reader import is_complete, load_scene
 from ..errors import CommandError, read_json
 from ..sim.batch import BatchEnv, SceneBank
@@ -212,7 +213,7 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
                 frames = np.concatenate([s, [final]])
             else:
                 frames = np.array([bank.global_state(bank.scene_index(r.scene), r.start)], dtype=np.int64)
-            g = CATEGORY_INDEX[r.target]
+            g = bank.class_set.index[r.target]
             sw = switch_frame(conf[frames, g], config.c_target)
             hit = bank.success[frames, g]
             d = int(bank.dist[frames[sw], g]) if sw >= 0 else -1
@@ -387,6 +388,10 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
             "success_distance": float(success_distance), "detections": detections,
             "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
     bank = eval_bank(meta, episodes)
+    try:
+        check_same_class_set(class_set_of(emeta), bank.class_set, str(episodes_file), f"the scenes of {data}")
+    except ValueError as e:
+        raise CommandError(str(e)) from None
     pol = eval_policy(meta, bank)
     t0 = time.perf_counter()
     records, trajectories = record_trajectories(bank, episodes, pol, config)

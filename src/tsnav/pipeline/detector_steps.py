@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from ..atomic import atomic_write_json
 from ..distributed import set_threads
-from ..constants import C_TARGET
+from ..constants import C_TARGET, DEFAULT_CLASS_SET
 from ..data.detections import detections_path, load_detections, read_fingerprint
 from ..data.reader import list_scenes, load_scene
 from ..detect.evaluate import evaluate_detections
@@ -63,10 +63,12 @@ class one_thread:
         return False
 
 
-def detector_configs(scale: ScaleConfig, image_size: int) -> tuple[DetectorTrainConfig, DetectorConfig]:
-    """Training settings and the architecture of a new detector at ``scale`` for ``image_size``-px frames."""
+def detector_configs(scale: ScaleConfig, image_size: int, class_set: str = DEFAULT_CLASS_SET
+                     ) -> tuple[DetectorTrainConfig, DetectorConfig]:
+    """Training settings and the architecture of a new detector at ``scale`` for ``image_size``-px frames of
+    scenes of ``class_set``."""
     tc = replace(scale.detector, threads=1)
-    mc = DetectorConfig.from_dict({**scale.detector_model, "image_size": image_size})
+    mc = DetectorConfig.from_dict({**scale.detector_model, "image_size": image_size, "class_set": class_set})
     return tc, mc
 
 
@@ -89,7 +91,8 @@ def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir
                                f"{was[0]} ...); use another --detector-dir")
     elif detector_dir.is_dir() and any(detector_dir.iterdir()):
         raise CommandError(f"{detector_dir} is a folder that holds no detector checkpoint; use another --detector-dir")
-    tc, mc = detector_configs(scale, load_scene(train[0]).image_size)
+    first = load_scene(train[0])
+    tc, mc = detector_configs(scale, first.image_size, first.class_set.name)
     with one_thread():
         res = train_detector(train_root, detector_dir, tc, model_cfg=mc, progress=progress)
         if res.step > res.start_step:

@@ -19,7 +19,7 @@ from ..distributed import resolve_device, trim_memory
 from ..scene_pool import default_workers
 from ..pretrain.train import PretrainConfig, train
 from ..sim.batch import SceneBank
-from ..sim.episodes import make_episodes, read_episodes, write_episodes
+from ..sim.episodes import class_set_meta, make_episodes, read_episodes, write_episodes
 from ..world.build import build_dataset
 from .detector_steps import complete_tables, ensure_learned_detections, ensure_shipped_detections
 from .config import ExperimentConfig, ScaleConfig
@@ -115,7 +115,8 @@ def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_typ
     if not eps:
         raise ValueError(f"{data}: no valid episode in split {split!r}")
     write_episodes(path, eps, split=split, seed=seed, protocol=protocol, success_distance=success_distance,
-                   per_room_type=per_room_type, start_horizon=None, room_targets=True, data=str(Path(data).resolve()))
+                   per_room_type=per_room_type, start_horizon=None, room_targets=True, data=str(Path(data).resolve()),
+                   **class_set_meta(bank))
     return path
 
 

@@ -161,7 +161,7 @@ class RGBDImages:
                 rgb[sel], depth[sel] = self._read(int(scene), row[sel])
         out = {"rgb": rgb, "depth": depth, "index": torch.from_numpy(index)}
         if self.with_labels:
-            lab = np.zeros((b, NUM_CATEGORIES), dtype=np.float32)
+            lab = np.zeros((b, self.labels[int(si[0])].shape[1] if b else NUM_CATEGORIES), dtype=np.float32)
             for scene in np.unique(si):
                 sel = np.flatnonzero(si == scene)
                 lab[sel] = self.labels[scene][row[sel]]
@@ -190,13 +190,14 @@ class BatchView(torch.utils.data.Dataset):
 
 
 def visible_categories(scene_path: Path, keys: np.ndarray) -> np.ndarray:
-    """``[len(keys), 22]`` float 0/1: some object of the category shows at least the scene's min pixels."""
+    """``[len(keys), C]`` float 0/1 (``C`` the scene's class set's size, 22 for ``ithor22``): some object of the
+    category shows at least the scene's min pixels."""
     scene = load_scene(scene_path)
     vis = scene.visible_at_any_range()  # [S, O]
-    out = np.zeros((scene.num_states, NUM_CATEGORIES), dtype=np.float32)
+    out = np.zeros((scene.num_states, scene.num_categories), dtype=np.float32)
     tgt = scene.object_category >= 0
     if tgt.any():
-        onehot = np.zeros((int(tgt.sum()), NUM_CATEGORIES), dtype=np.float32)
+        onehot = np.zeros((int(tgt.sum()), scene.num_categories), dtype=np.float32)
         onehot[np.arange(int(tgt.sum())), scene.object_category[tgt]] = 1
         out = ((vis[:, tgt].astype(np.float32) @ onehot) > 0).astype(np.float32)
     return out[scene.indices(keys)] if len(keys) else out[:0]

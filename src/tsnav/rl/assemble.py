@@ -65,4 +65,4 @@ def make_model(agent: AgentConfig, observer: Observer, seed: int) -> ActorCritic
     """The actor-critic for the observer's feature shape, initialised from ``seed`` (the same on every rank)."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return ActorCritic(agent, observer.feature_shape, observer.det_dim)
+        return ActorCritic(agent, observer.feature_shape, observer.det_dim, observer.class_set)

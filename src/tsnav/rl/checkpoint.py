@@ -34,7 +34,7 @@ from ..data.detections import load_scene_detections
 from .. import checkpoint as ckpt
 from ..checkpoint import (CHECKPOINTS, atomic_write_json, load_tensors, optimizer_file, optimizer_from_tensors,
                           optimizer_to_tensors, read_json, resume_newest, set_aside)
-from ..constants import ACTION_ORDER, NUM_ACTIONS, OLD_ACTION_ORDER, action_permutation
+from ..constants import ACTION_ORDER, NUM_ACTIONS, OLD_ACTION_ORDER, action_permutation, check_same_class_set
 from .assemble import install
 from .config import TrainConfig
 from .policy import AgentPolicy
@@ -248,6 +248,7 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, d
     """
     cfg = TrainConfig.from_dict(read_run_config(run_dir)["train"])
     model, _ = load_model(run_dir, resolve_checkpoint(run_dir, checkpoint))
+    check_same_class_set(model.class_set, bank.class_set, f"the agent of {run_dir}", "these scenes")
     det_features = None
     name = detections if detections is not None else cfg.detections
     if name is not None:

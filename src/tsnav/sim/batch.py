@@ -69,7 +69,7 @@ from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from ..constants import C_TARGET, DONE, GRID_SIZE, MOVE_AHEAD, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
+from ..constants import C_TARGET, DONE, GRID_SIZE, MOVE_AHEAD, NUM_ACTIONS, SUCCESS_DISTANCE
 from ..data.detections import Detections, load_scene_detections
 from ..data.reader import Scene, list_scenes, load_scene
 from ..protocol import DEFAULT_PROTOCOL, check_protocol
@@ -159,8 +159,10 @@ class SparseReward:
 class SceneBank:
     """Several scenes as one global state space with per-state, per-category tables.
 
-    Attributes (``N`` scenes, ``S`` = total states, ``C`` = 22 target categories):
+    Attributes (``N`` scenes, ``S`` = total states, ``C`` = the class set's target categories, 22 or 12):
         scenes: the :class:`Scene` objects; names, room_types: per scene.
+        class_set: the :class:`~tsnav.constants.ClassSet` every scene declares (``ithor22`` or ``robothor12``;
+            scenes of different class sets cannot share a bank); ``num_categories`` = ``C``.
         offsets: ``(N+1,)`` int64; scene ``i`` owns global ids ``offsets[i]:offsets[i+1]``.
         scene_of: ``(S,)`` int32 scene index of each global state.
         next_state: ``(S, 6)`` int32 global successor per action (the state itself when it fails / Done).
@@ -191,6 +193,11 @@ class SceneBank:
             raise ValueError(f"success_distance must be positive, got {success_distance}")
         self.protocol = check_protocol(protocol)
         self.scenes = list(scenes)
+        sets = sorted({s.class_set.name for s in self.scenes})
+        if len(sets) > 1:
+            raise ValueError(f"scenes of different class sets ({', '.join(sets)}) cannot share a bank")
+        self.class_set = self.scenes[0].class_set
+        self.num_categories = self.class_set.size
         self.success_distance = float(success_distance)
         if not 0.0 <= c_target <= 1.0:
             raise ValueError(f"c_target must be in [0, 1], got {c_target}")
@@ -217,7 +224,7 @@ class SceneBank:
         self.dist = np.concatenate([scene_distance_fields(s, success_distance, cache=cache, protocol=self.protocol)
                                     for s in self.scenes])
         self.in_frame = np.concatenate([_in_frame(s) for s in self.scenes])
-        self.present = np.zeros((len(self.scenes), NUM_CATEGORIES), dtype=bool)
+        self.present = np.zeros((len(self.scenes), self.num_categories), dtype=bool)
         for i, s in enumerate(self.scenes):
             self.present[i, s.categories_present()] = True
         self.confidence: np.ndarray | None = None
@@ -243,16 +250,17 @@ class SceneBank:
     def set_confidence(self, confidence: np.ndarray) -> None:
         """Install the ``(S, C)`` detector confidences (values in [0, 1]); clears the searching-length cache."""
         conf = np.asarray(confidence, dtype=np.float32)
-        if conf.shape != (self.num_states, NUM_CATEGORIES):
-            raise ValueError(f"confidence must have shape ({self.num_states}, {NUM_CATEGORIES}), got {conf.shape}")
+        if conf.shape != (self.num_states, self.num_categories):
+            raise ValueError(f"confidence must have shape ({self.num_states}, {self.num_categories}), got {conf.shape}")
         self.confidence = conf
         self._search_dist = None
 
     def set_detections(self, detections: np.ndarray) -> None:
         """Install the ``(S, C, 6)`` per-class detection rows (score, label, x0, y0, x1, y1)."""
         det = np.asarray(detections, dtype=np.float32)
-        if det.shape != (self.num_states, NUM_CATEGORIES, 6):
-            raise ValueError(f"detections must have shape ({self.num_states}, {NUM_CATEGORIES}, 6), got {det.shape}")
+        if det.shape != (self.num_states, self.num_categories, 6):
+            raise ValueError(f"detections must have shape ({self.num_states}, {self.num_categories}, 6), "
+                             f"got {det.shape}")
         self.detections = det
 
     def install_detections(self, name: str) -> Detections:
@@ -306,10 +314,10 @@ class SceneBank:
 def _in_frame(scene: Scene) -> np.ndarray:
     """``(S, C)`` bool: an instance of the category is visible in the frame (pixels >= the scene's minimum)."""
     vis = scene.visible_at_any_range()
-    out = np.zeros((scene.num_states, NUM_CATEGORIES), dtype=bool)
+    out = np.zeros((scene.num_states, scene.num_categories), dtype=bool)
     tgt = scene.object_category >= 0
     if tgt.any():
-        onehot = np.zeros((int(tgt.sum()), NUM_CATEGORIES), dtype=np.int32)
+        onehot = np.zeros((int(tgt.sum()), scene.num_categories), dtype=np.int32)
         onehot[np.arange(int(tgt.sum())), scene.object_category[tgt]] = 1
         out = (vis[:, tgt].astype(np.int32) @ onehot) > 0
     return out
@@ -397,8 +405,8 @@ class BatchEnv:
             if n and ((start < 0).any() or (start >= self.bank.num_states).any()
                       or (self.bank.scene_of[start] != scene_idx).any()):
                 raise ValueError("episode start states must be global state ids of their scenes")
-            if n and ((target < 0).any() or (target >= NUM_CATEGORIES).any()):
-                raise ValueError(f"episode targets must be category ids in [0, {NUM_CATEGORIES})")
+            if n and ((target < 0).any() or (target >= self.bank.num_categories).any()):
+                raise ValueError(f"episode targets must be category ids in [0, {self.bank.num_categories})")
         rows = np.flatnonzero(mask)
         self.scene[rows] = scene_idx
         self.target[rows] = target
@@ -438,7 +446,7 @@ class BatchEnv:
         self.steps += active
         self.path_length += moving
         terminated = active & is_done
-        success = terminated & self._succ[new * NUM_CATEGORIES + self.target]
+        success = terminated & self._succ[new * self.bank.num_categories + self.target]
         truncated = moving & (self.steps >= self.max_steps)
         finished = terminated | truncated
         if self.reward_fn is not None:
@@ -514,7 +522,7 @@ class BatchEnv:
         self.steps[0] = steps
         self.path_length[0] = path_length
         terminated = active and is_done
-        success = terminated and bool(self._succ[new * NUM_CATEGORIES + int(self.target[0])])
+        success = terminated and bool(self._succ[new * self.bank.num_categories + int(self.target[0])])
         truncated = moving and steps >= self.max_steps
         finished = terminated or truncated
         stage = self.stage

@@ -10,7 +10,7 @@ from ..constants import SUCCESS_DISTANCE
 from ..errors import CommandError
 from ..protocol import DEFAULT_PROTOCOL, check_protocol, protocol_of
 from .batch import SceneBank
-from .episodes import EpisodeConfig, make_episodes, read_episodes, write_episodes
+from .episodes import EpisodeConfig, class_set_meta, make_episodes, read_episodes, write_episodes
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"{args.data}: no valid episode in split {args.split!r}")
     meta = {"split": args.split, "seed": args.seed, "protocol": protocol, "success_distance": args.success_distance,
             "per_room_type": args.per_room_type, "start_horizon": config.start_horizon,
-            "room_targets": config.room_targets, "data": str(Path(args.data).resolve())}
+            "room_targets": config.room_targets, "data": str(Path(args.data).resolve()), **class_set_meta(bank)}
     if out.exists():
         try:
             old, old_meta = read_episodes(out)

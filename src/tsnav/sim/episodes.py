@@ -16,6 +16,10 @@ Episode lists are JSON::
      "seed": 0, "per_room_type": 250, "start_horizon": null,
      "episodes": [{"scene": "FloorPlan1", "target": "Bowl", "start": "0.50|3.50|315|0",
                    "optimal_length": 7, "room_type": "kitchen"}, ...]}
+
+A list of scenes of another class set than ``ithor22`` records it (``"class_set": "robothor12"``; absent means
+``ithor22``). Lists converted from the RoboTHOR challenge's (:mod:`tsnav.sim.challenge`) add per episode
+``optimal_metres`` and ``challenge`` (the source record); other lists do not carry these keys.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..constants import CATEGORY_INDEX, NUM_CATEGORIES, TARGET_CATEGORIES, room_target_mask
+from ..constants import DEFAULT_CLASS_SET
 from ..errors import read_json
 from ..protocol import spec
 from .batch import BatchEnv, EpisodeSampler, RewardFn, SceneBank, SimConfig
@@ -45,8 +49,9 @@ class EpisodeConfig:
     """Camera horizon of start states in degrees (0 = level, 30 = looking down); None (default) allows both,
     as the lineage's test splits have them (about half each)."""
     room_targets: bool = True
-    """Restrict targets to the lineage's per-room-type target list (constants.ROOM_TARGETS) when the scene's
-    room type has one; other room types use every category present."""
+    """Restrict targets to the lineage's per-room-type target list (constants.ROOM_TARGETS, the ``ithor22``
+    class set's room lists) when the scene's room type has one; other room types (and class sets without room
+    lists, such as ``robothor12``) use every category present."""
     keep_start_success: bool | None = None
     """Keep starts that already succeed (L* = 0); None (default) follows the bank's success protocol:
     ``paper`` leaves them out, ``lineage`` keeps them, as the lineage's test lists and trainer do
@@ -78,7 +83,7 @@ def allowed_targets(bank: SceneBank, config: EpisodeConfig) -> np.ndarray:
     allowed = bank.present.copy()
     if config.room_targets:
         for i, rt in enumerate(bank.room_types):
-            allowed[i] &= room_target_mask(rt)
+            allowed[i] &= bank.class_set.room_target_mask(rt)
     return allowed
 
 
@@ -95,13 +100,14 @@ def valid_starts(bank: SceneBank, config: EpisodeConfig | None = None) -> ValidS
     if config.start_horizon is not None:
         ok &= (bank.horizon == config.start_horizon)[:, None]
     s, c = np.nonzero(ok)  # sorted by state (hence scene), then category
-    pair_key = bank.scene_of[s].astype(np.int64) * NUM_CATEGORIES + c
+    C = bank.num_categories
+    pair_key = bank.scene_of[s].astype(np.int64) * C + c
     order = np.argsort(pair_key, kind="stable")
     s, pair_key = s[order], pair_key[order]
     keys, first, counts = np.unique(pair_key, return_index=True, return_counts=True)
     ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    pair_scene = (keys // NUM_CATEGORIES).astype(np.int64)
-    pair_target = (keys % NUM_CATEGORIES).astype(np.int64)
+    pair_scene = (keys // C).astype(np.int64)
+    pair_target = (keys % C).astype(np.int64)
     scene_ptr = np.searchsorted(pair_scene, np.arange(bank.num_scenes + 1)).astype(np.int64)
     return ValidStarts(pair_scene, pair_target, ptr, s.astype(np.int64), scene_ptr)
 
@@ -178,6 +184,19 @@ class Episode:
     optimal_length: int
     """L*: movement actions to the nearest success state (Done not counted)."""
     room_type: str = "unknown"
+    optimal_metres: float | None = None
+    """Episodes converted from another benchmark's (:mod:`tsnav.sim.challenge`): the shortest walk in metres along
+    the grid to a success position (turns free); None (not written) otherwise."""
+    challenge: dict | None = None
+    """The source episode's own record (id, start pose, its navmesh ``shortest_path_length``), for episodes
+    converted from the RoboTHOR challenge's; None (not written) otherwise."""
+
+    def to_json(self) -> dict:
+        """The episode as a JSON object; the optional fields only when set, so lists without them read as before."""
+        return {k: v for k, v in asdict(self).items() if v is not None or k not in _OPTIONAL}
+
+
+_OPTIONAL = ("optimal_metres", "challenge")
 
 
 def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
@@ -217,7 +236,7 @@ def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
         for j in chosen:
             p, s = int(pair_of[j]), int(t.starts[idx[j]])
             c = int(t.pair_target[p])
-            out.append(Episode(scene=bank.names[int(t.pair_scene[p])], target=TARGET_CATEGORIES[c],
+            out.append(Episode(scene=bank.names[int(t.pair_scene[p])], target=bank.class_set.categories[c],
                                start=str(bank.keys[s]), optimal_length=int(bank.dist[s, c]), room_type=rt))
     return out
 
@@ -232,11 +251,13 @@ def episodes_to_arrays(bank: SceneBank, episodes: list[Episode], check: bool = T
     scene_idx = np.zeros(n, dtype=np.int64)
     target = np.zeros(n, dtype=np.int64)
     start = np.zeros(n, dtype=np.int64)
+    index = bank.class_set.index
     for i, e in enumerate(episodes):
         scene_idx[i] = bank.scene_index(e.scene)
-        if e.target not in CATEGORY_INDEX:
-            raise ValueError(f"episode {i}: unknown target category {e.target!r}")
-        target[i] = CATEGORY_INDEX[e.target]
+        if e.target not in index:
+            raise ValueError(f"episode {i}: target {e.target!r} is not a class of the scenes' class set "
+                             f"{bank.class_set.name}")
+        target[i] = index[e.target]
         start[i] = bank.global_state(int(scene_idx[i]), e.start)
     if check and n:
         opt = bank.dist[start, target]
@@ -251,11 +272,17 @@ def episodes_to_arrays(bank: SceneBank, episodes: list[Episode], check: bool = T
     return scene_idx, target, start
 
 
+def class_set_meta(bank: SceneBank) -> dict:
+    """The episode list's record of the bank's class set: ``{"class_set": name}``, or ``{}`` for ``ithor22`` (lists
+    without the key read as ``ithor22``, so iTHOR lists are written as before)."""
+    return {} if bank.class_set.name == DEFAULT_CLASS_SET else {"class_set": bank.class_set.name}
+
+
 def write_episodes(path: str | Path, episodes: list[Episode], **meta) -> None:
     """Write an episode list as JSON, atomically; ``meta`` (split, seed, success_distance, ...) is stored."""
     path = Path(path)
     doc = {"format": EPISODES_FORMAT, "version": EPISODES_VERSION, **meta,
-           "episodes": [asdict(e) for e in episodes]}
+           "episodes": [e.to_json() for e in episodes]}
     atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 
 

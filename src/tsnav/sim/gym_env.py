@@ -46,7 +46,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from ..constants import C_TARGET, CATEGORY_INDEX, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE, TARGET_CATEGORIES
+from ..constants import C_TARGET, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
 from ..data.toy import toy_scene
 from ..data.reader import read_stack
 from .batch import BatchEnv, RewardFn, SceneBank, SparseReward
@@ -92,18 +92,19 @@ OBS_LAYOUTS = ("standard", "legacy")
 STEPPINGS = ("scalar", "batch")
 
 
-def observation_space(height: int, width: int, layout: str = "standard", depth_dtype=np.float32) -> spaces.Dict:
+def observation_space(height: int, width: int, layout: str = "standard", depth_dtype=np.float32,
+                      num_categories: int = NUM_CATEGORIES) -> spaces.Dict:
     """The env's single observation space for frames of ``height`` x ``width`` in ``layout``
     (:data:`OBS_LAYOUTS`; the module docstring's table); ``depth_dtype`` applies to the standard layout
-    (the legacy one is always float32)."""
+    (the legacy one is always float32); ``num_categories`` is the bank's class set's size (22 for ``ithor22``)."""
     if layout not in OBS_LAYOUTS:
         raise ValueError(f"unknown obs_layout {layout!r} (choose from {', '.join(OBS_LAYOUTS)})")
     depth = (height, width, 1) if layout == "standard" else (height, width)
-    det = (NUM_CATEGORIES * 6,) if layout == "standard" else (NUM_CATEGORIES, 6)
+    det = (num_categories * 6,) if layout == "standard" else (num_categories, 6)
     return spaces.Dict({
         "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
         "depth": spaces.Box(0.0, MAX_DEPTH, depth, np.dtype(depth_dtype) if layout == "standard" else np.float32),
-        "target": spaces.Discrete(NUM_CATEGORIES),
+        "target": spaces.Discrete(num_categories),
         "detections": spaces.Box(-1.0, MAX_PIXEL, det, np.float32),
     })
 
@@ -208,7 +209,7 @@ class Observations:
         # the standard layout hands depth over as stored: a float16 -> float32 conversion would cost more
         # than the whole gather (BENCHMARKS.md); the legacy layout converts to float32 as it always did
         self.depth_dtype = stored_depth_dtype(bank) if layout == "standard" else np.dtype(np.float32)
-        self.space = observation_space(self.height, self.width, layout, self.depth_dtype)
+        self.space = observation_space(self.height, self.width, layout, self.depth_dtype, self.bank.num_categories)
         self.cache = FrameCache(bank, self.height, self.width) if frames == "memory" else None
         if self.cache is not None:
             self.close()  # the cache opens each file itself, once
@@ -250,9 +251,9 @@ class Observations:
         if depth.dtype != self.depth_dtype:
             depth = depth.astype(self.depth_dtype)
         det = (self.bank.detections[state] if self.bank.detections is not None
-               else np.zeros((n, NUM_CATEGORIES, 6), dtype=np.float32))
+               else np.zeros((n, self.bank.num_categories, 6), dtype=np.float32))
         if self.layout == "standard":
-            depth, det = depth[..., None], det.reshape(n, NUM_CATEGORIES * 6)
+            depth, det = depth[..., None], det.reshape(n, self.bank.num_categories * 6)
         return {"rgb": rgb, "depth": depth, "target": np.array(target, dtype=np.int64),
                 "detections": np.ascontiguousarray(det, dtype=np.float32)}
 
@@ -269,10 +270,10 @@ class Observations:
         depth = cache.depth[state]
         depth = depth.copy() if depth.dtype == self.depth_dtype else depth.astype(self.depth_dtype)
         det = self.bank.detections
-        det = (np.zeros((NUM_CATEGORIES, 6), dtype=np.float32) if det is None
+        det = (np.zeros((self.bank.num_categories, 6), dtype=np.float32) if det is None
                else det[state].astype(np.float32))  # a new array (the bank's table is float32)
         if self.layout == "standard":
-            depth, det = depth[..., None], det.reshape(NUM_CATEGORIES * 6)
+            depth, det = depth[..., None], det.reshape(self.bank.num_categories * 6)
         return {"rgb": rgb, "depth": depth, "target": int(target), "detections": det}
 
     def single(self, obs: dict[str, np.ndarray], j: int) -> dict[str, Any]:
@@ -297,9 +298,9 @@ def _episode_option(bank: SceneBank, ep) -> tuple[np.ndarray, np.ndarray, np.nda
     except (TypeError, ValueError):
         raise ValueError("options['episode'] must be (scene_name, target_name, start_key)") from None
     i = bank.scene_index(scene_name)
-    if target not in CATEGORY_INDEX:
-        raise ValueError(f"unknown target category {target!r}")
-    return np.array([i]), np.array([CATEGORY_INDEX[target]]), np.array([bank.global_state(i, start_key)])
+    if target not in bank.class_set.index:
+        raise ValueError(f"unknown target category {target!r} (class set {bank.class_set.name})")
+    return np.array([i]), np.array([bank.class_set.index[target]]), np.array([bank.global_state(i, start_key)])
 
 
 class ObjectNavEnv(gym.Env):
@@ -341,7 +342,7 @@ class ObjectNavEnv(gym.Env):
     def _info(self) -> dict[str, Any]:
         s = int(self.batch.state[0])
         return {"state": s, "scene": self.bank.names[int(self.batch.scene[0])],
-                "target_name": TARGET_CATEGORIES[int(self.batch.target[0])],
+                "target_name": self.bank.class_set.categories[int(self.batch.target[0])],
                 "optimal_length": int(self.bank.dist[s, int(self.batch.target[0])])}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

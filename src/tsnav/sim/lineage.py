@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..constants import ACTION_ORDER, CATEGORY_INDEX, DONE, NUM_CATEGORIES, TARGET_CATEGORIES
+from ..constants import ACTION_ORDER, DONE
 from ..data import lineage_splits as LS
 from ..data.lineage import SPLIT_DIR
 from ..data.reader import list_scenes, load_scene
@@ -91,7 +91,7 @@ def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0,
         except (KeyError, ValueError, IndexError):
             stats.drop("start not a state")
             continue
-        c = CATEGORY_INDEX.get(r["goal_object_type"])
+        c = bank.class_set.index.get(r["goal_object_type"])
         if c is None or not bank.present[i, c] or not bank.success[bank.scene_of == i, c].any():
             stats.drop("target not in scene")
             continue
@@ -104,7 +104,7 @@ def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0,
                 stats.drop("start already succeeds")
                 continue
             stats.start_success += 1
-        out.append(Episode(scene=bank.names[i], target=TARGET_CATEGORIES[c], start=r["state"], optimal_length=d,
+        out.append(Episode(scene=bank.names[i], target=bank.class_set.categories[c], start=r["state"], optimal_length=d,
                            room_type=bank.room_types[i]))
     stats.kept = len(out)
     return out, stats
@@ -122,7 +122,7 @@ def optimal_actions(scene, success_distance: float = LINEAGE_SUCCESS_DISTANCE) -
     for c in np.flatnonzero((dist == 0).any(axis=0)):
         states = np.flatnonzero(dist[:, c] < UNREACHABLE)
         act = optimal_action_targets(scene.next_state, dist, states, np.full(len(states), c), done_action=DONE)
-        name = TARGET_CATEGORIES[int(c)]
+        name = scene.class_set.categories[int(c)]
         for s, a in zip(states.tolist(), act.tolist()):
             out[str(scene.keys[s])][name] = int(a)
     assert len(out) == S
@@ -134,7 +134,7 @@ def optimal_actions_reference(scene, success_distance: float = LINEAGE_SUCCESS_D
     comparing the successors' BFS distances (:func:`tsnav.sim.paths.bfs_reference`)."""
     success = scene.category_visible_within(success_distance)
     out: dict[str, dict[str, int]] = {str(k): {} for k in scene.keys}
-    for c in range(NUM_CATEGORIES):
+    for c in range(scene.num_categories):
         if not success[:, c].any():
             continue
         d = bfs_reference(scene.next_state, success[:, c])
@@ -145,7 +145,7 @@ def optimal_actions_reference(scene, success_distance: float = LINEAGE_SUCCESS_D
                 a = DONE
             else:
                 a = next(a for a in range(DONE) if d[scene.next_state[s, a]] == d[s] - 1)
-            out[str(scene.keys[s])][TARGET_CATEGORIES[c]] = a
+            out[str(scene.keys[s])][scene.class_set.categories[c]] = a
     return out
 
 

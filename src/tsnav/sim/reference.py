@@ -10,7 +10,7 @@ import math
 import networkx as nx
 
 from ..constants import (
-    ACTIONS, GRID_SIZE, HORIZONS, ROTATE_STEP, SUCCESS_DISTANCE, TARGET_CATEGORIES, parse_state_key, state_key,
+    ACTIONS, GRID_SIZE, HORIZONS, ROTATE_STEP, SUCCESS_DISTANCE, parse_state_key, state_key,
 )
 from ..data.reader import Scene
 
@@ -53,7 +53,7 @@ class ReferenceController:
                 else:
                     ok = bool(seen[s, o]) and bool(dist <= success_distance)
                 if ok:
-                    d[TARGET_CATEGORIES[cat]] = True
+                    d[scene.class_set.categories[cat]] = True
             self.success_objects[key] = d
         self.state = ""
         self.target = ""

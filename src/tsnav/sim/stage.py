@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..constants import C_TARGET, NUM_CATEGORIES
+from ..constants import C_TARGET
 
 SEARCHING, PATHFINDING = 0, 1
 """The two stages of paper III-B as the values of :attr:`StageSwitch.stage`."""
@@ -62,8 +62,9 @@ class StageSwitch:
             if not 0.0 <= c <= 1.0:
                 raise ValueError(f"c_target must be in [0, 1], got {c}")
             conf = bank.stage_confidence if confidence is None else np.asarray(confidence, dtype=np.float32)
-            if conf.shape != (bank.num_states, NUM_CATEGORIES):
-                raise ValueError(f"confidence must have shape ({bank.num_states}, {NUM_CATEGORIES}), got {conf.shape}")
+            if conf.shape != (bank.num_states, bank.num_categories):
+                raise ValueError(f"confidence must have shape ({bank.num_states}, {bank.num_categories}), "
+                                 f"got {conf.shape}")
             self.switches = above_threshold(conf, c)
         self._alloc(num_envs)
 

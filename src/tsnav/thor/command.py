@@ -10,6 +10,8 @@ simulator episodes and shortest paths, the ResNet18 encoder); the format work it
     tsnav thor export-lineage DIR --encoder SPEC --detections NAME   every file the lineage's code reads
     tsnav thor episodes SPLIT.pkl [...] --data DIR --out FILE        the lineage's episode lists -> tsnav JSON
     tsnav thor export-live --scenes FloorPlan1,FloorPlan2 --out DST [--size 300]   (needs tsnav[thor])
+    tsnav thor challenge-episodes --challenge DIR --split val --data DIR --out FILE   the RoboTHOR challenge's
+                                               episodes -> tsnav JSON (tsnav.sim.challenge)
 """
 
 from __future__ import annotations
@@ -17,14 +19,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..constants import ROBOTHOR12
 from ..data.lineage import GRAPH_FILE
 from ..data.lineage_splits import SplitFormatError
-from ..data.reader import SceneFormatError
 from ..data.thor_export import check_lineage_dataset, check_lineage_layout, export_detections_22x264
 from ..data.thor_import import ImportConfig, import_lineage_dataset
 from ..data.thor_live import LiveExportError, ThorUnavailable, export_live, make_controller
 from ..errors import CommandError
 from ..protocol import check_protocol
+from ..data.reader import SceneFormatError, is_complete, load_scene
+from ..sim.batch import SceneBank
+from ..sim.challenge import (CHALLENGE_SOURCE, HEADING_RULE, challenge_episodes, ratio_summary,
+                             read_challenge_episodes)
 from ..sim.episodes import write_episodes
 from ..sim.lineage import episodes_from_splits
 
@@ -76,6 +82,23 @@ def build_parser(p: argparse.ArgumentParser) -> None:
                      help="success radius for the optimal lengths, metres (default 1.0, the paper's; 1.5 the lineage's)")
     epi.add_argument("--force", action="store_true", help="replace an existing episode list")
 
+    che = sub.add_parser("challenge-episodes",
+                         help="read the RoboTHOR ObjectNav challenge's episodes (*.json.gz) as a tsnav episode list")
+    che.add_argument("--challenge", required=True,
+                     help="the challenge's episode folder holding train/ and val/ (e.g. "
+                          "../shared/robothor/challenge_episodes); nothing is read unless it is given")
+    che.add_argument("--split", required=True, choices=("train", "val"), help="challenge split to convert")
+    che.add_argument("--data", required=True,
+                     help="dataset folder of the RoboTHOR scenes (one folder per scene, named as the challenge "
+                          "names it, e.g. FloorPlan_Val1_1); episodes of scenes not in it are dropped and counted")
+    che.add_argument("--out", required=True, help="tsnav episode list (JSON) to write")
+    che.add_argument("--protocol", default="paper",
+                     help="success protocol: paper (in view within --success-distance; starts that already succeed "
+                          "are dropped) or lineage (the visibility map; such starts are kept) (default: paper)")
+    che.add_argument("--success-distance", type=float, default=1.0,
+                     help="success radius of the paper protocol, metres (default 1.0, the paper's and the challenge's)")
+    che.add_argument("--force", action="store_true", help="replace an existing episode list")
+
     exd = sub.add_parser("export-detections", help="write the lineage's 22 x 264 table from a tsnav detection table")
     exd.add_argument("scene_dir", help="a tsnav scene folder")
     exd.add_argument("--detections", required=True, help="detections_<name>.hdf5 (path or name in SCENE_DIR)")
@@ -91,7 +114,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     try:
         return {"import": _import, "check": _check, "export-detections": _export_detections,
-                "export-live": _export_live, "export-lineage": _export_lineage, "episodes": _episodes}[args.action](args)
+                "export-live": _export_live, "export-lineage": _export_lineage, "episodes": _episodes,
+                "challenge-episodes": _challenge_episodes}[args.action](args)
     except SceneFormatError as e:
         raise CommandError(str(e)) from None
 
@@ -196,6 +220,58 @@ def _episodes(args) -> int:
                    protocol=protocol, success_distance=args.success_distance, start_horizon=None, room_targets=True,
                    data=str(Path(args.data).resolve()), dropped=st.dropped)
     print(f"wrote {len(eps)} episodes to {out}")
+    return 0
+
+
+def _challenge_episodes(args) -> int:
+    out, data = Path(args.out), Path(args.data)
+    if not data.is_dir():
+        raise CommandError(f"--data {data}: no such dataset folder")
+    if not Path(args.challenge).is_dir():
+        raise CommandError(f"--challenge {args.challenge}: no such folder")
+    if out.exists() and not args.force:
+        raise CommandError(f"{out} exists; pass --force to replace it")
+    try:
+        protocol = check_protocol(args.protocol)
+    except ValueError as e:
+        raise CommandError(f"--protocol: {e}") from None
+    try:
+        records = read_challenge_episodes(args.challenge, args.split)
+    except ValueError as e:
+        raise CommandError(str(e)) from None
+    names = sorted({str(r["scene"]) for r in records})
+    have = [n for n in names if is_complete(data / n)]
+    if not have:
+        raise CommandError(f"--data {data}: holds none of the {len(names)} scenes of the challenge's {args.split} "
+                           f"split (e.g. {names[0]})")
+    scenes = [load_scene(data / n) for n in have]
+    other = [s for s in scenes if s.class_set is not ROBOTHOR12]
+    if other:
+        raise CommandError(f"{other[0].path}: declares class set {other[0].class_set.name}, but the challenge's 12 "
+                           f"target types are robothor12's (scene.json \"class_set\": \"robothor12\")")
+    bank = SceneBank(scenes, success_distance=args.success_distance, protocol=protocol)
+    eps, st = challenge_episodes(records, bank)
+    print(st.summary())
+    for scene, c in sorted(st.per_scene.items()):
+        lost = {k: v for k, v in c.items() if k not in ("read", "looked up", "kept")}
+        if lost:
+            print(f"  {scene}: {c['kept']} of {c['read']} kept; dropped " + ", ".join(
+                f"{v} {k}" for k, v in sorted(lost.items())))
+    if not eps:
+        raise CommandError(f"no episode of the challenge's {args.split} split could be converted on {data}")
+    lengths = ratio_summary(eps)
+    write_episodes(out, eps, split=args.split, source=CHALLENGE_SOURCE.format(split=args.split),
+                   challenge=str(Path(args.challenge).resolve()), protocol=protocol,
+                   success_distance=args.success_distance, class_set=bank.class_set.name, start_horizon=30,
+                   room_targets=False, heading_rule=HEADING_RULE, data=str(data.resolve()),
+                   conversion=st.to_json(), lengths=lengths)
+    if lengths.get("episodes"):
+        print(f"tsnav grid metres / navmesh shortest_path_length over {lengths['episodes']} episodes: median "
+              f"{lengths['median']:.3f} (quartiles {lengths['q1']:.3f}-{lengths['q3']:.3f}), "
+              f"{100 * lengths['within_25pct']:.1f} % within +-25 %; mean L* {lengths['mean_optimal_actions']:.1f} "
+              f"actions, {lengths['mean_optimal_metres']:.2f} m on the grid, {lengths['mean_navmesh_metres']:.2f} m "
+              f"on the navmesh")
+    print(f"wrote {len(eps)} episodes to {out} (protocol {protocol}, class set {bank.class_set.name})")
     return 0
 
 

@@ -19,7 +19,7 @@ from matplotlib.patches import PathPatch, Polygon as MplPolygon
 from matplotlib.path import Path as MplPath
 
 from ..atomic import atomic_save_figure
-from ..constants import C_TARGET, CATEGORY_INDEX, TARGET_CATEGORIES
+from ..constants import C_TARGET
 from ..sim.stage import switch_frame
 from .area import scene_floor, trapezoid
 from .reward import RewardConfig
@@ -80,10 +80,10 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     """Write a PNG of one episode of ``scene`` and return its path.
 
     ``states``: scene-local state ids of the frames, start first; ``target``: category name or id;
-    ``confidence``: ``(S, 22)`` target confidence per state (default: 1.0 where the category is in frame);
+    ``confidence``: ``(S, C)`` target confidence per state (default: 1.0 where the category is in frame);
     the stages switch above ``c_target``; ``config.area`` is the observable trapezoid.
     """
-    g = CATEGORY_INDEX[target] if isinstance(target, str) else int(target)
+    g = scene.class_set.index[target] if isinstance(target, str) else int(target)
     states = np.asarray(states, dtype=np.int64)
     if states.ndim != 1 or len(states) == 0:
         raise ValueError("draw_episode needs at least the start state")
@@ -91,7 +91,7 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
         raise ValueError(f"state ids must be in [0, {scene.num_states}) for scene {scene.name}")
     if confidence is None:
         seen = scene.visible_at_any_range()
-        confidence = np.zeros((scene.num_states, len(TARGET_CATEGORIES)), dtype=np.float32)
+        confidence = np.zeros((scene.num_states, scene.num_categories), dtype=np.float32)
         cols = np.flatnonzero(scene.object_category == g)
         confidence[:, g] = seen[:, cols].any(axis=1) if len(cols) else 0.0
     st = episode_stages(states, g, confidence, c_target)
@@ -121,7 +121,7 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     ax.scatter([px[0]], [pz[0]], marker="o", s=50, color="white", edgecolors="k", zorder=6, label="start")
     ax.scatter([px[-1]], [pz[-1]], marker="s", s=40, facecolors="none", edgecolors="k", linewidths=1.5, zorder=7,
                label="end")  # hollow, so a stage-switch star under it stays visible
-    name = TARGET_CATEGORIES[g]
+    name = scene.class_set.categories[g]
     objs = [o for o in scene.meta.get("objects", [])
             if o.get("objectType", str(o.get("objectId", "")).split("|")[0]) == name and "position" in o]
     if objs:

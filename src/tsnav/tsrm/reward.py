@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..constants import C_TARGET, NUM_CATEGORIES
+from ..constants import C_TARGET
 from ..sim.stage import PATHFINDING, SEARCHING, above_threshold  # noqa: F401 (the stages, re-exported)
 from .area import AreaConfig
 from .terms import (  # noqa: F401 (the registry, re-exported)
@@ -246,14 +246,14 @@ class TSRMRewardReference:
 
     def __init__(self, scene, config: RewardConfig = RewardConfig(), confidence: np.ndarray | None = None,
                  success_distance: float = 1.0, protocol: str = "paper", c_target: float = C_TARGET):
-        """``confidence``: ``(S, 22)`` of this scene; defaults to 1.0 where the target category is in frame.
+        """``confidence``: ``(S, C)`` of this scene; defaults to 1.0 where the target category is in frame.
         The reference follows its own stages (the rule of III-B at ``c_target``), independently of any env."""
         self.scene = scene
         self.config = config
         self.c_target = c_target
         if confidence is None:
             seen = scene.visible_at_any_range()
-            confidence = np.zeros((scene.num_states, NUM_CATEGORIES), dtype=np.float32)
+            confidence = np.zeros((scene.num_states, scene.num_categories), dtype=np.float32)
             for o, c in enumerate(scene.object_category):
                 if c >= 0:
                     confidence[seen[:, o], c] = 1.0
