@@ -191,7 +191,8 @@ def _model_config(args, root: Path):
     if not train:
         raise CommandError(f"{root}: no complete train scene to train the detector on")
     first = load_scene(train[0])
-    cfg = default_config(first.image_size, first.class_set.name)
+    size = first.image_size
+    cfg = default_config(size, first.class_set.name)
     stem = cfg.stem = args.stem if args.stem is not None else cfg.stem
     if args.widths:
         try:
