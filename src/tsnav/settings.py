@@ -223,6 +223,7 @@ def add_options(parser, cls: type, section: str, *, exclude=(), only=None, prefi
             kw["action"] = argparse.BooleanOptionalAction
         else:
             kw["type"] = _option_type(tp, section + "." + f.name)
+            kw.setdefault("metavar", f.name.upper())
         if f.name in choices:  # shown; checked by the config itself, whose message is one line
             kw["metavar"] = "{" + ",".join(map(str, choices[f.name])) + "}"
         parser.add_argument(option_name(prefix + f.name), **kw)

@@ -7,12 +7,14 @@ A row is one line of a paper table (Table II ablation, Table III pretraining) or
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import numpy as np
 
 from ..constants import C_TARGET
 from ..detect.train import DetectorTrainConfig
 from ..metrics import METRICS
+from ..protocol import PROTOCOLS
 from ..pretrain.train import PretrainConfig
 from ..rl.config import TrainConfig
 
@@ -314,3 +316,12 @@ class ExperimentConfig:
     included) equals one of theirs copies that trained run instead of training again, then selects its checkpoint
     and is evaluated here as usual (Table III's ResNet18 and DE-MAE rows are Table II's baseline and
     "+ DE-MAE alone" rows). Not part of the folder's identity: it changes no result."""
+    threads: int | None = None
+    """Torch CPU threads of the experiment's process and of each job (None: ``DEFAULT_THREADS`` of
+    :mod:`tsnav.pipeline.experiment`, or the machine's cores when fewer). A fixed count, not the idle cores:
+    another count sums floats in another order and trains another agent."""
+
+    #: Allowed values of fields (the command-line options' choices, :mod:`tsnav.settings`).
+    CHOICES: ClassVar[dict] = {"experiment": (*EXPERIMENTS, DEMO), "scale": ("demo", "small", "medium", "paper"),
+                               "detector": DETECTOR_SOURCES, "checkpoint": ("best", "latest"),
+                               "protocol": PROTOCOLS}
