@@ -12,6 +12,16 @@ import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
+#: Fixtures that build a world (directly or through another): a test using one is marked ``slow``
+#: (``make test-fast`` leaves it out; ``make test`` and CI run it).
+WORLD_FIXTURES = {"tiny_world", "tiny_real", "tiny_real_learned4", "tiny_scenes", "pixel_world"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if WORLD_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+
 
 @pytest.fixture(scope="session")
 def tiny_world(tmp_path_factory):

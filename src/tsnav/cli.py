@@ -15,7 +15,6 @@ every error. Abbreviated options are refused (``--pol`` is not ``--policy``).
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import linecache
 import sys

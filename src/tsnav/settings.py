@@ -35,13 +35,17 @@ import inspect
 import math
 import re
 import textwrap
-import tomllib
 import types
 import typing
 from functools import lru_cache
 from pathlib import Path
 
 from .errors import CommandError
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10
+    import tomli as tomllib
 from .protocol import DEFAULT_PROTOCOL, PROTOCOLS
 
 #: The value that stands for None in a recipe file or on the command line (TOML has no null).

@@ -67,9 +67,7 @@ from ..settings import (add_options, add_shared, apply_sets, build, dump_recipe,
 from .recipes import JOB_FIELDS
 from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
                           set_threads)
-from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, QUICK_DEMO_PRETRAIN_STEPS, QUICK_DEMO_PROCS,
-                     QUICK_DEMO_UPDATES, SCALES,
-                     ExperimentConfig, ScaleConfig, demo_scale)
+from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, ExperimentConfig, ScaleConfig, demo_scale)
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..detect.shipped import DEFAULT_SHIPPED, shipped_meta

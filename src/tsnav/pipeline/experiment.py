@@ -92,7 +92,7 @@ from ..rl.train import train_run
 from .config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
                                 ScaleConfig, experiment_rows)
 from ..metrics import METRICS, write_json
-from ..protocol import PROTOCOLS, check_protocol, protocol_line
+from ..protocol import PROTOCOLS, protocol_line
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..eval.select import chosen, select_checkpoint
