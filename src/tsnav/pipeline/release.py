@@ -445,7 +445,7 @@ def run_make(args: argparse.Namespace) -> int:
         return 0
     folder = work / "agent" / r.name
     if not (folder / "card.json").exists():
-        pack(made.run, made.run / "best", made.encoder_run, folder, agent_card(r))
+        pack(made.run, made.run / "best", made.encoder_run, folder, agent_card(r, made.world))
         atomic_write_text(folder / "recipe.toml", dump_recipe(r.to_recipe(), header=header))
     if args.until == "eval":
         for split in ("val", "test"):
@@ -457,8 +457,9 @@ def run_make(args: argparse.Namespace) -> int:
     return 0
 
 
-def agent_card(r: AgentRecipe) -> dict:
-    """The card fields of the recipe's agent: its ``[card]`` texts and what the recipe names."""
+def agent_card(r: AgentRecipe, world: Path) -> dict:
+    """The card fields of the recipe's agent: its ``[card]`` texts, what the recipe names, and the val and test
+    rooms of its ``world`` (those ``tsnav release eval`` evaluates on)."""
     from ..detect.shipped import shipped_meta
     from ..world.build import BuildConfig
 
@@ -466,6 +467,7 @@ def agent_card(r: AgentRecipe) -> dict:
             "image_size": BuildConfig.from_preset(r.world.preset).image_size, "detector_shipped": r.detections.shipped,
             "detector_fingerprint": shipped_meta(r.detections.shipped)["fingerprint"],
             "detections": r.detections.name, "encoder_id": r.features.encoder,
+            **{f"{split}_rooms": ensure_names(world, split) for split in ("val", "test")},
             "commands": [f"tsnav release make configs/agents/{r.name}.toml --work WORK_DIR (recipe.toml in this "
                          f"folder: the resolved recipe)"]}
 
