@@ -226,3 +226,18 @@ def test_train_recipe_and_resume_refusal(pixel_world, tmp_path, capsys):
 def test_build_refuses_unknown_and_names_the_section():
     with pytest.raises(CommandError, match=r"\[agent\]: no setting hiden"):
         build(AgentConfig, {"hiden": 3}, "agent")
+
+
+def test_pretrain_options_come_from_pretrain_config():
+    """`tsnav pretrain`: one option per PretrainConfig field (its old names --patch and --workers kept), a recipe's
+    [pretrain] section and --set under the options given."""
+    from tsnav.pretrain.command import config_from_args
+    from tsnav.pretrain.train import PretrainConfig
+
+    assert config_from_args(parse("pretrain", ["--data", "d", "--out", "o"])) == PretrainConfig()
+    c = config_from_args(parse("pretrain", ["--data", "d", "--out", "o", "--patch", "8", "--num-workers", "2",
+                                            "--no-preload", "--set", "pretrain.betas=[0.9, 0.99]",
+                                            "--set", "pretrain.steps=7", "--steps", "5"]))
+    assert (c.patch_size, c.num_workers, c.preload, c.betas, c.steps) == (8, 2, False, (0.9, 0.99), 5)
+    with pytest.raises(CommandError, match="unknown method 'dino'"):
+        config_from_args(parse("pretrain", ["--data", "d", "--out", "o", "--method", "dino"]))

@@ -190,14 +190,16 @@ def option_name(field: str) -> str:
 
 
 def add_options(parser, cls: type, section: str, *, exclude=(), only=None, prefix: str = "",
-                defaults: object | None = None) -> list[str]:
+                defaults: object | None = None, aliases: dict | None = None, choices: dict | None = None) -> list[str]:
     """Add one option per field of dataclass ``cls`` (scalar fields; nested dataclasses flattened, their options
     named ``--<prefix><field>``) to ``parser`` (or an argument group): help from the field's docstring, choices
     from ``cls.CHOICES``, the default shown from ``defaults`` (an instance; default: ``cls()`` when it can be
     made). Every option defaults to None (not given), its value lands under ``"<section>.<field>"`` (nested:
-    ``"<section>.<outer>.<field>"``). Returns the fields added."""
+    ``"<section>.<outer>.<field>"``). ``aliases``: field -> other option names it also answers to (names a command
+    had before its options were generated); ``choices``: field -> values, beside ``cls.CHOICES``. Returns the
+    fields added."""
     docs = field_docs(cls)
-    choices = getattr(cls, "CHOICES", {})
+    choices = {**getattr(cls, "CHOICES", {}), **(choices or {})}
     if defaults is None:
         try:
             defaults = cls()
@@ -230,7 +232,7 @@ def add_options(parser, cls: type, section: str, *, exclude=(), only=None, prefi
             kw.setdefault("metavar", f.name.upper())
         if f.name in choices:  # shown; checked by the config itself, whose message is one line
             kw["metavar"] = "{" + ",".join(map(str, choices[f.name])) + "}"
-        parser.add_argument(option_name(prefix + f.name), **kw)
+        parser.add_argument(option_name(prefix + f.name), *(aliases or {}).get(f.name, ()), **kw)
         added.append(f.name)
     return added
 
