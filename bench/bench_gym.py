@@ -169,7 +169,7 @@ def memory(args) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="a built world with detection tables (e.g. demo-real)")
     ap.add_argument("--split", default="train")
     ap.add_argument("--detections", default="learned", help="table name detections_<name>.hdf5")

@@ -241,3 +241,13 @@ def test_pretrain_options_come_from_pretrain_config():
     assert (c.patch_size, c.num_workers, c.preload, c.betas, c.steps) == (8, 2, False, (0.9, 0.99), 5)
     with pytest.raises(CommandError, match="unknown method 'dino'"):
         config_from_args(parse("pretrain", ["--data", "d", "--out", "o", "--method", "dino"]))
+
+
+def test_every_parser_refuses_abbreviations():
+    """Every ArgumentParser of the package and of bench/ is made with allow_abbrev=False (tsnav's subcommands by
+    cli.py, through tsnav.settings.Parser and refuse_abbreviations)."""
+    import re
+
+    for path in [*(ROOT / "src").rglob("*.py"), *(ROOT / "bench").glob("*.py")]:
+        for m in re.finditer(r"ArgumentParser\((.*)", path.read_text()):
+            assert "allow_abbrev=False" in m.group(1) or path.name == "settings.py", (path, m.group(0))
