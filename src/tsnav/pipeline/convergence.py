@@ -134,6 +134,8 @@ class ConvergenceConfig:
 #: The training settings ``tsnav convergence`` starts from: the ``medium`` scale's (batched A2C, ``cpu`` network,
 #: lr 1e-3, 256 episodes per update), whose budget this command measured, with 8000 updates in all.
 CONVERGENCE_TRAIN = replace(SCALES["medium"].train, updates=8000, milestone_every=None)
+#: TrainConfig fields this command sets itself (batched A2C, a budget in updates, a kept checkpoint per chunk).
+CONVERGENCE_OWN = ("algo", "episodes", "minutes", "checkpoint_every", "milestone_every", "workers")
 #: The sections of a convergence recipe.
 SECTIONS = (*RUN_SECTIONS, "convergence")
 
@@ -142,7 +144,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     add_shared(parser, "out", required=True, help="output folder (resumed when it exists)")
     add_recipe_options(parser)
     add_options(parser.add_argument_group("chunks (recipe section [convergence])"), ConvergenceConfig, "convergence")
-    add_run_options(parser, exclude_train=("algo",), defaults=CONVERGENCE_TRAIN)
+    add_run_options(parser, exclude_train=CONVERGENCE_OWN, defaults=CONVERGENCE_TRAIN)
 
 
 def resolve(args: argparse.Namespace) -> tuple:
