@@ -241,6 +241,8 @@ class DemoExperiment(Experiment):
     """The ``demo`` experiment in the demo's folder layout: its one job's run is ``OUT/run``, its evaluation
     ``OUT/eval/agent``, its checkpoint-selection episodes ``OUT/val_episodes*.json``."""
 
+    writes_recipe = False  # the demo's own recipe.toml ([demo], [scale]) is written by run_demo
+
     def train_dir(self, job) -> Path:
         return self.out / "run"
 

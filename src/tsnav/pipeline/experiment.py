@@ -92,7 +92,7 @@ from ..rl.train import train_run
 from .config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
                                 ScaleConfig, experiment_rows)
 from ..metrics import METRICS, write_json
-from ..protocol import PROTOCOLS, protocol_line
+from ..protocol import PROTOCOLS, check_protocol, protocol_line
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..eval.select import chosen, select_checkpoint
@@ -275,6 +275,9 @@ SELECT_SEED = 1
 class Experiment:
     """Runs the jobs of one experiment; see the module docstring."""
 
+    writes_recipe = True
+    """Write the resolved recipe ``OUT/recipe.toml`` beside ``experiment.json`` (the demo writes its own)."""
+
     def __init__(self, cfg: ExperimentConfig, train_fn: TrainFn | None = None, scale: ScaleConfig | None = None):
         if cfg.experiment not in EXPERIMENT_INFO:
             raise ValueError(f"unknown experiment {cfg.experiment!r} (choose from {', '.join(EXPERIMENT_INFO)})")
@@ -343,6 +346,9 @@ class Experiment:
                "eval_split": self.info["split"],
                "jobs": [{"row": j.row.id, "label": j.row.label, "seed": j.seed, "dir": j.dir} for j in self.jobs]}
         write_json(p, doc)
+        if self.writes_recipe:
+            write_recipe(self.out, replace(self.cfg, data=d["data"]), self.scale,
+                         f"tsnav experiment {self.cfg.experiment}")
 
     def done(self, job: Job) -> bool:
         return read_done(self.out / job.dir) is not None
@@ -782,6 +788,7 @@ def resolve(args: argparse.Namespace) -> tuple[ExperimentConfig, ScaleConfig]:
 
 def run(args: argparse.Namespace) -> int:
     cfg, scale = resolve(args)
+    check_protocol(cfg.protocol)  # a bad name stops here, in one line, before any work
     if args.print_recipe:
         print(dump_recipe(experiment_recipe(cfg, scale, paths=False), header=f"tsnav experiment {cfg.experiment}: "
                           f"{EXPERIMENT_INFO[cfg.experiment]['description']}"), end="")
@@ -805,7 +812,6 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--threads must be >= 1")
     exp = Experiment(cfg, scale=None if same_scale(scale, SCALES[cfg.scale]) else scale)
     say(f"torch threads: {set_threads(cfg.threads)}")
-    write_recipe(exp.out, cfg, scale, f"tsnav experiment {cfg.experiment}")
     results = exp.run()
     print(markdown_table(results))
     if results.get("welch"):
