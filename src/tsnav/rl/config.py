@@ -69,7 +69,8 @@ class TrainConfig:
     reward: str = "tsrm"
     """Reward variant of :class:`~tsnav.tsrm.reward.RewardConfig`: tsrm, baseline, explore or distance."""
     preset: str = "paper"
-    """Agent size preset (:data:`tsnav.agent.PRESETS`), recorded for reference."""
+    """Agent size preset (:data:`tsnav.agent.PRESETS`): the network sizes a recipe's ``[agent]`` section (or the
+    ``--dropout``-style options) changes field by field."""
     lr: float = 1e-4
     """Adam learning rate (paper IV-A: 1e-4; a higher one may be needed at CPU scale)."""
     amsgrad: bool = True
