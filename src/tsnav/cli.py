@@ -15,8 +15,8 @@ every error. Abbreviated options are refused (``--pol`` is not ``--policy``).
 
 from __future__ import annotations
 
+import dis
 import importlib
-import linecache
 import sys
 from pathlib import Path
 
@@ -48,6 +48,7 @@ COMMANDS = {
 #: Errors about the user's own files and folders: one line (the message names the path).
 PATH_ERRORS = (FileNotFoundError, NotADirectoryError, PermissionError, IsADirectoryError)
 _PACKAGE = Path(__file__).resolve().parent
+_RAISE = dis.opmap["RAISE_VARARGS"]
 
 
 def is_mistake(e: BaseException) -> bool:
@@ -59,8 +60,9 @@ def is_mistake(e: BaseException) -> bool:
     tb = e.__traceback__
     while tb.tb_next is not None:
         tb = tb.tb_next
-    path = Path(tb.tb_frame.f_code.co_filename).resolve()
-    return _PACKAGE in path.parents and linecache.getline(str(path), tb.tb_lineno).lstrip().startswith("raise")
+    code = tb.tb_frame.f_code
+    raised_here = code.co_code[tb.tb_lasti] == _RAISE  # a raise statement, not a failed call or lookup
+    return raised_here and _PACKAGE in Path(code.co_filename).resolve().parents
 
 
 def main(argv: list[str] | None = None) -> int:
