@@ -109,6 +109,16 @@ def _scalar(tp) -> type | None:
     return tp if tp in (int, float, str, bool) else None
 
 
+def _sequence_item(tp) -> type | None:
+    """The scalar type of the items of a tuple / list annotation (``tuple``: str), else None."""
+    tp, _ = _unwrap(tp)
+    if (typing.get_origin(tp) or tp) not in (tuple, list):
+        return None
+    items = {a for a in typing.get_args(tp) if a is not Ellipsis}
+    item = items.pop() if len(items) == 1 else str if not items else None
+    return item if item in (int, float, str) else None
+
+
 def _convert(value, tp, key: str):
     """``value`` (from TOML or the command line) as annotation ``tp`` asks; a one-line CommandError if it cannot."""
     base, optional = _unwrap(tp)
@@ -216,7 +226,8 @@ def add_options(parser, cls: type, section: str, *, exclude=(), only=None, prefi
                                                            prefix=prefix, defaults=sub)]
             continue
         base = _scalar(tp)
-        if base is None:
+        item = _sequence_item(tp) if base is None else None
+        if base is None and item is None:
             continue
         default = getattr(defaults, f.name, None) if defaults is not None else None
         text = docs.get(f.name, "")
@@ -225,7 +236,9 @@ def add_options(parser, cls: type, section: str, *, exclude=(), only=None, prefi
         kw: dict = dict(dest=f"{section}.{f.name}", default=None, help=help_.replace("%", "%%"))
         if f.name in SHARED and prefix == "" and SHARED[f.name].get("action") is None:
             kw.update({k: v for k, v in SHARED[f.name].items() if k == "metavar"})
-        if base is bool:
+        if item is not None:  # A,B,... or the option repeated
+            kw.update(action="extend", type=_items_type(item, section + "." + f.name), metavar=f.name.upper())
+        elif base is bool:
             kw["action"] = argparse.BooleanOptionalAction
         else:
             kw["type"] = _option_type(tp, section + "." + f.name)
@@ -244,6 +257,15 @@ def _option_type(tp, key: str):
         except CommandError as e:
             raise argparse.ArgumentTypeError(str(e)) from None
     parse.__name__ = getattr(_unwrap(tp)[0], "__name__", "value")
+    return parse
+
+
+def _items_type(item: type, key: str):
+    def parse(text: str) -> list:
+        try:
+            return [_convert(x.strip(), item, key) for x in text.split(",") if x.strip()]
+        except CommandError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
     return parse
 
 
