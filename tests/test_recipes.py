@@ -251,3 +251,35 @@ def test_every_parser_refuses_abbreviations():
     for path in [*(ROOT / "src").rglob("*.py"), *(ROOT / "bench").glob("*.py")]:
         for m in re.finditer(r"ArgumentParser\((.*)", path.read_text()):
             assert "allow_abbrev=False" in m.group(1) or path.name == "settings.py", (path, m.group(0))
+
+
+def test_release_make_refuses_before_any_work(tmp_path, capsys):
+    """`tsnav release make`: replacing a shipped agent needs its name, and the recipe's own mistakes are refused
+    before a folder is made; nothing is written into the package."""
+    recipe = CONFIGS / "agents" / "tsrm-demae-learned7.toml"
+    work = tmp_path / "work"
+    before = sorted(p.name for p in WEIGHTS.iterdir())
+    assert main(["release", "make", str(recipe), "--work", str(work), "--replace-shipped", "tsrm-demae-learned6"]) == 2
+    assert "the recipe makes 'tsrm-demae-learned7'" in capsys.readouterr().err and not work.exists()
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "train.data=\"/x\""]) == 2
+    assert "[train]: data is the work folder's" in capsys.readouterr().err and not work.exists()
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "train.algo=\"a3c\""]) == 2
+    assert "algo batched" in capsys.readouterr().err
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "convergence.chunk=0"]) == 2
+    assert "--chunk must be >= 1" in capsys.readouterr().err
+    assert sorted(p.name for p in WEIGHTS.iterdir()) == before
+
+
+def test_agent_card_is_written_from_the_recipe(tmp_path):
+    from tsnav.detect.shipped import shipped_meta
+    from tsnav.pipeline.agent_recipe import resolve_agent
+    from tsnav.pipeline.release import CARD_REQUIRED, agent_card
+
+    r = resolve_agent(read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml"), tmp_path)
+    card = agent_card(r, tmp_path)
+    assert all(k in card for k in CARD_REQUIRED)
+    shipped = json.loads((WEIGHTS / r.name / "card.json").read_text())
+    for k in ("name", "world_preset", "world_version", "image_size", "detector_shipped", "detector_fingerprint",
+              "detections", "summary", "protocol", "encoder_id"):
+        assert card[k] == shipped[k], k
+    assert card["detector_fingerprint"] == shipped_meta("learned7")["fingerprint"]
