@@ -114,6 +114,9 @@ class ScaleConfig:
     world: str = "demo"
     """World preset (``tsnav world --preset``) the scale runs on: built into ``--data`` when that folder does not
     exist yet. Paper: ``ithor-real``, the real iTHOR scenes rebuilt from their recorded layouts."""
+    agent: dict = field(default_factory=dict)
+    """:class:`~tsnav.agent.model.AgentConfig` fields of every job's network over the ``train.preset`` preset (e.g.
+    ``dropout``, paper IV-A: 0.45); empty: the preset's."""
 
     def override(self, pretrain: dict | None = None, train: dict | None = None, detector: dict | None = None,
                  **fields) -> "ScaleConfig":

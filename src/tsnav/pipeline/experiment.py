@@ -155,7 +155,7 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
                  detections=row.detections_of(cfg.detections), split="train", reward=row.reward, seed=seed,
                  c_target=row.c_target, device=cfg.device, checkpoint_every=every, milestone_every=milestones,
                  protocol=cfg.protocol, procs=(cfg.procs or base.procs) if base.algo == "batched" else 1, **budget)
-    return tc, agent_config(base.preset, **({"blocked_action": True} if cfg.blocked_action else {}))
+    return tc, agent_config(base.preset, **{**scale.agent, **({"blocked_action": True} if cfg.blocked_action else {})})
 
 
 # ---------------------------------------------------------------------------------------------------------
