@@ -1,5 +1,8 @@
 # make demo : set up everything on a fresh Debian machine, then run the main job.
 # make test : the same set-up, then the whole test suite.
+# make test-fast: the same set-up, then the tests that build no world and train for no more than seconds
+#            (pytest -m "not slow", at most two minutes on 2 cores); make test and CI run everything.
+# make lint : ruff check over src, tests and bench (rules in pyproject.toml); .ci/run runs it before the tests.
 # make bench: the same set-up, then the speed benchmarks of bench/ with their defaults (figures: BENCHMARKS.md).
 # make docs : render the generated pages again (docs/COMMANDS.md from the CLI; docs/RESULTS.md and README.md's
 #             Table I from docs/results/ and the model cards); tests/test_docs_pages.py fails while one is stale.
@@ -13,7 +16,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench docs clean
+.PHONY: setup demo test test-fast lint bench docs clean
 
 setup: $(STAMP)
 
@@ -30,6 +33,12 @@ demo: setup
 
 test: setup
 	$(BIN)/python -m pytest -q tests
+
+test-fast: setup
+	$(BIN)/python -m pytest -q -m "not slow" tests
+
+lint: setup
+	$(BIN)/ruff check src tests bench
 
 # left out: bench_detect.py needs a built world and a detector checkpoint (--data, --checkpoint); bench_gym.py and
 # bench_frame_read.py a built world (--data); bench_frames_disk.py a scratch folder and builds rooms for minutes

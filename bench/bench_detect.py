@@ -20,7 +20,7 @@ from tsnav.detect.learned import LearnedDetector
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True)
     ap.add_argument("--checkpoint", required=True)
     ap.add_argument("--split", default="val", help="scenes timed (default val)")

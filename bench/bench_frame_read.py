@@ -22,7 +22,7 @@ from tsnav.data.writer import FrameWriter
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="a world built with raw frames (--no-compression or before)")
     ap.add_argument("--out", required=True, help="scratch folder for the gzip copies (removed afterwards)")
     ap.add_argument("--scenes", type=int, default=3)

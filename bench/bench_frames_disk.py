@@ -45,7 +45,7 @@ def disk(path: Path, pattern: str = "*") -> int:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, help="scratch folder (emptied of its builds afterwards unless --keep)")
     ap.add_argument("--sizes", default="64,128")
     ap.add_argument("--scenes", default=",".join(SCENES))

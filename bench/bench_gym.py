@@ -169,7 +169,7 @@ def memory(args) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="a built world with detection tables (e.g. demo-real)")
     ap.add_argument("--split", default="train")
     ap.add_argument("--detections", default="learned", help="table name detections_<name>.hdf5")
@@ -207,7 +207,7 @@ def main() -> None:
             print(f"  {what:22s} {name:6s}: {r['wall']:10,.0f} steps/s wall, {r['cpu']:10,.0f} per CPU second "
                   f"(construction + cache fill {r['warm']:.1f} s; load average {os.getloadavg()[0]:.1f})", flush=True)
         rows.append((what, *(tuple(float(np.mean(v)) for v in zip(*got[n])) for n in ("before", "after"))))
-    print(f"\n| env | before steps/s (wall / per CPU s) | after steps/s (wall / per CPU s) | ratio (wall / per CPU s) |")
+    print("\n| env | before steps/s (wall / per CPU s) | after steps/s (wall / per CPU s) | ratio (wall / per CPU s) |")
     print("| --- | --- | --- | --- |")
     for what, (bw, bc), (aw, ac) in rows:
         print(f"| {what} | {bw:,.0f} / {bc:,.0f} | {aw:,.0f} / {ac:,.0f} | {aw / bw:.1f}x / {ac / bc:.1f}x |")

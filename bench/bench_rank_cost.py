@@ -35,7 +35,7 @@ def main() -> None:
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_train import training_world  # the same training data as the training benchmark
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None)
     ap.add_argument("--features", default=None)
     ap.add_argument("--detections", default="oracle", help="detection tables the agent reads (named explicitly)")

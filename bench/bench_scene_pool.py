@@ -53,7 +53,7 @@ def digest(root: Path, pattern: str) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="a built 128-px world")
     ap.add_argument("--encoder", required=True, help="pretraining run folder (encoder.safetensors)")
     ap.add_argument("--workers", type=int, default=2, help="processes of the parallel path (default 2)")

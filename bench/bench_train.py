@@ -76,7 +76,7 @@ def _summary(name: str, run: Path, progress: dict, wall: float) -> dict:
 def main() -> None:
     from tsnav.rl.config import PRECISIONS
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None, help="dataset root (default: a temporary tiny world)")
     ap.add_argument("--features", default=None, help="feature cache name (default: pooled pixels, built here)")
     ap.add_argument("--detections", default="oracle",

@@ -90,7 +90,7 @@ def best_of(fn, repeats):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=1.0, help="time per measurement")
     p.add_argument("--repeats", type=int, default=2, help="measurements per figure (the best is kept)")
     args = p.parse_args()

@@ -40,7 +40,7 @@ def state_tables(names: list[str]) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(allow_abbrev=False)
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 224])
     ap.add_argument("--scenes", type=int, default=4)
     ap.add_argument("--workers", type=int, default=2)

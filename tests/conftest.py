@@ -12,6 +12,35 @@ import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
+#: Fixtures that build a world (directly or through another): a test using one is marked ``slow``
+#: (``make test-fast`` leaves it out; ``make test`` and CI run it).
+WORLD_FIXTURES = {"tiny_world", "tiny_real", "tiny_real_learned4", "tiny_scenes", "pixel_world"}
+
+
+#: Tests that build a world or rooms of their own, or start processes (spawned workers, gloo ranks) and train in
+#: them: also ``slow`` (each took 5 s or more of the fast set's two minutes; by module, or ``module::test``).
+SLOW_TESTS = {
+    "test_scene_pool.py",  # worker processes over built rooms
+    "test_world.py::test_cli_errors_are_one_line", "test_world.py::test_interrupted_build_resumes",
+    "test_world.py::test_compressed_frames_equal_raw_and_stay_lineage_readable",
+    "test_real_world.py::test_real_scene_build_is_deterministic",
+    "test_pretrain_train.py::test_two_gloo_processes_keep_replicas_identical_and_match_one_process",
+    "test_pretrain_train.py::test_sigterm_stops_cleanly_at_a_step_boundary",
+    "test_pretrain_train.py::test_truncated_newest_checkpoint_resumes_from_the_previous_one",
+    "test_pretrain_resnet.py::test_supervised_pretraining_lowers_the_loss",
+    "test_rl_procs.py::test_a_failing_rank_is_reported_by_rank_0",
+    "test_report.py::test_pretrain_progress_is_read_progress_without_torch",
+    "test_tsrm_plot.py::test_draw_episode_writes_png",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        module = item.nodeid.split("::")[0].rsplit("/", 1)[-1]
+        name = item.nodeid.split("[")[0].rsplit("/", 1)[-1]
+        if WORLD_FIXTURES & set(getattr(item, "fixturenames", ())) or module in SLOW_TESTS or name in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)
+
 
 @pytest.fixture(scope="session")
 def tiny_world(tmp_path_factory):

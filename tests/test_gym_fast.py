@@ -18,7 +18,7 @@ import pytest
 
 from tsnav.constants import NUM_CATEGORIES
 
-ENV_ID = "tsnav.sim:tsnav/ObjectNav-v0"
+ENV_ID = "tsnav.sim:tsnav/ObjectNav-v1"
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-ENV_ID = "tsnav.sim:tsnav/ObjectNav-v0"  # "module:id": Gymnasium imports the module, which registers the id
+ENV_ID = "tsnav.sim:tsnav/ObjectNav-v1"  # "module:id": Gymnasium imports the module, which registers the id
 
 
 def third_party_training(env_id: str, num_envs: int, updates: int, horizon: int, seed: int, **env_kwargs):

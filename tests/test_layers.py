@@ -14,7 +14,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "tsnav"
 #: import each other.
 LAYERS: list[set[str]] = [
     {"constants", "errors", "atomic", "distributed", "schedule", "checkpoint_layout", "protocol"},
-    {"metrics", "checkpoint", "scene_pool"},
+    {"metrics", "checkpoint", "scene_pool", "settings"},
     {"render"},
     {"data"},
     {"world"},

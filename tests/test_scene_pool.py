@@ -139,7 +139,7 @@ def test_features_command_takes_workers(tmp_path, capsys):
 
 
 def test_workers_start_from_a_script_on_standard_input(tmp_path):
-    """A script piped to ``python -`` (as ``scripts/train_release_agent.sh`` runs its pretraining step) has
+    """A script piped to ``python -`` (as shell scripts run their Python steps) has
     ``__main__.__file__ == '<stdin>'``; spawned workers used to die re-running that path (BrokenProcessPool). The
     scene pool and the world's builders start from such a script (``distributed.spawn_context()`` at every spawn
     site: these two, the ranks, the experiment's job pool, the A3C workers, the demo's table writer)."""

@@ -122,7 +122,7 @@ def test_vector_env(bank):
     envs.close()
 
 
-def _reference(env) -> "Observations":
+def _reference(env):
     from tsnav.sim.gym_env import Observations
 
     return Observations(env.unwrapped.bank, frames="hdf5")
@@ -165,7 +165,7 @@ def test_gymnasium_numpy_loop_sees_the_stored_frames(tiny_world):
     ensure_oracle_detections(tiny_world, "oracle")
     code = (
         "import gymnasium as gym, numpy as np\n"
-        f"envs = gym.make_vec('tsnav.sim:tsnav/ObjectNav-v0', num_envs=16, vectorization_mode='vector_entry_point', "
+        f"envs = gym.make_vec('tsnav.sim:tsnav/ObjectNav-v1', num_envs=16, vectorization_mode='vector_entry_point', "
         f"data={str(tiny_world)!r}, split=None, detections='oracle', max_steps=8)\n"
         "obs, info = envs.reset(seed=0)\n"
         "for _ in range(20):\n"
@@ -199,3 +199,19 @@ def test_gymnasium_numpy_loop_sees_the_stored_frames(tiny_world):
         if term or trunc:
             obs, info = env.reset()
     ref.close()
+
+
+def test_v0_keeps_the_first_layout_and_v1_is_today_s():
+    """Both ids are registered (ENV_ID defined once, in tsnav.sim): v1 the standard observation layout, v0 the first
+    release's (depth (H, W), detections (22, 6)), single and vector env alike."""
+    import tsnav.sim as sim
+
+    assert ENV_ID == sim.ENV_ID == "tsnav/ObjectNav-v1" and sim.ENV_ID_V0 == "tsnav/ObjectNav-v0"
+    v1, v0 = gym.make(ENV_ID), gym.make(sim.ENV_ID_V0)
+    h = v1.observation_space["rgb"].shape[0]
+    assert v1.observation_space["depth"].shape == (h, h, 1) and v1.observation_space["detections"].shape == (132,)
+    assert v0.observation_space["depth"].shape == (h, h) and v0.observation_space["detections"].shape == (22, 6)
+    obs, _ = v0.reset(seed=0)
+    assert obs["depth"].shape == (h, h) and obs["detections"].shape == (22, 6)
+    vec = gym.make_vec("tsnav.sim:" + sim.ENV_ID_V0, num_envs=2, vectorization_mode="vector_entry_point")
+    assert vec.single_observation_space["detections"].shape == (22, 6)

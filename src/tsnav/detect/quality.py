@@ -376,7 +376,7 @@ def detection_gallery(scenes: Sequence, detections: Sequence[Detections], picks:
 def main(argv: Sequence[str] | None = None) -> int:
     """Evaluate stored tables ``detections_<name>.hdf5`` of a split: AP, calibration, reach, false
     positives; writes ``quality_<split>.json``, ``reliability_<split>.png`` and ``gallery_<split>.png``."""
-    ap = argparse.ArgumentParser(prog="python -m tsnav.detect.quality", description=main.__doc__.split(";")[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, prog="python -m tsnav.detect.quality", description=main.__doc__.split(";")[0])
     ap.add_argument("--data", required=True, help="dataset root")
     ap.add_argument("--name", default="learned", help="table name detections_<name>.hdf5 (default learned)")
     ap.add_argument("--split", default="val", help="scenes of this split (default val)")

@@ -12,6 +12,7 @@ from ..errors import CommandError
 from ..metrics import format_table
 from .outcomes import OUTCOMES_FILE, format_outcomes
 from .runner import evaluate_to_folder
+from ..settings import add_shared
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -33,8 +34,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--c-target", type=float, default=C_TARGET, help=f"stage-switch threshold (paper: {C_TARGET})")
     parser.add_argument("--success-distance", type=float, default=None,
                         help="success distance in metres (default: the episode list's)")
-    parser.add_argument("--protocol", default=None,
-                        help="success protocol (paper | lineage; default: the episode list's). Naming it lets an "
+    add_shared(parser, "protocol", default=None,
+               help="success protocol (paper | lineage; default: the episode list's). Naming it lets an "
                              "agent trained under the other protocol be evaluated; it must be the list's (draw a "
                              "list under each with `tsnav episodes --protocol`)")
     parser.add_argument("--batch-size", type=int, default=4096, help="episodes stepped together")

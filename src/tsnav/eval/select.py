@@ -25,6 +25,7 @@ from ..metrics import summarize
 from ..rl.checkpoint import BEST, list_checkpoints, load_model, load_policy
 from ..sim.episodes import read_episodes
 from .runner import EvalConfig, evaluate, load_bank_for_episodes, resolve_protocol
+from ..settings import add_shared
 
 SELECTION = "selection.json"
 #: Metrics that rank checkpoints, in order (ALL episodes).
@@ -123,8 +124,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset root holding the validation scenes")
     parser.add_argument("--episodes", required=True, help="validation episode list (`tsnav episodes --split val`)")
     parser.add_argument("--max-steps", type=int, default=100, help="episode length limit (paper: 100)")
-    parser.add_argument("--protocol", default=None,
-                        help="success protocol (default: the episode list's); naming it lets a run trained under "
+    add_shared(parser, "protocol", default=None,
+               help="success protocol (default: the episode list's); naming it lets a run trained under "
                              "the other protocol be scored on this list")
 
 

@@ -7,12 +7,14 @@ A row is one line of a paper table (Table II ablation, Table III pretraining) or
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import numpy as np
 
 from ..constants import C_TARGET
 from ..detect.train import DetectorTrainConfig
 from ..metrics import METRICS
+from ..protocol import PROTOCOLS
 from ..pretrain.train import PretrainConfig
 from ..rl.config import TrainConfig
 
@@ -112,6 +114,9 @@ class ScaleConfig:
     world: str = "demo"
     """World preset (``tsnav world --preset``) the scale runs on: built into ``--data`` when that folder does not
     exist yet. Paper: ``ithor-real``, the real iTHOR scenes rebuilt from their recorded layouts."""
+    agent: dict = field(default_factory=dict)
+    """:class:`~tsnav.agent.model.AgentConfig` fields of every job's network over the ``train.preset`` preset (e.g.
+    ``dropout``, paper IV-A: 0.45); empty: the preset's."""
 
     def override(self, pretrain: dict | None = None, train: dict | None = None, detector: dict | None = None,
                  **fields) -> "ScaleConfig":
@@ -314,3 +319,12 @@ class ExperimentConfig:
     included) equals one of theirs copies that trained run instead of training again, then selects its checkpoint
     and is evaluated here as usual (Table III's ResNet18 and DE-MAE rows are Table II's baseline and
     "+ DE-MAE alone" rows). Not part of the folder's identity: it changes no result."""
+    threads: int | None = None
+    """Torch CPU threads of the experiment's process and of each job (None: ``DEFAULT_THREADS`` of
+    :mod:`tsnav.pipeline.experiment`, or the machine's cores when fewer). A fixed count, not the idle cores:
+    another count sums floats in another order and trains another agent."""
+
+    #: Allowed values of fields (the command-line options' choices, :mod:`tsnav.settings`).
+    CHOICES: ClassVar[dict] = {"experiment": (*EXPERIMENTS, DEMO), "scale": ("demo", "small", "medium", "paper"),
+                               "detector": DETECTOR_SOURCES, "checkpoint": ("best", "latest"),
+                               "protocol": PROTOCOLS}

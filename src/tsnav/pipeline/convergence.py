@@ -2,9 +2,12 @@
 validation episodes, to find the budget at which the validation curve stops rising (issue 15, item 3: TSRM +
 DE-MAE on the paper's 80 training rooms; its plateau sets the ``medium`` scale of the experiments).
 
-    tsnav convergence --data WORLD --features NAME --out DIR [--detections NAME] [--updates 8000]
-                      [--chunk 250] [--num-envs 256] [--preset cpu] [--lr 1e-3] [--entropy-coef 0.01]
-                      [--val-per-room-type 50]
+    tsnav convergence --data WORLD --features NAME --detections NAME --out DIR [--updates 8000] [--chunk 250]
+                      [--config RECIPE.toml] [--set SECTION.KEY=VALUE] [any setting of tsnav train]
+
+The training settings are ``tsnav train``'s, made from the same fields (:mod:`tsnav.rl.recipe`), starting from
+the ``medium`` scale's (:data:`CONVERGENCE_TRAIN`: batched A2C, the ``cpu`` network, lr 1e-3, 256 episodes per
+update, 8000 updates); ``OUT/recipe.toml`` is the resolved recipe.
 
 Resumable at any moment: the run folder ``OUT/run`` resumes from its last checkpoint (every chunk boundary is
 a kept milestone), the scores of checkpoints already evaluated are kept in ``OUT/run/selection.json``
@@ -17,18 +20,23 @@ a kept milestone), the scores of checkpoints already evaluated are kept in ``OUT
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..agent import agent_config
-from ..atomic import atomic_save_figure, atomic_write_json
+from ..agent.model import AgentConfig
+from ..atomic import atomic_save_figure, atomic_write_json, atomic_write_text
 from ..errors import CommandError
 from ..metrics import curve_metrics
-from ..rl.config import PRECISIONS, TrainConfig
-from ..rl.train import train_run
 from ..eval.select import select_checkpoint
+from ..rl.config import TrainConfig
+from ..rl.recipe import SECTIONS as RUN_SECTIONS
+from ..rl.recipe import add_recipe_options, add_run_options, recipe_from_args, resolve_run, run_recipe
+from ..rl.train import train_run
+from ..settings import add_options, add_shared, build, dump_recipe, to_recipe
+from .config import SCALES
 from .steps import ensure_episodes, episodes_name
 
 
@@ -69,12 +77,12 @@ def plateaued(points: list[dict], patience: int | None) -> bool:
     return max(p["SR"] for p in points[-patience:]) <= best_before
 
 
-def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: int, val_per_room_type: int = 50,
-                    patience: int | None = None, max_steps: int = 100, say=print,
-                    agent_overrides: dict | None = None) -> list[dict]:
-    """Train ``cfg`` (its ``updates`` the total) in chunks of ``chunk`` updates under ``OUT/run``, scoring each
-    chunk's checkpoint on validation episodes; returns the curve points. Resumes whatever was done before.
-    ``agent_overrides``: fields of the agent preset's :class:`~tsnav.agent.AgentConfig` to change."""
+def run_convergence(cfg: TrainConfig, agent: AgentConfig, out: str | Path, *, chunk: int,
+                    val_per_room_type: int = 50, patience: int | None = None, max_steps: int = 100,
+                    say=print) -> list[dict]:
+    """Train ``cfg`` (its ``updates`` the total) with network ``agent`` in chunks of ``chunk`` updates under
+    ``OUT/run``, scoring each chunk's checkpoint on validation episodes; returns the curve points. Resumes
+    whatever was done before."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     total = int(cfg.updates)
@@ -84,11 +92,11 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
     points: list[dict] = []
     deviations = ([f"distance increase x{cfg.distance_increase_scale:g}"] if cfg.distance_increase_scale != 1.0 else [])
     deviations += ["mirror"] if cfg.mirror else []
-    deviations += ["blocked-action"] if (agent_overrides or {}).get("blocked_action") else []
+    deviations += ["blocked-action"] if agent.blocked_action else []
     for end in list(range(chunk, total, chunk)) + [total]:
         c = TrainConfig.from_dict({**cfg.to_dict(), "updates": end, "episodes": None, "minutes": None,
                                    "checkpoint_every": chunk, "milestone_every": chunk})
-        train_run(c, agent_config(preset, **(agent_overrides or {})), run, progress_bar=False)
+        train_run(c, agent, run, progress_bar=False)
         sel = select_checkpoint(run, cfg.data, val, max_steps=max_steps, progress=say)
         points = curve_points(sel)
         atomic_write_json(out / "curve.json", {"points": points, "best": sel["best"], "chunk": chunk,
@@ -105,65 +113,66 @@ def run_convergence(cfg: TrainConfig, preset: str, out: str | Path, *, chunk: in
     return points
 
 
+@dataclass
+class ConvergenceConfig:
+    """How ``tsnav convergence`` cuts its training into scored chunks (recipe section ``[convergence]``)."""
+
+    chunk: int = 250
+    """Updates between validation points (each chunk's checkpoint is scored on validation episodes)."""
+    patience: int | None = None
+    """Stop when validation SR has not risen for this many chunks (None: train to ``train.updates``)."""
+    val_per_room_type: int = 50
+    """Validation episodes per room type."""
+
+    def __post_init__(self):
+        for name in ("chunk", "val_per_room_type"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.patience is not None and self.patience < 1:
+            raise ValueError(f"patience must be >= 1, got {self.patience}")
+
+
+#: The training settings ``tsnav convergence`` starts from: the ``medium`` scale's (batched A2C, ``cpu`` network,
+#: lr 1e-3, 256 episodes per update), whose budget this command measured, with 8000 updates in all.
+CONVERGENCE_TRAIN = replace(SCALES["medium"].train, updates=8000, milestone_every=None)
+#: TrainConfig fields this command sets itself (batched A2C, a budget in updates, a kept checkpoint per chunk).
+CONVERGENCE_OWN = ("algo", "episodes", "minutes", "checkpoint_every", "milestone_every", "workers")
+#: The sections of a convergence recipe.
+SECTIONS = (*RUN_SECTIONS, "convergence")
+
+
 def build_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, help="dataset root with train and val scenes")
-    parser.add_argument("--features", required=True, help="feature cache name (features_<NAME>.hdf5, `tsnav features`)")
-    parser.add_argument("--out", required=True, help="output folder (resumed when it exists)")
-    parser.add_argument("--detections", required=True,
-                        help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle")
-    parser.add_argument("--reward", default="tsrm", choices=["tsrm", "baseline", "explore", "distance"])
-    parser.add_argument("--updates", type=int, default=8000, help="total updates (default 8000)")
-    parser.add_argument("--chunk", type=int, default=250, help="updates between validation points (default 250)")
-    parser.add_argument("--patience", type=int, default=None, help="stop when val SR has not risen for this many chunks")
-    parser.add_argument("--num-envs", type=int, default=256, help="episodes per update (default 256)")
-    parser.add_argument("--preset", default="cpu", help="agent size: cpu or paper (default cpu)")
-    parser.add_argument("--lr", type=float, default=1e-3, help="learning rate (default 1e-3; paper 1e-4)")
-    parser.add_argument("--entropy-coef", type=float, default=0.01,
-                        help="weight of the entropy bonus (default 0.01, the lineage's)")
-    parser.add_argument("--precision", default="fp32", choices=PRECISIONS,
-                        help="rollout forward passes in float32 (default) or bfloat16 autocast")
-    parser.add_argument("--procs", type=int, default=1,
-                        help="CPU processes sharing each update's episodes (default 1; 2 uses both cores)")
-    parser.add_argument("--max-steps", type=int, default=30,
-                        help="training episode length in actions (default 30, the lineage's; the validation episodes "
-                             "always allow 100, the paper's test length)")
-    parser.add_argument("--blocked-action", action="store_true",
-                        help="a deviation from the paper: the previous-action input tells a MoveAhead that left the "
-                             "agent where it was (AgentConfig.blocked_action)")
-    parser.add_argument("--mirror", action="store_true",
-                        help="a deviation from the paper: also train on the mirror image of every training room "
-                             "(TrainConfig.mirror; needs `tsnav features --mirror` and `tsnav detect --mirror`)")
-    parser.add_argument("--distance-increase-scale", type=float, default=1.0,
-                        help="a deviation from the paper when not 1.0 (the default): multiply the distance reward of "
-                             "a step that increases the distance to the target by this "
-                             "(TrainConfig.distance_increase_scale)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--val-per-room-type", type=int, default=50, help="validation episodes per room type")
-    parser.add_argument("--protocol", default="paper",
-                        help="success protocol of training and of the validation episodes: paper or lineage "
-                             "(default: paper)")
+    add_shared(parser, "out", required=True, help="output folder (resumed when it exists)")
+    add_recipe_options(parser)
+    add_options(parser.add_argument_group("chunks (recipe section [convergence])"), ConvergenceConfig, "convergence")
+    add_run_options(parser, exclude_train=CONVERGENCE_OWN, defaults=CONVERGENCE_TRAIN)
+
+
+def resolve(args: argparse.Namespace) -> tuple:
+    """``(TrainConfig, AgentConfig, ConvergenceConfig)`` of the command line over :data:`CONVERGENCE_TRAIN`."""
+    recipe = recipe_from_args(args, SECTIONS)
+    conv = build(ConvergenceConfig, recipe.pop("convergence", {}), "convergence")
+    recipe["train"] = {**to_recipe(CONVERGENCE_TRAIN), **recipe.get("train", {})}
+    recipe["train"].pop("reward_settings", None)
+    for need in ("data", "features", "detections"):
+        if not recipe["train"].get(need):
+            raise CommandError(f"--{need} is required")
+    data = Path(recipe["train"]["data"])
+    if not data.is_dir():
+        raise CommandError(f"--data {data}: no such dataset folder")
+    recipe["train"]["data"] = str(data.resolve())
+    cfg, agent = resolve_run(recipe)
+    if cfg.algo != "batched" or cfg.updates is None:
+        raise CommandError("tsnav convergence trains with algo batched and a budget in updates")
+    return cfg, agent, conv
 
 
 def run(args: argparse.Namespace) -> int:
-    if not Path(args.data).is_dir():
-        raise CommandError(f"--data {args.data}: no such dataset folder")
-    if args.updates < 1 or args.chunk < 1 or args.val_per_room_type < 1:
-        raise CommandError("--updates, --chunk and --val-per-room-type must be >= 1")
-    if not args.entropy_coef >= 0:
-        raise CommandError(f"--entropy-coef must be >= 0, got {args.entropy_coef}")
-    if args.max_steps < 1:
-        raise CommandError(f"--max-steps must be >= 1, got {args.max_steps}")
-    try:
-        cfg = TrainConfig(data=str(Path(args.data).resolve()), features=args.features, detections=args.detections,
-                          algo="batched", reward=args.reward, preset=args.preset, lr=args.lr, num_envs=args.num_envs,
-                          seed=args.seed, updates=args.updates, entropy_coef=args.entropy_coef,
-                          precision=args.precision, procs=args.procs, protocol=args.protocol,
-                          max_steps=args.max_steps, mirror=args.mirror,
-                          distance_increase_scale=args.distance_increase_scale)
-        agent_config(args.preset)
-        run_convergence(cfg, args.preset, args.out, chunk=args.chunk, val_per_room_type=args.val_per_room_type,
-                        patience=args.patience, agent_overrides={"blocked_action": args.blocked_action})
-    except (FileNotFoundError, ValueError) as e:
-        raise CommandError(str(e)) from None
+    cfg, agent, conv = resolve(args)
+    atomic_write_text(Path(args.out) / "recipe.toml", dump_recipe(
+        {**run_recipe(cfg, agent), "convergence": to_recipe(conv)},
+        header="The resolved recipe of this convergence run (tsnav convergence --config FILE reruns it)."))
+    run_convergence(cfg, agent, args.out, chunk=conv.chunk, val_per_room_type=conv.val_per_room_type,
+                    patience=conv.patience)
     print(f"curve: {Path(args.out) / 'curve.png'}, best checkpoint: {Path(args.out) / 'run' / 'best'}")
     return 0

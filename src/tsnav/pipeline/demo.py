@@ -50,18 +50,24 @@ import signal
 import sys
 import time
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 from pathlib import Path
 
 from ..constants import C_TARGET
 from ..data.detections import read_fingerprint
 from ..data.reader import list_scenes, load_scene
 from ..distributed import spawn_context
+from ..atomic import atomic_write_text
+from ..detect.train import DetectorTrainConfig
 from ..errors import CommandError
+from ..pretrain.train import PretrainConfig
+from ..rl.config import TrainConfig
+from ..settings import (add_options, add_shared, apply_sets, build, dump_recipe, field_docs, given, merge, read_recipe,
+                        to_recipe)
+from .recipes import JOB_FIELDS
 from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
                           set_threads)
-from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, QUICK_DEMO_PRETRAIN_STEPS, QUICK_DEMO_PROCS,
-                     QUICK_DEMO_UPDATES, SCALES,
-                     ExperimentConfig, ScaleConfig, demo_scale)
+from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, ExperimentConfig, ScaleConfig, demo_scale)
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..detect.shipped import DEFAULT_SHIPPED, shipped_meta
@@ -124,6 +130,17 @@ class DemoConfig:
     on the quick demo's world only (on the others pretraining keeps the demo's threads, and so their encoders).
     Read through :attr:`tables_beside`."""
 
+    #: Allowed values of fields (the command-line options' choices, :mod:`tsnav.settings`).
+    CHOICES: ClassVar[dict] = {"preset": (QUICK_DEMO_PRESET, "demo-real", "demo"), "detections": ("learned", "oracle"),
+                               "detector": DETECTOR_SOURCES, "protocol": PROTOCOLS}
+
+    def __post_init__(self):
+        for name, allowed in self.CHOICES.items():  # the preset: any world preset (tests build tiny ones)
+            if name != "preset" and getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.world_workers < 1:
+            raise ValueError(f"world_workers must be >= 1, got {self.world_workers}")
+
     @property
     def sizes(self) -> ScaleConfig:
         """The sizes in use: :attr:`scale`, or the preset's (:func:`~tsnav.pipeline.config.demo_scale`)."""
@@ -137,39 +154,60 @@ class DemoConfig:
         return self.preset == QUICK_DEMO_PRESET
 
 
+#: The demo's short options for settings of its scale (``[scale]``) and of its config (``[demo]``): option ->
+#: recipe key; the help is the setting's own. ``--train-updates`` or ``--train-minutes`` replaces the whole
+#: budget (the other one none).
+SHORTHANDS = {"workers": "demo.world_workers", "train_updates": "scale.train.updates",
+              "train_minutes": "scale.train.minutes", "pretrain_steps": "scale.pretrain.steps",
+              "procs": "scale.train.procs", "detector_steps": "scale.detector.steps"}
+#: The sections of the demo's recipe (``configs/demo.toml``).
+SECTIONS = ("demo", "scale")
+
+
 def build_parser(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="out/demo", help="folder for the world, runs and report (default out/demo)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes for world building")
-    p.add_argument("--train-updates", type=int, default=None,
-                   help=f"training budget of the agent in updates (default {QUICK_DEMO_UPDATES} on {QUICK_DEMO_PRESET}, "
-                        f"{SCALES['demo'].train.updates} on the other worlds: the same table on any machine)")
-    p.add_argument("--train-minutes", type=float, default=None,
-                   help="training budget in minutes instead (the table then depends on the machine's load)")
-    p.add_argument("--pretrain-steps", type=int, default=None,
-                   help=f"DE-MAE steps (default {QUICK_DEMO_PRETRAIN_STEPS} on {QUICK_DEMO_PRESET}, "
-                        f"{SCALES['demo'].pretrain.steps} on the other worlds)")
-    p.add_argument("--procs", type=int, default=None,
-                   help=f"CPU processes of the agent's training (default {QUICK_DEMO_PROCS} on {QUICK_DEMO_PRESET}, 1 "
-                        "on the other worlds; the table is the same "
-                        "on every run for a given value, but differs between values)")
+    add_shared(p, "out", default="out/demo", help="folder for the world, runs and report (default out/demo)")
+    add_shared(p, "config", help="the demo's recipe (configs/demo.toml): [demo] and [scale] sections; options "
+                                 "given here override it")
+    add_shared(p, "set", help="set one setting, e.g. --set scale.train.lr=1e-3 (a TOML value); repeatable")
+    p.add_argument("--print-recipe", action="store_true", help="print the resolved recipe (TOML) and stop")
     add_threads_and_sample(p)
-    p.add_argument("--detections", choices=("learned", "oracle"), default="learned",
-                   help="learned (default): the learned detector's table (see --detector); oracle: "
-                        "the oracle's table (hand-made confidence from instance size and distance)")
-    p.add_argument("--preset", choices=(QUICK_DEMO_PRESET, "demo-real", "demo"), default=QUICK_DEMO_PRESET,
-                   help=f"world: {QUICK_DEMO_PRESET} (default; 16 real iTHOR rooms at 128x128, about 5 minutes), "
-                        "demo-real (28 real rooms, a longer training: about 13 minutes) or demo (20 procedural rooms "
-                        "at 64x64; needs --detector train)")
-    p.add_argument("--detector", choices=DETECTOR_SOURCES, default="shipped",
-                   help="shipped (default): the detector that comes with tsnav, trained on the 80 ithor-real "
-                        "training rooms (128-px worlds only); train: train one here on the training rooms")
-    p.add_argument("--protocol", default=DEFAULT_PROTOCOL,
-                   help="success protocol the agent is trained under: paper (default; in view within 1.0 m) or "
-                        "lineage (the 1.5 m visibility map, as the lineage's evaluator); the results are printed "
-                        "under both")
-    p.add_argument("--detector-steps", type=int, default=None,
-                   help=f"training steps of the learned detector with --detector train (default "
-                        f"{SCALES['demo'].detector.steps})")
+    add_options(p, DemoConfig, "demo", exclude=("scale", "sample", "world_workers"))
+    for option, key in SHORTHANDS.items():
+        section, *path = key.split(".")
+        cls = DemoConfig if section == "demo" else {"train": TrainConfig, "pretrain": PretrainConfig,
+                                                    "detector": DetectorTrainConfig}[path[0]]
+        doc = field_docs(cls).get(path[-1], "")
+        p.add_argument("--" + option.replace("_", "-"), dest=f"shorthand.{option}",
+                       type=int if option != "train_minutes" else float, default=None, metavar="N",
+                       help=f"{key}: {doc} (default: the preset's scale; demo_scale)".replace("%", "%%"))
+
+
+def resolve(args: argparse.Namespace) -> DemoConfig:
+    """The demo's config of the command line: ``--config``, ``--set``, the options (:data:`SHORTHANDS` too)."""
+    recipe = apply_sets(read_recipe(args.config) if args.config else {}, args.set, SECTIONS)
+    unknown = sorted(set(recipe) - set(SECTIONS))
+    if unknown:
+        raise CommandError(f"{args.config}: no section {', '.join(unknown)} in the demo's recipe "
+                           f"(sections: {', '.join(SECTIONS)})")
+    short = {}
+    for option, v in given(args, "shorthand").items():
+        short = merge(short, apply_sets({}, [f"{SHORTHANDS[option]}={v!r}"]))
+    train = short.get("scale", {}).get("train", {})
+    if "updates" in train or "minutes" in train:  # asked for: replaces the default budget
+        train.setdefault("updates", None)
+        train.setdefault("minutes", None)
+    recipe = merge(recipe, short, {"demo": given(args, "demo")})
+    if args.sample:
+        recipe["demo"]["sample"] = True
+    cfg = build(DemoConfig, recipe.get("demo") or {}, "demo")
+    if recipe.get("scale"):
+        cfg.scale = build(ScaleConfig, _nones(recipe["scale"]), "scale", base=cfg.sizes)
+    return cfg
+
+
+def _nones(d: dict) -> dict:
+    """A section with Python None kept as the recipe's none (short options given as None)."""
+    return {k: _nones(v) if isinstance(v, dict) else ("none" if v is None else v) for k, v in d.items()}
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -202,6 +240,8 @@ def train_subset(world: Path, dest: Path, per_type: int | None) -> list[str]:
 class DemoExperiment(Experiment):
     """The ``demo`` experiment in the demo's folder layout: its one job's run is ``OUT/run``, its evaluation
     ``OUT/eval/agent``, its checkpoint-selection episodes ``OUT/val_episodes*.json``."""
+
+    writes_recipe = False  # the demo's own recipe.toml ([demo], [scale]) is written by run_demo
 
     def train_dir(self, job) -> Path:
         return self.out / "run"
@@ -487,6 +527,14 @@ def write_tables_quietly(world: str, name: str) -> None:
     ensure_shipped_detections(world, name, progress=False, say=lambda m: None, workers=1)
 
 
+def demo_recipe(cfg: DemoConfig) -> dict:
+    """The demo's resolved recipe: ``[demo]`` (its config) and ``[scale]`` (the sizes in use)."""
+    demo = {k: v for k, v in to_recipe(cfg).items() if k != "scale"}
+    scale = to_recipe(cfg.sizes)
+    scale["train"] = {k: v for k, v in scale["train"].items() if k not in JOB_FIELDS}
+    return {"demo": demo, "scale": scale}
+
+
 def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> dict:
     """Run the demo into ``out``; returns ``{"steps": {name: (status, seconds)}, "results": {protocol: {label:
     summary}}, "seconds"}``. ``train_fn`` replaces the real trainer (tests only; see :mod:`tsnav.pipeline.experiment`)."""
@@ -495,6 +543,8 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "demo_config.json", {**asdict(cfg), "scale": asdict(cfg.sizes),  # the sizes in use
                                           "tables_beside_pretraining": cfg.tables_beside})
+    atomic_write_text(out / "recipe.toml", dump_recipe(demo_recipe(cfg), header="The demo's resolved recipe "
+                                                       "(tsnav demo --config FILE reruns it)."))
     t_all = time.perf_counter()
     demo = Demo(out, cfg, train_fn)
     markers = demo.jobs.run()
@@ -545,30 +595,16 @@ def _print_results(results: dict, times: dict, total: float, index: str, trained
 
 
 def run(args) -> int:
-    cfg = DemoConfig(preset=args.preset, detector=args.detector, world_workers=args.workers, sample=args.sample,
-                     detections=args.detections, protocol=check_protocol(args.protocol))
-    if args.detector_steps is not None:
-        if args.detector_steps < 1:
-            raise CommandError("--detector-steps must be >= 1")
-        cfg.scale = cfg.sizes.override(detector=dict(steps=args.detector_steps))
-    if args.train_updates is not None or args.train_minutes is not None:  # asked for: replaces the default
-        if args.train_updates is not None and args.train_updates < 1:
-            raise CommandError("--train-updates must be >= 1")
-        if args.train_minutes is not None and not args.train_minutes > 0:
-            raise CommandError("--train-minutes must be positive")
-        cfg.scale = cfg.sizes.override(train=dict(updates=args.train_updates, minutes=args.train_minutes))
-    if args.pretrain_steps is not None:
-        if args.pretrain_steps < 1:
-            raise CommandError("--pretrain-steps must be >= 1")
-        cfg.scale = cfg.sizes.override(pretrain=dict(steps=args.pretrain_steps))
+    cfg = resolve(args)
+    if args.print_recipe:
+        print(dump_recipe(demo_recipe(cfg), header="tsnav demo: the TSRM + DE-MAE row at the demo scale, plus the "
+                                                   "scripted baselines"), end="")
+        return 0
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
-    if args.procs is not None:
-        if args.procs < 1 or cfg.sizes.train.num_envs % args.procs:
-            raise CommandError(f"--procs must be >= 1 and divide the {cfg.sizes.train.num_envs} training episodes "
-                               "per update")
-        cfg.scale = cfg.sizes.override(train=dict(procs=args.procs))
-
+    if cfg.sizes.train.num_envs % cfg.sizes.train.procs:
+        raise CommandError(f"--procs must be >= 1 and divide the {cfg.sizes.train.num_envs} training episodes "
+                           "per update")
     print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)
     return 0

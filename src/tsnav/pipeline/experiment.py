@@ -85,6 +85,7 @@ from ..atomic import atomic_write_text
 from ..distributed import set_threads as distributed_set_threads
 from ..distributed import spawn_context
 from ..errors import CommandError
+from ..settings import add_options, add_shared, apply_sets, dump_recipe, given, merge, read_recipe
 from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
 from ..rl.train import train_run
@@ -96,6 +97,8 @@ from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..eval.select import chosen, select_checkpoint
 from .detector_steps import QUALITY_FILE, record_quality
+from .recipes import SECTIONS as RECIPE_SECTIONS
+from .recipes import experiment_recipe, resolve_experiment, same_scale, write_recipe
 from .steps import (EncoderSpec, encoder_spec, ensure_detections, ensure_encoder, ensure_episodes,
                           ensure_features, ensure_world, say)
 from ..rl.done_dips import DIP_DONE_SHARE, run_done_dips
@@ -152,7 +155,7 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
                  detections=row.detections_of(cfg.detections), split="train", reward=row.reward, seed=seed,
                  c_target=row.c_target, device=cfg.device, checkpoint_every=every, milestone_every=milestones,
                  protocol=cfg.protocol, procs=(cfg.procs or base.procs) if base.algo == "batched" else 1, **budget)
-    return tc, agent_config(base.preset, **({"blocked_action": True} if cfg.blocked_action else {}))
+    return tc, agent_config(base.preset, **{**scale.agent, **({"blocked_action": True} if cfg.blocked_action else {})})
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -272,6 +275,9 @@ SELECT_SEED = 1
 class Experiment:
     """Runs the jobs of one experiment; see the module docstring."""
 
+    writes_recipe = True
+    """Write the resolved recipe ``OUT/recipe.toml`` beside ``experiment.json`` (the demo writes its own)."""
+
     def __init__(self, cfg: ExperimentConfig, train_fn: TrainFn | None = None, scale: ScaleConfig | None = None):
         if cfg.experiment not in EXPERIMENT_INFO:
             raise ValueError(f"unknown experiment {cfg.experiment!r} (choose from {', '.join(EXPERIMENT_INFO)})")
@@ -340,6 +346,9 @@ class Experiment:
                "eval_split": self.info["split"],
                "jobs": [{"row": j.row.id, "label": j.row.label, "seed": j.seed, "dir": j.dir} for j in self.jobs]}
         write_json(p, doc)
+        if self.writes_recipe:
+            write_recipe(self.out, replace(self.cfg, data=d["data"]), self.scale,
+                         f"tsnav experiment {self.cfg.experiment}")
 
     def done(self, job: Job) -> bool:
         return read_done(self.out / job.dir) is not None
@@ -737,118 +746,78 @@ def _job_process(cfg: ExperimentConfig, scale: ScaleConfig, index: int, features
 
 
 def add_threads_and_sample(parser: argparse.ArgumentParser) -> None:
-    """``--threads`` and ``--sample``, as ``tsnav experiment`` and ``tsnav demo`` both take them."""
-    parser.add_argument("--threads", type=int, default=None,
-                        help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when fewer: a fixed "
-                             "count, because another count sums floats in another order and trains another agent)")
+    """``--threads`` and ``--sample``, as ``tsnav demo`` takes them (``tsnav experiment``: its config's fields)."""
+    add_shared(parser, "threads", help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when "
+                                        "fewer: a fixed count, because another count sums floats in another order "
+                                        "and trains another agent)")
     parser.add_argument("--sample", action="store_true",
                         help="evaluate the agents by sampling their actions instead of the greedy argmax (the default)")
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("experiment", choices=EXPERIMENTS, help="ablation (Table II), pretraining (Table III), "
-                        "threshold (Fig. 4)")
-    parser.add_argument("--data", required=True, help="dataset root (train, val and test scenes with images)")
+    parser.add_argument("experiment", metavar="EXPERIMENT|RECIPE.toml",
+                        help="ablation (Table II), pretraining (Table III), threshold (Fig. 4), or a recipe file "
+                             "(configs/experiments/*.toml) naming the experiment and its scale")
     parser.add_argument("--build-world", action="store_true",
                         help="build the scale's world into --data first when the folder does not exist "
                              "(small: demo, paper: ithor-real, the real iTHOR scenes)")
-    parser.add_argument("--out", required=True, help="experiment folder (resumed when it exists)")
-    parser.add_argument("--scale", choices=sorted(SCALES), default="small",
-                        help="small: 2-core CPU, about two hours; medium: the converged budget on the 80 training "
-                             "rooms (ithor-real, 2000 updates of 256 episodes per job, ~30 min per job on a core); "
-                             "paper: the paper's settings (GPU)")
-    parser.add_argument("--seeds", type=int, default=1, help="trained agents per row (default 1)")
-    parser.add_argument("--updates-per-job", type=int, default=None,
-                        help="training budget per job in optimizer updates (default: the scale's; small: 1000, "
-                             "about 2.5 minutes with 2 threads on 2 idle cores)")
-    parser.add_argument("--minutes-per-job", type=float, default=None,
-                        help="training budget per job in minutes instead (depends on the machine's load; with "
-                             "--updates-per-job too, the first reached stops training)")
-    parser.add_argument("--pretrain-dir", default=None, help="pretraining runs (default OUT/pretrain; share it)")
-    parser.add_argument("--detections", default="learned",
-                        help="detection tables of the agents and the stage switch (default learned: used as they are "
-                             "when every scene has one of the same detector, else the detector is trained in "
-                             "--detector-dir on the train rooms, calibrated on val, and writes them; oracle: the "
-                             "oracle's, computed here)")
-    parser.add_argument("--detector-dir", default=None,
-                        help="learned detector's training folder (default OUT/detector; share it, resumable)")
-    parser.add_argument("--detector", choices=DETECTOR_SOURCES, default="train",
-                        help="where missing learned tables come from: train (default: the detector in "
-                             "--detector-dir, trained here) or shipped (the detector that comes with tsnav, for the "
-                             "128-px ithor-real rooms: the medium scale's tables in minutes instead of hours; "
-                             "--detections learned3/4/6/7 take the shipped detector of that name, any other name "
-                             "learned4)")
-    parser.add_argument("--vc1-weights", default=None, help="VC-1 ViT-Base weights: adds the VC-1 row (pretraining)")
-    parser.add_argument("--resnet18-weights", default=None,
-                        help="torchvision ResNet18 weights (ImageNet, as in the paper) for the baseline encoder")
-    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    parser.add_argument("--parallel", type=int, default=1,
-                        help="jobs trained at once, each in its own process (default 1; 2 on two idle cores)")
-    parser.add_argument("--procs", type=int, default=None,
-                        help="processes of each batched training job (default: the scale's, 1); 2 uses both cores "
-                             "of a 2-core machine; another value trains other agents")
-    add_threads_and_sample(parser)
-    parser.add_argument("--checkpoint", choices=CHECKPOINTS, default="best",
-                        help="checkpoint each job evaluates: best (default; the job's milestones scored greedily on "
-                             "validation episodes) or latest (the last trained)")
-    parser.add_argument("--protocol", default="paper",
-                        help="success protocol of episodes, training and evaluation: paper (in view within 1.0 m, "
-                             "the default) or lineage (the 1.5 m visibility map, as the lineage's evaluator; "
-                             "start-success episodes kept); recorded in experiment.json and results.json")
-    parser.add_argument("--rows", default=None, metavar="ID[,ID...]",
-                        help="run only these rows, by id (pretraining: resnet18, mae, demae_crop, demae; ablation: "
-                             "baseline, explore, distance, tsrm, demae, tsrm_demae, tsrm_demae_oracle; default: all); "
-                             "a later call with other rows adds them to the same folder")
-    parser.add_argument("--blocked-action", action="store_true",
-                        help="a deviation from the paper: every agent is told when its last MoveAhead left it where "
-                             "it was (AgentConfig.blocked_action, as the shipped agent); part of the folder's identity")
-    parser.add_argument("--select-per-room-type", type=int, default=None, metavar="N",
-                        help="validation episodes per room type on which each job's milestones are scored "
-                             "(--checkpoint best; default: the scale's, 100 at the medium scale; the shipped agent "
-                             "was chosen on 500); part of the folder's identity")
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
-    parser.add_argument("--reuse-from", action="append", default=[], metavar="EXPERIMENT_DIR",
-                        help="another experiment folder whose finished jobs with the same training configuration "
-                             "are copied instead of trained again (e.g. the ablation's baseline and DE-MAE rows "
-                             "for the pretraining table); repeatable")
+    parser.add_argument("--print-recipe", action="store_true",
+                        help="print the resolved recipe (TOML, without this machine's folders) and stop")
+    add_shared(parser, "set", help="set one setting of the recipe, e.g. --set scale.train.lr=1e-3 or "
+                                   "--set experiment.seeds=3 (a TOML value; none for None); repeatable")
+    add_options(parser.add_argument_group("experiment (ExperimentConfig; recipe section [experiment])"),
+                ExperimentConfig, "experiment", exclude=("experiment",))
+
+
+def resolve(args: argparse.Namespace) -> tuple[ExperimentConfig, ScaleConfig]:
+    """The experiment of the command line: a recipe file or an experiment's name, ``--set``, then the options."""
+    if args.experiment in EXPERIMENTS:
+        recipe = {"experiment": {"experiment": args.experiment}}
+    elif args.experiment.endswith(".toml") or Path(args.experiment).exists():
+        recipe = read_recipe(args.experiment)
+    else:
+        raise CommandError(f"{args.experiment!r}: neither an experiment ({', '.join(EXPERIMENTS)}) nor a recipe file")
+    recipe = apply_sets(recipe, args.set, RECIPE_SECTIONS)
+    recipe = merge(recipe, {"experiment": given(args, "experiment")})
+    exp = recipe.get("experiment", {})
+    if exp.get("reuse_from"):
+        exp["reuse_from"] = [str(Path(d).resolve()) for d in exp["reuse_from"]]
+    return resolve_experiment(recipe, need_paths=not args.print_recipe)
 
 
 def run(args: argparse.Namespace) -> int:
-    check_protocol(args.protocol)  # a bad name stops here, in one line, before any work
-    world = SCALES[args.scale].world
-    if not Path(args.data).is_dir() and not (args.build_world and not Path(args.data).exists()):
-        raise CommandError(f"--data {args.data}: no such dataset folder (--build-world builds the {world} world of "
-                           f"--scale {args.scale} there; or: tsnav world --preset {world} --out {args.data})")
+    cfg, scale = resolve(args)
+    check_protocol(cfg.protocol)  # a bad name stops here, in one line, before any work
+    if args.print_recipe:
+        print(dump_recipe(experiment_recipe(cfg, scale, paths=False), header=f"tsnav experiment {cfg.experiment}: "
+                          f"{EXPERIMENT_INFO[cfg.experiment]['description']}"), end="")
+        return 0
+    world = scale.world
+    if not Path(cfg.data).is_dir() and not (args.build_world and not Path(cfg.data).exists()):
+        raise CommandError(f"--data {cfg.data}: no such dataset folder (--build-world builds the {world} world of "
+                           f"--scale {cfg.scale} there; or: tsnav world --preset {world} --out {cfg.data})")
     if args.build_world:
-        ensure_world(args.data, world, build=True)
+        ensure_world(cfg.data, world, build=True)
     for opt in ("vc1_weights", "resnet18_weights"):
-        v = getattr(args, opt)
+        v = getattr(cfg, opt)
         if v and not Path(v).exists():
             raise CommandError(f"--{opt.replace('_', '-')} {v}: no such file")
-    for d in args.reuse_from:
+    for d in cfg.reuse_from:
         if not (Path(d) / "experiment.json").exists():
             raise CommandError(f"--reuse-from {d}: not an experiment folder (no experiment.json)")
-    if args.vc1_weights and args.experiment != "pretraining":
+    if cfg.vc1_weights and cfg.experiment != "pretraining":
         raise CommandError("--vc1-weights adds a row to the pretraining experiment only")
-    cfg = ExperimentConfig(experiment=args.experiment, data=args.data, out=args.out, scale=args.scale, seeds=args.seeds,
-                           minutes_per_job=args.minutes_per_job, updates_per_job=args.updates_per_job,
-                           pretrain_dir=args.pretrain_dir, detector_dir=args.detector_dir, detector=args.detector,
-                           detections=args.detections, vc1_weights=args.vc1_weights,
-                           resnet18_weights=args.resnet18_weights, device=args.device, parallel=args.parallel,
-                           procs=args.procs, sample=args.sample, checkpoint=args.checkpoint, protocol=args.protocol,
-                           blocked_action=args.blocked_action, select_per_room_type=args.select_per_room_type,
-                           rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()) if args.rows else (),
-                           reuse_from=tuple(str(Path(d).resolve()) for d in args.reuse_from))
-    if args.threads is not None and args.threads < 1:
+    if cfg.threads is not None and cfg.threads < 1:
         raise CommandError("--threads must be >= 1")
-    exp = Experiment(cfg)
-    say(f"torch threads: {set_threads(args.threads)}")
+    exp = Experiment(cfg, scale=None if same_scale(scale, SCALES[cfg.scale]) else scale)
+    say(f"torch threads: {set_threads(cfg.threads)}")
     results = exp.run()
     print(markdown_table(results))
     if results.get("welch"):
         print(welch_markdown(results))
     print(f"tables: {exp.out / 'table.md'}, {exp.out / 'table.csv'}"
-          + (f", plot {exp.out / 'threshold.png'}" if args.experiment == "threshold" else ""))
+          + (f", plot {exp.out / 'threshold.png'}" if cfg.experiment == "threshold" else ""))
     if not args.no_report:
         print(f"report: {build_report(exp.out)}")
     return 0

@@ -19,7 +19,10 @@ fingerprint must match the one recorded at packing.
 shipped detector's tables and the shipped encoder's features into them, draws the test episodes exactly as the
 experiments do (250 per room type, seed 0) and evaluates the agent greedily, beside the scripted explorer with
 the same stage switch and the random policy; every step is skipped when its output exists, so a second run
-only evaluates. ``tsnav release pack`` makes such a folder from a training run and a pretraining run.
+only evaluates. ``tsnav release pack`` makes such a folder from a training run and a pretraining run; ``tsnav release make
+RECIPE --work DIR`` makes a whole agent from its recipe (``configs/agents/NAME.toml``,
+:mod:`tsnav.pipeline.agent_recipe`) into ``DIR/agent/NAME``, and writes into the package only when asked by name
+(``--replace-shipped NAME``). A packed ``config.json`` holds no machine path.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ from ..distributed import set_threads
 from ..errors import CommandError, read_json
 from ..metrics import METRICS
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
+from ..settings import add_shared, apply_sets, dump_recipe, read_recipe
+from .agent_recipe import SECTIONS, STEPS, AgentRecipe, make_agent, resolve_agent
 
 #: Where shipped agents live (package data of ``tsnav.agent``).
 WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
@@ -128,6 +133,10 @@ def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: 
     enc = load_encoder(str(tmp / "encoder.safetensors"))
     features = f"{card.get('encoder_id', 'demae')}-{enc.fingerprint[:10]}"
     cfg["train"]["features"] = features
+    cfg["train"]["data"] = ""  # no machine path ships: the rooms are the evaluation's (tsnav release eval --data)
+    if isinstance(cfg.get("features"), dict) and "encoder" in cfg["features"]:
+        cfg["features"]["encoder"] = (f"{Path(str(cfg['features']['encoder'])).name} (the pretraining run; packed "
+                                      "in float16 as encoder.safetensors)")
     cfg["shipped"] = {"trained_features": json.loads((run / "config.json").read_text())["train"]["features"]}
     (tmp / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
     shutil.copy2(checkpoint / "model.safetensors", tmp / "best" / "model.safetensors")
@@ -324,8 +333,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                                                   "rules version of the agent's card; reused)")
     ev.add_argument("--out", default=None, help="evaluation folders, episode lists and results.json (default "
                                                  "out/release/eval/AGENT/SPLIT)")
-    ev.add_argument("--protocol", default="both", choices=("both", *PROTOCOLS),
-                    help="success protocol(s) to evaluate under (default both)")
+    add_shared(ev, "protocol", default="both", choices=("both", *PROTOCOLS), metavar=None,
+               help="success protocol(s) to evaluate under (default both)")
     ev.add_argument("--no-baselines", action="store_true", help="only the agent (no explorer / random rows)")
     ev.add_argument("--split", default="test", choices=tuple(SPLIT_EPISODES),
                     help="rooms to evaluate on (default test; val: the validation rooms)")
@@ -341,6 +350,18 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     pk.add_argument("--card", required=True, help="JSON file of the model card's fields (name, summary, world, "
                                                   "detector_shipped, detections, figures, commands, ...)")
     pk.add_argument("--out", required=True, help="folder to create (e.g. src/tsnav/agent/weights/NAME)")
+    mk = sub.add_parser("make", help="make an agent from its recipe (configs/agents/NAME.toml): world, detector "
+                                     "tables, pretraining, features, training, selection, packing, the card's figures")
+    mk.add_argument("recipe", metavar="RECIPE.toml", help="the agent's recipe (tsnav.pipeline.agent_recipe)")
+    mk.add_argument("--work", required=True, help="work folder: world, pretraining, training, evaluations, and the "
+                                                 "packed agent WORK/agent/NAME (every step resumes)")
+    add_shared(mk, "set", help="change one setting of the recipe, e.g. --set train.updates=8 (a TOML value); "
+                               "repeatable")
+    mk.add_argument("--until", choices=STEPS, default=STEPS[-1], help=f"stop after this step ({', '.join(STEPS)}; "
+                                                                      f"default: all)")
+    mk.add_argument("--replace-shipped", default=None, metavar="NAME",
+                    help="also install the made agent as the shipped agent NAME (src/tsnav/agent/weights/NAME, "
+                         "replaced); NAME must be the recipe's. Without it nothing is written into the package")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -362,27 +383,38 @@ def run(args: argparse.Namespace) -> int:
         out = pack(args.run, ck, args.encoder_run, args.out, fields)
         print(f"wrote {out} ({sum(f.stat().st_size for f in out.rglob('*') if f.is_file()) / 1e6:.1f} MB)")
         return 0
+    if args.action == "make":
+        return run_make(args)
     folder = agent_folder(args.agent)
-    card = read_card(folder)
-    set_threads(args.threads)
-    data, out = release_folders(card, folder.name, args.split, args.data, args.out)
+    data, out = release_folders(read_card(folder), folder.name, args.split, args.data, args.out)
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
+    evaluate_agent(folder, args.split, data, out, protocols, baselines=not args.no_baselines,
+                   update_card=args.update_card, workers=args.workers, threads=args.threads)
+    return 0
+
+
+def evaluate_agent(folder: Path, split: str, data: Path, out: Path, protocols: list[str], *, baselines: bool = True,
+                   update_card: bool = False, workers: int = 2, threads: int = 2) -> list[dict]:
+    """``tsnav release eval``: build what the agent in ``folder`` needs in ``data`` (rooms of ``split``, detector
+    tables, features), evaluate it (and the baselines) under ``protocols`` into ``out``, print the table; with
+    ``update_card`` the figures are written into the folder's card."""
+    card = read_card(folder)
+    set_threads(threads)
     t0 = time.perf_counter()
     times = {}
     say(f"agent {folder.name}: {card.get('summary', '')}")
-    split = args.split
-    ensure_test_world(data, card, args.workers, split)
+    ensure_test_world(data, card, workers, split)
     times["world"] = time.perf_counter() - t0
     ensure_release_detections(data, card)
     times["detections"] = time.perf_counter() - t0 - sum(times.values())
     ensure_release_features(data, folder, card, split=split)
     times["features"] = time.perf_counter() - t0 - sum(times.values())
-    rows = release_rows(folder, data, out, protocols, baselines=not args.no_baselines, split=split)
+    rows = release_rows(folder, data, out, protocols, baselines=baselines, split=split)
     times["evaluation"] = time.perf_counter() - t0 - sum(times.values())
     res = {"agent": folder.name, "card": card.get("name"), "split": split, "rows": rows, "seconds": times}
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(res, indent=1) + "\n")
-    if args.update_card:
+    if update_card:
         figs = card.setdefault("figures", {})
         figs[split] = {"episodes": max(r["episodes"] for r in rows), "rows": rows}
         atomic_write_text(folder / "card.json", json.dumps(card, indent=1) + "\n")
@@ -395,7 +427,64 @@ def run(args: argparse.Namespace) -> int:
         print(protocol_line(p, trained))
     print(format_rows(rows))
     print(f"wrote {out / 'results.json'}")
+    return rows
+
+
+def run_make(args: argparse.Namespace) -> int:
+    """``tsnav release make RECIPE --work DIR``: the agent of a recipe, made, packed into ``WORK/agent/NAME`` and
+    evaluated on val and test with the figures written into its card; installed as a shipped agent only with
+    ``--replace-shipped NAME``."""
+    work = Path(args.work)
+    r = resolve_agent(apply_sets(read_recipe(args.recipe), args.set, SECTIONS), work)
+    if args.replace_shipped is not None and args.replace_shipped != r.name:
+        raise CommandError(f"--replace-shipped {args.replace_shipped}: the recipe makes {r.name!r}; name it to "
+                           f"replace it")
+    work.mkdir(parents=True, exist_ok=True)
+    header = f"The resolved recipe of {r.name} (tsnav release make)."
+    atomic_write_text(work / "recipe.toml", dump_recipe(r.to_recipe(), header=header))
+    made = make_agent(r, work, until=args.until)
+    if STEPS.index(args.until) < STEPS.index("pack"):
+        say(f"stopped after step {args.until}; the run: {made.run}")
+        return 0
+    folder = work / "agent" / r.name
+    if not (folder / "card.json").exists():
+        pack(made.run, made.run / "best", made.encoder_run, folder, agent_card(r, made.world))
+        atomic_write_text(folder / "recipe.toml", dump_recipe(r.to_recipe(), header=header))
+    if args.until == "eval":
+        for split in ("val", "test"):
+            evaluate_agent(folder, split, made.world, work / f"release_{split}", list(PROTOCOLS), update_card=True,
+                           workers=r.world.workers, threads=r.features.threads)
+    if args.replace_shipped:
+        install_shipped(folder, WEIGHTS / r.name)
+    print(f"agent {r.name}: {folder}" + (f", installed as {WEIGHTS / r.name}" if args.replace_shipped else ""))
     return 0
+
+
+def agent_card(r: AgentRecipe, world: Path) -> dict:
+    """The card fields of the recipe's agent: its ``[card]`` texts, what the recipe names, and the val and test
+    rooms of its ``world`` (those ``tsnav release eval`` evaluates on)."""
+    from ..detect.shipped import shipped_meta
+    from ..world.build import BuildConfig
+
+    return {**r.card, "name": r.name, "world_preset": r.world.preset, "world_version": r.world.version,
+            "image_size": BuildConfig.from_preset(r.world.preset).image_size, "detector_shipped": r.detections.shipped,
+            "detector_fingerprint": shipped_meta(r.detections.shipped)["fingerprint"],
+            "detections": r.detections.name, "encoder_id": r.features.encoder,
+            **{f"{split}_rooms": ensure_names(world, split) for split in ("val", "test")},
+            "commands": [f"tsnav release make configs/agents/{r.name}.toml --work WORK_DIR (recipe.toml in this "
+                         f"folder: the resolved recipe)"]}
+
+
+def install_shipped(folder: Path, dest: Path) -> None:
+    """Copy the agent ``folder`` over the shipped agent ``dest`` (assembled beside it, then renamed)."""
+    tmp = dest.with_name(f".{dest.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(folder, tmp)
+    old = dest.with_name(f".{dest.name}.old")
+    if dest.exists():
+        dest.rename(old)
+    tmp.rename(dest)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def release_folders(card: dict, agent: str, split: str, data: str | None = None, out: str | None = None

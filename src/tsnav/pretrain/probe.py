@@ -168,7 +168,7 @@ def probe_encoder(encoder: Encoder, root, config: ProbeConfig | None = None) -> 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m tsnav.pretrain.probe --data ROOT --encoder SPEC [SPEC ...]``: print one JSON line each."""
-    ap = argparse.ArgumentParser(prog="python -m tsnav.pretrain.probe", description="linear probes of encoders")
+    ap = argparse.ArgumentParser(allow_abbrev=False, prog="python -m tsnav.pretrain.probe", description="linear probes of encoders")
     ap.add_argument("--data", required=True)
     ap.add_argument("--encoder", nargs="+", required=True, help="encoder specs as for `tsnav features`")
     ap.add_argument("--model", default="vit_tiny")

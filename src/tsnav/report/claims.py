@@ -49,6 +49,7 @@ from ..errors import CommandError, read_json
 from ..metrics import PAPER_METRICS
 from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS
 from .tables import SUBSETS, finite, welch
+from ..settings import add_shared
 
 #: Significance level of the verdicts (two-sided Welch test over the per-seed values).
 ALPHA = 0.05
@@ -345,8 +346,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("experiments", nargs="+", metavar="EXP_DIR",
                    help="experiment folders (`tsnav experiment ... --out EXP_DIR`) holding results.json")
     p.add_argument("--subset", choices=(*SUBSETS, "both"), default="both", help="episode subset(s) to check")
-    p.add_argument("--protocol", choices=PROTOCOLS, default=None,
-                   help="success protocol whose results to check (default: each experiment's own, the one it trained "
+    add_shared(p, "protocol", choices=PROTOCOLS, default=None,
+               help="success protocol whose results to check (default: each experiment's own, the one it trained "
                         "under; the other is read from results.json's other_protocols)")
     p.add_argument("--out", help="also write the table (Markdown) to this file")
     p.add_argument("--json", dest="json_out", help="also write the checks as JSON to this file")

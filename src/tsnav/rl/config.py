@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import ClassVar
 
+from ..agent.model import PRESETS
 from ..constants import C_TARGET
 from ..errors import from_fields
-from ..protocol import DEFAULT_PROTOCOL, check_protocol
+from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS, check_protocol
 from ..tsrm.reward import VARIANTS, RewardConfig
 
 ALGOS = ("a3c", "batched")
@@ -19,11 +21,38 @@ RANK_MODES = ("split", "staggered")
 BUDGET_FIELDS = ("episodes", "updates", "minutes")
 #: Paper IV-A: the agent is trained for 1.5 M episodes.
 PAPER_EPISODES = 1_500_000
+#: Fields of :class:`~tsnav.tsrm.reward.RewardConfig` that :class:`TrainConfig` sets itself (``reward``,
+#: ``distance_increase_scale``); its other fields (the paper's constants) are :attr:`TrainConfig.reward_settings`.
+REWARD_OWN = ("variant", "distance_increase_scale")
+
+
+def reward_settings_of(reward: RewardConfig) -> dict:
+    """The fields of ``reward`` (its nested area too) that differ from the paper's constants, as
+    :attr:`TrainConfig.reward_settings` holds them (canonical: equal rewards give equal dicts)."""
+    return _nondefault(asdict(reward), asdict(RewardConfig()), skip=REWARD_OWN)
+
+
+def _nondefault(now: dict, default: dict, skip=()) -> dict:
+    out = {}
+    for k, v in now.items():
+        if k in skip:
+            continue
+        if isinstance(v, dict):
+            sub = _nondefault(v, default.get(k, {}))
+            if sub:
+                out[k] = sub
+        elif v != default.get(k):
+            out[k] = v
+    return out
 
 
 @dataclass
 class TrainConfig:
     """Everything a training run depends on besides the network sizes (:class:`~tsnav.agent.AgentConfig`)."""
+
+    #: Allowed values of fields (the command-line options' choices, :mod:`tsnav.settings`).
+    CHOICES: ClassVar[dict] = {"algo": ALGOS, "reward": VARIANTS, "preset": tuple(PRESETS), "ranks": RANK_MODES,
+                               "precision": PRECISIONS, "protocol": PROTOCOLS}
 
     data: str = ""
     """Dataset root (scene folders)."""
@@ -40,7 +69,8 @@ class TrainConfig:
     reward: str = "tsrm"
     """Reward variant of :class:`~tsnav.tsrm.reward.RewardConfig`: tsrm, baseline, explore or distance."""
     preset: str = "paper"
-    """Agent size preset (:data:`tsnav.agent.PRESETS`), recorded for reference."""
+    """Agent size preset (:data:`tsnav.agent.PRESETS`): the network sizes a recipe's ``[agent]`` section (or the
+    ``--dropout``-style options) changes field by field."""
     lr: float = 1e-4
     """Adam learning rate (paper IV-A: 1e-4; a higher one may be needed at CPU scale)."""
     amsgrad: bool = True
@@ -121,6 +151,14 @@ class TrainConfig:
     increases the distance to the target is multiplied by this (:attr:`RewardConfig.distance_increase_scale
     <tsnav.tsrm.reward.RewardConfig.distance_increase_scale>`), so that a detour, such as turning the long way
     round, costs more than the slack alone."""
+    reward_settings: dict = field(default_factory=dict)
+    """The reward's constants where they differ from the paper's: fields of
+    :class:`~tsnav.tsrm.reward.RewardConfig` (K_e ``k_explore``, K_d ``k_distance``, ``collision_penalty``,
+    ``slack``, ``success_reward``, ``exact_area``, and ``area``: the trapezoid's distances ``near_level``,
+    ``far_level``, ``near_down``, ``far_down``) other than ``variant`` (:attr:`reward`) and
+    ``distance_increase_scale``. A recipe's ``[reward]`` section and the ``--k-distance``-style options set
+    them; kept canonical (only values that differ from the defaults), so a run without them equals one that
+    names the defaults."""
 
     def __post_init__(self):
         if self.algo not in ALGOS:
@@ -137,8 +175,16 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.distance_increase_scale >= 0:
             raise ValueError(f"distance_increase_scale must be >= 0, got {self.distance_increase_scale}")
+        own = [k for k in REWARD_OWN if k in self.reward_settings]
+        if own:
+            raise ValueError(f"reward_settings may not hold {', '.join(own)} (TrainConfig.reward and "
+                             "TrainConfig.distance_increase_scale set them)")
+        self.reward_settings = reward_settings_of(self.reward_config())  # checks the values, canonical form
         if not self.lr > 0:
             raise ValueError(f"lr must be positive, got {self.lr}")
+        for name in ("entropy_coef", "value_coef", "max_grad_norm"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 <= self.c_target <= 1.0:
             raise ValueError(f"c_target must be in [0, 1], got {self.c_target}")
         if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.gae_tau <= 1.0:
@@ -194,7 +240,15 @@ class TrainConfig:
         """The fields that define the run (everything but the budget)."""
         return {k: v for k, v in asdict(self).items() if k not in BUDGET_FIELDS}
 
-    def reward_config(self):
-        """The :class:`~tsnav.tsrm.reward.RewardConfig` of this run: variant ``reward``, the paper's constants, and
-        ``distance_increase_scale``."""
-        return RewardConfig(variant=self.reward, distance_increase_scale=self.distance_increase_scale)
+    def reward_config(self) -> RewardConfig:
+        """The :class:`~tsnav.tsrm.reward.RewardConfig` of this run: variant ``reward``, the paper's constants
+        changed by :attr:`reward_settings`, and ``distance_increase_scale``."""
+        base = RewardConfig(variant=self.reward, distance_increase_scale=self.distance_increase_scale)
+        settings = dict(self.reward_settings)
+        area = settings.pop("area", None)
+        unknown = set(settings) - {f.name for f in fields(RewardConfig)}
+        if unknown:
+            raise ValueError(f"reward_settings: no reward setting {', '.join(sorted(unknown))}")
+        if area:
+            settings["area"] = replace(base.area, **area)
+        return replace(base, **settings)

@@ -11,6 +11,7 @@ from ..errors import CommandError
 from ..protocol import DEFAULT_PROTOCOL, check_protocol, protocol_of
 from .batch import SceneBank
 from .episodes import EpisodeConfig, class_set_meta, make_episodes, read_episodes, write_episodes
+from ..settings import add_shared
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -20,8 +21,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="episodes per room type; fewer when the split has fewer (default: 250)")
     parser.add_argument("--out", required=True, help="output JSON file")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    parser.add_argument("--protocol", default=DEFAULT_PROTOCOL,
-                        help="success protocol: paper (in view within --success-distance, start-success episodes "
+    add_shared(parser, "protocol", default=DEFAULT_PROTOCOL,
+               help="success protocol: paper (in view within --success-distance, start-success episodes "
                              "left out) or lineage (the 1.5 m visibility map as the lineage's evaluator reads it; "
                              "start-success episodes kept) (default: paper)")
     parser.add_argument("--success-distance", type=float, default=SUCCESS_DISTANCE,

@@ -1,10 +1,10 @@
-"""Gymnasium interface: the single env ``tsnav/ObjectNav-v0`` and its native vector env over
+"""Gymnasium interface: the single env ``tsnav/ObjectNav-v1`` and its native vector env over
 :class:`~tsnav.sim.batch.BatchEnv` (paper III-A).
 
     import gymnasium as gym
-    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data="out/world", split="train", reward="tsrm",
+    env = gym.make("tsnav.sim:tsnav/ObjectNav-v1", data="out/world", split="train", reward="tsrm",
                    detections="oracle")
-    envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v0", num_envs=64, vectorization_mode="vector_entry_point",
+    envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v1", num_envs=64, vectorization_mode="vector_entry_point",
                         data="out/world", split="train", detections="oracle")
     obs, info = envs.reset(seed=0)   # obs["rgb"] (64, H, W, 3) uint8, obs["depth"] (64, H, W, 1), ...
 
@@ -33,6 +33,15 @@ observation of a finished sub-env is its next episode's first one, and ``info["f
 ``info["final_info"]`` hold the last ones, as Gymnasium's ``SyncVectorEnv`` does in that mode. Every array of
 an observation or ``info`` is new at every step (none is a view of the env's own state or of the frame cache),
 so a learner may keep them.
+
+Version History
+
+* v1: the ``standard`` observation layout (``depth`` ``(H, W, 1)`` in the stored dtype, ``detections`` ``(132,)``),
+  what Stable-Baselines3, RLlib and CleanRL-style code take unwrapped (commit 33bb8c6, issue 26); frames from an
+  in-memory cache; the single env stepped in Python scalars (the same observations, rewards and ``info``).
+* v0: the first release (commit c07dbf9): ``depth`` ``(H, W)`` float32, ``detections`` ``(22, 6)``; still
+  registered, as the same env with ``obs_layout="legacy"``. The id did not change when the layout did (between
+  33bb8c6 and v1's registration, ``v0`` gave the standard layout).
 """
 
 from __future__ import annotations
@@ -49,11 +58,11 @@ from gymnasium.vector.utils import batch_space
 from ..constants import C_TARGET, NUM_ACTIONS, NUM_CATEGORIES, SUCCESS_DISTANCE
 from ..data.toy import toy_scene
 from ..data.reader import read_stack
+from . import ENV_ID, ENV_ID_V0  # noqa: F401 (the ids, defined once in the package)
 from .batch import BatchEnv, RewardFn, SceneBank, SparseReward
 from .episodes import EpisodeConfig, TrainingSampler
 
 
-ENV_ID = "tsnav/ObjectNav-v0"
 DEFAULT_IMAGE_SIZE = 64
 #: Bounds of the Box spaces (finite, as Gymnasium's checker asks): depth in metres; detection rows hold a
 #: score in [0, 1], a label in [0, 22) and pixel coordinates (-1 for padding).

@@ -33,6 +33,7 @@ from ..sim.challenge import (CHALLENGE_SOURCE, HEADING_RULE, challenge_episodes,
                              read_challenge_episodes)
 from ..sim.episodes import write_episodes
 from ..sim.lineage import episodes_from_splits
+from ..settings import add_shared
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -74,8 +75,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     epi.add_argument("splits", nargs="+", help="split files, e.g. test_val_split/kitchen_test_22.pkl")
     epi.add_argument("--data", required=True, help="dataset folder; episodes of scenes not in it are dropped")
     epi.add_argument("--out", required=True, help="tsnav episode list (JSON) to write")
-    epi.add_argument("--protocol", default="paper",
-                     help="success protocol: paper (in view within --success-distance; starts that already succeed "
+    add_shared(epi, "protocol", default="paper",
+               help="success protocol: paper (in view within --success-distance; starts that already succeed "
                           "are dropped) or lineage (the visibility map, as the lineage's evaluator; such starts are "
                           "kept and counted, as its lists have them) (default: paper)")
     epi.add_argument("--success-distance", type=float, default=1.0,

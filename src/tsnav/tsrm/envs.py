@@ -1,9 +1,10 @@
-"""The Gymnasium env ``tsnav/ObjectNav-v0`` with the paper's reward (the factories its id is registered to).
+"""The Gymnasium env ``tsnav/ObjectNav-v1`` with the paper's reward (the factories its ids, ``v1`` and the first
+release's ``v0``, are registered to; :mod:`tsnav.sim.gym_env` holds the version history).
 
     import gymnasium as gym
-    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data="out/world", split="train", reward="tsrm",
+    env = gym.make("tsnav.sim:tsnav/ObjectNav-v1", data="out/world", split="train", reward="tsrm",
                    detections="oracle")
-    envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v0", num_envs=64, vectorization_mode="vector_entry_point",
+    envs = gym.make_vec("tsnav.sim:tsnav/ObjectNav-v1", num_envs=64, vectorization_mode="vector_entry_point",
                         data="out/world", reward="tsrm", detections="oracle")
 
 (``"tsnav.sim:"`` makes Gymnasium import :mod:`tsnav.sim`, which registers the id.) The spaces, dynamics and

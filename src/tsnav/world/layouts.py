@@ -228,7 +228,7 @@ def load_layout(scene: str) -> Layout:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description="Pack a folder of recorded iTHOR layouts into the package-data file.")
+    p = argparse.ArgumentParser(allow_abbrev=False, description="Pack a folder of recorded iTHOR layouts into the package-data file.")
     p.add_argument("src", help="folder of FloorPlan*.json layout files")
     p.add_argument("--out", default=str(Path(__file__).parent / "data" / PACKED_NAME), help="packed file")
     a = p.parse_args(argv)

@@ -110,7 +110,7 @@ def table(real: list[dict], proc: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n")[0])
     p.add_argument("--real", required=True, help="a dataset built with `tsnav world --preset ithor-real`")
     p.add_argument("--scenes", default=None, help="comma-separated scene names (default: all 120)")
     p.add_argument("--out", default=None, help="also write the tables to this Markdown file")

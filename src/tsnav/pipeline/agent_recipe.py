@@ -1,0 +1,234 @@
+"""The recipe of a shipped agent, and the steps that make the agent from it (``tsnav release make``).
+
+A recipe (``configs/agents/<name>.toml``) names everything an agent is made with, one section per step:
+
+==================  ======================================================================================
+section             what
+==================  ======================================================================================
+``name``            the agent's name (the packed folder's)
+``[world]``         the world preset and its rules version (:class:`WorldSettings`)
+``[detections]``    the shipped detector whose tables drive the stage switch (:class:`DetectionSettings`)
+``[pretrain]``      the encoder's pretraining (:class:`~tsnav.pretrain.train.PretrainConfig`)
+``[features]``      the feature cache and the threads of the steps (:class:`FeatureSettings`)
+``[train]``         training (:class:`~tsnav.rl.config.TrainConfig`; ``data``, ``features``, ``detections`` are
+                    filled in), ``[reward]`` its reward's constants, ``[agent]`` its network
+                    (:mod:`tsnav.rl.recipe`)
+``[convergence]``   training in chunks scored on validation episodes (:class:`~tsnav.pipeline.convergence.
+                    ConvergenceConfig`)
+``[select]``        the milestones scored again on more validation episodes (:class:`SelectSettings`)
+``[card]``          the model card's texts (summary, rooms, detector, budget, ...); its other fields (world,
+                    detector and its fingerprint, protocol, encoder, the policy's update, the figures) are
+                    written from the recipe and the run
+==================  ======================================================================================
+
+:func:`make_agent` runs the steps into a work folder: the world, the detector's tables, pretraining and the
+feature cache, training in chunks (``tsnav convergence``), the second selection (``tsnav select``). Every step
+resumes and is skipped when done. Packing and the evaluations that fill the card are :mod:`tsnav.pipeline.release`'s.
+The recipe carries no machine path: the folders are the work folder's.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..detect.shipped import DEFAULT_SHIPPED
+from ..distributed import set_threads
+from ..errors import CommandError
+from ..pretrain.train import PretrainConfig
+from ..rl.recipe import SECTIONS as RUN_SECTIONS
+from ..rl.recipe import resolve_run, run_recipe
+from ..settings import build, to_recipe
+from .convergence import ConvergenceConfig, run_convergence
+from .steps import EncoderSpec, ensure_encoder, ensure_episodes, ensure_features, say
+
+#: The sections of an agent's recipe (besides ``name``).
+SECTIONS = ("world", "detections", "pretrain", "features", *RUN_SECTIONS, "convergence", "select", "card")
+#: The steps of :func:`make_agent`, then packing and the two evaluations (:mod:`tsnav.pipeline.release`).
+STEPS = ("world", "detections", "features", "train", "select", "pack", "eval")
+
+
+@dataclass
+class WorldSettings:
+    """The world the agent is trained, selected and tested on (``tsnav world``)."""
+
+    preset: str = "ithor-real"
+    """World preset (``tsnav world --preset``): ``ithor-real``, the 120 real iTHOR rooms rebuilt from their recorded
+    layouts (80 train, 20 val, 20 test)."""
+    version: int | None = None
+    """Rules version of the ``ithor-real`` world (``tsnav world --world-version``; None: the default)."""
+    workers: int = 2
+    """World-building processes (the same rooms for any number)."""
+
+
+@dataclass
+class DetectionSettings:
+    """The detection tables of the agent: those of a detector shipped with tsnav (:mod:`tsnav.detect.shipped`)."""
+
+    shipped: str = DEFAULT_SHIPPED
+    """The shipped detector whose per-class score drives the stage switch (C_target) and whose table feeds the
+    target memory."""
+    name: str = "learned"
+    """Name of its tables, ``detections_<name>.hdf5`` (the run's ``train.detections``)."""
+
+
+@dataclass
+class FeatureSettings:
+    """The encoder's feature cache, and the torch threads of the steps."""
+
+    encoder: str = "demae"
+    """Id of the encoder (the feature cache is named ``<encoder>-<fingerprint>``; the card's ``encoder_id``)."""
+    run: str = "demae-p16"
+    """Folder of the pretraining run under ``WORK/pre``."""
+    batch_size: int = 128
+    """Frames per encoder call."""
+    threads: int = 1
+    """Torch CPU threads of pretraining, feature caching, training and selection (another count sums floats in
+    another order: the shipped encoders were pretrained and cached on one)."""
+
+
+@dataclass
+class SelectSettings:
+    """The milestones of the run scored again on more validation episodes after training (``tsnav select`` in a
+    copy of the run, ``WORK/conv/run-select``, whose best is packed)."""
+
+    per_room_type: int | None = None
+    """Validation episodes per room type (None: no second selection; the training's own best is packed)."""
+    seed: int = 1
+    """Seed of those episodes (another than the training's validation episodes, seed 0)."""
+
+
+@dataclass
+class AgentRecipe:
+    """A resolved agent recipe (see the module docstring)."""
+
+    name: str
+    world: WorldSettings = field(default_factory=WorldSettings)
+    detections: DetectionSettings = field(default_factory=DetectionSettings)
+    pretrain: PretrainConfig = field(default_factory=PretrainConfig)
+    features: FeatureSettings = field(default_factory=FeatureSettings)
+    run: tuple = ()
+    """``(TrainConfig, AgentConfig)`` of training (its data and features are the work folder's)."""
+    convergence: ConvergenceConfig = field(default_factory=ConvergenceConfig)
+    select: SelectSettings = field(default_factory=SelectSettings)
+    card: dict = field(default_factory=dict)
+
+    def to_recipe(self) -> dict:
+        """The resolved recipe (what ``recipe.toml`` beside the work and the packed agent holds)."""
+        run = run_recipe(*self.run)
+        for k in ("data", "features"):  # the work folder's
+            run["train"].pop(k, None)
+        return {"name": self.name, "world": to_recipe(self.world), "detections": to_recipe(self.detections),
+                "pretrain": to_recipe(self.pretrain), "features": to_recipe(self.features), **run,
+                "convergence": to_recipe(self.convergence), "select": to_recipe(self.select), "card": self.card}
+
+
+def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
+    """The :class:`AgentRecipe` of a recipe's sections, its training run on the work folder's world."""
+    unknown = sorted(set(recipe) - {"name", *SECTIONS})
+    if unknown:
+        raise CommandError(f"no section {', '.join(unknown)} in an agent's recipe (sections: name, "
+                           f"{', '.join(SECTIONS)})")
+    name = recipe.get("name")
+    if not isinstance(name, str) or not name or "/" in name:
+        raise CommandError("the recipe names no agent (name = \"tsrm-demae-...\")")
+    det = build(DetectionSettings, recipe.get("detections"), "detections")
+    feats = build(FeatureSettings, recipe.get("features"), "features")
+    train = dict(recipe.get("train") or {})
+    for k in ("data", "features"):
+        if k in train:
+            raise CommandError(f"[train]: {k} is the work folder's, not the recipe's")
+    if train.get("detections", det.name) != det.name:
+        raise CommandError(f"[train]: detections {train['detections']!r} is not the tables of [detections] "
+                           f"({det.name!r})")
+    train.update(data=str((work / "world").resolve()), features="(cached in the features step)", detections=det.name)
+    run = resolve_run({**{s: recipe.get(s) or {} for s in RUN_SECTIONS}, "train": train})
+    if run[0].algo != "batched" or run[0].updates is None:
+        raise CommandError("[train]: an agent is made with algo batched and a budget in updates")
+    card = recipe.get("card") or {}
+    if not isinstance(card, dict) or not card.get("summary"):
+        raise CommandError("[card]: the model card needs at least a summary")
+    return AgentRecipe(name=name, world=build(WorldSettings, recipe.get("world"), "world"), detections=det,
+                       pretrain=build(PretrainConfig, recipe.get("pretrain"), "pretrain"), features=feats, run=run,
+                       convergence=build(ConvergenceConfig, recipe.get("convergence"), "convergence"),
+                       select=build(SelectSettings, recipe.get("select"), "select"), card=dict(card))
+
+
+@dataclass
+class MadeAgent:
+    """What :func:`make_agent` leaves in the work folder: the world, the run whose best is packed, the
+    pretraining run."""
+
+    world: Path
+    run: Path
+    encoder_run: Path
+    features: str
+
+
+def make_agent(r: AgentRecipe, work: Path, *, until: str = "select") -> MadeAgent:
+    """Run the steps of recipe ``r`` in ``work`` up to ``until`` (:data:`STEPS`), each resumed or skipped when
+    done."""
+    from ..world.build import BuildConfig, build_dataset
+
+    world = work / "world"
+    set_threads(r.features.threads)
+    say(f"world {r.world.preset} -> {world}")
+    build_dataset(world, r.world.preset, None, BuildConfig.from_preset(
+        r.world.preset, **({"world_version": r.world.version} if r.world.version is not None else {})),
+        workers=r.world.workers)
+    if until == "world":
+        return MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, "")
+    ensure_shipped_tables(world, r.detections)
+    if until == "detections":
+        return MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, "")
+    pre = r.pretrain
+    es = EncoderSpec(r.features.encoder, str(work / "pre" / r.features.run), pre.model, pre.patch_size, pre.img_size,
+                     pre)
+    ensure_encoder(es, world)
+    features = ensure_features(es, world, ["train", "val", "test"], batch_size=r.features.batch_size,
+                               device=pre.device)
+    made = MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, features)
+    if until == "features":
+        return made
+    from dataclasses import replace
+
+    cfg, agent = r.run
+    cfg = replace(cfg, features=features)
+    conv = r.convergence
+    run_convergence(cfg, agent, work / "conv", chunk=conv.chunk, val_per_room_type=conv.val_per_room_type,
+                    patience=conv.patience)
+    if until == "train" or r.select.per_room_type is None:
+        return made
+    return MadeAgent(world, select_again(made.run, world, cfg.protocol, r.select, work), made.encoder_run, features)
+
+
+def ensure_shipped_tables(world: Path, det: DetectionSettings) -> None:
+    """The shipped detector's tables in every room of ``world`` (those made already by it are kept; a table of
+    another detector under the name is refused)."""
+    from ..data.reader import list_scenes, load_scene
+    from ..detect.shipped import shipped_detector
+    from .detector_steps import learned_tables, write_learned_tables
+
+    have, _ = learned_tables(world, det.name)
+    if any(fp is None for fp in have.values()):
+        size = load_scene(list_scenes(world)[0]).image_size
+        write_learned_tables(world, det.name, shipped_detector(size, det.shipped), say=say,
+                             source=f"the shipped detector {det.shipped}")
+
+
+def select_again(run: Path, world: Path, protocol: str, sel: SelectSettings, work: Path) -> Path:
+    """Score every milestone of ``run`` on ``sel.per_room_type`` validation episodes per room type (seed
+    ``sel.seed``) in a copy of it, ``RUN-select`` (the run keeps the training's own selection); returns the copy."""
+    from ..eval.select import select_checkpoint
+
+    episodes = ensure_episodes(world, "val", work / f"val_select_{protocol}.json", sel.per_room_type, seed=sel.seed,
+                               protocol=protocol)
+    copy = run.with_name(run.name + "-select")
+    if not copy.exists():
+        tmp = copy.with_name(copy.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(run, tmp)
+        tmp.rename(copy)
+    select_checkpoint(copy, world, episodes)
+    return copy

@@ -1,0 +1,285 @@
+"""Settings from one source (tsnav.settings) and recipe files (configs/): options generated from the config
+dataclasses, recipes read, written and applied, the project's recipe files equal to the commands and shipped
+configs they stand for, resumes with other settings refused, abbreviations refused, bugs keep their traceback."""
+
+import argparse
+import json
+import shlex
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tsnav import cli
+from tsnav.agent.model import AgentConfig
+from tsnav.cli import main
+from tsnav.errors import CommandError
+from tsnav.rl.config import BUDGET_FIELDS, TrainConfig
+from tsnav.rl.recipe import identity_recipe, resolve_run
+from tsnav.settings import (apply_sets, build, dump_recipe, field_docs, first_difference, parse_value, read_recipe,
+                            to_recipe)
+from tsnav.tsrm.reward import RewardConfig
+
+from conftest import PIXEL_FEATURES as FEATS
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+WEIGHTS = ROOT / "src" / "tsnav" / "agent" / "weights"
+
+
+def command_line(path: Path) -> list[str]:
+    """The ``# command:`` line of a recipe file, as arguments after ``tsnav``."""
+    line = next(x for x in path.read_text().splitlines() if x.startswith("# command: "))
+    return shlex.split(line.removeprefix("# command: "))[1:]
+
+
+def parse(command: str, argv: list[str]) -> argparse.Namespace:
+    import importlib
+
+    p = cli.new_parser(prog=f"tsnav {command}")
+    importlib.import_module(cli.COMMANDS[command][0]).build_parser(p)
+    return p.parse_args(argv)
+
+
+# -- settings --------------------------------------------------------------------------------------------------
+
+
+def test_field_docs_are_the_help():
+    docs = field_docs(TrainConfig)
+    assert set(docs) >= {f.name for f in fields(TrainConfig)}
+    assert docs["lr"].startswith("Adam learning rate") and "``" not in docs["detections"]
+    assert field_docs(RewardConfig)["k_distance"].startswith("K_d")
+    p = cli.new_parser()
+    from tsnav.rl.command import build_parser
+
+    build_parser(p)
+    text = p.format_help()
+    for option in ("--k-explore", "--k-distance", "--collision-penalty", "--slack", "--success-reward",
+                   "--near-level", "--far-level", "--near-down", "--far-down", "--c-target", "--dropout",
+                   "--blocked-action", "--entropy-coef", "--ranks", "--lr"):
+        assert option in text, option
+    assert "Adam learning rate" in text and "K_d, reward per pose-graph action" in text
+
+
+def test_recipe_round_trip_and_sets():
+    recipe = {"train": {"lr": 1e-3, "episodes": None, "mirror": True, "data": "x"}, "reward": {"area": {"far_level": 5.0}},
+              "agent": {"dropout": 0.3}}
+    text = dump_recipe(recipe, header="a recipe")
+    assert text.startswith("# a recipe") and 'episodes = "none"' in text
+    again = read_recipe_text(text)
+    assert again["train"]["episodes"] == "none" and again["reward"]["area"]["far_level"] == 5.0
+    cfg, agent = resolve_run(again)
+    assert cfg.episodes is None and cfg.lr == 1e-3 and cfg.mirror and agent.dropout == 0.3
+    assert cfg.reward_config().area.far_level == 5.0 and cfg.reward_settings == {"area": {"far_level": 5.0}}
+    s = apply_sets(again, ["reward.k_distance=0.3", "train.detections=none", "agent.blocked_action=true"])
+    cfg, agent = resolve_run(s)
+    assert cfg.reward_config().k_distance == 0.3 and cfg.detections is None and agent.blocked_action
+    assert parse_value("1e-3") == 1e-3 and parse_value("learned7") == "learned7" and parse_value("[1, 2]") == [1, 2]
+    for bad, words in ((["lr=1"], "SECTION.KEY=VALUE"), (["nosection.lr=1"], "no section 'nosection'")):
+        with pytest.raises(CommandError, match=words):
+            apply_sets({}, bad, ("train", "reward", "agent"))
+    with pytest.raises(CommandError, match=r"\[train\]: no setting lrr"):
+        resolve_run({"train": {"lrr": 1}})
+    with pytest.raises(CommandError, match=r"train.lr: 'fast' is not a float"):
+        resolve_run({"train": {"lr": "fast"}})
+    with pytest.raises(CommandError, match=r"--max-steps must be >= 1, got 0 \(recipe: train.max_steps\)"):
+        resolve_run({"train": {"max_steps": 0}})
+    with pytest.raises(CommandError, match="train.reward"):
+        resolve_run({"reward": {"variant": "baseline"}})
+
+
+def read_recipe_text(text: str) -> dict:
+    import tomllib
+
+    return tomllib.loads(text)
+
+
+def test_first_difference_names_the_setting():
+    a = identity_recipe(TrainConfig(), AgentConfig())
+    b = identity_recipe(TrainConfig(reward_settings={"k_distance": 0.3}), AgentConfig())
+    assert first_difference(a, b) == ("reward.k_distance", 0.15, 0.3)
+    assert first_difference(a, identity_recipe(TrainConfig(updates=5), AgentConfig())) is None  # the budget
+    assert TrainConfig(reward_settings={"k_distance": 0.15}).reward_settings == {}  # canonical
+
+
+def test_options_are_refused_abbreviated(capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "--out", "x", "--quie"])
+    assert "unrecognized arguments: --quie" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["release", "eval", "--agen", "x"])
+
+
+def test_bugs_keep_their_traceback(monkeypatch, capsys):
+    import tsnav.report.claims as claims
+    from tsnav.protocol import check_protocol
+
+    def bug(args):
+        return np.zeros(2).reshape(3)  # numpy's ValueError: a bug, not the user's mistake
+
+    def checked(args):
+        check_protocol("bogus")  # tsnav's own check (a raise statement of tsnav): one line
+
+    monkeypatch.setattr(claims, "run", bug)
+    with pytest.raises(ValueError, match="reshape"):
+        main(["claims", "x"])
+    monkeypatch.setattr(claims, "run", checked)
+    assert main(["claims", "x"]) == 2
+    assert capsys.readouterr().err.strip().startswith("tsnav claims: error: unknown success protocol 'bogus'")
+    with pytest.raises(ValueError):
+        main(["--debug", "claims", "x"])
+
+
+# -- the project's recipe files ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["table2-ablation", "table3-pretraining", "fig4-threshold"])
+def test_experiment_recipes_equal_their_commands(name):
+    from tsnav.pipeline.experiment import resolve
+    from tsnav.pipeline.recipes import experiment_recipe
+
+    path = CONFIGS / "experiments" / f"{name}.toml"
+    argv = command_line(path)
+    a = resolve(parse("experiment", argv[1:] + ["--print-recipe"]))
+    b = resolve(parse("experiment", [str(path), "--print-recipe"]))
+    assert experiment_recipe(*a, paths=False) == experiment_recipe(*b, paths=False)
+    # and the recipe file is the resolved recipe, written out
+    assert read_recipe(path) == read_recipe_text(dump_recipe(experiment_recipe(*a, paths=False)))
+
+
+def test_demo_recipe_equals_the_demo():
+    from tsnav.pipeline.demo import demo_recipe, resolve
+
+    path = CONFIGS / "demo.toml"
+    plain = resolve(parse("demo", command_line(path)[1:]))
+    recipe = resolve(parse("demo", ["--config", str(path)]))
+    assert demo_recipe(plain) == demo_recipe(recipe) and recipe.sizes == plain.sizes
+    assert read_recipe(path) == read_recipe_text(dump_recipe(demo_recipe(plain)))
+
+
+@pytest.mark.parametrize("name", ["tsrm-demae-learned7", "tsrm-demae-learned6", "tsrm-demae-learned4-v2"])
+def test_agent_recipes_equal_the_shipped_configs(name, tmp_path):
+    """The recipe's [train], [reward] and [agent] are the shipped run's config.json, but the budget, the data and
+    the features (the work folder's)."""
+    from tsnav.pipeline.agent_recipe import resolve_agent
+    from tsnav.rl.train import stored_config
+
+    path = CONFIGS / "agents" / f"{name}.toml"
+    r = resolve_agent(read_recipe(path), tmp_path)
+    shipped_cfg, shipped_agent = stored_config(WEIGHTS / name)
+    ours = identity_recipe(*r.run)
+    theirs = identity_recipe(shipped_cfg, shipped_agent)
+    for d in (ours, theirs):
+        d["train"].pop("data"), d["train"].pop("features")
+    assert first_difference(theirs, ours) is None
+    saved = json.loads((WEIGHTS / name / "config.json").read_text())
+    reward = to_recipe(r.run[0].reward_config())  # fields added since the run are at the paper's values
+    assert saved["reward"] == {k: reward[k] for k in saved["reward"]}
+    assert {k: v for k, v in reward.items() if k not in saved["reward"]} in ({}, {"distance_increase_scale": 1.0})
+    assert not any(str(v).startswith("/") for v in saved["train"].values())  # no machine path ships
+    card = json.loads((WEIGHTS / name / "card.json").read_text())
+    assert r.detections.shipped == card["detector_shipped"] and r.world.version == card["world_version"]
+
+
+def test_every_shipped_recipe_names_no_machine_path():
+    for path in CONFIGS.rglob("*.toml"):
+        for line in path.read_text().splitlines():
+            if not line.startswith("#"):
+                assert "/work/" not in line and "/home/" not in line and "/tmp/" not in line, (path, line)
+
+
+# -- a run's settings end to end ----------------------------------------------------------------------------------
+
+
+def test_train_recipe_and_resume_refusal(pixel_world, tmp_path, capsys):
+    """K_d = 0.3 from a recipe file and --set reaches the run; a resume keeps it; another value is refused in one
+    line naming it; the run's recipe.toml trains the same run again."""
+    recipe = tmp_path / "kd.toml"
+    recipe.write_text('[train]\nalgo = "batched"\npreset = "cpu"\nnum_envs = 4\nrollout_steps = 5\n'
+                      'checkpoint_every = 2\nlog_every = 1\nlr = 1e-3\n[reward]\nk_distance = 0.3\n'
+                      '[agent]\ndropout = 0.2\n')
+    run = tmp_path / "run"
+    assert main(["train", "--config", str(recipe), "--set", "train.updates=2", "--data", str(pixel_world),
+                 "--features", FEATS, "--detections", "oracle", "--out", str(run), "--quiet"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["reward"]["k_distance"] == 0.3 and cfg["train"]["reward_settings"] == {"k_distance": 0.3}
+    assert cfg["agent"]["dropout"] == 0.2 and cfg["train"]["updates"] == 2
+    saved = read_recipe(run / "recipe.toml")
+    assert saved["reward"]["k_distance"] == 0.3 and saved["agent"]["dropout"] == 0.2
+    assert main(["train", "--out", str(run), "--updates", "4", "--quiet"]) == 0  # resumed with its own K_d
+    assert json.loads((run / "config.json").read_text())["reward"]["k_distance"] == 0.3
+    capsys.readouterr()
+    assert main(["train", "--out", str(run), "--k-distance", "0.15", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "another configuration (reward.k_distance): 0.3 saved, 0.15 given" in err
+    assert main(["train", "--out", str(run), "--set", "agent.dropout=0.45", "--quiet"]) == 2
+    assert "(agent.dropout)" in capsys.readouterr().err
+    again = tmp_path / "again"
+    assert main(["train", "--config", str(run / "recipe.toml"), "--out", str(again), "--quiet"]) == 0
+    a, b = (json.loads((p / "config.json").read_text()) for p in (run, again))
+    assert {k: v for k, v in a["train"].items() if k not in BUDGET_FIELDS} == \
+        {k: v for k, v in b["train"].items() if k not in BUDGET_FIELDS}
+    assert a["reward"] == b["reward"] and a["agent"] == b["agent"]
+
+
+def test_build_refuses_unknown_and_names_the_section():
+    with pytest.raises(CommandError, match=r"\[agent\]: no setting hiden"):
+        build(AgentConfig, {"hiden": 3}, "agent")
+
+
+def test_pretrain_options_come_from_pretrain_config():
+    """`tsnav pretrain`: one option per PretrainConfig field (its old names --patch and --workers kept), a recipe's
+    [pretrain] section and --set under the options given."""
+    from tsnav.pretrain.command import config_from_args
+    from tsnav.pretrain.train import PretrainConfig
+
+    assert config_from_args(parse("pretrain", ["--data", "d", "--out", "o"])) == PretrainConfig()
+    c = config_from_args(parse("pretrain", ["--data", "d", "--out", "o", "--patch", "8", "--num-workers", "2",
+                                            "--no-preload", "--set", "pretrain.betas=[0.9, 0.99]",
+                                            "--set", "pretrain.steps=7", "--steps", "5"]))
+    assert (c.patch_size, c.num_workers, c.preload, c.betas, c.steps) == (8, 2, False, (0.9, 0.99), 5)
+    with pytest.raises(CommandError, match="unknown method 'dino'"):
+        config_from_args(parse("pretrain", ["--data", "d", "--out", "o", "--method", "dino"]))
+
+
+def test_every_parser_refuses_abbreviations():
+    """Every ArgumentParser of the package and of bench/ is made with allow_abbrev=False (tsnav's subcommands by
+    cli.py, through tsnav.settings.Parser and refuse_abbreviations)."""
+    import re
+
+    for path in [*(ROOT / "src").rglob("*.py"), *(ROOT / "bench").glob("*.py")]:
+        for m in re.finditer(r"ArgumentParser\((.*)", path.read_text()):
+            assert "allow_abbrev=False" in m.group(1) or path.name == "settings.py", (path, m.group(0))
+
+
+def test_release_make_refuses_before_any_work(tmp_path, capsys):
+    """`tsnav release make`: replacing a shipped agent needs its name, and the recipe's own mistakes are refused
+    before a folder is made; nothing is written into the package."""
+    recipe = CONFIGS / "agents" / "tsrm-demae-learned7.toml"
+    work = tmp_path / "work"
+    before = sorted(p.name for p in WEIGHTS.iterdir())
+    assert main(["release", "make", str(recipe), "--work", str(work), "--replace-shipped", "tsrm-demae-learned6"]) == 2
+    assert "the recipe makes 'tsrm-demae-learned7'" in capsys.readouterr().err and not work.exists()
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "train.data=\"/x\""]) == 2
+    assert "[train]: data is the work folder's" in capsys.readouterr().err and not work.exists()
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "train.algo=\"a3c\""]) == 2
+    assert "algo batched" in capsys.readouterr().err
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "convergence.chunk=0"]) == 2
+    assert "--chunk must be >= 1" in capsys.readouterr().err
+    assert sorted(p.name for p in WEIGHTS.iterdir()) == before
+
+
+def test_agent_card_is_written_from_the_recipe(tmp_path):
+    from tsnav.detect.shipped import shipped_meta
+    from tsnav.pipeline.agent_recipe import resolve_agent
+    from tsnav.pipeline.release import CARD_REQUIRED, agent_card
+
+    r = resolve_agent(read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml"), tmp_path)
+    card = agent_card(r, tmp_path)
+    assert all(k in card for k in CARD_REQUIRED)
+    shipped = json.loads((WEIGHTS / r.name / "card.json").read_text())
+    for k in ("name", "world_preset", "world_version", "image_size", "detector_shipped", "detector_fingerprint",
+              "detections", "summary", "protocol", "encoder_id"):
+        assert card[k] == shipped[k], k
+    assert card["detector_fingerprint"] == shipped_meta("learned7")["fingerprint"]
