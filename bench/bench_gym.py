@@ -1,5 +1,5 @@
 """The Gymnasium frame path, as another learner sees it: ``gym.make`` / ``gym.make_vec`` of
-``tsnav/ObjectNav-v0`` stepped with random actions, rgb + depth + detections observations, the paper's TSRM
+``tsnav/ObjectNav-v1`` stepped with random actions, rgb + depth + detections observations, the paper's TSRM
 reward. Prints steps/s of this checkout's default path ("after") against a "before" in one run, and their
 ratio. Goals (issue 26): >= 20 k env-steps/s with 64 envs and >= 5 k steps/s for the single env, on one
 core, on the demo's rooms.
@@ -43,7 +43,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import gymnasium as gym
 import numpy as np
 
-ENV_ID = "tsnav.sim:tsnav/ObjectNav-v0"
+ENV_ID = "tsnav.sim:tsnav/ObjectNav-v1"
 TRAIN_STATES_ITHOR_REAL = 266_288
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 #: The first release's frame path, this checkout's "before" without --before-src (the single env also steps

@@ -252,7 +252,7 @@ def test_learned_detector_takes_the_train_scenes_class_set(two_worlds, tmp_path,
 def test_gymnasium_spaces_follow_the_class_set(two_worlds):
     import gymnasium as gym
 
-    env = gym.make("tsnav.sim:tsnav/ObjectNav-v0", data=str(two_worlds["robothor"]), split="train", reward="tsrm",
+    env = gym.make("tsnav.sim:tsnav/ObjectNav-v1", data=str(two_worlds["robothor"]), split="train", reward="tsrm",
                    detections="oracle")
     assert env.observation_space["target"].n == 12 and env.observation_space["detections"].shape == (72,)
     obs, info = env.reset(seed=0, options={"episode": ("FloorPlan_Train1_1", "Apple", "0.00|0.00|45|0")})

@@ -81,7 +81,7 @@ def parser_markdown(parser: argparse.ArgumentParser, title: str, depth: int = 2)
 def command_parser(name: str) -> argparse.ArgumentParser:
     """The parser ``tsnav NAME`` builds (:func:`tsnav.cli.main`)."""
     module_name, help_ = COMMANDS[name]
-    p = argparse.ArgumentParser(prog=f"tsnav {name}", description=help_)
+    p = argparse.ArgumentParser(allow_abbrev=False, prog=f"tsnav {name}", description=help_)
     importlib.import_module(module_name).build_parser(p)
     return p
 
@@ -101,7 +101,7 @@ def default_page() -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m tsnav.cli_reference", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="python -m tsnav.cli_reference", description=__doc__.splitlines()[0])
     p.add_argument("--out", default=None, help="page to write (default docs/COMMANDS.md of this checkout)")
     p.add_argument("--check", action="store_true", help="write nothing; exit 1 when the page is stale")
     args = p.parse_args(argv)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -163,7 +162,7 @@ def switch_misses(a, b) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze agent-diagnostics", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze agent-diagnostics", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("rotations", help="how evaluated agents turn")
     r.add_argument("evals", nargs="+", help="tsnav eval output folders")

@@ -132,7 +132,7 @@ def _line(name: str, f: dict) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="tsnav analyze class-calibration", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze class-calibration", description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, type=Path, help="a built world")
     ap.add_argument("--from", dest="source", default="learned4", help="the tables to recalibrate")
     ap.add_argument("--fit-split", default="val", help="rooms the maps are fitted on (default val)")

@@ -86,7 +86,7 @@ def table(runs: dict) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze collect-runs", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze collect-runs", description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True, help="JSON file to write")
     p.add_argument("--title", required=True, help="what the runs measure")
     p.add_argument("--setting", action="append", default=[], help="KEY=VALUE, the setting in words (repeatable)")

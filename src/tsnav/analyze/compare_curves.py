@@ -28,7 +28,7 @@ def split_pair(text: str, what: str) -> tuple[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze compare-curves", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze compare-curves", description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True, help="PNG to write")
     p.add_argument("--curve", action="append", default=[], help="LABEL=FOLDER of a `tsnav convergence` run")
     p.add_argument("--ref", action="append", default=[], help="LABEL=PERCENT: a reference SR line")

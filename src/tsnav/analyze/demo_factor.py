@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -165,7 +164,7 @@ def table(base: Path, variants: list[str]) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze demo-factor", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze demo-factor", description=__doc__.splitlines()[0])
     p.add_argument("base", type=Path)
     p.add_argument("variant", nargs="?")
     p.add_argument("seeds", nargs="*", type=int)

@@ -16,7 +16,6 @@ thread of this machine) and writes nothing.
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import replace
 
 import numpy as np
@@ -55,7 +54,7 @@ def tables(det: LearnedDetector, scene, plain: Detections, chunk: int = 2048) ->
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze detector-tta", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze detector-tta", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="world with the split's rooms at the detector's frame size")
     p.add_argument("--split", default="val")
     p.add_argument("--shipped", default="learned4", help="shipped detector name (tsnav.detect.shipped)")

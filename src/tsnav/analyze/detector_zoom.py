@@ -81,7 +81,7 @@ def scored(table: Detections, logits: np.ndarray, temperature: float) -> Detecti
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze detector-zoom", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze detector-zoom", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="world with the split's rooms at the detector's frame size")
     p.add_argument("--split", default="val")
     p.add_argument("--shipped", default="learned4", help="shipped detector name (tsnav.detect.shipped)")

@@ -25,7 +25,7 @@ VARIANTS = {"tsrm": {}, "baseline": {"reward": "baseline"}, "explore": {"reward"
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze done-collapse", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze done-collapse", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--features", required=True)
     p.add_argument("--detections", required=True)

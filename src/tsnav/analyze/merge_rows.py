@@ -140,7 +140,7 @@ def table_text(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="tsnav analyze merge-rows", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze merge-rows", description=__doc__.split("\n\n")[0])
     ap.add_argument("--into", required=True, type=Path, help="experiment folder or results.json with the other rows")
     ap.add_argument("--from", dest="src", required=True, type=Path, help="results.json holding the rows to copy")
     ap.add_argument("--map", action="append", default=[], required=True, metavar="TARGET=SOURCE",

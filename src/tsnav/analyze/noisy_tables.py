@@ -52,7 +52,7 @@ def noisy_table(scene_dir: str, sigma: float, seed: int, shipped: str, name: str
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze noisy-tables", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze noisy-tables", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="world folder (120 rooms)")
     p.add_argument("--from", dest="source", default="learned4", help="clean table linked into the other splits")
     p.add_argument("--shipped", default="learned4", help="shipped detector that writes the noisy tables")

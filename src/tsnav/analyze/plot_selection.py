@@ -38,7 +38,7 @@ def read_selection(path: str) -> tuple[list[int], list[float], list[float], int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="tsnav analyze plot-selection", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze plot-selection", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--title", default="milestones scored on two validation sets")
     ap.add_argument("--run", action="append", required=True, metavar="LABEL=SMALL,LARGE")

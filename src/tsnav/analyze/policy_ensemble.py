@@ -81,7 +81,7 @@ def evaluate_ensemble(out: Path, data: Path, episodes_file: Path, runs: list[Pat
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze policy-ensemble", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze policy-ensemble", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="dataset root (scene folders)")
     p.add_argument("--episodes", type=Path, required=True, help="episode list JSON")

@@ -205,7 +205,7 @@ def show(name: str, s: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="tsnav analyze stop-signal", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze stop-signal", description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, type=Path, help="a built world (scene folders with states.hdf5)")
     ap.add_argument("--detections", required=True, help="the detection table the agent reads (e.g. learned4)")
     ap.add_argument("--compare", default=None, help="a second table, e.g. oracle")

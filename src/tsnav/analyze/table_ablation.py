@@ -233,7 +233,7 @@ def _print_by(name: str, by: dict) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="tsnav analyze table-ablation", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze table-ablation", description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--learned", default="learned4")
     p.add_argument("--oracle", default="oracle")

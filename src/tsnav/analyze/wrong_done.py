@@ -45,7 +45,7 @@ def failed_dones(data: Path, eval_dir: Path, detections: str) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="tsnav analyze wrong-done", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze wrong-done", description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, type=Path)
     ap.add_argument("--eval", required=True, type=Path, dest="eval_dir")
     ap.add_argument("--detections", required=True)

@@ -147,7 +147,7 @@ def experiment_table(title: str, paper_key: str, entries: list[dict], paper: dic
                   f"Per seed, L>=5, Welch tests and claim checks: [{e['details']}](results/{e['details']}); "
                   f"data: [{e['file']}](results/{e['file']}).", "",
                   "```", e["command"], "```", "",
-                  f"| row | " + " | ".join(f"{m} paper | {m} tsnav `{proto}`" for m in cols) + " |",
+                  "| row | " + " | ".join(f"{m} paper | {m} tsnav `{proto}`" for m in cols) + " |",
                   "| --- | " + " | ".join("---: | ---:" for _ in cols) + " |"]
         seen = set()
         for row in res["rows"]:
@@ -270,7 +270,7 @@ def pages(root: Path) -> dict[Path, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m tsnav.report.results_page", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="python -m tsnav.report.results_page", description=__doc__.splitlines()[0])
     p.add_argument("--root", default=None, help="the checkout (default: the one this module runs from)")
     p.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page is stale")
     args = p.parse_args(argv)
