@@ -102,41 +102,52 @@ def _copy_world(src: Path, dst: Path) -> None:
 
 def test_train_and_ship(tiny_real, tmp_path, capsys):
     # the world the page builds is tiny-real; a copy of the session's saves building it again (the command skips
-    # complete rooms)
+    # complete rooms); the page names the recipe relative to the checkout
     _copy_world(tiny_real, tmp_path / "work" / "world")
+    shutil.copytree(ROOT / "configs", tmp_path / "configs")
     env = run_page(HOWTO / "train-and-ship.md",
                    dict(PRESET="tiny-real", MODEL="vit_micro", IMG="32", PRETRAIN_STEPS="2", UPDATES="2", ENVS="4",
-                        MILESTONES="1", VAL="6"), tmp_path, capsys,
-                   # the card as the page writes it, evaluated on tiny-real's one test room instead of all 20
-                   edit_files={"card.json": lambda card: {**card, "test_rooms": ["FloorPlan424"]}})
+                        CHUNK="1", VAL="6"), tmp_path, capsys)
 
     work = tmp_path / env["WORK"]
-    card = json.loads((work / "my-agent" / "card.json").read_text())
+    folder = work / "agent" / "tsrm-demae-learned7"
+    card = json.loads((folder / "card.json").read_text())
     import tsnav
+    from tsnav.settings import read_recipe
 
-    assert card["tsnav_version"] == tsnav.__version__ and card["name"] == "my-agent"
-    assert {(r["protocol"], r["policy"]) for r in card["figures"]["test"]["rows"]} == {
-        (p, pol) for p in ("paper", "lineage") for pol in ("agent", "scripted explorer", "random")}
-    assert (work / "run" / "best").is_dir() and (work / "eval" / "metrics.json").exists()
+    assert card["tsnav_version"] == tsnav.__version__ and card["name"] == "tsrm-demae-learned7"
+    assert card["world_preset"] == "tiny-real" and card["test_rooms"] == ["FloorPlan424"]
+    for split in ("val", "test"):
+        assert {(r["protocol"], r["policy"]) for r in card["figures"][split]["rows"]} == {
+            (p, pol) for p in ("paper", "lineage") for pol in ("agent", "scripted explorer", "random")}
+    recipe = read_recipe(folder / "recipe.toml")
+    assert recipe["train"]["updates"] == 2 and recipe["pretrain"]["model"] == "vit_micro"
+    assert recipe["select"]["per_room_type"] == 6 and recipe["agent"]["blocked_action"] is True
 
 
-def test_reproduce_table2(tiny_real, tmp_path, capsys, monkeypatch):
-    from tsnav.pipeline import config
+def test_reproduce_table2(tiny_real, tmp_path, capsys):
+    """The page runs the committed recipe; here a tiny recipe written from it (the same experiment, rows of one
+    seed at a tiny scale) takes its place."""
+    from tsnav.settings import dump_recipe, merge, read_recipe
 
-    tiny = config.ScaleConfig().override(
-        pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8), feature_batch_size=256,
-        train=dict(num_envs=4, updates=2, milestone_every=1), test_per_room_type=6, val_per_room_type=6,
-        detector=dict(steps=4, batch_size=8, max_states_per_scene=24), resnet_pretrain_steps=2)
-    monkeypatch.setitem(config.SCALES, "medium", tiny)
+    recipe = merge(read_recipe(ROOT / "configs" / "experiments" / "table2-ablation.toml"), {
+        "experiment": dict(seeds=1, rows=["baseline", "tsrm_demae"], select_per_room_type=6, updates_per_job=2,
+                           parallel=1),
+        "scale": dict(feature_batch_size=256, test_per_room_type=6, val_per_room_type=6, resnet_pretrain_steps=2,
+                      pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8),
+                      train=dict(num_envs=4, updates=2, milestone_every=1),
+                      detector=dict(steps=4, batch_size=8, max_states_per_scene=24))})
+    tiny = tmp_path / "table2-tiny.toml"
+    tiny.write_text(dump_recipe(recipe))
     _copy_world(tiny_real, tmp_path / "work" / "world")
-    env = run_page(HOWTO / "reproduce-table2.md",
-                   dict(PRESET="tiny-real", SEEDS="1", SELECT="6", ROWS="baseline,tsrm_demae"), tmp_path, capsys)
+    env = run_page(HOWTO / "reproduce-table2.md", dict(PRESET="tiny-real", RECIPE=str(tiny)), tmp_path, capsys)
 
     out = tmp_path / env["WORK"] / "ablation"
     res = json.loads((out / "results.json").read_text())
     assert [r["row"] for r in res["rows"]] == ["baseline", "tsrm_demae"] and res["protocol"] == "lineage"
     assert "paper" in res["other_protocols"] and res["blocked_action"] and res["detections"] == "learned7"
     assert (out / "report" / "index.html").exists()
+    assert read_recipe(out / "recipe.toml")["scale"]["train"]["updates"] == 2
 
 
 def test_import_ai2thor(tiny_world, tmp_path, capsys):
