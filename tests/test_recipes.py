@@ -283,3 +283,23 @@ def test_agent_card_is_written_from_the_recipe(tmp_path):
               "detections", "summary", "protocol", "encoder_id"):
         assert card[k] == shipped[k], k
     assert card["detector_fingerprint"] == shipped_meta("learned7")["fingerprint"]
+
+
+def test_train_reads_its_sections_of_an_agent_recipe(capsys, tmp_path):
+    """``tsnav train --config configs/agents/NAME.toml`` runs the recipe's [train], [reward] and [agent] (the
+    other sections are tsnav release make's, named in one line); a misspelt section is still refused."""
+    from tsnav.pipeline.agent_recipe import SECTIONS as AGENT_SECTIONS
+    from tsnav.rl.recipe import AGENT_RECIPE_KEYS, SECTIONS, recipe_from_args, resolve_run
+
+    assert set(AGENT_SECTIONS) - set(SECTIONS) == set(AGENT_RECIPE_KEYS) - {"name"}
+    path = CONFIGS / "agents" / "tsrm-demae-learned7.toml"
+    recipe = recipe_from_args(parse("train", ["--config", str(path), "--data", "d", "--out", "o"]))
+    assert "world" in capsys.readouterr().err
+    cfg, agent = resolve_run(recipe)
+    full = read_recipe(path)
+    assert (cfg.lr, cfg.seed, cfg.num_envs, cfg.protocol) == (full["train"]["lr"], full["train"]["seed"],
+                                                              full["train"]["num_envs"], full["train"]["protocol"])
+    assert agent.dropout == full["agent"]["dropout"]
+    (tmp_path / "r.toml").write_text(path.read_text().replace("[world]", "[wrold]"))
+    with pytest.raises(CommandError, match="wrold"):
+        recipe_from_args(parse("train", ["--config", str(tmp_path / "r.toml"), "--data", "d", "--out", "o"]))

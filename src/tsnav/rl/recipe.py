@@ -11,6 +11,7 @@ file (``--config``), ``--set SECTION.KEY=VALUE``, the options given on the comma
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,6 +24,9 @@ from .config import BUDGET_FIELDS, REWARD_OWN, TrainConfig, reward_settings_of
 
 #: The sections of a run's recipe.
 SECTIONS = ("train", "reward", "agent")
+#: The keys of a shipped agent's recipe (configs/agents/*.toml) that other steps read (``tsnav release make``):
+#: ``tsnav train`` and ``tsnav convergence`` take such a recipe and read their own sections of it.
+AGENT_RECIPE_KEYS = ("name", "world", "detections", "pretrain", "features", "convergence", "select", "card")
 #: TrainConfig fields that are no setting of the recipe's ``[train]`` (the ``[reward]`` section sets them).
 TRAIN_HIDDEN = ("reward_settings",)
 
@@ -48,6 +52,13 @@ def add_recipe_options(parser: argparse.ArgumentParser) -> None:
 def recipe_from_args(args: argparse.Namespace, sections=SECTIONS) -> dict:
     """The recipe the command line names: the ``--config`` file, then ``--set``, then the options given."""
     base = read_recipe(args.config) if getattr(args, "config", None) else {}
+    if "train" in base and set(base) - set(sections) <= set(AGENT_RECIPE_KEYS):
+        # an agent's recipe (configs/agents/): the run's sections are taken, the other steps' left to release make
+        skipped = sorted(set(base) - set(sections))
+        if skipped:
+            print(f"{args.config}: an agent's recipe; this command reads its {', '.join(sections)} sections "
+                  f"(the others, {', '.join(skipped)}, are tsnav release make's)", file=sys.stderr)
+        base = {k: v for k, v in base.items() if k in sections}
     unknown = sorted(set(base) - set(sections))
     if unknown:
         raise CommandError(f"{args.config}: no section {', '.join(unknown)} in a run's recipe "
