@@ -72,10 +72,14 @@ def run(args) -> int:
                                   **({"image_size": args.size} if args.size else {}),
                                   **({"compact": True} if args.compact else {}),
                                   **({"world_version": args.world_version} if args.world_version is not None else {}))
-    if cfg.world_version is not None and cfg.world != "ithor-real":
-        raise CommandError(f"--world-version applies to the ithor-real world, not preset {args.preset!r}")
+    if cfg.world_version is not None and cfg.world not in ("ithor-real", "robothor-real"):
+        raise CommandError(f"--world-version applies to the ithor-real and robothor-real worlds, not preset "
+                           f"{args.preset!r}")
     if cfg.world_version is not None:
-        from .real import VERSIONS
+        if cfg.world == "ithor-real":
+            from .real import VERSIONS
+        else:
+            from .robothor_real import VERSIONS
 
         if cfg.world_version not in VERSIONS:
             raise CommandError(f"unknown --world-version {cfg.world_version} (choose from "
