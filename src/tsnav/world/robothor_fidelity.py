@@ -167,8 +167,8 @@ def ratio_summary(ratios: list, episodes: int, kept: int) -> dict:
     return {"episodes": episodes, "starts_kept": kept, "starts_kept_pct": round(100.0 * kept / max(episodes, 1), 2),
             "ratios": int(len(r)), "median": round(float(np.median(r)), 4) if len(r) else None,
             "mean_finite": round(float(fin.mean()), 4) if len(fin) else None,
-            "p10": round(float(np.percentile(r, 10)), 4) if len(r) else None,
-            "p90": round(float(np.percentile(r, 90)), 4) if len(r) else None,
+            "p10": round(float(np.percentile(r, 10, method="lower")), 4) if len(r) else None,
+            "p90": round(float(np.percentile(r, 90, method="higher")), 4) if len(r) else None,
             "within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2) if len(r) else None,
             "within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2) if len(r) else None,
             "no_path": int((~np.isfinite(r)).sum())}

@@ -62,7 +62,7 @@ FURNITURE_HEIGHT = 0.75  #: height of an inferred furniture blob, metres
 BAND = 3  #: rows of plan pixels per footprint box of an inferred furniture blob
 SUCCESS_RADIUS = 1.0  #: the challenge's success distance: its shortest paths end this far from the target, m
 FLOOR_COST = 0.25  #: placement cost of a candidate on open floor (no furniture blob) in the plan, metres^2
-NEAR_COST = 1.0  #: placement cost per start of a longer path lying within the success radius, metres^2
+NEAR_COST = 1.0  #: placement cost of a target with all its paths' earlier points within the success radius, m^2
 OFF_GRID = 5.0  #: degrees off a right angle beyond which a recorded object without oriented box is measured
 MIN_TURNED_PX = 10  #: fewest plan pixels to measure a turned object's footprint from
 RULES = {1: {"off_grid": OFF_GRID, "min_turned_px": MIN_TURNED_PX, "clearance": CLEARANCE, "wall_thickness": WALL_THICKNESS, "wall_height": WALL_HEIGHT, "furniture_height": FURNITURE_HEIGHT,
@@ -193,20 +193,38 @@ def blob_boxes(blob: tuple[int, int, int, int, int], mask: np.ndarray) -> list[t
     return out
 
 
-def place_target(ends: np.ndarray, starts_far: np.ndarray, furniture: np.ndarray, inside: np.ndarray) -> tuple[float, float, float]:
+def path_samples(path: list[dict], step: float = 0.1, stop_before: float = 0.15) -> np.ndarray:
+    """``(n, 2)`` points every ``step`` m along a challenge shortest path (its corner points ``{x, y, z}``), up to
+    ``stop_before`` m before its end: where the path had not yet come within the success radius of its target."""
+    pts = np.array([[p["x"], p["z"]] for p in path], dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 2:
+        return np.zeros((0, 2))
+    seg = np.hypot(*np.diff(pts, axis=0).T)
+    cum = np.r_[0.0, np.cumsum(seg)]
+    at = np.arange(0.0, cum[-1] - stop_before, step)
+    if len(at) == 0:
+        return np.zeros((0, 2))
+    return np.stack([np.interp(at, cum, pts[:, 0]), np.interp(at, cum, pts[:, 1])], axis=1)
+
+
+def place_target(ends: np.ndarray, before: np.ndarray, furniture: np.ndarray, inside: np.ndarray) -> tuple[float, float, float]:
     """Where a target stands, from the challenge's episodes of its type in one scene: the plan pixel that best
     fits ``ends`` ((n, 2) x, z where the shortest paths end, about :data:`SUCCESS_RADIUS` from the target):
     cost = mean squared difference of the end distances from :data:`SUCCESS_RADIUS`, + :data:`FLOOR_COST` on a
-    pixel that is not furniture (``furniture``, (H, W) bool), + :data:`NEAR_COST` per start of a longer path
-    (``starts_far``) within the radius; candidates are the ``inside`` pixels. Returns ``(x, z, cost)``."""
+    pixel that is not furniture (``furniture``, (H, W) bool), + :data:`NEAR_COST` times the share of ``before``
+    (points of the paths before their ends, :func:`path_samples`) within the radius; candidates are the ``inside``
+    pixels. Returns ``(x, z, cost)``."""
     rr, cc = np.nonzero(inside)
     xs, zs = P.pixel_to_world(rr.astype(float), cc.astype(float))
     d = np.hypot(xs[:, None] - ends[None, :, 0], zs[:, None] - ends[None, :, 1])
     cost = ((d - SUCCESS_RADIUS) ** 2).mean(axis=1)
     cost += FLOOR_COST * ~furniture[rr, cc]
-    if len(starts_far):
-        ds = np.hypot(xs[:, None] - starts_far[None, :, 0], zs[:, None] - starts_far[None, :, 1])
-        cost += NEAR_COST * (ds < SUCCESS_RADIUS - 0.05).sum(axis=1)
+    if len(before):
+        near = np.zeros(len(xs))
+        for a in range(0, len(before), 256):  # chunks keep the (pixels, samples) table small
+            b = before[a:a + 256]
+            near += (np.hypot(xs[:, None] - b[None, :, 0], zs[:, None] - b[None, :, 1]) < SUCCESS_RADIUS - 0.05).sum(1)
+        cost += NEAR_COST * near / len(before)
     k = int(np.argmin(cost))
     return float(xs[k]), float(zs[k]), float(cost[k])
 
@@ -369,9 +387,8 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
     for t in sorted({e["object_type"] for e in eps}):
         mine = [e for e in eps if e["object_type"] == t]
         ends = np.array([[e["shortest_path"][-1]["x"], e["shortest_path"][-1]["z"]] for e in mine])
-        far = np.array([[e["initial_position"]["x"], e["initial_position"]["z"]] for e in mine
-                        if e["shortest_path_length"] > SUCCESS_RADIUS]).reshape(-1, 2)
-        x, z, cost = place_target(ends, far, opened, inside)
+        before = np.concatenate([path_samples(e["shortest_path"]) for e in mine] + [np.zeros((0, 2))])
+        x, z, cost = place_target(ends, before, opened, inside)
         st = stats.get(t, {"size": [0.2, 0.2, 0.2], "floor_share": 0.0, "bottom": 0.5, "records": 0})
         on_floor = st["floor_share"] > 0.5
         bottom = 0.0 if on_floor else st["bottom"]
