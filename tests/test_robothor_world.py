@@ -329,3 +329,10 @@ def test_build_one_scene_end_to_end(tmp_path):
     (folder / "FloorPlan_Val3_2.json.gz").write_bytes(gzip.compress(json.dumps(eps).encode()))
     res = measure_scene(scene, load_episodes(tmp_path / "episodes", "FloorPlan_Val3_2"))
     assert res["starts_kept"] >= 0.9 * res["episodes"]
+    from tsnav.cli import main
+
+    assert main(["world", "fidelity", "--data", str(tmp_path), "--episodes", str(tmp_path / "episodes"),
+                 "--out", str(tmp_path / "fid")]) == 0
+    doc = json.loads((tmp_path / "fid" / "fidelity.json").read_text())
+    assert doc["summary"]["val"]["episodes"] == len(eps) and (tmp_path / "fid" / "FloorPlan_Val3_2.png").exists()
+    assert main(["world", "fidelity", "--data", str(tmp_path), "--episodes", str(tmp_path / "nowhere")]) == 2
