@@ -388,22 +388,37 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
     inferred: dict[str, str] = {}
     # Targets first: furniture under them is drawn no higher than their bottom.
     eps = val_episodes(name)
-    targets = []
+    # Targets in order of how well their episodes fix them (lowest fit cost first); a target is not put where it
+    # would overlap one placed before it (its disc, the half diagonal of its size, off theirs).
+    fits = []
     for t in sorted({e["object_type"] for e in eps}):
         mine = [e for e in eps if e["object_type"] == t]
         ends = np.array([[e["shortest_path"][-1]["x"], e["shortest_path"][-1]["z"]] for e in mine])
         before = np.concatenate([path_samples(e["shortest_path"]) for e in mine] + [np.zeros((0, 2))])
-        x, z, cost = place_target(ends, before, opened, inside)
-        yaw = 0.0  # the records give no hint (facing the paths' ends was tried: no closer paths)
+        fits.append((place_target(ends, before, opened, inside)[2], t, mine, ends, before))
+    rr, cc = np.mgrid[0:plan.shape[0], 0:plan.shape[1]]
+    px_x, px_z = P.pixel_to_world(rr.astype(float), cc.astype(float))
+    placed: list[tuple[float, float, float]] = []  # x, z, half diagonal
+    targets = []
+    for _, t, mine, ends, before in sorted(fits, key=lambda f: (f[0], f[1])):
         st = stats.get(t, {"size": [0.2, 0.2, 0.2], "floor_share": 0.0, "bottom": 0.5, "records": 0})
+        half = math.hypot(st["size"][0], st["size"][2]) / 2
+        free = inside.copy()
+        for px, pz, ph in placed:
+            free &= np.hypot(px_x - px, px_z - pz) > ph + half
+        x, z, cost = place_target(ends, before, opened, free if free.any() else inside)
+        yaw = 0.0  # the records give no hint (facing the paths' ends was tried: no closer paths)
         on_floor = st["floor_share"] > 0.5
         bottom = 0.0 if on_floor else st["bottom"]
         oid = f"{t}|inferred|{x:+.2f}|{z:+.2f}"
         size = tuple(round(v, 4) for v in st["size"])
         targets.append((oid, t, x, z, bottom, size, on_floor, yaw))
+        placed.append((x, z, half))
+        if on_floor:  # the blob under a floor-standing target is the target itself: it is not furniture
+            opened &= ~((np.abs(px_x - x) <= size[0] / 2 + P.PIXEL) & (np.abs(px_z - z) <= size[2] / 2 + P.PIXEL))
         inferred[oid] = (f"placed where the {len(mine)} challenge val episodes of {t} end {SUCCESS_RADIUS} m away "
-                         f"(fit cost {cost:.3f} m^2); size and height: median of {st['records']} train records of "
-                         f"{t}{', on the floor' if on_floor else ''}")
+                         f"(fit cost {cost:.3f} m^2, off the targets placed before it); size and height: median of "
+                         f"{st['records']} train records of {t}{', on the floor' if on_floor else ''}")
     lab, n = ndimage.label(opened)
     sizes = np.bincount(lab.ravel(), minlength=n + 1)
     static = apartment_static(apartment(name))
