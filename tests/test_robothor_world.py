@@ -163,6 +163,14 @@ def test_place_target_fits_the_one_metre_circle_on_furniture():
     assert math.hypot(x - 6.0, z + 3.0) < 3 * P.PIXEL
 
 
+def test_blob_boxes_keep_a_hole_open():
+    mask = np.zeros((20, 20), bool)
+    mask[2:5, 2:14] = True
+    mask[2:5, 7:9] = False  # a target's place cut out of its blob
+    boxes = R.blob_boxes((2, 2, 4, 13, int(mask.sum())), mask)
+    assert len(boxes) == 2 and boxes[0][2] < boxes[1][0]
+
+
 def test_blob_boxes_follow_an_l_shape():
     mask = np.zeros((20, 20), bool)
     mask[2:14, 2:5] = True  # the vertical leg

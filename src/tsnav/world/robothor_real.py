@@ -184,17 +184,16 @@ def floor_rect(walls: P.WallPlan) -> tuple[float, float, float, float]:
 # ------------------------------------------------------------------------------------------- val inference
 def blob_boxes(blob: tuple[int, int, int, int, int], mask: np.ndarray) -> list[tuple[float, float, float, float]]:
     """World boxes ``(x0, z0, x1, z1)`` of one furniture blob: its pixels of ``mask`` in its bounding box, cut into
-    :data:`BAND`-row bands, each band the columns it spans."""
+    :data:`BAND`-row bands, each band one box per run of columns it covers (a hole, such as the place of a
+    floor-standing target cut out of its blob, stays open)."""
     r0, c0, r1, c1, _ = blob
     out = []
     for a in range(r0, r1 + 1, BAND):
         b = min(a + BAND - 1, r1)
-        cols = np.flatnonzero(mask[a:b + 1, c0:c1 + 1].any(axis=0))
-        if len(cols) == 0:
-            continue
-        xa, zb = P.pixel_to_world(b + 0.5, c0 + cols[0] - 0.5)
-        xb, za = P.pixel_to_world(a - 0.5, c0 + cols[-1] + 0.5)
-        out.append((xa, zb, xb, za))
+        for s0, s1 in P.runs_1d(mask[a:b + 1, c0:c1 + 1].any(axis=0), max_gap=0, min_run=1):
+            xa, zb = P.pixel_to_world(b + 0.5, c0 + s0 - 0.5)
+            xb, za = P.pixel_to_world(a - 0.5, c0 + s1 + 0.5)
+            out.append((xa, zb, xb, za))
     return out
 
 
