@@ -43,9 +43,9 @@ class BuildConfig:
     compression: str | None = DEFAULT_COMPRESSION
     compression_level: int = DEFAULT_COMPRESSION_LEVEL
     compact: bool = False  #: small rooms (the `tiny` preset)
-    world: str = "procedural"  #: layout source: "procedural" or "ithor-real" (tsnav.world.presets.WORLDS)
-    #: version of the ithor-real rules (tsnav.world.real.VERSIONS; None: the newest); 1 rebuilds worlds made
-    #: before issue 24
+    world: str = "procedural"  #: layout source: "procedural", "ithor-real" or "robothor-real" (presets.WORLDS)
+    #: version of the ithor-real rules (tsnav.world.real.VERSIONS) or of the robothor-real rules
+    #: (tsnav.world.robothor_real.VERSIONS); None: the newest; ithor-real 1 rebuilds worlds made before issue 24
     world_version: int | None = None
     seed: int = 0  #: world seed; the same name and seed give the same scene
     tiles: int = 16  #: views rendered per framebuffer read
@@ -213,11 +213,12 @@ def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
     """Refuse to add ``ithor-real`` rooms of one rules version to a folder whose finished rooms were built with
     another (finished rooms are skipped, so the world would mix versions): one-line ``ValueError``. A room
     without a recorded ``generator`` was built before versions were recorded: version 1."""
-    if cfg.world != "ithor-real":
+    if cfg.world not in ("ithor-real", "robothor-real"):
         return
-    from .real import check_version
+    from .real import check_version as check_ithor
+    from .robothor_real import check_version as check_robothor
 
-    want = check_version(cfg.world_version)
+    want = (check_ithor if cfg.world == "ithor-real" else check_robothor)(cfg.world_version)
     for n in names:
         meta_path = out / n / "scene.json"
         if not (out / n / COMPLETE_MARKER).exists() or not meta_path.exists():
@@ -227,8 +228,11 @@ def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
         except (OSError, ValueError):
             continue  # an unreadable room is the reader's problem, not a version mismatch
         have = int(gen.get("version", 1))
+        if gen.get("world", cfg.world) != cfg.world:
+            raise ValueError(f"{out / n} was built by world {gen.get('world')!r}, this build makes {cfg.world!r}: "
+                             f"use another --out")
         if have != want:
-            raise ValueError(f"{out / n} was built with ithor-real version {have}, this build makes version {want}: "
+            raise ValueError(f"{out / n} was built with {cfg.world} version {have}, this build makes version {want}: "
                              f"pass --world-version {have} to finish that world, or use another --out")
 
 

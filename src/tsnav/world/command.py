@@ -15,7 +15,8 @@ from .presets import PRESETS
 
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("action", nargs="?", default="build", choices=("build", "fidelity"),
-                   help="build (default): build a dataset; fidelity: check --data against --trajectories")
+                   help="build (default): build a dataset; fidelity: check --data against --trajectories "
+                   "(iTHOR) or --episodes (RoboTHOR)")
     p.add_argument("--preset", default="tiny", help=f"scene set: {', '.join(PRESETS)} (default tiny)")
     p.add_argument("--out", default=None, help="dataset folder (one sub-folder per scene); for fidelity the report "
                    "folder (default DATA/fidelity)")
@@ -24,6 +25,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=None, help="fidelity: a built dataset folder")
     p.add_argument("--trajectories", default=None, help="fidelity: real trajectories file "
                    "(format of ai2thor/real_trajectories/dev_scenes.json)")
+    p.add_argument("--episodes", default=None, help="fidelity of a robothor-real world: the RoboTHOR challenge's "
+                   "episodes folder (EPISODES/{train,val}/SCENE.json.gz; robothor-challenge dataset/ layout)")
     p.add_argument("--no-pictures", action="store_true", help="fidelity: do not draw the per-scene PNGs")
     p.add_argument("--no-drift", action="store_true",
                    help="fidelity: skip the pose-drift what-ifs (about 1 s per scene)")
@@ -37,11 +40,29 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--compact", action="store_true", default=None, help="small rooms (default: the preset's)")
 
 
+def run_robothor_fidelity(args) -> int:
+    from .robothor_fidelity import EpisodesError, markdown, robothor_fidelity_report
+
+    if not os.path.isdir(args.episodes):
+        raise CommandError(f"--episodes {args.episodes}: no such folder")
+    try:
+        doc, out = robothor_fidelity_report(args.data, args.episodes, args.out, pictures=not args.no_pictures)
+    except (EpisodesError, FileNotFoundError) as e:
+        raise CommandError(str(e)) from None
+    print(markdown(doc).split("\n\n")[0])
+    print(f"report in {out}")
+    return 0
+
+
 def run_fidelity(args) -> int:
     from .fidelity import TrajectoriesError, fidelity_report, markdown_table, summary
 
-    if not args.data or not args.trajectories:
-        raise CommandError("fidelity needs --data DIR and --trajectories FILE")
+    if args.data and args.episodes and not args.trajectories:
+        return run_robothor_fidelity(args)
+    if not args.data or not (args.trajectories or args.episodes):
+        raise CommandError("fidelity needs --data DIR and --trajectories FILE (iTHOR) or --episodes DIR (RoboTHOR)")
+    if args.trajectories and args.episodes:
+        raise CommandError("fidelity takes --trajectories FILE or --episodes DIR, not both")
     try:
         results, out = fidelity_report(args.data, args.trajectories, args.out, pictures=not args.no_pictures,
                                        drift=not args.no_drift)
@@ -72,10 +93,14 @@ def run(args) -> int:
                                   **({"image_size": args.size} if args.size else {}),
                                   **({"compact": True} if args.compact else {}),
                                   **({"world_version": args.world_version} if args.world_version is not None else {}))
-    if cfg.world_version is not None and cfg.world != "ithor-real":
-        raise CommandError(f"--world-version applies to the ithor-real world, not preset {args.preset!r}")
+    if cfg.world_version is not None and cfg.world not in ("ithor-real", "robothor-real"):
+        raise CommandError(f"--world-version applies to the ithor-real and robothor-real worlds, not preset "
+                           f"{args.preset!r}")
     if cfg.world_version is not None:
-        from .real import VERSIONS
+        if cfg.world == "ithor-real":
+            from .real import VERSIONS
+        else:
+            from .robothor_real import VERSIONS
 
         if cfg.world_version not in VERSIONS:
             raise CommandError(f"unknown --world-version {cfg.world_version} (choose from "

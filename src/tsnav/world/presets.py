@@ -5,11 +5,13 @@ from __future__ import annotations
 from ..data.names import ithor_scenes, robothor_scenes
 from .house import generate
 from .real import real_spec
+from .robothor_real import robothor_spec
 from .spec import SceneSpec
 
-#: Where a scene's layout comes from: ``procedural`` (generated from its name) or ``ithor-real`` (the real
-#: iTHOR scene's recorded object layout, :mod:`tsnav.world.real`).
-WORLDS = ("procedural", "ithor-real")
+#: Where a scene's layout comes from: ``procedural`` (generated from its name), ``ithor-real`` (the real
+#: iTHOR scene's recorded object layout, :mod:`tsnav.world.real`) or ``robothor-real`` (RoboTHOR's apartments from
+#: their plans, records and challenge episodes, :mod:`tsnav.world.robothor_real`).
+WORLDS = ("procedural", "ithor-real", "robothor-real")
 
 PRESETS = {
     # a handful of small rooms, seconds to build: for tests
@@ -37,6 +39,8 @@ PRESETS = {
     # the 120 real iTHOR scenes rebuilt from their recorded object layouts (same names and splits as ithor)
     "ithor-real": {"scenes": ithor_scenes(), "compact": False, "image_size": 128, "world": "ithor-real"},
     "robothor": {"scenes": robothor_scenes(), "compact": False, "image_size": 128},
+    # the 75 real RoboTHOR apartments rebuilt from their plans, object records and challenge episodes
+    "robothor-real": {"scenes": robothor_scenes(), "compact": False, "image_size": 128, "world": "robothor-real"},
 }
 
 
@@ -50,11 +54,13 @@ def scene_spec(name: str, world: str = "procedural", seed: int = 0, compact: boo
                version: int | None = None) -> SceneSpec:
     """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` and ``compact`` apply to
     procedural scenes only, ``version`` (of the rules, :data:`tsnav.world.real.VERSIONS`; None: the newest) to
-    ``ithor-real`` only."""
+    ``ithor-real`` and ``robothor-real`` only."""
     if world == "procedural":
         if version is not None:
             raise ValueError("a world version applies to the ithor-real world only")
         return generate(name, seed=seed, compact=compact)
     if world == "ithor-real":
         return real_spec(name, version)
+    if world == "robothor-real":
+        return robothor_spec(name, version)
     raise ValueError(f"unknown world {world!r} (choose from {', '.join(WORLDS)})")

@@ -1,0 +1,303 @@
+"""Fidelity of a built ``robothor-real`` world against the RoboTHOR ObjectNav challenge's episodes (issue 46).
+
+Per scene, over the challenge's episodes of that scene (a folder ``EPISODES/{train,val}/SCENE.json.gz``, the
+format of ``allenai/robothor-challenge`` ``dataset/{train,val}/episodes/``):
+
+* **starts kept**: the share of episode start positions (on the 0.25 m grid) that are positions of tsnav's graph
+  (distinct positions too);
+* **path ratio**: tsnav's shortest path from the start position to a success state of the episode's target type
+  (Done with an object of that type visible, at least the writer's ``min_pixels``, and its footprint within
+  :data:`SUCCESS_DISTANCE` m: the ``paper`` protocol), in metres along the grid (0.25 m per axis move, 0.25 * sqrt 2
+  per diagonal one; turns and looks cost no metres), over the challenge's ``shortest_path_length`` (metres along
+  the navmesh to where the target is within 1 m). Episodes whose challenge length is 0 (the start already succeeds)
+  are counted apart; a start that is not a state, or a type no state of the scene succeeds for, has no ratio and
+  counts as outside every band.
+
+:func:`path_lengths` computes the lengths with a multi-source Dijkstra over the position graph (scipy);
+:func:`path_lengths_reference` is the slow reference (heap Dijkstra per start) the tests hold it to.
+"""
+
+from __future__ import annotations
+
+import gzip
+import heapq
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from ..atomic import atomic_save_figure, atomic_write_text
+from ..constants import GRID_SIZE, ROTATIONS
+from ..data.reader import is_complete, load_scene
+from .fidelity import cell, scene_moves
+from .spec import box_footprint
+
+#: The challenge's success distance, metres.
+SUCCESS_DISTANCE = 1.0
+#: Band around 1 within which a path ratio counts as close (the issue's goal: 90 % of episodes within +-25 %).
+BAND = 0.25
+
+
+class EpisodesError(ValueError):
+    """An episodes folder or file is malformed; the message is one line naming it and the problem."""
+
+
+def load_episodes(folder: str | Path, scene: str) -> list[dict]:
+    """The challenge episodes of ``scene`` from ``folder/{train,val}/SCENE.json.gz`` ([] when there is none)."""
+    folder = Path(folder)
+    for split in ("train", "val"):
+        p = folder / split / f"{scene}.json.gz"
+        if p.exists():
+            try:
+                eps = json.loads(gzip.decompress(p.read_bytes()))
+            except (OSError, ValueError) as e:
+                raise EpisodesError(f"{p}: unreadable ({e})") from None
+            if not isinstance(eps, list):
+                raise EpisodesError(f"{p}: expected a list of episodes")
+            for k, e in enumerate(eps):
+                for f in ("object_type", "initial_position", "shortest_path_length"):
+                    if f not in e:
+                        raise EpisodesError(f"{p}: episode {k} has no {f!r}")
+            return eps
+    return []
+
+
+def step_lengths(positions: np.ndarray, move: np.ndarray) -> csr_matrix:
+    """The position graph as a sparse matrix of metres: ``[a, b]`` the length of MoveAhead from ``a`` to ``b``."""
+    src, k = np.nonzero(move >= 0)
+    dst = move[src, k]
+    length = np.hypot(*(positions[dst] - positions[src]).T)
+    n = len(positions)
+    return csr_matrix((length, (src, dst)), shape=(n, n))
+
+
+def path_lengths(positions: np.ndarray, move: np.ndarray, goals: np.ndarray) -> np.ndarray:
+    """``(P,)`` metres from every position to the nearest position of ``goals`` (bool ``(P,)``) along MoveAheads;
+    inf when none is reachable."""
+    if not goals.any():
+        return np.full(len(positions), np.inf)
+    g = step_lengths(positions, move).T.tocsr()  # reversed edges: distances *to* the goals
+    d = dijkstra(g, directed=True, indices=np.flatnonzero(goals), min_only=True)
+    return np.asarray(d, dtype=np.float64)
+
+
+def path_lengths_reference(positions: np.ndarray, move: np.ndarray, goals: np.ndarray, start: int) -> float:
+    """Slow reference of :func:`path_lengths` for one start: a heap Dijkstra over MoveAheads."""
+    dist = {start: 0.0}
+    heap = [(0.0, start)]
+    while heap:
+        d, p = heapq.heappop(heap)
+        if d > dist.get(p, math.inf):
+            continue
+        if goals[p]:
+            return d
+        for q in move[p]:
+            q = int(q)
+            if q < 0:
+                continue
+            nd = d + math.hypot(*(positions[q] - positions[p]))
+            if nd < dist.get(q, math.inf) - 1e-12:
+                dist[q] = nd
+                heapq.heappush(heap, (nd, q))
+    return math.inf
+
+
+def type_goals(scene, positions: np.ndarray, distance: float = SUCCESS_DISTANCE) -> dict[str, np.ndarray]:
+    """Per object type of the scene: ``(P,)`` bool, the positions with a state where an object of that type is
+    visible (``min_pixels``) and within ``distance`` m (the ``paper`` success rule; any heading and horizon)."""
+    ok = scene.visible_at_any_range() & (scene.distance <= distance)
+    cells = np.round(np.stack([scene.x, scene.z], axis=1) / GRID_SIZE).astype(np.int64)
+    index = {(int(a), int(b)): n for n, (a, b) in enumerate(np.round(positions / GRID_SIZE).astype(np.int64))}
+    pos_of_state = np.array([index[(int(a), int(b))] for a, b in cells])
+    out: dict[str, np.ndarray] = {}
+    for j, oid in enumerate(scene.object_ids.tolist()):
+        t = oid.split("|", 1)[0]
+        g = out.setdefault(t, np.zeros(len(positions), bool))
+        g[pos_of_state[ok[:, j]]] = True
+    return out
+
+
+def measure_scene(scene, episodes: list[dict]) -> dict:
+    """The fidelity of one loaded scene folder against its episodes (module docstring): counts, per-episode
+    ratios, and the start positions tsnav lacks."""
+    positions, move = scene_moves(scene)
+    index = {cell(float(x), float(z)): n for n, (x, z) in enumerate(positions)}
+    goals = type_goals(scene, positions)
+    dist = {t: path_lengths(positions, move, g) for t, g in goals.items()}
+    starts, kept, missing = 0, 0, set()
+    ratios, zero, zero_ok, no_goal = [], 0, 0, 0
+    rows = []
+    for e in episodes:
+        p = e["initial_position"]
+        c = cell(float(p["x"]), float(p["z"]))
+        starts += 1
+        s = index.get(c)
+        L = float(e["shortest_path_length"])
+        t = e["object_type"]
+        if s is None:
+            missing.add(c)
+            rows.append([t, L, None])
+            continue
+        kept += 1
+        d = float(dist[t][s]) if t in dist else math.inf
+        if not math.isfinite(d):
+            no_goal += 1
+        if L <= 1e-6:
+            zero += 1
+            zero_ok += d == 0.0
+            rows.append([t, L, d if math.isfinite(d) else None])
+            continue
+        ratios.append(d / L)
+        rows.append([t, round(L, 4), round(d, 4) if math.isfinite(d) else None])
+    distinct = {cell(float(e["initial_position"]["x"]), float(e["initial_position"]["z"])) for e in episodes}
+    return {"scene": scene.name, "episodes": starts, "starts_kept": kept,
+            "distinct_starts": len(distinct), "distinct_kept": sum(c in index for c in distinct),
+            "positions": len(positions), "zero_length": zero, "zero_length_ok": int(zero_ok),
+            "no_success_state": no_goal, "ratios": [round(r, 4) if math.isfinite(r) else None for r in ratios],
+            "missing_starts": sorted([i * GRID_SIZE, j * GRID_SIZE] for i, j in missing), "episodes_table": rows}
+
+
+def ratio_summary(ratios: list, episodes: int, kept: int) -> dict:
+    """Summary figures of ``ratios`` (None: no tsnav path), with the start shares."""
+    r = np.array([np.inf if v is None else v for v in ratios], dtype=np.float64)
+    fin = r[np.isfinite(r)]
+    return {"episodes": episodes, "starts_kept": kept, "starts_kept_pct": round(100.0 * kept / max(episodes, 1), 2),
+            "ratios": int(len(r)), "median": round(float(np.median(r)), 4) if len(r) else None,
+            "mean_finite": round(float(fin.mean()), 4) if len(fin) else None,
+            "p10": round(float(np.percentile(r, 10, method="lower")), 4) if len(r) else None,
+            "p90": round(float(np.percentile(r, 90, method="higher")), 4) if len(r) else None,
+            "within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2) if len(r) else None,
+            "within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2) if len(r) else None,
+            "no_path": int((~np.isfinite(r)).sum())}
+
+
+def summarise(scenes: list[dict], split: str) -> dict:
+    """Totals over the scenes of one split (``train`` or ``val``)."""
+    mine = [s for s in scenes if s["split"] == split]
+    out = ratio_summary([v for s in mine for v in s["ratios"]], sum(s["episodes"] for s in mine),
+                        sum(s["starts_kept"] for s in mine))
+    out.update({"scenes": len(mine), "distinct_starts": sum(s["distinct_starts"] for s in mine),
+                "distinct_kept": sum(s["distinct_kept"] for s in mine),
+                "zero_length": sum(s["zero_length"] for s in mine),
+                "zero_length_ok": sum(s["zero_length_ok"] for s in mine)})
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ picture
+def draw_scene(ax, plan: np.ndarray, meta: dict, positions: np.ndarray, missing: list) -> None:
+    """The plan with tsnav's reachable positions (green dots), walls (cyan), blocking footprints (yellow),
+    objects of the scene (red: on the floor, magenta: elsewhere; labelled) and the challenge's start positions
+    that are not tsnav states (red crosses), on ``ax`` in world metres (x right, z up)."""
+    from matplotlib.patches import Polygon as MplPolygon
+
+    from . import plans as P
+
+    r = 0.5 * P.PIXEL
+    ax.imshow(plan, extent=(P.X0 - r, P.X0 + (P.PLAN_PX - 0.5) * P.PIXEL, P.Z0 + P.SPAN - (P.PLAN_PX - 0.5) * P.PIXEL,
+                            P.Z0 + P.SPAN + r), interpolation="nearest")
+    insts = meta.get("instances", [])
+    wall = {i for i, n in enumerate(insts) if n == "Wall"}
+    for row in meta.get("parts", []):
+        if int(row[15]) in wall:
+            ax.add_patch(MplPolygon(box_footprint(row[0:3], row[3:6], row[6]), closed=True, facecolor="cyan",
+                                    alpha=0.55, edgecolor="none"))
+    for f in meta.get("furniture", []):
+        if f.get("blocks", True):
+            ax.add_patch(MplPolygon(f["footprint"], closed=True, fill=False, edgecolor="yellow", lw=0.6))
+    for o in meta.get("objects", []):
+        b = o["bbox"]
+        ax.add_patch(MplPolygon(box_footprint(b["center"], b["size"], b.get("yaw", 0.0)), closed=True, fill=False,
+                                edgecolor="red" if o["support"] == "floor" else "magenta", lw=0.9))
+        ax.text(b["center"][0], b["center"][2], o["objectType"], color="white", fontsize=5)
+    ax.plot(positions[:, 0], positions[:, 1], ".", color="lime", ms=2.5, label="tsnav positions")
+    if missing:
+        m = np.asarray(missing, dtype=np.float64)
+        ax.plot(m[:, 0], m[:, 1], "x", color="red", ms=4, label="challenge starts tsnav lacks")
+    floor = meta.get("floor") or [[[0, 0]]]
+    xs = [p[0] for poly in floor for p in poly]
+    zs = [p[1] for poly in floor for p in poly]
+    ax.set_xlim(min(xs) - 0.4, max(xs) + 0.4)
+    ax.set_ylim(min(zs) - 0.4, max(zs) + 0.4)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=6)
+
+
+def save_scene_png(path: str | Path, plan: np.ndarray, meta: dict, positions: np.ndarray, missing: list,
+                   title: str) -> Path:
+    """One scene's :func:`draw_scene` as a PNG (written atomically)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9.0, 4.6), dpi=90)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.05, 0.08, 0.92, 0.84))
+    draw_scene(ax, plan, meta, positions, missing)
+    ax.set_title(title, fontsize=8)
+    ax.legend(fontsize=6, loc="lower right", framealpha=0.6)
+    return atomic_save_figure(fig, path)
+
+
+def markdown(doc: dict) -> str:
+    """The report's tables: per split, then per scene."""
+    lines = ["| split | scenes | episodes | starts kept % | distinct starts kept | ratio median | p10-p90 | "
+             "within +-25 % | within +-10 % | no tsnav path | L = 0 (tsnav 0 too) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for split in ("train", "val"):
+        s = doc["summary"].get(split)
+        if not s or not s["scenes"]:
+            continue
+        lines.append(f"| {split} | {s['scenes']} | {s['episodes']} | {s['starts_kept_pct']:.2f} | "
+                     f"{s['distinct_kept']}/{s['distinct_starts']} | {s['median']} | {s['p10']}-{s['p90']} | "
+                     f"{s['within_25_pct']} | {s['within_10_pct']} | {s['no_path']} | {s['zero_length']} "
+                     f"({s['zero_length_ok']}) |")
+    lines += ["", "| scene | positions | starts kept % | ratio median | within +-25 % | no tsnav path |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for sc in doc["scenes"]:
+        s = ratio_summary(sc["ratios"], sc["episodes"], sc["starts_kept"])
+        lines.append(f"| {sc['scene']} | {sc['positions']} | {s['starts_kept_pct']:.1f} | {s['median']} | "
+                     f"{s['within_25_pct']} | {s['no_path']} |")
+    return "\n".join(lines) + "\n"
+
+
+def robothor_fidelity_report(data: str | Path, episodes: str | Path, out: str | Path | None = None,
+                             pictures: bool = True) -> tuple[dict, Path]:
+    """Measure every complete scene of ``data`` that ``episodes`` has episodes for; write ``fidelity.json``,
+    ``fidelity.md`` and (with ``pictures``) ``SCENE.png`` into ``out`` (default ``DATA/fidelity``)."""
+    from .robothor_real import load_plan
+
+    data = Path(data)
+    if not data.is_dir():
+        raise FileNotFoundError(f"{data}: no such dataset folder")
+    names = sorted(p.name for p in data.iterdir() if p.is_dir() and is_complete(p))
+    out = Path(out) if out is not None else data / "fidelity"
+    out.mkdir(parents=True, exist_ok=True)
+    scenes = []
+    for name in names:
+        eps = load_episodes(episodes, name)
+        if not eps:
+            continue
+        scene = load_scene(data / name)
+        res = measure_scene(scene, eps)
+        res["split"] = scene.meta.get("split", "train" if "_Train" in name else "val")
+        scenes.append(res)
+        if pictures:
+            positions, _ = scene_moves(scene)
+            s = ratio_summary(res["ratios"], res["episodes"], res["starts_kept"])
+            title = (f"{name}: {len(positions)} positions; starts kept {s['starts_kept_pct']:.1f} %; path ratio median "
+                     f"{s['median']}, within +-25 % {s['within_25_pct']} %")
+            save_scene_png(out / f"{name}.png", load_plan(name), scene.meta, positions, res["missing_starts"], title)
+    if not scenes:
+        raise EpisodesError(f"{episodes}: no episodes for any complete scene of {data}")
+    doc = {"format": "tsnav-robothor-fidelity", "version": 1, "data": str(data), "episodes": str(episodes),
+           "success_distance": SUCCESS_DISTANCE, "rotations": list(ROTATIONS),
+           "summary": {split: summarise(scenes, split) for split in ("train", "val")}, "scenes": scenes}
+    atomic_write_text(out / "fidelity.json", json.dumps(doc, separators=(",", ":")))
+    atomic_write_text(out / "fidelity.md", markdown(doc))
+    return doc, out
+
+
+__all__ = ["EpisodesError", "load_episodes", "measure_scene", "path_lengths", "path_lengths_reference",
+           "ratio_summary", "robothor_fidelity_report", "summarise", "type_goals"]

@@ -1,0 +1,346 @@
+"""Issue 46: the robothor-real world's inference rules on small hand-drawn plans, the fidelity measures against a
+slow reference, and one scene built end to end (no images)."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+
+import numpy as np
+import pytest
+
+from tsnav.world import plans as P
+from tsnav.world import robothor_real as R
+from tsnav.world.robothor_fidelity import (load_episodes, measure_scene, path_lengths, path_lengths_reference,
+                                           ratio_summary)
+
+FLOOR = 80.0
+LINE = 140.0
+
+
+def drawn_plan(h: int = 60, w: int = 90, walls=(), seed: int = 0, noise: float = 3.0) -> np.ndarray:
+    """A luminance plan: dark exterior, floor of luminance FLOOR inside rows 10..50 / cols 10..80 (outer walls as
+    one-pixel light lines on the outline), plus the interior ``walls`` ((axis, line, a0, a1) one-pixel lines)."""
+    rng = np.random.default_rng(seed)
+    g = np.full((h, w), 40.0)
+    g[10:51, 10:81] = FLOOR
+    g[10, 10:81] = LINE
+    g[50, 10:81] = LINE
+    g[10:51, 10] = LINE
+    g[10:51, 80] = LINE
+    for axis, line, a0, a1 in walls:
+        if axis == 0:
+            g[line, a0:a1 + 1] = LINE
+        else:
+            g[a0:a1 + 1, line] = LINE
+    return g + rng.normal(0, noise, g.shape)
+
+
+def test_ridges_find_one_pixel_lines_and_not_steps():
+    g = np.full((20, 20), 50.0)
+    g[8, :] = 90.0  # a horizontal line
+    g[:, 15:] += 30.0  # a step (an edge, not a line)
+    h, v = P.ridges(g)
+    assert h[8, 2:-2].all() and not h[np.r_[0:8, 9:20]].any()
+    assert not v.any()
+
+
+def test_runs_bridge_small_gaps_and_drop_short_runs():
+    m = np.zeros(40, bool)
+    m[2:12] = True
+    m[14:20] = True  # gap of 2 px: bridged
+    m[30:33] = True  # too short
+    assert P.runs_1d(m, max_gap=3, min_run=8) == [(2, 19)]
+    assert P.runs_1d(m, max_gap=1, min_run=8) == [(2, 11)]
+
+
+def test_segments_merge_neighbouring_rows():
+    m = np.zeros((20, 30), bool)
+    m[5, 3:20] = True
+    m[6, 10:25] = True  # a 2-px-thick line: one wall at the weighted mean row
+    s = P.segments(m, 0, max_gap=3, min_run=8)
+    assert len(s) == 1 and s[0].a0 == 3 and s[0].a1 == 24 and 5 < s[0].line < 6
+
+
+def test_vote_needs_most_variants():
+    a, b = np.zeros((3, 3), bool), np.zeros((3, 3), bool)
+    a[1, 1] = b[1, 1] = True
+    a[0, 0] = True
+    v = P.vote([a, b, b.copy(), np.zeros((3, 3), bool), np.zeros((3, 3), bool)], vote_min=3)
+    assert v[1, 1] and not v[0, 0]
+
+
+def test_infer_walls_outline_and_interior_wall_through_furniture():
+    """Five variants share the outline and one interior wall; furniture sits on the wall in one variant (a vote
+    of 4 of 5 still finds it) and lines of furniture edges in single variants are voted out."""
+    wall = (1, 45, 10, 35)  # vertical interior wall from the top outer wall down to row 35
+    plans = []
+    for k in range(5):
+        g = drawn_plan(walls=[wall], seed=k)
+        r0 = 15 + 6 * k
+        g[r0:r0 + 4, 20:30] = 200.0  # a bright piece of furniture, elsewhere in every variant
+        if k == 0:
+            g[20:26, 43:48] = 30.0  # dark furniture hiding the wall in one variant
+        plans.append(g)
+    w = P.infer_walls(plans)
+    assert w.outline == (10.0, 10.0, 50.0, 80.0)
+    assert [(s.axis, s.line) for s in w.interior] == [(1, 45.0)]
+    s = w.interior[0]
+    assert s.a0 == 10 and 34 <= s.a1 <= 36  # snapped to the top wall
+
+
+def test_infer_walls_finds_a_faint_bottom_wall_from_the_floor_edge():
+    """An outer wall that shows only as the edge of the lit floor (no bright line) is found from the step."""
+    plans = []
+    for k in range(5):
+        g = drawn_plan(walls=[(1, 45, 10, 50)], seed=k)
+        g[50, 10:81] = 40.0  # no bottom line: the floor just ends
+        plans.append(g)
+    w = P.infer_walls(plans)
+    top, left, bottom, right = w.outline
+    assert (top, left, right) == (10.0, 10.0, 80.0) and abs(bottom - 50) <= 2
+
+
+def test_infer_walls_needs_a_line():
+    with pytest.raises(ValueError, match="no wall line"):
+        P.infer_walls([np.full((30, 30), 80.0)] * 5)
+
+
+def test_pixel_world_round_trip_and_calibration():
+    x, z = P.pixel_to_world(38, 53)  # the top-left outer wall corner of the val plans (CALIBRATION.txt)
+    assert abs(x - 1.0) < 0.05 and abs(z - (-0.99)) < 0.05
+    r, c = P.world_to_pixel(x, z)
+    assert abs(r - 38) < 1e-9 and abs(c - 53) < 1e-9
+
+
+def _rgb(g: np.ndarray) -> np.ndarray:
+    return np.repeat(g[..., None], 3, axis=2) * np.array([1.1, 1.0, 0.8])
+
+
+def test_furniture_blobs_colour_and_size():
+    g = drawn_plan(noise=1.0)
+    rgb = _rgb(g)
+    rgb[20:30, 20:35] = (180.0, 60.0, 50.0)  # a red sofa: 150 px
+    rgb[40:42, 60:62] = (180.0, 60.0, 50.0)  # 4 px: too small
+    w = P.WallPlan((10.0, 10.0, 50.0, 80.0))
+    blobs = P.furniture_blobs(rgb, w)
+    assert len(blobs) == 1
+    r0, c0, r1, c1, px = blobs[0]
+    assert (r0, c0, r1, c1) == (20, 20, 29, 34) and px == 150
+
+
+def test_lamp_rule():
+    assert P.is_lamp(113, (170, 178, 160))
+    assert not P.is_lamp(113, (178, 170, 160))  # reddish: furniture
+    assert not P.is_lamp(400, (170, 178, 160))  # too large for a lamp
+    assert not P.is_lamp(113, (70, 78, 60))  # dark
+
+
+def test_static_mask():
+    a = np.zeros((4, 4, 3))
+    b = a.copy()
+    b[0, 0] = 50
+    m = P.static_mask([a, b, a])
+    assert not m[0, 0] and m[1:, 1:].all()
+
+
+def test_place_target_fits_the_one_metre_circle_on_furniture():
+    """Ends on a 1 m circle around (5, -3): the placement lands within a pixel or two of it, and the furniture
+    term moves it off open floor when the circle alone is ambiguous."""
+    c = np.array([5.0, -3.0])
+    ang = np.deg2rad([0, 40, 100, 200])
+    ends = c + np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    inside = np.zeros((P.PLAN_PX, P.PLAN_PX), bool)
+    inside[40:130, 55:260] = True
+    furn = np.zeros_like(inside)
+    x, z, cost = R.place_target(ends, np.zeros((0, 2)), furn, inside)
+    assert math.hypot(x - 5, z + 3) < 2 * P.PIXEL and cost < 0.26
+    # One end only: any point 1 m away fits; the furniture blob decides.
+    r, col = P.world_to_pixel(6.0, -3.0)
+    furn[int(round(r)) - 2:int(round(r)) + 3, int(round(col)) - 2:int(round(col)) + 3] = True
+    x, z, _ = R.place_target(np.array([[6.0, -2.0]]), np.zeros((0, 2)), furn, inside)
+    assert math.hypot(x - 6.0, z + 3.0) < 3 * P.PIXEL
+
+
+def test_blob_boxes_keep_a_hole_open():
+    mask = np.zeros((20, 20), bool)
+    mask[2:5, 2:14] = True
+    mask[2:5, 7:9] = False  # a target's place cut out of its blob
+    boxes = R.blob_boxes((2, 2, 4, 13, int(mask.sum())), mask)
+    assert len(boxes) == 2 and boxes[0][2] < boxes[1][0]
+
+
+def test_blob_boxes_follow_an_l_shape():
+    mask = np.zeros((20, 20), bool)
+    mask[2:14, 2:5] = True  # the vertical leg
+    mask[11:14, 2:15] = True  # the foot
+    boxes = R.blob_boxes((2, 2, 13, 14, int(mask.sum())), mask)
+    area = sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes)
+    assert len(boxes) == 4
+    assert area == pytest.approx(mask.sum() * P.PIXEL ** 2, rel=1e-6)  # bands of 3 rows: exact for this shape
+
+
+def test_turned_box_measures_an_object_without_oriented_box():
+    """A 1.0 x 0.4 m box turned by 45 degrees: its axis-aligned box is 0.99 m square; the footprint from the plan's
+    pixels has about the real sides."""
+    from tsnav.world.layouts import LayoutObject
+
+    cx, cz, yaw = 5.0, -3.0, 45.0
+    rr, cc = np.mgrid[0:P.PLAN_PX, 0:P.PLAN_PX]
+    xs, zs = P.pixel_to_world(rr.astype(float), cc.astype(float))
+    t = math.radians(yaw)
+    u = (xs - cx) * math.cos(t) - (zs - cz) * math.sin(t)
+    v = (xs - cx) * math.sin(t) + (zs - cz) * math.cos(t)
+    furn = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.2)
+    side = (1.0 + 0.4) / math.sqrt(2)
+    o = LayoutObject("ArmChair|x", "ArmChair", (cx, 0.4, cz), (side, 0.8, side), None, (0.0, yaw, 0.0), ())
+    (bx, bz), (w, d), y = R.turned_box(o, furn)
+    assert (bx, bz, y) == (cx, cz, yaw)
+    assert abs(w - 1.0) < 0.1 and abs(d - 0.4) < 0.1
+    on_grid = LayoutObject("Sofa|x", "Sofa", (cx, 0.4, cz), (1.0, 0.8, 0.4), None, (0.0, 90.0, 0.0), ())
+    assert R.turned_box(on_grid, furn) is None
+
+
+def test_surface_tops_cut_receptacles_at_what_rests_on_them():
+    from tsnav.world.layouts import Layout, LayoutObject
+
+    table = LayoutObject("DiningTable|t", "DiningTable", (0, 0.41, 0), (1, 0.82, 1), None, (0, 0, 0), ())
+    mug = LayoutObject("Mug|m", "Mug", (0, 0.75, 0), (0.1, 0.1, 0.1), None, (0, 0, 0), ("DiningTable|t",))
+    assert R.surface_tops(Layout("x", (table, mug))) == {"DiningTable|t": 0.7}
+
+
+# ------------------------------------------------------------------------------------------------ fidelity
+def _line_graph(n: int):
+    pos = np.stack([np.arange(n) * 0.25, np.zeros(n)], axis=1)
+    move = np.full((n, 8), -1)
+    for i in range(n - 1):
+        move[i, 2] = i + 1  # rotation 90 faces +x
+        move[i + 1, 6] = i
+    return pos, move
+
+
+def test_path_lengths_agree_with_the_reference():
+    rng = np.random.default_rng(0)
+    # A 6 x 6 grid with random holes, 8-connected moves where both ends exist.
+    cells = [(i, j) for i in range(6) for j in range(6) if rng.random() > 0.2]
+    index = {c: k for k, c in enumerate(cells)}
+    pos = np.array(cells, float) * 0.25
+    steps = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
+    move = np.full((len(cells), 8), -1)
+    for k, (i, j) in enumerate(cells):
+        for r, (di, dj) in enumerate(steps):
+            move[k, r] = index.get((i + di, j + dj), -1)
+    goals = np.zeros(len(cells), bool)
+    goals[[0, len(cells) // 2]] = True
+    fast = path_lengths(pos, move, goals)
+    for s in range(len(cells)):
+        assert fast[s] == pytest.approx(path_lengths_reference(pos, move, goals, s))
+    assert np.isinf(path_lengths(pos, move, np.zeros(len(cells), bool))).all()
+
+
+def test_ratio_summary_counts_missing_paths_outside_the_band():
+    s = ratio_summary([1.0, 1.2, 0.7, None], episodes=5, kept=4)
+    assert s["median"] == pytest.approx(1.1) and s["within_25_pct"] == 50.0 and s["no_path"] == 1
+    assert s["starts_kept_pct"] == 80.0
+
+
+class _FakeScene:
+    """Three positions on a line, one object of type Apple visible and within 1 m from the last position only."""
+
+    def __init__(self):
+        self.name = "FloorPlan_Val1_1"
+        xs = np.repeat(np.array([0.0, 0.25, 0.5]), 1)
+        self.x, self.z = xs.astype(np.float32), np.zeros(3, np.float32)
+        self.rotation = np.array([90, 90, 90], np.int16)
+        self.horizon = np.zeros(3, np.int16)
+        self.num_states = 3
+        nxt = np.repeat(np.arange(3)[:, None], 6, axis=1)
+        nxt[0, 0], nxt[1, 0] = 1, 2  # MoveAhead
+        self.next_state = nxt
+        self.object_ids = np.array(["Apple|+01.00|+00.80|+00.00"])
+        self.pixels = np.array([[0], [50], [80]])
+        self.distance = np.array([[1.4], [1.1], [0.9]], np.float32)
+        self.meta = {"visibility": {"min_pixels": 17}}
+
+    def visible_at_any_range(self):
+        return self.pixels >= 17
+
+
+def test_measure_scene_on_a_hand_made_scene():
+    eps = [{"object_type": "Apple", "initial_position": {"x": 0.0, "y": 0.9, "z": 0.0}, "shortest_path_length": 0.5},
+           {"object_type": "Apple", "initial_position": {"x": 2.0, "y": 0.9, "z": 0.0}, "shortest_path_length": 1.0},
+           {"object_type": "Mug", "initial_position": {"x": 0.25, "y": 0.9, "z": 0.0}, "shortest_path_length": 1.0}]
+    res = measure_scene(_FakeScene(), eps)
+    assert res["episodes"] == 3 and res["starts_kept"] == 2 and res["missing_starts"] == [[2.0, 0.0]]
+    assert res["ratios"] == [1.0, None]  # 0.5 m of path over 0.5 m; no Mug at all
+    assert res["no_success_state"] == 1
+
+
+# ------------------------------------------------------------------------------------------------ the world
+def test_val_scene_records_what_it_inferred():
+    spec = R.robothor_spec("FloorPlan_Val2_3")
+    gen = spec.generator
+    assert gen["world"] == "robothor-real" and gen["version"] == R.GENERATOR_VERSION
+    assert "inferred from the 5 plans" in gen["walls"]["source"]
+    types = sorted(o.objectType for o in spec.objects)
+    eps = R.val_episodes("FloorPlan_Val2_3")
+    assert types == sorted({e["object_type"] for e in eps})
+    assert all("|inferred|" in o.objectId and o.objectId in gen["provenance"]["inferred_objects"]
+               for o in spec.objects)
+    assert all("|inferred|" in f.id for f in spec.furniture)
+    # An inferred object takes its type's median size from the train records.
+    apple = next(o for o in spec.objects if o.objectType == "Apple")
+    assert list(apple.size) == R.type_stats()["Apple"]["size"]
+
+
+def test_train_scene_keeps_recorded_ids_and_types():
+    spec = R.robothor_spec("FloorPlan_Train4_2")
+    recs = R.train_records()["FloorPlan_Train4_2"]
+    recorded = {o["objectId"] for per in recs.values() for o in per.values()}
+    ids = {o.objectId for o in spec.objects} | {f.id for f in spec.furniture}
+    assert ids == recorded
+    assert {"Apple", "BaseballBat", "HousePlant", "Mug", "SprayBottle", "Vase"} <= {o.objectType for o in spec.objects}
+    assert spec.generator["provenance"]["recorded"] == len(recorded)
+
+
+def test_the_five_variants_share_their_walls():
+    walls = [R.robothor_spec(f"FloorPlan_Train6_{k}").generator["walls"] for k in (1, 3)]
+    assert walls[0]["interior_px"] == walls[1]["interior_px"] and walls[0]["outline_px"] == walls[1]["outline_px"]
+
+
+def test_wrong_names_are_refused():
+    with pytest.raises(ValueError, match="75 RoboTHOR apartments"):
+        R.robothor_spec("FloorPlan1")
+    with pytest.raises(ValueError, match="unknown robothor-real version"):
+        R.robothor_spec("FloorPlan_Val1_1", version=9)
+
+
+def test_build_one_scene_end_to_end(tmp_path):
+    pytest.importorskip("moderngl")
+    from tsnav.data.reader import load_scene
+    from tsnav.render.gl import RendererUnavailable
+    from tsnav.world.build import BuildConfig, build_dataset
+
+    cfg = BuildConfig.from_preset("robothor-real", store_images=False, image_size=32)
+    try:
+        stats = build_dataset(tmp_path, "robothor-real", ["FloorPlan_Val3_2"], cfg, workers=1, progress=False)
+    except RendererUnavailable:
+        pytest.skip("no EGL renderer")
+    assert stats[0].positions > 200
+    scene = load_scene(tmp_path / "FloorPlan_Val3_2")
+    meta = scene.meta
+    assert meta["generator"]["world"] == "robothor-real" and meta["figures"]["positions"] == stats[0].positions
+    folder = tmp_path / "episodes" / "val"
+    folder.mkdir(parents=True)
+    eps = R.val_episodes("FloorPlan_Val3_2")
+    (folder / "FloorPlan_Val3_2.json.gz").write_bytes(gzip.compress(json.dumps(eps).encode()))
+    res = measure_scene(scene, load_episodes(tmp_path / "episodes", "FloorPlan_Val3_2"))
+    assert res["starts_kept"] >= 0.9 * res["episodes"]
+    from tsnav.cli import main
+
+    assert main(["world", "fidelity", "--data", str(tmp_path), "--episodes", str(tmp_path / "episodes"),
+                 "--out", str(tmp_path / "fid")]) == 0
+    doc = json.loads((tmp_path / "fid" / "fidelity.json").read_text())
+    assert doc["summary"]["val"]["episodes"] == len(eps) and (tmp_path / "fid" / "FloorPlan_Val3_2.png").exists()
+    assert main(["world", "fidelity", "--data", str(tmp_path), "--episodes", str(tmp_path / "nowhere")]) == 2
