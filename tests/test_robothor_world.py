@@ -331,6 +331,7 @@ def test_build_one_scene_end_to_end(tmp_path):
     scene = load_scene(tmp_path / "FloorPlan_Val3_2")
     meta = scene.meta
     assert meta["generator"]["world"] == "robothor-real" and meta["figures"]["positions"] == stats[0].positions
+    assert meta["class_set"] == "robothor12" and scene.class_set.name == "robothor12"  # the challenge's 12 targets
     folder = tmp_path / "episodes" / "val"
     folder.mkdir(parents=True)
     eps = R.val_episodes("FloorPlan_Val3_2")

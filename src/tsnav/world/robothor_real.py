@@ -35,7 +35,7 @@ from scipy import ndimage
 from shapely.geometry import box as shapely_box
 from shapely.geometry.polygon import orient
 
-from ..constants import TARGET_CATEGORIES
+from ..constants import ROBOTHOR12, TARGET_CATEGORIES
 from ..data.names import scene_info
 from . import plans as P
 from .catalog import FLOORS, WALLS, build_parts, jitter
@@ -45,9 +45,8 @@ from .real import (CATALOG_SHAPES, SEAT_CLEARANCE, SWEEP_CLEARANCE, UPHOLSTERED,
                    _walls, blocks, footprints, low_clearance)
 from .spec import Furniture, ObjectInstance, Part, SceneSpec
 
-#: The RoboTHOR ObjectNav challenge's 12 target types.
-ROBOTHOR_TARGETS = ("AlarmClock", "Apple", "BaseballBat", "BasketBall", "Bowl", "GarbageCan", "HousePlant", "Laptop",
-                    "Mug", "SprayBottle", "Television", "Vase")
+#: The RoboTHOR ObjectNav challenge's 12 target types (the ``robothor12`` class set every scene of this world declares).
+ROBOTHOR_TARGETS = ROBOTHOR12.categories
 #: Object types kept as objects (visibility statistics, the visible object map): iTHOR's 22 and RoboTHOR's 12.
 OBJECT_TYPES = frozenset(TARGET_CATEGORIES) | frozenset(ROBOTHOR_TARGETS)
 #: Version of the ``robothor-real`` rules; each version's constants are in :data:`RULES`.
@@ -269,7 +268,8 @@ def robothor_spec(name: str, version: int | None = None) -> SceneSpec:
                      generator={"world": "robothor-real", "version": version,
                                 "walls": {"source": wall_src, **walls.to_json(),
                                           "thickness": WALL_THICKNESS, "interior_walls": len(walls.interior)}},
-                     navigation={"clearance": CLEARANCE, "sweep_clearance": SWEEP_CLEARANCE})
+                     navigation={"clearance": CLEARANCE, "sweep_clearance": SWEEP_CLEARANCE},
+                     class_set=ROBOTHOR12.name)
     spec.light = {"direction": [0.35, -2.5, 0.2], "ambient": 0.55, "diffuse": 0.42, "tint": [1.0, 0.98, 0.95]}
     rng = np.random.default_rng(zlib.crc32(f"tsnav-robothor-real|{apartment(name)}".encode()))
     floor_inst, wall_inst, ceil_inst = spec.new_inst("Floor"), spec.new_inst("Wall"), spec.new_inst("Ceiling")

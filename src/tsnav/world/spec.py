@@ -94,6 +94,9 @@ class SceneSpec:
     #: reachability rule of the navgrid (None: its defaults): ``clearance``, the distance kept between the agent's
     #: centre and walls or blocking footprints, and ``sweep_clearance``, the one a MoveAhead's path keeps, metres
     navigation: dict | None = None
+    #: the target classes the scene's tables have one column each for (:data:`tsnav.constants.CLASS_SETS`; None:
+    #: ``ithor22``, written as no key, so iTHOR scenes are byte for byte as before)
+    class_set: str | None = None
 
     def new_inst(self, name: str) -> int:
         self.instances.append(name)
@@ -112,6 +115,7 @@ class SceneSpec:
             "parts": [[round(v, 5) for v in p.row()] for p in self.parts],
             **({"generator": self.generator} if self.generator is not None else {}),
             **({"navigation": self.navigation} if self.navigation is not None else {}),
+            **({"class_set": self.class_set} if self.class_set is not None else {}),
         }
 
     @classmethod
@@ -131,7 +135,8 @@ class SceneSpec:
                    rooms=meta.get("rooms", []), floor=meta.get("floor", []), doors=meta.get("doors", []),
                    furniture=furniture, objects=objects, parts=parts, instances=list(meta.get("instances", [""])),
                    light=meta.get("light", {}), wall_height=meta.get("wall_height", 2.6),
-                   generator=meta.get("generator"), navigation=meta.get("navigation"))
+                   generator=meta.get("generator"), navigation=meta.get("navigation"),
+                   class_set=meta.get("class_set"))
 
 
 def box_footprint(center, size, yaw: float, pad: float = 0.0) -> list[list[float]]:
