@@ -210,8 +210,10 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
     return names
 
 
-def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test") -> str:
-    """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's."""
+def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test",
+                            progress: bool = True, workers: int | None = None) -> str:
+    """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's. ``workers``
+    processes on one thread each (None: one per core)."""
     from ..pretrain.features import cache_features, load_encoder
     from ..scene_pool import default_workers
 
@@ -219,29 +221,31 @@ def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: in
     if enc.fingerprint != card["encoder_fingerprint"]:
         raise CommandError(f"{folder / 'encoder.safetensors'}: its weights do not match the card's fingerprint "
                            f"({enc.fingerprint} vs {card['encoder_fingerprint']})")
-    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=True,
-                   workers=default_workers())  # one thread per process, as the agent's own features were cached
+    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=progress,
+                   workers=workers or default_workers())  # one thread per process, as the agent's own features were cached
     return card["features"]
 
 
-def ensure_release_detections(data: Path, card: dict) -> str:
-    """Write the card's shipped detector's tables into the test rooms (refusing tables of another detector)."""
+def ensure_release_detections(data: Path, card: dict, split: str | None = None, say=say, progress: bool = True,
+                              workers: int | None = None) -> str:
+    """Write the card's shipped detector's tables into the rooms of ``data`` (of ``split`` only, when given),
+    refusing tables of another detector; ``workers`` processes (None: one per core)."""
     from ..detect.shipped import shipped_meta
 
     det = card["detector_shipped"]
     if shipped_meta(det).get("fingerprint") != card["detector_fingerprint"]:
         raise CommandError(f"the shipped detector {det!r} is not the one this agent was trained with "
                            f"({card['detector_fingerprint']})")
-    from ..data.reader import load_scene, list_scenes
+    from ..data.reader import load_scene
     from ..detect.shipped import shipped_detector
     from .detector_steps import learned_tables, write_learned_tables
     from ..scene_pool import default_workers
 
-    have, _ = learned_tables(data, card["detections"])
+    have, _ = learned_tables(data, card["detections"], split)
     if any(fp is None for fp in have.values()):
-        size = load_scene(list_scenes(data)[0]).image_size
-        write_learned_tables(data, card["detections"], shipped_detector(size, det), say=say,
-                             source=f"the shipped detector {det}", workers=default_workers())
+        size = load_scene(next(iter(have))).image_size
+        write_learned_tables(data, card["detections"], shipped_detector(size, det), say=say, progress=progress,
+                             source=f"the shipped detector {det}", workers=workers or default_workers(), split=split)
     return card["detections"]
 
 

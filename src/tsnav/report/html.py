@@ -316,9 +316,12 @@ def _train_caption(d: Path) -> str:
 
 
 def build_report(path: str | Path, out: str | Path | None = None, gallery: int = 6, title: str | None = None,
-                 max_gallery_evals: int = 4, progress: bool = False, video: int = VIDEOS) -> Path:
+                 max_gallery_evals: int = 4, progress: bool = False, video: int = VIDEOS,
+                 gallery_evals: list[Path] | None = None) -> Path:
     """Write the report of ``path`` into ``out`` (default ``path/report``) and return ``out/index.html``; the
-    first ``video`` episodes of each gallery get a clip."""
+    first ``video`` episodes of each gallery get a clip. The galleries are those of ``gallery_evals`` (evaluation
+    folders; those that are not found under ``path`` are left out), else of the first ``max_gallery_evals``
+    evaluations found."""
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such folder")
@@ -347,7 +350,10 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
         sections.append(("pretraining", "Pretraining", _pretrain_html(found.pretrain_runs, root, assets)))
     if found.evals and gallery > 0:
         parts = []
-        for d in found.evals[:max_gallery_evals]:
+        known = {e.resolve(): e for e in found.evals}
+        shown = ([known[p.resolve()] for p in map(Path, gallery_evals) if p.resolve() in known]
+                 if gallery_evals is not None else found.evals[:max_gallery_evals])
+        for d in shown:
             say(f"report: gallery of {d}")
             parts.append(_gallery_html(d, _eval_label(d, root), assets, gallery, video))
         sections.append(("gallery", "Episode gallery", "".join(parts)))
