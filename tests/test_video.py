@@ -144,3 +144,9 @@ def test_eval_video_writes_n_clips_and_report_embeds_clips(tmp_path, tiny_world,
     assert "videos" not in {p.name for p in (index.parent).iterdir()}  # the eval's own clips are not scanned
     assert build_report(tmp_path / "work", gallery=3, video=0).read_text().count("<video") == 0
     assert not list(index.parent.rglob("*.mp4"))  # the report's old clips went with its old galleries
+
+
+def test_report_command_video_flag(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert main(["report", str(tmp_path / "empty"), "--video", "-1"]) == 2
+    assert "--video must be >= 0" in capsys.readouterr().err
