@@ -301,3 +301,20 @@ def test_replacing_the_preset_takes_its_sizes():
     assert quick.tables_beside and not longer.tables_beside
     assert replace(TINY, preset="demo-real").sizes == TINY.sizes  # given sizes stay
     assert not replace(quick, tables_beside_pretraining=False).tables_beside
+
+
+def test_the_shipped_agent_row_is_left_out_where_it_cannot_run(tmp_path, monkeypatch):
+    """The shipped agent's row needs 128-px ithor-real rooms: elsewhere, when asked not to, or when no agent ships,
+    the step says why in one line; an agent named that does not exist is refused before any work."""
+    from tsnav.errors import CommandError
+    from tsnav.pipeline import demo, release
+
+    assert demo.shipped_agent(replace(TINY, preset="tiny"))[2].startswith("not on the tiny world")
+    assert demo.shipped_agent(replace(TINY, preset="tiny-real", shipped=False))[2] == "left out (--no-shipped)"
+    folder, card, why = demo.shipped_agent(replace(TINY, preset="tiny-real"))
+    assert why == "" and folder == release.agent_folder(None) and card["name"] == folder.name
+    with pytest.raises(CommandError, match="no shipped agent named 'nope'"):
+        demo.shipped_agent(replace(TINY, preset="tiny-real", shipped_agent="nope"))
+    monkeypatch.setattr(release, "WEIGHTS", tmp_path / "none")  # a copy of tsnav that ships no agent
+    assert demo.shipped_agent(replace(TINY, preset="tiny-real"))[2] == \
+        "no agent ships with this tsnav (tsnav release pack makes one)"

@@ -604,7 +604,12 @@ def shipped_agent(cfg: DemoConfig) -> tuple[Path | None, dict | None, str]:
     left out)``: asked not to, or a world it cannot read (another layout source or frame size than its card's)."""
     if not cfg.shipped:
         return None, None, "left out (--no-shipped)"
-    folder = agent_folder(cfg.shipped_agent)
+    try:
+        folder = agent_folder(cfg.shipped_agent)
+    except CommandError as e:
+        if cfg.shipped_agent is not None:  # named, and not there: the user's mistake, said before any work
+            raise
+        return None, None, str(e)  # none ships with this copy of tsnav
     card = read_card(folder)
     build = BuildConfig.from_preset(cfg.preset)
     world, size = card.get("world_preset", "ithor-real"), int(card.get("image_size", 128))
