@@ -242,3 +242,14 @@ def test_the_shipped_agents_are_whole_and_match_their_cards(name):
     assert (folder / "card.md").read_text().count("| lineage | agent | ALL |") == 2  # val and test
     size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
     assert size < 20e6
+
+
+def test_release_starts_without_torch():
+    """`tsnav release list` and a release evaluation that prints its saved table need no torch: the module imports
+    it only where tensors are read or written (torch's import is most of a second call's time)."""
+    import subprocess
+    import sys
+
+    code = "import sys, tsnav.pipeline.release; print('torch' in sys.modules)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert res.stdout.strip() == "False"

@@ -36,19 +36,17 @@ import shutil
 import time
 from pathlib import Path
 
-import torch
-
 from ..atomic import atomic_write_text
-from ..checkpoint import load_tensors, save_tensors
-from ..distributed import set_threads
 from ..errors import CommandError, read_json
 from ..metrics import METRICS
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
 
 #: Where shipped agents live (package data of ``tsnav.agent``).
 WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
-#: dtype the encoder is stored in; weights are read back into float32.
-ENCODER_DTYPE = torch.float16
+#: dtype the encoder is stored in (a torch dtype's name); weights are read back into float32. torch is imported
+#: only where tensors are read or written, so that ``tsnav release list`` and a release evaluation whose saved
+#: table is printed (nothing changed) start without it.
+ENCODER_DTYPE = "float16"
 CARD_FORMAT = "tsnav-agent-card"
 #: Fields a card must give when packing.
 CARD_REQUIRED = ("name", "summary", "world_preset", "world_version", "image_size", "detector_shipped",
@@ -105,11 +103,16 @@ def read_card(folder: str | Path) -> dict:
 
 def pack_encoder(src: str | Path, dst: str | Path) -> None:
     """Copy a ``tsnav`` encoder file with its floating-point tensors stored as :data:`ENCODER_DTYPE`."""
+    import torch
+
+    from ..checkpoint import load_tensors, save_tensors
+
     sd, meta = load_tensors(src)
     if meta.get("format") != "tsnav-encoder":
         raise CommandError(f"{src}: not a tsnav encoder file")
-    small = {k: (v.to(ENCODER_DTYPE) if v.is_floating_point() else v).contiguous() for k, v in sd.items()}
-    save_tensors(dst, small, {**meta, "stored_dtype": str(ENCODER_DTYPE).replace("torch.", "")})
+    dtype = getattr(torch, ENCODER_DTYPE)
+    small = {k: (v.to(dtype) if v.is_floating_point() else v).contiguous() for k, v in sd.items()}
+    save_tensors(dst, small, {**meta, "stored_dtype": ENCODER_DTYPE})
 
 
 def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: str | Path, card: dict) -> Path:
@@ -291,8 +294,8 @@ def release_inputs(folder: Path, card: dict, data: Path, out: Path, protocols: l
     not there yet (the world's rooms of ``split``, their detection tables or feature caches, an episode list), i.e.
     when the evaluation has to run anyway. Two evaluations with equal records print the same table:
 
-    * agent: the policy's weights (:func:`~tsnav.checkpoint.weights_digest` of ``best/model.safetensors``), the
-      encoder's (of ``encoder.safetensors``), the training config's feature and detection names;
+    * agent: the policy's and the encoder's weights (SHA-256 of ``best/model.safetensors`` and
+      ``encoder.safetensors``), the training config's feature and detection names;
     * data: the world folder, per room of ``split`` a hash of its layout, state graph and success map
       (:data:`ROOM_FILES`), the fingerprint of its detection table (the detector's weights and temperature) and
       the feature cache's name (the encoder's fingerprint);
@@ -301,7 +304,6 @@ def release_inputs(folder: Path, card: dict, data: Path, out: Path, protocols: l
 
     Code changes between two releases of tsnav that keep the version are not seen: ``--force`` re-evaluates."""
     from .. import __version__
-    from ..checkpoint import load_tensors, weights_digest
     from ..constants import C_TARGET
     from ..data.detections import read_fingerprint
     from ..data.reader import is_complete
@@ -332,8 +334,8 @@ def release_inputs(folder: Path, card: dict, data: Path, out: Path, protocols: l
         episodes[protocol] = _sha(path)[:32]
     train = json.loads((folder / "config.json").read_text()).get("train", {})
     return {
-        "agent": {"name": folder.name, "policy": weights_digest(load_tensors(folder / "best" / "model.safetensors")[0]),
-                  "encoder": weights_digest(load_tensors(folder / "encoder.safetensors")[0]),
+        "agent": {"name": folder.name, "policy": _sha(folder / "best" / "model.safetensors"),
+                  "encoder": _sha(folder / "encoder.safetensors"),
                   "features": train.get("features"), "detections": card["detections"]},
         "data": {"world": str(data.resolve()), "features": card["features"], "rooms": rooms},
         "episodes": episodes,
@@ -461,7 +463,6 @@ def run(args: argparse.Namespace) -> int:
         return 0
     folder = agent_folder(args.agent)
     card = read_card(folder)
-    set_threads(args.threads)
     data, out = release_folders(card, folder.name, args.split, args.data, args.out)
     if args.data is not None and not data.is_dir() and not args.build_world:
         raise CommandError(f"--data {args.data}: no such world folder (--build-world builds the agent's "
@@ -477,6 +478,9 @@ def run(args: argparse.Namespace) -> int:
             f"rooms, detection tables, features, episode lists and settings): its saved table; --force evaluates again")
         rows = saved["rows"]
     else:
+        from ..distributed import set_threads
+
+        set_threads(args.threads)
         t0 = time.perf_counter()
         times = {}
         ensure_test_world(data, card, args.workers, split)
