@@ -58,12 +58,12 @@ def test_clip_frames_one_per_frame_coloured_by_stage(rolled):
     conf[states[sw], g] = 0.9  # the switch happens at frame sw, and only there
     views = frame_images(scene, t.keys)
     frames = clip_frames(scene, states, t.actions, t.target, conf, views, score_name="in frame")
-    assert frames.shape == (len(t.actions) + 1, PANEL + BAND, 2 * PANEL, 3) and frames.dtype == np.uint8
+    assert frames.shape == (len(t.actions) + 1, BAND + PANEL, 2 * PANEL, 3) and frames.dtype == np.uint8
     assert frames.shape[1] % 16 == 0 and frames.shape[2] % 16 == 0  # H.264 macroblocks, no rescaling
-    # the left panel is the agent's own frame, upscaled
+    # under the text band, the left panel is the agent's own frame, upscaled
     k = PANEL // views.shape[1]
-    assert np.array_equal(frames[0, k // 2:PANEL:k, k // 2:PANEL:k], views[0])
-    maps = frames[:, :PANEL, PANEL:]
+    assert np.array_equal(frames[0, BAND + k // 2::k, k // 2:PANEL:k], views[0])
+    maps = frames[:, BAND:, PANEL:]
     # before the switch: searching colour only, no star; at the switch the star appears where the agent is
     assert all(_count(m, PATH_RGB) == 0 and _count(m, SWITCH_RGB) == 0 for m in maps[:sw])
     assert _count(maps[sw], SEARCH_RGB) > 0 and _count(maps[sw], PATH_RGB) == 0 and _count(maps[sw], SWITCH_RGB) > 0
@@ -78,7 +78,7 @@ def test_clip_frames_one_per_frame_coloured_by_stage(rolled):
     assert segment_colors(3, -1) == [SEARCH_RGB, SEARCH_RGB]
     assert segment_colors(3, 0) == [PATH_RGB, PATH_RGB]
     # the switching frame has a gold border around the first-person view; no other frame has
-    border = frames[:, 1, PANEL // 2]
+    border = frames[:, BAND + 1, PANEL // 2]
     assert [tuple(b) == SWITCH_RGB for b in border] == [f == sw for f in range(len(frames))]
     with pytest.raises(ValueError, match="needs"):
         clip_frames(scene, states[:-1], t.actions, t.target, conf, views)
@@ -93,7 +93,7 @@ def test_written_clip_decodes_to_steps_plus_one_frames(tmp_path, rolled, fmt):
     assert frames.shape == (r.steps + 1, PANEL + BAND, 2 * PANEL, 3)
     assert not list(tmp_path.glob(".*"))  # written atomically: no temporary file left
     # the decoded switch frame still shows the gold star near where the raw frame has it (lossy for MP4)
-    gold = np.abs(frames[t.switch_frame, :PANEL, PANEL:].astype(int) - SWITCH_RGB).sum(-1) < 60
+    gold = np.abs(frames[t.switch_frame, BAND:, PANEL:].astype(int) - SWITCH_RGB).sum(-1) < 60
     assert gold.sum() > 20
 
 

@@ -4,15 +4,13 @@
 Every frame of a clip is one frame of the episode (frames 0..T: the start frame, then one per action, so a clip of
 an episode of ``T`` steps has ``T + 1`` frames):
 
-+-----------------------------+-----------------------------+
-| the agent's first-person    | top-down map: floor, furniture, the target's instances (green X), the path so far |
-| frame (``images.hdf5``, or  | coloured by stage (blue: searching, red: pathfinding; paper III-B), the stage       |
-| rendered), gold frame at    | switch (gold star) once it happened, the agent and its heading                     |
-| the stage switch            |                                                                                    |
-+-----------------------------+-----------------------------+
-| scene, target, step t / T; the action taken at this frame; the target's score (the detector's, or ground truth  |
-| "in frame" without a detector) against C_target and the stage; at the last frame how the episode ended           |
-+-------------------------------------------------------------------------------------------------------------------+
+* a text band on top: scene, target, step ``t`` of ``T``; the action taken at this frame and the stage it is in;
+  the target's score (the detector's, or ground truth "in frame" without a detector) against C_target; on the last
+  frame, how the episode ended (it is on top because a player's controls cover a clip's bottom);
+* left, the agent's first-person frame (``images.hdf5``, or rendered), with a gold border on the switching frame;
+* right, the top-down map: floor, furniture, the target's instances (green X), the start (square), the path so far
+  coloured by stage (blue: searching, red: pathfinding; paper III-B), the stage switch (gold star) from the frame
+  it happened on, the agent and its heading.
 
 The stage of a frame is the evaluation's rule (:func:`tsnav.sim.stage.switch_frame` on the bank's
 ``stage_confidence`` at the evaluation's C_target), so the clip and the episode's record agree on where the switch
@@ -54,7 +52,7 @@ from .outcomes import episode_ending, select_episodes
 VIDEO_DIR = "videos"
 #: Side of the two square panels (first-person frame, map), pixels.
 PANEL = 256
-#: Height of the text band under the panels, pixels (panels + band: a multiple of 16, as H.264 wants).
+#: Height of the text band above the panels, pixels (panels + band: a multiple of 16, as H.264 wants).
 BAND = 64
 #: Frames per second of a clip (a 100-step episode lasts 25 s).
 FPS = 4
@@ -134,7 +132,8 @@ def segment_colors(num_frames: int, switch: int) -> list[tuple[int, int, int]]:
 def clip_frames(scene, states: Sequence[int], actions: Sequence[int], target: str | int, confidence: np.ndarray,
                 views: np.ndarray, c_target: float = C_TARGET, score_name: str = "detector score",
                 ending: str | None = None) -> np.ndarray:
-    """``(T + 1, PANEL + BAND, 2 * PANEL, 3)`` uint8 frames of one episode of ``scene``.
+    """``(T + 1, BAND + PANEL, 2 * PANEL, 3)`` uint8 frames of one episode of ``scene``: the text band on top, the
+    first-person frame (left) and the map (right) under it.
 
     ``states``: scene-local state ids of the frames, start first (``T + 1``); ``actions``: the ``T`` actions
     (``constants.ACTIONS`` order); ``confidence``: ``(S, 22)`` target confidence per scene-local state, the
@@ -158,31 +157,32 @@ def clip_frames(scene, states: Sequence[int], actions: Sequence[int], target: st
     for t in range(n):
         img = Image.new("RGB", (2 * PANEL, PANEL + BAND), (255, 255, 255))
         view = Image.fromarray(np.ascontiguousarray(views[t])).resize((PANEL, PANEL), Image.NEAREST)
-        img.paste(view, (0, 0))
-        img.paste(Image.fromarray(room.image), (PANEL, 0))
+        img.paste(view, (0, BAND))
+        img.paste(Image.fromarray(room.image), (PANEL, BAND))
         d = ImageDraw.Draw(img)
-        c0, r0 = PANEL + pts[0][0], pts[0][1]
+        c0, r0 = PANEL + pts[0][0], BAND + pts[0][1]
         d.rectangle([c0 - 4, r0 - 4, c0 + 4, r0 + 4], outline=(0, 0, 0), width=2)  # the start
         for k in range(1, t + 1):  # the path so far, segment by segment in its stage's colour
             (ca, ra), (cb, rb) = pts[k - 1], pts[k]
-            d.line([(PANEL + ca, ra), (PANEL + cb, rb)], fill=colors[k - 1], width=3)
-        c, r = PANEL + pts[t][0], pts[t][1]
+            d.line([(PANEL + ca, BAND + ra), (PANEL + cb, BAND + rb)], fill=colors[k - 1], width=3)
+        c, r = PANEL + pts[t][0], BAND + pts[t][1]
         rad = np.deg2rad(scene.rotation[states[t]])
         d.line([(c, r), (c + 14 * np.sin(rad), r - 14 * np.cos(rad))], fill=(0, 0, 0), width=3)  # heading
         d.ellipse([c - 5, r - 5, c + 5, r + 5], fill=(255, 255, 255), outline=(0, 0, 0), width=2)
         if 0 <= switch <= t:  # the stage switch, from the frame it happened on
-            _star(d, PANEL + pts[switch][0], pts[switch][1], 9, SWITCH_RGB)
+            _star(d, PANEL + pts[switch][0], BAND + pts[switch][1], 9, SWITCH_RGB)
         searching = switch < 0 or t < switch
         if t == switch:
-            d.rectangle([0, 0, PANEL - 1, PANEL - 1], outline=SWITCH_RGB, width=5)
-        # the text band: where, what the agent did, what the detector said and which stage that makes
+            d.rectangle([0, BAND, PANEL - 1, BAND + PANEL - 1], outline=SWITCH_RGB, width=5)
+        # the text band above the panels (a player's controls cover a clip's bottom): where, what the agent
+        # did, what the detector said and which stage that makes
         act = (ACTIONS[int(actions[t])] if t < n - 1 else f"end: {ending}" if ending else "end")
         stage = "searching" if searching else ("stage switch: pathfinding" if t == switch else "pathfinding")
-        d.text((8, PANEL + 4), f"{scene.name}  target {name}  step {t}/{n - 1}", font=big, fill=(20, 20, 20))
-        d.text((8, PANEL + 24), f"action: {act}", font=small, fill=(20, 20, 20))
-        d.rectangle([PANEL + 8, PANEL + 26, PANEL + 20, PANEL + 38], fill=SEARCH_RGB if searching else PATH_RGB)
-        d.text((PANEL + 26, PANEL + 24), f"stage: {stage}", font=small, fill=(20, 20, 20))
-        d.text((8, PANEL + 43), f"{score_name} of {name}: {score[t]:.2f} "
+        d.text((8, 4), f"{scene.name}  target {name}  step {t}/{n - 1}", font=big, fill=(20, 20, 20))
+        d.text((8, 24), f"action: {act}", font=small, fill=(20, 20, 20))
+        d.rectangle([PANEL + 8, 26, PANEL + 20, 38], fill=SEARCH_RGB if searching else PATH_RGB)
+        d.text((PANEL + 26, 24), f"stage: {stage}", font=small, fill=(20, 20, 20))
+        d.text((8, 43), f"{score_name} of {name}: {score[t]:.2f} "
                                 f"{'>' if score[t] > c_target else '<='} C_target {c_target:g}", font=small,
                fill=(20, 20, 20))
         out[t] = np.asarray(img)

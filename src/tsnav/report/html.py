@@ -219,8 +219,8 @@ table{border-collapse:collapse;margin:10px 0;font-size:13px}th,td{border:1px sol
 text-align:right}th{background:#f2f2f2}td.l,th.l{text-align:left}tr:nth-child(even) td{background:#fafafa}
 img{max-width:100%;border:1px solid #eee}figure{margin:12px 0}figcaption{font-size:13px;color:#444}
 .ep{display:flex;gap:12px;align-items:flex-start;flex-wrap:wrap;border-top:1px solid #eee;padding-top:10px}
-.ep .map{flex:0 0 520px}.ep .map img{width:520px}.ep .frames{flex:1 1 560px}.ep .clip{flex:0 0 512px}
-.ep .clip video,.ep .clip img{width:512px;height:320px;display:block}.ok{color:#1a7f37;font-weight:bold}
+.ep .map{flex:0 0 520px}.ep .map img{width:520px}.ep .frames{flex:1 1 560px}.ep .clip{margin-top:8px}
+.ep .clip video,.ep .clip img{width:512px;height:320px;display:block;border:1px solid #eee}.ok{color:#1a7f37;font-weight:bold}
 .bad{color:#b42318;font-weight:bold}pre{background:#f6f6f6;padding:8px;font-size:12px;overflow-x:auto}
 .note{font-size:13px;color:#555}
 """
@@ -465,16 +465,16 @@ def _gallery_html(eval_dir: Path, label: str, assets: _Assets, n: int, videos: i
              "observed trapezoids, clipped to the floor); red: pathfinding stage; gold star: the stage switch "
              f"(first frame with target confidence above C_target = {c_target:g}); green X: instances of the target."
              + (" Clips: the first-person frame beside the map at every step, with the action taken and the "
-                "target's score against C_target written under them (gold border: the switching frame)."
+                "target's score against C_target written above them (gold border: the switching frame)."
                 if any(it.clip for it in items) else "") + "</p>"]
     for it in items:
         cls, word = ("ok", "success") if it.success else ("bad", "failure")
         frames = (f"<img src='{it.frames_png}' alt='first-person frames'>" if it.frames_png
                   else "<p class='note'>no first-person frames (no images.hdf5 and no renderer)</p>")
-        clip = _clip_html(it.clip) if it.clip else ""
+        clip = _clip_html(it.clip) if it.clip else ""  # under the frame strip, beside the map
         parts.append(f"<div class='ep'><div class='map'><img src='{it.map_png}' alt='top-down map'></div>"
-                     f"<div class='frames'><p><span class='{cls}'>{word}</span> {_e(it.caption)}</p>{frames}</div>"
-                     f"{clip}</div>")
+                     f"<div class='frames'><p><span class='{cls}'>{word}</span> {_e(it.caption)}</p>{frames}"
+                     f"{clip}</div></div>")
     return "".join(parts)
 
 
