@@ -177,7 +177,7 @@ def clip_frames(scene, states: Sequence[int], actions: Sequence[int], target: st
         # the text band above the panels (a player's controls cover a clip's bottom): where, what the agent
         # did, what the detector said and which stage that makes
         act = (ACTIONS[int(actions[t])] if t < n - 1 else f"end: {ending}" if ending else "end")
-        stage = "searching" if searching else ("stage switch: pathfinding" if t == switch else "pathfinding")
+        stage = "searching" if searching else ("pathfinding (switched here)" if t == switch else "pathfinding")
         d.text((8, 4), f"{scene.name}  target {name}  step {t}/{n - 1}", font=big, fill=(20, 20, 20))
         d.text((8, 24), f"action: {act}", font=small, fill=(20, 20, 20))
         d.rectangle([PANEL + 8, 26, PANEL + 20, 38], fill=SEARCH_RGB if searching else PATH_RGB)
