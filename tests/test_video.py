@@ -88,7 +88,7 @@ def test_clip_frames_one_per_frame_coloured_by_stage(rolled):
 def test_written_clip_decodes_to_steps_plus_one_frames(tmp_path, rolled, fmt):
     bank, _, records, trajectories = rolled
     r, t = next((r, t) for r, t in zip(records, trajectories) if t.switch_frame > 0)
-    path = episode_clip(bank, r, t, tmp_path / f"clip.{fmt}")
+    path = episode_clip(bank, t, tmp_path / f"clip.{fmt}")
     frames = read_clip(path)
     assert frames.shape == (r.steps + 1, PANEL + BAND, 2 * PANEL, 3)
     assert not list(tmp_path.glob(".*"))  # written atomically: no temporary file left

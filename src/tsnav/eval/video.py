@@ -256,7 +256,7 @@ class Clip:
     caption: str
 
 
-def episode_clip(bank, record: EpisodeRecord, trajectory, path: str | Path, c_target: float = C_TARGET,
+def episode_clip(bank, trajectory, path: str | Path, c_target: float = C_TARGET,
                  fps: float = FPS) -> Path:
     """Write the clip of one recorded episode (``trajectory`` of :func:`~tsnav.eval.runner.record_trajectories`)
     to ``path``; the stage follows ``bank.stage_confidence`` at ``c_target``, as in the evaluation."""
@@ -285,7 +285,7 @@ def write_videos(bank, records: Sequence[EpisodeRecord], trajectories: Sequence,
     clips = []
     for i in select_episodes(records, n):
         r, tr = records[i], trajectories[i]
-        path = episode_clip(bank, r, tr, out_dir / f"ep{r.episode:05d}.{fmt}", c_target)
+        path = episode_clip(bank, tr, out_dir / f"ep{r.episode:05d}.{fmt}", c_target)
         sw = "never" if tr.switch_frame < 0 else f"at step {tr.switch_frame}"
         caption = (f"Episode {r.episode}: {tr.scene} ({r.room_type}), target {tr.target}: {episode_ending(tr)} after "
                    f"{r.steps} steps, {r.path_length} moves (optimal {r.optimal_length}); pathfinding stage entered {sw}.")

@@ -127,7 +127,7 @@ def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence
         clip = ""
         if len(items) < videos:
             try:
-                clip = str(episode_clip(bank, r, tr, out_dir / f"{stem}.{fmt}", c_target).relative_to(base))
+                clip = str(episode_clip(bank, tr, out_dir / f"{stem}.{fmt}", c_target).relative_to(base))
             except (ValueError, OSError, RuntimeError, ImportError):
                 clip = ""
         items.append(GalleryItem(str(Path(map_png).relative_to(base)), frames_rel, caption, bool(r.success),
