@@ -52,7 +52,8 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     shutil.copytree(tiny_world, out / "world", ignore=NO_LEARNED)  # the world stage then only checks it
     trainer = CountedTrainer()
     res = run_demo(out, TINY, train_fn=trainer)
-    assert [res["steps"][s][0] for s in STEPS] == ["done"] * len(STEPS)
+    # the shipped agent reads 128-px real rooms: on the tiny world its step says why it is left out
+    assert [res["steps"][s][0] for s in STEPS] == ["-" if s == "shipped" else "done" for s in STEPS]
     assert list(res["results"]) == ["paper", "lineage"]
     for protocol, rows in res["results"].items():
         assert list(rows) == ["agent (TSRM, DE-MAE)", "agent on the oracle table", "scripted explorer", "random"]
@@ -84,15 +85,16 @@ def test_demo_end_to_end_and_reuse(tmp_path, tiny_world, capsys):
     for word in ("agent (TSRM, DE-MAE)", "scripted explorer", "Training", "Pretraining", "Episode gallery"):
         assert word in html
     text = capsys.readouterr().out
-    assert "[1/9] world" in text and "[9/9] report" in text and "results on the test episodes" in text
-    assert "[4/9] detector" in text and "detections: detections_learned on" in text and "reach of 0.7" in text
+    assert "[1/10] world" in text and "[10/10] report" in text and "results on the test episodes" in text
+    assert "[9/10] shipped: the agent that ships with tsnav: not on the tiny world" in text
+    assert "[4/10] detector" in text and "detections: detections_learned on" in text and "reach of 0.7" in text
     assert "scripted explorer" in text.split("results on the test episodes")[1]
     assert "protocol: paper" in text and "protocol: lineage" in text and "agent trained under paper" in text
 
     # a second run reuses every stage and trains nothing
     again = CountedTrainer()
     res2 = run_demo(out, TINY, train_fn=again)
-    assert [res2["steps"][s][0] for s in STEPS] == ["reused"] * len(STEPS)
+    assert [res2["steps"][s][0] for s in STEPS] == ["-" if s == "shipped" else "reused" for s in STEPS]
     assert again.calls == [] and res2["results"] == res["results"]
     assert sorted(p.name for p in (out / "run" / "checkpoints").iterdir()) == ckpts
 
@@ -179,10 +181,11 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
 
 def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsys):
     """The default path: real rooms at 128x128 and the detector shipped with tsnav (nothing trained for it, as the
-    paper's DETR is trained apart from the agent); its tables go into every room and drive the stage switch. A
-    64-px world with the shipped detector is refused in one line before any work."""
+    paper's DETR is trained apart from the agent); its tables go into every room and drive the stage switch; the
+    shipped agent is evaluated beside the demo's own. A 64-px world with the shipped detector is refused in one
+    line before any work."""
     from tsnav.data.detections import read_fingerprint
-    from tsnav.data.reader import list_scenes
+    from tsnav.data.reader import list_scenes, load_scene
     from tsnav.detect.shipped import shipped_meta
     from tsnav.errors import CommandError
 
@@ -197,7 +200,33 @@ def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsy
     trainer = CountedTrainer()
     res = run_demo(out, cfg, train_fn=trainer)
     assert [res["steps"][s][0] for s in STEPS] == ["done"] * len(STEPS)
-    assert "its tables were written during pretraining" in capsys.readouterr().out  # by the background process
+    text = capsys.readouterr().out
+    assert "its tables were written during pretraining" in text  # by the background process
+    # beside the demo's agent, the agent that ships with tsnav on the same test episodes, under both protocols; the
+    # background process wrote its detector's tables and its encoder's features into the test room only, so the
+    # step only evaluated
+    from tsnav.pipeline.release import agent_folder, default_agent, read_card
+
+    name = default_agent()
+    folder, label = agent_folder(name), f"shipped agent ({name})"
+    card = read_card(folder)
+    assert all(list(rows)[:2] == ["agent (TSRM, DE-MAE)", label] for rows in res["results"].values())
+    assert "written into" not in text.split("[9/10] shipped")[1].split("[10/10]")[0]
+    for p in list_scenes(out / "world"):
+        split = load_scene(p).meta["split"]
+        assert (read_fingerprint(p, card["detections"]) == card["detector_fingerprint"]) == (split == "test")
+        assert (p / f"features_{card['features']}.hdf5").exists() == (split == "test")
+    for protocol, sub in (("paper", ""), ("lineage", "_lineage")):
+        m = json.loads((out / "eval" / f"shipped{sub}" / "metrics.json").read_text())
+        mine = json.loads((out / "eval" / f"agent{sub}" / "metrics.json").read_text())
+        assert (m["run"], m["detections"], m["checkpoint"]) == (str(folder.resolve()), card["detections"], "best")
+        assert m["protocol"] == protocol and m["trained_protocol"] == "lineage" and not m["sample"]
+        assert m["episodes_file"] == mine["episodes_file"]
+        assert m["metrics"] == res["results"][protocol][label]
+    assert f"{label}: the agent that ships with tsnav, trained under lineage" in text
+    assert "agent (TSRM, DE-MAE): this demo's agent (2 updates, trained under paper)" in text
+    html = (out / "report" / "index.html").read_text()
+    assert f"{label} [lineage]" in html and html.count("<video") >= 2  # its gallery, with clips
     marker = json.loads((out / "steps" / "detector" / "DONE").read_text())
     assert marker["source"] == "shipped" and marker["fingerprint"] == shipped_meta()["fingerprint"]
     assert not (out / "detector").exists() and trainer.detections == ["learned"]
@@ -272,3 +301,20 @@ def test_replacing_the_preset_takes_its_sizes():
     assert quick.tables_beside and not longer.tables_beside
     assert replace(TINY, preset="demo-real").sizes == TINY.sizes  # given sizes stay
     assert not replace(quick, tables_beside_pretraining=False).tables_beside
+
+
+def test_the_shipped_agent_row_is_left_out_where_it_cannot_run(tmp_path, monkeypatch):
+    """The shipped agent's row needs 128-px ithor-real rooms: elsewhere, when asked not to, or when no agent ships,
+    the step says why in one line; an agent named that does not exist is refused before any work."""
+    from tsnav.errors import CommandError
+    from tsnav.pipeline import demo, release
+
+    assert demo.shipped_agent(replace(TINY, preset="tiny"))[2].startswith("not on the tiny world")
+    assert demo.shipped_agent(replace(TINY, preset="tiny-real", shipped=False))[2] == "left out (--no-shipped)"
+    folder, card, why = demo.shipped_agent(replace(TINY, preset="tiny-real"))
+    assert why == "" and folder == release.agent_folder(None) and card["name"] == folder.name
+    with pytest.raises(CommandError, match="no shipped agent named 'nope'"):
+        demo.shipped_agent(replace(TINY, preset="tiny-real", shipped_agent="nope"))
+    monkeypatch.setattr(release, "WEIGHTS", tmp_path / "none")  # a copy of tsnav that ships no agent
+    assert demo.shipped_agent(replace(TINY, preset="tiny-real"))[2] == \
+        "no agent ships with this tsnav (tsnav release pack makes one)"

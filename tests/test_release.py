@@ -93,7 +93,11 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     world, ev = packed["root"] / "test_world", packed["root"] / "eval"
     args = ["release", "eval", "--agent", str(packed["out"]), "--data", str(world), "--out", str(ev),
             "--workers", "1", "--threads", "1"]
-    assert main(args) == 0
+    # a --data folder that does not exist is refused in one line unless the user asks to build there
+    assert main(args) == 2
+    assert f"--data {world}: no such world folder (--build-world builds" in capsys.readouterr().err
+    assert not world.exists()
+    assert main(args + ["--build-world"]) == 0
     text = capsys.readouterr().out
     assert [p.name for p in list_scenes(world)] == [TEST_ROOM]
     card = release.read_card(packed["out"])
@@ -110,11 +114,24 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     assert "protocol: lineage (agent trained under paper)" in text
     assert all(0.0 <= r["metrics"]["ALL"]["SR"] <= 1.0 and r["episodes"] > 0 for r in res["rows"])
     assert "scripted explorer" in text and "SSSPL" in text
-    # a second run builds nothing, prints the same figures and (asked to) writes them into the card
+    assert res["inputs"] == release.release_inputs(packed["out"], card, world, ev, ["paper", "lineage"], True, "test")
+    # a second run with nothing changed prints the saved table, says so in one line and evaluates nothing
+    # (and, asked to, writes the figures into the card)
+    before = (ev / "results.json").read_bytes()
+    stamps = {p: p.stat().st_mtime_ns for p in ev.rglob("metrics.json")}
     assert main(args + ["--update-card"]) == 0
+    second = capsys.readouterr().out
+    assert "[release] nothing changed since the evaluation of" in second and "--force evaluates again" in second
+    assert (ev / "results.json").read_bytes() == before and stamps == {p: p.stat().st_mtime_ns for p in stamps}
+    assert second.split("real test rooms")[1].split("\n", 1)[1] .replace("read ", "wrote ") == \
+        text.split("real test rooms")[1].split("\n", 1)[1]  # the same table, line for line
+    # --force evaluates again: the same figures
+    assert main(args + ["--force"]) == 0
+    forced = capsys.readouterr().out
+    assert "nothing changed" not in forced and "steps: world" in forced
     again = json.loads((ev / "results.json").read_text())
     assert [r["metrics"] for r in again["rows"]] == [r["metrics"] for r in res["rows"]]
-    assert "built" not in capsys.readouterr().out
+    assert "built" not in forced
     card = release.read_card(packed["out"])
     assert card["figures"]["test"]["rows"] == again["rows"]
     sr = 100 * again["rows"][0]["metrics"]["ALL"]["SR"]
@@ -127,6 +144,42 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     with pytest.raises(CommandError, match="was drawn on .* not on .*elsewhere"):
         release.release_episodes(packed["root"] / "elsewhere", ev, "paper")
     assert release.release_episodes(world, ev, "paper") == ev / "episodes_test_paper.json"
+
+    # what "nothing changed" means: each of these changes the record, so the next run evaluates again
+    import h5py
+
+    from tsnav.checkpoint import load_tensors, save_tensors
+
+    def inputs(folder=packed["out"], protocols=("paper", "lineage"), baselines=True):
+        return release.release_inputs(folder, card, world, ev, list(protocols), baselines, "test")
+
+    base = inputs()
+    assert base == json.loads((ev / "results.json").read_text())["inputs"]
+    assert inputs(protocols=["lineage"]) != base and inputs(baselines=False) != base
+    graph = world / TEST_ROOM / "graph.json"
+    keep = graph.read_bytes()
+    graph.write_bytes(keep + b" ")  # the room's state graph rewritten
+    assert inputs()["data"]["rooms"] != base["data"]["rooms"]
+    graph.write_bytes(keep)
+    with h5py.File(world / TEST_ROOM / "detections_learned4.hdf5", "r+") as f:  # a table of another detector
+        fp = f.attrs["fingerprint"]
+        f.attrs["fingerprint"] = "learned-0000"
+    assert inputs()["data"]["rooms"][TEST_ROOM]["detections"] == "learned-0000"
+    with h5py.File(world / TEST_ROOM / "detections_learned4.hdf5", "r+") as f:
+        f.attrs["fingerprint"] = fp
+    other = packed["root"] / "other" / packed["out"].name  # the same agent with other policy weights
+    shutil.copytree(packed["out"], other)
+    sd, meta = load_tensors(other / "best" / "model.safetensors")
+    name = sorted(sd)[0]
+    sd[name] = sd[name] + 1e-3
+    save_tensors(other / "best" / "model.safetensors", sd, meta)
+    changed = inputs(other)
+    assert changed["agent"]["policy"] != base["agent"]["policy"] and changed["agent"]["encoder"] == base["agent"]["encoder"]
+    assert inputs() == base
+    (ev / "episodes_test_lineage.json").rename(ev / "moved.json")  # a missing input: the evaluation must run
+    assert inputs() is None and release.saved_results(ev, None) is None
+    (ev / "moved.json").rename(ev / "episodes_test_lineage.json")
+    assert release.saved_results(ev, base)["rows"] == again["rows"]
 
 
 def test_release_folders_by_version_agent_and_split():
@@ -192,3 +245,14 @@ def test_the_shipped_agents_are_whole_and_match_their_cards(name):
     assert (folder / "card.md").read_text().count("| lineage | agent | ALL |") == 2  # val and test
     size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
     assert size < 20e6
+
+
+def test_release_starts_without_torch():
+    """`tsnav release list` and a release evaluation that prints its saved table need no torch: the module imports
+    it only where tensors are read or written (torch's import is most of a second call's time)."""
+    import subprocess
+    import sys
+
+    code = "import sys, tsnav.pipeline.release; print('torch' in sys.modules)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert res.stdout.strip() == "False"

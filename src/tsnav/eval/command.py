@@ -1,5 +1,6 @@
 """``tsnav eval``: evaluate a policy on a fixed episode list (:func:`~tsnav.eval.runner.evaluate_to_folder`);
-writes records.jsonl, trajectories.jsonl and metrics.json."""
+writes records.jsonl, trajectories.jsonl and metrics.json (and, with ``--video N``, clips of N episodes:
+:mod:`tsnav.eval.video`)."""
 
 from __future__ import annotations
 
@@ -43,6 +44,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="detection table (detections_NAME.hdf5 in every scene) that drives the stage switch "
                              "and, with --run, feeds the agent instead of its training table (default: --run: the "
                              "run's own; scripted policies: ground-truth visibility)")
+    parser.add_argument("--video", type=int, default=0, metavar="N",
+                        help="also write clips of N episodes (successes and failures) into OUT/videos/: the "
+                             "first-person frame beside the map with the path coloured by stage, the switch, the "
+                             "target's score and the action at each step (MP4, or GIF without imageio-ffmpeg)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -50,13 +55,15 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--data {args.data}: no such dataset folder")
     if args.max_steps < 1 or args.batch_size < 1:
         raise CommandError("--max-steps and --batch-size must be >= 1")
+    if args.video < 0:
+        raise CommandError(f"--video must be >= 0, got {args.video}")
     if not 0.0 <= args.c_target <= 1.0:
         raise CommandError(f"--c-target must be in [0, 1], got {args.c_target}")
     out = Path(args.out)
     summary = evaluate_to_folder(out, args.data, args.episodes, policy=args.policy, run=args.run,
                                  detections=args.detections, c_target=args.c_target, seed=args.seed, max_steps=args.max_steps, sample=args.sample,
                                  checkpoint=args.checkpoint, success_distance=args.success_distance,
-                                 batch_size=args.batch_size, protocol=args.protocol)
+                                 batch_size=args.batch_size, protocol=args.protocol, videos=args.video)
     meta = json.loads((out / "metrics.json").read_text())
     n = sum(1 for line in (out / "records.jsonl").read_text().splitlines() if line.strip())
     print(f"{meta['label']}: {n} episodes in {meta['seconds']:.2f} s "
@@ -64,4 +71,9 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(summary, trained=meta.get("trained_protocol")))
     print(format_outcomes(json.loads((out / OUTCOMES_FILE).read_text())))
     print(f"wrote {out / 'records.jsonl'}, {out / 'trajectories.jsonl'}, {out / OUTCOMES_FILE} and {out / 'metrics.json'}")
+    if args.video:
+        from .video import VIDEO_DIR, read_video_index
+
+        clips = read_video_index(out)
+        print(f"wrote {len(clips)} clips into {out / VIDEO_DIR}: " + ", ".join(c.file for c in clips))
     return 0

@@ -48,6 +48,40 @@ def episode_ending(trajectory) -> str:
     return "step limit"
 
 
+def select_episodes(records: Sequence[EpisodeRecord], n: int = 6, seed: int = 0) -> list[int]:
+    """Indices (into ``records``) of about ``n`` episodes to show: half successes, half failures (whichever
+    kind is short is filled with the other), preferring episodes with ``L* >= 5`` that switched stage, spread
+    over scenes and targets. Deterministic."""
+    rng = np.random.default_rng(seed)
+    if n <= 0 or not records:
+        return []
+
+    def score(i: int) -> tuple:
+        r = records[i]
+        return (-(r.optimal_length >= 5), -bool(r.entered_pathfinding), rng.random())
+
+    succ = sorted([i for i, r in enumerate(records) if r.success], key=score)
+    fail = sorted([i for i, r in enumerate(records) if not r.success], key=score)
+
+    def spread(pool: list[int], k: int) -> list[int]:
+        chosen, seen = [], set()
+        for i in pool:  # first pass: one per (scene, target)
+            key = (records[i].scene, records[i].target)
+            if key not in seen and len(chosen) < k:
+                chosen.append(i)
+                seen.add(key)
+        for i in pool:
+            if len(chosen) >= k:
+                break
+            if i not in chosen:
+                chosen.append(i)
+        return chosen
+
+    k_s = min(len(succ), max(n - len(fail), (n + 1) // 2))
+    k_f = min(len(fail), n - k_s)
+    return spread(succ, k_s) + spread(fail, k_f)
+
+
 def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) -> dict:
     """Counts of (ending, switched) over the episodes, success rates with and without a switch, per-target
     episodes / SR / switch rate, and the share of each action among all actions taken.

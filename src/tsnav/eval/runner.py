@@ -362,7 +362,7 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
                        run: str | Path | None = None, detections: str | None = None, c_target: float = C_TARGET,
                        seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False,
                        checkpoint: str = "auto", success_distance: float | None = None, batch_size: int = 4096,
-                       protocol: str | None = None) -> dict:
+                       protocol: str | None = None, videos: int = 0) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
     :mod:`tsnav.report.html` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
@@ -373,7 +373,8 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     (:func:`~tsnav.eval.outcomes.outcome_summary`: how episodes ended, with and without the stage switch).
     The success protocol is the episode list's (:func:`resolve_protocol`: ``protocol`` given explicitly lets
     an agent trained under the other one be evaluated); ``metrics.json`` records it as ``protocol`` and the
-    agent's as ``trained_protocol``. Returns the :func:`summarize` result."""
+    agent's as ``trained_protocol``. ``videos`` > 0 also writes clips of that many episodes into ``videos/``
+    (:func:`tsnav.eval.video.write_evaluation_videos`). Returns the :func:`summarize` result."""
     out_dir = Path(out_dir)
     episodes, emeta = read_episodes(episodes_file)
     if not episodes:
@@ -397,6 +398,10 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     records, trajectories = record_trajectories(bank, episodes, pol, config)
     summary = summarize(records, config.min_optimal_length, protocol=protocol)
     write_evaluation(out_dir, meta, summary, records, trajectories, bank, time.perf_counter() - t0)
+    if videos > 0:
+        from .video import write_evaluation_videos  # matplotlib, Pillow and ffmpeg only when clips are asked for
+
+        write_evaluation_videos(out_dir, bank, records, trajectories, videos, config.c_target)
     return summary
 
 

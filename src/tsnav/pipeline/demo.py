@@ -30,7 +30,14 @@ those - and every underlying step resumes after an interruption):
  8. evaluate     the agent, the same agent reading the oracle's table instead of the learned   OUT/eval/<policy>,
                  one, the scripted explorer and the random policy on the test episodes, under   OUT/eval/<policy>_lineage
                  both protocols (the ``paper`` rows are the demo's table from before protocols)
- 9. report       HTML report: tables, curves, reconstructions, episode gallery                  OUT/report/index.html
+ 9. shipped      the agent that ships with tsnav (``tsnav release``'s default, 1.5 M training     OUT/eval/shipped,
+                 episodes on the 80 real training rooms) on the same test episodes, greedy,     OUT/eval/shipped_lineage
+                 under both protocols, so that the table shows what the project's agent does
+                 beside two minutes of training: its detector's tables and its encoder's
+                 features in the test rooms (written by the background process of step 2 after
+                 the demo's tables), then the evaluation (``--no-shipped`` leaves it out;
+                 128-px ithor-real worlds only)
+10. report       HTML report: tables, curves, reconstructions, episode gallery with clips       OUT/report/index.html
 
 The training and pretraining use the training rooms, linked into ``OUT/train_world`` (``train_rooms_per_type``
 keeps only the smallest ones per room type, for shorter runs); the val and test rooms are never seen in training.
@@ -39,7 +46,8 @@ The demo is the ``demo`` experiment (:mod:`tsnav.pipeline.experiment`): one row 
 ``demo`` scale (:data:`tsnav.pipeline.config.SCALES`), run as a job list of the experiments
 (:class:`~tsnav.pipeline.experiment.JobList`, ``DONE`` markers). Its encoder, feature cache, detection tables,
 training and checkpoint selection are the experiment's (:class:`~tsnav.pipeline.experiment.Experiment`); what the
-demo adds is the world, the scripted baselines beside the agent under both protocols, and the printed table.
+demo adds is the world, the scripted baselines and the shipped agent beside the agent under both protocols, and the
+printed table.
 """
 
 from __future__ import annotations
@@ -76,6 +84,7 @@ from .detector_steps import (complete_tables, ensure_detector, ensure_shipped_de
                              record_quality, tables_complete)
 from ..report.tables import quality_line
 from .steps import encoder_spec, ensure_episodes, ensure_oracle_detections, episodes_name
+from .release import agent_folder, ensure_release_detections, ensure_release_features, headline, read_card
 from ..metrics import METRICS, write_json
 from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS, check_protocol, protocol_line
 from ..pretrain.train import read_progress
@@ -85,7 +94,8 @@ from ..world.build import BuildConfig, build_dataset
 from ..world.presets import preset_scenes
 
 #: The demo's steps, in order (the pipeline's steps; "stage" names the paper's searching / pathfinding stages).
-STEPS = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "report")
+STEPS = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "shipped",
+         "report")
 
 
 @dataclass
@@ -124,6 +134,13 @@ class DemoConfig:
     protocol: str = DEFAULT_PROTOCOL
     """Success protocol the agent is trained and its checkpoint selected under (:mod:`tsnav.protocol`); every
     policy is evaluated under both protocols either way."""
+
+    shipped: bool = True
+    """Evaluate the agent that ships with tsnav (:mod:`tsnav.pipeline.release`) on the same test episodes, beside
+    the demo's own agent (its step ``shipped``); left out on worlds it cannot read (not ``ithor-real`` at its frame
+    size, or rooms of another rules version)."""
+    shipped_agent: str | None = None
+    """The shipped agent of that row: a name of ``tsnav release list`` or an agent folder; None: the default one."""
 
     tables_beside_pretraining: bool | None = None
     """Write the shipped detector's tables in a process of their own while DE-MAE pretrains on one thread; None:
@@ -302,7 +319,9 @@ class Demo:
         self.policies = eval_policies(cfg.detections)
         self.results: dict[str, dict] = {}
         self.background = None  # the process writing detection tables during pretraining
+        self.background_tables = None  # set by it when the demo's own tables are written
         self.wrote_in_background = False
+        self.shipped_folder, self.shipped_card, self.shipped_why = shipped_agent(cfg)
         self.jobs = JobList(self.steps(), say=lambda m: print(m, flush=True))
 
     def step(self, name: str, what: str, run, valid=lambda m: True, show=None) -> Step:
@@ -347,6 +366,7 @@ class Demo:
                       and (self.run_dir / "config.json").exists()),
             self.step("evaluate", "on the test episodes of each protocol: " + ", ".join(lab for lab, _, _ in self.policies),
                       self.evaluate, self.evaluate_ok),
+            self.shipped_step(),
             self.step("report", f"HTML report -> {self.out / 'report' / 'index.html'}", self.report,
                       lambda m: (self.out / "report" / "index.html").exists()),
         ]
@@ -376,26 +396,35 @@ class Demo:
 
     def start_background_tables(self) -> bool:
         """Start writing the shipped detector's missing tables in a process of its own (one thread) when
-        ``tables_beside_pretraining``; returns whether it started."""
+        ``tables_beside_pretraining``, and after them what the shipped agent's row needs in the test rooms (its
+        detector's tables, its encoder's features); returns whether it started."""
         if (self.cfg.detections == "oracle" or self.cfg.detector != "shipped" or self.background is not None
                 or not self.cfg.tables_beside):
             return False
-        self.background = spawn_context().Process(
-            target=write_tables_quietly, args=(str(self.world), self.cfg.detections), daemon=True)
+        ctx = spawn_context()
+        self.background_tables = ctx.Event()
+        agent = str(self.shipped_folder) if self.shipped_folder is not None else None
+        self.background = ctx.Process(target=write_tables_quietly, args=(str(self.world), self.cfg.detections),
+                                      kwargs={"done": self.background_tables, "shipped": agent}, daemon=True)
         self.background.start()
         return True
 
-    def join_background_tables(self) -> None:
-        """Wait for the tables' process; a failure there is said in one line (the detections step then writes the
-        missing tables itself, and a real problem is raised there)."""
+    def join_background_tables(self, everything: bool = False) -> None:
+        """Wait for the tables' process to have written the demo's tables (``everything``: until it ends, the
+        shipped agent's files written too); a failure there is said in one line (the step that needs the files
+        then writes what is missing itself, and a real problem is raised there)."""
         if self.background is None:
             return
+        while not everything and not self.background_tables.wait(0.5) and self.background.is_alive():
+            pass
+        if self.background_tables.is_set():
+            self.wrote_in_background = True
+            if not everything:
+                return
         self.background.join()
         if self.background.exitcode != 0:
             print(f"    the detection tables' background process failed (exit code {self.background.exitcode}); "
-                  "writing the missing tables here", flush=True)
-        else:
-            self.wrote_in_background = True
+                  "writing the missing files here", flush=True)
         self.background = None
 
     def features(self) -> dict:
@@ -503,28 +532,136 @@ class Demo:
                 and all((self.folder(n, p) / "metrics.json").exists() for _, n, _ in self.policies for p in PROTOCOLS))
 
     def read_results(self) -> dict[str, dict]:
-        """The evaluations' summaries: protocol -> label -> summary (read back when the step was reused)."""
-        if not self.results:
-            for p in PROTOCOLS:
-                for label, name, _ in self.policies:
-                    metrics = json.loads((self.folder(name, p) / "metrics.json").read_text())["metrics"]
-                    self.results.setdefault(p, {})[label] = metrics
+        """The evaluations' summaries: protocol -> label -> summary, in the table's order (the demo's agent, the
+        shipped agent, the others); those of steps that were reused are read back from their folders."""
+        rows = [(label, name) for label, name, _ in self.policies]
+        if self.shipped_folder is not None:
+            rows.insert(1, (self.shipped_label, "shipped"))
+        for p in PROTOCOLS:
+            have = self.results.get(p, {})
+            ordered = {}
+            for label, name in rows:
+                path = self.folder(name, p) / "metrics.json"
+                if label in have:
+                    ordered[label] = have[label]
+                elif path.exists():
+                    ordered[label] = json.loads(path.read_text())["metrics"]
+            self.results[p] = ordered
         return self.results
+
+    # 9. shipped -----------------------------------------------------------------------------------------
+    @property
+    def shipped_label(self) -> str:
+        return f"shipped agent ({self.shipped_folder.name})" if self.shipped_folder is not None else ""
+
+    def shipped_step(self) -> Step:
+        if self.shipped_folder is None:
+            return self.step("shipped", f"the agent that ships with tsnav: {self.shipped_why}", None)
+        card = self.shipped_card
+        return self.step("shipped", f"{self.shipped_folder.name}, the agent that ships with tsnav, on the same test "
+                         f"episodes: its detector's ({card['detector_shipped']}) tables and its encoder's features in "
+                         "the test rooms, then greedy under each protocol", self.shipped, self.shipped_ok)
+
+    def shipped(self) -> dict:
+        """The shipped agent on the demo's test episodes (greedy, as ``tsnav release eval``), under each protocol
+        named explicitly (it was trained under its card's)."""
+        folder, card = self.shipped_folder, self.shipped_card
+        self.join_background_tables(everything=True)
+        version = int(card.get("world_version") or 1)
+        have = room_versions(self.world, "test")
+        if have != {version}:
+            why = (f"the test rooms are of ithor-real rules version {', '.join(map(str, sorted(have)))}, "
+                   f"{folder.name} was trained on version {version}")
+            print(f"    left out: {why}", flush=True)
+            return {"agent": folder.name, "skipped": why, **self.shipped_identity()}
+        say = lambda m: print(m, flush=True)  # noqa: E731
+        ensure_release_detections(self.world, card, split="test", say=say)
+        ensure_release_features(self.world, folder, card, split="test")
+        for p in PROTOCOLS:
+            print(f"    {self.shipped_label} ({p}) ...", flush=True)
+            label = self.shipped_label if p == DEFAULT_PROTOCOL else f"{self.shipped_label} [{p}]"
+            self.results.setdefault(p, {})[self.shipped_label] = evaluate_to_folder(
+                self.folder("shipped", p), self.world, self.ep_files[p], run=str(folder), checkpoint="best",
+                detections=card["detections"], label=label, protocol=p)
+        return {"agent": folder.name, "protocols": list(PROTOCOLS), **self.shipped_identity()}
+
+    def shipped_identity(self) -> dict:
+        """What makes the shipped row another one: the agent's name, policy update and encoder fingerprint."""
+        c = self.shipped_card
+        return {"policy_update": c.get("policy_update"), "encoder_fingerprint": c.get("encoder_fingerprint")}
+
+    def shipped_ok(self, m: dict) -> bool:
+        if m.get("agent") != self.shipped_folder.name or any(m.get(k) != v for k, v in self.shipped_identity().items()):
+            return False
+        return bool(m.get("skipped")) or all((self.folder("shipped", p) / "metrics.json").exists() for p in PROTOCOLS)
+
+    def shipped_note(self) -> str:
+        """A line under the table: which agent each agent row is."""
+        if self.shipped_folder is None or not any(self.shipped_label in r for r in self.results.values()):
+            return ""
+        trained = json.loads((self.shipped_folder / "config.json").read_text())["train"].get("protocol", "paper")
+        budget = ", ".join(f"{v:g} {k}" for k, v in self.sc.budget.items() if v is not None)
+        return (f"{self.policies[0][0]}: this demo's agent ({budget}, trained under {self.cfg.protocol}); "
+                f"{self.shipped_label}: the agent that ships with tsnav, trained under {trained} (update "
+                f"{self.shipped_card.get('policy_update', '?')}; its card: {headline(self.shipped_card)}; "
+                f"`tsnav release eval` evaluates it on all the real test rooms)")
 
     # 9. report ------------------------------------------------------------------------------------------
     def report(self) -> dict:
+        shown = [self.folder("agent", DEFAULT_PROTOCOL)]
+        if self.shipped_folder is not None and (self.folder("shipped", "lineage") / "metrics.json").exists():
+            shown.append(self.folder("shipped", "lineage"))  # under the protocol it was trained under
+        shown += [self.folder("explorer", DEFAULT_PROTOCOL)]
         index = build_report(self.out, self.out / "report", gallery=self.cfg.gallery,
-                             title=f"tsnav demo: TSRM + DE-MAE on the {self.cfg.preset} world")
+                             title=f"tsnav demo: TSRM + DE-MAE on the {self.cfg.preset} world", gallery_evals=shown)
         return {"index": str(index)}
 
 
-def write_tables_quietly(world: str, name: str) -> None:
+def write_tables_quietly(world: str, name: str, done=None, shipped: str | None = None) -> None:
     """The shipped detector's missing tables ``detections_<name>.hdf5`` in every room of ``world``, one thread, no
-    output (the demo's background process; the detections step prints their quality)."""
+    output (the demo's background process; the detections step prints their quality); then ``done`` (an event) is
+    set and, for the ``shipped`` agent folder, its detector's tables and its encoder's features are written into
+    the test rooms (the shipped step then only evaluates)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the demo's: it stops this process (SIGTERM)
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))  # unwinds: no temp files left
     set_threads(1)
     ensure_shipped_detections(world, name, progress=False, say=lambda m: None, workers=1)
+    if done is not None:
+        done.set()
+    if shipped is not None:
+        card = read_card(shipped)
+        if room_versions(Path(world), "test") == {int(card.get("world_version") or 1)}:
+            ensure_release_detections(Path(world), card, split="test", say=lambda m: None, progress=False, workers=1)
+            ensure_release_features(Path(world), Path(shipped), card, split="test", progress=False, workers=1)
+
+
+def shipped_agent(cfg: DemoConfig) -> tuple[Path | None, dict | None, str]:
+    """``(folder, card, "")`` of the shipped agent the demo evaluates beside its own, or ``(None, None, why it is
+    left out)``: asked not to, or a world it cannot read (another layout source or frame size than its card's)."""
+    if not cfg.shipped:
+        return None, None, "left out (--no-shipped)"
+    try:
+        folder = agent_folder(cfg.shipped_agent)
+    except CommandError as e:
+        if cfg.shipped_agent is not None:  # named, and not there: the user's mistake, said before any work
+            raise
+        return None, None, str(e)  # none ships with this copy of tsnav
+    card = read_card(folder)
+    build = BuildConfig.from_preset(cfg.preset)
+    world, size = card.get("world_preset", "ithor-real"), int(card.get("image_size", 128))
+    if build.world != world or build.image_size != size:
+        return None, None, (f"not on the {cfg.preset} world ({folder.name} reads {world} rooms at {size}x{size}; "
+                            f"the {QUICK_DEMO_PRESET} and demo-real worlds are such)")
+    return folder, card, ""
+
+
+def room_versions(world: Path, split: str) -> set[int]:
+    """The ithor-real rules versions of the rooms of ``split`` (a room without a recorded version: 1)."""
+    out = set()
+    for p in list_scenes(world, split):
+        gen = (json.loads((p / "scene.json").read_text()).get("generator") or {})
+        out.add(int(gen.get("version", 1)))
+    return out
 
 
 def demo_recipe(cfg: DemoConfig) -> dict:
@@ -550,7 +687,7 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     markers = demo.jobs.run()
     results, total = demo.read_results(), time.perf_counter() - t_all
     _print_results(results, demo.jobs.times, total, markers["report"].get("index", str(out / "report" / "index.html")),
-                   cfg.protocol)
+                   cfg.protocol, demo.shipped_note())
     print(f"detections: {quality_line(markers['detections']['quality'])}", flush=True)
     return {"steps": demo.jobs.times, "results": results, "seconds": total}
 
@@ -584,13 +721,16 @@ def results_table(results: dict[str, dict], trained: str) -> str:
     return "\n".join(lines)
 
 
-def _print_results(results: dict, times: dict, total: float, index: str, trained: str = DEFAULT_PROTOCOL) -> None:
+def _print_results(results: dict, times: dict, total: float, index: str, trained: str = DEFAULT_PROTOCOL,
+                   note: str = "") -> None:
     print("\nstep         status    seconds")
     for name in STEPS:
         status, sec = times.get(name, ("-", 0.0))
         print(f"{name:<12} {status:<8} {sec:8.0f}")
     print(f"{'total':<12} {'':<8} {total:8.0f}")
     print(results_table(results, trained))
+    if note:
+        print(f"\n{note}")
     print(f"\nreport: {index}")
 
 

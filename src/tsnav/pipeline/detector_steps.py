@@ -103,11 +103,11 @@ def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir
     return LearnedDetector.load(detector_dir)
 
 
-def learned_tables(data: str | Path, name: str) -> tuple[dict[Path, str | None], list[str]]:
+def learned_tables(data: str | Path, name: str, split: str | None = None) -> tuple[dict[Path, str | None], list[str]]:
     """(fingerprint of every scene's ``detections_<name>.hdf5`` or None, the one learned detector's fingerprint
-    as a list of at most one). One-line error when a table was made by an oracle or the scenes' tables by two
-    learned detectors."""
-    paths = list_scenes(data)
+    as a list of at most one), over the scenes of ``data`` (of ``split`` only, when given). One-line error when a
+    table was made by an oracle or the scenes' tables by two learned detectors."""
+    paths = list_scenes(data, split=split)
     if not paths:
         raise CommandError(f"{data}: no complete scene")
     have = {p: read_fingerprint(p, name) for p in paths}
@@ -178,12 +178,13 @@ def ensure_shipped_detections(data: str | Path, name: str, progress: bool = True
 
 def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, progress: bool = True,
                          say: Callable[[str], None] = print, source: str = "the given detector",
-                         workers: int = 1) -> dict:
-    """Write the tables of detector ``det`` into the scenes of ``data`` that lack ``detections_<name>.hdf5``
+                         workers: int = 1, split: str | None = None) -> dict:
+    """Write the tables of detector ``det`` into the scenes of ``data`` (of ``split`` only, when given) that lack
+    ``detections_<name>.hdf5``
     (one torch thread per scene; ``workers`` processes share the scenes, :func:`tsnav.scene_pool.map_scenes`: the
     same tables for every value); a table made by another detector is refused in one line and never overwritten
     (``source`` names ``det`` in that line). Returns ``{"fingerprint", "written"}``."""
-    have, kinds = learned_tables(data, name)
+    have, kinds = learned_tables(data, name, split)
     if kinds and det.fingerprint != kinds[0]:
         odd = next(p for p, fp in have.items() if fp is not None)
         raise CommandError(f"{detections_path(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "

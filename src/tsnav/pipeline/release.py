@@ -18,8 +18,12 @@ fingerprint must match the one recorded at packing.
 ``tsnav release eval`` builds the 20 real test rooms (``ithor-real`` at the card's frame size), writes the
 shipped detector's tables and the shipped encoder's features into them, draws the test episodes exactly as the
 experiments do (250 per room type, seed 0) and evaluates the agent greedily, beside the scripted explorer with
-the same stage switch and the random policy; every step is skipped when its output exists, so a second run
-only evaluates. ``tsnav release pack`` makes such a folder from a training run and a pretraining run; ``tsnav release make
+the same stage switch and the random policy; every step is skipped when its output exists. When nothing changed
+since the last evaluation into the same folder (:func:`release_inputs`: the agent's and encoder's weights, the
+rooms, detection tables and feature caches, the episode lists and the settings, recorded in ``results.json``),
+a second run prints the saved table and says so in one line; ``--force`` evaluates again. A ``--data`` folder that
+does not exist is refused unless ``--build-world`` asks for the rooms to be built there (without ``--data`` the
+default folder is built). ``tsnav release pack`` makes such a folder from a training run and a pretraining run; ``tsnav release make
 RECIPE --work DIR`` makes a whole agent from its recipe (``configs/agents/NAME.toml``,
 :mod:`tsnav.pipeline.agent_recipe`) into ``DIR/agent/NAME``, and writes into the package only when asked by name
 (``--replace-shipped NAME``). A packed ``config.json`` holds no machine path.
@@ -28,17 +32,15 @@ RECIPE --work DIR`` makes a whole agent from its recipe (``configs/agents/NAME.t
 from __future__ import annotations
 
 import argparse
+import datetime as _dt
+import hashlib
 import json
 import shutil
 import time
 from pathlib import Path
 
-import torch
-
 from .. import __version__
 from ..atomic import atomic_write_text
-from ..checkpoint import load_tensors, save_tensors
-from ..distributed import set_threads
 from ..errors import CommandError, read_json
 from ..metrics import METRICS
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
@@ -47,8 +49,10 @@ from .agent_recipe import SECTIONS, STEPS, AgentRecipe, make_agent, resolve_agen
 
 #: Where shipped agents live (package data of ``tsnav.agent``).
 WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
-#: dtype the encoder is stored in; weights are read back into float32.
-ENCODER_DTYPE = torch.float16
+#: dtype the encoder is stored in (a torch dtype's name); weights are read back into float32. torch is imported
+#: only where tensors are read or written, so that ``tsnav release list`` and a release evaluation whose saved
+#: table is printed (nothing changed) start without it.
+ENCODER_DTYPE = "float16"
 CARD_FORMAT = "tsnav-agent-card"
 #: Fields a card must give when packing.
 CARD_REQUIRED = ("name", "summary", "world_preset", "world_version", "image_size", "detector_shipped",
@@ -105,11 +109,16 @@ def read_card(folder: str | Path) -> dict:
 
 def pack_encoder(src: str | Path, dst: str | Path) -> None:
     """Copy a ``tsnav`` encoder file with its floating-point tensors stored as :data:`ENCODER_DTYPE`."""
+    import torch
+
+    from ..checkpoint import load_tensors, save_tensors
+
     sd, meta = load_tensors(src)
     if meta.get("format") != "tsnav-encoder":
         raise CommandError(f"{src}: not a tsnav encoder file")
-    small = {k: (v.to(ENCODER_DTYPE) if v.is_floating_point() else v).contiguous() for k, v in sd.items()}
-    save_tensors(dst, small, {**meta, "stored_dtype": str(ENCODER_DTYPE).replace("torch.", "")})
+    dtype = getattr(torch, ENCODER_DTYPE)
+    small = {k: (v.to(dtype) if v.is_floating_point() else v).contiguous() for k, v in sd.items()}
+    save_tensors(dst, small, {**meta, "stored_dtype": ENCODER_DTYPE})
 
 
 def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: str | Path, card: dict) -> Path:
@@ -216,8 +225,10 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
     return names
 
 
-def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test") -> str:
-    """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's."""
+def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test",
+                            progress: bool = True, workers: int | None = None) -> str:
+    """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's. ``workers``
+    processes on one thread each (None: one per core)."""
     from ..pretrain.features import cache_features, load_encoder
     from ..scene_pool import default_workers
 
@@ -225,29 +236,31 @@ def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: in
     if enc.fingerprint != card["encoder_fingerprint"]:
         raise CommandError(f"{folder / 'encoder.safetensors'}: its weights do not match the card's fingerprint "
                            f"({enc.fingerprint} vs {card['encoder_fingerprint']})")
-    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=True,
-                   workers=default_workers())  # one thread per process, as the agent's own features were cached
+    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=progress,
+                   workers=workers or default_workers())  # one thread per process, as the agent's own features were cached
     return card["features"]
 
 
-def ensure_release_detections(data: Path, card: dict) -> str:
-    """Write the card's shipped detector's tables into the test rooms (refusing tables of another detector)."""
+def ensure_release_detections(data: Path, card: dict, split: str | None = None, say=say, progress: bool = True,
+                              workers: int | None = None) -> str:
+    """Write the card's shipped detector's tables into the rooms of ``data`` (of ``split`` only, when given),
+    refusing tables of another detector; ``workers`` processes (None: one per core)."""
     from ..detect.shipped import shipped_meta
 
     det = card["detector_shipped"]
     if shipped_meta(det).get("fingerprint") != card["detector_fingerprint"]:
         raise CommandError(f"the shipped detector {det!r} is not the one this agent was trained with "
                            f"({card['detector_fingerprint']})")
-    from ..data.reader import load_scene, list_scenes
+    from ..data.reader import load_scene
     from ..detect.shipped import shipped_detector
     from .detector_steps import learned_tables, write_learned_tables
     from ..scene_pool import default_workers
 
-    have, _ = learned_tables(data, card["detections"])
+    have, _ = learned_tables(data, card["detections"], split)
     if any(fp is None for fp in have.values()):
-        size = load_scene(list_scenes(data)[0]).image_size
-        write_learned_tables(data, card["detections"], shipped_detector(size, det), say=say,
-                             source=f"the shipped detector {det}", workers=default_workers())
+        size = load_scene(next(iter(have))).image_size
+        write_learned_tables(data, card["detections"], shipped_detector(size, det), say=say, progress=progress,
+                             source=f"the shipped detector {det}", workers=workers or default_workers(), split=split)
     return card["detections"]
 
 
@@ -271,6 +284,89 @@ def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") 
             raise CommandError(f"{path} was drawn on {drawn_on}, not on {Path(data).resolve()}: pass another --out "
                                f"(or remove {out})")
     return ensure_episodes(data, split, path, per, seed=seed, protocol=protocol)
+
+
+#: Files of a room whose bytes the evaluation depends on (layout, state graph, success map), hashed into its identity.
+ROOM_FILES = ("scene.json", "graph.json", "visible_object_map_1.5.json")
+#: Episode-runner settings of the release evaluation (``EvalConfig`` defaults), part of what "nothing changed" means.
+EVAL_SETTINGS = {"max_steps": 100, "greedy": True}
+
+
+def _sha(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def release_inputs(folder: Path, card: dict, data: Path, out: Path, protocols: list[str], baselines: bool,
+                   split: str, batch_size: int = 4096) -> dict | None:
+    """Everything a release evaluation's figures depend on, as a JSON-able record; None when something it reads is
+    not there yet (the world's rooms of ``split``, their detection tables or feature caches, an episode list), i.e.
+    when the evaluation has to run anyway. Two evaluations with equal records print the same table:
+
+    * agent: the policy's and the encoder's weights (SHA-256 of ``best/model.safetensors`` and
+      ``encoder.safetensors``), the training config's feature and detection names;
+    * data: the world folder, per room of ``split`` a hash of its layout, state graph and success map
+      (:data:`ROOM_FILES`), the fingerprint of its detection table (the detector's weights and temperature) and
+      the feature cache's name (the encoder's fingerprint);
+    * episodes: a hash of each protocol's episode list;
+    * settings: split, protocols, baselines, batch size, C_target, :data:`EVAL_SETTINGS` and tsnav's version.
+
+    Code changes between two releases of tsnav that keep the version are not seen: ``--force`` re-evaluates."""
+    from .. import __version__
+    from ..constants import C_TARGET
+    from ..data.detections import read_fingerprint
+    from ..data.reader import is_complete
+
+    from ..data.names import ithor_scenes
+
+    if not data.is_dir():
+        return None
+    names = list(card.get(f"{split}_rooms") or ithor_scenes(split=split))  # the rooms ensure_test_world builds
+    rooms = {}
+    for n in names:
+        room = data / n
+        if not is_complete(room) or not (room / f"features_{card['features']}.hdf5").exists():
+            return None
+        fp = read_fingerprint(room, card["detections"])
+        if fp is None:
+            return None
+        h = hashlib.sha256()
+        for f in ROOM_FILES:
+            if (room / f).exists():
+                h.update(f.encode() + _sha(room / f).encode())
+        rooms[n] = {"files": h.hexdigest()[:32], "detections": fp}
+    episodes = {}
+    for protocol in protocols:
+        path = out / f"episodes_{split}_{protocol}.json"
+        if not path.exists():
+            return None
+        episodes[protocol] = _sha(path)[:32]
+    train = json.loads((folder / "config.json").read_text()).get("train", {})
+    return {
+        "agent": {"name": folder.name, "policy": _sha(folder / "best" / "model.safetensors"),
+                  "encoder": _sha(folder / "encoder.safetensors"),
+                  "features": train.get("features"), "detections": card["detections"]},
+        "data": {"world": str(data.resolve()), "features": card["features"], "rooms": rooms},
+        "episodes": episodes,
+        "settings": {"split": split, "protocols": list(protocols), "baselines": bool(baselines),
+                     "batch_size": int(batch_size), "c_target": C_TARGET, **EVAL_SETTINGS, "tsnav": __version__},
+    }
+
+
+def saved_results(out: Path, inputs: dict | None) -> dict | None:
+    """The ``results.json`` of an earlier evaluation into ``out`` when it was made from exactly ``inputs``
+    (:func:`release_inputs`), else None."""
+    path = out / "results.json"
+    if inputs is None or not path.exists():
+        return None
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return saved if saved.get("inputs") == inputs and saved.get("rows") else None
 
 
 def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], baselines: bool = True,
@@ -330,7 +426,13 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     ev.add_argument("--agent", default=None, help="shipped agent name or folder (default: the default one; "
                                                   "`tsnav release list`)")
     ev.add_argument("--data", default=None, help="world folder for the rooms (default out/release/world-vN, N the "
-                                                  "rules version of the agent's card; reused)")
+                                                  "rules version of the agent's card; reused; built when missing). A "
+                                                  "--data folder that does not exist is refused unless --build-world")
+    ev.add_argument("--build-world", action="store_true",
+                    help="build the agent's rooms into --data when that folder does not exist yet")
+    ev.add_argument("--force", action="store_true",
+                    help="evaluate again even when nothing changed since the table saved in OUT/results.json (same "
+                         "agent and encoder weights, rooms, detection tables, features, episode lists and settings)")
     ev.add_argument("--out", default=None, help="evaluation folders, episode lists and results.json (default "
                                                  "out/release/eval/AGENT/SPLIT)")
     add_shared(ev, "protocol", default="both", choices=("both", *PROTOCOLS), metavar=None,
@@ -386,47 +488,66 @@ def run(args: argparse.Namespace) -> int:
     if args.action == "make":
         return run_make(args)
     folder = agent_folder(args.agent)
-    data, out = release_folders(read_card(folder), folder.name, args.split, args.data, args.out)
+    card = read_card(folder)
+    data, out = release_folders(card, folder.name, args.split, args.data, args.out)
+    if args.data is not None and not data.is_dir() and not args.build_world:
+        raise CommandError(f"--data {args.data}: no such world folder (--build-world builds the agent's "
+                           f"{args.split} rooms there; without --data they go to "
+                           f"{release_folders(card, folder.name, args.split)[0]})")
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
     evaluate_agent(folder, args.split, data, out, protocols, baselines=not args.no_baselines,
-                   update_card=args.update_card, workers=args.workers, threads=args.threads)
+                   update_card=args.update_card, workers=args.workers, threads=args.threads, force=args.force)
     return 0
 
 
 def evaluate_agent(folder: Path, split: str, data: Path, out: Path, protocols: list[str], *, baselines: bool = True,
-                   update_card: bool = False, workers: int = 2, threads: int = 2) -> list[dict]:
+                   update_card: bool = False, workers: int = 2, threads: int = 2, force: bool = False) -> list[dict]:
     """``tsnav release eval``: build what the agent in ``folder`` needs in ``data`` (rooms of ``split``, detector
     tables, features), evaluate it (and the baselines) under ``protocols`` into ``out``, print the table; with
-    ``update_card`` the figures are written into the folder's card."""
+    ``update_card`` the figures are written into the folder's card. When nothing changed since the evaluation saved
+    in ``out`` (:func:`release_inputs`), its table is printed instead, unless ``force``."""
     card = read_card(folder)
-    set_threads(threads)
-    t0 = time.perf_counter()
-    times = {}
     say(f"agent {folder.name}: {card.get('summary', '')}")
-    ensure_test_world(data, card, workers, split)
-    times["world"] = time.perf_counter() - t0
-    ensure_release_detections(data, card)
-    times["detections"] = time.perf_counter() - t0 - sum(times.values())
-    ensure_release_features(data, folder, card, split=split)
-    times["features"] = time.perf_counter() - t0 - sum(times.values())
-    rows = release_rows(folder, data, out, protocols, baselines=baselines, split=split)
-    times["evaluation"] = time.perf_counter() - t0 - sum(times.values())
-    res = {"agent": folder.name, "card": card.get("name"), "split": split, "rows": rows, "seconds": times}
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "results.json", json.dumps(res, indent=1) + "\n")
+    saved = None if force else saved_results(out, release_inputs(folder, card, data, out, protocols, baselines,
+                                                                 split))
+    if saved is not None:
+        say(f"nothing changed since the evaluation of {saved.get('evaluated', '?')} (same agent and encoder weights, "
+            f"rooms, detection tables, features, episode lists and settings): its saved table; --force evaluates again")
+        rows = saved["rows"]
+    else:
+        from ..distributed import set_threads
+
+        set_threads(threads)
+        t0 = time.perf_counter()
+        times = {}
+        ensure_test_world(data, card, workers, split)
+        times["world"] = time.perf_counter() - t0
+        ensure_release_detections(data, card)
+        times["detections"] = time.perf_counter() - t0 - sum(times.values())
+        ensure_release_features(data, folder, card, split=split)
+        times["features"] = time.perf_counter() - t0 - sum(times.values())
+        rows = release_rows(folder, data, out, protocols, baselines=baselines, split=split)
+        times["evaluation"] = time.perf_counter() - t0 - sum(times.values())
+        res = {"agent": folder.name, "card": card.get("name"), "split": split, "rows": rows, "seconds": times,
+               "evaluated": _dt.datetime.now().strftime("%Y-%m-%d %H:%M"),
+               "inputs": release_inputs(folder, card, data, out, protocols, baselines, split)}
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "results.json", json.dumps(res, indent=1) + "\n")
     if update_card:
         figs = card.setdefault("figures", {})
         figs[split] = {"episodes": max(r["episodes"] for r in rows), "rows": rows}
         atomic_write_text(folder / "card.json", json.dumps(card, indent=1) + "\n")
         atomic_write_text(folder / "card.md", card_markdown(card))
         say(f"card of {folder.name}: {split} figures written")
+    when = (f"the saved table of {saved.get('evaluated', '?')}" if saved is not None else
+            "steps: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()))
     print(f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
-          f"detector {card['detector_shipped']} (steps: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()) + ")")
+          f"detector {card['detector_shipped']} ({when})")
     trained = json.loads((folder / "config.json").read_text())["train"].get("protocol", "paper")
     for p in protocols:
         print(protocol_line(p, trained))
     print(format_rows(rows))
-    print(f"wrote {out / 'results.json'}")
+    print(f"{'read' if saved is not None else 'wrote'} {out / 'results.json'}")
     return rows
 
 

@@ -4,7 +4,8 @@
 A gallery item (:func:`write_gallery`) is two PNGs: the top-down map of :func:`tsnav.tsrm.plot.draw_episode`
 (path coloured by stage, searched region, stage switch, target instances) and a strip of the agent's
 first-person frames at key steps (start, mid-search, stage switch, mid-pathfinding, end), read from the
-scene's ``images.hdf5`` or rendered when the scene has no stored images.
+scene's ``images.hdf5`` or rendered when the scene has no stored images; the first ``videos`` items also get
+a clip of the whole episode (:mod:`tsnav.eval.video`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-import h5py
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -21,43 +21,11 @@ from matplotlib.figure import Figure
 from ..atomic import atomic_save_figure
 from ..constants import ACTIONS, C_TARGET, DONE
 from ..tsrm.plot import draw_episode
-from ..world.show import render_views
+from ..world.show import frame_images
 from ..metrics import EpisodeRecord
+from ..eval.outcomes import select_episodes
 from ..eval.runner import Trajectory
-
-
-def select_episodes(records: Sequence[EpisodeRecord], n: int = 6, seed: int = 0) -> list[int]:
-    """Indices (into ``records``) of about ``n`` episodes to show: half successes, half failures (whichever
-    kind is short is filled with the other), preferring episodes with ``L* >= 5`` that switched stage, spread
-    over scenes and targets. Deterministic."""
-    rng = np.random.default_rng(seed)
-    if n <= 0 or not records:
-        return []
-
-    def score(i: int) -> tuple:
-        r = records[i]
-        return (-(r.optimal_length >= 5), -bool(r.entered_pathfinding), rng.random())
-
-    succ = sorted([i for i, r in enumerate(records) if r.success], key=score)
-    fail = sorted([i for i, r in enumerate(records) if not r.success], key=score)
-
-    def spread(pool: list[int], k: int) -> list[int]:
-        chosen, seen = [], set()
-        for i in pool:  # first pass: one per (scene, target)
-            key = (records[i].scene, records[i].target)
-            if key not in seen and len(chosen) < k:
-                chosen.append(i)
-                seen.add(key)
-        for i in pool:
-            if len(chosen) >= k:
-                break
-            if i not in chosen:
-                chosen.append(i)
-        return chosen
-
-    k_s = min(len(succ), max(n - len(fail), (n + 1) // 2))
-    k_f = min(len(fail), n - k_s)
-    return spread(succ, k_s) + spread(fail, k_f)
+from ..eval.video import default_format, episode_clip
 
 
 def key_frames(traj: Trajectory) -> list[tuple[str, int]]:
@@ -87,22 +55,6 @@ def key_frames(traj: Trajectory) -> list[tuple[str, int]]:
     return out
 
 
-def frame_images(scene, keys: Sequence[str]) -> np.ndarray:
-    """``(K, H, W, 3)`` uint8 first-person frames of ``keys``: from ``images.hdf5`` when the scene has it,
-    else rendered from ``scene.json`` (needs EGL); ``ValueError`` when neither is possible."""
-    p = scene.images_path()
-    if p is not None:
-        with h5py.File(p, "r") as f:
-            return np.stack([f[k][()] for k in keys]).astype(np.uint8)
-    if "parts" not in scene.meta:
-        raise ValueError(f"{scene.path}: no images.hdf5 and no render parts: no first-person frames")
-
-    idx = scene.indices(list(keys))
-    poses = np.stack([scene.x[idx], scene.z[idx], scene.rotation[idx], scene.horizon[idx]], 1).astype(np.float32)
-    rgb, _, _ = render_views(scene, poses, size=scene.image_size or 128)
-    return np.asarray(rgb, dtype=np.uint8)
-
-
 def draw_frame_strip(frames: np.ndarray, labels: Sequence[str], path: str | Path, title: str = "") -> Path:
     """A PNG of ``frames`` side by side with one caption each."""
     k = len(frames)
@@ -128,21 +80,25 @@ class GalleryItem:
     caption: str
     success: bool
     record: dict = field(default_factory=dict)
+    clip: str = ""
+    """The episode's clip (MP4 or GIF, :mod:`tsnav.eval.video`), or "" when none was written."""
 
 
 def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence[Trajectory], out_dir: str | Path,
-                  n: int = 6, c_target: float = C_TARGET, prefix: str = "ep", relative_to: str | Path | None = None
-                  ) -> list[GalleryItem]:
+                  n: int = 6, c_target: float = C_TARGET, prefix: str = "ep", relative_to: str | Path | None = None,
+                  videos: int = 0) -> list[GalleryItem]:
     """Pictures of about ``n`` selected episodes (:func:`select_episodes`) into ``out_dir``.
 
     ``records`` and ``trajectories`` are parallel lists (as from :func:`record_trajectories`); the map's stage
     colouring uses ``bank.stage_confidence`` and ``c_target`` like the evaluation. Picture paths in the items
-    are relative to ``relative_to`` (default: the parent of ``out_dir``).
+    are relative to ``relative_to`` (default: the parent of ``out_dir``). The first ``videos`` items also get a
+    clip of the whole episode (:func:`tsnav.eval.video.episode_clip`, :func:`~tsnav.eval.video.default_format`).
     """
     out_dir = Path(out_dir)
     base = Path(relative_to) if relative_to is not None else out_dir.parent
     conf = bank.stage_confidence
     items = []
+    fmt = default_format()
     for i in select_episodes(records, n):
         r, tr = records[i], trajectories[i]
         si = bank.scene_index(tr.scene)
@@ -168,6 +124,12 @@ def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence
         sw = ("never" if tr.switch_frame < 0 else f"at step {tr.switch_frame}")
         caption = (f"Episode {r.episode}: {title}. Pathfinding stage entered {sw}; "
                    f"SPL term {(r.optimal_length / max(r.path_length, r.optimal_length, 1)) if r.success else 0:.2f}.")
+        clip = ""
+        if len(items) < videos:
+            try:
+                clip = str(episode_clip(bank, tr, out_dir / f"{stem}.{fmt}", c_target).relative_to(base))
+            except (ValueError, OSError, RuntimeError, ImportError):
+                clip = ""
         items.append(GalleryItem(str(Path(map_png).relative_to(base)), frames_rel, caption, bool(r.success),
-                                 asdict(r)))
+                                 asdict(r), clip))
     return items

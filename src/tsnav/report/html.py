@@ -1,8 +1,8 @@
 """``tsnav report PATH [--out DIR]``: a self-contained HTML page about a run, an evaluation, an experiment or a
 whole demo folder.
 
-The page (``DIR/index.html``, default ``PATH/report/``) links only to PNG files written beside it (relative
-links; no scripts, no external style sheets or fonts). It shows what it finds under ``PATH``:
+The page (``DIR/index.html``, default ``PATH/report/``) links only to PNG files and episode clips written beside
+it (relative links; no scripts, no external style sheets or fonts). It shows what it finds under ``PATH``:
 
 * **results**: every evaluation folder (``metrics.json`` + ``records.jsonl``) as one row of a table of SR, SPL,
   SSR, SSSPL and NSNPL for ALL episodes and for ``L* >= 5`` (paper IV-A), in percent;
@@ -13,7 +13,8 @@ links; no scripts, no external style sheets or fonts). It shows what it finds un
 * **pretraining runs** (``config.json`` with a ``pretrain`` section): the DE-MAE / MAE reconstruction grid;
 * **gallery**: for each evaluation, a few successes and failures - top-down map with the path coloured by
   stage, the searched region and the stage switch (:func:`tsnav.tsrm.plot.draw_episode`) beside the agent's
-  first-person frames at key steps. Trajectories come from ``trajectories.jsonl`` when the evaluation wrote
+  first-person frames at key steps, and for the first ``video`` of them a clip of the whole episode
+  (:mod:`tsnav.eval.video`: an MP4 or GIF beside the page, shown by a ``<video>`` / ``<img>`` element). Trajectories come from ``trajectories.jsonl`` when the evaluation wrote
   one, else the episodes are re-rolled with the same policy and seed (:mod:`tsnav.report.gallery`).
 """
 
@@ -46,7 +47,9 @@ from .tables import quality_line
 
 
 #: Folders never searched (checkpoints, TensorBoard, earlier reports, scene folders are recognised by content).
-SKIP_DIRS = {"checkpoints", "tb", "report", "__pycache__", "stages", "steps"}
+SKIP_DIRS = {"checkpoints", "tb", "report", "__pycache__", "stages", "steps", "videos"}
+#: Episodes of each gallery shown as a clip by default (``tsnav report --video``).
+VIDEOS = 2
 MAX_DEPTH = 5
 
 
@@ -217,7 +220,8 @@ table{border-collapse:collapse;margin:10px 0;font-size:13px}th,td{border:1px sol
 text-align:right}th{background:#f2f2f2}td.l,th.l{text-align:left}tr:nth-child(even) td{background:#fafafa}
 img{max-width:100%;border:1px solid #eee}figure{margin:12px 0}figcaption{font-size:13px;color:#444}
 .ep{display:flex;gap:12px;align-items:flex-start;flex-wrap:wrap;border-top:1px solid #eee;padding-top:10px}
-.ep .map{flex:0 0 520px}.ep .map img{width:520px}.ep .frames{flex:1 1 560px}.ok{color:#1a7f37;font-weight:bold}
+.ep .map{flex:0 0 520px}.ep .map img{width:520px}.ep .frames{flex:1 1 560px}.ep .clip{margin-top:8px}
+.ep .clip video,.ep .clip img{width:512px;height:320px;display:block;border:1px solid #eee}.ok{color:#1a7f37;font-weight:bold}
 .bad{color:#b42318;font-weight:bold}pre{background:#f6f6f6;padding:8px;font-size:12px;overflow-x:auto}
 .note{font-size:13px;color:#555}
 """
@@ -313,8 +317,12 @@ def _train_caption(d: Path) -> str:
 
 
 def build_report(path: str | Path, out: str | Path | None = None, gallery: int = 6, title: str | None = None,
-                 max_gallery_evals: int = 4, progress: bool = False) -> Path:
-    """Write the report of ``path`` into ``out`` (default ``path/report``) and return ``out/index.html``."""
+                 max_gallery_evals: int = 4, progress: bool = False, video: int = VIDEOS,
+                 gallery_evals: list[Path] | None = None) -> Path:
+    """Write the report of ``path`` into ``out`` (default ``path/report``) and return ``out/index.html``; the
+    first ``video`` episodes of each gallery get a clip. The galleries are those of ``gallery_evals`` (evaluation
+    folders; those that are not found under ``path`` are left out), else of the first ``max_gallery_evals``
+    evaluations found."""
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such folder")
@@ -336,16 +344,19 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
         sections.append(("results", "Results", _results_html(found.evals, root)))
     for d in found.experiments:
         say(f"report: experiment {d}")
-        sections.append(_experiment_section(d, root, assets, gallery))
+        sections.append(_experiment_section(d, root, assets, gallery, video))
     if found.train_runs:
         sections.append(("training", "Training", _training_html(found.train_runs, root, assets)))
     if found.pretrain_runs:
         sections.append(("pretraining", "Pretraining", _pretrain_html(found.pretrain_runs, root, assets)))
     if found.evals and gallery > 0:
         parts = []
-        for d in found.evals[:max_gallery_evals]:
+        known = {e.resolve(): e for e in found.evals}
+        shown = ([known[p.resolve()] for p in map(Path, gallery_evals) if p.resolve() in known]
+                 if gallery_evals is not None else found.evals[:max_gallery_evals])
+        for d in shown:
             say(f"report: gallery of {d}")
-            parts.append(_gallery_html(d, _eval_label(d, root), assets, gallery))
+            parts.append(_gallery_html(d, _eval_label(d, root), assets, gallery, video))
         sections.append(("gallery", "Episode gallery", "".join(parts)))
 
     title = title or f"tsnav report: {root.resolve().name}"
@@ -433,28 +444,41 @@ def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
     return "".join(parts)
 
 
-def _gallery_html(eval_dir: Path, label: str, assets: _Assets, n: int) -> str:
+def _clip_html(src: str) -> str:
+    """An episode clip on the page: MP4 as a muted, looping ``<video>`` with controls; GIF as an image."""
+    if src.endswith(".gif"):
+        return f"<div class='clip'><img src='{_e(src)}' alt='episode clip'></div>"
+    return (f"<div class='clip'><video src='{_e(src)}' width='512' height='320' controls muted loop autoplay "
+            "playsinline preload='auto'>episode clip (MP4)</video></div>")
+
+
+def _gallery_html(eval_dir: Path, label: str, assets: _Assets, n: int, videos: int = 0) -> str:
     try:
         bank, records, trajectories, c_target = eval_trajectories(eval_dir)
     except (OSError, ValueError, KeyError, ImportError) as e:
         return f"<h3>{_e(label)}</h3><p class='note'>no gallery: {_e(e)}</p>"
     sub = assets.name(f"gallery_{label}", "")
     sub.mkdir(parents=True, exist_ok=True)
-    items = write_gallery(bank, records, trajectories, sub, n=n, c_target=c_target, relative_to=assets.out)
+    items = write_gallery(bank, records, trajectories, sub, n=n, c_target=c_target, relative_to=assets.out,
+                          videos=videos)
     parts = [f"<h3>{_e(label)}</h3><p class='note'>Blue: searching stage and the searched region RG (union of the "
              "observed trapezoids, clipped to the floor); red: pathfinding stage; gold star: the stage switch "
              f"(first frame with target confidence above C_target = {c_target:g}); green X: instances of the target."
-             "</p>"]
+             + (" Clips: the first-person frame beside the map at every step, with the action taken and the "
+                "target's score against C_target written above them (gold border: the switching frame)."
+                if any(it.clip for it in items) else "") + "</p>"]
     for it in items:
         cls, word = ("ok", "success") if it.success else ("bad", "failure")
         frames = (f"<img src='{it.frames_png}' alt='first-person frames'>" if it.frames_png
                   else "<p class='note'>no first-person frames (no images.hdf5 and no renderer)</p>")
+        clip = _clip_html(it.clip) if it.clip else ""  # under the frame strip, beside the map
         parts.append(f"<div class='ep'><div class='map'><img src='{it.map_png}' alt='top-down map'></div>"
-                     f"<div class='frames'><p><span class='{cls}'>{word}</span> {_e(it.caption)}</p>{frames}</div></div>")
+                     f"<div class='frames'><p><span class='{cls}'>{word}</span> {_e(it.caption)}</p>{frames}"
+                     f"{clip}</div></div>")
     return "".join(parts)
 
 
-def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> tuple[str, str, str]:
+def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int, video: int = 0) -> tuple[str, str, str]:
     exp = _read_json(d / "experiment.json") or {}
     results = _read_json(d / "results.json") or {}
     name = exp.get("experiment", d.name)
@@ -520,7 +544,7 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int) -> t
             j = show[-1] if not exp.get("gallery_row") else next(
                 (x for x in show if x["row"] == exp["gallery_row"]), show[-1])
             parts.append(_gallery_html(d / j["dir"] / "eval", f"{name}: {j.get('label', j['row'])} (seed {j.get('seed')})",
-                                       assets, gallery))
+                                       assets, gallery, video))
     return (f"exp-{name}", f"Experiment: {name}", "".join(parts))
 
 
@@ -534,13 +558,17 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None, help="report folder (default: PATH/report)")
     parser.add_argument("--gallery", type=int, default=6, help="episodes shown per evaluation (default 6; 0: none)")
     parser.add_argument("--title", default=None, help="page title")
+    parser.add_argument("--video", type=int, default=VIDEOS, metavar="N",
+                        help=f"episodes of each gallery also shown as a clip (default {VIDEOS}; 0: none)")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.gallery < 0:
         raise CommandError("--gallery must be >= 0")
+    if args.video < 0:
+        raise CommandError("--video must be >= 0")
     if not Path(args.path).is_dir():
         raise CommandError(f"{args.path}: no such folder")
-    index = build_report(args.path, args.out, gallery=args.gallery, title=args.title, progress=True)
+    index = build_report(args.path, args.out, gallery=args.gallery, title=args.title, progress=True, video=args.video)
     print(f"wrote {index}")
     return 0

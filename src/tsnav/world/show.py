@@ -1,10 +1,14 @@
-"""``tsnav show SCENE_DIR``: a PNG of a scene: top-down map beside first-person RGB / depth / id views."""
+"""``tsnav show SCENE_DIR``: a PNG of a scene: top-down map beside first-person RGB / depth / id views; and the
+first-person frames of given states (:func:`frame_images`, read from ``images.hdf5`` or rendered), which the report's
+gallery and the evaluation's clips (:mod:`tsnav.eval.video`) show."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Sequence
 
+import h5py
 import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -63,6 +67,22 @@ def render_views(scene, poses: np.ndarray, size: int = 128):
         return r.render(poses)
     finally:
         r.release()
+
+
+def frame_images(scene, keys: Sequence[str]) -> np.ndarray:
+    """``(K, H, W, 3)`` uint8 first-person frames of ``keys``: from ``images.hdf5`` when the scene has it,
+    else rendered from ``scene.json`` (needs EGL); ``ValueError`` when neither is possible."""
+    p = scene.images_path()
+    if p is not None:
+        with h5py.File(p, "r") as f:
+            return np.stack([f[k][()] for k in keys]).astype(np.uint8)
+    if "parts" not in scene.meta:
+        raise ValueError(f"{scene.path}: no images.hdf5 and no render parts: no first-person frames")
+
+    idx = scene.indices(list(keys))
+    poses = np.stack([scene.x[idx], scene.z[idx], scene.rotation[idx], scene.horizon[idx]], 1).astype(np.float32)
+    rgb, _, _ = render_views(scene, poses, size=scene.image_size or 128)
+    return np.asarray(rgb, dtype=np.uint8)
 
 
 def id_colors(ids: np.ndarray) -> np.ndarray:
