@@ -40,7 +40,7 @@ from matplotlib.patches import Polygon as MplPolygon
 from PIL import Image, ImageDraw, ImageFont
 
 from ..atomic import atomic_path, atomic_write_json
-from ..constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, TARGET_CATEGORIES
+from ..constants import ACTIONS, C_TARGET, CATEGORY_INDEX, TARGET_CATEGORIES
 from ..metrics import EpisodeRecord
 from ..sim.stage import switch_frame
 from ..tsrm.area import scene_floor
