@@ -120,7 +120,7 @@ def make_evaluation(out: Path) -> Path:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="/tmp/report_bench", help="working folder (default /tmp/report_bench)")
     ap.add_argument("--from", dest="src", default=None, help="report the evaluations under this folder instead")
     ap.add_argument("--index", default=None, help="open this report page as it is (no evaluation, no report made)")
