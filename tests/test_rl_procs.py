@@ -258,5 +258,5 @@ def test_train_command_refuses_procs_that_do_not_split_the_episodes(pixel_world,
     rc = main(["train", "--data", str(pixel_world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
                "--out", str(tmp_path / "run"), "--updates", "1", "--num-envs", "8", "--procs", "3", "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc != 0 and len(err) == 1 and "num_envs 8 does not split evenly over procs=3" in err[0], err
+    assert rc != 0 and len(err) == 1 and "num-envs 8 does not split evenly over procs=3" in err[0], err
     assert not (tmp_path / "run" / "config.json").exists()

@@ -45,8 +45,6 @@ from .steps import EncoderSpec, ensure_encoder, ensure_episodes, ensure_features
 
 #: The sections of an agent's recipe (besides ``name``).
 SECTIONS = ("world", "detections", "pretrain", "features", *RUN_SECTIONS, "convergence", "select", "card")
-#: The steps of :func:`make_agent`, then packing and the two evaluations (:mod:`tsnav.pipeline.release`).
-STEPS = ("world", "detections", "features", "train", "select", "pack", "eval")
 
 
 @dataclass

@@ -38,6 +38,7 @@ import json
 import shutil
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .. import __version__
 from ..atomic import atomic_write_text
@@ -45,7 +46,10 @@ from ..errors import CommandError, read_json
 from ..metrics import METRICS
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
 from ..settings import add_shared, apply_sets, dump_recipe, read_recipe
-from .agent_recipe import SECTIONS, STEPS, AgentRecipe, make_agent, resolve_agent
+from .agent_steps import STEPS
+
+if TYPE_CHECKING:  # the recipe's steps import torch: read on use, so that `release list` and a saved table need none
+    from .agent_recipe import AgentRecipe
 
 #: Where shipped agents live (package data of ``tsnav.agent``).
 WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
@@ -556,6 +560,8 @@ def run_make(args: argparse.Namespace) -> int:
     evaluated on val and test with the figures written into its card; installed as a shipped agent only with
     ``--replace-shipped NAME``."""
     work = Path(args.work)
+    from .agent_recipe import SECTIONS, make_agent, resolve_agent
+
     r = resolve_agent(apply_sets(read_recipe(args.recipe), args.set, SECTIONS), work)
     if args.replace_shipped is not None and args.replace_shipped != r.name:
         raise CommandError(f"--replace-shipped {args.replace_shipped}: the recipe makes {r.name!r}; name it to "
