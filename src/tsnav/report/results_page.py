@@ -213,6 +213,27 @@ def shipped_agents(cards: dict) -> list[str]:
     return lines
 
 
+def robothor_references(index: dict, results: Path) -> list[str]:
+    """RoboTHOR's scripted references (explorer, random) on the challenge's val episodes, from the file the index's
+    ``table1.robothor_references`` names; nothing when it names none."""
+    name = index["table1"].get("robothor_references")
+    if not name:
+        return []
+    res = json.loads((results / name).read_text())
+    lines = ["### RoboTHOR: the scripted references", "",
+             f"{res['what'][0].upper()}{res['what'][1:]} ([{name}](results/{name})). Episodes kept of the "
+             "challenge's 1,800: " + ", ".join(f"{c['kept']} under `{p}`" for p, c in res["conversion"].items())
+             + " (starts off tsnav's graph, targets without a success state and, under `paper`, start-success "
+             "episodes dropped and counted in the file).", "",
+             "| protocol | policy | episodes | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
+             "| --- | --- | ---: | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |"]
+    for r in res["rows"]:
+        a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
+        lines.append(f"| {r['protocol']} | {r['policy']} | {r['episodes']} | " + " | ".join(_pct(a[m]) for m in METRICS)
+                     + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |")
+    return lines + [""]
+
+
 def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     """The whole page, from ``root/docs/results`` (index and result files), the cards under ``weights`` and the
     paper's figures."""
@@ -231,6 +252,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
              "How every figure here was reached, with the runs that led to them and the settings since replaced: "
              "[the results notebook](history/RESULTS.md). Speed: [BENCHMARKS.md](../BENCHMARKS.md).", ""]
     lines += table1(index, cards, paper, results) + [""]
+    lines += robothor_references(index, results)
     lines += experiment_table("Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []),
                               paper, results) + [""]
     lines += experiment_table("Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []),
