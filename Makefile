@@ -2,7 +2,8 @@
 # make test : the same set-up, then the whole test suite.
 # make test-fast: the same set-up, then the tests that build no world and train for no more than seconds
 #            (pytest -m "not slow", at most two minutes on 2 cores); make test and CI run everything.
-# make lint : ruff check over src, tests and bench (rules in pyproject.toml); .ci/run runs it before the tests.
+# make lint : ruff check and ruff format --check over src, tests and bench (rules in pyproject.toml); .ci/run runs
+#             it before the tests (`ruff format src tests bench` formats).
 # make bench: the same set-up, then the speed benchmarks of bench/ with their defaults (figures: BENCHMARKS.md).
 # make docs : render the generated pages again (docs/COMMANDS.md from the CLI; docs/RESULTS.md and README.md's
 #             Table I from docs/results/ and the model cards); tests/test_docs_pages.py fails while one is stale.
@@ -39,6 +40,7 @@ test-fast: setup
 
 lint: setup
 	$(BIN)/ruff check src tests bench
+	$(BIN)/ruff format --check src tests bench
 
 # left out: bench_detect.py needs a built world and a detector checkpoint (--data, --checkpoint); bench_gym.py and
 # bench_frame_read.py a built world (--data); bench_frames_disk.py a scratch folder and builds rooms for minutes

@@ -32,7 +32,7 @@ def main() -> None:
     det = LearnedDetector.load(args.checkpoint)
     all_paths = list_scenes(args.data)
     states = [load_scene(p).num_states for p in all_paths]
-    paths = list_scenes(args.data, split=args.split)[:args.scenes]
+    paths = list_scenes(args.data, split=args.split)[: args.scenes]
     n, t = 0, 0.0
     for p in paths:
         s = load_scene(p)
@@ -45,10 +45,13 @@ def main() -> None:
     per_state = t / n
     world = sum(states) / len(states) * args.preset_scenes
     cfg = det.model.cfg
-    print(f"model: {cfg.image_size}px, stem {cfg.stem}, widths {list(cfg.widths)}, dim {cfg.dim}; "
-          f"threads {args.threads}")
-    print(f"{n / t:.0f} states/s; {len(states)} scenes here average {sum(states) / len(states):.0f} states -> "
-          f"{world:.0f} states for {args.preset_scenes} scenes: {world * per_state / 60:.1f} minutes")
+    print(
+        f"model: {cfg.image_size}px, stem {cfg.stem}, widths {list(cfg.widths)}, dim {cfg.dim}; threads {args.threads}"
+    )
+    print(
+        f"{n / t:.0f} states/s; {len(states)} scenes here average {sum(states) / len(states):.0f} states -> "
+        f"{world:.0f} states for {args.preset_scenes} scenes: {world * per_state / 60:.1f} minutes"
+    )
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=2)
     args = ap.parse_args()
-    scenes = list_scenes(args.data)[:args.scenes]
+    scenes = list_scenes(args.data)[: args.scenes]
     out = Path(args.out)
     copies = []
     for p in scenes:  # gzip copies of the same frames, written by the writers' default settings
@@ -45,8 +45,10 @@ def main() -> None:
     n = sum(len(k) for _, _, k in copies)
     raw_b = sum((p / f).stat().st_size for p, _, _ in copies for f in ("images.hdf5", "depth.hdf5"))
     gz_b = sum((d / f).stat().st_size for _, d, _ in copies for f in ("images.hdf5", "depth.hdf5"))
-    print(f"{len(copies)} scenes, {n:,} states (rgb + depth): raw {raw_b / 1e6:.0f} MB, gzip-1 {gz_b / 1e6:.0f} MB; "
-          f"load average {os.getloadavg()[0]:.1f}")
+    print(
+        f"{len(copies)} scenes, {n:,} states (rgb + depth): raw {raw_b / 1e6:.0f} MB, gzip-1 {gz_b / 1e6:.0f} MB; "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
     rates = {}
     for rep in range(args.repeats):
         for files in ("raw", "gzip-1"):

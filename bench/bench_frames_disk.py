@@ -28,15 +28,26 @@ from pathlib import Path
 from tsnav.world.build import BuildConfig, build_dataset
 
 #: two rooms of each type, small and large (the 120 rooms hold 377,536 states)
-SCENES = ["FloorPlan5", "FloorPlan12", "FloorPlan203", "FloorPlan216", "FloorPlan305", "FloorPlan313",
-          "FloorPlan405", "FloorPlan414"]
+SCENES = [
+    "FloorPlan5",
+    "FloorPlan12",
+    "FloorPlan203",
+    "FloorPlan216",
+    "FloorPlan305",
+    "FloorPlan313",
+    "FloorPlan405",
+    "FloorPlan414",
+]
 ALL_STATES = 377_536
 
 
 def _cpu() -> float:
     """CPU seconds of this process and its finished children (the build's workers, a subprocess build)."""
-    return sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
-               for f in ("ru_utime", "ru_stime"))
+    return sum(
+        getattr(resource.getrusage(who), f)
+        for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+        for f in ("ru_utime", "ru_stime")
+    )
 
 
 def disk(path: Path, pattern: str = "*") -> int:
@@ -66,9 +77,27 @@ def main() -> None:
             shutil.rmtree(d, ignore_errors=True)
             t, c = time.perf_counter(), _cpu()
             if comp == "src":
-                subprocess.run([sys.executable, "-m", "tsnav", "world", "--preset", "ithor-real", "--scenes",
-                                ",".join(scenes), "--out", str(d), "--size", str(size), "--workers", str(args.workers)],
-                               env={**os.environ, "PYTHONPATH": args.before_src}, check=True, capture_output=True)
+                subprocess.run(
+                    [
+                        sys.executable,
+                        "-m",
+                        "tsnav",
+                        "world",
+                        "--preset",
+                        "ithor-real",
+                        "--scenes",
+                        ",".join(scenes),
+                        "--out",
+                        str(d),
+                        "--size",
+                        str(size),
+                        "--workers",
+                        str(args.workers),
+                    ],
+                    env={**os.environ, "PYTHONPATH": args.before_src},
+                    check=True,
+                    capture_output=True,
+                )
                 states = sum(json.loads((d / n / "scene.json").read_text())["num_states"] for n in scenes)
             else:
                 cfg = BuildConfig.from_preset("ithor-real", image_size=size, compression=comp)
@@ -81,12 +110,16 @@ def main() -> None:
             if not args.keep:
                 shutil.rmtree(d)
         for tag, (wall, cpu, frames, total) in res.items():
-            print(f"| {size} | {tag} | {states:,} | {wall:.1f} | {cpu:.1f} | {frames / 1e9:.2f} GB | {total / 1e9:.2f} GB | "
-                  f"{total / states * ALL_STATES / 1e9:.1f} GB |")
+            print(
+                f"| {size} | {tag} | {states:,} | {wall:.1f} | {cpu:.1f} | {frames / 1e9:.2f} GB | {total / 1e9:.2f} GB | "
+                f"{total / states * ALL_STATES / 1e9:.1f} GB |"
+            )
         for base in ("raw", "before"):
             if base in res:
                 (wg, cg, _, tg), (wr, cr, _, tr) = res["gzip-1"], res[base]
-                print(f"| {size} | gzip-1 / {base} | | {wg / wr:.2f}x | {cg / cr:.2f}x | | {tg / tr:.2f}x | |", flush=True)
+                print(
+                    f"| {size} | gzip-1 / {base} | | {wg / wr:.2f}x | {cg / cr:.2f}x | | {tg / tr:.2f}x | |", flush=True
+                )
     print(f"load average {os.getloadavg()[0]:.1f}")
 
 

@@ -112,8 +112,13 @@ def vector(kw: dict, num_envs: int, seconds: float, warmup: int) -> tuple[float,
 
 def child(args) -> None:
     """One measurement (``--child single|vector``) in this process; prints one JSON line."""
-    kw = {"data": args.data, "split": args.split, "reward": args.reward, "detections": args.detections,
-          **json.loads(args.kwargs)}
+    kw = {
+        "data": args.data,
+        "split": args.split,
+        "reward": args.reward,
+        "detections": args.detections,
+        **json.loads(args.kwargs),
+    }
     if args.child == "single":
         wall, cpu, warm = single(kw, args.seconds, args.warmup)
     else:
@@ -125,9 +130,28 @@ def child(args) -> None:
 
 def measure(args, kind: str, src: str, kwargs: dict) -> dict:
     """Run one measurement in a child process with ``src`` first on its ``PYTHONPATH``."""
-    cmd = [sys.executable, __file__, "--child", kind, "--kwargs", json.dumps(kwargs), "--data", args.data,
-           "--split", args.split, "--reward", args.reward, "--detections", args.detections,
-           "--num-envs", str(args.num_envs), "--seconds", str(args.seconds), "--warmup", str(args.warmup)]
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child",
+        kind,
+        "--kwargs",
+        json.dumps(kwargs),
+        "--data",
+        args.data,
+        "--split",
+        args.split,
+        "--reward",
+        args.reward,
+        "--detections",
+        args.detections,
+        "--num-envs",
+        str(args.num_envs),
+        "--seconds",
+        str(args.seconds),
+        "--warmup",
+        str(args.warmup),
+    ]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([src] + [p for p in [os.environ.get("PYTHONPATH")] if p])}
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
     got = json.loads(out.strip().splitlines()[-1])
@@ -143,8 +167,15 @@ def _rss_gib() -> float:
 def memory(args) -> None:
     base = _rss_gib()
     t = time.perf_counter()
-    envs = gym.make_vec(ENV_ID, num_envs=args.num_envs, vectorization_mode="vector_entry_point", data=args.data,
-                        split=args.split, reward=args.reward, detections=args.detections)
+    envs = gym.make_vec(
+        ENV_ID,
+        num_envs=args.num_envs,
+        vectorization_mode="vector_entry_point",
+        data=args.data,
+        split=args.split,
+        reward=args.reward,
+        detections=args.detections,
+    )
     built = _rss_gib()
     cache = envs.unwrapped.obs_source.cache
     cache.load()
@@ -156,16 +187,22 @@ def memory(args) -> None:
     peak = _rss_gib()
     states = envs.unwrapped.bank.num_states
     per = cache.nbytes / states
-    print(f"{args.data} split {args.split}: {envs.unwrapped.bank.num_scenes} scenes, {states:,} states, frames "
-          f"{cache.height}x{cache.width}, depth {cache.depth.dtype}; load average {os.getloadavg()[0]:.1f}")
-    print(f"peak RSS: {base:.2f} GiB after imports, {built:.2f} GiB with the env built (cache untouched), "
-          f"{peak:.2f} GiB with every scene's frames cached and 200 steps of {args.num_envs} envs "
-          f"(cache {cache.nbytes / 2**30:.2f} GiB = {per:,.0f} B a state; filled in {filled:.0f} s)")
+    print(
+        f"{args.data} split {args.split}: {envs.unwrapped.bank.num_scenes} scenes, {states:,} states, frames "
+        f"{cache.height}x{cache.width}, depth {cache.depth.dtype}; load average {os.getloadavg()[0]:.1f}"
+    )
+    print(
+        f"peak RSS: {base:.2f} GiB after imports, {built:.2f} GiB with the env built (cache untouched), "
+        f"{peak:.2f} GiB with every scene's frames cached and 200 steps of {args.num_envs} envs "
+        f"(cache {cache.nbytes / 2**30:.2f} GiB = {per:,.0f} B a state; filled in {filled:.0f} s)"
+    )
     other = peak - cache.nbytes / 2**30
     big = TRAIN_STATES_ITHOR_REAL * per / 2**30
-    print(f"80 training rooms of ithor-real at {cache.height} px ({TRAIN_STATES_ITHOR_REAL:,} states): cache "
-          f"{big:.1f} GiB; peak RSS between {big + other:.1f} GiB (this run's other memory as is) and "
-          f"{big + other * TRAIN_STATES_ITHOR_REAL / states:.1f} GiB (all of it growing with the states)")
+    print(
+        f"80 training rooms of ithor-real at {cache.height} px ({TRAIN_STATES_ITHOR_REAL:,} states): cache "
+        f"{big:.1f} GiB; peak RSS between {big + other:.1f} GiB (this run's other memory as is) and "
+        f"{big + other * TRAIN_STATES_ITHOR_REAL / states:.1f} GiB (all of it growing with the states)"
+    )
 
 
 def main() -> None:
@@ -177,11 +214,19 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=64)
     ap.add_argument("--seconds", type=float, default=5.0, help="timed seconds per measurement")
     ap.add_argument("--warmup", type=int, default=200, help="untimed steps first")
-    ap.add_argument("--before-src", default=None,
-                    help="another checkout's src folder: its default path is 'before' (default: this checkout's "
-                         "first-release path, frames='hdf5', obs_layout='legacy')")
-    ap.add_argument("--rounds", type=int, default=2, choices=(1, 2),
-                    help="2: before, after, after, before (the default); 1: before, after")
+    ap.add_argument(
+        "--before-src",
+        default=None,
+        help="another checkout's src folder: its default path is 'before' (default: this checkout's "
+        "first-release path, frames='hdf5', obs_layout='legacy')",
+    )
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=2,
+        choices=(1, 2),
+        help="2: before, after, after, before (the default); 1: before, after",
+    )
     ap.add_argument("--memory", action="store_true", help="measure peak RSS of the new path only")
     ap.add_argument("--child", choices=("single", "vector"), help=argparse.SUPPRESS)
     ap.add_argument("--kwargs", default="{}", help=argparse.SUPPRESS)
@@ -193,9 +238,12 @@ def main() -> None:
     if args.before_src and not (Path(args.before_src) / "tsnav" / "__init__.py").is_file():
         raise SystemExit(f"bench_gym: --before-src {args.before_src} holds no tsnav package (give a checkout's src)")
     paths = {"before": (args.before_src, {}) if args.before_src else (SRC, FIRST_RELEASE), "after": (SRC, {})}
-    print(f"{args.data} split {args.split}, reward {args.reward}, detections {args.detections}; before: "
-          f"{args.before_src + ' (its default path)' if args.before_src else 'this checkout, ' + str(FIRST_RELEASE)}"
-          f"; after: {SRC} (default path); load average {os.getloadavg()[0]:.1f}", flush=True)
+    print(
+        f"{args.data} split {args.split}, reward {args.reward}, detections {args.detections}; before: "
+        f"{args.before_src + ' (its default path)' if args.before_src else 'this checkout, ' + str(FIRST_RELEASE)}"
+        f"; after: {SRC} (default path); load average {os.getloadavg()[0]:.1f}",
+        flush=True,
+    )
     order = ["before", "after"] + (["after", "before"] if args.rounds == 2 else [])
     rows = []
     for what, kind in (("single env", "single"), (f"vector env, {args.num_envs} envs", "vector")):
@@ -204,8 +252,11 @@ def main() -> None:
             src, kw = paths[name]
             r = measure(args, kind, src, FIRST_RELEASE_SINGLE if kw is FIRST_RELEASE and kind == "single" else kw)
             got[name].append((r["wall"], r["cpu"]))
-            print(f"  {what:22s} {name:6s}: {r['wall']:10,.0f} steps/s wall, {r['cpu']:10,.0f} per CPU second "
-                  f"(construction + cache fill {r['warm']:.1f} s; load average {os.getloadavg()[0]:.1f})", flush=True)
+            print(
+                f"  {what:22s} {name:6s}: {r['wall']:10,.0f} steps/s wall, {r['cpu']:10,.0f} per CPU second "
+                f"(construction + cache fill {r['warm']:.1f} s; load average {os.getloadavg()[0]:.1f})",
+                flush=True,
+            )
         rows.append((what, *(tuple(float(np.mean(v)) for v in zip(*got[n])) for n in ("before", "after"))))
     print("\n| env | before steps/s (wall / per CPU s) | after steps/s (wall / per CPU s) | ratio (wall / per CPU s) |")
     print("| --- | --- | --- | --- |")

@@ -42,7 +42,9 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, batch {args.batch}, ViT-Tiny")
-    print(f"{'input':>8} {'patch':>5} {'MAE ms':>8} {'DE-MAE ms':>10} {'ratio':>6} {'MAE img/s':>10} {'DE-MAE img/s':>13}")
+    print(
+        f"{'input':>8} {'patch':>5} {'MAE ms':>8} {'DE-MAE ms':>10} {'ratio':>6} {'MAE img/s':>10} {'DE-MAE img/s':>13}"
+    )
     for size, patch in ((64, 16), (64, 8), (128, 16)):
         mae, mae_opt = make(False, patch, size)
         de, de_opt = make(True, patch, size)
@@ -56,8 +58,10 @@ def main() -> None:
                 if i >= args.warmup:
                     times[key].append(time.perf_counter() - t)
         tm, td = statistics.median(times["mae"]), statistics.median(times["de"])
-        print(f"{size:>6}^2 {patch:>5} {tm * 1e3:>8.1f} {td * 1e3:>10.1f} {td / tm:>6.3f} "
-              f"{args.batch / tm:>10.1f} {args.batch / td:>13.1f}")
+        print(
+            f"{size:>6}^2 {patch:>5} {tm * 1e3:>8.1f} {td * 1e3:>10.1f} {td / tm:>6.3f} "
+            f"{args.batch / tm:>10.1f} {args.batch / td:>13.1f}"
+        )
 
 
 if __name__ == "__main__":

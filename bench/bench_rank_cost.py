@@ -45,8 +45,11 @@ def main() -> None:
     ap.add_argument("--procs", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--updates", type=int, default=3, help="updates per round and batch size")
-    ap.add_argument("--per-step-cast", action="store_true",
-                    help="bf16: also measure autocast's per-step weight casts (the path before cast-once)")
+    ap.add_argument(
+        "--per-step-cast",
+        action="store_true",
+        help="bf16: also measure autocast's per-step weight casts (the path before cast-once)",
+    )
     args = ap.parse_args()
 
     import torch
@@ -60,22 +63,31 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench_rank_cost_"))
     try:
         data, features = training_world(tmp, args.data, args.features, args.detections)
-        cfg = TrainConfig(data=str(data), features=features, detections=args.detections, algo="batched",
-                          preset=args.preset, precision=args.precision, device="cpu")
+        cfg = TrainConfig(
+            data=str(data),
+            features=features,
+            detections=args.detections,
+            algo="batched",
+            preset=args.preset,
+            precision=args.precision,
+            device="cpu",
+        )
         bank, det = load_bank(cfg)
         observer = make_observer(bank, cfg, det_features=det)
         sizes = (args.num_envs, args.num_envs // args.procs)
         if args.per_step_cast and args.precision != "bf16":
             raise SystemExit("--per-step-cast compares bfloat16 weight casts: use it with --precision bf16")
-        variants = {"cast once per rollout": True, "autocast's per-step cast": False} if args.per_step_cast \
-            else {"": True}
+        variants = (
+            {"cast once per rollout": True, "autocast's per-step cast": False} if args.per_step_cast else {"": True}
+        )
         runs = {}
         for v, once in variants.items():
             for b in sizes:
                 model = make_model(agent_config(args.preset), observer, 0)
                 opt = torch.optim.Adam(model.parameters(), lr=1e-4, amsgrad=True)
-                col = RolloutCollector(make_train_env(bank, cfg, b, seed=0), observer, model,
-                                       precision=args.precision, cast_once=once)
+                col = RolloutCollector(
+                    make_train_env(bank, cfg, b, seed=0), observer, model, precision=args.precision, cast_once=once
+                )
                 runs[v, b] = (model, opt, col)
 
         def update(key) -> None:
@@ -96,17 +108,22 @@ def main() -> None:
                 for _ in range(args.updates):
                     update(key)
                 per_step[key].append((time.process_time() - t) / (args.updates * cfg.rollout_steps))
-        print(f"preset {args.preset}, {args.precision}, rollout {cfg.rollout_steps} steps, 1 thread, "
-              f"load {load0:.1f}-{os.getloadavg()[0]:.1f}; median CPU ms per rollout step over {args.rounds} rounds")
+        print(
+            f"preset {args.preset}, {args.precision}, rollout {cfg.rollout_steps} steps, 1 thread, "
+            f"load {load0:.1f}-{os.getloadavg()[0]:.1f}; median CPU ms per rollout step over {args.rounds} rounds"
+        )
         for v in variants:
             big, small = (statistics.median(per_step[v, b]) for b in sizes)
             if v:
                 print(f"{v}:")
             print(f"  1 process x {sizes[0]} rows: {1e3 * big:7.2f} ms  ({sizes[0] / big:8.0f} env steps per CPU-s)")
-            print(f"  1 rank    x {sizes[1]} rows: {1e3 * small:7.2f} ms  ({sizes[1] / small:8.0f} env steps per "
-                  f"CPU-s)")
-            print(f"  bound on the speed-up of {args.procs} ranks with idle cores: {big / small:.2f}x; rows-independent "
-                  f"cost per step (linear fit): {1e3 * (args.procs * small - big) / (args.procs - 1):.2f} ms")
+            print(
+                f"  1 rank    x {sizes[1]} rows: {1e3 * small:7.2f} ms  ({sizes[1] / small:8.0f} env steps per CPU-s)"
+            )
+            print(
+                f"  bound on the speed-up of {args.procs} ranks with idle cores: {big / small:.2f}x; rows-independent "
+                f"cost per step (linear fit): {1e3 * (args.procs * small - big) / (args.procs - 1):.2f} ms"
+            )
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

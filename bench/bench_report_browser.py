@@ -36,9 +36,17 @@ from tsnav.cli import main as tsnav
 from tsnav.eval.video import read_clip
 from tsnav.report.html import build_report
 
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-         "--disable-component-update", "--no-first-run", "--allow-file-access-from-files", "--mute-audio",
-         "--autoplay-policy=no-user-gesture-required"]
+FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--no-first-run",
+    "--allow-file-access-from-files",
+    "--mute-audio",
+    "--autoplay-policy=no-user-gesture-required",
+]
 
 PROBE = """<!doctype html><html><body><video id="v" src="{src}" muted preload="auto" width="512" height="320"></video>
 <canvas id="c" width="512" height="320"></canvas><pre id="out">pending</pre><script>
@@ -73,8 +81,9 @@ def run_browser(args: list[str], timeout: float = 120) -> tuple[str, float]:
     profile = tempfile.mkdtemp(prefix="chromium-profile-")
     t0 = time.perf_counter()
     try:
-        res = subprocess.run([chromium(), *FLAGS, f"--user-data-dir={profile}", *args], capture_output=True,
-                             text=True, timeout=timeout)
+        res = subprocess.run(
+            [chromium(), *FLAGS, f"--user-data-dir={profile}", *args], capture_output=True, text=True, timeout=timeout
+        )
     finally:
         shutil.rmtree(profile, ignore_errors=True)
     return res.stdout, time.perf_counter() - t0
@@ -110,11 +119,29 @@ def make_evaluation(out: Path) -> Path:
     build_dataset(world, "tiny-real", workers=1, progress=False)
     print(f"world tiny-real: {time.perf_counter() - t0:.1f} s")
     episodes = work / "episodes.json"
-    assert tsnav(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "12",
-                  "--out", str(episodes)]) == 0
+    assert (
+        tsnav(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "12", "--out", str(episodes)])
+        == 0
+    )
     t0 = time.perf_counter()
-    assert tsnav(["eval", "--data", str(world), "--episodes", str(episodes), "--policy", "explorer",
-                  "--out", str(work / "explorer"), "--video", "2"]) == 0
+    assert (
+        tsnav(
+            [
+                "eval",
+                "--data",
+                str(world),
+                "--episodes",
+                str(episodes),
+                "--policy",
+                "explorer",
+                "--out",
+                str(work / "explorer"),
+                "--video",
+                "2",
+            ]
+        )
+        == 0
+    )
     print(f"tsnav eval --video 2: {time.perf_counter() - t0:.1f} s")
     return work
 
@@ -158,8 +185,10 @@ def main() -> None:
 
     shot = Path(args.screenshot) if args.screenshot else out / "report_gallery.png"
     img, sec, runs = screenshot(index.as_uri() + (f"#{args.anchor}" if args.anchor else ""), shot, args.window)
-    print(f"chromium ({sec:.1f} s, run {runs}) screenshot {shot}: {img.shape[1]}x{img.shape[0]} px, "
-          f"{len(np.unique(img.reshape(-1, 3), axis=0)):,} colours")
+    print(
+        f"chromium ({sec:.1f} s, run {runs}) screenshot {shot}: {img.shape[1]}x{img.shape[0]} px, "
+        f"{len(np.unique(img.reshape(-1, 3), axis=0)):,} colours"
+    )
 
 
 if __name__ == "__main__":

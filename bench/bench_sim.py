@@ -33,8 +33,12 @@ def scenes():
     rng = np.random.default_rng(0)
     cats = ["Bowl", "Chair", "Fridge", "Sink", "Television", "Laptop", "Book"]
     for k, (w, d) in enumerate([(5.0, 4.0), (6.0, 5.0), (5.5, 4.5), (6.0, 4.0)]):
-        objs = {f"{c}|{k}": (float(rng.uniform(0, w)), float(rng.uniform(0, d))) for c in rng.choice(cats, 4, replace=False)}
-        blocked = [(round(float(x) * 4) / 4, round(float(z) * 4) / 4) for x, z in rng.uniform([1, 1], [w - 1, d - 1], (12, 2))]
+        objs = {
+            f"{c}|{k}": (float(rng.uniform(0, w)), float(rng.uniform(0, d))) for c in rng.choice(cats, 4, replace=False)
+        }
+        blocked = [
+            (round(float(x) * 4) / 4, round(float(z) * 4) / 4) for x, z in rng.uniform([1, 1], [w - 1, d - 1], (12, 2))
+        ]
         out.append(toy_scene(w, d, objs, blocked=blocked, name=f"Bench{k}"))
     return out
 
@@ -60,7 +64,9 @@ class LineageStyleController(ReferenceController):
         for s, key in enumerate(scene.keys.tolist()):
             self.visible_objects[key] = [
                 {"objectType": str(o).split("|")[0], "distance": float(scene.distance[s, j]), "visible": True}
-                for j, o in enumerate(scene.object_ids) if scene.visible_at_any_range()[s, j]]
+                for j, o in enumerate(scene.object_ids)
+                if scene.visible_at_any_range()[s, j]
+            ]
         self.success_distance = success_distance
 
     def reset(self, start_key, target):
@@ -76,8 +82,10 @@ class LineageStyleController(ReferenceController):
         if name == "Done":
             terminated = True
             event = {"objects": self.visible_objects[str(self.agent)]}
-            success = any(o["objectType"] == self.target and o["visible"] and o["distance"] <= self.success_distance
-                          for o in event["objects"])
+            success = any(
+                o["objectType"] == self.target and o["visible"] and o["distance"] <= self.success_distance
+                for o in event["objects"]
+            )
         else:
             self.path_length += 1
             nxt = copy.deepcopy(self.agent)
@@ -98,13 +106,21 @@ class LineageStyleController(ReferenceController):
         self.state = str(self.agent)
         truncated = (not terminated) and self.steps >= max_steps
         self.done = terminated or truncated
-        return {"state": self.state, "collided": collided, "terminated": terminated, "truncated": truncated,
-                "success": success, "steps": self.steps, "path_length": self.path_length}
+        return {
+            "state": self.state,
+            "collided": collided,
+            "terminated": terminated,
+            "truncated": truncated,
+            "success": success,
+            "steps": self.steps,
+            "path_length": self.path_length,
+        }
 
 
 def bench_batch(bank, b, seconds, reward):
-    env = BatchEnv(bank, b, sampler=TrainingSampler(bank), reward_fn=SparseReward() if reward else None,
-                   max_steps=30, seed=0)
+    env = BatchEnv(
+        bank, b, sampler=TrainingSampler(bank), reward_fn=SparseReward() if reward else None, max_steps=30, seed=0
+    )
     env.reset()
     rng = np.random.default_rng(1)
     acts = rng.choice(6, size=(256, b), p=ACTION_P)
@@ -152,12 +168,16 @@ def main():
     lin = best_of(lambda: bench_reference(bank, args.seconds, LineageStyleController), args.repeats)
     print(f"lean reference (tsnav.sim.reference, has_edge look-ups): {ref:,.0f} steps/s")
     print(f"lineage-style controller (state copies, neighbour scans, events): {lin:,.0f} steps/s")
-    print(f"{'B':>6} {'steps/s':>12} {'vs lean':>8} {'vs lineage':>10} {'+reward':>12} {'vs lean':>8} {'vs lineage':>10}")
+    print(
+        f"{'B':>6} {'steps/s':>12} {'vs lean':>8} {'vs lineage':>10} {'+reward':>12} {'vs lean':>8} {'vs lineage':>10}"
+    )
     for b in (1, 64, 1024):
         fast = best_of(lambda: bench_batch(bank, b, args.seconds, reward=False), args.repeats)
         fast_r = best_of(lambda: bench_batch(bank, b, args.seconds, reward=True), args.repeats)
-        print(f"{b:>6} {fast:>12,.0f} {fast / ref:>7.1f}x {fast / lin:>9.1f}x "
-              f"{fast_r:>12,.0f} {fast_r / ref:>7.1f}x {fast_r / lin:>9.1f}x")
+        print(
+            f"{b:>6} {fast:>12,.0f} {fast / ref:>7.1f}x {fast / lin:>9.1f}x "
+            f"{fast_r:>12,.0f} {fast_r / ref:>7.1f}x {fast_r / lin:>9.1f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -38,8 +38,9 @@ def bench_batch(bank, b, seconds, reward_fn, confidence=None):
     """Steps/s of BatchEnv (auto-reset, 30-step episodes; its stage switch over ``confidence``, default the
     bank's) and, for TSRM, the share of searching steps."""
     stage = StageSwitch(bank, confidence=confidence) if confidence is not None else None
-    env = BatchEnv(bank, b, sampler=TrainingSampler(bank), reward_fn=reward_fn, max_steps=MAX_STEPS, seed=0,
-                   stage=stage)
+    env = BatchEnv(
+        bank, b, sampler=TrainingSampler(bank), reward_fn=reward_fn, max_steps=MAX_STEPS, seed=0, stage=stage
+    )
     env.reset()
     rng = np.random.default_rng(1)
     acts = rng.choice(6, size=(256, b), p=ACTION_P)
@@ -62,7 +63,7 @@ def bench_reference(bank, conf, seconds):
     refs = {}
     for i, sc in enumerate(bank.scenes):
         o = int(bank.offsets[i])
-        refs[i] = TSRMRewardReference(sc, RewardConfig(), confidence=conf[o:o + sc.num_states])
+        refs[i] = TSRMRewardReference(sc, RewardConfig(), confidence=conf[o : o + sc.num_states])
         for g in sc.categories_present():  # its distance BFS runs once per target, before timing
             refs[i].reset(g, 0)
     steps, t0 = 0, time.perf_counter()
@@ -105,18 +106,20 @@ def main():
         ref = best_of(lambda: bench_reference(bank, conf, args.seconds), args.repeats)
         print(f"\n== confidence: {name}")
         print(f"per-step reference (shapely, one episode at a time): {ref:,.0f} steps/s")
-        print(f"{'B':>6} {'no reward':>12} {'sparse':>12} {'TSRM 1/32m':>12} {'searching':>9} {'vs ref':>7} "
-              f"{'cost':>6} {'TSRM 1/16m':>12} {'vs ref':>7} {'cost':>6}")
+        print(
+            f"{'B':>6} {'no reward':>12} {'sparse':>12} {'TSRM 1/32m':>12} {'searching':>9} {'vs ref':>7} "
+            f"{'cost':>6} {'TSRM 1/16m':>12} {'vs ref':>7} {'cost':>6}"
+        )
         for b in (64, 1024):
             bare, _ = best_of(lambda: bench_batch(bank, b, args.seconds, None), args.repeats)
             sparse, _ = best_of(lambda: bench_batch(bank, b, args.seconds, SparseReward()), args.repeats)
-            fine, share = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank), conf),
-                                  args.repeats)
+            fine, share = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank), conf), args.repeats)
             cfg16 = RewardConfig(area=AreaConfig(sample_size=1 / 16))
-            coarse, _ = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank, cfg16), conf),
-                                args.repeats)
-            print(f"{b:>6} {bare:>12,.0f} {sparse:>12,.0f} {fine:>12,.0f} {share:>8.0%} {fine / ref:>6.0f}x "
-                  f"{bare / fine:>5.1f}x {coarse:>12,.0f} {coarse / ref:>6.0f}x {bare / coarse:>5.1f}x")
+            coarse, _ = best_of(lambda: bench_batch(bank, b, args.seconds, TSRMReward(bank, cfg16), conf), args.repeats)
+            print(
+                f"{b:>6} {bare:>12,.0f} {sparse:>12,.0f} {fine:>12,.0f} {share:>8.0%} {fine / ref:>6.0f}x "
+                f"{bare / fine:>5.1f}x {coarse:>12,.0f} {coarse / ref:>6.0f}x {bare / coarse:>5.1f}x"
+            )
     sys.stdout.flush()
 
 

@@ -78,18 +78,30 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench_update_"))
     try:
         data, features = training_world(tmp, args.data, args.features, args.detections)
-        cfg = TrainConfig(data=str(data), features=features, detections=args.detections, reward="tsrm",
-                          algo="batched", num_envs=args.num_envs, precision=args.precision,
-                          rollout_steps=args.rollout_steps, device="cpu")
+        cfg = TrainConfig(
+            data=str(data),
+            features=features,
+            detections=args.detections,
+            reward="tsrm",
+            algo="batched",
+            num_envs=args.num_envs,
+            precision=args.precision,
+            rollout_steps=args.rollout_steps,
+            device="cpu",
+        )
         bank, det = load_bank(cfg)
         observer = make_observer(bank, cfg, det_features=det)
         model = make_model(agent_config(args.preset), observer, 0)
         opt = torch.optim.Adam(model.parameters(), lr=1e-4, amsgrad=True)
-        collector = RolloutCollector(make_train_env(bank, cfg, args.num_envs, seed=0), observer, model,
-                                     precision=args.precision)
+        collector = RolloutCollector(
+            make_train_env(bank, cfg, args.num_envs, seed=0), observer, model, precision=args.precision
+        )
         collector.start()
-        attend = {"fast": TargetMemoryAggregator.attend, "einsum": TargetMemoryAggregator.attend_einsum,
-                  "reference": TargetMemoryAggregator.attend_reference}
+        attend = {
+            "fast": TargetMemoryAggregator.attend,
+            "einsum": TargetMemoryAggregator.attend_einsum,
+            "reference": TargetMemoryAggregator.attend_reference,
+        }
 
         def use(name: str) -> None:
             TargetMemoryAggregator.attend = attend[name]
@@ -110,12 +122,14 @@ def main() -> None:
             update_rate(name)
         rates = {name: [] for name in attend}
         for r in range(args.rounds):
-            for name in (list(attend) if r % 2 == 0 else list(attend)[::-1]):
+            for name in list(attend) if r % 2 == 0 else list(attend)[::-1]:
                 rates[name].append(update_rate(name))
         use("fast")
         med = {name: statistics.median(v) for name, v in rates.items()}
-        print(f"preset {args.preset}, {args.precision}, {args.num_envs} envs x {args.rollout_steps} steps, "
-              f"{args.rounds} rounds of {args.updates} updates each, load average {os.getloadavg()[0]:.1f}")
+        print(
+            f"preset {args.preset}, {args.precision}, {args.num_envs} envs x {args.rollout_steps} steps, "
+            f"{args.rounds} rounds of {args.updates} updates each, load average {os.getloadavg()[0]:.1f}"
+        )
         for name, v in med.items():
             print(f"{name:<10} {v:9.0f} env steps/s   x einsum {v / med['einsum']:5.2f}")
     finally:

@@ -46,7 +46,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     a = ap.parse_args()
     names = [f"FloorPlan{i}" for i in range(1, a.scenes + 1)]
-    print(f"{'size':>5} {'states':>7} {'wall s':>7} {'states/s':>9} {'render/s':>9} {'write/s':>9}  (workers={a.workers})")
+    print(
+        f"{'size':>5} {'states':>7} {'wall s':>7} {'states/s':>9} {'render/s':>9} {'write/s':>9}  (workers={a.workers})"
+    )
     for size in a.sizes:
         with tempfile.TemporaryDirectory() as d:
             t = time.perf_counter()
@@ -56,7 +58,9 @@ def main() -> None:
         render = sum(s.render_s for s in stats)
         write = sum(s.write_s for s in stats)
         # per-worker busy times are summed; divide by workers for the rate with all workers busy
-        print(f"{size:>5} {n:>7} {wall:>7.1f} {n / wall:>9.0f} {n / render * a.workers:>9.0f} {n / write * a.workers:>9.0f}")
+        print(
+            f"{size:>5} {n:>7} {wall:>7.1f} {n / wall:>9.0f} {n / render * a.workers:>9.0f} {n / write * a.workers:>9.0f}"
+        )
     state_tables(names)
 
 

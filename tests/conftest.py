@@ -21,7 +21,8 @@ WORLD_FIXTURES = {"tiny_world", "tiny_real", "tiny_real_learned4", "tiny_scenes"
 #: them: also ``slow`` (each took 5 s or more of the fast set's two minutes; by module, or ``module::test``).
 SLOW_TESTS = {
     "test_scene_pool.py",  # worker processes over built rooms
-    "test_world.py::test_cli_errors_are_one_line", "test_world.py::test_interrupted_build_resumes",
+    "test_world.py::test_cli_errors_are_one_line",
+    "test_world.py::test_interrupted_build_resumes",
     "test_world.py::test_compressed_frames_equal_raw_and_stay_lineage_readable",
     "test_real_world.py::test_real_scene_build_is_deterministic",
     "test_pretrain_train.py::test_two_gloo_processes_keep_replicas_identical_and_match_one_process",

@@ -41,4 +41,3 @@ class RecordingTrainer:
 
     def train(self, tc, agent, run_dir):
         raise NotImplementedError
-

@@ -1,5 +1,6 @@
 """Load a Python file as a module (tests of code that is not in the package, e.g. fixture makers), and the
 analyses of ``tsnav analyze`` as fresh modules."""
+
 from __future__ import annotations
 
 import importlib

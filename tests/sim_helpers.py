@@ -12,8 +12,13 @@ from tsnav.data.toy import toy_scene
 
 def toy_scenes():
     """Three small analytic scenes of two room types with blocked cells and several target categories."""
-    a = toy_scene(2.0, 1.5, {"Bowl|1": (2.0, 1.5), "Chair|1": (0.0, 0.75), "Vase|1": (1.0, 0.0)},
-                  blocked=[(1.0, 0.5), (1.0, 0.75), (1.0, 1.0)], name="ToyA")
+    a = toy_scene(
+        2.0,
+        1.5,
+        {"Bowl|1": (2.0, 1.5), "Chair|1": (0.0, 0.75), "Vase|1": (1.0, 0.0)},
+        blocked=[(1.0, 0.5), (1.0, 0.75), (1.0, 1.0)],
+        name="ToyA",
+    )
     b = toy_scene(1.5, 1.5, {"Sink|1": (0.75, 1.5), "GarbageCan|1": (0.0, 0.0)}, name="ToyB")
     c = toy_scene(1.75, 1.0, {"Sink|1": (1.75, 0.5)}, blocked=[(0.75, 0.25)], name="ToyC")
     a.meta["room_type"] = "kitchen"
@@ -33,15 +38,25 @@ def write_scene_folder(scene, folder: Path, images: int | None = None) -> Path:
     src = np.repeat(np.arange(len(keys)), scene.next_state.shape[1])
     dst = scene.next_state.reshape(-1)
     keep = src != dst
-    graph = {"directed": True, "multigraph": False, "graph": {},
-             "nodes": [{"id": k} for k in keys],
-             "links": [{"source": keys[s], "target": keys[t]} for s, t in zip(src[keep], dst[keep])]}
+    graph = {
+        "directed": True,
+        "multigraph": False,
+        "graph": {},
+        "nodes": [{"id": k} for k in keys],
+        "links": [{"source": keys[s], "target": keys[t]} for s, t in zip(src[keep], dst[keep])],
+    }
     (folder / "graph.json").write_text(json.dumps(graph))
-    (folder / "grid.json").write_text(json.dumps(
-        [{"x": float(x), "y": 0.9, "z": float(z)} for x, z in sorted(set(zip(scene.x.tolist(), scene.z.tolist())))]))
+    (folder / "grid.json").write_text(
+        json.dumps(
+            [{"x": float(x), "y": 0.9, "z": float(z)} for x, z in sorted(set(zip(scene.x.tolist(), scene.z.tolist())))]
+        )
+    )
     # as the lineage's maps: objects seen from no state are not listed
-    vis = {str(o): [keys[s] for s in np.flatnonzero(scene.visible[:, j])] for j, o in enumerate(scene.object_ids)
-           if scene.visible[:, j].any()}
+    vis = {
+        str(o): [keys[s] for s in np.flatnonzero(scene.visible[:, j])]
+        for j, o in enumerate(scene.object_ids)
+        if scene.visible[:, j].any()
+    }
     (folder / "visible_object_map_1.5.json").write_text(json.dumps(vis))
     meta = dict(scene.meta)
     meta["floor"] = [p.tolist() for p in scene.floor]

@@ -11,15 +11,15 @@ from tsnav.eval.runner import Trajectory
 from script_helpers import load_analysis
 
 
-
 @pytest.fixture(scope="module")
 def diag():
     return load_analysis("agent_diagnostics")
 
 
 def _traj(keys, actions, switch=-1, success=False):
-    return Trajectory(episode=0, scene="S", target="Bowl", keys=keys, actions=actions, switch_frame=switch,
-                      success=success)
+    return Trajectory(
+        episode=0, scene="S", target="Bowl", keys=keys, actions=actions, switch_frame=switch, success=success
+    )
 
 
 def test_outcome_figures_by_hand(diag):
@@ -42,11 +42,13 @@ def test_outcome_figures_by_hand(diag):
 
 def test_outcomes_command_on_an_evaluation(diag, tiny_world, tmp_path, capsys):
     eps = tmp_path / "eps.json"
-    assert main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "4", "--out",
-                 str(eps)]) == 0
+    assert (
+        main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "4", "--out", str(eps)]) == 0
+    )
     ev = tmp_path / "eval"
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "random", "--out",
-                 str(ev)]) == 0
+    assert (
+        main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "random", "--out", str(ev)]) == 0
+    )
     capsys.readouterr()
     assert diag.main(["outcomes", str(ev)]) == 0
     out = capsys.readouterr().out
@@ -54,6 +56,7 @@ def test_outcomes_command_on_an_evaluation(diag, tiny_world, tmp_path, capsys):
     assert f"{n} episodes" in out and "blocked MoveAheads" in out
     # with --data, the switched episodes split into true and false switches, by outcome
     from tsnav.eval.runner import read_trajectories
+
     traj = read_trajectories(ev / "trajectories.jsonl")
     r, split = diag.outcome_figures(traj), diag.switch_truth(tiny_world, traj)
     for o in ("success", "done", "limit"):
@@ -84,6 +87,8 @@ def test_switch_misses_by_hand(diag, tmp_path, capsys):
         (tmp_path / name / "trajectories.jsonl").write_text("".join(x.to_json() + "\n" for x in trajs))
     assert diag.main(["switches", str(tmp_path / "A"), str(tmp_path / "B")]) == 0
     out = capsys.readouterr().out
-    assert "only B 2, neither 1" in out and out.index("Bowl") < out.index("Plate")  # equal "B only": most A misses first
+    assert "only B 2, neither 1" in out and out.index("Bowl") < out.index(
+        "Plate"
+    )  # equal "B only": most A misses first
     with pytest.raises(SystemExit, match="no trajectories.jsonl"):
         diag.main(["switches", str(tmp_path / "A"), str(tmp_path)])

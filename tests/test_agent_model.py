@@ -7,8 +7,19 @@ import numpy as np
 import pytest
 import torch
 
-from tsnav.agent import (NO_ACTION, ActorCritic, AgentObs, AgentState, DetectionTable, MemoryState, Observer,
-                         TargetMemoryAggregator, agent_config, relative_pose, roi_pool)
+from tsnav.agent import (
+    NO_ACTION,
+    ActorCritic,
+    AgentObs,
+    AgentState,
+    DetectionTable,
+    MemoryState,
+    Observer,
+    TargetMemoryAggregator,
+    agent_config,
+    relative_pose,
+    roi_pool,
+)
 from tsnav.agent.model import BLOCKED_MOVE
 from tsnav.detect.oracle import oracle_detections
 from tsnav.sim.batch import SceneBank
@@ -24,8 +35,13 @@ def _filled_memory(b=3, m=5, seed=0):
     mem = MemoryState.empty(b, m, D)
     for _ in range(4):
         mask = torch.rand(b, generator=g) < 0.8
-        mem = mem.write(mask, torch.rand(b, 4, generator=g), torch.rand(b, generator=g),
-                        torch.randn(b, D, generator=g), torch.randn(b, 4, generator=g) * 30)
+        mem = mem.write(
+            mask,
+            torch.rand(b, 4, generator=g),
+            torch.rand(b, generator=g),
+            torch.randn(b, D, generator=g),
+            torch.randn(b, 4, generator=g) * 30,
+        )
     return mem
 
 
@@ -34,8 +50,13 @@ def test_memory_fifo_write_and_clear():
     mem = MemoryState.empty(b, m, D)
     mask = torch.tensor([True, False])
     for k in range(m + 2):  # five writes into three slots: nodes 2, 3, 4 remain in row 0
-        mem = mem.write(mask, torch.full((b, 4), float(k)), torch.full((b,), float(k)), torch.full((b, D), float(k)),
-                        torch.full((b, 4), float(k)))
+        mem = mem.write(
+            mask,
+            torch.full((b, 4), float(k)),
+            torch.full((b,), float(k)),
+            torch.full((b, D), float(k)),
+            torch.full((b, 4), float(k)),
+        )
     assert mem.valid[0].all() and not mem.valid[1].any()
     assert sorted(mem.score[0].tolist()) == [2.0, 3.0, 4.0]
     assert int(mem.ptr[0]) == (m + 2) % m and int(mem.ptr[1]) == 0
@@ -53,13 +74,19 @@ def test_aggregator_shapes_and_order_invariance():
     out = agg(mem, pose, target)
     assert out.shape == (3, 12) and torch.isfinite(out).all()
     perm = torch.tensor([3, 0, 4, 2, 1])
-    permuted = MemoryState(mem.box[:, perm], mem.score[:, perm], mem.feat[:, perm], mem.pose[:, perm],
-                           mem.valid[:, perm], mem.ptr)
+    permuted = MemoryState(
+        mem.box[:, perm], mem.score[:, perm], mem.feat[:, perm], mem.pose[:, perm], mem.valid[:, perm], mem.ptr
+    )
     torch.testing.assert_close(agg(permuted, pose, target), out, rtol=1e-5, atol=1e-6)
     # the content of empty slots does not matter
-    junk = MemoryState(torch.where(mem.valid[..., None], mem.box, torch.full_like(mem.box, 7.0)), mem.score,
-                       torch.where(mem.valid[..., None], mem.feat, torch.full_like(mem.feat, -9.0)), mem.pose,
-                       mem.valid, mem.ptr)
+    junk = MemoryState(
+        torch.where(mem.valid[..., None], mem.box, torch.full_like(mem.box, 7.0)),
+        mem.score,
+        torch.where(mem.valid[..., None], mem.feat, torch.full_like(mem.feat, -9.0)),
+        mem.pose,
+        mem.valid,
+        mem.ptr,
+    )
     torch.testing.assert_close(agg(junk, pose, target), out, rtol=1e-5, atol=1e-6)
 
 
@@ -98,9 +125,14 @@ def test_relative_pose_by_hand():
 def _obs(b, c=8, h=2, w=2, seed=0):
     g = torch.Generator().manual_seed(seed)
     score = (torch.rand(b, generator=g) > 0.4).float()
-    return AgentObs(image=torch.randn(b, c, h, w, generator=g), target=torch.randint(0, 22, (b,), generator=g),
-                    det_score=score, det_box=torch.rand(b, 4, generator=g) * score[:, None],
-                    det_feat=torch.randn(b, c, generator=g), pose=torch.randn(b, 4, generator=g))
+    return AgentObs(
+        image=torch.randn(b, c, h, w, generator=g),
+        target=torch.randint(0, 22, (b,), generator=g),
+        det_score=score,
+        det_box=torch.rand(b, 4, generator=g) * score[:, None],
+        det_feat=torch.randn(b, c, generator=g),
+        pose=torch.randn(b, 4, generator=g),
+    )
 
 
 def test_hidden_state_reset_on_done():
@@ -168,8 +200,12 @@ def test_blocked_move_has_its_own_previous_action_id():
     state = state.reset(np.array([False, False, False, False, True]))  # row 4 starts a new episode
     assert model.previous_action_ids(nxt, state).tolist() == [BLOCKED_MOVE, 0, 1, 0, NO_ACTION]
     # the reference: one row at a time, by the rule's words
-    want = [BLOCKED_MOVE if int(state.prev_action[i]) == 0 and bool((nxt.pose[i, :2] == state.prev_position[i]).all())
-            else int(state.prev_action[i]) for i in range(b)]
+    want = [
+        BLOCKED_MOVE
+        if int(state.prev_action[i]) == 0 and bool((nxt.pose[i, :2] == state.prev_position[i]).all())
+        else int(state.prev_action[i])
+        for i in range(b)
+    ]
     assert model.previous_action_ids(nxt, state).tolist() == want
     # the id reaches the network: the blocked row differs from the same row taken as moved, the others do not
     moved = AgentState(state.h, state.c, state.memory, state.prev_action, state.prev_position + 1.0)

@@ -17,8 +17,13 @@ from tsnav.cli import main
 from tsnav.constants import ROBOTHOR12
 from tsnav.data.toy import toy_scene
 from tsnav.sim.batch import SceneBank
-from tsnav.sim.challenge import (challenge_episodes, challenge_heading, grid_metres, grid_metres_reference,
-                                 read_challenge_episodes)
+from tsnav.sim.challenge import (
+    challenge_episodes,
+    challenge_heading,
+    grid_metres,
+    grid_metres_reference,
+    read_challenge_episodes,
+)
 from tsnav.sim.episodes import episodes_to_arrays, read_episodes
 
 from sim_helpers import write_scene_folder
@@ -30,32 +35,57 @@ SCENE = "FloorPlan_Val1_1"
 def scene():
     """2 x 1.5 m room; an Apple in the far corner, a HousePlant on the left wall, a Vase too far away to be seen
     from any state; three blocked cells."""
-    return toy_scene(2.0, 1.5, {"Apple|1": (2.0, 1.5), "HousePlant|1": (0.0, 0.75), "Vase|1": (9.0, 9.0)},
-                     blocked=[(1.0, 0.5), (1.0, 0.75), (1.0, 1.0)], name=SCENE, class_set="robothor12")
+    return toy_scene(
+        2.0,
+        1.5,
+        {"Apple|1": (2.0, 1.5), "HousePlant|1": (0.0, 0.75), "Vase|1": (9.0, 9.0)},
+        blocked=[(1.0, 0.5), (1.0, 0.75), (1.0, 1.0)],
+        name=SCENE,
+        class_set="robothor12",
+    )
 
 
 def record(i, target, x, z, orientation, length=1.0, scene_name=SCENE):
-    return {"id": f"{scene_name}_{target}_{i}", "scene": scene_name, "object_type": target,
-            "initial_position": {"x": x, "y": 0.9, "z": z}, "initial_orientation": orientation,
-            "initial_horizon": 30, "shortest_path": [], "shortest_path_length": length}
+    return {
+        "id": f"{scene_name}_{target}_{i}",
+        "scene": scene_name,
+        "object_type": target,
+        "initial_position": {"x": x, "y": 0.9, "z": z},
+        "initial_orientation": orientation,
+        "initial_horizon": 30,
+        "shortest_path": [],
+        "shortest_path_length": length,
+    }
 
 
 RECORDS = [
-    record(0, "Apple", 0.0, 0.0, 30, 2.4),         # -> 0.00|0.00|45|30
-    record(1, "HousePlant", 2.0, 1.5, 150, 2.0),   # -> 2.00|1.50|135|30
-    record(2, "Apple", 1.0, 0.75, 0),              # a blocked cell: not a state
-    record(3, "Apple", 1.0, 0.5, 240),             # blocked too
-    record(4, "Mug", 0.5, 0.5, 60),                # no Mug in the room
-    record(5, "Apple", 1.75, 1.25, 60, 0.3),       # -> 45: facing the Apple 0.35 m away (already succeeds)
+    record(0, "Apple", 0.0, 0.0, 30, 2.4),  # -> 0.00|0.00|45|30
+    record(1, "HousePlant", 2.0, 1.5, 150, 2.0),  # -> 2.00|1.50|135|30
+    record(2, "Apple", 1.0, 0.75, 0),  # a blocked cell: not a state
+    record(3, "Apple", 1.0, 0.5, 240),  # blocked too
+    record(4, "Mug", 0.5, 0.5, 60),  # no Mug in the room
+    record(5, "Apple", 1.75, 1.25, 60, 0.3),  # -> 45: facing the Apple 0.35 m away (already succeeds)
     record(6, "Apple", 0.5, 0.5, 90, 1.0, "FloorPlan_Val2_1"),  # a scene not in the dataset
-    record(7, "Vase", 0.5, 0.5, 0),                # a Vase no state sees
+    record(7, "Vase", 0.5, 0.5, 0),  # a Vase no state sees
 ]
 
 
 def test_heading_rule_by_hand():
     # the 12 challenge headings: the nearest multiple of 45 (never a tie); every heading is one of tsnav's 8
-    want = {0: 0, 30: 45, 60: 45, 90: 90, 120: 135, 150: 135, 180: 180, 210: 225, 240: 225, 270: 270, 300: 315,
-            330: 315}
+    want = {
+        0: 0,
+        30: 45,
+        60: 45,
+        90: 90,
+        120: 135,
+        150: 135,
+        180: 180,
+        210: 225,
+        240: 225,
+        270: 270,
+        300: 315,
+        330: 315,
+    }
     assert {o: challenge_heading(o) for o in want} == want
     for o in range(0, 360, 30):
         assert abs((challenge_heading(o) - o + 180) % 360 - 180) == (0 if o % 90 == 0 else 15)
@@ -68,8 +98,12 @@ def test_conversion_counts_and_protocols():
         eps, st = challenge_episodes(RECORDS, bank)
         assert [e.challenge["id"].rsplit("_", 1)[1] for e in eps] == kept_ids
         assert st.read == 8 and st.kept == len(kept_ids)
-        dropped = {"start not a state": 2, "target not in scene": 1, "scene not in DATA": 1,
-                   "target has no success state": 1}
+        dropped = {
+            "start not a state": 2,
+            "target not in scene": 1,
+            "scene not in DATA": 1,
+            "target has no success state": 1,
+        }
         if protocol == "paper":
             dropped["start already succeeds"] = 1
         assert st.dropped == dropped
@@ -145,8 +179,25 @@ def test_command_writes_both_protocols_and_reports(tmp_path, capsys):
     challenge = _write_challenge(tmp_path / "challenge", RECORDS)
     for protocol, n in (("paper", 2), ("lineage", 3)):
         out = tmp_path / f"{protocol}.json"
-        assert main(["thor", "challenge-episodes", "--challenge", str(challenge), "--split", "val", "--data",
-                     str(data), "--protocol", protocol, "--out", str(out)]) == 0
+        assert (
+            main(
+                [
+                    "thor",
+                    "challenge-episodes",
+                    "--challenge",
+                    str(challenge),
+                    "--split",
+                    "val",
+                    "--data",
+                    str(data),
+                    "--protocol",
+                    protocol,
+                    "--out",
+                    str(out),
+                ]
+            )
+            == 0
+        )
         text = capsys.readouterr().out
         assert "5 / 7 starts are states" in text and f"{SCENE}: {n} of 7 kept" in text and "2 start not a state" in text
         eps, meta = read_episodes(out)
@@ -156,20 +207,79 @@ def test_command_writes_both_protocols_and_reports(tmp_path, capsys):
         raw = json.loads(out.read_text())["episodes"][0]
         assert set(raw) >= {"optimal_length", "optimal_metres", "challenge"}
         # the list evaluates on the world (its L* checked against the bank's)
-        assert main(["eval", "--data", str(data), "--episodes", str(out), "--policy", "oracle",
-                     "--out", str(tmp_path / f"ev_{protocol}")]) == 0
+        assert (
+            main(
+                [
+                    "eval",
+                    "--data",
+                    str(data),
+                    "--episodes",
+                    str(out),
+                    "--policy",
+                    "oracle",
+                    "--out",
+                    str(tmp_path / f"ev_{protocol}"),
+                ]
+            )
+            == 0
+        )
         capsys.readouterr()
-    assert main(["thor", "challenge-episodes", "--challenge", str(challenge), "--split", "val", "--data",
-                 str(data), "--out", str(tmp_path / "paper.json")]) == 2
+    assert (
+        main(
+            [
+                "thor",
+                "challenge-episodes",
+                "--challenge",
+                str(challenge),
+                "--split",
+                "val",
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / "paper.json"),
+            ]
+        )
+        == 2
+    )
     assert "exists" in capsys.readouterr().err
-    assert main(["thor", "challenge-episodes", "--challenge", str(tmp_path), "--split", "val", "--data",
-                 str(data), "--out", str(tmp_path / "x.json")]) == 2
+    assert (
+        main(
+            [
+                "thor",
+                "challenge-episodes",
+                "--challenge",
+                str(tmp_path),
+                "--split",
+                "val",
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / "x.json"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "no challenge episode files" in err and len(err.splitlines()) == 1
     ithor = tmp_path / "ithor"
     write_scene_folder(toy_scene(name=SCENE), ithor / SCENE)
-    assert main(["thor", "challenge-episodes", "--challenge", str(challenge), "--split", "val", "--data",
-                 str(ithor), "--out", str(tmp_path / "y.json")]) == 2
+    assert (
+        main(
+            [
+                "thor",
+                "challenge-episodes",
+                "--challenge",
+                str(challenge),
+                "--split",
+                "val",
+                "--data",
+                str(ithor),
+                "--out",
+                str(tmp_path / "y.json"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "declares class set ithor22" in err and "robothor12" in err and len(err.splitlines()) == 1
 
@@ -179,11 +289,14 @@ def test_plain_episode_lists_are_written_as_before(tmp_path):
 
     write_episodes(tmp_path / "e.json", [Episode("FloorPlan1", "Bowl", "0.00|0.00|0|0", 3, "kitchen")])
     assert json.loads((tmp_path / "e.json").read_text())["episodes"] == [
-        {"scene": "FloorPlan1", "target": "Bowl", "start": "0.00|0.00|0|0", "optimal_length": 3, "room_type": "kitchen"}]
+        {"scene": "FloorPlan1", "target": "Bowl", "start": "0.00|0.00|0|0", "optimal_length": 3, "room_type": "kitchen"}
+    ]
 
 
-@pytest.mark.skipif(not SHARED.is_dir(), reason=f"the shared RoboTHOR records are not at {SHARED} (CI copies "
-                                                "shared/ beside the clone as ../shared)")
+@pytest.mark.skipif(
+    not SHARED.is_dir(),
+    reason=f"the shared RoboTHOR records are not at {SHARED} (CI copies shared/ beside the clone as ../shared)",
+)
 def test_real_challenge_files():
     val = read_challenge_episodes(SHARED, "val")
     train = read_challenge_episodes(SHARED, "train")

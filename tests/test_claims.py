@@ -11,8 +11,15 @@ import pytest
 from scipy.stats import t as student
 
 from tsnav.cli import main
-from tsnav.report.claims import (CLAIMS, PAPER_TABLE_II, check_claims, claims_html, claims_markdown, summary_line,
-                                verdict)
+from tsnav.report.claims import (
+    CLAIMS,
+    PAPER_TABLE_II,
+    check_claims,
+    claims_html,
+    claims_markdown,
+    summary_line,
+    verdict,
+)
 from tsnav.pipeline.config import experiment_rows
 from tsnav.report.tables import aggregate, welch
 
@@ -43,7 +50,7 @@ def test_verdicts_and_welch_against_the_textbook_formula():
     a, b = [60.0, 62.0, 61.0], [70.0, 72.0, 71.0, 73.0]
     va, vb = np.var(a, ddof=1) / 3, np.var(b, ddof=1) / 4
     tstat = (np.mean(b) - np.mean(a)) / math.sqrt(va + vb)
-    df = (va + vb) ** 2 / (va ** 2 / 2 + vb ** 2 / 3)
+    df = (va + vb) ** 2 / (va**2 / 2 + vb**2 / 3)
     assert k["diff"] == pytest.approx(np.mean(b) - np.mean(a))
     assert k["p"] == pytest.approx(2 * student.sf(abs(tstat), df), rel=1e-9)
     assert k["verdict"] == "supported" and k["n"] == [3, 4]
@@ -52,8 +59,9 @@ def test_verdicts_and_welch_against_the_textbook_formula():
     assert k["diff"] - k["ci95"] > 0
     assert k["lower_mean"] == pytest.approx(61.0) and k["higher_mean"] == pytest.approx(71.5)
     # the paper's own difference, from its Table II
-    assert k["paper_diff"] == pytest.approx(round(PAPER_TABLE_II["explore"]["ALL"]["SSR"]
-                                                  - PAPER_TABLE_II["baseline"]["ALL"]["SSR"], 2))
+    assert k["paper_diff"] == pytest.approx(
+        round(PAPER_TABLE_II["explore"]["ALL"]["SSR"] - PAPER_TABLE_II["baseline"]["ALL"]["SSR"], 2)
+    )
     assert _by(checks, "distance", "NSNPL")["verdict"] == "contradicted"
     # SSSPL: the same value in every seed of both rows (0.5): no test
     assert _by(checks, "exploration", "SSSPL")["verdict"] == "no spread"
@@ -120,8 +128,9 @@ def test_threshold_claim_corrects_for_picking_the_best_of_many_rows():
 
 
 def test_markdown_has_one_table_per_claim_with_both_subsets():
-    res = _ablation({"baseline": [_summary(NSNPL=x) for x in (0.40, 0.41)],
-                     "distance": [_summary(NSNPL=x) for x in (0.45, 0.46)]})
+    res = _ablation(
+        {"baseline": [_summary(NSNPL=x) for x in (0.40, 0.41)], "distance": [_summary(NSNPL=x) for x in (0.45, 0.46)]}
+    )
     md = claims_markdown(check_claims({"ablation": res}))
     block = md.split("**distance reward raises pathfinding efficiency (NSNPL)**")[1].split("**")[0]
     lines = [x for x in block.splitlines() if x.startswith("| ")]
@@ -132,8 +141,9 @@ def test_markdown_has_one_table_per_claim_with_both_subsets():
 
 
 def test_claims_command(tmp_path, capsys):
-    res = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.52)],
-                     "explore": [_summary(SR=x) for x in (0.6, 0.62)]})
+    res = _ablation(
+        {"baseline": [_summary(SR=x) for x in (0.5, 0.52)], "explore": [_summary(SR=x) for x in (0.6, 0.62)]}
+    )
     res["experiment"] = "ablation"
     d = tmp_path / "abl"
     d.mkdir()
@@ -164,9 +174,13 @@ def test_claims_command(tmp_path, capsys):
 def test_missing_and_undefined_values_and_equal_means():
     """None / NaN seeds are dropped (a metric with no finite value is 'not run'); equal means are 'no
     difference', not a sign."""
-    res = _ablation({"baseline": [_summary(SR=x, SPL=0.4) for x in (0.5, 0.6, 0.55)],
-                     "explore": [_summary(SR=x) for x in (0.6, 0.5, 0.55)],
-                     "distance": [_summary(NSNPL=0.46), _summary(NSNPL=0.46)]})
+    res = _ablation(
+        {
+            "baseline": [_summary(SR=x, SPL=0.4) for x in (0.5, 0.6, 0.55)],
+            "explore": [_summary(SR=x) for x in (0.6, 0.5, 0.55)],
+            "distance": [_summary(NSNPL=0.46), _summary(NSNPL=0.46)],
+        }
+    )
     rows = {r["row"]: r for r in res["rows"]}
     rows["explore"]["metrics"]["ALL"]["SSSPL"]["values"] = [None, float("nan")]
     rows["explore"]["metrics"]["ALL"]["SR"]["values"].append(None)
@@ -179,16 +193,22 @@ def test_missing_and_undefined_values_and_equal_means():
     k = _by(checks, "distance", "NSNPL")
     assert k["n"] == [3, 2] and k["verdict"] == "no spread" and k["diff"] == pytest.approx(-4.0)
     assert _by(checks, "distance", "NSNPL", "L>=5")["verdict"] == "not run"
-    res2 = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.6)], "explore": [_summary(SR=x) for x in (0.6, 0.5)],
-                      "tsrm": [_summary(SR=x) for x in (0.55, 0.56)]})
+    res2 = _ablation(
+        {
+            "baseline": [_summary(SR=x) for x in (0.5, 0.6)],
+            "explore": [_summary(SR=x) for x in (0.6, 0.5)],
+            "tsrm": [_summary(SR=x) for x in (0.55, 0.56)],
+        }
+    )
     k = _by(check_claims({"ablation": res2}), "complement-explore", "SR")
     assert k["diff"] == pytest.approx(0.5) and k["verdict"] == "same sign, n.s."
     assert verdict(0.0, 1.0) == "no difference"
 
 
 def test_markdown_and_html_are_well_formed():
-    res = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.52)],
-                     "explore": [_summary(SR=x) for x in (0.6, 0.62)]})
+    res = _ablation(
+        {"baseline": [_summary(SR=x) for x in (0.5, 0.52)], "explore": [_summary(SR=x) for x in (0.6, 0.62)]}
+    )
     res["rows"][1]["label"] = "explore | <b>"
     checks = check_claims({"ablation": res})
     md = claims_markdown(checks)
@@ -206,8 +226,9 @@ def test_claims_command_two_experiments_and_bad_outputs(tmp_path, capsys):
     """Both experiments have a row 'demae' with its own label; each claim names its own. An output path that is
     a folder or a plot with an unknown suffix is refused before anything is written."""
     abl = _ablation({"baseline": [_summary(SR=x) for x in (0.5, 0.52)], "demae": [_summary(SR=x) for x in (0.6, 0.62)]})
-    pre = aggregate(experiment_rows("pretraining"), {"mae": [_summary(SR=0.5)], "demae": [_summary(SR=0.6)]},
-                    ["SR", "SPL"], [])
+    pre = aggregate(
+        experiment_rows("pretraining"), {"mae": [_summary(SR=0.5)], "demae": [_summary(SR=0.6)]}, ["SR", "SPL"], []
+    )
     for name, res in (("ablation", abl), ("pretraining", pre)):
         res["experiment"] = name
         (tmp_path / name).mkdir()
@@ -228,10 +249,12 @@ def test_claims_command_two_experiments_and_bad_outputs(tmp_path, capsys):
 def test_claims_command_under_the_other_protocol(tmp_path, capsys):
     """``--protocol`` reads the same checkpoints' evaluation under the other success protocol (results.json's
     ``other_protocols``, written by ``tsnav experiment``); an experiment not evaluated there is named in one line."""
-    res = _ablation({"baseline": [_summary(SSR=x) for x in (0.5, 0.52)],
-                     "explore": [_summary(SSR=x) for x in (0.5, 0.51)]})
-    lin = _ablation({"baseline": [_summary(SSR=x) for x in (0.5, 0.52)],
-                     "explore": [_summary(SSR=x) for x in (0.8, 0.82)]})
+    res = _ablation(
+        {"baseline": [_summary(SSR=x) for x in (0.5, 0.52)], "explore": [_summary(SSR=x) for x in (0.5, 0.51)]}
+    )
+    lin = _ablation(
+        {"baseline": [_summary(SSR=x) for x in (0.5, 0.52)], "explore": [_summary(SSR=x) for x in (0.8, 0.82)]}
+    )
     res.update(experiment="ablation", protocol="paper")
     lin.update(experiment="ablation", protocol="lineage", trained_protocol="paper")
     d = tmp_path / "abl"

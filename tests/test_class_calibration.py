@@ -44,8 +44,27 @@ def test_identity_and_written_tables(mod, world, tmp_path, capsys):
     assert np.allclose(same.scores, det.scores, atol=2e-6)
     assert np.array_equal(same.labels, det.labels) and np.array_equal(same.boxes, det.boxes)
     out = tmp_path / "c.json"
-    assert mod.main(["--data", str(world), "--from", "learned4", "--fit-split", "val", "--report-split", "test",
-                     "--min-positives", "1", "--name", "lc", "--json", str(out)]) == 0
+    assert (
+        mod.main(
+            [
+                "--data",
+                str(world),
+                "--from",
+                "learned4",
+                "--fit-split",
+                "val",
+                "--report-split",
+                "test",
+                "--min-positives",
+                "1",
+                "--name",
+                "lc",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     res = json.loads(out.read_text())
     assert {"val_before", "val_crossfit", "test_before", "test_after", "maps"} <= set(res)
     for q in list_scenes(world):

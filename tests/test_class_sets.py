@@ -11,8 +11,18 @@ import h5py
 import numpy as np
 import pytest
 
-from tsnav.constants import (CATEGORY_INDEX, CLASS_SETS, ITHOR22, NUM_CATEGORIES, ROBOTHOR12, ROOM_TARGETS,
-                             check_same_class_set, class_set, class_set_of, room_target_mask)
+from tsnav.constants import (
+    CATEGORY_INDEX,
+    CLASS_SETS,
+    ITHOR22,
+    NUM_CATEGORIES,
+    ROBOTHOR12,
+    ROOM_TARGETS,
+    check_same_class_set,
+    class_set,
+    class_set_of,
+    room_target_mask,
+)
 from tsnav.data.detections import Detections, load_detections, load_scene_detections, write_detections
 from tsnav.data.reader import SceneFormatError, load_scene
 from tsnav.data.toy import toy_scene
@@ -38,8 +48,19 @@ def test_class_sets_are_named_and_ithor22_is_the_old_constants():
     assert ITHOR22.categories == tuple(CATEGORY_INDEX) and ITHOR22.size == NUM_CATEGORIES == 22
     assert ITHOR22.index == CATEGORY_INDEX and ITHOR22.room_targets == ROOM_TARGETS
     assert ROBOTHOR12.size == 12 and ROBOTHOR12.categories == (
-        "AlarmClock", "Apple", "BaseballBat", "BasketBall", "Bowl", "GarbageCan", "HousePlant", "Laptop", "Mug",
-        "SprayBottle", "Television", "Vase")
+        "AlarmClock",
+        "Apple",
+        "BaseballBat",
+        "BasketBall",
+        "Bowl",
+        "GarbageCan",
+        "HousePlant",
+        "Laptop",
+        "Mug",
+        "SprayBottle",
+        "Television",
+        "Vase",
+    )
     assert set(CLASS_SETS) == {"ithor22", "robothor12"} and class_set(None) is ITHOR22
     assert class_set_of({}) is ITHOR22 and class_set_of({"class_set": "robothor12"}) is ROBOTHOR12
     with pytest.raises(ValueError, match="unknown class set 'coco'"):
@@ -126,8 +147,14 @@ def test_oracle_table_shape_round_trip_and_mismatch_refused(tmp_path):
     assert "class set ithor22" in str(e.value) and "robothor12" in str(e.value) and "\n" not in str(e.value)
     # a table must have its class set's width
     with pytest.raises(ValueError, match=r"scores must have shape \(\d+, 12\)"):
-        Detections(keys=ith.keys, scores=ith.scores, labels=ith.labels, boxes=ith.boxes, features=ith.features,
-                    class_set="robothor12")
+        Detections(
+            keys=ith.keys,
+            scores=ith.scores,
+            labels=ith.labels,
+            boxes=ith.boxes,
+            features=ith.features,
+            class_set="robothor12",
+        )
     with pytest.raises(ValueError, match="class sets differ"):
         Detections.concatenate([det, ith])
     # the lineage's 22 x 264 table is iTHOR's: a RoboTHOR table is not written into it
@@ -177,25 +204,59 @@ def test_agent_records_its_class_set_and_is_refused_on_another(two_worlds, tmp_p
 
     world, ithor = two_worlds["robothor"], two_worlds["ithor"]
     run = tmp_path / "run"
-    assert main(["train", "--data", str(world), "--features", "px", "--detections", "oracle", "--algo", "batched",
-                 "--out", str(run), "--updates", "2", "--num-envs", "2", "--preset", "cpu", "--rollout-steps", "4",
-                 "--checkpoint-every", "2", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(world),
+                "--features",
+                "px",
+                "--detections",
+                "oracle",
+                "--algo",
+                "batched",
+                "--out",
+                str(run),
+                "--updates",
+                "2",
+                "--num-envs",
+                "2",
+                "--preset",
+                "cpu",
+                "--rollout-steps",
+                "4",
+                "--checkpoint-every",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     model, _ = load_model(run)
     assert model.class_set == "robothor12" and model.describe()["class_set"] == "robothor12"
     assert model.memory.query.weight.shape[0] == 12  # one target embedding per RoboTHOR class
     eps_r, eps_i = tmp_path / "r.json", tmp_path / "i.json"
-    assert main(["episodes", "--data", str(world), "--split", "train", "--per-room-type", "5", "--out", str(eps_r)]) == 0
+    assert (
+        main(["episodes", "--data", str(world), "--split", "train", "--per-room-type", "5", "--out", str(eps_r)]) == 0
+    )
     assert json.loads(eps_r.read_text())["class_set"] == "robothor12"
-    assert main(["episodes", "--data", str(ithor), "--split", "train", "--per-room-type", "5", "--out", str(eps_i)]) == 0
+    assert (
+        main(["episodes", "--data", str(ithor), "--split", "train", "--per-room-type", "5", "--out", str(eps_i)]) == 0
+    )
     assert "class_set" not in json.loads(eps_i.read_text())  # iTHOR lists are written as before
     capsys.readouterr()
-    assert main(["eval", "--data", str(world), "--episodes", str(eps_r), "--run", str(run),
-                 "--out", str(tmp_path / "ev")]) == 0
+    assert (
+        main(["eval", "--data", str(world), "--episodes", str(eps_r), "--run", str(run), "--out", str(tmp_path / "ev")])
+        == 0
+    )
     m = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert m["metrics"]["ALL"]["episodes"] == len(json.loads(eps_r.read_text())["episodes"])
     # the RoboTHOR agent on iTHOR scenes, and a RoboTHOR list on iTHOR scenes: one line each
-    assert main(["eval", "--data", str(ithor), "--episodes", str(eps_i), "--run", str(run),
-                 "--out", str(tmp_path / "x1")]) == 2
+    assert (
+        main(["eval", "--data", str(ithor), "--episodes", str(eps_i), "--run", str(run), "--out", str(tmp_path / "x1")])
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "the agent of" in err and "class set robothor12" in err and "ithor22" in err and len(err.splitlines()) == 1
     assert main(["eval", "--data", str(ithor), "--episodes", str(eps_r), "--out", str(tmp_path / "x2")]) == 2
@@ -226,8 +287,26 @@ def test_learned_detector_takes_the_train_scenes_class_set(two_worlds, tmp_path,
 
     world, ithor = two_worlds["robothor"], two_worlds["ithor"]
     ckpt = tmp_path / "det"
-    assert main(["detect", "--data", str(world), "--detector", "learned", "--checkpoint", str(ckpt),
-                 "--name", "learned", "--train-steps", "2", "--no-eval", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                "--data",
+                str(world),
+                "--detector",
+                "learned",
+                "--checkpoint",
+                str(ckpt),
+                "--name",
+                "learned",
+                "--train-steps",
+                "2",
+                "--no-eval",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     det = LearnedDetector.load(ckpt)
     assert det.class_set == "robothor12" and det.model.cfg.num_classes == 12
     table = load_detections(world / "FloorPlan_Train1_1", "learned")
@@ -235,25 +314,54 @@ def test_learned_detector_takes_the_train_scenes_class_set(two_worlds, tmp_path,
     SceneBank.from_root(world).install_detections("learned")
     capsys.readouterr()
     # the RoboTHOR detector on iTHOR scenes: one line, nothing written
-    assert main(["detect", "--data", str(ithor), "--detector", "learned", "--checkpoint", str(ckpt),
-                 "--name", "learned", "--no-eval", "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "detect",
+                "--data",
+                str(ithor),
+                "--detector",
+                "learned",
+                "--checkpoint",
+                str(ckpt),
+                "--name",
+                "learned",
+                "--no-eval",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "class set robothor12" in err and "ithor22" in err and len(err.splitlines()) == 1
     assert not (ithor / "FloorPlan_Train1_1" / "detections_learned.hdf5").exists()
     # a 22-class detector is not trained on RoboTHOR frames
     with pytest.raises(ValueError, match="12 target classes but the detector scores 22"):
-        train_detector(world, tmp_path / "det22", DetectorTrainConfig(steps=1), model_cfg=DetectorConfig(image_size=32),
-                       progress=False)
+        train_detector(
+            world,
+            tmp_path / "det22",
+            DetectorTrainConfig(steps=1),
+            model_cfg=DetectorConfig(image_size=32),
+            progress=False,
+        )
     with pytest.raises(ValueError, match="num_classes 22 but class set robothor12 has 12"):
         DetectorConfig(num_classes=22, class_set="robothor12")
-    assert "class_set" not in DetectorConfig().to_dict() and DetectorConfig.from_dict({"num_classes": 22}).num_classes == 22
+    assert (
+        "class_set" not in DetectorConfig().to_dict()
+        and DetectorConfig.from_dict({"num_classes": 22}).num_classes == 22
+    )
 
 
 def test_gymnasium_spaces_follow_the_class_set(two_worlds):
     import gymnasium as gym
 
-    env = gym.make("tsnav.sim:tsnav/ObjectNav-v1", data=str(two_worlds["robothor"]), split="train", reward="tsrm",
-                   detections="oracle")
+    env = gym.make(
+        "tsnav.sim:tsnav/ObjectNav-v1",
+        data=str(two_worlds["robothor"]),
+        split="train",
+        reward="tsrm",
+        detections="oracle",
+    )
     assert env.observation_space["target"].n == 12 and env.observation_space["detections"].shape == (72,)
     obs, info = env.reset(seed=0, options={"episode": ("FloorPlan_Train1_1", "Apple", "0.00|0.00|45|0")})
     assert obs["target"] == 1 and info["target_name"] == "Apple" and obs["detections"].shape == (72,)

@@ -10,9 +10,21 @@ import numpy as np
 import pytest
 import torch
 
-from tsnav.constants import (ACTION_ORDER, ACTIONS, DONE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, OLD_ACTION_ORDER,
-                             ROOM_TARGETS, ROTATE_LEFT, ROTATE_RIGHT, TARGET_CATEGORIES, action_permutation,
-                             object_id)
+from tsnav.constants import (
+    ACTION_ORDER,
+    ACTIONS,
+    DONE,
+    LOOK_DOWN,
+    LOOK_UP,
+    MOVE_AHEAD,
+    OLD_ACTION_ORDER,
+    ROOM_TARGETS,
+    ROTATE_LEFT,
+    ROTATE_RIGHT,
+    TARGET_CATEGORIES,
+    action_permutation,
+    object_id,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -40,13 +52,44 @@ def test_look_actions_move_the_camera_the_right_way(tiny_scenes):
 
 def test_room_targets_as_the_lineages_test_splits():
     assert set(ROOM_TARGETS["kitchen"]) == {
-        "Bowl", "CellPhone", "Chair", "CoffeeMachine", "Fridge", "GarbageCan", "Kettle", "LightSwitch",
-        "Microwave", "Pan", "Plate", "Pot", "Sink", "StoveBurner", "Toaster"}
+        "Bowl",
+        "CellPhone",
+        "Chair",
+        "CoffeeMachine",
+        "Fridge",
+        "GarbageCan",
+        "Kettle",
+        "LightSwitch",
+        "Microwave",
+        "Pan",
+        "Plate",
+        "Pot",
+        "Sink",
+        "StoveBurner",
+        "Toaster",
+    }
     assert set(ROOM_TARGETS["living_room"]) == {
-        "Book", "CellPhone", "Chair", "DeskLamp", "FloorLamp", "GarbageCan", "Laptop", "LightSwitch",
-        "RemoteControl", "Television"}
-    assert set(ROOM_TARGETS["bedroom"]) == {"AlarmClock", "Book", "CellPhone", "Chair", "DeskLamp", "GarbageCan",
-                                            "Laptop", "LightSwitch"}
+        "Book",
+        "CellPhone",
+        "Chair",
+        "DeskLamp",
+        "FloorLamp",
+        "GarbageCan",
+        "Laptop",
+        "LightSwitch",
+        "RemoteControl",
+        "Television",
+    }
+    assert set(ROOM_TARGETS["bedroom"]) == {
+        "AlarmClock",
+        "Book",
+        "CellPhone",
+        "Chair",
+        "DeskLamp",
+        "GarbageCan",
+        "Laptop",
+        "LightSwitch",
+    }
     assert set(ROOM_TARGETS["bathroom"]) == {"GarbageCan", "LightSwitch", "Sink"}
     assert set().union(*ROOM_TARGETS.values()) == set(TARGET_CATEGORIES)
 
@@ -91,7 +134,9 @@ def test_visible_object_map_helper_leaves_out_unseen_objects():
 
     vis = np.array([[True, False, False], [True, False, True]])
     assert visible_object_map(["A|1|2|3", "B|1|2|3", "C|1|2|3"], ["k0", "k1"], vis) == {
-        "A|1|2|3": ["k0", "k1"], "C|1|2|3": ["k1"]}
+        "A|1|2|3": ["k0", "k1"],
+        "C|1|2|3": ["k1"],
+    }
 
 
 def test_fixed_episodes_start_at_both_horizons_and_every_rotation(tiny_world):
@@ -149,7 +194,9 @@ def test_old_checkpoint_is_converted_on_load(tmp_path, capsys):
             p.zero_()
     opt2 = torch.optim.Adam(fresh.parameters(), lr=1e-3)
     load_checkpoint(path, fresh, opt2)
-    assert "trained with the action order MoveAhead,RotateLeft,RotateRight,LookDown,LookUp,Done" in capsys.readouterr().err
+    assert (
+        "trained with the action order MoveAhead,RotateLeft,RotateRight,LookDown,LookUp,Done" in capsys.readouterr().err
+    )
     for (n, a), b in zip(model.state_dict().items(), fresh.state_dict().values()):
         assert torch.equal(a, b), n
     s1, s2 = opt.state_dict()["state"], opt2.state_dict()["state"]
@@ -166,8 +213,9 @@ def test_old_checkpoint_is_converted_on_load(tmp_path, capsys):
 def test_old_trajectories_are_converted_on_read(tmp_path):
     from tsnav.eval.runner import Trajectory, read_trajectories, write_trajectories
 
-    t = Trajectory(episode=0, scene="FloorPlan1", target="Bowl", keys=["a", "b", "c", "d"],
-                   actions=[LOOK_DOWN, LOOK_UP, DONE])
+    t = Trajectory(
+        episode=0, scene="FloorPlan1", target="Bowl", keys=["a", "b", "c", "d"], actions=[LOOK_DOWN, LOOK_UP, DONE]
+    )
     write_trajectories(tmp_path / "new.jsonl", [t])
     assert read_trajectories(tmp_path / "new.jsonl") == [t]
     old = json.loads(t.to_json())

@@ -16,9 +16,25 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def test_convergence_curve_resumes(pixel_world, tmp_path, capsys):
     out = tmp_path / "conv"
-    args = ["convergence", "--data", str(pixel_world), "--features", FEATS, "--detections", "oracle", "--out", str(out),
-            "--chunk", "2",
-            "--num-envs", "4", "--val-per-room-type", "3", "--lr", "3e-3"]
+    args = [
+        "convergence",
+        "--data",
+        str(pixel_world),
+        "--features",
+        FEATS,
+        "--detections",
+        "oracle",
+        "--out",
+        str(out),
+        "--chunk",
+        "2",
+        "--num-envs",
+        "4",
+        "--val-per-room-type",
+        "3",
+        "--lr",
+        "3e-3",
+    ]
     assert main(args + ["--updates", "4"]) == 0
     curve = json.loads((out / "curve.json").read_text())
     assert [p["update"] for p in curve["points"]] == [2, 4]
@@ -29,8 +45,22 @@ def test_convergence_curve_resumes(pixel_world, tmp_path, capsys):
     text = capsys.readouterr().out
     assert text.count("ckpt_") == 1 and "update 6:" in text
     assert [p["update"] for p in json.loads((out / "curve.json").read_text())["points"]] == [2, 4, 6]
-    assert main(["convergence", "--data", str(tmp_path / "none"), "--features", FEATS, "--detections", "oracle",
-                 "--out", str(out)]) == 2
+    assert (
+        main(
+            [
+                "convergence",
+                "--data",
+                str(tmp_path / "none"),
+                "--features",
+                FEATS,
+                "--detections",
+                "oracle",
+                "--out",
+                str(out),
+            ]
+        )
+        == 2
+    )
     # the entropy weight reaches the run's config; a negative one is refused in one line
     assert json.loads((out / "run" / "config.json").read_text())["train"]["entropy_coef"] == 0.01
     capsys.readouterr()

@@ -15,11 +15,18 @@ from tsnav.rl.train import train_run
 
 from rl_helpers import RecordingTrainer
 
-TINY = DemoConfig(preset="tiny", detector="train", train_rooms_per_type=1, gallery=2,
-                  scale=SCALES["demo"].override(pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2,
-                                                              batch_size=8), test_per_room_type=5,
-                                                train=dict(updates=2, num_envs=4),
-                                                detector=dict(steps=4, batch_size=8, max_states_per_scene=24)))
+TINY = DemoConfig(
+    preset="tiny",
+    detector="train",
+    train_rooms_per_type=1,
+    gallery=2,
+    scale=SCALES["demo"].override(
+        pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8),
+        test_per_room_type=5,
+        train=dict(updates=2, num_envs=4),
+        detector=dict(steps=4, batch_size=8, max_states_per_scene=24),
+    ),
+)
 
 #: Copy the tiny world into a demo folder without the learned tables other tests may have written (the demo
 #: then trains its own detector).
@@ -169,8 +176,9 @@ def test_demo_with_oracle_detections_and_existing_tables(tmp_path, tiny_world, c
 
     for p in list_scenes(out2 / "world"):
         (p / "detections_learned.hdf5").unlink()
-    made = ensure_learned_detections(out2 / "world", "learned", tmp_path / "exp_detector", TINY.sizes, progress=False,
-                                     say=lambda m: None)
+    made = ensure_learned_detections(
+        out2 / "world", "learned", tmp_path / "exp_detector", TINY.sizes, progress=False, say=lambda m: None
+    )
     capsys.readouterr()
     trainer = CountedTrainer()
     run_demo(out2, TINY, train_fn=trainer)
@@ -195,8 +203,9 @@ def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsy
 
     out = tmp_path / "real"
     shutil.copytree(tiny_real, out / "world")
-    cfg = replace(TINY, preset="tiny-real", detector="shipped", train_rooms_per_type=None,
-                  tables_beside_pretraining=True)
+    cfg = replace(
+        TINY, preset="tiny-real", detector="shipped", train_rooms_per_type=None, tables_beside_pretraining=True
+    )
     trainer = CountedTrainer()
     res = run_demo(out, cfg, train_fn=trainer)
     assert [res["steps"][s][0] for s in STEPS] == ["done"] * len(STEPS)
@@ -240,8 +249,11 @@ def test_demo_on_real_rooms_with_the_shipped_detector(tmp_path, tiny_real, capsy
     assert [res2["steps"][s][0] for s in STEPS] == ["reused"] * len(STEPS) and len(trainer.calls) == 1
     # switching the detector source in the same folder: refused in one line, the tables are kept
     before = {p.name: read_fingerprint(p, "learned") for p in list_scenes(out / "world")}
-    with pytest.raises(CommandError, match=r"holds the shipped detector's detections_learned.hdf5, not from "
-                                           r"--detector train: use another --out"):
+    with pytest.raises(
+        CommandError,
+        match=r"holds the shipped detector's detections_learned.hdf5, not from "
+        r"--detector train: use another --out",
+    ):
         run_demo(out, replace(cfg, detector="train"), train_fn=trainer)
     assert {p.name: read_fingerprint(p, "learned") for p in list_scenes(out / "world")} == before
     # a folder holding another preset's world is refused before any work (the worlds share room names)
@@ -273,8 +285,10 @@ def test_results_table_has_one_block_per_protocol():
         m = {k: 0.0 for k in METRICS}
         return {"ALL": {**m, "SR": sr, "episodes": n}, "L>=5": {**m, "SR": sr / 2, "episodes": n // 2}}
 
-    results = {"paper": {"agent": summ(0.5, 40), "random": summ(0.0, 40)},
-               "lineage": {"agent": summ(0.75, 44), "random": summ(0.25, 44)}}
+    results = {
+        "paper": {"agent": summ(0.5, 40), "random": summ(0.0, 40)},
+        "lineage": {"agent": summ(0.75, 44), "random": summ(0.25, 44)},
+    }
     text = results_table(results, "paper")
     blocks = text.split("results on the test episodes")[1:]
     assert len(blocks) == 2
@@ -316,5 +330,7 @@ def test_the_shipped_agent_row_is_left_out_where_it_cannot_run(tmp_path, monkeyp
     with pytest.raises(CommandError, match="no shipped agent named 'nope'"):
         demo.shipped_agent(replace(TINY, preset="tiny-real", shipped_agent="nope"))
     monkeypatch.setattr(release, "WEIGHTS", tmp_path / "none")  # a copy of tsnav that ships no agent
-    assert demo.shipped_agent(replace(TINY, preset="tiny-real"))[2] == \
-        "no agent ships with this tsnav (tsnav release pack makes one)"
+    assert (
+        demo.shipped_agent(replace(TINY, preset="tiny-real"))[2]
+        == "no agent ships with this tsnav (tsnav release pack makes one)"
+    )

@@ -47,7 +47,10 @@ def test_truncated_newest_checkpoint_resumes_from_the_previous_one(tiny_world, f
     kept = tmp_path / "a" / "checkpoints"
     assert sorted(p.name for p in kept.iterdir()) == ["ckpt_000000004", "ckpt_000000006"]
     assert sorted(p.name for p in (kept / "ckpt_000000006").iterdir()) == [
-        "model.safetensors", "optimizer.safetensors", "state.json"]
+        "model.safetensors",
+        "optimizer.safetensors",
+        "state.json",
+    ]
     assert read_meta(tmp_path / "a")["step"] == 6 and read_meta(kept / "ckpt_000000004")["step"] == 4
 
     _train_interrupted_at_step_5(tiny_world, tmp_path / "b", cfg, frames, monkeypatch)

@@ -36,8 +36,22 @@ def test_oracle_command(world, capsys):
 
 def test_learned_command_trains_resumes_and_refuses_stale_tables(world, capsys):
     ck = world / "ck"
-    args = ["detect", "--data", str(world), "--detector", "learned", "--checkpoint", str(ck), "--quiet",
-            "--max-states-per-scene", "16", "--batch-size", "8", "--threads", "1"]
+    args = [
+        "detect",
+        "--data",
+        str(world),
+        "--detector",
+        "learned",
+        "--checkpoint",
+        str(ck),
+        "--quiet",
+        "--max-states-per-scene",
+        "16",
+        "--batch-size",
+        "8",
+        "--threads",
+        "1",
+    ]
     assert main(args + ["--train-steps", "3"]) == 0
     out = capsys.readouterr().out
     assert "trained the detector 0 -> 3 steps" in out and "temperature" in out and "box AP@0.5" in out
@@ -72,8 +86,22 @@ def test_learned_command_trains_resumes_and_refuses_stale_tables(world, capsys):
     assert main(args + ["--no-eval", "--workers", "0"]) == 2
     assert "--workers must be at least 1" in capsys.readouterr().err
     # Hard-negative sampling from the command line: applies from the checkpoint's step, mined and recorded there.
-    assert main(args + ["--train-steps", "5", "--no-eval", "--overwrite", "--hard-negative-weight", "3",
-                        "--hard-negative-threshold", "0.2"]) == 0
+    assert (
+        main(
+            args
+            + [
+                "--train-steps",
+                "5",
+                "--no-eval",
+                "--overwrite",
+                "--hard-negative-weight",
+                "3",
+                "--hard-negative-threshold",
+                "0.2",
+            ]
+        )
+        == 0
+    )
     meta = json.loads((ck / "checkpoints" / "ckpt_000000005" / "state.json").read_text())
     assert meta["train"]["hard_negative_weight"] == 3.0 and meta["train"]["hard_negative_threshold"] == 0.2
     assert meta["sampling_changes"][-1] == {"step": 4, "hard_negative_weight": 3.0, "hard_negative_threshold": 0.2}
@@ -95,13 +123,17 @@ def test_bad_input_is_one_line(world, tmp_path, capsys):
     assert main(["detect", "--data", str(world), "--detector", "learned", "--repeat-threshold", "-0.5"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--repeat-threshold must be >= 0" in err and len(err.splitlines()) == 1
-    for flags, says in ((["--hard-negative-weight", "-2"], "--hard-negative-weight must be a finite number >= 0"),
-                        (["--hard-negative-weight", "inf"], "--hard-negative-weight must be a finite number >= 0"),
-                        (["--hard-negative-weight", "4", "--hard-negative-threshold", "1.5"],
-                         "--hard-negative-threshold must be in (0, 1)"),
-                        (["--hard-negative-threshold", "0.6"], "--hard-negative-threshold needs --hard-negative-weight"),
-                        (["--presence-pos-weight", "0"], "--presence-pos-weight must be a finite number > 0"),
-                        (["--focal-alpha", "1"], "--focal-alpha must be in (0, 1)")):
+    for flags, says in (
+        (["--hard-negative-weight", "-2"], "--hard-negative-weight must be a finite number >= 0"),
+        (["--hard-negative-weight", "inf"], "--hard-negative-weight must be a finite number >= 0"),
+        (
+            ["--hard-negative-weight", "4", "--hard-negative-threshold", "1.5"],
+            "--hard-negative-threshold must be in (0, 1)",
+        ),
+        (["--hard-negative-threshold", "0.6"], "--hard-negative-threshold needs --hard-negative-weight"),
+        (["--presence-pos-weight", "0"], "--presence-pos-weight must be a finite number > 0"),
+        (["--focal-alpha", "1"], "--focal-alpha must be in (0, 1)"),
+    ):
         assert main(["detect", "--data", str(world), "--detector", "learned", *flags]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and len(err.splitlines()) == 1

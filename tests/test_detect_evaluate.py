@@ -7,8 +7,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from tsnav.detect.evaluate import (average_precision, average_precision_reference, box_iou, evaluate_detections,
-                                   reliability_reference, reliability_table)
+from tsnav.detect.evaluate import (
+    average_precision,
+    average_precision_reference,
+    box_iou,
+    evaluate_detections,
+    reliability_reference,
+    reliability_table,
+)
 from tsnav.detect.oracle import ground_truth, oracle_detections
 
 

@@ -14,12 +14,38 @@ import torch
 
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.data import FrameSet, load_frames, make_batch, read_images
-from tsnav.detect.model import (DetectorConfig, GridDetector, LossWeights, default_config, dense_targets, dense_targets_reference,
-                                detection_loss, generalized_iou, pixel_to_unit, unit_to_pixel)
-from tsnav.detect.train import (HARD_NEGATIVES, DetectorTrainConfig, apply_gains, batch_plan, calibrate,
-                                classes_with_pixels, default_train_steps, fit_temperature, hard_negative_rows,
-                                hard_negative_rows_reference, load_model, lr_at, predict, read_meta, repeat_factors,
-                                repeat_factors_reference, sample_weighted, train_detector)
+from tsnav.detect.model import (
+    DetectorConfig,
+    GridDetector,
+    LossWeights,
+    default_config,
+    dense_targets,
+    dense_targets_reference,
+    detection_loss,
+    generalized_iou,
+    pixel_to_unit,
+    unit_to_pixel,
+)
+from tsnav.detect.train import (
+    HARD_NEGATIVES,
+    DetectorTrainConfig,
+    apply_gains,
+    batch_plan,
+    calibrate,
+    classes_with_pixels,
+    default_train_steps,
+    fit_temperature,
+    hard_negative_rows,
+    hard_negative_rows_reference,
+    load_model,
+    lr_at,
+    predict,
+    read_meta,
+    repeat_factors,
+    repeat_factors_reference,
+    sample_weighted,
+    train_detector,
+)
 from tsnav.checkpoint import BrokenCheckpoint
 
 torch.set_num_threads(1)
@@ -107,8 +133,9 @@ def test_fine_grid():
     for f, r in zip(dense_targets(rnd, cat, st, 16), dense_targets_reference(rnd.numpy(), cat.numpy(), st.numpy(), 16)):
         np.testing.assert_array_equal(f.numpy(), r)
     m.train()
-    loss, terms = detection_loss(m, x[:1], torch.zeros(1, NUM_CATEGORIES, dtype=torch.bool), boxes,
-                                 torch.tensor([[3]]), torch.tensor([[2]]))
+    loss, terms = detection_loss(
+        m, x[:1], torch.zeros(1, NUM_CATEGORIES, dtype=torch.bool), boxes, torch.tensor([[3]]), torch.tensor([[2]])
+    )
     loss.backward()
     assert math.isfinite(terms["loss"]) and m.lateral.weight.grad.abs().sum() > 0
     # The default of a new 128px checkpoint is this fine, wider detector; below 128px the small one stays.
@@ -141,13 +168,15 @@ def test_flip_moves_boxes_with_the_pixels():
     boxes[0, 3] = pixel_to_unit(np.array([5, 10, 11, 19]), 64)
     obj = np.zeros((1, 2, 4), np.float32)
     obj[0, 0] = boxes[0, 3]
-    fs = FrameSet(img, present, boxes, obj, np.array([[3, 4]], np.int16), np.array([[2, 0]], np.int8), ["x"],
-                  np.array([0, 1]))
+    fs = FrameSet(
+        img, present, boxes, obj, np.array([[3, 4]], np.int16), np.array([[2, 0]], np.int8), ["x"], np.array([0, 1])
+    )
     b = make_batch(fs, np.array([0, 0]), np.array([False, True]))
     assert (fs.images[0] == img[0]).all() and (fs.obj_boxes[0] == obj[0]).all()  # sources never modified
     ys, xs = np.nonzero(b.images[1, :, :, 0].numpy())
-    np.testing.assert_allclose(unit_to_pixel(b.boxes[1, 3].numpy(), 64), [xs.min(), ys.min(), xs.max(), ys.max()],
-                               atol=1e-4)
+    np.testing.assert_allclose(
+        unit_to_pixel(b.boxes[1, 3].numpy(), 64), [xs.min(), ys.min(), xs.max(), ys.max()], atol=1e-4
+    )
     torch.testing.assert_close(b.obj_boxes[1, 0], b.boxes[1, 3])
     np.testing.assert_array_equal(b.boxes[0].numpy(), boxes[0])
     assert (b.boxes[1, 0] == 0).all() and (b.obj_boxes[1, 1] == 0).all()  # absent stays zero
@@ -255,8 +284,9 @@ def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_pa
     def full_loss(model) -> float:
         with torch.no_grad():
             b = make_batch(tiny_frames, np.arange(len(tiny_frames)), np.zeros(len(tiny_frames)))
-            return detection_loss(model.eval(), model.normalize(b.images), b.present, b.obj_boxes, b.obj_category,
-                                  b.obj_state)[1]["loss"]
+            return detection_loss(
+                model.eval(), model.normalize(b.images), b.present, b.obj_boxes, b.obj_category, b.obj_state
+            )[1]["loss"]
 
     torch.manual_seed(cfg.seed)
     before = full_loss(GridDetector(small))  # the initialisation train_detector starts from
@@ -272,8 +302,9 @@ def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_pa
     train_detector(tiny_world, tmp_path / "once", cfg6, small, frames=tiny_frames, progress=False)
     cfg3 = DetectorTrainConfig(steps=3, batch_size=8, warmup=2, checkpoint_every=100, threads=1)
     train_detector(tiny_world, tmp_path / "twice", cfg3, small, frames=tiny_frames, progress=False)
-    r = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=6, threads=1), frames=tiny_frames,
-                       progress=False)
+    r = train_detector(
+        tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=6, threads=1), frames=tiny_frames, progress=False
+    )
     assert (r.start_step, r.step) == (3, 6)
     ma, _ = load_model(tmp_path / "once")
     mb, meta = load_model(tmp_path / "twice")
@@ -281,18 +312,31 @@ def test_training_loss_drops_and_resume_is_exact(tiny_world, tiny_frames, tmp_pa
     for (k, a), b in zip(ma.state_dict().items(), mb.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=k)
     # Already finished: returns at once.
-    again = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=6), frames=tiny_frames, progress=False)
+    again = train_detector(
+        tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=6), frames=tiny_frames, progress=False
+    )
     assert again.start_step == again.step == 6
     # Class-balanced sampling given for an existing checkpoint: applies from its step on and is recorded.
-    tuned = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8, repeat_threshold=0.3),
-                           frames=tiny_frames, progress=False)
+    tuned = train_detector(
+        tiny_world,
+        tmp_path / "twice",
+        DetectorTrainConfig(steps=8, repeat_threshold=0.3),
+        frames=tiny_frames,
+        progress=False,
+    )
     assert (tuned.start_step, tuned.step) == (6, 8)
     meta = read_meta(tmp_path / "twice")
     assert meta["train"]["repeat_threshold"] == 0.3
     assert meta["sampling_changes"] == [{"step": 6, "repeat_threshold": 0.3}]
     with pytest.raises(ValueError, match="repeat_threshold"):
-        train_detector(tiny_world, tmp_path / "bad", DetectorTrainConfig(steps=2, repeat_threshold=-1.0),
-                       small, frames=tiny_frames, progress=False)
+        train_detector(
+            tiny_world,
+            tmp_path / "bad",
+            DetectorTrainConfig(steps=2, repeat_threshold=-1.0),
+            small,
+            frames=tiny_frames,
+            progress=False,
+        )
 
 
 def test_fit_temperature_recovers_a_known_temperature():
@@ -349,11 +393,16 @@ def test_hard_negative_rows_by_hand_and_against_reference(tiny_frames):
     # A class counts as in view when any of its objects has a pixel, even below the presence threshold; padding
     # columns (category -1) and objects with no pixel do not count.
     n, z = 3, np.zeros
-    fs = FrameSet(images=z((n, 8, 8, 3), np.uint8), present=z((n, NUM_CATEGORIES), bool),
-                  boxes=z((n, NUM_CATEGORIES, 4), np.float32), obj_boxes=z((n, 3, 4), np.float32),
-                  obj_category=np.array([[2, 5, -1]] * n, np.int16),
-                  obj_state=np.array([[1, 0, 2], [0, 2, 0], [0, 0, 0]], np.int8), scenes=["a"],
-                  offsets=np.array([0, n]))
+    fs = FrameSet(
+        images=z((n, 8, 8, 3), np.uint8),
+        present=z((n, NUM_CATEGORIES), bool),
+        boxes=z((n, NUM_CATEGORIES, 4), np.float32),
+        obj_boxes=z((n, 3, 4), np.float32),
+        obj_category=np.array([[2, 5, -1]] * n, np.int16),
+        obj_state=np.array([[1, 0, 2], [0, 2, 0], [0, 0, 0]], np.int8),
+        scenes=["a"],
+        offsets=np.array([0, n]),
+    )
     fs.present[1, 5] = True
     fs.present[2, 7] = True  # present with no object column: still seen
     want = z((n, NUM_CATEGORIES), bool)
@@ -371,8 +420,9 @@ def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_
     small = DetectorConfig(widths=(8, 16, 32), dim=32)
     base = dict(batch_size=8, warmup=2, checkpoint_every=2, threads=1)
     for name in ("once", "twice"):
-        train_detector(tiny_world, tmp_path / name, DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames,
-                       progress=False)
+        train_detector(
+            tiny_world, tmp_path / name, DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames, progress=False
+        )
     model3 = load_model(tmp_path / "twice")[0]
     scores = 1 / (1 + np.exp(-predict(model3, tiny_frames.images)[0].astype(np.float64)))
     seen = classes_with_pixels(tiny_frames)
@@ -381,8 +431,9 @@ def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_
     expect = hard_negative_rows(scores, seen, thr)
     assert 0 < expect.sum() < len(expect)
     hard_cfg = dict(hard_negative_weight=5.0, hard_negative_threshold=thr)
-    train_detector(tiny_world, tmp_path / "once", DetectorTrainConfig(steps=7, **hard_cfg), frames=tiny_frames,
-                   progress=False)
+    train_detector(
+        tiny_world, tmp_path / "once", DetectorTrainConfig(steps=7, **hard_cfg), frames=tiny_frames, progress=False
+    )
     rec = json.loads((tmp_path / "once" / HARD_NEGATIVES).read_text())
     assert rec["step"] == 3 and rec["threshold"] == thr and rec["scenes"] == list(tiny_frames.scenes)
     assert rec["rows"] == np.flatnonzero(expect).tolist() and rec["count"] == int(expect.sum())
@@ -391,25 +442,31 @@ def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_
     assert meta["train"]["hard_negative_weight"] == 5.0 and meta["hard_negatives"] == int(expect.sum())
     # The same fine-tune interrupted after step 6 (its last checkpoint lost) resumes from step 6 with the rows
     # mined at step 3, not mined again, and ends on the same weights.
-    train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=7, **hard_cfg), frames=tiny_frames,
-                   progress=False)
+    train_detector(
+        tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=7, **hard_cfg), frames=tiny_frames, progress=False
+    )
     shutil.rmtree(tmp_path / "twice" / "checkpoints" / "ckpt_000000007")
     assert read_meta(tmp_path / "twice")["step"] == 6
-    r = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=7), frames=tiny_frames,
-                       progress=False)
+    r = train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=7), frames=tiny_frames, progress=False)
     assert (r.start_step, r.step) == (6, 7)
     assert json.loads((tmp_path / "twice" / HARD_NEGATIVES).read_text()) == rec
     assert len(read_meta(tmp_path / "twice")["sampling_changes"]) == 1
-    for (k, a), b in zip(load_model(tmp_path / "once")[0].state_dict().items(),
-                         load_model(tmp_path / "twice")[0].state_dict().values()):
+    for (k, a), b in zip(
+        load_model(tmp_path / "once")[0].state_dict().items(), load_model(tmp_path / "twice")[0].state_dict().values()
+    ):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=k)
     # The factor is used: the same fine-tune with weight 1 (the same draws, every frame weighing 1) ends elsewhere,
     # and its batches hold fewer hard frames than weight 5's.
-    train_detector(tiny_world, tmp_path / "w1", DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames,
-                   progress=False)
-    train_detector(tiny_world, tmp_path / "w1", DetectorTrainConfig(steps=7, hard_negative_weight=1.0,
-                                                                    hard_negative_threshold=thr),
-                   frames=tiny_frames, progress=False)
+    train_detector(
+        tiny_world, tmp_path / "w1", DetectorTrainConfig(steps=3, **base), small, frames=tiny_frames, progress=False
+    )
+    train_detector(
+        tiny_world,
+        tmp_path / "w1",
+        DetectorTrainConfig(steps=7, hard_negative_weight=1.0, hard_negative_threshold=thr),
+        frames=tiny_frames,
+        progress=False,
+    )
     assert not torch.equal(load_model(tmp_path / "w1")[0].class_bias, load_model(tmp_path / "once")[0].class_bias)
     cfg = DetectorTrainConfig(batch_size=2000)
     share = [expect[batch_plan(3, len(expect), cfg, np.where(expect, w, 1.0))[0]].mean() for w in (1.0, 5.0)]
@@ -417,26 +474,40 @@ def test_hard_negative_sampling_is_mined_once_recorded_and_resumes_exactly(tiny_
     assert share[0] == pytest.approx(h, abs=0.05) and share[1] == pytest.approx(5 * h / (5 * h + 1 - h), abs=0.05)
     # A resumed run needs the rows its sampling began with: a missing or damaged record is named, not mined again.
     saved = (tmp_path / "twice" / HARD_NEGATIVES).read_text()
-    for damage in (None, "{", json.dumps({**rec, "step": 4}), json.dumps({**rec, "rows": [10 ** 6]})):
+    for damage in (None, "{", json.dumps({**rec, "step": 4}), json.dumps({**rec, "rows": [10**6]})):
         if damage is None:
             (tmp_path / "twice" / HARD_NEGATIVES).unlink()
         else:
             (tmp_path / "twice" / HARD_NEGATIVES).write_text(damage)
         with pytest.raises(BrokenCheckpoint, match=HARD_NEGATIVES):
-            train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8), frames=tiny_frames,
-                           progress=False)
+            train_detector(
+                tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8), frames=tiny_frames, progress=False
+            )
     (tmp_path / "twice" / HARD_NEGATIVES).write_text(saved)
     # A new setting begins anew at its step: its rows are mined with the model of that step.
-    train_detector(tiny_world, tmp_path / "twice", DetectorTrainConfig(steps=8, hard_negative_weight=2.0,
-                                                                       hard_negative_threshold=thr),
-                   frames=tiny_frames, progress=False)
+    train_detector(
+        tiny_world,
+        tmp_path / "twice",
+        DetectorTrainConfig(steps=8, hard_negative_weight=2.0, hard_negative_threshold=thr),
+        frames=tiny_frames,
+        progress=False,
+    )
     assert json.loads((tmp_path / "twice" / HARD_NEGATIVES).read_text())["step"] == 7
     assert read_meta(tmp_path / "twice")["sampling_changes"][-1]["step"] == 7
-    for bad in (dict(hard_negative_weight=-1.0), dict(hard_negative_weight=float("inf")),
-                dict(hard_negative_threshold=1.0)):
+    for bad in (
+        dict(hard_negative_weight=-1.0),
+        dict(hard_negative_weight=float("inf")),
+        dict(hard_negative_threshold=1.0),
+    ):
         with pytest.raises(ValueError, match="hard_negative"):
-            train_detector(tiny_world, tmp_path / "bad", DetectorTrainConfig(steps=2, **bad), small,
-                           frames=tiny_frames, progress=False)
+            train_detector(
+                tiny_world,
+                tmp_path / "bad",
+                DetectorTrainConfig(steps=2, **bad),
+                small,
+                frames=tiny_frames,
+                progress=False,
+            )
 
 
 def test_presence_pos_weight_weighs_the_present_classes(tiny_world, tiny_frames, tmp_path):
@@ -455,14 +526,15 @@ def test_presence_pos_weight_weighs_the_present_classes(tiny_world, tiny_frames,
         assert terms["bce"] == pytest.approx(float(by_hand), rel=1e-5), k
     base = dict(batch_size=8, warmup=2, checkpoint_every=2, threads=1)
     small = DetectorConfig(widths=(8, 16, 32), dim=32)
-    train_detector(tiny_world, tmp_path / "d", DetectorTrainConfig(steps=2, **base), small, frames=tiny_frames,
-                   progress=False)
-    train_detector(tiny_world, tmp_path / "d", DetectorTrainConfig(steps=4, **base), frames=tiny_frames,
-                   progress=False)
+    train_detector(
+        tiny_world, tmp_path / "d", DetectorTrainConfig(steps=2, **base), small, frames=tiny_frames, progress=False
+    )
+    train_detector(tiny_world, tmp_path / "d", DetectorTrainConfig(steps=4, **base), frames=tiny_frames, progress=False)
     assert "loss_changes" not in read_meta(tmp_path / "d")  # the defaults change nothing
     w = LossWeights(presence_pos_weight=4.0, focal_alpha=0.5)
-    train_detector(tiny_world, tmp_path / "d", DetectorTrainConfig(steps=6, loss=w, **base), frames=tiny_frames,
-                   progress=False)
+    train_detector(
+        tiny_world, tmp_path / "d", DetectorTrainConfig(steps=6, loss=w, **base), frames=tiny_frames, progress=False
+    )
     meta = read_meta(tmp_path / "d")
     assert meta["loss_changes"] == [{"step": 4, **dataclasses.asdict(w)}]
     assert meta["train"]["loss"]["presence_pos_weight"] == 4.0 and meta["train"]["loss"]["focal_alpha"] == 0.5

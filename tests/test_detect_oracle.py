@@ -7,8 +7,16 @@ import math
 import numpy as np
 
 from tsnav.constants import NUM_CATEGORIES
-from tsnav.detect.oracle import (ORACLE_FEATURE_DIM, OracleConfig, category_code, ground_truth,
-                                 ground_truth_reference, min_pixels, oracle_confidence, oracle_detections)
+from tsnav.detect.oracle import (
+    ORACLE_FEATURE_DIM,
+    OracleConfig,
+    category_code,
+    ground_truth,
+    ground_truth_reference,
+    min_pixels,
+    oracle_confidence,
+    oracle_detections,
+)
 
 
 def test_ground_truth_matches_reference(tiny_scenes):

@@ -12,8 +12,17 @@ from tsnav.constants import CATEGORY_INDEX, ROOM_TARGETS, SUCCESS_DISTANCE
 from tsnav.detect.evaluate import reliability_table
 from tsnav.detect.oracle import ground_truth, oracle_detections
 from tsnav.detect.evaluate import average_precision
-from tsnav.detect.quality import (detection_gallery, main, pick_gallery_states, reliability_figure, scene_targets,
-                                  subset_ap, subset_report, switch_report, switch_report_reference)
+from tsnav.detect.quality import (
+    detection_gallery,
+    main,
+    pick_gallery_states,
+    reliability_figure,
+    scene_targets,
+    subset_ap,
+    subset_report,
+    switch_report,
+    switch_report_reference,
+)
 from tsnav.data.detections import write_detections
 
 
@@ -28,9 +37,11 @@ def test_scene_targets(tiny_scenes):
     for s in tiny_scenes:
         t = scene_targets(s)
         present = set(s.categories_present())
-        assert set(np.flatnonzero(t)) == {c for c in present
-                                          if s.room_type not in ROOM_TARGETS
-                                          or c in [CATEGORY_INDEX[n] for n in ROOM_TARGETS[s.room_type]]}
+        assert set(np.flatnonzero(t)) == {
+            c
+            for c in present
+            if s.room_type not in ROOM_TARGETS or c in [CATEGORY_INDEX[n] for n in ROOM_TARGETS[s.room_type]]
+        }
 
 
 def test_switch_report_by_hand_and_against_reference(tiny_scenes):

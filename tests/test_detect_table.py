@@ -9,8 +9,7 @@ import pytest
 
 from tsnav.constants import NUM_CATEGORIES
 from tsnav.detect.oracle import oracle_detections
-from tsnav.data.detections import (Detections, detections_path, load_detections,
-                                load_scene_detections, write_detections)
+from tsnav.data.detections import Detections, detections_path, load_detections, load_scene_detections, write_detections
 
 
 def _random_table(n: int = 7, dim: int = 5, seed: int = 0) -> Detections:
@@ -19,8 +18,17 @@ def _random_table(n: int = 7, dim: int = 5, seed: int = 0) -> Detections:
     scores = rng.random((n, NUM_CATEGORIES)).astype(np.float32)
     labels = np.where(scores > 0.5, np.arange(NUM_CATEGORIES)[None], -1)
     boxes = np.where(labels[..., None] >= 0, rng.uniform(0, 63, (n, NUM_CATEGORIES, 4)), -1)
-    return Detections(keys, scores, labels, boxes, rng.normal(size=(n, NUM_CATEGORIES, dim)), detector="test",
-                      config={"a": 1, "b": [1, 2]}, fingerprint="fp-1", image_size=64)
+    return Detections(
+        keys,
+        scores,
+        labels,
+        boxes,
+        rng.normal(size=(n, NUM_CATEGORIES, dim)),
+        detector="test",
+        config={"a": 1, "b": [1, 2]},
+        fingerprint="fp-1",
+        image_size=64,
+    )
 
 
 def test_round_trip(tmp_path):

@@ -13,8 +13,14 @@ from tsnav.data.detections import load_detections, read_fingerprint
 from tsnav.data.reader import list_scenes
 from tsnav.detect.learned import LearnedDetector
 from tsnav.errors import CommandError
-from tsnav.pipeline.detector_steps import (detection_quality, detector_configs, ensure_detector,
-                                       ensure_learned_detections, record_quality, tables_complete)
+from tsnav.pipeline.detector_steps import (
+    detection_quality,
+    detector_configs,
+    ensure_detector,
+    ensure_learned_detections,
+    record_quality,
+    tables_complete,
+)
 from tsnav.pipeline.config import SCALES, ScaleConfig
 from tsnav.pipeline.steps import ensure_oracle_detections
 
@@ -54,8 +60,9 @@ def test_tables_trained_when_missing_then_reused(world, tmp_path):
 
     # present in every scene: used as they are, nothing trained (another, empty detector folder stays untouched)
     other = tmp_path / "other"
-    again = ensure_learned_detections(world, "learned", other, SMALL.override(detector=dict(steps=5)), progress=False,
-                                      say=lambda m: None)
+    again = ensure_learned_detections(
+        world, "learned", other, SMALL.override(detector=dict(steps=5)), progress=False, say=lambda m: None
+    )
     assert again == {"fingerprint": fp, "written": 0, "trained": False} and not other.exists()
 
     # a scene lost its table: the same detector folder (finished) writes it, nothing else changes
@@ -63,8 +70,9 @@ def test_tables_trained_when_missing_then_reused(world, tmp_path):
     (scene / "detections_learned.hdf5").unlink()
     fill = ensure_learned_detections(world, "learned", det_dir, SMALL, progress=False, say=lambda m: None)
     assert fill["written"] == 1 and fill["fingerprint"] == fp
-    assert all((p / "detections_learned.hdf5").stat().st_mtime_ns == mtimes[p.name]
-               for p in list_scenes(world) if p != scene)
+    assert all(
+        (p / "detections_learned.hdf5").stat().st_mtime_ns == mtimes[p.name] for p in list_scenes(world) if p != scene
+    )
 
     # quality on the val rooms, recorded per table and reused while the fingerprint is unchanged
     ensure_oracle_detections(world)
@@ -91,8 +99,14 @@ def test_tables_of_another_detector_are_refused(world, tmp_path):
     # table, nothing written or overwritten
     (scenes[0] / "detections_learned.hdf5").unlink()
     with pytest.raises(CommandError, match=r"detections_learned.hdf5 was made by another learned detector") as e:
-        ensure_learned_detections(world, "learned", tmp_path / "det5", SMALL.override(detector=dict(steps=5)),
-                                  progress=False, say=lambda m: None)
+        ensure_learned_detections(
+            world,
+            "learned",
+            tmp_path / "det5",
+            SMALL.override(detector=dict(steps=5)),
+            progress=False,
+            say=lambda m: None,
+        )
     assert len(str(e.value).splitlines()) == 1 and str(world) in str(e.value)
     assert not (scenes[0] / "detections_learned.hdf5").exists()
     assert all((p / "detections_learned.hdf5").read_bytes() == before[p.name] for p in scenes[1:])
@@ -101,8 +115,11 @@ def test_tables_of_another_detector_are_refused(world, tmp_path):
     shutil.copy(scenes[1] / "detections_learned.hdf5", scenes[0] / "detections_learned.hdf5")
     ensure_oracle_detections(world)
     shutil.copy(scenes[2] / "detections_oracle.hdf5", scenes[2] / "detections_learned.hdf5")
-    with pytest.raises(CommandError, match=rf"{scenes[2].name}/detections_learned.hdf5 was made by another "
-                                           r"detector \(oracle-"):
+    with pytest.raises(
+        CommandError,
+        match=rf"{scenes[2].name}/detections_learned.hdf5 was made by another "
+        r"detector \(oracle-",
+    ):
         ensure_learned_detections(world, "learned", det_dir, SMALL, progress=False, say=lambda m: None)
 
     # tables of two learned detectors in one world: refused
@@ -111,8 +128,9 @@ def test_tables_of_another_detector_are_refused(world, tmp_path):
     shutil.copytree(world, other)
     for p in list_scenes(other):
         (p / "detections_learned.hdf5").unlink()
-    ensure_learned_detections(other, "learned", tmp_path / "det5", SMALL.override(detector=dict(steps=5)),
-                              progress=False, say=lambda m: None)
+    ensure_learned_detections(
+        other, "learned", tmp_path / "det5", SMALL.override(detector=dict(steps=5)), progress=False, say=lambda m: None
+    )
     shutil.copy(other / scenes[3].name / "detections_learned.hdf5", scenes[3] / "detections_learned.hdf5")
     with pytest.raises(CommandError, match="another learned detector .* than other scenes'"):
         tables_complete(world, "learned")

@@ -23,8 +23,12 @@ def bilinear_2x_reference(crop: np.ndarray) -> np.ndarray:
             y0, x0 = int(np.floor(y)), int(np.floor(x))
             y1, x1 = min(y0 + 1, h - 1), min(x0 + 1, h - 1)
             wy, wx = y - y0, x - x0
-            out[i, j] = ((1 - wy) * (1 - wx) * crop[y0, x0] + (1 - wy) * wx * crop[y0, x1]
-                         + wy * (1 - wx) * crop[y1, x0] + wy * wx * crop[y1, x1])
+            out[i, j] = (
+                (1 - wy) * (1 - wx) * crop[y0, x0]
+                + (1 - wy) * wx * crop[y0, x1]
+                + wy * (1 - wx) * crop[y1, x0]
+                + wy * wx * crop[y1, x1]
+            )
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
@@ -35,7 +39,7 @@ def test_crops_are_the_quadrants_and_centre_enlarged(mod):
     assert z.shape == (2, 5, 16, 16, 3) and z.dtype == np.uint8
     for n in range(2):
         for k, (y0, x0) in enumerate(((0, 0), (0, 8), (8, 0), (8, 8), (4, 4))):
-            ref = bilinear_2x_reference(img[n, y0:y0 + 8, x0:x0 + 8].astype(np.float64))
+            ref = bilinear_2x_reference(img[n, y0 : y0 + 8, x0 : x0 + 8].astype(np.float64))
             assert np.abs(z[n, k].astype(int) - ref.astype(int)).max() <= 1, (n, k)  # rounding of float32 sums
 
 

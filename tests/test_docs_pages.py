@@ -20,8 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_command_reference_is_current():
-    assert (ROOT / "docs" / "COMMANDS.md").read_text() == cli_reference.render(), \
+    assert (ROOT / "docs" / "COMMANDS.md").read_text() == cli_reference.render(), (
         "docs/COMMANDS.md is stale: run python -m tsnav.cli_reference (or make docs)"
+    )
 
 
 def test_command_reference_names_every_option():
@@ -58,8 +59,16 @@ def test_results_page_reads_its_figures_from_the_files(tmp_path):
     index_path = root / "docs" / "results" / "index.json"
     index = json.loads(index_path.read_text())
     # a RoboTHOR evaluation as `tsnav release eval` writes it (results.json), named by the index
-    rob = {"rows": [{"protocol": "lineage", "policy": "agent", "episodes": 10,
-                     "metrics": {"ALL": {"SR": 0.5, "SPL": 0.25}, "L>=5": {"SR": 0.4, "SPL": 0.2}}}]}
+    rob = {
+        "rows": [
+            {
+                "protocol": "lineage",
+                "policy": "agent",
+                "episodes": 10,
+                "metrics": {"ALL": {"SR": 0.5, "SPL": 0.25}, "L>=5": {"SR": 0.4, "SPL": 0.2}},
+            }
+        ]
+    }
     (root / "docs" / "results" / "robothor_test.json").write_text(json.dumps(rob))
     index["table1"]["robothor"] = {"tsrm-demae-learned7": "robothor_test.json"}
     index_path.write_text(json.dumps(index))
@@ -104,8 +113,13 @@ def test_version_licence_and_citation_agree():
     assert "@misc{" in readme and "Yanwei Zheng" in readme and len(readme.splitlines()) <= 150
 
 
-USER_PAGES = ["README.md", "docs/getting-started.md", "docs/concepts.md", "docs/RESULTS.md",
-              *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs" / "howto").glob("*.md"))]
+USER_PAGES = [
+    "README.md",
+    "docs/getting-started.md",
+    "docs/concepts.md",
+    "docs/RESULTS.md",
+    *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs" / "howto").glob("*.md")),
+]
 
 
 def doc_commands(text: str) -> list[str]:

@@ -13,24 +13,39 @@ from tsnav.metrics import EpisodeRecord, read_records
 
 
 def episode(i, target, success, switched, actions):
-    rec = EpisodeRecord(success=success, path_length=len(actions), optimal_length=1, entered_pathfinding=switched,
-                        target=target, episode=i, steps=len(actions))
-    traj = Trajectory(episode=i, scene="S", target=target, keys=["k"] * (len(actions) + 1), actions=actions,
-                      success=success)
+    rec = EpisodeRecord(
+        success=success,
+        path_length=len(actions),
+        optimal_length=1,
+        entered_pathfinding=switched,
+        target=target,
+        episode=i,
+        steps=len(actions),
+    )
+    traj = Trajectory(
+        episode=i, scene="S", target=target, keys=["k"] * (len(actions) + 1), actions=actions, success=success
+    )
     return rec, traj
 
 
 def test_each_ending_and_switch():
-    eps = [episode(0, "Fridge", True, True, [MOVE_AHEAD, DONE]),
-           episode(1, "Fridge", False, True, [MOVE_AHEAD, DONE]),             # wrong Done after the switch
-           episode(2, "CellPhone", False, False, [ROTATE_RIGHT] * 5),          # step limit, never switched
-           episode(3, "CellPhone", False, False, [ROTATE_RIGHT, DONE]),        # wrong Done, never switched
-           episode(4, "CellPhone", True, False, [MOVE_AHEAD, MOVE_AHEAD, DONE]),
-           episode(5, "Fridge", False, True, [ROTATE_LEFT] * 4)]              # step limit after the switch
+    eps = [
+        episode(0, "Fridge", True, True, [MOVE_AHEAD, DONE]),
+        episode(1, "Fridge", False, True, [MOVE_AHEAD, DONE]),  # wrong Done after the switch
+        episode(2, "CellPhone", False, False, [ROTATE_RIGHT] * 5),  # step limit, never switched
+        episode(3, "CellPhone", False, False, [ROTATE_RIGHT, DONE]),  # wrong Done, never switched
+        episode(4, "CellPhone", True, False, [MOVE_AHEAD, MOVE_AHEAD, DONE]),
+        episode(5, "Fridge", False, True, [ROTATE_LEFT] * 4),
+    ]  # step limit after the switch
     s = outcome_summary([e[0] for e in eps], [e[1] for e in eps])
-    assert s["counts"] == {"success, switched": 1, "success, never switched": 1, "wrong Done, switched": 1,
-                           "wrong Done, never switched": 1, "step limit, switched": 1,
-                           "step limit, never switched": 1}
+    assert s["counts"] == {
+        "success, switched": 1,
+        "success, never switched": 1,
+        "wrong Done, switched": 1,
+        "wrong Done, never switched": 1,
+        "step limit, switched": 1,
+        "step limit, never switched": 1,
+    }
     assert s["switched"] == 3 and s["success_if_switched"] == pytest.approx(1 / 3)
     assert s["success_if_never_switched"] == pytest.approx(1 / 3)
     assert s["per_target"]["Fridge"] == {"episodes": 3, "SR": pytest.approx(1 / 3), "switch_rate": 1.0}
@@ -49,25 +64,45 @@ def test_each_ending_and_switch():
 
 
 def test_failures_that_passed_a_success_state():
-    eps = [episode(0, "Fridge", True, True, [MOVE_AHEAD, DONE]),
-           episode(1, "Fridge", False, True, [MOVE_AHEAD, DONE]),       # wrong Done after passing a success state
-           episode(2, "Fridge", False, True, [ROTATE_LEFT] * 4),        # step limit, never in a success state
-           episode(3, "CellPhone", False, False, [ROTATE_RIGHT] * 3)]   # step limit after passing one
+    eps = [
+        episode(0, "Fridge", True, True, [MOVE_AHEAD, DONE]),
+        episode(1, "Fridge", False, True, [MOVE_AHEAD, DONE]),  # wrong Done after passing a success state
+        episode(2, "Fridge", False, True, [ROTATE_LEFT] * 4),  # step limit, never in a success state
+        episode(3, "CellPhone", False, False, [ROTATE_RIGHT] * 3),
+    ]  # step limit after passing one
     for (_, t), frame in zip(eps, (1, 1, -1, 2)):
         t.success_frame = frame
     s = outcome_summary([e[0] for e in eps], [e[1] for e in eps])
     assert s["failed_after_a_success_state"] == {"switched": 1, "never switched": 1}
-    assert ("Done there would have succeeded): 1 of 2 switched failures, 1 of 1 never-switched ones"
-            in format_outcomes(s))
+    assert "Done there would have succeeded): 1 of 2 switched failures, 1 of 1 never-switched ones" in format_outcomes(
+        s
+    )
 
 
 def test_eval_folder_outcomes_agree_with_records(tiny_world, tmp_path, capsys):
     eps = tmp_path / "eps.json"
-    assert main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "8",
-                 "--out", str(eps)]) == 0
+    assert (
+        main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "8", "--out", str(eps)]) == 0
+    )
     out = tmp_path / "eval"
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "random",
-                 "--max-steps", "30", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(tiny_world),
+                "--episodes",
+                str(eps),
+                "--policy",
+                "random",
+                "--max-steps",
+                "30",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "how the" in capsys.readouterr().out
     s = json.loads((out / "outcomes.json").read_text())
     records = read_records(out / "records.jsonl")
@@ -84,8 +119,24 @@ def test_eval_folder_outcomes_agree_with_records(tiny_world, tmp_path, capsys):
     # success_frame against a slow reference, on this folder (random: never in a success state here) and on the
     # scripted explorer's (always gets there)
     out2 = tmp_path / "eval_explorer"
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "explorer",
-                 "--max-steps", "30", "--out", str(out2)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(tiny_world),
+                "--episodes",
+                str(eps),
+                "--policy",
+                "explorer",
+                "--max-steps",
+                "30",
+                "--out",
+                str(out2),
+            ]
+        )
+        == 0
+    )
     frames = check_success_frames(tiny_world, out) + check_success_frames(tiny_world, out2)
     assert {f >= 0 for f in frames} == {True, False}  # both cases exercised
     assert any(t.switch_distance > 0 for t in read_trajectories(out2 / "trajectories.jsonl"))
@@ -128,8 +179,9 @@ def check_success_frames(world, out) -> list[int]:
         assert t.success_frame == ref
         assert ref >= 0 or not r.success
         sw = t.switch_frame
-        assert t.success_after_switch == (next((i for i in range(sw, len(t.keys)) if ok[index[t.keys[i]]]), -1)
-                                          if sw >= 0 else -1)
+        assert t.success_after_switch == (
+            next((i for i in range(sw, len(t.keys)) if ok[index[t.keys[i]]]), -1) if sw >= 0 else -1
+        )
         assert t.switch_distance == (bfs_to_success(sc, index[t.keys[sw]], ok) if sw >= 0 else -1)
         if not r.success and ref >= 0:
             missed["switched" if r.entered_pathfinding else "never switched"] += 1
@@ -139,19 +191,26 @@ def check_success_frames(world, out) -> list[int]:
 
 
 def test_after_the_switch():
-    eps = [episode(0, "Fridge", True, True, [MOVE_AHEAD, MOVE_AHEAD, DONE]),     # switch at 1, L* 0: 2 actions / 1
-           episode(1, "Fridge", True, True, [MOVE_AHEAD, DONE]),                 # switch at 0, L* 1: 2 / 2
-           episode(2, "Fridge", False, True, [MOVE_AHEAD, DONE]),                # wrong Done
-           episode(3, "Fridge", False, True, [ROTATE_LEFT] * 4),                 # passed a success state
-           episode(4, "Fridge", False, True, [ROTATE_LEFT] * 4),                 # never got there
-           episode(5, "CellPhone", False, False, [ROTATE_RIGHT] * 3)]            # never switched: not counted
+    eps = [
+        episode(0, "Fridge", True, True, [MOVE_AHEAD, MOVE_AHEAD, DONE]),  # switch at 1, L* 0: 2 actions / 1
+        episode(1, "Fridge", True, True, [MOVE_AHEAD, DONE]),  # switch at 0, L* 1: 2 / 2
+        episode(2, "Fridge", False, True, [MOVE_AHEAD, DONE]),  # wrong Done
+        episode(3, "Fridge", False, True, [ROTATE_LEFT] * 4),  # passed a success state
+        episode(4, "Fridge", False, True, [ROTATE_LEFT] * 4),  # never got there
+        episode(5, "CellPhone", False, False, [ROTATE_RIGHT] * 3),
+    ]  # never switched: not counted
     for (_, t), (sw, d, hit) in zip(eps, [(1, 0, 1), (0, 1, 1), (0, 2, 1), (2, 3, 3), (1, 4, -1), (-1, -1, -1)]):
         t.switch_frame, t.switch_distance, t.success_after_switch, t.success_frame = sw, d, hit, hit
     s = outcome_summary([e[0] for e in eps], [e[1] for e in eps])["after_switch"]
-    assert s == {"episodes": 5, "success": 2, "median_distance_at_switch": 2.0, "path_ratio": pytest.approx(4 / 3),
-                 "failures": {"passed a success state without Done": 1, "wrong Done": 1,
-                              "never got to a success state": 1}}
-    assert "after the switch: 2 of 5 succeeded" in format_outcomes(outcome_summary([e[0] for e in eps],
-                                                                                   [e[1] for e in eps]))
+    assert s == {
+        "episodes": 5,
+        "success": 2,
+        "median_distance_at_switch": 2.0,
+        "path_ratio": pytest.approx(4 / 3),
+        "failures": {"passed a success state without Done": 1, "wrong Done": 1, "never got to a success state": 1},
+    }
+    assert "after the switch: 2 of 5 succeeded" in format_outcomes(
+        outcome_summary([e[0] for e in eps], [e[1] for e in eps])
+    )
     eps[0][1].switch_distance = None  # an older file: no figures rather than wrong ones
     assert outcome_summary([e[0] for e in eps], [e[1] for e in eps])["after_switch"] is None

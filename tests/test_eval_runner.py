@@ -76,12 +76,19 @@ def _reference_records(bank, episodes, table, max_steps, stage):
             if ctl.done:
                 break
         search = searches[c][g(e.start)]
-        out.append(dict(success=out_["success"], path_length=out_["path_length"], steps=out_["steps"],
-                        entered_pathfinding=entered, pathfinding_start_step=sw_step if entered else None,
-                        search_path_length=sw_len if entered else out_["path_length"],
-                        optimal_search_length=-1 if search == UNREACHABLE else int(search),
-                        pathfinding_path_length=out_["path_length"] - sw_len if entered else None,
-                        optimal_pathfinding_length=int(bank.dist[sw_state, c]) if entered else None))
+        out.append(
+            dict(
+                success=out_["success"],
+                path_length=out_["path_length"],
+                steps=out_["steps"],
+                entered_pathfinding=entered,
+                pathfinding_start_step=sw_step if entered else None,
+                search_path_length=sw_len if entered else out_["path_length"],
+                optimal_search_length=-1 if search == UNREACHABLE else int(search),
+                pathfinding_path_length=out_["path_length"] - sw_len if entered else None,
+                optimal_pathfinding_length=int(bank.dist[sw_state, c]) if entered else None,
+            )
+        )
     return out
 
 
@@ -112,8 +119,7 @@ def test_stage_lengths_one_function_two_ways_for_unreachable_starts():
     assert kept["optimal_search_length"].tolist() == [2, UNREACHABLE, 4]
     assert kept["nav_length"].tolist() == [4, 0, 6]
     assert kept["optimal_nav_length"].tolist() == [1, 0, 5]
-    written = stage_lengths(dist, search_dist, start, target, L, entered, switch_length, switch_state,
-                            unreachable=-1)
+    written = stage_lengths(dist, search_dist, start, target, L, entered, switch_length, switch_state, unreachable=-1)
     assert written["optimal_search_length"].tolist() == [2, -1, 4]
     for k in ("search_length", "nav_length", "optimal_nav_length"):
         assert np.array_equal(written[k], kept[k])
@@ -127,7 +133,8 @@ def test_detector_confidence_drives_the_switch(episodes):
     e = episodes[:40]
     base = evaluate(b, e, OraclePolicy(b))
     assert [r.pathfinding_start_step for r in base] == [
-        r.pathfinding_start_step for r in evaluate(SceneBank(toy_scenes(), cache=False), e, OraclePolicy(b))]
+        r.pathfinding_start_step for r in evaluate(SceneBank(toy_scenes(), cache=False), e, OraclePolicy(b))
+    ]
     # Exactly C_target does not switch (strictly greater).
     b.set_confidence(np.where(b.in_frame, 0.7, 0.1).astype(np.float32))
     recs = evaluate(b, e, OraclePolicy(b))
@@ -182,8 +189,22 @@ def test_eval_command(tmp_path, capsys):
     assert len(recs) == 40 and m["metrics"]["ALL"]["SPL"] == 1.0 and m["config"]["max_steps"] == 100
     # the learned-agent hook: module:factory
     out2 = tmp_path / "run2"
-    assert main(["eval", "--data", str(root), "--episodes", str(eps), "--policy", "sim_helpers:oracle_factory",
-                 "--out", str(out2)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(root),
+                "--episodes",
+                str(eps),
+                "--policy",
+                "sim_helpers:oracle_factory",
+                "--out",
+                str(out2),
+            ]
+        )
+        == 0
+    )
     assert read_records(out2 / "records.jsonl") == recs
     assert main(["eval", "--data", str(root), "--episodes", str(eps), "--policy", "nope", "--out", str(out)]) == 2
     assert "unknown policy" in capsys.readouterr().err

@@ -21,9 +21,14 @@ from tsnav.metrics import METRICS
 
 from rl_helpers import RecordingTrainer
 
-TINY = ScaleConfig().override(pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8),
-                              feature_batch_size=256, train=dict(num_envs=4, updates=2), test_per_room_type=6,
-                              val_per_room_type=6, detector=dict(steps=4, batch_size=8, max_states_per_scene=24))
+TINY = ScaleConfig().override(
+    pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8),
+    feature_batch_size=256,
+    train=dict(num_envs=4, updates=2),
+    test_per_room_type=6,
+    val_per_room_type=6,
+    detector=dict(steps=4, batch_size=8, max_states_per_scene=24),
+)
 
 
 class StandInTrainer(RecordingTrainer):
@@ -40,13 +45,17 @@ class StandInTrainer(RecordingTrainer):
         model = make_model(agent, make_observer(bank, tc, det_features=det), tc.seed)
         with torch.no_grad():  # mostly turn on the spot, so that some episodes see their target
             model.actor.bias.copy_(torch.tensor([1.0, 0.0, 4.0, 0.0, 0.0, -2.0]))
-        (run_dir / "config.json").write_text(json.dumps({"format": "tsnav-train-run", "train": tc.to_dict(),
-                                                         "agent": agent.__dict__}))
+        (run_dir / "config.json").write_text(
+            json.dumps({"format": "tsnav-train-run", "train": tc.to_dict(), "agent": agent.__dict__})
+        )
         with open(run_dir / "log.jsonl", "w") as f:
             for u in range(1, 4):
-                f.write(json.dumps({"update": u, "env_steps": 100 * u, "return": 0.1 * u + tc.seed, "SR": 0.1 * u}) + "\n")
-        save_checkpoint(run_dir, {"update": 3, "env_steps": 300, "episodes": 10, "seconds": 1.0, "finished": True},
-                        model)
+                f.write(
+                    json.dumps({"update": u, "env_steps": 100 * u, "return": 0.1 * u + tc.seed, "SR": 0.1 * u}) + "\n"
+                )
+        save_checkpoint(
+            run_dir, {"update": 3, "env_steps": 300, "episodes": 10, "seconds": 1.0, "finished": True}, model
+        )
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -77,9 +86,15 @@ def test_mean_ci_against_hand_values():
 
 def test_rows_match_the_paper():
     abl = experiment_rows("ablation")
-    assert [(r.encoder, r.reward) for r in abl] == [("resnet18", "baseline"), ("resnet18", "explore"),
-                                                    ("resnet18", "distance"), ("resnet18", "tsrm"),
-                                                    ("demae", "baseline"), ("demae", "tsrm"), ("demae", "tsrm")]
+    assert [(r.encoder, r.reward) for r in abl] == [
+        ("resnet18", "baseline"),
+        ("resnet18", "explore"),
+        ("resnet18", "distance"),
+        ("resnet18", "tsrm"),
+        ("demae", "baseline"),
+        ("demae", "tsrm"),
+        ("demae", "tsrm"),
+    ]
     assert [r.flags["DE-MAE"] for r in abl] == [0, 0, 0, 0, 1, 1, 1]
     # issue 14: every row reads the experiment's table (the learned detector's by default) except the labelled
     # oracle-switch row
@@ -129,15 +144,18 @@ def test_welch_against_the_baseline():
     a, b = [50.0, 60.0, 70.0], [72.0, 75.0, 81.0, 77.0]
     va, vb = np.var(a, ddof=1) / len(a), np.var(b, ddof=1) / len(b)
     tstat = (np.mean(b) - np.mean(a)) / math.sqrt(va + vb)
-    df = (va + vb) ** 2 / (va ** 2 / (len(a) - 1) + vb ** 2 / (len(b) - 1))
+    df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1))
     diff, p = welch(a, b)
     assert diff == pytest.approx(np.mean(b) - np.mean(a))
     assert p == pytest.approx(2 * student.sf(abs(tstat), df), rel=1e-9)
     assert welch([1.0], [2.0, 3.0]) == (pytest.approx(1.5), None) and welch([], [1.0]) == (None, None)
     assert welch([1.0, 1.0], [1.0, 1.0]) == (0.0, None)
     rows = experiment_rows("ablation")
-    per_row = {"baseline": [_summary(x) for x in (0.5, 0.6, 0.7)],
-               "explore": [_summary(x) for x in (0.72, 0.75, 0.81, 0.77)], "tsrm": [_summary(0.9)]}
+    per_row = {
+        "baseline": [_summary(x) for x in (0.5, 0.6, 0.7)],
+        "explore": [_summary(x) for x in (0.72, 0.75, 0.81, 0.77)],
+        "tsrm": [_summary(0.9)],
+    }
     res = aggregate(rows, per_row, list(METRICS), ["Exploration Reward", "Distance Reward", "DE-MAE"])
     res["welch"] = welch_against(res, "baseline")
     w = res["welch"]["rows"]
@@ -146,26 +164,41 @@ def test_welch_against_the_baseline():
     assert w["tsrm"]["ALL"]["SR"]["diff"] == pytest.approx(30.0) and w["tsrm"]["ALL"]["SR"]["p"] is None
     assert w["distance"]["ALL"]["SR"]["diff"] is None
     md = welch_markdown(res).strip().splitlines()
-    assert len(md) == 2 + len(rows) - 1 and f"(p {p:.2f})" in md[2] and "+30.0 (p -)" in next(x for x in md if "+ both (TSRM)" in x)
+    assert (
+        len(md) == 2 + len(rows) - 1
+        and f"(p {p:.2f})" in md[2]
+        and "+30.0 (p -)" in next(x for x in md if "+ both (TSRM)" in x)
+    )
     assert welch_against(res, "nosuch") == {} and welch_markdown({"welch": {}}) == ""
 
 
 def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, capsys, monkeypatch):
     out = tmp_path / "ablation"
-    cfg = ExperimentConfig(experiment="ablation", data=str(exp_world), out=str(out), scale="small", seeds=2,
-                           device="cpu", pretrain_dir=str(pretrain_dir))
+    cfg = ExperimentConfig(
+        experiment="ablation",
+        data=str(exp_world),
+        out=str(out),
+        scale="small",
+        seeds=2,
+        device="cpu",
+        pretrain_dir=str(pretrain_dir),
+    )
     trainer = StandInTrainer()
     res = Experiment(cfg, train_fn=trainer, scale=TINY).run()
     assert len(trainer.calls) == 14
     assert {c[0] for c in trainer.calls} == {"baseline", "explore", "distance", "tsrm"}
     assert sorted(set(trainer.detections)) == ["learned", "oracle"] and trainer.detections.count("oracle") == 2
     feats = {c[1] for c in trainer.calls}
-    assert len(feats) == 2 and any(f.startswith("resnet18-") for f in feats) and any(f.startswith("demae-") for f in feats)
+    assert (
+        len(feats) == 2 and any(f.startswith("resnet18-") for f in feats) and any(f.startswith("demae-") for f in feats)
+    )
     assert [r["n"] for r in res["rows"]] == [2] * 7
     # the oracle-switch row was evaluated on the oracle's table, the others on the learned detector's; both
     # tables' quality recorded and printed under the table
-    ev = {j: json.loads((out / "jobs" / j / "eval" / "metrics.json").read_text())["detections"]
-          for j in ("tsrm_demae_s0", "tsrm_demae_oracle_s1")}
+    ev = {
+        j: json.loads((out / "jobs" / j / "eval" / "metrics.json").read_text())["detections"]
+        for j in ("tsrm_demae_s0", "tsrm_demae_oracle_s1")
+    }
     assert ev == {"tsrm_demae_s0": "learned", "tsrm_demae_oracle_s1": "oracle"}
     quality = json.loads((out / "detector_quality.json").read_text())
     assert sorted(quality) == ["learned", "oracle"] and quality["learned"]["fingerprint"].startswith("learned-")
@@ -203,16 +236,27 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     # the same checkpoints under the other protocol: its own episode list, a folder per job, a second table
     assert json.loads((out / "episodes_test_lineage.json").read_text())["protocol"] == "lineage"
     for j in json.loads((out / "experiment.json").read_text())["jobs"]:
-        main_eval, other = (json.loads((out / j["dir"] / e / "metrics.json").read_text()) for e in ("eval", "eval_lineage"))
+        main_eval, other = (
+            json.loads((out / j["dir"] / e / "metrics.json").read_text()) for e in ("eval", "eval_lineage")
+        )
         assert (other["protocol"], other["trained_protocol"], main_eval["protocol"]) == ("lineage", "paper", "paper")
-        assert (other["run"], other["checkpoint"], other["detections"]) == (main_eval["run"], "best",
-                                                                          main_eval["detections"])
+        assert (other["run"], other["checkpoint"], other["detections"]) == (
+            main_eval["run"],
+            "best",
+            main_eval["detections"],
+        )
     lin = json.loads((out / "results.json").read_text())["other_protocols"]["lineage"]
-    assert lin["protocol"] == "lineage" and lin["trained_protocol"] == "paper" and [r["n"] for r in lin["rows"]] == [2] * 7
+    assert (
+        lin["protocol"] == "lineage" and lin["trained_protocol"] == "paper" and [r["n"] for r in lin["rows"]] == [2] * 7
+    )
     sr = {r["row"]: r["metrics"]["ALL"]["SR"]["values"] for r in lin["rows"]}
     assert sr["tsrm"] == [
-        100 * json.loads((out / "jobs" / f"tsrm_s{k}" / "eval_lineage" / "metrics.json").read_text())["metrics"]["ALL"]["SR"]
-        for k in (0, 1)]
+        100
+        * json.loads((out / "jobs" / f"tsrm_s{k}" / "eval_lineage" / "metrics.json").read_text())["metrics"]["ALL"][
+            "SR"
+        ]
+        for k in (0, 1)
+    ]
     assert "protocol: lineage (agent trained under paper) - Done succeeds" in other_md
     assert other_md.count("| TSRM + DE-MAE, oracle switch |") == 3 and "under `lineage`:" in other_md  # table, 2 Welch
     assert "Against the paper's claims under `lineage`" in other_md
@@ -260,8 +304,10 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
     monkeypatch.undo()
     assert "baseline_s1 not evaluated under lineage: cannot load this run" in capsys.readouterr().out
     md_again = (out / "table.md").read_text()
-    assert ("Not every finished job is evaluated under `lineage` yet (fewer seeds than above): baseline (ResNet18, "
-            "baseline reward).") in md_again
+    assert (
+        "Not every finished job is evaluated under `lineage` yet (fewer seeds than above): baseline (ResNet18, "
+        "baseline reward)."
+    ) in md_again
     lin = json.loads((out / "results.json").read_text())["other_protocols"]["lineage"]
     assert lin["incomplete_rows"] == ["baseline (ResNet18, baseline reward)"] and lin["rows"][0]["n"] == 1
     assert [r["n"] for r in json.loads((out / "results.json").read_text())["rows"]] == [2] * 7
@@ -315,8 +361,9 @@ def test_ablation_runs_resumes_and_reports(tmp_path, exp_world, pretrain_dir, ca
 
 def test_threshold_experiment_plot(tmp_path, exp_world, pretrain_dir):
     out = tmp_path / "thr"
-    cfg = ExperimentConfig(experiment="threshold", data=str(exp_world), out=str(out), seeds=1, device="cpu",
-                           pretrain_dir=str(pretrain_dir))
+    cfg = ExperimentConfig(
+        experiment="threshold", data=str(exp_world), out=str(out), seeds=1, device="cpu", pretrain_dir=str(pretrain_dir)
+    )
     trainer = StandInTrainer()
     res = Experiment(cfg, train_fn=trainer, scale=TINY).run()
     assert sorted(c[2] for c in trainer.calls) == pytest.approx([0.1 * k for k in range(1, 10)])
@@ -333,9 +380,15 @@ def test_threshold_experiment_plot(tmp_path, exp_world, pretrain_dir):
     # the same agent (one seed) at a higher threshold switches stage later or never, never earlier
     from tsnav.metrics import read_records
 
-    switch = np.array([[1000 if r.pathfinding_start_step is None else r.pathfinding_start_step
-                        for r in read_records(out / "jobs" / f"c{10 * k:02d}_s0" / "eval" / "records.jsonl")]
-                       for k in range(1, 10)])
+    switch = np.array(
+        [
+            [
+                1000 if r.pathfinding_start_step is None else r.pathfinding_start_step
+                for r in read_records(out / "jobs" / f"c{10 * k:02d}_s0" / "eval" / "records.jsonl")
+            ]
+            for k in range(1, 10)
+        ]
+    )
     assert (np.diff(switch, axis=0) >= 0).all()
     ssr = [r["metrics"]["ALL"]["SSR"]["mean"] for r in res["rows"]]
     assert all(a >= b - 1e-9 for a, b in zip(ssr, ssr[1:]))
@@ -360,8 +413,9 @@ def test_training_budget_in_updates_or_minutes():
     assert budget(updates_per_job=700) == (None, 700)
     assert budget(updates_per_job=700, minutes_per_job=3.0) == (3.0, 700)
     for p in ("paper", "lineage"):  # the experiment's protocol is every job's
-        tc, _ = train_config_for(ExperimentConfig(experiment="ablation", data="d", out="o", protocol=p), scale, row,
-                                 "f", 0)
+        tc, _ = train_config_for(
+            ExperimentConfig(experiment="ablation", data="d", out="o", protocol=p), scale, row, "f", 0
+        )
         assert tc.protocol == p
 
 
@@ -393,17 +447,37 @@ def test_experiment_command_errors(tmp_path, tiny_world, capsys):
     assert "no such dataset folder" in capsys.readouterr().err
     w = tmp_path / "w.safetensors"
     w.write_bytes(b"")
-    assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
-                 "--vc1-weights", str(w)]) == 2
+    assert (
+        main(
+            ["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"), "--vc1-weights", str(w)]
+        )
+        == 2
+    )
     assert "pretraining experiment only" in capsys.readouterr().err
-    assert main(["experiment", "threshold", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
-                 "--seeds", "0"]) == 2
+    assert (
+        main(["experiment", "threshold", "--data", str(tiny_world), "--out", str(tmp_path / "o"), "--seeds", "0"]) == 2
+    )
     assert "--seeds must be >= 1" in capsys.readouterr().err
-    assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
-                 "--updates-per-job", "0"]) == 2
+    assert (
+        main(
+            [
+                "experiment",
+                "ablation",
+                "--data",
+                str(tiny_world),
+                "--out",
+                str(tmp_path / "o"),
+                "--updates-per-job",
+                "0",
+            ]
+        )
+        == 2
+    )
     assert "--updates-per-job must be >= 1" in capsys.readouterr().err
-    assert main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"),
-                 "--protocol", "1.5"]) == 2
+    assert (
+        main(["experiment", "ablation", "--data", str(tiny_world), "--out", str(tmp_path / "o"), "--protocol", "1.5"])
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "unknown success protocol '1.5'" in err and len(err.splitlines()) == 1 and not (tmp_path / "o").exists()
     bad = tmp_path / "bad"
@@ -421,8 +495,15 @@ def test_pretraining_experiment_with_the_real_trainer(tmp_path, exp_world, pretr
 
     scale = TINY.override(train=dict(minutes=None, updates=2, num_envs=4, milestone_every=1))
     out = tmp_path / "pre"
-    cfg = ExperimentConfig(experiment="pretraining", data=str(exp_world), out=str(out), seeds=1, device="cpu",
-                           pretrain_dir=str(pretrain_dir), parallel=2)
+    cfg = ExperimentConfig(
+        experiment="pretraining",
+        data=str(exp_world),
+        out=str(out),
+        seeds=1,
+        device="cpu",
+        pretrain_dir=str(pretrain_dir),
+        parallel=2,
+    )
     res = Experiment(cfg, scale=scale).run()
     assert [r["row"] for r in res["rows"]] == ["resnet18", "mae", "demae_crop", "demae"]
     assert all(r["n"] == 1 for r in res["rows"]) and res["metrics"] == ["SR", "SPL"]
@@ -448,13 +529,17 @@ def test_pretraining_reuses_the_ablations_jobs(tmp_path, exp_world, pretrain_dir
     "baseline" and "+ DE-MAE alone" jobs: copied, not trained again, then selected and evaluated here."""
     abl = tmp_path / "abl"
     base = dict(data=str(exp_world), seeds=1, device="cpu", pretrain_dir=str(pretrain_dir))
-    Experiment(ExperimentConfig(experiment="ablation", out=str(abl), **base), train_fn=StandInTrainer(),
-               scale=TINY).run()
+    Experiment(
+        ExperimentConfig(experiment="ablation", out=str(abl), **base), train_fn=StandInTrainer(), scale=TINY
+    ).run()
     pre = tmp_path / "pre"
     trainer = StandInTrainer()
     capsys.readouterr()
-    res = Experiment(ExperimentConfig(experiment="pretraining", out=str(pre), reuse_from=(str(abl),), **base),
-                     train_fn=trainer, scale=TINY).run()
+    res = Experiment(
+        ExperimentConfig(experiment="pretraining", out=str(pre), reuse_from=(str(abl),), **base),
+        train_fn=trainer,
+        scale=TINY,
+    ).run()
     assert sorted(c[1].split("-")[0] for c in trainer.calls) == ["demae", "mae"]  # MAE and the crop variant only
     out = capsys.readouterr().out
     assert out.count("reusing the trained run") == 2 and str(abl / "jobs" / "baseline_s0" / "train") in out
@@ -466,13 +551,24 @@ def test_pretraining_reuses_the_ablations_jobs(tmp_path, exp_world, pretrain_dir
         assert (b / "selection.json").exists() and (b / "best").is_dir()  # selected again, here
         assert not (b.parent / "train.copying").exists()
     # nothing to reuse for another seed; a folder that is no experiment is refused
-    tc1, _ = train_config_for(ExperimentConfig(experiment="pretraining", out="x", **base), TINY,
-                              experiment_rows("pretraining")[0], "resnet18-x", 1)
-    exp2 = Experiment(ExperimentConfig(experiment="pretraining", out=str(tmp_path / "pre2"), reuse_from=(str(abl),),
-                                       **base), train_fn=StandInTrainer(), scale=TINY)
+    tc1, _ = train_config_for(
+        ExperimentConfig(experiment="pretraining", out="x", **base),
+        TINY,
+        experiment_rows("pretraining")[0],
+        "resnet18-x",
+        1,
+    )
+    exp2 = Experiment(
+        ExperimentConfig(experiment="pretraining", out=str(tmp_path / "pre2"), reuse_from=(str(abl),), **base),
+        train_fn=StandInTrainer(),
+        scale=TINY,
+    )
     assert exp2.reusable_run(tc1) is None
-    exp3 = Experiment(ExperimentConfig(experiment="pretraining", out=str(tmp_path / "pre3"),
-                                       reuse_from=(str(tmp_path),), **base), train_fn=StandInTrainer(), scale=TINY)
+    exp3 = Experiment(
+        ExperimentConfig(experiment="pretraining", out=str(tmp_path / "pre3"), reuse_from=(str(tmp_path),), **base),
+        train_fn=StandInTrainer(),
+        scale=TINY,
+    )
     with pytest.raises(ValueError, match="not an experiment folder"):
         exp3.reusable_run(tc1)
 
@@ -500,9 +596,13 @@ def test_blocked_action_experiment(tmp_path, exp_world, pretrain_dir, capsys):
     with pytest.raises(ValueError, match="another blocked_action"):
         Experiment(replace(cfg, blocked_action=False), train_fn=StandInTrainer(), scale=TINY).run()
     # a plain experiment beside it: the flagged run is not reused for it, an identical one would be
-    plain_exp = Experiment(ExperimentConfig(experiment="ablation", out=str(tmp_path / "plain"),
-                                            reuse_from=(str(tmp_path / "flag"),), **base),
-                           train_fn=StandInTrainer(), scale=TINY)
+    plain_exp = Experiment(
+        ExperimentConfig(
+            experiment="ablation", out=str(tmp_path / "plain"), reuse_from=(str(tmp_path / "flag"),), **base
+        ),
+        train_fn=StandInTrainer(),
+        scale=TINY,
+    )
     tc, plain_agent = train_config_for(plain_exp.cfg, TINY, row, run["train"]["features"], 0)
     assert plain_exp.reusable_run(tc, plain_agent) is None
     assert plain_exp.reusable_run(tc, agent) == tmp_path / "flag" / "jobs" / "baseline_s0" / "train"
@@ -515,8 +615,16 @@ def test_select_per_room_type(tmp_path, exp_world, pretrain_dir):
 
     from tsnav.sim.episodes import read_episodes
 
-    cfg = ExperimentConfig(experiment="ablation", data=str(exp_world), out=str(tmp_path / "sel"), seeds=1,
-                           device="cpu", pretrain_dir=str(pretrain_dir), rows=("baseline",), select_per_room_type=3)
+    cfg = ExperimentConfig(
+        experiment="ablation",
+        data=str(exp_world),
+        out=str(tmp_path / "sel"),
+        seeds=1,
+        device="cpu",
+        pretrain_dir=str(pretrain_dir),
+        rows=("baseline",),
+        select_per_room_type=3,
+    )
     res = Experiment(cfg, train_fn=StandInTrainer(), scale=TINY).run()
     assert res["select_per_room_type"] == 3
     eps, meta = read_episodes(tmp_path / "sel" / "episodes_select.json")
@@ -529,11 +637,15 @@ def test_select_per_room_type(tmp_path, exp_world, pretrain_dir):
         Experiment(replace(cfg, select_per_room_type=None), train_fn=StandInTrainer(), scale=TINY).run()
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="--select-per-room-type must be an integer >= 1"):
-            Experiment(replace(cfg, out=str(tmp_path / "zero"), select_per_room_type=bad), train_fn=StandInTrainer(),
-                       scale=TINY)
+            Experiment(
+                replace(cfg, out=str(tmp_path / "zero"), select_per_room_type=bad),
+                train_fn=StandInTrainer(),
+                scale=TINY,
+            )
     with pytest.raises(ValueError, match="needs --checkpoint best"):
-        Experiment(replace(cfg, out=str(tmp_path / "latest"), checkpoint="latest"), train_fn=StandInTrainer(),
-                   scale=TINY)
+        Experiment(
+            replace(cfg, out=str(tmp_path / "latest"), checkpoint="latest"), train_fn=StandInTrainer(), scale=TINY
+        )
     assert not (tmp_path / "zero").exists() and not (tmp_path / "latest").exists()
     # without the option the scale's count is used, and the table says nothing
     plain = replace(cfg, out=str(tmp_path / "plain"), select_per_room_type=None)
@@ -554,8 +666,14 @@ def test_select_per_room_type(tmp_path, exp_world, pretrain_dir):
 def test_rows_option_runs_a_subset_and_adds_the_rest_later(tmp_path, exp_world, pretrain_dir, capsys):
     """--rows: only the named rows are trained and tabulated; a second call into the same folder with the other
     rows trains only those and finds the first call's jobs done; an unknown id is refused in one line."""
-    base = dict(experiment="pretraining", data=str(exp_world), out=str(tmp_path / "pre"), seeds=1, device="cpu",
-                pretrain_dir=str(pretrain_dir))
+    base = dict(
+        experiment="pretraining",
+        data=str(exp_world),
+        out=str(tmp_path / "pre"),
+        seeds=1,
+        device="cpu",
+        pretrain_dir=str(pretrain_dir),
+    )
     first = StandInTrainer()
     res = Experiment(ExperimentConfig(rows=("mae", "demae_crop"), **base), train_fn=first, scale=TINY).run()
     assert [r["row"] for r in res["rows"]] == ["mae", "demae_crop"] and len(first.calls) == 2
@@ -568,8 +686,13 @@ def test_rows_option_runs_a_subset_and_adds_the_rest_later(tmp_path, exp_world, 
     with pytest.raises(ValueError, match="no row 'dino'.*its rows: resnet18, mae, demae_crop, demae"):
         Experiment(ExperimentConfig(rows=("dino",), **base))
     from tsnav.cli import main
+
     capsys.readouterr()
-    assert main(["experiment", "pretraining", "--data", str(exp_world), "--out", str(tmp_path / "o"),
-                 "--rows", "mae,dino"]) == 2
+    assert (
+        main(
+            ["experiment", "pretraining", "--data", str(exp_world), "--out", str(tmp_path / "o"), "--rows", "mae,dino"]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "no row 'dino'" in err and len(err.splitlines()) == 1

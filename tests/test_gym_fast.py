@@ -110,8 +110,9 @@ def _run_pair(kw: dict, steps: int, seed: int, check_state: bool = True, episode
 
 @pytest.mark.parametrize("reward", ["tsrm", "explore", "distance", "baseline", "sparse"])
 def test_single_env_scalar_path_equals_batch_path(world, reward):
-    seen = _run_pair(dict(data=str(world), split=None, reward=reward, detections="oracle", max_steps=12),
-                     steps=600, seed=3)
+    seen = _run_pair(
+        dict(data=str(world), split=None, reward=reward, detections="oracle", max_steps=12), steps=600, seed=3
+    )
     assert seen["ends"] > 20 and seen["success"] > 0 and (seen["collision"] > 0 or reward == "sparse")
     if reward in ("tsrm", "explore"):
         assert seen["explore"] > 0
@@ -128,19 +129,50 @@ def test_single_env_scalar_path_other_frames_and_layouts(world, frames, layout):
     bank = SceneBank.from_root(world, None)
     target = int(np.flatnonzero(bank.present[0])[0])
     episode = (bank.names[0], TARGET_CATEGORIES[target], str(bank.scenes[0].keys[0]))
-    _run_pair(dict(data=str(world), split=None, reward="tsrm", detections="oracle", max_steps=10, frames=frames,
-                   obs_layout=layout), steps=150, seed=5, episode=episode)
+    _run_pair(
+        dict(
+            data=str(world),
+            split=None,
+            reward="tsrm",
+            detections="oracle",
+            max_steps=10,
+            frames=frames,
+            obs_layout=layout,
+        ),
+        steps=150,
+        seed=5,
+        episode=episode,
+    )
 
 
 def test_single_env_scalar_path_exact_area_and_lineage_protocol(world):
     """The shapely searched region (``exact_area``) and the lineage's success protocol through both paths."""
     from tsnav.tsrm.reward import RewardConfig
 
-    _run_pair(dict(data=str(world), split=None, reward=RewardConfig(variant="tsrm", exact_area=True,
-                                                                  distance_increase_scale=1.5),
-                   detections="oracle", max_steps=8), steps=60, seed=2)
-    _run_pair(dict(data=str(world), split=None, reward="tsrm", detections="oracle", protocol="lineage",
-                   c_target=0.5, max_steps=15), steps=200, seed=9)
+    _run_pair(
+        dict(
+            data=str(world),
+            split=None,
+            reward=RewardConfig(variant="tsrm", exact_area=True, distance_increase_scale=1.5),
+            detections="oracle",
+            max_steps=8,
+        ),
+        steps=60,
+        seed=2,
+    )
+    _run_pair(
+        dict(
+            data=str(world),
+            split=None,
+            reward="tsrm",
+            detections="oracle",
+            protocol="lineage",
+            c_target=0.5,
+            max_steps=15,
+        ),
+        steps=200,
+        seed=9,
+    )
 
 
 class _ArrayOnlyReward:
@@ -165,8 +197,18 @@ def test_batch_env_step_one_equals_step(world):
     bank = SceneBank.from_root(world, None)
     sampler = TrainingSampler(bank)
     for reward_fn, autoreset in ((None, False), ("array", False), ("array", True)):
-        envs = [BatchEnv(bank, 1, sampler=sampler, reward_fn=_ArrayOnlyReward() if reward_fn else None,
-                         max_steps=7, autoreset=autoreset, seed=4) for _ in range(2)]
+        envs = [
+            BatchEnv(
+                bank,
+                1,
+                sampler=sampler,
+                reward_fn=_ArrayOnlyReward() if reward_fn else None,
+                max_steps=7,
+                autoreset=autoreset,
+                seed=4,
+            )
+            for _ in range(2)
+        ]
         fast, ref = envs
         fast.reset_one()
         ref.reset()
@@ -233,8 +275,16 @@ def test_vector_env_equals_a_loop_over_batch_env(world):
     from tsnav.tsrm.reward import TERMS, RewardConfig, TSRMReward
 
     n = 16
-    envs = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", data=str(world), split=None,
-                        reward="tsrm", detections="oracle", max_steps=9)
+    envs = gym.make_vec(
+        ENV_ID,
+        num_envs=n,
+        vectorization_mode="vector_entry_point",
+        data=str(world),
+        split=None,
+        reward="tsrm",
+        detections="oracle",
+        max_steps=9,
+    )
     u = envs.unwrapped
     bank = u.bank
     ref = BatchEnv(bank, n, sampler=u.sampler, reward_fn=TSRMReward(bank, RewardConfig()), max_steps=9)
@@ -266,9 +316,12 @@ def test_vector_env_equals_a_loop_over_batch_env(world):
         assert held["target"] is not obs["target"] and not np.shares_memory(obs["target"], u.batch.target)
         assert r.dtype == np.float64 and np.array_equal(r, r2.astype(np.float64))
         assert np.array_equal(term, term2) and np.array_equal(trunc, trunc2)
-        want = {"state": ref.state, "scene": ref.scene, **{k: info2[k] for k in
-                ("collided", "failed", "success", "steps", "path_length")},
-                **{f"reward/{k}": info2["reward_terms"][k] for k in TERMS}}
+        want = {
+            "state": ref.state,
+            "scene": ref.scene,
+            **{k: info2[k] for k in ("collided", "failed", "success", "steps", "path_length")},
+            **{f"reward/{k}": info2["reward_terms"][k] for k in TERMS},
+        }
         for k, v in want.items():
             assert np.array_equal(info[k], v) and info[k].dtype == v.dtype, k
             assert info[f"_{k}"].all()
@@ -364,11 +417,19 @@ def test_tsrm_step_one_equals_step_on_any_input(world):
             prev, new = (int(v) for v in rng.integers(lo, hi, 2))
             a, collided, success, searching = int(rng.integers(0, 6)), *(bool(v) for v in rng.random(3) < 0.3)
             r1, t1 = fast.step_one(prev, a, new, collided, False, success, searching=searching)
-            r2, t2 = ref.step(np.array([prev]), np.array([a]), np.array([new]), np.array([collided]), np.array([False]),
-                              np.array([success]), searching=np.array([searching]))
+            r2, t2 = ref.step(
+                np.array([prev]),
+                np.array([a]),
+                np.array([new]),
+                np.array([collided]),
+                np.array([False]),
+                np.array([success]),
+                searching=np.array([searching]),
+            )
             assert type(r1) is float and r1 == float(r2[0]) and np.signbit(r1) == np.signbit(r2[0])
-            assert list(t1) == list(t2) and all(t1[k] == float(t2[k][0]) and np.signbit(t1[k]) == np.signbit(t2[k][0])
-                                                for k in t1)
+            assert list(t1) == list(t2) and all(
+                t1[k] == float(t2[k][0]) and np.signbit(t1[k]) == np.signbit(t2[k][0]) for k in t1
+            )
             if fast.dist is not None and not searching:
                 unreachable += UNREACHABLE in (int(fast.dist[prev, target]), int(fast.dist[new, target]))
         for k in ("collided_at", "viewed"):

@@ -83,9 +83,18 @@ def batched_trainer_rewards(root, actions, num_envs: int, seed: int, max_steps: 
 @pytest.mark.parametrize("reward", ["tsrm", "baseline"])
 def test_gymnasium_loop_gets_the_trainers_rewards(world_with_detections, reward):
     num_envs, seed, max_steps = 4, 7, 12
-    actions, rewards, infos = third_party_training(ENV_ID, num_envs, updates=3, horizon=10, seed=seed,
-                                                   data=str(world_with_detections), split="train", reward=reward,
-                                                   detections="oracle", max_steps=max_steps)
+    actions, rewards, infos = third_party_training(
+        ENV_ID,
+        num_envs,
+        updates=3,
+        horizon=10,
+        seed=seed,
+        data=str(world_with_detections),
+        split="train",
+        reward=reward,
+        detections="oracle",
+        max_steps=max_steps,
+    )
     expected = batched_trainer_rewards(world_with_detections, actions, num_envs, seed, max_steps, reward)
     terms = ("explore", "distance", "collision", "slack", "success")
     for t, (r, info) in enumerate(zip(rewards, infos)):

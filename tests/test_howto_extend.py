@@ -25,8 +25,9 @@ def page_code(page: Path, overrides: dict[str, str]) -> str:
     """The page's Python blocks joined, with each overridden setting's value replaced (each must exist)."""
     code = "\n".join(BLOCK.findall(page.read_text()))
     for name, value in overrides.items():
-        code, n = re.subn(rf"^{name} = [^#\n]*(#.*\(test: .*\))$", lambda m: f"{name} = {value}  {m.group(1)}",
-                          code, flags=re.M)
+        code, n = re.subn(
+            rf"^{name} = [^#\n]*(#.*\(test: .*\))$", lambda m: f"{name} = {value}  {m.group(1)}", code, flags=re.M
+        )
         assert n == 1, f"{page.name}: no setting {name} marked (test: ...)"
     return code
 
@@ -38,8 +39,16 @@ def registries():
     from tsnav.pretrain import archs, encoders
     from tsnav.tsrm import terms
 
-    saved = [(d, dict(d)) for d in (terms.TERM_CLASSES, terms.VARIANT_TERMS, metrics.METRIC_REGISTRY,
-                                    encoders.ENCODERS, archs.ENCODER_ARCHS)]
+    saved = [
+        (d, dict(d))
+        for d in (
+            terms.TERM_CLASSES,
+            terms.VARIANT_TERMS,
+            metrics.METRIC_REGISTRY,
+            encoders.ENCODERS,
+            archs.ENCODER_ARCHS,
+        )
+    ]
     yield
     for d, old in saved:
         d.clear()
@@ -60,8 +69,11 @@ def run_page(name: str, overrides: dict[str, str], cwd: Path) -> dict:
 def test_add_a_reward_term(pixel_world, tmp_path, registries, capsys):
     from tsnav.tsrm.reward import TERMS, VARIANTS
 
-    ns = run_page("add-a-reward-term.md", {"WORLD": repr(str(pixel_world)), "FEATURES": repr(PIXEL_FEATURES),
-                                           "UPDATES": "2"}, tmp_path)
+    ns = run_page(
+        "add-a-reward-term.md",
+        {"WORLD": repr(str(pixel_world)), "FEATURES": repr(PIXEL_FEATURES), "UPDATES": "2"},
+        tmp_path,
+    )
     out = capsys.readouterr().out
     assert "revisit" in TERMS and "tsrm-revisit" in VARIANTS
     assert ns["charged"] > 0 and "batched, scalar and reference agree" in out
@@ -71,13 +83,15 @@ def test_add_a_reward_term(pixel_world, tmp_path, registries, capsys):
 
 
 def test_add_an_encoder(pixel_world, tmp_path, registries, capsys):
-    ns = run_page("add-an-encoder.md", {"WORLD": repr(str(pixel_world)), "IMG": "32", "STEPS": "2",
-                                        "UPDATES": "2"}, tmp_path)
+    ns = run_page(
+        "add-an-encoder.md", {"WORLD": repr(str(pixel_world)), "IMG": "32", "STEPS": "2", "UPDATES": "2"}, tmp_path
+    )
     enc = ns["encoder"]
     assert enc.arch == "tinycnn" and enc.method == "tinycnn-sup" and enc.img_size == 32
     assert ns["progress"]["update"] == 2
-    assert all((p / f"features_{ns['name']}.hdf5").exists() for p in Path(pixel_world).iterdir()
-               if (p / "COMPLETE").exists())
+    assert all(
+        (p / f"features_{ns['name']}.hdf5").exists() for p in Path(pixel_world).iterdir() if (p / "COMPLETE").exists()
+    )
 
 
 def test_add_a_metric(pixel_world, tmp_path, registries, capsys):
@@ -87,10 +101,25 @@ def test_add_a_metric(pixel_world, tmp_path, registries, capsys):
 
     # the page's `tsnav episodes` line, with 4 episodes per room type
     (tmp_path / "work").mkdir()
-    assert main(["episodes", "--data", str(pixel_world), "--split", "val", "--per-room-type", "4",
-                 "--out", str(tmp_path / "work" / "val_episodes.json")]) == 0
-    ns = run_page("add-a-metric.md", {"WORLD": repr(str(pixel_world)), "FEATURES": repr(PIXEL_FEATURES),
-                                      "UPDATES": "2"}, tmp_path)
+    assert (
+        main(
+            [
+                "episodes",
+                "--data",
+                str(pixel_world),
+                "--split",
+                "val",
+                "--per-room-type",
+                "4",
+                "--out",
+                str(tmp_path / "work" / "val_episodes.json"),
+            ]
+        )
+        == 0
+    )
+    ns = run_page(
+        "add-a-metric.md", {"WORLD": repr(str(pixel_world)), "FEATURES": repr(PIXEL_FEATURES), "UPDATES": "2"}, tmp_path
+    )
     out = capsys.readouterr().out
     assert "NSR" in METRICS and "NSR" in curve_metrics() and tag_group("NSR") == "metrics"
     summary = ns["summary"]

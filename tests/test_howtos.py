@@ -105,9 +105,21 @@ def test_train_and_ship(tiny_real, tmp_path, capsys):
     # complete rooms); the page names the recipe relative to the checkout
     _copy_world(tiny_real, tmp_path / "work" / "world")
     shutil.copytree(ROOT / "configs", tmp_path / "configs")
-    env = run_page(HOWTO / "train-and-ship.md",
-                   dict(PRESET="tiny-real", MODEL="vit_micro", IMG="32", PRETRAIN_STEPS="2", UPDATES="2", ENVS="4",
-                        CHUNK="1", VAL="6"), tmp_path, capsys)
+    env = run_page(
+        HOWTO / "train-and-ship.md",
+        dict(
+            PRESET="tiny-real",
+            MODEL="vit_micro",
+            IMG="32",
+            PRETRAIN_STEPS="2",
+            UPDATES="2",
+            ENVS="4",
+            CHUNK="1",
+            VAL="6",
+        ),
+        tmp_path,
+        capsys,
+    )
 
     work = tmp_path / env["WORK"]
     folder = work / "agent" / "tsrm-demae-learned7"
@@ -119,7 +131,8 @@ def test_train_and_ship(tiny_real, tmp_path, capsys):
     assert card["world_preset"] == "tiny-real" and card["test_rooms"] == ["FloorPlan424"]
     for split in ("val", "test"):
         assert {(r["protocol"], r["policy"]) for r in card["figures"][split]["rows"]} == {
-            (p, pol) for p in ("paper", "lineage") for pol in ("agent", "scripted explorer", "random")}
+            (p, pol) for p in ("paper", "lineage") for pol in ("agent", "scripted explorer", "random")
+        }
     recipe = read_recipe(folder / "recipe.toml")
     assert recipe["train"]["updates"] == 2 and recipe["pretrain"]["model"] == "vit_micro"
     assert recipe["select"]["per_room_type"] == 6 and recipe["agent"]["blocked_action"] is True
@@ -130,13 +143,23 @@ def test_reproduce_table2(tiny_real, tmp_path, capsys):
     seed at a tiny scale) takes its place."""
     from tsnav.settings import dump_recipe, merge, read_recipe
 
-    recipe = merge(read_recipe(ROOT / "configs" / "experiments" / "table2-ablation.toml"), {
-        "experiment": dict(seeds=1, rows=["baseline", "tsrm_demae"], select_per_room_type=6, updates_per_job=2,
-                           parallel=1),
-        "scale": dict(feature_batch_size=256, test_per_room_type=6, val_per_room_type=6, resnet_pretrain_steps=2,
-                      pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8),
-                      train=dict(num_envs=4, updates=2, milestone_every=1),
-                      detector=dict(steps=4, batch_size=8, max_states_per_scene=24))})
+    recipe = merge(
+        read_recipe(ROOT / "configs" / "experiments" / "table2-ablation.toml"),
+        {
+            "experiment": dict(
+                seeds=1, rows=["baseline", "tsrm_demae"], select_per_room_type=6, updates_per_job=2, parallel=1
+            ),
+            "scale": dict(
+                feature_batch_size=256,
+                test_per_room_type=6,
+                val_per_room_type=6,
+                resnet_pretrain_steps=2,
+                pretrain=dict(model="vit_micro", patch_size=8, img_size=32, steps=2, batch_size=8),
+                train=dict(num_envs=4, updates=2, milestone_every=1),
+                detector=dict(steps=4, batch_size=8, max_states_per_scene=24),
+            ),
+        },
+    )
     tiny = tmp_path / "table2-tiny.toml"
     tiny.write_text(dump_recipe(recipe))
     _copy_world(tiny_real, tmp_path / "work" / "world")

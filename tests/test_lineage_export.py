@@ -35,7 +35,11 @@ def _trimmed(scene, positions: int = 4):
     succ = scene.category_visible_within(1.5)
     start = int(np.flatnonzero(succ.any(axis=1))[0])
     pos = {(float(x), float(z)) for x, z in zip(scene.x, scene.z)}
-    order, seen, q = [], {(float(scene.x[start]), float(scene.z[start]))}, deque([(float(scene.x[start]), float(scene.z[start]))])
+    order, seen, q = (
+        [],
+        {(float(scene.x[start]), float(scene.z[start]))},
+        deque([(float(scene.x[start]), float(scene.z[start]))]),
+    )
     while q and len(order) < positions:
         p = q.popleft()
         order.append(p)
@@ -49,9 +53,19 @@ def _trimmed(scene, positions: int = 4):
     new[keep] = np.arange(len(keep))
     ns = scene.next_state[keep]
     ns = np.where(new[ns] >= 0, new[ns], np.arange(len(keep))[:, None]).astype(np.int32)
-    return replace(scene, keys=scene.keys[keep], x=scene.x[keep], z=scene.z[keep], rotation=scene.rotation[keep],
-                   horizon=scene.horizon[keep], next_state=ns, visible=scene.visible[keep],
-                   distance=scene.distance[keep], pixels=scene.pixels[keep], boxes=scene.boxes[keep])
+    return replace(
+        scene,
+        keys=scene.keys[keep],
+        x=scene.x[keep],
+        z=scene.z[keep],
+        rotation=scene.rotation[keep],
+        horizon=scene.horizon[keep],
+        next_state=ns,
+        visible=scene.visible[keep],
+        distance=scene.distance[keep],
+        pixels=scene.pixels[keep],
+        boxes=scene.boxes[keep],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +84,22 @@ def small_root(tiny_world, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def exported(small_root):
-    assert main(["thor", "export-lineage", str(small_root), "--encoder", "untrained:resnet18", "--detections", "oracle",
-                 "--per-room-type", "20"]) == 0
+    assert (
+        main(
+            [
+                "thor",
+                "export-lineage",
+                str(small_root),
+                "--encoder",
+                "untrained:resnet18",
+                "--detections",
+                "oracle",
+                "--per-room-type",
+                "20",
+            ]
+        )
+        == 0
+    )
     return small_root
 
 
@@ -95,7 +123,9 @@ def test_export_writes_every_file_with_the_lineages_shapes(exported):
     assert report == {"FloorPlan22": [], "test_val_split": []}
     info = json.loads((exported / "test_val_split" / LS.INFO_FILE).read_text())
     assert info["success_distance"] == 1.5 and "visibility map" in info["success_rule"]
-    assert info["files"] == {"kitchen_test_22.pkl": len(LS.read_split(exported / "test_val_split" / "kitchen_test_22.pkl"))}
+    assert info["files"] == {
+        "kitchen_test_22.pkl": len(LS.read_split(exported / "test_val_split" / "kitchen_test_22.pkl"))
+    }
 
 
 def test_resnet_features_are_resnet18_on_the_224_frame(exported):
@@ -140,18 +170,36 @@ def test_split_records_and_round_trip(exported, tiny_world, tmp_path):
     r = recs[0]
     assert set(r) == {"scene", "state", "goal_object_type", "task_data", "glove_embedding"}
     assert r["glove_embedding"].shape == (60, 1) and r["glove_embedding"].dtype == np.float32
-    assert r["glove_embedding"][TARGET_CATEGORIES.index(r["goal_object_type"]), 0] == 1 and r["glove_embedding"].sum() == 1
+    assert (
+        r["glove_embedding"][TARGET_CATEGORIES.index(r["goal_object_type"]), 0] == 1 and r["glove_embedding"].sum() == 1
+    )
     vis = json.loads((exported / "FloorPlan22" / L.VISIBLE_MAP_FILE).read_text())
     assert all(t in vis and t.startswith(x["goal_object_type"] + "|") for x in recs for t in x["task_data"])
     # round trip: the reader reads back what export-lineage wrote (same scene, start, target, L*)
     out = tmp_path / "eps.json"
-    assert main(["thor", "episodes", str(exported / "test_val_split" / "kitchen_test_22.pkl"), "--data", str(exported),
-                 "--out", str(out), "--success-distance", "1.5"]) == 0
+    assert (
+        main(
+            [
+                "thor",
+                "episodes",
+                str(exported / "test_val_split" / "kitchen_test_22.pkl"),
+                "--data",
+                str(exported),
+                "--out",
+                str(out),
+                "--success-distance",
+                "1.5",
+            ]
+        )
+        == 0
+    )
     from tsnav.sim.batch import SceneBank
     from tsnav.sim.episodes import episodes_to_arrays, read_episodes
 
     eps, meta = read_episodes(out)
-    assert [(e.scene, e.start, e.target) for e in eps] == [(x["scene"], x["state"], x["goal_object_type"]) for x in recs]
+    assert [(e.scene, e.start, e.target) for e in eps] == [
+        (x["scene"], x["state"], x["goal_object_type"]) for x in recs
+    ]
     bank = SceneBank.from_root(exported, None, success_distance=1.5)
     episodes_to_arrays(bank, eps, check=True)  # stored L* = the bank's
     assert meta["success_distance"] == 1.5 and meta["dropped"] == {}
@@ -196,6 +244,7 @@ def test_check_catches_each_defect_of_the_issue(exported, tmp_path):
             x = f[keys[0]][()]
             del f[keys[0]]
             f.create_dataset(keys[0], data=x[0])
+
     p = broken("resnet3d", squeeze)
     assert any("(512, 7, 7), expected float32 (1, 512, 7, 7)" in x for x in p), p
 
@@ -205,6 +254,7 @@ def test_check_catches_each_defect_of_the_issue(exported, tmp_path):
             x = f[keys[1]][()]
             del f[keys[1]]
             f.create_dataset(keys[1], data=x.astype(np.float16))
+
     assert any("float16" in x for x in broken("resnet16", half))
 
     # 3. no DETR table
@@ -219,6 +269,7 @@ def test_check_catches_each_defect_of_the_issue(exported, tmp_path):
             r[empty, 257] = 0
             r[empty, 260:264] = -4.6875
             f[keys[2]][...] = r
+
     p = broken("label0", old_rows)
     assert any("labelled 0" in x and "last class" in x for x in p), p
 
@@ -227,6 +278,7 @@ def test_check_catches_each_defect_of_the_issue(exported, tmp_path):
             r = f[keys[2]][()]
             r[r[:, 257] == 23, 260:264] = -4.6875
             f[keys[2]][...] = r
+
     assert any("outside the 300 px frame" in x for x in broken("negbox", neg_boxes))
 
     # 5. no optimal_action.json, or a wrong one
@@ -238,6 +290,7 @@ def test_check_catches_each_defect_of_the_issue(exported, tmp_path):
         o[keys[0]] = {"Bowl": 7}
         del o[keys[1]]
         (d / "optimal_action.json").write_text(json.dumps(o))
+
     p = broken("badopt", bad_opt)
     assert any("not an action id" in x for x in p) and any("no entry for 1 of" in x for x in p)
 
@@ -250,6 +303,7 @@ def test_check_catches_each_defect_of_the_issue(exported, tmp_path):
         v = json.loads((d / L.VISIBLE_MAP_FILE).read_text())
         v["Pot|+00.10|+00.90|+00.20"] = []
         (d / L.VISIBLE_MAP_FILE).write_text(json.dumps(v))
+
     assert any("listed with no state" in x for x in broken("emptyobj", empty_obj))
 
     # the good folder passes
@@ -260,7 +314,9 @@ def test_check_catches_missing_and_bad_episode_lists(exported, tmp_path):
     root = tmp_path / "data"
     shutil.copytree(exported / "FloorPlan22", root / "FloorPlan22")
     # 8. no episode lists at all
-    assert check_lineage_dataset(root, complete=True)["test_val_split"][0].startswith("test_val_split: no episode lists")
+    assert check_lineage_dataset(root, complete=True)["test_val_split"][0].startswith(
+        "test_val_split: no episode lists"
+    )
     assert check_lineage_dataset(root, complete=False)["test_val_split"] == []
     split = root / "test_val_split"
     recs = LS.read_split(exported / "test_val_split" / "kitchen_test_22.pkl")

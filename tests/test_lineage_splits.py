@@ -68,12 +68,16 @@ def test_hostile_pickles_are_refused_before_their_payload_runs(tmp_path, tiny_sc
         "exec": lambda: _Exec(f"open({str(target)!r}, 'w').write('x')"),
         "open": lambda: _Open(target),
         "nested": lambda: _records(tiny_scenes[0]) + [{"scene": _System(f"touch {target}")}],
-        "object_array": lambda: [{"scene": "FloorPlan1", "glove_embedding": np.array([_Exec(f"open({str(target)!r}, 'w')")],
-                                                                                      dtype=object)}],
+        "object_array": lambda: [
+            {"scene": "FloorPlan1", "glove_embedding": np.array([_Exec(f"open({str(target)!r}, 'w')")], dtype=object)}
+        ],
     }[make]()
     p = tmp_path / "kitchen_test_22.pkl"
     p.write_bytes(pickle.dumps(payload, protocol=2 if make == "object_array" else 4))
-    with pytest.raises(LS.SplitFormatError, match=r"refused: the pickle calls (posix|nt|os|builtins|__builtin__|io)\.(system|exec|open)") as e:
+    with pytest.raises(
+        LS.SplitFormatError,
+        match=r"refused: the pickle calls (posix|nt|os|builtins|__builtin__|io)\.(system|exec|open)",
+    ) as e:
         LS.read_split(p)
     assert "\n" not in str(e.value)
     assert not target.exists()
@@ -111,15 +115,15 @@ def test_episodes_keep_what_the_dataset_has_and_count_the_rest(tiny_world, tmp_p
     from tsnav.constants import TARGET_CATEGORIES
 
     t = TARGET_CATEGORIES[c]
-    ok = np.flatnonzero((dist[:, c] > 0) & (dist[:, c] < 10 ** 6))
+    ok = np.flatnonzero((dist[:, c] > 0) & (dist[:, c] < 10**6))
     at_goal = np.flatnonzero(dist[:, c] == 0)
     absent = next(x for x in TARGET_CATEGORIES if not succ[:, TARGET_CATEGORIES.index(x)].any())
     good = [LS.split_record("FloorPlan22", s.keys[i], t, []) for i in ok[:5]]
     recs = good + [
-        LS.split_record("FloorPlan29", "0.00|0.00|0|0", t, []),            # scene not in DATA
-        LS.split_record("FloorPlan22_physics", "9.75|9.75|0|0", t, []),   # start not a state
-        LS.split_record("FloorPlan22", s.keys[ok[0]], absent, []),        # target not in scene
-        LS.split_record("FloorPlan22", s.keys[at_goal[0]], t, []),        # already succeeds
+        LS.split_record("FloorPlan29", "0.00|0.00|0|0", t, []),  # scene not in DATA
+        LS.split_record("FloorPlan22_physics", "9.75|9.75|0|0", t, []),  # start not a state
+        LS.split_record("FloorPlan22", s.keys[ok[0]], absent, []),  # target not in scene
+        LS.split_record("FloorPlan22", s.keys[at_goal[0]], t, []),  # already succeeds
         {"scene": "FloorPlan22", "state": str(s.keys[ok[1]]), "goal_object_type": "Vase", "task_data": []},  # no target
     ]
     a, b = tmp_path / "kitchen_test_22.pkl", tmp_path / "kitchen_val_22.pkl"
@@ -128,8 +132,10 @@ def test_episodes_keep_what_the_dataset_has_and_count_the_rest(tiny_world, tmp_p
     out = tmp_path / "eps.json"
     assert main(["thor", "episodes", str(a), str(b), "--data", str(tiny_world), "--out", str(out)]) == 0
     line = capsys.readouterr().out.splitlines()[0]
-    assert line == ("10 episodes read, 5 kept, 5 dropped (2 target not in scene, 1 scene not in DATA, "
-                    "1 start not a state, 1 start already succeeds)")
+    assert line == (
+        "10 episodes read, 5 kept, 5 dropped (2 target not in scene, 1 scene not in DATA, "
+        "1 start not a state, 1 start already succeeds)"
+    )
     from tsnav.sim.episodes import episodes_to_arrays, read_episodes
 
     eps, meta = read_episodes(out)
@@ -143,16 +149,26 @@ def test_episodes_keep_what_the_dataset_has_and_count_the_rest(tiny_world, tmp_p
     # under the lineage's protocol the start that already sees the target is kept (L* = 0) and counted
     capsys.readouterr()
     lin = tmp_path / "eps_lineage.json"
-    assert main(["thor", "episodes", str(a), str(b), "--data", str(tiny_world), "--out", str(lin),
-                 "--protocol", "lineage"]) == 0
+    assert (
+        main(
+            ["thor", "episodes", str(a), str(b), "--data", str(tiny_world), "--out", str(lin), "--protocol", "lineage"]
+        )
+        == 0
+    )
     lbank = SceneBank([s], protocol="lineage")
     zero = 1 + int((lbank.dist[ok[:5], c] == 0).sum())  # the paper's start-success one, and any the map adds
     line = capsys.readouterr().out.splitlines()[0]
-    assert line == (f"10 episodes read, 6 kept ({zero} start already succeeds), 4 dropped (2 target not in scene, "
-                    "1 scene not in DATA, 1 start not a state)")
+    assert line == (
+        f"10 episodes read, 6 kept ({zero} start already succeeds), 4 dropped (2 target not in scene, "
+        "1 scene not in DATA, 1 start not a state)"
+    )
     eps, meta = read_episodes(lin)
     assert meta["protocol"] == "lineage" and eps[-1].start == str(s.keys[at_goal[0]]) and eps[-1].optimal_length == 0
     assert [e.optimal_length for e in eps[:5]] == [int(lbank.dist[i, c]) for i in ok[:5]]
-    assert main(["thor", "episodes", str(a), "--data", str(tiny_world), "--out", str(lin), "--force",
-                 "--protocol", "nope"]) == 2
+    assert (
+        main(
+            ["thor", "episodes", str(a), "--data", str(tiny_world), "--out", str(lin), "--force", "--protocol", "nope"]
+        )
+        == 2
+    )
     assert len(capsys.readouterr().err.strip().splitlines()) == 1

@@ -6,7 +6,17 @@ import numpy as np
 import pytest
 
 from tsnav.metrics import (
-    EpisodeRecord, format_table, metrics, nsnpl, read_records, sr, spl, ssr, ssspl, summarize, write_records,
+    EpisodeRecord,
+    format_table,
+    metrics,
+    nsnpl,
+    read_records,
+    sr,
+    spl,
+    ssr,
+    ssspl,
+    summarize,
+    write_records,
 )
 
 
@@ -56,18 +66,28 @@ def test_empty_and_no_pathfinding():
 
 def _reference(records):
     """Plain-Python transcription of the paper's formulas."""
+
     def ratio(o, a):
         return 1.0 if max(a, o) == 0 else o / max(a, o)
+
     k = len(records)
     k_nav = sum(1 for r in records if r.entered_pathfinding)
     out = {
         "SR": sum(r.success for r in records) / k,
         "SPL": sum(r.success * ratio(r.optimal_length, r.path_length) for r in records) / k,
         "SSR": k_nav / k,
-        "SSSPL": sum(ratio(r.optimal_search_length, r.search_path_length)
-                     for r in records if r.entered_pathfinding) / k,
-        "NSNPL": (sum(ratio(r.optimal_pathfinding_length, r.pathfinding_path_length)
-                      for r in records if r.entered_pathfinding and r.success) / k_nav) if k_nav else 0.0,
+        "SSSPL": sum(ratio(r.optimal_search_length, r.search_path_length) for r in records if r.entered_pathfinding)
+        / k,
+        "NSNPL": (
+            sum(
+                ratio(r.optimal_pathfinding_length, r.pathfinding_path_length)
+                for r in records
+                if r.entered_pathfinding and r.success
+            )
+            / k_nav
+        )
+        if k_nav
+        else 0.0,
     }
     return out
 
@@ -81,11 +101,19 @@ def test_random_records_match_reference():
         nav = bool(rng.random() < 0.7)
         ls = int(rng.integers(0, length + 1)) if nav else length
         ols = int(rng.integers(0, ls + 1)) if nav else int(rng.integers(0, 10))
-        recs.append(EpisodeRecord(
-            success=bool(nav and rng.random() < 0.6), path_length=length, optimal_length=opt,
-            entered_pathfinding=nav, pathfinding_start_step=ls if nav else None, search_path_length=ls,
-            optimal_search_length=ols, pathfinding_path_length=(length - ls) if nav else None,
-            optimal_pathfinding_length=int(rng.integers(0, length - ls + 1)) if nav else None))
+        recs.append(
+            EpisodeRecord(
+                success=bool(nav and rng.random() < 0.6),
+                path_length=length,
+                optimal_length=opt,
+                entered_pathfinding=nav,
+                pathfinding_start_step=ls if nav else None,
+                search_path_length=ls,
+                optimal_search_length=ols,
+                pathfinding_path_length=(length - ls) if nav else None,
+                optimal_pathfinding_length=int(rng.integers(0, length - ls + 1)) if nav else None,
+            )
+        )
     got, ref = metrics(recs), _reference(recs)
     for k, v in ref.items():
         assert got[k] == pytest.approx(v, abs=1e-12), k

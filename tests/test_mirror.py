@@ -48,8 +48,16 @@ def test_the_mirror_image_is_a_room_with_the_same_paths(tiny_real):
         t = m.next_state[:, a]
         moved = t != S
         assert moved.any()
-        got = edge_actions(m.x[moved], m.z[moved], m.rotation[moved], m.horizon[moved],
-                           m.x[t[moved]], m.z[t[moved]], m.rotation[t[moved]], m.horizon[t[moved]])
+        got = edge_actions(
+            m.x[moved],
+            m.z[moved],
+            m.rotation[moved],
+            m.horizon[moved],
+            m.x[t[moved]],
+            m.z[t[moved]],
+            m.rotation[t[moved]],
+            m.horizon[t[moved]],
+        )
         assert (got == a).all(), a
     # the turns trade places; x and the heading change sign
     np.testing.assert_array_equal(m.next_state[:, ROTATE_LEFT], scene.next_state[:, ROTATE_RIGHT])
@@ -135,8 +143,27 @@ def test_detect_mirror_tables_line_up_with_the_mirrored_room(real, capsys):
 
     # the learned detector on the flipped frames finds the mirrored boxes, as well as it finds the room's
     for extra in ([], ["--mirror"]):
-        assert main(["detect", "--data", str(real), "--detector", "shipped", "--shipped", "learned6", "--name",
-                     "l6", "--no-eval", "--quiet", "--workers", "2", *extra]) == 0
+        assert (
+            main(
+                [
+                    "detect",
+                    "--data",
+                    str(real),
+                    "--detector",
+                    "shipped",
+                    "--shipped",
+                    "learned6",
+                    "--name",
+                    "l6",
+                    "--no-eval",
+                    "--quiet",
+                    "--workers",
+                    "2",
+                    *extra,
+                ]
+            )
+            == 0
+        )
     scenes = [load_scene(p) for p in list_scenes(real)]
     mirrored = [s.mirrored() for s in scenes]
     own = evaluate_detections(scenes, [load_detections(s.path, "l6") for s in scenes])
@@ -149,15 +176,25 @@ def test_detect_mirror_tables_line_up_with_the_mirrored_room(real, capsys):
 
 
 def test_training_on_mirrored_rooms(pixel_world, tmp_path, capsys):
-    cfg = TrainConfig(data=str(pixel_world), features=PIXEL_FEATURES, algo="batched", num_envs=8, rollout_steps=6,
-                      updates=3, checkpoint_every=3, log_every=1, lr=1e-3, device="cpu", detections="oracle",
-                      mirror=True)
+    cfg = TrainConfig(
+        data=str(pixel_world),
+        features=PIXEL_FEATURES,
+        algo="batched",
+        num_envs=8,
+        rollout_steps=6,
+        updates=3,
+        checkpoint_every=3,
+        log_every=1,
+        lr=1e-3,
+        device="cpu",
+        detections="oracle",
+        mirror=True,
+    )
     # without the flipped frames' tables or features: one line naming the missing file and the command that makes it
     out = tmp_path / "run"
     with pytest.raises(FileNotFoundError, match="detect --mirror --name oracle"):
         load_bank(cfg)
-    assert main(["detect", "--data", str(pixel_world), "--detector", "oracle", "--mirror", "--no-eval",
-                 "--quiet"]) == 0
+    assert main(["detect", "--data", str(pixel_world), "--detector", "oracle", "--mirror", "--no-eval", "--quiet"]) == 0
     with pytest.raises(FileNotFoundError, match=f"features --mirror --name {PIXEL_FEATURES}"):
         train_run(cfg, agent_config("cpu"), out, progress_bar=False)
     cache_pixel_features(pixel_world, PIXEL_FEATURES, grid=4, mirror=True)
@@ -167,7 +204,7 @@ def test_training_on_mirrored_rooms(pixel_world, tmp_path, capsys):
     n = plain.num_scenes
     assert bank.num_scenes == 2 * n and bank.num_states == 2 * plain.num_states
     assert bank.names[n:] == [s + MIRROR_SUFFIX for s in plain.names]
-    np.testing.assert_array_equal(bank.dist[plain.num_states:], plain.dist)
+    np.testing.assert_array_equal(bank.dist[plain.num_states :], plain.dist)
     # pooled pixels of a flipped frame: the room's grid flipped left to right
     scene = load_scene(list_scenes(pixel_world, "train")[0])
     px, mx = read_features(scene.path, PIXEL_FEATURES)[0], read_features(scene.path, PIXEL_FEATURES + "-mirror")[0]

@@ -84,8 +84,10 @@ def test_oracle_feature_does_not_vary_with_distance(tiny_scenes):
     pixels = np.where(present, 200, 0).astype(np.int32)
     inst = np.where(present, 0, -1)
     conf = np.where(present, 0.8, 0.0).astype(np.float32)
-    feats = [oracle_features(GroundTruth(present, boxes, pixels, np.full((S, C), d, np.float32), inst), conf, 64)
-             for d in (0.3, 1.7, 4.9, np.nan)]
+    feats = [
+        oracle_features(GroundTruth(present, boxes, pixels, np.full((S, C), d, np.float32), inst), conf, 64)
+        for d in (0.3, 1.7, 4.9, np.nan)
+    ]
     for f in feats[1:]:
         np.testing.assert_array_equal(f, feats[0])
     assert (feats[0][:, 5] != 0).any()  # the present class does have a feature

@@ -2,7 +2,6 @@
 the clean tables of the others under the new name. With no noise it writes exactly the shipped detector's own table;
 with noise it is the same on every run and records the noise; bad input gets one line."""
 
-
 import numpy as np
 import pytest
 
@@ -11,7 +10,6 @@ from tsnav.data.reader import list_scenes
 from script_helpers import load_analysis
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
-
 
 
 def _script():

@@ -7,8 +7,10 @@ from script_helpers import load_analysis
 
 
 def _selection(path, srs, best, episodes):
-    scores = {f"ckpt_{u:09d}": {"update": u, "metrics": {"ALL": {"SR": sr, "SPL": sr / 2, "episodes": episodes}}}
-              for u, sr in srs.items()}
+    scores = {
+        f"ckpt_{u:09d}": {"update": u, "metrics": {"ALL": {"SR": sr, "SPL": sr / 2, "episodes": episodes}}}
+        for u, sr in srs.items()
+    }
     path.write_text(json.dumps({"best": best, "scores": scores}))
     return path
 
@@ -32,8 +34,12 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     bad.write_text('{"best": "x"}')
     running = _selection(tmp_path / "running.json", {250: 0.7}, None, 400)  # a selection still running
     out = tmp_path / "sel.png"
-    for run in (f"seed 0={good}", f"seed 0={good},{bad}", f"seed 0={good},{tmp_path / 'missing.json'}",
-                f"seed 0={good},{running}"):
+    for run in (
+        f"seed 0={good}",
+        f"seed 0={good},{bad}",
+        f"seed 0={good},{tmp_path / 'missing.json'}",
+        f"seed 0={good},{running}",
+    ):
         assert mod.main(["--out", str(out), "--run", run]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("plot_selection: error:") and len(err.splitlines()) == 1

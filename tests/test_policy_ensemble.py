@@ -27,38 +27,115 @@ def two_runs(pixel_world, tmp_path_factory):
     runs = []
     for seed in (0, 1):
         run = base / f"run{seed}"
-        assert main(["train", "--data", str(pixel_world), "--features", FEATS, "--detections", "oracle", "--reward",
-                     "tsrm", "--algo", "batched", "--out", str(run), "--updates", "3", "--num-envs", "4", "--preset",
-                     "cpu", "--rollout-steps", "5", "--seed", str(seed), "--lr", "1e-2", "--quiet"]) == 0
+        assert (
+            main(
+                [
+                    "train",
+                    "--data",
+                    str(pixel_world),
+                    "--features",
+                    FEATS,
+                    "--detections",
+                    "oracle",
+                    "--reward",
+                    "tsrm",
+                    "--algo",
+                    "batched",
+                    "--out",
+                    str(run),
+                    "--updates",
+                    "3",
+                    "--num-envs",
+                    "4",
+                    "--preset",
+                    "cpu",
+                    "--rollout-steps",
+                    "5",
+                    "--seed",
+                    str(seed),
+                    "--lr",
+                    "1e-2",
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
         runs.append(run)
     eps = base / "eps.json"
-    assert main(["episodes", "--data", str(pixel_world), "--split", "test", "--per-room-type", "6", "--out",
-                 str(eps)]) == 0
+    assert (
+        main(["episodes", "--data", str(pixel_world), "--split", "test", "--per-room-type", "6", "--out", str(eps)])
+        == 0
+    )
     return pixel_world, runs, eps
 
 
 def test_one_member_is_the_agent(ens, two_runs, tmp_path, capsys):
     world, (run, other), eps = two_runs
     ref = tmp_path / "ref"
-    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--checkpoint", "latest",
-                 "--out", str(ref)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps),
+                "--run",
+                str(run),
+                "--checkpoint",
+                "latest",
+                "--out",
+                str(ref),
+            ]
+        )
+        == 0
+    )
     ref_traj = read_trajectories(ref / "trajectories.jsonl")
     for members, average in (([run], "prob"), ([run, run], "prob"), ([run, run, run], "logprob")):
         out = tmp_path / f"e{len(members)}{average}"
-        argv = ["--data", str(world), "--episodes", str(eps), "--checkpoint", "latest", "--average", average,
-                "--out", str(out)]
+        argv = [
+            "--data",
+            str(world),
+            "--episodes",
+            str(eps),
+            "--checkpoint",
+            "latest",
+            "--average",
+            average,
+            "--out",
+            str(out),
+        ]
         for r in members:
             argv += ["--run", str(r)]
         assert ens.main(argv) == 0
         traj = read_trajectories(out / "trajectories.jsonl")
         assert [t.actions for t in traj] == [t.actions for t in ref_traj]
         m, mr = (json.loads((d / "metrics.json").read_text()) for d in (out, ref))
-        assert m["metrics"]["ALL"] == mr["metrics"]["ALL"] and m["policy"] == "ensemble" and len(m["runs"]) == len(members)
+        assert (
+            m["metrics"]["ALL"] == mr["metrics"]["ALL"] and m["policy"] == "ensemble" and len(m["runs"]) == len(members)
+        )
     assert "ensemble of 3 (logprob)" in capsys.readouterr().out
     # two different agents: still a complete evaluation, and the action is each step's argmax of the summed probabilities
     out = tmp_path / "pair"
-    assert ens.main(["--data", str(world), "--episodes", str(eps), "--checkpoint", "latest", "--run", str(run),
-                     "--run", str(other), "--out", str(out)]) == 0
+    assert (
+        ens.main(
+            [
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps),
+                "--checkpoint",
+                "latest",
+                "--run",
+                str(run),
+                "--run",
+                str(other),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     traj = read_trajectories(out / "trajectories.jsonl")
     assert len(traj) == len(ref_traj) and all(0 <= a < 6 for t in traj for a in t.actions)
 
@@ -92,8 +169,21 @@ def test_the_summed_probabilities_decide(ens):
 
 def test_bad_run_is_one_line(ens, two_runs, tmp_path, capsys):
     world, _, eps = two_runs
-    assert ens.main(["--data", str(world), "--episodes", str(eps), "--run", str(tmp_path / "nothing"), "--out",
-                     str(tmp_path / "o")]) == 2
+    assert (
+        ens.main(
+            [
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps),
+                "--run",
+                str(tmp_path / "nothing"),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "not a `tsnav train` run folder" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()

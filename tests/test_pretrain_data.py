@@ -7,8 +7,16 @@ import torch
 from tsnav.constants import CATEGORY_INDEX
 from tsnav.data.reader import load_scene
 from tsnav.pretrain.data import (
-    DEPTH_MEAN, DEPTH_STD, AugmentConfig, RGBDImages, apply_augment, clean_depth, denormalize_rgb, draw_augment,
-    normalize_rgb, prepare_batch,
+    DEPTH_MEAN,
+    DEPTH_STD,
+    AugmentConfig,
+    RGBDImages,
+    apply_augment,
+    clean_depth,
+    denormalize_rgb,
+    draw_augment,
+    normalize_rgb,
+    prepare_batch,
 )
 from tsnav.pretrain.synthetic import write_synthetic_dataset
 

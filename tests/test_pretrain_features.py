@@ -65,13 +65,15 @@ def test_resnet_cache_and_specs(root, tmp_path):
 
 
 def test_tiny_world_features_from_a_pretraining_run(tiny_world, tmp_path):
-    cfg = PretrainConfig(method="demae", model="vit_micro", patch_size=16, img_size=32, batch_size=8, steps=2,
-                         viz_images=2, max_scenes=1)
+    cfg = PretrainConfig(
+        method="demae", model="vit_micro", patch_size=16, img_size=32, batch_size=8, steps=2, viz_images=2, max_scenes=1
+    )
     train(cfg, tiny_world, tmp_path / "run", progress=False)
     assert (tmp_path / "run" / "recon.png").exists()
     enc = load_encoder(str(tmp_path / "run"))
-    files = cache_features(enc, tiny_world, default_name(str(tmp_path / "run")), batch_size=128,
-                           split="val", progress=False)
+    files = cache_features(
+        enc, tiny_world, default_name(str(tmp_path / "run")), batch_size=128, split="val", progress=False
+    )
     for f in files:
         scene = load_scene(f.parent)
         feats, keys, _ = read_features(f.parent, "run")

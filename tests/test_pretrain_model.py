@@ -5,7 +5,13 @@ import pytest
 import torch
 
 from tsnav.pretrain.model import (
-    MAEConfig, MaskedAutoencoderViT, load_encoder_weights, patchify, sincos_2d, unpatchify, vit_tiny,
+    MAEConfig,
+    MaskedAutoencoderViT,
+    load_encoder_weights,
+    patchify,
+    sincos_2d,
+    unpatchify,
+    vit_tiny,
 )
 
 
@@ -13,8 +19,18 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def small(use_depth=True, **kw):
-    cfg = MAEConfig(img_size=32, patch_size=8, embed_dim=32, depth=2, num_heads=2, decoder_embed_dim=16,
-                    decoder_depth=1, decoder_num_heads=2, use_depth=use_depth, **kw)
+    cfg = MAEConfig(
+        img_size=32,
+        patch_size=8,
+        embed_dim=32,
+        depth=2,
+        num_heads=2,
+        decoder_embed_dim=16,
+        decoder_depth=1,
+        decoder_num_heads=2,
+        use_depth=use_depth,
+        **kw,
+    )
     torch.manual_seed(0)
     return MaskedAutoencoderViT(cfg)
 
@@ -62,11 +78,11 @@ def test_loss_uses_masked_rgb_and_all_depth_by_hand():
     mask = torch.zeros(1, 16)
     mask[0, [0, 5]] = 1
     pred = torch.zeros(1, 16, 192)
-    pred[0, 0] = 2.0        # masked patch, error 4 per pixel
-    pred[0, 5] = 1.0        # masked patch, error 1
-    pred[0, 7] = 100.0      # visible patch: must not count
+    pred[0, 0] = 2.0  # masked patch, error 4 per pixel
+    pred[0, 5] = 1.0  # masked patch, error 1
+    pred[0, 7] = 100.0  # visible patch: must not count
     pred_d = torch.zeros(1, 16, 64)
-    pred_d[0, 3] = 4.0      # visible patch: depth counts everywhere (16 per pixel on 1/16 of pixels)
+    pred_d[0, 3] = 4.0  # visible patch: depth counts everywhere (16 per pixel on 1/16 of pixels)
     loss, lr, ld = m.forward_loss(imgs, pred, mask, depths, pred_d)
     assert lr.item() == pytest.approx((4 + 1) / 2)
     assert ld.item() == pytest.approx(16 / 16)
@@ -119,6 +135,7 @@ def test_bad_config_and_weight_errors(tmp_path):
         MAEConfig(img_size=30, patch_size=8)
     m = small()
     from safetensors.torch import save_file
+
     sd = {k: v.clone() for k, v in m.encoder_state_dict().items()}
     sd.pop("norm.weight")
     sd["extra.weight"] = torch.zeros(1)

@@ -26,8 +26,9 @@ def test_torchvision_layout_and_features(tmp_path):
     shapes = json.loads((FIX / "resnet_keys.json").read_text())
     ours = ResNet18(num_classes=22)
     own = {k: list(v.shape) for k, v in ours.state_dict().items()}
-    assert {k: v for k, v in own.items() if not k.startswith("fc.")} == \
-        {k: v for k, v in shapes.items() if not k.startswith("fc.")}
+    assert {k: v for k, v in own.items() if not k.startswith("fc.")} == {
+        k: v for k, v in shapes.items() if not k.startswith("fc.")
+    }
     save_file(_formula()(shapes), str(tmp_path / "tv.safetensors"))
     info = load_resnet_weights(ours, tmp_path / "tv.safetensors")
     assert info["ignored"] == ["fc.bias", "fc.weight"]  # ImageNet head does not fit 22 outputs
@@ -45,8 +46,9 @@ def test_bad_weights_are_named(tmp_path):
 
 def test_supervised_pretraining_lowers_the_loss(tmp_path):
     root = write_synthetic_dataset(tmp_path / "d", size=32)
-    cfg = PretrainConfig(method="resnet18-sup", img_size=32, batch_size=8, steps=4, base_lr=0.02, log_every=1,
-                         warmup_fraction=0.1)
+    cfg = PretrainConfig(
+        method="resnet18-sup", img_size=32, batch_size=8, steps=4, base_lr=0.02, log_every=1, warmup_fraction=0.1
+    )
     res = train(cfg, root, tmp_path / "run", progress=False)
     assert res["finished"]
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

@@ -17,9 +17,17 @@ FIX = Path(__file__).parent / "fixtures" / "pretrain"
 
 def test_timm_vit_weights_reproduce_timm_features():
     arch = json.loads((FIX / "timm_meta.json").read_text())["arch"]
-    cfg = MAEConfig(img_size=arch["img_size"], patch_size=arch["patch_size"], embed_dim=arch["embed_dim"],
-                    depth=arch["depth"], num_heads=arch["num_heads"], mlp_ratio=arch["mlp_ratio"],
-                    decoder_embed_dim=32, decoder_depth=1, decoder_num_heads=2)
+    cfg = MAEConfig(
+        img_size=arch["img_size"],
+        patch_size=arch["patch_size"],
+        embed_dim=arch["embed_dim"],
+        depth=arch["depth"],
+        num_heads=arch["num_heads"],
+        mlp_ratio=arch["mlp_ratio"],
+        decoder_embed_dim=32,
+        decoder_depth=1,
+        decoder_num_heads=2,
+    )
     model = MaskedAutoencoderViT(cfg).eval()
     info = load_encoder_weights(model, FIX / "timm_vit.safetensors")
     assert "blocks.1.mlp.fc2.weight" in info["loaded"] and "pos_embed" in info["loaded"]

@@ -65,7 +65,10 @@ def test_truncated_newest_checkpoint_resumes_from_the_previous_one(data, tmp_pat
     ckpts = tmp_path / "b" / "checkpoints"
     assert sorted(p.name for p in ckpts.iterdir()) == ["ckpt_000000004", "ckpt_000000005"]
     assert sorted(p.name for p in (ckpts / "ckpt_000000005").iterdir()) == [
-        "model.safetensors", "optimizer.safetensors", "state.json"]
+        "model.safetensors",
+        "optimizer.safetensors",
+        "state.json",
+    ]
     broken = ckpts / "ckpt_000000005" / "model.safetensors"
     broken.write_bytes(broken.read_bytes()[:64])
     capsys.readouterr()
@@ -186,9 +189,11 @@ def test_sigterm_stops_cleanly_at_a_step_boundary(data, tmp_path):
         "try:\n"
         "    train(cfg, sys.argv[1], sys.argv[2], progress=False)\n"
         "except KeyboardInterrupt:\n"
-        "    sys.exit(130)\n")
-    p = subprocess.Popen([sys.executable, "-c", code, str(data), str(tmp_path / "r")],
-                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+        "    sys.exit(130)\n"
+    )
+    p = subprocess.Popen(
+        [sys.executable, "-c", code, str(data), str(tmp_path / "r")], env={**os.environ, "OMP_NUM_THREADS": "1"}
+    )
     deadline = time.time() + 120
     while not list((tmp_path / "r" / "tb").glob("events*")) and time.time() < deadline:
         time.sleep(0.2)

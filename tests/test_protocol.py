@@ -16,8 +16,7 @@ from tsnav.metrics import EpisodeRecord, metric_values, summarize
 from tsnav.protocol import check_protocol, protocol_line
 from tsnav.rl.config import TrainConfig
 from tsnav.sim.batch import SceneBank, SimConfig, SparseReward
-from tsnav.sim.episodes import (EpisodeConfig, allowed_targets, make_env, make_episodes, read_episodes,
-                                valid_starts)
+from tsnav.sim.episodes import EpisodeConfig, allowed_targets, make_env, make_episodes, read_episodes, valid_starts
 from tsnav.sim.paths import UNREACHABLE
 
 
@@ -49,7 +48,7 @@ def test_paper_mask_and_how_the_protocols_relate_in_built_worlds(tiny_scenes):
 def test_bank_success_and_distances_follow_the_protocol(banks):
     paper, lineage = banks["paper"], banks["lineage"]
     assert paper.protocol == "paper" and lineage.protocol == "lineage"
-    assert (lineage.success.sum() > paper.success.sum())
+    assert lineage.success.sum() > paper.success.sum()
     for bank in (paper, lineage):  # L* = 0 exactly at the success states
         reach = bank.dist < UNREACHABLE
         np.testing.assert_array_equal((bank.dist == 0) & reach, bank.success & reach)
@@ -60,7 +59,7 @@ def test_lineage_keeps_start_success_episodes(banks):
     for name, bank in banks.items():
         t = valid_starts(bank)
         starts_succeed = bank.success[t.starts, np.repeat(t.pair_target, t.counts)]
-        ok = (bank.success & (bank.dist < UNREACHABLE) & allowed_targets(bank, EpisodeConfig())[bank.scene_of])
+        ok = bank.success & (bank.dist < UNREACHABLE) & allowed_targets(bank, EpisodeConfig())[bank.scene_of]
         if name == "paper":
             assert not starts_succeed.any()
         else:
@@ -159,26 +158,60 @@ def test_commands_record_and_print_the_protocol(tiny_world, tmp_path, capsys):
     splits = {json.loads((p / "scene.json").read_text()).get("split") for p in list_scenes(tiny_world)}
     split = "test" if "test" in splits else sorted(splits)[0]
     eps = tmp_path / "lineage.json"
-    assert main(["episodes", "--data", str(tiny_world), "--split", split, "--per-room-type", "200",
-                 "--protocol", "lineage", "--out", str(eps)]) == 0
+    assert (
+        main(
+            [
+                "episodes",
+                "--data",
+                str(tiny_world),
+                "--split",
+                split,
+                "--per-room-type",
+                "200",
+                "--protocol",
+                "lineage",
+                "--out",
+                str(eps),
+            ]
+        )
+        == 0
+    )
     episodes, meta = read_episodes(eps)
     assert meta["protocol"] == "lineage" and any(e.optimal_length == 0 for e in episodes)
     assert "start already succeeds" in capsys.readouterr().out
     out = tmp_path / "ev"
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "oracle",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "oracle", "--out", str(out)]) == 0
+    )
     printed = capsys.readouterr().out
     assert "protocol: lineage" in printed
     m = json.loads((out / "metrics.json").read_text())
     assert m["protocol"] == "lineage" and m["metrics"]["protocol"] == "lineage" and m["trained_protocol"] is None
     # a bad name: one line, nothing written
     bad = tmp_path / "bad.json"
-    assert main(["episodes", "--data", str(tiny_world), "--split", split, "--protocol", "bogus",
-                 "--out", str(bad)]) == 2
+    assert (
+        main(["episodes", "--data", str(tiny_world), "--split", split, "--protocol", "bogus", "--out", str(bad)]) == 2
+    )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "unknown success protocol 'bogus'" in err and not bad.exists()
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "oracle",
-                 "--protocol", "paper", "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(tiny_world),
+                "--episodes",
+                str(eps),
+                "--policy",
+                "oracle",
+                "--protocol",
+                "paper",
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 2
+    )
     assert "drawn under the lineage protocol" in capsys.readouterr().err
 
 
@@ -201,13 +234,19 @@ def test_tsrm_distance_term_follows_the_protocol(banks, tiny_scenes):
         ref = TSRMRewardReference(sc, cfg, protocol="lineage")
         start = int(rng.integers(sc.num_states))
         ref.reset(int(c), start)
-        np.testing.assert_array_equal(ref.term["distance"]._dist_cache[int(c)], d[lo:lo + sc.num_states, c])
+        np.testing.assert_array_equal(ref.term["distance"]._dist_cache[int(c)], d[lo : lo + sc.num_states, c])
         fast.reset(np.ones(1, bool), np.zeros(1, np.int64), np.array([c]), np.array([start + lo]))
         s = start
         for a in rng.choice(5, 15):
             new = int(sc.next_state[s, a])
-            _, tf = fast.step(np.array([s + lo]), np.array([a]), np.array([new + lo]), np.zeros(1, bool),
-                              np.zeros(1, bool), np.zeros(1, bool))
+            _, tf = fast.step(
+                np.array([s + lo]),
+                np.array([a]),
+                np.array([new + lo]),
+                np.zeros(1, bool),
+                np.zeros(1, bool),
+                np.zeros(1, bool),
+            )
             _, tr = ref.step(s, int(a), new, False, False, False)
             assert tf["distance"][0] == pytest.approx(tr["distance"], abs=1e-6)
             s = new

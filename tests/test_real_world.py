@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from tsnav.constants import GRID_SIZE, TARGET_CATEGORIES
-from tsnav.world.layouts import (LayoutError, layout_names, load_layout, pack_layouts, parse_layout,
-                                 read_layout_file)
+from tsnav.world.layouts import LayoutError, layout_names, load_layout, pack_layouts, parse_layout, read_layout_file
 from tsnav.world.navgrid import AGENT_RADIUS, SIGHT_DISTANCE, reachable_positions, targets_in_sight
 from tsnav.world.real import alcoves, blocks, outer_rect, real_spec, spec_from_layout
 from tsnav.world.spec import ObjectInstance, SceneSpec
@@ -21,21 +20,30 @@ from tsnav.world.spec import ObjectInstance, SceneSpec
 def obj(oid: str, center, size, parents=None, ry: float = 0.0, **flags) -> dict:
     """One object in the recorded layout format (no oriented box: the axis-aligned one is used)."""
     otype = oid.split("|")[0]
-    return {"objectId": oid, "objectType": otype, "position": dict(zip("xyz", center)),
-            "rotation": {"x": 0, "y": ry, "z": 0},
-            "aabb": {"center": dict(zip("xyz", center)), "size": dict(zip("xyz", size))}, "oobbCorners": None,
-            "parentReceptacles": parents, **flags}
+    return {
+        "objectId": oid,
+        "objectType": otype,
+        "position": dict(zip("xyz", center)),
+        "rotation": {"x": 0, "y": ry, "z": 0},
+        "aabb": {"center": dict(zip("xyz", center)), "size": dict(zip("xyz", size))},
+        "oobbCorners": None,
+        "parentReceptacles": parents,
+        **flags,
+    }
 
 
 FLOOR = obj("Floor|+00.00|+00.00|+00.00", (1.5, -0.05, 1.5), (3.0, 0.1, 3.0))
-ROOM = {"scene": "FloorPlan401", "objects": [
-    FLOOR,
-    obj("Chair|+01.50|+00.00|+01.50", (1.5, 0.45, 1.5), (0.5, 0.9, 0.5), ["Floor|+00.00|+00.00|+00.00"]),
-    obj("Plate|+00.50|+00.80|+00.50", (0.5, 0.8, 0.5), (0.25, 0.02, 0.25), ["DiningTable|+00.50|+00.70|+00.50"]),
-    obj("LightSwitch|+00.02|+01.30|+02.00", (0.02, 1.3, 2.0), (0.04, 0.15, 0.09), None, ry=90),
-    obj("Cabinet|+02.75|+02.20|+00.25", (2.75, 2.2, 0.25), (0.5, 0.6, 0.5)),  # hangs above the capsule
-    obj("Cabinet|+02.75|+00.40|+02.75", (2.75, 0.4, 2.75), (0.5, 0.8, 0.5)),  # stands on the floor
-]}
+ROOM = {
+    "scene": "FloorPlan401",
+    "objects": [
+        FLOOR,
+        obj("Chair|+01.50|+00.00|+01.50", (1.5, 0.45, 1.5), (0.5, 0.9, 0.5), ["Floor|+00.00|+00.00|+00.00"]),
+        obj("Plate|+00.50|+00.80|+00.50", (0.5, 0.8, 0.5), (0.25, 0.02, 0.25), ["DiningTable|+00.50|+00.70|+00.50"]),
+        obj("LightSwitch|+00.02|+01.30|+02.00", (0.02, 1.3, 2.0), (0.04, 0.15, 0.09), None, ry=90),
+        obj("Cabinet|+02.75|+02.20|+00.25", (2.75, 2.2, 0.25), (0.5, 0.6, 0.5)),  # hangs above the capsule
+        obj("Cabinet|+02.75|+00.40|+02.75", (2.75, 0.4, 2.75), (0.5, 0.8, 0.5)),  # stands on the floor
+    ],
+}
 
 
 def box_dist(p, center, size) -> float:
@@ -47,8 +55,14 @@ def box_dist(p, center, size) -> float:
 def test_blocking_rule_and_reachable_positions():
     layout = parse_layout(ROOM, "room")
     kinds = {o.object_id.split("|")[0] + ("-high" if o.aabb_center[1] > 2 else ""): blocks(o) for o in layout.objects}
-    assert kinds == {"Floor": False, "Chair": True, "Plate": False, "LightSwitch": False, "Cabinet-high": False,
-                     "Cabinet": True}
+    assert kinds == {
+        "Floor": False,
+        "Chair": True,
+        "Plate": False,
+        "LightSwitch": False,
+        "Cabinet-high": False,
+        "Cabinet": True,
+    }
     # Version 1's rules (walls at the floor box, the full capsule radius); version 2 below (test_version_2_*).
     assert outer_rect(layout, 1) == [0.0, 0.0, 3.0, 3.0] and alcoves(layout, [0.0, 0.0, 3.0, 3.0]) == []
     spec = spec_from_layout(layout, "bathroom", "train", version=1)
@@ -87,12 +101,14 @@ def test_kept_connected_set_rule_on_small_floors():
     """Two floor squares, 49 grid positions and 9: with no objects (or a target seen from the large one) the
     large set is kept; with the only target by the small one, the small one; a set of fewer than MIN_COMPONENT
     positions is never kept; one set is kept as it is."""
+
     def square(x0, z0, x1, z1):
         return [[x0, z0], [x1, z0], [x1, z1], [x0, z1]]
 
     def spec(*floor, objects=()):
-        return SceneSpec(name="t", room_type="bathroom", split="train", seed=0, rooms=[], floor=list(floor),
-                         objects=list(objects))
+        return SceneSpec(
+            name="t", room_type="bathroom", split="train", seed=0, rooms=[], floor=list(floor), objects=list(objects)
+        )
 
     def sink(x, z):
         return ObjectInstance(f"Sink|{x}|{z}", "Sink", (x, 0.8, z), (0.3, 0.2, 0.1), 0.0, "wall")
@@ -190,14 +206,22 @@ def test_real_scene_build_is_deterministic(tmp_path):
         build_dataset(tmp_path / d, "ithor-real", ["FloorPlan405"], cfg, workers=1, progress=False)
     a, b = tmp_path / "a" / "FloorPlan405", tmp_path / "b" / "FloorPlan405"
     names = sorted(p.name for p in a.iterdir())
-    assert {"graph.json", "grid.json", "visible_object_map_1.5.json", "images.hdf5", "depth.hdf5",
-            "states.hdf5", "scene.json"} <= set(names)
+    assert {
+        "graph.json",
+        "grid.json",
+        "visible_object_map_1.5.json",
+        "images.hdf5",
+        "depth.hdf5",
+        "states.hdf5",
+        "scene.json",
+    } <= set(names)
     match, mismatch, errors = filecmp.cmpfiles(a, b, names, shallow=False)
     assert not mismatch and not errors
     scene = load_scene(a)
     assert scene.room_type == "bathroom" and scene.num_states > 0
     assert set(json.loads((a / "visible_object_map_1.5.json").read_text())) <= {
-        o.object_id for o in load_layout("FloorPlan405").objects}
+        o.object_id for o in load_layout("FloorPlan405").objects
+    }
     assert Path(a / "scene.json").stat().st_size > 0
 
 
@@ -208,8 +232,21 @@ def test_paper_scale_runs_on_ithor_real(tmp_path, tiny_world, capsys):
 
     assert SCALES["paper"].world == "ithor-real" and SCALES["small"].world == "demo"
     # A missing --data folder: the one-line error names the scale's world and --build-world.
-    assert main(["experiment", "ablation", "--scale", "paper", "--data", str(tmp_path / "none"),
-                 "--out", str(tmp_path / "o")]) == 2
+    assert (
+        main(
+            [
+                "experiment",
+                "ablation",
+                "--scale",
+                "paper",
+                "--data",
+                str(tmp_path / "none"),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "no such dataset folder" in err and "ithor-real" in err and len(err.strip().splitlines()) == 1
     # An existing dataset of another world is used as it is, with a note.

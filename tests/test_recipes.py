@@ -17,8 +17,16 @@ from tsnav.cli import main
 from tsnav.errors import CommandError
 from tsnav.rl.config import BUDGET_FIELDS, TrainConfig
 from tsnav.rl.recipe import identity_recipe, resolve_run
-from tsnav.settings import (apply_sets, build, dump_recipe, field_docs, first_difference, parse_value, read_recipe,
-                            to_recipe)
+from tsnav.settings import (
+    apply_sets,
+    build,
+    dump_recipe,
+    field_docs,
+    first_difference,
+    parse_value,
+    read_recipe,
+    to_recipe,
+)
 from tsnav.tsrm.reward import RewardConfig
 
 from conftest import PIXEL_FEATURES as FEATS
@@ -55,16 +63,33 @@ def test_field_docs_are_the_help():
 
     build_parser(p)
     text = p.format_help()
-    for option in ("--k-explore", "--k-distance", "--collision-penalty", "--slack", "--success-reward",
-                   "--near-level", "--far-level", "--near-down", "--far-down", "--c-target", "--dropout",
-                   "--blocked-action", "--entropy-coef", "--ranks", "--lr"):
+    for option in (
+        "--k-explore",
+        "--k-distance",
+        "--collision-penalty",
+        "--slack",
+        "--success-reward",
+        "--near-level",
+        "--far-level",
+        "--near-down",
+        "--far-down",
+        "--c-target",
+        "--dropout",
+        "--blocked-action",
+        "--entropy-coef",
+        "--ranks",
+        "--lr",
+    ):
         assert option in text, option
     assert "Adam learning rate" in text and "K_d, reward per pose-graph action" in text
 
 
 def test_recipe_round_trip_and_sets():
-    recipe = {"train": {"lr": 1e-3, "episodes": None, "mirror": True, "data": "x"}, "reward": {"area": {"far_level": 5.0}},
-              "agent": {"dropout": 0.3}}
+    recipe = {
+        "train": {"lr": 1e-3, "episodes": None, "mirror": True, "data": "x"},
+        "reward": {"area": {"far_level": 5.0}},
+        "agent": {"dropout": 0.3},
+    }
     text = dump_recipe(recipe, header="a recipe")
     assert text.startswith("# a recipe") and 'episodes = "none"' in text
     again = read_recipe_text(text)
@@ -196,12 +221,33 @@ def test_train_recipe_and_resume_refusal(pixel_world, tmp_path, capsys):
     """K_d = 0.3 from a recipe file and --set reaches the run; a resume keeps it; another value is refused in one
     line naming it; the run's recipe.toml trains the same run again."""
     recipe = tmp_path / "kd.toml"
-    recipe.write_text('[train]\nalgo = "batched"\npreset = "cpu"\nnum_envs = 4\nrollout_steps = 5\n'
-                      'checkpoint_every = 2\nlog_every = 1\nlr = 1e-3\n[reward]\nk_distance = 0.3\n'
-                      '[agent]\ndropout = 0.2\n')
+    recipe.write_text(
+        '[train]\nalgo = "batched"\npreset = "cpu"\nnum_envs = 4\nrollout_steps = 5\n'
+        "checkpoint_every = 2\nlog_every = 1\nlr = 1e-3\n[reward]\nk_distance = 0.3\n"
+        "[agent]\ndropout = 0.2\n"
+    )
     run = tmp_path / "run"
-    assert main(["train", "--config", str(recipe), "--set", "train.updates=2", "--data", str(pixel_world),
-                 "--features", FEATS, "--detections", "oracle", "--out", str(run), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--config",
+                str(recipe),
+                "--set",
+                "train.updates=2",
+                "--data",
+                str(pixel_world),
+                "--features",
+                FEATS,
+                "--detections",
+                "oracle",
+                "--out",
+                str(run),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["reward"]["k_distance"] == 0.3 and cfg["train"]["reward_settings"] == {"k_distance": 0.3}
     assert cfg["agent"]["dropout"] == 0.2 and cfg["train"]["updates"] == 2
@@ -218,8 +264,9 @@ def test_train_recipe_and_resume_refusal(pixel_world, tmp_path, capsys):
     again = tmp_path / "again"
     assert main(["train", "--config", str(run / "recipe.toml"), "--out", str(again), "--quiet"]) == 0
     a, b = (json.loads((p / "config.json").read_text()) for p in (run, again))
-    assert {k: v for k, v in a["train"].items() if k not in BUDGET_FIELDS} == \
-        {k: v for k, v in b["train"].items() if k not in BUDGET_FIELDS}
+    assert {k: v for k, v in a["train"].items() if k not in BUDGET_FIELDS} == {
+        k: v for k, v in b["train"].items() if k not in BUDGET_FIELDS
+    }
     assert a["reward"] == b["reward"] and a["agent"] == b["agent"]
 
 
@@ -235,9 +282,28 @@ def test_pretrain_options_come_from_pretrain_config():
     from tsnav.pretrain.train import PretrainConfig
 
     assert config_from_args(parse("pretrain", ["--data", "d", "--out", "o"])) == PretrainConfig()
-    c = config_from_args(parse("pretrain", ["--data", "d", "--out", "o", "--patch", "8", "--num-workers", "2",
-                                            "--no-preload", "--set", "pretrain.betas=[0.9, 0.99]",
-                                            "--set", "pretrain.steps=7", "--steps", "5"]))
+    c = config_from_args(
+        parse(
+            "pretrain",
+            [
+                "--data",
+                "d",
+                "--out",
+                "o",
+                "--patch",
+                "8",
+                "--num-workers",
+                "2",
+                "--no-preload",
+                "--set",
+                "pretrain.betas=[0.9, 0.99]",
+                "--set",
+                "pretrain.steps=7",
+                "--steps",
+                "5",
+            ],
+        )
+    )
     assert (c.patch_size, c.num_workers, c.preload, c.betas, c.steps) == (8, 2, False, (0.9, 0.99), 5)
     with pytest.raises(CommandError, match="unknown method 'dino'"):
         config_from_args(parse("pretrain", ["--data", "d", "--out", "o", "--method", "dino"]))
@@ -249,8 +315,13 @@ def test_every_parser_refuses_abbreviations():
     import re
 
     for path in [*(ROOT / "src").rglob("*.py"), *(ROOT / "bench").glob("*.py")]:
-        for m in re.finditer(r"ArgumentParser\((.*)", path.read_text()):
-            assert "allow_abbrev=False" in m.group(1) or path.name == "settings.py", (path, m.group(0))
+        text = path.read_text()
+        for m in re.finditer(r"ArgumentParser\(", text):  # the call's arguments up to its closing parenthesis
+            depth, i = 1, m.end()
+            while depth and i < len(text):
+                depth += {"(": 1, ")": -1}.get(text[i], 0)
+                i += 1
+            assert "allow_abbrev=False" in text[m.end() : i] or path.name == "settings.py", (path, text[m.start() : i])
 
 
 def test_release_make_refuses_before_any_work(tmp_path, capsys):
@@ -261,9 +332,9 @@ def test_release_make_refuses_before_any_work(tmp_path, capsys):
     before = sorted(p.name for p in WEIGHTS.iterdir())
     assert main(["release", "make", str(recipe), "--work", str(work), "--replace-shipped", "tsrm-demae-learned6"]) == 2
     assert "the recipe makes 'tsrm-demae-learned7'" in capsys.readouterr().err and not work.exists()
-    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "train.data=\"/x\""]) == 2
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", 'train.data="/x"']) == 2
     assert "[train]: data is the work folder's" in capsys.readouterr().err and not work.exists()
-    assert main(["release", "make", str(recipe), "--work", str(work), "--set", "train.algo=\"a3c\""]) == 2
+    assert main(["release", "make", str(recipe), "--work", str(work), "--set", 'train.algo="a3c"']) == 2
     assert "algo batched" in capsys.readouterr().err
     assert main(["release", "make", str(recipe), "--work", str(work), "--set", "convergence.chunk=0"]) == 2
     assert "--chunk must be >= 1" in capsys.readouterr().err
@@ -279,8 +350,18 @@ def test_agent_card_is_written_from_the_recipe(tmp_path):
     card = agent_card(r, tmp_path)
     assert all(k in card for k in CARD_REQUIRED)
     shipped = json.loads((WEIGHTS / r.name / "card.json").read_text())
-    for k in ("name", "world_preset", "world_version", "image_size", "detector_shipped", "detector_fingerprint",
-              "detections", "summary", "protocol", "encoder_id"):
+    for k in (
+        "name",
+        "world_preset",
+        "world_version",
+        "image_size",
+        "detector_shipped",
+        "detector_fingerprint",
+        "detections",
+        "summary",
+        "protocol",
+        "encoder_id",
+    ):
         assert card[k] == shipped[k], k
     assert card["detector_fingerprint"] == shipped_meta("learned7")["fingerprint"]
 
@@ -297,8 +378,12 @@ def test_train_reads_its_sections_of_an_agent_recipe(capsys, tmp_path):
     assert "world" in capsys.readouterr().err
     cfg, agent = resolve_run(recipe)
     full = read_recipe(path)
-    assert (cfg.lr, cfg.seed, cfg.num_envs, cfg.protocol) == (full["train"]["lr"], full["train"]["seed"],
-                                                              full["train"]["num_envs"], full["train"]["protocol"])
+    assert (cfg.lr, cfg.seed, cfg.num_envs, cfg.protocol) == (
+        full["train"]["lr"],
+        full["train"]["seed"],
+        full["train"]["num_envs"],
+        full["train"]["protocol"],
+    )
     assert agent.dropout == full["agent"]["dropout"]
     (tmp_path / "r.toml").write_text(path.read_text().replace("[world]", "[wrold]"))
     with pytest.raises(CommandError, match="wrold"):

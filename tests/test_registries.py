@@ -35,8 +35,11 @@ def test_one_metric_registry_read_by_tables_claims_logger_and_curves(metric_regi
     assert list(before) == list(metrics.METRICS)
     with pytest.raises(ValueError, match="not a tsnav.metrics.Metric"):
         metrics.register_metric("NSR")
-    metrics.register_metric(metrics.Metric("NSR", "successes among pathfinding episodes",
-                                           lambda e: float(np.sum(e.success * e.entered) / e.k_nav)))
+    metrics.register_metric(
+        metrics.Metric(
+            "NSR", "successes among pathfinding episodes", lambda e: float(np.sum(e.success * e.entered) / e.k_nav)
+        )
+    )
     with pytest.raises(ValueError, match="already registered"):
         metrics.register_metric(metrics.Metric("NSR", "another", lambda e: 0.0))
     after = metrics.metric_values(*cols)
@@ -45,8 +48,10 @@ def test_one_metric_registry_read_by_tables_claims_logger_and_curves(metric_regi
     assert tag_group("NSR") == "metrics" and tag_group("SR") == "metrics" and tag_group("loss") == "losses"
     assert tag_group("reward/slack") == "reward" and tag_group("fps") == "charts"
     assert "NSR" in metrics.curve_metrics() and "NSR" in metrics.METRICS
-    records = [metrics.EpisodeRecord(success=bool(s), path_length=4, optimal_length=3, entered_pathfinding=bool(n))
-               for s, n in ((1, 1), (0, 1), (1, 0))]
+    records = [
+        metrics.EpisodeRecord(success=bool(s), path_length=4, optimal_length=3, entered_pathfinding=bool(n))
+        for s, n in ((1, 1), (0, 1), (1, 0))
+    ]
     table = metrics.format_table(metrics.summarize(records, by_room_type=False))
     assert "NSR" in table.splitlines()[1] and table.splitlines()[3].split()[6] == "50.00"
     # a selection scored before the metric existed still draws (the new metric is left out)
@@ -98,14 +103,17 @@ def test_detector_registry_is_the_detect_commands_choices():
     assert [DETECTORS[k].trained for k in DETECTORS] == [False, True, True]
     with pytest.raises(ValueError, match="unknown detector 'yolo'"):
         detector_kind("yolo")
-    out = subprocess.run([sys.executable, "-m", "tsnav", "detect", "--help"], capture_output=True, text=True,
-                         check=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "tsnav", "detect", "--help"], capture_output=True, text=True, check=True
+    )
     assert "{oracle,learned,shipped}" in out.stdout
 
 
 def test_registries_import_without_torch():
     """The encoder and detector registries and the metrics are read by reports and parsers: no torch on import."""
-    code = ("import sys; import tsnav.pretrain.encoders, tsnav.detect.registry, tsnav.metrics, tsnav.tsrm.terms; "
-            "print('torch' in sys.modules)")
+    code = (
+        "import sys; import tsnav.pretrain.encoders, tsnav.detect.registry, tsnav.metrics, tsnav.tsrm.terms; "
+        "print('torch' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

@@ -37,18 +37,69 @@ def packed(tiny_real, tmp_path_factory):
     feats = ensure_features(es, data, ["train"], batch_size=64)
     write_learned_tables(data, "learned4", shipped_detector(128, "learned4"), progress=False)
     run = root / "run"
-    assert main(["train", "--out", str(run), "--data", str(data), "--features", feats, "--reward", "tsrm",
-                 "--algo", "batched", "--num-envs", "4", "--preset", "cpu", "--detections", "learned4",
-                 "--updates", "2", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--out",
+                str(run),
+                "--data",
+                str(data),
+                "--features",
+                feats,
+                "--reward",
+                "tsrm",
+                "--algo",
+                "batched",
+                "--num-envs",
+                "4",
+                "--preset",
+                "cpu",
+                "--detections",
+                "learned4",
+                "--updates",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     ck = sorted((run / "checkpoints").iterdir())[-1]
-    card = {"name": "tiny", "summary": "a test agent", "world_preset": "ithor-real", "world_version": 1,
-            "image_size": 128, "test_rooms": [TEST_ROOM], "detector_shipped": "learned4",
-            "detector_fingerprint": shipped_meta("learned4")["fingerprint"], "detections": "learned4",
-            "protocol": "paper", "budget": "2 updates", "figures": {}}
+    card = {
+        "name": "tiny",
+        "summary": "a test agent",
+        "world_preset": "ithor-real",
+        "world_version": 1,
+        "image_size": 128,
+        "test_rooms": [TEST_ROOM],
+        "detector_shipped": "learned4",
+        "detector_fingerprint": shipped_meta("learned4")["fingerprint"],
+        "detections": "learned4",
+        "protocol": "paper",
+        "budget": "2 updates",
+        "figures": {},
+    }
     (root / "card.json").write_text(json.dumps(card))
     out = root / "agent"
-    assert main(["release", "pack", "--run", str(run), "--checkpoint", str(ck), "--encoder-run", str(root / "pre"),
-                 "--card", str(root / "card.json"), "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "release",
+                "pack",
+                "--run",
+                str(run),
+                "--checkpoint",
+                str(ck),
+                "--encoder-run",
+                str(root / "pre"),
+                "--card",
+                str(root / "card.json"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     return {"root": root, "data": data, "run": run, "out": out, "ck": ck, "feats": feats}
 
 
@@ -62,11 +113,13 @@ def test_pack_writes_a_loadable_agent_folder(packed):
     assert "tsnav release eval" in (out / "card.md").read_text()
     # the card records the tsnav version that packed it (one source: tsnav.__version__, also pyproject's)
     import tsnav
+
     assert card["tsnav_version"] == tsnav.__version__ and f"tsnav {tsnav.__version__}" in (out / "card.md").read_text()
     # the policy weights are the checkpoint's, byte for byte
     assert (out / "best" / "model.safetensors").read_bytes() == (packed["ck"] / "model.safetensors").read_bytes()
     # the encoder is stored in float16 and loads into float32
     from tsnav.checkpoint import load_tensors
+
     sd, meta = load_tensors(out / "encoder.safetensors")
     assert {v.dtype for v in sd.values() if v.is_floating_point()} == {torch.float16}
     assert meta["stored_dtype"] == "float16"
@@ -91,8 +144,20 @@ def test_float16_encoder_features_match_float32(packed, tiny_real):
 
 def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     world, ev = packed["root"] / "test_world", packed["root"] / "eval"
-    args = ["release", "eval", "--agent", str(packed["out"]), "--data", str(world), "--out", str(ev),
-            "--workers", "1", "--threads", "1"]
+    args = [
+        "release",
+        "eval",
+        "--agent",
+        str(packed["out"]),
+        "--data",
+        str(world),
+        "--out",
+        str(ev),
+        "--workers",
+        "1",
+        "--threads",
+        "1",
+    ]
     # a --data folder that does not exist is refused in one line unless the user asks to build there
     assert main(args) == 2
     assert f"--data {world}: no such world folder (--build-world builds" in capsys.readouterr().err
@@ -105,7 +170,8 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     assert (world / TEST_ROOM / "detections_learned4.hdf5").exists()
     res = json.loads((ev / "results.json").read_text())
     assert [(r["protocol"], r["policy"]) for r in res["rows"]] == [
-        (p, pol) for p in ("paper", "lineage") for pol in ("agent", "scripted explorer", "random")]
+        (p, pol) for p in ("paper", "lineage") for pol in ("agent", "scripted explorer", "random")
+    ]
     by = {(r["protocol"], r["policy"]): r for r in res["rows"]}
     # each protocol has its own list, recorded as such, and the table names the cross-protocol evaluation
     eps = {p: json.loads((ev / f"episodes_test_{p}.json").read_text()) for p in ("paper", "lineage")}
@@ -123,8 +189,10 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     second = capsys.readouterr().out
     assert "[release] nothing changed since the evaluation of" in second and "--force evaluates again" in second
     assert (ev / "results.json").read_bytes() == before and stamps == {p: p.stat().st_mtime_ns for p in stamps}
-    assert second.split("real test rooms")[1].split("\n", 1)[1] .replace("read ", "wrote ") == \
-        text.split("real test rooms")[1].split("\n", 1)[1]  # the same table, line for line
+    assert (
+        second.split("real test rooms")[1].split("\n", 1)[1].replace("read ", "wrote ")
+        == text.split("real test rooms")[1].split("\n", 1)[1]
+    )  # the same table, line for line
     # --force evaluates again: the same figures
     assert main(args + ["--force"]) == 0
     forced = capsys.readouterr().out
@@ -174,7 +242,10 @@ def test_release_eval_builds_what_it_needs_and_prints_the_table(packed, capsys):
     sd[name] = sd[name] + 1e-3
     save_tensors(other / "best" / "model.safetensors", sd, meta)
     changed = inputs(other)
-    assert changed["agent"]["policy"] != base["agent"]["policy"] and changed["agent"]["encoder"] == base["agent"]["encoder"]
+    assert (
+        changed["agent"]["policy"] != base["agent"]["policy"]
+        and changed["agent"]["encoder"] == base["agent"]["encoder"]
+    )
     assert inputs() == base
     (ev / "episodes_test_lineage.json").rename(ev / "moved.json")  # a missing input: the evaluation must run
     assert inputs() is None and release.saved_results(ev, None) is None
@@ -186,7 +257,9 @@ def test_release_folders_by_version_agent_and_split():
     from pathlib import Path
 
     assert release.release_folders({"world_version": 2}, "a", "test") == (
-        Path("out/release/world-v2"), Path("out/release/eval/a/test"))
+        Path("out/release/world-v2"),
+        Path("out/release/eval/a/test"),
+    )
     assert release.release_folders({}, "a", "val") == (Path("out/release/world-v1"), Path("out/release/eval/a/val"))
     assert release.release_folders({"world_version": 2}, "a", "test", "W", "E") == (Path("W"), Path("E"))
 
@@ -201,13 +274,43 @@ def test_one_line_errors(packed, tmp_path, capsys):
     assert "not a complete shipped agent (no encoder.safetensors)" in capsys.readouterr().err
     # packing over an existing folder is refused, and the folder is untouched
     before = (packed["out"] / "card.json").read_bytes()
-    assert main(["release", "pack", "--run", str(packed["run"]), "--encoder-run", str(packed["root"] / "pre"),
-                 "--card", str(packed["root"] / "card.json"), "--out", str(packed["out"])]) == 2
+    assert (
+        main(
+            [
+                "release",
+                "pack",
+                "--run",
+                str(packed["run"]),
+                "--encoder-run",
+                str(packed["root"] / "pre"),
+                "--card",
+                str(packed["root"] / "card.json"),
+                "--out",
+                str(packed["out"]),
+            ]
+        )
+        == 2
+    )
     assert "exists" in capsys.readouterr().err and (packed["out"] / "card.json").read_bytes() == before
     bad = tmp_path / "card.json"
     bad.write_text('{"name": "x"}')
-    assert main(["release", "pack", "--run", str(packed["run"]), "--encoder-run", str(packed["root"] / "pre"),
-                 "--card", str(bad), "--out", str(tmp_path / "new")]) == 2
+    assert (
+        main(
+            [
+                "release",
+                "pack",
+                "--run",
+                str(packed["run"]),
+                "--encoder-run",
+                str(packed["root"] / "pre"),
+                "--card",
+                str(bad),
+                "--out",
+                str(tmp_path / "new"),
+            ]
+        )
+        == 2
+    )
     assert "missing fields" in capsys.readouterr().err and not (tmp_path / "new").exists()
 
 
@@ -218,7 +321,9 @@ def test_one_shipped_agent_is_the_default(capsys):
     # `tsnav release list`: each agent, the default marked, and its cards' test figures in one line
     assert main(["release", "list"]) == 0
     out = capsys.readouterr().out
-    assert "tsrm-demae-learned7 (default):" in out and "tsrm-demae-learned6:" in out and "tsrm-demae-learned4-v2:" in out
+    assert (
+        "tsrm-demae-learned7 (default):" in out and "tsrm-demae-learned6:" in out and "tsrm-demae-learned4-v2:" in out
+    )
     assert "lineage 82.20 / 41.72" in out and "lineage 79.80 / 39.56" in out and "lineage 73.00 / 37.11" in out
     assert "detector learned7" in out and "detector learned6" in out
     assert "no test figures" in release.headline({"detector_shipped": "learned4"})

@@ -64,8 +64,12 @@ def test_trajectory_roundtrip_and_key_frames(tmp_path, bank, episodes):
 
 
 def test_select_episodes_mixes_outcomes():
-    recs = [EpisodeRecord(success=i % 3 == 0, path_length=10, optimal_length=3 + i % 4, scene=f"S{i % 2}",
-                          target="Bowl", episode=i) for i in range(30)]
+    recs = [
+        EpisodeRecord(
+            success=i % 3 == 0, path_length=10, optimal_length=3 + i % 4, scene=f"S{i % 2}", target="Bowl", episode=i
+        )
+        for i in range(30)
+    ]
     pick = select_episodes(recs, 6)
     assert len(pick) == 6 and len(set(pick)) == 6
     assert sum(recs[i].success for i in pick) == 3
@@ -88,15 +92,34 @@ class _Links(HTMLParser):
 
 def _fake_train_run(d, n=12):
     d.mkdir(parents=True)
-    (d / "config.json").write_text(json.dumps({"format": "tsnav-train-run",
-                                               "train": {"reward": "tsrm", "features": "x", "algo": "batched"}}))
+    (d / "config.json").write_text(
+        json.dumps({"format": "tsnav-train-run", "train": {"reward": "tsrm", "features": "x", "algo": "batched"}})
+    )
     rng = np.random.default_rng(0)
     with open(d / "log.jsonl", "w") as f:
         for u in range(1, n + 1):
-            f.write(json.dumps({"update": u, "env_steps": 480 * u, "episodes": 10 * u, "seconds": u, "return": -0.3 + u / 10,
-                                "reward/explore": 0.1 * u, "reward/slack": -0.3, "SR": u / n, "SPL": u / (2 * n),
-                                "SSR": 0.9, "SSSPL": 0.5, "NSNPL": 0.4, "policy_loss": rng.normal(),
-                                "value_loss": 1 / u, "entropy": 1.7}) + "\n")
+            f.write(
+                json.dumps(
+                    {
+                        "update": u,
+                        "env_steps": 480 * u,
+                        "episodes": 10 * u,
+                        "seconds": u,
+                        "return": -0.3 + u / 10,
+                        "reward/explore": 0.1 * u,
+                        "reward/slack": -0.3,
+                        "SR": u / n,
+                        "SPL": u / (2 * n),
+                        "SSR": 0.9,
+                        "SSSPL": 0.5,
+                        "NSNPL": 0.4,
+                        "policy_loss": rng.normal(),
+                        "value_loss": 1 / u,
+                        "entropy": 1.7,
+                    }
+                )
+                + "\n"
+            )
         f.write('{"update": 13, "env_st')  # a torn last line is ignored
 
 
@@ -117,8 +140,24 @@ def test_report_end_to_end(tmp_path, tiny_world, episodes):
     write_episodes(ep_file, episodes, split="test", success_distance=1.0)
     root = tmp_path / "work"
     for p in ("explorer", "random"):
-        assert main(["eval", "--data", str(tiny_world), "--episodes", str(ep_file), "--policy", p, "--seed", "1",
-                     "--out", str(root / "evals" / p)]) == 0
+        assert (
+            main(
+                [
+                    "eval",
+                    "--data",
+                    str(tiny_world),
+                    "--episodes",
+                    str(ep_file),
+                    "--policy",
+                    p,
+                    "--seed",
+                    "1",
+                    "--out",
+                    str(root / "evals" / p),
+                ]
+            )
+            == 0
+        )
     _fake_train_run(root / "runs" / "agent")
     pre = root / "pretrain"
     pre.mkdir()
@@ -169,13 +208,32 @@ def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
     cache_pixel_features(tiny_world, "report_px", grid=4)
     ensure_oracle_detections(tiny_world, "oracle")  # the agent reads a named detection table
     run = tmp_path / "work" / "run"
-    StandInTrainer()(TrainConfig(data=str(tiny_world), features="report_px", detections="oracle", device="cpu"),
-                     agent_config("cpu"), run)
+    StandInTrainer()(
+        TrainConfig(data=str(tiny_world), features="report_px", detections="oracle", device="cpu"),
+        agent_config("cpu"),
+        run,
+    )
     ep_file = tmp_path / "episodes.json"
     write_episodes(ep_file, episodes, split="test", success_distance=1.0)
     ev = tmp_path / "work" / "eval_agent"
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(ep_file), "--run", str(run), "--seed", "4",
-                 "--out", str(ev)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(tiny_world),
+                "--episodes",
+                str(ep_file),
+                "--run",
+                str(run),
+                "--seed",
+                "4",
+                "--out",
+                str(ev),
+            ]
+        )
+        == 0
+    )
     index = build_report(tmp_path / "work", gallery=2)
     assert (ev / "trajectories.jsonl").exists()  # re-rolled, and equal to the records (checked while writing)
     text = index.read_text()

@@ -26,8 +26,18 @@ def world(pixel_world):
 
 
 def _cfg(world, **kw):
-    base = dict(data=str(world), features=FEATS, algo="a3c", workers=2, rollout_steps=8, lr=1e-3, device="cpu",
-                log_every=4, checkpoint_every=5, detections="oracle")
+    base = dict(
+        data=str(world),
+        features=FEATS,
+        algo="a3c",
+        workers=2,
+        rollout_steps=8,
+        lr=1e-3,
+        device="cpu",
+        log_every=4,
+        checkpoint_every=5,
+        detections="oracle",
+    )
     return TrainConfig(**{**base, **kw})
 
 

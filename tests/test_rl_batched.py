@@ -29,8 +29,19 @@ def world(pixel_world):
 
 
 def _cfg(world, **kw):
-    base = dict(data=str(world), features=FEATS, algo="batched", num_envs=8, rollout_steps=6, max_steps=30,
-                checkpoint_every=3, log_every=2, lr=1e-3, device="cpu", detections="oracle")
+    base = dict(
+        data=str(world),
+        features=FEATS,
+        algo="batched",
+        num_envs=8,
+        rollout_steps=6,
+        max_steps=30,
+        checkpoint_every=3,
+        log_every=2,
+        lr=1e-3,
+        device="cpu",
+        detections="oracle",
+    )
     return TrainConfig(**{**base, **kw})
 
 
@@ -69,8 +80,9 @@ def test_collector_bootstraps_from_the_final_observation(world):
     model = make_model(agent_config("cpu", dropout=0.0), obs_fn, 0)
     with torch.no_grad():
         model.actor.bias[DONE] = -50.0  # never Done: every episode is truncated after 3 steps
-    col = RolloutCollector(make_train_env(bank, cfg, 4, seed=1), obs_fn, model,
-                           generator=torch.Generator().manual_seed(5))
+    col = RolloutCollector(
+        make_train_env(bank, cfg, 4, seed=1), obs_fn, model, generator=torch.Generator().manual_seed(5)
+    )
     col.start()
     first = dict(col.obs)
     with torch.no_grad():
@@ -300,8 +312,15 @@ def test_bf16_rollout_agrees_with_its_float32_replay(world):
 
     def grad(logp, ent, value):
         adv, ret = gae(ro.reward, value, ro.bootstrap, ro.terminated, ro.finished)
-        fake = type(ro)(logp=logp, entropy=ent, value=value, reward=ro.reward, bootstrap=ro.bootstrap,
-                        terminated=ro.terminated, finished=ro.finished)
+        fake = type(ro)(
+            logp=logp,
+            entropy=ent,
+            value=value,
+            reward=ro.reward,
+            bootstrap=ro.bootstrap,
+            terminated=ro.terminated,
+            finished=ro.finished,
+        )
         model.zero_grad()
         a2c_loss(fake, adv, ret)[0].backward(retain_graph=True)
         return torch.cat([p.grad.flatten() for p in model.parameters() if p.grad is not None])
@@ -361,8 +380,9 @@ def test_bf16_cast_once_is_autocasts_per_step_cast_bit_for_bit(world, preset):
     assert not {"action_embed.weight", "memory.query.weight", "memory.nothing", "memory.attn.in_proj_bias"} & set(names)
 
     def run(cast_once):
-        col = RolloutCollector(make_train_env(bank, cfg, 12, seed=5), obs_fn, model, precision="bf16",
-                               cast_once=cast_once)
+        col = RolloutCollector(
+            make_train_env(bank, cfg, 12, seed=5), obs_fn, model, precision="bf16", cast_once=cast_once
+        )
         torch.manual_seed(1)
         out = []
         for _ in range(2):  # the second rollout starts from the first one's recurrent state
@@ -410,8 +430,10 @@ def test_distance_increase_scale_reaches_the_reward_and_the_run(world, tmp_path,
     cfg = _cfg(world, updates=2, distance_increase_scale=2.0)
     bank, _ = load_bank(cfg)
     assert make_reward(bank, cfg).config.distance_increase_scale == 2.0
-    assert make_reward(bank, replace(cfg, distance_increase_scale=1.0)).config == \
-        make_reward(bank, TrainConfig(data=cfg.data)).config  # the paper's reward by default
+    assert (
+        make_reward(bank, replace(cfg, distance_increase_scale=1.0)).config
+        == make_reward(bank, TrainConfig(data=cfg.data)).config
+    )  # the paper's reward by default
     with pytest.raises(ValueError, match="distance_increase_scale"):
         _cfg(world, distance_increase_scale=-0.5)
     out = tmp_path / "run"

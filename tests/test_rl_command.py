@@ -24,10 +24,38 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def trained(pixel_world, tmp_path_factory):
     tiny_world = pixel_world
     run = tmp_path_factory.mktemp("cmd") / "run"
-    rc = main(["train", "--data", str(tiny_world), "--features", FEATS, "--detections", "oracle", "--reward", "tsrm",
-               "--algo", "batched",
-               "--out", str(run), "--updates", "4", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5",
-               "--checkpoint-every", "2", "--log-every", "1", "--lr", "1e-3", "--quiet"])
+    rc = main(
+        [
+            "train",
+            "--data",
+            str(tiny_world),
+            "--features",
+            FEATS,
+            "--detections",
+            "oracle",
+            "--reward",
+            "tsrm",
+            "--algo",
+            "batched",
+            "--out",
+            str(run),
+            "--updates",
+            "4",
+            "--num-envs",
+            "4",
+            "--preset",
+            "cpu",
+            "--rollout-steps",
+            "5",
+            "--checkpoint-every",
+            "2",
+            "--log-every",
+            "1",
+            "--lr",
+            "1e-3",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     return tiny_world, run
 
@@ -56,8 +84,23 @@ def test_resume_budget_and_errors(trained, tmp_path, capsys):
     assert "another configuration (lr)" in err and len(err.splitlines()) == 1
     assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--quiet"]) == 2
     assert "--features is required" in capsys.readouterr().err
-    assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--features", "nothing",
-                 "--detections", "oracle", "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--out",
+                str(tmp_path / "new"),
+                "--data",
+                str(world),
+                "--features",
+                "nothing",
+                "--detections",
+                "oracle",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     assert "no feature cache" in capsys.readouterr().err
     assert main(["train", "--out", str(tmp_path / "new"), "--data", str(world), "--features", FEATS, "--quiet"]) == 2
     assert "--detections is required" in capsys.readouterr().err  # no silent fallback to ground truth
@@ -72,8 +115,25 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
     m = json.loads((out / "metrics.json").read_text())
     assert m["policy"] == "agent" and m["run"] == str(run.resolve())
     assert m["metrics"]["ALL"]["episodes"] > 0 and m["sample"] is False
-    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--out",
-                 str(tmp_path / "eval_s"), "--sample", "--seed", "3"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps),
+                "--run",
+                str(run),
+                "--out",
+                str(tmp_path / "eval_s"),
+                "--sample",
+                "--seed",
+                "3",
+            ]
+        )
+        == 0
+    )
     assert json.loads((tmp_path / "eval_s" / "metrics.json").read_text())["sample"] is True
 
     episodes, _ = read_episodes(eps)
@@ -81,15 +141,18 @@ def test_eval_run_and_policy(trained, tmp_path, capsys):
     pol = load_policy(run, bank, greedy=True)
     assert isinstance(pol, Policy)
     together = evaluate(bank, episodes, pol, EvalConfig(max_steps=20))
-    alone = [evaluate(bank, [e], load_policy(run, bank, greedy=True), EvalConfig(max_steps=20))[0]
-             for e in episodes[:4]]
+    alone = [
+        evaluate(bank, [e], load_policy(run, bank, greedy=True), EvalConfig(max_steps=20))[0] for e in episodes[:4]
+    ]
     for a, b in zip(alone, together[:4]):  # each episode keeps its own LSTM state and memory
         assert (a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
     again = evaluate(bank, episodes, pol, EvalConfig(max_steps=20))  # greedy: deterministic, state reset
     assert [r.steps for r in again] == [r.steps for r in together]
     # sampled (--sample): reproducible for a seed, different for another
-    runs = [evaluate(bank, episodes, load_policy(run, bank, greedy=False, seed=s), EvalConfig(max_steps=20))
-            for s in (3, 3, 4)]
+    runs = [
+        evaluate(bank, episodes, load_policy(run, bank, greedy=False, seed=s), EvalConfig(max_steps=20))
+        for s in (3, 3, 4)
+    ]
     assert [r.steps for r in runs[0]] == [r.steps for r in runs[1]] != [r.steps for r in runs[2]]
     a = load_policy(run, bank).act({"state": np.array([0, 1]), "target": np.array([0, 0])})
     assert a.shape == (2,) and a.dtype == np.int64
@@ -109,30 +172,82 @@ def test_eval_with_another_detection_table(trained, tmp_path, capsys):
     shutil.copytree(world0, world)
     for scene in list_scenes(world):  # a detector that never sees anything
         det = load_detections(scene, "oracle")
-        blind = dataclasses.replace(det, scores=np.zeros_like(det.scores), labels=np.full_like(det.labels, -1),
-                                    boxes=np.full_like(det.boxes, -1), features=np.zeros_like(det.features),
-                                    fingerprint="blind-test")
+        blind = dataclasses.replace(
+            det,
+            scores=np.zeros_like(det.scores),
+            labels=np.full_like(det.labels, -1),
+            boxes=np.full_like(det.boxes, -1),
+            features=np.zeros_like(det.features),
+            fingerprint="blind-test",
+        )
         write_detections(scene, "blind", blind)
     eps = tmp_path / "eps.json"
     assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "6", "--out", str(eps)]) == 0
     for policy in (["--policy", "explorer"], ["--run", str(run)]):
         out = tmp_path / f"eval_{policy[0][2:]}"
-        assert main(["eval", "--data", str(world), "--episodes", str(eps), *policy, "--detections", "blind",
-                     "--out", str(out)]) == 0
+        assert (
+            main(
+                [
+                    "eval",
+                    "--data",
+                    str(world),
+                    "--episodes",
+                    str(eps),
+                    *policy,
+                    "--detections",
+                    "blind",
+                    "--out",
+                    str(out),
+                ]
+            )
+            == 0
+        )
         m = json.loads((out / "metrics.json").read_text())
         assert m["detections"] == "blind" and m["detector_confidence"] is True
         assert m["metrics"]["ALL"]["SSR"] == 0.0 and m["metrics"]["ALL"]["episodes"] > 0  # the switch never fires
     # the explorer with the oracle's table does switch
-    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--policy", "explorer", "--detections",
-                 "oracle", "--out", str(tmp_path / "eval_oracle")]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps),
+                "--policy",
+                "explorer",
+                "--detections",
+                "oracle",
+                "--out",
+                str(tmp_path / "eval_oracle"),
+            ]
+        )
+        == 0
+    )
     assert json.loads((tmp_path / "eval_oracle" / "metrics.json").read_text())["metrics"]["ALL"]["SSR"] > 0
     # the agent's detection inputs are the swapped table's (zeros), its own table's otherwise
     swapped = load_policy(run, SceneBank.from_root(world, "test"), detections="blind")
     own = load_policy(run, SceneBank.from_root(world, "test"))
     assert not swapped.observer.detections.features.any() and own.observer.detections.features.any()
     capsys.readouterr()
-    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--policy", "explorer", "--detections",
-                 "nosuch", "--out", str(tmp_path / "eval_x")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps),
+                "--policy",
+                "explorer",
+                "--detections",
+                "nosuch",
+                "--out",
+                str(tmp_path / "eval_x"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "detections_nosuch.hdf5" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "eval_x").exists()
@@ -174,11 +289,41 @@ def test_torchrun_two_ranks(trained, tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     run = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(port),
-           "-m", "tsnav", "train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
-           "--out", str(run),
-           "--updates", "2", "--num-envs", "6", "--rollout-steps", "4", "--preset", "cpu", "--checkpoint-every", "1",
-           "--device", "cpu", "--quiet"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc-per-node",
+        "2",
+        "--master-port",
+        str(port),
+        "-m",
+        "tsnav",
+        "train",
+        "--data",
+        str(world),
+        "--features",
+        FEATS,
+        "--detections",
+        "oracle",
+        "--algo",
+        "batched",
+        "--out",
+        str(run),
+        "--updates",
+        "2",
+        "--num-envs",
+        "6",
+        "--rollout-steps",
+        "4",
+        "--preset",
+        "cpu",
+        "--checkpoint-every",
+        "1",
+        "--device",
+        "cpu",
+        "--quiet",
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert res.returncode == 0, res.stderr[-2000:]
     from tsnav.rl.checkpoint import latest_checkpoint, load_checkpoint
@@ -195,35 +340,119 @@ def test_protocol_of_a_run_is_recorded_and_checked(trained, tmp_path, capsys):
     and the output then names both protocols. The paper-trained run is evaluated on a lineage list the same way."""
     world, paper_run = trained
     run = tmp_path / "lineage_run"
-    assert main(["train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
-                 "--out", str(run), "--updates", "2", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5",
-                 "--checkpoint-every", "2", "--log-every", "1", "--protocol", "lineage", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(world),
+                "--features",
+                FEATS,
+                "--detections",
+                "oracle",
+                "--algo",
+                "batched",
+                "--out",
+                str(run),
+                "--updates",
+                "2",
+                "--num-envs",
+                "4",
+                "--preset",
+                "cpu",
+                "--rollout-steps",
+                "5",
+                "--checkpoint-every",
+                "2",
+                "--log-every",
+                "1",
+                "--protocol",
+                "lineage",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["train"]["protocol"] == "lineage" and cfg["protocol"] == "lineage" and cfg["sim"]["protocol"] == "lineage"
+    assert (
+        cfg["train"]["protocol"] == "lineage" and cfg["protocol"] == "lineage" and cfg["sim"]["protocol"] == "lineage"
+    )
     assert main(["train", "--out", str(run), "--protocol", "paper", "--quiet"]) == 2  # a run keeps its protocol
     assert "another configuration (protocol)" in capsys.readouterr().err
     eps = {p: tmp_path / f"{p}.json" for p in ("paper", "lineage")}
     for p, f in eps.items():
-        assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "6", "--protocol", p,
-                     "--out", str(f)]) == 0
+        assert (
+            main(
+                [
+                    "episodes",
+                    "--data",
+                    str(world),
+                    "--split",
+                    "test",
+                    "--per-room-type",
+                    "6",
+                    "--protocol",
+                    p,
+                    "--out",
+                    str(f),
+                ]
+            )
+            == 0
+        )
     capsys.readouterr()
-    assert main(["eval", "--data", str(world), "--episodes", str(eps["paper"]), "--run", str(run),
-                 "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps["paper"]),
+                "--run",
+                str(run),
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "trained under the lineage protocol" in err and "--protocol paper" in err
     assert not (tmp_path / "x").exists()
     for r, p, trained_under in ((run, "paper", "lineage"), (paper_run, "lineage", "paper"), (run, "lineage", None)):
         out = tmp_path / f"ev_{r.name}_{p}"
         extra = ["--protocol", p] if trained_under else []
-        assert main(["eval", "--data", str(world), "--episodes", str(eps[p]), "--run", str(r), "--out", str(out),
-                     *extra]) == 0
+        assert (
+            main(["eval", "--data", str(world), "--episodes", str(eps[p]), "--run", str(r), "--out", str(out), *extra])
+            == 0
+        )
         text = capsys.readouterr().out
         m = json.loads((out / "metrics.json").read_text())
         assert m["protocol"] == p and m["trained_protocol"] == (trained_under or p)
-        assert (f"protocol: {p} (agent trained under {trained_under})" if trained_under
-                else f"protocol: {p} (trained and evaluated)") in text
-    assert main(["train", "--out", str(tmp_path / "bad"), "--data", str(world), "--features", FEATS,
-                 "--detections", "oracle", "--protocol", "1.5m", "--quiet"]) == 2
+        assert (
+            f"protocol: {p} (agent trained under {trained_under})"
+            if trained_under
+            else f"protocol: {p} (trained and evaluated)"
+        ) in text
+    assert (
+        main(
+            [
+                "train",
+                "--out",
+                str(tmp_path / "bad"),
+                "--data",
+                str(world),
+                "--features",
+                FEATS,
+                "--detections",
+                "oracle",
+                "--protocol",
+                "1.5m",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "unknown success protocol '1.5m'" in err
 
@@ -236,9 +465,28 @@ def test_blocked_action_run(trained, tmp_path, capsys):
     run = tmp_path / "blocked"
 
     def args(out):
-        return ["train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
-                "--out", str(out), "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5", "--lr", "1e-3",
-                "--quiet"]
+        return [
+            "train",
+            "--data",
+            str(world),
+            "--features",
+            FEATS,
+            "--detections",
+            "oracle",
+            "--algo",
+            "batched",
+            "--out",
+            str(out),
+            "--num-envs",
+            "4",
+            "--preset",
+            "cpu",
+            "--rollout-steps",
+            "5",
+            "--lr",
+            "1e-3",
+            "--quiet",
+        ]
 
     assert main(args(run) + ["--updates", "2", "--blocked-action"]) == 0
     assert json.loads((run / "config.json").read_text())["agent"]["blocked_action"] is True
@@ -264,7 +512,8 @@ def test_blocked_action_run(trained, tmp_path, capsys):
     assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "3", "--out", str(eps)]) == 0
     episodes, _ = read_episodes(eps)
     together = evaluate(bank, episodes, pol, EvalConfig(max_steps=15))
-    alone = [evaluate(bank, [e], load_policy(run, bank, greedy=True), EvalConfig(max_steps=15))[0]
-             for e in episodes[:3]]
+    alone = [
+        evaluate(bank, [e], load_policy(run, bank, greedy=True), EvalConfig(max_steps=15))[0] for e in episodes[:3]
+    ]
     for a, b in zip(alone, together[:3]):
         assert (a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)

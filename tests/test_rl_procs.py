@@ -28,8 +28,19 @@ B, T = 8, 6
 
 
 def _cfg(world, **kw):
-    base = dict(data=str(world), features=FEATS, algo="batched", num_envs=8, rollout_steps=6, max_steps=30,
-                checkpoint_every=3, log_every=2, lr=1e-3, device="cpu", detections="oracle")
+    base = dict(
+        data=str(world),
+        features=FEATS,
+        algo="batched",
+        num_envs=8,
+        rollout_steps=6,
+        max_steps=30,
+        checkpoint_every=3,
+        log_every=2,
+        lr=1e-3,
+        device="cpu",
+        detections="oracle",
+    )
     return TrainConfig(**{**base, **kw})
 
 
@@ -39,8 +50,9 @@ def _rollout(world) -> tuple:
     bank, _ = load_bank(cfg)
     observer = make_observer(bank, cfg)
     model = make_model(agent_config("cpu", dropout=0.0), observer, 0)
-    col = RolloutCollector(make_train_env(bank, cfg, B, seed=11), observer, model,
-                           generator=torch.Generator().manual_seed(3))
+    col = RolloutCollector(
+        make_train_env(bank, cfg, B, seed=11), observer, model, generator=torch.Generator().manual_seed(3)
+    )
     with torch.no_grad():
         ro = col.collect(T)
     return model, observer, ro
@@ -52,10 +64,19 @@ def _rows_gradient(model, observer, ro: Rollout, rows: np.ndarray) -> None:
     from rl_helpers import replay
 
     idx = torch.from_numpy(rows)
-    part = Rollout(logp=ro.logp[:, idx], entropy=ro.entropy[:, idx], value=ro.value[:, idx], reward=ro.reward[:, idx],
-                   bootstrap=ro.bootstrap[:, idx], terminated=ro.terminated[:, idx], finished=ro.finished[:, idx],
-                   states=ro.states[:, rows], targets=ro.targets[:, rows], actions=ro.actions[:, rows],
-                   start=ro.start.index(idx))
+    part = Rollout(
+        logp=ro.logp[:, idx],
+        entropy=ro.entropy[:, idx],
+        value=ro.value[:, idx],
+        reward=ro.reward[:, idx],
+        bootstrap=ro.bootstrap[:, idx],
+        terminated=ro.terminated[:, idx],
+        finished=ro.finished[:, idx],
+        states=ro.states[:, rows],
+        targets=ro.targets[:, rows],
+        actions=ro.actions[:, rows],
+        start=ro.start.index(idx),
+    )
     logp, ent, value = replay(model, observer, part)
     adv, ret = gae(part.reward, value, part.bootstrap, part.terminated, part.finished)
     loss, _ = a2c_loss(replace(part, logp=logp, entropy=ent, value=value), adv, ret)
@@ -211,8 +232,12 @@ def test_staggered_ranks_apply_each_ranks_update_in_turn(pixel_world, tmp_path):
     assert _same(_weights(tmp_path / "b")[0], _weights(tmp_path / "c")[0])
     assert _same(_weights(tmp_path / "b")[1], _weights(tmp_path / "c")[1])
 
-    for name, kw in (("checkpoint_every", {"checkpoint_every": 3}), ("log_every", {"log_every": 5}),
-                     ("milestone_every", {"milestone_every": 7}), ("updates", {"updates": 9})):
+    for name, kw in (
+        ("checkpoint_every", {"checkpoint_every": 3}),
+        ("log_every", {"log_every": 5}),
+        ("milestone_every", {"milestone_every": 7}),
+        ("updates", {"updates": 9}),
+    ):
         with pytest.raises(ValueError, match=f"{name} must be a multiple of procs=2"):
             _cfg(pixel_world, procs=2, ranks="staggered", **{"updates": 4, "checkpoint_every": 2, **kw})
     with pytest.raises(ValueError, match="unknown ranks mode 'both'"):
@@ -255,8 +280,28 @@ def test_procs_configuration_is_checked(pixel_world, tmp_path):
 def test_train_command_refuses_procs_that_do_not_split_the_episodes(pixel_world, tmp_path, capsys):
     from tsnav.cli import main
 
-    rc = main(["train", "--data", str(pixel_world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
-               "--out", str(tmp_path / "run"), "--updates", "1", "--num-envs", "8", "--procs", "3", "--quiet"])
+    rc = main(
+        [
+            "train",
+            "--data",
+            str(pixel_world),
+            "--features",
+            FEATS,
+            "--detections",
+            "oracle",
+            "--algo",
+            "batched",
+            "--out",
+            str(tmp_path / "run"),
+            "--updates",
+            "1",
+            "--num-envs",
+            "8",
+            "--procs",
+            "3",
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert rc != 0 and len(err) == 1 and "num-envs 8 does not split evenly over procs=3" in err[0], err
     assert not (tmp_path / "run" / "config.json").exists()

@@ -12,8 +12,13 @@ import pytest
 
 from tsnav.world import plans as P
 from tsnav.world import robothor_real as R
-from tsnav.world.robothor_fidelity import (load_episodes, measure_scene, path_lengths, path_lengths_reference,
-                                           ratio_summary)
+from tsnav.world.robothor_fidelity import (
+    load_episodes,
+    measure_scene,
+    path_lengths,
+    path_lengths_reference,
+    ratio_summary,
+)
 
 FLOOR = 80.0
 LINE = 140.0
@@ -31,9 +36,9 @@ def drawn_plan(h: int = 60, w: int = 90, walls=(), seed: int = 0, noise: float =
     g[10:51, 80] = LINE
     for axis, line, a0, a1 in walls:
         if axis == 0:
-            g[line, a0:a1 + 1] = LINE
+            g[line, a0 : a1 + 1] = LINE
         else:
-            g[a0:a1 + 1, line] = LINE
+            g[a0 : a1 + 1, line] = LINE
     return g + rng.normal(0, noise, g.shape)
 
 
@@ -79,7 +84,7 @@ def test_infer_walls_outline_and_interior_wall_through_furniture():
     for k in range(5):
         g = drawn_plan(walls=[wall], seed=k)
         r0 = 15 + 6 * k
-        g[r0:r0 + 4, 20:30] = 200.0  # a bright piece of furniture, elsewhere in every variant
+        g[r0 : r0 + 4, 20:30] = 200.0  # a bright piece of furniture, elsewhere in every variant
         if k == 0:
             g[20:26, 43:48] = 30.0  # dark furniture hiding the wall in one variant
         plans.append(g)
@@ -158,7 +163,7 @@ def test_place_target_fits_the_one_metre_circle_on_furniture():
     assert math.hypot(x - 5, z + 3) < 2 * P.PIXEL and cost < 0.26
     # One end only: any point 1 m away fits; the furniture blob decides.
     r, col = P.world_to_pixel(6.0, -3.0)
-    furn[int(round(r)) - 2:int(round(r)) + 3, int(round(col)) - 2:int(round(col)) + 3] = True
+    furn[int(round(r)) - 2 : int(round(r)) + 3, int(round(col)) - 2 : int(round(col)) + 3] = True
     x, z, _ = R.place_target(np.array([[6.0, -2.0]]), np.zeros((0, 2)), furn, inside)
     assert math.hypot(x - 6.0, z + 3.0) < 3 * P.PIXEL
 
@@ -178,7 +183,7 @@ def test_blob_boxes_follow_an_l_shape():
     boxes = R.blob_boxes((2, 2, 13, 14, int(mask.sum())), mask)
     area = sum((b[2] - b[0]) * (b[3] - b[1]) for b in boxes)
     assert len(boxes) == 4
-    assert area == pytest.approx(mask.sum() * P.PIXEL ** 2, rel=1e-6)  # bands of 3 rows: exact for this shape
+    assert area == pytest.approx(mask.sum() * P.PIXEL**2, rel=1e-6)  # bands of 3 rows: exact for this shape
 
 
 def test_turned_box_measures_an_object_without_oriented_box():
@@ -187,7 +192,7 @@ def test_turned_box_measures_an_object_without_oriented_box():
     from tsnav.world.layouts import LayoutObject
 
     cx, cz, yaw = 5.0, -3.0, 45.0
-    rr, cc = np.mgrid[0:P.PLAN_PX, 0:P.PLAN_PX]
+    rr, cc = np.mgrid[0 : P.PLAN_PX, 0 : P.PLAN_PX]
     xs, zs = P.pixel_to_world(rr.astype(float), cc.astype(float))
     t = math.radians(yaw)
     u = (xs - cx) * math.cos(t) - (zs - cz) * math.sin(t)
@@ -268,9 +273,11 @@ class _FakeScene:
 
 
 def test_measure_scene_on_a_hand_made_scene():
-    eps = [{"object_type": "Apple", "initial_position": {"x": 0.0, "y": 0.9, "z": 0.0}, "shortest_path_length": 0.5},
-           {"object_type": "Apple", "initial_position": {"x": 2.0, "y": 0.9, "z": 0.0}, "shortest_path_length": 1.0},
-           {"object_type": "Mug", "initial_position": {"x": 0.25, "y": 0.9, "z": 0.0}, "shortest_path_length": 1.0}]
+    eps = [
+        {"object_type": "Apple", "initial_position": {"x": 0.0, "y": 0.9, "z": 0.0}, "shortest_path_length": 0.5},
+        {"object_type": "Apple", "initial_position": {"x": 2.0, "y": 0.9, "z": 0.0}, "shortest_path_length": 1.0},
+        {"object_type": "Mug", "initial_position": {"x": 0.25, "y": 0.9, "z": 0.0}, "shortest_path_length": 1.0},
+    ]
     res = measure_scene(_FakeScene(), eps)
     assert res["episodes"] == 3 and res["starts_kept"] == 2 and res["missing_starts"] == [[2.0, 0.0]]
     assert res["ratios"] == [1.0, None]  # 0.5 m of path over 0.5 m; no Mug at all
@@ -286,8 +293,7 @@ def test_val_scene_records_what_it_inferred():
     types = sorted(o.objectType for o in spec.objects)
     eps = R.val_episodes("FloorPlan_Val2_3")
     assert types == sorted({e["object_type"] for e in eps})
-    assert all("|inferred|" in o.objectId and o.objectId in gen["provenance"]["inferred_objects"]
-               for o in spec.objects)
+    assert all("|inferred|" in o.objectId and o.objectId in gen["provenance"]["inferred_objects"] for o in spec.objects)
     assert all("|inferred|" in f.id for f in spec.furniture)
     # An inferred object takes its type's median size from the train records.
     apple = next(o for o in spec.objects if o.objectType == "Apple")
@@ -340,8 +346,21 @@ def test_build_one_scene_end_to_end(tmp_path):
     assert res["starts_kept"] >= 0.9 * res["episodes"]
     from tsnav.cli import main
 
-    assert main(["world", "fidelity", "--data", str(tmp_path), "--episodes", str(tmp_path / "episodes"),
-                 "--out", str(tmp_path / "fid")]) == 0
+    assert (
+        main(
+            [
+                "world",
+                "fidelity",
+                "--data",
+                str(tmp_path),
+                "--episodes",
+                str(tmp_path / "episodes"),
+                "--out",
+                str(tmp_path / "fid"),
+            ]
+        )
+        == 0
+    )
     doc = json.loads((tmp_path / "fid" / "fidelity.json").read_text())
     assert doc["summary"]["val"]["episodes"] == len(eps) and (tmp_path / "fid" / "FloorPlan_Val3_2.png").exists()
     assert main(["world", "fidelity", "--data", str(tmp_path), "--episodes", str(tmp_path / "nowhere")]) == 2

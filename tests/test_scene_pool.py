@@ -113,8 +113,7 @@ def test_tables_from_two_workers_equal_the_one_thread_loop(tiny_world, tmp_path)
     for workers in (1, 2):
         roots[workers] = tmp_path / f"w{workers}"
         shutil.copytree(tiny_world, roots[workers], ignore=shutil.ignore_patterns("detections_*", "features_*"))
-        out = write_learned_tables(roots[workers], "learned", det, progress=False, say=lambda m: None,
-                                   workers=workers)
+        out = write_learned_tables(roots[workers], "learned", det, progress=False, say=lambda m: None, workers=workers)
         assert out["written"] == len(list_scenes(tiny_world))
     for a, b in zip(list_scenes(roots[1]), list_scenes(roots[2])):
         da, db = _datasets(a / "detections_learned.hdf5"), _datasets(b / "detections_learned.hdf5")
@@ -129,11 +128,27 @@ def test_features_command_takes_workers(tmp_path, capsys):
     root = write_synthetic_dataset(tmp_path / "data", size=16)
     torch.manual_seed(1)
     save_encoder(vit_tiny(patch_size=8, img_size=16), tmp_path / "enc.safetensors", "demae")
-    assert main(["features", "--encoder", str(tmp_path / "enc.safetensors"), "--data", str(root),
-                 "--workers", "-1"]) == 2
+    assert (
+        main(["features", "--encoder", str(tmp_path / "enc.safetensors"), "--data", str(root), "--workers", "-1"]) == 2
+    )
     assert "--workers must be >= 0" in capsys.readouterr().err
-    assert main(["features", "--encoder", str(tmp_path / "enc.safetensors"), "--data", str(root), "--name", "w",
-                 "--workers", "2", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "features",
+                "--encoder",
+                str(tmp_path / "enc.safetensors"),
+                "--data",
+                str(root),
+                "--name",
+                "w",
+                "--workers",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert "features_w.hdf5 in 3 scenes" in capsys.readouterr().out
     assert all((p / "features_w.hdf5").exists() for p in list_scenes(root))
 
@@ -146,15 +161,18 @@ def test_workers_start_from_a_script_on_standard_input(tmp_path):
     import subprocess
     import sys
 
-    script = ("import operator\n"
-              "from tsnav.scene_pool import as_is, map_scenes\n"
-              "print(sorted(map_scenes(operator.mul, range(5), as_is, 3, workers=2)))\n"
-              "import __main__; print(__main__.__file__)\n"  # restored after the pool started
-              "from tsnav.world.build import build_dataset\n"  # the world's pool of builders, the other spawn site
-              "print(len(build_dataset('world', 'tiny', workers=2, progress=False)))\n")
+    script = (
+        "import operator\n"
+        "from tsnav.scene_pool import as_is, map_scenes\n"
+        "print(sorted(map_scenes(operator.mul, range(5), as_is, 3, workers=2)))\n"
+        "import __main__; print(__main__.__file__)\n"  # restored after the pool started
+        "from tsnav.world.build import build_dataset\n"  # the world's pool of builders, the other spawn site
+        "print(len(build_dataset('world', 'tiny', workers=2, progress=False)))\n"
+    )
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-    r = subprocess.run([sys.executable, "-"], input=script, capture_output=True, text=True, cwd=tmp_path, env=env,
-                       timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-"], input=script, capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split("\n")[:3] == ["[(0, 0), (1, 3), (2, 6), (3, 9), (4, 12)]", "<stdin>", "5"]
 
@@ -209,16 +227,18 @@ def test_trim_memory_hands_freed_heap_back():
     import subprocess
     import sys
 
-    script = ("import numpy as np\n"
-              "from tsnav.distributed import trim_memory\n"
-              "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * 4096\n"
-              "big = np.ones(16 << 20, np.uint8); del big\n"
-              "parts, pins = [], []\n"
-              "for _ in range(300):\n"
-              "    parts.append(np.ones(1 << 20, np.uint8)); pins.append(np.ones(64, np.uint8))\n"
-              "del parts\n"
-              "before = rss(); trimmed = trim_memory(); after = rss()\n"
-              "print(trimmed, before - after)\n")
+    script = (
+        "import numpy as np\n"
+        "from tsnav.distributed import trim_memory\n"
+        "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * 4096\n"
+        "big = np.ones(16 << 20, np.uint8); del big\n"
+        "parts, pins = [], []\n"
+        "for _ in range(300):\n"
+        "    parts.append(np.ones(1 << 20, np.uint8)); pins.append(np.ones(64, np.uint8))\n"
+        "del parts\n"
+        "before = rss(); trimmed = trim_memory(); after = rss()\n"
+        "print(trimmed, before - after)\n"
+    )
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]

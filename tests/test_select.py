@@ -22,18 +22,63 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys, monkeypatch):
     world, run = pixel_world, tmp_path / "run"
-    assert main(["train", "--data", str(world), "--features", FEATS, "--detections", "oracle", "--algo", "batched",
-                 "--out", str(run),
-                 "--updates", "6", "--num-envs", "4", "--preset", "cpu", "--rollout-steps", "5", "--checkpoint-every",
-                 "1", "--milestone-every", "2", "--lr", "3e-3", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(world),
+                "--features",
+                FEATS,
+                "--detections",
+                "oracle",
+                "--algo",
+                "batched",
+                "--out",
+                str(run),
+                "--updates",
+                "6",
+                "--num-envs",
+                "4",
+                "--preset",
+                "cpu",
+                "--rollout-steps",
+                "5",
+                "--checkpoint-every",
+                "1",
+                "--milestone-every",
+                "2",
+                "--lr",
+                "3e-3",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     names = [p.name for p in list_checkpoints(run)]
     assert names == ["ckpt_000000002", "ckpt_000000004", "ckpt_000000005", "ckpt_000000006"]
     eps = tmp_path / "val.json"
     assert main(["episodes", "--data", str(world), "--split", "val", "--per-room-type", "6", "--out", str(eps)]) == 0
     # no selection yet: auto = latest; best is refused in one line
     assert resolve_checkpoint(run, "auto") is None
-    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--checkpoint", "best",
-                 "--out", str(tmp_path / "e0")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(world),
+                "--episodes",
+                str(eps),
+                "--run",
+                str(run),
+                "--checkpoint",
+                "best",
+                "--out",
+                str(tmp_path / "e0"),
+            ]
+        )
+        == 2
+    )
     assert "no best checkpoint" in capsys.readouterr().err
 
     seen = []
@@ -68,10 +113,30 @@ def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys, 
     # best differs from latest; the records of such near-identical agents can coincide, the weights cannot.
     assert res["best"] != names[-1], "the test needs a best checkpoint other than the latest"
     digests = {}
-    for tag, extra in (("auto", []), ("path", ["--checkpoint", str(run / "checkpoints" / res["best"])]),
-                       ("latest", ["--checkpoint", "latest"])):
-        assert main(["eval", "--data", str(world), "--episodes", str(eps), "--run", str(run), "--max-steps", "30",
-                     "--out", str(tmp_path / tag), *extra]) == 0
+    for tag, extra in (
+        ("auto", []),
+        ("path", ["--checkpoint", str(run / "checkpoints" / res["best"])]),
+        ("latest", ["--checkpoint", "latest"]),
+    ):
+        assert (
+            main(
+                [
+                    "eval",
+                    "--data",
+                    str(world),
+                    "--episodes",
+                    str(eps),
+                    "--run",
+                    str(run),
+                    "--max-steps",
+                    "30",
+                    "--out",
+                    str(tmp_path / tag),
+                    *extra,
+                ]
+            )
+            == 0
+        )
         meta = json.loads((tmp_path / tag / "metrics.json").read_text())
         episodes, _ = read_episodes(eps)
         digests[tag] = weights_digest(eval_policy(meta, eval_bank(meta, episodes)).model.state_dict())
@@ -81,7 +146,8 @@ def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys, 
     assert json.loads((tmp_path / "auto" / "metrics.json").read_text())["checkpoint"] == "auto"
     # a checkpoint whose weights changed (here: another one's file copied over it) is rehashed and rescored
     (run / "checkpoints" / names[1] / "model.safetensors").write_bytes(
-        (run / "checkpoints" / names[2] / "model.safetensors").read_bytes())
+        (run / "checkpoints" / names[2] / "model.safetensors").read_bytes()
+    )
     seen.clear(), hashed.clear()
     res2 = select_checkpoint(run, world, eps, max_steps=30, progress=seen.append)
     assert len(seen) == 1 and seen[0].strip().startswith(names[1]) and hashed[0] == names[1]

@@ -93,12 +93,44 @@ def test_detect_command_writes_the_shipped_tables(tmp_path, tiny_real, tiny_worl
     direct = shipped.shipped_detector(128).detect_scene(load_scene(data / val.name))
     assert np.array_equal(load_detections(data / val.name, "learned").scores, direct.scores)
     # the other shipped detector, by name, under another table name
-    assert main(["detect", "--data", str(data), "--detector", "shipped", "--shipped", "learned3", "--name", "l3",
-                 "--no-eval", "--threads", "1"]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                "--data",
+                str(data),
+                "--detector",
+                "shipped",
+                "--shipped",
+                "learned3",
+                "--name",
+                "l3",
+                "--no-eval",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert read_fingerprint(data / val.name, "l3") == shipped.shipped_meta("learned3")["fingerprint"]
     # without --shipped, a table named after a shipped detector is written by that detector
-    assert main(["detect", "--data", str(data), "--detector", "shipped", "--name", "learned3", "--no-eval",
-                 "--threads", "1"]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                "--data",
+                str(data),
+                "--detector",
+                "shipped",
+                "--name",
+                "learned3",
+                "--no-eval",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert read_fingerprint(data / val.name, "learned3") == shipped.shipped_meta("learned3")["fingerprint"]
     capsys.readouterr()
     assert main(["detect", "--data", str(tiny_world), "--detector", "shipped", "--no-eval", "--name", "shipped_x"]) == 2
@@ -129,7 +161,9 @@ def test_experiments_take_the_shipped_tables(tmp_path, tiny_real, tiny_world):
     assert read_fingerprint(data / val.name, "learned3") == shipped.shipped_meta("learned3")["fingerprint"]
     ensure_detections(data, "learned3", None, None, shipped=True)  # complete: no "another detector's" error
     # a run that trains its detector refuses the default shipped detector's tables, as it always did
-    with pytest.raises(CommandError, match="holds the shipped detector's detections_learned.hdf5, not from --detector train"):
+    with pytest.raises(
+        CommandError, match="holds the shipped detector's detections_learned.hdf5, not from --detector train"
+    ):
         ensure_detections(data, "learned", tmp_path / "det", ScaleConfig(), shipped=False)
     assert not (tmp_path / "det").exists()
     # another shipped detector's tables under a shipped detector's name are refused in one line, not overwritten

@@ -6,7 +6,14 @@ import pytest
 
 from sim_helpers import toy_scenes
 from tsnav.constants import (
-    CATEGORY_INDEX, DONE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT, TARGET_CATEGORIES,
+    CATEGORY_INDEX,
+    DONE,
+    LOOK_DOWN,
+    LOOK_UP,
+    MOVE_AHEAD,
+    ROTATE_LEFT,
+    ROTATE_RIGHT,
+    TARGET_CATEGORIES,
 )
 from tsnav.sim.batch import BatchEnv, RewardFn, SceneBank, SparseReward
 from tsnav.sim.episodes import TrainingSampler
@@ -41,12 +48,14 @@ def test_bank_offsets_and_global_graph(bank):
 def test_hand_worked_episode(bank):
     env = _one(bank, "ToyB", "0.00|0.00|180|0", "GarbageCan", reward_fn=SparseReward())
     # (action, failed = lastActionSuccess False, collided, state after)
-    seq = [(MOVE_AHEAD, True, True, "0.00|0.00|180|0"),   # faces -z at the wall: a collision
-           (ROTATE_RIGHT, False, False, "0.00|0.00|225|0"),
-           (LOOK_UP, True, False, "0.00|0.00|225|0"),       # already level: fails, but bumps into nothing
-           (LOOK_DOWN, False, False, "0.00|0.00|225|30"),
-           (LOOK_DOWN, True, False, "0.00|0.00|225|30"),    # already looking down: the same
-           (LOOK_UP, False, False, "0.00|0.00|225|0")]
+    seq = [
+        (MOVE_AHEAD, True, True, "0.00|0.00|180|0"),  # faces -z at the wall: a collision
+        (ROTATE_RIGHT, False, False, "0.00|0.00|225|0"),
+        (LOOK_UP, True, False, "0.00|0.00|225|0"),  # already level: fails, but bumps into nothing
+        (LOOK_DOWN, False, False, "0.00|0.00|225|30"),
+        (LOOK_DOWN, True, False, "0.00|0.00|225|30"),  # already looking down: the same
+        (LOOK_UP, False, False, "0.00|0.00|225|0"),
+    ]
     for a, failed, coll, key in seq:
         obs, r, term, trunc, info = env.step(np.array([a]))
         assert info["failed"][0] == failed and info["collided"][0] == coll and bank.keys[obs["state"][0]] == key

@@ -10,7 +10,13 @@ from tsnav.cli import main
 from tsnav.constants import CATEGORY_INDEX, NUM_CATEGORIES
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.episodes import (
-    EpisodeConfig, TrainingSampler, episodes_to_arrays, make_episodes, read_episodes, valid_starts, write_episodes,
+    EpisodeConfig,
+    TrainingSampler,
+    episodes_to_arrays,
+    make_episodes,
+    read_episodes,
+    valid_starts,
+    write_episodes,
 )
 from tsnav.sim.paths import UNREACHABLE
 
@@ -23,13 +29,22 @@ def bank():
 @pytest.mark.parametrize("horizon", [None, 0, 30])
 def test_valid_starts_table_matches_brute_force(bank, horizon):
     t = valid_starts(bank, EpisodeConfig(start_horizon=horizon))
-    got = set(zip(t.pair_scene[np.repeat(np.arange(len(t.counts)), t.counts)].tolist(),
-                  t.pair_target[np.repeat(np.arange(len(t.counts)), t.counts)].tolist(), t.starts.tolist()))
+    got = set(
+        zip(
+            t.pair_scene[np.repeat(np.arange(len(t.counts)), t.counts)].tolist(),
+            t.pair_target[np.repeat(np.arange(len(t.counts)), t.counts)].tolist(),
+            t.starts.tolist(),
+        )
+    )
     expect = set()
     for s in range(bank.num_states):
         for c in range(NUM_CATEGORIES):
-            if ((horizon is None or bank.horizon[s] == horizon) and bank.present[bank.scene_of[s], c]
-                    and not bank.success[s, c] and bank.dist[s, c] < UNREACHABLE):
+            if (
+                (horizon is None or bank.horizon[s] == horizon)
+                and bank.present[bank.scene_of[s], c]
+                and not bank.success[s, c]
+                and bank.dist[s, c] < UNREACHABLE
+            ):
                 expect.add((int(bank.scene_of[s]), c, s))
     # Vase is not a target category; all present categories belong to the room lists here.
     assert got == expect
@@ -82,7 +97,7 @@ def test_fixed_episodes_round_trip(bank, tmp_path):
     # A small world yields fewer episodes than asked for.
     tiny = SceneBank([toy_scenes()[2]], cache=False)
     n_valid = len(valid_starts(tiny).starts)
-    assert len(make_episodes(tiny, per_room_type=10 ** 6)) == n_valid
+    assert len(make_episodes(tiny, per_room_type=10**6)) == n_valid
 
 
 def test_episodes_command(tmp_path, capsys):

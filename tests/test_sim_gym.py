@@ -137,8 +137,11 @@ def test_frame_cache_equals_reference_reader(tiny_world, tmp_path):
 
     raw = tmp_path / "raw"
     write_scene_folder(toy_scenes()[2], raw / "ToyC", images=8)  # raw float32 depth, as old or imported worlds
-    for bank, layout in ((SceneBank.from_root(tiny_world, None), "standard"),
-                         (SceneBank.from_root(tiny_world, None), "legacy"), (SceneBank.from_root(raw, None), "standard")):
+    for bank, layout in (
+        (SceneBank.from_root(tiny_world, None), "standard"),
+        (SceneBank.from_root(tiny_world, None), "legacy"),
+        (SceneBank.from_root(raw, None), "standard"),
+    ):
         fast, ref = Observations(bank, frames="memory", layout=layout), Observations(bank, frames="hdf5", layout=layout)
         assert not fast.cache.loaded.any()
         rng = np.random.default_rng(0)
@@ -170,12 +173,20 @@ def test_gymnasium_numpy_loop_sees_the_stored_frames(tiny_world):
         "obs, info = envs.reset(seed=0)\n"
         "for _ in range(20):\n"
         "    obs, r, term, trunc, info = envs.step(np.random.default_rng(0).integers(0, 6, 16))\n"
-        "print(obs['rgb'].shape, obs['depth'].shape, obs['detections'].shape, float(obs['rgb'].mean()))\n")
+        "print(obs['rgb'].shape, obs['depth'].shape, obs['detections'].shape, float(obs['rgb'].mean()))\n"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
     assert out[0].startswith("(16, 64, 64, 3) (16, 64, 64, 1) (16, 132)") and float(out[0].split()[-1]) > 0
     # the same loop in this process, checked frame by frame against the reference reader
-    envs = gym.make_vec("tsnav.sim:" + ENV_ID, num_envs=16, vectorization_mode="vector_entry_point",
-                        data=str(tiny_world), split=None, detections="oracle", max_steps=8)
+    envs = gym.make_vec(
+        "tsnav.sim:" + ENV_ID,
+        num_envs=16,
+        vectorization_mode="vector_entry_point",
+        data=str(tiny_world),
+        split=None,
+        detections="oracle",
+        max_steps=8,
+    )
     ref = _reference(envs)
     obs, info = envs.reset(seed=0)
     rng = np.random.default_rng(0)

@@ -9,8 +9,15 @@ from tsnav.constants import CATEGORY_INDEX, DONE
 from tsnav.data.reader import load_scene
 from tsnav.sim import paths
 from tsnav.sim.paths import (
-    UNREACHABLE, bfs_reference, cached_distance_fields, distance_fields, multi_source_bfs, optimal_action,
-    optimal_action_targets, scene_distance_fields, shortest_path_actions,
+    UNREACHABLE,
+    bfs_reference,
+    cached_distance_fields,
+    distance_fields,
+    multi_source_bfs,
+    optimal_action,
+    optimal_action_targets,
+    scene_distance_fields,
+    shortest_path_actions,
 )
 from tsnav.sim.reference import scene_graph
 
@@ -105,5 +112,7 @@ def test_scene_cache_written_reused_and_invalidated(tmp_path, monkeypatch):
     assert len(calls) == 2
     # A corrupt cache is recomputed.
     cache.write_bytes(b"garbage")
-    assert np.array_equal(cached_distance_fields(scene.next_state, scene.category_visible_within(1.0), cache),
-                          distance_fields(scene.next_state, scene.category_visible_within(1.0)))
+    assert np.array_equal(
+        cached_distance_fields(scene.next_state, scene.category_visible_within(1.0), cache),
+        distance_fields(scene.next_state, scene.category_visible_within(1.0)),
+    )

@@ -73,7 +73,9 @@ def test_bank_stage_mask_is_the_switch_rule():
     for c_target in (0.5, C_TARGET):
         bank = SceneBank(toy_scenes(), cache=False, c_target=c_target)
         assert np.array_equal(bank.stage_mask, bank.in_frame)  # no detector: ground truth 1.0 / 0.0
-        conf = np.random.default_rng(2).choice(np.float32([0.2, 0.5, 0.7, 0.71, 0.9]), (bank.num_states, NUM_CATEGORIES))
+        conf = np.random.default_rng(2).choice(
+            np.float32([0.2, 0.5, 0.7, 0.71, 0.9]), (bank.num_states, NUM_CATEGORIES)
+        )
         bank.set_confidence(conf)
         assert np.array_equal(bank.stage_mask, StageSwitch(bank).switches)
         assert np.array_equal(bank.stage_mask, conf > c_target)
@@ -112,7 +114,9 @@ def test_one_stage_switch_per_env_shared_with_the_reward():
             ep = stats.pop()
             r = np.flatnonzero(fin)
             assert np.array_equal(ep["entered"], ref.entered[r])
-            assert np.array_equal(ep["search_length"], np.where(ref.entered[r], ref.switch_length[r], info["path_length"][r]))
+            assert np.array_equal(
+                ep["search_length"], np.where(ref.entered[r], ref.switch_length[r], info["path_length"][r])
+            )
             entered += int(ref.entered[r].sum())
             finished += len(r)
             ref.reset(fin, obs["state"], obs["target"])

@@ -36,8 +36,8 @@ def test_bfs_equals_networkx_on_graph_json(tiny_world, bank):
     rng = np.random.default_rng(0)
     for i, path in enumerate(list_scenes(tiny_world)[:2]):
         g = json_graph.node_link_graph(json.loads((path / "graph.json").read_text()), directed=True, edges="links")
-        succ = bank.success[bank.offsets[i]:bank.offsets[i + 1]]
-        dist = bank.dist[bank.offsets[i]:bank.offsets[i + 1]]
+        succ = bank.success[bank.offsets[i] : bank.offsets[i + 1]]
+        dist = bank.dist[bank.offsets[i] : bank.offsets[i + 1]]
         keys = bank.scenes[i].keys
         for c in np.flatnonzero(succ.any(axis=0))[:3]:
             h = g.copy()
@@ -96,10 +96,12 @@ def test_commands_on_tiny_world(tiny_world, tmp_path, capsys):
     eps = tmp_path / "eps.json"
     splits = {json.loads((p / "scene.json").read_text()).get("split") for p in list_scenes(tiny_world)}
     split = "test" if "test" in splits else sorted(splits)[0]
-    assert main(["episodes", "--data", str(tiny_world), "--split", split, "--per-room-type", "10",
-                 "--out", str(eps)]) == 0
+    assert (
+        main(["episodes", "--data", str(tiny_world), "--split", split, "--per-room-type", "10", "--out", str(eps)]) == 0
+    )
     out = tmp_path / "run"
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "oracle",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "oracle", "--out", str(out)]) == 0
+    )
     recs = read_records(out / "records.jsonl")
     assert recs and all(r.success for r in recs)

@@ -9,7 +9,6 @@ import pytest
 from script_helpers import load_analysis
 
 
-
 def _script():
     return load_analysis("stop_signal")
 
@@ -35,9 +34,21 @@ def test_leave_one_room_out_finds_a_box_signal():
     for room in ("A", "B", "C", "D"):
         for _ in range(150):
             h = float(rng.uniform(0.05, 0.6))
-            rows.append({"room": room, "category": "Bowl", "success": h + rng.normal(0, 0.05) > 0.3, "dist": 1.0,
-                         "score": float(rng.uniform(0.7, 1.0)), "area": h * h, "height": h, "width": h, "bottom": 0.5 + h / 2,
-                         "top": 0.5 - h / 2, "horizon": 0.0})
+            rows.append(
+                {
+                    "room": room,
+                    "category": "Bowl",
+                    "success": h + rng.normal(0, 0.05) > 0.3,
+                    "dist": 1.0,
+                    "score": float(rng.uniform(0.7, 1.0)),
+                    "area": h * h,
+                    "height": h,
+                    "width": h,
+                    "bottom": 0.5 + h / 2,
+                    "top": 0.5 - h / 2,
+                    "horizon": 0.0,
+                }
+            )
     s = mod.summary(rows)
     assert s["auc"]["logistic, leave one room out"] > 0.9
     assert abs(s["auc"]["score"] - 0.5) < 0.1
@@ -47,8 +58,9 @@ def test_leave_one_room_out_finds_a_box_signal():
 def test_on_a_world(pixel_world, tmp_path, capsys):
     mod = _script()
     out = tmp_path / "s.json"
-    assert mod.main(["--data", str(pixel_world), "--detections", "oracle", "--threshold", "0.5",
-                     "--json", str(out)]) == 0
+    assert (
+        mod.main(["--data", str(pixel_world), "--detections", "oracle", "--threshold", "0.5", "--json", str(out)]) == 0
+    )
     res = json.loads(out.read_text())["tables"]["oracle"]
     bands = res["bands"]
     assert sum(v["states"] for v in bands.values()) == res["confident_states"] > 0
@@ -86,14 +98,41 @@ def test_an_agents_dones_are_scored(pixel_world, tmp_path, capsys):
     s, c, good, bad = picked
     ev = tmp_path / "eval"
     ev.mkdir()
-    trajs = [Trajectory(episode=k, scene=s.name, target=TARGET_CATEGORIES[c], keys=[str(s.keys[i]), str(s.keys[i])],
-                        actions=[DONE], success=k == 0) for k, i in enumerate((good, bad))]
-    trajs.append(Trajectory(episode=2, scene=s.name, target=TARGET_CATEGORIES[c], keys=[str(s.keys[good])] * 2,
-                            actions=[MOVE_AHEAD]))  # no Done: not counted
+    trajs = [
+        Trajectory(
+            episode=k,
+            scene=s.name,
+            target=TARGET_CATEGORIES[c],
+            keys=[str(s.keys[i]), str(s.keys[i])],
+            actions=[DONE],
+            success=k == 0,
+        )
+        for k, i in enumerate((good, bad))
+    ]
+    trajs.append(
+        Trajectory(
+            episode=2, scene=s.name, target=TARGET_CATEGORIES[c], keys=[str(s.keys[good])] * 2, actions=[MOVE_AHEAD]
+        )
+    )  # no Done: not counted
     (ev / "trajectories.jsonl").write_text("".join(t.to_json() + "\n" for t in trajs))
     out = tmp_path / "s.json"
-    assert mod.main(["--data", str(pixel_world), "--detections", "oracle", "--threshold", "0.5", "--eval", str(ev),
-                     "--json", str(out)]) == 0
+    assert (
+        mod.main(
+            [
+                "--data",
+                str(pixel_world),
+                "--detections",
+                "oracle",
+                "--threshold",
+                "0.5",
+                "--eval",
+                str(ev),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     res = json.loads(out.read_text())["tables"]["oracle"]
     assert res["agent's Dones"] == {"successful": 1, "failed": 1, "failed, below the switch threshold": 0}
     for k, v in res.items():

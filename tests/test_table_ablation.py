@@ -19,8 +19,13 @@ def _table(rng, S, score_lo=0.0):
     keep = scores >= 0.05
     labels = np.where(keep, np.arange(22)[None, :], -1).astype(np.int16)
     boxes = np.where(keep[..., None], rng.uniform(0, 100, (S, 22, 4)), -1.0).astype(np.float32)
-    return Detections(keys=np.array([f"s{i}" for i in range(S)]), scores=scores, labels=labels, boxes=boxes,
-                      features=rng.normal(size=(S, 22, 4)).astype(np.float16))
+    return Detections(
+        keys=np.array([f"s{i}" for i in range(S)]),
+        scores=scores,
+        labels=labels,
+        boxes=boxes,
+        features=rng.normal(size=(S, 22, 4)).astype(np.float16),
+    )
 
 
 def expected(L, O, present, kind):
@@ -131,8 +136,11 @@ def test_flip_average_cell_by_cell(mod):
 
     rng = np.random.default_rng(4)
     L, M = _table(rng, 6, score_lo=0.01), _table(rng, 6, score_lo=0.01)
-    M = replace(M, labels=np.where(rng.uniform(size=M.labels.shape) < 0.5, M.labels, -1).astype(np.int16),
-                config={"mirror": True})
+    M = replace(
+        M,
+        labels=np.where(rng.uniform(size=M.labels.shape) < 0.5, M.labels, -1).astype(np.int16),
+        config={"mirror": True},
+    )
     got = mod.flip_averaged(L, M)
     for i in range(6):
         for c in range(22):
@@ -224,14 +232,19 @@ def test_recall_curve_command(mod, tiny_real_learned4, tmp_path, capsys):
         assert g.present[i, c] and load_detections(s.path, "oracle").scores[i, c] >= 0.7 and score < 0.7
         assert px == g.pixels[i, c] and np.array_equal(box, g.boxes[i, c])
     png = tmp_path / "misses.png"
-    assert mod.main(["--data", str(world), "--recall", "learned4", "--misses", str(png),
-                     "--misses-class", TARGET_CATEGORIES[c]]) == 0
+    assert (
+        mod.main(
+            ["--data", str(world), "--recall", "learned4", "--misses", str(png), "--misses-class", TARGET_CATEGORIES[c]]
+        )
+        == 0
+    )
     n = min(counts[c], 24)
     assert f"{n} missed near" in capsys.readouterr().out
     w, h = Image.open(png).size
     assert w == 6 * (2 * scenes[0].image_size + 4) and h == -(-n // 6) * (2 * scenes[0].image_size + 16)
-    assert mod.main(["--data", str(world), "--recall", "learned4", "--misses", str(png),
-                     "--misses-class", "Unicorn"]) == 2
+    assert (
+        mod.main(["--data", str(world), "--recall", "learned4", "--misses", str(png), "--misses-class", "Unicorn"]) == 2
+    )
     assert "not a target class" in capsys.readouterr().err
     assert mod.main(["--data", str(world), "--by-class"]) == 2
     assert "give it" in capsys.readouterr().err

@@ -35,7 +35,10 @@ def test_agent_pose_of_the_real_event(real):
     x, y, z, rot, hor = agent_pose(real)
     assert (x, z, rot, hor) == (1.25, -0.5, 270, 0) and y == pytest.approx(0.9318, abs=1e-4)
     assert agent_pose({"agent": {"position": {"x": 0.0, "z": 1.0}}}) is None  # no rotation / horizon
-    odd = {**real, "agent": {**real["agent"], "rotation": {"x": 0.0, "y": 359.9999, "z": 0.0}, "cameraHorizon": 29.99998}}
+    odd = {
+        **real,
+        "agent": {**real["agent"], "rotation": {"x": 0.0, "y": 359.9999, "z": 0.0}, "cameraHorizon": 29.99998},
+    }
     assert agent_pose(odd)[3:] == (0, 30)
 
 
@@ -43,9 +46,22 @@ def test_object_table_and_boxes_of_the_real_event(real):
     table = _object_table(_Event(real), LiveConfig())
     expect = sorted(o["objectId"] for o in real["objects"] if o["objectType"] in TARGET_CATEGORIES)
     assert [o["objectId"] for o in table] == expect and len(table) == 20
-    assert {o["objectType"] for o in table} == {"Bowl", "Chair", "CoffeeMachine", "Fridge", "GarbageCan", "Kettle",
-                                                "LightSwitch", "Microwave", "Pan", "Plate", "Pot", "Sink",
-                                                "StoveBurner", "Toaster"}
+    assert {o["objectType"] for o in table} == {
+        "Bowl",
+        "Chair",
+        "CoffeeMachine",
+        "Fridge",
+        "GarbageCan",
+        "Kettle",
+        "LightSwitch",
+        "Microwave",
+        "Pan",
+        "Plate",
+        "Pot",
+        "Sink",
+        "StoveBurner",
+        "Toaster",
+    }
     everything = _object_table(_Event(real), LiveConfig(targets_only=False))
     assert len(everything) == 32
     fridge = next(o for o in real["objects"] if o["objectType"] == "Fridge")

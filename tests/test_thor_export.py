@@ -50,6 +50,7 @@ def test_layout_check_finds_each_problem(small_copy):
     def graph_bad_key(g):
         g["nodes"][0]["id"] = "0.0|0.00|0|0"
         return g
+
     _edit_json(d / "graph.json", graph_bad_key)
     probs = check_lineage_layout(d)
     assert any("node '0.0|0.00|0|0' is not a state key" in p for p in probs)
@@ -60,6 +61,7 @@ def test_layout_check_finds_each_problem(small_copy):
         g["links"].append({"source": "0.00|0.00|0|0", "target": "0.25|0.00|90|30"})
         g["directed"] = False
         return g
+
     _edit_json(d / "graph.json", graph_jump)
     probs = check_lineage_layout(d)
     assert "graph.json: 'directed' must be true (a DiGraph)" in probs
@@ -69,6 +71,7 @@ def test_layout_check_finds_each_problem(small_copy):
         g["links"].pop()
         g["directed"] = True
         return g
+
     _edit_json(d / "graph.json", fix)
     assert check_lineage_layout(d) == []
     (d / "grid.json").write_text(json.dumps([{"x": 0.0, "y": 0.9, "z": 0.0}]))
@@ -76,7 +79,9 @@ def test_layout_check_finds_each_problem(small_copy):
     (d / "grid.json").write_text(json.dumps([{"x": "0", "z": 0}]))
     assert any(p.startswith("grid.json: expected") for p in check_lineage_layout(d))
     (d / "grid.json").write_text(json.dumps([{"x": 0.0, "y": 0.9, "z": 0.0}, {"x": 0.25, "y": 0.9, "z": 0.0}]))
-    (d / "visible_object_map_1.5.json").write_text(json.dumps({"Television": ["0.00|0.00|90|0"], "Mug|+1.00|+0.90|+0.00": ["9.00|0.00|0|0"]}))
+    (d / "visible_object_map_1.5.json").write_text(
+        json.dumps({"Television": ["0.00|0.00|90|0"], "Mug|+1.00|+0.90|+0.00": ["9.00|0.00|0|0"]})
+    )
     probs = check_lineage_layout(d)
     assert "visible_object_map_1.5.json: object id 'Television' is not 'Type|x|y|z'" in probs
     assert any("state '9.00|0.00|0|0' of Mug|+1.00|+0.90|+0.00 is not a node" in p for p in probs)
@@ -91,7 +96,10 @@ def test_layout_check_finds_each_problem(small_copy):
     assert f"images.hdf5: '{keys[2]}' holds float32 (6, 6), expected uint8 (H, W, 3)" in probs
     with h5py.File(d / "det_feature_categories.hdf5", "w") as f:
         f.create_dataset(keys[0], data=np.zeros((22, 264), np.float64))
-    assert f"det_feature_categories.hdf5: '{keys[0]}' holds float64 (22, 264), expected float32 (22, 264)" in check_lineage_layout(d)
+    assert (
+        f"det_feature_categories.hdf5: '{keys[0]}' holds float64 (22, 264), expected float32 (22, 264)"
+        in check_lineage_layout(d)
+    )
     raw = (d / "images.hdf5").read_bytes()
     (d / "images.hdf5").write_bytes(raw[:100])
     assert any(p.startswith("images.hdf5: unreadable HDF5") for p in check_lineage_layout(d))
@@ -112,8 +120,15 @@ def _det256(scene, seed=0):
             boxes[seen, c] = scene.boxes[seen, j]
     scores = np.where(labels >= 0, rng.uniform(0.3, 1, labels.shape), rng.uniform(0, 0.05, labels.shape))
     feats = rng.standard_normal((S, NUM_CATEGORIES, 256)).astype(np.float16)
-    return Detections(keys=scene.keys, scores=scores.astype(np.float32), labels=labels, boxes=boxes, features=feats,
-                      detector="test", image_size=scene.image_size)
+    return Detections(
+        keys=scene.keys,
+        scores=scores.astype(np.float32),
+        labels=labels,
+        boxes=boxes,
+        features=feats,
+        detector="test",
+        image_size=scene.image_size,
+    )
 
 
 def test_export_detections_round_trip(tiny_scenes, tmp_path):
@@ -127,8 +142,7 @@ def test_export_detections_round_trip(tiny_scenes, tmp_path):
         r = f[s.keys[0]][()]
     assert set(np.unique(r[:, 257])) <= set(range(1, 24))  # 1..22 detections, 23 "no object"; never 0
     back = L.read_detections_22x264(out, image_size=300)
-    at64 = L.table_from_22x264(back.keys, L.table_to_22x264(back, None), image_size=300, out_size=64,
-                              own_rows=True)
+    at64 = L.table_from_22x264(back.keys, L.table_to_22x264(back, None), image_size=300, out_size=64, own_rows=True)
     for a in ("keys", "scores", "labels", "features", "boxes"):
         assert np.array_equal(getattr(at64, a), getattr(det, a)), a
     assert np.array_equal(back.boxes[back.labels >= 0], det.boxes[det.labels >= 0] * np.float32(300 / 64))
@@ -165,8 +179,20 @@ def test_thor_check_and_export_commands(tiny_scenes, tmp_path, capsys):
     s = tiny_scenes[0]
     write_detections(tmp_path, "detr", _det256(s))
     out = tmp_path / "t.hdf5"
-    assert main(["thor", "export-detections", str(s.path), "--detections", str(tmp_path / "detections_detr.hdf5"),
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "thor",
+                "export-detections",
+                str(s.path),
+                "--detections",
+                str(tmp_path / "detections_detr.hdf5"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert f"wrote {out}" in capsys.readouterr().out
     assert main(["thor", "check", str(s.path)]) == 0
     assert capsys.readouterr().out.strip() == f"{s.path}: ok"

@@ -28,8 +28,9 @@ KEY = re.compile(r"^-?\d+\.\d\d\|-?\d+\.\d\d\|(0|45|90|135|180|225|270|315)\|(0|
 @pytest.fixture(scope="module")
 def original(tiny_world):
     """The smallest tiny_world scene."""
-    return min((load_scene(p) for p in sorted(tiny_world.iterdir()) if (p / "COMPLETE").exists()),
-               key=lambda s: s.num_states)
+    return min(
+        (load_scene(p) for p in sorted(tiny_world.iterdir()) if (p / "COMPLETE").exists()), key=lambda s: s.num_states
+    )
 
 
 @pytest.fixture(scope="module")
@@ -146,8 +147,9 @@ def test_import_with_raw_metadata_derives_distances(original, tmp_path):
     d0 = original.distance[:, col]
     # the axis-aligned footprint holds the rotated one: never farther, equal for yaws that are multiples of 90
     assert (s.distance <= d0 + 1e-5).all()
-    yaw = np.array([next(o["bbox"]["yaw"] for o in original.meta["objects"] if o["objectId"] == oid)
-                    for oid in s.object_ids])
+    yaw = np.array(
+        [next(o["bbox"]["yaw"] for o in original.meta["objects"] if o["objectId"] == oid) for oid in s.object_ids]
+    )
     square = np.isclose(np.mod(yaw + 1e-9, 90), 0, atol=1e-6)
     assert square.any()
     assert np.allclose(s.distance[:, square], d0[:, square], atol=1e-5)
@@ -187,8 +189,12 @@ def test_two_cells_fixture_hand_checked(tmp_path):
     import_lineage_scene(src, tmp_path / "map_only")
     m = load_scene(tmp_path / "map_only")
     assert not (m.path / "states.hdf5").exists() and np.isnan(m.distance).all()
-    assert set(m.keys[m.success_mask("Television")]) == {"0.00|0.00|90|0", "0.25|0.00|45|0", "0.25|0.00|90|0",
-                                                          "0.25|0.00|135|0"}
+    assert set(m.keys[m.success_mask("Television")]) == {
+        "0.00|0.00|90|0",
+        "0.25|0.00|45|0",
+        "0.25|0.00|90|0",
+        "0.25|0.00|135|0",
+    }
     assert multi_source_bfs(m.next_state, m.success_mask(c))[start] == 2
 
 
@@ -245,7 +251,9 @@ def _truncated_det(src):
 
 
 def _vis_bad_key(src):
-    (src / "visible_object_map_1.5.json").write_text(json.dumps({"Television|+01.20|+01.20|+00.00": ["0.50|0.00|90|0"]}))
+    (src / "visible_object_map_1.5.json").write_text(
+        json.dumps({"Television|+01.20|+01.20|+00.00": ["0.50|0.00|90|0"]})
+    )
 
 
 def _meta_bad_key(src):
@@ -257,20 +265,52 @@ def _meta_bad_key(src):
 MALFORMED = [
     ("no_graph", lambda s: (s / "graph.json").unlink(), r"graph\.json: missing file"),
     ("no_grid", lambda s: (s / "grid.json").unlink(), r"grid\.json: missing file"),
-    ("no_visibility", lambda s: [(s / "visible_object_map_1.5.json").unlink(), (s / "metadata.json").unlink()],
-     r"no visible_object_map_1\.5\.json, visible_object_map\.json or metadata\.json"),
+    (
+        "no_visibility",
+        lambda s: [(s / "visible_object_map_1.5.json").unlink(), (s / "metadata.json").unlink()],
+        r"no visible_object_map_1\.5\.json, visible_object_map\.json or metadata\.json",
+    ),
     ("bad_json", lambda s: (s / "grid.json").write_text("[{"), r"grid\.json: not valid JSON"),
     ("grid_shape", lambda s: (s / "grid.json").write_text('{"x": 1}'), r"grid\.json: expected a list"),
-    ("grid_missing_position", lambda s: (s / "grid.json").write_text('[{"x": 0.0, "y": 0.9, "z": 0.0}]'),
-     r"grid\.json: position of state 0\.25\|0\.00\|\S+ \(graph\.json\) is not in the grid"),
-    ("vis_key_not_in_graph", _vis_bad_key, r"visible_object_map_1\.5\.json: visible state of Television\S* '0\.50\|0\.00\|90\|0' is not a node of graph\.json"),
-    ("meta_key_not_in_graph", _meta_bad_key, r"metadata\.json: state key '0\.00\|0\.25\|0\|0' is not a state of graph\.json"),
-    ("graph_link_not_a_node", lambda s: (s / "graph.json").write_text(json.dumps(
-        {"directed": True, "nodes": [{"id": "0.00|0.00|0|0"}], "links": [{"source": "0.00|0.00|0|0", "target": "0.25|0.00|0|0"}]})),
-     r"graph\.json: edge target '0\.25\|0\.00\|0\|0' is not a node"),
+    (
+        "grid_missing_position",
+        lambda s: (s / "grid.json").write_text('[{"x": 0.0, "y": 0.9, "z": 0.0}]'),
+        r"grid\.json: position of state 0\.25\|0\.00\|\S+ \(graph\.json\) is not in the grid",
+    ),
+    (
+        "vis_key_not_in_graph",
+        _vis_bad_key,
+        r"visible_object_map_1\.5\.json: visible state of Television\S* '0\.50\|0\.00\|90\|0' is not a node of graph\.json",
+    ),
+    (
+        "meta_key_not_in_graph",
+        _meta_bad_key,
+        r"metadata\.json: state key '0\.00\|0\.25\|0\|0' is not a state of graph\.json",
+    ),
+    (
+        "graph_link_not_a_node",
+        lambda s: (s / "graph.json").write_text(
+            json.dumps(
+                {
+                    "directed": True,
+                    "nodes": [{"id": "0.00|0.00|0|0"}],
+                    "links": [{"source": "0.00|0.00|0|0", "target": "0.25|0.00|0|0"}],
+                }
+            )
+        ),
+        r"graph\.json: edge target '0\.25\|0\.00\|0\|0' is not a node",
+    ),
     ("truncated_images", lambda s: [_h5_images(s), _truncate(s / "images.hdf5")], r"images\.hdf5: unreadable HDF5"),
-    ("images_dtype", lambda s: _h5_images(s, np.float32), r"images\.hdf5: state .* holds float32 \(8, 8, 3\), expected uint8"),
-    ("det_key_not_in_graph", _det_with_extra_key, r"detr_features_22cls\.hdf5: state key '9\.00\|9\.00\|0\|0' is not a state"),
+    (
+        "images_dtype",
+        lambda s: _h5_images(s, np.float32),
+        r"images\.hdf5: state .* holds float32 \(8, 8, 3\), expected uint8",
+    ),
+    (
+        "det_key_not_in_graph",
+        _det_with_extra_key,
+        r"detr_features_22cls\.hdf5: state key '9\.00\|9\.00\|0\|0' is not a state",
+    ),
     ("truncated_detections", _truncated_det, r"detr_features_22cls\.hdf5: unreadable HDF5"),
 ]
 

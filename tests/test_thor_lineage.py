@@ -30,7 +30,7 @@ def test_derive_floor_hand_checked():
     # diagonal neighbours only touch at a corner: two squares
     assert len(L.derive_floor([{"x": 0.0, "y": 0.9, "z": 0.0}, {"x": 0.25, "y": 0.9, "z": 0.25}])) == 2
     # a ring of 8 cells around a blocked centre: the hole (furniture) is filled -> 9 cells
-    ring = np.array([[x, z] for x in (0, .25, .5) for z in (0, .25, .5) if (x, z) != (.25, .25)])
+    ring = np.array([[x, z] for x in (0, 0.25, 0.5) for z in (0, 0.25, 0.5) if (x, z) != (0.25, 0.25)])
     fl = L.derive_floor(ring)
     assert len(fl) == 1 and shapely.Polygon(fl[0]).area == pytest.approx(9 * 0.0625)
     with pytest.raises(ValueError, match="no reachable positions"):
@@ -60,8 +60,9 @@ def _table(S=7, seed=0, image_size=64):
     boxes[~present] = -1
     feats = rng.standard_normal((S, NUM_CATEGORIES, 256)).astype(np.float16)
     keys = np.array(sorted(f"{0.25 * i:.2f}|0.00|0|0" for i in range(S)))
-    return Detections(keys=keys, scores=scores.astype(np.float32), labels=labels, boxes=boxes, features=feats,
-                      image_size=image_size)
+    return Detections(
+        keys=keys, scores=scores.astype(np.float32), labels=labels, boxes=boxes, features=feats, image_size=image_size
+    )
 
 
 def test_22x264_columns_hand_checked(tmp_path):
@@ -108,8 +109,14 @@ def test_22x264_round_trip_exact(tmp_path):
 def test_22x264_pads_small_features_and_reads_them_back(tmp_path):
     """tsnav's 64-d detector features: zero-padded to the lineage's 256 columns, read back at 64."""
     det = _table(S=5, seed=2)
-    small = Detections(keys=det.keys, scores=det.scores, labels=det.labels, boxes=det.boxes,
-                       features=det.features[..., :64], image_size=64)
+    small = Detections(
+        keys=det.keys,
+        scores=det.scores,
+        labels=det.labels,
+        boxes=det.boxes,
+        features=det.features[..., :64],
+        image_size=64,
+    )
     rows = L.table_to_22x264(small)
     assert rows.shape == (5, 22, 264) and (rows[:, :, 64:256] == 0).all()
     assert np.array_equal(rows[:, :, :64], small.features.astype(np.float32))
@@ -138,8 +145,8 @@ def test_22x264_best_row_per_class_like_the_lineage():
     rows = np.zeros((2, 5, 264), np.float32)
     rows[:, :, 257] = 23  # no object
     rows[:, :, 256] = 0.99
-    rows[0, 1, [256, 257]] = [0.4, 5]   # category 4, weaker
-    rows[0, 3, [256, 257]] = [0.8, 5]   # category 4, best
+    rows[0, 1, [256, 257]] = [0.4, 5]  # category 4, weaker
+    rows[0, 3, [256, 257]] = [0.8, 5]  # category 4, best
     rows[0, 3, 260:264] = [10, 20, 30, 40]
     rows[0, 3, :256] = 0.5
     rows[1, 0, [256, 257]] = [0.7, 22]  # Toaster
@@ -154,8 +161,14 @@ def test_22x264_best_row_per_class_like_the_lineage():
 
 def test_22x264_refuses_other_feature_sizes_and_bad_files(tmp_path):
     det = _table()
-    big = Detections(keys=det.keys, scores=det.scores, labels=det.labels, boxes=det.boxes,
-                     features=np.concatenate([det.features, det.features], -1), image_size=64)
+    big = Detections(
+        keys=det.keys,
+        scores=det.scores,
+        labels=det.labels,
+        boxes=det.boxes,
+        features=np.concatenate([det.features, det.features], -1),
+        image_size=64,
+    )
     with pytest.raises(ValueError, match="256-d"):
         L.table_to_22x264(big)
     with pytest.raises(SceneFormatError, match="missing file"):

@@ -25,8 +25,9 @@ from thor_standin import StandInController
 
 @pytest.fixture(scope="module")
 def original(tiny_world):
-    return min((load_scene(p) for p in sorted(tiny_world.iterdir()) if (p / "COMPLETE").exists()),
-               key=lambda s: s.num_states)
+    return min(
+        (load_scene(p) for p in sorted(tiny_world.iterdir()) if (p / "COMPLETE").exists()), key=lambda s: s.num_states
+    )
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +60,9 @@ def test_exported_tables_match_the_renders(exported, original):
     dpx = np.abs(s.pixels - original.pixels[:, cols])
     assert dpx.max() <= 8 and (dpx > 0).mean() < 0.002, (dpx.max(), (dpx > 0).sum())
     dbox = np.abs(s.boxes.astype(int) - original.boxes[:, cols].astype(int))
-    assert ((s.boxes < 0) == (original.boxes[:, cols] < 0)).mean() > 0.998 and (dbox[(s.boxes >= 0) & (original.boxes[:, cols] >= 0)] <= 1).all()
+    assert ((s.boxes < 0) == (original.boxes[:, cols] < 0)).mean() > 0.998 and (
+        dbox[(s.boxes >= 0) & (original.boxes[:, cols] >= 0)] <= 1
+    ).all()
     # axis-aligned footprints hold the rotated ones: never farther than the scene's own distances
     assert (s.distance <= original.distance[:, cols] + 1e-5).all()
     with h5py.File(s.path / "images.hdf5", "r") as a, h5py.File(original.path / "images.hdf5", "r") as b:
@@ -86,7 +89,9 @@ def test_visibility_map_states_show_the_object(exported):
     for oid, keys in vis.items():
         for k in rng.choice(keys, size=min(4, len(keys)), replace=False) if keys else []:
             x, z, r, h = parse_state_key(str(k))
-            ev = ctrl.step(action="Teleport", position={"x": x, "y": 0.9, "z": z}, rotation={"x": 0, "y": r, "z": 0}, horizon=h)
+            ev = ctrl.step(
+                action="Teleport", position={"x": x, "y": 0.9, "z": z}, rotation={"x": 0, "y": r, "z": 0}, horizon=h
+            )
             assert ev.metadata["lastActionSuccess"]
             assert ev.instance_masks[oid].sum() >= min_px
             box = next(o["axisAlignedBoundingBox"] for o in ev.metadata["objects"] if o["objectId"] == oid)
@@ -109,7 +114,9 @@ def test_reader_arrays_agree_with_files(exported):
         assert set(s.keys[s.visible[:, j]].tolist()) == set(vis.get(str(oid), []))
     assert all(vis.values())  # the lineage's maps never list an object with no state
     grid = json.loads((s.path / "grid.json").read_text())
-    assert {(round(p["x"], 2), round(p["z"], 2)) for p in grid} == set(zip(np.round(s.x, 2).tolist(), np.round(s.z, 2).tolist()))
+    assert {(round(p["x"], 2), round(p["z"], 2)) for p in grid} == set(
+        zip(np.round(s.x, 2).tolist(), np.round(s.z, 2).tolist())
+    )
     with h5py.File(s.path / "states.hdf5", "r") as f:
         assert f["thor_visible"].shape == s.visible.shape and f["thor_visible"].dtype == bool
         # AI2-THOR's own flag (stand-in: any mask pixel within 1.5 m) holds every map state

@@ -6,12 +6,19 @@ import shapely
 
 from tsnav.data.toy import toy_scene
 from tsnav.tsrm.area import (
-    AreaConfig, AreaIndex, BatchCoverage, ExactSearchedRegion, floor_union, profile_of, stencil_samples,
-    stencil_weights, trapezoid, trapezoid_vertices,
+    AreaConfig,
+    AreaIndex,
+    BatchCoverage,
+    ExactSearchedRegion,
+    floor_union,
+    profile_of,
+    stencil_samples,
+    stencil_weights,
+    trapezoid,
+    trapezoid_vertices,
 )
 
-L_FLOOR = np.array([[-0.125, -0.125], [6.125, -0.125], [6.125, 2.625], [3.125, 2.625], [3.125, 5.125],
-                    [-0.125, 5.125]])
+L_FLOOR = np.array([[-0.125, -0.125], [6.125, -0.125], [6.125, 2.625], [3.125, 2.625], [3.125, 5.125], [-0.125, 5.125]])
 
 
 def l_room():
@@ -95,7 +102,7 @@ def test_exact_region_is_monotone_and_bounded_by_floor():
 
 def test_stencil_areas():
     cfg = AreaConfig()
-    s2 = cfg.sample_size ** 2
+    s2 = cfg.sample_size**2
     for r in range(0, 360, 45):
         for h, exact in ((0, 15.0), (30, 8.9375)):
             # the weights integrate the trapezoid (up to its four corners); the dithered samples within 0.1%
@@ -115,8 +122,9 @@ def test_single_views_match_shapely_at_every_state():
     cov.reset(np.ones(n, bool), np.zeros(n, int))
     fast = cov.add(np.arange(n), np.arange(n))
     fl = floor_union(sc.floor)
-    exact = np.array([trapezoid(sc.x[s], sc.z[s], sc.rotation[s], sc.horizon[s]).intersection(fl).area
-                      for s in range(n)])
+    exact = np.array(
+        [trapezoid(sc.x[s], sc.z[s], sc.rotation[s], sc.horizon[s]).intersection(fl).area for s in range(n)]
+    )
     # one view, clipped by walls in every way the room allows: within 0.03 m^2 (a sample row of a 1 m edge)
     assert np.abs(fast - exact).max() < 0.03
     assert np.abs(fast - exact).mean() < 0.005
@@ -141,10 +149,10 @@ def test_fast_matches_exact_over_random_walks(sample_size):
         prev = cov.area().copy()
     exact_total = np.array([r.area for r in refs])
     # whole episodes agree within 1% (plus two samples' area for regions of a few hundredths of a m^2)
-    assert np.all(np.abs(cov.area() - exact_total) <= 0.01 * exact_total + 2 * idx.config.sample_size ** 2)
+    assert np.all(np.abs(cov.area() - exact_total) <= 0.01 * exact_total + 2 * idx.config.sample_size**2)
     # the raster of the region holds exactly the counted samples
     for e in range(3):
-        assert cov.region_mask(e).sum() * idx.config.sample_size ** 2 == pytest.approx(cov.area()[e])
+        assert cov.region_mask(e).sum() * idx.config.sample_size**2 == pytest.approx(cov.area()[e])
 
 
 def test_batch_rows_are_independent_and_reset():

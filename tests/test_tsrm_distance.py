@@ -7,7 +7,11 @@ from tsnav.data.toy import toy_scene
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.paths import UNREACHABLE
 from tsnav.tsrm.distance import (
-    bank_pose_distance, distance_delta, pose_distance_fields, pose_distance_reference, pose_nodes,
+    bank_pose_distance,
+    distance_delta,
+    pose_distance_fields,
+    pose_distance_reference,
+    pose_nodes,
     scene_pose_distance,
 )
 
@@ -41,8 +45,12 @@ def test_pose_counts_as_success_at_any_horizon():
 
 
 def test_matches_python_reference():
-    sc = toy_scene(3.0, 2.0, objects={"Bowl|1": (3.0, 2.0), "Chair|1": (0.25, 1.0), "Sink|1": (1.5, 0.0)},
-                   blocked=[(1.5, 1.0), (1.5, 0.75), (1.75, 1.0)])
+    sc = toy_scene(
+        3.0,
+        2.0,
+        objects={"Bowl|1": (3.0, 2.0), "Chair|1": (0.25, 1.0), "Sink|1": (1.5, 0.0)},
+        blocked=[(1.5, 1.0), (1.5, 0.75), (1.75, 1.0)],
+    )
     fast = scene_pose_distance(sc)
     for name in ("Bowl", "Chair", "Sink"):
         g = CATEGORY_INDEX[name]
@@ -65,7 +73,7 @@ def test_bank_layout_matches_scenes():
     d = bank_pose_distance(bank)
     assert d.shape == (bank.num_states, NUM_CATEGORIES)
     np.testing.assert_array_equal(d[: a.num_states], scene_pose_distance(a))
-    np.testing.assert_array_equal(d[a.num_states:], scene_pose_distance(b))
+    np.testing.assert_array_equal(d[a.num_states :], scene_pose_distance(b))
 
 
 def test_delta_telescopes_and_ignores_looks():

@@ -47,4 +47,4 @@ def test_draw_episode_writes_png(tmp_path):
     assert img.shape[0] > 300 and img.shape[1] > 300
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 10  # more than a blank canvas
     with pytest.raises(ValueError, match="state ids"):
-        draw_episode(sc, [10 ** 6], "Bowl", tmp_path / "bad.png")
+        draw_episode(sc, [10**6], "Bowl", tmp_path / "bad.png")

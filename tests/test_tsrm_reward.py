@@ -4,13 +4,28 @@ import numpy as np
 import pytest
 
 from sim_helpers import StagedReward
-from tsnav.constants import (CATEGORY_INDEX, DONE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES, ROTATE_LEFT,
-                             ROTATE_RIGHT)
+from tsnav.constants import (
+    CATEGORY_INDEX,
+    DONE,
+    LOOK_DOWN,
+    LOOK_UP,
+    MOVE_AHEAD,
+    NUM_CATEGORIES,
+    ROTATE_LEFT,
+    ROTATE_RIGHT,
+)
 from tsnav.data.toy import toy_scene
 from tsnav.sim.batch import BatchEnv, RewardFn, SceneBank
 from tsnav.tsrm.distance import bank_pose_distance
 from tsnav.tsrm.reward import (
-    PATHFINDING, SEARCHING, TERMS, VARIANT_TERMS, VARIANTS, RewardConfig, TSRMReward, TSRMRewardReference,
+    PATHFINDING,
+    SEARCHING,
+    TERMS,
+    VARIANT_TERMS,
+    VARIANTS,
+    RewardConfig,
+    TSRMReward,
+    TSRMRewardReference,
 )
 
 BOWL = CATEGORY_INDEX["Bowl"]
@@ -18,8 +33,7 @@ CHAIR = CATEGORY_INDEX["Chair"]
 
 
 def room():
-    return toy_scene(4.0, 3.0, objects={"Bowl|1": (4.0, 3.0), "Chair|1": (0.5, 2.5)},
-                     blocked=[(2.0, 1.0), (2.0, 1.25)])
+    return toy_scene(4.0, 3.0, objects={"Bowl|1": (4.0, 3.0), "Chair|1": (0.5, 2.5)}, blocked=[(2.0, 1.0), (2.0, 1.25)])
 
 
 def run(reward, scene, start, target, actions):
@@ -30,8 +44,14 @@ def run(reward, scene, start, target, actions):
     out = []
     for a in actions:
         n = int(scene.next_state[s, a])
-        r, terms = reward.step(np.array([s]), np.array([a]), np.array([n]), np.array([n == s and a == MOVE_AHEAD]),
-                               np.array([a == DONE]), np.array([False]))
+        r, terms = reward.step(
+            np.array([s]),
+            np.array([a]),
+            np.array([n]),
+            np.array([n == s and a == MOVE_AHEAD]),
+            np.array([a == DONE]),
+            np.array([False]),
+        )
         out.append((float(r[0]), {k: float(v[0]) for k, v in terms.items()}))
         s = n
     return out
@@ -54,8 +74,9 @@ def test_collision_rule():
     bank = SceneBank([sc], cache=False)
     rew = TSRMReward(bank, RewardConfig(variant="baseline"))
     start = sc.index("0.00|0.00|180|0")  # facing the wall
-    steps = run(rew, sc, start, BOWL, [MOVE_AHEAD, MOVE_AHEAD, LOOK_DOWN, MOVE_AHEAD, ROTATE_RIGHT, MOVE_AHEAD,
-                                       MOVE_AHEAD])
+    steps = run(
+        rew, sc, start, BOWL, [MOVE_AHEAD, MOVE_AHEAD, LOOK_DOWN, MOVE_AHEAD, ROTATE_RIGHT, MOVE_AHEAD, MOVE_AHEAD]
+    )
     col = [t["collision"] for _, t in steps]
     # first bump free; again at the same pose -0.1; looking down keeps the pose (horizon is not part of it);
     # at a new rotation (225) the first bump is free again
@@ -76,8 +97,15 @@ def test_failed_looks_are_not_collisions():
     env = BatchEnv(bank, 1, max_steps=100, autoreset=False, reward_fn=rew)
     start = sc.index("0.00|0.00|180|0")  # level, facing the wall
     env.reset(episodes=(np.zeros(1, int), np.array([BOWL]), np.array([start])))
-    seq = [(LOOK_UP, True, False), (LOOK_UP, True, False), (LOOK_DOWN, False, False), (LOOK_DOWN, True, False),
-           (LOOK_DOWN, True, False), (MOVE_AHEAD, True, True), (MOVE_AHEAD, True, True)]
+    seq = [
+        (LOOK_UP, True, False),
+        (LOOK_UP, True, False),
+        (LOOK_DOWN, False, False),
+        (LOOK_DOWN, True, False),
+        (LOOK_DOWN, True, False),
+        (MOVE_AHEAD, True, True),
+        (MOVE_AHEAD, True, True),
+    ]
     col = []
     for a, failed, collided in seq:
         _, _, _, _, info = env.step(np.array([a]))
@@ -144,6 +172,7 @@ def test_distance_increase_scale_charges_the_long_way_round():
         for a in acts:
             s = sc.next_state[s, a]
         return s
+
     assert end(short) == end(long_) and d[end(short)] == d[start] - 2
     assert d[sc.next_state[start, ROTATE_LEFT]] == d[start] + 1  # the first left moves away, the rest come back
     k = RewardConfig().k_distance
@@ -172,8 +201,14 @@ def test_success_and_done():
     bank = SceneBank([sc], cache=False)
     rew = StagedReward(TSRMReward(bank))
     rew.reset(np.ones(2, bool), np.zeros(2, int), np.array([BOWL, BOWL]), np.array([0, 1]))
-    r, terms = rew.step(np.array([0, 1]), np.array([DONE, DONE]), np.array([0, 1]), np.zeros(2, bool),
-                        np.ones(2, bool), np.array([True, False]))
+    r, terms = rew.step(
+        np.array([0, 1]),
+        np.array([DONE, DONE]),
+        np.array([0, 1]),
+        np.zeros(2, bool),
+        np.ones(2, bool),
+        np.array([True, False]),
+    )
     assert terms["success"].tolist() == [5.0, 0.0]
     assert r == pytest.approx(np.array([5.0 - 0.01, -0.01]) + terms["distance"] + terms["explore"])
     assert terms["explore"].tolist() == [0.0, 0.0]  # Done adds no view
@@ -183,8 +218,14 @@ def test_each_variant_switches_off_exactly_its_terms():
     sc = room()
     bank = SceneBank([sc], cache=False)
     # down to the wall, bump twice, turn until the bowl is in view, walk towards it, then Done
-    acts = ([MOVE_AHEAD] * 6 + [ROTATE_LEFT, ROTATE_LEFT] + [MOVE_AHEAD] * 3 + [ROTATE_LEFT] + [MOVE_AHEAD] * 3
-            + [ROTATE_RIGHT, MOVE_AHEAD, LOOK_DOWN, DONE])
+    acts = (
+        [MOVE_AHEAD] * 6
+        + [ROTATE_LEFT, ROTATE_LEFT]
+        + [MOVE_AHEAD] * 3
+        + [ROTATE_LEFT]
+        + [MOVE_AHEAD] * 3
+        + [ROTATE_RIGHT, MOVE_AHEAD, LOOK_DOWN, DONE]
+    )
     start = sc.index("1.00|1.00|180|0")
     full = run(TSRMReward(bank, RewardConfig(variant="tsrm")), sc, start, BOWL, acts)
     sums = {k: sum(abs(t[k]) for _, t in full) for k in TERMS}
@@ -217,7 +258,7 @@ def test_fast_matches_reference_on_random_walks(variant, scale):
     for i in range(n):
         sc = scenes[scene_idx[i]]
         o = int(off[i])
-        refs.append(TSRMRewardReference(sc, cfg, confidence=conf[o:o + sc.num_states]))
+        refs.append(TSRMRewardReference(sc, cfg, confidence=conf[o : o + sc.num_states]))
         refs[-1].reset(target[i], local[i])
     explore_fast = np.zeros(n)
     explore_ref = np.zeros(n)
@@ -230,8 +271,9 @@ def test_fast_matches_reference_on_random_walks(variant, scale):
         success = done & bank.success[new, target]
         r, terms = fast.step(local + off, act, new, collided, done, success)
         for i in range(n):
-            rr, tr = refs[i].step(int(local[i]), int(act[i]), int(new[i] - off[i]), bool(collided[i]),
-                                  bool(done[i]), bool(success[i]))
+            rr, tr = refs[i].step(
+                int(local[i]), int(act[i]), int(new[i] - off[i]), bool(collided[i]), bool(done[i]), bool(success[i])
+            )
             for k in TERMS:
                 tol = 0.1 * 0.03 if k == "explore" else 1e-6  # explore: K_e x 0.03 m^2 per step
                 assert terms[k][i] == pytest.approx(tr[k], abs=tol), k
@@ -243,7 +285,7 @@ def test_fast_matches_reference_on_random_walks(variant, scale):
         assert fast.switch_step.tolist() == [x.switch_step for x in refs]
         local = new - off
     # whole episodes: exploration within 1% (plus two samples' area)
-    assert np.all(np.abs(explore_fast - explore_ref) <= 0.01 * explore_ref + 0.1 * 2 / 32 ** 2)
+    assert np.all(np.abs(explore_fast - explore_ref) <= 0.01 * explore_ref + 0.1 * 2 / 32**2)
     if variant == "tsrm":
         assert explore_ref.sum() > 1.0
         assert increases > 0  # the walks exercise the scaled branch

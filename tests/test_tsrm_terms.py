@@ -58,7 +58,7 @@ def test_each_term_batched_scalar_and_reference_agree(name, exact_area, monkeypa
     refs, ones = [], []
     for i in range(n):
         sc, o = scenes[scene_idx[i]], int(off[i])
-        refs.append(TSRMRewardReference(sc, cfg, confidence=conf[o:o + sc.num_states]))
+        refs.append(TSRMRewardReference(sc, cfg, confidence=conf[o : o + sc.num_states]))
         refs[-1].reset(target[i], local[i])
         one = TSRMReward(bank, cfg)
         one.reset_one(int(scene_idx[i]), int(target[i]), int(local[i] + o), searching=not refs[-1].pathfinding)
@@ -74,12 +74,20 @@ def test_each_term_batched_scalar_and_reference_agree(name, exact_area, monkeypa
         searching = fast.switch.searching.copy()
         r, terms = fast.step(local + off, act, new, collided, done, success)
         for i in range(n):
-            rr, tr = refs[i].step(int(local[i]), int(act[i]), int(new[i] - off[i]), bool(collided[i]),
-                                  bool(done[i]), bool(success[i]))
+            rr, tr = refs[i].step(
+                int(local[i]), int(act[i]), int(new[i] - off[i]), bool(collided[i]), bool(done[i]), bool(success[i])
+            )
             assert terms[name][i] == pytest.approx(tr[name], abs=tol)
             assert all(terms[k][i] == 0.0 and tr[k] == 0.0 for k in TERMS if k != name)
-            r1, t1 = ones[i].step_one(int(local[i] + off[i]), int(act[i]), int(new[i]), bool(collided[i]),
-                                      bool(done[i]), bool(success[i]), searching=bool(searching[i]))
+            r1, t1 = ones[i].step_one(
+                int(local[i] + off[i]),
+                int(act[i]),
+                int(new[i]),
+                bool(collided[i]),
+                bool(done[i]),
+                bool(success[i]),
+                searching=bool(searching[i]),
+            )
             assert r1 == float(r[i]) and t1 == {k: float(v[i]) for k, v in terms.items()}
             nonzero += tr[name] != 0.0
         assert fast.stage.tolist() == [int(x.pathfinding) for x in refs]

@@ -13,8 +13,21 @@ from tsnav.cli import main
 from tsnav.constants import CATEGORY_INDEX
 from tsnav.eval.policies import make_policy
 from tsnav.eval.runner import record_trajectories
-from tsnav.eval.video import (BAND, PANEL, PATH_RGB, SEARCH_RGB, SWITCH_RGB, RoomMap, clip_frames, default_format,
-                              episode_clip, read_clip, read_video_index, segment_colors, write_clip)
+from tsnav.eval.video import (
+    BAND,
+    PANEL,
+    PATH_RGB,
+    SEARCH_RGB,
+    SWITCH_RGB,
+    RoomMap,
+    clip_frames,
+    default_format,
+    episode_clip,
+    read_clip,
+    read_video_index,
+    segment_colors,
+    write_clip,
+)
 from tsnav.sim.batch import SceneBank
 from tsnav.sim.episodes import make_episodes, write_episodes
 from tsnav.world.show import frame_images
@@ -34,6 +47,7 @@ def _walk(bank, trajectories):
     """A recorded episode that moves often, and a stage-switch frame in its middle: a frame after the first move and
     before the last one whose state was not visited before (a confidence table above C_target at that state only
     then switches the episode exactly there)."""
+
     def positions(t):
         scene = bank.scenes[bank.scene_index(t.scene)]
         idx = scene.indices(t.keys)
@@ -62,7 +76,7 @@ def test_clip_frames_one_per_frame_coloured_by_stage(rolled):
     assert frames.shape[1] % 16 == 0 and frames.shape[2] % 16 == 0  # H.264 macroblocks, no rescaling
     # under the text band, the left panel is the agent's own frame, upscaled
     k = PANEL // views.shape[1]
-    assert np.array_equal(frames[0, BAND + k // 2::k, k // 2:PANEL:k], views[0])
+    assert np.array_equal(frames[0, BAND + k // 2 :: k, k // 2 : PANEL : k], views[0])
     maps = frames[:, BAND:, PANEL:]
     # before the switch: searching colour only, no star; at the switch the star appears where the agent is
     assert all(_count(m, PATH_RGB) == 0 and _count(m, SWITCH_RGB) == 0 for m in maps[:sw])
@@ -118,8 +132,24 @@ def test_eval_video_writes_n_clips_and_report_embeds_clips(tmp_path, tiny_world,
     ep_file = tmp_path / "episodes.json"
     write_episodes(ep_file, episodes, split="test", success_distance=1.0)
     out = tmp_path / "work" / "eval"
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(ep_file), "--policy", "explorer",
-                 "--out", str(out), "--video", "3"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(tiny_world),
+                "--episodes",
+                str(ep_file),
+                "--policy",
+                "explorer",
+                "--out",
+                str(out),
+                "--video",
+                "3",
+            ]
+        )
+        == 0
+    )
     assert "wrote 3 clips into" in capsys.readouterr().out
     clips = read_video_index(out)
     assert len(clips) == 3 and len({c.episode for c in clips}) == 3
@@ -128,11 +158,28 @@ def test_eval_video_writes_n_clips_and_report_embeds_clips(tmp_path, tiny_world,
         assert (out / "videos" / c.file).suffix == ".mp4"
         assert len(read_clip(out / "videos" / c.file)) == c.frames == recs[c.episode]["steps"] + 1
     # asking again for fewer replaces the clips
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(ep_file), "--policy", "explorer",
-                 "--out", str(out), "--video", "1"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--data",
+                str(tiny_world),
+                "--episodes",
+                str(ep_file),
+                "--policy",
+                "explorer",
+                "--out",
+                str(out),
+                "--video",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert len(list((out / "videos").glob("*.mp4"))) == 1 == len(read_video_index(out))
-    assert main(["eval", "--data", str(tiny_world), "--episodes", str(ep_file), "--out", str(out),
-                 "--video", "-1"]) == 2
+    assert (
+        main(["eval", "--data", str(tiny_world), "--episodes", str(ep_file), "--out", str(out), "--video", "-1"]) == 2
+    )
     assert "--video must be >= 0" in capsys.readouterr().err
 
     from tsnav.report.html import build_report

@@ -16,8 +16,7 @@ import shapely
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
-from tsnav.constants import (ACTIONS, GRID_SIZE, MOVE_AHEAD, parse_state_key, parse_state_keys,
-                             state_key)
+from tsnav.constants import ACTIONS, GRID_SIZE, MOVE_AHEAD, parse_state_key, parse_state_keys, state_key
 from tsnav.data.reader import SceneFormatError, edge_actions, load_scene
 from tsnav.data.writer import box_distance, object_stats, object_stats_reference
 from tsnav.data.names import ithor_scenes, robothor_scenes, scene_info
@@ -116,8 +115,12 @@ def test_visibility_map_matches_renders(tiny_world, tiny_scenes):
             _, _, ids = render_views(s, np.array([[x, z, r, h]]), size=s.image_size)
             assert (ids[0] == inst[oid]).sum() >= s.meta["visibility"]["min_pixels"]
             o = next(o for o in s.meta["objects"] if o["objectId"] == oid)
-            d = box_distance(np.array([[x, z]]), np.array([o["bbox"]["center"]]),
-                             np.array([o["bbox"]["size"]]), np.array([o["bbox"]["yaw"]]))[0, 0]
+            d = box_distance(
+                np.array([[x, z]]),
+                np.array([o["bbox"]["center"]]),
+                np.array([o["bbox"]["size"]]),
+                np.array([o["bbox"]["yaw"]]),
+            )[0, 0]
             assert d <= 1.5 + 1e-6
             checked += 1
     assert checked >= 5
@@ -163,7 +166,9 @@ def test_reader_arrays_agree_with_json(tiny_scenes):
         for j, oid in enumerate(s.object_ids):
             assert set(s.keys[s.visible[:, j]].tolist()) == set(vis.get(str(oid), []))
         grid = json.loads((s.path / "grid.json").read_text())
-        assert {(round(p["x"], 2), round(p["z"], 2)) for p in grid} == set(zip(np.round(s.x, 2).tolist(), np.round(s.z, 2).tolist()))
+        assert {(round(p["x"], 2), round(p["z"], 2)) for p in grid} == set(
+            zip(np.round(s.x, 2).tolist(), np.round(s.z, 2).tolist())
+        )
         with h5py.File(s.path / "images.hdf5", "r") as f:
             k = s.keys[len(s.keys) // 2]
             assert f[k].shape == (64, 64, 3) and f[k].dtype == np.uint8
@@ -188,15 +193,17 @@ def test_determinism_two_builds_identical(tmp_path):
 def test_interrupted_build_resumes(tmp_path):
     """A build killed mid-way leaves no complete-looking partial scene; rerunning finishes the rest."""
     out = tmp_path / "w"
-    code = ("import os, tsnav.world.build as b\n"
-            "orig = b.build_scene\n"
-            "def boom(name, *a, **k):\n"
-            "    if name == 'FloorPlan402':\n"
-            "        (lambda: os._exit(3))()\n"
-            "    return orig(name, *a, **k)\n"
-            "b.build_scene = boom\n"
-            "from tsnav.world.build import BuildConfig\n"
-            f"b.build_dataset({str(out)!r}, scenes=['FloorPlan401', 'FloorPlan402'], cfg=BuildConfig(image_size=32, compact=True), progress=False)\n")
+    code = (
+        "import os, tsnav.world.build as b\n"
+        "orig = b.build_scene\n"
+        "def boom(name, *a, **k):\n"
+        "    if name == 'FloorPlan402':\n"
+        "        (lambda: os._exit(3))()\n"
+        "    return orig(name, *a, **k)\n"
+        "b.build_scene = boom\n"
+        "from tsnav.world.build import BuildConfig\n"
+        f"b.build_dataset({str(out)!r}, scenes=['FloorPlan401', 'FloorPlan402'], cfg=BuildConfig(image_size=32, compact=True), progress=False)\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True)
     assert r.returncode == 3
     assert (out / "FloorPlan401" / "COMPLETE").exists() and not (out / "FloorPlan402").exists()
@@ -207,7 +214,9 @@ def test_interrupted_build_resumes(tmp_path):
     from tsnav.world.build import build_dataset
 
     assert [p.name for p in list_scenes(out)] == ["FloorPlan401"]
-    stats = build_dataset(out, scenes=["FloorPlan401", "FloorPlan402"], cfg=BuildConfig(image_size=32, compact=True), progress=False)
+    stats = build_dataset(
+        out, scenes=["FloorPlan401", "FloorPlan402"], cfg=BuildConfig(image_size=32, compact=True), progress=False
+    )
     assert [s.skipped for s in stats] == [True, False]
     assert [p.name for p in list_scenes(out)] == ["FloorPlan401", "FloorPlan402"]
     assert not list(out.glob(".*partial*"))
@@ -230,10 +239,17 @@ def test_cli_errors_are_one_line(tmp_path):
         assert r.returncode == 2 and "cannot write" in r.stderr
     r = run("world", "--preset", "tiny", "--out", "/proc/nonexistent/x")
     assert r.returncode == 2 and "cannot write" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run([sys.executable, "-m", "tsnav.cli", "world", "--preset", "tiny", "--out", str(tmp_path / "y")],
-                       capture_output=True, text=True, env={"PATH": "/usr/bin:/bin", "LD_LIBRARY_PATH": str(tmp_path),
-                                                            "PYTHONPATH": str(Path(__file__).parents[1] / "src"),
-                                                            "TSNAV_EGL_LIBRARY": "libEGL_missing.so.1"})
+    r = subprocess.run(
+        [sys.executable, "-m", "tsnav.cli", "world", "--preset", "tiny", "--out", str(tmp_path / "y")],
+        capture_output=True,
+        text=True,
+        env={
+            "PATH": "/usr/bin:/bin",
+            "LD_LIBRARY_PATH": str(tmp_path),
+            "PYTHONPATH": str(Path(__file__).parents[1] / "src"),
+            "TSNAV_EGL_LIBRARY": "libEGL_missing.so.1",
+        },
+    )
     assert r.returncode == 2 and "EGL" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -245,17 +261,27 @@ def test_reader_malformed_input(tmp_path):
     (d / "graph.json").write_text("{not json")
     with pytest.raises(SceneFormatError, match="not valid JSON"):
         load_scene(d)
-    (d / "graph.json").write_text(json.dumps({"nodes": [{"id": "0.00|0.00|0|0"}], "links": [{"source": "0.00|0.00|0|0", "target": "9.00|0.00|0|0"}]}))
+    (d / "graph.json").write_text(
+        json.dumps(
+            {"nodes": [{"id": "0.00|0.00|0|0"}], "links": [{"source": "0.00|0.00|0|0", "target": "9.00|0.00|0|0"}]}
+        )
+    )
     with pytest.raises(SceneFormatError, match="is not a node"):
         load_scene(d)
 
 
 def test_box_distance_by_hand():
     # a 1 x 1 m box centred at (2, 0, 0): 1.5 m from the origin along x; rotated 45 deg: 2 - sqrt(0.5)
-    d = box_distance(np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 3.0]]), np.array([[2.0, 0.0, 0.0]]),
-                     np.array([[1.0, 0.5, 1.0]]), np.array([0.0]))
+    d = box_distance(
+        np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 3.0]]),
+        np.array([[2.0, 0.0, 0.0]]),
+        np.array([[1.0, 0.5, 1.0]]),
+        np.array([0.0]),
+    )
     assert np.allclose(d[:, 0], [1.5, 0.0, 2.5])
-    d45 = box_distance(np.array([[0.0, 0.0]]), np.array([[2.0, 0.0, 0.0]]), np.array([[1.0, 0.5, 1.0]]), np.array([45.0]))
+    d45 = box_distance(
+        np.array([[0.0, 0.0]]), np.array([[2.0, 0.0, 0.0]]), np.array([[1.0, 0.5, 1.0]]), np.array([45.0])
+    )
     assert np.isclose(d45[0, 0], 2 - np.sqrt(0.5))
 
 
@@ -268,8 +294,9 @@ def test_targets_can_be_seen_and_reached(tiny_scenes):
     assert np.concatenate(ok).mean() >= 0.75
 
 
-@pytest.mark.parametrize("name,world", [("FloorPlan1", "procedural"), ("FloorPlan21", "procedural"),
-                                        ("FloorPlan301", "ithor-real")])
+@pytest.mark.parametrize(
+    "name,world", [("FloorPlan1", "procedural"), ("FloorPlan21", "procedural"), ("FloorPlan301", "ithor-real")]
+)
 def test_state_tables_equal_reference(name, world):
     """The array forms of the build (``state_poses``, ``state_keys``, ``graph_edges``) against the slow
     per-state loop (``build_graph`` and the poses loop the build used before): same rows, keys and edges in
@@ -357,8 +384,23 @@ def test_compressed_frames_equal_raw_and_stay_lineage_readable(tmp_path):
 
     name = "FloorPlan201"
     assert main(["world", "--preset", "tiny", "--scenes", name, "--out", str(tmp_path / "gz"), "--workers", "1"]) == 0
-    assert main(["world", "--preset", "tiny", "--scenes", name, "--out", str(tmp_path / "raw"), "--workers", "1",
-                 "--no-compression"]) == 0
+    assert (
+        main(
+            [
+                "world",
+                "--preset",
+                "tiny",
+                "--scenes",
+                name,
+                "--out",
+                str(tmp_path / "raw"),
+                "--workers",
+                "1",
+                "--no-compression",
+            ]
+        )
+        == 0
+    )
     sizes = {}
     for kind in ("images.hdf5", "depth.hdf5"):
         with h5py.File(tmp_path / "gz" / name / kind, "r") as g, h5py.File(tmp_path / "raw" / name / kind, "r") as r:

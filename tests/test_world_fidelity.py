@@ -12,13 +12,35 @@ import pytest
 
 from tsnav.cli import main
 from tsnav.world.build import BuildConfig, build_dataset
-from tsnav.world.fidelity import (DRIFT_SHIFTS, TrajectoriesError, drift_whatifs, keeps_all, load_trajectories,
-                                  markdown_drift, measure, parse_trajectories, relaid, scene_moves)
+from tsnav.world.fidelity import (
+    DRIFT_SHIFTS,
+    TrajectoriesError,
+    drift_whatifs,
+    keeps_all,
+    load_trajectories,
+    markdown_drift,
+    measure,
+    parse_trajectories,
+    relaid,
+    scene_moves,
+)
 from tsnav.world.layouts import parse_layout
 from tsnav.world.navgrid import reachable_positions
 from tsnav.world.spec import SceneSpec
-from tsnav.world.real import (CAPSULE_BOTTOM, CLEARANCE, SEAT_CLEARANCE, TOILET_SIZE, WALL_INSET, blocks,
-                              counter_boxes, footprints, low_clearance, outer_rect, real_spec, spec_from_layout)
+from tsnav.world.real import (
+    CAPSULE_BOTTOM,
+    CLEARANCE,
+    SEAT_CLEARANCE,
+    TOILET_SIZE,
+    WALL_INSET,
+    blocks,
+    counter_boxes,
+    footprints,
+    low_clearance,
+    outer_rect,
+    real_spec,
+    spec_from_layout,
+)
 
 from test_real_world import obj
 
@@ -72,8 +94,13 @@ def test_agent_stands_exactly_a_capsule_radius_from_a_box():
 
 
 def test_object_resting_on_a_receptacle_and_the_floor_does_not_block():
-    pillow = obj("Pillow|+01.00|+00.50|+01.00", (1.0, 0.5, 1.0), (0.4, 0.4, 0.4), [FLOOR_ID, "Sofa|+01.00|+00.40|+01.20"],
-                 pickupable=True)
+    pillow = obj(
+        "Pillow|+01.00|+00.50|+01.00",
+        (1.0, 0.5, 1.0),
+        (0.4, 0.4, 0.4),
+        [FLOOR_ID, "Sofa|+01.00|+00.40|+01.20"],
+        pickupable=True,
+    )
     chair = obj("Chair|+02.00|+00.45|+02.00", (2.0, 0.45, 2.0), (0.5, 0.9, 0.5), [FLOOR_ID])
     desk = obj("Desk|+02.00|+00.40|+00.50", (2.0, 0.4, 0.5), (1.0, 0.8, 0.5), ["Chair|+02.00|+00.45|+02.00", FLOOR_ID])
     lay = layout(pillow, chair, desk)
@@ -88,7 +115,7 @@ def test_low_objects_and_upholstered_seats_keep_a_smaller_clearance():
     sqrt(0.19^2 - 0.09^2) = 0.1673 m away; one lower than the capsule's bottom does not block; sofas keep
     SEAT_CLEARANCE. Positions follow: a point 0.17 m from a sofa's face (or from a lying bat) is reachable in
     version 2, not beside a cabinet."""
-    assert low_clearance(CAPSULE_BOTTOM + 0.1) == pytest.approx(math.sqrt(0.19 ** 2 - 0.09 ** 2))
+    assert low_clearance(CAPSULE_BOTTOM + 0.1) == pytest.approx(math.sqrt(0.19**2 - 0.09**2))
     assert low_clearance(0.02) == 0.0 and low_clearance(0.5) == CLEARANCE
     cloth = obj("Cloth|+01.00|+00.01|+01.00", (1.0, 0.01, 1.0), (0.3, 0.02, 0.3), [FLOOR_ID])
     lay = layout(cloth)
@@ -104,7 +131,7 @@ def test_low_objects_and_upholstered_seats_keep_a_smaller_clearance():
     assert reach("Sofa", 0.8) == (True, {"Sofa|x": SEAT_CLEARANCE})
     assert reach("Cabinet", 0.8) == (False, {})
     ok, own = reach("BaseballBat", 0.1)  # top 0.1 m: clearance sqrt(0.19^2 - 0.12^2) = 0.147
-    assert ok and own["BaseballBat|x"] == pytest.approx(round(math.sqrt(0.19 ** 2 - 0.12 ** 2), 4))
+    assert ok and own["BaseballBat|x"] == pytest.approx(round(math.sqrt(0.19**2 - 0.12**2), 4))
 
 
 def test_oversized_toilet_box_is_replaced_by_a_toilet():
@@ -129,11 +156,13 @@ def test_island_turned_off_grid_takes_its_depth_across_the_objects_row():
     counter = obj("CounterTop|+01.50|+00.90|+01.50", (1.5, 0.9, 1.5), (2.0, 0.02, 2.0), None, ry=315)
     cid = counter["objectId"]
     # local z of yaw 315 runs along (x, z) = (-0.707, 0.707): objects on that line through the centre
-    things = [obj(f"Apple|{i}", (1.5 - d, 1.0, 1.5 + d), (0.1, 0.1, 0.1), [cid]) for i, d in enumerate((-0.5, 0.0, 0.5))]
+    things = [
+        obj(f"Apple|{i}", (1.5 - d, 1.0, 1.5 + d), (0.1, 0.1, 0.1), [cid]) for i, d in enumerate((-0.5, 0.0, 0.5))
+    ]
     lay = layout(counter, *things)
     c = lay.objects[1]
-    (_, (sx1, sz1), _), = counter_boxes(lay, c, 1)
-    (_, (sx2, sz2), yaw), = counter_boxes(lay, c, 2)
+    ((_, (sx1, sz1), _),) = counter_boxes(lay, c, 1)
+    ((_, (sx2, sz2), yaw),) = counter_boxes(lay, c, 2)
     diag = 2.0 * math.sqrt(2)
     assert sx2 + sz2 == pytest.approx(diag) and sx2 == pytest.approx(0.6) and yaw == 315
     assert sx1 + sz1 == pytest.approx(diag) and sz1 == pytest.approx(diag / 2)  # version 1: depth along z, capped
@@ -208,8 +237,10 @@ def drift_room():
     lay = layout(chair, cab, drawer, ball, scene="FloorPlan301")
     flags = {o.object_id: {"pickupable": o.pickupable, "moveable": o.moveable} for o in lay.objects}
     triples = [(f"{x:.2f}|1.00|90|0", "MoveAhead", f"{x + 0.25:.2f}|1.00|90|0") for x in (0.5, 0.75, 1.0, 1.25)]
-    triples += [("2.00|2.00|0|0", "MoveAhead", "2.00|2.00|0|0"),  # blocked by the cabinet in the real room
-                ("0.50|2.00|0|0", "MoveAhead", "0.50|2.00|0|0")]  # blocked by nothing recorded
+    triples += [
+        ("2.00|2.00|0|0", "MoveAhead", "2.00|2.00|0|0"),  # blocked by the cabinet in the real room
+        ("0.50|2.00|0|0", "MoveAhead", "0.50|2.00|0|0"),
+    ]  # blocked by nothing recorded
     return spec_from_layout(lay, "bedroom", "train"), triples, flags
 
 
@@ -288,8 +319,11 @@ def test_drift_marks_name_the_objects_on_the_picture():
 def test_drift_what_if_that_swaps_a_position_is_not_lossless():
     """A what-if that brings one real position back and loses another keeps the counts but not the positions: it
     loses something (the what-ifs compare sets, not counts)."""
-    triples = [("0.00|0.00|90|0", "MoveAhead", "0.25|0.00|90|0"), ("0.50|0.00|0|0", "RotateLeft", "0.50|0.00|315|0"),
-               ("0.75|0.00|0|0", "RotateLeft", "0.75|0.00|315|0")]
+    triples = [
+        ("0.00|0.00|90|0", "MoveAhead", "0.25|0.00|90|0"),
+        ("0.50|0.00|0|0", "RotateLeft", "0.50|0.00|315|0"),
+        ("0.75|0.00|0|0", "RotateLeft", "0.75|0.00|315|0"),
+    ]
 
     def fid(*xs):
         move = np.full((len(xs), 8), -1)
@@ -346,13 +380,28 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     p0 = next(i for i in range(len(pos)) if move[i, 2] >= 0)
     edge = next(i for i in range(len(pos)) if move[i, 0] < 0 and i not in (p0, move[p0, 2]))
     far = pos[:, 0].max() + 5.0
-    triples = [[key(pos[p0], 90), "MoveAhead", key(pos[move[p0, 2]], 90)],
-               [key(pos[edge], 0), "MoveAhead", key(pos[edge], 0)],
-               [key((far, 0.0), 0), "RotateRight", key((far, 0.0), 45)]]
+    triples = [
+        [key(pos[p0], 90), "MoveAhead", key(pos[move[p0, 2]], 90)],
+        [key(pos[edge], 0), "MoveAhead", key(pos[edge], 0)],
+        [key((far, 0.0), 0), "RotateRight", key((far, 0.0), 45)],
+    ]
     tfile = tmp_path / "traj.json"
     tfile.write_text(json.dumps({"scenes": {"FloorPlan408": triples, "FloorPlan999": []}}))
-    assert main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tfile),
-                 "--out", str(tmp_path / "rep")]) == 0
+    assert (
+        main(
+            [
+                "world",
+                "fidelity",
+                "--data",
+                str(tmp_path / "w"),
+                "--trajectories",
+                str(tfile),
+                "--out",
+                str(tmp_path / "rep"),
+            ]
+        )
+        == 0
+    )
     doc = json.loads((tmp_path / "rep" / "fidelity.json").read_text())
     s = doc["scenes"][0]
     assert s["counts"]["positions"] == 4 and s["counts"]["positions_kept"] == 3
@@ -364,8 +413,23 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     md = (tmp_path / "rep" / "fidelity.md").read_text()
     assert "## Pose drift: what-ifs" in md and "fitted to these same trajectories" in md and "not a measurement" in md
     assert "fitted to these trajectories, not measured" in capsys.readouterr().out
-    assert main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tfile), "--no-pictures",
-                 "--no-drift", "--out", str(tmp_path / "rep2")]) == 0
+    assert (
+        main(
+            [
+                "world",
+                "fidelity",
+                "--data",
+                str(tmp_path / "w"),
+                "--trajectories",
+                str(tfile),
+                "--no-pictures",
+                "--no-drift",
+                "--out",
+                str(tmp_path / "rep2"),
+            ]
+        )
+        == 0
+    )
     doc2 = json.loads((tmp_path / "rep2" / "fidelity.json").read_text())
     assert "drift" not in doc2["scenes"][0] and "without_drift" not in doc2["summary"]
     assert not (tmp_path / "rep2" / "FloorPlan408.png").exists()
@@ -373,8 +437,9 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     shutil.copytree(tmp_path / "w" / "FloorPlan408", tmp_path / "w3" / "FloorPlan408")
     sj = tmp_path / "w3" / "FloorPlan408" / "scene.json"
     sj.write_text(json.dumps({**json.loads(sj.read_text()), "furniture": []}))
-    assert main(["world", "fidelity", "--data", str(tmp_path / "w3"), "--trajectories", str(tfile),
-                 "--no-pictures"]) == 0
+    assert (
+        main(["world", "fidelity", "--data", str(tmp_path / "w3"), "--trajectories", str(tfile), "--no-pictures"]) == 0
+    )
     s3 = json.loads((tmp_path / "w3" / "fidelity" / "fidelity.json").read_text())["scenes"][0]
     assert s3["drift"] is None and "does not lay out again" in s3["drift_note"]
     assert doc["absent"] == ["FloorPlan999"]
@@ -387,13 +452,32 @@ def test_fidelity_report_on_a_built_scene(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "not valid JSON" in err and err.count("\n") == 1
     (tmp_path / "other.json").write_text(json.dumps({"scenes": {"FloorPlan1": []}}))
-    assert main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tmp_path / "other.json")]) == 2
+    assert (
+        main(["world", "fidelity", "--data", str(tmp_path / "w"), "--trajectories", str(tmp_path / "other.json")]) == 2
+    )
     assert "none of its 1 scenes" in capsys.readouterr().err
     assert main(["world", "fidelity", "--data", str(tmp_path / "w")]) == 2
     assert main(["world", "--preset", "tiny", "--world-version", "1", "--out", str(tmp_path / "x")]) == 2
     # a version 2 room in the folder: building version 1 into it is refused (the world would mix versions)
     capsys.readouterr()
-    assert main(["world", "--preset", "ithor-real", "--world-version", "1", "--scenes", "FloorPlan408",
-                 "--no-images", "--size", "32", "--out", str(tmp_path / "w")]) == 2
+    assert (
+        main(
+            [
+                "world",
+                "--preset",
+                "ithor-real",
+                "--world-version",
+                "1",
+                "--scenes",
+                "FloorPlan408",
+                "--no-images",
+                "--size",
+                "32",
+                "--out",
+                str(tmp_path / "w"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "built with ithor-real version 2" in err and "--world-version 2" in err and err.count("\n") == 1

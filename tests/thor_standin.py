@@ -36,8 +36,17 @@ import h5py
 import networkx as nx
 import numpy as np
 
-from tsnav.constants import (CAMERA_HEIGHT, object_id, GRID_SIZE, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_CATEGORIES,
-                             ROTATE_LEFT, ROTATE_RIGHT)
+from tsnav.constants import (
+    CAMERA_HEIGHT,
+    object_id,
+    GRID_SIZE,
+    LOOK_DOWN,
+    LOOK_UP,
+    MOVE_AHEAD,
+    NUM_CATEGORIES,
+    ROTATE_LEFT,
+    ROTATE_RIGHT,
+)
 from tsnav.data.reader import load_scene
 
 GRID_Y = 0.9009995
@@ -56,10 +65,16 @@ def aabb(center, size, yaw):
     hx, hz = size[0] / 2, size[2] / 2
     ex, ez = c * hx + s * hz, s * hx + c * hz
     cy = center[1] + size[1] / 2
-    return {"center": {"x": center[0], "y": cy, "z": center[2]},
-            "size": {"x": 2 * ex, "y": size[1], "z": 2 * ez},
-            "cornerPoints": [[center[0] + a * ex, cy + b * size[1] / 2, center[2] + d * ez]
-                             for a in (-1, 1) for b in (-1, 1) for d in (-1, 1)]}
+    return {
+        "center": {"x": center[0], "y": cy, "z": center[2]},
+        "size": {"x": 2 * ex, "y": size[1], "z": 2 * ez},
+        "cornerPoints": [
+            [center[0] + a * ex, cy + b * size[1] / 2, center[2] + d * ez]
+            for a in (-1, 1)
+            for b in (-1, 1)
+            for d in (-1, 1)
+        ],
+    }
 
 
 class StandInEvent:
@@ -79,9 +94,17 @@ class StandInEvent:
 class StandInController:
     """See the module docstring. ``scene_dir``: a rendered tsnav scene folder (with ``parts``)."""
 
-    def __init__(self, scene_dir, width: int = 64, height: int | None = None, gridSize: float = GRID_SIZE,
-                 renderDepthImage: bool = True, renderInstanceSegmentation: bool = True, noise: float = 2e-6,
-                 **settings):
+    def __init__(
+        self,
+        scene_dir,
+        width: int = 64,
+        height: int | None = None,
+        gridSize: float = GRID_SIZE,
+        renderDepthImage: bool = True,
+        renderInstanceSegmentation: bool = True,
+        noise: float = 2e-6,
+        **settings,
+    ):
         from tsnav.world.show import render_views
 
         self.scene = load_scene(scene_dir)
@@ -99,11 +122,15 @@ class StandInController:
         objs = []
         for o in s.meta["objects"]:
             b = o["bbox"]
-            objs.append((o["objectId"], o["objectType"], o["inst"], aabb(b["center"], b["size"], b["yaw"]), o["position"]))
+            objs.append(
+                (o["objectId"], o["objectType"], o["inst"], aabb(b["center"], b["size"], b["yaw"]), o["position"])
+            )
         for f in s.meta["furniture"]:
             cx, cy, cz = f["center"]
             oid = object_id(f["category"], cx, cy, cz)
-            objs.append((oid, f["category"], f["inst"], aabb(f["center"], f["size"], f["yaw"]), {"x": cx, "y": cy, "z": cz}))
+            objs.append(
+                (oid, f["category"], f["inst"], aabb(f["center"], f["size"], f["yaw"]), {"x": cx, "y": cy, "z": cz})
+            )
         self.objects = objs
         rng = np.random.default_rng(0)
         self.colors = {o[2]: rng.integers(0, 256, 3).astype(np.uint8) for o in objs}
@@ -130,7 +157,9 @@ class StandInController:
         s = self.scene
         ns = s.next_state
         if action == "GetReachablePositions":
-            ret = [{"x": p["x"] - self.noise, "y": GRID_Y, "z": p["z"] - self.noise} for p in self.grid]  # Unity float noise
+            ret = [
+                {"x": p["x"] - self.noise, "y": GRID_Y, "z": p["z"] - self.noise} for p in self.grid
+            ]  # Unity float noise
             return self._event(action, True, ret)
         if action in ("Teleport", "TeleportFull"):
             p = kwargs.get("position", {})
@@ -177,24 +206,56 @@ class StandInController:
                 masks[oid] = m
                 seg[m] = self.colors[inst]
             # every field of a real object record; identity, geometry and visibility are this scene's
-            objects.append({**self.object_template, "name": oid.split("|")[0] + f"_{inst}", "objectId": oid,
-                            "objectType": otype, "assetId": otype, "position": dict(pos),
-                            "rotation": {"x": 0.0, "y": 0.0, "z": 0.0}, "visible": bool(m.any() and d <= 1.5),
-                            "axisAlignedBoundingBox": box, "objectOrientedBoundingBox": {"cornerPoints": box["cornerPoints"]},
-                            "parentReceptacles": None, "receptacleObjectIds": None,
-                            "distance": float(np.linalg.norm(cam - np.array([pos["x"], pos["y"], pos["z"]])))})
+            objects.append(
+                {
+                    **self.object_template,
+                    "name": oid.split("|")[0] + f"_{inst}",
+                    "objectId": oid,
+                    "objectType": otype,
+                    "assetId": otype,
+                    "position": dict(pos),
+                    "rotation": {"x": 0.0, "y": 0.0, "z": 0.0},
+                    "visible": bool(m.any() and d <= 1.5),
+                    "axisAlignedBoundingBox": box,
+                    "objectOrientedBoundingBox": {"cornerPoints": box["cornerPoints"]},
+                    "parentReceptacles": None,
+                    "receptacleObjectIds": None,
+                    "distance": float(np.linalg.norm(cam - np.array([pos["x"], pos["y"], pos["z"]]))),
+                }
+            )
         fl = np.concatenate([np.asarray(p) for p in s.floor])
-        bounds = aabb([float(fl[:, 0].mean()), 0.0, float(fl[:, 1].mean())],
-                      [float(np.ptp(fl[:, 0])), 2.6, float(np.ptp(fl[:, 1]))], 0.0)
+        bounds = aabb(
+            [float(fl[:, 0].mean()), 0.0, float(fl[:, 1].mean())],
+            [float(np.ptp(fl[:, 0])), 2.6, float(np.ptp(fl[:, 1]))],
+            0.0,
+        )
         t = self.template  # the real event's top-level keys; the state's values where the export reads them
-        meta = {**t, "lastAction": action, "lastActionSuccess": bool(ok), "errorMessage": error, "actionReturn": ret,
-                "sceneName": self.scene_name, "screenWidth": self.size, "screenHeight": self.size,
-                "agent": {**t["agent"], "position": {"x": x, "y": GRID_Y, "z": z},
-                          "rotation": {"x": 0.0, "y": float(s.rotation[v]), "z": 0.0}, "cameraHorizon": float(s.horizon[v])},
-                "cameraPosition": {"x": x, "y": CAMERA_HEIGHT, "z": z}, "objects": objects,
-                "sceneBounds": {"cornerPoints": bounds["cornerPoints"], "center": bounds["center"], "size": bounds["size"]}}
-        return StandInEvent(meta, self.rgb[v].copy(), self.depth[v].astype(np.float32) if self.depth_on else None,
-                            seg if self.seg_on else None, masks if self.seg_on else {})
+        meta = {
+            **t,
+            "lastAction": action,
+            "lastActionSuccess": bool(ok),
+            "errorMessage": error,
+            "actionReturn": ret,
+            "sceneName": self.scene_name,
+            "screenWidth": self.size,
+            "screenHeight": self.size,
+            "agent": {
+                **t["agent"],
+                "position": {"x": x, "y": GRID_Y, "z": z},
+                "rotation": {"x": 0.0, "y": float(s.rotation[v]), "z": 0.0},
+                "cameraHorizon": float(s.horizon[v]),
+            },
+            "cameraPosition": {"x": x, "y": CAMERA_HEIGHT, "z": z},
+            "objects": objects,
+            "sceneBounds": {"cornerPoints": bounds["cornerPoints"], "center": bounds["center"], "size": bounds["size"]},
+        }
+        return StandInEvent(
+            meta,
+            self.rgb[v].copy(),
+            self.depth[v].astype(np.float32) if self.depth_on else None,
+            seg if self.seg_on else None,
+            masks if self.seg_on else {},
+        )
 
 
 # ---------------------------------------------------------------------------- lineage offline folder
@@ -222,8 +283,9 @@ def detections_22x264(scene, box_size: int = 300, seed: int = 0):
     return rows
 
 
-def write_lineage_scene(scene_dir, out: Path, metadata: bool = False, detections: bool = True,
-                        savn_names: bool = False) -> Path:
+def write_lineage_scene(
+    scene_dir, out: Path, metadata: bool = False, detections: bool = True, savn_names: bool = False
+) -> Path:
     """Write tsnav scene ``scene_dir`` in the lineage's layout at ``out`` (graph.json with networkx's
     ``node_link_data``, grid.json, visible_object_map_1.5.json, images.hdf5, det_feature_categories.hdf5,
     optionally the raw ``metadata.json``; ``savn_names`` writes SAVN's ``visible_object_map.json`` instead)."""
@@ -256,17 +318,35 @@ def write_lineage_scene(scene_dir, out: Path, metadata: bool = False, detections
         boxes = [aabb(o["bbox"]["center"], o["bbox"]["size"], o["bbox"]["yaw"]) for o in objs]
         col = {o: j for j, o in enumerate(scene.object_ids.tolist())}
         for v, k in enumerate(scene.keys.tolist()):
-            raw[k] = {"agent": {"position": {"x": float(scene.x[v]), "y": GRID_Y, "z": float(scene.z[v])},
-                                "rotation": {"x": 0.0, "y": float(scene.rotation[v]), "z": 0.0},
-                                "cameraHorizon": float(scene.horizon[v])},
-                      "cameraPosition": {"x": float(scene.x[v]), "y": CAMERA_HEIGHT, "z": float(scene.z[v])},
-                      "objects": [{"objectId": o["objectId"], "objectType": o["objectType"], "position": o["position"],
-                                   "axisAlignedBoundingBox": b, "visible": bool(scene.visible[v, col[o["objectId"]]])}
-                                  for o, b in zip(objs, boxes)]}
+            raw[k] = {
+                "agent": {
+                    "position": {"x": float(scene.x[v]), "y": GRID_Y, "z": float(scene.z[v])},
+                    "rotation": {"x": 0.0, "y": float(scene.rotation[v]), "z": 0.0},
+                    "cameraHorizon": float(scene.horizon[v]),
+                },
+                "cameraPosition": {"x": float(scene.x[v]), "y": CAMERA_HEIGHT, "z": float(scene.z[v])},
+                "objects": [
+                    {
+                        "objectId": o["objectId"],
+                        "objectType": o["objectType"],
+                        "position": o["position"],
+                        "axisAlignedBoundingBox": b,
+                        "visible": bool(scene.visible[v, col[o["objectId"]]]),
+                    }
+                    for o, b in zip(objs, boxes)
+                ],
+            }
         with open(out / "metadata.json", "w") as f:
             json.dump(raw, f)
     return out
 
 
-__all__ = ["REAL_EVENT", "StandInController", "StandInEvent", "aabb", "detections_22x264", "real_event_metadata",
-           "write_lineage_scene"]
+__all__ = [
+    "REAL_EVENT",
+    "StandInController",
+    "StandInEvent",
+    "aabb",
+    "detections_22x264",
+    "real_event_metadata",
+    "write_lineage_scene",
+]

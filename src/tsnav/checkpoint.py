@@ -32,11 +32,28 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save
 
 from .atomic import atomic_folder, atomic_write_bytes, atomic_write_json as _atomic_write_json
+
 # The layout and its JSON files live in the torch-free checkpoint_layout; re-exported here.
-from .checkpoint_layout import (CHECKPOINTS, MODEL_FILE, OLD_OPTIMIZER_FILE, OPTIMIZER_FILE, STATE_FILE,  # noqa: F401
-                                BrokenCheckpoint, _one_line, checkpoint_name, checkpoint_step, checkpoint_tmp,
-                                checkpoint_tmp_path, commit_checkpoint, list_checkpoints, newest_state,
-                                optimizer_file, prune_checkpoints, read_json, set_aside)
+from .checkpoint_layout import (  # noqa: F401
+    CHECKPOINTS,
+    MODEL_FILE,
+    OLD_OPTIMIZER_FILE,
+    OPTIMIZER_FILE,
+    STATE_FILE,
+    BrokenCheckpoint,
+    _one_line,
+    checkpoint_name,
+    checkpoint_step,
+    checkpoint_tmp,
+    checkpoint_tmp_path,
+    commit_checkpoint,
+    list_checkpoints,
+    newest_state,
+    optimizer_file,
+    prune_checkpoints,
+    read_json,
+    set_aside,
+)
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -66,8 +83,12 @@ def load_tensors(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, s
     return out, meta
 
 
-def resume_newest(candidates: Sequence[T], load: Callable[[T], R], on_broken: Callable[[T], None] | None = None,
-                  label: Callable[[T], str] = str) -> tuple[T, R] | None:
+def resume_newest(
+    candidates: Sequence[T],
+    load: Callable[[T], R],
+    on_broken: Callable[[T], None] | None = None,
+    label: Callable[[T], str] = str,
+) -> tuple[T, R] | None:
     """Load the newest checkpoint that reads: ``candidates`` newest first, ``load(candidate)`` raising
     :class:`BrokenCheckpoint` for a broken one. Each broken one is reported on stderr in one line (which file,
     what is wrong, which checkpoint is used instead) and passed to ``on_broken`` (e.g. to set it aside).
@@ -103,13 +124,16 @@ def optimizer_to_tensors(opt: torch.optim.Optimizer, names: list[str]) -> tuple[
                 extra[f"{names[idx]}::{k}"] = v
     groups = []
     for g in sd["param_groups"]:
-        groups.append({k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items() if k != "params"}
-                      | {"params": [names[i] for i in g["params"]]})
+        groups.append(
+            {k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items() if k != "params"}
+            | {"params": [names[i] for i in g["params"]]}
+        )
     return tensors, {"param_groups": groups, "extra_state": extra}
 
 
-def optimizer_from_tensors(opt: torch.optim.Optimizer, names: list[str], tensors: dict[str, torch.Tensor],
-                           meta: dict) -> None:
+def optimizer_from_tensors(
+    opt: torch.optim.Optimizer, names: list[str], tensors: dict[str, torch.Tensor], meta: dict
+) -> None:
     """Inverse of :func:`optimizer_to_tensors`, loading into ``opt`` (built over the same parameters)."""
     index = {n: i for i, n in enumerate(names)}
     state: dict[int, dict] = {}
@@ -147,8 +171,13 @@ def weights_digest(state_dict: dict[str, torch.Tensor], skip: tuple[str, ...] = 
     return h.hexdigest()
 
 
-def write_checkpoint_files(tmp: str | Path, model: dict[str, torch.Tensor], model_meta: dict[str, str] | None,
-                           state: dict, optimizer: dict[str, torch.Tensor] | None = None) -> None:
+def write_checkpoint_files(
+    tmp: str | Path,
+    model: dict[str, torch.Tensor],
+    model_meta: dict[str, str] | None,
+    state: dict,
+    optimizer: dict[str, torch.Tensor] | None = None,
+) -> None:
     """Write the files of one checkpoint into the (temporary) folder ``tmp``: ``model.safetensors`` (with
     ``model_meta``), ``optimizer.safetensors`` when ``optimizer`` tensors are given, ``state.json`` (the
     trainer's progress and JSON fields) last."""
@@ -159,9 +188,16 @@ def write_checkpoint_files(tmp: str | Path, model: dict[str, torch.Tensor], mode
     atomic_write_json(tmp / STATE_FILE, state)
 
 
-def save_checkpoint(folder: str | Path, step: int, model: dict[str, torch.Tensor], model_meta: dict[str, str] | None,
-                    state: dict, optimizer: dict[str, torch.Tensor] | None = None, keep: int = 2,
-                    milestone_every: int | None = None) -> Path:
+def save_checkpoint(
+    folder: str | Path,
+    step: int,
+    model: dict[str, torch.Tensor],
+    model_meta: dict[str, str] | None,
+    state: dict,
+    optimizer: dict[str, torch.Tensor] | None = None,
+    keep: int = 2,
+    milestone_every: int | None = None,
+) -> Path:
     """Write the checkpoint of ``step`` into ``folder/ckpt_<step>/`` (:func:`write_checkpoint_files` in a
     temporary folder, then :func:`commit_checkpoint`); returns its path."""
     final = Path(folder) / checkpoint_name(step)
@@ -169,5 +205,3 @@ def save_checkpoint(folder: str | Path, step: int, model: dict[str, torch.Tensor
         write_checkpoint_files(tmp, model, model_meta, state, optimizer)
     prune_checkpoints(folder, keep, milestone_every)
     return final
-
-

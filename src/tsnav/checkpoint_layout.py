@@ -89,8 +89,9 @@ def checkpoint_tmp(folder: str | Path, step: int) -> Path:
     return tmp
 
 
-def commit_checkpoint(folder: str | Path, tmp: str | Path, step: int, keep: int = 2,
-                      milestone_every: int | None = None) -> Path:
+def commit_checkpoint(
+    folder: str | Path, tmp: str | Path, step: int, keep: int = 2, milestone_every: int | None = None
+) -> Path:
     """Rename the complete temporary folder ``tmp`` to ``folder/ckpt_<step>`` and remove older checkpoints
     beyond the ``keep`` newest, except those whose step is a multiple of ``milestone_every``."""
     final = Path(folder) / checkpoint_name(step)

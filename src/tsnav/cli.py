@@ -26,7 +26,10 @@ from .settings import refuse_abbreviations
 
 #: subcommand -> (module, one-line help)
 COMMANDS = {
-    "world": ("tsnav.world.command", "build an offline dataset (procedural or real rooms); `world fidelity`: check it against real trajectories"),
+    "world": (
+        "tsnav.world.command",
+        "build an offline dataset (procedural or real rooms); `world fidelity`: check it against real trajectories",
+    ),
     "show": ("tsnav.world.show", "draw a scene folder: top-down map and first-person views (PNG)"),
     "eval": ("tsnav.eval.command", "evaluate a policy or a trained run on an episode list"),
     "episodes": ("tsnav.sim.command", "write fixed validation / test episode lists (JSON)"),
@@ -36,7 +39,10 @@ COMMANDS = {
     "train": ("tsnav.rl.command", "train a navigation agent (A3C or batched A2C)"),
     "select": ("tsnav.eval.select", "choose a run's best checkpoint on validation episodes (kept as RUN/best)"),
     "convergence": ("tsnav.pipeline.convergence", "train in chunks, score each on validation episodes, plot the curve"),
-    "experiment": ("tsnav.pipeline.experiment", "run one of the paper's experiments (ablation, pretraining, threshold)"),
+    "experiment": (
+        "tsnav.pipeline.experiment",
+        "run one of the paper's experiments (ablation, pretraining, threshold)",
+    ),
     "claims": ("tsnav.report.claims", "read finished experiments against the paper's claims (Welch tests)"),
     "report": ("tsnav.report.html", "write an HTML report for a run or experiment folder"),
     "thor": ("tsnav.thor.command", "import AI2-THOR offline data or export from a live AI2-THOR"),

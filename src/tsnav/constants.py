@@ -54,16 +54,38 @@ def action_permutation(order: str) -> np.ndarray:
 def object_id(object_type: str, x: float, y: float, z: float) -> str:
     """An object id as AI2-THOR formats it: ``Plate|+00.52|+00.92|+03.73`` (sign, at least two integer digits,
     two decimals; ``-10.25`` stays ``-10.25``). Rounding to 0 keeps a + sign (``+00.00``)."""
+
     def f(v: float) -> str:
         v = round(float(v), 2) + 0.0  # no negative zero
         return f"{v:+06.2f}"
+
     return f"{object_type}|{f(x)}|{f(y)}|{f(z)}"
+
 
 #: The 22 AI2-THOR target classes of the lineage's DETR detector (DESIGN.md, "Detector").
 TARGET_CATEGORIES = (
-    "AlarmClock", "Book", "Bowl", "CellPhone", "Chair", "CoffeeMachine", "DeskLamp", "FloorLamp",
-    "Fridge", "GarbageCan", "Kettle", "Laptop", "LightSwitch", "Microwave", "Pan", "Plate", "Pot",
-    "RemoteControl", "Sink", "StoveBurner", "Television", "Toaster",
+    "AlarmClock",
+    "Book",
+    "Bowl",
+    "CellPhone",
+    "Chair",
+    "CoffeeMachine",
+    "DeskLamp",
+    "FloorLamp",
+    "Fridge",
+    "GarbageCan",
+    "Kettle",
+    "Laptop",
+    "LightSwitch",
+    "Microwave",
+    "Pan",
+    "Plate",
+    "Pot",
+    "RemoteControl",
+    "Sink",
+    "StoveBurner",
+    "Television",
+    "Toaster",
 )
 NUM_CATEGORIES = len(TARGET_CATEGORIES)
 CATEGORY_INDEX = {c: i for i, c in enumerate(TARGET_CATEGORIES)}
@@ -73,19 +95,53 @@ ROOM_TYPES = ("kitchen", "living_room", "bedroom", "bathroom")
 #: Per-room-type target sets: 15 / 10 / 8 / 3 categories, whose union is the 22 classes; exactly the targets
 #: that occur in the lineage's 22-class test splits (``test_val_split/{room}_test_22.pkl``).
 ROOM_TARGETS = {
-    "kitchen": ("Bowl", "CellPhone", "Chair", "CoffeeMachine", "Fridge", "GarbageCan", "Kettle", "LightSwitch",
-                "Microwave", "Pan", "Plate", "Pot", "Sink", "StoveBurner", "Toaster"),
-    "living_room": ("Book", "CellPhone", "Chair", "DeskLamp", "FloorLamp", "GarbageCan", "Laptop",
-                    "LightSwitch", "RemoteControl", "Television"),
-    "bedroom": ("AlarmClock", "Book", "CellPhone", "Chair", "DeskLamp", "GarbageCan", "Laptop",
-                "LightSwitch"),
+    "kitchen": (
+        "Bowl",
+        "CellPhone",
+        "Chair",
+        "CoffeeMachine",
+        "Fridge",
+        "GarbageCan",
+        "Kettle",
+        "LightSwitch",
+        "Microwave",
+        "Pan",
+        "Plate",
+        "Pot",
+        "Sink",
+        "StoveBurner",
+        "Toaster",
+    ),
+    "living_room": (
+        "Book",
+        "CellPhone",
+        "Chair",
+        "DeskLamp",
+        "FloorLamp",
+        "GarbageCan",
+        "Laptop",
+        "LightSwitch",
+        "RemoteControl",
+        "Television",
+    ),
+    "bedroom": ("AlarmClock", "Book", "CellPhone", "Chair", "DeskLamp", "GarbageCan", "Laptop", "LightSwitch"),
     "bathroom": ("GarbageCan", "LightSwitch", "Sink"),
 }
 
 #: The 12 target types of the RoboTHOR ObjectNav challenge (``../shared/robothor/README.md``), sorted.
 ROBOTHOR_CATEGORIES = (
-    "AlarmClock", "Apple", "BaseballBat", "BasketBall", "Bowl", "GarbageCan", "HousePlant", "Laptop", "Mug",
-    "SprayBottle", "Television", "Vase",
+    "AlarmClock",
+    "Apple",
+    "BaseballBat",
+    "BasketBall",
+    "Bowl",
+    "GarbageCan",
+    "HousePlant",
+    "Laptop",
+    "Mug",
+    "SprayBottle",
+    "Television",
+    "Vase",
 )
 
 
@@ -153,8 +209,10 @@ def check_same_class_set(have: "str | ClassSet", need: "str | ClassSet", what: s
     """``ValueError`` in one line when ``what`` (made for ``have``) is used on ``where`` (of ``need``)."""
     a, b = class_set(have).name, class_set(need).name
     if a != b:
-        raise ValueError(f"{what} is for class set {a} but {where} uses {b} (class sets must match: "
-                         f"{class_set(a).size} vs {class_set(b).size} target classes)")
+        raise ValueError(
+            f"{what} is for class set {a} but {where} uses {b} (class sets must match: "
+            f"{class_set(a).size} vs {class_set(b).size} target classes)"
+        )
 
 
 def room_target_mask(room_type: str, classes: "str | ClassSet | None" = None) -> np.ndarray:
@@ -193,5 +251,9 @@ def parse_state_keys(keys) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
         raise ValueError(f"malformed state key {bad[0] if bad else '?'!r}: expected 'x|z|rotation|horizon'") from None
     if table.ndim != 2 or table.shape[1] != 4:
         raise ValueError("malformed state keys: expected 'x|z|rotation|horizon'")
-    return (table[:, 0].astype(np.float32), table[:, 1].astype(np.float32),
-            np.round(table[:, 2]).astype(np.int16) % 360, np.round(table[:, 3]).astype(np.int16))
+    return (
+        table[:, 0].astype(np.float32),
+        table[:, 1].astype(np.float32),
+        np.round(table[:, 2]).astype(np.int16) % 360,
+        np.round(table[:, 3]).astype(np.int16),
+    )

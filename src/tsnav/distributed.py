@@ -102,7 +102,7 @@ def _copy_flat(flat: torch.Tensor, tensors: list[torch.Tensor]) -> None:
     i = 0
     for t in tensors:
         n = t.numel()
-        t.copy_(flat[i:i + n].view_as(t))
+        t.copy_(flat[i : i + n].view_as(t))
         i += n
 
 
@@ -154,8 +154,13 @@ GROUP_TIMEOUT_S = 600
 def _rank_main(fn: Callable[..., Any], rank: int, world: int, init_file: str, args: tuple, kwargs: dict) -> None:
     """Body of a started rank (1..N-1): join the group, run ``fn``, leave; a failure is printed and exits 1."""
     try:
-        dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world,
-                                timeout=timedelta(seconds=GROUP_TIMEOUT_S))
+        dist.init_process_group(
+            "gloo",
+            init_method=f"file://{init_file}",
+            rank=rank,
+            world_size=world,
+            timeout=timedelta(seconds=GROUP_TIMEOUT_S),
+        )
         try:
             fn(*args, **kwargs)
         finally:
@@ -174,8 +179,11 @@ def spawnable_main():
     that is a real file, a module (``python -m``) or absent (``python -c``) is left as it is."""
     main = sys.modules.get("__main__")
     path = getattr(main, "__file__", None)
-    hide = (path is not None and getattr(main, "__spec__", None) is None
-            and not os.path.isfile(path if os.path.isabs(path) else os.path.join(os.getcwd(), path)))
+    hide = (
+        path is not None
+        and getattr(main, "__spec__", None) is None
+        and not os.path.isfile(path if os.path.isabs(path) else os.path.join(os.getcwd(), path))
+    )
     if hide:
         del main.__file__
     try:
@@ -251,13 +259,20 @@ def run_ranks(fn: Callable[..., Any], procs: int, *args, rank0_kwargs: dict | No
     tmp = Path(tempfile.mkdtemp(prefix="tsnav_ranks_"))
     init_file = str(tmp / "rendezvous")
     ctx = spawn_context()
-    children = [ctx.Process(target=_rank_main, args=(fn, r, procs, init_file, args, kwargs), daemon=True)
-                for r in range(1, procs)]
+    children = [
+        ctx.Process(target=_rank_main, args=(fn, r, procs, init_file, args, kwargs), daemon=True)
+        for r in range(1, procs)
+    ]
     try:
         for c in children:
             c.start()
-        dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=0, world_size=procs,
-                                timeout=timedelta(seconds=GROUP_TIMEOUT_S))
+        dist.init_process_group(
+            "gloo",
+            init_method=f"file://{init_file}",
+            rank=0,
+            world_size=procs,
+            timeout=timedelta(seconds=GROUP_TIMEOUT_S),
+        )
         try:
             result = fn(*args, **{**kwargs, **(rank0_kwargs or {})})
         except BaseException as e:

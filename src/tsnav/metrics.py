@@ -182,15 +182,27 @@ class _Names(Sequence):
 #: Names of the registered metrics, in table order (a live view of :data:`METRIC_REGISTRY`).
 METRICS = _Names()
 
-for _m in (Metric("SR", "success rate: share of successful episodes (IV-A)", lambda e: float(np.mean(e.success))),
-           Metric("SPL", "success weighted by path length (Anderson et al.; IV-A; the lineage's under `lineage`)",
-                  _spl),
-           Metric("SSR", "searching success rate: share of episodes that entered the pathfinding stage (IV-A)",
-                  lambda e: float(np.mean(e.entered)), curve=False),
-           Metric("SSSPL", "searching success weighted by searching path length (IV-A)",
-                  lambda e: float(np.mean(e.entered * ratio(e.optimal_search_length, e.search_length)))),
-           Metric("NSNPL", "navigation success weighted by navigation path length, over the K_Nav episodes that "
-                  "entered the pathfinding stage (IV-A)", _nsnpl)):
+for _m in (
+    Metric("SR", "success rate: share of successful episodes (IV-A)", lambda e: float(np.mean(e.success))),
+    Metric("SPL", "success weighted by path length (Anderson et al.; IV-A; the lineage's under `lineage`)", _spl),
+    Metric(
+        "SSR",
+        "searching success rate: share of episodes that entered the pathfinding stage (IV-A)",
+        lambda e: float(np.mean(e.entered)),
+        curve=False,
+    ),
+    Metric(
+        "SSSPL",
+        "searching success weighted by searching path length (IV-A)",
+        lambda e: float(np.mean(e.entered * ratio(e.optimal_search_length, e.search_length))),
+    ),
+    Metric(
+        "NSNPL",
+        "navigation success weighted by navigation path length, over the K_Nav episodes that "
+        "entered the pathfinding stage (IV-A)",
+        _nsnpl,
+    ),
+):
     register_metric(_m)
 
 
@@ -199,8 +211,17 @@ def curve_metrics() -> tuple[str, ...]:
     return tuple(m.name for m in METRIC_REGISTRY.values() if m.curve)
 
 
-def metric_values(success, entered, path_length, optimal_length, search_length, optimal_search_length,
-                  nav_length, optimal_nav_length, protocol: str = DEFAULT_PROTOCOL) -> dict[str, float]:
+def metric_values(
+    success,
+    entered,
+    path_length,
+    optimal_length,
+    search_length,
+    optimal_search_length,
+    nav_length,
+    optimal_nav_length,
+    protocol: str = DEFAULT_PROTOCOL,
+) -> dict[str, float]:
     """Every registered metric (the paper's five of IV-A, and any added) over ``K`` episodes given as ``(K,)``
     arrays (the one definition; the record-based functions below and the training statistics of
     :mod:`tsnav.rl.stats` use it). Lengths are movement-action counts; ``entered`` is Nav_i. Every metric is 0
@@ -209,8 +230,19 @@ def metric_values(success, entered, path_length, optimal_length, search_length, 
     Under the ``lineage`` protocol SPL is the lineage's ``compute_spl``: both lengths count one more
     (states on the shortest path, start included, over actions output with Done), ``(L* + 1) / (L + 1)`` on
     success (:mod:`tsnav.protocol`); the other metrics are the paper's under both."""
-    cols = [np.asarray(c, dtype=np.float64) for c in (success, entered, path_length, optimal_length, search_length,
-                                                      optimal_search_length, nav_length, optimal_nav_length)]
+    cols = [
+        np.asarray(c, dtype=np.float64)
+        for c in (
+            success,
+            entered,
+            path_length,
+            optimal_length,
+            search_length,
+            optimal_search_length,
+            nav_length,
+            optimal_nav_length,
+        )
+    ]
     if len(cols[0]) == 0:
         return dict.fromkeys(METRICS, 0.0)
     episodes = EpisodeArrays(*cols, protocol=protocol)
@@ -222,9 +254,22 @@ def _col(records: Sequence[EpisodeRecord], name: str, default=0) -> np.ndarray:
 
 
 def _values(records: Sequence[EpisodeRecord], protocol: str = DEFAULT_PROTOCOL) -> dict[str, float]:
-    return metric_values(*(_col(records, n) for n in (
-        "success", "entered_pathfinding", "path_length", "optimal_length", "search_path_length",
-        "optimal_search_length", "pathfinding_path_length", "optimal_pathfinding_length")), protocol=protocol)
+    return metric_values(
+        *(
+            _col(records, n)
+            for n in (
+                "success",
+                "entered_pathfinding",
+                "path_length",
+                "optimal_length",
+                "search_path_length",
+                "optimal_search_length",
+                "pathfinding_path_length",
+                "optimal_pathfinding_length",
+            )
+        ),
+        protocol=protocol,
+    )
 
 
 def sr(records: Sequence[EpisodeRecord]) -> float:
@@ -255,8 +300,11 @@ def nsnpl(records: Sequence[EpisodeRecord]) -> float:
 
 def metrics(records: Sequence[EpisodeRecord], protocol: str = DEFAULT_PROTOCOL) -> dict:
     """All five metrics plus the counts ``episodes`` (K) and ``K_nav``."""
-    return {**_values(records, protocol), "episodes": len(records),
-            "K_nav": int(sum(bool(r.entered_pathfinding) for r in records))}
+    return {
+        **_values(records, protocol),
+        "episodes": len(records),
+        "K_nav": int(sum(bool(r.entered_pathfinding) for r in records)),
+    }
 
 
 def long_episode(optimal_length: int, min_optimal_length: int = 5, protocol: str = DEFAULT_PROTOCOL) -> bool:
@@ -266,20 +314,33 @@ def long_episode(optimal_length: int, min_optimal_length: int = 5, protocol: str
     return optimal_length + spec(protocol).length_offset >= min_optimal_length
 
 
-def summarize(records: Sequence[EpisodeRecord], min_optimal_length: int = 5, by_room_type: bool = True,
-              protocol: str = DEFAULT_PROTOCOL) -> dict:
+def summarize(
+    records: Sequence[EpisodeRecord],
+    min_optimal_length: int = 5,
+    by_room_type: bool = True,
+    protocol: str = DEFAULT_PROTOCOL,
+) -> dict:
     """Metrics for ``ALL`` episodes and for ``L>=5`` (:func:`long_episode`), optionally also per room type
     (``rooms: {room: {"ALL": .., "L>=5": ..}}``), counted under the success ``protocol`` (recorded as
     ``protocol``; it sets SPL's and the subset's length convention, :mod:`tsnav.protocol`)."""
     protocol = check_protocol(protocol)
     label = f"L>={min_optimal_length}"
     long_ = [r for r in records if long_episode(r.optimal_length, min_optimal_length, protocol)]
-    out = {"ALL": metrics(records, protocol), label: metrics(long_, protocol),
-           "min_optimal_length": min_optimal_length, "protocol": protocol}
+    out = {
+        "ALL": metrics(records, protocol),
+        label: metrics(long_, protocol),
+        "min_optimal_length": min_optimal_length,
+        "protocol": protocol,
+    }
     if by_room_type:
         rooms = sorted({r.room_type for r in records})
-        out["rooms"] = {rt: {"ALL": metrics([r for r in records if r.room_type == rt], protocol),
-                             label: metrics([r for r in long_ if r.room_type == rt], protocol)} for rt in rooms}
+        out["rooms"] = {
+            rt: {
+                "ALL": metrics([r for r in records if r.room_type == rt], protocol),
+                label: metrics([r for r in long_ if r.room_type == rt], protocol),
+            }
+            for rt in rooms
+        }
     return out
 
 
@@ -294,8 +355,11 @@ def format_table(summary: dict, trained: str | None = None) -> str:
     head = f"{'subset':<{width}}  " + "  ".join(f"{m:>6}" for m in METRICS) + f"  {'K':>6}  {'K_nav':>6}"
     lines = [protocol_line(protocol_of(summary), trained), head, "-" * len(head)]
     for name, m in rows:
-        lines.append(f"{name:<{width}}  " + "  ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
-                     + f"  {m['episodes']:>6d}  {m['K_nav']:>6d}")
+        lines.append(
+            f"{name:<{width}}  "
+            + "  ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
+            + f"  {m['episodes']:>6d}  {m['K_nav']:>6d}"
+        )
     return "\n".join(lines)
 
 

@@ -65,8 +65,13 @@ class ProtocolSpec:
 
 SPECS = {
     PAPER: ProtocolSpec(PAPER, "Done succeeds with the target in view within 1.0 m (paper III-A)", False, 0),
-    LINEAGE: ProtocolSpec(LINEAGE, "Done succeeds with a target id listed at the state in visible_object_map_1.5.json "
-                                   "(the lineage's judge); start-success episodes kept", True, 1),
+    LINEAGE: ProtocolSpec(
+        LINEAGE,
+        "Done succeeds with a target id listed at the state in visible_object_map_1.5.json "
+        "(the lineage's judge); start-success episodes kept",
+        True,
+        1,
+    ),
 }
 
 

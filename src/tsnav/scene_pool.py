@@ -54,8 +54,9 @@ def _exit_on_term(signum, frame):
     sys.exit(128 + signum)
 
 
-def map_scenes(fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Callable[[Any], Any], arg: Any,
-               workers: int = 1) -> Iterator[tuple[int, Any]]:
+def map_scenes(
+    fn: Callable[[Any, Any], Any], items: Iterable[Any], setup: Callable[[Any], Any], arg: Any, workers: int = 1
+) -> Iterator[tuple[int, Any]]:
     """Yield ``(index, fn(ctx, item))`` for every item, where ``ctx = setup(arg)`` is built once per process.
 
     ``workers`` <= 1, or a single item: in this process on one torch thread (the caller's count restored), in

@@ -71,14 +71,20 @@ def field_docs(cls: type) -> dict[str, str]:
             continue
         body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
         for node, nxt in zip(body, body[1:]):
-            if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(nxt, ast.Expr)
-                    and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(nxt, ast.Expr)
+                and isinstance(nxt.value, ast.Constant)
+                and isinstance(nxt.value.value, str)
+            ):
                 docs[node.target.id] = plain(nxt.value.value)
     return docs
 
 
 def plain(doc: str) -> str:
     """A docstring as one line of plain text: ``:role:`~a.b.C``` -> ``C``, ````x```` -> ``x``."""
+
     def role(m: re.Match) -> str:
         text = m.group(2)
         if "<" in text:
@@ -170,21 +176,33 @@ SHARED: dict[str, dict] = {
     "data": dict(help="dataset root: the world's scene folders (`tsnav world`)"),
     "out": dict(help="output folder (created; an existing one is resumed)"),
     "features": dict(help="feature cache name: features_<NAME>.hdf5 in every scene (`tsnav features`)"),
-    "detections": dict(help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle; the "
-                            "agent never falls back to ground truth"),
-    "protocol": dict(metavar="{" + ",".join(PROTOCOLS) + "}", help=f"success protocol: {DEFAULT_PROTOCOL} (the target in view within "
-                                             "1.0 m, paper III-A) or lineage (the 1.5 m visibility map, as the "
-                                             "lineage's evaluator); recorded with every output"),
+    "detections": dict(
+        help="detection tables detections_<NAME>.hdf5 (`tsnav detect`), e.g. learned or oracle; the "
+        "agent never falls back to ground truth"
+    ),
+    "protocol": dict(
+        metavar="{" + ",".join(PROTOCOLS) + "}",
+        help=f"success protocol: {DEFAULT_PROTOCOL} (the target in view within "
+        "1.0 m, paper III-A) or lineage (the 1.5 m visibility map, as the "
+        "lineage's evaluator); recorded with every output",
+    ),
     "threads": dict(type=int, help="torch CPU threads"),
     "device": dict(help="auto (CUDA when present), cpu or cuda"),
     "seed": dict(type=int, help="seed"),
     "workers": dict(type=int, help="worker processes"),
     "quiet": dict(action="store_true", help="no progress bar"),
-    "config": dict(metavar="RECIPE.toml", help="a recipe file (TOML; configs/ holds the project's): its sections "
-                                               "set the run's settings; options given here override it"),
-    "set": dict(action="append", default=[], metavar="SECTION.KEY=VALUE",
-                help="set one setting of the recipe (a TOML value; none for None), e.g. --set reward.k_distance=0.3; "
-                     "repeatable"),
+    "config": dict(
+        metavar="RECIPE.toml",
+        help="a recipe file (TOML; configs/ holds the project's): its sections "
+        "set the run's settings; options given here override it",
+    ),
+    "set": dict(
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="set one setting of the recipe (a TOML value; none for None), e.g. --set reward.k_distance=0.3; "
+        "repeatable",
+    ),
 }
 
 
@@ -199,8 +217,18 @@ def option_name(field: str) -> str:
     return "--" + field.replace("_", "-")
 
 
-def add_options(parser, cls: type, section: str, *, exclude=(), only=None, prefix: str = "",
-                defaults: object | None = None, aliases: dict | None = None, choices: dict | None = None) -> list[str]:
+def add_options(
+    parser,
+    cls: type,
+    section: str,
+    *,
+    exclude=(),
+    only=None,
+    prefix: str = "",
+    defaults: object | None = None,
+    aliases: dict | None = None,
+    choices: dict | None = None,
+) -> list[str]:
     """Add one option per field of dataclass ``cls`` (scalar fields; nested dataclasses flattened, their options
     named ``--<prefix><field>``) to ``parser`` (or an argument group): help from the field's docstring, choices
     from ``cls.CHOICES``, the default shown from ``defaults`` (an instance; default: ``cls()`` when it can be
@@ -222,8 +250,10 @@ def add_options(parser, cls: type, section: str, *, exclude=(), only=None, prefi
         tp = _hints(cls)[f.name]
         if dataclasses.is_dataclass(_unwrap(tp)[0]):
             sub = getattr(defaults, f.name, None)
-            added += [f"{f.name}.{n}" for n in add_options(parser, _unwrap(tp)[0], f"{section}.{f.name}",
-                                                           prefix=prefix, defaults=sub)]
+            added += [
+                f"{f.name}.{n}"
+                for n in add_options(parser, _unwrap(tp)[0], f"{section}.{f.name}", prefix=prefix, defaults=sub)
+            ]
             continue
         base = _scalar(tp)
         item = _sequence_item(tp) if base is None else None
@@ -256,6 +286,7 @@ def _option_type(tp, key: str):
             return _convert(text, tp, key)
         except CommandError as e:
             raise argparse.ArgumentTypeError(str(e)) from None
+
     parse.__name__ = getattr(_unwrap(tp)[0], "__name__", "value")
     return parse
 
@@ -266,6 +297,7 @@ def _items_type(item: type, key: str):
             return [_convert(x.strip(), item, key) for x in text.split(",") if x.strip()]
         except CommandError as e:
             raise argparse.ArgumentTypeError(str(e)) from None
+
     return parse
 
 
@@ -275,7 +307,7 @@ def given(args: argparse.Namespace, section: str) -> dict:
     for dest, v in vars(args).items():
         if v is None or not dest.startswith(section + "."):
             continue
-        keys = dest[len(section) + 1:].split(".")
+        keys = dest[len(section) + 1 :].split(".")
         d = out
         for k in keys[:-1]:
             d = d.setdefault(k, {})
@@ -397,7 +429,7 @@ def setting_message(msg: str, names, section: str) -> str:
     key (``max_steps must be >= 1`` -> ``--max-steps must be >= 1 (recipe: train.max_steps)``)."""
     first = msg.split(" ", 1)[0]
     if first in names:
-        return f"{option_name(first)}{msg[len(first):]} (recipe: {section}.{first})"
+        return f"{option_name(first)}{msg[len(first) :]} (recipe: {section}.{first})"
     return f"[{section}]: {msg}"
 
 

@@ -44,12 +44,18 @@ class MemoryState:
     @classmethod
     def empty(cls, batch: int, slots: int, feat_dim: int, device=None) -> "MemoryState":
         z = lambda *s: torch.zeros(*s, device=device)  # noqa: E731
-        return cls(box=z(batch, slots, 4), score=z(batch, slots), feat=z(batch, slots, feat_dim),
-                   pose=z(batch, slots, 4), valid=torch.zeros(batch, slots, dtype=torch.bool, device=device),
-                   ptr=torch.zeros(batch, dtype=torch.long, device=device))
+        return cls(
+            box=z(batch, slots, 4),
+            score=z(batch, slots),
+            feat=z(batch, slots, feat_dim),
+            pose=z(batch, slots, 4),
+            valid=torch.zeros(batch, slots, dtype=torch.bool, device=device),
+            ptr=torch.zeros(batch, dtype=torch.long, device=device),
+        )
 
-    def write(self, mask: torch.Tensor, box: torch.Tensor, score: torch.Tensor, feat: torch.Tensor,
-              pose: torch.Tensor) -> "MemoryState":
+    def write(
+        self, mask: torch.Tensor, box: torch.Tensor, score: torch.Tensor, feat: torch.Tensor, pose: torch.Tensor
+    ) -> "MemoryState":
         """Append one node to the rows where ``mask`` ``(B,)`` is True (FIFO: overwrites the oldest when full)."""
         slots = self.valid.shape[1]
         hot = (torch.arange(slots, device=self.ptr.device)[None, :] == self.ptr[:, None]) & mask[:, None]
@@ -60,13 +66,20 @@ class MemoryState:
             feat=torch.where(h3, feat[:, None, :], self.feat),
             pose=torch.where(h3, pose[:, None, :], self.pose),
             valid=self.valid | hot,
-            ptr=torch.where(mask, (self.ptr + 1) % slots, self.ptr))
+            ptr=torch.where(mask, (self.ptr + 1) % slots, self.ptr),
+        )
 
     def clear(self, done: torch.Tensor) -> "MemoryState":
         """Empty the memory of the rows where ``done`` ``(B,)`` is True (the episode ended)."""
         keep = ~done
-        return MemoryState(box=self.box, score=self.score, feat=self.feat, pose=self.pose,
-                           valid=self.valid & keep[:, None], ptr=self.ptr * keep.long())
+        return MemoryState(
+            box=self.box,
+            score=self.score,
+            feat=self.feat,
+            pose=self.pose,
+            valid=self.valid & keep[:, None],
+            ptr=self.ptr * keep.long(),
+        )
 
     def index(self, rows) -> "MemoryState":
         return MemoryState(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
@@ -102,8 +115,7 @@ class TargetMemoryAggregator(nn.Module):
     which the searching stage needs while nothing has been seen).
     """
 
-    def __init__(self, feat_dim: int, dim: int = 256, heads: int = 4, out_dim: int = 256,
-                 num_categories: int = 22):
+    def __init__(self, feat_dim: int, dim: int = 256, heads: int = 4, out_dim: int = 256, num_categories: int = 22):
         super().__init__()
         if dim % heads:
             raise ValueError(f"memory dim {dim} must be divisible by the number of heads {heads}")

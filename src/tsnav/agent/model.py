@@ -79,8 +79,17 @@ class AgentConfig:
 #: Named configurations: ``paper`` (defaults) and ``cpu`` (small enough to train on two CPU cores).
 PRESETS = {
     "paper": AgentConfig(),
-    "cpu": AgentConfig(conv_channels=16, image_dim=128, memory_slots=8, memory_dim=64, memory_heads=2,
-                       target_dim=64, action_dim=16, state_dim=128, hidden=128),
+    "cpu": AgentConfig(
+        conv_channels=16,
+        image_dim=128,
+        memory_slots=8,
+        memory_dim=64,
+        memory_heads=2,
+        target_dim=64,
+        action_dim=16,
+        state_dim=128,
+        hidden=128,
+    ),
 }
 
 
@@ -110,12 +119,17 @@ class AgentState:
     def reset(self, done) -> "AgentState":
         """Clear the rows where ``done`` (``(B,)`` bool, tensor or array) is True: multiply the LSTM state by
         ``1 - done``, empty the memory, forget the previous action."""
-        done = torch.as_tensor(np.asarray(done) if not torch.is_tensor(done) else done, dtype=torch.bool,
-                               device=self.h.device)
+        done = torch.as_tensor(
+            np.asarray(done) if not torch.is_tensor(done) else done, dtype=torch.bool, device=self.h.device
+        )
         keep = (~done).to(self.h.dtype)[:, None]
-        return AgentState(h=self.h * keep, c=self.c * keep, memory=self.memory.clear(done),
-                          prev_action=torch.where(done, torch.full_like(self.prev_action, NO_ACTION), self.prev_action),
-                          prev_position=self.prev_position)
+        return AgentState(
+            h=self.h * keep,
+            c=self.c * keep,
+            memory=self.memory.clear(done),
+            prev_action=torch.where(done, torch.full_like(self.prev_action, NO_ACTION), self.prev_action),
+            prev_position=self.prev_position,
+        )
 
     def with_action(self, action: torch.Tensor) -> "AgentState":
         """The state after ``action`` ``(B,)`` was output (the next step's previous action)."""
@@ -127,8 +141,13 @@ class AgentState:
 
     def index(self, rows) -> "AgentState":
         rows = torch.as_tensor(rows)
-        return AgentState(self.h[rows], self.c[rows], self.memory.index(rows), self.prev_action[rows],
-                          None if self.prev_position is None else self.prev_position[rows])
+        return AgentState(
+            self.h[rows],
+            self.c[rows],
+            self.memory.index(rows),
+            self.prev_action[rows],
+            None if self.prev_position is None else self.prev_position[rows],
+        )
 
 
 def _init(module: nn.Module, gain: float) -> None:
@@ -144,8 +163,9 @@ class ActorCritic(nn.Module):
     :meth:`describe`, and an agent is only run on scenes of its class set). Orthogonal initialisation (gain sqrt 2
     for ReLU layers, 0.01 for the actor, 1 for the critic), zero biases."""
 
-    def __init__(self, config: AgentConfig, feature_shape: tuple[int, int, int], det_dim: int,
-                 class_set: str = DEFAULT_CLASS_SET):
+    def __init__(
+        self, config: AgentConfig, feature_shape: tuple[int, int, int], det_dim: int, class_set: str = DEFAULT_CLASS_SET
+    ):
         super().__init__()
         self.config = config
         self.class_set = get_class_set(class_set).name
@@ -154,8 +174,9 @@ class ActorCritic(nn.Module):
         c, h, w = self.feature_shape
         self.conv = nn.Conv2d(c, config.conv_channels, 1)
         self.image = nn.Linear(config.conv_channels * h * w, config.image_dim)
-        self.memory = TargetMemoryAggregator(det_dim, config.memory_dim, config.memory_heads, config.target_dim,
-                                             get_class_set(class_set).size)
+        self.memory = TargetMemoryAggregator(
+            det_dim, config.memory_dim, config.memory_heads, config.target_dim, get_class_set(class_set).size
+        )
         self.action_embed = nn.Embedding(NUM_ACTIONS + 1 + int(config.blocked_action), config.action_dim)
         self.state = nn.Linear(config.image_dim + config.target_dim + config.action_dim, config.state_dim)
         self.dropout = nn.Dropout(config.dropout)
@@ -177,17 +198,20 @@ class ActorCritic(nn.Module):
         """Fresh recurrent state of ``batch`` episodes."""
         device = device or next(self.parameters()).device
         cfg = self.config
-        return AgentState(h=torch.zeros(batch, cfg.hidden, device=device),
-                          c=torch.zeros(batch, cfg.hidden, device=device),
-                          memory=MemoryState.empty(batch, cfg.memory_slots, self.det_dim, device),
-                          prev_action=torch.full((batch,), NO_ACTION, dtype=torch.long, device=device),
-                          prev_position=torch.zeros(batch, 2, device=device) if cfg.blocked_action else None)
+        return AgentState(
+            h=torch.zeros(batch, cfg.hidden, device=device),
+            c=torch.zeros(batch, cfg.hidden, device=device),
+            memory=MemoryState.empty(batch, cfg.memory_slots, self.det_dim, device),
+            prev_action=torch.full((batch,), NO_ACTION, dtype=torch.long, device=device),
+            prev_position=torch.zeros(batch, 2, device=device) if cfg.blocked_action else None,
+        )
 
     def forward(self, obs: AgentObs, state: AgentState) -> tuple[torch.Tensor, torch.Tensor, AgentState]:
         """One step: ``(logits (B, 6), value (B,), new state)``. The new state holds the updated LSTM state
         and memory and still the old previous action: set it with :meth:`AgentState.with_action`."""
-        memory = state.memory.write(obs.det_score > self.config.memory_threshold, obs.det_box, obs.det_score,
-                                    obs.det_feat, obs.pose)
+        memory = state.memory.write(
+            obs.det_score > self.config.memory_threshold, obs.det_box, obs.det_score, obs.det_feat, obs.pose
+        )
         x = torch.relu(self.conv(obs.image))  # [B, k, h, w]
         i_t = torch.relu(self.image(x.flatten(1)))  # [B, image_dim]
         f_t = self.memory(memory, obs.pose, obs.target)  # [B, target_dim]
@@ -205,8 +229,11 @@ class ActorCritic(nn.Module):
         if state.prev_position is None:
             raise ValueError("blocked_action: the agent state has no previous position (made by another network?)")
         stayed = (obs.pose[:, :2] == state.prev_position).all(dim=1)
-        return torch.where((state.prev_action == MOVE_AHEAD) & stayed,
-                           torch.full_like(state.prev_action, BLOCKED_MOVE), state.prev_action)
+        return torch.where(
+            (state.prev_action == MOVE_AHEAD) & stayed,
+            torch.full_like(state.prev_action, BLOCKED_MOVE),
+            state.prev_action,
+        )
 
     def autocast_weights(self) -> list[str]:
         """Names of the parameters whose every use in :meth:`forward` is an operand of a matrix product that
@@ -214,8 +241,18 @@ class ActorCritic(nn.Module):
         cell), so that casting them once per rollout gives what autocast's per-step cast gives
         (``RolloutCollector(cast_once=True)``). Left out: the embeddings (autocast keeps them in float32), the
         attention's input bias (its value part is added in float32) and the memory's ``nothing`` vector."""
-        keep = ("conv.", "image.", "memory.node.", "memory.attn.in_proj_weight", "memory.attn.out_proj.",
-                "memory.out.", "state.", "lstm.", "actor.", "critic.")
+        keep = (
+            "conv.",
+            "image.",
+            "memory.node.",
+            "memory.attn.in_proj_weight",
+            "memory.attn.out_proj.",
+            "memory.out.",
+            "state.",
+            "lstm.",
+            "actor.",
+            "critic.",
+        )
         return [name for name, _ in self.named_parameters() if name.startswith(keep)]
 
     def describe(self) -> dict:
@@ -228,5 +265,9 @@ class ActorCritic(nn.Module):
 
     @classmethod
     def from_description(cls, d: dict) -> "ActorCritic":
-        return cls(AgentConfig(**d["agent"]), tuple(d["feature_shape"]), int(d["det_dim"]),
-                   d.get("class_set", DEFAULT_CLASS_SET))
+        return cls(
+            AgentConfig(**d["agent"]),
+            tuple(d["feature_shape"]),
+            int(d["det_dim"]),
+            d.get("class_set", DEFAULT_CLASS_SET),
+        )

@@ -59,25 +59,32 @@ def load_bank_features(bank, name: str) -> torch.Tensor:
     for i, scene in enumerate(bank.scenes):
         own = scene.cache_name(name)  # a mirrored scene reads the features of its flipped frames
         if own != name and not (scene.path / f"features_{own}.hdf5").exists():
-            raise FileNotFoundError(f"{scene.path}/features_{own}.hdf5: no features of the mirrored room (run "
-                                    f"`tsnav features --mirror --name {name}` with the encoder of {name})")
+            raise FileNotFoundError(
+                f"{scene.path}/features_{own}.hdf5: no features of the mirrored room (run "
+                f"`tsnav features --mirror --name {name}` with the encoder of {name})"
+            )
         feats, keys, _ = read_features(scene.path, own)
         if len(keys) != scene.num_states or not np.array_equal(keys, scene.keys):
-            raise ValueError(f"{scene.path}/features_{own}.hdf5 does not match the scene's states "
-                             f"(recompute it with `tsnav features --overwrite`)")
+            raise ValueError(
+                f"{scene.path}/features_{own}.hdf5 does not match the scene's states "
+                f"(recompute it with `tsnav features --overwrite`)"
+            )
         if shape is None:
             shape = feats.shape[1:]
             out = torch.empty((bank.num_states,) + tuple(shape), dtype=torch.float16)
         elif feats.shape[1:] != shape:
-            raise ValueError(f"{scene.path}/features_{own}.hdf5 has feature shape {feats.shape[1:]}, "
-                             f"other scenes {shape}")
-        out[int(bank.offsets[i]):int(bank.offsets[i + 1])] = torch.from_numpy(np.ascontiguousarray(feats))
+            raise ValueError(
+                f"{scene.path}/features_{own}.hdf5 has feature shape {feats.shape[1:]}, other scenes {shape}"
+            )
+        out[int(bank.offsets[i]) : int(bank.offsets[i + 1])] = torch.from_numpy(np.ascontiguousarray(feats))
     return out
 
 
 #: The one-line error of an agent stage asked to observe a bank without a detection table.
-NO_DETECTIONS = ("no detection table installed in the scene bank: the agent reads only a detector's table "
-                 "(run `tsnav detect --detector learned`, or pass `--detections oracle` explicitly)")
+NO_DETECTIONS = (
+    "no detection table installed in the scene bank: the agent reads only a detector's table "
+    "(run `tsnav detect --detector learned`, or pass `--detections oracle` explicitly)"
+)
 
 
 class DetectionTable:
@@ -103,8 +110,10 @@ class DetectionTable:
         self.class_set = bank.class_set.name
         self.box[self.score <= 0] = 0.0
         if features is not None and np.shape(features)[:2] != (bank.num_states, bank.num_categories):
-            raise ValueError(f"detection features must have shape ({bank.num_states}, {bank.num_categories}, D), "
-                             f"got {np.shape(features)}")
+            raise ValueError(
+                f"detection features must have shape ({bank.num_states}, {bank.num_categories}, D), "
+                f"got {np.shape(features)}"
+            )
         self.features = None if features is None else torch.as_tensor(np.asarray(features, dtype=np.float16))
 
 
@@ -131,8 +140,9 @@ class Observer:
     detection table installed in ``bank``).
     """
 
-    def __init__(self, bank, features: torch.Tensor, detections: DetectionTable | None = None,
-                 device: str | torch.device = "cpu"):
+    def __init__(
+        self, bank, features: torch.Tensor, detections: DetectionTable | None = None, device: str | torch.device = "cpu"
+    ):
         if features.shape[0] != bank.num_states:
             raise ValueError(f"features cover {features.shape[0]} states but the bank has {bank.num_states}")
         self.bank = bank
@@ -141,8 +151,11 @@ class Observer:
         self.device = torch.device(device)
         self._score = torch.from_numpy(self.detections.score)
         self._box = torch.from_numpy(self.detections.box)
-        self._pose = torch.from_numpy(np.stack([bank.x, bank.z, bank.rotation.astype(np.float32),
-                                                bank.horizon.astype(np.float32)], axis=1).astype(np.float32))
+        self._pose = torch.from_numpy(
+            np.stack(
+                [bank.x, bank.z, bank.rotation.astype(np.float32), bank.horizon.astype(np.float32)], axis=1
+            ).astype(np.float32)
+        )
 
     @property
     def feature_shape(self) -> tuple[int, int, int]:
@@ -170,5 +183,11 @@ class Observer:
             feat = self.detections.features[s, g].to(self.device, torch.float32)
         else:
             feat = roi_pool(image, box)
-        return AgentObs(image=image, target=g.to(self.device), det_score=score, det_box=box, det_feat=feat,
-                        pose=self._pose[s].to(self.device))
+        return AgentObs(
+            image=image,
+            target=g.to(self.device),
+            det_score=score,
+            det_box=box,
+            det_feat=feat,
+            pose=self._pose[s].to(self.device),
+        )

@@ -61,10 +61,15 @@ def rotation_figures(actions_per_episode) -> dict:
                 long_runs += 1
                 in_runs += n
                 saved += 2 * n - TURNS
-    return {"steps": steps, "RotateLeft": left / steps if steps else 0.0,
-            "RotateRight": right / steps if steps else 0.0, "runs_5_to_7": long_runs,
-            "in_runs_share": in_runs / steps if steps else 0.0, "saved_steps": saved,
-            "saved_share": saved / steps if steps else 0.0}
+    return {
+        "steps": steps,
+        "RotateLeft": left / steps if steps else 0.0,
+        "RotateRight": right / steps if steps else 0.0,
+        "runs_5_to_7": long_runs,
+        "in_runs_share": in_runs / steps if steps else 0.0,
+        "saved_steps": saved,
+        "saved_share": saved / steps if steps else 0.0,
+    }
 
 
 def outcome(t) -> str:
@@ -93,9 +98,13 @@ def outcome_figures(trajectories) -> dict:
         many += blocked >= MANY_BLOCKED
         loops += o == "limit" and len(set(t.keys[-LOOP_FRAMES:])) <= LOOP_STATES
     total = [sum(m[0] for m in moves.values()), sum(m[1] for m in moves.values())]
-    return {"episodes": episodes, **ends,
-            "blocked_share": {o: m[1] / m[0] if m[0] else 0.0 for o, m in {**moves, "all": total}.items()},
-            "many_blocked": many, "limit_loops": loops}
+    return {
+        "episodes": episodes,
+        **ends,
+        "blocked_share": {o: m[1] / m[0] if m[0] else 0.0 for o, m in {**moves, "all": total}.items()},
+        "many_blocked": many,
+        "limit_loops": loops,
+    }
 
 
 def switch_truth(data: Path, trajectories) -> dict:
@@ -162,7 +171,9 @@ def switch_misses(a, b) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze agent-diagnostics", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze agent-diagnostics", description=__doc__.splitlines()[0]
+    )
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("rotations", help="how evaluated agents turn")
     r.add_argument("evals", nargs="+", help="tsnav eval output folders")
@@ -203,24 +214,31 @@ def main(argv=None) -> int:
             b = r["blocked_share"]
             print(f"{f}: {r['episodes']} episodes")
             for sw in ("switched", "unswitched"):
-                print(f"  {sw:10s}  success {r[sw + '_success']:5d}  failed Done {r[sw + '_done']:5d}  "
-                      f"step limit {r[sw + '_limit']:5d}")
-            print(f"  blocked MoveAheads: {100 * b['all']:.1f} % (in successes {100 * b['success']:.1f} %, failed "
-                  f"Dones {100 * b['done']:.1f} %, step-limit failures {100 * b['limit']:.1f} %); episodes with >= "
-                  f"{MANY_BLOCKED} blocked: {r['many_blocked']}; step-limit failures ending in a loop: "
-                  f"{r['limit_loops']}")
+                print(
+                    f"  {sw:10s}  success {r[sw + '_success']:5d}  failed Done {r[sw + '_done']:5d}  "
+                    f"step limit {r[sw + '_limit']:5d}"
+                )
+            print(
+                f"  blocked MoveAheads: {100 * b['all']:.1f} % (in successes {100 * b['success']:.1f} %, failed "
+                f"Dones {100 * b['done']:.1f} %, step-limit failures {100 * b['limit']:.1f} %); episodes with >= "
+                f"{MANY_BLOCKED} blocked: {r['many_blocked']}; step-limit failures ending in a loop: "
+                f"{r['limit_loops']}"
+            )
             if a.data is not None:
                 for k, v in switch_truth(Path(a.data), trajectories).items():
                     print(f"  {k} switches: success {v['success']}, failed Done {v['done']}, step limit {v['limit']}")
         return 0
     if a.cmd == "rotations":
-        print(f"{'eval':56s} {'left %':>7s} {'right %':>8s} {'runs 5-7':>9s} {'steps in them':>14s} "
-              f"{'saved steps':>12s}")
+        print(
+            f"{'eval':56s} {'left %':>7s} {'right %':>8s} {'runs 5-7':>9s} {'steps in them':>14s} {'saved steps':>12s}"
+        )
         for f in a.evals:
             r = rotation_figures(read_actions(Path(f)))
-            print(f"{f[-56:]:56s} {100 * r['RotateLeft']:7.1f} {100 * r['RotateRight']:8.1f} {r['runs_5_to_7']:9d} "
-                  f"{100 * r['in_runs_share']:12.1f} % {r['saved_steps']:6d} ({100 * r['saved_share']:.1f} % of "
-                  f"{r['steps']})")
+            print(
+                f"{f[-56:]:56s} {100 * r['RotateLeft']:7.1f} {100 * r['RotateRight']:8.1f} {r['runs_5_to_7']:9d} "
+                f"{100 * r['in_runs_share']:12.1f} % {r['saved_steps']:6d} ({100 * r['saved_share']:.1f} % of "
+                f"{r['steps']})"
+            )
         return 0
     data = Path(a.data)
     if not data.is_dir():

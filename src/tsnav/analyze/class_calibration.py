@@ -79,8 +79,9 @@ def fit_platt_reference(z, y, prior: float = 1.0) -> tuple[float, float]:
         m = w[0] * z + w[1]
         return float(np.sum(np.logaddexp(0.0, m) - y * m) + prior / 2 * ((w[0] - 1) ** 2 + w[1] ** 2))
 
-    r = minimize(f, np.array([1.0, 0.0]), method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12,
-                                                                           "maxiter": 20000})
+    r = minimize(
+        f, np.array([1.0, 0.0]), method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 20000}
+    )
     return float(r.x[0]), float(r.x[1])
 
 
@@ -94,8 +95,9 @@ def collect(scenes, tables) -> list[tuple[np.ndarray, np.ndarray]]:
         for c in np.flatnonzero(tgt):
             zs[c].append(logit(d.scores[:, c]))
             ys[c].append(present[:, c])
-    return [(np.concatenate(z) if z else np.zeros(0), np.concatenate(y) if y else np.zeros(0, bool))
-            for z, y in zip(zs, ys)]
+    return [
+        (np.concatenate(z) if z else np.zeros(0), np.concatenate(y) if y else np.zeros(0, bool)) for z, y in zip(zs, ys)
+    ]
 
 
 def fit_maps(scenes, tables, min_positives: int, prior: float) -> np.ndarray:
@@ -118,21 +120,32 @@ def apply_maps(det, maps: np.ndarray, min_score: float):
 
 
 def _figures(rep) -> dict:
-    return {"reach": [rep.reached, rep.pairs], "episode_reach": [rep.episode_reached, rep.episode_pairs],
-            "fp_state_target": {str(k): v for k, v in rep.fp_state_target.items()},
-            "class_reached": {TARGET_CATEGORIES[c]: [int(rep.class_reached[c]), int(rep.class_pairs[c])]
-                              for c in range(NUM_CATEGORIES) if rep.class_pairs[c]}}
+    return {
+        "reach": [rep.reached, rep.pairs],
+        "episode_reach": [rep.episode_reached, rep.episode_pairs],
+        "fp_state_target": {str(k): v for k, v in rep.fp_state_target.items()},
+        "class_reached": {
+            TARGET_CATEGORIES[c]: [int(rep.class_reached[c]), int(rep.class_pairs[c])]
+            for c in range(NUM_CATEGORIES)
+            if rep.class_pairs[c]
+        },
+    }
 
 
 def _line(name: str, f: dict) -> str:
     fp = f["fp_state_target"]
-    return (f"{name}: reach {f['reach'][0]}/{f['reach'][1]}, episode pairs {f['episode_reach'][0]}/"
-            f"{f['episode_reach'][1]}, false-positive states (targets) > 0.5 / 0.7 / 0.9: "
-            + " / ".join(f"{100 * fp[k]:.2f}" for k in sorted(fp)) + " %")
+    return (
+        f"{name}: reach {f['reach'][0]}/{f['reach'][1]}, episode pairs {f['episode_reach'][0]}/"
+        f"{f['episode_reach'][1]}, false-positive states (targets) > 0.5 / 0.7 / 0.9: "
+        + " / ".join(f"{100 * fp[k]:.2f}" for k in sorted(fp))
+        + " %"
+    )
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze class-calibration", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze class-calibration", description=__doc__.split("\n\n")[0]
+    )
     ap.add_argument("--data", required=True, type=Path, help="a built world")
     ap.add_argument("--from", dest="source", default="learned4", help="the tables to recalibrate")
     ap.add_argument("--fit-split", default="val", help="rooms the maps are fitted on (default val)")
@@ -141,8 +154,12 @@ def main(argv=None) -> int:
     ap.add_argument("--prior", type=float, default=1.0)
     ap.add_argument("--min-score", type=float, default=0.05)
     ap.add_argument("--name", default=None, help="write the recalibrated tables of every room under this name")
-    ap.add_argument("--write-split", action="append", default=[],
-                    help="with --name: write the tables of these splits only (repeatable; default every room)")
+    ap.add_argument(
+        "--write-split",
+        action="append",
+        default=[],
+        help="with --name: write the tables of these splits only (repeatable; default every room)",
+    )
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     if a.name is not None and a.name == a.source:
@@ -170,8 +187,9 @@ def main(argv=None) -> int:
     out[f"{a.fit_split}_crossfit"] = _figures(switch_report(fit_scenes, crossed))
     print(_line(f"{a.fit_split}, per-class maps (two folds, each fitted on the other)", out[f"{a.fit_split}_crossfit"]))
     maps = fit_maps(fit_scenes, fit_tables, a.min_positives, a.prior)
-    out["maps"] = {TARGET_CATEGORIES[c]: [round(float(maps[c, 0]), 4), round(float(maps[c, 1]), 4)]
-                   for c in range(NUM_CATEGORIES)}
+    out["maps"] = {
+        TARGET_CATEGORIES[c]: [round(float(maps[c, 0]), 4), round(float(maps[c, 1]), 4)] for c in range(NUM_CATEGORIES)
+    }
     for split in a.report_split:
         dirs = list_scenes(a.data, split)
         sc = [load_scene(p) for p in dirs]
@@ -186,8 +204,17 @@ def main(argv=None) -> int:
             if not detections_path(p, a.name).exists():
                 d = load_detections(p, a.source)
                 d = apply_maps(d, maps, a.min_score)
-                write_detections(p, a.name, replace(d, config=dict(d.config, class_calibration={
-                    "from": a.source, "fit_split": a.fit_split, "maps": out["maps"]})))
+                write_detections(
+                    p,
+                    a.name,
+                    replace(
+                        d,
+                        config=dict(
+                            d.config,
+                            class_calibration={"from": a.source, "fit_split": a.fit_split, "maps": out["maps"]},
+                        ),
+                    ),
+                )
         print(f"wrote {a.name} tables in {a.data}")
     if a.json:
         atomic_write_json(a.json, out)

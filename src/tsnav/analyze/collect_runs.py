@@ -41,10 +41,17 @@ def _read(path: Path) -> dict:
 def eval_figures(folder: Path) -> dict:
     """Test figures of one ``tsnav eval`` folder: metrics of ALL and L>=5, episodes, protocol, outcomes."""
     m = _read(folder / "metrics.json")
-    out = {sub: {k: round(float(m["metrics"][sub][k]), 6) for k in METRICS if k in m["metrics"][sub]}
-           for sub in ("ALL", "L>=5")}
-    out.update(K=m["metrics"]["ALL"].get("K"), protocol=m.get("protocol"), trained_protocol=m.get("trained_protocol"),
-               checkpoint=m.get("checkpoint"), sample=m.get("sample"))
+    out = {
+        sub: {k: round(float(m["metrics"][sub][k]), 6) for k in METRICS if k in m["metrics"][sub]}
+        for sub in ("ALL", "L>=5")
+    }
+    out.update(
+        K=m["metrics"]["ALL"].get("K"),
+        protocol=m.get("protocol"),
+        trained_protocol=m.get("trained_protocol"),
+        checkpoint=m.get("checkpoint"),
+        sample=m.get("sample"),
+    )
     o = folder / "outcomes.json"
     if o.exists():
         oc = _read(o)
@@ -73,8 +80,9 @@ def table(runs: dict) -> str:
         base = name.rsplit("-s", 1)[0] if "-s" in name else name
         for tag, t in r["test"].items():
             a = t["ALL"]
-            lines.append(f"{name:32s} {tag:24s} {100 * a['SR']:7.2f} {100 * a['SPL']:7.2f} "
-                         f"{100 * a.get('SSR', 0):7.2f}")
+            lines.append(
+                f"{name:32s} {tag:24s} {100 * a['SR']:7.2f} {100 * a['SPL']:7.2f} {100 * a.get('SSR', 0):7.2f}"
+            )
             groups[base][tag].append((a["SR"], a["SPL"]))
     lines.append("means over seeds:")
     for base, tags in groups.items():
@@ -86,7 +94,9 @@ def table(runs: dict) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze collect-runs", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze collect-runs", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--out", required=True, help="JSON file to write")
     p.add_argument("--title", required=True, help="what the runs measure")
     p.add_argument("--setting", action="append", default=[], help="KEY=VALUE, the setting in words (repeatable)")

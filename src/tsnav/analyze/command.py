@@ -33,8 +33,9 @@ ANALYSES = {
 
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.description = "analyses behind docs/RESULTS.md: " + "; ".join(ANALYSES)
-    p.add_argument("analysis", nargs="?", choices=sorted(ANALYSES), metavar="NAME",
-                   help="one of: " + ", ".join(ANALYSES))
+    p.add_argument(
+        "analysis", nargs="?", choices=sorted(ANALYSES), metavar="NAME", help="one of: " + ", ".join(ANALYSES)
+    )
     p.add_argument("options", nargs=argparse.REMAINDER, help="the analysis's own options (NAME --help)")
 
 

@@ -28,7 +28,9 @@ def split_pair(text: str, what: str) -> tuple[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze compare-curves", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze compare-curves", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--out", required=True, help="PNG to write")
     p.add_argument("--curve", action="append", default=[], help="LABEL=FOLDER of a `tsnav convergence` run")
     p.add_argument("--ref", action="append", default=[], help="LABEL=PERCENT: a reference SR line")
@@ -48,8 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     axes = fig.subplots(1, 3)
     for ax, metric in zip(axes, ("SR", "SPL", "NSNPL")):
         for label, pts in curves:
-            ax.plot([q["env_steps"] / 1e6 for q in pts], [100 * q[metric] for q in pts], marker="o", ms=3,
-                    label=label)
+            ax.plot([q["env_steps"] / 1e6 for q in pts], [100 * q[metric] for q in pts], marker="o", ms=3, label=label)
         if metric == "SR":
             for r in a.ref:
                 label, value = split_pair(r, "--ref")

@@ -97,8 +97,17 @@ def sampled(out: Path, rolls: int = 3) -> list[tuple[float, float]]:
     for k in range(rolls):
         f = out / "eval_sampled" / f"s{k}"
         if not (f / "metrics.json").exists():
-            evaluate_to_folder(f, out / "world", out / "test_episodes.json", policy="agent", run=out / "run",
-                               detections="learned", seed=k, sample=True, protocol="paper")
+            evaluate_to_folder(
+                f,
+                out / "world",
+                out / "test_episodes.json",
+                policy="agent",
+                run=out / "run",
+                detections="learned",
+                seed=k,
+                sample=True,
+                protocol="paper",
+            )
         m = json.loads((f / "metrics.json").read_text())["metrics"]["ALL"]
         figs.append((100 * m["SR"], 100 * m["SPL"]))
     return figs
@@ -136,42 +145,60 @@ def table(base: Path, variants: list[str]) -> None:
     for v, k, n, per, mean, half in rows:
         print(f"| {v} | {k} | {n} | {per} | {mean[0]:.2f} +- {half[0]:.2f} | {mean[1]:.2f} +- {half[1]:.2f} |")
     ref = variants[0]
-    print(f"\n| variant | policy / protocol | paired difference against {ref} per seed (SR) | mean SR +- 95% "
-          "| mean SPL +- 95% |")
+    print(
+        f"\n| variant | policy / protocol | paired difference against {ref} per seed (SR) | mean SR +- 95% "
+        "| mean SPL +- 95% |"
+    )
     print("| --- | --- | --- | --- | --- |")
     for v in variants[1:]:
         for k in sorted({k for f in report[v].values() for k in f}):
-            pairs = [(np.array(report[v][s][k]), np.array(report[ref][s][k])) for s in report[v]
-                     if s in report[ref] and k in report[ref][s]]
+            pairs = [
+                (np.array(report[v][s][k]), np.array(report[ref][s][k]))
+                for s in report[v]
+                if s in report[ref] and k in report[ref][s]
+            ]
             if len(pairs) < 2:
                 continue
             d = np.array([a - b for a, b in pairs])
             _, half = columns_ci(d)
-            print(f"| {v} | {k} | {' '.join(f'{x:+.2f}' for x in d[:, 0])} | {d[:, 0].mean():+.2f} +- {half[0]:.2f} | "
-                  f"{d[:, 1].mean():+.2f} +- {half[1]:.2f} |")
-    print("\n| variant | seed | switched | success after the switch | step limit after the switch | passed a success "
-          "state without Done | never switched, step limit | RotateLeft / RotateRight / MoveAhead share |")
+            print(
+                f"| {v} | {k} | {' '.join(f'{x:+.2f}' for x in d[:, 0])} | {d[:, 0].mean():+.2f} +- {half[0]:.2f} | "
+                f"{d[:, 1].mean():+.2f} +- {half[1]:.2f} |"
+            )
+    print(
+        "\n| variant | seed | switched | success after the switch | step limit after the switch | passed a success "
+        "state without Done | never switched, step limit | RotateLeft / RotateRight / MoveAhead share |"
+    )
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
     for (v, seed), o in sorted(outcomes.items()):
         a, c, sh = o["after_switch"], o["counts"], o["action_shares"]
-        print(f"| {v} | {seed} | {o['switched']} | {a['success']} | {c.get('step limit, switched', 0)} | "
-              f"{a['failures'].get('passed a success state without Done', 0)} | "
-              f"{c.get('step limit, never switched', 0)} | "
-              f"{sh['RotateLeft']:.2f} / {sh['RotateRight']:.2f} / {sh['MoveAhead']:.2f} |")
-        report[v][str(seed)]["outcomes_paper"] = {k: o[k] for k in ("switched", "counts", "after_switch",
-                                                                       "action_shares")}
+        print(
+            f"| {v} | {seed} | {o['switched']} | {a['success']} | {c.get('step limit, switched', 0)} | "
+            f"{a['failures'].get('passed a success state without Done', 0)} | "
+            f"{c.get('step limit, never switched', 0)} | "
+            f"{sh['RotateLeft']:.2f} / {sh['RotateRight']:.2f} / {sh['MoveAhead']:.2f} |"
+        )
+        report[v][str(seed)]["outcomes_paper"] = {
+            k: o[k] for k in ("switched", "counts", "after_switch", "action_shares")
+        }
     write_json(base / "factor.json", report)
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze demo-factor", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze demo-factor", description=__doc__.splitlines()[0]
+    )
     p.add_argument("base", type=Path)
     p.add_argument("variant", nargs="?")
     p.add_argument("seeds", nargs="*", type=int)
     p.add_argument("--table", nargs="+", metavar="VARIANT")
-    p.add_argument("--threads", type=int, default=None,
-                   help="torch threads of the runs (default: the demo's 2; another count trains other agents, so "
-                        "compare only runs made with the same count)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads of the runs (default: the demo's 2; another count trains other agents, so "
+        "compare only runs made with the same count)",
+    )
     a = p.parse_args(argv)
     if a.table:
         table(a.base, a.table)

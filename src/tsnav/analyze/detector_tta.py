@@ -38,23 +38,27 @@ def tables(det: LearnedDetector, scene, plain: Detections, chunk: int = 2048) ->
     lg = np.empty((scene.num_states, plain.scores.shape[1]), np.float64)
     lf = np.empty_like(lg)
     for a in range(0, scene.num_states, chunk):
-        img = read_images(scene.path, scene.keys[a:a + chunk])
-        lg[a:a + len(img)] = predict(det.model, img)[0]
-        lf[a:a + len(img)] = predict(det.model, np.ascontiguousarray(img[:, :, ::-1]))[0]
+        img = read_images(scene.path, scene.keys[a : a + chunk])
+        lg[a : a + len(img)] = predict(det.model, img)[0]
+        lf[a : a + len(img)] = predict(det.model, np.ascontiguousarray(img[:, :, ::-1]))[0]
 
     def scored(logits):
         return replace(plain, scores=(1.0 / (1.0 + np.exp(-logits / det.temperature))).astype(np.float32))
 
     again = scored(lg).scores
     if not np.allclose(again, plain.scores, atol=1e-4):
-        raise SystemExit(f"{scene.name}: the stored table's scores are not this detector's on these frames "
-                         f"(max difference {np.abs(again - plain.scores).max():.3g}); name the right --table")
+        raise SystemExit(
+            f"{scene.name}: the stored table's scores are not this detector's on these frames "
+            f"(max difference {np.abs(again - plain.scores).max():.3g}); name the right --table"
+        )
 
     return {"plain": plain, "flip-mean": scored((lg + lf) / 2), "flip-min": scored(np.minimum(lg, lf))}
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze detector-tta", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze detector-tta", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--data", required=True, help="world with the split's rooms at the detector's frame size")
     p.add_argument("--split", default="val")
     p.add_argument("--shipped", default="learned4", help="shipped detector name (tsnav.detect.shipped)")
@@ -76,6 +80,8 @@ def main(argv=None) -> int:
         r = switch_report(scenes, tabs)
         e = evaluate_detections(scenes, tabs)
         fp = ", ".join(f"> {t:g}: {100 * v:.2f} %" for t, v in r.fp_state_any.items())
-        print(f"{k:10s} presence AP {np.nanmean(e.presence_ap):.3f}; reach {r.reached}/{r.pairs} "
-              f"(episode pairs {r.episode_reached}/{r.episode_pairs}); false-positive states {fp}")
+        print(
+            f"{k:10s} presence AP {np.nanmean(e.presence_ap):.3f}; reach {r.reached}/{r.pairs} "
+            f"(episode pairs {r.episode_reached}/{r.episode_pairs}); false-positive states {fp}"
+        )
     return 0

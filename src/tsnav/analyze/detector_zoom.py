@@ -49,7 +49,7 @@ def zoom_crops(img: np.ndarray) -> np.ndarray:
     out = []
     for r, c in CROPS:
         y0, x0 = int(round(r * h)), int(round(c * h))
-        crop = x[:, :, y0:y0 + h, x0:x0 + h]
+        crop = x[:, :, y0 : y0 + h, x0 : x0 + h]
         up = torch.nn.functional.interpolate(crop, size=(s, s), mode="bilinear", align_corners=False)
         out.append(up.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy())
     return np.stack(out, axis=1).reshape(n, len(CROPS), s, s, 3)
@@ -60,11 +60,11 @@ def scene_logits(det, scene, chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
     plain = np.empty((scene.num_states, 22), np.float32)
     crops = np.empty((scene.num_states, len(CROPS), 22), np.float32)
     for a in range(0, scene.num_states, chunk):
-        img = read_images(scene.path, scene.keys[a:a + chunk])
+        img = read_images(scene.path, scene.keys[a : a + chunk])
         m = len(img)
-        plain[a:a + m] = predict(det.model, img)[0]
+        plain[a : a + m] = predict(det.model, img)[0]
         z = zoom_crops(img)
-        crops[a:a + m] = predict(det.model, z.reshape(-1, *z.shape[2:]))[0].reshape(m, len(CROPS), 22)
+        crops[a : a + m] = predict(det.model, z.reshape(-1, *z.shape[2:]))[0].reshape(m, len(CROPS), 22)
     return plain, crops
 
 
@@ -81,7 +81,9 @@ def scored(table: Detections, logits: np.ndarray, temperature: float) -> Detecti
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze detector-zoom", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze detector-zoom", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--data", required=True, help="world with the split's rooms at the detector's frame size")
     p.add_argument("--split", default="val")
     p.add_argument("--shipped", default="learned4", help="shipped detector name (tsnav.detect.shipped)")
@@ -113,8 +115,11 @@ def main(argv=None) -> int:
             tmp.replace(c)
         again = scored(t, pl, det.temperature).scores
         if not np.allclose(again, t.scores, atol=1e-4):
-            print(f"detector_zoom: {s.name}: the stored table's scores are not this detector's on these frames "
-                  f"(max difference {np.abs(again - t.scores).max():.3g}); name the right --table", file=sys.stderr)
+            print(
+                f"detector_zoom: {s.name}: the stored table's scores are not this detector's on these frames "
+                f"(max difference {np.abs(again - t.scores).max():.3g}); name the right --table",
+                file=sys.stderr,
+            )
             return 2
         scenes.append(s)
         tables.append(t)
@@ -128,12 +133,19 @@ def main(argv=None) -> int:
         sub = subset_report(scenes, tabs)
         small = next(iter(sub.values()))["mean_presence_ap"]
         fp = {f"{t:g}": round(100 * v, 2) for t, v in r.fp_state_any.items()}
-        out["rows"][name] = {"presence_ap": float(np.nanmean(e.presence_ap)), "small_ap": small,
-                             "reach": [r.reached, r.pairs], "episode_reach": [r.episode_reached, r.episode_pairs],
-                             "fp_states_percent": fp}
-        print(f"{name:22s} presence AP {np.nanmean(e.presence_ap):.3f} (small {small:.3f}); reach {r.reached}/"
-              f"{r.pairs} (episode pairs {r.episode_reached}/{r.episode_pairs}); false-positive states "
-              + ", ".join(f"> {k}: {v:.2f} %" for k, v in fp.items()), flush=True)
+        out["rows"][name] = {
+            "presence_ap": float(np.nanmean(e.presence_ap)),
+            "small_ap": small,
+            "reach": [r.reached, r.pairs],
+            "episode_reach": [r.episode_reached, r.episode_pairs],
+            "fp_states_percent": fp,
+        }
+        print(
+            f"{name:22s} presence AP {np.nanmean(e.presence_ap):.3f} (small {small:.3f}); reach {r.reached}/"
+            f"{r.pairs} (episode pairs {r.episode_reached}/{r.episode_pairs}); false-positive states "
+            + ", ".join(f"> {k}: {v:.2f} %" for k, v in fp.items()),
+            flush=True,
+        )
     if a.json:
         atomic_write_json(a.json, out)
     print(json.dumps(out["rows"]["plain"]))

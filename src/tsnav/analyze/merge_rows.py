@@ -73,16 +73,29 @@ def _merge_one(into: dict, src: dict, mapping: dict[str, str], order: list, wher
     for r in order:
         if r.id in mapping:
             sr = srows[mapping[r.id]]
-            missing = [(sub, m) for sub in out["subsets"] for m in out["metrics"]
-                       if m not in sr["metrics"].get(sub, {})]
+            missing = [
+                (sub, m) for sub in out["subsets"] for m in out["metrics"] if m not in sr["metrics"].get(sub, {})
+            ]
             if missing:
                 raise ValueError(f"{where}: source row {mapping[r.id]!r} lacks {missing[0][1]} on {missing[0][0]}")
-            merged.append({"row": r.id, "label": r.label, "flags": r.flags, "c_target": r.c_target,
-                           "encoder": r.encoder, "reward": r.reward, "detections": r.detections, "n": sr["n"],
-                           "metrics": {sub: {m: sr["metrics"][sub][m] for m in out["metrics"]}
-                                       for sub in out["subsets"]},
-                           "merged_from": {"row": mapping[r.id], "label": sr.get("label"),
-                                           "experiment": src.get("experiment")}})
+            merged.append(
+                {
+                    "row": r.id,
+                    "label": r.label,
+                    "flags": r.flags,
+                    "c_target": r.c_target,
+                    "encoder": r.encoder,
+                    "reward": r.reward,
+                    "detections": r.detections,
+                    "n": sr["n"],
+                    "metrics": {sub: {m: sr["metrics"][sub][m] for m in out["metrics"]} for sub in out["subsets"]},
+                    "merged_from": {
+                        "row": mapping[r.id],
+                        "label": sr.get("label"),
+                        "experiment": src.get("experiment"),
+                    },
+                }
+            )
         elif r.id in have:
             merged.append(have[r.id])
     unknown = [d for d in mapping if d not in rows]
@@ -120,16 +133,22 @@ def merge(into: dict, src: dict, mapping: dict[str, str]) -> dict:
 
 def table_text(res: dict) -> str:
     exp = res["experiment"]
-    text = (f"## {exp}: {EXPERIMENT_INFO[exp]['description']}\n\nSuccess protocol `{res['protocol']}`. Rows "
-            + ", ".join(f"'{r['label']}'" for r in res["rows"] if "merged_from" in r)
-            + f" copied from the {res['merged']['source_experiment']} experiment's rows "
-            + ", ".join(f"'{r['merged_from']['label']}'" for r in res["rows"] if "merged_from" in r)
-            + " (same training configuration and seeds).\n\n" + markdown_table(res)
-            + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
-            + f"Detections: {res['detections']}.\n")
+    text = (
+        f"## {exp}: {EXPERIMENT_INFO[exp]['description']}\n\nSuccess protocol `{res['protocol']}`. Rows "
+        + ", ".join(f"'{r['label']}'" for r in res["rows"] if "merged_from" in r)
+        + f" copied from the {res['merged']['source_experiment']} experiment's rows "
+        + ", ".join(f"'{r['merged_from']['label']}'" for r in res["rows"] if "merged_from" in r)
+        + " (same training configuration and seeds).\n\n"
+        + markdown_table(res)
+        + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
+        + f"Detections: {res['detections']}.\n"
+    )
     if res["welch"]:
-        text += welch_text(res, f"Differences against '{res['welch']['baseline']}' in percentage points, Welch's "
-                                "t-test p-value over the per-seed values")
+        text += welch_text(
+            res,
+            f"Differences against '{res['welch']['baseline']}' in percentage points, Welch's "
+            "t-test p-value over the per-seed values",
+        )
     text += claims_text(exp, res, "Against the paper's claims (`tsnav claims`)")
     for p, r in res["other_protocols"].items():
         text += f"\n### The same agents under the `{p}` protocol\n\n" + markdown_table(r)
@@ -140,11 +159,19 @@ def table_text(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze merge-rows", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze merge-rows", description=__doc__.split("\n\n")[0]
+    )
     ap.add_argument("--into", required=True, type=Path, help="experiment folder or results.json with the other rows")
     ap.add_argument("--from", dest="src", required=True, type=Path, help="results.json holding the rows to copy")
-    ap.add_argument("--map", action="append", default=[], required=True, metavar="TARGET=SOURCE",
-                    help="a row of the target's experiment and the source row it is (repeatable)")
+    ap.add_argument(
+        "--map",
+        action="append",
+        default=[],
+        required=True,
+        metavar="TARGET=SOURCE",
+        help="a row of the target's experiment and the source row it is (repeatable)",
+    )
     ap.add_argument("--out", required=True, type=Path, help="folder to write results.json and table.md into")
     args = ap.parse_args(argv)
     try:

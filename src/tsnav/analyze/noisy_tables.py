@@ -52,7 +52,9 @@ def noisy_table(scene_dir: str, sigma: float, seed: int, shipped: str, name: str
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze noisy-tables", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze noisy-tables", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--data", required=True, help="world folder (120 rooms)")
     p.add_argument("--from", dest="source", default="learned4", help="clean table linked into the other splits")
     p.add_argument("--shipped", default="learned4", help="shipped detector that writes the noisy tables")
@@ -83,8 +85,13 @@ def main(argv=None) -> int:
             return 2
         if not dst.exists():
             write_detections(s, a.name, load_detections(s, a.source))
-    args = ([str(s) for s in noisy], [a.sigma] * len(noisy), [a.seed] * len(noisy), [a.shipped] * len(noisy),
-            [a.name] * len(noisy))
+    args = (
+        [str(s) for s in noisy],
+        [a.sigma] * len(noisy),
+        [a.seed] * len(noisy),
+        [a.shipped] * len(noisy),
+        [a.name] * len(noisy),
+    )
     if a.workers > 1:
         with ProcessPoolExecutor(a.workers) as pool:
             for msg in pool.map(noisy_table, *args):

@@ -23,22 +23,31 @@ def read_selection(path: str) -> tuple[list[int], list[float], list[float], int,
     doc = read_json(Path(path), CommandError, missing="no such file")
     try:
         scores = doc["scores"]
-        rows = sorted((int(v["update"]), 100 * v["metrics"]["ALL"]["SR"], 100 * v["metrics"]["ALL"]["SPL"],
-                       int(v["metrics"]["ALL"]["episodes"])) for v in scores.values())
+        rows = sorted(
+            (
+                int(v["update"]),
+                100 * v["metrics"]["ALL"]["SR"],
+                100 * v["metrics"]["ALL"]["SPL"],
+                int(v["metrics"]["ALL"]["episodes"]),
+            )
+            for v in scores.values()
+        )
         best = doc["best"]
     except (KeyError, TypeError, ValueError) as e:
         raise CommandError(f"{path}: not a selection.json of tsnav select ({e})") from None
     if not rows:
         raise CommandError(f"{path}: no scored milestone")
     if best not in scores:
-        raise CommandError(f"{path}: its chosen milestone {best!r} is not among its scored ones (a selection "
-                           "still running?)")
-    return ([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], int(scores[best]["update"]),
-            rows[0][3])
+        raise CommandError(
+            f"{path}: its chosen milestone {best!r} is not among its scored ones (a selection still running?)"
+        )
+    return ([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], int(scores[best]["update"]), rows[0][3])
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze plot-selection", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze plot-selection", description=__doc__.split("\n\n")[0]
+    )
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--title", default="milestones scored on two validation sets")
     ap.add_argument("--run", action="append", required=True, metavar="LABEL=SMALL,LARGE")

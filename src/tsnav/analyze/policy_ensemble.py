@@ -22,8 +22,14 @@ import numpy as np
 import torch
 
 from ..errors import CommandError
-from ..eval.runner import (EvalConfig, config_dict, load_bank_for_episodes, record_trajectories, resolve_protocol,
-                               write_evaluation)
+from ..eval.runner import (
+    EvalConfig,
+    config_dict,
+    load_bank_for_episodes,
+    record_trajectories,
+    resolve_protocol,
+    write_evaluation,
+)
 from ..metrics import summarize
 from ..rl.checkpoint import load_policy
 from ..rl.policy import AgentPolicy
@@ -57,36 +63,67 @@ class EnsemblePolicy:
         return action.cpu().numpy().astype(np.int64)
 
 
-def evaluate_ensemble(out: Path, data: Path, episodes_file: Path, runs: list[Path], checkpoint: str = "best",
-                      average: str = "prob", protocol: str | None = None, max_steps: int = 100) -> dict:
+def evaluate_ensemble(
+    out: Path,
+    data: Path,
+    episodes_file: Path,
+    runs: list[Path],
+    checkpoint: str = "best",
+    average: str = "prob",
+    protocol: str | None = None,
+    max_steps: int = 100,
+) -> dict:
     """Evaluate the ensemble of ``runs`` on an episode list into ``out`` (the files of ``tsnav eval``)."""
     episodes, emeta = read_episodes(episodes_file)
     if not episodes:
         raise CommandError(f"{episodes_file}: the episode list is empty")
     protocol, trained = resolve_protocol(emeta, episodes_file, runs[0], protocol)
     config = EvalConfig(max_steps=max_steps)
-    bank = load_bank_for_episodes(data, episodes, success_distance=float(emeta.get("success_distance", 1.0)),
-                                  c_target=config.c_target, protocol=protocol)
+    bank = load_bank_for_episodes(
+        data,
+        episodes,
+        success_distance=float(emeta.get("success_distance", 1.0)),
+        c_target=config.c_target,
+        protocol=protocol,
+    )
     policy = EnsemblePolicy([load_policy(r, bank, checkpoint=checkpoint) for r in runs], average)
     t0 = time.perf_counter()
     records, trajectories = record_trajectories(bank, episodes, policy, config)
     summary = summarize(records, config.min_optimal_length, protocol=protocol)
-    meta = {"policy": "ensemble", "runs": [str(Path(r).resolve()) for r in runs], "average": average,
-            "checkpoint": checkpoint, "episodes_file": str(Path(episodes_file).resolve()),
-            "data": str(Path(data).resolve()), "protocol": protocol, "trained_protocol": trained,
-            "success_distance": float(emeta.get("success_distance", 1.0)), "detections": None,
-            "config": config_dict(config), "label": f"ensemble of {len(runs)}"}
+    meta = {
+        "policy": "ensemble",
+        "runs": [str(Path(r).resolve()) for r in runs],
+        "average": average,
+        "checkpoint": checkpoint,
+        "episodes_file": str(Path(episodes_file).resolve()),
+        "data": str(Path(data).resolve()),
+        "protocol": protocol,
+        "trained_protocol": trained,
+        "success_distance": float(emeta.get("success_distance", 1.0)),
+        "detections": None,
+        "config": config_dict(config),
+        "label": f"ensemble of {len(runs)}",
+    }
     write_evaluation(out, meta, summary, records, trajectories, bank, time.perf_counter() - t0)
     return summary
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze policy-ensemble", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawTextHelpFormatter)
+    p = argparse.ArgumentParser(
+        allow_abbrev=False,
+        prog="tsnav analyze policy-ensemble",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawTextHelpFormatter,
+    )
     p.add_argument("--data", type=Path, required=True, help="dataset root (scene folders)")
     p.add_argument("--episodes", type=Path, required=True, help="episode list JSON")
-    p.add_argument("--run", type=Path, action="append", required=True, help="a member's `tsnav train` run folder "
-                   "(repeat for each member)")
+    p.add_argument(
+        "--run",
+        type=Path,
+        action="append",
+        required=True,
+        help="a member's `tsnav train` run folder (repeat for each member)",
+    )
     p.add_argument("--checkpoint", default="best", help="which checkpoint of every run (auto, best, latest)")
     p.add_argument("--average", choices=AVERAGES, default="prob", help="sum probabilities or log-probabilities")
     p.add_argument("--protocol", default=None, help="success protocol (default: the episode list's)")
@@ -102,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     m = s["ALL"]
-    print(f"ensemble of {len(a.run)} ({a.average}), {m['episodes']} episodes: SR {100 * m['SR']:.2f}  "
-          f"SPL {100 * m['SPL']:.2f}  -> {a.out}")
+    print(
+        f"ensemble of {len(a.run)} ({a.average}), {m['episodes']} episodes: SR {100 * m['SR']:.2f}  "
+        f"SPL {100 * m['SPL']:.2f}  -> {a.out}"
+    )
     return 0

@@ -46,7 +46,7 @@ def auc(pos: np.ndarray, neg: np.ndarray) -> float:
     _, inv, counts = np.unique(allv, return_inverse=True, return_counts=True)
     first = np.cumsum(counts) - counts  # 0-based rank of each distinct value's first occurrence
     ranks = (first + (counts + 1) / 2.0)[inv.reshape(-1)]  # ties share their average 1-based rank
-    return float((ranks[:len(pos)].sum() - len(pos) * (len(pos) + 1) / 2.0) / (len(pos) * len(neg)))
+    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2.0) / (len(pos) * len(neg)))
 
 
 def auc_reference(pos, neg) -> float:
@@ -66,9 +66,19 @@ def _row(s, det, ok, seen, i: int, c: int) -> dict:
     objs = np.flatnonzero(s.object_category == c)
     vis = seen[i, objs]
     dist = float(s.distance[i, objs][vis].min()) if vis.any() else None
-    return {"room": s.name, "category": TARGET_CATEGORIES[c], "success": bool(ok[i, c]), "dist": dist,
-            "score": float(det.scores[i, c]), "area": max(x1 - x0, 0) * max(y1 - y0, 0), "height": y1 - y0,
-            "width": x1 - x0, "bottom": y1, "top": y0, "horizon": float(s.horizon[i])}
+    return {
+        "room": s.name,
+        "category": TARGET_CATEGORIES[c],
+        "success": bool(ok[i, c]),
+        "dist": dist,
+        "score": float(det.scores[i, c]),
+        "area": max(x1 - x0, 0) * max(y1 - y0, 0),
+        "height": y1 - y0,
+        "width": x1 - x0,
+        "bottom": y1,
+        "top": y0,
+        "horizon": float(s.horizon[i]),
+    }
 
 
 def _scene(scene_dir: Path, detections: str, protocol: str):
@@ -111,7 +121,7 @@ def design(rows: list[dict]) -> np.ndarray:
     cats = {c: k for k, c in enumerate(TARGET_CATEGORIES)}
     x = np.zeros((len(rows), len(FEATURES) + len(cats)))
     for r, row in enumerate(rows):
-        x[r, :len(FEATURES)] = [row[f] if f != "area" else np.sqrt(row[f]) for f in FEATURES]
+        x[r, : len(FEATURES)] = [row[f] if f != "area" else np.sqrt(row[f]) for f in FEATURES]
         x[r, len(FEATURES) + cats[row["category"]]] = 1.0
     return x
 
@@ -158,13 +168,23 @@ def summary(rows: list[dict], dones: list[dict] | None = None, threshold: float 
     for lo, hi in BANDS:
         sel = [r for r in rows if r["dist"] is not None and (lo == 0 or lo < r["dist"]) and r["dist"] <= hi]
         bands[f"{lo:g}-{hi:g} m" if hi < 99 else f"> {lo:g} m"] = {
-            "states": len(sel), "success": int(sum(r["success"] for r in sel))}
-    bands["not in view"] = {"states": sum(r["dist"] is None for r in rows),
-                            "success": int(sum(r["success"] for r in rows if r["dist"] is None))}
-    aucs = {f: auc(np.array([r[f] for r in rows if r["success"]]), np.array([r[f] for r in rows if not r["success"]]))
-            for f in FEATURES}
-    out = {"confident_states": len(rows), "success_share": float(y.mean()) if len(y) else float("nan"),
-           "bands": bands, "auc": aucs}
+            "states": len(sel),
+            "success": int(sum(r["success"] for r in sel)),
+        }
+    bands["not in view"] = {
+        "states": sum(r["dist"] is None for r in rows),
+        "success": int(sum(r["success"] for r in rows if r["dist"] is None)),
+    }
+    aucs = {
+        f: auc(np.array([r[f] for r in rows if r["success"]]), np.array([r[f] for r in rows if not r["success"]]))
+        for f in FEATURES
+    }
+    out = {
+        "confident_states": len(rows),
+        "success_share": float(y.mean()) if len(y) else float("nan"),
+        "bands": bands,
+        "auc": aucs,
+    }
     if len(rows) and 0 < y.sum() < len(y) and len({r["room"] for r in rows}) > 1:
         p, pd = leave_one_room_out(rows, dones)
         out["auc"]["logistic, leave one room out"] = auc(p[y], p[~y])
@@ -173,46 +193,70 @@ def summary(rows: list[dict], dones: list[dict] | None = None, threshold: float 
         for keep in (0.9, 0.95):  # the threshold that keeps this share of success states
             t = np.quantile(p[y], 1.0 - keep)
             out[f"keeping {keep:.0%} of success states"] = {
-                "threshold": float(t), "near misses 1.5-2.5 m rejected": float((p[near] < t).mean()) if near.any()
-                else float("nan"), "non-success rejected": float((p[~y] < t).mean())}
+                "threshold": float(t),
+                "near misses 1.5-2.5 m rejected": float((p[near] < t).mean()) if near.any() else float("nan"),
+                "non-success rejected": float((p[~y] < t).mean()),
+            }
             if dones:
-                out[f"keeping {keep:.0%} of success states"].update({
-                    "agent's successful Dones rejected": int((pd[yd] < t).sum()),
-                    "agent's failed Dones rejected": int((pd[~yd] < t).sum())})
+                out[f"keeping {keep:.0%} of success states"].update(
+                    {
+                        "agent's successful Dones rejected": int((pd[yd] < t).sum()),
+                        "agent's failed Dones rejected": int((pd[~yd] < t).sum()),
+                    }
+                )
         if dones:
-            out["agent's Dones"] = {"successful": int(yd.sum()), "failed": int((~yd).sum()),
-                                    "failed, below the switch threshold": int(sum(r["score"] <= threshold
-                                                                                  for r in dones if not r["success"]))}
+            out["agent's Dones"] = {
+                "successful": int(yd.sum()),
+                "failed": int((~yd).sum()),
+                "failed, below the switch threshold": int(
+                    sum(r["score"] <= threshold for r in dones if not r["success"])
+                ),
+            }
     return out
 
 
 def show(name: str, s: dict) -> None:
-    print(f"{name}: {s['confident_states']} confident (state, category) pairs, {100 * s['success_share']:.1f} % are "
-          f"success states")
-    print("  nearest instance in view: " + ", ".join(f"{k} {v['states']} ({v['success']} success)"
-                                                    for k, v in s["bands"].items()))
+    print(
+        f"{name}: {s['confident_states']} confident (state, category) pairs, {100 * s['success_share']:.1f} % are "
+        f"success states"
+    )
+    print(
+        "  nearest instance in view: "
+        + ", ".join(f"{k} {v['states']} ({v['success']} success)" for k, v in s["bands"].items())
+    )
     print("  AUC success vs not: " + ", ".join(f"{k} {v:.3f}" for k, v in s["auc"].items()))
     for k, v in s.items():
         if k.startswith("keeping"):
             ok_r, bad_r = v.get("agent's successful Dones rejected"), v.get("agent's failed Dones rejected")
             extra = f"; the agent's Dones rejected: {ok_r} successful, {bad_r} failed" if bad_r is not None else ""
-            print(f"  {k}: near misses rejected {100 * v['near misses 1.5-2.5 m rejected']:.1f} %, all non-success "
-                  f"rejected {100 * v['non-success rejected']:.1f} %{extra}")
+            print(
+                f"  {k}: near misses rejected {100 * v['near misses 1.5-2.5 m rejected']:.1f} %, all non-success "
+                f"rejected {100 * v['non-success rejected']:.1f} %{extra}"
+            )
     if "agent's Dones" in s:
         d = s["agent's Dones"]
-        print(f"  the agent's Dones: {d['successful']} successful, {d['failed']} failed "
-              f"({d['failed, below the switch threshold']} of them with the target scored at or below the threshold)")
+        print(
+            f"  the agent's Dones: {d['successful']} successful, {d['failed']} failed "
+            f"({d['failed, below the switch threshold']} of them with the target scored at or below the threshold)"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze stop-signal", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze stop-signal", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--data", required=True, type=Path, help="a built world (scene folders with states.hdf5)")
     ap.add_argument("--detections", required=True, help="the detection table the agent reads (e.g. learned4)")
     ap.add_argument("--compare", default=None, help="a second table, e.g. oracle")
     ap.add_argument("--protocol", default=LINEAGE, choices=PROTOCOLS)
     ap.add_argument("--threshold", type=float, default=C_TARGET)
-    ap.add_argument("--eval", type=Path, default=None, dest="eval_dir",
-                    help="a `tsnav eval` output (trajectories.jsonl) whose Done states are scored too")
+    ap.add_argument(
+        "--eval",
+        type=Path,
+        default=None,
+        dest="eval_dir",
+        help="a `tsnav eval` output (trajectories.jsonl) whose Done states are scored too",
+    )
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     if not a.data.is_dir():
@@ -221,8 +265,13 @@ def main(argv: list[str] | None = None) -> int:
     if a.eval_dir is not None and not (a.eval_dir / "trajectories.jsonl").is_file():
         print(f"stop_signal: {a.eval_dir} has no trajectories.jsonl (a `tsnav eval` output folder)", file=sys.stderr)
         return 2
-    result = {"data": str(a.data), "eval": str(a.eval_dir) if a.eval_dir else None, "protocol": a.protocol,
-              "threshold": a.threshold, "tables": {}}
+    result = {
+        "data": str(a.data),
+        "eval": str(a.eval_dir) if a.eval_dir else None,
+        "protocol": a.protocol,
+        "threshold": a.threshold,
+        "tables": {},
+    }
     for name in [a.detections] + ([a.compare] if a.compare else []):
         dones = done_rows(a.data, a.eval_dir, name, a.protocol) if a.eval_dir else None
         s = summary(confident_rows(a.data, name, a.protocol, a.threshold), dones, a.threshold)

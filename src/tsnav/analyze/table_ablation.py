@@ -60,8 +60,9 @@ from ..detect.quality import scene_targets
 KINDS = ("nofp", "recall", "both", "score", "raise", "box")
 
 
-def mend(learned: Detections, oracle: Detections, present: np.ndarray, kind: str,
-         oracle_features: bool = False) -> Detections:
+def mend(
+    learned: Detections, oracle: Detections, present: np.ndarray, kind: str, oracle_features: bool = False
+) -> Detections:
     """``learned`` with one kind of error mended (module docstring); ``present`` ``(S, 22)`` bool in-view flags."""
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -91,8 +92,14 @@ def mend(learned: Detections, oracle: Detections, present: np.ndarray, kind: str
     if kind == "box":
         on = present & (learned.labels >= 0)
         boxes[on] = oracle.boxes[on]
-    return replace(learned, scores=scores, labels=labels, boxes=boxes, features=feats,
-                   config=dict(learned.config, table_ablation={"kind": kind, "oracle_features": oracle_features}))
+    return replace(
+        learned,
+        scores=scores,
+        labels=labels,
+        boxes=boxes,
+        features=feats,
+        config=dict(learned.config, table_ablation={"kind": kind, "oracle_features": oracle_features}),
+    )
 
 
 def _logit(scores: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -151,9 +158,14 @@ def state_recall(scenes, tables, oracles, truths=None) -> dict:
         t["far_below"] += int((far & (d.scores < o.scores)).sum())
         t["absent"] += int(absent.sum())
         t["absent_fp"] += int((absent & (d.scores > 0.7)).sum())
-    return {"near_cells": t["near"], "near_recall": t["near_hit"] / max(t["near"], 1),
-            "near_mean_score": t["near_sum"] / max(t["near"], 1), "far_cells": t["far"],
-            "far_below_oracle": t["far_below"] / max(t["far"], 1), "absent_above": t["absent_fp"] / max(t["absent"], 1)}
+    return {
+        "near_cells": t["near"],
+        "near_recall": t["near_hit"] / max(t["near"], 1),
+        "near_mean_score": t["near_sum"] / max(t["near"], 1),
+        "far_cells": t["far"],
+        "far_below_oracle": t["far_below"] / max(t["far"], 1),
+        "absent_above": t["absent_fp"] / max(t["absent"], 1),
+    }
 
 
 #: Bands of the target's visible pixels (the frame's, at its own size) for :func:`near_recall_by`.
@@ -176,8 +188,7 @@ def near_recall_by(scenes, tables, oracles, truths=None) -> dict:
     return out
 
 
-def near_misses(scenes, tables, oracles, category: int, per_room: int = 3, seed: int = 0,
-                truths=None) -> list[tuple]:
+def near_misses(scenes, tables, oracles, category: int, per_room: int = 3, seed: int = 0, truths=None) -> list[tuple]:
     """Up to ``per_room`` random (scene, state) near cells of ``category`` per room that the table scores < 0.7:
     ``(scene, state, score, pixels, distance, box)``."""
     rng = np.random.default_rng(seed)
@@ -187,8 +198,16 @@ def near_misses(scenes, tables, oracles, category: int, per_room: int = 3, seed:
             continue
         miss = np.flatnonzero(g.present[:, category] & (o.scores[:, category] >= 0.7) & (d.scores[:, category] < 0.7))
         for i in sorted(rng.choice(miss, min(per_room, len(miss)), replace=False)) if len(miss) else []:
-            out.append((s, int(i), float(d.scores[i, category]), int(g.pixels[i, category]),
-                        float(g.distance[i, category]), g.boxes[i, category]))
+            out.append(
+                (
+                    s,
+                    int(i),
+                    float(d.scores[i, category]),
+                    int(g.pixels[i, category]),
+                    float(g.distance[i, category]),
+                    g.boxes[i, category],
+                )
+            )
     return out
 
 
@@ -201,7 +220,7 @@ def draw_misses(misses, path, columns: int = 6, limit: int = 24, scale: int = 2)
     misses = misses[:limit]
     if not misses:
         return 0
-    frames = [read_images(m[0].path, m[0].keys[m[1]:m[1] + 1])[0] for m in misses]
+    frames = [read_images(m[0].path, m[0].keys[m[1] : m[1] + 1])[0] for m in misses]
     side = frames[0].shape[0] * scale
     rows = (len(frames) + columns - 1) // columns
     sheet = Image.new("RGB", (columns * (side + 4), rows * (side + 16)), "white")
@@ -211,8 +230,9 @@ def draw_misses(misses, path, columns: int = 6, limit: int = 24, scale: int = 2)
         ImageDraw.Draw(im).rectangle([b[0], b[1], b[2] + scale - 1, b[3] + scale - 1], outline=(255, 0, 0))
         x, y = (k % columns) * (side + 4), (k // columns) * (side + 16)
         sheet.paste(im, (x, y))
-        ImageDraw.Draw(sheet).text((x, y + side + 2), f"{m[0].name} s={m[2]:.2f} px={m[3]} d={m[4]:.1f}m",
-                                   fill=(0, 0, 0))
+        ImageDraw.Draw(sheet).text(
+            (x, y + side + 2), f"{m[0].name} s={m[2]:.2f} px={m[3]} d={m[4]:.1f}m", fill=(0, 0, 0)
+        )
     tmp = f"{path}.tmp.png"
     sheet.save(tmp)
     os.replace(tmp, path)
@@ -221,54 +241,97 @@ def draw_misses(misses, path, columns: int = 6, limit: int = 24, scale: int = 2)
 
 def _print_by(name: str, by: dict) -> None:
     from ..constants import TARGET_CATEGORIES
+
     order = np.argsort(-(by["class_near"] - by["class_hit"]), kind="stable")
-    cls = [f"{TARGET_CATEGORIES[c]} {100 * by['class_hit'][c] / by['class_near'][c]:.1f} % of {by['class_near'][c]}"
-           for c in order if by["class_near"][c]]
+    cls = [
+        f"{TARGET_CATEGORIES[c]} {100 * by['class_hit'][c] / by['class_near'][c]:.1f} % of {by['class_near'][c]}"
+        for c in order
+        if by["class_near"][c]
+    ]
     print(f"  {name} per class (most misses first): " + "; ".join(cls))
     edges = list(PIXEL_BANDS) + [None]
-    bands = [f"{edges[i]}-{edges[i + 1] if edges[i + 1] else ''} px "
-             f"{100 * by['band_hit'][i] / by['band_near'][i]:.1f} % "
-             f"of {by['band_near'][i]}" for i in range(len(PIXEL_BANDS)) if by["band_near"][i]]
+    bands = [
+        f"{edges[i]}-{edges[i + 1] if edges[i + 1] else ''} px "
+        f"{100 * by['band_hit'][i] / by['band_near'][i]:.1f} % "
+        f"of {by['band_near'][i]}"
+        for i in range(len(PIXEL_BANDS))
+        if by["band_near"][i]
+    ]
     print(f"  {name} per band of visible pixels: " + "; ".join(bands))
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze table-ablation", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze table-ablation", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--data", required=True)
     p.add_argument("--learned", default="learned4")
     p.add_argument("--oracle", default="oracle")
     p.add_argument("--name", default="ab")
     p.add_argument("--split", default=None, help="only these rooms (default: every room of --data)")
     p.add_argument("--features", choices=("learned", "oracle"), default="learned")
-    p.add_argument("--band", default=None, metavar="LO,HI",
-                   help="mend only the in-view cells whose oracle score lies in [LO, HI) (e.g. 0.7,1.01: the ones "
-                        "the oracle would switch on)")
+    p.add_argument(
+        "--band",
+        default=None,
+        metavar="LO,HI",
+        help="mend only the in-view cells whose oracle score lies in [LO, HI) (e.g. 0.7,1.01: the ones "
+        "the oracle would switch on)",
+    )
     p.add_argument("--kinds", default=",".join(KINDS), help="tables to write (default all)")
-    p.add_argument("--recall", default=None, metavar="TABLE[,TABLE...]",
-                   help="only report these tables' per-state recall against --oracle (writes nothing)")
-    p.add_argument("--curve", default=None, metavar="B[,B...]",
-                   help="with --recall: the figures of each table with its logits raised by each B (0: as it is; "
-                        "write --curve=-1,0,1 when the first is negative)")
-    p.add_argument("--misses", default=None, metavar="PNG",
-                   help="with --recall: draw near cells of --misses-class the first table scores < 0.7 in this PNG")
+    p.add_argument(
+        "--recall",
+        default=None,
+        metavar="TABLE[,TABLE...]",
+        help="only report these tables' per-state recall against --oracle (writes nothing)",
+    )
+    p.add_argument(
+        "--curve",
+        default=None,
+        metavar="B[,B...]",
+        help="with --recall: the figures of each table with its logits raised by each B (0: as it is; "
+        "write --curve=-1,0,1 when the first is negative)",
+    )
+    p.add_argument(
+        "--misses",
+        default=None,
+        metavar="PNG",
+        help="with --recall: draw near cells of --misses-class the first table scores < 0.7 in this PNG",
+    )
     p.add_argument("--misses-class", default="Laptop", help="target class of --misses (default Laptop)")
-    p.add_argument("--by-class", action="store_true",
-                   help="with --recall: near cells and recall per class and per band of visible pixels")
-    p.add_argument("--shift", default=None, metavar="B[,B...]",
-                   help="only write --learned with its logits raised by B, as NAME-shiftB (no oracle needed)")
-    p.add_argument("--flip-average", default=None, metavar="MIRROR_TABLE",
-                   help="only write --learned's presence logits averaged with MIRROR_TABLE's (the same detector on "
-                        "the flipped frames: `tsnav detect --mirror` writes it as <name>-mirror), as NAME")
-    p.add_argument("--features-from", default=None, metavar="TABLE",
-                   help="only write --learned's scores with TABLE's per-class features, as NAME (no oracle needed)")
+    p.add_argument(
+        "--by-class",
+        action="store_true",
+        help="with --recall: near cells and recall per class and per band of visible pixels",
+    )
+    p.add_argument(
+        "--shift",
+        default=None,
+        metavar="B[,B...]",
+        help="only write --learned with its logits raised by B, as NAME-shiftB (no oracle needed)",
+    )
+    p.add_argument(
+        "--flip-average",
+        default=None,
+        metavar="MIRROR_TABLE",
+        help="only write --learned's presence logits averaged with MIRROR_TABLE's (the same detector on "
+        "the flipped frames: `tsnav detect --mirror` writes it as <name>-mirror), as NAME",
+    )
+    p.add_argument(
+        "--features-from",
+        default=None,
+        metavar="TABLE",
+        help="only write --learned's scores with TABLE's per-class features, as NAME (no oracle needed)",
+    )
     a = p.parse_args(argv)
     dirs = list_scenes(a.data, a.split) if a.split else list_scenes(a.data)
     if not dirs:
         print(f"table_ablation: --data {a.data}: no rooms", file=sys.stderr)
         return 2
     if (a.curve or a.by_class or a.misses) and not a.recall:
-        print("table_ablation: --curve, --by-class and --misses report on --recall TABLE[,TABLE...]; give it",
-              file=sys.stderr)
+        print(
+            "table_ablation: --curve, --by-class and --misses report on --recall TABLE[,TABLE...]; give it",
+            file=sys.stderr,
+        )
         return 2
     if a.recall:
         try:
@@ -277,6 +340,7 @@ def main(argv=None) -> int:
             print(f"table_ablation: --curve {a.curve!r}: expected numbers separated by commas", file=sys.stderr)
             return 2
         from ..constants import CATEGORY_INDEX
+
         if a.misses and a.misses_class not in CATEGORY_INDEX:
             print(f"table_ablation: --misses-class {a.misses_class!r}: not a target class", file=sys.stderr)
             return 2
@@ -291,10 +355,12 @@ def main(argv=None) -> int:
                 for b in curve:
                     r = state_recall(scenes, [shifted(t, b) for t in tables] if b else tables, oracles, truths)
                     label = name if not b else f"{name} {b:+g}"
-                    print(f"{label}: near cells {r['near_cells']} scoring >= 0.7 {100 * r['near_recall']:.1f} % (mean "
-                          f"{r['near_mean_score']:.3f}); far cells {r['far_cells']} under the oracle's score "
-                          f"{100 * r['far_below_oracle']:.1f} %; absent target cells above 0.7 "
-                          f"{100 * r['absent_above']:.2f} %")
+                    print(
+                        f"{label}: near cells {r['near_cells']} scoring >= 0.7 {100 * r['near_recall']:.1f} % (mean "
+                        f"{r['near_mean_score']:.3f}); far cells {r['far_cells']} under the oracle's score "
+                        f"{100 * r['far_below_oracle']:.1f} %; absent target cells above 0.7 "
+                        f"{100 * r['absent_above']:.2f} %"
+                    )
                 if a.by_class:
                     _print_by(name, near_recall_by(scenes, tables, oracles, truths))
                 if a.misses and name == names[0]:

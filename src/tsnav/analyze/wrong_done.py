@@ -39,13 +39,21 @@ def failed_dones(data: Path, eval_dir: Path, detections: str) -> list[dict]:
         i, c = s.index(t.keys[-1]), TARGET_CATEGORIES.index(t.target)
         objs = np.flatnonzero(s.object_category == c)
         vis = seen[i, objs]
-        rows.append({"target": t.target, "score": float(det.scores[i, c]), "in_view": bool(vis.any()),
-                     "dist": float(s.distance[i, objs][vis].min()) if vis.any() else None})
+        rows.append(
+            {
+                "target": t.target,
+                "score": float(det.scores[i, c]),
+                "in_view": bool(vis.any()),
+                "dist": float(s.distance[i, objs][vis].min()) if vis.any() else None,
+            }
+        )
     return rows
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(allow_abbrev=False, prog="tsnav analyze wrong-done", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze wrong-done", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--data", required=True, type=Path)
     ap.add_argument("--eval", required=True, type=Path, dest="eval_dir")
     ap.add_argument("--detections", required=True)
@@ -58,10 +66,12 @@ def main(argv: list[str] | None = None) -> int:
     inv = [r for r in rows if r["in_view"]]
     far = np.array([r["dist"] for r in inv])
     gone = [r["score"] for r in rows if not r["in_view"]]
-    print(f"{a.eval_dir.name}: {len(rows)} failed Dones after a switch; target in view: {len(inv)} (distance median "
-          f"{np.median(far) if len(far) else float('nan'):.2f} m; <= 1.5 m {int((far <= 1.5).sum())}, 1.5-2.5 m "
-          f"{int(((far > 1.5) & (far <= 2.5)).sum())}, > 2.5 m {int((far > 2.5).sum())}); not in view: {len(gone)} "
-          f"(score there: median {np.median(gone) if gone else float('nan'):.2f})")
+    print(
+        f"{a.eval_dir.name}: {len(rows)} failed Dones after a switch; target in view: {len(inv)} (distance median "
+        f"{np.median(far) if len(far) else float('nan'):.2f} m; <= 1.5 m {int((far <= 1.5).sum())}, 1.5-2.5 m "
+        f"{int(((far > 1.5) & (far <= 2.5)).sum())}, > 2.5 m {int((far > 2.5).sum())}); not in view: {len(gone)} "
+        f"(score there: median {np.median(gone) if gone else float('nan'):.2f})"
+    )
     print(" by target:", Counter(r["target"] for r in rows).most_common(8))
     if a.json:
         atomic_write_json(a.json, {"n": len(rows), "in_view": len(inv), "rows": rows})

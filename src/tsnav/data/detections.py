@@ -105,8 +105,11 @@ class Detections:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first array whose shape or values break the table contract."""
         S, C = len(self.keys), get_class_set(self.class_set).size
-        for name, arr, shape in (("scores", self.scores, (S, C)), ("labels", self.labels, (S, C)),
-                                 ("boxes", self.boxes, (S, C, 4))):
+        for name, arr, shape in (
+            ("scores", self.scores, (S, C)),
+            ("labels", self.labels, (S, C)),
+            ("boxes", self.boxes, (S, C, 4)),
+        ):
             if arr.shape != shape:
                 raise ValueError(f"detections: {name} must have shape {shape}, got {arr.shape}")
         if self.features.ndim != 3 or self.features.shape[:2] != (S, C):
@@ -120,8 +123,9 @@ class Detections:
     def rows(self) -> np.ndarray:
         """``(S, C, 6)`` float32 rows ``(score, label, x0, y0, x1, y1)`` (the form of
         :meth:`tsnav.sim.batch.SceneBank.set_detections`)."""
-        return np.concatenate([self.scores[..., None], self.labels[..., None].astype(np.float32), self.boxes],
-                              axis=-1).astype(np.float32)
+        return np.concatenate(
+            [self.scores[..., None], self.labels[..., None].astype(np.float32), self.boxes], axis=-1
+        ).astype(np.float32)
 
     @classmethod
     def concatenate(cls, parts: Sequence["Detections"]) -> "Detections":
@@ -135,13 +139,18 @@ class Detections:
         if len(dims) > 1:
             raise ValueError(f"detections: feature sizes differ between scenes ({sorted(dims)})")
         p0 = parts[0]
-        return cls(keys=np.concatenate([p.keys for p in parts]),
-                   scores=np.concatenate([p.scores for p in parts]),
-                   labels=np.concatenate([p.labels for p in parts]),
-                   boxes=np.concatenate([p.boxes for p in parts]),
-                   features=np.concatenate([p.features for p in parts]),
-                   detector=p0.detector, config=p0.config, fingerprint=p0.fingerprint, image_size=p0.image_size,
-                   class_set=p0.class_set)
+        return cls(
+            keys=np.concatenate([p.keys for p in parts]),
+            scores=np.concatenate([p.scores for p in parts]),
+            labels=np.concatenate([p.labels for p in parts]),
+            boxes=np.concatenate([p.boxes for p in parts]),
+            features=np.concatenate([p.features for p in parts]),
+            detector=p0.detector,
+            config=p0.config,
+            fingerprint=p0.fingerprint,
+            image_size=p0.image_size,
+            class_set=p0.class_set,
+        )
 
 
 def _attr_str(x) -> str:
@@ -155,18 +164,18 @@ def write_detections(scene_dir: str | Path, name: str, det: Detections) -> Path:
         raise ValueError("detections: keys must be sorted and unique (the order of Scene.keys)")
     path = detections_path(scene_dir, name)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
-            f.create_dataset("keys", data=det.keys.astype("S"), track_times=False)
-            f.create_dataset("scores", data=det.scores, track_times=False)
-            f.create_dataset("labels", data=det.labels, track_times=False)
-            f.create_dataset("boxes", data=det.boxes, track_times=False)
-            f.create_dataset("features", data=det.features, track_times=False)
-            f.attrs["detector"] = det.detector
-            f.attrs["name"] = name
-            f.attrs["fingerprint"] = det.fingerprint
-            f.attrs["config"] = json.dumps(det.config, sort_keys=True)
-            f.attrs["image_size"] = int(det.image_size)
-            if det.class_set != DEFAULT_CLASS_SET:  # absent reads as ithor22: iTHOR tables keep their bytes
-                f.attrs["class_set"] = det.class_set
+        f.create_dataset("keys", data=det.keys.astype("S"), track_times=False)
+        f.create_dataset("scores", data=det.scores, track_times=False)
+        f.create_dataset("labels", data=det.labels, track_times=False)
+        f.create_dataset("boxes", data=det.boxes, track_times=False)
+        f.create_dataset("features", data=det.features, track_times=False)
+        f.attrs["detector"] = det.detector
+        f.attrs["name"] = name
+        f.attrs["fingerprint"] = det.fingerprint
+        f.attrs["config"] = json.dumps(det.config, sort_keys=True)
+        f.attrs["image_size"] = int(det.image_size)
+        if det.class_set != DEFAULT_CLASS_SET:  # absent reads as ithor22: iTHOR tables keep their bytes
+            f.attrs["class_set"] = det.class_set
     return path
 
 
@@ -191,12 +200,18 @@ def load_detections(scene_dir: str | Path, name: str) -> Detections:
     try:
         with h5py.File(path, "r") as f:
             cfg = _attr_str(f.attrs.get("config", "{}"))
-            return Detections(keys=f["keys"][()].astype(str), scores=f["scores"][()], labels=f["labels"][()],
-                              boxes=f["boxes"][()], features=f["features"][()],
-                              detector=_attr_str(f.attrs.get("detector", "")), config=json.loads(cfg),
-                              fingerprint=_attr_str(f.attrs.get("fingerprint", "")),
-                              image_size=int(f.attrs.get("image_size", 0)),
-                              class_set=_attr_str(f.attrs.get("class_set", DEFAULT_CLASS_SET)))
+            return Detections(
+                keys=f["keys"][()].astype(str),
+                scores=f["scores"][()],
+                labels=f["labels"][()],
+                boxes=f["boxes"][()],
+                features=f["features"][()],
+                detector=_attr_str(f.attrs.get("detector", "")),
+                config=json.loads(cfg),
+                fingerprint=_attr_str(f.attrs.get("fingerprint", "")),
+                image_size=int(f.attrs.get("image_size", 0)),
+                class_set=_attr_str(f.attrs.get("class_set", DEFAULT_CLASS_SET)),
+            )
     except (OSError, KeyError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: unreadable detection table ({e})") from None
     except ValueError as e:
@@ -211,12 +226,15 @@ def load_scene_detections(scenes: Sequence, name: str) -> Detections:
     for s in scenes:
         own = s.cache_name(name)  # a mirrored scene reads the table of its flipped frames
         if own != name and not detections_path(s.path, own).exists():
-            raise FileNotFoundError(f"{detections_path(s.path, own)}: no table of the mirrored room (run `tsnav "
-                                    f"detect --mirror --name {name}` with the detector of {name})")
+            raise FileNotFoundError(
+                f"{detections_path(s.path, own)}: no table of the mirrored room (run `tsnav "
+                f"detect --mirror --name {name}` with the detector of {name})"
+            )
         d = load_detections(s.path, own)
         check_same_class_set(d.class_set, s.class_set, str(detections_path(s.path, own)), f"scene {s.name}")
         if len(d.keys) != len(s.keys) or not (d.keys == s.keys).all():
-            raise ValueError(f"{detections_path(s.path, own)}: its states do not match scene {s.name} "
-                             f"(rerun `tsnav detect`)")
+            raise ValueError(
+                f"{detections_path(s.path, own)}: its states do not match scene {s.name} (rerun `tsnav detect`)"
+            )
         parts.append(d)
     return Detections.concatenate(parts)

@@ -180,13 +180,16 @@ def table_to_22x264(det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> np.ndarra
     ``for cate_id in range(23): table[cate_id - 1] = ...`` would file a label-0 row under the last class.
     """
     if getattr(det, "class_set", DEFAULT_CLASS_SET) != DEFAULT_CLASS_SET:
-        raise ValueError(f"the lineage's table holds iTHOR's 22 classes; this detection table is of class set "
-                         f"{det.class_set}")
+        raise ValueError(
+            f"the lineage's table holds iTHOR's 22 classes; this detection table is of class set {det.class_set}"
+        )
     feats = np.asarray(det.features)
     F = feats.shape[2]
     if F > FEATURE_DIM:
-        raise ValueError(f"the lineage's table holds {FEATURE_DIM}-d features; this detection table has {F}-d "
-                         f"(more than fit; only smaller features are zero-padded)")
+        raise ValueError(
+            f"the lineage's table holds {FEATURE_DIM}-d features; this detection table has {F}-d "
+            f"(more than fit; only smaller features are zero-padded)"
+        )
     labels = np.asarray(det.labels).astype(np.int64)
     kept = labels >= 0
     out = np.zeros((len(det.keys), NUM_CATEGORIES, TABLE_WIDTH), np.float32)
@@ -200,8 +203,15 @@ def table_to_22x264(det, box_size: int | None = LINEAGE_IMAGE_SIZE) -> np.ndarra
     return out
 
 
-def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SIZE, out_size: int | None = None,
-                      source: str = "", own_rows: bool = False, feature_dim: int = FEATURE_DIM):
+def table_from_22x264(
+    keys,
+    rows: np.ndarray,
+    image_size: int = LINEAGE_IMAGE_SIZE,
+    out_size: int | None = None,
+    source: str = "",
+    own_rows: bool = False,
+    feature_dim: int = FEATURE_DIM,
+):
     """The best detection per category from the lineage's ``(S, R, 264)`` rows, as a
     :class:`tsnav.data.detections.Detections` (the inverse of :func:`table_to_22x264`).
 
@@ -236,13 +246,17 @@ def table_from_22x264(keys, rows: np.ndarray, image_size: int = LINEAGE_IMAGE_SI
     if out_size is not None and int(out_size) != size:
         boxes = np.where(found[:, :, None], boxes * (float(out_size) / float(size)), -1.0)
         size = int(out_size)
-    return Detections(keys=np.asarray(keys, dtype=str),
-                      scores=np.where(keep, sel[:, :, SCORE_COL], 0).astype(np.float32),
-                      labels=np.where(found, cats[None, :], -1).astype(np.int16),
-                      boxes=boxes.astype(np.float32),
-                      features=np.where(keep[:, :, None], sel[:, :, :int(feature_dim)], 0).astype(np.float16),
-                      detector="lineage", config={"source": source, "box_frame": size},
-                      fingerprint=_rows_fingerprint(rows), image_size=size)
+    return Detections(
+        keys=np.asarray(keys, dtype=str),
+        scores=np.where(keep, sel[:, :, SCORE_COL], 0).astype(np.float32),
+        labels=np.where(found, cats[None, :], -1).astype(np.int16),
+        boxes=boxes.astype(np.float32),
+        features=np.where(keep[:, :, None], sel[:, :, : int(feature_dim)], 0).astype(np.float16),
+        detector="lineage",
+        config={"source": source, "box_frame": size},
+        fingerprint=_rows_fingerprint(rows),
+        image_size=size,
+    )
 
 
 def _rows_fingerprint(rows: np.ndarray) -> str:
@@ -291,8 +305,9 @@ def read_detections_22x264(path: str | Path, image_size: int = LINEAGE_IMAGE_SIZ
     empty[:, LABEL_COL] = NO_OBJECT_LABEL
     rows = np.stack([empty if a is None else a for a in stack]).astype(np.float32)
     try:
-        return table_from_22x264(names, rows, image_size=image_size, source=path.name, own_rows=own_rows,
-                                 feature_dim=fdim)
+        return table_from_22x264(
+            names, rows, image_size=image_size, source=path.name, own_rows=own_rows, feature_dim=fdim
+        )
     except ValueError as e:
         raise SceneFormatError(f"{path}: {e}") from None
 

@@ -61,8 +61,13 @@ def target_one_hot(target: str) -> np.ndarray:
 
 def split_record(scene: str, state: str, target: str, task_data: list[str]) -> dict:
     """One episode in the lineage's format (see the module docstring)."""
-    return {"scene": str(scene), "state": str(state), "goal_object_type": str(target),
-            "task_data": [str(t) for t in task_data], "glove_embedding": target_one_hot(target)}
+    return {
+        "scene": str(scene),
+        "state": str(state),
+        "goal_object_type": str(target),
+        "task_data": [str(t) for t in task_data],
+        "glove_embedding": target_one_hot(target),
+    }
 
 
 def write_split(path: str | Path, records: list[dict]) -> Path:
@@ -76,16 +81,28 @@ def write_split(path: str | Path, records: list[dict]) -> Path:
 # ------------------------------------------------------------------------------------------ reading
 #: Builtin callables a data pickle may name (containers and scalars; protocol 0-2 pickles build some of
 #: them by calling the type). Python 2's module name ``__builtin__`` is accepted for the same names.
-_BUILTINS = frozenset({"dict", "list", "tuple", "set", "frozenset", "str", "bytes", "bytearray", "int", "float",
-                       "complex", "bool"})
+_BUILTINS = frozenset(
+    {"dict", "list", "tuple", "set", "frozenset", "str", "bytes", "bytearray", "int", "float", "complex", "bool"}
+)
 #: numpy's array and scalar reconstruction (numpy 1 names it numpy.core, numpy 2 numpy._core).
-_NUMPY = {("numpy", "ndarray"), ("numpy", "dtype"), ("numpy.core.multiarray", "_reconstruct"),
-          ("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "scalar"),
-          ("numpy._core.multiarray", "scalar"), ("numpy.core.numeric", "_frombuffer"),
-          ("numpy._core.numeric", "_frombuffer")}
+_NUMPY = {
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "scalar"),
+    ("numpy.core.numeric", "_frombuffer"),
+    ("numpy._core.numeric", "_frombuffer"),
+}
 #: The functions themselves, taken from numpy's own pickling (so both numpy 1 and 2 names resolve).
-_NUMPY_FUNCTIONS = {"ndarray": np.ndarray, "dtype": np.dtype, "_reconstruct": np.zeros(1).__reduce__()[0],
-                    "scalar": np.float64(0).__reduce__()[0], "_frombuffer": np.zeros(1).__reduce_ex__(5)[0]}
+_NUMPY_FUNCTIONS = {
+    "ndarray": np.ndarray,
+    "dtype": np.dtype,
+    "_reconstruct": np.zeros(1).__reduce__()[0],
+    "scalar": np.float64(0).__reduce__()[0],
+    "_frombuffer": np.zeros(1).__reduce_ex__(5)[0],
+}
 
 
 class UnsafePickle(pickle.UnpicklingError):
@@ -106,8 +123,9 @@ class RestrictedUnpickler(pickle.Unpickler):
             return _latin1_encode
         if (module, name) in _NUMPY:
             return _NUMPY_FUNCTIONS[name]
-        raise UnsafePickle(f"the pickle calls {module}.{name}; only builtin containers, numbers, strings and "
-                           f"numpy arrays are admitted")
+        raise UnsafePickle(
+            f"the pickle calls {module}.{name}; only builtin containers, numbers, strings and numpy arrays are admitted"
+        )
 
     def persistent_load(self, pid):
         raise UnsafePickle("the pickle uses persistent ids; only plain data is admitted")
@@ -148,13 +166,19 @@ def read_split(path: str | Path) -> list[dict]:
     except UnsafePickle as e:
         raise SplitFormatError(f"{path}: refused: {e}") from None
     except Exception as e:  # noqa: BLE001 - any corrupt pickle: truncated, bad opcodes, bad numpy state
-        raise SplitFormatError(f"{path}: not a readable pickle ({type(e).__name__}: {' '.join(str(e).split())})") from None
+        raise SplitFormatError(
+            f"{path}: not a readable pickle ({type(e).__name__}: {' '.join(str(e).split())})"
+        ) from None
     if not isinstance(obj, list):
         raise SplitFormatError(f"{path}: expected a list of episode dicts, got {type(obj).__name__}")
     for i, r in enumerate(obj):
         if not isinstance(r, dict) or any(k not in r for k in RECORD_KEYS):
             raise SplitFormatError(f"{path}: episode {i} is not a dict with {', '.join(RECORD_KEYS)}")
-        if not isinstance(r["scene"], str) or not isinstance(r["state"], str) or not isinstance(r["goal_object_type"], str):
+        if (
+            not isinstance(r["scene"], str)
+            or not isinstance(r["state"], str)
+            or not isinstance(r["goal_object_type"], str)
+        ):
             raise SplitFormatError(f"{path}: episode {i}: scene, state and goal_object_type must be strings")
         if not isinstance(r["task_data"], (list, tuple)) or not all(isinstance(t, str) for t in r["task_data"]):
             raise SplitFormatError(f"{path}: episode {i}: task_data must be a list of object ids")
@@ -184,6 +208,21 @@ def write_split_info(folder: str | Path, info: dict) -> Path:
     return path
 
 
-__all__ = ["GLOVE_SHAPE", "INFO_FILE", "RestrictedUnpickler", "SPLIT_NAMES", "SPLIT_ROOMS", "SplitFormatError",
-           "UnsafePickle", "read_split", "safe_load", "scene_base_name", "split_file_name", "split_record",
-           "split_records", "target_one_hot", "write_split", "write_split_info"]
+__all__ = [
+    "GLOVE_SHAPE",
+    "INFO_FILE",
+    "RestrictedUnpickler",
+    "SPLIT_NAMES",
+    "SPLIT_ROOMS",
+    "SplitFormatError",
+    "UnsafePickle",
+    "read_split",
+    "safe_load",
+    "scene_base_name",
+    "split_file_name",
+    "split_record",
+    "split_records",
+    "target_one_hot",
+    "write_split",
+    "write_split_info",
+]

@@ -53,8 +53,10 @@ def scene_info(name: str) -> tuple[str, str]:
         a, b = int(m.group(2)), int(m.group(3))
         if 1 <= b <= 5 and ((m.group(1) == "Train" and 1 <= a <= 12) or (m.group(1) == "Val" and 1 <= a <= 3)):
             return "apartment", m.group(1).lower()
-    raise ValueError(f"unknown scene name {name!r} (expected FloorPlan1-30, 201-230, 301-330, 401-430, "
-                     f"FloorPlan_Train1-12_1-5 or FloorPlan_Val1-3_1-5)")
+    raise ValueError(
+        f"unknown scene name {name!r} (expected FloorPlan1-30, 201-230, 301-330, 401-430, "
+        f"FloorPlan_Train1-12_1-5 or FloorPlan_Val1-3_1-5)"
+    )
 
 
 def scene_base_name(name: str) -> str:

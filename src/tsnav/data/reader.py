@@ -21,8 +21,22 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..constants import (DONE, GRID_SIZE, ITHOR22, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, ROTATE_LEFT,
-                         ROTATE_RIGHT, ROTATE_STEP, SUCCESS_DISTANCE, ClassSet, class_set_of, parse_state_keys)
+from ..constants import (
+    DONE,
+    GRID_SIZE,
+    ITHOR22,
+    LOOK_DOWN,
+    LOOK_UP,
+    MOVE_AHEAD,
+    NUM_ACTIONS,
+    ROTATE_LEFT,
+    ROTATE_RIGHT,
+    ROTATE_STEP,
+    SUCCESS_DISTANCE,
+    ClassSet,
+    class_set_of,
+    parse_state_keys,
+)
 from ..errors import read_json
 from ..protocol import DEFAULT_PROTOCOL, PAPER, check_protocol
 
@@ -181,17 +195,31 @@ class Scene:
         x0, x1 = boxes[..., 0].copy(), boxes[..., 2].copy()
         boxes[..., 0] = np.where(seen, w - x1, x0)
         boxes[..., 2] = np.where(seen, w - x0, x1)
-        name = self.name[:-len(MIRROR_SUFFIX)] if self.mirror else self.name + MIRROR_SUFFIX
+        name = self.name[: -len(MIRROR_SUFFIX)] if self.mirror else self.name + MIRROR_SUFFIX
         meta = {k: v for k, v in self.meta.items() if k != "mirror"}
         if not self.mirror:
             meta["mirror"] = True
-        return Scene(name=name, path=self.path, keys=self.keys, x=(-self.x).astype(self.x.dtype) + 0.0,
-                     z=self.z, rotation=((360 - self.rotation.astype(np.int64)) % 360).astype(self.rotation.dtype),
-                     horizon=self.horizon, next_state=self.next_state[:, MIRROR_ACTIONS].copy(),
-                     object_ids=self.object_ids, object_category=self.object_category, visible=self.visible,
-                     distance=self.distance, pixels=self.pixels, boxes=boxes,
-                     floor=[np.stack([-p[:, 0], p[:, 1]], axis=1) + 0.0 for p in self.floor],
-                     image_size=self.image_size, meta=meta, mirror=not self.mirror, class_set=self.class_set)
+        return Scene(
+            name=name,
+            path=self.path,
+            keys=self.keys,
+            x=(-self.x).astype(self.x.dtype) + 0.0,
+            z=self.z,
+            rotation=((360 - self.rotation.astype(np.int64)) % 360).astype(self.rotation.dtype),
+            horizon=self.horizon,
+            next_state=self.next_state[:, MIRROR_ACTIONS].copy(),
+            object_ids=self.object_ids,
+            object_category=self.object_category,
+            visible=self.visible,
+            distance=self.distance,
+            pixels=self.pixels,
+            boxes=boxes,
+            floor=[np.stack([-p[:, 0], p[:, 1]], axis=1) + 0.0 for p in self.floor],
+            image_size=self.image_size,
+            meta=meta,
+            mirror=not self.mirror,
+            class_set=self.class_set,
+        )
 
     def cache_name(self, name: str) -> str:
         """The name under which this scene's caches ``name`` are stored: ``name`` + :data:`MIRROR_SUFFIX` for a
@@ -271,14 +299,15 @@ def load_scene(path: str | Path) -> Scene:
     act = edge_actions(x[src], z[src], rot[src], hor[src], x[dst], z[dst], rot[dst], hor[dst])
     if (act < 0).any():
         j = int(np.flatnonzero(act < 0)[0])
-        raise SceneFormatError(
-            f"{path / 'graph.json'}: edge {keys[src[j]]} -> {keys[dst[j]]} is not a single action")
+        raise SceneFormatError(f"{path / 'graph.json'}: edge {keys[src[j]]} -> {keys[dst[j]]} is not a single action")
     next_state = np.repeat(np.arange(n, dtype=np.int32)[:, None], NUM_ACTIONS, axis=1)
     next_state[src, act] = dst
     assert DONE == NUM_ACTIONS - 1
 
     meta = _load_json(path / "scene.json") if (path / "scene.json").exists() else {}
-    vis_map = _load_json(path / "visible_object_map_1.5.json") if (path / "visible_object_map_1.5.json").exists() else {}
+    vis_map = (
+        _load_json(path / "visible_object_map_1.5.json") if (path / "visible_object_map_1.5.json").exists() else {}
+    )
 
     objs = meta.get("objects", [])
     object_ids = [o["objectId"] for o in objs]
@@ -305,10 +334,26 @@ def load_scene(path: str | Path) -> Scene:
         image_size = _read_object_states(path / "states.hdf5", ids, col, distance, pixels, boxes, image_size)
 
     floor = [np.asarray(p, dtype=np.float64) for p in meta.get("floor", [])]
-    return Scene(name=str(meta.get("name", path.name)), path=path, keys=keys, x=x, z=z, rotation=rot,
-                 horizon=hor, next_state=next_state, object_ids=object_ids, object_category=cat,
-                 visible=visible, distance=distance, pixels=pixels, boxes=boxes, floor=floor,
-                 image_size=image_size, meta=meta, class_set=classes)
+    return Scene(
+        name=str(meta.get("name", path.name)),
+        path=path,
+        keys=keys,
+        x=x,
+        z=z,
+        rotation=rot,
+        horizon=hor,
+        next_state=next_state,
+        object_ids=object_ids,
+        object_category=cat,
+        visible=visible,
+        distance=distance,
+        pixels=pixels,
+        boxes=boxes,
+        floor=floor,
+        image_size=image_size,
+        meta=meta,
+        class_set=classes,
+    )
 
 
 def object_categories(object_ids, classes: ClassSet) -> np.ndarray:
@@ -318,8 +363,9 @@ def object_categories(object_ids, classes: ClassSet) -> np.ndarray:
     return np.array([idx.get(str(o).split("|")[0], -1) for o in object_ids], dtype=np.int16)
 
 
-def _read_object_states(st_path: Path, ids, col: dict, distance: np.ndarray, pixels: np.ndarray, boxes: np.ndarray,
-                        image_size: int) -> int:
+def _read_object_states(
+    st_path: Path, ids, col: dict, distance: np.ndarray, pixels: np.ndarray, boxes: np.ndarray, image_size: int
+) -> int:
     """Fill the per state and object ``distance``, ``pixels`` and ``boxes`` from ``states.hdf5`` (``ids``: state
     keys to rows, ``col``: object id to column); returns the image size it records (else ``image_size``)."""
     try:

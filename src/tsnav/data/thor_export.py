@@ -82,8 +82,16 @@ def _check_graph(d: Path, problems: list[str]) -> list[str] | None:
     off = [(a, b) for a, b in links if a not in node_set or b not in node_set]
     for a, b in off[:MAX_REPORTED]:
         problems.append(f"{name}: link {a!r} -> {b!r} joins a key that is not a node")
-    ok = [(a, b) for a, b in links if a in node_set and b in node_set and isinstance(a, str) and isinstance(b, str)
-          and L.KEY_PATTERN.match(a) and L.KEY_PATTERN.match(b)]
+    ok = [
+        (a, b)
+        for a, b in links
+        if a in node_set
+        and b in node_set
+        and isinstance(a, str)
+        and isinstance(b, str)
+        and L.KEY_PATTERN.match(a)
+        and L.KEY_PATTERN.match(b)
+    ]
     if ok:
         x0, z0, r0, h0 = parse_state_keys([a for a, _ in ok])
         x1, z1, r1, h1 = parse_state_keys([b for _, b in ok])
@@ -111,18 +119,27 @@ def check_lineage_layout(scene_dir: str | Path, complete: bool = False, image_si
     if not d.is_dir():
         return [f"{d}: not a folder"]
     required = (L.IMAGES_FILE, L.RESNET_FILE, L.OPTIMAL_ACTION_FILE) if complete else ()
-    absent = [f"{name}: missing file (the lineage's code reads it; `tsnav thor export-lineage` writes it)"
-              for name in required if not (d / name).exists()]
+    absent = [
+        f"{name}: missing file (the lineage's code reads it; `tsnav thor export-lineage` writes it)"
+        for name in required
+        if not (d / name).exists()
+    ]
     problems: list[str] = []
     nodes = _check_graph(d, problems)
     node_set = set(nodes or [])
 
     grid = _json(d / L.GRID_FILE, problems)
     if grid is not None:
-        if not isinstance(grid, list) or not grid or not all(
-                isinstance(p, dict) and all(isinstance(p.get(a), (int, float)) and not isinstance(p.get(a), bool)
-                                            for a in "xyz") for p in grid):
-            problems.append(f"{L.GRID_FILE}: expected a non-empty list of {{\"x\", \"y\", \"z\"}} numbers")
+        if (
+            not isinstance(grid, list)
+            or not grid
+            or not all(
+                isinstance(p, dict)
+                and all(isinstance(p.get(a), (int, float)) and not isinstance(p.get(a), bool) for a in "xyz")
+                for p in grid
+            )
+        ):
+            problems.append(f'{L.GRID_FILE}: expected a non-empty list of {{"x", "y", "z"}} numbers')
         elif nodes:
             have = {(round(p["x"] * 100), round(p["z"] * 100)) for p in grid}  # centimetres: -0.00 == 0.00
             pos = {tuple(k.split("|")[:2]) for k in nodes if L.KEY_PATTERN.match(str(k))}
@@ -141,8 +158,10 @@ def check_lineage_layout(scene_dir: str | Path, complete: bool = False, image_si
                     problems.append(f"{L.VISIBLE_MAP_FILE}: object id {oid!r} is not 'Type|x|y|z'")
                     n += 1
                 if not keys and n < MAX_REPORTED:
-                    problems.append(f"{L.VISIBLE_MAP_FILE}: object {oid} is listed with no state (the lineage's maps "
-                                    f"never list one; IOM's planner finds no path to it)")
+                    problems.append(
+                        f"{L.VISIBLE_MAP_FILE}: object {oid} is listed with no state (the lineage's maps "
+                        f"never list one; IOM's planner finds no path to it)"
+                    )
                     n += 1
                 for k in keys:
                     if k not in node_set and nodes is not None and n < MAX_REPORTED:
@@ -158,8 +177,10 @@ def check_lineage_layout(scene_dir: str | Path, complete: bool = False, image_si
         _check_detection_rows(d / name, problems)
     _check_optimal_actions(d / L.OPTIMAL_ACTION_FILE, nodes, problems)
     if complete and not any((d / n).exists() for n in L.DETECTION_FILES):
-        absent.append(f"{L.DETECTION_FILES[0]}: missing file (the lineage's agents read the 22 x 264 DETR table; "
-                       f"`tsnav thor export-lineage --detections NAME` writes it)")
+        absent.append(
+            f"{L.DETECTION_FILES[0]}: missing file (the lineage's agents read the 22 x 264 DETR table; "
+            f"`tsnav thor export-lineage --detections NAME` writes it)"
+        )
     return absent + problems
 
 
@@ -173,7 +194,12 @@ def _check_detection_rows(path: Path, problems: list[str]) -> None:
         with h5py.File(path, "r") as f:
             for k in f.keys():
                 ds = f[k]
-                if n >= MAX_REPORTED or not isinstance(ds, h5py.Dataset) or ds.ndim != 2 or ds.shape[1] != L.TABLE_WIDTH:
+                if (
+                    n >= MAX_REPORTED
+                    or not isinstance(ds, h5py.Dataset)
+                    or ds.ndim != 2
+                    or ds.shape[1] != L.TABLE_WIDTH
+                ):
                     continue
                 r = ds[()]
                 lab = r[:, L.LABEL_COL]
@@ -182,12 +208,16 @@ def _check_detection_rows(path: Path, problems: list[str]) -> None:
                     problems.append(f"{name}: {k!r} has labels outside 0..{L.NO_OBJECT_LABEL}")
                     n += 1
                 elif (lab == L.EMPTY_LABEL).any():
-                    problems.append(f"{name}: {k!r} has rows labelled 0; the lineage's readers file them under the "
-                                    f"last class (label rows without a detection {L.NO_OBJECT_LABEL})")
+                    problems.append(
+                        f"{name}: {k!r} has rows labelled 0; the lineage's readers file them under the "
+                        f"last class (label rows without a detection {L.NO_OBJECT_LABEL})"
+                    )
                     n += 1
                 elif (box < 0).any() or (box > L.LINEAGE_IMAGE_SIZE).any():
-                    problems.append(f"{name}: {k!r} has boxes outside the {L.LINEAGE_IMAGE_SIZE} px frame "
-                                    f"(min {box.min():g}, max {box.max():g})")
+                    problems.append(
+                        f"{name}: {k!r} has boxes outside the {L.LINEAGE_IMAGE_SIZE} px frame "
+                        f"(min {box.min():g}, max {box.max():g})"
+                    )
                     n += 1
     except OSError:
         pass  # reported by _check_h5
@@ -215,7 +245,9 @@ def _check_optimal_actions(path: Path, nodes, problems: list[str]) -> None:
             continue
         for t, a in targets.items():
             if t not in TARGET_CATEGORIES or isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < NUM_ACTIONS:
-                problems.append(f"{name}: {k!r} -> {t!r}: {a!r} is not an action id 0..{NUM_ACTIONS - 1} of a target type")
+                problems.append(
+                    f"{name}: {k!r} -> {t!r}: {a!r} is not an action id 0..{NUM_ACTIONS - 1} of a target type"
+                )
                 n += 1
                 break
     if nodes is not None and n < MAX_REPORTED:
@@ -224,7 +256,9 @@ def _check_optimal_actions(path: Path, nodes, problems: list[str]) -> None:
             problems.append(f"{name}: no entry for {missing} of {len(node_set)} states")
 
 
-def check_lineage_dataset(root: str | Path, complete: bool = False, image_size: int | None = None) -> dict[str, list[str]]:
+def check_lineage_dataset(
+    root: str | Path, complete: bool = False, image_size: int | None = None
+) -> dict[str, list[str]]:
     """:func:`check_lineage_layout` of every scene folder of ``root`` (key: scene name) and of the episode lists
     (key ``test_val_split``; :func:`check_lineage_splits`). ``complete``: the lists must be there too."""
     root = Path(root)
@@ -246,7 +280,11 @@ def check_lineage_splits(root: str | Path, scene_dirs, required: bool = False) -
     folder = Path(root) / L.SPLIT_DIR
     files = sorted(folder.glob("*_22.pkl")) if folder.is_dir() else []
     if not files:
-        return [f"{L.SPLIT_DIR}: no episode lists {{room}}_{{test,val}}_22.pkl (`tsnav thor export-lineage` writes them)"] if required else []
+        return (
+            [f"{L.SPLIT_DIR}: no episode lists {{room}}_{{test,val}}_22.pkl (`tsnav thor export-lineage` writes them)"]
+            if required
+            else []
+        )
     problems: list[str] = []
     scenes = {LS.scene_base_name(Path(d).name): Path(d) for d in scene_dirs}
     graphs: dict[str, set] = {}
@@ -275,8 +313,9 @@ def check_lineage_splits(root: str | Path, scene_dirs, required: bool = False) -
                     why = f"state {r['state']} is not a state of {r['scene']}"
                 elif r["goal_object_type"] not in TARGET_CATEGORIES:
                     why = f"goal_object_type {r['goal_object_type']!r} is not one of the 22 targets"
-                elif not r["task_data"] or any(t not in vismaps[name] or t.split("|")[0] != r["goal_object_type"]
-                                               for t in r["task_data"]):
+                elif not r["task_data"] or any(
+                    t not in vismaps[name] or t.split("|")[0] != r["goal_object_type"] for t in r["task_data"]
+                ):
                     why = "task_data does not list object ids of the target in the scene's visibility map"
                 elif not isinstance(glove, np.ndarray) or glove.shape != LS.GLOVE_SHAPE or glove.dtype.kind != "f":
                     why = f"glove_embedding is not a float array of shape {LS.GLOVE_SHAPE}"
@@ -288,8 +327,9 @@ def check_lineage_splits(root: str | Path, scene_dirs, required: bool = False) -
     return problems
 
 
-def _check_h5(path: Path, nodes, problems: list[str], kind: str, required_all: bool = False,
-              size: int | None = None) -> None:
+def _check_h5(
+    path: Path, nodes, problems: list[str], kind: str, required_all: bool = False, size: int | None = None
+) -> None:
     if not path.exists():
         return
     name = path.name
@@ -340,8 +380,12 @@ def _dataset_problem(ds, kind: str) -> str | None:
     return None
 
 
-def export_detections_22x264(scene_dir: str | Path, detections_file: str | Path, out_path: str | Path | None = None,
-                             box_size: int | None = L.LINEAGE_IMAGE_SIZE) -> Path:
+def export_detections_22x264(
+    scene_dir: str | Path,
+    detections_file: str | Path,
+    out_path: str | Path | None = None,
+    box_size: int | None = L.LINEAGE_IMAGE_SIZE,
+) -> Path:
     """Write the lineage's 22 x 264 table (float32 per state key) from a tsnav detection table.
 
     ``detections_file``: a ``detections_<name>.hdf5`` of the detect stage (a path, or a name relative to
@@ -361,9 +405,14 @@ def export_detections_22x264(scene_dir: str | Path, detections_file: str | Path,
         raise SceneFormatError(f"{p}: missing file")
     try:
         with h5py.File(p, "r") as f:
-            det = Detections(keys=f["keys"][()].astype(str), scores=f["scores"][()], labels=f["labels"][()],
-                             boxes=f["boxes"][()], features=f["features"][()],
-                             image_size=int(f.attrs.get("image_size", 0)))
+            det = Detections(
+                keys=f["keys"][()].astype(str),
+                scores=f["scores"][()],
+                labels=f["labels"][()],
+                boxes=f["boxes"][()],
+                features=f["features"][()],
+                image_size=int(f.attrs.get("image_size", 0)),
+            )
     except (OSError, KeyError) as e:
         raise SceneFormatError(f"{p}: not a readable detection table ({' '.join(str(e).split())})") from None
     except ValueError as e:

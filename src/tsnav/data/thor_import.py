@@ -42,6 +42,7 @@ from .names import lineage_scene_info
 from .reader import COMPLETE_MARKER, SceneFormatError, load_scene
 from .writer import box_distance, scene_folder, write_json, write_states
 
+
 @dataclass
 class ImportConfig:
     """Settings of :func:`import_lineage_scene`."""
@@ -85,7 +86,7 @@ def _read_grid(path: Path) -> np.ndarray:
     try:
         arr = np.array([[float(p["x"]), float(p.get("y", 0.0)), float(p["z"])] for p in grid], dtype=np.float64)
     except (TypeError, KeyError, ValueError, AttributeError):
-        raise SceneFormatError(f"{path}: expected a list of reachable positions {{\"x\", \"y\", \"z\"}}") from None
+        raise SceneFormatError(f'{path}: expected a list of reachable positions {{"x", "y", "z"}}') from None
     if len(arr) == 0:
         raise SceneFormatError(f"{path}: no reachable positions")
     return arr
@@ -245,10 +246,21 @@ def import_lineage_scene(src_dir: str | Path, dst_dir: str | Path, config: Impor
             write_json(tmp / L.VISIBLE_MAP_FILE, vmap)
         if distance is not None:
             O = len(order)
-            write_states(tmp, base.keys, order, np.full((S, O), -1, np.int32), np.full((S, O, 4), -1, np.int16),
-                         distance, image_size=image_size)
-        write_json(tmp / "scene.json", _scene_meta(src, dst, grid, records, image_size, S, raw is not None,
-                                                   distance is not None, carried, cfg, stats))
+            write_states(
+                tmp,
+                base.keys,
+                order,
+                np.full((S, O), -1, np.int32),
+                np.full((S, O, 4), -1, np.int16),
+                distance,
+                image_size=image_size,
+            )
+        write_json(
+            tmp / "scene.json",
+            _scene_meta(
+                src, dst, grid, records, image_size, S, raw is not None, distance is not None, carried, cfg, stats
+            ),
+        )
         check = load_scene(tmp)  # the result must read back as a tsnav scene
         if check.num_states != S or not check.floor:
             raise SceneFormatError(f"{dst}: imported scene does not read back")
@@ -272,9 +284,11 @@ def _sources(src: Path) -> tuple[Path | None, Path | None]:
 
 def _check_grid(src: Path, base, grid: np.ndarray) -> None:
     """:class:`SceneFormatError` when the position of a state of ``graph.json`` is not in ``grid.json``."""
+
     def codes(x, z):  # integer centimetres -> one int64 per position
         return np.round(np.asarray(x, np.float64) * 100).astype(np.int64) * 1_000_003 + np.round(
-            np.asarray(z, np.float64) * 100).astype(np.int64)
+            np.asarray(z, np.float64) * 100
+        ).astype(np.int64)
 
     off = ~np.isin(codes(base.x, base.z), codes(grid[:, 0], grid[:, 2]))
     if off.any():
@@ -299,8 +313,9 @@ def _read_visibility(vis_path: Path | None, meta_path: Path | None) -> tuple[Pat
     return vis_path, vis, raw
 
 
-def _object_table(base, vis_path: Path | None, vis: dict | None, meta_path: Path | None,
-                  raw: dict | None) -> tuple[list[str], list[dict], np.ndarray]:
+def _object_table(
+    base, vis_path: Path | None, vis: dict | None, meta_path: Path | None, raw: dict | None
+) -> tuple[list[str], list[dict], np.ndarray]:
     """Object ids (metadata objects, then visibility-map ids not in the metadata), their ``scene.json`` records
     and the ``(S, O)`` visible flags (from the map, else from the raw metadata's ``visible``)."""
     meta_objects, mrows, moids = {}, [], []
@@ -331,8 +346,12 @@ def _distances(base, records: list[dict]) -> np.ndarray:
     distance = np.full((S, O), np.nan, dtype=np.float32)
     if has.any():
         b = [records[j]["bbox"] for j in np.flatnonzero(has)]
-        distance[:, has] = box_distance(pos, np.array([x["center"] for x in b], np.float64),
-                                        np.array([x["size"] for x in b], np.float64), np.zeros(len(b)))
+        distance[:, has] = box_distance(
+            pos,
+            np.array([x["center"] for x in b], np.float64),
+            np.array([x["size"] for x in b], np.float64),
+            np.zeros(len(b)),
+        )
     return distance
 
 
@@ -355,8 +374,9 @@ def _carried_files(src: Path, base, raw: dict | None, stats: ImportStats) -> tup
     return image_size, carried
 
 
-def _import_detections(src: Path, tmp: Path, base, detection_image_size: int, image_size: int,
-                       stats: ImportStats) -> None:
+def _import_detections(
+    src: Path, tmp: Path, base, detection_image_size: int, image_size: int, stats: ImportStats
+) -> None:
     """The lineage's 22 x 264 detection table (when the scene has one) as ``detections_lineage.hdf5``."""
     det_path = next((src / n for n in L.DETECTION_FILES if (src / n).exists()), None)
     if det_path is None:
@@ -375,25 +395,53 @@ def _import_detections(src: Path, tmp: Path, base, detection_image_size: int, im
     stats.detections = True
 
 
-def _scene_meta(src: Path, dst: Path, grid: np.ndarray, records: list[dict], image_size: int, S: int,
-                has_metadata: bool, has_distances: bool, carried: list[str], cfg: ImportConfig,
-                stats: ImportStats) -> dict:
+def _scene_meta(
+    src: Path,
+    dst: Path,
+    grid: np.ndarray,
+    records: list[dict],
+    image_size: int,
+    S: int,
+    has_metadata: bool,
+    has_distances: bool,
+    carried: list[str],
+    cfg: ImportConfig,
+    stats: ImportStats,
+) -> dict:
     """``scene.json`` of the imported scene: floor from the grid, objects, where it came from, what was derived."""
     floor = L.derive_floor(grid[:, [0, 2]], GRID_SIZE)
     room_type, split = lineage_scene_info(dst.name)
     return {
-        "format": "tsnav-scene", "version": 1, "name": dst.name, "room_type": room_type, "split": split,
-        "rooms": [], "floor": [p.tolist() for p in floor], "furniture": [], "objects": records,
-        "image_size": image_size, "num_states": S, "num_positions": int(len(grid)),
-        "visibility": {"distance": VISIBILITY_DISTANCE,
-                       "rule": "AI2-THOR's visible flag (in view, within 1.5 m) from the lineage's data"},
-        "source": {"format": "ai2thor-offline-data", "path": str(src.resolve()), "files": sorted(carried),
-                   "config": asdict(cfg)},
+        "format": "tsnav-scene",
+        "version": 1,
+        "name": dst.name,
+        "room_type": room_type,
+        "split": split,
+        "rooms": [],
+        "floor": [p.tolist() for p in floor],
+        "furniture": [],
+        "objects": records,
+        "image_size": image_size,
+        "num_states": S,
+        "num_positions": int(len(grid)),
+        "visibility": {
+            "distance": VISIBILITY_DISTANCE,
+            "rule": "AI2-THOR's visible flag (in view, within 1.5 m) from the lineage's data",
+        },
+        "source": {
+            "format": "ai2thor-offline-data",
+            "path": str(src.resolve()),
+            "files": sorted(carried),
+            "config": asdict(cfg),
+        },
         "derived": {
             "floor": "union of 0.25 m squares centred on grid.json positions, holes filled",
             "objects": "visible_object_map ids (Type|x|y|z)" + (" and metadata.json objects" if has_metadata else ""),
-            "distance": ("floor plane, state position to the footprint of the object's axis-aligned box"
-                         if has_distances else "unknown: success uses the visibility map alone"),
+            "distance": (
+                "floor plane, state position to the footprint of the object's axis-aligned box"
+                if has_distances
+                else "unknown: success uses the visibility map alone"
+            ),
             "detections": L.DETECTIONS_LINEAGE_FILE if stats.detections else None,
         },
         "warnings": stats.warnings,
@@ -407,14 +455,17 @@ def find_lineage_scenes(src: str | Path) -> list[Path]:
         raise SceneFormatError(f"{src}: no such folder")
     if (src / L.GRAPH_FILE).exists():
         return [src]
-    found = sorted(p for p in src.iterdir() if p.is_dir() and not p.name.startswith(".") and (p / L.GRAPH_FILE).exists())
+    found = sorted(
+        p for p in src.iterdir() if p.is_dir() and not p.name.startswith(".") and (p / L.GRAPH_FILE).exists()
+    )
     if not found:
         raise SceneFormatError(f"{src}: no scene folder (a folder holding {L.GRAPH_FILE}) here or one level down")
     return found
 
 
-def import_lineage_dataset(src: str | Path, dst_root: str | Path, config: ImportConfig | None = None,
-                           progress=None) -> list[ImportStats]:
+def import_lineage_dataset(
+    src: str | Path, dst_root: str | Path, config: ImportConfig | None = None, progress=None
+) -> list[ImportStats]:
     """Import every scene folder of ``src`` (or ``src`` itself) into ``dst_root/<scene name>``."""
     dst_root = Path(dst_root)
     dst_root.mkdir(parents=True, exist_ok=True)

@@ -37,16 +37,35 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
-from ..constants import (FIELD_OF_VIEW, GRID_SIZE, HORIZONS, ROTATE_STEP, ROTATIONS, TARGET_CATEGORIES,
-                         VISIBILITY_DISTANCE, state_key)
+from ..constants import (
+    FIELD_OF_VIEW,
+    GRID_SIZE,
+    HORIZONS,
+    ROTATE_STEP,
+    ROTATIONS,
+    TARGET_CATEGORIES,
+    VISIBILITY_DISTANCE,
+    state_key,
+)
 from .lineage import derive_floor, visible_object_map
 from .names import lineage_scene_info
 from .reader import COMPLETE_MARKER, SceneFormatError, load_scene
-from .writer import (MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats, scene_folder, write_graph,
-                     write_json, write_states)
+from .writer import (
+    MIN_PIXEL_FRACTION,
+    FrameWriter,
+    box_distance,
+    min_pixels,
+    object_stats,
+    scene_folder,
+    write_graph,
+    write_json,
+    write_states,
+)
 
-INSTALL_HINT = ("ai2thor is not installed: pip install 'tsnav[thor]' (AI2-THOR then downloads its Unity build "
-                "on first use and needs a display or Vulkan)")
+INSTALL_HINT = (
+    "ai2thor is not installed: pip install 'tsnav[thor]' (AI2-THOR then downloads its Unity build "
+    "on first use and needs a display or Vulkan)"
+)
 
 
 class ThorUnavailable(RuntimeError):
@@ -94,9 +113,17 @@ class LiveStats:
 def controller_settings(size: int = 300) -> dict:
     """Keyword arguments for ``ai2thor.controller.Controller`` matching the lineage and the paper: 0.25 m
     grid, 45 degree rotations, 90 degree field of view, depth and instance segmentation on."""
-    return dict(gridSize=GRID_SIZE, rotateStepDegrees=ROTATE_STEP, fieldOfView=FIELD_OF_VIEW, width=size,
-                height=size, renderDepthImage=True, renderInstanceSegmentation=True,
-                visibilityDistance=VISIBILITY_DISTANCE, snapToGrid=True)
+    return dict(
+        gridSize=GRID_SIZE,
+        rotateStepDegrees=ROTATE_STEP,
+        fieldOfView=FIELD_OF_VIEW,
+        width=size,
+        height=size,
+        renderDepthImage=True,
+        renderInstanceSegmentation=True,
+        visibilityDistance=VISIBILITY_DISTANCE,
+        snapToGrid=True,
+    )
 
 
 def make_controller(size: int = 300, **overrides):
@@ -132,8 +159,13 @@ def agent_pose(metadata: dict) -> tuple[float, float, float, int, int] | None:
     a = metadata.get("agent")
     try:
         p, r = a["position"], a["rotation"]
-        return (float(p["x"]), float(p["y"]), float(p["z"]), int(round(float(r["y"]))) % 360,
-                int(round(float(a["cameraHorizon"]))) + 0)
+        return (
+            float(p["x"]),
+            float(p["y"]),
+            float(p["z"]),
+            int(round(float(r["y"]))) % 360,
+            int(round(float(a["cameraHorizon"]))) + 0,
+        )
     except (TypeError, KeyError, ValueError):
         return None
 
@@ -141,8 +173,11 @@ def agent_pose(metadata: dict) -> tuple[float, float, float, int, int] | None:
 def visible_object_ids(metadata: dict) -> set[str]:
     """objectIds that AI2-THOR flags ``visible`` in ``metadata["objects"]`` (in view and within its
     ``visibilityDistance``); kept in ``states.hdf5`` as ``thor_visible``."""
-    return {o["objectId"] for o in metadata.get("objects", []) if isinstance(o, dict) and o.get("objectId")
-            and o.get("visible")}
+    return {
+        o["objectId"]
+        for o in metadata.get("objects", [])
+        if isinstance(o, dict) and o.get("objectId") and o.get("visible")
+    }
 
 
 def scene_bounds(metadata: dict) -> dict | None:
@@ -170,8 +205,9 @@ def _aabb(o: dict) -> tuple[list[float], list[float]] | None:
     return None
 
 
-def export_live(controller, scene_name: str, out_dir: str | Path, size: int | None = None,
-                config: LiveConfig | None = None) -> LiveStats:
+def export_live(
+    controller, scene_name: str, out_dir: str | Path, size: int | None = None, config: LiveConfig | None = None
+) -> LiveStats:
     """Export ``scene_name`` from ``controller`` into the tsnav scene folder ``out_dir/scene_name``.
 
     The controller must have been made with :func:`controller_settings` (``size`` x ``size`` frames, depth
@@ -236,14 +272,24 @@ class _Agent:
 
     def teleport(self, i: int, rot: int, hor: int):
         x, y, z = self.raw[i]
-        return self.step(action="Teleport", position=dict(x=float(x), y=float(y), z=float(z)),
-                         rotation=dict(x=0.0, y=float(rot), z=0.0), horizon=float(hor), standing=True)
+        return self.step(
+            action="Teleport",
+            position=dict(x=float(x), y=float(y), z=float(z)),
+            rotation=dict(x=0.0, y=float(rot), z=0.0),
+            horizon=float(hor),
+            standing=True,
+        )
 
     def pose_ok(self, ev, i: int, rot: int, hor: int) -> bool:
         """The action succeeded and the agent stands at position ``i`` with that rotation and horizon."""
         pose = agent_pose(ev.metadata)
-        return (_ok(ev) and pose is not None and abs(pose[0] - self.raw[i, 0]) < 0.01
-                and abs(pose[2] - self.raw[i, 2]) < 0.01 and pose[3:] == (rot, hor))
+        return (
+            _ok(ev)
+            and pose is not None
+            and abs(pose[0] - self.raw[i, 0]) < 0.01
+            and abs(pose[2] - self.raw[i, 2]) < 0.01
+            and pose[3:] == (rot, hor)
+        )
 
 
 def _walk(agent: _Agent) -> tuple[np.ndarray, np.ndarray]:
@@ -354,7 +400,11 @@ def _render(agent: _Agent, states: _States, frames: FrameWriter, cfg: LiveConfig
         ids = np.stack(ids_buf)
         O = len(objects)
         lut = np.arange(O + 1, dtype=np.int64) - 1  # id map holds column + 1 (0 = no object)
-        px, bx = object_stats(ids, lut, O) if O else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
+        px, bx = (
+            object_stats(ids, lut, O)
+            if O
+            else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
+        )
         pixels[buf_start:upto] = px
         boxes[buf_start:upto] = bx
         buf_start, ids_buf = upto, []
@@ -376,7 +426,9 @@ def _render(agent: _Agent, states: _States, frames: FrameWriter, cfg: LiveConfig
             _check_frames(ev, cfg.size, scene_name)
         frame, depth = np.asarray(ev.frame), np.asarray(ev.depth_frame)
         if frame.shape != (cfg.size, cfg.size, 3):
-            raise LiveExportError(f"{scene_name}: frame of {key} is {frame.shape}, expected ({cfg.size}, {cfg.size}, 3)")
+            raise LiveExportError(
+                f"{scene_name}: frame of {key} is {frame.shape}, expected ({cfg.size}, {cfg.size}, 3)"
+            )
         frames.add(key, frame.astype(np.uint8), depth)
         idmap = np.zeros(frame.shape[:2], np.int64)
         masks = ev.instance_masks
@@ -395,8 +447,15 @@ def _render(agent: _Agent, states: _States, frames: FrameWriter, cfg: LiveConfig
     return objects, pixels, boxes, thor_visible, ev
 
 
-def _write_tables(tmp: Path, states: _States, objects: list[dict], pixels: np.ndarray, boxes: np.ndarray,
-                  thor_visible: np.ndarray, cfg: LiveConfig) -> int:
+def _write_tables(
+    tmp: Path,
+    states: _States,
+    objects: list[dict],
+    pixels: np.ndarray,
+    boxes: np.ndarray,
+    thor_visible: np.ndarray,
+    cfg: LiveConfig,
+) -> int:
     """Object distances, then ``visible_object_map_1.5.json``, ``grid.json``, ``graph.json`` and ``states.hdf5``
     (states in key order); returns the ``min_pixels`` used."""
     V, O = states.count, len(objects)
@@ -407,23 +466,36 @@ def _write_tables(tmp: Path, states: _States, objects: list[dict], pixels: np.nd
     if has.any():
         bb = [b for b in boxes3 if b is not None]
         agent = np.stack([kx[pos_i], kz[pos_i]], 1)
-        distance[:, has] = box_distance(agent, np.array([b[0] for b in bb]), np.array([b[1] for b in bb]), np.zeros(len(bb)))
+        distance[:, has] = box_distance(
+            agent, np.array([b[0] for b in bb]), np.array([b[1] for b in bb]), np.zeros(len(bb))
+        )
     min_px = cfg.min_pixels()
     vis = (pixels >= min_px) & (distance <= cfg.visibility_distance)
     order = np.argsort(keys, kind="stable")
     keys_s = keys[order]
     vis_map = visible_object_map([o["objectId"] for o in objects], keys_s, vis[order])
     write_json(tmp / "visible_object_map_1.5.json", vis_map)
-    write_json(tmp / "grid.json", [{"x": float(kx[i]), "y": float(states.y[i]), "z": float(kz[i])}
-                                   for i in states.positions])
+    write_json(
+        tmp / "grid.json", [{"x": float(kx[i]), "y": float(states.y[i]), "z": float(kz[i])} for i in states.positions]
+    )
     write_graph(tmp, keys_s.tolist(), sorted(states.edges))
-    write_states(tmp, keys_s, [o["objectId"] for o in objects], pixels[order], boxes[order], distance[order],
-                 image_size=cfg.size, min_pixels=min_px, extra={"thor_visible": thor_visible[order]})
+    write_states(
+        tmp,
+        keys_s,
+        [o["objectId"] for o in objects],
+        pixels[order],
+        boxes[order],
+        distance[order],
+        image_size=cfg.size,
+        min_pixels=min_px,
+        extra={"thor_visible": thor_visible[order]},
+    )
     return min_px
 
 
-def _scene_meta(scene_name: str, controller, ev, states: _States, objects: list[dict], min_px: int,
-                cfg: LiveConfig) -> dict:
+def _scene_meta(
+    scene_name: str, controller, ev, states: _States, objects: list[dict], min_px: int, cfg: LiveConfig
+) -> dict:
     """``scene.json``: the objects with their boxes, the floor derived from the reachable grid, the scene bounds
     of the last event, the visibility rule and where the scene came from."""
     room_type, split = lineage_scene_info(scene_name)
@@ -441,17 +513,35 @@ def _scene_meta(scene_name: str, controller, ev, states: _States, objects: list[
     positions = states.positions
     floor = derive_floor(np.stack([states.kx[positions], states.kz[positions]], 1))
     return {
-        "format": "tsnav-scene", "version": 1, "name": scene_name, "room_type": room_type, "split": split,
-        "rooms": [], "floor": [p.tolist() for p in floor], "furniture": [],
-        "objects": records, "scene_bounds": scene_bounds(ev.metadata), "image_size": cfg.size,
-        "visibility": {"min_pixels": min_px, "min_pixel_fraction": cfg.min_pixel_fraction,
-                       "distance": cfg.visibility_distance},
-        "num_states": states.count, "num_positions": int(len(positions)),
-        "source": {"format": "ai2thor-live", "controller": type(controller).__name__,
-                   "settings": controller_settings(cfg.size), "config": asdict(cfg)},
-        "derived": {"floor": "union of 0.25 m squares centred on the reachable positions, holes filled",
-                    "distance": "floor plane, agent position to the footprint of the object's axis-aligned box",
-                    "visible": "instance mask >= min_pixels and distance <= 1.5 m"},
+        "format": "tsnav-scene",
+        "version": 1,
+        "name": scene_name,
+        "room_type": room_type,
+        "split": split,
+        "rooms": [],
+        "floor": [p.tolist() for p in floor],
+        "furniture": [],
+        "objects": records,
+        "scene_bounds": scene_bounds(ev.metadata),
+        "image_size": cfg.size,
+        "visibility": {
+            "min_pixels": min_px,
+            "min_pixel_fraction": cfg.min_pixel_fraction,
+            "distance": cfg.visibility_distance,
+        },
+        "num_states": states.count,
+        "num_positions": int(len(positions)),
+        "source": {
+            "format": "ai2thor-live",
+            "controller": type(controller).__name__,
+            "settings": controller_settings(cfg.size),
+            "config": asdict(cfg),
+        },
+        "derived": {
+            "floor": "union of 0.25 m squares centred on the reachable positions, holes filled",
+            "distance": "floor plane, agent position to the footprint of the object's axis-aligned box",
+            "visible": "instance mask >= min_pixels and distance <= 1.5 m",
+        },
     }
 
 
@@ -468,8 +558,12 @@ def _check_frames(ev, size: int, scene_name: str) -> None:
     if getattr(ev, "depth_frame", None) is None:
         raise LiveExportError(f"{scene_name}: no depth frame; create the controller with renderDepthImage=True")
     if getattr(ev, "instance_segmentation_frame", None) is None or getattr(ev, "instance_masks", None) is None:
-        raise LiveExportError(f"{scene_name}: no instance masks; create the controller with renderInstanceSegmentation=True")
+        raise LiveExportError(
+            f"{scene_name}: no instance masks; create the controller with renderInstanceSegmentation=True"
+        )
     shape = np.shape(ev.frame)
     if shape != (size, size, 3):
-        raise LiveExportError(f"{scene_name}: the controller renders {shape} frames, expected ({size}, {size}, 3) "
-                              f"(create it with width=height={size})")
+        raise LiveExportError(
+            f"{scene_name}: the controller renders {shape} frames, expected ({size}, {size}, 3) "
+            f"(create it with width=height={size})"
+        )

@@ -12,15 +12,31 @@ from pathlib import Path
 import numpy as np
 
 from ..constants import (
-    GRID_SIZE, HORIZONS, LOOK_DOWN, LOOK_UP, MOVE_AHEAD, NUM_ACTIONS, ROTATE_LEFT,
-    ROTATE_RIGHT, ROTATIONS, VISIBILITY_DISTANCE, ClassSet, class_set as get_class_set, state_key,
+    GRID_SIZE,
+    HORIZONS,
+    LOOK_DOWN,
+    LOOK_UP,
+    MOVE_AHEAD,
+    NUM_ACTIONS,
+    ROTATE_LEFT,
+    ROTATE_RIGHT,
+    ROTATIONS,
+    VISIBILITY_DISTANCE,
+    ClassSet,
+    class_set as get_class_set,
+    state_key,
 )
 from .reader import Scene, object_categories
 
 
-def toy_scene(width: float = 2.0, depth: float = 1.5, objects: dict[str, tuple[float, float]] | None = None,
-              blocked: list[tuple[float, float]] | None = None, name: str = "Toy",
-              class_set: str | ClassSet | None = None) -> Scene:
+def toy_scene(
+    width: float = 2.0,
+    depth: float = 1.5,
+    objects: dict[str, tuple[float, float]] | None = None,
+    blocked: list[tuple[float, float]] | None = None,
+    name: str = "Toy",
+    class_set: str | ClassSet | None = None,
+) -> Scene:
     """A ``width`` x ``depth`` metre room with positions every 0.25 m from (0, 0).
 
     ``objects`` maps an object id (``Category|n``) to its (x, z) centre; ``blocked`` lists grid positions
@@ -65,14 +81,38 @@ def toy_scene(width: float = 2.0, depth: float = 1.5, objects: dict[str, tuple[f
     visible = in_view & (dist <= VISIBILITY_DISTANCE)
     pixels = np.where(in_view, 100, 0).astype(np.int32)
     boxes = np.where(in_view[..., None], np.array([10, 10, 20, 20], dtype=np.int16), -1).astype(np.int16)
-    floor = [np.array([[-0.125, -0.125], [width + 0.125, -0.125], [width + 0.125, depth + 0.125],
-                       [-0.125, depth + 0.125]])]
-    meta = {"name": name, "room_type": "toy", "split": "train", "visibility": {"min_pixels": 1},
-            "objects": [{"objectId": o, "objectType": o.split("|")[0],
-                         "position": {"x": float(c[0]), "y": 0.5, "z": float(c[1])}} for o, c in zip(oids, centers)]}
+    floor = [
+        np.array([[-0.125, -0.125], [width + 0.125, -0.125], [width + 0.125, depth + 0.125], [-0.125, depth + 0.125]])
+    ]
+    meta = {
+        "name": name,
+        "room_type": "toy",
+        "split": "train",
+        "visibility": {"min_pixels": 1},
+        "objects": [
+            {"objectId": o, "objectType": o.split("|")[0], "position": {"x": float(c[0]), "y": 0.5, "z": float(c[1])}}
+            for o, c in zip(oids, centers)
+        ],
+    }
     if class_set is not None:
         meta["class_set"] = classes.name
-    return Scene(name=name, path=Path("."), keys=keys, x=x.astype(np.float32), z=z.astype(np.float32),
-                 rotation=rot.astype(np.int16), horizon=hor.astype(np.int16), next_state=nxt, object_ids=oids,
-                 object_category=cat, visible=visible, distance=dist.astype(np.float32), pixels=pixels,
-                 boxes=boxes, floor=floor, image_size=64, meta=meta, class_set=classes)
+    return Scene(
+        name=name,
+        path=Path("."),
+        keys=keys,
+        x=x.astype(np.float32),
+        z=z.astype(np.float32),
+        rotation=rot.astype(np.int16),
+        horizon=hor.astype(np.int16),
+        next_state=nxt,
+        object_ids=oids,
+        object_category=cat,
+        visible=visible,
+        distance=dist.astype(np.float32),
+        pixels=pixels,
+        boxes=boxes,
+        floor=floor,
+        image_size=64,
+        meta=meta,
+        class_set=classes,
+    )

@@ -29,7 +29,7 @@ MIN_PIXEL_FRACTION = 0.001
 
 def min_pixels(image_size: int, fraction: float = MIN_PIXEL_FRACTION) -> int:
     """Pixels an object must show in a ``image_size``-square frame to count as seen (at least 2)."""
-    return max(2, int(math.ceil(fraction * image_size ** 2)))
+    return max(2, int(math.ceil(fraction * image_size**2)))
 
 
 #: Height of the agent's position in ``grid.json`` (AI2-THOR reports the agent's body centre).
@@ -56,7 +56,7 @@ def box_distance(points: np.ndarray, centers: np.ndarray, sizes: np.ndarray, yaw
     lz = s * dx + c * dz
     ex = np.maximum(np.abs(lx) - sizes[None, :, 0] / 2, 0)
     ez = np.maximum(np.abs(lz) - sizes[None, :, 2] / 2, 0)
-    return np.sqrt(ex ** 2 + ez ** 2)
+    return np.sqrt(ex**2 + ez**2)
 
 
 def object_stats(ids: np.ndarray, lut: np.ndarray, num_objects: int):
@@ -111,14 +111,29 @@ def write_json(path: str | Path, obj) -> None:
 
 def write_graph(folder: Path, nodes, edges) -> None:
     """``graph.json``: networkx node-link directed graph; ``nodes`` state keys, ``edges`` ``(source, target)``."""
-    write_json(folder / "graph.json", {"directed": True, "multigraph": False, "graph": {},
-                                       "nodes": [{"id": k} for k in nodes],
-                                       "links": [{"source": a, "target": b} for a, b in edges]})
+    write_json(
+        folder / "graph.json",
+        {
+            "directed": True,
+            "multigraph": False,
+            "graph": {},
+            "nodes": [{"id": k} for k in nodes],
+            "links": [{"source": a, "target": b} for a, b in edges],
+        },
+    )
 
 
-def write_states(folder: Path, keys: np.ndarray, object_ids, pixels: np.ndarray, boxes: np.ndarray,
-                 distance: np.ndarray, image_size: int, min_pixels: int | None = None,
-                 extra: dict[str, np.ndarray] | None = None) -> None:
+def write_states(
+    folder: Path,
+    keys: np.ndarray,
+    object_ids,
+    pixels: np.ndarray,
+    boxes: np.ndarray,
+    distance: np.ndarray,
+    image_size: int,
+    min_pixels: int | None = None,
+    extra: dict[str, np.ndarray] | None = None,
+) -> None:
     """``states.hdf5``: per state (``keys`` sorted) and object: ``pixels`` (S, O) int32 visible pixel count
     (-1 unknown), ``boxes`` (S, O, 4) int16 ``[x0, y0, x1, y1]``, ``distance`` (S, O) metres on the floor
     plane; ``extra`` datasets of the same row order; attributes ``image_size`` and ``min_pixels``."""
@@ -154,11 +169,18 @@ class FrameWriter:
     worse); plain ``h5py`` reads the datasets as before (``f[key][()]``), decompressing as it reads.
     """
 
-    def __init__(self, folder: Path, depth_dtype: str = "float16", compression: str | None = DEFAULT_COMPRESSION,
-                 level: int | None = DEFAULT_COMPRESSION_LEVEL):
+    def __init__(
+        self,
+        folder: Path,
+        depth_dtype: str = "float16",
+        compression: str | None = DEFAULT_COMPRESSION,
+        level: int | None = DEFAULT_COMPRESSION_LEVEL,
+    ):
         if compression not in FRAME_COMPRESSIONS:
-            raise ValueError(f"unknown frame compression {compression!r} (choose from "
-                             f"{', '.join(str(c) for c in FRAME_COMPRESSIONS)})")
+            raise ValueError(
+                f"unknown frame compression {compression!r} (choose from "
+                f"{', '.join(str(c) for c in FRAME_COMPRESSIONS)})"
+            )
         if compression == "gzip" and level is not None and not 0 <= int(level) <= 9:
             raise ValueError(f"gzip level must be in 0..9, got {level}")
         self.depth_dtype, self.compression = depth_dtype, compression
@@ -188,8 +210,9 @@ class FrameWriter:
                 else:
                     dcpl.set_filter(h5py.h5z.FILTER_LZF, h5py.h5z.FLAG_OPTIONAL)
             self._dcpl[sig] = dcpl
-        ds = h5py.h5d.create(f.id, key.encode(), h5py.h5t.py_create(data.dtype), h5py.h5s.create_simple(data.shape),
-                             dcpl=dcpl)
+        ds = h5py.h5d.create(
+            f.id, key.encode(), h5py.h5t.py_create(data.dtype), h5py.h5s.create_simple(data.shape), dcpl=dcpl
+        )
         ds.write(h5py.h5s.ALL, h5py.h5s.ALL, data)
 
     def add(self, key: str, rgb: np.ndarray, depth: np.ndarray) -> None:

@@ -37,65 +37,121 @@ from .shipped import DEFAULT_SHIPPED, SHIPPED
 
 def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="dataset root (one folder per scene)")
-    p.add_argument("--detector", required=True, choices=tuple(DETECTORS),
-                   help="which detector (shipped: the learned detector that comes with tsnav, for 128-px ithor-real "
-                        "rooms; nothing trained, table name learned by default)")
-    p.add_argument("--checkpoint", default=None,
-                   help="learned: checkpoint folder (default DATA/detectors/learned); trained there if needed")
-    p.add_argument("--train-steps", type=int, default=None,
-                   help="learned: train up to this many steps (default for a new checkpoint: 9000 for frames of "
-                        "128px or more, else 2500; an existing checkpoint's own target)")
+    p.add_argument(
+        "--detector",
+        required=True,
+        choices=tuple(DETECTORS),
+        help="which detector (shipped: the learned detector that comes with tsnav, for 128-px ithor-real "
+        "rooms; nothing trained, table name learned by default)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        default=None,
+        help="learned: checkpoint folder (default DATA/detectors/learned); trained there if needed",
+    )
+    p.add_argument(
+        "--train-steps",
+        type=int,
+        default=None,
+        help="learned: train up to this many steps (default for a new checkpoint: 9000 for frames of "
+        "128px or more, else 2500; an existing checkpoint's own target)",
+    )
     p.add_argument("--batch-size", type=int, default=None, help="learned: frames per training step (default 64)")
-    p.add_argument("--max-states-per-scene", type=int, default=None,
-                   help="learned: train on at most this many random states per train scene")
-    p.add_argument("--repeat-threshold", type=float, default=None,
-                   help="learned: class-balanced sampling of training frames (repeat-factor sampling with this "
-                        "threshold, e.g. 0.1; 0 or absent: uniform); given for an existing checkpoint it applies "
-                        "from that checkpoint's step on")
-    p.add_argument("--hard-negative-weight", type=float, default=None,
-                   help="learned: draw the training frames on which the checkpoint, as it stands, scores a class with "
-                        "no pixel in view above --hard-negative-threshold this many times as often (e.g. 4); given "
-                        "for an existing checkpoint it applies from that checkpoint's step on (absent or 0: the "
-                        "checkpoint's own setting, off for a new one); the mined frames are kept beside the "
-                        "checkpoint (hard_negatives.json)")
-    p.add_argument("--hard-negative-threshold", type=float, default=None,
-                   help="learned, with --hard-negative-weight: score that makes such a frame a hard negative "
-                        "(default 0.5)")
-    p.add_argument("--presence-pos-weight", type=float, default=None,
-                   help="learned: weight of the classes in view in the presence cross-entropy (default 1; e.g. 4 "
-                        "favours recall of targets in view over false positives); given for an existing checkpoint "
-                        "it applies from that checkpoint's step on (recorded in its loss_changes)")
-    p.add_argument("--focal-alpha", type=float, default=None,
-                   help="learned: focal-loss weight of the positive cells (default 0.25); like "
-                        "--presence-pos-weight for an existing checkpoint")
-    p.add_argument("--stem", type=int, default=None,
-                   help="learned, new checkpoint: space-to-depth factor of the input (default: frame side / 64, so "
-                        "128px frames cost what 64px ones do)")
-    p.add_argument("--widths", default=None,
-                   help="learned, new checkpoint: channels of the three backbone stages, e.g. 24,48,96 "
-                        "(default 32,64,128 for frames of 128px or more, else 16,32,64)")
-    p.add_argument("--fine", action=argparse.BooleanOptionalAction, default=None,
-                   help="learned, new checkpoint: output cells of stride 4 after the stem instead of 8 (an FPN-style "
-                        "lateral from the second stage; better for small objects; default on for frames of 128px "
-                        "or more)")
-    p.add_argument("--shipped", choices=sorted(SHIPPED), default=None,
-                   help=f"shipped: which shipped detector (default: the one --name names, if any, else "
-                        f"{DEFAULT_SHIPPED}; learned3 wrote the tables of the "
-                        "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
-                        "see tsnav.detect.shipped)")
+    p.add_argument(
+        "--max-states-per-scene",
+        type=int,
+        default=None,
+        help="learned: train on at most this many random states per train scene",
+    )
+    p.add_argument(
+        "--repeat-threshold",
+        type=float,
+        default=None,
+        help="learned: class-balanced sampling of training frames (repeat-factor sampling with this "
+        "threshold, e.g. 0.1; 0 or absent: uniform); given for an existing checkpoint it applies "
+        "from that checkpoint's step on",
+    )
+    p.add_argument(
+        "--hard-negative-weight",
+        type=float,
+        default=None,
+        help="learned: draw the training frames on which the checkpoint, as it stands, scores a class with "
+        "no pixel in view above --hard-negative-threshold this many times as often (e.g. 4); given "
+        "for an existing checkpoint it applies from that checkpoint's step on (absent or 0: the "
+        "checkpoint's own setting, off for a new one); the mined frames are kept beside the "
+        "checkpoint (hard_negatives.json)",
+    )
+    p.add_argument(
+        "--hard-negative-threshold",
+        type=float,
+        default=None,
+        help="learned, with --hard-negative-weight: score that makes such a frame a hard negative (default 0.5)",
+    )
+    p.add_argument(
+        "--presence-pos-weight",
+        type=float,
+        default=None,
+        help="learned: weight of the classes in view in the presence cross-entropy (default 1; e.g. 4 "
+        "favours recall of targets in view over false positives); given for an existing checkpoint "
+        "it applies from that checkpoint's step on (recorded in its loss_changes)",
+    )
+    p.add_argument(
+        "--focal-alpha",
+        type=float,
+        default=None,
+        help="learned: focal-loss weight of the positive cells (default 0.25); like "
+        "--presence-pos-weight for an existing checkpoint",
+    )
+    p.add_argument(
+        "--stem",
+        type=int,
+        default=None,
+        help="learned, new checkpoint: space-to-depth factor of the input (default: frame side / 64, so "
+        "128px frames cost what 64px ones do)",
+    )
+    p.add_argument(
+        "--widths",
+        default=None,
+        help="learned, new checkpoint: channels of the three backbone stages, e.g. 24,48,96 "
+        "(default 32,64,128 for frames of 128px or more, else 16,32,64)",
+    )
+    p.add_argument(
+        "--fine",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="learned, new checkpoint: output cells of stride 4 after the stem instead of 8 (an FPN-style "
+        "lateral from the second stage; better for small objects; default on for frames of 128px "
+        "or more)",
+    )
+    p.add_argument(
+        "--shipped",
+        choices=sorted(SHIPPED),
+        default=None,
+        help=f"shipped: which shipped detector (default: the one --name names, if any, else "
+        f"{DEFAULT_SHIPPED}; learned3 wrote the tables of the "
+        "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
+        "see tsnav.detect.shipped)",
+    )
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation")
     p.add_argument("--overwrite", action="store_true", help="replace tables made by another detector")
-    p.add_argument("--mirror", action="store_true",
-                   help="the tables of the rooms' mirror images (frames flipped left to right), written as "
-                        "detections_<name>-mirror.hdf5, for training on mirrored rooms (`tsnav train --mirror`); the "
-                        "evaluation then scores them against the mirrored ground truth")
+    p.add_argument(
+        "--mirror",
+        action="store_true",
+        help="the tables of the rooms' mirror images (frames flipped left to right), written as "
+        "detections_<name>-mirror.hdf5, for training on mirrored rooms (`tsnav train --mirror`); the "
+        "evaluation then scores them against the mirrored ground truth",
+    )
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    p.add_argument("--workers", type=int, default=1,
-                   help="learned and shipped detectors: CPU processes sharing the rooms' tables, one thread each "
-                        "(e.g. 2 on a 2-core machine; the same tables for any value; default 1: this process)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="learned and shipped detectors: CPU processes sharing the rooms' tables, one thread each "
+        "(e.g. 2 on a 2-core machine; the same tables for any value; default 1: this process)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -103,6 +159,7 @@ def _sigterm_interrupts() -> None:
     """Turn SIGTERM into KeyboardInterrupt so that training saves a checkpoint before the process ends
     (background jobs ignore SIGINT)."""
     if threading.current_thread() is threading.main_thread():
+
         def handler(signum, frame):
             raise KeyboardInterrupt
 
@@ -140,19 +197,27 @@ def run(args: argparse.Namespace) -> int:
         if fp == fingerprint:
             done += 1
         elif fp is not None and not args.overwrite:
-            raise CommandError(f"{p / f'detections_{own}.hdf5'} was made by another detector ({fp}); use "
-                               f"--overwrite or another --name")
+            raise CommandError(
+                f"{p / f'detections_{own}.hdf5'} was made by another detector ({fp}); use --overwrite or another --name"
+            )
         else:
             todo.append(p)
     loaded = [_load(p, args.mirror) for p in todo]
-    bar = tqdm(total=sum(s.num_states for s in loaded), desc=f"detect {own}", unit="state",
-               disable=args.quiet, dynamic_ncols=True)
+    bar = tqdm(
+        total=sum(s.num_states for s in loaded),
+        desc=f"detect {own}",
+        unit="state",
+        disable=args.quiet,
+        dynamic_ncols=True,
+    )
     try:
         maker.write(loaded, name, own, bar, args.workers)
     finally:
         bar.close()
-    print(f"detections_{own}.hdf5: {len(loaded)} scenes written, {done} already done "
-          f"({sum(s.num_states for s in loaded)} states)")
+    print(
+        f"detections_{own}.hdf5: {len(loaded)} scenes written, {done} already done "
+        f"({sum(s.num_states for s in loaded)} states)"
+    )
 
     if not args.no_eval:
         eval_scenes = [_load(p, args.mirror) for p in list_scenes(root, split=args.eval_split)]
@@ -164,7 +229,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"evaluation of {own} on {args.eval_split} scenes:")
         print(report.format())
         out = root / "detectors" / f"{own}_eval_{args.eval_split}.json"
-        atomic_write_text(out, json.dumps({"detector": args.detector, "name": own, "fingerprint": fingerprint,
-                                           **report.to_json()}, indent=1))
+        atomic_write_text(
+            out,
+            json.dumps(
+                {"detector": args.detector, "name": own, "fingerprint": fingerprint, **report.to_json()}, indent=1
+            ),
+        )
         print(f"saved {out}")
     return 0

@@ -81,8 +81,13 @@ def scene_targets(scene: Scene, rows: np.ndarray | None = None) -> dict[str, np.
     ob = scene.boxes[rows][:, cols].astype(np.float32)
     ob = np.where(state[..., None] > 0, pixel_to_unit(ob, scene.image_size), 0.0).astype(np.float32)
     cat = np.broadcast_to(scene.object_category[cols].astype(np.int16), state.shape)
-    return {"present": present, "boxes": boxes.astype(np.float32), "obj_boxes": ob, "obj_category": cat,
-            "obj_state": state}
+    return {
+        "present": present,
+        "boxes": boxes.astype(np.float32),
+        "obj_boxes": ob,
+        "obj_category": cat,
+        "obj_state": state,
+    }
 
 
 def _pad(parts: list[np.ndarray], width: int, fill) -> np.ndarray:
@@ -93,8 +98,9 @@ def _pad(parts: list[np.ndarray], width: int, fill) -> np.ndarray:
     return np.concatenate(out)
 
 
-def load_frames(root: str | Path, split: str, max_states_per_scene: int | None = None, seed: int = 0,
-                progress: bool = False) -> FrameSet:
+def load_frames(
+    root: str | Path, split: str, max_states_per_scene: int | None = None, seed: int = 0, progress: bool = False
+) -> FrameSet:
     """Frames and targets of every complete scene of ``split`` under ``root`` (optionally a random subset of
     at most ``max_states_per_scene`` states per scene, drawn with ``seed``)."""
     paths = [p for p in list_scenes(root, split=split)]
@@ -119,12 +125,16 @@ def load_frames(root: str | Path, split: str, max_states_per_scene: int | None =
         names.append(s.name)
         sizes.append(len(rows))
     K = max(1, max(t["obj_category"].shape[1] for t in targets))
-    return FrameSet(images=np.concatenate(images), present=np.concatenate([t["present"] for t in targets]),
-                    boxes=np.concatenate([t["boxes"] for t in targets]),
-                    obj_boxes=_pad([t["obj_boxes"] for t in targets], K, 0.0),
-                    obj_category=_pad([t["obj_category"] for t in targets], K, -1),
-                    obj_state=_pad([t["obj_state"] for t in targets], K, 0),
-                    scenes=names, offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+    return FrameSet(
+        images=np.concatenate(images),
+        present=np.concatenate([t["present"] for t in targets]),
+        boxes=np.concatenate([t["boxes"] for t in targets]),
+        obj_boxes=_pad([t["obj_boxes"] for t in targets], K, 0.0),
+        obj_category=_pad([t["obj_category"] for t in targets], K, -1),
+        obj_state=_pad([t["obj_state"] for t in targets], K, 0),
+        scenes=names,
+        offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+    )
 
 
 def flip_boxes(boxes: torch.Tensor) -> torch.Tensor:

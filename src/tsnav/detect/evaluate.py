@@ -205,29 +205,47 @@ class DetectionReport:
 
     def to_json(self) -> dict:
         def rel(r: Reliability) -> dict:
-            return {"edges": r.edges.tolist(), "count": r.count.tolist(),
-                    "confidence": [None if np.isnan(x) else float(x) for x in r.confidence],
-                    "accuracy": [None if np.isnan(x) else float(x) for x in r.accuracy], "ece": r.ece}
+            return {
+                "edges": r.edges.tolist(),
+                "count": r.count.tolist(),
+                "confidence": [None if np.isnan(x) else float(x) for x in r.confidence],
+                "accuracy": [None if np.isnan(x) else float(x) for x in r.accuracy],
+                "ece": r.ece,
+            }
 
         def nn(x: float):
             return None if np.isnan(x) else float(x)
 
-        return {"scenes": self.scenes, "states": self.states,
-                "classes": {c: {"positives": int(self.positives[i]), "presence_ap": nn(self.presence_ap[i]),
-                                "box_ap50": nn(self.box_ap[i])} for i, c in enumerate(self.categories)},
-                "mean_presence_ap": nn(self.mean_presence_ap), "mean_box_ap50": nn(self.mean_box_ap),
-                "reliability": rel(self.reliability), "reliability_present": rel(self.reliability_present)}
+        return {
+            "scenes": self.scenes,
+            "states": self.states,
+            "classes": {
+                c: {
+                    "positives": int(self.positives[i]),
+                    "presence_ap": nn(self.presence_ap[i]),
+                    "box_ap50": nn(self.box_ap[i]),
+                }
+                for i, c in enumerate(self.categories)
+            },
+            "mean_presence_ap": nn(self.mean_presence_ap),
+            "mean_box_ap50": nn(self.mean_box_ap),
+            "reliability": rel(self.reliability),
+            "reliability_present": rel(self.reliability_present),
+        }
 
     def format(self) -> str:
         """Per-class AP table and reliability table as text."""
-        lines = [f"{len(self.scenes)} scenes, {self.states} states",
-                 f"{'class':<14} {'positives':>9} {'presence AP':>12} {'box AP@0.5':>11}"]
+        lines = [
+            f"{len(self.scenes)} scenes, {self.states} states",
+            f"{'class':<14} {'positives':>9} {'presence AP':>12} {'box AP@0.5':>11}",
+        ]
         for i, c in enumerate(self.categories):
             if self.positives[i] == 0:
                 continue
             lines.append(f"{c:<14} {int(self.positives[i]):9d} {self.presence_ap[i]:12.3f} {self.box_ap[i]:11.3f}")
-        lines.append(f"{'mean':<14} {int(self.positives.sum()):9d} {self.mean_presence_ap:12.3f} "
-                     f"{self.mean_box_ap:11.3f}")
+        lines.append(
+            f"{'mean':<14} {int(self.positives.sum()):9d} {self.mean_presence_ap:12.3f} {self.mean_box_ap:11.3f}"
+        )
         lines.append("reliability, all (state, class) pairs:")
         lines.append(self.reliability.format())
         lines.append("reliability, classes present in the scene:")
@@ -235,8 +253,9 @@ class DetectionReport:
         return "\n".join(lines)
 
 
-def evaluate_detections(scenes: Sequence, detections: Sequence[Detections], iou: float = 0.5,
-                        bins: int = 10) -> DetectionReport:
+def evaluate_detections(
+    scenes: Sequence, detections: Sequence[Detections], iou: float = 0.5, bins: int = 10
+) -> DetectionReport:
     """Evaluate per-scene tables ``detections`` (aligned with ``scenes``) against the ground truth."""
     if len(scenes) != len(detections):
         raise ValueError(f"{len(scenes)} scenes but {len(detections)} detection tables")
@@ -268,7 +287,13 @@ def evaluate_detections(scenes: Sequence, detections: Sequence[Detections], iou:
         p_ap[c] = average_precision(det.scores[:, c], present[:, c])
         k = kept[:, c]
         b_ap[c] = average_precision(det.scores[k, c], (present & overlap)[k, c], num_positives=npos)
-    return DetectionReport(presence_ap=p_ap, box_ap=b_ap, positives=present.sum(0),
-                           reliability=reliability_table(det.scores, present, bins),
-                           reliability_present=reliability_table(det.scores[in_scene], present[in_scene], bins),
-                           scenes=[s.name for s in scenes], states=int(len(present)), class_set=det.class_set)
+    return DetectionReport(
+        presence_ap=p_ap,
+        box_ap=b_ap,
+        positives=present.sum(0),
+        reliability=reliability_table(det.scores, present, bins),
+        reliability_present=reliability_table(det.scores[in_scene], present[in_scene], bins),
+        scenes=[s.name for s in scenes],
+        states=int(len(present)),
+        class_set=det.class_set,
+    )

@@ -26,8 +26,9 @@ from .train import load_model, predict, weights_fingerprint
 class LearnedDetector:
     """A trained, calibrated :class:`~tsnav.detect.model.GridDetector` loaded from a checkpoint folder."""
 
-    def __init__(self, model: GridDetector, temperature: float = 1.0, min_score: float = 0.05,
-                 meta: dict | None = None):
+    def __init__(
+        self, model: GridDetector, temperature: float = 1.0, min_score: float = 0.05, meta: dict | None = None
+    ):
         if not temperature > 0:
             raise ValueError(f"temperature must be positive, got {temperature}")
         self.model = model.eval()
@@ -58,12 +59,18 @@ class LearnedDetector:
         return int(self.model.cfg.num_classes)
 
     def config(self) -> dict:
-        return {"model": self.model.cfg.to_dict(), "temperature": self.temperature, "min_score": self.min_score,
-                "step": self.meta.get("step"), "train": self.meta.get("train"),
-                "calibration_split": self.meta.get("calibration_split")}
+        return {
+            "model": self.model.cfg.to_dict(),
+            "temperature": self.temperature,
+            "min_score": self.min_score,
+            "step": self.meta.get("step"),
+            "train": self.meta.get("train"),
+            "calibration_split": self.meta.get("calibration_split"),
+        }
 
-    def detect_images(self, images: np.ndarray, batch_size: int = 256
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def detect_images(
+        self, images: np.ndarray, batch_size: int = 256
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(scores ``(N, C)``, labels ``(N, C)``, pixel boxes ``(N, C, 4)``, features ``(N, C, dim)``) of
         uint8 frames ``(N, H, W, 3)``."""
         if images.ndim != 4 or images.shape[1:] != (self.image_size, self.image_size, 3):
@@ -76,15 +83,17 @@ class LearnedDetector:
         boxes = np.where(keep[..., None], boxes, -1.0).astype(np.float32)
         return scores.astype(np.float32), labels, boxes, feats
 
-    def detect_scene(self, scene: Scene, batch_size: int = 256, chunk: int = 2048, bar=None,
-                     transform=None) -> Detections:
+    def detect_scene(
+        self, scene: Scene, batch_size: int = 256, chunk: int = 2048, bar=None, transform=None
+    ) -> Detections:
         """The detection table of every state of ``scene`` (frames read ``chunk`` at a time; a mirrored scene's
         frames flipped left to right, :meth:`Scene.mirrored <tsnav.data.reader.Scene.mirrored>`, its table's
         ``config["mirror"]`` true). ``transform``, when given, maps each chunk of uint8 frames ``(n, H, W, 3)`` to the frames the detector sees (the same shape and
         dtype; e.g. ``scripts/noisy_tables.py``'s pixel noise), called once per chunk in state order."""
         if scene.image_size != self.image_size:
-            raise ValueError(f"scene {scene.name} has {scene.image_size}px frames; the detector takes "
-                             f"{self.image_size}px")
+            raise ValueError(
+                f"scene {scene.name} has {scene.image_size}px frames; the detector takes {self.image_size}px"
+            )
         check_same_class_set(self.class_set, scene.class_set, "the detector", f"scene {scene.name}")
         S, C = scene.num_states, self.num_classes
         scores = np.empty((S, C), np.float32)
@@ -92,20 +101,29 @@ class LearnedDetector:
         boxes = np.empty((S, C, 4), np.float32)
         feats = np.empty((S, C, self.model.cfg.dim), np.float16)
         for a in range(0, S, chunk):
-            img = read_images(scene.path, scene.keys[a:a + chunk])
+            img = read_images(scene.path, scene.keys[a : a + chunk])
             if scene.mirror:
                 img = np.ascontiguousarray(img[:, :, ::-1])
             if transform is not None:
                 img = transform(img)
             sc, lb, bx, ft = self.detect_images(img, batch_size)
             n = len(img)
-            scores[a:a + n], labels[a:a + n], boxes[a:a + n], feats[a:a + n] = sc, lb, bx, ft
+            scores[a : a + n], labels[a : a + n], boxes[a : a + n], feats[a : a + n] = sc, lb, bx, ft
             if bar is not None:
                 bar.update(n)
         config = dict(self.config(), mirror=True) if scene.mirror else self.config()
-        return Detections(keys=scene.keys, scores=scores, labels=labels, boxes=boxes, features=feats,
-                          detector="learned", config=config, fingerprint=self.fingerprint,
-                          image_size=self.image_size, class_set=self.class_set)
+        return Detections(
+            keys=scene.keys,
+            scores=scores,
+            labels=labels,
+            boxes=boxes,
+            features=feats,
+            detector="learned",
+            config=config,
+            fingerprint=self.fingerprint,
+            image_size=self.image_size,
+            class_set=self.class_set,
+        )
 
 
 def write_scene_tables(det: LearnedDetector, scenes: list[Scene], name: str, bar=None, workers: int = 1) -> None:

@@ -75,8 +75,9 @@ class DetectorConfig:
         if self.num_classes is None:
             self.num_classes = n
         elif int(self.num_classes) != n:
-            raise ValueError(f"detector config: num_classes {self.num_classes} but class set {self.class_set} "
-                             f"has {n} classes")
+            raise ValueError(
+                f"detector config: num_classes {self.num_classes} but class set {self.class_set} has {n} classes"
+            )
 
     @property
     def grid(self) -> int:
@@ -114,8 +115,11 @@ def default_config(image_size: int, class_set: str = DEFAULT_CLASS_SET) -> Detec
 
 
 def _conv(cin: int, cout: int, stride: int, dilation: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, dilation, dilation=dilation, bias=False),
-                         nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride, dilation, dilation=dilation, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
 
 
 def cell_centres(grid: int) -> torch.Tensor:
@@ -132,12 +136,20 @@ class GridDetector(nn.Module):
         super().__init__()
         self.cfg = cfg = cfg or DetectorConfig()
         if cfg.stem < 1 or cfg.image_size % (8 * cfg.stem) or cfg.image_size < 16 * cfg.stem:
-            raise ValueError(f"image_size must be a multiple of {8 * cfg.stem} and at least {16 * cfg.stem} "
-                             f"(stem {cfg.stem}), got {cfg.image_size}")
+            raise ValueError(
+                f"image_size must be a multiple of {8 * cfg.stem} and at least {16 * cfg.stem} "
+                f"(stem {cfg.stem}), got {cfg.image_size}"
+            )
         w1, w2, w3 = cfg.widths
         C = cfg.num_classes
-        self.backbone = nn.Sequential(_conv(3 * cfg.stem ** 2, w1, 2), _conv(w1, w2, 2), _conv(w2, w2, 1), _conv(w2, w3, 2),
-                                      _conv(w3, w3, 1), _conv(w3, w3, 1, dilation=2))
+        self.backbone = nn.Sequential(
+            _conv(3 * cfg.stem**2, w1, 2),
+            _conv(w1, w2, 2),
+            _conv(w2, w2, 1),
+            _conv(w2, w3, 2),
+            _conv(w3, w3, 1),
+            _conv(w3, w3, 1, dilation=2),
+        )
         self.neck = nn.Sequential(nn.Conv2d(w3, cfg.dim, 1), nn.ReLU(inplace=True))
         if cfg.fine:
             self.lateral = nn.Conv2d(w2, cfg.dim, 1)
@@ -151,7 +163,7 @@ class GridDetector(nn.Module):
         with torch.no_grad():
             self.box_head.bias.copy_(torch.tensor([-0.1, -0.1, 0.1, 0.1]).repeat(C))
         # Presence logit at start: -4.6 + ln(L) + bias = -3, about the base rate of a class in view.
-        self.class_bias = nn.Parameter(torch.full((C,), 1.6 - float(np.log(cfg.grid ** 2))))
+        self.class_bias = nn.Parameter(torch.full((C,), 1.6 - float(np.log(cfg.grid**2))))
         self.register_buffer("centres", cell_centres(cfg.grid), persistent=False)
 
     @staticmethod
@@ -178,8 +190,9 @@ class GridDetector(nn.Module):
         hi = torch.maximum(raw[..., :2], raw[..., 2:])
         return logits, torch.cat([lo, hi], dim=-1), f.flatten(2).transpose(1, 2)
 
-    def pool(self, logits: torch.Tensor, boxes: torch.Tensor, feats: torch.Tensor
-             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def pool(
+        self, logits: torch.Tensor, boxes: torch.Tensor, feats: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per image and class: (presence logit ``[N, C]`` = logsumexp over cells + class bias, box of the
         best cell ``[N, C, 4]`` clipped to [0, 1], feature of the best cell ``[N, C, dim]``)."""
         presence = torch.logsumexp(logits, dim=-1) + self.class_bias
@@ -195,8 +208,9 @@ class GridDetector(nn.Module):
 
 
 # ---------------------------------------------------------------------------------------------- targets
-def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tensor, grid: int,
-                  num_classes: int = NUM_CATEGORIES) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def dense_targets(
+    boxes: torch.Tensor, category: torch.Tensor, state: torch.Tensor, grid: int, num_classes: int = NUM_CATEGORIES
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-cell training targets (module docstring), batched.
 
     Args:
@@ -226,21 +240,23 @@ def dense_targets(boxes: torch.Tensor, category: torch.Tensor, state: torch.Tens
     vis = claims & (state == 2)[..., None]  # [B, K, L]
     weak = claims & (state == 1)[..., None]
     inf = torch.tensor(float("inf"), device=boxes.device)
-    area = ((boxes[..., 2] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 1]))  # [B, K]
+    area = (boxes[..., 2] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 1])  # [B, K]
     masked = torch.where(vis, area[..., None], inf)  # [B, K, L]
     smallest = torch.full((B, num_classes + 1, L), float("inf"), device=boxes.device)
     smallest = smallest.scatter_reduce(1, index, masked, reduce="amin")  # [B, 23, L]
     positive = torch.isfinite(smallest[:, :num_classes])  # [B, C, L]
     # The first object of the class whose area is the smallest (the reference's tie rule).
-    first = torch.where(vis & (masked == torch.gather(smallest, 1, index)),
-                        torch.arange(K, device=boxes.device)[None, :, None], K)  # [B, K, L]
+    first = torch.where(
+        vis & (masked == torch.gather(smallest, 1, index)), torch.arange(K, device=boxes.device)[None, :, None], K
+    )  # [B, K, L]
     k = torch.full((B, num_classes + 1, L), K, device=boxes.device, dtype=torch.long)
     k = k.scatter_reduce(1, index, first, reduce="amin")[:, :num_classes].clamp(max=max(K - 1, 0))
     weak_c = torch.zeros((B, num_classes + 1, L), device=boxes.device, dtype=torch.long)
     weak_c = weak_c.scatter_reduce(1, index, weak.long(), reduce="amax")[:, :num_classes].bool()
     ignore = weak_c & ~positive
-    target = torch.gather(boxes[:, None, :, :].expand(-1, num_classes, -1, -1), 2,
-                          k[..., None].expand(-1, -1, -1, 4))  # [B, C, L, 4]
+    target = torch.gather(
+        boxes[:, None, :, :].expand(-1, num_classes, -1, -1), 2, k[..., None].expand(-1, -1, -1, 4)
+    )  # [B, C, L, 4]
     target = torch.where(positive[..., None], target, torch.zeros_like(target))
     return positive, ignore, target
 
@@ -329,9 +345,15 @@ def focal_loss(logits: torch.Tensor, positive: torch.Tensor, alpha: float, gamma
     return (alpha * t + (1 - alpha) * (1 - t)) * (1 - pt) ** gamma * ce
 
 
-def detection_loss(model: GridDetector, x: torch.Tensor, present: torch.Tensor, boxes: torch.Tensor,
-                   category: torch.Tensor, state: torch.Tensor, w: LossWeights | None = None
-                   ) -> tuple[torch.Tensor, dict[str, float]]:
+def detection_loss(
+    model: GridDetector,
+    x: torch.Tensor,
+    present: torch.Tensor,
+    boxes: torch.Tensor,
+    category: torch.Tensor,
+    state: torch.Tensor,
+    w: LossWeights | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss and its terms for normalised frames ``x`` with per-image ``present`` ``[B, C]`` and
     per-object ``boxes`` / ``category`` / ``state`` ``[B, K, ...]`` (see :func:`dense_targets`)."""
     w = w or LossWeights()
@@ -344,8 +366,9 @@ def detection_loss(model: GridDetector, x: torch.Tensor, present: torch.Tensor, 
     if w.presence_pos_weight == 1.0:  # the call every existing detector was trained with, kept bit for bit
         bce = F.binary_cross_entropy_with_logits(presence_logit, present.float())
     else:
-        bce = F.binary_cross_entropy_with_logits(presence_logit, present.float(),
-                                                 pos_weight=presence_logit.new_tensor(w.presence_pos_weight))
+        bce = F.binary_cross_entropy_with_logits(
+            presence_logit, present.float(), pos_weight=presence_logit.new_tensor(w.presence_pos_weight)
+        )
     if positive.any():
         pb, tb = cell_boxes[positive], target[positive]
         l1 = (pb - tb).abs().sum(-1).mean()

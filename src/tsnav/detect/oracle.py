@@ -156,8 +156,9 @@ def ground_truth_reference(scene: Scene) -> GroundTruth:
     return GroundTruth(present, boxes, pixels, distance, instance)
 
 
-def oracle_confidence(pixels: np.ndarray, distance: np.ndarray, image_size: int,
-                      cfg: OracleConfig | None = None) -> np.ndarray:
+def oracle_confidence(
+    pixels: np.ndarray, distance: np.ndarray, image_size: int, cfg: OracleConfig | None = None
+) -> np.ndarray:
     """Oracle confidence (float32 in [0, 1]) of instances showing ``pixels`` pixels at ``distance`` metres in a
     ``image_size``-square frame; 0 where ``pixels`` is 0. Formula in the module docstring."""
     cfg = cfg or OracleConfig()
@@ -190,10 +191,14 @@ def oracle_features(gt: GroundTruth, conf: np.ndarray, image_size: int, seed: in
     g = np.stack([(x0 + x1) / 2 / W, (y0 + y1) / 2 / W, (x1 - x0) / W, (y1 - y0) / W], axis=-1)  # (S, C, 4)
     ang = np.pi * g[..., None, :] * (2.0 ** np.arange(_FOURIER_OCTAVES, dtype=np.float32))[:, None]  # (S,C,3,4)
     four = np.concatenate([np.sin(ang), np.cos(ang)], axis=-2).reshape(S, C, -1) * pres
-    frac = gt.pixels.astype(np.float32) / W ** 2
+    frac = gt.pixels.astype(np.float32) / W**2
     no_distance = np.zeros_like(frac)  # slot 59: the true distance until version 1; nothing privileged now
-    tail = np.stack([conf, gt.present.astype(np.float32), np.sqrt(frac), no_distance, x0 / W, y0 / W, x1 / W, y1 / W],
-                    axis=-1) * pres
+    tail = (
+        np.stack(
+            [conf, gt.present.astype(np.float32), np.sqrt(frac), no_distance, x0 / W, y0 / W, x1 / W, y1 / W], axis=-1
+        )
+        * pres
+    )
     out = np.concatenate([code, four, tail], axis=-1)
     assert out.shape[-1] == ORACLE_FEATURE_DIM
     return out.astype(np.float16)
@@ -208,7 +213,15 @@ def oracle_detections(scene: Scene, cfg: OracleConfig | None = None) -> Detectio
     conf = oracle_confidence(gt.pixels, gt.distance, scene.image_size, cfg)
     labels = np.where(gt.present, np.arange(scene.num_categories, dtype=np.int16)[None, :], -1).astype(np.int16)
     # The columns are the scene's class set's (recorded in the table, which only scenes of that set read).
-    return Detections(keys=scene.keys, scores=conf, labels=labels, boxes=gt.boxes,
-                      features=oracle_features(gt, conf, scene.image_size, cfg.seed), detector="oracle",
-                      config=dict(asdict(cfg), mirror=True) if scene.mirror else asdict(cfg),
-                      fingerprint=cfg.fingerprint(), image_size=scene.image_size, class_set=scene.class_set.name)
+    return Detections(
+        keys=scene.keys,
+        scores=conf,
+        labels=labels,
+        boxes=gt.boxes,
+        features=oracle_features(gt, conf, scene.image_size, cfg.seed),
+        detector="oracle",
+        config=dict(asdict(cfg), mirror=True) if scene.mirror else asdict(cfg),
+        fingerprint=cfg.fingerprint(),
+        image_size=scene.image_size,
+        class_set=scene.class_set.name,
+    )

@@ -106,27 +106,46 @@ class SwitchReport:
         return self.episode_reached / self.episode_pairs if self.episode_pairs else float("nan")
 
     def to_json(self) -> dict:
-        return {"c_target": self.c_target, "pairs": self.pairs, "reached": self.reached,
-                "reached_in_view": self.reached_in_view, "reach": self.reach, "episode_pairs": self.episode_pairs,
-                "episode_reached": self.episode_reached, "episode_reach": self.episode_reach,
-                "classes": {c: {"pairs": int(self.class_pairs[i]), "reached": int(self.class_reached[i])}
-                            for i, c in enumerate(get_class_set(self.class_set).categories) if self.class_pairs[i]},
-                "false_positives": {"state_any": _keys(self.fp_state_any), "state_target": _keys(self.fp_state_target),
-                                    "pair_any": _keys(self.fp_pair_any), "pair_target": _keys(self.fp_pair_target)},
-                "states": self.states, "scenes": self.scenes}
+        return {
+            "c_target": self.c_target,
+            "pairs": self.pairs,
+            "reached": self.reached,
+            "reached_in_view": self.reached_in_view,
+            "reach": self.reach,
+            "episode_pairs": self.episode_pairs,
+            "episode_reached": self.episode_reached,
+            "episode_reach": self.episode_reach,
+            "classes": {
+                c: {"pairs": int(self.class_pairs[i]), "reached": int(self.class_reached[i])}
+                for i, c in enumerate(get_class_set(self.class_set).categories)
+                if self.class_pairs[i]
+            },
+            "false_positives": {
+                "state_any": _keys(self.fp_state_any),
+                "state_target": _keys(self.fp_state_target),
+                "pair_any": _keys(self.fp_pair_any),
+                "pair_target": _keys(self.fp_pair_target),
+            },
+            "states": self.states,
+            "scenes": self.scenes,
+        }
 
     def format(self) -> str:
-        lines = [f"{len(self.scenes)} scenes, {self.states} states",
-                 f"(scene, target) pairs reaching confidence > {self.c_target:g}: {self.reached} / {self.pairs} "
-                 f"({100 * self.reach:.1f} %); with the target in view: {self.reached_in_view}",
-                 f"of the pairs episodes ask for (a success state exists): {self.episode_reached} / "
-                 f"{self.episode_pairs} ({100 * self.episode_reach:.1f} %)",
-                 "false positives (class not in view scores above t):",
-                 f"{'t':>5} {'states, any class':>18} {'states, scene targets':>22} {'pairs, any':>11} "
-                 f"{'pairs, targets':>15}"]
+        lines = [
+            f"{len(self.scenes)} scenes, {self.states} states",
+            f"(scene, target) pairs reaching confidence > {self.c_target:g}: {self.reached} / {self.pairs} "
+            f"({100 * self.reach:.1f} %); with the target in view: {self.reached_in_view}",
+            f"of the pairs episodes ask for (a success state exists): {self.episode_reached} / "
+            f"{self.episode_pairs} ({100 * self.episode_reach:.1f} %)",
+            "false positives (class not in view scores above t):",
+            f"{'t':>5} {'states, any class':>18} {'states, scene targets':>22} {'pairs, any':>11} "
+            f"{'pairs, targets':>15}",
+        ]
         for t in sorted(self.fp_state_any):
-            lines.append(f"{t:5.2f} {100 * self.fp_state_any[t]:17.2f}% {100 * self.fp_state_target[t]:21.2f}% "
-                         f"{100 * self.fp_pair_any[t]:10.3f}% {100 * self.fp_pair_target[t]:14.3f}%")
+            lines.append(
+                f"{t:5.2f} {100 * self.fp_state_any[t]:17.2f}% {100 * self.fp_state_target[t]:21.2f}% "
+                f"{100 * self.fp_pair_any[t]:10.3f}% {100 * self.fp_pair_target[t]:14.3f}%"
+            )
         return "\n".join(lines)
 
 
@@ -134,8 +153,12 @@ def _keys(d: dict) -> dict:
     return {f"{k:g}": float(v) for k, v in d.items()}
 
 
-def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: float = C_TARGET,
-                  thresholds: Sequence[float] = FP_THRESHOLDS) -> SwitchReport:
+def switch_report(
+    scenes: Sequence,
+    detections: Sequence[Detections],
+    c_target: float = C_TARGET,
+    thresholds: Sequence[float] = FP_THRESHOLDS,
+) -> SwitchReport:
     """Reach and false positives (module docstring) of per-scene tables ``detections`` aligned with
     ``scenes``."""
     if len(scenes) != len(detections):
@@ -179,14 +202,23 @@ def switch_report(scenes: Sequence, detections: Sequence[Detections], c_target: 
     def share(x: int, n: int) -> float:
         return x / n if n else float("nan")
 
-    return SwitchReport(c_target=c_target, pairs=int(class_pairs.sum()), reached=int(class_reached.sum()),
-                        reached_in_view=in_view_reached, class_pairs=class_pairs, class_reached=class_reached,
-                        fp_state_any={t: share(v, n_states) for t, v in fp_s_any.items()},
-                        fp_state_target={t: share(v, n_states) for t, v in fp_s_tgt.items()},
-                        fp_pair_any={t: share(v, neg_any) for t, v in fp_p_any.items()},
-                        fp_pair_target={t: share(v, neg_tgt) for t, v in fp_p_tgt.items()},
-                        states=n_states, scenes=[s.name for s in scenes], episode_pairs=episode_pairs,
-                        episode_reached=episode_reached, class_set=classes.name)
+    return SwitchReport(
+        c_target=c_target,
+        pairs=int(class_pairs.sum()),
+        reached=int(class_reached.sum()),
+        reached_in_view=in_view_reached,
+        class_pairs=class_pairs,
+        class_reached=class_reached,
+        fp_state_any={t: share(v, n_states) for t, v in fp_s_any.items()},
+        fp_state_target={t: share(v, n_states) for t, v in fp_s_tgt.items()},
+        fp_pair_any={t: share(v, neg_any) for t, v in fp_p_any.items()},
+        fp_pair_target={t: share(v, neg_tgt) for t, v in fp_p_tgt.items()},
+        states=n_states,
+        scenes=[s.name for s in scenes],
+        episode_pairs=episode_pairs,
+        episode_reached=episode_reached,
+        class_set=classes.name,
+    )
 
 
 def subset_ap(scores: np.ndarray, present: np.ndarray, subset: np.ndarray) -> np.ndarray:
@@ -211,7 +243,7 @@ def subset_report(scenes: Sequence, detections: Sequence[Detections]) -> dict:
         gt = ground_truth(s)
         scores.append(d.scores)
         present.append(gt.present)
-        pixels.append(gt.pixels / float(s.image_size ** 2))
+        pixels.append(gt.pixels / float(s.image_size**2))
         distance.append(gt.distance)
     scores, present = np.concatenate(scores), np.concatenate(present)
     share, distance = np.concatenate(pixels), np.concatenate(distance)
@@ -223,10 +255,11 @@ def subset_report(scenes: Sequence, detections: Sequence[Detections]) -> dict:
     out = {}
     for name, sub in subsets.items():
         ap = subset_ap(scores, present, sub)
-        out[name] = {"mean_presence_ap": float(np.nanmean(ap)) if np.isfinite(ap).any() else None,
-                     "positives": int((present & sub).sum()),
-                     "classes": {c: float(ap[i]) for i, c in enumerate(scenes[0].class_set.categories)
-                                 if np.isfinite(ap[i])}}
+        out[name] = {
+            "mean_presence_ap": float(np.nanmean(ap)) if np.isfinite(ap).any() else None,
+            "positives": int((present & sub).sum()),
+            "classes": {c: float(ap[i]) for i, c in enumerate(scenes[0].class_set.categories) if np.isfinite(ap[i])},
+        }
     return out
 
 
@@ -235,13 +268,18 @@ def format_subsets(report: dict) -> str:
     lines = [f"{'subset':<16} {'positives':>9} {'classes':>7} {'mean presence AP':>17}"]
     for name, r in report.items():
         ap = r["mean_presence_ap"]
-        lines.append(f"{name:<16} {r['positives']:9d} {len(r['classes']):7d} "
-                     f"{(f'{ap:.3f}' if ap is not None else '-'):>17}")
+        lines.append(
+            f"{name:<16} {r['positives']:9d} {len(r['classes']):7d} {(f'{ap:.3f}' if ap is not None else '-'):>17}"
+        )
     return "\n".join(lines)
 
 
-def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], c_target: float = C_TARGET,
-                            thresholds: Sequence[float] = FP_THRESHOLDS) -> dict:
+def switch_report_reference(
+    scenes: Sequence,
+    detections: Sequence[Detections],
+    c_target: float = C_TARGET,
+    thresholds: Sequence[float] = FP_THRESHOLDS,
+) -> dict:
     """Slow reference for :func:`switch_report` (loops over scenes, classes and states); returns
     ``{"pairs", "reached", "reached_in_view", "episode_pairs", "episode_reached", "fp_state_any",
     "fp_state_target", "fp_pair_any", "fp_pair_target"}`` with the same meaning."""
@@ -251,8 +289,11 @@ def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], 
     for s, d in zip(scenes, detections):
         gt = ground_truth(s).present
         rooms = s.class_set.room_targets
-        targets = [c for c in s.categories_present()
-                   if s.room_type not in rooms or s.class_set.categories[c] in rooms[s.room_type]]
+        targets = [
+            c
+            for c in s.categories_present()
+            if s.room_type not in rooms or s.class_set.categories[c] in rooms[s.room_type]
+        ]
         success = s.category_visible_within(SUCCESS_DISTANCE)
         for c in targets:
             pairs += 1
@@ -272,11 +313,17 @@ def switch_report_reference(scenes: Sequence, detections: Sequence[Detections], 
                 cnt["pt"][t] += sum(c in targets for c in bad)
             neg_any += sum(not gt[i, c] for c in range(s.num_categories))
             neg_tgt += sum(not gt[i, c] for c in targets)
-    return {"pairs": pairs, "reached": reached, "reached_in_view": in_view, "episode_pairs": episode_pairs,
-            "episode_reached": episode_reached, "fp_state_any": {t: v / states for t, v in cnt["sa"].items()},
-            "fp_state_target": {t: v / states for t, v in cnt["st"].items()},
-            "fp_pair_any": {t: v / neg_any for t, v in cnt["pa"].items()},
-            "fp_pair_target": {t: v / neg_tgt for t, v in cnt["pt"].items()}}
+    return {
+        "pairs": pairs,
+        "reached": reached,
+        "reached_in_view": in_view,
+        "episode_pairs": episode_pairs,
+        "episode_reached": episode_reached,
+        "fp_state_any": {t: v / states for t, v in cnt["sa"].items()},
+        "fp_state_target": {t: v / states for t, v in cnt["st"].items()},
+        "fp_pair_any": {t: v / neg_any for t, v in cnt["pa"].items()},
+        "fp_pair_target": {t: v / neg_tgt for t, v in cnt["pt"].items()},
+    }
 
 
 # ---------------------------------------------------------------------------------------------- figures
@@ -291,8 +338,7 @@ def reliability_figure(tables: Sequence[tuple[str, object]], path: str | Path, t
     for k, (label, rel) in enumerate(tables):
         ok = rel.count > 0
         c = colors[k % len(colors)]
-        a0.plot(rel.confidence[ok], rel.accuracy[ok], "o-", color=c, ms=4,
-                label=f"{label} (ECE {100 * rel.ece:.2f} %)")
+        a0.plot(rel.confidence[ok], rel.accuracy[ok], "o-", color=c, ms=4, label=f"{label} (ECE {100 * rel.ece:.2f} %)")
         centres = (rel.edges[:-1] + rel.edges[1:]) / 2
         w = (rel.edges[1] - rel.edges[0]) / (len(tables) + 1)
         a1.bar(centres + (k - (len(tables) - 1) / 2) * w, rel.count, width=w, color=c, label=label)
@@ -327,8 +373,15 @@ def pick_gallery_states(scenes: Sequence, per_scene: int = 2, seed: int = 0) -> 
     return out
 
 
-def detection_gallery(scenes: Sequence, detections: Sequence[Detections], picks: Sequence[tuple[int, int]],
-                      path: str | Path, min_score: float = 0.5, cols: int = 6, title: str = "") -> Path:
+def detection_gallery(
+    scenes: Sequence,
+    detections: Sequence[Detections],
+    picks: Sequence[tuple[int, int]],
+    path: str | Path,
+    min_score: float = 0.5,
+    cols: int = 6,
+    title: str = "",
+) -> Path:
     """Grid of frames (atomic PNG): the detector's boxes of every class scoring at least ``min_score``
     (solid, green when the class is in view and the box overlaps the truth with IoU >= 0.5, orange when in
     view but the box misses, red when the class is not in view), labelled with class and score; the
@@ -349,8 +402,9 @@ def detection_gallery(scenes: Sequence, detections: Sequence[Detections], picks:
         ax.imshow(img, interpolation="nearest")
         for c in np.flatnonzero(gt.present[j]):
             x0, y0, x1, y1 = gt.boxes[j, c]
-            ax.add_patch(Rectangle((x0 - 0.5, y0 - 0.5), x1 - x0 + 1, y1 - y0 + 1, fill=False,
-                                            ec="white", ls="--", lw=0.9))
+            ax.add_patch(
+                Rectangle((x0 - 0.5, y0 - 0.5), x1 - x0 + 1, y1 - y0 + 1, fill=False, ec="white", ls="--", lw=0.9)
+            )
         shown = [c for c in np.argsort(-d.scores[j]) if d.scores[j, c] >= min_score and d.labels[j, c] >= 0]
         for c in shown:
             x0, y0, x1, y1 = d.boxes[j, c]
@@ -360,13 +414,18 @@ def detection_gallery(scenes: Sequence, detections: Sequence[Detections], picks:
                 col = "#20e020"
             else:
                 col = "#ff9900"
-            ax.add_patch(Rectangle((x0 - 0.5, y0 - 0.5), x1 - x0 + 1, y1 - y0 + 1, fill=False, ec=col,
-                                            lw=1.4))
-            ax.text(x0, max(y0 - 1, 0), f"{s.class_set.categories[c]} {d.scores[j, c]:.2f}", color="black",
-                    fontsize=5.5, va="bottom", bbox=dict(facecolor=col, alpha=0.8, pad=0.6, lw=0))
+            ax.add_patch(Rectangle((x0 - 0.5, y0 - 0.5), x1 - x0 + 1, y1 - y0 + 1, fill=False, ec=col, lw=1.4))
+            ax.text(
+                x0,
+                max(y0 - 1, 0),
+                f"{s.class_set.categories[c]} {d.scores[j, c]:.2f}",
+                color="black",
+                fontsize=5.5,
+                va="bottom",
+                bbox=dict(facecolor=col, alpha=0.8, pad=0.6, lw=0),
+            )
         missed = [s.class_set.categories[c] for c in np.flatnonzero(gt.present[j]) if d.scores[j, c] < min_score]
-        ax.set_title(f"{s.name} {s.keys[j]}" + (f"\nmissed: {', '.join(missed)}" if missed else "\n"),
-                     fontsize=6.5)
+        ax.set_title(f"{s.name} {s.keys[j]}" + (f"\nmissed: {', '.join(missed)}" if missed else "\n"), fontsize=6.5)
     if title:
         fig.suptitle(title, fontsize=11)
     return atomic_save_figure(fig, path, dpi=90)
@@ -376,7 +435,9 @@ def detection_gallery(scenes: Sequence, detections: Sequence[Detections], picks:
 def main(argv: Sequence[str] | None = None) -> int:
     """Evaluate stored tables ``detections_<name>.hdf5`` of a split: AP, calibration, reach, false
     positives; writes ``quality_<split>.json``, ``reliability_<split>.png`` and ``gallery_<split>.png``."""
-    ap = argparse.ArgumentParser(allow_abbrev=False, prog="python -m tsnav.detect.quality", description=main.__doc__.split(";")[0])
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="python -m tsnav.detect.quality", description=main.__doc__.split(";")[0]
+    )
     ap.add_argument("--data", required=True, help="dataset root")
     ap.add_argument("--name", default="learned", help="table name detections_<name>.hdf5 (default learned)")
     ap.add_argument("--split", default="val", help="scenes of this split (default val)")
@@ -394,19 +455,37 @@ def main(argv: Sequence[str] | None = None) -> int:
     subsets = subset_report(scenes, dets)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / f"quality_{args.split}.json",
-                      {"name": args.name, "detector": dets[0].detector, "fingerprint": dets[0].fingerprint,
-                       "config": dets[0].config, "evaluation": report.to_json(), "switch": switch.to_json(),
-                       "subsets": subsets},
-                      indent=1)
-    reliability_figure([("all (state, class) pairs", report.reliability),
-                        ("classes present in the scene", report.reliability_present)],
-                       out / f"reliability_{args.split}.png",
-                       title=f"detector '{args.name}' on {len(scenes)} {args.split} scenes")
+    atomic_write_json(
+        out / f"quality_{args.split}.json",
+        {
+            "name": args.name,
+            "detector": dets[0].detector,
+            "fingerprint": dets[0].fingerprint,
+            "config": dets[0].config,
+            "evaluation": report.to_json(),
+            "switch": switch.to_json(),
+            "subsets": subsets,
+        },
+        indent=1,
+    )
+    reliability_figure(
+        [
+            ("all (state, class) pairs", report.reliability),
+            ("classes present in the scene", report.reliability_present),
+        ],
+        out / f"reliability_{args.split}.png",
+        title=f"detector '{args.name}' on {len(scenes)} {args.split} scenes",
+    )
     picks = pick_gallery_states(scenes, args.gallery_per_scene)
-    detection_gallery(scenes, dets, picks, out / f"gallery_{args.split}.png", cols=5,
-                      title=f"detector '{args.name}', {args.split} frames: boxes scoring >= 0.5 (green hit, orange "
-                            f"box missed, red class not in view), ground truth dashed")
+    detection_gallery(
+        scenes,
+        dets,
+        picks,
+        out / f"gallery_{args.split}.png",
+        cols=5,
+        title=f"detector '{args.name}', {args.split} frames: boxes scoring >= 0.5 (green hit, orange "
+        f"box missed, red class not in view), ground truth dashed",
+    )
     print(report.format())
     print(switch.format())
     print("presence AP by the target's size in the frame, and within 1.5 m (AI2-THOR-style, beside the above):")

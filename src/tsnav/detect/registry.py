@@ -85,6 +85,7 @@ def _open_oracle(args, root: Path, scenes: list, name: str) -> TableMaker:
             if bar is not None:
                 bar.update(det.num_states)
             write_detections(s.path, own, det)
+
     return TableMaker(cfg.fingerprint(), write)
 
 
@@ -92,8 +93,9 @@ def _open_oracle(args, root: Path, scenes: list, name: str) -> TableMaker:
 def _network_maker(det) -> TableMaker:
     from .learned import write_scene_tables
 
-    return TableMaker(det.fingerprint, lambda loaded, name, own, bar, workers: write_scene_tables(
-        det, loaded, name, bar, workers))
+    return TableMaker(
+        det.fingerprint, lambda loaded, name, own, bar, workers: write_scene_tables(det, loaded, name, bar, workers)
+    )
 
 
 def _same_classes(det, what: str, root: Path, scenes: list):
@@ -130,16 +132,18 @@ def _learned(args, root: Path):
         raise CommandError("--batch-size must be at least 1")
     if args.repeat_threshold is not None and not args.repeat_threshold >= 0:
         raise CommandError(f"--repeat-threshold must be >= 0, got {args.repeat_threshold}")
-    if args.hard_negative_weight is not None and not (args.hard_negative_weight >= 0
-                                                      and math.isfinite(args.hard_negative_weight)):
+    if args.hard_negative_weight is not None and not (
+        args.hard_negative_weight >= 0 and math.isfinite(args.hard_negative_weight)
+    ):
         raise CommandError(f"--hard-negative-weight must be a finite number >= 0, got {args.hard_negative_weight}")
     if args.hard_negative_threshold is not None:
         if not args.hard_negative_weight:
             raise CommandError("--hard-negative-threshold needs --hard-negative-weight")
         if not 0 < args.hard_negative_threshold < 1:
             raise CommandError(f"--hard-negative-threshold must be in (0, 1), got {args.hard_negative_threshold}")
-    if args.presence_pos_weight is not None and not (args.presence_pos_weight > 0
-                                                     and math.isfinite(args.presence_pos_weight)):
+    if args.presence_pos_weight is not None and not (
+        args.presence_pos_weight > 0 and math.isfinite(args.presence_pos_weight)
+    ):
         raise CommandError(f"--presence-pos-weight must be a finite number > 0, got {args.presence_pos_weight}")
     if args.focal_alpha is not None and not 0 < args.focal_alpha < 1:
         raise CommandError(f"--focal-alpha must be in (0, 1), got {args.focal_alpha}")
@@ -150,12 +154,19 @@ def _learned(args, root: Path):
     model_cfg = _model_config(args, root)
     steps = args.train_steps
     if steps is None:  # an existing checkpoint: finish its own target (a no-op when it is finished)
-        steps = (int(read_meta(ckpt).get("train", {}).get("steps", 0)) if is_checkpoint(ckpt)
-                 else default_train_steps(model_cfg.image_size))
-    tc = DetectorTrainConfig(steps=steps, threads=args.threads, max_states_per_scene=args.max_states_per_scene,
-                             repeat_threshold=args.repeat_threshold or 0.0,
-                             hard_negative_weight=args.hard_negative_weight or 0.0,
-                             hard_negative_threshold=args.hard_negative_threshold or 0.5)
+        steps = (
+            int(read_meta(ckpt).get("train", {}).get("steps", 0))
+            if is_checkpoint(ckpt)
+            else default_train_steps(model_cfg.image_size)
+        )
+    tc = DetectorTrainConfig(
+        steps=steps,
+        threads=args.threads,
+        max_states_per_scene=args.max_states_per_scene,
+        repeat_threshold=args.repeat_threshold or 0.0,
+        hard_negative_weight=args.hard_negative_weight or 0.0,
+        hard_negative_threshold=args.hard_negative_threshold or 0.5,
+    )
     if args.batch_size:
         tc.batch_size = args.batch_size
     if args.presence_pos_weight is not None or args.focal_alpha is not None:
@@ -167,8 +178,10 @@ def _learned(args, root: Path):
         tc.loss = loss
     res = train_detector(root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet)
     if res.step > res.start_step:
-        print(f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "
-              f"(last loss {res.last.get('loss', float('nan')):.3f}); checkpoint {ckpt}")
+        print(
+            f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "
+            f"(last loss {res.last.get('loss', float('nan')):.3f}); checkpoint {ckpt}"
+        )
     else:
         print(f"detector checkpoint {ckpt} at step {res.step}")
     try:
@@ -209,9 +222,30 @@ def _model_config(args, root: Path):
     return cfg
 
 
-register_detector(DetectorKind("oracle", "ground truth from the renderer's instance ids (a hand-made confidence)",
-                               "oracle", trained=False, open=_open_oracle))
-register_detector(DetectorKind("learned", "the grid detector, trained on the train rooms and calibrated on val",
-                               "learned", trained=True, open=_open_learned))
-register_detector(DetectorKind("shipped", "a learned detector that comes with tsnav (128-px ithor-real rooms)",
-                               "learned", trained=True, open=_open_shipped))
+register_detector(
+    DetectorKind(
+        "oracle",
+        "ground truth from the renderer's instance ids (a hand-made confidence)",
+        "oracle",
+        trained=False,
+        open=_open_oracle,
+    )
+)
+register_detector(
+    DetectorKind(
+        "learned",
+        "the grid detector, trained on the train rooms and calibrated on val",
+        "learned",
+        trained=True,
+        open=_open_learned,
+    )
+)
+register_detector(
+    DetectorKind(
+        "shipped",
+        "a learned detector that comes with tsnav (128-px ithor-real rooms)",
+        "learned",
+        trained=True,
+        open=_open_shipped,
+    )
+)

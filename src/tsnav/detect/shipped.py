@@ -35,8 +35,12 @@ from .train import read_meta
 
 _WEIGHTS = Path(__file__).parent / "weights"
 #: Shipped checkpoint folders (``model.safetensors`` and ``state.json``) by name.
-SHIPPED = {"learned4": _WEIGHTS / "ithor-real-128", "learned3": _WEIGHTS / "ithor-real-128-learned3",
-           "learned6": _WEIGHTS / "ithor-real-128-learned6", "learned7": _WEIGHTS / "ithor-real-128-learned7"}
+SHIPPED = {
+    "learned4": _WEIGHTS / "ithor-real-128",
+    "learned3": _WEIGHTS / "ithor-real-128-learned3",
+    "learned6": _WEIGHTS / "ithor-real-128-learned6",
+    "learned7": _WEIGHTS / "ithor-real-128-learned7",
+}
 #: The one used unless another is named.
 DEFAULT_SHIPPED = "learned4"
 #: The default's folder.
@@ -73,11 +77,15 @@ def shipped_detector(image_size: int | None = None, name: str | None = None) -> 
     det = LearnedDetector.load(folder)
     want = det.meta.get("fingerprint")
     if det.fingerprint != want:
-        raise CommandError(f"{folder}: the shipped detector's weights do not match their recorded fingerprint "
-                           f"({det.fingerprint} != {want}); reinstall tsnav")
+        raise CommandError(
+            f"{folder}: the shipped detector's weights do not match their recorded fingerprint "
+            f"({det.fingerprint} != {want}); reinstall tsnav"
+        )
     if image_size is not None and image_size != det.image_size:
-        raise CommandError(f"the shipped detector reads {det.image_size}x{det.image_size} frames (the ithor-real "
-                           f"rooms), this world has {image_size}x{image_size}: train a detector on it instead "
-                           f"(--detector train in tsnav demo and tsnav experiment, --detector learned in tsnav "
-                           f"detect)")
+        raise CommandError(
+            f"the shipped detector reads {det.image_size}x{det.image_size} frames (the ithor-real "
+            f"rooms), this world has {image_size}x{image_size}: train a detector on it instead "
+            f"(--detector train in tsnav demo and tsnav experiment, --detector learned in tsnav "
+            f"detect)"
+        )
     return det

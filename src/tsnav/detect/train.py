@@ -40,9 +40,19 @@ from scipy.optimize import minimize_scalar
 from tqdm import tqdm
 
 from ..atomic import atomic_write_json
-from ..checkpoint import (CHECKPOINTS, STATE_FILE, BrokenCheckpoint, list_checkpoints, load_tensors, optimizer_file,
-                          read_json, resume_newest, save_checkpoint as save_checkpoint_folder, set_aside,
-                          weights_digest)
+from ..checkpoint import (
+    CHECKPOINTS,
+    STATE_FILE,
+    BrokenCheckpoint,
+    list_checkpoints,
+    load_tensors,
+    optimizer_file,
+    read_json,
+    resume_newest,
+    save_checkpoint as save_checkpoint_folder,
+    set_aside,
+    weights_digest,
+)
 from ..distributed import set_threads
 from ..errors import from_fields
 from ..schedule import warmup_cosine
@@ -201,12 +211,23 @@ def _frames_id(frames: "FrameSet") -> dict:
     digest = hashlib.sha256()
     for a in (frames.present, frames.obj_state, frames.obj_category):
         digest.update(np.ascontiguousarray(a).tobytes())
-    return {"scenes": list(frames.scenes), "offsets": [int(x) for x in frames.offsets],
-            "ground_truth": digest.hexdigest()[:16]}
+    return {
+        "scenes": list(frames.scenes),
+        "offsets": [int(x) for x in frames.offsets],
+        "ground_truth": digest.hexdigest()[:16],
+    }
 
 
-def mined_hard_negatives(ckpt: Path, model: GridDetector, meta: dict, frames: "FrameSet", threshold: float,
-                         start: int, batch_size: int = 256, progress: bool = False) -> np.ndarray:
+def mined_hard_negatives(
+    ckpt: Path,
+    model: GridDetector,
+    meta: dict,
+    frames: "FrameSet",
+    threshold: float,
+    start: int,
+    batch_size: int = 256,
+    progress: bool = False,
+) -> np.ndarray:
     """The hard-negative rows of ``frames`` (``(N,)`` bool) of the hard-negative sampling that began at step
     ``meta["hard_negatives_step"]``.
 
@@ -220,17 +241,21 @@ def mined_hard_negatives(ckpt: Path, model: GridDetector, meta: dict, frames: "F
     if began is not None:
         rec = read_json(path) if path.exists() else None
         if rec is None:
-            raise BrokenCheckpoint(f"{path}: missing; the hard-negative sampling of this checkpoint began at step "
-                                   f"{began} and its rows are needed to resume it")
+            raise BrokenCheckpoint(
+                f"{path}: missing; the hard-negative sampling of this checkpoint began at step "
+                f"{began} and its rows are needed to resume it"
+            )
         ident = _frames_id(frames)
-        if (rec.get("step") != began or rec.get("threshold") != threshold
-                or {k: rec.get(k) for k in ident} != ident):
-            raise BrokenCheckpoint(f"{path}: mined for another step, threshold or frame set than this run's "
-                                   f"(step {rec.get('step')} threshold {rec.get('threshold')} against {began}, "
-                                   f"{threshold})")
+        if rec.get("step") != began or rec.get("threshold") != threshold or {k: rec.get(k) for k in ident} != ident:
+            raise BrokenCheckpoint(
+                f"{path}: mined for another step, threshold or frame set than this run's "
+                f"(step {rec.get('step')} threshold {rec.get('threshold')} against {began}, "
+                f"{threshold})"
+            )
         rows = np.asarray(rec.get("rows", []))
-        if rows.ndim != 1 or (rows.size and (rows.dtype.kind not in "iu" or rows.min() < 0
-                                             or rows.max() >= len(frames))):
+        if rows.ndim != 1 or (
+            rows.size and (rows.dtype.kind not in "iu" or rows.min() < 0 or rows.max() >= len(frames))
+        ):
             raise BrokenCheckpoint(f"{path}: its rows are not frame indices below {len(frames)}")
         hard = np.zeros(len(frames), bool)
         hard[rows.astype(np.int64)] = True
@@ -238,18 +263,28 @@ def mined_hard_negatives(ckpt: Path, model: GridDetector, meta: dict, frames: "F
     t = float(meta.get("temperature", 1.0)) if meta.get("calibrated_step") == meta.get("step") else 1.0
     chunks = []
     for a in tqdm(range(0, len(frames), 4096), desc="mining hard negatives", unit="chunk", disable=not progress):
-        logits = predict(model, frames.images[a:a + 4096], batch_size)[0]
+        logits = predict(model, frames.images[a : a + 4096], batch_size)[0]
         chunks.append(1.0 / (1.0 + np.exp(-logits.astype(np.float64) / t)))
     hard = hard_negative_rows(np.concatenate(chunks), classes_with_pixels(frames), threshold)
-    _atomic_json(path, {"format": "tsnav-hard-negatives", "step": int(start), "threshold": threshold,
-                        "temperature": t, **_frames_id(frames), "count": int(hard.sum()),
-                        "rows": np.flatnonzero(hard).tolist()})
+    _atomic_json(
+        path,
+        {
+            "format": "tsnav-hard-negatives",
+            "step": int(start),
+            "threshold": threshold,
+            "temperature": t,
+            **_frames_id(frames),
+            "count": int(hard.sum()),
+            "rows": np.flatnonzero(hard).tolist(),
+        },
+    )
     meta["hard_negatives_step"] = int(start)
     return hard
 
 
-def batch_plan(step: int, n: int, cfg: DetectorTrainConfig, weights: np.ndarray | None = None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def batch_plan(
+    step: int, n: int, cfg: DetectorTrainConfig, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(row indices ``(B,)``, flip flags ``(B,)``, colour gains ``(B, 3)``) of step ``step``: a function of
     ``(seed, step)`` (and ``weights``) only, so a resumed run sees the same batches. Rows are drawn uniformly, or
     with replacement in proportion to ``weights`` ``(n,)`` (:func:`repeat_factors`) when given."""
@@ -259,8 +294,9 @@ def batch_plan(step: int, n: int, cfg: DetectorTrainConfig, weights: np.ndarray 
     else:
         idx = sample_weighted(rng.random(cfg.batch_size), weights)
     flip = rng.random(cfg.batch_size) < cfg.flip_prob
-    gains = (rng.uniform(1 - cfg.color_jitter, 1 + cfg.color_jitter, (cfg.batch_size, 3))
-             * rng.uniform(1 - cfg.brightness, 1 + cfg.brightness, (cfg.batch_size, 1)))
+    gains = rng.uniform(1 - cfg.color_jitter, 1 + cfg.color_jitter, (cfg.batch_size, 3)) * rng.uniform(
+        1 - cfg.brightness, 1 + cfg.brightness, (cfg.batch_size, 1)
+    )
     return idx, flip, gains.astype(np.float32)
 
 
@@ -321,8 +357,9 @@ def newest_checkpoint(path: str | Path) -> Path:
     in one line when there is none)."""
     found = checkpoint_candidates(path)
     if not found:
-        raise FileNotFoundError(f"{Path(path)}: not a detector checkpoint (no {CHECKPOINTS}/ckpt_*/{STATE_FILE} "
-                                f"or {LEGACY_META})")
+        raise FileNotFoundError(
+            f"{Path(path)}: not a detector checkpoint (no {CHECKPOINTS}/ckpt_*/{STATE_FILE} or {LEGACY_META})"
+        )
     return found[0]
 
 
@@ -340,20 +377,23 @@ def _read_meta(c: Path) -> dict:
     return meta
 
 
-def save_checkpoint(path: str | Path, model: GridDetector, opt: torch.optim.Optimizer | None,
-                    meta: dict) -> Path:
+def save_checkpoint(path: str | Path, model: GridDetector, opt: torch.optim.Optimizer | None, meta: dict) -> Path:
     """Write the checkpoint of ``meta["step"]`` into ``path/checkpoints/ckpt_<step>/`` (module docstring;
     complete in a temporary folder, then renamed; the newest two kept). Returns its folder."""
     meta = dict(meta)
     tensors = None
     if opt is not None:
         sd = opt.state_dict()
-        tensors = {f"state.{i}.{k}": (v if torch.is_tensor(v) else torch.tensor(v))
-                   for i, st in sd["state"].items() for k, v in st.items()}
+        tensors = {
+            f"state.{i}.{k}": (v if torch.is_tensor(v) else torch.tensor(v))
+            for i, st in sd["state"].items()
+            for k, v in st.items()
+        }
         meta["param_groups"] = sd["param_groups"]
     meta["fingerprint"] = weights_fingerprint(model, meta.get("temperature", 1.0))
-    return save_checkpoint_folder(Path(path) / CHECKPOINTS, int(meta["step"]), model.state_dict(), {"format": FORMAT},
-                                  meta, tensors)
+    return save_checkpoint_folder(
+        Path(path) / CHECKPOINTS, int(meta["step"]), model.state_dict(), {"format": FORMAT}, meta, tensors
+    )
 
 
 def weights_fingerprint(model: GridDetector, temperature: float) -> str:
@@ -375,8 +415,10 @@ def _load(c: Path) -> tuple[GridDetector, dict]:
     state, _ = load_tensors(c / "model.safetensors")
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
-        raise ValueError(f"{c / 'model.safetensors'}: weights do not fit the config "
-                         f"(missing {missing[:2]}, unexpected {unexpected[:2]})")
+        raise ValueError(
+            f"{c / 'model.safetensors'}: weights do not fit the config "
+            f"(missing {missing[:2]}, unexpected {unexpected[:2]})"
+        )
     return model.eval(), meta
 
 
@@ -413,8 +455,9 @@ def resume_state(ckpt: str | Path) -> tuple[Path, GridDetector, dict, dict[int, 
         model, meta = _load(c)
         return model, meta, _read_optimizer(c, meta)
 
-    found = resume_newest(checkpoint_candidates(ckpt), load, on_broken=lambda c: _set_aside(ckpt, c),
-                          label=lambda c: str(c))
+    found = resume_newest(
+        checkpoint_candidates(ckpt), load, on_broken=lambda c: _set_aside(ckpt, c), label=lambda c: str(c)
+    )
     return None if found is None else (found[0], *found[1])
 
 
@@ -430,14 +473,16 @@ def fit_temperature(logits: np.ndarray, present: np.ndarray, bounds: tuple[float
     def nll(log_t: float) -> float:
         return float(torch.nn.functional.binary_cross_entropy_with_logits(z / math.exp(log_t), y))
 
-    res = minimize_scalar(nll, bounds=(math.log(bounds[0]), math.log(bounds[1])), method="bounded",
-                          options={"xatol": 1e-5})
+    res = minimize_scalar(
+        nll, bounds=(math.log(bounds[0]), math.log(bounds[1])), method="bounded", options={"xatol": 1e-5}
+    )
     return float(math.exp(res.x))
 
 
 @torch.no_grad()
-def predict(model: GridDetector, images: np.ndarray, batch_size: int = 256
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def predict(
+    model: GridDetector, images: np.ndarray, batch_size: int = 256
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(logits ``(N, C)`` float32, normalised boxes ``(N, 22, 4)`` float32, features ``(N, 22, dim)`` float32)
     of uint8 frames ``(N, H, W, 3)``, in batches, in eval mode."""
     model.eval()
@@ -447,9 +492,9 @@ def predict(model: GridDetector, images: np.ndarray, batch_size: int = 256
     boxes = np.empty((n, model.cfg.num_classes, 4), np.float32)
     feats = np.empty((n, model.cfg.num_classes, D), np.float32)
     for a in range(0, n, batch_size):
-        x = model.normalize(torch.from_numpy(np.ascontiguousarray(images[a:a + batch_size])))
+        x = model.normalize(torch.from_numpy(np.ascontiguousarray(images[a : a + batch_size])))
         lg, bx, f = model(x)
-        logits[a:a + len(x)], boxes[a:a + len(x)], feats[a:a + len(x)] = lg.numpy(), bx.numpy(), f.numpy()
+        logits[a : a + len(x)], boxes[a : a + len(x)], feats[a : a + len(x)] = lg.numpy(), bx.numpy(), f.numpy()
     return logits, boxes, feats
 
 
@@ -465,9 +510,14 @@ class TrainResult:
     last: dict
 
 
-def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainConfig | None = None,
-                   model_cfg: DetectorConfig | None = None, frames: FrameSet | None = None,
-                   progress: bool = True) -> TrainResult:
+def train_detector(
+    root: str | Path,
+    ckpt: str | Path,
+    train_cfg: DetectorTrainConfig | None = None,
+    model_cfg: DetectorConfig | None = None,
+    frames: FrameSet | None = None,
+    progress: bool = True,
+) -> TrainResult:
     """Train (or resume training of) the detector in checkpoint folder ``ckpt`` on the TRAIN scenes of
     ``root`` up to ``train_cfg.steps``. An existing checkpoint keeps its model and training settings except
     ``steps``; a finished one returns at once. ``frames`` may pass preloaded training frames."""
@@ -488,12 +538,15 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     if frames.images.shape[1] != model.cfg.image_size:
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
     if frames.present.shape[1] != model.cfg.num_classes:
-        raise ValueError(f"the train scenes have {frames.present.shape[1]} target classes but the detector scores "
-                         f"{model.cfg.num_classes} (class set {model.cfg.class_set})")
+        raise ValueError(
+            f"the train scenes have {frames.present.shape[1]} target classes but the detector scores "
+            f"{model.cfg.num_classes} (class set {model.cfg.class_set})"
+        )
     weights = repeat_factors(frames.present, train_cfg.repeat_threshold) if train_cfg.repeat_threshold > 0 else None
     if train_cfg.hard_negative_weight > 0:
-        hard = mined_hard_negatives(ckpt, model, meta, frames, train_cfg.hard_negative_threshold, start,
-                                    progress=progress)
+        hard = mined_hard_negatives(
+            ckpt, model, meta, frames, train_cfg.hard_negative_threshold, start, progress=progress
+        )
         base = np.ones(len(frames)) if weights is None else weights
         weights = base * np.where(hard, train_cfg.hard_negative_weight, 1.0)
         meta["hard_negatives"] = int(hard.sum())
@@ -507,8 +560,14 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
     t0 = time.perf_counter()
     step = start
     last: dict = {}
-    bar = tqdm(total=train_cfg.steps, initial=start, desc="detector train", unit="step", disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(
+        total=train_cfg.steps,
+        initial=start,
+        desc="detector train",
+        unit="step",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
 
     def save() -> None:
         meta["step"] = step
@@ -521,8 +580,7 @@ def train_detector(root: str | Path, ckpt: str | Path, train_cfg: DetectorTrainC
             for g in opt.param_groups:
                 g["lr"] = lr_at(step, train_cfg)
             x = model.normalize(apply_gains(b.images, gains))
-            loss, terms = detection_loss(model, x, b.present, b.obj_boxes,
-                                         b.obj_category, b.obj_state, train_cfg.loss)
+            loss, terms = detection_loss(model, x, b.present, b.obj_boxes, b.obj_category, b.obj_state, train_cfg.loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -558,16 +616,18 @@ def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: Dete
         start = int(meta["step"])
         if train_cfg.repeat_threshold > 0 and train_cfg.repeat_threshold != stored.repeat_threshold:
             stored.repeat_threshold = train_cfg.repeat_threshold
-            meta.setdefault("sampling_changes", []).append({"step": start,
-                                                           "repeat_threshold": train_cfg.repeat_threshold})
+            meta.setdefault("sampling_changes", []).append(
+                {"step": start, "repeat_threshold": train_cfg.repeat_threshold}
+            )
         if train_cfg.loss != LossWeights() and train_cfg.loss != stored.loss:
             stored.loss = train_cfg.loss
             meta.setdefault("loss_changes", []).append({"step": start, **asdict(train_cfg.loss)})
         hard = (train_cfg.hard_negative_weight, train_cfg.hard_negative_threshold)
         if hard[0] > 0 and hard != (stored.hard_negative_weight, stored.hard_negative_threshold):
             stored.hard_negative_weight, stored.hard_negative_threshold = hard
-            meta.setdefault("sampling_changes", []).append({"step": start, "hard_negative_weight": hard[0],
-                                                           "hard_negative_threshold": hard[1]})
+            meta.setdefault("sampling_changes", []).append(
+                {"step": start, "hard_negative_weight": hard[0], "hard_negative_threshold": hard[1]}
+            )
             meta.pop("hard_negatives_step", None)  # a new setting mines its rows anew, at this step
         train_cfg = stored
     else:
@@ -575,14 +635,27 @@ def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: Dete
             model_cfg = DetectorConfig()
         torch.manual_seed(train_cfg.seed)
         model = GridDetector(model_cfg)
-        meta = {"format": FORMAT, "model": model_cfg.to_dict(), "step": 0, "temperature": 1.0,
-                "calibrated_step": -1, "min_score": 0.05, "history": []}
+        meta = {
+            "format": FORMAT,
+            "model": model_cfg.to_dict(),
+            "step": 0,
+            "temperature": 1.0,
+            "calibrated_step": -1,
+            "min_score": 0.05,
+            "history": [],
+        }
         start = 0
     return model, meta, opt_state, train_cfg, start
 
 
-def calibrate(root: str | Path, ckpt: str | Path, split: str = "val", frames: FrameSet | None = None,
-              batch_size: int = 256, progress: bool = False) -> float:
+def calibrate(
+    root: str | Path,
+    ckpt: str | Path,
+    split: str = "val",
+    frames: FrameSet | None = None,
+    batch_size: int = 256,
+    progress: bool = False,
+) -> float:
     """Fit the temperature of the checkpoint on ``split`` and store it (``temperature``, ``calibrated_step``);
     returns T. Skipped (T kept) when the checkpoint was already calibrated at its current step."""
     model, meta = load_model(ckpt)

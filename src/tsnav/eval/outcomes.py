@@ -123,8 +123,9 @@ def outcome_summary(records: Sequence[EpisodeRecord], trajectories: Sequence) ->
         "failed_after_a_success_state": missed if known else None,
         # the pathfinding stage (None: trajectories without switch_distance)
         "after_switch": after,
-        "per_target": {k: {"episodes": v[0], "SR": v[1] / v[0], "switch_rate": v[2] / v[0]}
-                       for k, v in sorted(targets.items())},
+        "per_target": {
+            k: {"episodes": v[0], "SR": v[1] / v[0], "switch_rate": v[2] / v[0]} for k, v in sorted(targets.items())
+        },
         "action_shares": {a: (actions[i] / total_actions if total_actions else 0.0) for i, a in enumerate(ACTIONS)},
     }
 
@@ -135,8 +136,10 @@ def after_switch(records: Sequence[EpisodeRecord], trajectories: Sequence) -> di
     state, the median L* at the switch, and ``path_ratio``: actions taken from the switch frame on (Done
     included) over L* + 1, summed over the successful switched episodes (1.0 = the shortest path, then Done).
     None when a trajectory lacks ``switch_distance`` (files written before it existed)."""
-    if any(getattr(t, "switch_distance", None) is None or getattr(t, "success_after_switch", None) is None
-           for t in trajectories):
+    if any(
+        getattr(t, "switch_distance", None) is None or getattr(t, "success_after_switch", None) is None
+        for t in trajectories
+    ):
         return None
     failures = {"passed a success state without Done": 0, "wrong Done": 0, "never got to a success state": 0}
     successes, taken, shortest, at_switch = 0, 0, 0, []
@@ -156,9 +159,13 @@ def after_switch(records: Sequence[EpisodeRecord], trajectories: Sequence) -> di
             failures["passed a success state without Done"] += 1
         else:
             failures["never got to a success state"] += 1
-    return {"episodes": successes + sum(failures.values()), "success": successes, "failures": failures,
-            "median_distance_at_switch": float(np.median(at_switch)) if at_switch else None,
-            "path_ratio": taken / shortest if shortest else None}
+    return {
+        "episodes": successes + sum(failures.values()),
+        "success": successes,
+        "failures": failures,
+        "median_distance_at_switch": float(np.median(at_switch)) if at_switch else None,
+        "path_ratio": taken / shortest if shortest else None,
+    }
 
 
 def format_outcomes(summary: dict) -> str:
@@ -173,23 +180,31 @@ def format_outcomes(summary: dict) -> str:
     def pct(x):
         return "-" if x is None else f"{100 * x:.1f} %"
 
-    lines.append(f"  success when the switch fired: {pct(summary['success_if_switched'])}; "
-                 f"when it never fired: {pct(summary['success_if_never_switched'])}")
+    lines.append(
+        f"  success when the switch fired: {pct(summary['success_if_switched'])}; "
+        f"when it never fired: {pct(summary['success_if_never_switched'])}"
+    )
     missed = summary.get("failed_after_a_success_state")
     if missed is not None:
-        fails = {k: sum(v for c, v in summary["counts"].items() if c.endswith(f", {k}") and not c.startswith("success"))
-                 for k in ("switched", "never switched")}
-        lines.append("  failed although in a success state at some frame (Done there would have succeeded): "
-                     f"{missed['switched']} of {fails['switched']} switched failures, "
-                     f"{missed['never switched']} of {fails['never switched']} never-switched ones")
+        fails = {
+            k: sum(v for c, v in summary["counts"].items() if c.endswith(f", {k}") and not c.startswith("success"))
+            for k in ("switched", "never switched")
+        }
+        lines.append(
+            "  failed although in a success state at some frame (Done there would have succeeded): "
+            f"{missed['switched']} of {fails['switched']} switched failures, "
+            f"{missed['never switched']} of {fails['never switched']} never-switched ones"
+        )
     after = summary.get("after_switch")
     if after is not None and after["episodes"]:
         f = after["failures"]
         ratio = "-" if after["path_ratio"] is None else f"{after['path_ratio']:.2f}"
-        lines.append(f"  after the switch: {after['success']} of {after['episodes']} succeeded; failures: passed a "
-                     f"success state without Done {f['passed a success state without Done']}, wrong Done "
-                     f"{f['wrong Done']}, never got to one {f['never got to a success state']}; median L* at the "
-                     f"switch {after['median_distance_at_switch']:g}; successes took {ratio}x the shortest path")
+        lines.append(
+            f"  after the switch: {after['success']} of {after['episodes']} succeeded; failures: passed a "
+            f"success state without Done {f['passed a success state without Done']}, wrong Done "
+            f"{f['wrong Done']}, never got to one {f['never got to a success state']}; median L* at the "
+            f"switch {after['median_distance_at_switch']:g}; successes took {ratio}x the shortest path"
+        )
     lines.append("  target            episodes     SR   switch")
     rows = sorted(summary["per_target"].items(), key=lambda kv: (-kv[1]["SR"], -kv[1]["switch_rate"], kv[0]))
     for name, row in rows:

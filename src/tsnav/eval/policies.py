@@ -114,7 +114,7 @@ class ExplorerPolicy:
         self.num_waypoints = np.array(counts, dtype=np.int64)
         self.wp_dist = np.full((bank.num_states, w_max), UNREACHABLE, dtype=np.int32)
         for i, f in enumerate(fields):
-            self.wp_dist[bank.offsets[i]:bank.offsets[i + 1], :f.shape[1]] = f
+            self.wp_dist[bank.offsets[i] : bank.offsets[i + 1], : f.shape[1]] = f
         self.visited = np.zeros((0, w_max), dtype=bool)
         self.spin = np.zeros(0, dtype=np.int64)
         self.found = np.zeros(0, dtype=bool)

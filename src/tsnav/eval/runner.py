@@ -31,8 +31,7 @@ from typing import Sequence
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..constants import (ACTION_ORDER, C_TARGET, OLD_ACTION_ORDER, action_permutation, check_same_class_set,
-                         class_set_of)
+from ..constants import ACTION_ORDER, C_TARGET, OLD_ACTION_ORDER, action_permutation, check_same_class_set, class_set_of
 from ..data.reader import is_complete, load_scene
 from ..errors import CommandError, read_json
 from ..sim.batch import BatchEnv, SceneBank
@@ -68,27 +67,46 @@ def evaluate(bank: SceneBank, episodes: list[Episode], policy, config: EvalConfi
         raise ValueError(f"batch_size must be >= 1, got {config.batch_size}")
     scene_idx, target, start = episodes_to_arrays(bank, episodes)
     switch = StageSwitch(bank, config.c_target)
-    search_dist = bank.search_dist if config.c_target == bank.c_target else distance_fields(bank.next_state,
-                                                                                              switch.switches)
+    search_dist = (
+        bank.search_dist if config.c_target == bank.c_target else distance_fields(bank.next_state, switch.switches)
+    )
     records: list[EpisodeRecord] = []
     for lo in range(0, len(episodes), config.batch_size):
         hi = min(lo + config.batch_size, len(episodes))
         cols = _run_chunk(bank, scene_idx[lo:hi], target[lo:hi], start[lo:hi], policy, switch, config)
-        lengths = stage_lengths(bank.dist, search_dist, start[lo:hi], target[lo:hi], cols["path_length"],
-                                cols["entered"], cols["switch_length"], cols["switch_state"], unreachable=-1)
+        lengths = stage_lengths(
+            bank.dist,
+            search_dist,
+            start[lo:hi],
+            target[lo:hi],
+            cols["path_length"],
+            cols["entered"],
+            cols["switch_length"],
+            cols["switch_state"],
+            unreachable=-1,
+        )
         for j in range(hi - lo):
             e = episodes[lo + j]
             nav = bool(cols["entered"][j])
-            records.append(EpisodeRecord(
-                success=bool(cols["success"][j]), path_length=int(cols["path_length"][j]),
-                optimal_length=int(e.optimal_length), entered_pathfinding=nav,
-                pathfinding_start_step=int(cols["switch_step"][j]) if nav else None,
-                search_path_length=int(lengths["search_length"][j]),
-                optimal_search_length=int(lengths["optimal_search_length"][j]),
-                pathfinding_path_length=int(lengths["nav_length"][j]) if nav else None,
-                optimal_pathfinding_length=int(lengths["optimal_nav_length"][j]) if nav else None,
-                room_type=e.room_type, scene=e.scene, target=e.target, start=e.start,
-                steps=int(cols["steps"][j]), episode=lo + j))
+            records.append(
+                EpisodeRecord(
+                    success=bool(cols["success"][j]),
+                    path_length=int(cols["path_length"][j]),
+                    optimal_length=int(e.optimal_length),
+                    entered_pathfinding=nav,
+                    pathfinding_start_step=int(cols["switch_step"][j]) if nav else None,
+                    search_path_length=int(lengths["search_length"][j]),
+                    optimal_search_length=int(lengths["optimal_search_length"][j]),
+                    pathfinding_path_length=int(lengths["nav_length"][j]) if nav else None,
+                    optimal_pathfinding_length=int(lengths["optimal_nav_length"][j]) if nav else None,
+                    room_type=e.room_type,
+                    scene=e.scene,
+                    target=e.target,
+                    start=e.start,
+                    steps=int(cols["steps"][j]),
+                    episode=lo + j,
+                )
+            )
     return records
 
 
@@ -113,9 +131,15 @@ def _run_chunk(bank, scene_idx, target, start, policy, switch: StageSwitch, conf
         success[fin] = info["success"][fin]
         steps[act] = info["steps"][act]
         path_length[act] = info["path_length"][act]
-    return {"entered": switch.entered.copy(), "switch_step": switch.switch_step.copy(),
-            "switch_length": switch.switch_length.copy(), "switch_state": switch.switch_state.copy(), "success": success,
-            "steps": steps, "path_length": path_length}
+    return {
+        "entered": switch.entered.copy(),
+        "switch_step": switch.switch_step.copy(),
+        "switch_length": switch.switch_length.copy(),
+        "switch_state": switch.switch_state.copy(),
+        "success": success,
+        "steps": steps,
+        "path_length": path_length,
+    }
 
 
 def config_dict(config: EvalConfig) -> dict:
@@ -189,8 +213,9 @@ def first_true(flags) -> int:
     return int(hit[0]) if len(hit) else -1
 
 
-def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
-                        ) -> tuple[list[EpisodeRecord], list[Trajectory]]:
+def record_trajectories(
+    bank, episodes, policy, config: EvalConfig | None = None
+) -> tuple[list[EpisodeRecord], list[Trajectory]]:
     """Evaluate ``policy`` on ``episodes`` (exactly like :func:`evaluate`) and return the
     records together with one :class:`Trajectory` per episode, in the same order."""
     config = config or EvalConfig()
@@ -218,12 +243,20 @@ def record_trajectories(bank, episodes, policy, config: EvalConfig | None = None
             hit = bank.success[frames, g]
             d = int(bank.dist[frames[sw], g]) if sw >= 0 else -1
             reach = first_true(hit[sw:]) if sw >= 0 else -1
-            trajectories.append(Trajectory(
-                episode=r.episode, scene=r.scene, target=r.target, keys=[str(k) for k in bank.keys[frames]],
-                actions=[int(x) for x in a], switch_frame=sw, success_frame=first_true(hit),
-                switch_distance=d if d != UNREACHABLE else -1,
-                success_after_switch=sw + reach if reach >= 0 else -1,
-                success=bool(r.success)))
+            trajectories.append(
+                Trajectory(
+                    episode=r.episode,
+                    scene=r.scene,
+                    target=r.target,
+                    keys=[str(k) for k in bank.keys[frames]],
+                    actions=[int(x) for x in a],
+                    switch_frame=sw,
+                    success_frame=first_true(hit),
+                    switch_distance=d if d != UNREACHABLE else -1,
+                    success_after_switch=sw + reach if reach >= 0 else -1,
+                    success=bool(r.success),
+                )
+            )
         lo += n
     if len(trajectories) != len(records):
         raise RuntimeError(f"recorded {len(trajectories)} trajectories for {len(records)} episodes")
@@ -279,8 +312,9 @@ def run_protocol(run: str | Path) -> str:
     return protocol_of(cfg.get("train", {}))
 
 
-def resolve_protocol(episodes_meta: dict, episodes_file, run=None, protocol: str | None = None
-                     ) -> tuple[str, str | None]:
+def resolve_protocol(
+    episodes_meta: dict, episodes_file, run=None, protocol: str | None = None
+) -> tuple[str, str | None]:
     """``(evaluated, trained)``: the protocol an evaluation counts under and the one the agent of ``run`` was
     trained under (None for scripted policies). The episode list fixes the first (its L* and its start-success
     episodes were drawn under it); ``protocol``, when given, must be it. An agent trained under another
@@ -290,12 +324,16 @@ def resolve_protocol(episodes_meta: dict, episodes_file, run=None, protocol: str
     if protocol is not None:
         protocol = check_protocol(protocol)
         if protocol != listed:
-            raise CommandError(f"{episodes_file} was drawn under the {listed} protocol; to evaluate under {protocol} "
-                               f"use a list drawn under it (tsnav episodes --protocol {protocol})")
+            raise CommandError(
+                f"{episodes_file} was drawn under the {listed} protocol; to evaluate under {protocol} "
+                f"use a list drawn under it (tsnav episodes --protocol {protocol})"
+            )
     trained = run_protocol(run) if run is not None else None
     if trained is not None and trained != listed and protocol is None:
-        raise CommandError(f"{run} was trained under the {trained} protocol but {episodes_file} is a {listed} "
-                           f"episode list; pass --protocol {listed} to evaluate it across protocols")
+        raise CommandError(
+            f"{run} was trained under the {trained} protocol but {episodes_file} is a {listed} "
+            f"episode list; pass --protocol {listed} to evaluate it across protocols"
+        )
     return listed, trained
 
 
@@ -303,8 +341,13 @@ def eval_bank(meta: dict, episodes):
     """The scene bank an evaluation folder's ``metrics.json`` describes (same scenes, success protocol and
     distance, C_target and detection tables)."""
     cfg = meta.get("config", {})
-    bank = load_bank_for_episodes(meta["data"], episodes, success_distance=float(meta.get("success_distance", 1.0)),
-                                  c_target=float(cfg.get("c_target", C_TARGET)), protocol=protocol_of(meta))
+    bank = load_bank_for_episodes(
+        meta["data"],
+        episodes,
+        success_distance=float(meta.get("success_distance", 1.0)),
+        c_target=float(cfg.get("c_target", C_TARGET)),
+        protocol=protocol_of(meta),
+    )
     if meta.get("detections"):
         bank.install_detections(meta["detections"])
     return bank
@@ -317,13 +360,19 @@ def eval_policy(meta: dict, bank):
     sampling (a re-roll must reproduce the recorded episodes)."""
     seed = int(meta.get("seed", 0))
     name = str(meta.get("policy", "explorer"))
-    run = meta.get("run") or (name[len("run:"):] if name.startswith("run:") else None)
+    run = meta.get("run") or (name[len("run:") :] if name.startswith("run:") else None)
     if run:
         # lazy: rl.checkpoint imports torch (about 1.9 s, `python -X importtime`), which scripted policies never need
         from ..rl.checkpoint import load_policy
 
-        return load_policy(run, bank, greedy=not bool(meta.get("sample", True)), seed=seed,
-                           checkpoint=meta.get("checkpoint", "auto"), detections=meta.get("detections"))
+        return load_policy(
+            run,
+            bank,
+            greedy=not bool(meta.get("sample", True)),
+            seed=seed,
+            checkpoint=meta.get("checkpoint", "auto"),
+            detections=meta.get("detections"),
+        )
     return make_policy(name, bank, seed=seed, c_target=bank.c_target)
 
 
@@ -341,12 +390,15 @@ def eval_trajectories(eval_dir: str | Path):
     if tp.exists():
         trajectories = read_trajectories(tp)
     else:
-        config = EvalConfig(max_steps=int(cfg.get("max_steps", 100)), c_target=c_target,
-                            batch_size=int(cfg.get("batch_size", 4096)))
+        config = EvalConfig(
+            max_steps=int(cfg.get("max_steps", 100)), c_target=c_target, batch_size=int(cfg.get("batch_size", 4096))
+        )
         policy = eval_policy(meta, bank)
         rerolled, trajectories = record_trajectories(bank, episodes, policy, config)
-        same = [(a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
-                for a, b in zip(rerolled, records)]
+        same = [
+            (a.success, a.path_length, a.steps) == (b.success, b.path_length, b.steps)
+            for a, b in zip(rerolled, records)
+        ]
         if len(rerolled) != len(records) or not all(same):
             raise ValueError(f"{eval_dir}: re-rolled episodes differ from records.jsonl (another policy or data?)")
         try:
@@ -358,11 +410,24 @@ def eval_trajectories(eval_dir: str | Path):
     return bank, records, trajectories, c_target
 
 
-def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str | Path, policy: str = "explorer",
-                       run: str | Path | None = None, detections: str | None = None, c_target: float = C_TARGET,
-                       seed: int = 0, label: str | None = None, max_steps: int = 100, sample: bool = False,
-                       checkpoint: str = "auto", success_distance: float | None = None, batch_size: int = 4096,
-                       protocol: str | None = None, videos: int = 0) -> dict:
+def evaluate_to_folder(
+    out_dir: str | Path,
+    data: str | Path,
+    episodes_file: str | Path,
+    policy: str = "explorer",
+    run: str | Path | None = None,
+    detections: str | None = None,
+    c_target: float = C_TARGET,
+    seed: int = 0,
+    label: str | None = None,
+    max_steps: int = 100,
+    sample: bool = False,
+    checkpoint: str = "auto",
+    success_distance: float | None = None,
+    batch_size: int = 4096,
+    protocol: str | None = None,
+    videos: int = 0,
+) -> dict:
     """Evaluate a scripted policy (``random`` / ``oracle`` / ``explorer``) or the trained agent of ``run`` on an
     episode list; writes ``records.jsonl``, ``trajectories.jsonl`` and ``metrics.json`` (with everything
     :mod:`tsnav.report.html` needs to rebuild the bank and the policy). The agent acts greedily (argmax, the
@@ -383,11 +448,21 @@ def evaluate_to_folder(out_dir: str | Path, data: str | Path, episodes_file: str
     if success_distance is None:
         success_distance = float(emeta.get("success_distance", 1.0))
     config = EvalConfig(max_steps=max_steps, c_target=c_target, batch_size=batch_size)
-    meta = {"policy": "agent" if run else policy, "run": str(Path(run).resolve()) if run else None, "seed": seed,
-            "sample": bool(sample), "checkpoint": str(checkpoint) if run else None, "episodes_file": str(Path(episodes_file).resolve()), "data": str(Path(data).resolve()),
-            "protocol": protocol, "trained_protocol": trained,
-            "success_distance": float(success_distance), "detections": detections,
-            "config": config_dict(config), "label": label or (f"agent {Path(run).name}" if run else policy)}
+    meta = {
+        "policy": "agent" if run else policy,
+        "run": str(Path(run).resolve()) if run else None,
+        "seed": seed,
+        "sample": bool(sample),
+        "checkpoint": str(checkpoint) if run else None,
+        "episodes_file": str(Path(episodes_file).resolve()),
+        "data": str(Path(data).resolve()),
+        "protocol": protocol,
+        "trained_protocol": trained,
+        "success_distance": float(success_distance),
+        "detections": detections,
+        "config": config_dict(config),
+        "label": label or (f"agent {Path(run).name}" if run else policy),
+    }
     bank = eval_bank(meta, episodes)
     try:
         check_same_class_set(class_set_of(emeta), bank.class_set, str(episodes_file), f"the scenes of {data}")
@@ -411,5 +486,7 @@ def write_evaluation(out_dir: Path, meta: dict, summary: dict, records, trajecto
     write_records(out_dir / "records.jsonl", records)
     write_trajectories(out_dir / "trajectories.jsonl", trajectories)
     write_json(out_dir / OUTCOMES_FILE, outcome_summary(records, trajectories))
-    write_json(out_dir / "metrics.json", {**meta, "metrics": summary, "seconds": seconds,
-                                          "detector_confidence": bank.confidence is not None})
+    write_json(
+        out_dir / "metrics.json",
+        {**meta, "metrics": summary, "seconds": seconds, "detector_confidence": bank.confidence is not None},
+    )

@@ -45,9 +45,17 @@ def _digest(run_dir: Path, ck: Path) -> str:
     return weights_digest(load_model(run_dir, ck)[0].state_dict())
 
 
-def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str | Path, *, seed: int = 0,
-                      max_steps: int = 100, c_target: float = C_TARGET, progress=print,
-                      protocol: str | None = None) -> dict:
+def select_checkpoint(
+    run_dir: str | Path,
+    data: str | Path,
+    episodes_file: str | Path,
+    *,
+    seed: int = 0,
+    max_steps: int = 100,
+    c_target: float = C_TARGET,
+    progress=print,
+    protocol: str | None = None,
+) -> dict:
     """Score every kept checkpoint of ``run_dir`` on ``episodes_file`` (greedy, episode length ``max_steps``,
     stage-switch threshold ``c_target``), keep the best as ``RUN/best``; returns the selection (``scores``:
     checkpoint name -> update, digest, metrics; ``best``; ``protocol``). The success protocol is the episode
@@ -66,11 +74,16 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
         old = read_json(path) if path.exists() else {}
     except BrokenCheckpoint:  # an unreadable score cache is recomputed
         old = {}
-    same_list = (old.get("episodes_file") == str(Path(episodes_file).resolve()) and old.get("max_steps") == max_steps
-                 and old.get("c_target", C_TARGET) == c_target and old.get("protocol", "paper") == protocol)
+    same_list = (
+        old.get("episodes_file") == str(Path(episodes_file).resolve())
+        and old.get("max_steps") == max_steps
+        and old.get("c_target", C_TARGET) == c_target
+        and old.get("protocol", "paper") == protocol
+    )
     scores = dict(old.get("scores", {})) if same_list else {}
-    bank = load_bank_for_episodes(data, episodes, success_distance=float(emeta.get("success_distance", 1.0)),
-                                  protocol=protocol)
+    bank = load_bank_for_episodes(
+        data, episodes, success_distance=float(emeta.get("success_distance", 1.0)), protocol=protocol
+    )
     config = EvalConfig(max_steps=max_steps, c_target=c_target)
     for ck in ckpts:
         entry = scores.get(ck.name, {})
@@ -84,19 +97,37 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
         policy = load_policy(run_dir, bank, greedy=True, seed=seed, checkpoint=ck)
         summary = summarize(evaluate(bank, episodes, policy, config), config.min_optimal_length, protocol=protocol)
         state = read_json(ck / "state.json")["progress"]
-        scores[ck.name] = {"update": int(state["update"]), "env_steps": int(state["env_steps"]),
-                           "episodes": int(state["episodes"]), "digest": digest, "file": sig, "metrics": summary}
+        scores[ck.name] = {
+            "update": int(state["update"]),
+            "env_steps": int(state["env_steps"]),
+            "episodes": int(state["episodes"]),
+            "digest": digest,
+            "file": sig,
+            "metrics": summary,
+        }
         progress(f"    {ck.name}: " + ", ".join(f"{k} {100 * summary['ALL'][k]:.1f}" for k in RANK_BY))
-        atomic_write_json(path, {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps,
-                                 "c_target": c_target, "protocol": protocol, "scores": scores, "best": old.get("best") if same_list else None,
-                                 "best_file": old.get("best_file")})
+        atomic_write_json(
+            path,
+            {
+                "episodes_file": str(Path(episodes_file).resolve()),
+                "max_steps": max_steps,
+                "c_target": c_target,
+                "protocol": protocol,
+                "scores": scores,
+                "best": old.get("best") if same_list else None,
+                "best_file": old.get("best_file"),
+            },
+        )
     live = {k: v for k, v in scores.items() if (run_dir / "checkpoints" / k).is_dir()}
     name = max(live, key=lambda k: (*(live[k]["metrics"]["ALL"][m] for m in RANK_BY), -live[k]["update"]))
     best = run_dir / BEST
     have = read_json(best / "state.json").get("selected_from") if (best / "state.json").exists() else None
     # RUN/best is rehashed only when it is not the folder this function last wrote or checked with these weights
-    unchanged = (have == name and (best / MODEL_FILE).exists()
-                 and old.get("best_file") == {"file": file_signature(best / MODEL_FILE), "digest": live[name]["digest"]})
+    unchanged = (
+        have == name
+        and (best / MODEL_FILE).exists()
+        and old.get("best_file") == {"file": file_signature(best / MODEL_FILE), "digest": live[name]["digest"]}
+    )
     if not unchanged and (have != name or _digest(run_dir, best) != live[name]["digest"]):
         with atomic_folder(best) as tmp:
             for f in (run_dir / "checkpoints" / name).iterdir():
@@ -104,9 +135,15 @@ def select_checkpoint(run_dir: str | Path, data: str | Path, episodes_file: str 
                     shutil.copy2(f, tmp / f.name)
             st = read_json(tmp / "state.json")
             atomic_write_json(tmp / "state.json", {**st, "selected_from": name})
-    result = {"episodes_file": str(Path(episodes_file).resolve()), "max_steps": max_steps, "c_target": c_target,
-              "protocol": protocol, "scores": scores, "best": name,
-              "best_file": {"file": file_signature(best / MODEL_FILE), "digest": live[name]["digest"]}}
+    result = {
+        "episodes_file": str(Path(episodes_file).resolve()),
+        "max_steps": max_steps,
+        "c_target": c_target,
+        "protocol": protocol,
+        "scores": scores,
+        "best": name,
+        "best_file": {"file": file_signature(best / MODEL_FILE), "digest": live[name]["digest"]},
+    }
     atomic_write_json(path, result)
     return result
 
@@ -115,8 +152,13 @@ def chosen(selection: dict) -> dict:
     """What a job or the demo records about the checkpoint a selection kept: its name, update, the number of
     checkpoints scored and its validation SR / SPL (fractions, ALL episodes)."""
     b = selection["scores"][selection["best"]]
-    return {"name": selection["best"], "update": b["update"], "candidates": len(selection["scores"]),
-            "val_SR": b["metrics"]["ALL"]["SR"], "val_SPL": b["metrics"]["ALL"]["SPL"]}
+    return {
+        "name": selection["best"],
+        "update": b["update"],
+        "candidates": len(selection["scores"]),
+        "val_SR": b["metrics"]["ALL"]["SR"],
+        "val_SPL": b["metrics"]["ALL"]["SPL"],
+    }
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -124,9 +166,13 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset root holding the validation scenes")
     parser.add_argument("--episodes", required=True, help="validation episode list (`tsnav episodes --split val`)")
     parser.add_argument("--max-steps", type=int, default=100, help="episode length limit (paper: 100)")
-    add_shared(parser, "protocol", default=None,
-               help="success protocol (default: the episode list's); naming it lets a run trained under "
-                             "the other protocol be scored on this list")
+    add_shared(
+        parser,
+        "protocol",
+        default=None,
+        help="success protocol (default: the episode list's); naming it lets a run trained under "
+        "the other protocol be scored on this list",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -141,7 +187,9 @@ def run(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError) as e:
         raise CommandError(str(e)) from None
     b = res["scores"][res["best"]]
-    print(f"{args.run}: best checkpoint {res['best']} (update {b['update']}; "
-          + ", ".join(f"{k} {100 * b['metrics']['ALL'][k]:.1f}" for k in RANK_BY)
-          + f", protocol {res['protocol']}) -> {Path(args.run) / BEST}")
+    print(
+        f"{args.run}: best checkpoint {res['best']} (update {b['update']}; "
+        + ", ".join(f"{k} {100 * b['metrics']['ALL'][k]:.1f}" for k in RANK_BY)
+        + f", protocol {res['protocol']}) -> {Path(args.run) / BEST}"
+    )
     return 0

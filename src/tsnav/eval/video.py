@@ -103,17 +103,44 @@ class RoomMap:
         ax.set_ylim(cz - half, cz + half)
         for poly in getattr(floor, "geoms", [floor]):
             if hasattr(poly, "exterior") and not poly.is_empty:
-                ax.add_patch(MplPolygon(np.asarray(poly.exterior.coords), closed=True, facecolor="#f3efe6",
-                                        edgecolor="#444", lw=1.2, zorder=0))
+                ax.add_patch(
+                    MplPolygon(
+                        np.asarray(poly.exterior.coords),
+                        closed=True,
+                        facecolor="#f3efe6",
+                        edgecolor="#444",
+                        lw=1.2,
+                        zorder=0,
+                    )
+                )
         for f in scene.meta.get("furniture", []):
             if "footprint" in f and f.get("blocks", True):
-                ax.add_patch(MplPolygon(np.asarray(f["footprint"]), closed=True, facecolor="#b9aa94",
-                                        edgecolor="#6b5d49", lw=0.6, zorder=1))
-        objs = [o for o in scene.meta.get("objects", [])
-                if o.get("objectType", str(o.get("objectId", "")).split("|")[0]) == target and "position" in o]
+                ax.add_patch(
+                    MplPolygon(
+                        np.asarray(f["footprint"]),
+                        closed=True,
+                        facecolor="#b9aa94",
+                        edgecolor="#6b5d49",
+                        lw=0.6,
+                        zorder=1,
+                    )
+                )
+        objs = [
+            o
+            for o in scene.meta.get("objects", [])
+            if o.get("objectType", str(o.get("objectId", "")).split("|")[0]) == target and "position" in o
+        ]
         if objs:
-            ax.scatter([o["position"]["x"] for o in objs], [o["position"]["z"] for o in objs], marker="X", s=70,
-                       color=np.array(TARGET_RGB) / 255, edgecolors="k", linewidths=0.6, zorder=3)
+            ax.scatter(
+                [o["position"]["x"] for o in objs],
+                [o["position"]["z"] for o in objs],
+                marker="X",
+                s=70,
+                color=np.array(TARGET_RGB) / 255,
+                edgecolors="k",
+                linewidths=0.6,
+                zorder=3,
+            )
         canvas.draw()
         self.image = np.asarray(canvas.buffer_rgba())[..., :3].copy()  # [size, size, 3]
 
@@ -129,9 +156,17 @@ def segment_colors(num_frames: int, switch: int) -> list[tuple[int, int, int]]:
     return [SEARCH_RGB if switch < 0 or t <= switch else PATH_RGB for t in range(1, num_frames)]
 
 
-def clip_frames(scene, states: Sequence[int], actions: Sequence[int], target: str | int, confidence: np.ndarray,
-                views: np.ndarray, c_target: float = C_TARGET, score_name: str = "detector score",
-                ending: str | None = None) -> np.ndarray:
+def clip_frames(
+    scene,
+    states: Sequence[int],
+    actions: Sequence[int],
+    target: str | int,
+    confidence: np.ndarray,
+    views: np.ndarray,
+    c_target: float = C_TARGET,
+    score_name: str = "detector score",
+    ending: str | None = None,
+) -> np.ndarray:
     """``(T + 1, BAND + PANEL, 2 * PANEL, 3)`` uint8 frames of one episode of ``scene``: the text band on top, the
     first-person frame (left) and the map (right) under it.
 
@@ -144,8 +179,9 @@ def clip_frames(scene, states: Sequence[int], actions: Sequence[int], target: st
     name = TARGET_CATEGORIES[g]
     n = len(states)
     if n == 0 or len(actions) != n - 1 or len(views) != n:
-        raise ValueError(f"an episode of {len(actions)} actions needs {len(actions) + 1} states and views, got "
-                         f"{n} and {len(views)}")
+        raise ValueError(
+            f"an episode of {len(actions)} actions needs {len(actions) + 1} states and views, got {n} and {len(views)}"
+        )
     score = np.asarray(confidence)[states, g].astype(np.float64)
     switch = switch_frame(score, c_target)
     px, pz = scene.x[states].astype(np.float64), scene.z[states].astype(np.float64)
@@ -176,15 +212,18 @@ def clip_frames(scene, states: Sequence[int], actions: Sequence[int], target: st
             d.rectangle([0, BAND, PANEL - 1, BAND + PANEL - 1], outline=SWITCH_RGB, width=5)
         # the text band above the panels (a player's controls cover a clip's bottom): where, what the agent
         # did, what the detector said and which stage that makes
-        act = (ACTIONS[int(actions[t])] if t < n - 1 else f"end: {ending}" if ending else "end")
+        act = ACTIONS[int(actions[t])] if t < n - 1 else f"end: {ending}" if ending else "end"
         stage = "searching" if searching else ("pathfinding (switched here)" if t == switch else "pathfinding")
         d.text((8, 4), f"{scene.name}  target {name}  step {t}/{n - 1}", font=big, fill=(20, 20, 20))
         d.text((8, 24), f"action: {act}", font=small, fill=(20, 20, 20))
         d.rectangle([PANEL + 8, 26, PANEL + 20, 38], fill=SEARCH_RGB if searching else PATH_RGB)
         d.text((PANEL + 26, 24), f"stage: {stage}", font=small, fill=(20, 20, 20))
-        d.text((8, 43), f"{score_name} of {name}: {score[t]:.2f} "
-                                f"{'>' if score[t] > c_target else '<='} C_target {c_target:g}", font=small,
-               fill=(20, 20, 20))
+        d.text(
+            (8, 43),
+            f"{score_name} of {name}: {score[t]:.2f} {'>' if score[t] > c_target else '<='} C_target {c_target:g}",
+            font=small,
+            fill=(20, 20, 20),
+        )
         out[t] = np.asarray(img)
     return out
 
@@ -208,17 +247,33 @@ def write_clip(frames: np.ndarray, path: str | Path, fps: float = FPS) -> Path:
     with atomic_path(path) as tmp:
         if fmt == "gif":
             imgs = [Image.fromarray(f) for f in frames]
-            imgs[0].save(tmp, format="GIF", save_all=True, append_images=imgs[1:], duration=int(round(1000 / fps)),
-                         loop=0, optimize=False, disposal=1)
+            imgs[0].save(
+                tmp,
+                format="GIF",
+                save_all=True,
+                append_images=imgs[1:],
+                duration=int(round(1000 / fps)),
+                loop=0,
+                optimize=False,
+                disposal=1,
+            )
         else:
             import imageio_ffmpeg
 
             h, w = frames.shape[1:3]
             if h % 2 or w % 2:
                 raise ValueError(f"H.264 needs an even frame size, got {w}x{h}")
-            writer = imageio_ffmpeg.write_frames(str(tmp), (w, h), fps=fps, codec="libx264", macro_block_size=2,
-                                                 pix_fmt_in="rgb24", pix_fmt_out="yuv420p", quality=None,
-                                                 output_params=["-crf", "20", "-movflags", "+faststart", "-f", "mp4"])
+            writer = imageio_ffmpeg.write_frames(
+                str(tmp),
+                (w, h),
+                fps=fps,
+                codec="libx264",
+                macro_block_size=2,
+                pix_fmt_in="rgb24",
+                pix_fmt_out="yuv420p",
+                quality=None,
+                output_params=["-crf", "20", "-movflags", "+faststart", "-f", "mp4"],
+            )
             writer.send(None)
             for f in frames:
                 writer.send(np.ascontiguousarray(f).tobytes())
@@ -256,8 +311,7 @@ class Clip:
     caption: str
 
 
-def episode_clip(bank, trajectory, path: str | Path, c_target: float = C_TARGET,
-                 fps: float = FPS) -> Path:
+def episode_clip(bank, trajectory, path: str | Path, c_target: float = C_TARGET, fps: float = FPS) -> Path:
     """Write the clip of one recorded episode (``trajectory`` of :func:`~tsnav.eval.runner.record_trajectories`)
     to ``path``; the stage follows ``bank.stage_confidence`` at ``c_target``, as in the evaluation."""
     si = bank.scene_index(trajectory.scene)
@@ -265,15 +319,30 @@ def episode_clip(bank, trajectory, path: str | Path, c_target: float = C_TARGET,
     lo, hi = int(bank.offsets[si]), int(bank.offsets[si + 1])
     states = scene.indices(trajectory.keys)
     score_name = "detector score" if bank.confidence is not None else "in frame (ground truth)"
-    frames = clip_frames(scene, states, trajectory.actions, trajectory.target, bank.stage_confidence[lo:hi],
-                         frame_images(scene, trajectory.keys), c_target=c_target, score_name=score_name,
-                         ending=episode_ending(trajectory))
+    frames = clip_frames(
+        scene,
+        states,
+        trajectory.actions,
+        trajectory.target,
+        bank.stage_confidence[lo:hi],
+        frame_images(scene, trajectory.keys),
+        c_target=c_target,
+        score_name=score_name,
+        ending=episode_ending(trajectory),
+    )
     return write_clip(frames, path, fps)
 
 
-def write_videos(bank, records: Sequence[EpisodeRecord], trajectories: Sequence, out_dir: str | Path, n: int,
-                 c_target: float = C_TARGET, fmt: str | None = None, relative_to: str | Path | None = None
-                 ) -> list[Clip]:
+def write_videos(
+    bank,
+    records: Sequence[EpisodeRecord],
+    trajectories: Sequence,
+    out_dir: str | Path,
+    n: int,
+    c_target: float = C_TARGET,
+    fmt: str | None = None,
+    relative_to: str | Path | None = None,
+) -> list[Clip]:
     """Clips of about ``n`` episodes (:func:`~tsnav.eval.outcomes.select_episodes`: successes and failures) into
     ``out_dir`` as ``ep<episode>.<fmt>`` (default :func:`default_format`). ``records`` and ``trajectories`` are
     parallel lists. File names in the returned items are relative to ``relative_to`` (default ``out_dir``)."""
@@ -287,15 +356,26 @@ def write_videos(bank, records: Sequence[EpisodeRecord], trajectories: Sequence,
         r, tr = records[i], trajectories[i]
         path = episode_clip(bank, tr, out_dir / f"ep{r.episode:05d}.{fmt}", c_target)
         sw = "never" if tr.switch_frame < 0 else f"at step {tr.switch_frame}"
-        caption = (f"Episode {r.episode}: {tr.scene} ({r.room_type}), target {tr.target}: {episode_ending(tr)} after "
-                   f"{r.steps} steps, {r.path_length} moves (optimal {r.optimal_length}); pathfinding stage entered {sw}.")
-        clips.append(Clip(str(path.relative_to(base)), int(r.episode), len(tr.keys), int(tr.switch_frame),
-                          bool(r.success), caption))
+        caption = (
+            f"Episode {r.episode}: {tr.scene} ({r.room_type}), target {tr.target}: {episode_ending(tr)} after "
+            f"{r.steps} steps, {r.path_length} moves (optimal {r.optimal_length}); pathfinding stage entered {sw}."
+        )
+        clips.append(
+            Clip(
+                str(path.relative_to(base)),
+                int(r.episode),
+                len(tr.keys),
+                int(tr.switch_frame),
+                bool(r.success),
+                caption,
+            )
+        )
     return clips
 
 
-def write_evaluation_videos(out_dir: str | Path, bank, records, trajectories, n: int, c_target: float = C_TARGET,
-                            fmt: str | None = None) -> list[Clip]:
+def write_evaluation_videos(
+    out_dir: str | Path, bank, records, trajectories, n: int, c_target: float = C_TARGET, fmt: str | None = None
+) -> list[Clip]:
     """``tsnav eval --video N``: the clips of :func:`write_videos` in ``out_dir/videos/`` (clips of an earlier call
     removed first) and their list ``videos/index.json``."""
     folder = Path(out_dir) / VIDEO_DIR

@@ -117,20 +117,29 @@ class AgentRecipe:
         run = run_recipe(*self.run)
         for k in ("data", "features"):  # the work folder's
             run["train"].pop(k, None)
-        return {"name": self.name, "world": to_recipe(self.world), "detections": to_recipe(self.detections),
-                "pretrain": to_recipe(self.pretrain), "features": to_recipe(self.features), **run,
-                "convergence": to_recipe(self.convergence), "select": to_recipe(self.select), "card": self.card}
+        return {
+            "name": self.name,
+            "world": to_recipe(self.world),
+            "detections": to_recipe(self.detections),
+            "pretrain": to_recipe(self.pretrain),
+            "features": to_recipe(self.features),
+            **run,
+            "convergence": to_recipe(self.convergence),
+            "select": to_recipe(self.select),
+            "card": self.card,
+        }
 
 
 def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
     """The :class:`AgentRecipe` of a recipe's sections, its training run on the work folder's world."""
     unknown = sorted(set(recipe) - {"name", *SECTIONS})
     if unknown:
-        raise CommandError(f"no section {', '.join(unknown)} in an agent's recipe (sections: name, "
-                           f"{', '.join(SECTIONS)})")
+        raise CommandError(
+            f"no section {', '.join(unknown)} in an agent's recipe (sections: name, {', '.join(SECTIONS)})"
+        )
     name = recipe.get("name")
     if not isinstance(name, str) or not name or "/" in name:
-        raise CommandError("the recipe names no agent (name = \"tsrm-demae-...\")")
+        raise CommandError('the recipe names no agent (name = "tsrm-demae-...")')
     det = build(DetectionSettings, recipe.get("detections"), "detections")
     feats = build(FeatureSettings, recipe.get("features"), "features")
     train = dict(recipe.get("train") or {})
@@ -138,8 +147,9 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
         if k in train:
             raise CommandError(f"[train]: {k} is the work folder's, not the recipe's")
     if train.get("detections", det.name) != det.name:
-        raise CommandError(f"[train]: detections {train['detections']!r} is not the tables of [detections] "
-                           f"({det.name!r})")
+        raise CommandError(
+            f"[train]: detections {train['detections']!r} is not the tables of [detections] ({det.name!r})"
+        )
     train.update(data=str((work / "world").resolve()), features="(cached in the features step)", detections=det.name)
     run = resolve_run({**{s: recipe.get(s) or {} for s in RUN_SECTIONS}, "train": train})
     if run[0].algo != "batched" or run[0].updates is None:
@@ -147,10 +157,17 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
     card = recipe.get("card") or {}
     if not isinstance(card, dict) or not card.get("summary"):
         raise CommandError("[card]: the model card needs at least a summary")
-    return AgentRecipe(name=name, world=build(WorldSettings, recipe.get("world"), "world"), detections=det,
-                       pretrain=build(PretrainConfig, recipe.get("pretrain"), "pretrain"), features=feats, run=run,
-                       convergence=build(ConvergenceConfig, recipe.get("convergence"), "convergence"),
-                       select=build(SelectSettings, recipe.get("select"), "select"), card=dict(card))
+    return AgentRecipe(
+        name=name,
+        world=build(WorldSettings, recipe.get("world"), "world"),
+        detections=det,
+        pretrain=build(PretrainConfig, recipe.get("pretrain"), "pretrain"),
+        features=feats,
+        run=run,
+        convergence=build(ConvergenceConfig, recipe.get("convergence"), "convergence"),
+        select=build(SelectSettings, recipe.get("select"), "select"),
+        card=dict(card),
+    )
 
 
 @dataclass
@@ -172,20 +189,26 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select") -> MadeAgen
     world = work / "world"
     set_threads(r.features.threads)
     say(f"world {r.world.preset} -> {world}")
-    build_dataset(world, r.world.preset, None, BuildConfig.from_preset(
-        r.world.preset, **({"world_version": r.world.version} if r.world.version is not None else {})),
-        workers=r.world.workers)
+    build_dataset(
+        world,
+        r.world.preset,
+        None,
+        BuildConfig.from_preset(
+            r.world.preset, **({"world_version": r.world.version} if r.world.version is not None else {})
+        ),
+        workers=r.world.workers,
+    )
     if until == "world":
         return MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, "")
     ensure_shipped_tables(world, r.detections)
     if until == "detections":
         return MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, "")
     pre = r.pretrain
-    es = EncoderSpec(r.features.encoder, str(work / "pre" / r.features.run), pre.model, pre.patch_size, pre.img_size,
-                     pre)
+    es = EncoderSpec(
+        r.features.encoder, str(work / "pre" / r.features.run), pre.model, pre.patch_size, pre.img_size, pre
+    )
     ensure_encoder(es, world)
-    features = ensure_features(es, world, ["train", "val", "test"], batch_size=r.features.batch_size,
-                               device=pre.device)
+    features = ensure_features(es, world, ["train", "val", "test"], batch_size=r.features.batch_size, device=pre.device)
     made = MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, features)
     if until == "features":
         return made
@@ -194,8 +217,9 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select") -> MadeAgen
     cfg, agent = r.run
     cfg = replace(cfg, features=features)
     conv = r.convergence
-    run_convergence(cfg, agent, work / "conv", chunk=conv.chunk, val_per_room_type=conv.val_per_room_type,
-                    patience=conv.patience)
+    run_convergence(
+        cfg, agent, work / "conv", chunk=conv.chunk, val_per_room_type=conv.val_per_room_type, patience=conv.patience
+    )
     if until == "train" or r.select.per_room_type is None:
         return made
     return MadeAgent(world, select_again(made.run, world, cfg.protocol, r.select, work), made.encoder_run, features)
@@ -211,8 +235,9 @@ def ensure_shipped_tables(world: Path, det: DetectionSettings) -> None:
     have, _ = learned_tables(world, det.name)
     if any(fp is None for fp in have.values()):
         size = load_scene(list_scenes(world)[0]).image_size
-        write_learned_tables(world, det.name, shipped_detector(size, det.shipped), say=say,
-                             source=f"the shipped detector {det.shipped}")
+        write_learned_tables(
+            world, det.name, shipped_detector(size, det.shipped), say=say, source=f"the shipped detector {det.shipped}"
+        )
 
 
 def select_again(run: Path, world: Path, protocol: str, sel: SelectSettings, work: Path) -> Path:
@@ -220,8 +245,9 @@ def select_again(run: Path, world: Path, protocol: str, sel: SelectSettings, wor
     ``sel.seed``) in a copy of it, ``RUN-select`` (the run keeps the training's own selection); returns the copy."""
     from ..eval.select import select_checkpoint
 
-    episodes = ensure_episodes(world, "val", work / f"val_select_{protocol}.json", sel.per_room_type, seed=sel.seed,
-                               protocol=protocol)
+    episodes = ensure_episodes(
+        world, "val", work / f"val_select_{protocol}.json", sel.per_room_type, seed=sel.seed, protocol=protocol
+    )
     copy = run.with_name(run.name + "-select")
     if not copy.exists():
         tmp = copy.with_name(copy.name + ".tmp")

@@ -54,7 +54,6 @@ DETECTOR_128 = {"stem": 2, "widths": (32, 64, 128), "fine": True}
 DETECTOR_128_STEPS = 9000
 
 
-
 def _pretrain() -> PretrainConfig:
     """Pretraining of the ``small`` scale: ViT-Tiny at 64x64, 800 steps of 64 images, a larger learning rate
     (1.5e-3 per 256 images) than MAE's for short CPU runs. ``method`` and ``device`` are the job's."""
@@ -67,8 +66,9 @@ def _train() -> TrainConfig:
     plateau in a third of the updates, docs/RESULTS.md "Convergence on the 80 real rooms"), 1000 updates per job
     (about 1.9 M environment steps), a milestone every 200 updates for validation-based selection (issue 15).
     The job fills in its data, features, detections, reward, seed, C_target and protocol."""
-    return TrainConfig(algo="batched", preset="cpu", lr=1e-3, num_envs=64, procs=1, workers=14, updates=1000,
-                       milestone_every=200)
+    return TrainConfig(
+        algo="batched", preset="cpu", lr=1e-3, num_envs=64, procs=1, workers=14, updates=1000, milestone_every=200
+    )
 
 
 def _detector() -> DetectorTrainConfig:
@@ -118,13 +118,20 @@ class ScaleConfig:
     """:class:`~tsnav.agent.model.AgentConfig` fields of every job's network over the ``train.preset`` preset (e.g.
     ``dropout``, paper IV-A: 0.45); empty: the preset's."""
 
-    def override(self, pretrain: dict | None = None, train: dict | None = None, detector: dict | None = None,
-                 **fields) -> "ScaleConfig":
+    def override(
+        self, pretrain: dict | None = None, train: dict | None = None, detector: dict | None = None, **fields
+    ) -> "ScaleConfig":
         """A copy with fields of the nested configurations (``pretrain``, ``train``, ``detector``: field -> value)
         and of the scale itself replaced (``dataclasses.replace``, so every configuration checks its values)."""
-        return replace(self, **fields,
-                       **{k: replace(getattr(self, k), **v) for k, v in
-                          (("pretrain", pretrain), ("train", train), ("detector", detector)) if v})
+        return replace(
+            self,
+            **fields,
+            **{
+                k: replace(getattr(self, k), **v)
+                for k, v in (("pretrain", pretrain), ("train", train), ("detector", detector))
+                if v
+            },
+        )
 
     @property
     def budget(self) -> dict:
@@ -136,9 +143,15 @@ def demo_scale(preset: str) -> "ScaleConfig":
     """The demo's sizes on world ``preset``: ``SCALES["demo"]``, with the quick demo's shorter training
     (:data:`QUICK_DEMO_UPDATES`) on its rooms (:data:`QUICK_DEMO_PRESET`)."""
     if preset == QUICK_DEMO_PRESET:
-        return SCALES["demo"].override(pretrain=dict(steps=QUICK_DEMO_PRETRAIN_STEPS),
-                                       train=dict(updates=QUICK_DEMO_UPDATES, num_envs=QUICK_DEMO_ENVS,
-                                                  procs=QUICK_DEMO_PROCS, milestone_every=QUICK_DEMO_MILESTONES))
+        return SCALES["demo"].override(
+            pretrain=dict(steps=QUICK_DEMO_PRETRAIN_STEPS),
+            train=dict(
+                updates=QUICK_DEMO_UPDATES,
+                num_envs=QUICK_DEMO_ENVS,
+                procs=QUICK_DEMO_PROCS,
+                milestone_every=QUICK_DEMO_MILESTONES,
+            ),
+        )
     return SCALES["demo"]
 
 
@@ -154,17 +167,33 @@ SMALL = ScaleConfig()
 SCALES = {
     "demo": SMALL.override(pretrain=dict(steps=300), train=dict(updates=DEMO_UPDATES), test_per_room_type=100),
     "small": SMALL,
-    "medium": SMALL.override(train=dict(updates=MEDIUM_UPDATES, milestone_every=250, num_envs=256),
-                             detector=dict(steps=DETECTOR_128_STEPS, max_states_per_scene=1600),
-                             test_per_room_type=250, val_per_room_type=100, world="ithor-real",
-                             detector_model=dict(DETECTOR_128)),
-    "paper": SMALL.override(pretrain=dict(model="vit_base", patch_size=16, img_size=224, steps=None, batch_size=64,
-                                          base_lr=None),
-                            train=dict(algo="a3c", preset="paper", lr=1e-4, num_envs=16, workers=14, updates=None,
-                                       episodes=1_500_000, milestone_every=None),
-                            detector=dict(steps=DETECTOR_128_STEPS, max_states_per_scene=1600),
-                            feature_batch_size=64, test_per_room_type=250, val_per_room_type=250, world="ithor-real",
-                            detector_model=dict(DETECTOR_128)),
+    "medium": SMALL.override(
+        train=dict(updates=MEDIUM_UPDATES, milestone_every=250, num_envs=256),
+        detector=dict(steps=DETECTOR_128_STEPS, max_states_per_scene=1600),
+        test_per_room_type=250,
+        val_per_room_type=100,
+        world="ithor-real",
+        detector_model=dict(DETECTOR_128),
+    ),
+    "paper": SMALL.override(
+        pretrain=dict(model="vit_base", patch_size=16, img_size=224, steps=None, batch_size=64, base_lr=None),
+        train=dict(
+            algo="a3c",
+            preset="paper",
+            lr=1e-4,
+            num_envs=16,
+            workers=14,
+            updates=None,
+            episodes=1_500_000,
+            milestone_every=None,
+        ),
+        detector=dict(steps=DETECTOR_128_STEPS, max_states_per_scene=1600),
+        feature_batch_size=64,
+        test_per_room_type=250,
+        val_per_room_type=250,
+        world="ithor-real",
+        detector_model=dict(DETECTOR_128),
+    ),
 }
 
 
@@ -203,42 +232,79 @@ def _abl(id_, label, enc, reward, e, d, m) -> Row:
 def experiment_rows(name: str, vc1: bool = False) -> list[Row]:
     """The rows of an experiment (paper Table II, Table III, Fig. 4)."""
     if name == "ablation":
-        return [_abl("baseline", "baseline (ResNet18, baseline reward)", "resnet18", "baseline", 0, 0, 0),
-                _abl("explore", "+ exploration reward", "resnet18", "explore", 1, 0, 0),
-                _abl("distance", "+ distance reward", "resnet18", "distance", 0, 1, 0),
-                _abl("tsrm", "+ both (TSRM)", "resnet18", "tsrm", 1, 1, 0),
-                _abl("demae", "+ DE-MAE alone", "demae", "baseline", 0, 0, 1),
-                _abl("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm", 1, 1, 1),
-                # issue 14 item 4: the same agent with the oracle's table (no distance in its features; its
-                # confidence a hand-made function of instance size and distance) instead of the learned
-                # detector's, so the oracle switch's effect is measured
-                Row("tsrm_demae_oracle", "TSRM + DE-MAE, oracle switch", "demae", "tsrm", C_TARGET,
-                    dict(zip(ABLATION_FLAGS, (1, 1, 1))), detections="oracle")]
+        return [
+            _abl("baseline", "baseline (ResNet18, baseline reward)", "resnet18", "baseline", 0, 0, 0),
+            _abl("explore", "+ exploration reward", "resnet18", "explore", 1, 0, 0),
+            _abl("distance", "+ distance reward", "resnet18", "distance", 0, 1, 0),
+            _abl("tsrm", "+ both (TSRM)", "resnet18", "tsrm", 1, 1, 0),
+            _abl("demae", "+ DE-MAE alone", "demae", "baseline", 0, 0, 1),
+            _abl("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm", 1, 1, 1),
+            # issue 14 item 4: the same agent with the oracle's table (no distance in its features; its
+            # confidence a hand-made function of instance size and distance) instead of the learned
+            # detector's, so the oracle switch's effect is measured
+            Row(
+                "tsrm_demae_oracle",
+                "TSRM + DE-MAE, oracle switch",
+                "demae",
+                "tsrm",
+                C_TARGET,
+                dict(zip(ABLATION_FLAGS, (1, 1, 1))),
+                detections="oracle",
+            ),
+        ]
     if name == "pretraining":
         rows = [Row("resnet18", "Baseline (ResNet18)", "resnet18", "baseline")]
         if vc1:
             rows.append(Row("vc1", "VC-1 (ViT-Base, Ego4D)", "vc1", "baseline"))
-        return rows + [Row("mae", "Standard MAE (ViT)", "mae", "baseline"),
-                       Row("demae_crop", "DE-MAE (ViT) w/ crop", "demae-crop", "baseline"),
-                       Row("demae", "DE-MAE (ViT) w/o crop", "demae", "baseline")]
+        return rows + [
+            Row("mae", "Standard MAE (ViT)", "mae", "baseline"),
+            Row("demae_crop", "DE-MAE (ViT) w/ crop", "demae-crop", "baseline"),
+            Row("demae", "DE-MAE (ViT) w/o crop", "demae", "baseline"),
+        ]
     if name == DEMO:
         return [Row("tsrm_demae", "TSRM + DE-MAE", "demae", "tsrm")]
     if name == "threshold":
-        return [Row(f"c{int(round(100 * c)):02d}", f"C_target = {c:.1f}", "demae", "tsrm", c)
-                for c in np.round(np.arange(0.1, 0.91, 0.1), 2).tolist()]
+        return [
+            Row(f"c{int(round(100 * c)):02d}", f"C_target = {c:.1f}", "demae", "tsrm", c)
+            for c in np.round(np.arange(0.1, 0.91, 0.1), 2).tolist()
+        ]
     raise ValueError(f"unknown experiment {name!r} (choose from {', '.join(EXPERIMENTS + (DEMO,))})")
 
 
 #: Per experiment: evaluation split, metrics in the table, check-mark columns, row shown in the gallery.
 EXPERIMENT_INFO = {
-    "ablation": dict(split="test", metrics=list(METRICS), flags=list(ABLATION_FLAGS), gallery_row="tsrm_demae",
-                     baseline_row="baseline", description="Paper Table II: TSRM terms and DE-MAE added to the baseline."),
-    "pretraining": dict(split="test", metrics=["SR", "SPL"], flags=[], gallery_row="demae",
-                        baseline_row="resnet18", description="Paper Table III: pretraining methods of the image encoder, baseline reward."),
-    "threshold": dict(split="val", metrics=list(METRICS), flags=[], gallery_row="c70",
-                      baseline_row="c70", description="Paper Fig. 4: the stage-switch threshold C_target swept on validation episodes."),
-    DEMO: dict(split="test", metrics=list(METRICS), flags=[], gallery_row="tsrm_demae", baseline_row="tsrm_demae",
-               description="tsnav demo: TSRM + DE-MAE (paper Table II, last row) at the demo scale."),
+    "ablation": dict(
+        split="test",
+        metrics=list(METRICS),
+        flags=list(ABLATION_FLAGS),
+        gallery_row="tsrm_demae",
+        baseline_row="baseline",
+        description="Paper Table II: TSRM terms and DE-MAE added to the baseline.",
+    ),
+    "pretraining": dict(
+        split="test",
+        metrics=["SR", "SPL"],
+        flags=[],
+        gallery_row="demae",
+        baseline_row="resnet18",
+        description="Paper Table III: pretraining methods of the image encoder, baseline reward.",
+    ),
+    "threshold": dict(
+        split="val",
+        metrics=list(METRICS),
+        flags=[],
+        gallery_row="c70",
+        baseline_row="c70",
+        description="Paper Fig. 4: the stage-switch threshold C_target swept on validation episodes.",
+    ),
+    DEMO: dict(
+        split="test",
+        metrics=list(METRICS),
+        flags=[],
+        gallery_row="tsrm_demae",
+        baseline_row="tsrm_demae",
+        description="tsnav demo: TSRM + DE-MAE (paper Table II, last row) at the demo scale.",
+    ),
 }
 
 
@@ -325,6 +391,10 @@ class ExperimentConfig:
     another count sums floats in another order and trains another agent."""
 
     #: Allowed values of fields (the command-line options' choices, :mod:`tsnav.settings`).
-    CHOICES: ClassVar[dict] = {"experiment": (*EXPERIMENTS, DEMO), "scale": ("demo", "small", "medium", "paper"),
-                               "detector": DETECTOR_SOURCES, "checkpoint": ("best", "latest"),
-                               "protocol": PROTOCOLS}
+    CHOICES: ClassVar[dict] = {
+        "experiment": (*EXPERIMENTS, DEMO),
+        "scale": ("demo", "small", "medium", "paper"),
+        "detector": DETECTOR_SOURCES,
+        "checkpoint": ("best", "latest"),
+        "protocol": PROTOCOLS,
+    }

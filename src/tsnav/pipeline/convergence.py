@@ -44,9 +44,15 @@ def curve_points(selection: dict) -> list[dict]:
     """The scored checkpoints of a selection (:func:`select_checkpoint`), by update: update, env steps,
     episodes and the validation metrics drawn on curves (ALL episodes, fractions; ``Metric.curve`` of
     :mod:`tsnav.metrics`)."""
-    pts = [{"update": v["update"], "env_steps": v["env_steps"], "episodes": v["episodes"],
-            **{m: v["metrics"]["ALL"][m] for m in curve_metrics() if m in v["metrics"]["ALL"]}}
-           for v in selection["scores"].values()]
+    pts = [
+        {
+            "update": v["update"],
+            "env_steps": v["env_steps"],
+            "episodes": v["episodes"],
+            **{m: v["metrics"]["ALL"][m] for m in curve_metrics() if m in v["metrics"]["ALL"]},
+        }
+        for v in selection["scores"].values()
+    ]
     return sorted(pts, key=lambda p: p["update"])
 
 
@@ -54,8 +60,10 @@ def plot_curve(points: list[dict], path: str | Path, title: str = "") -> Path:
     """Validation metrics (percent) against environment steps (left) and training episodes (right)."""
     fig = Figure(figsize=(11, 4.2))
     FigureCanvasAgg(fig)
-    for ax, key, label in ((fig.add_subplot(1, 2, 1), "env_steps", "environment steps"),
-                           (fig.add_subplot(1, 2, 2), "episodes", "training episodes")):
+    for ax, key, label in (
+        (fig.add_subplot(1, 2, 1), "env_steps", "environment steps"),
+        (fig.add_subplot(1, 2, 2), "episodes", "training episodes"),
+    ):
         for m in (m for m in curve_metrics() if all(m in p for p in points)):  # scored before a metric was added
             ax.plot([p[key] for p in points], [100 * p[m] for p in points], marker="o", ms=3, label=m)
         ax.set_xlabel(label)
@@ -77,36 +85,62 @@ def plateaued(points: list[dict], patience: int | None) -> bool:
     return max(p["SR"] for p in points[-patience:]) <= best_before
 
 
-def run_convergence(cfg: TrainConfig, agent: AgentConfig, out: str | Path, *, chunk: int,
-                    val_per_room_type: int = 50, patience: int | None = None, max_steps: int = 100,
-                    say=print) -> list[dict]:
+def run_convergence(
+    cfg: TrainConfig,
+    agent: AgentConfig,
+    out: str | Path,
+    *,
+    chunk: int,
+    val_per_room_type: int = 50,
+    patience: int | None = None,
+    max_steps: int = 100,
+    say=print,
+) -> list[dict]:
     """Train ``cfg`` (its ``updates`` the total) with network ``agent`` in chunks of ``chunk`` updates under
     ``OUT/run``, scoring each chunk's checkpoint on validation episodes; returns the curve points. Resumes
     whatever was done before."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     total = int(cfg.updates)
-    val = ensure_episodes(cfg.data, "val", out / episodes_name("val", cfg.protocol), val_per_room_type,
-                          protocol=cfg.protocol)
+    val = ensure_episodes(
+        cfg.data, "val", out / episodes_name("val", cfg.protocol), val_per_room_type, protocol=cfg.protocol
+    )
     run = out / "run"
     points: list[dict] = []
-    deviations = ([f"distance increase x{cfg.distance_increase_scale:g}"] if cfg.distance_increase_scale != 1.0 else [])
+    deviations = [f"distance increase x{cfg.distance_increase_scale:g}"] if cfg.distance_increase_scale != 1.0 else []
     deviations += ["mirror"] if cfg.mirror else []
     deviations += ["blocked-action"] if agent.blocked_action else []
     for end in list(range(chunk, total, chunk)) + [total]:
-        c = TrainConfig.from_dict({**cfg.to_dict(), "updates": end, "episodes": None, "minutes": None,
-                                   "checkpoint_every": chunk, "milestone_every": chunk})
+        c = TrainConfig.from_dict(
+            {
+                **cfg.to_dict(),
+                "updates": end,
+                "episodes": None,
+                "minutes": None,
+                "checkpoint_every": chunk,
+                "milestone_every": chunk,
+            }
+        )
         train_run(c, agent, run, progress_bar=False)
         sel = select_checkpoint(run, cfg.data, val, max_steps=max_steps, progress=say)
         points = curve_points(sel)
-        atomic_write_json(out / "curve.json", {"points": points, "best": sel["best"], "chunk": chunk,
-                                               "protocol": cfg.protocol, "train": c.to_dict()})
-        plot_curve(points, out / "curve.png", title=", ".join(
-            [f"{cfg.reward} reward", f"features {cfg.features}", f"protocol {cfg.protocol}"] + deviations))
+        atomic_write_json(
+            out / "curve.json",
+            {"points": points, "best": sel["best"], "chunk": chunk, "protocol": cfg.protocol, "train": c.to_dict()},
+        )
+        plot_curve(
+            points,
+            out / "curve.png",
+            title=", ".join(
+                [f"{cfg.reward} reward", f"features {cfg.features}", f"protocol {cfg.protocol}"] + deviations
+            ),
+        )
         last = points[-1]
-        say(f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
+        say(
+            f"update {last['update']}: env steps {last['env_steps']}, episodes {last['episodes']}, "
             + ", ".join(f"val {m} {100 * last[m]:.1f}" for m in curve_metrics() if m in last)
-            + f" (protocol {cfg.protocol})")
+            + f" (protocol {cfg.protocol})"
+        )
         if plateaued(points, patience):
             say(f"validation SR has not risen for {patience} chunks: stopping at update {last['update']}")
             break
@@ -169,10 +203,15 @@ def resolve(args: argparse.Namespace) -> tuple:
 
 def run(args: argparse.Namespace) -> int:
     cfg, agent, conv = resolve(args)
-    atomic_write_text(Path(args.out) / "recipe.toml", dump_recipe(
-        {**run_recipe(cfg, agent), "convergence": to_recipe(conv)},
-        header="The resolved recipe of this convergence run (tsnav convergence --config FILE reruns it)."))
-    run_convergence(cfg, agent, args.out, chunk=conv.chunk, val_per_room_type=conv.val_per_room_type,
-                    patience=conv.patience)
+    atomic_write_text(
+        Path(args.out) / "recipe.toml",
+        dump_recipe(
+            {**run_recipe(cfg, agent), "convergence": to_recipe(conv)},
+            header="The resolved recipe of this convergence run (tsnav convergence --config FILE reruns it).",
+        ),
+    )
+    run_convergence(
+        cfg, agent, args.out, chunk=conv.chunk, val_per_room_type=conv.val_per_room_type, patience=conv.patience
+    )
     print(f"curve: {Path(args.out) / 'curve.png'}, best checkpoint: {Path(args.out) / 'run' / 'best'}")
     return 0

@@ -70,18 +70,33 @@ from ..detect.train import DetectorTrainConfig
 from ..errors import CommandError
 from ..pretrain.train import PretrainConfig
 from ..rl.config import TrainConfig
-from ..settings import (add_options, add_shared, apply_sets, build, dump_recipe, field_docs, given, merge, read_recipe,
-                        to_recipe)
+from ..settings import (
+    add_options,
+    add_shared,
+    apply_sets,
+    build,
+    dump_recipe,
+    field_docs,
+    given,
+    merge,
+    read_recipe,
+    to_recipe,
+)
 from .recipes import JOB_FIELDS
-from .experiment import (SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample,
-                          set_threads)
-from .config import (DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, ExperimentConfig, ScaleConfig, demo_scale)
+from .experiment import SELECT_SEED, Experiment, JobList, Step, add_threads_and_sample, set_threads
+from .config import DEMO, DETECTOR_SOURCES, QUICK_DEMO_PRESET, ExperimentConfig, ScaleConfig, demo_scale
 from ..report.html import build_report
 from ..eval.runner import evaluate_to_folder
 from ..detect.shipped import DEFAULT_SHIPPED, shipped_meta
 from ..detect.train import is_checkpoint, read_meta
-from .detector_steps import (complete_tables, ensure_detector, ensure_shipped_detections, one_thread,
-                             record_quality, tables_complete)
+from .detector_steps import (
+    complete_tables,
+    ensure_detector,
+    ensure_shipped_detections,
+    one_thread,
+    record_quality,
+    tables_complete,
+)
 from ..report.tables import quality_line
 from .steps import encoder_spec, ensure_episodes, ensure_oracle_detections, episodes_name
 from .release import agent_folder, ensure_release_detections, ensure_release_features, headline, read_card
@@ -94,8 +109,18 @@ from ..world.build import BuildConfig, build_dataset
 from ..world.presets import preset_scenes
 
 #: The demo's steps, in order (the pipeline's steps; "stage" names the paper's searching / pathfinding stages).
-STEPS = ("world", "pretrain", "features", "detector", "detections", "episodes", "train", "evaluate", "shipped",
-         "report")
+STEPS = (
+    "world",
+    "pretrain",
+    "features",
+    "detector",
+    "detections",
+    "episodes",
+    "train",
+    "evaluate",
+    "shipped",
+    "report",
+)
 
 
 @dataclass
@@ -148,8 +173,12 @@ class DemoConfig:
     Read through :attr:`tables_beside`."""
 
     #: Allowed values of fields (the command-line options' choices, :mod:`tsnav.settings`).
-    CHOICES: ClassVar[dict] = {"preset": (QUICK_DEMO_PRESET, "demo-real", "demo"), "detections": ("learned", "oracle"),
-                               "detector": DETECTOR_SOURCES, "protocol": PROTOCOLS}
+    CHOICES: ClassVar[dict] = {
+        "preset": (QUICK_DEMO_PRESET, "demo-real", "demo"),
+        "detections": ("learned", "oracle"),
+        "detector": DETECTOR_SOURCES,
+        "protocol": PROTOCOLS,
+    }
 
     def __post_init__(self):
         for name, allowed in self.CHOICES.items():  # the preset: any world preset (tests build tiny ones)
@@ -174,29 +203,45 @@ class DemoConfig:
 #: The demo's short options for settings of its scale (``[scale]``) and of its config (``[demo]``): option ->
 #: recipe key; the help is the setting's own. ``--train-updates`` or ``--train-minutes`` replaces the whole
 #: budget (the other one none).
-SHORTHANDS = {"workers": "demo.world_workers", "train_updates": "scale.train.updates",
-              "train_minutes": "scale.train.minutes", "pretrain_steps": "scale.pretrain.steps",
-              "procs": "scale.train.procs", "detector_steps": "scale.detector.steps"}
+SHORTHANDS = {
+    "workers": "demo.world_workers",
+    "train_updates": "scale.train.updates",
+    "train_minutes": "scale.train.minutes",
+    "pretrain_steps": "scale.pretrain.steps",
+    "procs": "scale.train.procs",
+    "detector_steps": "scale.detector.steps",
+}
 #: The sections of the demo's recipe (``configs/demo.toml``).
 SECTIONS = ("demo", "scale")
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
     add_shared(p, "out", default="out/demo", help="folder for the world, runs and report (default out/demo)")
-    add_shared(p, "config", help="the demo's recipe (configs/demo.toml): [demo] and [scale] sections; options "
-                                 "given here override it")
+    add_shared(
+        p,
+        "config",
+        help="the demo's recipe (configs/demo.toml): [demo] and [scale] sections; options given here override it",
+    )
     add_shared(p, "set", help="set one setting, e.g. --set scale.train.lr=1e-3 (a TOML value); repeatable")
     p.add_argument("--print-recipe", action="store_true", help="print the resolved recipe (TOML) and stop")
     add_threads_and_sample(p)
     add_options(p, DemoConfig, "demo", exclude=("scale", "sample", "world_workers"))
     for option, key in SHORTHANDS.items():
         section, *path = key.split(".")
-        cls = DemoConfig if section == "demo" else {"train": TrainConfig, "pretrain": PretrainConfig,
-                                                    "detector": DetectorTrainConfig}[path[0]]
+        cls = (
+            DemoConfig
+            if section == "demo"
+            else {"train": TrainConfig, "pretrain": PretrainConfig, "detector": DetectorTrainConfig}[path[0]]
+        )
         doc = field_docs(cls).get(path[-1], "")
-        p.add_argument("--" + option.replace("_", "-"), dest=f"shorthand.{option}",
-                       type=int if option != "train_minutes" else float, default=None, metavar="N",
-                       help=f"{key}: {doc} (default: the preset's scale; demo_scale)".replace("%", "%%"))
+        p.add_argument(
+            "--" + option.replace("_", "-"),
+            dest=f"shorthand.{option}",
+            type=int if option != "train_minutes" else float,
+            default=None,
+            metavar="N",
+            help=f"{key}: {doc} (default: the preset's scale; demo_scale)".replace("%", "%%"),
+        )
 
 
 def resolve(args: argparse.Namespace) -> DemoConfig:
@@ -204,8 +249,9 @@ def resolve(args: argparse.Namespace) -> DemoConfig:
     recipe = apply_sets(read_recipe(args.config) if args.config else {}, args.set, SECTIONS)
     unknown = sorted(set(recipe) - set(SECTIONS))
     if unknown:
-        raise CommandError(f"{args.config}: no section {', '.join(unknown)} in the demo's recipe "
-                           f"(sections: {', '.join(SECTIONS)})")
+        raise CommandError(
+            f"{args.config}: no section {', '.join(unknown)} in the demo's recipe (sections: {', '.join(SECTIONS)})"
+        )
     short = {}
     for option, v in given(args, "shorthand").items():
         short = merge(short, apply_sets({}, [f"{SHORTHANDS[option]}={v!r}"]))
@@ -288,8 +334,10 @@ def check_demo(out: Path, cfg: DemoConfig) -> None:
     if cfg.detections != "oracle" and cfg.detector == "shipped":
         size, want = BuildConfig.from_preset(cfg.preset).image_size, shipped_meta()["model"]["image_size"]
         if size != want:
-            raise CommandError(f"the shipped detector reads {want}x{want} frames (the ithor-real rooms), the "
-                               f"{cfg.preset} world has {size}x{size}: use --detector train, or --preset {QUICK_DEMO_PRESET}")
+            raise CommandError(
+                f"the shipped detector reads {want}x{want} frames (the ithor-real rooms), the "
+                f"{cfg.preset} world has {size}x{size}: use --detector train, or --preset {QUICK_DEMO_PRESET}"
+            )
     index = out / "world" / "index.json"
     if index.exists():  # a world of another preset is never mixed with this one (names overlap): refused
         try:
@@ -297,8 +345,9 @@ def check_demo(out: Path, cfg: DemoConfig) -> None:
         except ValueError:
             was = None
         if was != cfg.preset:
-            raise CommandError(f"{out / 'world'} holds the {was!r} world, not {cfg.preset!r}: use another --out "
-                               f"(or --preset {was})")
+            raise CommandError(
+                f"{out / 'world'} holds the {was!r} world, not {cfg.preset!r}: use another --out (or --preset {was})"
+            )
 
 
 class Demo:
@@ -307,10 +356,24 @@ class Demo:
     def __init__(self, out: Path, cfg: DemoConfig, train_fn=None):
         self.out, self.cfg, self.sc = out, cfg, cfg.sizes
         self.world, self.sub, self.det_dir = out / "world", out / "train_world", out / "detector"
-        self.exp = DemoExperiment(ExperimentConfig(
-            experiment=DEMO, data=str(self.world), train_data=str(self.sub), out=str(out), scale="demo",
-            detections=cfg.detections, detector=cfg.detector, detector_dir=str(self.det_dir), device="cpu",
-            sample=cfg.sample, protocol=cfg.protocol, seed_offset=cfg.seed), train_fn=train_fn, scale=cfg.sizes)
+        self.exp = DemoExperiment(
+            ExperimentConfig(
+                experiment=DEMO,
+                data=str(self.world),
+                train_data=str(self.sub),
+                out=str(out),
+                scale="demo",
+                detections=cfg.detections,
+                detector=cfg.detector,
+                detector_dir=str(self.det_dir),
+                device="cpu",
+                sample=cfg.sample,
+                protocol=cfg.protocol,
+                seed_offset=cfg.seed,
+            ),
+            train_fn=train_fn,
+            scale=cfg.sizes,
+        )
         self.job = self.exp.jobs[0]
         self.es = encoder_spec(self.job.row.encoder, self.sc, self.exp.pretrain_dir, self.exp.cfg)
         self.ep_files = {p: out / episodes_name("test", p) for p in PROTOCOLS}
@@ -325,7 +388,9 @@ class Demo:
         self.jobs = JobList(self.steps(), say=lambda m: print(m, flush=True))
 
     def step(self, name: str, what: str, run, valid=lambda m: True, show=None) -> Step:
-        return Step(name, what, self.out / "steps" / name, run, valid, show, legacy=self.out / "stages" / f"{name}.json")
+        return Step(
+            name, what, self.out / "steps" / name, run, valid, show, legacy=self.out / "stages" / f"{name}.json"
+        )
 
     def steps(self) -> list[Step]:
         cfg, sc, es = self.cfg, self.sc, self.es
@@ -333,42 +398,90 @@ class Demo:
         if not learned:
             detector = self.step("detector", "not used (--detections oracle)", None)
         elif shipped:
-            detector = self.step("detector", f"learned detector shipped with tsnav ({DEFAULT_SHIPPED}; trained on the "
-                                 "ithor-real training rooms apart from the agent, as the paper's DETR): nothing "
-                                 "trained here", self.detector, self.detector_ok)
+            detector = self.step(
+                "detector",
+                f"learned detector shipped with tsnav ({DEFAULT_SHIPPED}; trained on the "
+                "ithor-real training rooms apart from the agent, as the paper's DETR): nothing "
+                "trained here",
+                self.detector,
+                self.detector_ok,
+            )
         else:
-            detector = self.step("detector", f"learned detector, {sc.detector.steps} steps on the training rooms (one "
-                                 f"thread), temperature fitted on the val rooms -> {self.det_dir}", self.detector,
-                                 self.detector_ok)
+            detector = self.step(
+                "detector",
+                f"learned detector, {sc.detector.steps} steps on the training rooms (one "
+                f"thread), temperature fitted on the val rooms -> {self.det_dir}",
+                self.detector,
+                self.detector_ok,
+            )
         what = "the learned detector's table per room" if learned else "the oracle detector's table per room"
         budget = ", ".join(f"{v:g} {k}" for k, v in sc.budget.items() if v is not None) or "1.5 M episodes"
         return [
-            self.step("world", f"build the `{cfg.preset}` world into {self.world} (finished rooms are reused)",
-                      self.build_world, self.world_ok,
-                      lambda m: print(f"    {m['scenes']} rooms; training on {', '.join(m['train_rooms'])}", flush=True)),
-            self.step("pretrain", f"DE-MAE, {sc.pretrain.model} at {sc.pretrain.img_size}x{sc.pretrain.img_size}, "
-                      f"{sc.pretrain.steps} steps -> {es.spec}", self.pretrain,
-                      lambda m: (Path(es.spec) / "encoder.safetensors").exists()),
-            self.step("features", "encode every state of the training, validation and test rooms once",
-                      self.features, self.features_ok),
+            self.step(
+                "world",
+                f"build the `{cfg.preset}` world into {self.world} (finished rooms are reused)",
+                self.build_world,
+                self.world_ok,
+                lambda m: print(f"    {m['scenes']} rooms; training on {', '.join(m['train_rooms'])}", flush=True),
+            ),
+            self.step(
+                "pretrain",
+                f"DE-MAE, {sc.pretrain.model} at {sc.pretrain.img_size}x{sc.pretrain.img_size}, "
+                f"{sc.pretrain.steps} steps -> {es.spec}",
+                self.pretrain,
+                lambda m: (Path(es.spec) / "encoder.safetensors").exists(),
+            ),
+            self.step(
+                "features",
+                "encode every state of the training, validation and test rooms once",
+                self.features,
+                self.features_ok,
+            ),
             detector,
-            self.step("detections", f"detections: {cfg.detections} (named explicitly), {what} (confidence drives the "
-                      f"stage switch, C_target {C_TARGET:g}); quality on the val rooms", self.detections,
-                      lambda m: "quality" in m and all(read_fingerprint(p, cfg.detections) == m.get("fingerprint")
-                                                       for p in list_scenes(self.world))),
-            self.step("episodes", f"{sc.test_per_room_type} test episodes per room type under each protocol "
-                      f"({', '.join(PROTOCOLS)}) and {sc.val_per_room_type} validation episodes per room type ("
-                      f"{cfg.protocol})", self.episodes,
-                      lambda m: all(f.exists() for f in self.ep_files.values()) and self.val_file.exists()
-                      and "by_protocol" in m, self.show_episodes),
-            self.step("train", f"TSRM agent, batched A2C, {budget}, best milestone on validation -> {self.run_dir}",
-                      self.train, lambda m: m.get("budget") == sc.budget and "checkpoint" in m
-                      and (self.run_dir / "config.json").exists()),
-            self.step("evaluate", "on the test episodes of each protocol: " + ", ".join(lab for lab, _, _ in self.policies),
-                      self.evaluate, self.evaluate_ok),
+            self.step(
+                "detections",
+                f"detections: {cfg.detections} (named explicitly), {what} (confidence drives the "
+                f"stage switch, C_target {C_TARGET:g}); quality on the val rooms",
+                self.detections,
+                lambda m: (
+                    "quality" in m
+                    and all(
+                        read_fingerprint(p, cfg.detections) == m.get("fingerprint") for p in list_scenes(self.world)
+                    )
+                ),
+            ),
+            self.step(
+                "episodes",
+                f"{sc.test_per_room_type} test episodes per room type under each protocol "
+                f"({', '.join(PROTOCOLS)}) and {sc.val_per_room_type} validation episodes per room type ("
+                f"{cfg.protocol})",
+                self.episodes,
+                lambda m: (
+                    all(f.exists() for f in self.ep_files.values()) and self.val_file.exists() and "by_protocol" in m
+                ),
+                self.show_episodes,
+            ),
+            self.step(
+                "train",
+                f"TSRM agent, batched A2C, {budget}, best milestone on validation -> {self.run_dir}",
+                self.train,
+                lambda m: (
+                    m.get("budget") == sc.budget and "checkpoint" in m and (self.run_dir / "config.json").exists()
+                ),
+            ),
+            self.step(
+                "evaluate",
+                "on the test episodes of each protocol: " + ", ".join(lab for lab, _, _ in self.policies),
+                self.evaluate,
+                self.evaluate_ok,
+            ),
             self.shipped_step(),
-            self.step("report", f"HTML report -> {self.out / 'report' / 'index.html'}", self.report,
-                      lambda m: (self.out / "report" / "index.html").exists()),
+            self.step(
+                "report",
+                f"HTML report -> {self.out / 'report' / 'index.html'}",
+                self.report,
+                lambda m: (self.out / "report" / "index.html").exists(),
+            ),
         ]
 
     # 1. world -------------------------------------------------------------------------------------------
@@ -378,8 +491,11 @@ class Demo:
         return {"scenes": len(list_scenes(self.world)), "train_rooms": names}
 
     def world_ok(self, m: dict) -> bool:
-        return (self.world.is_dir() and len(list_scenes(self.world)) == len(preset_scenes(self.cfg.preset))
-                and self.sub.is_dir())
+        return (
+            self.world.is_dir()
+            and len(list_scenes(self.world)) == len(preset_scenes(self.cfg.preset))
+            and self.sub.is_dir()
+        )
 
     # 2. pretrain, 3. features ---------------------------------------------------------------------------
     def pretrain(self) -> dict:
@@ -398,14 +514,22 @@ class Demo:
         """Start writing the shipped detector's missing tables in a process of its own (one thread) when
         ``tables_beside_pretraining``, and after them what the shipped agent's row needs in the test rooms (its
         detector's tables, its encoder's features); returns whether it started."""
-        if (self.cfg.detections == "oracle" or self.cfg.detector != "shipped" or self.background is not None
-                or not self.cfg.tables_beside):
+        if (
+            self.cfg.detections == "oracle"
+            or self.cfg.detector != "shipped"
+            or self.background is not None
+            or not self.cfg.tables_beside
+        ):
             return False
         ctx = spawn_context()
         self.background_tables = ctx.Event()
         agent = str(self.shipped_folder) if self.shipped_folder is not None else None
-        self.background = ctx.Process(target=write_tables_quietly, args=(str(self.world), self.cfg.detections),
-                                      kwargs={"done": self.background_tables, "shipped": agent}, daemon=True)
+        self.background = ctx.Process(
+            target=write_tables_quietly,
+            args=(str(self.world), self.cfg.detections),
+            kwargs={"done": self.background_tables, "shipped": agent},
+            daemon=True,
+        )
         self.background.start()
         return True
 
@@ -423,15 +547,21 @@ class Demo:
                 return
         self.background.join()
         if self.background.exitcode != 0:
-            print(f"    the detection tables' background process failed (exit code {self.background.exitcode}); "
-                  "writing the missing files here", flush=True)
+            print(
+                f"    the detection tables' background process failed (exit code {self.background.exitcode}); "
+                "writing the missing files here",
+                flush=True,
+            )
         self.background = None
 
     def features(self) -> dict:
         name = self.exp.features(self.es, ["train", "test", "val"])
-        return {"name": name, "scenes": sum(len(list_scenes(d, s)) for d, s in ((self.sub, "train"),
-                                                                                 (self.world, "test"),
-                                                                                 (self.world, "val")))}
+        return {
+            "name": name,
+            "scenes": sum(
+                len(list_scenes(d, s)) for d, s in ((self.sub, "train"), (self.world, "test"), (self.world, "val"))
+            ),
+        }
 
     def features_ok(self, m: dict) -> bool:
         rooms = list_scenes(self.sub, "train") + list_scenes(self.world, "test") + list_scenes(self.world, "val")
@@ -442,22 +572,37 @@ class Demo:
         cfg = self.cfg
         self.join_background_tables()
         ready = complete_tables(self.world, cfg.detections, cfg.detector)  # the one rule on foreign tables
-        if ready and not self.wrote_in_background:  # every room already has a learned table (e.g. written by an experiment): used as it is
-            print(f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
-                  flush=True)
+        if (
+            ready and not self.wrote_in_background
+        ):  # every room already has a learned table (e.g. written by an experiment): used as it is
+            print(
+                f"    every room already holds detections_{cfg.detections}.hdf5 ({ready}): no detector trained",
+                flush=True,
+            )
             return {"fingerprint": ready, "tables": "existing"}
         if cfg.detector == "shipped":  # loaded (and its weights checked) by the detections step
             meta = shipped_meta()
             if self.wrote_in_background:
                 print("    its tables were written during pretraining, by a process of their own", flush=True)
-            print(f"    shipped detector {DEFAULT_SHIPPED}: step {meta['step']}, trained on "
-                  f"{len(meta['train_scenes'])} ithor-real training rooms, temperature {meta['temperature']:.3f} "
-                  f"({meta['fingerprint']})", flush=True)
-            return {"fingerprint": meta["fingerprint"], "source": "shipped", "steps": meta["step"],
-                    "temperature": meta["temperature"]}
+            print(
+                f"    shipped detector {DEFAULT_SHIPPED}: step {meta['step']}, trained on "
+                f"{len(meta['train_scenes'])} ithor-real training rooms, temperature {meta['temperature']:.3f} "
+                f"({meta['fingerprint']})",
+                flush=True,
+            )
+            return {
+                "fingerprint": meta["fingerprint"],
+                "source": "shipped",
+                "steps": meta["step"],
+                "temperature": meta["temperature"],
+            }
         det = ensure_detector(self.sub, self.world, self.det_dir, self.sc, say=lambda m: print(m, flush=True))
-        return {"fingerprint": det.fingerprint, "source": "train", "steps": det.meta.get("step"),
-                "temperature": det.temperature}
+        return {
+            "fingerprint": det.fingerprint,
+            "source": "train",
+            "steps": det.meta.get("step"),
+            "temperature": det.temperature,
+        }
 
     def detector_ok(self, m: dict) -> bool:
         if m.get("tables") == "existing":
@@ -480,20 +625,30 @@ class Demo:
         sc = self.sc
         for p, f in self.ep_files.items():
             ensure_episodes(self.world, "test", f, sc.test_per_room_type, protocol=p)
-        ensure_episodes(self.world, "val", self.val_file, sc.val_per_room_type, seed=SELECT_SEED,
-                        protocol=self.cfg.protocol)
+        ensure_episodes(
+            self.world, "val", self.val_file, sc.val_per_room_type, seed=SELECT_SEED, protocol=self.cfg.protocol
+        )
         test = {p: read_episodes(f)[0] for p, f in self.ep_files.items()}
-        return {"episodes": len(test[DEFAULT_PROTOCOL]), "val_episodes": len(read_episodes(self.val_file)[0]),
-                "by_protocol": {p: {"episodes": len(e), "start_success": sum(x.optimal_length == 0 for x in e)}
-                                for p, e in test.items()}}
+        return {
+            "episodes": len(test[DEFAULT_PROTOCOL]),
+            "val_episodes": len(read_episodes(self.val_file)[0]),
+            "by_protocol": {
+                p: {"episodes": len(e), "start_success": sum(x.optimal_length == 0 for x in e)} for p, e in test.items()
+            },
+        }
 
     def show_episodes(self, m: dict) -> None:
         for p, f in self.ep_files.items():
             b = m["by_protocol"][p]
-            print(f"    {p}: {b['episodes']} test episodes in {f}"
-                  + (f" ({b['start_success']} start already succeeds)" if b["start_success"] else ""), flush=True)
-        print(f"    {m['val_episodes']} in {self.val_file} (checkpoint selection, protocol {self.cfg.protocol})",
-              flush=True)
+            print(
+                f"    {p}: {b['episodes']} test episodes in {f}"
+                + (f" ({b['start_success']} start already succeeds)" if b["start_success"] else ""),
+                flush=True,
+            )
+        print(
+            f"    {m['val_episodes']} in {self.val_file} (checkpoint selection, protocol {self.cfg.protocol})",
+            flush=True,
+        )
 
     # 7. train -------------------------------------------------------------------------------------------
     def train(self) -> dict:
@@ -503,9 +658,11 @@ class Demo:
         log = read_log(self.run_dir)
         last = {k: log[-1][k] for k in ("update", "env_steps", "episodes", "SR") if log and k in log[-1]}
         checkpoint = self.exp.choose_checkpoint(self.job)
-        print(f"    best of {checkpoint['candidates']} checkpoints on validation: {checkpoint['name']} (update "
-              f"{checkpoint['update']}, SR {100 * checkpoint['val_SR']:.1f}, SPL {100 * checkpoint['val_SPL']:.1f})",
-              flush=True)
+        print(
+            f"    best of {checkpoint['candidates']} checkpoints on validation: {checkpoint['name']} (update "
+            f"{checkpoint['update']}, SR {100 * checkpoint['val_SR']:.1f}, SPL {100 * checkpoint['val_SPL']:.1f})",
+            flush=True,
+        )
         return {"budget": self.sc.budget, "log_lines": len(log), **last, "checkpoint": checkpoint}
 
     # 8. evaluate ----------------------------------------------------------------------------------------
@@ -521,15 +678,26 @@ class Demo:
                 print(f"    {label} ({p}) ...", flush=True)
                 agent = name.startswith("agent")
                 self.results.setdefault(p, {})[label] = evaluate_to_folder(
-                    self.folder(name, p), self.world, self.ep_files[p], policy="agent" if agent else name,
-                    run=self.run_dir if agent else None, detections=det or cfg.detections, seed=cfg.seed,
-                    label=label if p == DEFAULT_PROTOCOL else f"{label} [{p}]", sample=cfg.sample, protocol=p)
+                    self.folder(name, p),
+                    self.world,
+                    self.ep_files[p],
+                    policy="agent" if agent else name,
+                    run=self.run_dir if agent else None,
+                    detections=det or cfg.detections,
+                    seed=cfg.seed,
+                    label=label if p == DEFAULT_PROTOCOL else f"{label} [{p}]",
+                    sample=cfg.sample,
+                    protocol=p,
+                )
         return {"policies": [n for _, n, _ in self.policies], "protocols": list(PROTOCOLS), "sample": cfg.sample}
 
     def evaluate_ok(self, m: dict) -> bool:
-        return (m.get("policies") == [n for _, n, _ in self.policies] and m.get("sample", True) == self.cfg.sample
-                and m.get("protocols") == list(PROTOCOLS)
-                and all((self.folder(n, p) / "metrics.json").exists() for _, n, _ in self.policies for p in PROTOCOLS))
+        return (
+            m.get("policies") == [n for _, n, _ in self.policies]
+            and m.get("sample", True) == self.cfg.sample
+            and m.get("protocols") == list(PROTOCOLS)
+            and all((self.folder(n, p) / "metrics.json").exists() for _, n, _ in self.policies for p in PROTOCOLS)
+        )
 
     def read_results(self) -> dict[str, dict]:
         """The evaluations' summaries: protocol -> label -> summary, in the table's order (the demo's agent, the
@@ -558,9 +726,14 @@ class Demo:
         if self.shipped_folder is None:
             return self.step("shipped", f"the agent that ships with tsnav: {self.shipped_why}", None)
         card = self.shipped_card
-        return self.step("shipped", f"{self.shipped_folder.name}, the agent that ships with tsnav, on the same test "
-                         f"episodes: its detector's ({card['detector_shipped']}) tables and its encoder's features in "
-                         "the test rooms, then greedy under each protocol", self.shipped, self.shipped_ok)
+        return self.step(
+            "shipped",
+            f"{self.shipped_folder.name}, the agent that ships with tsnav, on the same test "
+            f"episodes: its detector's ({card['detector_shipped']}) tables and its encoder's features in "
+            "the test rooms, then greedy under each protocol",
+            self.shipped,
+            self.shipped_ok,
+        )
 
     def shipped(self) -> dict:
         """The shipped agent on the demo's test episodes (greedy, as ``tsnav release eval``), under each protocol
@@ -570,8 +743,10 @@ class Demo:
         version = int(card.get("world_version") or 1)
         have = room_versions(self.world, "test")
         if have != {version}:
-            why = (f"the test rooms are of ithor-real rules version {', '.join(map(str, sorted(have)))}, "
-                   f"{folder.name} was trained on version {version}")
+            why = (
+                f"the test rooms are of ithor-real rules version {', '.join(map(str, sorted(have)))}, "
+                f"{folder.name} was trained on version {version}"
+            )
             print(f"    left out: {why}", flush=True)
             return {"agent": folder.name, "skipped": why, **self.shipped_identity()}
         say = lambda m: print(m, flush=True)  # noqa: E731
@@ -581,8 +756,15 @@ class Demo:
             print(f"    {self.shipped_label} ({p}) ...", flush=True)
             label = self.shipped_label if p == DEFAULT_PROTOCOL else f"{self.shipped_label} [{p}]"
             self.results.setdefault(p, {})[self.shipped_label] = evaluate_to_folder(
-                self.folder("shipped", p), self.world, self.ep_files[p], run=str(folder), checkpoint="best",
-                detections=card["detections"], label=label, protocol=p)
+                self.folder("shipped", p),
+                self.world,
+                self.ep_files[p],
+                run=str(folder),
+                checkpoint="best",
+                detections=card["detections"],
+                label=label,
+                protocol=p,
+            )
         return {"agent": folder.name, "protocols": list(PROTOCOLS), **self.shipped_identity()}
 
     def shipped_identity(self) -> dict:
@@ -601,10 +783,12 @@ class Demo:
             return ""
         trained = json.loads((self.shipped_folder / "config.json").read_text())["train"].get("protocol", "paper")
         budget = ", ".join(f"{v:g} {k}" for k, v in self.sc.budget.items() if v is not None)
-        return (f"{self.policies[0][0]}: this demo's agent ({budget}, trained under {self.cfg.protocol}); "
-                f"{self.shipped_label}: the agent that ships with tsnav, trained under {trained} (update "
-                f"{self.shipped_card.get('policy_update', '?')}; its card: {headline(self.shipped_card)}; "
-                f"`tsnav release eval` evaluates it on all the real test rooms)")
+        return (
+            f"{self.policies[0][0]}: this demo's agent ({budget}, trained under {self.cfg.protocol}); "
+            f"{self.shipped_label}: the agent that ships with tsnav, trained under {trained} (update "
+            f"{self.shipped_card.get('policy_update', '?')}; its card: {headline(self.shipped_card)}; "
+            f"`tsnav release eval` evaluates it on all the real test rooms)"
+        )
 
     # 9. report ------------------------------------------------------------------------------------------
     def report(self) -> dict:
@@ -612,8 +796,13 @@ class Demo:
         if self.shipped_folder is not None and (self.folder("shipped", "lineage") / "metrics.json").exists():
             shown.append(self.folder("shipped", "lineage"))  # under the protocol it was trained under
         shown += [self.folder("explorer", DEFAULT_PROTOCOL)]
-        index = build_report(self.out, self.out / "report", gallery=self.cfg.gallery,
-                             title=f"tsnav demo: TSRM + DE-MAE on the {self.cfg.preset} world", gallery_evals=shown)
+        index = build_report(
+            self.out,
+            self.out / "report",
+            gallery=self.cfg.gallery,
+            title=f"tsnav demo: TSRM + DE-MAE on the {self.cfg.preset} world",
+            gallery_evals=shown,
+        )
         return {"index": str(index)}
 
 
@@ -650,8 +839,14 @@ def shipped_agent(cfg: DemoConfig) -> tuple[Path | None, dict | None, str]:
     build = BuildConfig.from_preset(cfg.preset)
     world, size = card.get("world_preset", "ithor-real"), int(card.get("image_size", 128))
     if build.world != world or build.image_size != size:
-        return None, None, (f"not on the {cfg.preset} world ({folder.name} reads {world} rooms at {size}x{size}; "
-                            f"the {QUICK_DEMO_PRESET} and demo-real worlds are such)")
+        return (
+            None,
+            None,
+            (
+                f"not on the {cfg.preset} world ({folder.name} reads {world} rooms at {size}x{size}; "
+                f"the {QUICK_DEMO_PRESET} and demo-real worlds are such)"
+            ),
+        )
     return folder, card, ""
 
 
@@ -659,7 +854,7 @@ def room_versions(world: Path, split: str) -> set[int]:
     """The ithor-real rules versions of the rooms of ``split`` (a room without a recorded version: 1)."""
     out = set()
     for p in list_scenes(world, split):
-        gen = (json.loads((p / "scene.json").read_text()).get("generator") or {})
+        gen = json.loads((p / "scene.json").read_text()).get("generator") or {}
         out.add(int(gen.get("version", 1)))
     return out
 
@@ -678,18 +873,33 @@ def run_demo(out: str | Path, cfg: DemoConfig | None = None, train_fn=None) -> d
     cfg, out = cfg or DemoConfig(), Path(out)
     check_demo(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "demo_config.json", {**asdict(cfg), "scale": asdict(cfg.sizes),  # the sizes in use
-                                          "tables_beside_pretraining": cfg.tables_beside})
-    atomic_write_text(out / "recipe.toml", dump_recipe(demo_recipe(cfg), header="The demo's resolved recipe "
-                                                       "(tsnav demo --config FILE reruns it)."))
+    write_json(
+        out / "demo_config.json",
+        {
+            **asdict(cfg),
+            "scale": asdict(cfg.sizes),  # the sizes in use
+            "tables_beside_pretraining": cfg.tables_beside,
+        },
+    )
+    atomic_write_text(
+        out / "recipe.toml",
+        dump_recipe(demo_recipe(cfg), header="The demo's resolved recipe (tsnav demo --config FILE reruns it)."),
+    )
     t_all = time.perf_counter()
     demo = Demo(out, cfg, train_fn)
     markers = demo.jobs.run()
     results, total = demo.read_results(), time.perf_counter() - t_all
-    _print_results(results, demo.jobs.times, total, markers["report"].get("index", str(out / "report" / "index.html")),
-                   cfg.protocol, demo.shipped_note())
+    _print_results(
+        results,
+        demo.jobs.times,
+        total,
+        markers["report"].get("index", str(out / "report" / "index.html")),
+        cfg.protocol,
+        demo.shipped_note(),
+    )
     print(f"detections: {quality_line(markers['detections']['quality'])}", flush=True)
     return {"steps": demo.jobs.times, "results": results, "seconds": total}
+
 
 def eval_policies(detections: str) -> list[tuple[str, str, str | None]]:
     """The demo's rows: ``(label, folder name, detection table or None for the demo's own)``: the agent, the
@@ -710,19 +920,25 @@ def results_table(results: dict[str, dict], trained: str) -> str:
     width = max(len(k) for k in labels) if labels else 10
     lines = []
     for protocol, rows in results.items():
-        lines += ["\nresults on the test episodes (percent; paper IV-A metrics)",
-                  f"{protocol_line(protocol)}; agent trained under {trained}",
-                  f"{'policy':<{width}}  subset " + " ".join(f"{m:>6}" for m in METRICS) + "      K"]
+        lines += [
+            "\nresults on the test episodes (percent; paper IV-A metrics)",
+            f"{protocol_line(protocol)}; agent trained under {trained}",
+            f"{'policy':<{width}}  subset " + " ".join(f"{m:>6}" for m in METRICS) + "      K",
+        ]
         for label, s in rows.items():
             for sub in ("ALL", "L>=5"):
                 m = s[sub]
-                lines.append(f"{label:<{width}}  {sub:<6} " + " ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
-                             + f" {m['episodes']:6d}")
+                lines.append(
+                    f"{label:<{width}}  {sub:<6} "
+                    + " ".join(f"{100 * m[k]:6.2f}" for k in METRICS)
+                    + f" {m['episodes']:6d}"
+                )
     return "\n".join(lines)
 
 
-def _print_results(results: dict, times: dict, total: float, index: str, trained: str = DEFAULT_PROTOCOL,
-                   note: str = "") -> None:
+def _print_results(
+    results: dict, times: dict, total: float, index: str, trained: str = DEFAULT_PROTOCOL, note: str = ""
+) -> None:
     print("\nstep         status    seconds")
     for name in STEPS:
         status, sec = times.get(name, ("-", 0.0))
@@ -737,14 +953,20 @@ def _print_results(results: dict, times: dict, total: float, index: str, trained
 def run(args) -> int:
     cfg = resolve(args)
     if args.print_recipe:
-        print(dump_recipe(demo_recipe(cfg), header="tsnav demo: the TSRM + DE-MAE row at the demo scale, plus the "
-                                                   "scripted baselines"), end="")
+        print(
+            dump_recipe(
+                demo_recipe(cfg),
+                header="tsnav demo: the TSRM + DE-MAE row at the demo scale, plus the scripted baselines",
+            ),
+            end="",
+        )
         return 0
     if args.threads is not None and args.threads < 1:
         raise CommandError("--threads must be >= 1")
     if cfg.sizes.train.num_envs % cfg.sizes.train.procs:
-        raise CommandError(f"--procs must be >= 1 and divide the {cfg.sizes.train.num_envs} training episodes "
-                           "per update")
+        raise CommandError(
+            f"--procs must be >= 1 and divide the {cfg.sizes.train.num_envs} training episodes per update"
+        )
     print(f"tsnav demo -> {args.out} (torch threads: {set_threads(args.threads)})", flush=True)
     run_demo(args.out, cfg)
     return 0

@@ -63,8 +63,9 @@ class one_thread:
         return False
 
 
-def detector_configs(scale: ScaleConfig, image_size: int, class_set: str = DEFAULT_CLASS_SET
-                     ) -> tuple[DetectorTrainConfig, DetectorConfig]:
+def detector_configs(
+    scale: ScaleConfig, image_size: int, class_set: str = DEFAULT_CLASS_SET
+) -> tuple[DetectorTrainConfig, DetectorConfig]:
     """Training settings and the architecture of a new detector at ``scale`` for ``image_size``-px frames of
     scenes of ``class_set``."""
     tc = replace(scale.detector, threads=1)
@@ -72,8 +73,14 @@ def detector_configs(scale: ScaleConfig, image_size: int, class_set: str = DEFAU
     return tc, mc
 
 
-def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir: str | Path, scale: ScaleConfig,
-                    progress: bool = True, say: Callable[[str], None] = print) -> LearnedDetector:
+def ensure_detector(
+    train_root: str | Path,
+    calib_root: str | Path,
+    detector_dir: str | Path,
+    scale: ScaleConfig,
+    progress: bool = True,
+    say: Callable[[str], None] = print,
+) -> LearnedDetector:
     """Train (resume; nothing when finished) the learned detector in ``detector_dir`` on the train rooms of
     ``train_root`` up to ``scale.detector.steps`` steps, fit its temperature on the val rooms of ``calib_root``
     (once per step count) and load it. A folder trained on other rooms is refused (one line)."""
@@ -87,8 +94,10 @@ def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir
     if is_checkpoint(detector_dir):
         was = read_meta(detector_dir).get("train_scenes")
         if was is not None and sorted(was) != names:
-            raise CommandError(f"{detector_dir} holds a detector trained on other rooms ({len(was)} rooms, "
-                               f"{was[0]} ...); use another --detector-dir")
+            raise CommandError(
+                f"{detector_dir} holds a detector trained on other rooms ({len(was)} rooms, "
+                f"{was[0]} ...); use another --detector-dir"
+            )
     elif detector_dir.is_dir() and any(detector_dir.iterdir()):
         raise CommandError(f"{detector_dir} is a folder that holds no detector checkpoint; use another --detector-dir")
     first = load_scene(train[0])
@@ -96,8 +105,10 @@ def ensure_detector(train_root: str | Path, calib_root: str | Path, detector_dir
     with one_thread():
         res = train_detector(train_root, detector_dir, tc, model_cfg=mc, progress=progress)
         if res.step > res.start_step:
-            say(f"    detector trained {res.start_step} -> {res.step} steps in {res.seconds:.0f} s "
-                f"(last loss {res.last.get('loss', float('nan')):.3f}) -> {detector_dir}")
+            say(
+                f"    detector trained {res.start_step} -> {res.step} steps in {res.seconds:.0f} s "
+                f"(last loss {res.last.get('loss', float('nan')):.3f}) -> {detector_dir}"
+            )
         t = calibrate(calib_root, detector_dir, split="val", progress=progress)
     say(f"    detector at step {res.step}, temperature {t:.3f} (fitted on the val rooms)")
     return LearnedDetector.load(detector_dir)
@@ -113,13 +124,17 @@ def learned_tables(data: str | Path, name: str, split: str | None = None) -> tup
     have = {p: read_fingerprint(p, name) for p in paths}
     for p, fp in have.items():
         if fp is not None and not fp.startswith(LEARNED_PREFIX):
-            raise CommandError(f"{detections_path(p, name)} was made by another detector ({fp}), not a learned one; "
-                               f"remove it or use another --detections name")
+            raise CommandError(
+                f"{detections_path(p, name)} was made by another detector ({fp}), not a learned one; "
+                f"remove it or use another --detections name"
+            )
     kinds = sorted({fp for fp in have.values() if fp is not None})
     if len(kinds) > 1:
         odd = next(p for p, fp in have.items() if fp == kinds[1])
-        raise CommandError(f"{detections_path(odd, name)} was made by another learned detector ({kinds[1]}) than other "
-                           f"scenes' ({kinds[0]}); remove the stale tables")
+        raise CommandError(
+            f"{detections_path(odd, name)} was made by another learned detector ({kinds[1]}) than other "
+            f"scenes' ({kinds[0]}); remove the stale tables"
+        )
     return have, kinds
 
 
@@ -142,14 +157,23 @@ def complete_tables(data: str | Path, name: str, source: str | None = None) -> s
     if ready and source is not None and (ready == shipped_fp) != (source == "shipped"):
         have = "the shipped detector's" if ready == shipped_fp else f"another learned detector's ({ready})"
         other = "train" if source == "shipped" else "shipped"
-        raise CommandError(f"every room of {data} holds {have} detections_{name}.hdf5, not from --detector {source}: "
-                           f"use another --out or --data (tables are never overwritten), or --detector {other}")
+        raise CommandError(
+            f"every room of {data} holds {have} detections_{name}.hdf5, not from --detector {source}: "
+            f"use another --out or --data (tables are never overwritten), or --detector {other}"
+        )
     return ready
 
 
-def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | Path, scale: ScaleConfig,
-                              progress: bool = True, say: Callable[[str], None] = print,
-                              train_root: str | Path | None = None, workers: int = 1) -> dict:
+def ensure_learned_detections(
+    data: str | Path,
+    name: str,
+    detector_dir: str | Path,
+    scale: ScaleConfig,
+    progress: bool = True,
+    say: Callable[[str], None] = print,
+    train_root: str | Path | None = None,
+    workers: int = 1,
+) -> dict:
     """Give every scene of ``data`` a learned table ``detections_<name>.hdf5`` (module docstring; the detector
     trains on the train rooms of ``train_root``, default ``data``, and is calibrated on the val rooms of ``data``;
     ``workers`` processes write the tables); returns ``{"fingerprint", "written", "trained"}`` (``trained``: the
@@ -158,12 +182,15 @@ def ensure_learned_detections(data: str | Path, name: str, detector_dir: str | P
     if not any(fp is None for fp in have.values()):
         return {"fingerprint": kinds[0], "written": 0, "trained": False}
     det = ensure_detector(train_root or data, data, detector_dir, scale, progress=progress, say=say)
-    return {**write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir),
-                                   workers=workers), "trained": True}
+    return {
+        **write_learned_tables(data, name, det, progress=progress, say=say, source=str(detector_dir), workers=workers),
+        "trained": True,
+    }
 
 
-def ensure_shipped_detections(data: str | Path, name: str, progress: bool = True,
-                              say: Callable[[str], None] = print, workers: int = 1) -> dict:
+def ensure_shipped_detections(
+    data: str | Path, name: str, progress: bool = True, say: Callable[[str], None] = print, workers: int = 1
+) -> dict:
     """Like :func:`ensure_learned_detections`, with the detector shipped in the package
     (:mod:`tsnav.detect.shipped`, :func:`~tsnav.detect.shipped.shipped_for` ``name``, loaded for the scenes' frame size) writing the
     missing tables: nothing is trained. Returns ``{"fingerprint", "written"}``."""
@@ -172,13 +199,21 @@ def ensure_shipped_detections(data: str | Path, name: str, progress: bool = True
         return {"fingerprint": kinds[0], "written": 0}
     which = shipped_for(name)
     det = shipped_detector(load_scene(next(iter(have))).image_size, name=which)
-    return write_learned_tables(data, name, det, progress=progress, say=say,
-                                source=f"the shipped detector {which}", workers=workers)
+    return write_learned_tables(
+        data, name, det, progress=progress, say=say, source=f"the shipped detector {which}", workers=workers
+    )
 
 
-def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, progress: bool = True,
-                         say: Callable[[str], None] = print, source: str = "the given detector",
-                         workers: int = 1, split: str | None = None) -> dict:
+def write_learned_tables(
+    data: str | Path,
+    name: str,
+    det: LearnedDetector,
+    progress: bool = True,
+    say: Callable[[str], None] = print,
+    source: str = "the given detector",
+    workers: int = 1,
+    split: str | None = None,
+) -> dict:
     """Write the tables of detector ``det`` into the scenes of ``data`` (of ``split`` only, when given) that lack
     ``detections_<name>.hdf5``
     (one torch thread per scene; ``workers`` processes share the scenes, :func:`tsnav.scene_pool.map_scenes`: the
@@ -187,12 +222,19 @@ def write_learned_tables(data: str | Path, name: str, det: LearnedDetector, prog
     have, kinds = learned_tables(data, name, split)
     if kinds and det.fingerprint != kinds[0]:
         odd = next(p for p, fp in have.items() if fp is not None)
-        raise CommandError(f"{detections_path(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
-                           f"{source} ({det.fingerprint}); it is not overwritten: remove it, or write the "
-                           f"missing tables with its own detector (tsnav detect)")
+        raise CommandError(
+            f"{detections_path(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
+            f"{source} ({det.fingerprint}); it is not overwritten: remove it, or write the "
+            f"missing tables with its own detector (tsnav detect)"
+        )
     scenes = [load_scene(p) for p, fp in have.items() if fp is None]
-    bar = tqdm(total=sum(s.num_states for s in scenes), desc=f"detect {name}", unit="state", disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(
+        total=sum(s.num_states for s in scenes),
+        desc=f"detect {name}",
+        unit="state",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
     try:
         with one_thread():
             write_scene_tables(det, scenes, name, bar, workers)
@@ -215,13 +257,26 @@ def detection_quality(data: str | Path, name: str, split: str = "val", c_target:
     ev = evaluate_detections(scenes, dets)
     sw = switch_report(scenes, dets, c_target)
     fps = sorted({d.fingerprint for d in dets})
-    return {"name": name, "fingerprint": fps[0] if len(fps) == 1 else fps, "split": split, "scenes": len(scenes),
-            "states": ev.states, "presence_ap": ev.mean_presence_ap, "box_ap50": ev.mean_box_ap,
-            "ece": ev.reliability.ece, "c_target": c_target, "reach": sw.reach, "pairs": sw.pairs,
-            "reached": sw.reached, "reached_in_view": sw.reached_in_view, "episode_pairs": sw.episode_pairs,
-            "episode_reached": sw.episode_reached, "episode_reach": sw.episode_reach,
-            "fp_states": {f"{t:g}": v for t, v in sw.fp_state_any.items()},
-            "fp_states_targets": {f"{t:g}": v for t, v in sw.fp_state_target.items()}}
+    return {
+        "name": name,
+        "fingerprint": fps[0] if len(fps) == 1 else fps,
+        "split": split,
+        "scenes": len(scenes),
+        "states": ev.states,
+        "presence_ap": ev.mean_presence_ap,
+        "box_ap50": ev.mean_box_ap,
+        "ece": ev.reliability.ece,
+        "c_target": c_target,
+        "reach": sw.reach,
+        "pairs": sw.pairs,
+        "reached": sw.reached,
+        "reached_in_view": sw.reached_in_view,
+        "episode_pairs": sw.episode_pairs,
+        "episode_reached": sw.episode_reached,
+        "episode_reach": sw.episode_reach,
+        "fp_states": {f"{t:g}": v for t, v in sw.fp_state_any.items()},
+        "fp_states_targets": {f"{t:g}": v for t, v in sw.fp_state_target.items()},
+    }
 
 
 def record_quality(out: str | Path, data: str | Path, names: list[str], say: Callable[[str], None] = print) -> dict:

@@ -89,8 +89,16 @@ from ..settings import add_options, add_shared, apply_sets, dump_recipe, given, 
 from ..rl.checkpoint import resolve_checkpoint
 from ..rl.config import TrainConfig
 from ..rl.train import train_run
-from .config import (DETECTOR_SOURCES, EXPERIMENTS, EXPERIMENT_INFO, SCALES, ExperimentConfig, Row,
-                                ScaleConfig, experiment_rows)
+from .config import (
+    DETECTOR_SOURCES,
+    EXPERIMENTS,
+    EXPERIMENT_INFO,
+    SCALES,
+    ExperimentConfig,
+    Row,
+    ScaleConfig,
+    experiment_rows,
+)
 from ..metrics import METRICS, write_json
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
 from ..report.html import build_report
@@ -99,12 +107,28 @@ from ..eval.select import chosen, select_checkpoint
 from .detector_steps import QUALITY_FILE, record_quality
 from .recipes import SECTIONS as RECIPE_SECTIONS
 from .recipes import experiment_recipe, resolve_experiment, same_scale, write_recipe
-from .steps import (EncoderSpec, encoder_spec, ensure_detections, ensure_encoder, ensure_episodes,
-                          ensure_features, ensure_world, say)
+from .steps import (
+    EncoderSpec,
+    encoder_spec,
+    ensure_detections,
+    ensure_encoder,
+    ensure_episodes,
+    ensure_features,
+    ensure_world,
+    say,
+)
 from ..rl.done_dips import DIP_DONE_SHARE, run_done_dips
 from ..report.claims import ALPHA as CLAIMS_ALPHA, check_claims, claims_markdown, summary_line
-from ..report.tables import (SUBSETS, aggregate, csv_table, markdown_table, plot_threshold, quality_line, welch_against,
-                     welch_markdown)
+from ..report.tables import (
+    SUBSETS,
+    aggregate,
+    csv_table,
+    markdown_table,
+    plot_threshold,
+    quality_line,
+    welch_against,
+    welch_markdown,
+)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -151,10 +175,22 @@ def train_config_for(cfg: ExperimentConfig, scale: ScaleConfig, row: Row, featur
     milestones = base.milestone_every if cfg.checkpoint == "best" else None
     # checkpoints land on multiples of checkpoint_every (100 by default); milestones must be among them
     every = math.gcd(TrainConfig.checkpoint_every, milestones) if milestones else TrainConfig.checkpoint_every
-    tc = replace(base, data=str(Path(cfg.train_data or cfg.data).resolve()), features=features,
-                 detections=row.detections_of(cfg.detections), split="train", reward=row.reward, seed=seed,
-                 c_target=row.c_target, device=cfg.device, checkpoint_every=every, milestone_every=milestones,
-                 protocol=cfg.protocol, procs=(cfg.procs or base.procs) if base.algo == "batched" else 1, **budget)
+    tc = replace(
+        base,
+        data=str(Path(cfg.train_data or cfg.data).resolve()),
+        features=features,
+        detections=row.detections_of(cfg.detections),
+        split="train",
+        reward=row.reward,
+        seed=seed,
+        c_target=row.c_target,
+        device=cfg.device,
+        checkpoint_every=every,
+        milestone_every=milestones,
+        protocol=cfg.protocol,
+        procs=(cfg.procs or base.procs) if base.algo == "batched" else 1,
+        **budget,
+    )
     return tc, agent_config(base.preset, **{**scale.agent, **({"blocked_action": True} if cfg.blocked_action else {})})
 
 
@@ -260,12 +296,29 @@ class Job:
 
 
 #: experiment.json fields that must match when an experiment folder is resumed.
-IDENTITY = ("experiment", "data", "scale", "detections", "resnet18_weights", "vc1_weights", "seed_offset", "sample",
-            "checkpoint", "protocol", "blocked_action", "select_per_room_type")
+IDENTITY = (
+    "experiment",
+    "data",
+    "scale",
+    "detections",
+    "resnet18_weights",
+    "vc1_weights",
+    "seed_offset",
+    "sample",
+    "checkpoint",
+    "protocol",
+    "blocked_action",
+    "select_per_room_type",
+)
 #: Values of IDENTITY fields that folders written before the field existed had (agents were then sampled, and
 #: the latest checkpoint was evaluated).
-LEGACY_IDENTITY = {"sample": True, "checkpoint": "latest", "protocol": "paper", "blocked_action": False,
-                   "select_per_room_type": None}
+LEGACY_IDENTITY = {
+    "sample": True,
+    "checkpoint": "latest",
+    "protocol": "paper",
+    "blocked_action": False,
+    "select_per_room_type": None,
+}
 #: ``ExperimentConfig.checkpoint`` values.
 CHECKPOINTS = ("best", "latest")
 #: Seed of the selection episodes (the threshold experiment's evaluation episodes on val use seed 0).
@@ -294,12 +347,16 @@ class Experiment:
         if cfg.updates_per_job is not None and cfg.updates_per_job < 1:
             raise ValueError(f"--updates-per-job must be >= 1, got {cfg.updates_per_job}")
         if cfg.select_per_room_type is not None:
-            if isinstance(cfg.select_per_room_type, bool) or not isinstance(cfg.select_per_room_type, int) \
-                    or cfg.select_per_room_type < 1:
+            if (
+                isinstance(cfg.select_per_room_type, bool)
+                or not isinstance(cfg.select_per_room_type, int)
+                or cfg.select_per_room_type < 1
+            ):
                 raise ValueError(f"--select-per-room-type must be an integer >= 1, got {cfg.select_per_room_type!r}")
             if cfg.checkpoint != "best":
-                raise ValueError("--select-per-room-type needs --checkpoint best (with latest no checkpoint is "
-                                 "selected)")
+                raise ValueError(
+                    "--select-per-room-type needs --checkpoint best (with latest no checkpoint is selected)"
+                )
         if cfg.detector not in DETECTOR_SOURCES:
             raise ValueError(f"--detector must be train or shipped, got {cfg.detector!r}")
         if cfg.checkpoint not in CHECKPOINTS:
@@ -314,8 +371,10 @@ class Experiment:
             ids = [r.id for r in self.rows]
             unknown = [r for r in cfg.rows if r not in ids]
             if unknown:
-                raise ValueError(f"--rows: no row {', '.join(map(repr, unknown))} in the {cfg.experiment} experiment "
-                                 f"(its rows: {', '.join(ids)})")
+                raise ValueError(
+                    f"--rows: no row {', '.join(map(repr, unknown))} in the {cfg.experiment} experiment "
+                    f"(its rows: {', '.join(ids)})"
+                )
             self.rows = [r for r in self.rows if r.id in cfg.rows]
         self.jobs = [Job(r, cfg.seed_offset + s) for s in range(cfg.seeds) for r in self.rows]
         self.out = Path(cfg.out)
@@ -338,17 +397,28 @@ class Experiment:
             for k in IDENTITY:
                 was = old.get("config", {}).get(k, LEGACY_IDENTITY.get(k))
                 if was != d.get(k):
-                    raise ValueError(f"{self.out} holds the {old.get('experiment')!r} experiment with another {k} "
-                                     f"({was!r}, now {d.get(k)!r}); use another --out")
-        doc = {"format": "tsnav-experiment", "experiment": self.cfg.experiment, "description": self.info["description"],
-               "scale": self.cfg.scale, "seeds": self.cfg.seeds, "config": d, "scale_config": asdict(self.scale),
-               "rows": [asdict(r) for r in self.rows], "gallery_row": self.info["gallery_row"],
-               "eval_split": self.info["split"],
-               "jobs": [{"row": j.row.id, "label": j.row.label, "seed": j.seed, "dir": j.dir} for j in self.jobs]}
+                    raise ValueError(
+                        f"{self.out} holds the {old.get('experiment')!r} experiment with another {k} "
+                        f"({was!r}, now {d.get(k)!r}); use another --out"
+                    )
+        doc = {
+            "format": "tsnav-experiment",
+            "experiment": self.cfg.experiment,
+            "description": self.info["description"],
+            "scale": self.cfg.scale,
+            "seeds": self.cfg.seeds,
+            "config": d,
+            "scale_config": asdict(self.scale),
+            "rows": [asdict(r) for r in self.rows],
+            "gallery_row": self.info["gallery_row"],
+            "eval_split": self.info["split"],
+            "jobs": [{"row": j.row.id, "label": j.row.label, "seed": j.seed, "dir": j.dir} for j in self.jobs],
+        }
         write_json(p, doc)
         if self.writes_recipe:
-            write_recipe(self.out, replace(self.cfg, data=d["data"]), self.scale,
-                         f"tsnav experiment {self.cfg.experiment}")
+            write_recipe(
+                self.out, replace(self.cfg, data=d["data"]), self.scale, f"tsnav experiment {self.cfg.experiment}"
+            )
 
     def done(self, job: Job) -> bool:
         return read_done(self.out / job.dir) is not None
@@ -391,8 +461,13 @@ class Experiment:
         res = self.aggregate_protocol(protocol)
         if not any(r["n"] for r in res["rows"]):
             return None
-        res.update(experiment=self.cfg.experiment, detections=self.cfg.detections, protocol=protocol,
-                   trained_protocol=self.cfg.protocol, welch=welch_against(res, self.info["baseline_row"]))
+        res.update(
+            experiment=self.cfg.experiment,
+            detections=self.cfg.detections,
+            protocol=protocol,
+            trained_protocol=self.cfg.protocol,
+            welch=welch_against(res, self.info["baseline_row"]),
+        )
         short = [r["label"] for r, m in zip(res["rows"], results["rows"]) if r["n"] < m["n"]]
         if short:
             res["incomplete_rows"] = short
@@ -414,23 +489,40 @@ class Experiment:
             results["detector_quality"] = quality
         dips = self.done_dips()
         results["done_dips"] = dips
-        text = (f"## {self.cfg.experiment}: {self.info['description']}\n\n"
-                + f"Success {protocol_line(self.cfg.protocol, self.cfg.protocol)}.\n\n" + markdown_table(results)
-                + ("\nEvery agent is told when its last MoveAhead failed (`--blocked-action`, a deviation from the "
-                   "paper).\n" if self.cfg.blocked_action else "")
-                + (f"\nEach job's checkpoint is chosen on {self.select_per_room_type} validation episodes per room type "
-                   "(`--select-per-room-type`).\n" if self.cfg.select_per_room_type is not None else "")
-                + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
-                + f"Detections: {self.cfg.detections}"
-                + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
-                + ".\n" + "".join(f"\n- {quality_line(q)}" for q in quality.values()) + ("\n" if quality else ""))
+        text = (
+            f"## {self.cfg.experiment}: {self.info['description']}\n\n"
+            + f"Success {protocol_line(self.cfg.protocol, self.cfg.protocol)}.\n\n"
+            + markdown_table(results)
+            + (
+                "\nEvery agent is told when its last MoveAhead failed (`--blocked-action`, a deviation from the "
+                "paper).\n"
+                if self.cfg.blocked_action
+                else ""
+            )
+            + (
+                f"\nEach job's checkpoint is chosen on {self.select_per_room_type} validation episodes per room type "
+                "(`--select-per-room-type`).\n"
+                if self.cfg.select_per_room_type is not None
+                else ""
+            )
+            + "\nValues in percent: mean over seeds ± half-width of the 95 % t-interval. "
+            + f"Detections: {self.cfg.detections}"
+            + "".join(f"; row '{r.label}': {r.detections}" for r in self.rows if r.detections)
+            + ".\n"
+            + "".join(f"\n- {quality_line(q)}" for q in quality.values())
+            + ("\n" if quality else "")
+        )
         if results["welch"]:
-            text += welch_text(results, f"Differences against '{results['welch']['baseline']}' in percentage points, "
-                                        "Welch's t-test p-value over the per-seed values")
+            text += welch_text(
+                results,
+                f"Differences against '{results['welch']['baseline']}' in percentage points, "
+                "Welch's t-test p-value over the per-seed values",
+            )
         if dips["jobs"]:
             text += "\n" + dips_line(dips) + "\n"
-        text += claims_text(self.cfg.experiment, results,
-                            f"Against the paper's claims (`tsnav claims`; verdicts at p < {CLAIMS_ALPHA})")
+        text += claims_text(
+            self.cfg.experiment, results, f"Against the paper's claims (`tsnav claims`; verdicts at p < {CLAIMS_ALPHA})"
+        )
         others = {}
         for p in self.other_protocols:
             res = self.other_protocol_results(p, results)
@@ -438,15 +530,21 @@ class Experiment:
                 (self.out / f"table_{p}.csv").unlink(missing_ok=True)  # not one job evaluated there (yet)
                 continue
             others[p] = res
-            text += (f"\n### The same agents under the `{p}` protocol\n\nSuccess {protocol_line(p, self.cfg.protocol)}"
-                     f"; the checkpoints chosen under {self.cfg.protocol}.\n\n" + markdown_table(res))
+            text += (
+                f"\n### The same agents under the `{p}` protocol\n\nSuccess {protocol_line(p, self.cfg.protocol)}"
+                f"; the checkpoints chosen under {self.cfg.protocol}.\n\n" + markdown_table(res)
+            )
             if res.get("incomplete_rows"):
-                text += (f"\nNot every finished job is evaluated under `{p}` yet (fewer seeds than above): "
-                         + ", ".join(res["incomplete_rows"]) + ".\n")
+                text += (
+                    f"\nNot every finished job is evaluated under `{p}` yet (fewer seeds than above): "
+                    + ", ".join(res["incomplete_rows"])
+                    + ".\n"
+                )
             if res["welch"]:
                 text += welch_text(res, f"Differences against '{res['welch']['baseline']}' under `{p}`")
-            text += claims_text(self.cfg.experiment, res,
-                                f"Against the paper's claims under `{p}` (`tsnav claims --protocol {p}`)")
+            text += claims_text(
+                self.cfg.experiment, res, f"Against the paper's claims under `{p}` (`tsnav claims --protocol {p}`)"
+            )
             atomic_write_text(self.out / f"table_{p}.csv", csv_table(res))
         if others:
             results["other_protocols"] = others
@@ -517,8 +615,9 @@ class Experiment:
         splits = ["train", split]
         if cfg.checkpoint == "best":
             say(f"[{cfg.experiment}] validation episodes for checkpoint selection")
-            ensure_episodes(cfg.data, "val", self.select_file, self.select_per_room_type, seed=SELECT_SEED,
-                            protocol=cfg.protocol)
+            ensure_episodes(
+                cfg.data, "val", self.select_file, self.select_per_room_type, seed=SELECT_SEED, protocol=cfg.protocol
+            )
             splits = list(dict.fromkeys([*splits, "val"]))
         features = {}
         todo = [j for j in self.jobs if not self.done(j)]
@@ -531,8 +630,14 @@ class Experiment:
     def ensure_detections(self, name: str) -> dict:
         """The table ``name`` in every scene (:func:`~tsnav.pipeline.steps.ensure_detections`: the one rule on
         tables of another source, the detector trained on the training rooms when needed)."""
-        return ensure_detections(self.cfg.data, name, self.detector_dir, self.scale,
-                                 shipped=self.cfg.detector == "shipped", train_root=self.train_root)
+        return ensure_detections(
+            self.cfg.data,
+            name,
+            self.detector_dir,
+            self.scale,
+            shipped=self.cfg.detector == "shipped",
+            train_root=self.train_root,
+        )
 
     def encoder(self, enc: str) -> EncoderSpec:
         """The encoder ``enc`` of the rows, pretrained on the training rooms (resumed; nothing when finished)."""
@@ -584,12 +689,22 @@ class Experiment:
         run = self.train_dir(job)
         if self.cfg.checkpoint == "best":
             say(f"[{self.cfg.experiment}] selecting {job.row.id}_s{job.seed}'s checkpoint on {self.select_file.name}")
-            sel = select_checkpoint(run, self.cfg.data, self.select_file, seed=job.seed, max_steps=self.scale.max_steps,
-                                    c_target=job.row.c_target, progress=say)
+            sel = select_checkpoint(
+                run,
+                self.cfg.data,
+                self.select_file,
+                seed=job.seed,
+                max_steps=self.scale.max_steps,
+                c_target=job.row.c_target,
+                progress=say,
+            )
             return {"kind": "best", **chosen(sel)}
         ck = resolve_checkpoint(run, "latest")
-        return {"kind": "latest", "name": ck.name,
-                "update": int(json.loads((ck / "state.json").read_text())["progress"]["update"])}
+        return {
+            "kind": "latest",
+            "name": ck.name,
+            "update": int(json.loads((ck / "state.json").read_text())["progress"]["update"]),
+        }
 
     def train_job(self, job: Job, features: str) -> TrainConfig:
         """Train the job's agent (resumable; a finished run of ``reuse_from`` with this very configuration is
@@ -614,21 +729,36 @@ class Experiment:
         checkpoint = self.choose_checkpoint(job)
         t1 = time.perf_counter()
         summary = self.evaluate(job, checkpoint["kind"])
-        return write_done(self.out / job.dir, {
-            "row": job.row.id, "seed": job.seed, "checkpoint": checkpoint, "train_seconds": t1 - t0,
-            "eval_seconds": time.perf_counter() - t1, "metrics": {s: summary[s] for s in SUBSETS}})
+        return write_done(
+            self.out / job.dir,
+            {
+                "row": job.row.id,
+                "seed": job.seed,
+                "checkpoint": checkpoint,
+                "train_seconds": t1 - t0,
+                "eval_seconds": time.perf_counter() - t1,
+                "metrics": {s: summary[s] for s in SUBSETS},
+            },
+        )
 
     def evaluate(self, job: Job, checkpoint: str, protocol: str | None = None) -> dict:
         """Evaluate the job's chosen checkpoint (``best`` / ``latest``) on the evaluation episodes of ``protocol``
         (default the experiment's) into :meth:`eval_dir`; returns the summary."""
         p = protocol or self.cfg.protocol
-        return evaluate_to_folder(self.eval_dir(job, p), self.cfg.data, self.episodes_file_of(p),
-                                  run=self.train_dir(job), detections=job.row.detections_of(self.cfg.detections),
-                                  c_target=job.row.c_target, seed=job.seed,
-                                  label=f"{job.row.label} (seed {job.seed})" + ("" if p == self.cfg.protocol else
-                                                                                f" [{p}]"),
-                                  max_steps=self.scale.max_steps, sample=self.cfg.sample, checkpoint=checkpoint,
-                                  protocol=None if p == self.cfg.protocol else p)
+        return evaluate_to_folder(
+            self.eval_dir(job, p),
+            self.cfg.data,
+            self.episodes_file_of(p),
+            run=self.train_dir(job),
+            detections=job.row.detections_of(self.cfg.detections),
+            c_target=job.row.c_target,
+            seed=job.seed,
+            label=f"{job.row.label} (seed {job.seed})" + ("" if p == self.cfg.protocol else f" [{p}]"),
+            max_steps=self.scale.max_steps,
+            sample=self.cfg.sample,
+            checkpoint=checkpoint,
+            protocol=None if p == self.cfg.protocol else p,
+        )
 
     def evaluate_other_protocols(self) -> int:
         """Evaluate every finished job's checkpoint under the other protocols where that is not done yet (one
@@ -666,10 +796,12 @@ class Experiment:
 
         def report(k: int, job: Job, res: dict) -> None:
             a = res["metrics"]["ALL"]
-            say(f"[{name}] job {k}/{len(todo)} ({job.row.label}, seed {job.seed}) done in "
+            say(
+                f"[{name}] job {k}/{len(todo)} ({job.row.label}, seed {job.seed}) done in "
                 f"{res['train_seconds'] + res['eval_seconds']:.0f} s: "
                 + ", ".join(f"{m} {100 * a[m]:.1f}" for m in METRICS)
-                + f" (elapsed {(time.perf_counter() - t_start) / 60:.1f} min)")
+                + f" (elapsed {(time.perf_counter() - t_start) / 60:.1f} min)"
+            )
             self.write_tables()
 
         if self.cfg.parallel > 1 and len(todo) > 1 and self._train_fn is None:
@@ -678,16 +810,25 @@ class Experiment:
                 futs = {}
                 for job in todo:
                     say(f"[{name}] queued: {job.row.label}, seed {job.seed} -> {self.out / job.dir}")
-                    futs[pool.submit(_job_process, self.cfg, self.scale, self.jobs.index(job),
-                                     features[job.row.encoder], threads)] = job
+                    futs[
+                        pool.submit(
+                            _job_process, self.cfg, self.scale, self.jobs.index(job), features[job.row.encoder], threads
+                        )
+                    ] = job
                 for k, fut in enumerate(as_completed(futs), 1):
                     report(k, futs[fut], fut.result())
         else:  # one job list: the jobs still to run, each marked by the DONE its run writes
-            steps = [Step(f"{name} job {job.row.id}_s{job.seed}",
-                          f"{job.row.label}, seed {job.seed} -> {self.out / job.dir}", self.out / job.dir,
-                          partial(self.run_job, job, features[job.row.encoder]),
-                          show=partial(report, k, job), writes_done=True)
-                     for k, job in enumerate(todo, 1)]
+            steps = [
+                Step(
+                    f"{name} job {job.row.id}_s{job.seed}",
+                    f"{job.row.label}, seed {job.seed} -> {self.out / job.dir}",
+                    self.out / job.dir,
+                    partial(self.run_job, job, features[job.row.encoder]),
+                    show=partial(report, k, job),
+                    writes_done=True,
+                )
+                for k, job in enumerate(todo, 1)
+            ]
             JobList(steps, chained=False).run()
         if self.evaluate_other_protocols():
             say(f"[{self.cfg.experiment}] evaluated under {', '.join(self.other_protocols)} as well")
@@ -721,14 +862,17 @@ def copy_run(src: Path, dst: Path) -> None:
 def dips_line(dips: dict) -> str:
     """One line on the Done dips of an experiment's finished jobs."""
     w = dips["with_dips"]
-    head = (f"Done dips (fewer than {100 * DIP_DONE_SHARE:.0f} % of training episodes ending with Done): "
-            f"{len(w)} of {dips['jobs']} jobs")
+    head = (
+        f"Done dips (fewer than {100 * DIP_DONE_SHARE:.0f} % of training episodes ending with Done): "
+        f"{len(w)} of {dips['jobs']} jobs"
+    )
     if not w:
         return head + "."
     parts = []
     for x in w:
-        spans = ", ".join(f"updates {d['start']}-{d['end']}" + ("" if d["recovered"] else " (not recovered)")
-                          for d in x["dips"])
+        spans = ", ".join(
+            f"updates {d['start']}-{d['end']}" + ("" if d["recovered"] else " (not recovered)") for d in x["dips"]
+        )
         parts.append(f"{x['row']} seed {x['seed']}: {spans}")
     return head + ": " + "; ".join(parts) + "."
 
@@ -747,27 +891,51 @@ def _job_process(cfg: ExperimentConfig, scale: ScaleConfig, index: int, features
 
 def add_threads_and_sample(parser: argparse.ArgumentParser) -> None:
     """``--threads`` and ``--sample``, as ``tsnav demo`` takes them (``tsnav experiment``: its config's fields)."""
-    add_shared(parser, "threads", help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when "
-                                        "fewer: a fixed count, because another count sums floats in another order "
-                                        "and trains another agent)")
-    parser.add_argument("--sample", action="store_true",
-                        help="evaluate the agents by sampling their actions instead of the greedy argmax (the default)")
+    add_shared(
+        parser,
+        "threads",
+        help=f"torch CPU threads (default {DEFAULT_THREADS}, or the machine's cores when "
+        "fewer: a fixed count, because another count sums floats in another order "
+        "and trains another agent)",
+    )
+    parser.add_argument(
+        "--sample",
+        action="store_true",
+        help="evaluate the agents by sampling their actions instead of the greedy argmax (the default)",
+    )
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("experiment", metavar="EXPERIMENT|RECIPE.toml",
-                        help="ablation (Table II), pretraining (Table III), threshold (Fig. 4), or a recipe file "
-                             "(configs/experiments/*.toml) naming the experiment and its scale")
-    parser.add_argument("--build-world", action="store_true",
-                        help="build the scale's world into --data first when the folder does not exist "
-                             "(small: demo, paper: ithor-real, the real iTHOR scenes)")
+    parser.add_argument(
+        "experiment",
+        metavar="EXPERIMENT|RECIPE.toml",
+        help="ablation (Table II), pretraining (Table III), threshold (Fig. 4), or a recipe file "
+        "(configs/experiments/*.toml) naming the experiment and its scale",
+    )
+    parser.add_argument(
+        "--build-world",
+        action="store_true",
+        help="build the scale's world into --data first when the folder does not exist "
+        "(small: demo, paper: ithor-real, the real iTHOR scenes)",
+    )
     parser.add_argument("--no-report", action="store_true", help="do not write OUT/report/index.html at the end")
-    parser.add_argument("--print-recipe", action="store_true",
-                        help="print the resolved recipe (TOML, without this machine's folders) and stop")
-    add_shared(parser, "set", help="set one setting of the recipe, e.g. --set scale.train.lr=1e-3 or "
-                                   "--set experiment.seeds=3 (a TOML value; none for None); repeatable")
-    add_options(parser.add_argument_group("experiment (ExperimentConfig; recipe section [experiment])"),
-                ExperimentConfig, "experiment", exclude=("experiment",))
+    parser.add_argument(
+        "--print-recipe",
+        action="store_true",
+        help="print the resolved recipe (TOML, without this machine's folders) and stop",
+    )
+    add_shared(
+        parser,
+        "set",
+        help="set one setting of the recipe, e.g. --set scale.train.lr=1e-3 or "
+        "--set experiment.seeds=3 (a TOML value; none for None); repeatable",
+    )
+    add_options(
+        parser.add_argument_group("experiment (ExperimentConfig; recipe section [experiment])"),
+        ExperimentConfig,
+        "experiment",
+        exclude=("experiment",),
+    )
 
 
 def resolve(args: argparse.Namespace) -> tuple[ExperimentConfig, ScaleConfig]:
@@ -790,13 +958,20 @@ def run(args: argparse.Namespace) -> int:
     cfg, scale = resolve(args)
     check_protocol(cfg.protocol)  # a bad name stops here, in one line, before any work
     if args.print_recipe:
-        print(dump_recipe(experiment_recipe(cfg, scale, paths=False), header=f"tsnav experiment {cfg.experiment}: "
-                          f"{EXPERIMENT_INFO[cfg.experiment]['description']}"), end="")
+        print(
+            dump_recipe(
+                experiment_recipe(cfg, scale, paths=False),
+                header=f"tsnav experiment {cfg.experiment}: {EXPERIMENT_INFO[cfg.experiment]['description']}",
+            ),
+            end="",
+        )
         return 0
     world = scale.world
     if not Path(cfg.data).is_dir() and not (args.build_world and not Path(cfg.data).exists()):
-        raise CommandError(f"--data {cfg.data}: no such dataset folder (--build-world builds the {world} world of "
-                           f"--scale {cfg.scale} there; or: tsnav world --preset {world} --out {cfg.data})")
+        raise CommandError(
+            f"--data {cfg.data}: no such dataset folder (--build-world builds the {world} world of "
+            f"--scale {cfg.scale} there; or: tsnav world --preset {world} --out {cfg.data})"
+        )
     if args.build_world:
         ensure_world(cfg.data, world, build=True)
     for opt in ("vc1_weights", "resnet18_weights"):
@@ -816,8 +991,10 @@ def run(args: argparse.Namespace) -> int:
     print(markdown_table(results))
     if results.get("welch"):
         print(welch_markdown(results))
-    print(f"tables: {exp.out / 'table.md'}, {exp.out / 'table.csv'}"
-          + (f", plot {exp.out / 'threshold.png'}" if cfg.experiment == "threshold" else ""))
+    print(
+        f"tables: {exp.out / 'table.md'}, {exp.out / 'table.csv'}"
+        + (f", plot {exp.out / 'threshold.png'}" if cfg.experiment == "threshold" else "")
+    )
     if not args.no_report:
         print(f"report: {build_report(exp.out)}")
     return 0

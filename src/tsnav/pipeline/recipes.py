@@ -26,8 +26,16 @@ SECTIONS = ("experiment", "scale")
 #: Fields of ``[scale.train]`` that every job sets itself (from the experiment, its row and seed:
 #: :func:`tsnav.pipeline.experiment.train_config_for`), left out of the recipe.
 JOB_FIELDS = ("data", "features", "detections", "split", "reward", "seed", "c_target", "protocol", "device")
-PATH_FIELDS = ("data", "out", "pretrain_dir", "detector_dir", "train_data", "vc1_weights", "resnet18_weights",
-               "reuse_from")
+PATH_FIELDS = (
+    "data",
+    "out",
+    "pretrain_dir",
+    "detector_dir",
+    "train_data",
+    "vc1_weights",
+    "resnet18_weights",
+    "reuse_from",
+)
 
 
 def resolve_experiment(recipe: dict, *, need_paths: bool = True) -> tuple[ExperimentConfig, ScaleConfig]:
@@ -35,17 +43,22 @@ def resolve_experiment(recipe: dict, *, need_paths: bool = True) -> tuple[Experi
     ``data`` and ``out`` must be set)."""
     unknown = sorted(set(recipe) - set(SECTIONS))
     if unknown:
-        raise CommandError(f"no section {', '.join(unknown)} in an experiment's recipe (sections: "
-                           f"{', '.join(SECTIONS)})")
+        raise CommandError(
+            f"no section {', '.join(unknown)} in an experiment's recipe (sections: {', '.join(SECTIONS)})"
+        )
     exp = dict(recipe.get("experiment") or {})
     for need in ("experiment", "data", "out") if need_paths else ("experiment",):
         if not exp.get(need):
-            raise CommandError(f"--{need} is required" if need != "experiment" else
-                               "the recipe names no experiment ([experiment] experiment = \"ablation\", ...)")
+            raise CommandError(
+                f"--{need} is required"
+                if need != "experiment"
+                else 'the recipe names no experiment ([experiment] experiment = "ablation", ...)'
+            )
     exp.setdefault("data", "")
     exp.setdefault("out", "")
-    cfg = build(ExperimentConfig, exp, "experiment",
-                base=ExperimentConfig(experiment=str(exp["experiment"]), data="", out=""))
+    cfg = build(
+        ExperimentConfig, exp, "experiment", base=ExperimentConfig(experiment=str(exp["experiment"]), data="", out="")
+    )
     if cfg.scale not in SCALES:
         raise CommandError(f"--scale {cfg.scale}: no such scale (choose from {', '.join(SCALES)})")
     scale = build(ScaleConfig, recipe.get("scale") or {}, "scale", base=SCALES[cfg.scale])

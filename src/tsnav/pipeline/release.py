@@ -59,8 +59,18 @@ WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
 ENCODER_DTYPE = "float16"
 CARD_FORMAT = "tsnav-agent-card"
 #: Fields a card must give when packing.
-CARD_REQUIRED = ("name", "summary", "world_preset", "world_version", "image_size", "detector_shipped",
-                 "detector_fingerprint", "detections", "protocol", "budget")
+CARD_REQUIRED = (
+    "name",
+    "summary",
+    "world_preset",
+    "world_version",
+    "image_size",
+    "detector_shipped",
+    "detector_fingerprint",
+    "detections",
+    "protocol",
+    "budget",
+)
 #: Episodes of the release evaluation per split: (per room type, seed). Test: the experiments' list (``tsnav
 #: experiment``, 250 per room type, seed 0); val: the convergence runs' list (100 per room type, seed 0).
 SPLIT_EPISODES = {"test": (250, 0), "val": (100, 0)}
@@ -111,6 +121,7 @@ def read_card(folder: str | Path) -> dict:
 
 # -- packing ---------------------------------------------------------------------------------------------------
 
+
 def pack_encoder(src: str | Path, dst: str | Path) -> None:
     """Copy a ``tsnav`` encoder file with its floating-point tensors stored as :data:`ENCODER_DTYPE`."""
     import torch
@@ -148,19 +159,31 @@ def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: 
     cfg["train"]["features"] = features
     cfg["train"]["data"] = ""  # no machine path ships: the rooms are the evaluation's (tsnav release eval --data)
     if isinstance(cfg.get("features"), dict) and "encoder" in cfg["features"]:
-        cfg["features"]["encoder"] = (f"{Path(str(cfg['features']['encoder'])).name} (the pretraining run; packed "
-                                      "in float16 as encoder.safetensors)")
+        cfg["features"]["encoder"] = (
+            f"{Path(str(cfg['features']['encoder'])).name} (the pretraining run; packed "
+            "in float16 as encoder.safetensors)"
+        )
     cfg["shipped"] = {"trained_features": json.loads((run / "config.json").read_text())["train"]["features"]}
     (tmp / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
     shutil.copy2(checkpoint / "model.safetensors", tmp / "best" / "model.safetensors")
     state = json.loads((checkpoint / "state.json").read_text())
     state.pop("optimizer", None)
     (tmp / "best" / "state.json").write_text(json.dumps(state, indent=1) + "\n")
-    full = {"format": CARD_FORMAT, **card, "tsnav_version": __version__, "features": features,
-            "encoder_fingerprint": enc.fingerprint,
-            "encoder": {"arch": enc.arch, "method": enc.method, "img_size": enc.img_size, "config": enc.config,
-                        "stored_dtype": "float16"},
-            "policy_update": int(state.get("progress", state).get("update", -1))}
+    full = {
+        "format": CARD_FORMAT,
+        **card,
+        "tsnav_version": __version__,
+        "features": features,
+        "encoder_fingerprint": enc.fingerprint,
+        "encoder": {
+            "arch": enc.arch,
+            "method": enc.method,
+            "img_size": enc.img_size,
+            "config": enc.config,
+            "stored_dtype": "float16",
+        },
+        "policy_update": int(state.get("progress", state).get("update", -1)),
+    }
     (tmp / "card.json").write_text(json.dumps(full, indent=1) + "\n")
     (tmp / "card.md").write_text(card_markdown(full))
     tmp.rename(out)
@@ -170,36 +193,55 @@ def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: 
 def card_markdown(card: dict) -> str:
     """The model card as Markdown (what a reader of the weights folder sees first)."""
     lines = [f"# tsnav agent `{card.get('name', '?')}`", "", card.get("summary", ""), ""]
-    rows = [("world", card.get("world")), ("rooms", card.get("rooms")), ("frames", card.get("frames")),
-            ("detector", card.get("detector")), ("encoder", card.get("encoder_text")),
-            ("policy", card.get("policy_text")), ("reward", card.get("reward")),
-            ("training protocol", card.get("protocol")), ("budget", card.get("budget")),
-            ("checkpoint", card.get("checkpoint_text")), ("machine", card.get("machine")),
-            ("packed with", f"tsnav {card['tsnav_version']}" if card.get("tsnav_version") else None)]
+    rows = [
+        ("world", card.get("world")),
+        ("rooms", card.get("rooms")),
+        ("frames", card.get("frames")),
+        ("detector", card.get("detector")),
+        ("encoder", card.get("encoder_text")),
+        ("policy", card.get("policy_text")),
+        ("reward", card.get("reward")),
+        ("training protocol", card.get("protocol")),
+        ("budget", card.get("budget")),
+        ("checkpoint", card.get("checkpoint_text")),
+        ("machine", card.get("machine")),
+        ("packed with", f"tsnav {card['tsnav_version']}" if card.get("tsnav_version") else None),
+    ]
     lines += ["| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows if v]
     for title, key in (("Validation", "val"), ("Test", "test")):
         figs = card.get("figures", {}).get(key)
         if not figs:
             continue
-        lines += ["", f"## {title} ({figs.get('episodes', '?')} episodes, greedy)", "",
-                  "| protocol | policy | subset | " + " | ".join(METRICS) + " |",
-                  "|---|---|---|" + "---:|" * len(METRICS)]
+        lines += [
+            "",
+            f"## {title} ({figs.get('episodes', '?')} episodes, greedy)",
+            "",
+            "| protocol | policy | subset | " + " | ".join(METRICS) + " |",
+            "|---|---|---|" + "---:|" * len(METRICS),
+        ]
         for row in figs.get("rows", []):
             for sub in ("ALL", "L>=5"):
                 m = row["metrics"].get(sub)
                 if m:
-                    lines.append(f"| {row['protocol']} | {row['policy']} | {sub} | "
-                                 + " | ".join(f"{100 * m[k]:.2f}" for k in METRICS) + " |")
+                    lines.append(
+                        f"| {row['protocol']} | {row['policy']} | {sub} | "
+                        + " | ".join(f"{100 * m[k]:.2f}" for k in METRICS)
+                        + " |"
+                    )
     if card.get("commands"):
         lines += ["", "## How it was made", ""] + [f"    {c}" for c in card["commands"]]
-    lines += ["", "Evaluate it from a fresh clone: `tsnav release eval` (builds the test rooms, the detector's "
-              "tables and the features it needs, then prints this table)."]
+    lines += [
+        "",
+        "Evaluate it from a fresh clone: `tsnav release eval` (builds the test rooms, the detector's "
+        "tables and the features it needs, then prints this table).",
+    ]
     if card.get("notes"):
         lines += ["", "## Notes", ""] + [f"- {n}" for n in card["notes"]]
     return "\n".join(lines) + "\n"
 
 
 # -- evaluation ------------------------------------------------------------------------------------------------
+
 
 def say(msg: str) -> None:
     print(f"[release] {msg}", flush=True)
@@ -212,25 +254,35 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
 
     world = card.get("world_preset", "ithor-real")
     names = list(card.get(f"{split}_rooms") or ithor_scenes(split=split))
-    cfg = BuildConfig.from_preset(world, image_size=int(card.get("image_size", 128)),
-                                  world_version=card.get("world_version"))
+    cfg = BuildConfig.from_preset(
+        world, image_size=int(card.get("image_size", 128)), world_version=card.get("world_version")
+    )
     t0 = time.perf_counter()
     try:
         stats = build_dataset(data, preset=world, scenes=names, cfg=cfg, workers=workers)
     except ValueError as e:
         if "version" not in str(e):
             raise
-        raise CommandError(f"{data} holds rooms of another {world} rules version than this agent's (version "
-                           f"{card.get('world_version')}): pass --data and --out with new folders, or remove "
-                           f"{data}") from None
+        raise CommandError(
+            f"{data} holds rooms of another {world} rules version than this agent's (version "
+            f"{card.get('world_version')}): pass --data and --out with new folders, or remove "
+            f"{data}"
+        ) from None
     built = sum(not s.skipped for s in stats)
     if built:
         say(f"world: built {built} of {len(names)} test rooms in {time.perf_counter() - t0:.0f} s")
     return names
 
 
-def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: int = 128, split: str = "test",
-                            progress: bool = True, workers: int | None = None) -> str:
+def ensure_release_features(
+    data: Path,
+    folder: Path,
+    card: dict,
+    batch_size: int = 128,
+    split: str = "test",
+    progress: bool = True,
+    workers: int | None = None,
+) -> str:
     """Cache the shipped encoder's features in the rooms of ``split``; the name must be the card's. ``workers``
     processes on one thread each (None: one per core)."""
     from ..pretrain.features import cache_features, load_encoder
@@ -238,23 +290,34 @@ def ensure_release_features(data: Path, folder: Path, card: dict, batch_size: in
 
     enc = load_encoder(str(folder / "encoder.safetensors"))
     if enc.fingerprint != card["encoder_fingerprint"]:
-        raise CommandError(f"{folder / 'encoder.safetensors'}: its weights do not match the card's fingerprint "
-                           f"({enc.fingerprint} vs {card['encoder_fingerprint']})")
-    cache_features(enc, data, card["features"], batch_size=batch_size, split=split, progress=progress,
-                   workers=workers or default_workers())  # one thread per process, as the agent's own features were cached
+        raise CommandError(
+            f"{folder / 'encoder.safetensors'}: its weights do not match the card's fingerprint "
+            f"({enc.fingerprint} vs {card['encoder_fingerprint']})"
+        )
+    cache_features(
+        enc,
+        data,
+        card["features"],
+        batch_size=batch_size,
+        split=split,
+        progress=progress,
+        workers=workers or default_workers(),
+    )  # one thread per process, as the agent's own features were cached
     return card["features"]
 
 
-def ensure_release_detections(data: Path, card: dict, split: str | None = None, say=say, progress: bool = True,
-                              workers: int | None = None) -> str:
+def ensure_release_detections(
+    data: Path, card: dict, split: str | None = None, say=say, progress: bool = True, workers: int | None = None
+) -> str:
     """Write the card's shipped detector's tables into the rooms of ``data`` (of ``split`` only, when given),
     refusing tables of another detector; ``workers`` processes (None: one per core)."""
     from ..detect.shipped import shipped_meta
 
     det = card["detector_shipped"]
     if shipped_meta(det).get("fingerprint") != card["detector_fingerprint"]:
-        raise CommandError(f"the shipped detector {det!r} is not the one this agent was trained with "
-                           f"({card['detector_fingerprint']})")
+        raise CommandError(
+            f"the shipped detector {det!r} is not the one this agent was trained with ({card['detector_fingerprint']})"
+        )
     from ..data.reader import load_scene
     from ..detect.shipped import shipped_detector
     from .detector_steps import learned_tables, write_learned_tables
@@ -263,8 +326,16 @@ def ensure_release_detections(data: Path, card: dict, split: str | None = None, 
     have, _ = learned_tables(data, card["detections"], split)
     if any(fp is None for fp in have.values()):
         size = load_scene(next(iter(have))).image_size
-        write_learned_tables(data, card["detections"], shipped_detector(size, det), say=say, progress=progress,
-                             source=f"the shipped detector {det}", workers=workers or default_workers(), split=split)
+        write_learned_tables(
+            data,
+            card["detections"],
+            shipped_detector(size, det),
+            say=say,
+            progress=progress,
+            source=f"the shipped detector {det}",
+            workers=workers or default_workers(),
+            split=split,
+        )
     return card["detections"]
 
 
@@ -285,8 +356,9 @@ def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") 
     if path.exists():  # a list drawn on another world is never reused (its starts belong to other rooms)
         drawn_on = read_episodes(path)[1].get("data")
         if drawn_on and Path(drawn_on) != Path(data).resolve():
-            raise CommandError(f"{path} was drawn on {drawn_on}, not on {Path(data).resolve()}: pass another --out "
-                               f"(or remove {out})")
+            raise CommandError(
+                f"{path} was drawn on {drawn_on}, not on {Path(data).resolve()}: pass another --out (or remove {out})"
+            )
     return ensure_episodes(data, split, path, per, seed=seed, protocol=protocol)
 
 
@@ -304,8 +376,16 @@ def _sha(path: Path) -> str:
     return h.hexdigest()
 
 
-def release_inputs(folder: Path, card: dict, data: Path, out: Path, protocols: list[str], baselines: bool,
-                   split: str, batch_size: int = 4096) -> dict | None:
+def release_inputs(
+    folder: Path,
+    card: dict,
+    data: Path,
+    out: Path,
+    protocols: list[str],
+    baselines: bool,
+    split: str,
+    batch_size: int = 4096,
+) -> dict | None:
     """Everything a release evaluation's figures depend on, as a JSON-able record; None when something it reads is
     not there yet (the world's rooms of ``split``, their detection tables or feature caches, an episode list), i.e.
     when the evaluation has to run anyway. Two evaluations with equal records print the same table:
@@ -350,13 +430,24 @@ def release_inputs(folder: Path, card: dict, data: Path, out: Path, protocols: l
         episodes[protocol] = _sha(path)[:32]
     train = json.loads((folder / "config.json").read_text()).get("train", {})
     return {
-        "agent": {"name": folder.name, "policy": _sha(folder / "best" / "model.safetensors"),
-                  "encoder": _sha(folder / "encoder.safetensors"),
-                  "features": train.get("features"), "detections": card["detections"]},
+        "agent": {
+            "name": folder.name,
+            "policy": _sha(folder / "best" / "model.safetensors"),
+            "encoder": _sha(folder / "encoder.safetensors"),
+            "features": train.get("features"),
+            "detections": card["detections"],
+        },
         "data": {"world": str(data.resolve()), "features": card["features"], "rooms": rooms},
         "episodes": episodes,
-        "settings": {"split": split, "protocols": list(protocols), "baselines": bool(baselines),
-                     "batch_size": int(batch_size), "c_target": C_TARGET, **EVAL_SETTINGS, "tsnav": __version__},
+        "settings": {
+            "split": split,
+            "protocols": list(protocols),
+            "baselines": bool(baselines),
+            "batch_size": int(batch_size),
+            "c_target": C_TARGET,
+            **EVAL_SETTINGS,
+            "tsnav": __version__,
+        },
     }
 
 
@@ -373,8 +464,15 @@ def saved_results(out: Path, inputs: dict | None) -> dict | None:
     return saved if saved.get("inputs") == inputs and saved.get("rows") else None
 
 
-def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], baselines: bool = True,
-                 batch_size: int = 4096, split: str = "test") -> list[dict]:
+def release_rows(
+    folder: Path,
+    data: Path,
+    out: Path,
+    protocols: list[str],
+    baselines: bool = True,
+    batch_size: int = 4096,
+    split: str = "test",
+) -> list[dict]:
     """Evaluate the shipped agent (greedy) on the test episodes of each protocol, and beside it the scripted
     explorer with the same stage switch and the random policy; each evaluation folder is kept under ``out``."""
     from ..eval.runner import evaluate_to_folder
@@ -385,14 +483,23 @@ def release_rows(folder: Path, data: Path, out: Path, protocols: list[str], base
         eps = release_episodes(data, out, protocol, split)
         todo = [("agent", dict(run=str(folder), checkpoint="best"))]
         if baselines:
-            todo += [("scripted explorer", dict(policy="explorer", detections=card["detections"])),
-                     ("random", dict(policy="random"))]
+            todo += [
+                ("scripted explorer", dict(policy="explorer", detections=card["detections"])),
+                ("random", dict(policy="random")),
+            ]
         for label, kw in todo:
             ev = out / protocol / label.split()[-1]
-            summary = evaluate_to_folder(ev, data, eps, label=label, batch_size=batch_size,
-                                         **protocol_kwargs(protocol), **kw)
-            rows.append({"protocol": protocol, "policy": label, "episodes": _count(ev),
-                         "metrics": {k: summary[k] for k in ("ALL", "L>=5")}})
+            summary = evaluate_to_folder(
+                ev, data, eps, label=label, batch_size=batch_size, **protocol_kwargs(protocol), **kw
+            )
+            rows.append(
+                {
+                    "protocol": protocol,
+                    "policy": label,
+                    "episodes": _count(ev),
+                    "metrics": {k: summary[k] for k in ("ALL", "L>=5")},
+                }
+            )
     return rows
 
 
@@ -405,47 +512,82 @@ def headline(card: dict) -> str:
     rows = [r for r in card.get("figures", {}).get("test", {}).get("rows", []) if r.get("policy") == "agent"]
     if not rows:
         return f"detector {card.get('detector_shipped', '?')}; no test figures in its card yet"
-    figs = ", ".join(f"{r['protocol']} {100 * r['metrics']['ALL']['SR']:.2f} / {100 * r['metrics']['ALL']['SPL']:.2f}"
-                     for r in rows)
+    figs = ", ".join(
+        f"{r['protocol']} {100 * r['metrics']['ALL']['SR']:.2f} / {100 * r['metrics']['ALL']['SPL']:.2f}" for r in rows
+    )
     n = card["figures"]["test"].get("episodes", "?")
     return f"test SR / SPL ({n} episodes): {figs}; detector {card.get('detector_shipped', '?')}"
 
 
 def format_rows(rows: list[dict]) -> str:
     """The printed table: one line per (protocol, policy), ALL and L>=5 metrics in percent."""
-    head = f"{'protocol':<9} {'policy':<18} {'eps':>5}  " + "  ".join(f"{m:>6}" for m in METRICS) + "   L>=5: " \
+    head = (
+        f"{'protocol':<9} {'policy':<18} {'eps':>5}  "
+        + "  ".join(f"{m:>6}" for m in METRICS)
+        + "   L>=5: "
         + "  ".join(f"{m:>6}" for m in ("SR", "SPL"))
+    )
     lines = [head, "-" * len(head)]
     for r in rows:
         a, l5 = r["metrics"]["ALL"], r["metrics"]["L>=5"]
-        lines.append(f"{r['protocol']:<9} {r['policy']:<18} {r['episodes']:>5}  "
-                     + "  ".join(f"{100 * a[k]:6.2f}" for k in METRICS) + "         "
-                     + "  ".join(f"{100 * l5[k]:6.2f}" for k in ("SR", "SPL")))
+        lines.append(
+            f"{r['protocol']:<9} {r['policy']:<18} {r['episodes']:>5}  "
+            + "  ".join(f"{100 * a[k]:6.2f}" for k in METRICS)
+            + "         "
+            + "  ".join(f"{100 * l5[k]:6.2f}" for k in ("SR", "SPL"))
+        )
     return "\n".join(lines)
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     ev = sub.add_parser("eval", help="evaluate a shipped agent on the real test rooms (builds what it needs)")
-    ev.add_argument("--agent", default=None, help="shipped agent name or folder (default: the default one; "
-                                                  "`tsnav release list`)")
-    ev.add_argument("--data", default=None, help="world folder for the rooms (default out/release/world-vN, N the "
-                                                  "rules version of the agent's card; reused; built when missing). A "
-                                                  "--data folder that does not exist is refused unless --build-world")
-    ev.add_argument("--build-world", action="store_true",
-                    help="build the agent's rooms into --data when that folder does not exist yet")
-    ev.add_argument("--force", action="store_true",
-                    help="evaluate again even when nothing changed since the table saved in OUT/results.json (same "
-                         "agent and encoder weights, rooms, detection tables, features, episode lists and settings)")
-    ev.add_argument("--out", default=None, help="evaluation folders, episode lists and results.json (default "
-                                                 "out/release/eval/AGENT/SPLIT)")
-    add_shared(ev, "protocol", default="both", choices=("both", *PROTOCOLS), metavar=None,
-               help="success protocol(s) to evaluate under (default both)")
+    ev.add_argument(
+        "--agent", default=None, help="shipped agent name or folder (default: the default one; `tsnav release list`)"
+    )
+    ev.add_argument(
+        "--data",
+        default=None,
+        help="world folder for the rooms (default out/release/world-vN, N the "
+        "rules version of the agent's card; reused; built when missing). A "
+        "--data folder that does not exist is refused unless --build-world",
+    )
+    ev.add_argument(
+        "--build-world",
+        action="store_true",
+        help="build the agent's rooms into --data when that folder does not exist yet",
+    )
+    ev.add_argument(
+        "--force",
+        action="store_true",
+        help="evaluate again even when nothing changed since the table saved in OUT/results.json (same "
+        "agent and encoder weights, rooms, detection tables, features, episode lists and settings)",
+    )
+    ev.add_argument(
+        "--out",
+        default=None,
+        help="evaluation folders, episode lists and results.json (default out/release/eval/AGENT/SPLIT)",
+    )
+    add_shared(
+        ev,
+        "protocol",
+        default="both",
+        choices=("both", *PROTOCOLS),
+        metavar=None,
+        help="success protocol(s) to evaluate under (default both)",
+    )
     ev.add_argument("--no-baselines", action="store_true", help="only the agent (no explorer / random rows)")
-    ev.add_argument("--split", default="test", choices=tuple(SPLIT_EPISODES),
-                    help="rooms to evaluate on (default test; val: the validation rooms)")
-    ev.add_argument("--update-card", action="store_true",
-                    help="write the figures into the agent's card (card.json / card.md) as those of --split")
+    ev.add_argument(
+        "--split",
+        default="test",
+        choices=tuple(SPLIT_EPISODES),
+        help="rooms to evaluate on (default test; val: the validation rooms)",
+    )
+    ev.add_argument(
+        "--update-card",
+        action="store_true",
+        help="write the figures into the agent's card (card.json / card.md) as those of --split",
+    )
     ev.add_argument("--workers", type=int, default=2, help="world-building processes (default 2)")
     ev.add_argument("--threads", type=int, default=2, help="torch threads for features (default 2)")
     sub.add_parser("list", help="the shipped agents and their cards' headline figures")
@@ -453,21 +595,38 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     pk.add_argument("--run", required=True, help="training run folder (config.json)")
     pk.add_argument("--checkpoint", default=None, help="checkpoint folder (default RUN/best)")
     pk.add_argument("--encoder-run", required=True, help="pretraining run folder (encoder.safetensors)")
-    pk.add_argument("--card", required=True, help="JSON file of the model card's fields (name, summary, world, "
-                                                  "detector_shipped, detections, figures, commands, ...)")
+    pk.add_argument(
+        "--card",
+        required=True,
+        help="JSON file of the model card's fields (name, summary, world, "
+        "detector_shipped, detections, figures, commands, ...)",
+    )
     pk.add_argument("--out", required=True, help="folder to create (e.g. src/tsnav/agent/weights/NAME)")
-    mk = sub.add_parser("make", help="make an agent from its recipe (configs/agents/NAME.toml): world, detector "
-                                     "tables, pretraining, features, training, selection, packing, the card's figures")
+    mk = sub.add_parser(
+        "make",
+        help="make an agent from its recipe (configs/agents/NAME.toml): world, detector "
+        "tables, pretraining, features, training, selection, packing, the card's figures",
+    )
     mk.add_argument("recipe", metavar="RECIPE.toml", help="the agent's recipe (tsnav.pipeline.agent_recipe)")
-    mk.add_argument("--work", required=True, help="work folder: world, pretraining, training, evaluations, and the "
-                                                 "packed agent WORK/agent/NAME (every step resumes)")
-    add_shared(mk, "set", help="change one setting of the recipe, e.g. --set train.updates=8 (a TOML value); "
-                               "repeatable")
-    mk.add_argument("--until", choices=STEPS, default=STEPS[-1], help=f"stop after this step ({', '.join(STEPS)}; "
-                                                                      f"default: all)")
-    mk.add_argument("--replace-shipped", default=None, metavar="NAME",
-                    help="also install the made agent as the shipped agent NAME (src/tsnav/agent/weights/NAME, "
-                         "replaced); NAME must be the recipe's. Without it nothing is written into the package")
+    mk.add_argument(
+        "--work",
+        required=True,
+        help="work folder: world, pretraining, training, evaluations, and the "
+        "packed agent WORK/agent/NAME (every step resumes)",
+    )
+    add_shared(
+        mk, "set", help="change one setting of the recipe, e.g. --set train.updates=8 (a TOML value); repeatable"
+    )
+    mk.add_argument(
+        "--until", choices=STEPS, default=STEPS[-1], help=f"stop after this step ({', '.join(STEPS)}; default: all)"
+    )
+    mk.add_argument(
+        "--replace-shipped",
+        default=None,
+        metavar="NAME",
+        help="also install the made agent as the shipped agent NAME (src/tsnav/agent/weights/NAME, "
+        "replaced); NAME must be the recipe's. Without it nothing is written into the package",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -495,28 +654,52 @@ def run(args: argparse.Namespace) -> int:
     card = read_card(folder)
     data, out = release_folders(card, folder.name, args.split, args.data, args.out)
     if args.data is not None and not data.is_dir() and not args.build_world:
-        raise CommandError(f"--data {args.data}: no such world folder (--build-world builds the agent's "
-                           f"{args.split} rooms there; without --data they go to "
-                           f"{release_folders(card, folder.name, args.split)[0]})")
+        raise CommandError(
+            f"--data {args.data}: no such world folder (--build-world builds the agent's "
+            f"{args.split} rooms there; without --data they go to "
+            f"{release_folders(card, folder.name, args.split)[0]})"
+        )
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
-    evaluate_agent(folder, args.split, data, out, protocols, baselines=not args.no_baselines,
-                   update_card=args.update_card, workers=args.workers, threads=args.threads, force=args.force)
+    evaluate_agent(
+        folder,
+        args.split,
+        data,
+        out,
+        protocols,
+        baselines=not args.no_baselines,
+        update_card=args.update_card,
+        workers=args.workers,
+        threads=args.threads,
+        force=args.force,
+    )
     return 0
 
 
-def evaluate_agent(folder: Path, split: str, data: Path, out: Path, protocols: list[str], *, baselines: bool = True,
-                   update_card: bool = False, workers: int = 2, threads: int = 2, force: bool = False) -> list[dict]:
+def evaluate_agent(
+    folder: Path,
+    split: str,
+    data: Path,
+    out: Path,
+    protocols: list[str],
+    *,
+    baselines: bool = True,
+    update_card: bool = False,
+    workers: int = 2,
+    threads: int = 2,
+    force: bool = False,
+) -> list[dict]:
     """``tsnav release eval``: build what the agent in ``folder`` needs in ``data`` (rooms of ``split``, detector
     tables, features), evaluate it (and the baselines) under ``protocols`` into ``out``, print the table; with
     ``update_card`` the figures are written into the folder's card. When nothing changed since the evaluation saved
     in ``out`` (:func:`release_inputs`), its table is printed instead, unless ``force``."""
     card = read_card(folder)
     say(f"agent {folder.name}: {card.get('summary', '')}")
-    saved = None if force else saved_results(out, release_inputs(folder, card, data, out, protocols, baselines,
-                                                                 split))
+    saved = None if force else saved_results(out, release_inputs(folder, card, data, out, protocols, baselines, split))
     if saved is not None:
-        say(f"nothing changed since the evaluation of {saved.get('evaluated', '?')} (same agent and encoder weights, "
-            f"rooms, detection tables, features, episode lists and settings): its saved table; --force evaluates again")
+        say(
+            f"nothing changed since the evaluation of {saved.get('evaluated', '?')} (same agent and encoder weights, "
+            f"rooms, detection tables, features, episode lists and settings): its saved table; --force evaluates again"
+        )
         rows = saved["rows"]
     else:
         from ..distributed import set_threads
@@ -532,9 +715,15 @@ def evaluate_agent(folder: Path, split: str, data: Path, out: Path, protocols: l
         times["features"] = time.perf_counter() - t0 - sum(times.values())
         rows = release_rows(folder, data, out, protocols, baselines=baselines, split=split)
         times["evaluation"] = time.perf_counter() - t0 - sum(times.values())
-        res = {"agent": folder.name, "card": card.get("name"), "split": split, "rows": rows, "seconds": times,
-               "evaluated": _dt.datetime.now().strftime("%Y-%m-%d %H:%M"),
-               "inputs": release_inputs(folder, card, data, out, protocols, baselines, split)}
+        res = {
+            "agent": folder.name,
+            "card": card.get("name"),
+            "split": split,
+            "rows": rows,
+            "seconds": times,
+            "evaluated": _dt.datetime.now().strftime("%Y-%m-%d %H:%M"),
+            "inputs": release_inputs(folder, card, data, out, protocols, baselines, split),
+        }
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "results.json", json.dumps(res, indent=1) + "\n")
     if update_card:
@@ -543,10 +732,15 @@ def evaluate_agent(folder: Path, split: str, data: Path, out: Path, protocols: l
         atomic_write_text(folder / "card.json", json.dumps(card, indent=1) + "\n")
         atomic_write_text(folder / "card.md", card_markdown(card))
         say(f"card of {folder.name}: {split} figures written")
-    when = (f"the saved table of {saved.get('evaluated', '?')}" if saved is not None else
-            "steps: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()))
-    print(f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
-          f"detector {card['detector_shipped']} ({when})")
+    when = (
+        f"the saved table of {saved.get('evaluated', '?')}"
+        if saved is not None
+        else "steps: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items())
+    )
+    print(
+        f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
+        f"detector {card['detector_shipped']} ({when})"
+    )
     trained = json.loads((folder / "config.json").read_text())["train"].get("protocol", "paper")
     for p in protocols:
         print(protocol_line(p, trained))
@@ -564,8 +758,9 @@ def run_make(args: argparse.Namespace) -> int:
 
     r = resolve_agent(apply_sets(read_recipe(args.recipe), args.set, SECTIONS), work)
     if args.replace_shipped is not None and args.replace_shipped != r.name:
-        raise CommandError(f"--replace-shipped {args.replace_shipped}: the recipe makes {r.name!r}; name it to "
-                           f"replace it")
+        raise CommandError(
+            f"--replace-shipped {args.replace_shipped}: the recipe makes {r.name!r}; name it to replace it"
+        )
     work.mkdir(parents=True, exist_ok=True)
     header = f"The resolved recipe of {r.name} (tsnav release make)."
     atomic_write_text(work / "recipe.toml", dump_recipe(r.to_recipe(), header=header))
@@ -579,8 +774,16 @@ def run_make(args: argparse.Namespace) -> int:
         atomic_write_text(folder / "recipe.toml", dump_recipe(r.to_recipe(), header=header))
     if args.until == "eval":
         for split in ("val", "test"):
-            evaluate_agent(folder, split, made.world, work / f"release_{split}", list(PROTOCOLS), update_card=True,
-                           workers=r.world.workers, threads=r.features.threads)
+            evaluate_agent(
+                folder,
+                split,
+                made.world,
+                work / f"release_{split}",
+                list(PROTOCOLS),
+                update_card=True,
+                workers=r.world.workers,
+                threads=r.features.threads,
+            )
     if args.replace_shipped:
         install_shipped(folder, WEIGHTS / r.name)
     print(f"agent {r.name}: {folder}" + (f", installed as {WEIGHTS / r.name}" if args.replace_shipped else ""))
@@ -593,13 +796,22 @@ def agent_card(r: AgentRecipe, world: Path) -> dict:
     from ..detect.shipped import shipped_meta
     from ..world.build import BuildConfig
 
-    return {**r.card, "name": r.name, "world_preset": r.world.preset, "world_version": r.world.version,
-            "image_size": BuildConfig.from_preset(r.world.preset).image_size, "detector_shipped": r.detections.shipped,
-            "detector_fingerprint": shipped_meta(r.detections.shipped)["fingerprint"],
-            "detections": r.detections.name, "encoder_id": r.features.encoder,
-            **{f"{split}_rooms": ensure_names(world, split) for split in ("val", "test")},
-            "commands": [f"tsnav release make configs/agents/{r.name}.toml --work WORK_DIR (recipe.toml in this "
-                         f"folder: the resolved recipe)"]}
+    return {
+        **r.card,
+        "name": r.name,
+        "world_preset": r.world.preset,
+        "world_version": r.world.version,
+        "image_size": BuildConfig.from_preset(r.world.preset).image_size,
+        "detector_shipped": r.detections.shipped,
+        "detector_fingerprint": shipped_meta(r.detections.shipped)["fingerprint"],
+        "detections": r.detections.name,
+        "encoder_id": r.features.encoder,
+        **{f"{split}_rooms": ensure_names(world, split) for split in ("val", "test")},
+        "commands": [
+            f"tsnav release make configs/agents/{r.name}.toml --work WORK_DIR (recipe.toml in this "
+            f"folder: the resolved recipe)"
+        ],
+    }
 
 
 def install_shipped(folder: Path, dest: Path) -> None:
@@ -614,8 +826,9 @@ def install_shipped(folder: Path, dest: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def release_folders(card: dict, agent: str, split: str, data: str | None = None, out: str | None = None
-                    ) -> tuple[Path, Path]:
+def release_folders(
+    card: dict, agent: str, split: str, data: str | None = None, out: str | None = None
+) -> tuple[Path, Path]:
     """The world and evaluation folders of ``tsnav release eval``: given ones, else ``out/release/world-vN`` (the
     card's rules version, so that agents of different versions never share rooms) and
     ``out/release/eval/AGENT/SPLIT`` (so that agents and splits never share episode lists or results)."""

@@ -42,8 +42,7 @@ def ensure_world(data: str | Path, preset: str, build: bool = False, workers: in
     except (OSError, ValueError, AttributeError):
         built = "unknown"
     if built != preset:
-        say(f"note: {root} holds the {built!r} world; this scale stands for {preset!r} "
-            f"(tsnav world --preset {preset})")
+        say(f"note: {root} holds the {built!r} world; this scale stands for {preset!r} (tsnav world --preset {preset})")
     return built
 
 
@@ -60,16 +59,24 @@ def ensure_oracle_detections(data: str | Path, name: str = "oracle") -> int:
         if have == fp:
             continue
         if have is not None and not have.startswith("oracle-"):
-            raise ValueError(f"{p / f'detections_{name}.hdf5'} was made by another detector ({have}); "
-                             f"remove it or use another --detections name")
+            raise ValueError(
+                f"{p / f'detections_{name}.hdf5'} was made by another detector ({have}); "
+                f"remove it or use another --detections name"
+            )
         write_detections(p, name, oracle_detections(load_scene(p), cfg))
         n += 1
     return n
 
 
-def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | None = None,
-                      scale: ScaleConfig | None = None, shipped: bool = False,
-                      train_root: str | Path | None = None, workers: int | None = None) -> dict:
+def ensure_detections(
+    data: str | Path,
+    name: str,
+    detector_dir: str | Path | None = None,
+    scale: ScaleConfig | None = None,
+    shipped: bool = False,
+    train_root: str | Path | None = None,
+    workers: int | None = None,
+) -> dict:
     """Every scene's table ``detections_<name>.hdf5``; returns ``{"fingerprint", "written"}``. Oracle tables are
     computed when missing; any other name is a learned detector's table: used as it is when every scene holds one
     of the same detector (from the source asked for: :func:`~tsnav.pipeline.detector_steps.complete_tables`), else the
@@ -95,13 +102,19 @@ def ensure_detections(data: str | Path, name: str, detector_dir: str | Path | No
         if missing:
             raise CommandError(f"scene {missing[0]} has no detections_{name}.hdf5 (run `tsnav detect --name {name}`)")
         return {"fingerprint": None, "written": 0}
-    done = ensure_learned_detections(data, name, detector_dir, scale, say=say, train_root=train_root,
-                                     workers=workers)
+    done = ensure_learned_detections(data, name, detector_dir, scale, say=say, train_root=train_root, workers=workers)
     return {"fingerprint": done["fingerprint"], "written": done["written"]}
 
 
-def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_type: int, seed: int = 0,
-                    success_distance: float = 1.0, protocol: str = DEFAULT_PROTOCOL) -> Path:
+def ensure_episodes(
+    data: str | Path,
+    split: str,
+    path: str | Path,
+    per_room_type: int,
+    seed: int = 0,
+    success_distance: float = 1.0,
+    protocol: str = DEFAULT_PROTOCOL,
+) -> Path:
     """The fixed episode list of ``split`` at ``path`` drawn under the success ``protocol`` (made once; reused
     when present; ``ValueError`` when the file there was drawn under another protocol - it is never replaced)."""
     path = Path(path)
@@ -114,9 +127,19 @@ def ensure_episodes(data: str | Path, split: str, path: str | Path, per_room_typ
     eps = make_episodes(bank, per_room_type, seed)
     if not eps:
         raise ValueError(f"{data}: no valid episode in split {split!r}")
-    write_episodes(path, eps, split=split, seed=seed, protocol=protocol, success_distance=success_distance,
-                   per_room_type=per_room_type, start_horizon=None, room_targets=True, data=str(Path(data).resolve()),
-                   **class_set_meta(bank))
+    write_episodes(
+        path,
+        eps,
+        split=split,
+        seed=seed,
+        protocol=protocol,
+        success_distance=success_distance,
+        per_room_type=per_room_type,
+        start_horizon=None,
+        room_targets=True,
+        data=str(Path(data).resolve()),
+        **class_set_meta(bank),
+    )
     return path
 
 
@@ -175,8 +198,14 @@ def ensure_encoder(es: EncoderSpec, data: str | Path) -> None:
         raise RuntimeError(f"pretraining {es.spec} did not finish")
 
 
-def ensure_features(es: EncoderSpec, data: str | Path, splits: list[str], batch_size: int = 128,
-                    device: str = "auto", workers: int | None = None) -> str:
+def ensure_features(
+    es: EncoderSpec,
+    data: str | Path,
+    splits: list[str],
+    batch_size: int = 128,
+    device: str = "auto",
+    workers: int | None = None,
+) -> str:
     """Cache the features of ``es`` for the scenes of ``splits``; returns the cache name
     ``<id>-<fingerprint>`` (identical encoders share a cache). ``workers``: processes encoding the scenes on one
     thread each (:func:`~tsnav.pretrain.features.cache_features`); None: every core on a CPU

@@ -49,8 +49,12 @@ class EncoderArch:
     def metadata(self, model: nn.Module, method: str) -> dict[str, str]:
         """safetensors metadata that lets :func:`~tsnav.pretrain.features.load_encoder` rebuild the encoder."""
         cfg = model.config.to_dict() if hasattr(model, "config") and hasattr(model.config, "to_dict") else {}
-        return {"format": "tsnav-encoder", "arch": self.name, "method": method,
-                "config": json.dumps(cfg, sort_keys=True) if cfg else "{}"}
+        return {
+            "format": "tsnav-encoder",
+            "arch": self.name,
+            "method": method,
+            "config": json.dumps(cfg, sort_keys=True) if cfg else "{}",
+        }
 
 
 #: Every architecture by the name encoder files record.
@@ -82,9 +86,15 @@ def vit_for_features(cfg: dict) -> MaskedAutoencoderViT:
 
 def vit_mae_config(cfg) -> MAEConfig:
     """The :class:`~tsnav.pretrain.model.MAEConfig` a ViT method trains (depth head per its encoder kind)."""
-    return make_config(cfg.model, cfg.patch_size, cfg.img_size, mask_ratio=cfg.mask_ratio,
-                       norm_pix_loss=cfg.norm_pix_loss, use_depth=method_kind(cfg.method).depth,
-                       depth_weight=cfg.depth_weight)
+    return make_config(
+        cfg.model,
+        cfg.patch_size,
+        cfg.img_size,
+        mask_ratio=cfg.mask_ratio,
+        norm_pix_loss=cfg.norm_pix_loss,
+        use_depth=method_kind(cfg.method).depth,
+        depth_weight=cfg.depth_weight,
+    )
 
 
 def _vit_untrained(name: str, patch_size: int, img_size: int):
@@ -105,10 +115,17 @@ def _vit_from_file(cfg: dict, img_size: int):
     return vit_for_features(cfg), int(cfg["img_size"])
 
 
-register_arch(EncoderArch(
-    "vit", build=lambda cfg: MaskedAutoencoderViT(vit_mae_config(cfg)), from_file=_vit_from_file,
-    model_config=lambda cfg: vit_mae_config(cfg).to_dict(), untrained=_vit_untrained, from_weights=_vit_from_weights,
-    foreign_method="timm"))
+register_arch(
+    EncoderArch(
+        "vit",
+        build=lambda cfg: MaskedAutoencoderViT(vit_mae_config(cfg)),
+        from_file=_vit_from_file,
+        model_config=lambda cfg: vit_mae_config(cfg).to_dict(),
+        untrained=_vit_untrained,
+        from_weights=_vit_from_weights,
+        foreign_method="timm",
+    )
+)
 
 
 # -- ResNet18 (torchvision layout) --------------------------------------------------------------------------
@@ -118,17 +135,25 @@ def _resnet_from_weights(path: str, model: str, patch_size: int, img_size: int):
     return m, {}
 
 
-register_arch(EncoderArch(
-    "resnet18", build=lambda cfg: ResNet18(num_classes=NUM_CATEGORIES),
-    from_file=lambda cfg, img_size: (ResNet18(), img_size),
-    untrained=lambda name, patch_size, img_size: (ResNet18(), {}) if name == "resnet18" else None,
-    from_weights=_resnet_from_weights, foreign_method="torchvision"))
+register_arch(
+    EncoderArch(
+        "resnet18",
+        build=lambda cfg: ResNet18(num_classes=NUM_CATEGORIES),
+        from_file=lambda cfg, img_size: (ResNet18(), img_size),
+        untrained=lambda name, patch_size, img_size: (ResNet18(), {}) if name == "resnet18" else None,
+        from_weights=_resnet_from_weights,
+        foreign_method="torchvision",
+    )
+)
 
 
 def untrained_names() -> list[str]:
     """The ``untrained:NAME`` names every architecture accepts (for error messages)."""
-    return ["resnet18"] + list(SIZES) + [a for a, arch in ENCODER_ARCHS.items()
-                                         if arch.untrained is not None and a not in ("vit", "resnet18")]
+    return (
+        ["resnet18"]
+        + list(SIZES)
+        + [a for a, arch in ENCODER_ARCHS.items() if arch.untrained is not None and a not in ("vit", "resnet18")]
+    )
 
 
 def seeded_untrained(name: str, patch_size: int, img_size: int):

@@ -27,12 +27,20 @@ ALIASES = {"patch_size": ("--patch",), "num_workers": ("--workers",)}
 def build_parser(parser: argparse.ArgumentParser) -> None:
     add_shared(parser, "data", required=True, help="dataset root (scene folders; train split is used)")
     add_shared(parser, "out", required=True, help="run folder (created; resumed when it exists)")
-    add_shared(parser, "config", help="a recipe file whose [pretrain] section sets the settings below; options "
-                                      "given here override it")
+    add_shared(
+        parser,
+        "config",
+        help="a recipe file whose [pretrain] section sets the settings below; options given here override it",
+    )
     add_shared(parser, "set", help="set one setting, e.g. --set pretrain.steps=800 (a TOML value); repeatable")
     add_shared(parser, "quiet")
-    add_options(parser.add_argument_group("pretraining (PretrainConfig; recipe section [pretrain])"), PretrainConfig,
-                "pretrain", aliases=ALIASES, choices={"method": METHODS, "model": sorted(SIZES)})
+    add_options(
+        parser.add_argument_group("pretraining (PretrainConfig; recipe section [pretrain])"),
+        PretrainConfig,
+        "pretrain",
+        aliases=ALIASES,
+        choices={"method": METHODS, "model": sorted(SIZES)},
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> PretrainConfig:
@@ -49,6 +57,8 @@ def run(args: argparse.Namespace) -> int:
     if res["finished"] and int(os.environ.get("RANK", "0")) == 0:
         loss = f"{res['loss']:.4f}" if res.get("loss") is not None else "n/a"
         print(f"pretraining done: {res['step']} steps, last loss {loss}; encoder at {args.out}/encoder.safetensors")
-        atomic_write_text(f"{args.out}/recipe.toml", dump_recipe({"pretrain": to_recipe(cfg)},
-                                                                 header="The resolved recipe (tsnav pretrain)."))
+        atomic_write_text(
+            f"{args.out}/recipe.toml",
+            dump_recipe({"pretrain": to_recipe(cfg)}, header="The resolved recipe (tsnav pretrain)."),
+        )
     return 0

@@ -70,8 +70,15 @@ class RGBDImages:
         max_scenes: use only the first this many scenes (None: all).
     """
 
-    def __init__(self, root: str | Path, split: str = "train", img_size: int = 224, labels: bool = False,
-                 preload: bool = True, max_scenes: int | None = None) -> None:
+    def __init__(
+        self,
+        root: str | Path,
+        split: str = "train",
+        img_size: int = 224,
+        labels: bool = False,
+        preload: bool = True,
+        max_scenes: int | None = None,
+    ) -> None:
         self.root = Path(root)
         self.split, self.img_size, self.with_labels, self.preload = split, int(img_size), labels, preload
         scenes = list_scenes(self.root, split=split)
@@ -138,8 +145,8 @@ class RGBDImages:
             raise SceneFormatError(f"{self.scenes[si]}: expected RGB HxWx3 and depth HxW frames of the same size")
         out_rgb, out_depth = [], []
         for a in range(0, len(keys), 256):  # bounded memory while resizing a whole scene
-            r = torch.from_numpy(rgb[a:a + 256]).permute(0, 3, 1, 2)
-            d = torch.from_numpy(np.asarray(depth[a:a + 256], np.float32))[:, None]
+            r = torch.from_numpy(rgb[a : a + 256]).permute(0, 3, 1, 2)
+            d = torch.from_numpy(np.asarray(depth[a : a + 256], np.float32))[:, None]
             out_rgb.append(resize_rgb(r, self.img_size))
             out_depth.append(resize_depth(clean_depth(d), self.img_size))
         return torch.cat(out_rgb), torch.cat(out_depth)
@@ -292,8 +299,9 @@ def apply_augment(rgb: torch.Tensor, depth: torch.Tensor, params: dict[str, torc
     return rgb, depth
 
 
-def prepare_batch(batch: dict[str, torch.Tensor], params: dict[str, torch.Tensor] | None,
-                  device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+def prepare_batch(
+    batch: dict[str, torch.Tensor], params: dict[str, torch.Tensor] | None, device: torch.device | str = "cpu"
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Batch from :meth:`RGBDImages.get` -> model inputs: normalised RGB ``[B, 3, S, S]`` and depth target
     ``[B, 1, S, S]`` (:func:`depth_to_target`), augmented with ``params`` when given."""
     rgb = normalize_rgb(batch["rgb"].to(device))

@@ -129,13 +129,27 @@ def describe_pretraining(cfg: dict) -> str:
     return f"{cfg.get('model')}, patch {cfg.get('patch_size')}"
 
 
-for _k in (EncoderKind("demae", "vit", "DE-MAE: RGB + depth heads, flip only (III-C)", method="demae", depth=True),
-           EncoderKind("mae", "vit", "standard MAE: no depth head", method="mae"),
-           EncoderKind("demae-crop", "vit", "DE-MAE with random resized crop (Table III's w/ crop)",
-                       method="demae-crop", depth=True, crop=True),
-           EncoderKind("resnet18", "resnet18", "ResNet18 supervised on the visible target categories (the baseline)",
-                       method="resnet18-sup", labels=True, base_lr=1e-3, own_steps=True,
-                       weights_option="resnet18_weights"),
-           EncoderKind("vc1", "vit", "published ViT-B weights (VC-1 layout)", label="VC-1",
-                       weights_option="vc1_weights")):
+for _k in (
+    EncoderKind("demae", "vit", "DE-MAE: RGB + depth heads, flip only (III-C)", method="demae", depth=True),
+    EncoderKind("mae", "vit", "standard MAE: no depth head", method="mae"),
+    EncoderKind(
+        "demae-crop",
+        "vit",
+        "DE-MAE with random resized crop (Table III's w/ crop)",
+        method="demae-crop",
+        depth=True,
+        crop=True,
+    ),
+    EncoderKind(
+        "resnet18",
+        "resnet18",
+        "ResNet18 supervised on the visible target categories (the baseline)",
+        method="resnet18-sup",
+        labels=True,
+        base_lr=1e-3,
+        own_steps=True,
+        weights_option="resnet18_weights",
+    ),
+    EncoderKind("vc1", "vit", "published ViT-B weights (VC-1 layout)", label="VC-1", weights_option="vc1_weights"),
+):
     register_encoder(_k)

@@ -71,8 +71,14 @@ class Encoder:
         return next(self.module.parameters()).device
 
     def attrs(self) -> dict:
-        return {"encoder": self.spec, "arch": self.arch, "method": self.method, "img_size": self.img_size,
-                "fingerprint": self.fingerprint, "config": json.dumps(self.config, sort_keys=True)}
+        return {
+            "encoder": self.spec,
+            "arch": self.arch,
+            "method": self.method,
+            "img_size": self.img_size,
+            "fingerprint": self.fingerprint,
+            "config": json.dumps(self.config, sort_keys=True),
+        }
 
 
 def _fingerprint(module: nn.Module) -> str:
@@ -81,8 +87,9 @@ def _fingerprint(module: nn.Module) -> str:
     return weights_digest(module.state_dict(), skip=("decoder", "mask_token", "fc."))[:16]
 
 
-def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_size: int = 224,
-                 device: str | torch.device = "cpu") -> Encoder:
+def load_encoder(
+    spec: str, model: str = "vit_base", patch_size: int = 16, img_size: int = 224, device: str | torch.device = "cpu"
+) -> Encoder:
     """Build the frozen encoder named by ``spec`` (see the module docstring for the forms); the architectures
     are those of :mod:`tsnav.pretrain.archs` (``<arch>:PATH`` for foreign weights of a registered one)."""
     kind, _, rest = spec.partition(":")
@@ -102,8 +109,9 @@ def load_encoder(spec: str, model: str = "vit_base", patch_size: int = 16, img_s
             if not path.exists():
                 raise FileNotFoundError(f"{spec}: no encoder.safetensors (is the pretraining run finished?)")
         if not path.is_file():
-            raise FileNotFoundError(f"{spec}: no such encoder (run folder, .safetensors file, vit:PATH, "
-                                    f"resnet18:PATH or untrained:NAME)")
+            raise FileNotFoundError(
+                f"{spec}: no such encoder (run folder, .safetensors file, vit:PATH, resnet18:PATH or untrained:NAME)"
+            )
         sd, meta = load_tensors(path)
         if meta.get("format") != "tsnav-encoder":
             raise ValueError(f"{path}: not a tsnav encoder file (use vit:PATH or resnet18:PATH for other weights)")
@@ -145,30 +153,39 @@ def iter_scene_features(encoder: Encoder, scene_dir: Path, keys, batch_size: int
         if missing:
             raise ValueError(f"{scene_dir}: images.hdf5 lacks state {missing[0]!r} ({len(missing)} missing)")
         for a in range(0, len(keys), batch_size):
-            rgb = torch.from_numpy(read_stack(fi, keys[a:a + batch_size])).permute(0, 3, 1, 2)
+            rgb = torch.from_numpy(read_stack(fi, keys[a : a + batch_size])).permute(0, 3, 1, 2)
             if mirror:
                 rgb = rgb.flip(-1)
             x = normalize_rgb(resize_rgb(rgb, encoder.img_size).to(encoder.device))
             yield a, encoder.encode(x).float().cpu().numpy()
 
 
-def scene_features(encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64,
-                   bar=None, mirror: bool = False) -> np.ndarray:
+def scene_features(
+    encoder: Encoder, scene_dir: Path, keys: np.ndarray, batch_size: int = 64, bar=None, mirror: bool = False
+) -> np.ndarray:
     """``(S, C, h, w)`` float16 features of the frames ``keys`` of ``scene_dir/images.hdf5``, in that order
     (flipped left to right first with ``mirror``)."""
     out = None
     for a, f in iter_scene_features(encoder, scene_dir, keys, batch_size, mirror):
         if out is None:
             out = np.empty((len(keys),) + f.shape[1:], dtype=np.float16)
-        out[a:a + len(f)] = f.astype(np.float16)
+        out[a : a + len(f)] = f.astype(np.float16)
         if bar is not None:
             bar.update(len(f))
     return out
 
 
-def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: int = 64, split: str | None = None,
-                   overwrite: bool = False, progress: bool = True, workers: int = 0, mirror: bool = False
-                   ) -> list[Path]:
+def cache_features(
+    encoder: Encoder,
+    root: str | Path,
+    name: str,
+    batch_size: int = 64,
+    split: str | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    workers: int = 0,
+    mirror: bool = False,
+) -> list[Path]:
     """Write ``features_<name>.hdf5`` into every complete scene of ``root`` (or of ``split``); resumable.
 
     ``mirror``: the features of the frames flipped left to right, as ``features_<name>-mirror.hdf5`` (file
@@ -196,17 +213,23 @@ def cache_features(encoder: Encoder, root: str | Path, name: str, batch_size: in
                 fp = h.attrs.get("fingerprint")
                 fm = int(h.attrs.get("mirror", 0))
             if fm != int(mirror):
-                raise ValueError(f"{f} holds features of {'flipped' if fm else 'unflipped'} frames; use another "
-                                 f"--name or --overwrite")
+                raise ValueError(
+                    f"{f} holds features of {'flipped' if fm else 'unflipped'} frames; use another "
+                    f"--name or --overwrite"
+                )
             if fp != encoder.fingerprint:
-                raise ValueError(f"{f} was made by another encoder ({h5py_str(fp)}); use another --name or "
-                                 f"--overwrite")
+                raise ValueError(f"{f} was made by another encoder ({h5py_str(fp)}); use another --name or --overwrite")
             written.append(f)
             continue
         todo.append(p)
     scenes_keys = [(p, load_scene(p).keys) for p in todo]
-    bar = tqdm(total=sum(len(k) for _, k in scenes_keys), desc=f"features {file_name}", unit="img",
-               disable=not progress, dynamic_ncols=True)
+    bar = tqdm(
+        total=sum(len(k) for _, k in scenes_keys),
+        desc=f"features {file_name}",
+        unit="img",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
     try:
         if workers >= 1:
             tasks = [(p, keys, batch_size, file_name, mirror, attrs) for p, keys in scenes_keys]
@@ -254,8 +277,9 @@ def _h5_attr(path: Path, name: str):
     return v.decode() if isinstance(v, bytes) else v
 
 
-def write_resnet_features(scene_dir: str | Path, encoder, keys, batch_size: int = 16, bar=None,
-                          overwrite: bool = False) -> bool:
+def write_resnet_features(
+    scene_dir: str | Path, encoder, keys, batch_size: int = 16, bar=None, overwrite: bool = False
+) -> bool:
     """Write the lineage's ``resnet18_featuremap.hdf5`` into ``scene_dir``: one float32 ``(1, 512, 7, 7)`` dataset per
     state key of ``keys``, ResNet18's last feature map of the frame resized to 224 x 224 (ImageNet-normalised, as
     :func:`cache_features`); atomic (temporary file renamed when complete).
@@ -265,8 +289,10 @@ def write_resnet_features(scene_dir: str | Path, encoder, keys, batch_size: int 
     off; raises ``ValueError`` for another encoder's file without ``overwrite``.
     """
     if encoder.arch != "resnet18" or encoder.img_size != L.RESNET_INPUT_SIZE:
-        raise ValueError(f"the lineage's {L.RESNET_FILE} holds ResNet18 maps of {L.RESNET_INPUT_SIZE}px frames; "
-                         f"encoder {encoder.spec} is {encoder.arch} at {encoder.img_size}px")
+        raise ValueError(
+            f"the lineage's {L.RESNET_FILE} holds ResNet18 maps of {L.RESNET_INPUT_SIZE}px frames; "
+            f"encoder {encoder.spec} is {encoder.arch} at {encoder.img_size}px"
+        )
     scene_dir = Path(scene_dir)
     out = scene_dir / L.RESNET_FILE
     if out.exists() and not overwrite:
@@ -278,7 +304,7 @@ def write_resnet_features(scene_dir: str | Path, encoder, keys, batch_size: int 
         for a, feats in iter_scene_features(encoder, scene_dir, keys, batch_size):
             if feats.shape[1:] != L.RESNET_SHAPE[1:]:
                 raise ValueError(f"encoder {encoder.spec} gives {feats.shape[1:]} maps, expected {L.RESNET_SHAPE[1:]}")
-            for k, x in zip(keys[a:a + len(feats)], feats):
+            for k, x in zip(keys[a : a + len(feats)], feats):
                 f.create_dataset(str(k), data=x[None].astype(np.float32), track_times=False)
             if bar is not None:
                 bar.update(len(feats))
@@ -298,13 +324,19 @@ def read_features(scene_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndar
     if not f.exists():
         raise FileNotFoundError(f"{f}: no feature cache (run `tsnav features`)")
     with h5py.File(f, "r") as h:
-        return h["features"][()], h["keys"][()].astype(str), {k: h5py_str(v) if isinstance(v, (bytes, str)) else v
-                                                                for k, v in h.attrs.items()}
+        return (
+            h["features"][()],
+            h["keys"][()].astype(str),
+            {k: h5py_str(v) if isinstance(v, (bytes, str)) else v for k, v in h.attrs.items()},
+        )
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--encoder", required=True,
-                        help="pretraining run folder, encoder .safetensors, vit:PATH, resnet18:PATH or untrained:NAME")
+    parser.add_argument(
+        "--encoder",
+        required=True,
+        help="pretraining run folder, encoder .safetensors, vit:PATH, resnet18:PATH or untrained:NAME",
+    )
     parser.add_argument("--data", required=True, help="dataset root")
     parser.add_argument("--name", default=None, help="feature file name features_<name>.hdf5 (default: from --encoder)")
     parser.add_argument("--split", default=None, help="only scenes of this split (default: all)")
@@ -314,12 +346,19 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--overwrite", action="store_true", help="recompute files made by another encoder")
-    parser.add_argument("--mirror", action="store_true",
-                        help="the features of the frames flipped left to right, written as features_<name>-mirror.hdf5 "
-                             "(for training on mirrored rooms: `tsnav train --mirror`)")
-    parser.add_argument("--workers", type=int, default=0,
-                        help="CPU processes sharing the scenes, one torch thread each (e.g. 2 on a 2-core machine; "
-                             "the files are the same for any value); 0 (default): this process alone")
+    parser.add_argument(
+        "--mirror",
+        action="store_true",
+        help="the features of the frames flipped left to right, written as features_<name>-mirror.hdf5 "
+        "(for training on mirrored rooms: `tsnav train --mirror`)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="CPU processes sharing the scenes, one torch thread each (e.g. 2 on a 2-core machine; "
+        "the files are the same for any value); 0 (default): this process alone",
+    )
     parser.add_argument("--quiet", action="store_true")
 
 
@@ -330,7 +369,18 @@ def run(args: argparse.Namespace) -> int:
     if args.workers and enc.device.type != "cpu":
         raise CommandError("--workers shares the scenes over CPU processes: use it with --device cpu")
     name = args.name or default_name(args.encoder)
-    files = cache_features(enc, args.data, name, args.batch_size, args.split, args.overwrite, not args.quiet,
-                           workers=args.workers, mirror=args.mirror)
-    print(f"features_{name}{MIRROR_SUFFIX if args.mirror else ''}.hdf5 in {len(files)} scenes ({enc.arch}, {enc.method}, input {enc.img_size}px)")
+    files = cache_features(
+        enc,
+        args.data,
+        name,
+        args.batch_size,
+        args.split,
+        args.overwrite,
+        not args.quiet,
+        workers=args.workers,
+        mirror=args.mirror,
+    )
+    print(
+        f"features_{name}{MIRROR_SUFFIX if args.mirror else ''}.hdf5 in {len(files)} scenes ({enc.arch}, {enc.method}, input {enc.img_size}px)"
+    )
     return 0

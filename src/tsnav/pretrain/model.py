@@ -86,7 +86,7 @@ class MAEConfig:
 
     @property
     def num_patches(self) -> int:
-        return self.grid_size ** 2
+        return self.grid_size**2
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -102,8 +102,12 @@ class MAEConfig:
 SIZES = {
     "vit_micro": dict(embed_dim=64, depth=2, num_heads=2, decoder_embed_dim=32, decoder_depth=1, decoder_num_heads=2),
     "vit_tiny": dict(embed_dim=192, depth=12, num_heads=3, decoder_embed_dim=128, decoder_depth=2, decoder_num_heads=4),
-    "vit_small": dict(embed_dim=384, depth=12, num_heads=6, decoder_embed_dim=256, decoder_depth=4, decoder_num_heads=8),
-    "vit_base": dict(embed_dim=768, depth=12, num_heads=12, decoder_embed_dim=512, decoder_depth=8, decoder_num_heads=16),
+    "vit_small": dict(
+        embed_dim=384, depth=12, num_heads=6, decoder_embed_dim=256, decoder_depth=4, decoder_num_heads=8
+    ),
+    "vit_base": dict(
+        embed_dim=768, depth=12, num_heads=12, decoder_embed_dim=512, decoder_depth=8, decoder_num_heads=16
+    ),
 }
 
 
@@ -254,7 +258,8 @@ class MaskedAutoencoderViT(nn.Module):
         self.mask_token = nn.Parameter(torch.zeros(1, 1, c.decoder_embed_dim))
         self.decoder_pos_embed = nn.Parameter(torch.zeros(1, L + 1, c.decoder_embed_dim), requires_grad=False)
         self.decoder_blocks = nn.ModuleList(
-            [Block(c.decoder_embed_dim, c.decoder_num_heads, c.mlp_ratio) for _ in range(c.decoder_depth)])
+            [Block(c.decoder_embed_dim, c.decoder_num_heads, c.mlp_ratio) for _ in range(c.decoder_depth)]
+        )
         self.decoder_norm = nn.LayerNorm(c.decoder_embed_dim, eps=1e-6)
         self.decoder_pred = nn.Linear(c.decoder_embed_dim, p * p * 3)
         if c.use_depth:
@@ -358,8 +363,14 @@ class MaskedAutoencoderViT(nn.Module):
         return pred, pred_depth
 
     # -- loss --
-    def forward_loss(self, imgs: torch.Tensor, pred: torch.Tensor, mask: torch.Tensor,
-                     depths: torch.Tensor | None = None, pred_depth: torch.Tensor | None = None):
+    def forward_loss(
+        self,
+        imgs: torch.Tensor,
+        pred: torch.Tensor,
+        mask: torch.Tensor,
+        depths: torch.Tensor | None = None,
+        pred_depth: torch.Tensor | None = None,
+    ):
         """(DE-)MAE loss (§III-C). Returns ``(loss, loss_rgb, loss_depth)``.
 
         loss_rgb: per-patch pixel MSE averaged over the masked patches only (``mask == 1``);
@@ -381,8 +392,13 @@ class MaskedAutoencoderViT(nn.Module):
             loss_depth = ((pred_depth.float() - target_d) ** 2).mean()
         return loss_rgb + self.config.depth_weight * loss_depth, loss_rgb, loss_depth
 
-    def forward(self, imgs: torch.Tensor, depths: torch.Tensor | None = None, mask_ratio: float | None = None,
-                noise: torch.Tensor | None = None) -> MAEOutput:
+    def forward(
+        self,
+        imgs: torch.Tensor,
+        depths: torch.Tensor | None = None,
+        mask_ratio: float | None = None,
+        noise: torch.Tensor | None = None,
+    ) -> MAEOutput:
         """Mask, encode, decode, score. ``imgs [N, 3, H, W]``; ``depths [N, 1, H, W]`` for DE-MAE."""
         ratio = self.config.mask_ratio if mask_ratio is None else mask_ratio
         latent, mask, ids_restore = self.forward_encoder(imgs, ratio, noise)
@@ -449,7 +465,7 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
                 break
     if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
         raise ValueError(f"{path}: not a state dict of tensors")
-    return {(k[len("module."):] if k.startswith("module.") else k): v for k, v in sd.items()}
+    return {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in sd.items()}
 
 
 def resize_pos_embed(pos: torch.Tensor, grid: int) -> torch.Tensor:
@@ -472,18 +488,29 @@ def load_encoder_weights(model: MaskedAutoencoderViT, path: str | Path) -> dict[
     own = model.encoder_state_dict()
     ignored = sorted(k for k in sd if not is_encoder_key(k))
     enc = {k: v for k, v in sd.items() if is_encoder_key(k)}
-    if "pos_embed" in enc and enc["pos_embed"].shape != own["pos_embed"].shape and enc["pos_embed"].ndim == 3 \
-            and enc["pos_embed"].shape[-1] == own["pos_embed"].shape[-1]:
+    if (
+        "pos_embed" in enc
+        and enc["pos_embed"].shape != own["pos_embed"].shape
+        and enc["pos_embed"].ndim == 3
+        and enc["pos_embed"].shape[-1] == own["pos_embed"].shape[-1]
+    ):
         enc["pos_embed"] = resize_pos_embed(enc["pos_embed"], model.config.grid_size)
     missing = sorted(set(own) - set(enc))
     unexpected = sorted(set(enc) - set(own))
-    wrong = sorted(f"{k} {tuple(enc[k].shape)} vs {tuple(own[k].shape)}"
-                   for k in set(own) & set(enc) if enc[k].shape != own[k].shape)
+    wrong = sorted(
+        f"{k} {tuple(enc[k].shape)} vs {tuple(own[k].shape)}"
+        for k in set(own) & set(enc)
+        if enc[k].shape != own[k].shape
+    )
     if missing or unexpected or wrong:
+
         def short(xs):
             return ", ".join(xs[:8]) + (f" (+{len(xs) - 8} more)" if len(xs) > 8 else "") if xs else "none"
-        raise ValueError(f"{path}: encoder weights do not fit this model: missing keys: {short(missing)}; "
-                         f"unexpected keys: {short(unexpected)}; shape mismatches: {short(wrong)}")
+
+        raise ValueError(
+            f"{path}: encoder weights do not fit this model: missing keys: {short(missing)}; "
+            f"unexpected keys: {short(unexpected)}; shape mismatches: {short(wrong)}"
+        )
     with torch.no_grad():
         params = dict(model.named_parameters())
         for k, v in enc.items():

@@ -31,8 +31,9 @@ def pooled_pixels(rgb: np.ndarray, grid: int) -> np.ndarray:
     return x.transpose(0, 3, 1, 2)
 
 
-def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, split: str | None = None,
-                         mirror: bool = False) -> list[Path]:
+def cache_pixel_features(
+    root: str | Path, name: str = "pixels", grid: int = 4, split: str | None = None, mirror: bool = False
+) -> list[Path]:
     """Write ``features_<name>.hdf5`` of pooled pixels into every complete scene of ``root`` that lacks it; with
     ``mirror``, those of the frames flipped left to right as ``features_<name>-mirror.hdf5``."""
     out = []
@@ -45,8 +46,13 @@ def cache_pixel_features(root: str | Path, name: str = "pixels", grid: int = 4, 
             if mirror:
                 rgb = np.ascontiguousarray(rgb[:, :, ::-1])
             feats = pooled_pixels(rgb, grid).astype(np.float16)
-            attrs = {"encoder": f"pixels:{grid}", "arch": "pixels", "method": "pooled-pixels",
-                     "img_size": int(rgb.shape[1]), "fingerprint": f"pixels-{grid}"}
+            attrs = {
+                "encoder": f"pixels:{grid}",
+                "arch": "pixels",
+                "method": "pooled-pixels",
+                "img_size": int(rgb.shape[1]),
+                "fingerprint": f"pixels-{grid}",
+            }
             write_feature_file(f, feats, keys, dict(attrs, mirror=1) if mirror else attrs)
         out.append(f)
     return out

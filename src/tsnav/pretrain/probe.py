@@ -92,7 +92,7 @@ def logistic_fit(x: np.ndarray, y: np.ndarray, l2: float, iters: int) -> tuple:
 
     def closure():
         opt.zero_grad()
-        loss = F.binary_cross_entropy_with_logits(z @ w + b, t) + l2 * (w ** 2).sum()
+        loss = F.binary_cross_entropy_with_logits(z @ w + b, t) + l2 * (w**2).sum()
         loss.backward()
         return loss
 
@@ -115,7 +115,7 @@ def encode_split(encoder: Encoder, images: RGBDImages, index: np.ndarray, batch_
     (metres), pooled features ``[N, C]`` and labels ``[N, 22]``."""
     cells, depth, pooled, labels = [], [], [], []
     for a in range(0, len(index), batch_size):
-        b = images.get(index[a:a + batch_size])
+        b = images.get(index[a : a + batch_size])
         f = encoder.encode(normalize_rgb(b["rgb"]).to(encoder.device)).float().cpu()  # [B, C, h, w]
         h, w = f.shape[-2:]
         d = F.adaptive_avg_pool2d(b["depth"], (h, w))  # [B, 1, h, w] mean metres under each cell
@@ -129,8 +129,8 @@ def encode_split(encoder: Encoder, images: RGBDImages, index: np.ndarray, batch_
 def probe_encoder(encoder: Encoder, root, config: ProbeConfig | None = None) -> dict:
     """Fit and score both probes; returns a JSON-able dict::
 
-        depth_rmse_m, depth_rmse_baseline_m, depth_rmse_heldout_m, depth_rmse_heldout_baseline_m,
-        map, map_chance, categories, n_fit, n_eval, config
+    depth_rmse_m, depth_rmse_baseline_m, depth_rmse_heldout_m, depth_rmse_heldout_baseline_m,
+    map, map_chance, categories, n_fit, n_eval, config
     """
     cfg = config or ProbeConfig()
     fit = RGBDImages(root, cfg.fit_split, encoder.img_size, labels=True)
@@ -160,15 +160,27 @@ def probe_encoder(encoder: Encoder, root, config: ProbeConfig | None = None) -> 
         m_ap, chance = float(np.mean(ap)), float(eyl[:, ev_ok].mean())
     fit.close()
     ev.close()
-    return {"encoder": encoder.spec, "method": encoder.method, "depth_rmse_m": rmse,
-            "depth_rmse_baseline_m": base, "depth_rmse_heldout_m": held,
-            "depth_rmse_heldout_baseline_m": held_base, "map": m_ap, "map_chance": chance,
-            "categories": int(ev_ok.sum()), "n_fit": int(len(fi)), "n_eval": int(len(ei)), "config": asdict(cfg)}
+    return {
+        "encoder": encoder.spec,
+        "method": encoder.method,
+        "depth_rmse_m": rmse,
+        "depth_rmse_baseline_m": base,
+        "depth_rmse_heldout_m": held,
+        "depth_rmse_heldout_baseline_m": held_base,
+        "map": m_ap,
+        "map_chance": chance,
+        "categories": int(ev_ok.sum()),
+        "n_fit": int(len(fi)),
+        "n_eval": int(len(ei)),
+        "config": asdict(cfg),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m tsnav.pretrain.probe --data ROOT --encoder SPEC [SPEC ...]``: print one JSON line each."""
-    ap = argparse.ArgumentParser(allow_abbrev=False, prog="python -m tsnav.pretrain.probe", description="linear probes of encoders")
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="python -m tsnav.pretrain.probe", description="linear probes of encoders"
+    )
     ap.add_argument("--data", required=True)
     ap.add_argument("--encoder", nargs="+", required=True, help="encoder specs as for `tsnav features`")
     ap.add_argument("--model", default="vit_tiny")

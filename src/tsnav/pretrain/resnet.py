@@ -32,8 +32,11 @@ class BasicBlock(nn.Module):
         self.relu = nn.ReLU(inplace=True)
         self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
         self.bn2 = nn.BatchNorm2d(cout)
-        self.downsample = (nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
-                           if stride != 1 or cin != cout else None)
+        self.downsample = (
+            nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+            if stride != 1 or cin != cout
+            else None
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = self.relu(self.bn1(self.conv1(x)))
@@ -103,8 +106,10 @@ def load_resnet_weights(model: ResNet18, path: str | Path) -> dict[str, list[str
     unexpected = sorted(set(sd) - set(own))
     wrong = sorted(k for k in set(sd) & set(own) if sd[k].shape != own[k].shape)
     if missing or unexpected or wrong:
-        raise ValueError(f"{path}: not a ResNet18 state dict: missing keys: {', '.join(missing[:8]) or 'none'}; "
-                         f"unexpected keys: {', '.join(unexpected[:8]) or 'none'}; "
-                         f"shape mismatches: {', '.join(wrong[:8]) or 'none'}")
+        raise ValueError(
+            f"{path}: not a ResNet18 state dict: missing keys: {', '.join(missing[:8]) or 'none'}; "
+            f"unexpected keys: {', '.join(unexpected[:8]) or 'none'}; "
+            f"shape mismatches: {', '.join(wrong[:8]) or 'none'}"
+        )
     model.load_state_dict(sd, strict=False)
     return {"loaded": sorted(sd), "ignored": sorted(ignored)}

@@ -43,8 +43,14 @@ def synth_frame(rng: np.random.Generator, size: int, cats: list[int], max_boxes:
     return np.clip(rgb, 0, 255).astype(np.uint8), depth, labels
 
 
-def write_synthetic_dataset(root: str | Path, scenes: dict[str, str] | None = None, size: int = 32,
-                            positions: int = 2, seed: int = 0, num_objects: int = 3) -> Path:
+def write_synthetic_dataset(
+    root: str | Path,
+    scenes: dict[str, str] | None = None,
+    size: int = 32,
+    positions: int = 2,
+    seed: int = 0,
+    num_objects: int = 3,
+) -> Path:
     """Write scene folders under ``root``: ``{name: split}`` (default two train and one val scene).
 
     Each scene has ``positions`` grid positions x 8 rotations x 2 horizons states, ``images.hdf5`` /
@@ -79,10 +85,20 @@ def write_synthetic_dataset(root: str | Path, scenes: dict[str, str] | None = No
         for k in keys:
             x, z, r, h = k.split("|")
             links.append({"source": k, "target": f"{x}|{z}|{(int(r) + 45) % 360}|{h}"})
-        (d / "graph.json").write_text(json.dumps({"directed": True, "nodes": [{"id": k} for k in keys],
-                                                  "links": links}))
-        (d / "scene.json").write_text(json.dumps({
-            "name": name, "split": split, "image_size": size, "room_type": "kitchen",
-            "objects": [{"objectId": o} for o in oids], "visibility": {"min_pixels": 1}}))
+        (d / "graph.json").write_text(
+            json.dumps({"directed": True, "nodes": [{"id": k} for k in keys], "links": links})
+        )
+        (d / "scene.json").write_text(
+            json.dumps(
+                {
+                    "name": name,
+                    "split": split,
+                    "image_size": size,
+                    "room_type": "kitchen",
+                    "objects": [{"objectId": o} for o in oids],
+                    "visibility": {"min_pixels": 1},
+                }
+            )
+        )
         (d / COMPLETE_MARKER).write_text("")
     return root

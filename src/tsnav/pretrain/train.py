@@ -49,9 +49,21 @@ from tqdm import tqdm
 
 from ..distributed import DistInfo, barrier, init_distributed, resolve_device
 from ..schedule import warmup_cosine
-from ..checkpoint import (CHECKPOINTS, STATE_FILE, atomic_write_json, list_checkpoints, load_tensors,
-                          optimizer_file, optimizer_from_tensors, optimizer_to_tensors, read_json, resume_newest,
-                          save_checkpoint as save_checkpoint_folder, save_tensors, set_aside)
+from ..checkpoint import (
+    CHECKPOINTS,
+    STATE_FILE,
+    atomic_write_json,
+    list_checkpoints,
+    load_tensors,
+    optimizer_file,
+    optimizer_from_tensors,
+    optimizer_to_tensors,
+    read_json,
+    resume_newest,
+    save_checkpoint as save_checkpoint_folder,
+    save_tensors,
+    set_aside,
+)
 from ..checkpoint_layout import LEGACY_PROGRESS, read_legacy_progress, read_progress  # noqa: F401 - read_progress: API
 from .data import AugmentConfig, BatchView, RGBDImages, draw_augment, prepare_batch, scene_split_images, slice_augment
 from .archs import arch_of, vit_mae_config
@@ -211,8 +223,7 @@ def param_groups(model: nn.Module, weight_decay: float) -> tuple[list[dict], lis
         else:
             decay.append(p)
             dn.append(name)
-    return ([{"params": no_decay, "weight_decay": 0.0}, {"params": decay, "weight_decay": weight_decay}],
-            nn_ + dn)
+    return ([{"params": no_decay, "weight_decay": 0.0}, {"params": decay, "weight_decay": weight_decay}], nn_ + dn)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -220,8 +231,14 @@ def param_groups(model: nn.Module, weight_decay: float) -> tuple[list[dict], lis
 # ---------------------------------------------------------------------------------------------------------
 
 
-def compute_loss(model: nn.Module, method: str, rgb: torch.Tensor, depth: torch.Tensor,
-                 labels: torch.Tensor | None, noise: torch.Tensor | None) -> tuple[torch.Tensor, dict]:
+def compute_loss(
+    model: nn.Module,
+    method: str,
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    labels: torch.Tensor | None,
+    noise: torch.Tensor | None,
+) -> tuple[torch.Tensor, dict]:
     """Loss of one micro-batch and its parts for logging."""
     kind = method_kind(method)
     if kind.labels:  # supervised: the visible target categories of the frame
@@ -275,24 +292,41 @@ def _check_config(out: Path, cfg: PretrainConfig, model_cfg: dict, write: bool) 
     new = {"pretrain": cfg.to_dict(), "model": model_cfg}
     if p.exists():
         old = json.loads(p.read_text())
-        diffs = [k for k in set(old.get("pretrain", {})) | set(new["pretrain"])
-                 if k not in RESUMABLE_FIELDS and old.get("pretrain", {}).get(k) != new["pretrain"].get(k)]
+        diffs = [
+            k
+            for k in set(old.get("pretrain", {})) | set(new["pretrain"])
+            if k not in RESUMABLE_FIELDS and old.get("pretrain", {}).get(k) != new["pretrain"].get(k)
+        ]
         if diffs:
             k = sorted(diffs)[0]
-            raise ValueError(f"{out} holds a run with another config ({k}: {old['pretrain'].get(k)!r} there, "
-                             f"{new['pretrain'].get(k)!r} now); use a new --out folder")
+            raise ValueError(
+                f"{out} holds a run with another config ({k}: {old['pretrain'].get(k)!r} there, "
+                f"{new['pretrain'].get(k)!r} now); use a new --out folder"
+            )
     if write:
         atomic_write_json(p, new)
 
 
-def train(cfg: PretrainConfig, data: str | Path | RGBDImages, out: str | Path, *, stop_at: int | None = None,
-          progress: bool = True) -> dict:
+def train(
+    cfg: PretrainConfig,
+    data: str | Path | RGBDImages,
+    out: str | Path,
+    *,
+    stop_at: int | None = None,
+    progress: bool = True,
+) -> dict:
     """Pretrain and return the summary only; see :func:`train_model`."""
     return train_model(cfg, data, out, stop_at=stop_at, progress=progress)[0]
 
 
-def train_model(cfg: PretrainConfig, data: str | Path | RGBDImages, out: str | Path, *,
-                stop_at: int | None = None, progress: bool = True) -> tuple[dict, nn.Module | None]:
+def train_model(
+    cfg: PretrainConfig,
+    data: str | Path | RGBDImages,
+    out: str | Path,
+    *,
+    stop_at: int | None = None,
+    progress: bool = True,
+) -> tuple[dict, nn.Module | None]:
     """Pretrain per ``cfg`` on the train images of ``data`` into the run folder ``out``; resume if present.
 
     ``stop_at`` ends the call after that many optimiser steps (a simulated interruption; the checkpoint is
@@ -349,12 +383,14 @@ def _train(cfg, data, out, device, di: DistInfo, stop_at, progress, stop: _StopR
     groups, names = param_groups(model, cfg.weight_decay)
     opt = torch.optim.AdamW(groups, lr=b.peak_lr, betas=cfg.betas, foreach=True)
     start = 0 if prog is None else _resume(out, prog, b, model, opt, names, device, di)
-    ddp = model if b.world == 1 else nn.parallel.DistributedDataParallel(
-        model, device_ids=[device.index] if device.type == "cuda" else None)
+    ddp = (
+        model
+        if b.world == 1
+        else nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    )
     aug_cfg = AugmentConfig(flip_prob=cfg.flip_prob, crop=kind.crop, crop_scale=cfg.crop_scale)
     L = model.config.num_patches if kind.arch == "vit" and not kind.labels else 0
-    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
-                else contextlib.nullcontext())
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else contextlib.nullcontext()
     loader = _loader(images, b, cfg, start, di.rank)
     log = _PretrainLog(out, cfg, b, start, progress) if di.rank == 0 else None
 
@@ -422,8 +458,11 @@ def _finished_summary(out: Path, prog: dict, say: bool) -> dict:
 def _train_images(cfg: PretrainConfig, data: str | Path | RGBDImages) -> RGBDImages:
     """The training images of ``data`` (a dataset folder, or images loaded already that must match ``cfg``)."""
     sup = method_kind(cfg.method).labels
-    images = data if isinstance(data, RGBDImages) else RGBDImages(
-        data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
+    images = (
+        data
+        if isinstance(data, RGBDImages)
+        else RGBDImages(data, "train", cfg.img_size, labels=sup, preload=cfg.preload, max_scenes=cfg.max_scenes)
+    )
     if images.img_size != cfg.img_size or (sup and not images.with_labels):
         raise ValueError("the given RGBDImages do not match the config (img_size / labels)")
     return images
@@ -463,27 +502,43 @@ class _Batches:
         G = B * W * A
         steps_per_epoch = n // G
         if steps_per_epoch < 1:
-            raise ValueError(f"{n} train images are fewer than one global batch of {G} "
-                             f"(batch {B} x {W} processes x {A} accumulation)")
+            raise ValueError(
+                f"{n} train images are fewer than one global batch of {G} "
+                f"(batch {B} x {W} processes x {A} accumulation)"
+            )
         total = cfg.steps if cfg.steps is not None else cfg.epochs * steps_per_epoch
         warmup = max(1, int(round(cfg.warmup_fraction * total)))
         return cls(B, W, A, n, total, warmup, cfg.resolved_base_lr * G / 256)
 
 
-def _resume(out: Path, prog: dict, b: _Batches, model: nn.Module, opt: torch.optim.Optimizer, names: list[str],
-            device: torch.device, di: DistInfo) -> int:
+def _resume(
+    out: Path,
+    prog: dict,
+    b: _Batches,
+    model: nn.Module,
+    opt: torch.optim.Optimizer,
+    names: list[str],
+    device: torch.device,
+    di: DistInfo,
+) -> int:
     """Load model, optimiser and RNG state of the newest readable checkpoint of ``out`` (a broken newest one is
     set aside by rank 0); returns its step. The global batch and the image count must be the run's."""
     G, n = b.global_batch, b.images
     if int(prog.get("global_batch", G)) != G:
-        raise ValueError(f"{out} was trained with a global batch of {prog['global_batch']} images "
-                         f"({prog.get('world_size')} processes); resume with the same number of processes")
+        raise ValueError(
+            f"{out} was trained with a global batch of {prog['global_batch']} images "
+            f"({prog.get('world_size')} processes); resume with the same number of processes"
+        )
     if int(prog.get("images", n)) != n:
-        raise ValueError(f"{out} was trained on {prog['images']} images, the dataset now has {n}; "
-                         f"use a new --out folder")
-    c, (rec, sd, ot) = resume_newest(_candidates(out), lambda c: _read_checkpoint(out, c),
-                                     on_broken=lambda c: _set_aside(out, c) if di.rank == 0 else None,
-                                     label=_label)
+        raise ValueError(
+            f"{out} was trained on {prog['images']} images, the dataset now has {n}; use a new --out folder"
+        )
+    c, (rec, sd, ot) = resume_newest(
+        _candidates(out),
+        lambda c: _read_checkpoint(out, c),
+        on_broken=lambda c: _set_aside(out, c) if di.rank == 0 else None,
+        label=_label,
+    )
     legacy = read_legacy_progress(out) if c[0] == "legacy" else None
     if legacy is not None and rec.get("step") != legacy.get("step") and di.rank == 0:
         atomic_write_json(out / LEGACY_PROGRESS, rec)  # the legacy run now continues from its previous record
@@ -503,28 +558,43 @@ def _micro_batches(b: _Batches, seed: int, first: int, rank: int):
         epoch, k = divmod(s, b.steps_per_epoch)
         if epoch != perm_epoch:
             perm, perm_epoch = epoch_permutation(b.images, seed, epoch), epoch
-        block = perm[k * G:(k + 1) * G]
+        block = perm[k * G : (k + 1) * G]
         for m in range(b.accum):
-            yield block[m * BW:(m + 1) * BW][rank::b.world]
+            yield block[m * BW : (m + 1) * BW][rank :: b.world]
 
 
 def _loader(images: RGBDImages, b: _Batches, cfg: PretrainConfig, first: int, rank: int):
     """This process's micro-batches from optimiser step ``first`` on (loaded by ``num_workers`` processes)."""
     if cfg.num_workers > 0:
-        return iter(torch.utils.data.DataLoader(BatchView(images), sampler=_micro_batches(b, cfg.seed, first, rank),
-                                                batch_size=None, num_workers=cfg.num_workers,
-                                                persistent_workers=False))
+        return iter(
+            torch.utils.data.DataLoader(
+                BatchView(images),
+                sampler=_micro_batches(b, cfg.seed, first, rank),
+                batch_size=None,
+                num_workers=cfg.num_workers,
+                persistent_workers=False,
+            )
+        )
     return (images.get(idx) for idx in _micro_batches(b, cfg.seed, first, rank))
 
 
-def _accumulate(ddp: nn.Module, method: str, loader, b: _Batches, aug, noise: torch.Tensor | None, autocast,
-                device: torch.device, rank: int) -> dict[str, torch.Tensor]:
+def _accumulate(
+    ddp: nn.Module,
+    method: str,
+    loader,
+    b: _Batches,
+    aug,
+    noise: torch.Tensor | None,
+    autocast,
+    device: torch.device,
+    rank: int,
+) -> dict[str, torch.Tensor]:
     """Forward and backward of this process's share of one global batch over ``accum`` micro-steps (DDP
     all-reduces the gradients on the last); returns the loss parts averaged over the micro-steps."""
     sums: dict[str, torch.Tensor] = {}
     for m in range(b.accum):
         batch = next(loader)
-        pos = np.arange(m * b.batch * b.world, (m + 1) * b.batch * b.world)[rank::b.world]  # in the global batch
+        pos = np.arange(m * b.batch * b.world, (m + 1) * b.batch * b.world)[rank :: b.world]  # in the global batch
         rgb, depth = prepare_batch(batch, slice_augment(aug, torch.from_numpy(pos)), device)
         labels = batch["labels"].to(device) if method_kind(method).labels else None
         nz = noise[torch.from_numpy(pos)].to(device) if noise is not None else None
@@ -565,8 +635,14 @@ class _PretrainLog:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(log_dir=str(out / "tb"), purge_step=start)
-        self.bar = tqdm(total=b.total, initial=start, desc=f"pretrain {cfg.method}", unit="step",
-                        disable=not progress, dynamic_ncols=True)
+        self.bar = tqdm(
+            total=b.total,
+            initial=start,
+            desc=f"pretrain {cfg.method}",
+            unit="step",
+            disable=not progress,
+            dynamic_ncols=True,
+        )
         self.images_per_step = b.global_batch
         self.t0, self.seen = time.perf_counter(), 0
 
@@ -589,29 +665,53 @@ class _PretrainLog:
         self.writer.close()
 
 
-def _save_checkpoint(out: Path, model: nn.Module, opt: torch.optim.Optimizer, names: list[str], model_cfg: dict,
-                     method: str, b: _Batches, step: int, finished: bool, loss_value: float | None) -> None:
+def _save_checkpoint(
+    out: Path,
+    model: nn.Module,
+    opt: torch.optim.Optimizer,
+    names: list[str],
+    model_cfg: dict,
+    method: str,
+    b: _Batches,
+    step: int,
+    finished: bool,
+    loss_value: float | None,
+) -> None:
     """The checkpoint of ``step`` (state: progress, optimiser groups, the torch RNG state)."""
     ot, ometa = optimizer_to_tensors(opt, names)
     state = {
-        "step": step, "epoch": step // b.steps_per_epoch, "total_steps": b.total, "finished": finished,
-        "optimizer": ometa, "loss": loss_value, "world_size": b.world, "global_batch": b.global_batch,
-        "images": b.images, "rng": {"torch": torch.get_rng_state().tolist()}}
-    save_checkpoint_folder(out / CHECKPOINTS, step, model.state_dict(),
-                           {"config": json.dumps(model_cfg), "method": method, "step": str(step)}, state, ot)
+        "step": step,
+        "epoch": step // b.steps_per_epoch,
+        "total_steps": b.total,
+        "finished": finished,
+        "optimizer": ometa,
+        "loss": loss_value,
+        "world_size": b.world,
+        "global_batch": b.global_batch,
+        "images": b.images,
+        "rng": {"torch": torch.get_rng_state().tolist()},
+    }
+    save_checkpoint_folder(
+        out / CHECKPOINTS,
+        step,
+        model.state_dict(),
+        {"config": json.dumps(model_cfg), "method": method, "step": str(step)},
+        state,
+        ot,
+    )
 
 
 def _write_final(out: Path, model: nn.Module, model_cfg: dict, cfg: PretrainConfig, images: RGBDImages) -> None:
     """A finished run's model and encoder files (and reconstructions of a few images, MAE methods)."""
-    save_tensors(out / "model.safetensors", model.state_dict(),
-                 {"config": json.dumps(model_cfg), "method": cfg.method})
+    save_tensors(out / "model.safetensors", model.state_dict(), {"config": json.dumps(model_cfg), "method": cfg.method})
     save_encoder(model, out / "encoder.safetensors", cfg.method)
     if model_config(cfg) is not None and not method_kind(cfg.method).labels and cfg.viz_images > 0:
         write_reconstructions(model, cfg, out / "recon.png", images)
 
 
-def write_reconstructions(model: MaskedAutoencoderViT, cfg: PretrainConfig, path: Path,
-                          train_images: RGBDImages) -> None:
+def write_reconstructions(
+    model: MaskedAutoencoderViT, cfg: PretrainConfig, path: Path, train_images: RGBDImages
+) -> None:
     """Reconstruction grid of a few val images (train images when the dataset has no val split)."""
     val = scene_split_images(train_images.root, "val", cfg.img_size, preload=False, max_scenes=1) or train_images
     idx = np.linspace(0, len(val) - 1, num=min(cfg.viz_images, len(val))).round().astype(np.int64)

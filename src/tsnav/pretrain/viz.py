@@ -21,8 +21,14 @@ def _depth_colors(d: np.ndarray, vmax: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depths: torch.Tensor | None,
-                        path: str | Path, seed: int = 0, mask_ratio: float | None = None) -> np.ndarray:
+def reconstruction_grid(
+    model: MaskedAutoencoderViT,
+    images: torch.Tensor,
+    depths: torch.Tensor | None,
+    path: str | Path,
+    seed: int = 0,
+    mask_ratio: float | None = None,
+) -> np.ndarray:
     """Write a PNG grid, one row per image: input, masked input, RGB reconstruction (visible patches pasted
     back, as MAE shows it), predicted depth (DE-MAE; grey for MAE), true depth. Returns the grid as uint8.
 
@@ -43,8 +49,11 @@ def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depth
         t = model.patchify(images)
         pred = pred * (t.var(-1, keepdim=True) + 1e-6) ** 0.5 + t.mean(-1, keepdim=True)
     rec = model.unpatchify(pred.float(), 3)
-    cols = [denormalize_rgb(images), denormalize_rgb(images) * (1 - mask_img) + 0.5 * mask_img,
-            denormalize_rgb(images * (1 - mask_img) + rec * mask_img)]
+    cols = [
+        denormalize_rgb(images),
+        denormalize_rgb(images) * (1 - mask_img) + 0.5 * mask_img,
+        denormalize_rgb(images * (1 - mask_img) + rec * mask_img),
+    ]
     cols = [c.permute(0, 2, 3, 1).cpu().numpy() for c in cols]
     grey = np.full((n, s, s, 3), 0.5)
     true = target_to_depth(depths[:, 0]).cpu().numpy() if depths is not None else None
@@ -60,7 +69,7 @@ def reconstruction_grid(model: MaskedAutoencoderViT, images: torch.Tensor, depth
     grid = np.ones((n * (s + pad) + pad, len(cols) * (s + pad) + pad, 3))
     for i in range(n):
         for j, c in enumerate(cols):
-            grid[pad + i * (s + pad):pad + i * (s + pad) + s, pad + j * (s + pad):pad + j * (s + pad) + s] = c[i]
+            grid[pad + i * (s + pad) : pad + i * (s + pad) + s, pad + j * (s + pad) : pad + j * (s + pad) + s] = c[i]
     grid = (np.clip(grid, 0, 1) * 255).round().astype(np.uint8)
     scale = max(1, 96 // s)  # small frames are enlarged so the picture can be read
     img = Image.fromarray(grid).resize((grid.shape[1] * scale, grid.shape[0] * scale), Image.NEAREST)

@@ -114,9 +114,14 @@ void main() {
 
 
 def _cube():
-    faces = [((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
-             ((0, 1, 0), (0, 0, 1), (1, 0, 0)), ((0, -1, 0), (0, 0, -1), (1, 0, 0)),
-             ((0, 0, 1), (1, 0, 0), (0, 1, 0)), ((0, 0, -1), (-1, 0, 0), (0, 1, 0))]
+    faces = [
+        ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+        ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
+        ((0, 1, 0), (0, 0, 1), (1, 0, 0)),
+        ((0, -1, 0), (0, 0, -1), (1, 0, 0)),
+        ((0, 0, 1), (1, 0, 0), (0, 1, 0)),
+        ((0, 0, -1), (-1, 0, 0), (0, 1, 0)),
+    ]
     verts = []
     for n, u, v in faces:
         n, u, v = map(np.array, (n, u, v))
@@ -127,8 +132,16 @@ def _cube():
     return np.array(verts, dtype="f4")
 
 
-def camera_matrices(x: float, z: float, rotation: float, horizon: float, height: float = CAMERA_HEIGHT,
-                    fov: float = FIELD_OF_VIEW, near: float = 0.05, far: float = 30.0):
+def camera_matrices(
+    x: float,
+    z: float,
+    rotation: float,
+    horizon: float,
+    height: float = CAMERA_HEIGHT,
+    fov: float = FIELD_OF_VIEW,
+    near: float = 0.05,
+    far: float = 30.0,
+):
     """``(view, viewproj)`` 4x4 float32 (column-vector convention) for an AI2-THOR camera pose."""
     yaw, pitch = math.radians(rotation), math.radians(horizon)
     fwd = np.array([math.sin(yaw) * math.cos(pitch), -math.sin(pitch), math.cos(yaw) * math.cos(pitch)])
@@ -156,13 +169,17 @@ class Renderer:
             raise RendererUnavailable(f"moderngl is not installed ({e})") from None
         try:
             # TSNAV_EGL_LIBRARY / TSNAV_GL_LIBRARY pick other library files (e.g. a vendor's EGL).
-            self.ctx = moderngl.create_context(standalone=True, backend="egl",
-                                               libgl=os.environ.get("TSNAV_GL_LIBRARY", "libGL.so.1"),
-                                               libegl=os.environ.get("TSNAV_EGL_LIBRARY", "libEGL.so.1"))
+            self.ctx = moderngl.create_context(
+                standalone=True,
+                backend="egl",
+                libgl=os.environ.get("TSNAV_GL_LIBRARY", "libGL.so.1"),
+                libegl=os.environ.get("TSNAV_EGL_LIBRARY", "libEGL.so.1"),
+            )
         except Exception as e:
             raise RendererUnavailable(
                 f"cannot create a headless OpenGL context via EGL ({str(e).splitlines()[0] if str(e) else type(e).__name__}); "
-                "install the Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri libgl1") from None
+                "install the Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri libgl1"
+            ) from None
         self.size = int(size)
         self.cols = int(math.ceil(math.sqrt(tiles)))
         self.rows = int(math.ceil(tiles / self.cols))
@@ -189,11 +206,24 @@ class Renderer:
             self.inst_buf.release()
             self.vao.release()
         self.inst_buf = self.ctx.buffer(parts.tobytes())
-        self.vao = self.ctx.vertex_array(self.prog, [
-            (self.cube, "3f 3f", "in_pos", "in_norm"),
-            (self.inst_buf, "3f 3f 1f 3f 3f 1f 1f 1f/i", "i_center", "i_size", "i_yaw", "i_color", "i_color2",
-             "i_pattern", "i_scale", "i_inst"),
-        ])
+        self.vao = self.ctx.vertex_array(
+            self.prog,
+            [
+                (self.cube, "3f 3f", "in_pos", "in_norm"),
+                (
+                    self.inst_buf,
+                    "3f 3f 1f 3f 3f 1f 1f 1f/i",
+                    "i_center",
+                    "i_size",
+                    "i_yaw",
+                    "i_color",
+                    "i_color2",
+                    "i_pattern",
+                    "i_scale",
+                    "i_inst",
+                ),
+            ],
+        )
         self.n_inst = len(parts)
         light = light or {}
         self.prog["u_light"].value = tuple(light.get("direction", (0.3, -2.5, 0.2)))
@@ -213,7 +243,7 @@ class Renderer:
         depth = np.empty((V, S, S), np.float32)
         ids = np.empty((V, S, S), np.int32)
         for start in range(0, V, self.tiles):
-            chunk = poses[start:start + self.tiles]
+            chunk = poses[start : start + self.tiles]
             n = len(chunk)
             self.fbo.use()
             self.ctx.enable(self.ctx.DEPTH_TEST)
@@ -230,13 +260,15 @@ class Renderer:
                 self.vao.render(instances=self.n_inst)
             W = self.cols * S
             c = np.frombuffer(self.fbo.read(components=3, attachment=0), np.uint8).reshape(self.rows * S, W, 3)
-            d = np.frombuffer(self.fbo.read(components=1, attachment=1, dtype="f4"), np.float32).reshape(self.rows * S, W)
+            d = np.frombuffer(self.fbo.read(components=1, attachment=1, dtype="f4"), np.float32).reshape(
+                self.rows * S, W
+            )
             m = np.frombuffer(self.fbo.read(components=1, attachment=2, dtype="i4"), np.int32).reshape(self.rows * S, W)
             for k, arr, out in ((0, c, rgb), (1, d, depth), (2, m, ids)):
                 # tiles -> (rows, S, cols, S, ...) -> (rows*cols, S, S, ...); GL rows start at the bottom.
                 t = arr.reshape(self.rows, S, self.cols, S, *arr.shape[2:]).swapaxes(1, 2)
                 t = t.reshape(self.rows * self.cols, S, S, *arr.shape[2:])[:n, ::-1]
-                out[start:start + n] = t
+                out[start : start + n] = t
         return rgb, depth, ids
 
     def release(self) -> None:

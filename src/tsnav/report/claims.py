@@ -67,8 +67,10 @@ def published_figures() -> dict:
 
 def _paper_table(key: str) -> dict:
     table = published_figures()[key]
-    return {rid: {subset: dict(zip(table["columns"], vals)) for subset, vals in row.items()}
-            for rid, row in table["rows"].items()}
+    return {
+        rid: {subset: dict(zip(table["columns"], vals)) for subset, vals in row.items()}
+        for rid, row in table["rows"].items()
+    }
 
 
 #: The paper's Table II (AI2-THOR, percent): row id -> subset -> metric -> value.
@@ -80,7 +82,7 @@ PAPER = {"ablation": PAPER_TABLE_II, "pretraining": PAPER_TABLE_III}
 
 @dataclass(frozen=True)
 class Claim:
-    """"Row ``higher`` scores above row ``lower`` on ``metrics``" in experiment ``experiment``; for the
+    """ "Row ``higher`` scores above row ``lower`` on ``metrics``" in experiment ``experiment``; for the
     threshold experiment ``higher`` is the paper's chosen row and ``lower`` is ``"*"``: every other row."""
 
     id: str
@@ -92,27 +94,58 @@ class Claim:
 
 
 CLAIMS = (
-    Claim("exploration", "ablation", "exploration reward raises search success and efficiency (SSR, SSSPL)",
-          "baseline", "explore", ("SSR", "SSSPL")),
-    Claim("distance", "ablation", "distance reward raises pathfinding efficiency (NSNPL)",
-          "baseline", "distance", ("NSNPL",)),
-    Claim("complement-explore", "ablation", "both rewards beat the exploration reward alone (complementarity)",
-          "explore", "tsrm", METRICS),
-    Claim("complement-distance", "ablation", "both rewards beat the distance reward alone (complementarity)",
-          "distance", "tsrm", METRICS),
-    Claim("demae-alone", "ablation", "DE-MAE alone brings modest gains over the baseline",
-          "baseline", "demae", METRICS),
-    Claim("demae-with-tsrm", "ablation", "DE-MAE with TSRM beats TSRM with ResNet18",
-          "tsrm", "tsrm_demae", METRICS),
-    Claim("tsrm-with-demae", "ablation", "DE-MAE with TSRM beats DE-MAE alone",
-          "demae", "tsrm_demae", METRICS),
-    Claim("mae-over-resnet", "pretraining", "standard MAE on the training rooms beats ResNet18",
-          "resnet18", "mae", ("SR", "SPL")),
+    Claim(
+        "exploration",
+        "ablation",
+        "exploration reward raises search success and efficiency (SSR, SSSPL)",
+        "baseline",
+        "explore",
+        ("SSR", "SSSPL"),
+    ),
+    Claim(
+        "distance",
+        "ablation",
+        "distance reward raises pathfinding efficiency (NSNPL)",
+        "baseline",
+        "distance",
+        ("NSNPL",),
+    ),
+    Claim(
+        "complement-explore",
+        "ablation",
+        "both rewards beat the exploration reward alone (complementarity)",
+        "explore",
+        "tsrm",
+        METRICS,
+    ),
+    Claim(
+        "complement-distance",
+        "ablation",
+        "both rewards beat the distance reward alone (complementarity)",
+        "distance",
+        "tsrm",
+        METRICS,
+    ),
+    Claim(
+        "demae-alone", "ablation", "DE-MAE alone brings modest gains over the baseline", "baseline", "demae", METRICS
+    ),
+    Claim("demae-with-tsrm", "ablation", "DE-MAE with TSRM beats TSRM with ResNet18", "tsrm", "tsrm_demae", METRICS),
+    Claim("tsrm-with-demae", "ablation", "DE-MAE with TSRM beats DE-MAE alone", "demae", "tsrm_demae", METRICS),
+    Claim(
+        "mae-over-resnet",
+        "pretraining",
+        "standard MAE on the training rooms beats ResNet18",
+        "resnet18",
+        "mae",
+        ("SR", "SPL"),
+    ),
     Claim("demae-over-mae", "pretraining", "depth (DE-MAE) beats standard MAE", "mae", "demae", ("SR", "SPL")),
-    Claim("crop-hurts", "pretraining", "random cropping in DE-MAE pretraining hurts",
-          "demae_crop", "demae", ("SR", "SPL")),
-    Claim("threshold-0.7", "threshold", "C_target = 0.7 is the best dividing point (Fig. 4)",
-          "*", "c70", ("SR", "SPL")),
+    Claim(
+        "crop-hurts", "pretraining", "random cropping in DE-MAE pretraining hurts", "demae_crop", "demae", ("SR", "SPL")
+    ),
+    Claim(
+        "threshold-0.7", "threshold", "C_target = 0.7 is the best dividing point (Fig. 4)", "*", "c70", ("SR", "SPL")
+    ),
 )
 
 
@@ -137,7 +170,7 @@ def welch_interval(lower, higher) -> float | None:
     va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
     if va + vb == 0:
         return None
-    df = (va + vb) ** 2 / (va ** 2 / (len(a) - 1) + vb ** 2 / (len(b) - 1))
+    df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1))
     return float(student.ppf(0.975, df) * math.sqrt(va + vb))
 
 
@@ -161,12 +194,25 @@ def _check_pair(c: Claim, rows: dict, lower: str, subset: str, metric: str) -> d
     mean = lambda v: None if v is None else float(finite(v).mean())  # noqa: E731
     n = [0 if lo is None else len(finite(lo)), 0 if hi is None else len(finite(hi))]
     label = lambda rid: rows.get(rid, {}).get("label", rid)  # noqa: E731
-    return {"claim": c.id, "experiment": c.experiment, "text": c.text, "lower": lower, "higher": c.higher,
-            "lower_label": label(lower), "higher_label": label(c.higher),
-            "subset": subset, "metric": metric, "lower_mean": mean(lo), "higher_mean": mean(hi),
-            "n": n, "diff": diff, "ci95": welch_interval(lo, hi) if diff is not None else None, "p": p,
-            "paper_diff": _paper_diff(c.experiment, lower, c.higher, subset, metric),
-            "verdict": verdict(diff, p, min(n))}
+    return {
+        "claim": c.id,
+        "experiment": c.experiment,
+        "text": c.text,
+        "lower": lower,
+        "higher": c.higher,
+        "lower_label": label(lower),
+        "higher_label": label(c.higher),
+        "subset": subset,
+        "metric": metric,
+        "lower_mean": mean(lo),
+        "higher_mean": mean(hi),
+        "n": n,
+        "diff": diff,
+        "ci95": welch_interval(lo, hi) if diff is not None else None,
+        "p": p,
+        "paper_diff": _paper_diff(c.experiment, lower, c.higher, subset, metric),
+        "verdict": verdict(diff, p, min(n)),
+    }
 
 
 def _check_best(c: Claim, rows: dict, subset: str, metric: str) -> dict:
@@ -204,8 +250,11 @@ def check_claims(results: dict[str, dict], subsets=SUBSETS) -> list[dict]:
         rows = {r["row"]: r for r in res["rows"]}
         for subset in subsets:
             for metric in c.metrics:
-                out.append(_check_best(c, rows, subset, metric) if c.lower == "*"
-                           else _check_pair(c, rows, c.lower, subset, metric))
+                out.append(
+                    _check_best(c, rows, subset, metric)
+                    if c.lower == "*"
+                    else _check_pair(c, rows, c.lower, subset, metric)
+                )
     return out
 
 
@@ -232,8 +281,10 @@ def claims_markdown(checks: list[dict]) -> str:
         wildcard = next(c.lower for c in CLAIMS if c.id == cid) == "*"
         against = "the best other row" if wildcard else _cell(first["lower_label"])
         seeds = sorted({tuple(k["n"]) for k in ks})
-        out.append(f"**{_cell(first['text'])}**: {_cell(first['higher_label'])} against {against} "
-                   f"(seeds {', '.join(f'{a}/{b}' for a, b in seeds)})\n")
+        out.append(
+            f"**{_cell(first['text'])}**: {_cell(first['higher_label'])} against {against} "
+            f"(seeds {', '.join(f'{a}/{b}' for a, b in seeds)})\n"
+        )
         head = "| metric | " + " | ".join(f"{s} paper | {s} here | {s} p | {s} verdict" for s in subsets) + " |"
         out += [head, "| --- |" + " ---: | --- | ---: | --- |" * len(subsets)]
         for metric in dict.fromkeys(k["metric"] for k in ks):
@@ -244,8 +295,11 @@ def claims_markdown(checks: list[dict]) -> str:
                     cells.append("- | - | - | -")
                     continue
                 p = "-" if k["p"] is None else ("<0.01" if k["p"] < 0.01 else f"{k['p']:.2f}")
-                here = "-" if k["diff"] is None else (
-                    f"{_num(k['lower_mean'])} -> {_num(k['higher_mean'])} ({_num(k['diff'], True)})")
+                here = (
+                    "-"
+                    if k["diff"] is None
+                    else (f"{_num(k['lower_mean'])} -> {_num(k['higher_mean'])} ({_num(k['diff'], True)})")
+                )
                 if wildcard and k["diff"] is not None:
                     here = f"{_cell(k['lower_label'])}: " + here
                 cells.append(f"{_num(k['paper_diff'], True)} | {here} | {p} | {k['verdict']}")
@@ -257,18 +311,26 @@ def claims_markdown(checks: list[dict]) -> str:
 def claims_html(checks: list[dict]) -> str:
     """``checks`` as one HTML table (claim, rows, subset, metric, paper, here, p, verdict), verdicts coloured."""
     colour = {"supported": "#d7f0d2", "contradicted": "#f6d2d2"}
-    head = ("<tr><th class='l'>claim</th><th class='l'>rows (lower &rarr; higher)</th><th>subset</th><th>metric</th>"
-            "<th>paper</th><th>here</th><th>95 % interval</th><th>p</th><th>seeds</th><th>verdict</th></tr>")
+    head = (
+        "<tr><th class='l'>claim</th><th class='l'>rows (lower &rarr; higher)</th><th>subset</th><th>metric</th>"
+        "<th>paper</th><th>here</th><th>95 % interval</th><th>p</th><th>seeds</th><th>verdict</th></tr>"
+    )
     body = []
     for k in checks:
         p = "-" if k["p"] is None else ("&lt;0.01" if k["p"] < 0.01 else f"{k['p']:.2f}")
-        here = "-" if k["diff"] is None else f"{_num(k['lower_mean'])} &rarr; {_num(k['higher_mean'])} ({_num(k['diff'], True)})"
+        here = (
+            "-"
+            if k["diff"] is None
+            else f"{_num(k['lower_mean'])} &rarr; {_num(k['higher_mean'])} ({_num(k['diff'], True)})"
+        )
         ci = "-" if k.get("ci95") is None else f"&plusmn;{k['ci95']:.1f}"
         rows = f"{escape(k['lower_label'])} &rarr; {escape(k['higher_label'])}"
         style = f" style='background:{colour[k['verdict']]}'" if k["verdict"] in colour else ""
-        body.append(f"<tr><td class='l'>{escape(k['text'])}</td><td class='l'>{rows}</td><td>{escape(k['subset'])}</td>"
-                    f"<td>{escape(k['metric'])}</td><td>{_num(k['paper_diff'], True)}</td><td>{here}</td><td>{ci}</td>"
-                    f"<td>{p}</td><td>{k['n'][0]}/{k['n'][1]}</td><td{style}>{escape(k['verdict'])}</td></tr>")
+        body.append(
+            f"<tr><td class='l'>{escape(k['text'])}</td><td class='l'>{rows}</td><td>{escape(k['subset'])}</td>"
+            f"<td>{escape(k['metric'])}</td><td>{_num(k['paper_diff'], True)}</td><td>{here}</td><td>{ci}</td>"
+            f"<td>{p}</td><td>{k['n'][0]}/{k['n'][1]}</td><td{style}>{escape(k['verdict'])}</td></tr>"
+        )
     return f"<table>{head}{''.join(body)}</table>"
 
 
@@ -294,8 +356,17 @@ def plot_claims(checks: list[dict], path: str | Path, subset: str = "ALL") -> Pa
     for yi, k in zip(y, ks):
         if k["diff"] is not None:
             sig = k["p"] is not None and k["p"] < ALPHA
-            ax.errorbar([k["diff"]], [yi], xerr=[[k["ci95"] or 0.0], [k["ci95"] or 0.0]], fmt="o", ms=5, capsize=2,
-                        color="#1f77b4", mfc="#1f77b4" if sig else "white", lw=1.2)
+            ax.errorbar(
+                [k["diff"]],
+                [yi],
+                xerr=[[k["ci95"] or 0.0], [k["ci95"] or 0.0]],
+                fmt="o",
+                ms=5,
+                capsize=2,
+                color="#1f77b4",
+                mfc="#1f77b4" if sig else "white",
+                lw=1.2,
+            )
         if k["paper_diff"] is not None:
             ax.plot([k["paper_diff"]], [yi], "x", color="#d62728", ms=6, mew=1.6)
     ax.axvline(0.0, color="0.4", lw=0.8)
@@ -323,8 +394,14 @@ def load_results(exp_dir: str | Path) -> dict:
 def _bad_row(rows: list) -> int | None:
     """The index of the first entry of a results table's ``rows`` that is not a row (a dict with 'row' and
     'metrics'), else None."""
-    return next((i for i, r in enumerate(rows)
-                 if not isinstance(r, dict) or "row" not in r or not isinstance(r.get("metrics"), dict)), None)
+    return next(
+        (
+            i
+            for i, r in enumerate(rows)
+            if not isinstance(r, dict) or "row" not in r or not isinstance(r.get("metrics"), dict)
+        ),
+        None,
+    )
 
 
 def results_under(res: dict, protocol: str | None, exp_dir: str | Path = "") -> dict:
@@ -337,22 +414,36 @@ def results_under(res: dict, protocol: str | None, exp_dir: str | Path = "") -> 
     others = res.get("other_protocols")
     other = others.get(protocol) if isinstance(others, dict) else None
     if not isinstance(other, dict) or not isinstance(other.get("rows"), list) or _bad_row(other["rows"]) is not None:
-        raise CommandError(f"{exp_dir}: no results under the {protocol} protocol (trained under {own}; running "
-                           f"`tsnav experiment` again on this folder evaluates its finished jobs under {protocol})")
+        raise CommandError(
+            f"{exp_dir}: no results under the {protocol} protocol (trained under {own}; running "
+            f"`tsnav experiment` again on this folder evaluates its finished jobs under {protocol})"
+        )
     return other
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
-    p.add_argument("experiments", nargs="+", metavar="EXP_DIR",
-                   help="experiment folders (`tsnav experiment ... --out EXP_DIR`) holding results.json")
+    p.add_argument(
+        "experiments",
+        nargs="+",
+        metavar="EXP_DIR",
+        help="experiment folders (`tsnav experiment ... --out EXP_DIR`) holding results.json",
+    )
     p.add_argument("--subset", choices=(*SUBSETS, "both"), default="both", help="episode subset(s) to check")
-    add_shared(p, "protocol", choices=PROTOCOLS, default=None,
-               help="success protocol whose results to check (default: each experiment's own, the one it trained "
-                        "under; the other is read from results.json's other_protocols)")
+    add_shared(
+        p,
+        "protocol",
+        choices=PROTOCOLS,
+        default=None,
+        help="success protocol whose results to check (default: each experiment's own, the one it trained "
+        "under; the other is read from results.json's other_protocols)",
+    )
     p.add_argument("--out", help="also write the table (Markdown) to this file")
     p.add_argument("--json", dest="json_out", help="also write the checks as JSON to this file")
-    p.add_argument("--plot", help="also draw the checks of the first subset (ALL unless --subset L>=5) as a forest plot "
-                        "(.png, .pdf or .svg) to this file")
+    p.add_argument(
+        "--plot",
+        help="also draw the checks of the first subset (ALL unless --subset L>=5) as a forest plot "
+        "(.png, .pdf or .svg) to this file",
+    )
 
 
 def run(args) -> int:

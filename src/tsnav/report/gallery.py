@@ -84,9 +84,17 @@ class GalleryItem:
     """The episode's clip (MP4 or GIF, :mod:`tsnav.eval.video`), or "" when none was written."""
 
 
-def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence[Trajectory], out_dir: str | Path,
-                  n: int = 6, c_target: float = C_TARGET, prefix: str = "ep", relative_to: str | Path | None = None,
-                  videos: int = 0) -> list[GalleryItem]:
+def write_gallery(
+    bank,
+    records: Sequence[EpisodeRecord],
+    trajectories: Sequence[Trajectory],
+    out_dir: str | Path,
+    n: int = 6,
+    c_target: float = C_TARGET,
+    prefix: str = "ep",
+    relative_to: str | Path | None = None,
+    videos: int = 0,
+) -> list[GalleryItem]:
     """Pictures of about ``n`` selected episodes (:func:`select_episodes`) into ``out_dir``.
 
     ``records`` and ``trajectories`` are parallel lists (as from :func:`record_trajectories`); the map's stage
@@ -106,30 +114,38 @@ def write_gallery(bank, records: Sequence[EpisodeRecord], trajectories: Sequence
         lo, hi = int(bank.offsets[si]), int(bank.offsets[si + 1])
         local = scene.indices(tr.keys)
         stem = f"{prefix}{r.episode:05d}"
-        outcome = "success" if r.success else ("failure: wrong Done" if tr.actions and tr.actions[-1] == DONE
-                                               else "failure: out of steps")
-        title = (f"{tr.scene} ({r.room_type}), target {tr.target}: {outcome}; {r.path_length} moves, "
-                 f"optimal {r.optimal_length}")
-        map_png = draw_episode(scene, local, tr.target, out_dir / f"{stem}_map.png", confidence=conf[lo:hi],
-                               c_target=c_target, title=title)
+        outcome = (
+            "success"
+            if r.success
+            else ("failure: wrong Done" if tr.actions and tr.actions[-1] == DONE else "failure: out of steps")
+        )
+        title = (
+            f"{tr.scene} ({r.room_type}), target {tr.target}: {outcome}; {r.path_length} moves, "
+            f"optimal {r.optimal_length}"
+        )
+        map_png = draw_episode(
+            scene, local, tr.target, out_dir / f"{stem}_map.png", confidence=conf[lo:hi], c_target=c_target, title=title
+        )
         marks = key_frames(tr)
-        labels = [f"{lab}, t={f}" + (f"\n{ACTIONS[tr.actions[f]]}" if f < len(tr.actions) else "")
-                  for lab, f in marks]
+        labels = [f"{lab}, t={f}" + (f"\n{ACTIONS[tr.actions[f]]}" if f < len(tr.actions) else "") for lab, f in marks]
         try:
             frames = frame_images(scene, [tr.keys[f] for _, f in marks])
             frames_png = draw_frame_strip(frames, labels, out_dir / f"{stem}_frames.png")
             frames_rel = str(Path(frames_png).relative_to(base))
         except (ValueError, OSError, RuntimeError, ImportError):
             frames_rel = ""
-        sw = ("never" if tr.switch_frame < 0 else f"at step {tr.switch_frame}")
-        caption = (f"Episode {r.episode}: {title}. Pathfinding stage entered {sw}; "
-                   f"SPL term {(r.optimal_length / max(r.path_length, r.optimal_length, 1)) if r.success else 0:.2f}.")
+        sw = "never" if tr.switch_frame < 0 else f"at step {tr.switch_frame}"
+        caption = (
+            f"Episode {r.episode}: {title}. Pathfinding stage entered {sw}; "
+            f"SPL term {(r.optimal_length / max(r.path_length, r.optimal_length, 1)) if r.success else 0:.2f}."
+        )
         clip = ""
         if len(items) < videos:
             try:
                 clip = str(episode_clip(bank, tr, out_dir / f"{stem}.{fmt}", c_target).relative_to(base))
             except (ValueError, OSError, RuntimeError, ImportError):
                 clip = ""
-        items.append(GalleryItem(str(Path(map_png).relative_to(base)), frames_rel, caption, bool(r.success),
-                                 asdict(r), clip))
+        items.append(
+            GalleryItem(str(Path(map_png).relative_to(base)), frames_rel, caption, bool(r.success), asdict(r), clip)
+        )
     return items

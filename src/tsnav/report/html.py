@@ -114,7 +114,9 @@ def scan(root: str | Path) -> Found:
         if depth >= MAX_DEPTH:
             return
         try:
-            subs = sorted(p for p in d.iterdir() if p.is_dir() and not p.name.startswith(".") and p.name not in SKIP_DIRS)
+            subs = sorted(
+                p for p in d.iterdir() if p.is_dir() and not p.name.startswith(".") and p.name not in SKIP_DIRS
+            )
         except OSError:
             return
         for p in subs:
@@ -234,18 +236,24 @@ def _e(s) -> str:
 def metrics_table_html(rows: list[tuple[str, dict]], subsets: tuple[str, ...] = ("ALL", "L>=5")) -> str:
     """An HTML table with one row per ``(label, summarize() result)``: the success protocol it was counted under
     (:mod:`tsnav.protocol`), then every metric per subset, in percent."""
-    head1 = "<tr><th class='l' rowspan='2'>evaluation</th><th rowspan='2'>protocol</th>" + "".join(
-        f"<th colspan='{len(METRICS) + 1}'>{_e(s)} (%)</th>" for s in subsets) + "</tr>"
+    head1 = (
+        "<tr><th class='l' rowspan='2'>evaluation</th><th rowspan='2'>protocol</th>"
+        + "".join(f"<th colspan='{len(METRICS) + 1}'>{_e(s)} (%)</th>" for s in subsets)
+        + "</tr>"
+    )
     head2 = "<tr>" + "".join("".join(f"<th>{m}</th>" for m in METRICS) + "<th>K</th>" for _ in subsets) + "</tr>"
     body = []
     for label, summ in rows:
         cells = []
         for s in subsets:
             m = summ.get(s, {})
-            cells += [f"<td>{100 * m[k]:.2f}</td>" if isinstance(m.get(k), (int, float)) else "<td>-</td>" for k in METRICS]
+            cells += [
+                f"<td>{100 * m[k]:.2f}</td>" if isinstance(m.get(k), (int, float)) else "<td>-</td>" for k in METRICS
+            ]
             cells.append(f"<td>{m.get('episodes', '-')}</td>")
-        body.append(f"<tr><td class='l'>{_e(label)}</td><td>{_e(summ.get('protocol', 'paper'))}</td>"
-                    f"{''.join(cells)}</tr>")
+        body.append(
+            f"<tr><td class='l'>{_e(label)}</td><td>{_e(summ.get('protocol', 'paper'))}</td>{''.join(cells)}</tr>"
+        )
     return f"<table>{head1}{head2}{''.join(body)}</table>"
 
 
@@ -255,9 +263,13 @@ def experiment_table_html(results: dict) -> str:
     metrics = results.get("metrics", list(METRICS))
     flags = results.get("flag_columns", [])
     rows = results.get("rows", [])
-    head1 = ("<tr><th class='l' rowspan='2'>row</th>" + "".join(f"<th rowspan='2'>{_e(f)}</th>" for f in flags)
-             + "<th rowspan='2'>seeds</th>"
-             + "".join(f"<th colspan='{len(metrics)}'>{_e(s)} (%)</th>" for s in subsets) + "</tr>")
+    head1 = (
+        "<tr><th class='l' rowspan='2'>row</th>"
+        + "".join(f"<th rowspan='2'>{_e(f)}</th>" for f in flags)
+        + "<th rowspan='2'>seeds</th>"
+        + "".join(f"<th colspan='{len(metrics)}'>{_e(s)} (%)</th>" for s in subsets)
+        + "</tr>"
+    )
     head2 = "<tr>" + "".join(f"<th>{_e(m)}</th>" for _ in subsets for m in metrics) + "</tr>"
     body = []
     for r in rows:
@@ -316,9 +328,16 @@ def _train_caption(d: Path) -> str:
     return ", ".join(parts)
 
 
-def build_report(path: str | Path, out: str | Path | None = None, gallery: int = 6, title: str | None = None,
-                 max_gallery_evals: int = 4, progress: bool = False, video: int = VIDEOS,
-                 gallery_evals: list[Path] | None = None) -> Path:
+def build_report(
+    path: str | Path,
+    out: str | Path | None = None,
+    gallery: int = 6,
+    title: str | None = None,
+    max_gallery_evals: int = 4,
+    progress: bool = False,
+    video: int = VIDEOS,
+    gallery_evals: list[Path] | None = None,
+) -> Path:
     """Write the report of ``path`` into ``out`` (default ``path/report``) and return ``out/index.html``; the
     first ``video`` episodes of each gallery get a clip. The galleries are those of ``gallery_evals`` (evaluation
     folders; those that are not found under ``path`` are left out), else of the first ``max_gallery_evals``
@@ -352,8 +371,11 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
     if found.evals and gallery > 0:
         parts = []
         known = {e.resolve(): e for e in found.evals}
-        shown = ([known[p.resolve()] for p in map(Path, gallery_evals) if p.resolve() in known]
-                 if gallery_evals is not None else found.evals[:max_gallery_evals])
+        shown = (
+            [known[p.resolve()] for p in map(Path, gallery_evals) if p.resolve() in known]
+            if gallery_evals is not None
+            else found.evals[:max_gallery_evals]
+        )
         for d in shown:
             say(f"report: gallery of {d}")
             parts.append(_gallery_html(d, _eval_label(d, root), assets, gallery, video))
@@ -362,11 +384,13 @@ def build_report(path: str | Path, out: str | Path | None = None, gallery: int =
     title = title or f"tsnav report: {root.resolve().name}"
     nav = "".join(f"<a href='#{a}'>{_e(h)}</a>" for a, h, _ in sections)
     when = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    doc = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
-           f"<style>{CSS}</style></head><body><h1>{_e(title)}</h1>"
-           f"<p class='meta'>{_e(root.resolve())} &middot; written {when}</p><nav>{nav}</nav>"
-           + "".join(f"<section id='{a}'><h2>{_e(h)}</h2>{b}</section>" for a, h, b in sections)
-           + "</body></html>\n")
+    doc = (
+        f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
+        f"<style>{CSS}</style></head><body><h1>{_e(title)}</h1>"
+        f"<p class='meta'>{_e(root.resolve())} &middot; written {when}</p><nav>{nav}</nav>"
+        + "".join(f"<section id='{a}'><h2>{_e(h)}</h2>{b}</section>" for a, h, b in sections)
+        + "</body></html>\n"
+    )
     index = out / "index.html"
     atomic_write_text(index, doc)
     return index
@@ -379,18 +403,22 @@ def _results_html(evals: list[Path], root: Path) -> str:
         m = json.loads((d / "metrics.json").read_text())
         rows.append((_eval_label(d, root), m["metrics"]))
     body = metrics_table_html(rows)
-    body += ("<p class='note'>SR, SPL (Anderson et al.), SSR (share of episodes that entered the pathfinding "
-             "stage), SSSPL (searching success weighted by searching path length), NSNPL (pathfinding "
-             "efficiency over the episodes that entered that stage); paper IV-A. K = episodes. "
-             "L&ge;5: episodes whose optimal path has at least 5 actions. Protocol: paper = Done succeeds "
-             "with the target in view within 1.0 m; lineage = the target listed in the 1.5 m visibility map, "
-             "start-success episodes kept, SPL and L&ge;5 counted as the lineage's evaluator does "
-             "(tsnav.protocol).</p>")
+    body += (
+        "<p class='note'>SR, SPL (Anderson et al.), SSR (share of episodes that entered the pathfinding "
+        "stage), SSSPL (searching success weighted by searching path length), NSNPL (pathfinding "
+        "efficiency over the episodes that entered that stage); paper IV-A. K = episodes. "
+        "L&ge;5: episodes whose optimal path has at least 5 actions. Protocol: paper = Done succeeds "
+        "with the target in view within 1.0 m; lineage = the target listed in the 1.5 m visibility map, "
+        "start-success episodes kept, SPL and L&ge;5 counted as the lineage's evaluator does "
+        "(tsnav.protocol).</p>"
+    )
     details = []
     for d in evals:
         m = json.loads((d / "metrics.json").read_text())
-        details.append(f"<details><summary>{_e(_eval_label(d, root))}: per room type</summary>"
-                       f"<pre>{_e(format_table(m['metrics'], m.get('trained_protocol')))}</pre></details>")
+        details.append(
+            f"<details><summary>{_e(_eval_label(d, root))}: per room type</summary>"
+            f"<pre>{_e(format_table(m['metrics'], m.get('trained_protocol')))}</pre></details>"
+        )
     return body + "".join(details)
 
 
@@ -402,14 +430,23 @@ def _training_html(runs: list[Path], root: Path, assets: "_Assets") -> str:
         lab = _label(d, root)
         png = plot_learning_curves(log, assets.name(f"curves_{lab}"), title=f"{lab}: {_train_caption(d)}")
         last = log[-1] if log else {}
-        summary = (f"{last.get('update', 0)} updates, {last.get('env_steps', 0):,} environment steps, "
-                   f"{last.get('episodes', 0):,} episodes, {last.get('seconds', 0) / 60:.1f} min"
-                   if log else "no log lines yet")
-        parts.append(f"<h3>{_e(lab)}</h3><p class='meta'>{_e(_train_caption(d))}; {_e(summary)}</p>"
-                     + (f"<figure><img src='{png.name}' alt='learning curves'><figcaption>Return and reward per "
-                        "term of the training episodes, their SR / SPL / SSR / SSSPL / NSNPL on the fly "
-                        "(training episodes are cut at 30 steps, so these run below the test figures), "
-                        "and the actor-critic losses.</figcaption></figure>" if png else ""))
+        summary = (
+            f"{last.get('update', 0)} updates, {last.get('env_steps', 0):,} environment steps, "
+            f"{last.get('episodes', 0):,} episodes, {last.get('seconds', 0) / 60:.1f} min"
+            if log
+            else "no log lines yet"
+        )
+        parts.append(
+            f"<h3>{_e(lab)}</h3><p class='meta'>{_e(_train_caption(d))}; {_e(summary)}</p>"
+            + (
+                f"<figure><img src='{png.name}' alt='learning curves'><figcaption>Return and reward per "
+                "term of the training episodes, their SR / SPL / SSR / SSSPL / NSNPL on the fly "
+                "(training episodes are cut at 30 steps, so these run below the test figures), "
+                "and the actor-critic losses.</figcaption></figure>"
+                if png
+                else ""
+            )
+        )
     return "".join(parts)
 
 
@@ -430,16 +467,20 @@ def _pretrain_html(runs: list[Path], root: Path, assets: _Assets) -> str:
         lab = _label(d, root)
         loss = prog.get("loss")
         arch = describe_pretraining(cfg)
-        info = (f"method {cfg.get('method')}, {arch}, "
-                f"{cfg.get('img_size')}px, {prog.get('step', 0)}/{prog.get('total_steps', '?')} steps"
-                + (f", last loss {loss:.4f}" if isinstance(loss, (int, float)) else ""))
+        info = (
+            f"method {cfg.get('method')}, {arch}, "
+            f"{cfg.get('img_size')}px, {prog.get('step', 0)}/{prog.get('total_steps', '?')} steps"
+            + (f", last loss {loss:.4f}" if isinstance(loss, (int, float)) else "")
+        )
         img = ""
         if (d / "recon.png").exists():
             name = assets.copy(d / "recon.png", f"recon_{lab}")
-            img = (f"<figure><img src='{name}' alt='reconstructions' style='max-width:640px'><figcaption>"
-                   "Validation frames, one per row: input, masked input (75 % of patches hidden), RGB "
-                   "reconstruction (visible patches pasted back), predicted depth (DE-MAE; grey for MAE), "
-                   "true depth.</figcaption></figure>")
+            img = (
+                f"<figure><img src='{name}' alt='reconstructions' style='max-width:640px'><figcaption>"
+                "Validation frames, one per row: input, masked input (75 % of patches hidden), RGB "
+                "reconstruction (visible patches pasted back), predicted depth (DE-MAE; grey for MAE), "
+                "true depth.</figcaption></figure>"
+            )
         parts.append(f"<h3>{_e(lab)}</h3><p class='meta'>{_e(info)}</p>{img}")
     return "".join(parts)
 
@@ -448,8 +489,10 @@ def _clip_html(src: str) -> str:
     """An episode clip on the page: MP4 as a muted, looping ``<video>`` with controls; GIF as an image."""
     if src.endswith(".gif"):
         return f"<div class='clip'><img src='{_e(src)}' alt='episode clip'></div>"
-    return (f"<div class='clip'><video src='{_e(src)}' width='512' height='320' controls muted loop autoplay "
-            "playsinline preload='auto'>episode clip (MP4)</video></div>")
+    return (
+        f"<div class='clip'><video src='{_e(src)}' width='512' height='320' controls muted loop autoplay "
+        "playsinline preload='auto'>episode clip (MP4)</video></div>"
+    )
 
 
 def _gallery_html(eval_dir: Path, label: str, assets: _Assets, n: int, videos: int = 0) -> str:
@@ -459,22 +502,34 @@ def _gallery_html(eval_dir: Path, label: str, assets: _Assets, n: int, videos: i
         return f"<h3>{_e(label)}</h3><p class='note'>no gallery: {_e(e)}</p>"
     sub = assets.name(f"gallery_{label}", "")
     sub.mkdir(parents=True, exist_ok=True)
-    items = write_gallery(bank, records, trajectories, sub, n=n, c_target=c_target, relative_to=assets.out,
-                          videos=videos)
-    parts = [f"<h3>{_e(label)}</h3><p class='note'>Blue: searching stage and the searched region RG (union of the "
-             "observed trapezoids, clipped to the floor); red: pathfinding stage; gold star: the stage switch "
-             f"(first frame with target confidence above C_target = {c_target:g}); green X: instances of the target."
-             + (" Clips: the first-person frame beside the map at every step, with the action taken and the "
-                "target's score against C_target written above them (gold border: the switching frame)."
-                if any(it.clip for it in items) else "") + "</p>"]
+    items = write_gallery(
+        bank, records, trajectories, sub, n=n, c_target=c_target, relative_to=assets.out, videos=videos
+    )
+    parts = [
+        f"<h3>{_e(label)}</h3><p class='note'>Blue: searching stage and the searched region RG (union of the "
+        "observed trapezoids, clipped to the floor); red: pathfinding stage; gold star: the stage switch "
+        f"(first frame with target confidence above C_target = {c_target:g}); green X: instances of the target."
+        + (
+            " Clips: the first-person frame beside the map at every step, with the action taken and the "
+            "target's score against C_target written above them (gold border: the switching frame)."
+            if any(it.clip for it in items)
+            else ""
+        )
+        + "</p>"
+    ]
     for it in items:
         cls, word = ("ok", "success") if it.success else ("bad", "failure")
-        frames = (f"<img src='{it.frames_png}' alt='first-person frames'>" if it.frames_png
-                  else "<p class='note'>no first-person frames (no images.hdf5 and no renderer)</p>")
+        frames = (
+            f"<img src='{it.frames_png}' alt='first-person frames'>"
+            if it.frames_png
+            else "<p class='note'>no first-person frames (no images.hdf5 and no renderer)</p>"
+        )
         clip = _clip_html(it.clip) if it.clip else ""  # under the frame strip, beside the map
-        parts.append(f"<div class='ep'><div class='map'><img src='{it.map_png}' alt='top-down map'></div>"
-                     f"<div class='frames'><p><span class='{cls}'>{word}</span> {_e(it.caption)}</p>{frames}"
-                     f"{clip}</div></div>")
+        parts.append(
+            f"<div class='ep'><div class='map'><img src='{it.map_png}' alt='top-down map'></div>"
+            f"<div class='frames'><p><span class='{cls}'>{word}</span> {_e(it.caption)}</p>{frames}"
+            f"{clip}</div></div>"
+        )
     return "".join(parts)
 
 
@@ -483,52 +538,70 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int, vide
     results = _read_json(d / "results.json") or {}
     name = exp.get("experiment", d.name)
     lab = _label(d, root)
-    parts = [f"<p class='meta'>{_e(exp.get('description', ''))} Scale {_e(exp.get('scale', '?'))}, "
-             f"{_e(exp.get('seeds', '?'))} seed(s); success protocol "
-             f"{_e(exp.get('config', {}).get('protocol', 'paper'))}; {_e(lab)}</p>"]
+    parts = [
+        f"<p class='meta'>{_e(exp.get('description', ''))} Scale {_e(exp.get('scale', '?'))}, "
+        f"{_e(exp.get('seeds', '?'))} seed(s); success protocol "
+        f"{_e(exp.get('config', {}).get('protocol', 'paper'))}; {_e(lab)}</p>"
+    ]
     done = sum(1 for j in exp.get("jobs", []) if (d / j["dir"] / "DONE").exists())
     total = len(exp.get("jobs", []))
     parts.append(f"<p class='meta'>{done} of {total} jobs finished.</p>")
     if results.get("rows"):
         parts.append(experiment_table_html(results))
-        parts.append("<p class='note'>Mean over seeds &plusmn; half-width of the 95 % t-interval (none with one "
-                     "seed), in percent. Files: " + ", ".join(
-                         f"<code>{_e(f)}</code>" for f in ("table.md", "table.csv", "results.json") if (d / f).exists())
-                     + ".</p>")
+        parts.append(
+            "<p class='note'>Mean over seeds &plusmn; half-width of the 95 % t-interval (none with one "
+            "seed), in percent. Files: "
+            + ", ".join(f"<code>{_e(f)}</code>" for f in ("table.md", "table.csv", "results.json") if (d / f).exists())
+            + ".</p>"
+        )
     for p, other in (results.get("other_protocols") or {}).items():
         if not isinstance(other, dict) or not other.get("rows"):
             continue
         short = other.get("incomplete_rows") or []
-        parts.append(f"<h3>The same agents under the {_e(p)} protocol</h3><p class='meta'>"
-                     f"{_e(protocol_line(p, other.get('trained_protocol')))}; the checkpoints chosen under "
-                     f"{_e(other.get('trained_protocol', '?'))}"
-                     + (f". Fewer seeds than above: {_e(', '.join(short))}" if short else "") + ".</p>"
-                     + experiment_table_html(other))
+        parts.append(
+            f"<h3>The same agents under the {_e(p)} protocol</h3><p class='meta'>"
+            f"{_e(protocol_line(p, other.get('trained_protocol')))}; the checkpoints chosen under "
+            f"{_e(other.get('trained_protocol', '?'))}"
+            + (f". Fewer seeds than above: {_e(', '.join(short))}" if short else "")
+            + ".</p>"
+            + experiment_table_html(other)
+        )
     checks = check_claims({name: results}) if results.get("rows") else []
     if checks:
-        parts.append("<h3>Against the paper's claims</h3><p class='note'>Per claim of the paper, our difference "
-                     "(percentage points, per-seed means) beside the paper's, with the 95 % Welch interval and p; "
-                     f"verdicts at p &lt; {ALPHA} ({_e(summary_line(checks))}).</p>" + claims_html(checks))
+        parts.append(
+            "<h3>Against the paper's claims</h3><p class='note'>Per claim of the paper, our difference "
+            "(percentage points, per-seed means) beside the paper's, with the 95 % Welch interval and p; "
+            f"verdicts at p &lt; {ALPHA} ({_e(summary_line(checks))}).</p>" + claims_html(checks)
+        )
         png = plot_claims(checks, assets.name(f"claims_{lab}"))
         if png:
-            parts.append(f"<figure><img src='{png.name}' alt='claims' style='max-width:800px'><figcaption>Our "
-                         f"differences (dots, 95 % Welch interval; filled when p &lt; {ALPHA}) and the paper's (red "
-                         "crosses), ALL episodes.</figcaption></figure>")
+            parts.append(
+                f"<figure><img src='{png.name}' alt='claims' style='max-width:800px'><figcaption>Our "
+                f"differences (dots, 95 % Welch interval; filled when p &lt; {ALPHA}) and the paper's (red "
+                "crosses), ALL episodes.</figcaption></figure>"
+            )
     quality = results.get("detector_quality") or {}
     if quality:
-        parts.append("<p class='note'>Detection tables (agents' input and stage switch; rows marked "
-                     "&lsquo;oracle switch&rsquo; read the oracle's), measured on the val rooms:</p><ul>"
-                     + "".join(f"<li>{_e(quality_line(q))}</li>" for q in quality.values()) + "</ul>")
+        parts.append(
+            "<p class='note'>Detection tables (agents' input and stage switch; rows marked "
+            "&lsquo;oracle switch&rsquo; read the oracle's), measured on the val rooms:</p><ul>"
+            + "".join(f"<li>{_e(quality_line(q))}</li>" for q in quality.values())
+            + "</ul>"
+        )
     if (d / "threshold.png").exists():
         name_png = assets.copy(d / "threshold.png", f"threshold_{lab}")
-        parts.append(f"<figure><img src='{name_png}' alt='threshold sweep' style='max-width:1100px'><figcaption>"
-                     "Each metric over the stage-switch threshold C_target on the validation episodes; the red star "
-                     "marks the best value (paper Fig. 4).</figcaption></figure>")
+        parts.append(
+            f"<figure><img src='{name_png}' alt='threshold sweep' style='max-width:1100px'><figcaption>"
+            "Each metric over the stage-switch threshold C_target on the validation episodes; the red star "
+            "marks the best value (paper Fig. 4).</figcaption></figure>"
+        )
     pre_dir = Path(exp.get("config", {}).get("pretrain_dir") or d / "pretrain")
     pre_runs = scan(pre_dir).pretrain_runs if pre_dir.is_dir() else []
     if pre_runs:
-        parts.append("<h3>Encoders</h3>" + _pretrain_html(pre_runs, root, assets).replace("<h3>", "<h4>")
-                     .replace("</h3>", "</h4>"))
+        parts.append(
+            "<h3>Encoders</h3>"
+            + _pretrain_html(pre_runs, root, assets).replace("<h3>", "<h4>").replace("</h3>", "</h4>")
+        )
     series = []
     for j in exp.get("jobs", []):
         run = d / j["dir"] / "train"
@@ -536,15 +609,27 @@ def _experiment_section(d: Path, root: Path, assets: _Assets, gallery: int, vide
             series.append((j.get("label", j["row"]), read_log(run)))
     png = plot_experiment_curves(series, assets.name(f"curves_{lab}"), title=f"{name}: training curves")
     if png:
-        parts.append(f"<figure><img src='{png.name}' alt='training curves'><figcaption>Training curves of every job "
-                     "(seeds of a row share a colour).</figcaption></figure>")
+        parts.append(
+            f"<figure><img src='{png.name}' alt='training curves'><figcaption>Training curves of every job "
+            "(seeds of a row share a colour).</figcaption></figure>"
+        )
     if gallery > 0:
         show = [j for j in exp.get("jobs", []) if (d / j["dir"] / "eval" / "metrics.json").exists()]
         if show:
-            j = show[-1] if not exp.get("gallery_row") else next(
-                (x for x in show if x["row"] == exp["gallery_row"]), show[-1])
-            parts.append(_gallery_html(d / j["dir"] / "eval", f"{name}: {j.get('label', j['row'])} (seed {j.get('seed')})",
-                                       assets, gallery, video))
+            j = (
+                show[-1]
+                if not exp.get("gallery_row")
+                else next((x for x in show if x["row"] == exp["gallery_row"]), show[-1])
+            )
+            parts.append(
+                _gallery_html(
+                    d / j["dir"] / "eval",
+                    f"{name}: {j.get('label', j['row'])} (seed {j.get('seed')})",
+                    assets,
+                    gallery,
+                    video,
+                )
+            )
     return (f"exp-{name}", f"Experiment: {name}", "".join(parts))
 
 
@@ -558,8 +643,13 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None, help="report folder (default: PATH/report)")
     parser.add_argument("--gallery", type=int, default=6, help="episodes shown per evaluation (default 6; 0: none)")
     parser.add_argument("--title", default=None, help="page title")
-    parser.add_argument("--video", type=int, default=VIDEOS, metavar="N",
-                        help=f"episodes of each gallery also shown as a clip (default {VIDEOS}; 0: none)")
+    parser.add_argument(
+        "--video",
+        type=int,
+        default=VIDEOS,
+        metavar="N",
+        help=f"episodes of each gallery also shown as a clip (default {VIDEOS}; 0: none)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -31,7 +31,8 @@ PROTOCOL_SENTENCE = (
     "Two success rules are used (`--protocol`): `paper`, the paper's own (Done with the target in view within 1.0 m, "
     "III-A), and `lineage`, the rule of the evaluator the Table I methods share (Done where an object of the target's "
     "type is listed in AI2-THOR's `visible_object_map_1.5.json`); the headline agent is trained and measured under "
-    "`lineage`.")
+    "`lineage`."
+)
 
 
 def repo_root() -> Path:
@@ -49,8 +50,11 @@ def _pair(vals, i: int, j: int) -> str:
 
 def read_cards(weights: Path = WEIGHTS) -> dict[str, dict]:
     """Name -> model card of every shipped agent folder under ``weights``, the default one first."""
-    cards = {p.name: json.loads((p / "card.json").read_text())
-             for p in sorted(weights.iterdir()) if (p / "card.json").exists()}
+    cards = {
+        p.name: json.loads((p / "card.json").read_text())
+        for p in sorted(weights.iterdir())
+        if (p / "card.json").exists()
+    }
     return dict(sorted(cards.items(), key=lambda kv: not kv[1].get("default")))
 
 
@@ -68,28 +72,33 @@ def _sr_spl(row: dict | None, subset: str) -> str:
     return f"{_pct(m['SR'])} / {_pct(m['SPL'])}"
 
 
-def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = None,
-                results: Path | None = None) -> list[str]:
+def table1_rows(
+    index: dict, cards: dict, paper: dict, select: dict | None = None, results: Path | None = None
+) -> list[str]:
     """The rows of Table I: the published methods, then tsnav's agents and references per protocol. ``select``
     (the index's ``readme`` entry) keeps only the published methods, agents, references and protocols it names.
     RoboTHOR figures come from the files the index's ``table1.robothor`` names per agent (the ``results.json`` of
     ``tsnav release eval`` on RoboTHOR, copied to ``docs/results/``); an agent without one is "not yet measured"."""
     spec = index["table1"]
     keep = select or {}
-    lines = ["| method | measured on | iTHOR ALL | iTHOR L>=5 | RoboTHOR ALL | RoboTHOR L>=5 |",
-             "| --- | --- | ---: | ---: | ---: | ---: |"]
+    lines = [
+        "| method | measured on | iTHOR ALL | iTHOR L>=5 | RoboTHOR ALL | RoboTHOR L>=5 |",
+        "| --- | --- | ---: | ---: | ---: | ---: |",
+    ]
     for r in paper["table1"]["rows"]:
         if select and r["method"] not in keep["published"]:
             continue
         it, rb = r["ithor"], r["robothor"]
         name = f"**{r['method']}**" if r.get("ours") else r["method"]
-        lines.append(f"| {name} | published (paper's Table I) | {_pair(it, 0, 1)} | {_pair(it, 2, 3)} | "
-                     f"{_pair(rb, 0, 1)} | {_pair(rb, 2, 3)} |")
-    robothor = {name: json.loads((results / f).read_text())["rows"]
-                for name, f in (spec.get("robothor") or {}).items()}
+        lines.append(
+            f"| {name} | published (paper's Table I) | {_pair(it, 0, 1)} | {_pair(it, 2, 3)} | "
+            f"{_pair(rb, 0, 1)} | {_pair(rb, 2, 3)} |"
+        )
+    robothor = {name: json.loads((results / f).read_text())["rows"] for name, f in (spec.get("robothor") or {}).items()}
     ref = spec["reference_agent"]
-    rows = ([(name, "agent") for name in keep.get("agents", spec["agents"])]
-            + [(ref, p) for p in keep.get("references", spec["references"])])
+    rows = [(name, "agent") for name in keep.get("agents", spec["agents"])] + [
+        (ref, p) for p in keep.get("references", spec["references"])
+    ]
     for protocol in keep.get("protocols", ("lineage", "paper")):
         for name, policy in rows:
             card = cards[name]
@@ -99,28 +108,42 @@ def table1_rows(index: dict, cards: dict, paper: dict, select: dict | None = Non
                 if card.get("default") and protocol == "lineage":
                     label = f"**{label}** (shipped default)"
             else:
-                label = (f"{policy} (map + shortest path, `{card.get('detector_shipped', '?')}` switch)"
-                         if policy == "scripted explorer" else policy)
+                label = (
+                    f"{policy} (map + shortest path, `{card.get('detector_shipped', '?')}` switch)"
+                    if policy == "scripted explorer"
+                    else policy
+                )
             n = card.get("figures", {}).get("test", {}).get("episodes", "?")
-            rob = next((r for r in robothor.get(name, []) if (r["protocol"], r["policy"]) == (protocol, policy)),
-                       None)
-            rob_cells = (f"{_sr_spl(rob, 'ALL')} | {_sr_spl(rob, 'L>=5')}" if rob
-                         else "not yet measured | not yet measured")
-            lines.append(f"| {label} | {n} test episodes, `{protocol}` | {_sr_spl(row, 'ALL')} | "
-                         f"{_sr_spl(row, 'L>=5')} | {rob_cells} |")
+            rob = next((r for r in robothor.get(name, []) if (r["protocol"], r["policy"]) == (protocol, policy)), None)
+            rob_cells = (
+                f"{_sr_spl(rob, 'ALL')} | {_sr_spl(rob, 'L>=5')}" if rob else "not yet measured | not yet measured"
+            )
+            lines.append(
+                f"| {label} | {n} test episodes, `{protocol}` | {_sr_spl(row, 'ALL')} | "
+                f"{_sr_spl(row, 'L>=5')} | {rob_cells} |"
+            )
     return lines
 
 
 def table1(index: dict, cards: dict, paper: dict, results: Path) -> list[str]:
     """Table I: the paper's and its peers' published SR / SPL beside tsnav's agents from their model cards."""
-    return (["## Table I: comparison with the published methods", "",
-             "SR / SPL in percent. The published rows are copied from the paper's Table I (each method on its own "
-             "AI2-THOR and RoboTHOR test episodes, counted by the lineage's evaluator). tsnav's rows are measured here "
-             f"on {index['episodes']}, under the protocol each row names; RoboTHOR is not measured yet.", ""]
-            + table1_rows(index, cards, paper, results=results)
-            + ["", "The scripted explorer holds the room's map and walks the true shortest path once its detector "
-               "switch fires: an upper reference, not a learned agent. Under `lineage`, L>=5 is the lineage's bucket "
-               "(its `best_path_len` >= 5, i.e. an optimal path of at least 4 actions)."])
+    return (
+        [
+            "## Table I: comparison with the published methods",
+            "",
+            "SR / SPL in percent. The published rows are copied from the paper's Table I (each method on its own "
+            "AI2-THOR and RoboTHOR test episodes, counted by the lineage's evaluator). tsnav's rows are measured here "
+            f"on {index['episodes']}, under the protocol each row names; RoboTHOR is not measured yet.",
+            "",
+        ]
+        + table1_rows(index, cards, paper, results=results)
+        + [
+            "",
+            "The scripted explorer holds the room's map and walks the true shortest path once its detector "
+            "switch fires: an upper reference, not a learned agent. Under `lineage`, L>=5 is the lineage's bucket "
+            "(its `best_path_len` >= 5, i.e. an optimal path of at least 4 actions).",
+        ]
+    )
 
 
 def _cell(metrics: dict, subset: str, metric: str) -> str:
@@ -142,32 +165,47 @@ def experiment_table(title: str, paper_key: str, entries: list[dict], paper: dic
     for e in entries:
         res = json.loads((results / e["file"]).read_text())
         proto = res.get("protocol", "paper")
-        lines += [f"Measured at {e['setting']}; {res['rows'][0].get('n', '?')} seeds per row, mean ± half-width "
-                  f"of the 95 % t-interval, in percent, on the test episodes of Table I (ALL episodes). "
-                  f"Per seed, L>=5, Welch tests and claim checks: [{e['details']}](results/{e['details']}); "
-                  f"data: [{e['file']}](results/{e['file']}).", "",
-                  "```", e["command"], "```", "",
-                  "| row | " + " | ".join(f"{m} paper | {m} tsnav `{proto}`" for m in cols) + " |",
-                  "| --- | " + " | ".join("---: | ---:" for _ in cols) + " |"]
+        lines += [
+            f"Measured at {e['setting']}; {res['rows'][0].get('n', '?')} seeds per row, mean ± half-width "
+            f"of the 95 % t-interval, in percent, on the test episodes of Table I (ALL episodes). "
+            f"Per seed, L>=5, Welch tests and claim checks: [{e['details']}](results/{e['details']}); "
+            f"data: [{e['file']}](results/{e['file']}).",
+            "",
+            "```",
+            e["command"],
+            "```",
+            "",
+            "| row | " + " | ".join(f"{m} paper | {m} tsnav `{proto}`" for m in cols) + " |",
+            "| --- | " + " | ".join("---: | ---:" for _ in cols) + " |",
+        ]
         seen = set()
         for row in res["rows"]:
             rid = row["row"]
             pub = published["rows"].get(rid, {}).get("ALL")
             seen.add(rid)
-            cells = [f"{pub[i]:.2f} | {_cell(row['metrics'], 'ALL', m)}" if pub else
-                     f"- | {_cell(row['metrics'], 'ALL', m)}" for i, m in enumerate(cols)]
+            cells = [
+                f"{pub[i]:.2f} | {_cell(row['metrics'], 'ALL', m)}" if pub else f"- | {_cell(row['metrics'], 'ALL', m)}"
+                for i, m in enumerate(cols)
+            ]
             lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
         for rid, pub in published["rows"].items():
             if rid not in seen:
                 label = published.get("labels", {}).get(rid, rid)
-                lines.append(f"| {label} (published; not run here) | "
-                             + " | ".join(f"{pub['ALL'][i]:.2f} | -" for i in range(len(cols))) + " |")
+                lines.append(
+                    f"| {label} (published; not run here) | "
+                    + " | ".join(f"{pub['ALL'][i]:.2f} | -" for i in range(len(cols)))
+                    + " |"
+                )
         for other, ores in (res.get("other_protocols") or {}).items():
-            lines += ["", f"The same agents under `{other}` (tsnav only; trained under `{proto}`):", "",
-                      "| row | " + " | ".join(cols) + " |", "| --- | " + " | ".join("---:" for _ in cols) + " |"]
+            lines += [
+                "",
+                f"The same agents under `{other}` (tsnav only; trained under `{proto}`):",
+                "",
+                "| row | " + " | ".join(cols) + " |",
+                "| --- | " + " | ".join("---:" for _ in cols) + " |",
+            ]
             for row in ores["rows"]:
-                lines.append(f"| {row['label']} | " + " | ".join(_cell(row["metrics"], "ALL", m) for m in cols)
-                             + " |")
+                lines.append(f"| {row['label']} | " + " | ".join(_cell(row["metrics"], "ALL", m) for m in cols) + " |")
         lines.append("")
     return lines[:-1]
 
@@ -178,38 +216,62 @@ def fig4(index: dict, results: Path) -> list[str]:
         return lines + [f"Fig. 4 is {index.get('fig4_not_run', 'not run yet.')}"]
     for e in index["fig4"]:
         res = json.loads((results / e["file"]).read_text())
-        lines += [f"Measured at {e['setting']} on validation episodes, under `{res.get('protocol', 'paper')}`; "
-                  f"data: [{e['file']}](results/{e['file']}).", "", "```", e["command"], "```", "",
-                  "| C_target | " + " | ".join(METRICS) + " |", "| ---: | " + " | ".join("---:" for _ in METRICS) + " |"]
+        lines += [
+            f"Measured at {e['setting']} on validation episodes, under `{res.get('protocol', 'paper')}`; "
+            f"data: [{e['file']}](results/{e['file']}).",
+            "",
+            "```",
+            e["command"],
+            "```",
+            "",
+            "| C_target | " + " | ".join(METRICS) + " |",
+            "| ---: | " + " | ".join("---:" for _ in METRICS) + " |",
+        ]
         for row in res["rows"]:
-            lines.append(f"| {row.get('c_target', row['label'])} | "
-                         + " | ".join(_cell(row["metrics"], "ALL", m) for m in METRICS) + " |")
+            lines.append(
+                f"| {row.get('c_target', row['label'])} | "
+                + " | ".join(_cell(row["metrics"], "ALL", m) for m in METRICS)
+                + " |"
+            )
         lines.append("")
     return lines[:-1]
 
 
 def shipped_agents(cards: dict) -> list[str]:
     """One block per shipped agent: what it is, and its test figures from its card."""
-    lines = ["## The shipped agents", "",
-             "Each agent ships inside the package (`src/tsnav/agent/weights/NAME/`: policy, float16 encoder, model "
-             "card); `tsnav release eval --agent NAME` measures it again from nothing. Figures from the cards, in "
-             "percent, test episodes of Table I."]
+    lines = [
+        "## The shipped agents",
+        "",
+        "Each agent ships inside the package (`src/tsnav/agent/weights/NAME/`: policy, float16 encoder, model "
+        "card); `tsnav release eval --agent NAME` measures it again from nothing. Figures from the cards, in "
+        "percent, test episodes of Table I.",
+    ]
     for name, card in cards.items():
         test = card.get("figures", {}).get("test", {})
         ver = f" Packed with tsnav {card['tsnav_version']}." if card.get("tsnav_version") else ""
-        lines += ["", f"### `{name}`{' (default)' if card.get('default') else ''}", "",
-                  f"{card.get('summary', '')}. Detector `{card.get('detector_shipped', '?')}`; checkpoint of update "
-                  f"{card.get('policy_update', '?')}; model card: "
-                  f"[card.md](../src/tsnav/agent/weights/{name}/card.md).{ver}"]
+        lines += [
+            "",
+            f"### `{name}`{' (default)' if card.get('default') else ''}",
+            "",
+            f"{card.get('summary', '')}. Detector `{card.get('detector_shipped', '?')}`; checkpoint of update "
+            f"{card.get('policy_update', '?')}; model card: "
+            f"[card.md](../src/tsnav/agent/weights/{name}/card.md).{ver}",
+        ]
         if not test:
             lines += ["", "No test figures in its card yet."]
             continue
-        lines += ["", "| protocol | policy | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
-                  "| --- | --- | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |"]
+        lines += [
+            "",
+            "| protocol | policy | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
+            "| --- | --- | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |",
+        ]
         for r in test["rows"]:
             a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
-            lines.append(f"| {r['protocol']} | {r['policy']} | " + " | ".join(_pct(a[m]) for m in METRICS)
-                         + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |")
+            lines.append(
+                f"| {r['protocol']} | {r['policy']} | "
+                + " | ".join(_pct(a[m]) for m in METRICS)
+                + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
+            )
     return lines
 
 
@@ -220,17 +282,25 @@ def robothor_references(index: dict, results: Path) -> list[str]:
     if not name:
         return []
     res = json.loads((results / name).read_text())
-    lines = ["### RoboTHOR: the scripted references", "",
-             f"{res['what'][0].upper()}{res['what'][1:]} ([{name}](results/{name})). Episodes kept of the "
-             "challenge's 1,800: " + ", ".join(f"{c['kept']} under `{p}`" for p, c in res["conversion"].items())
-             + " (starts off tsnav's graph, targets without a success state and, under `paper`, start-success "
-             "episodes dropped and counted in the file).", "",
-             "| protocol | policy | episodes | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
-             "| --- | --- | ---: | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |"]
+    lines = [
+        "### RoboTHOR: the scripted references",
+        "",
+        f"{res['what'][0].upper()}{res['what'][1:]} ([{name}](results/{name})). Episodes kept of the "
+        "challenge's 1,800: "
+        + ", ".join(f"{c['kept']} under `{p}`" for p, c in res["conversion"].items())
+        + " (starts off tsnav's graph, targets without a success state and, under `paper`, start-success "
+        "episodes dropped and counted in the file).",
+        "",
+        "| protocol | policy | episodes | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
+        "| --- | --- | ---: | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |",
+    ]
     for r in res["rows"]:
         a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
-        lines.append(f"| {r['protocol']} | {r['policy']} | {r['episodes']} | " + " | ".join(_pct(a[m]) for m in METRICS)
-                     + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |")
+        lines.append(
+            f"| {r['protocol']} | {r['policy']} | {r['episodes']} | "
+            + " | ".join(_pct(a[m]) for m in METRICS)
+            + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
+        )
     return lines + [""]
 
 
@@ -242,21 +312,30 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     index = json.loads((results / "index.json").read_text())
     paper = published_figures()
     cards = read_cards(weights)
-    lines = ["# Results", "",
-             "<!-- generated by `python -m tsnav.report.results_page` from docs/results/index.json, the result files "
-             "it names and the shipped agents' model cards; do not edit by hand -->", "",
-             "The paper's tables with tsnav's measured figures beside the published ones. tsnav's figures come from "
-             "its embedded world (the real iTHOR rooms rebuilt from their recorded layouts, no Unity) on a CPU, with "
-             "smaller networks and budgets than the paper's GPU runs; each table says how it was made.", "",
-             PROTOCOL_SENTENCE, "",
-             "How every figure here was reached, with the runs that led to them and the settings since replaced: "
-             "[the results notebook](history/RESULTS.md). Speed: [BENCHMARKS.md](../BENCHMARKS.md).", ""]
+    lines = [
+        "# Results",
+        "",
+        "<!-- generated by `python -m tsnav.report.results_page` from docs/results/index.json, the result files "
+        "it names and the shipped agents' model cards; do not edit by hand -->",
+        "",
+        "The paper's tables with tsnav's measured figures beside the published ones. tsnav's figures come from "
+        "its embedded world (the real iTHOR rooms rebuilt from their recorded layouts, no Unity) on a CPU, with "
+        "smaller networks and budgets than the paper's GPU runs; each table says how it was made.",
+        "",
+        PROTOCOL_SENTENCE,
+        "",
+        "How every figure here was reached, with the runs that led to them and the settings since replaced: "
+        "[the results notebook](history/RESULTS.md). Speed: [BENCHMARKS.md](../BENCHMARKS.md).",
+        "",
+    ]
     lines += table1(index, cards, paper, results) + [""]
     lines += robothor_references(index, results)
-    lines += experiment_table("Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []),
-                              paper, results) + [""]
-    lines += experiment_table("Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []),
-                              paper, results) + [""]
+    lines += experiment_table(
+        "Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []), paper, results
+    ) + [""]
+    lines += experiment_table(
+        "Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []), paper, results
+    ) + [""]
     lines += fig4(index, results) + [""]
     lines += shipped_agents(cards)
     return "\n".join(lines) + "\n"
@@ -271,8 +350,11 @@ def readme_table(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     """The README's short Table I: the rows the index's ``readme`` entry names."""
     root = Path(root) if root else repo_root()
     index = json.loads((root / "docs" / "results" / "index.json").read_text())
-    return "\n".join(table1_rows(index, read_cards(weights), published_figures(), select=index["readme"],
-                                  results=root / "docs" / "results"))
+    return "\n".join(
+        table1_rows(
+            index, read_cards(weights), published_figures(), select=index["readme"], results=root / "docs" / "results"
+        )
+    )
 
 
 def with_readme_table(readme: str, table: str) -> str:
@@ -287,12 +369,16 @@ def with_readme_table(readme: str, table: str) -> str:
 def pages(root: Path) -> dict[Path, str]:
     """Every file this module renders, path -> text: docs/RESULTS.md and README.md with its Table I."""
     readme = root / "README.md"
-    return {root / "docs" / "RESULTS.md": render(root),
-            readme: with_readme_table(readme.read_text(), readme_table(root))}
+    return {
+        root / "docs" / "RESULTS.md": render(root),
+        readme: with_readme_table(readme.read_text(), readme_table(root)),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, prog="python -m tsnav.report.results_page", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, prog="python -m tsnav.report.results_page", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--root", default=None, help="the checkout (default: the one this module runs from)")
     p.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page is stale")
     args = p.parse_args(argv)

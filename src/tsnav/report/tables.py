@@ -52,9 +52,19 @@ def aggregate(rows: list, per_row: dict[str, list[dict]], metrics: list[str], fl
                 vals = [100.0 * x[s][m] for x in sums if s in x]
                 mean, half = mean_ci(vals)
                 ms[s][m] = {"mean": mean, "ci95": half, "values": vals}
-        out_rows.append({"row": r.id, "label": r.label, "flags": r.flags, "c_target": r.c_target,
-                         "encoder": r.encoder, "reward": r.reward, "detections": getattr(r, "detections", None),
-                         "n": len(sums), "metrics": ms})
+        out_rows.append(
+            {
+                "row": r.id,
+                "label": r.label,
+                "flags": r.flags,
+                "c_target": r.c_target,
+                "encoder": r.encoder,
+                "reward": r.reward,
+                "detections": getattr(r, "detections", None),
+                "n": len(sums),
+                "metrics": ms,
+            }
+        )
     return {"subsets": list(SUBSETS), "metrics": metrics, "flag_columns": flags, "rows": out_rows}
 
 
@@ -83,9 +93,13 @@ def welch_against(results: dict, baseline: str) -> dict:
     for r in results["rows"]:
         if r["row"] == baseline:
             continue
-        out[r["row"]] = {s: {m: dict(zip(("diff", "p"), welch(base["metrics"][s][m]["values"],
-                                                              r["metrics"][s][m]["values"])))
-                             for m in results["metrics"]} for s in results["subsets"]}
+        out[r["row"]] = {
+            s: {
+                m: dict(zip(("diff", "p"), welch(base["metrics"][s][m]["values"], r["metrics"][s][m]["values"])))
+                for m in results["metrics"]
+            }
+            for s in results["subsets"]
+        }
     return {"baseline": baseline, "rows": out}
 
 
@@ -97,8 +111,10 @@ def welch_markdown(results: dict, subset: str = "ALL") -> str:
         return ""
     labels = {r["row"]: r["label"] for r in results["rows"]}
     metrics = results["metrics"]
-    lines = [f"| {subset}: row vs {labels.get(w['baseline'], w['baseline'])} | " + " | ".join(metrics) + " |",
-             "| --- |" + " ---: |" * len(metrics)]
+    lines = [
+        f"| {subset}: row vs {labels.get(w['baseline'], w['baseline'])} | " + " | ".join(metrics) + " |",
+        "| --- |" + " ---: |" * len(metrics),
+    ]
 
     def cell(v):
         if v["diff"] is None:
@@ -121,8 +137,10 @@ def markdown_table(results: dict) -> str:
     """A Markdown table: row label, check-mark columns, seeds, then ``subset metric`` columns (mean ± 95 %)."""
     flags, subsets, metrics = results["flag_columns"], results["subsets"], results["metrics"]
     head = ["row"] + flags + ["seeds"] + [f"{s} {m}" for s in subsets for m in metrics]
-    lines = ["| " + " | ".join(head) + " |", "|" + "|".join([" --- "] * (1 + len(flags) + 1)
-                                                          + [" ---: "] * (len(subsets) * len(metrics))) + "|"]
+    lines = [
+        "| " + " | ".join(head) + " |",
+        "|" + "|".join([" --- "] * (1 + len(flags) + 1) + [" ---: "] * (len(subsets) * len(metrics))) + "|",
+    ]
     for r in results["rows"]:
         cells = [r["label"]] + ["✓" if r["flags"].get(f) else "" for f in flags] + [str(r["n"])]
         cells += [_fmt(r["metrics"][s][m]) for s in subsets for m in metrics]
@@ -143,11 +161,20 @@ def csv_table(results: dict) -> str:
             for m in results["metrics"]:
                 v = r["metrics"][s][m]
                 mean, half = v["mean"], v["ci95"]
-                w.writerow({"row": r["row"], "label": r["label"], "subset": s, "metric": m,
-                            "mean": "" if mean is None else f"{mean:.4f}", "ci95": "" if half is None else f"{half:.4f}",
-                            "ci_low": "" if half is None else f"{mean - half:.4f}",
-                            "ci_high": "" if half is None else f"{mean + half:.4f}", "n_seeds": r["n"],
-                            "values": " ".join(f"{x:.4f}" for x in v["values"])})
+                w.writerow(
+                    {
+                        "row": r["row"],
+                        "label": r["label"],
+                        "subset": s,
+                        "metric": m,
+                        "mean": "" if mean is None else f"{mean:.4f}",
+                        "ci95": "" if half is None else f"{half:.4f}",
+                        "ci_low": "" if half is None else f"{mean - half:.4f}",
+                        "ci_high": "" if half is None else f"{mean + half:.4f}",
+                        "n_seeds": r["n"],
+                        "values": " ".join(f"{x:.4f}" for x in v["values"]),
+                    }
+                )
     return buf.getvalue()
 
 
@@ -162,10 +189,12 @@ def _episode_reach(q: dict) -> str:
 def quality_line(q: dict) -> str:
     """One line of a :func:`detection_quality` record (percent)."""
     fp = " / ".join(f"{100 * v:.2f}" for v in q["fp_states"].values())
-    return (f"detections_{q['name']} on {q['scenes']} {q['split']} rooms: presence AP {q['presence_ap']:.3f}, box "
-            f"AP@0.5 {q['box_ap50']:.3f}, ECE {100 * q['ece']:.2f} %, reach of {q['c_target']:g}: {q['reached']}/"
-            f"{q['pairs']} pairs ({100 * q['reach']:.1f} %){_episode_reach(q)}, false-positive states > "
-            f"{' / '.join(q['fp_states'])}: {fp} %")
+    return (
+        f"detections_{q['name']} on {q['scenes']} {q['split']} rooms: presence AP {q['presence_ap']:.3f}, box "
+        f"AP@0.5 {q['box_ap50']:.3f}, ECE {100 * q['ece']:.2f} %, reach of {q['c_target']:g}: {q['reached']}/"
+        f"{q['pairs']} pairs ({100 * q['reach']:.1f} %){_episode_reach(q)}, false-positive states > "
+        f"{' / '.join(q['fp_states'])}: {fp} %"
+    )
 
 
 def plot_threshold(results: dict, path: str | Path) -> Path | None:
@@ -182,14 +211,25 @@ def plot_threshold(results: dict, path: str | Path) -> Path | None:
     xs = np.array([r["c_target"] for r in rows])
     for ax, m in zip(axes, metrics):
         for s, style in zip(SUBSETS, ("-", "--")):
-            mean = np.array([np.nan if r["metrics"][s][m]["mean"] is None else r["metrics"][s][m]["mean"] for r in rows])
+            mean = np.array(
+                [np.nan if r["metrics"][s][m]["mean"] is None else r["metrics"][s][m]["mean"] for r in rows]
+            )
             half = np.array([0.0 if r["metrics"][s][m]["ci95"] is None else r["metrics"][s][m]["ci95"] for r in rows])
-            ax.errorbar(xs, mean, yerr=half, fmt="o" + style, ms=3, lw=1.3, capsize=2, alpha=1.0 if s == "ALL" else 0.55,
-                        color="#1f77b4", label=s)
+            ax.errorbar(
+                xs,
+                mean,
+                yerr=half,
+                fmt="o" + style,
+                ms=3,
+                lw=1.3,
+                capsize=2,
+                alpha=1.0 if s == "ALL" else 0.55,
+                color="#1f77b4",
+                label=s,
+            )
             if s == "ALL" and np.isfinite(mean).any():
                 b = int(np.nanargmax(mean))
-                ax.scatter([xs[b]], [mean[b]], marker="*", s=220, color="red", zorder=5,
-                           label=f"best {xs[b]:.1f}")
+                ax.scatter([xs[b]], [mean[b]], marker="*", s=220, color="red", zorder=5, label=f"best {xs[b]:.1f}")
         ax.set_title(m, fontsize=10)
         ax.set_xlabel("C_target", fontsize=8)
         ax.set_xticks(np.round(np.arange(0.1, 0.91, 0.2), 1))

@@ -41,10 +41,16 @@ class SharedAdam(torch.optim.Adam):
     """Adam (AMSGrad by default, as the lineage) whose state is allocated up front in shared memory, so that
     every worker process steps the same moments and step counters."""
 
-    def __init__(self, params, lr: float = 1e-4, betas=(0.9, 0.999), eps: float = 1e-8, weight_decay: float = 0.0,
-                 amsgrad: bool = True):
-        super().__init__(params, lr=lr, betas=betas, eps=eps, weight_decay=weight_decay, amsgrad=amsgrad,
-                         foreach=False)
+    def __init__(
+        self,
+        params,
+        lr: float = 1e-4,
+        betas=(0.9, 0.999),
+        eps: float = 1e-8,
+        weight_decay: float = 0.0,
+        amsgrad: bool = True,
+    ):
+        super().__init__(params, lr=lr, betas=betas, eps=eps, weight_decay=weight_decay, amsgrad=amsgrad, foreach=False)
         for group in self.param_groups:
             for p in group["params"]:
                 st = self.state[p]
@@ -65,8 +71,13 @@ class SharedAdam(torch.optim.Adam):
                     self.state[p][k].copy_(v)
 
 
-def a3c_update(local: ActorCritic, shared: ActorCritic, optimizer: torch.optim.Optimizer,
-               collector: RolloutCollector, cfg: TrainConfig):
+def a3c_update(
+    local: ActorCritic,
+    shared: ActorCritic,
+    optimizer: torch.optim.Optimizer,
+    collector: RolloutCollector,
+    cfg: TrainConfig,
+):
     """One worker update (steps 1-3 of the module docstring); returns ``(loss parts, rollout)``."""
     local.load_state_dict(shared.state_dict())
     local.train()
@@ -80,8 +91,19 @@ def a3c_update(local: ActorCritic, shared: ActorCritic, optimizer: torch.optim.O
     return parts, ro
 
 
-def _worker(wid: int, cfg_d: dict, agent_d: dict, scenes, shared: ActorCritic, optimizer: SharedAdam,
-            features: torch.Tensor, counters, out_queue, stop, seed: int) -> None:
+def _worker(
+    wid: int,
+    cfg_d: dict,
+    agent_d: dict,
+    scenes,
+    shared: ActorCritic,
+    optimizer: SharedAdam,
+    features: torch.Tensor,
+    counters,
+    out_queue,
+    stop,
+    seed: int,
+) -> None:
     set_threads(1)
     try:
         cfg = TrainConfig.from_dict(cfg_d)
@@ -89,8 +111,7 @@ def _worker(wid: int, cfg_d: dict, agent_d: dict, scenes, shared: ActorCritic, o
         bank, det = load_bank(cfg, scenes)
         observer = make_observer(bank, cfg, features=features, det_features=det)
         local = make_model(AgentConfig(**agent_d), observer, seed)
-        collector = RolloutCollector(make_train_env(bank, cfg, 1, seed=seed), observer, local,
-                                     precision=cfg.precision)
+        collector = RolloutCollector(make_train_env(bank, cfg, 1, seed=seed), observer, local, precision=cfg.precision)
         collector.start()
         while not stop.is_set():
             parts, ro = a3c_update(local, shared, optimizer, collector, cfg)
@@ -105,8 +126,15 @@ def _worker(wid: int, cfg_d: dict, agent_d: dict, scenes, shared: ActorCritic, o
         raise
 
 
-def train_a3c(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
-              scenes=None, poll_seconds: float = 0.2) -> dict:
+def train_a3c(
+    cfg: TrainConfig,
+    agent: AgentConfig,
+    run_dir: str | Path,
+    *,
+    progress_bar: bool = True,
+    scenes=None,
+    poll_seconds: float = 0.2,
+) -> dict:
     """Train (or resume) the A3C run in ``run_dir`` with ``cfg.workers`` processes; returns the progress."""
     run_dir = Path(run_dir)
     set_threads(cfg.threads)
@@ -170,8 +198,17 @@ class _Workers:
     """The worker processes of one session (spawned), their shared counters (updates, environment steps,
     episodes) and the queue of their messages (loss parts and finished episodes, or an error)."""
 
-    def __init__(self, cfg: TrainConfig, agent: AgentConfig, scenes, shared: ActorCritic, optimizer: SharedAdam,
-                 features: torch.Tensor, progress: dict, session: int):
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        agent: AgentConfig,
+        scenes,
+        shared: ActorCritic,
+        optimizer: SharedAdam,
+        features: torch.Tensor,
+        progress: dict,
+        session: int,
+    ):
         ctx = spawn_context()
         self.counters = ctx.Array("d", [progress["update"], progress["env_steps"], progress["episodes"]])
         self.queue = ctx.Queue()
@@ -179,8 +216,23 @@ class _Workers:
         self.procs = []
         for w in range(cfg.workers):
             seed = int(np.random.SeedSequence([cfg.seed, w, session]).generate_state(1)[0])
-            p = ctx.Process(target=_worker, args=(w, cfg.to_dict(), agent.__dict__.copy(), scenes, shared, optimizer,
-                                                  features, self.counters, self.queue, self.stop, seed), daemon=True)
+            p = ctx.Process(
+                target=_worker,
+                args=(
+                    w,
+                    cfg.to_dict(),
+                    agent.__dict__.copy(),
+                    scenes,
+                    shared,
+                    optimizer,
+                    features,
+                    self.counters,
+                    self.queue,
+                    self.stop,
+                    seed,
+                ),
+                daemon=True,
+            )
             p.start()
             self.procs.append(p)
 

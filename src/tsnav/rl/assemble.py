@@ -40,8 +40,13 @@ def install(bank: SceneBank, detections: str | None) -> np.ndarray | None:
     return bank.install_detections(detections).features
 
 
-def make_observer(bank: SceneBank, cfg: TrainConfig, features: torch.Tensor | None = None,
-                  det_features: np.ndarray | None = None, device="cpu") -> Observer:
+def make_observer(
+    bank: SceneBank,
+    cfg: TrainConfig,
+    features: torch.Tensor | None = None,
+    det_features: np.ndarray | None = None,
+    device="cpu",
+) -> Observer:
     """Observer over the feature caches ``cfg.features`` of the bank's scenes (or the given tensor)."""
     if features is None:
         features = load_bank_features(bank, cfg.features)
@@ -56,8 +61,9 @@ def make_reward(bank: SceneBank, cfg: TrainConfig) -> TSRMReward:
 
 def make_train_env(bank: SceneBank, cfg: TrainConfig, num_envs: int, seed: int) -> BatchEnv:
     """Auto-resetting training env of ``num_envs`` episodes, truncated at ``cfg.max_steps``."""
-    sim = SimConfig(success_distance=cfg.success_distance, max_steps=cfg.max_steps, autoreset=True,
-                    protocol=cfg.protocol)
+    sim = SimConfig(
+        success_distance=cfg.success_distance, max_steps=cfg.max_steps, autoreset=True, protocol=cfg.protocol
+    )
     return make_env(bank, num_envs, sim, reward_fn=make_reward(bank, cfg), seed=seed)
 
 

@@ -45,8 +45,20 @@ import torch.distributed as dist
 
 from ..agent.model import AgentConfig
 from ..checkpoint import weights_digest
-from ..distributed import (DistInfo, all_sum, allreduce_gradients, barrier, broadcast_model, device_for,
-                           gather_gradients, init_distributed, resolve_device, run_ranks, set_gradients, set_threads)
+from ..distributed import (
+    DistInfo,
+    all_sum,
+    allreduce_gradients,
+    barrier,
+    broadcast_model,
+    device_for,
+    gather_gradients,
+    init_distributed,
+    resolve_device,
+    run_ranks,
+    set_gradients,
+    set_threads,
+)
 from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, rng_state, set_rng_state, write_rng
 from .config import TrainConfig
@@ -54,8 +66,9 @@ from .progress import RunOutput, budget_used, new_progress, resume_progress  # n
 from .rollout import RolloutCollector, collect_and_loss
 
 
-def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
-                  on_update=None, scenes=None) -> dict:
+def train_batched(
+    cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True, on_update=None, scenes=None
+) -> dict:
     """Train (or resume) the run in ``run_dir``; returns the final progress dict.
 
     ``on_update(progress)`` is called after every update (tests use it to interrupt a run); ``scenes``
@@ -66,13 +79,22 @@ def train_batched(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, 
     """
     launched = int(os.environ.get("WORLD_SIZE", "1")) > 1  # by torchrun: this process is one of its ranks
     if cfg.procs > 1 and not launched and not (dist.is_available() and dist.is_initialized()):
-        return run_ranks(_train, cfg.procs, cfg, agent, run_dir, progress_bar=False, scenes=scenes,
-                         rank0_kwargs={"progress_bar": progress_bar, "on_update": on_update})
+        return run_ranks(
+            _train,
+            cfg.procs,
+            cfg,
+            agent,
+            run_dir,
+            progress_bar=False,
+            scenes=scenes,
+            rank0_kwargs={"progress_bar": progress_bar, "on_update": on_update},
+        )
     return _train(cfg, agent, run_dir, progress_bar=progress_bar, on_update=on_update, scenes=scenes)
 
 
-def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True,
-           on_update=None, scenes=None) -> dict:
+def _train(
+    cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True, on_update=None, scenes=None
+) -> dict:
     """:func:`train_batched` in this process, as one rank of the process group when there is one."""
     run_dir = Path(run_dir)
     info, device = _join(cfg)
@@ -125,8 +147,9 @@ def _train(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progres
 
             # counters over all ranks (every rank's CPU time: steps per CPU-second show how the ranks scale)
             cpu = time.process_time()
-            episodes, seconds, cpu_s = all_sum([ro.episodes, time.perf_counter() - t_start if info.is_main else 0.0,
-                                                cpu - cpu0], info, device)
+            episodes, seconds, cpu_s = all_sum(
+                [ro.episodes, time.perf_counter() - t_start if info.is_main else 0.0, cpu - cpu0], info, device
+            )
             cpu0 = cpu
             progress["update"] += updates_per_round
             progress["env_steps"] += steps_per_round
@@ -175,8 +198,9 @@ def _restore_rng(rng: dict | None, env, seed: int, rank: int, update: int) -> No
         env.np_random = np.random.default_rng([seed, rank, update])
 
 
-def _checkpoint(run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo,
-                milestone_every: int | None = None) -> None:
+def _checkpoint(
+    run_dir: Path, progress: dict, model, optimizer, env, info: DistInfo, milestone_every: int | None = None
+) -> None:
     """Checkpoint with every rank's RNG states (rank 0 writes the rest and commits)."""
     if info.is_main:
         checkpoint_tmp(run_dir, progress["update"])

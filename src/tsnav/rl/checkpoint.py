@@ -32,8 +32,17 @@ from ..agent.model import ActorCritic
 from ..agent.observe import DetectionTable, Observer, load_bank_features
 from ..data.detections import load_scene_detections
 from .. import checkpoint as ckpt
-from ..checkpoint import (CHECKPOINTS, atomic_write_json, load_tensors, optimizer_file, optimizer_from_tensors,
-                          optimizer_to_tensors, read_json, resume_newest, set_aside)
+from ..checkpoint import (
+    CHECKPOINTS,
+    atomic_write_json,
+    load_tensors,
+    optimizer_file,
+    optimizer_from_tensors,
+    optimizer_to_tensors,
+    read_json,
+    resume_newest,
+    set_aside,
+)
 from ..constants import ACTION_ORDER, NUM_ACTIONS, OLD_ACTION_ORDER, action_permutation, check_same_class_set
 from .assemble import install
 from .config import TrainConfig
@@ -70,8 +79,11 @@ def checkpoint_action_order(meta: dict, path: Path, quiet: bool = False) -> str:
     to stderr when the checkpoint is converted on load."""
     order = meta.get("action_order", OLD_ACTION_ORDER)
     if order != ACTION_ORDER and not quiet:
-        print(f"note: {path} was trained with the action order {order}; its actor and action-embedding rows "
-              f"are converted on load to {ACTION_ORDER} (the lineage's)", file=sys.stderr)
+        print(
+            f"note: {path} was trained with the action order {order}; its actor and action-embedding rows "
+            f"are converted on load to {ACTION_ORDER} (the lineage's)",
+            file=sys.stderr,
+        )
     return order
 
 
@@ -109,8 +121,15 @@ def write_rng(tmp: Path, rank: int, state: dict) -> None:
     atomic_write_json(Path(tmp) / f"rng_rank{rank}.json", state)
 
 
-def commit_checkpoint(run_dir: str | Path, tmp: Path, progress: dict, model: ActorCritic,
-                      optimizer: torch.optim.Optimizer | None, keep: int = 2, milestone_every: int | None = None) -> Path:
+def commit_checkpoint(
+    run_dir: str | Path,
+    tmp: Path,
+    progress: dict,
+    model: ActorCritic,
+    optimizer: torch.optim.Optimizer | None,
+    keep: int = 2,
+    milestone_every: int | None = None,
+) -> Path:
     """Write the model, optimizer and progress into ``tmp`` and rename it to its final name. The ``keep`` newest
     checkpoints stay, plus every one whose update is a multiple of ``milestone_every`` (for model selection on a
     validation split afterwards)."""
@@ -118,14 +137,25 @@ def commit_checkpoint(run_dir: str | Path, tmp: Path, progress: dict, model: Act
     state, tensors = {"progress": dict(progress)}, None
     if optimizer is not None:
         tensors, state["optimizer"] = optimizer_to_tensors(optimizer, names)
-    ckpt.write_checkpoint_files(tmp, model.state_dict(),
-                                {"format": MODEL_FORMAT, "model": json.dumps(model.describe(), sort_keys=True),
-                                 "action_order": ACTION_ORDER}, state, tensors)
+    ckpt.write_checkpoint_files(
+        tmp,
+        model.state_dict(),
+        {"format": MODEL_FORMAT, "model": json.dumps(model.describe(), sort_keys=True), "action_order": ACTION_ORDER},
+        state,
+        tensors,
+    )
     return ckpt.commit_checkpoint(Path(run_dir) / CKPT, tmp, progress["update"], keep, milestone_every)
 
 
-def save_checkpoint(run_dir: str | Path, progress: dict, model: ActorCritic, optimizer=None,
-                    rng: dict | None = None, keep: int = 2, milestone_every: int | None = None) -> Path:
+def save_checkpoint(
+    run_dir: str | Path,
+    progress: dict,
+    model: ActorCritic,
+    optimizer=None,
+    rng: dict | None = None,
+    keep: int = 2,
+    milestone_every: int | None = None,
+) -> Path:
     """Single-process checkpoint of ``progress["update"]`` (see the module docstring and
     :func:`commit_checkpoint`)."""
     tmp = checkpoint_tmp(run_dir, progress["update"])
@@ -164,16 +194,21 @@ def load_checkpoint(path: str | Path, model: ActorCritic | None = None, optimize
         optimizer_from_tensors(optimizer, [n for n, _ in model.named_parameters()], tensors, state["optimizer"])
     state["rng"] = {}
     for f in path.glob("rng_rank*.json"):
-        state["rng"][int(f.stem[len("rng_rank"):])] = read_json(f)
+        state["rng"][int(f.stem[len("rng_rank") :])] = read_json(f)
     return state
 
 
-def resume_checkpoint(run_dir: str | Path, model: ActorCritic | None = None, optimizer=None,
-                      aside: bool = True) -> tuple[Path, dict] | None:
+def resume_checkpoint(
+    run_dir: str | Path, model: ActorCritic | None = None, optimizer=None, aside: bool = True
+) -> tuple[Path, dict] | None:
     """Load the newest checkpoint of a run that reads (:func:`load_checkpoint`); a broken newer one is reported
     in one line and, with ``aside``, renamed by :func:`set_aside`. None when the run has no checkpoint."""
-    return resume_newest(list_checkpoints(run_dir)[::-1], lambda p: load_checkpoint(p, model, optimizer),
-                         on_broken=set_aside if aside else None, label=lambda p: p.name)
+    return resume_newest(
+        list_checkpoints(run_dir)[::-1],
+        lambda p: load_checkpoint(p, model, optimizer),
+        on_broken=set_aside if aside else None,
+        label=lambda p: p.name,
+    )
 
 
 def read_run_config(run_dir: str | Path) -> dict:
@@ -190,6 +225,7 @@ def read_run_config(run_dir: str | Path) -> dict:
 
 def load_model(run_dir: str | Path, checkpoint: str | Path | None = None) -> tuple[ActorCritic, dict]:
     """The trained network of a run (latest checkpoint unless given) in eval mode, and the checkpoint state."""
+
     def load(path: Path) -> tuple[ActorCritic, dict]:
         _, meta = load_tensors(path / "model.safetensors")
         if meta.get("format") != MODEL_FORMAT:
@@ -232,8 +268,15 @@ def resolve_checkpoint(run_dir: str | Path, which: str | Path | None = "auto") -
     return path
 
 
-def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, device: str = "cpu",
-                checkpoint: str | Path | None = "auto", detections: str | None = None):
+def load_policy(
+    run_dir: str | Path,
+    bank,
+    greedy: bool = True,
+    seed: int = 0,
+    device: str = "cpu",
+    checkpoint: str | Path | None = "auto",
+    detections: str | None = None,
+):
     """The trained agent of ``run_dir`` as a :class:`~tsnav.eval.policies.Policy` over ``bank``.
 
     The bank's scenes need the run's feature cache (``features_<name>.hdf5``); when the run used detection
@@ -258,8 +301,10 @@ def load_policy(run_dir: str | Path, bank, greedy: bool = True, seed: int = 0, d
             det_features = load_scene_detections(bank.scenes, name).features
     features = load_bank_features(bank, cfg.features)
     if tuple(features.shape[1:]) != model.feature_shape:
-        raise ValueError(f"features_{cfg.features} of these scenes have shape {tuple(features.shape[1:])} but the "
-                         f"agent of {run_dir} was trained on {model.feature_shape}")
+        raise ValueError(
+            f"features_{cfg.features} of these scenes have shape {tuple(features.shape[1:])} but the "
+            f"agent of {run_dir} was trained on {model.feature_shape}"
+        )
     observer = Observer(bank, features, DetectionTable(bank, det_features), device=device)
     if observer.det_dim != model.det_dim:
         raise ValueError(f"detection features of size {observer.det_dim} do not match the agent's {model.det_dim}")

@@ -22,7 +22,14 @@ from ..atomic import atomic_write_text
 from ..errors import CommandError
 from ..settings import add_shared, dump_recipe
 from .checkpoint import latest_checkpoint
-from .recipe import add_recipe_options, add_run_options, recipe_from_args, refuse_other_settings, resolve_run, run_recipe
+from .recipe import (
+    add_recipe_options,
+    add_run_options,
+    recipe_from_args,
+    refuse_other_settings,
+    resolve_run,
+    run_recipe,
+)
 from .train import feature_info, stored_config, train_run
 
 #: Settings a new run must name (detections: no fallback to ground truth, issue 14).
@@ -63,13 +70,21 @@ def run(args: argparse.Namespace) -> int:
     progress = train_run(cfg, agent, args.out, progress_bar=not args.quiet)
     if int(os.environ.get("RANK", "0")) != 0:
         return 0
-    atomic_write_text(Path(args.out) / "recipe.toml", dump_recipe(
-        run_recipe(cfg, agent), header=f"The resolved recipe of the run {Path(args.out).name} (tsnav train)."))
+    atomic_write_text(
+        Path(args.out) / "recipe.toml",
+        dump_recipe(
+            run_recipe(cfg, agent), header=f"The resolved recipe of the run {Path(args.out).name} (tsnav train)."
+        ),
+    )
     done = "finished" if progress.get("finished") else "stopped"
     if before is not None and latest_checkpoint(args.out) == before and progress.get("finished"):
-        print(f"{args.out}: already finished ({progress['episodes']} episodes, {progress['update']} updates); "
-              f"not retrained (pass a larger budget to continue)")
+        print(
+            f"{args.out}: already finished ({progress['episodes']} episodes, {progress['update']} updates); "
+            f"not retrained (pass a larger budget to continue)"
+        )
     else:
-        print(f"{args.out}: {done} after {progress['update']} updates, {progress['env_steps']} env steps, "
-              f"{progress['episodes']} episodes, {progress['seconds'] / 60:.1f} min ({cfg.algo}, reward {cfg.reward})")
+        print(
+            f"{args.out}: {done} after {progress['update']} updates, {progress['env_steps']} env steps, "
+            f"{progress['episodes']} episodes, {progress['seconds'] / 60:.1f} min ({cfg.algo}, reward {cfg.reward})"
+        )
     return 0

@@ -51,8 +51,14 @@ class TrainConfig:
     """Everything a training run depends on besides the network sizes (:class:`~tsnav.agent.AgentConfig`)."""
 
     #: Allowed values of fields (the command-line options' choices, :mod:`tsnav.settings`).
-    CHOICES: ClassVar[dict] = {"algo": ALGOS, "reward": VARIANTS, "preset": tuple(PRESETS), "ranks": RANK_MODES,
-                               "precision": PRECISIONS, "protocol": PROTOCOLS}
+    CHOICES: ClassVar[dict] = {
+        "algo": ALGOS,
+        "reward": VARIANTS,
+        "preset": tuple(PRESETS),
+        "ranks": RANK_MODES,
+        "precision": PRECISIONS,
+        "protocol": PROTOCOLS,
+    }
 
     data: str = ""
     """Dataset root (scene folders)."""
@@ -169,16 +175,26 @@ class TrainConfig:
             raise ValueError(f"unknown precision {self.precision!r} (choose from {', '.join(PRECISIONS)})")
         if self.reward not in VARIANTS:
             raise ValueError(f"unknown reward {self.reward!r} (choose from {', '.join(VARIANTS)})")
-        for name in ("rollout_steps", "max_steps", "num_envs", "workers", "checkpoint_every", "log_every",
-                     "threads", "procs"):
+        for name in (
+            "rollout_steps",
+            "max_steps",
+            "num_envs",
+            "workers",
+            "checkpoint_every",
+            "log_every",
+            "threads",
+            "procs",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.distance_increase_scale >= 0:
             raise ValueError(f"distance_increase_scale must be >= 0, got {self.distance_increase_scale}")
         own = [k for k in REWARD_OWN if k in self.reward_settings]
         if own:
-            raise ValueError(f"reward_settings may not hold {', '.join(own)} (TrainConfig.reward and "
-                             "TrainConfig.distance_increase_scale set them)")
+            raise ValueError(
+                f"reward_settings may not hold {', '.join(own)} (TrainConfig.reward and "
+                "TrainConfig.distance_increase_scale set them)"
+            )
         self.reward_settings = reward_settings_of(self.reward_config())  # checks the values, canonical form
         if not self.lr > 0:
             raise ValueError(f"lr must be positive, got {self.lr}")
@@ -190,7 +206,9 @@ class TrainConfig:
         if not 0.0 < self.gamma <= 1.0 or not 0.0 <= self.gae_tau <= 1.0:
             raise ValueError("gamma must be in (0, 1] and gae_tau in [0, 1]")
         if self.procs > 1 and self.algo != "batched":
-            raise ValueError(f"procs applies to the batched trainer (A3C runs --workers processes), got algo {self.algo!r}")
+            raise ValueError(
+                f"procs applies to the batched trainer (A3C runs --workers processes), got algo {self.algo!r}"
+            )
         if self.ranks not in RANK_MODES:
             raise ValueError(f"unknown ranks mode {self.ranks!r} (choose from {', '.join(RANK_MODES)})")
         if self.ranks == "split" and self.num_envs % self.procs:
@@ -199,8 +217,10 @@ class TrainConfig:
             for name in ("checkpoint_every", "log_every", "milestone_every", "updates"):
                 v = getattr(self, name)
                 if v is not None and v % self.procs:
-                    raise ValueError(f"ranks 'staggered' makes {self.procs} updates per round: {name} must be a "
-                                     f"multiple of procs={self.procs}, got {v}")
+                    raise ValueError(
+                        f"ranks 'staggered' makes {self.procs} updates per round: {name} must be a "
+                        f"multiple of procs={self.procs}, got {v}"
+                    )
         if self.milestone_every is not None and self.milestone_every < 1:
             raise ValueError(f"milestone_every must be >= 1, got {self.milestone_every}")
         for name in BUDGET_FIELDS:
@@ -217,16 +237,20 @@ class TrainConfig:
     def budget_reached(self, progress: dict) -> bool:
         """Whether ``progress`` (``update``, ``episodes``, ``seconds``) has used up the budget."""
         b = self.budget
-        return (("episodes" in b and progress["episodes"] >= b["episodes"])
-                or ("updates" in b and progress["update"] >= b["updates"])
-                or ("minutes" in b and progress["seconds"] >= 60.0 * b["minutes"]))
+        return (
+            ("episodes" in b and progress["episodes"] >= b["episodes"])
+            or ("updates" in b and progress["update"] >= b["updates"])
+            or ("minutes" in b and progress["seconds"] >= 60.0 * b["minutes"])
+        )
 
     def budget_fraction(self, progress: dict) -> float:
         """Fraction of the budget used (the largest over its parts), for progress bars."""
         b = self.budget
-        parts = [progress["episodes"] / b["episodes"] if "episodes" in b else 0.0,
-                 progress["update"] / b["updates"] if "updates" in b else 0.0,
-                 progress["seconds"] / (60.0 * b["minutes"]) if "minutes" in b else 0.0]
+        parts = [
+            progress["episodes"] / b["episodes"] if "episodes" in b else 0.0,
+            progress["update"] / b["updates"] if "updates" in b else 0.0,
+            progress["seconds"] / (60.0 * b["minutes"]) if "minutes" in b else 0.0,
+        ]
         return min(1.0, max(parts))
 
     def to_dict(self) -> dict:

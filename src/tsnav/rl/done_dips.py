@@ -50,8 +50,16 @@ def done_dips(records: list[dict], threshold: float = DIP_DONE_SHARE) -> list[di
             cur = None
     if cur is not None:
         dips.append({**cur, "recovered": False})
-    return [{"start": d["start"], "end": d["end"], "min_done_prob": min(d["probs"]) if d["probs"] else None,
-             "recovered": d["recovered"], "updates": d["end"] - d["start"] + d["step"]} for d in dips]
+    return [
+        {
+            "start": d["start"],
+            "end": d["end"],
+            "min_done_prob": min(d["probs"]) if d["probs"] else None,
+            "recovered": d["recovered"],
+            "updates": d["end"] - d["start"] + d["step"],
+        }
+        for d in dips
+    ]
 
 
 def run_done_dips(run_dir: str | Path, threshold: float = DIP_DONE_SHARE) -> list[dict]:

@@ -18,8 +18,13 @@ from .stats import concat, summarize
 
 #: TensorBoard group of each key (cleanrl-style tags: charts/..., losses/..., reward/..., metrics/...); every
 #: metric of :data:`tsnav.metrics.METRICS` goes to ``metrics/`` (:func:`tag_group`).
-_GROUPS = {"loss": "losses", "policy_loss": "losses", "value_loss": "losses", "entropy": "losses",
-           "grad_norm": "losses"}
+_GROUPS = {
+    "loss": "losses",
+    "policy_loss": "losses",
+    "value_loss": "losses",
+    "entropy": "losses",
+    "grad_norm": "losses",
+}
 
 
 def tag_group(key: str) -> str:

@@ -20,8 +20,9 @@ def new_progress() -> dict:
     return {"update": 0, "env_steps": 0, "episodes": 0, "seconds": 0.0, "finished": False}
 
 
-def resume_progress(run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer, *,
-                    aside: bool = True, **counters) -> tuple[dict, dict | None]:
+def resume_progress(
+    run_dir: str | Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer, *, aside: bool = True, **counters
+) -> tuple[dict, dict | None]:
     """``(progress, state)``: the counters of the newest readable checkpoint of ``run_dir``, whose weights and
     optimizer state are loaded into ``model`` and ``optimizer``, and its ``state.json`` content (with ``rng``);
     for a run without a checkpoint :func:`new_progress` plus ``counters`` and None. ``aside``: a broken newest
@@ -52,11 +53,21 @@ class ProgressBar:
 
     def __init__(self, cfg: TrainConfig, progress: dict, enabled: bool):
         b = cfg.budget
-        self.key, total, unit = (("episodes", b["episodes"], "ep") if "episodes" in b else
-                                 ("update", b["updates"], "upd") if "updates" in b else
-                                 ("seconds", int(60 * b["minutes"]), "s"))
-        self.bar = tqdm(total=total, initial=int(progress[self.key]), unit=unit, disable=not enabled,
-                        dynamic_ncols=True, desc=f"train {cfg.algo}")
+        self.key, total, unit = (
+            ("episodes", b["episodes"], "ep")
+            if "episodes" in b
+            else ("update", b["updates"], "upd")
+            if "updates" in b
+            else ("seconds", int(60 * b["minutes"]), "s")
+        )
+        self.bar = tqdm(
+            total=total,
+            initial=int(progress[self.key]),
+            unit=unit,
+            disable=not enabled,
+            dynamic_ncols=True,
+            desc=f"train {cfg.algo}",
+        )
 
     def update(self, progress: dict, postfix: dict | None = None) -> None:
         self.bar.update(max(0, int(progress[self.key]) - self.bar.n))
@@ -72,8 +83,9 @@ class RunOutput:
     (``log.jsonl`` and TensorBoard, lines after ``progress`` dropped) and the bar. ``main=False`` (ranks other
     than 0) writes nothing."""
 
-    def __init__(self, run_dir: str | Path, cfg: TrainConfig, progress: dict, *, main: bool = True,
-                 progress_bar: bool = True):
+    def __init__(
+        self, run_dir: str | Path, cfg: TrainConfig, progress: dict, *, main: bool = True, progress_bar: bool = True
+    ):
         self.logger = RunLogger(run_dir, progress["update"], enabled=main)
         self.bar = ProgressBar(cfg, progress, enabled=progress_bar and main)
         self.window = LogWindow(progress["env_steps"], cfg.protocol)

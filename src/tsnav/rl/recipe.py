@@ -17,8 +17,17 @@ from pathlib import Path
 
 from ..agent.model import AgentConfig, agent_config
 from ..errors import CommandError
-from ..settings import (add_options, add_shared, apply_sets, build, first_difference, given, merge, read_recipe,
-                        to_recipe)
+from ..settings import (
+    add_options,
+    add_shared,
+    apply_sets,
+    build,
+    first_difference,
+    given,
+    merge,
+    read_recipe,
+    to_recipe,
+)
 from ..tsrm.reward import RewardConfig
 from .config import BUDGET_FIELDS, REWARD_OWN, TrainConfig, reward_settings_of
 
@@ -34,13 +43,27 @@ TRAIN_HIDDEN = ("reward_settings",)
 def add_run_options(parser: argparse.ArgumentParser, *, exclude_train=(), defaults: TrainConfig | None = None) -> None:
     """The options of a run's settings, one per field: ``[train]`` (less ``exclude_train``; ``defaults``: the
     defaults shown), ``[reward]`` and ``[agent]``, in three groups."""
-    add_options(parser.add_argument_group("training (TrainConfig; recipe section [train])"), TrainConfig, "train",
-                exclude=(*TRAIN_HIDDEN, *exclude_train), defaults=defaults)
-    add_options(parser.add_argument_group("reward: the paper's constants (RewardConfig; recipe section [reward])"),
-                RewardConfig, "reward", exclude=REWARD_OWN)
-    add_options(parser.add_argument_group("agent network over the preset (AgentConfig; recipe section [agent]; "
-                                          "default: the preset's)"), AgentConfig, "agent",
-                defaults=agent_config("cpu") if defaults is not None and defaults.preset == "cpu" else None)
+    add_options(
+        parser.add_argument_group("training (TrainConfig; recipe section [train])"),
+        TrainConfig,
+        "train",
+        exclude=(*TRAIN_HIDDEN, *exclude_train),
+        defaults=defaults,
+    )
+    add_options(
+        parser.add_argument_group("reward: the paper's constants (RewardConfig; recipe section [reward])"),
+        RewardConfig,
+        "reward",
+        exclude=REWARD_OWN,
+    )
+    add_options(
+        parser.add_argument_group(
+            "agent network over the preset (AgentConfig; recipe section [agent]; default: the preset's)"
+        ),
+        AgentConfig,
+        "agent",
+        defaults=agent_config("cpu") if defaults is not None and defaults.preset == "cpu" else None,
+    )
 
 
 def add_recipe_options(parser: argparse.ArgumentParser) -> None:
@@ -56,13 +79,17 @@ def recipe_from_args(args: argparse.Namespace, sections=SECTIONS) -> dict:
         # an agent's recipe (configs/agents/): the run's sections are taken, the other steps' left to release make
         skipped = sorted(set(base) - set(sections))
         if skipped:
-            print(f"{args.config}: an agent's recipe; this command reads its {', '.join(sections)} sections "
-                  f"(the others, {', '.join(skipped)}, are tsnav release make's)", file=sys.stderr)
+            print(
+                f"{args.config}: an agent's recipe; this command reads its {', '.join(sections)} sections "
+                f"(the others, {', '.join(skipped)}, are tsnav release make's)",
+                file=sys.stderr,
+            )
         base = {k: v for k, v in base.items() if k in sections}
     unknown = sorted(set(base) - set(sections))
     if unknown:
-        raise CommandError(f"{args.config}: no section {', '.join(unknown)} in a run's recipe "
-                           f"(sections: {', '.join(sections)})")
+        raise CommandError(
+            f"{args.config}: no section {', '.join(unknown)} in a run's recipe (sections: {', '.join(sections)})"
+        )
     recipe = apply_sets(base, getattr(args, "set", None) or [], tuple(sections))
     return merge(recipe, {s: given(args, s) for s in sections})
 
@@ -79,8 +106,9 @@ def resolve_run(recipe: dict, stored: tuple[TrainConfig, AgentConfig] | None = N
     reward = dict(recipe.get("reward") or {})
     own = [k for k in REWARD_OWN if k in reward]
     if own:
-        raise CommandError(f"[reward]: {', '.join(own)} is set in [train] (train.reward, "
-                           "train.distance_increase_scale)")
+        raise CommandError(
+            f"[reward]: {', '.join(own)} is set in [train] (train.reward, train.distance_increase_scale)"
+        )
     if reward:
         r = build(RewardConfig, reward, "reward", base=cfg.reward_config())
         cfg = build(TrainConfig, {}, "train", base=_with_reward(cfg, r))
@@ -127,5 +155,6 @@ def refuse_other_settings(out: str | Path, stored: tuple, now: tuple) -> None:
         detail = f"trained {'with' if was else 'without'} {option}, given {'with' if new else 'without'} it"
     else:
         detail = f"{was} saved, {new} given"
-    raise CommandError(f"{out} holds a run with another configuration ({name}): {detail}; use another --out or "
-                       f"the run's settings")
+    raise CommandError(
+        f"{out} holds a run with another configuration ({name}): {detail}; use another --out or the run's settings"
+    )

@@ -67,8 +67,16 @@ class Rollout:
 class RolloutCollector:
     """Steps ``env`` with ``model`` and keeps the observation and recurrent state between rollouts."""
 
-    def __init__(self, env: BatchEnv, observer: Observer, model: ActorCritic, stats: EpisodeStats | None = None,
-                 generator: torch.Generator | None = None, precision: str = "fp32", cast_once: bool = True):
+    def __init__(
+        self,
+        env: BatchEnv,
+        observer: Observer,
+        model: ActorCritic,
+        stats: EpisodeStats | None = None,
+        generator: torch.Generator | None = None,
+        precision: str = "fp32",
+        cast_once: bool = True,
+    ):
         if precision not in PRECISIONS:
             raise ValueError(f"unknown precision {precision!r} (choose from {', '.join(PRECISIONS)})")
         self.precision = precision
@@ -103,8 +111,11 @@ class RolloutCollector:
             else:
                 weights = {name: CastOnce.apply(w, low) for name, (w, low) in self.low.items()}
                 logits, value, new = torch.func.functional_call(self.model, weights, (obs, state), strict=False)
-        return logits.float(), value.float(), AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action,
-                                                        new.prev_position)
+        return (
+            logits.float(),
+            value.float(),
+            AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action, new.prev_position),
+        )
 
     def start(self) -> None:
         """Begin fresh episodes in every row (drawn from the env's sampler and RNG)."""
@@ -119,8 +130,10 @@ class RolloutCollector:
         if self.precision == "bf16" and self.cast_once:  # the weights are fixed during a rollout
             params = dict(self.model.named_parameters())
             with torch.no_grad():
-                self.low = {name: (params[name], params[name].detach().to(torch.bfloat16))
-                            for name in self.model.autocast_weights()}
+                self.low = {
+                    name: (params[name], params[name].detach().to(torch.bfloat16))
+                    for name in self.model.autocast_weights()
+                }
         try:
             return self._collect(steps)
         finally:
@@ -173,10 +186,21 @@ class RolloutCollector:
         fin = torch.stack(fins)
         nxt = torch.cat([value[1:].detach(), v_next[None]])  # V(s_{t+1}) within the episode when not finished
         boot = torch.where(fin, boot, nxt)
-        return Rollout(logp=torch.stack(logps), entropy=torch.stack(ents), value=value, reward=torch.stack(rewards),
-                       bootstrap=boot, terminated=torch.stack(terms), finished=fin, episodes=episodes,
-                       states=np.stack(states), targets=np.stack(targets), actions=np.stack(actions), start=start,
-                       done_prob=done_prob / steps)
+        return Rollout(
+            logp=torch.stack(logps),
+            entropy=torch.stack(ents),
+            value=value,
+            reward=torch.stack(rewards),
+            bootstrap=boot,
+            terminated=torch.stack(terms),
+            finished=fin,
+            episodes=episodes,
+            states=np.stack(states),
+            targets=np.stack(targets),
+            actions=np.stack(actions),
+            start=start,
+            done_prob=done_prob / steps,
+        )
 
 
 class Policy:
@@ -222,8 +246,15 @@ class CastOnce(torch.autograd.Function):
         return grad.to(ctx.dtype), None
 
 
-def gae(reward: torch.Tensor, value: torch.Tensor, bootstrap: torch.Tensor, terminated: torch.Tensor,
-        finished: torch.Tensor, gamma: float = 0.99, tau: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+def gae(
+    reward: torch.Tensor,
+    value: torch.Tensor,
+    bootstrap: torch.Tensor,
+    terminated: torch.Tensor,
+    finished: torch.Tensor,
+    gamma: float = 0.99,
+    tau: float = 1.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Generalised advantage estimation over ``(T, B)`` tensors (see the module docstring); returns
     ``(advantages, returns)``, both detached. ``terminated`` implies ``finished``."""
     reward, value, bootstrap = reward.detach(), value.detach(), bootstrap.detach()
@@ -259,15 +290,20 @@ def gae_reference(reward, value, bootstrap, terminated, finished, gamma=0.99, ta
     return adv, adv + value
 
 
-def a2c_loss(ro: Rollout, advantages: torch.Tensor, returns: torch.Tensor, entropy_coef: float = 0.01,
-             value_coef: float = 0.5) -> tuple[torch.Tensor, dict[str, float]]:
+def a2c_loss(
+    ro: Rollout, advantages: torch.Tensor, returns: torch.Tensor, entropy_coef: float = 0.01, value_coef: float = 0.5
+) -> tuple[torch.Tensor, dict[str, float]]:
     """The actor-critic loss of the module docstring and its parts (floats, per row and rollout)."""
     policy = -(ro.logp * advantages.detach()).sum(0).mean()
     entropy = ro.entropy.sum(0).mean()
     value = (0.5 * (returns.detach() - ro.value) ** 2).sum(0).mean()
     loss = policy - entropy_coef * entropy + value_coef * value
-    return loss, {"loss": loss.item(), "policy_loss": policy.item(), "value_loss": value.item(),
-                  "entropy": entropy.item() / ro.reward.shape[0]}
+    return loss, {
+        "loss": loss.item(),
+        "policy_loss": policy.item(),
+        "value_loss": value.item(),
+        "entropy": entropy.item() / ro.reward.shape[0],
+    }
 
 
 def collect_and_loss(collector: "RolloutCollector", cfg) -> tuple[Rollout, torch.Tensor, dict[str, float]]:

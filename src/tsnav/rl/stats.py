@@ -16,13 +16,31 @@ import numpy as np
 from ..metrics import metric_values
 from ..sim.paths import UNREACHABLE
 
-FIELDS = ("success", "path_length", "optimal_length", "entered", "search_length", "optimal_search_length",
-          "nav_length", "optimal_nav_length", "steps", "return")
+FIELDS = (
+    "success",
+    "path_length",
+    "optimal_length",
+    "entered",
+    "search_length",
+    "optimal_search_length",
+    "nav_length",
+    "optimal_nav_length",
+    "steps",
+    "return",
+)
 
 
-def stage_lengths(dist: np.ndarray, search_dist: np.ndarray, start: np.ndarray, target: np.ndarray,
-                  path_length: np.ndarray, entered: np.ndarray, switch_length: np.ndarray, switch_state: np.ndarray,
-                  unreachable: int | None = None) -> dict[str, np.ndarray]:
+def stage_lengths(
+    dist: np.ndarray,
+    search_dist: np.ndarray,
+    start: np.ndarray,
+    target: np.ndarray,
+    path_length: np.ndarray,
+    entered: np.ndarray,
+    switch_length: np.ndarray,
+    switch_state: np.ndarray,
+    unreachable: int | None = None,
+) -> dict[str, np.ndarray]:
     """Searching and pathfinding lengths of ``K`` finished episodes (paper III-B / IV-A), as ``(K,)`` int64
     arrays: ``search_length`` (LSearch: movement actions before the switching frame; all of them when the
     episode never switched), ``optimal_search_length`` (L*Search: ``search_dist[start, target]``),
@@ -38,9 +56,12 @@ def stage_lengths(dist: np.ndarray, search_dist: np.ndarray, start: np.ndarray, 
     opt_s = search_dist[start, target].astype(np.int64)
     if unreachable is not None:
         opt_s = np.where(opt_s == UNREACHABLE, unreachable, opt_s)
-    return {"search_length": ls, "optimal_search_length": opt_s,
-            "nav_length": np.where(entered, path_length - ls, 0),
-            "optimal_nav_length": np.where(entered, dist[switch_state, target], 0).astype(np.int64)}
+    return {
+        "search_length": ls,
+        "optimal_search_length": opt_s,
+        "nav_length": np.where(entered, path_length - ls, 0),
+        "optimal_nav_length": np.where(entered, dist[switch_state, target], 0).astype(np.int64),
+    }
 
 
 class EpisodeStats:
@@ -66,8 +87,9 @@ class EpisodeStats:
         for v in self.terms.values():
             v[rows] = 0.0
 
-    def step(self, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, info: dict,
-             next_obs: dict) -> int:
+    def step(
+        self, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray, info: dict, next_obs: dict
+    ) -> int:
         """Account one :meth:`BatchEnv.step`; returns the number of episodes that finished."""
         active = info["active"]
         self.ret += np.where(active, reward, 0.0)
@@ -81,11 +103,24 @@ class EpisodeStats:
             g, s0 = self.target[r], self.start[r]
             L = info["path_length"][r].astype(np.int64)
             entered = info["entered"][r].copy()
-            entry = {"success": info["success"][r].astype(bool), "path_length": L,
-                     "optimal_length": self.bank.dist[s0, g].astype(np.int64), "entered": entered,
-                     **stage_lengths(self.bank.dist, self.search_dist, s0, g, L, entered, info["switch_length"][r],
-                                     info["switch_state"][r]),
-                     "steps": info["steps"][r].astype(np.int64), "return": self.ret[r].copy()}
+            entry = {
+                "success": info["success"][r].astype(bool),
+                "path_length": L,
+                "optimal_length": self.bank.dist[s0, g].astype(np.int64),
+                "entered": entered,
+                **stage_lengths(
+                    self.bank.dist,
+                    self.search_dist,
+                    s0,
+                    g,
+                    L,
+                    entered,
+                    info["switch_length"][r],
+                    info["switch_state"][r],
+                ),
+                "steps": info["steps"][r].astype(np.int64),
+                "return": self.ret[r].copy(),
+            }
             for k, v in self.terms.items():
                 entry[f"reward/{k}"] = v[r].copy()
             self._done.append(entry)
@@ -113,10 +148,22 @@ def summarize(ep: dict[str, np.ndarray], protocol: str = "paper") -> dict[str, f
     if not ep or len(ep["success"]) == 0:
         return {"n_episodes": 0}
     opt_s = np.where(ep["optimal_search_length"] >= UNREACHABLE, 0, ep["optimal_search_length"])
-    out = {"n_episodes": int(len(ep["success"])), "return": float(np.mean(ep["return"])),
-           "length": float(np.mean(ep["steps"])),
-           **metric_values(ep["success"], ep["entered"], ep["path_length"], ep["optimal_length"], ep["search_length"],
-                           opt_s, ep["nav_length"], ep["optimal_nav_length"], protocol=protocol)}
+    out = {
+        "n_episodes": int(len(ep["success"])),
+        "return": float(np.mean(ep["return"])),
+        "length": float(np.mean(ep["steps"])),
+        **metric_values(
+            ep["success"],
+            ep["entered"],
+            ep["path_length"],
+            ep["optimal_length"],
+            ep["search_length"],
+            opt_s,
+            ep["nav_length"],
+            ep["optimal_nav_length"],
+            protocol=protocol,
+        ),
+    }
     for k, v in ep.items():
         if k.startswith("reward/"):
             out[k] = float(np.mean(v))

@@ -34,8 +34,11 @@ def feature_info(cfg: TrainConfig) -> dict:
     if not f.exists():
         raise FileNotFoundError(f"{f}: no feature cache {cfg.features!r} (run `tsnav features` first)")
     with h5py.File(f, "r") as h:
-        attrs = {k: h5py_str(v) if isinstance(v, (bytes, str)) else v.item() if hasattr(v, "item") else v
-                 for k, v in h.attrs.items() if k != "config"}
+        attrs = {
+            k: h5py_str(v) if isinstance(v, (bytes, str)) else v.item() if hasattr(v, "item") else v
+            for k, v in h.attrs.items()
+            if k != "config"
+        }
         shape = list(h["features"].shape[1:])
     return {"name": cfg.features, "shape": shape, **attrs, "scenes": [p.name for p in scenes]}
 
@@ -43,12 +46,21 @@ def feature_info(cfg: TrainConfig) -> dict:
 def resolved_config(cfg: TrainConfig, agent: AgentConfig) -> dict:
     """Everything the run depends on, as saved in ``config.json``."""
     reward = cfg.reward_config()
-    sim = SimConfig(success_distance=cfg.success_distance, max_steps=cfg.max_steps, autoreset=True,
-                    protocol=cfg.protocol)
-    return {"format": RUN_FORMAT, "train": cfg.to_dict(), "agent": asdict(agent), "reward": asdict(reward),
-            "sim": asdict(sim), "features": feature_info(cfg), "budget": cfg.budget,
-            "detections": cfg.detections, "protocol": cfg.protocol,
-            "torch": torch.__version__}
+    sim = SimConfig(
+        success_distance=cfg.success_distance, max_steps=cfg.max_steps, autoreset=True, protocol=cfg.protocol
+    )
+    return {
+        "format": RUN_FORMAT,
+        "train": cfg.to_dict(),
+        "agent": asdict(agent),
+        "reward": asdict(reward),
+        "sim": asdict(sim),
+        "features": feature_info(cfg),
+        "budget": cfg.budget,
+        "detections": cfg.detections,
+        "protocol": cfg.protocol,
+        "torch": torch.__version__,
+    }
 
 
 def check_resume(run_dir: Path, cfg: TrainConfig, agent: AgentConfig) -> None:
@@ -57,8 +69,10 @@ def check_resume(run_dir: Path, cfg: TrainConfig, agent: AgentConfig) -> None:
     diff = [k for k, v in cfg.identity().items() if old_cfg.identity().get(k) != v]
     diff += [f"agent.{k}" for k, v in asdict(agent).items() if getattr(old_agent, k) != v]
     if diff:
-        raise ValueError(f"{run_dir} holds a run with another configuration ({', '.join(diff)}); "
-                         f"use another --out or the same settings")
+        raise ValueError(
+            f"{run_dir} holds a run with another configuration ({', '.join(diff)}); "
+            f"use another --out or the same settings"
+        )
 
 
 def train_run(cfg: TrainConfig, agent: AgentConfig, run_dir: str | Path, *, progress_bar: bool = True) -> dict:

@@ -20,9 +20,13 @@ def _register() -> None:
     # the factories add the paper's reward (tsnav.tsrm, a higher layer: named here, imported on make)
     for env_id, kwargs in ((ENV_ID, {}), (ENV_ID_V0, {"obs_layout": "legacy"})):
         if env_id not in gymnasium.registry:
-            gymnasium.register(id=env_id, entry_point="tsnav.tsrm.envs:make_objectnav",
-                               vector_entry_point="tsnav.tsrm.envs:make_objectnav_vector", disable_env_checker=False,
-                               kwargs=kwargs)
+            gymnasium.register(
+                id=env_id,
+                entry_point="tsnav.tsrm.envs:make_objectnav",
+                vector_entry_point="tsnav.tsrm.envs:make_objectnav_vector",
+                disable_env_checker=False,
+                kwargs=kwargs,
+            )
 
 
 _register()

@@ -81,18 +81,24 @@ from .stage import StageSwitch, above_threshold
 class RewardFn(Protocol):
     """Pluggable reward of :class:`BatchEnv` (see the module docstring for the exact contract)."""
 
-    def reset(self, mask: np.ndarray, scene_idx: np.ndarray, target: np.ndarray, start_state: np.ndarray) -> None:
-        ...
+    def reset(self, mask: np.ndarray, scene_idx: np.ndarray, target: np.ndarray, start_state: np.ndarray) -> None: ...
 
-    def step(self, prev_state: np.ndarray, action: np.ndarray, new_state: np.ndarray, collided: np.ndarray,
-             done: np.ndarray, success: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        ...
+    def step(
+        self,
+        prev_state: np.ndarray,
+        action: np.ndarray,
+        new_state: np.ndarray,
+        collided: np.ndarray,
+        done: np.ndarray,
+        success: np.ndarray,
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]: ...
 
 
 def scalar_method(fn, one: str, reference: str):
     """``fn``'s scalar method ``one`` (``"step_one"`` / ``"reset_one"``) when the class that defines it also
     defines its array ``reference`` (``"step"`` / ``"reset"``), else None: a subclass that overrides only the
     array method must be called through it, or its override would be skipped (the scalar path's fallback)."""
+
     def owner(name):
         return next((k for k in type(fn).__mro__ if name in vars(k)), None)
 
@@ -105,8 +111,7 @@ class EpisodeSampler(Protocol):
     """Draws new episodes for :class:`BatchEnv`: ``sample(n, rng) -> (scene_idx, target, start_state)``,
     three ``(n,)`` int64 arrays (scene index into the bank, category id, global start state id)."""
 
-    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        ...
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
 
 @dataclass
@@ -148,8 +153,9 @@ class SparseReward:
         """:meth:`reset` of one episode (nothing to keep)."""
         return None
 
-    def step_one(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
-                 ) -> tuple[float, dict[str, float]]:
+    def step_one(
+        self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
+    ) -> tuple[float, dict[str, float]]:
         """:meth:`step` of one episode in Python scalars (the float32 values of ``step``, as Python floats)."""
         slack = np.float32(self.slack)
         win = np.float32(self.success) if success else np.float32(0.0)
@@ -184,9 +190,16 @@ class SceneBank:
             :class:`~tsnav.sim.stage.StageSwitch` and the searching lengths read it here.
     """
 
-    def __init__(self, scenes: Sequence[Scene], success_distance: float = SUCCESS_DISTANCE,
-                 confidence: np.ndarray | None = None, detections: np.ndarray | None = None,
-                 c_target: float = C_TARGET, cache: bool = True, protocol: str = DEFAULT_PROTOCOL):
+    def __init__(
+        self,
+        scenes: Sequence[Scene],
+        success_distance: float = SUCCESS_DISTANCE,
+        confidence: np.ndarray | None = None,
+        detections: np.ndarray | None = None,
+        c_target: float = C_TARGET,
+        cache: bool = True,
+        protocol: str = DEFAULT_PROTOCOL,
+    ):
         if len(scenes) == 0:
             raise ValueError("SceneBank needs at least one scene")
         if not success_distance > 0:
@@ -210,19 +223,27 @@ class SceneBank:
         self.room_types = [s.room_type for s in self.scenes]
         self.scene_of = np.repeat(np.arange(len(self.scenes), dtype=np.int32), sizes)
         self.next_state = np.concatenate(
-            [s.next_state.astype(np.int64) + o for s, o in zip(self.scenes, self.offsets[:-1])]).astype(np.int32)
+            [s.next_state.astype(np.int64) + o for s, o in zip(self.scenes, self.offsets[:-1])]
+        ).astype(np.int32)
         self.keys = np.concatenate([s.keys for s in self.scenes])
         self.x = np.concatenate([s.x for s in self.scenes]).astype(np.float32)
         self.z = np.concatenate([s.z for s in self.scenes]).astype(np.float32)
         self.rotation = np.concatenate([s.rotation for s in self.scenes]).astype(np.int16)
         self.horizon = np.concatenate([s.horizon for s in self.scenes]).astype(np.int16)
-        cells = np.stack([self.scene_of.astype(np.int64), np.round(self.x / GRID_SIZE).astype(np.int64),
-                          np.round(self.z / GRID_SIZE).astype(np.int64)], axis=1)
+        cells = np.stack(
+            [
+                self.scene_of.astype(np.int64),
+                np.round(self.x / GRID_SIZE).astype(np.int64),
+                np.round(self.z / GRID_SIZE).astype(np.int64),
+            ],
+            axis=1,
+        )
         _, pos = np.unique(cells, axis=0, return_inverse=True)
         self.position = pos.reshape(-1).astype(np.int32)
         self.success = np.concatenate([s.success_table(self.protocol, success_distance) for s in self.scenes])
-        self.dist = np.concatenate([scene_distance_fields(s, success_distance, cache=cache, protocol=self.protocol)
-                                    for s in self.scenes])
+        self.dist = np.concatenate(
+            [scene_distance_fields(s, success_distance, cache=cache, protocol=self.protocol) for s in self.scenes]
+        )
         self.in_frame = np.concatenate([_in_frame(s) for s in self.scenes])
         self.present = np.zeros((len(self.scenes), self.num_categories), dtype=bool)
         for i, s in enumerate(self.scenes):
@@ -259,8 +280,9 @@ class SceneBank:
         """Install the ``(S, C, 6)`` per-class detection rows (score, label, x0, y0, x1, y1)."""
         det = np.asarray(detections, dtype=np.float32)
         if det.shape != (self.num_states, self.num_categories, 6):
-            raise ValueError(f"detections must have shape ({self.num_states}, {self.num_categories}, 6), "
-                             f"got {det.shape}")
+            raise ValueError(
+                f"detections must have shape ({self.num_states}, {self.num_categories}, 6), got {det.shape}"
+            )
         self.detections = det
 
     def install_detections(self, name: str) -> Detections:
@@ -346,9 +368,17 @@ class BatchEnv:
     scalars (the single Gymnasium env), with the same outcome bit for bit.
     """
 
-    def __init__(self, bank: SceneBank, num_envs: int, sampler: EpisodeSampler | None = None,
-                 reward_fn: RewardFn | None = None, max_steps: int = 100, autoreset: bool = True,
-                 seed: int | None = None, stage: StageSwitch | None = None):
+    def __init__(
+        self,
+        bank: SceneBank,
+        num_envs: int,
+        sampler: EpisodeSampler | None = None,
+        reward_fn: RewardFn | None = None,
+        max_steps: int = 100,
+        autoreset: bool = True,
+        seed: int | None = None,
+        stage: StageSwitch | None = None,
+    ):
         """``stage``: the stage switch to keep (e.g. an evaluation's at its own C_target); default: one over
         the bank's rule (``bank.stage_mask``)."""
         if num_envs < 1:
@@ -402,8 +432,11 @@ class BatchEnv:
             scene_idx, target, start = (np.asarray(a, dtype=np.int64).reshape(-1) for a in episodes)
             if not len(scene_idx) == len(target) == len(start) == n:
                 raise ValueError(f"episodes must be three arrays of length {n}")
-            if n and ((start < 0).any() or (start >= self.bank.num_states).any()
-                      or (self.bank.scene_of[start] != scene_idx).any()):
+            if n and (
+                (start < 0).any()
+                or (start >= self.bank.num_states).any()
+                or (self.bank.scene_of[start] != scene_idx).any()
+            ):
                 raise ValueError("episode start states must be global state ids of their scenes")
             if n and ((target < 0).any() or (target >= self.bank.num_categories).any()):
                 raise ValueError(f"episode targets must be category ids in [0, {self.bank.num_categories})")
@@ -421,8 +454,12 @@ class BatchEnv:
             self.reward_fn.reset(mask.copy(), self.scene.copy(), self.target.copy(), self.state.copy(), **kw)
 
     def _obs(self) -> dict[str, np.ndarray]:
-        return {"state": self.state.copy(), "target": self.target.copy(), "scene": self.scene.copy(),
-                "step": self.steps.copy()}
+        return {
+            "state": self.state.copy(),
+            "target": self.target.copy(),
+            "scene": self.scene.copy(),
+            "step": self.steps.copy(),
+        }
 
     # -- stepping -----------------------------------------------------------------------------------------
     def step(self, actions) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -459,10 +496,19 @@ class BatchEnv:
             terms = {}
         self.stage.update(new, self.steps, self.path_length, active=active)
         stage = self.stage
-        info = {"collided": collided, "failed": failed, "success": success, "steps": self.steps.copy(),
-                "path_length": self.path_length.copy(), "final_state": new, "active": active.copy(),
-                "reward_terms": terms, "entered": stage.entered.copy(), "switch_length": stage.switch_length.copy(),
-                "switch_state": stage.switch_state.copy()}
+        info = {
+            "collided": collided,
+            "failed": failed,
+            "success": success,
+            "steps": self.steps.copy(),
+            "path_length": self.path_length.copy(),
+            "final_state": new,
+            "active": active.copy(),
+            "reward_terms": terms,
+            "entered": stage.entered.copy(),
+            "switch_length": stage.switch_length.copy(),
+            "switch_state": stage.switch_state.copy(),
+        }
         self.state = new.copy()  # auto-reset writes into self.state; info keeps the final states
         self.active = active & ~finished
         if self.autoreset and finished.any():
@@ -496,8 +542,9 @@ class BatchEnv:
                 self._reward_reset_one(scene, target, start, **kw)
             else:
                 kw = {"searching": np.array([searching])} if self._reward_uses_stage else {}
-                self.reward_fn.reset(np.ones(1, dtype=bool), self.scene.copy(), self.target.copy(),
-                                     self.state.copy(), **kw)
+                self.reward_fn.reset(
+                    np.ones(1, dtype=bool), self.scene.copy(), self.target.copy(), self.state.copy(), **kw
+                )
 
     def step_one(self, action: int) -> tuple[float, bool, bool, dict]:
         """:meth:`step` of a batch of one (``num_envs`` = 1) in Python scalars: ``(reward, terminated,
@@ -533,8 +580,15 @@ class BatchEnv:
                 reward, terms = self._reward_step_one(prev, a, new, collided, finished or not active, success, **kw)
             else:
                 kw = {"searching": np.array([searching])} if self._reward_uses_stage else {}
-                r, t = self.reward_fn.step(np.array([prev]), np.array([a]), np.array([new]), np.array([collided]),
-                                           np.array([finished or not active]), np.array([success]), **kw)
+                r, t = self.reward_fn.step(
+                    np.array([prev]),
+                    np.array([a]),
+                    np.array([new]),
+                    np.array([collided]),
+                    np.array([finished or not active]),
+                    np.array([success]),
+                    **kw,
+                )
                 reward = float(np.asarray(r, dtype=np.float32)[0])
                 terms = {k: float(np.asarray(v, dtype=np.float32)[0]) for k, v in t.items()}
             if not active:
@@ -542,10 +596,19 @@ class BatchEnv:
         else:
             reward, terms = 0.0, {}
         stage.update_one(new, steps, path_length, active)
-        info = {"collided": collided, "failed": failed, "success": success, "steps": steps,
-                "path_length": path_length, "final_state": new, "active": active, "reward_terms": terms,
-                "entered": bool(stage.entered[0]), "switch_length": int(stage.switch_length[0]),
-                "switch_state": int(stage.switch_state[0])}
+        info = {
+            "collided": collided,
+            "failed": failed,
+            "success": success,
+            "steps": steps,
+            "path_length": path_length,
+            "final_state": new,
+            "active": active,
+            "reward_terms": terms,
+            "entered": bool(stage.entered[0]),
+            "switch_length": int(stage.switch_length[0]),
+            "switch_state": int(stage.switch_state[0]),
+        }
         self.state[0] = new
         self.active[0] = active and not finished
         if self.autoreset and finished:

@@ -53,13 +53,22 @@ from .paths import UNREACHABLE
 #: Where the challenge's episodes say they come from (recorded in every converted list).
 CHALLENGE_SOURCE = "allenai/robothor-challenge @ f3c4f35bc397aff4d5236e269efe3ff41f6d218e, dataset/{split}/episodes/"
 #: The rule that maps the challenge's heading to tsnav's, in one line (recorded in every converted list).
-HEADING_RULE = ("tsnav rotation = 45 * floor(o / 45 + 1/2) mod 360 of the challenge's orientation o (the nearest "
-                "of the 8 headings; multiples of 30 never tie); the original is kept as "
-                "challenge.initial_orientation")
+HEADING_RULE = (
+    "tsnav rotation = 45 * floor(o / 45 + 1/2) mod 360 of the challenge's orientation o (the nearest "
+    "of the 8 headings; multiples of 30 never tie); the original is kept as "
+    "challenge.initial_orientation"
+)
 #: A start farther than this from the 0.25 m grid (metres, in x or z) is dropped.
 GRID_TOLERANCE = 0.01
-_FIELDS = ("id", "scene", "object_type", "initial_position", "initial_orientation", "initial_horizon",
-           "shortest_path_length")
+_FIELDS = (
+    "id",
+    "scene",
+    "object_type",
+    "initial_position",
+    "initial_orientation",
+    "initial_horizon",
+    "shortest_path_length",
+)
 
 
 def challenge_heading(orientation: float) -> int:
@@ -74,8 +83,10 @@ def read_challenge_episodes(root: str | Path, split: str) -> list[dict]:
     folder = Path(root) / split
     files = sorted(folder.glob("*.json.gz"))
     if not files:
-        raise ValueError(f"{folder}: no challenge episode files (*.json.gz); pass the folder that holds "
-                         f"train/ and val/ (e.g. ../shared/robothor/challenge_episodes)")
+        raise ValueError(
+            f"{folder}: no challenge episode files (*.json.gz); pass the folder that holds "
+            f"train/ and val/ (e.g. ../shared/robothor/challenge_episodes)"
+        )
     out = []
     for f in files:
         try:
@@ -130,15 +141,22 @@ class ChallengeImport:
         """One line: read, kept, dropped by reason, and the share of starts that are states."""
         drops = ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items(), key=lambda kv: -kv[1]))
         on, looked = self.starts_on_graph
-        return (f"{self.read} episodes read, {self.kept} kept"
-                + (f" ({self.start_success} start already succeeds)" if self.start_success else "")
-                + f", {self.read - self.kept} dropped" + (f" ({drops})" if drops else "")
-                + (f"; {on} / {looked} starts are states ({100 * on / looked:.1f} %)" if looked else ""))
+        return (
+            f"{self.read} episodes read, {self.kept} kept"
+            + (f" ({self.start_success} start already succeeds)" if self.start_success else "")
+            + f", {self.read - self.kept} dropped"
+            + (f" ({drops})" if drops else "")
+            + (f"; {on} / {looked} starts are states ({100 * on / looked:.1f} %)" if looked else "")
+        )
 
     def to_json(self) -> dict:
-        return {"read": self.read, "kept": self.kept, "start_success": self.start_success,
-                "dropped": dict(sorted(self.dropped.items())),
-                "per_scene": {s: dict(sorted(c.items())) for s, c in sorted(self.per_scene.items())}}
+        return {
+            "read": self.read,
+            "kept": self.kept,
+            "start_success": self.start_success,
+            "dropped": dict(sorted(self.dropped.items())),
+            "per_scene": {s: dict(sorted(c.items())) for s, c in sorted(self.per_scene.items())},
+        }
 
 
 def position_graph(bank: SceneBank) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -233,7 +251,7 @@ def challenge_episodes(records: list[dict], bank: SceneBank) -> tuple[list[Episo
         if not bank.present[i, c]:
             stats.drop(scene, "target not in scene")
             continue
-        if not bank.success[bank.offsets[i]:bank.offsets[i + 1], c].any():
+        if not bank.success[bank.offsets[i] : bank.offsets[i + 1], c].any():
             stats.drop(scene, "target has no success state")
             continue
         d = int(bank.dist[s, c])
@@ -249,14 +267,23 @@ def challenge_episodes(records: list[dict], bank: SceneBank) -> tuple[list[Episo
     out = []
     for r, i, c, s in found:
         p = r["initial_position"]
-        out.append(Episode(scene=bank.names[i], target=classes.categories[c], start=str(bank.keys[s]),
-                           optimal_length=int(bank.dist[s, c]), room_type=bank.room_types[i],
-                           optimal_metres=round(float(metres[c][s]), 4),
-                           challenge={"id": str(r["id"]),
-                                      "initial_position": {k: float(p[k]) for k in ("x", "y", "z")},
-                                      "initial_orientation": float(r["initial_orientation"]),
-                                      "initial_horizon": float(r["initial_horizon"]),
-                                      "shortest_path_length": float(r["shortest_path_length"])}))
+        out.append(
+            Episode(
+                scene=bank.names[i],
+                target=classes.categories[c],
+                start=str(bank.keys[s]),
+                optimal_length=int(bank.dist[s, c]),
+                room_type=bank.room_types[i],
+                optimal_metres=round(float(metres[c][s]), 4),
+                challenge={
+                    "id": str(r["id"]),
+                    "initial_position": {k: float(p[k]) for k in ("x", "y", "z")},
+                    "initial_orientation": float(r["initial_orientation"]),
+                    "initial_horizon": float(r["initial_horizon"]),
+                    "shortest_path_length": float(r["shortest_path_length"]),
+                },
+            )
+        )
         stats.count(bank.names[i], "kept")
     stats.kept = len(out)
     return out, stats
@@ -264,8 +291,11 @@ def challenge_episodes(records: list[dict], bank: SceneBank) -> tuple[list[Episo
 
 def length_ratios(episodes: list[Episode]) -> np.ndarray:
     """``optimal_metres / shortest_path_length`` of the episodes whose navmesh length is positive."""
-    r = [e.optimal_metres / e.challenge["shortest_path_length"] for e in episodes
-         if e.challenge and e.optimal_metres is not None and e.challenge["shortest_path_length"] > 0]
+    r = [
+        e.optimal_metres / e.challenge["shortest_path_length"]
+        for e in episodes
+        if e.challenge and e.optimal_metres is not None and e.challenge["shortest_path_length"] > 0
+    ]
     return np.asarray(r, dtype=np.float64)
 
 
@@ -276,9 +306,13 @@ def ratio_summary(episodes: list[Episode]) -> dict:
     if not len(r):
         return {"episodes": 0}
     q1, med, q3 = np.percentile(r, [25, 50, 75])
-    return {"episodes": int(len(r)), "median": float(med), "q1": float(q1), "q3": float(q3),
-            "within_25pct": float(np.mean(np.abs(r - 1.0) <= 0.25)),
-            "mean_optimal_actions": float(np.mean([e.optimal_length for e in episodes])),
-            "mean_optimal_metres": float(np.mean([e.optimal_metres for e in episodes])),
-            "mean_navmesh_metres": float(np.mean([e.challenge["shortest_path_length"] for e in episodes]))}
-
+    return {
+        "episodes": int(len(r)),
+        "median": float(med),
+        "q1": float(q1),
+        "q3": float(q3),
+        "within_25pct": float(np.mean(np.abs(r - 1.0) <= 0.25)),
+        "mean_optimal_actions": float(np.mean([e.optimal_length for e in episodes])),
+        "mean_optimal_metres": float(np.mean([e.optimal_metres for e in episodes])),
+        "mean_navmesh_metres": float(np.mean([e.challenge["shortest_path_length"] for e in episodes])),
+    }

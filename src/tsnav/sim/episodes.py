@@ -149,8 +149,14 @@ class TrainingSampler:
         return scene, int(t.pair_target[pair]), start
 
 
-def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sampler: EpisodeSampler | None = None,
-             reward_fn: RewardFn | None = None, seed: int | None = None) -> BatchEnv:
+def make_env(
+    scenes_or_bank,
+    num_envs: int,
+    config: SimConfig | None = None,
+    sampler: EpisodeSampler | None = None,
+    reward_fn: RewardFn | None = None,
+    seed: int | None = None,
+) -> BatchEnv:
     """A :class:`BatchEnv` over ``scenes_or_bank`` (a :class:`SceneBank` or a list of scenes) configured by
     ``config``; ``sampler`` defaults to the :class:`TrainingSampler`. With a bank, ``config``'s protocol and
     success distance must be the bank's (``ValueError`` otherwise: they are properties of the bank); C_target
@@ -163,14 +169,23 @@ def make_env(scenes_or_bank, num_envs: int, config: SimConfig | None = None, sam
             if name == "success_distance" and bank.protocol != "paper":
                 continue  # only the paper rule has a radius
             if given and getattr(config, name) != getattr(bank, name):
-                raise ValueError(f"SimConfig.{name} = {getattr(config, name)} differs from the bank's "
-                                 f"{getattr(bank, name)}; build the bank with it or pass the scenes instead")
+                raise ValueError(
+                    f"SimConfig.{name} = {getattr(config, name)} differs from the bank's "
+                    f"{getattr(bank, name)}; build the bank with it or pass the scenes instead"
+                )
     else:
         bank = SceneBank(scenes_or_bank, success_distance=config.success_distance, protocol=config.protocol)
     if sampler is None:
         sampler = TrainingSampler(bank)
-    return BatchEnv(bank, num_envs, sampler=sampler, reward_fn=reward_fn, max_steps=config.max_steps,
-                    autoreset=config.autoreset, seed=seed)
+    return BatchEnv(
+        bank,
+        num_envs,
+        sampler=sampler,
+        reward_fn=reward_fn,
+        max_steps=config.max_steps,
+        autoreset=config.autoreset,
+        seed=seed,
+    )
 
 
 @dataclass
@@ -199,8 +214,9 @@ class Episode:
 _OPTIONAL = ("optimal_metres", "challenge")
 
 
-def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
-                  config: EpisodeConfig | None = None) -> list[Episode]:
+def make_episodes(
+    bank: SceneBank, per_room_type: int = 250, seed: int = 0, config: EpisodeConfig | None = None
+) -> list[Episode]:
     """Draw a fixed episode list: ``per_room_type`` distinct episodes for each room type (fewer when the room
     type has fewer valid episodes), each (scene, target) pair of a room type equally likely and, within a
     pair, each start horizon that has valid starts equally likely (the lineage's test splits start about half
@@ -236,8 +252,15 @@ def make_episodes(bank: SceneBank, per_room_type: int = 250, seed: int = 0,
         for j in chosen:
             p, s = int(pair_of[j]), int(t.starts[idx[j]])
             c = int(t.pair_target[p])
-            out.append(Episode(scene=bank.names[int(t.pair_scene[p])], target=bank.class_set.categories[c],
-                               start=str(bank.keys[s]), optimal_length=int(bank.dist[s, c]), room_type=rt))
+            out.append(
+                Episode(
+                    scene=bank.names[int(t.pair_scene[p])],
+                    target=bank.class_set.categories[c],
+                    start=str(bank.keys[s]),
+                    optimal_length=int(bank.dist[s, c]),
+                    room_type=rt,
+                )
+            )
     return out
 
 
@@ -255,8 +278,9 @@ def episodes_to_arrays(bank: SceneBank, episodes: list[Episode], check: bool = T
     for i, e in enumerate(episodes):
         scene_idx[i] = bank.scene_index(e.scene)
         if e.target not in index:
-            raise ValueError(f"episode {i}: target {e.target!r} is not a class of the scenes' class set "
-                             f"{bank.class_set.name}")
+            raise ValueError(
+                f"episode {i}: target {e.target!r} is not a class of the scenes' class set {bank.class_set.name}"
+            )
         target[i] = index[e.target]
         start[i] = bank.global_state(int(scene_idx[i]), e.start)
     if check and n:
@@ -267,8 +291,10 @@ def episodes_to_arrays(bank: SceneBank, episodes: list[Episode], check: bool = T
             i = int(bad[0])
             e = episodes[i]
             got = "unreachable" if opt[i] == UNREACHABLE else int(opt[i])
-            raise ValueError(f"episode {i} ({e.scene}, {e.target}, {e.start}): stored optimal length "
-                             f"{e.optimal_length} but the dataset gives {got}; regenerate the episode list")
+            raise ValueError(
+                f"episode {i} ({e.scene}, {e.target}, {e.start}): stored optimal length "
+                f"{e.optimal_length} but the dataset gives {got}; regenerate the episode list"
+            )
     return scene_idx, target, start
 
 
@@ -281,8 +307,7 @@ def class_set_meta(bank: SceneBank) -> dict:
 def write_episodes(path: str | Path, episodes: list[Episode], **meta) -> None:
     """Write an episode list as JSON, atomically; ``meta`` (split, seed, success_distance, ...) is stored."""
     path = Path(path)
-    doc = {"format": EPISODES_FORMAT, "version": EPISODES_VERSION, **meta,
-           "episodes": [e.to_json() for e in episodes]}
+    doc = {"format": EPISODES_FORMAT, "version": EPISODES_VERSION, **meta, "episodes": [e.to_json() for e in episodes]}
     atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 
 
@@ -291,7 +316,7 @@ def read_episodes(path: str | Path) -> tuple[list[Episode], dict]:
     path = Path(path)
     doc = read_json(path, ValueError)
     if not isinstance(doc, dict) or doc.get("format") != EPISODES_FORMAT:
-        raise ValueError(f"{path}: not a tsnav episode list (missing \"format\": \"{EPISODES_FORMAT}\")")
+        raise ValueError(f'{path}: not a tsnav episode list (missing "format": "{EPISODES_FORMAT}")')
     try:
         eps = [Episode(**e) for e in doc["episodes"]]
     except (KeyError, TypeError) as e:

@@ -70,9 +70,15 @@ MAX_DEPTH = 1000.0
 MAX_PIXEL = 10000.0
 
 
-def make_bank(bank: SceneBank | None = None, scenes=None, data: str | None = None, split: str | None = "train",
-              success_distance: float = SUCCESS_DISTANCE, c_target: float = C_TARGET,
-              protocol: str = "paper") -> SceneBank:
+def make_bank(
+    bank: SceneBank | None = None,
+    scenes=None,
+    data: str | None = None,
+    split: str | None = "train",
+    success_distance: float = SUCCESS_DISTANCE,
+    c_target: float = C_TARGET,
+    protocol: str = "paper",
+) -> SceneBank:
     """The env's bank: ``bank`` itself, else one over ``scenes``, else the scenes of ``split`` under ``data``,
     else the analytic toy room (success under ``protocol``, :mod:`tsnav.protocol`)."""
     if bank is not None:
@@ -101,8 +107,9 @@ OBS_LAYOUTS = ("standard", "legacy")
 STEPPINGS = ("scalar", "batch")
 
 
-def observation_space(height: int, width: int, layout: str = "standard", depth_dtype=np.float32,
-                      num_categories: int = NUM_CATEGORIES) -> spaces.Dict:
+def observation_space(
+    height: int, width: int, layout: str = "standard", depth_dtype=np.float32, num_categories: int = NUM_CATEGORIES
+) -> spaces.Dict:
     """The env's single observation space for frames of ``height`` x ``width`` in ``layout``
     (:data:`OBS_LAYOUTS`; the module docstring's table); ``depth_dtype`` applies to the standard layout
     (the legacy one is always float32); ``num_categories`` is the bank's class set's size (22 for ``ithor22``)."""
@@ -110,12 +117,14 @@ def observation_space(height: int, width: int, layout: str = "standard", depth_d
         raise ValueError(f"unknown obs_layout {layout!r} (choose from {', '.join(OBS_LAYOUTS)})")
     depth = (height, width, 1) if layout == "standard" else (height, width)
     det = (num_categories * 6,) if layout == "standard" else (num_categories, 6)
-    return spaces.Dict({
-        "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
-        "depth": spaces.Box(0.0, MAX_DEPTH, depth, np.dtype(depth_dtype) if layout == "standard" else np.float32),
-        "target": spaces.Discrete(num_categories),
-        "detections": spaces.Box(-1.0, MAX_PIXEL, det, np.float32),
-    })
+    return spaces.Dict(
+        {
+            "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
+            "depth": spaces.Box(0.0, MAX_DEPTH, depth, np.dtype(depth_dtype) if layout == "standard" else np.float32),
+            "target": spaces.Discrete(num_categories),
+            "detections": spaces.Box(-1.0, MAX_PIXEL, det, np.float32),
+        }
+    )
 
 
 def _first_dataset(f) -> Any:
@@ -162,15 +171,17 @@ class FrameCache:
 
     def load(self, scenes=None) -> None:
         """Read the frames of ``scenes`` (indices; default every scene) that are not loaded yet."""
-        for i in (range(self.bank.num_scenes) if scenes is None else scenes):
+        for i in range(self.bank.num_scenes) if scenes is None else scenes:
             if not self.loaded[i]:
                 self._load_scene(int(i))
 
     def _load_scene(self, i: int) -> None:
         scene = self.bank.scenes[i]
         off = int(self.bank.offsets[i])
-        for path, out, shape in ((scene.images_path(), self.rgb, (self.height, self.width, 3)),
-                                 (scene.depth_path(), self.depth, (self.height, self.width))):
+        for path, out, shape in (
+            (scene.images_path(), self.rgb, (self.height, self.width, 3)),
+            (scene.depth_path(), self.depth, (self.height, self.width)),
+        ):
             if path is None:
                 continue
             with h5py.File(path, "r") as f:
@@ -180,7 +191,7 @@ class FrameCache:
                     raise ValueError(f"{path}: no frame for a state of the scene ({e.args[0]})") from None
                 if frames.shape[1:] != shape:
                     raise ValueError(f"{path}: frames of shape {frames.shape[1:]}, the env's frames are {shape}")
-                out[off:off + len(frames)] = frames
+                out[off : off + len(frames)] = frames
         self.loaded[i] = True
 
     def gather(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -199,8 +210,9 @@ class Observations:
     ``bank.detections``; laid out as ``layout`` (:data:`OBS_LAYOUTS`). HDF5 files are opened on first use and
     kept open."""
 
-    def __init__(self, bank: SceneBank, image_size: int | None = None, frames: str = "memory",
-                 layout: str = "standard"):
+    def __init__(
+        self, bank: SceneBank, image_size: int | None = None, frames: str = "memory", layout: str = "standard"
+    ):
         if frames not in FRAME_SOURCES:
             raise ValueError(f"unknown frames source {frames!r} (choose from {', '.join(FRAME_SOURCES)})")
         self.bank, self.frames, self.layout = bank, frames, layout
@@ -255,16 +267,22 @@ class Observations:
         every array new (``target`` a copy, so the env's own arrays never leak into an observation)."""
         state = np.asarray(state, dtype=np.int64)
         n = len(state)
-        rgb, depth = (self.cache.gather(state) if self.cache is not None
-                      else self.read_frames(state, self.depth_dtype))
+        rgb, depth = self.cache.gather(state) if self.cache is not None else self.read_frames(state, self.depth_dtype)
         if depth.dtype != self.depth_dtype:
             depth = depth.astype(self.depth_dtype)
-        det = (self.bank.detections[state] if self.bank.detections is not None
-               else np.zeros((n, self.bank.num_categories, 6), dtype=np.float32))
+        det = (
+            self.bank.detections[state]
+            if self.bank.detections is not None
+            else np.zeros((n, self.bank.num_categories, 6), dtype=np.float32)
+        )
         if self.layout == "standard":
             depth, det = depth[..., None], det.reshape(n, self.bank.num_categories * 6)
-        return {"rgb": rgb, "depth": depth, "target": np.array(target, dtype=np.int64),
-                "detections": np.ascontiguousarray(det, dtype=np.float32)}
+        return {
+            "rgb": rgb,
+            "depth": depth,
+            "target": np.array(target, dtype=np.int64),
+            "detections": np.ascontiguousarray(det, dtype=np.float32),
+        }
 
     def one(self, state: int, target: int) -> dict[str, Any]:
         """One env's observation of global ``state`` with ``target``: ``single(gather([state], [target]), 0)``
@@ -279,16 +297,21 @@ class Observations:
         depth = cache.depth[state]
         depth = depth.copy() if depth.dtype == self.depth_dtype else depth.astype(self.depth_dtype)
         det = self.bank.detections
-        det = (np.zeros((self.bank.num_categories, 6), dtype=np.float32) if det is None
-               else det[state].astype(np.float32))  # a new array (the bank's table is float32)
+        det = (
+            np.zeros((self.bank.num_categories, 6), dtype=np.float32) if det is None else det[state].astype(np.float32)
+        )  # a new array (the bank's table is float32)
         if self.layout == "standard":
             depth, det = depth[..., None], det.reshape(self.bank.num_categories * 6)
         return {"rgb": rgb, "depth": depth, "target": int(target), "detections": det}
 
     def single(self, obs: dict[str, np.ndarray], j: int) -> dict[str, Any]:
         """Row ``j`` of a batched observation as one env's observation."""
-        return {"rgb": obs["rgb"][j], "depth": obs["depth"][j], "target": int(obs["target"][j]),
-                "detections": obs["detections"][j]}
+        return {
+            "rgb": obs["rgb"][j],
+            "depth": obs["depth"][j],
+            "target": int(obs["target"][j]),
+            "detections": obs["detections"][j],
+        }
 
     def close(self) -> None:
         for f in self._files.values():
@@ -319,11 +342,22 @@ class ObjectNavEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
-    def __init__(self, data: str | None = None, split: str | None = "train", scenes=None,
-                 bank: SceneBank | None = None, max_steps: int = 100, reward_fn: RewardFn | None = None,
-                 success_distance: float = SUCCESS_DISTANCE, image_size: int | None = None,
-                 episode_config: EpisodeConfig | None = None, render_mode: str | None = None,
-                 frames: str = "memory", obs_layout: str = "standard", stepping: str = "scalar"):
+    def __init__(
+        self,
+        data: str | None = None,
+        split: str | None = "train",
+        scenes=None,
+        bank: SceneBank | None = None,
+        max_steps: int = 100,
+        reward_fn: RewardFn | None = None,
+        success_distance: float = SUCCESS_DISTANCE,
+        image_size: int | None = None,
+        episode_config: EpisodeConfig | None = None,
+        render_mode: str | None = None,
+        frames: str = "memory",
+        obs_layout: str = "standard",
+        stepping: str = "scalar",
+    ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
         if stepping not in STEPPINGS:
@@ -332,8 +366,14 @@ class ObjectNavEnv(gym.Env):
         self.stepping = stepping
         self.bank = make_bank(bank, scenes, data, split, success_distance)
         self.sampler = TrainingSampler(self.bank, episode_config)
-        self.batch = BatchEnv(self.bank, 1, sampler=self.sampler, reward_fn=reward_fn or SparseReward(),
-                              max_steps=max_steps, autoreset=False)
+        self.batch = BatchEnv(
+            self.bank,
+            1,
+            sampler=self.sampler,
+            reward_fn=reward_fn or SparseReward(),
+            max_steps=max_steps,
+            autoreset=False,
+        )
         self.obs_source = Observations(self.bank, image_size, frames=frames, layout=obs_layout)
         self.observation_space = self.obs_source.space
         self.action_space = spaces.Discrete(NUM_ACTIONS)
@@ -350,9 +390,12 @@ class ObjectNavEnv(gym.Env):
 
     def _info(self) -> dict[str, Any]:
         s = int(self.batch.state[0])
-        return {"state": s, "scene": self.bank.names[int(self.batch.scene[0])],
-                "target_name": self.bank.class_set.categories[int(self.batch.target[0])],
-                "optimal_length": int(self.bank.dist[s, int(self.batch.target[0])])}
+        return {
+            "state": s,
+            "scene": self.bank.names[int(self.batch.scene[0])],
+            "target_name": self.bank.class_set.categories[int(self.batch.target[0])],
+            "optimal_length": int(self.bank.dist[s, int(self.batch.target[0])]),
+        }
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -371,10 +414,15 @@ class ObjectNavEnv(gym.Env):
         if self.stepping == "scalar":
             return self._step_scalar(int(action))
         _, reward, term, trunc, info = self.batch.step(np.array([int(action)]))
-        out = {"state": int(info["final_state"][0]), "scene": self.bank.names[int(self.batch.scene[0])],
-               "collided": bool(info["collided"][0]), "failed": bool(info["failed"][0]),
-               "success": bool(info["success"][0]),
-               "steps": int(info["steps"][0]), "path_length": int(info["path_length"][0])}
+        out = {
+            "state": int(info["final_state"][0]),
+            "scene": self.bank.names[int(self.batch.scene[0])],
+            "collided": bool(info["collided"][0]),
+            "failed": bool(info["failed"][0]),
+            "success": bool(info["success"][0]),
+            "steps": int(info["steps"][0]),
+            "path_length": int(info["path_length"][0]),
+        }
         out.update({f"reward/{k}": float(v[0]) for k, v in info["reward_terms"].items()})
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), out
 
@@ -382,9 +430,15 @@ class ObjectNavEnv(gym.Env):
         """:meth:`step` through :meth:`BatchEnv.step_one <tsnav.sim.batch.BatchEnv.step_one>` and
         :meth:`Observations.one`: the same observation, reward, flags and ``info`` as ``stepping="batch"``."""
         reward, term, trunc, info = self.batch.step_one(action)
-        out = {"state": info["final_state"], "scene": self.bank.names[self.batch.scene[0]],
-               "collided": info["collided"], "failed": info["failed"], "success": info["success"],
-               "steps": info["steps"], "path_length": info["path_length"]}
+        out = {
+            "state": info["final_state"],
+            "scene": self.bank.names[self.batch.scene[0]],
+            "collided": info["collided"],
+            "failed": info["failed"],
+            "success": info["success"],
+            "steps": info["steps"],
+            "path_length": info["path_length"],
+        }
         keys = self._term_keys
         for k, v in info["reward_terms"].items():
             if k not in keys:
@@ -406,15 +460,32 @@ class ObjectNavVectorEnv(VectorEnv):
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
-    def __init__(self, num_envs: int = 1, data: str | None = None, split: str | None = "train", scenes=None,
-                 bank: SceneBank | None = None, max_steps: int = 100, reward_fn: RewardFn | None = None,
-                 success_distance: float = SUCCESS_DISTANCE, image_size: int | None = None,
-                 episode_config: EpisodeConfig | None = None, frames: str = "memory", obs_layout: str = "standard"):
+    def __init__(
+        self,
+        num_envs: int = 1,
+        data: str | None = None,
+        split: str | None = "train",
+        scenes=None,
+        bank: SceneBank | None = None,
+        max_steps: int = 100,
+        reward_fn: RewardFn | None = None,
+        success_distance: float = SUCCESS_DISTANCE,
+        image_size: int | None = None,
+        episode_config: EpisodeConfig | None = None,
+        frames: str = "memory",
+        obs_layout: str = "standard",
+    ):
         self.bank = make_bank(bank, scenes, data, split, success_distance)
         self.num_envs = int(num_envs)
         self.sampler = TrainingSampler(self.bank, episode_config)
-        self.batch = BatchEnv(self.bank, self.num_envs, sampler=self.sampler,
-                              reward_fn=reward_fn or SparseReward(), max_steps=max_steps, autoreset=True)
+        self.batch = BatchEnv(
+            self.bank,
+            self.num_envs,
+            sampler=self.sampler,
+            reward_fn=reward_fn or SparseReward(),
+            max_steps=max_steps,
+            autoreset=True,
+        )
         self.obs_source = Observations(self.bank, image_size, frames=frames, layout=obs_layout)
         self.single_observation_space = self.obs_source.space
         self.single_action_space = spaces.Discrete(NUM_ACTIONS)
@@ -439,8 +510,12 @@ class ObjectNavVectorEnv(VectorEnv):
         _, reward, term, trunc, info = self.batch.step(actions)
         obs = self.obs_source.gather(self.batch.state, self.batch.target)
         every = np.ones(self.num_envs, dtype=bool)
-        infos: dict[str, Any] = {"state": self.batch.state.copy(), "_state": every,
-                                 "scene": self.batch.scene.copy(), "_scene": every}
+        infos: dict[str, Any] = {
+            "state": self.batch.state.copy(),
+            "_state": every,
+            "scene": self.batch.scene.copy(),
+            "_scene": every,
+        }
         for k in ("collided", "failed", "success", "steps", "path_length"):
             infos[k], infos[_MASK[k]] = info[k], every
         keys = self._term_keys
@@ -459,8 +534,12 @@ class ObjectNavVectorEnv(VectorEnv):
             for k, j in enumerate(rows.tolist()):  # Observations.single, row by row
                 final_obs[j] = {"rgb": rgb[k], "depth": depth[k], "target": tgt[k], "detections": det[k]}
             final_info: dict[str, Any] = {}
-            for k, v in (("state", info["final_state"]), ("success", info["success"]), ("steps", info["steps"]),
-                         ("path_length", info["path_length"])):
+            for k, v in (
+                ("state", info["final_state"]),
+                ("success", info["success"]),
+                ("steps", info["steps"]),
+                ("path_length", info["path_length"]),
+            ):
                 out = np.zeros_like(v)
                 out[rows] = v[rows]
                 final_info[k], final_info[_MASK[k]] = out, fin.copy()

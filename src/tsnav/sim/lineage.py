@@ -50,9 +50,12 @@ class SplitImport:
     def summary(self) -> str:
         """One line: read, kept, and the dropped counts by reason."""
         drops = ", ".join(f"{n} {why}" for why, n in sorted(self.dropped.items(), key=lambda kv: -kv[1]))
-        return (f"{self.read} episodes read, {self.kept} kept"
-                + (f" ({self.start_success} start already succeeds)" if self.start_success else "")
-                + f", {self.read - self.kept} dropped" + (f" ({drops})" if drops else ""))
+        return (
+            f"{self.read} episodes read, {self.kept} kept"
+            + (f" ({self.start_success} start already succeeds)" if self.start_success else "")
+            + f", {self.read - self.kept} dropped"
+            + (f" ({drops})" if drops else "")
+        )
 
 
 def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0, protocol: str = "paper"):
@@ -104,8 +107,15 @@ def episodes_from_splits(paths, data: str | Path, success_distance: float = 1.0,
                 stats.drop("start already succeeds")
                 continue
             stats.start_success += 1
-        out.append(Episode(scene=bank.names[i], target=bank.class_set.categories[c], start=r["state"], optimal_length=d,
-                           room_type=bank.room_types[i]))
+        out.append(
+            Episode(
+                scene=bank.names[i],
+                target=bank.class_set.categories[c],
+                start=r["state"],
+                optimal_length=d,
+                room_type=bank.room_types[i],
+            )
+        )
     stats.kept = len(out)
     return out, stats
 
@@ -149,8 +159,9 @@ def optimal_actions_reference(scene, success_distance: float = LINEAGE_SUCCESS_D
     return out
 
 
-def write_splits(root: str | Path, success_distance: float = LINEAGE_SUCCESS_DISTANCE, per_room_type: int = 1000,
-                 seed: int = 0) -> dict[str, int]:
+def write_splits(
+    root: str | Path, success_distance: float = LINEAGE_SUCCESS_DISTANCE, per_room_type: int = 1000, seed: int = 0
+) -> dict[str, int]:
     """Write ``root/test_val_split/{room}_{split}_22.pkl`` for the test and val scenes of ``root`` and the info
     file naming ``success_distance``; returns file name -> episodes. Room types without a valid episode in
     a split get no file."""
@@ -170,11 +181,23 @@ def write_splits(root: str | Path, success_distance: float = LINEAGE_SUCCESS_DIS
             LS.write_split(folder / name, LS.split_records(bank, mine))
             written[name] = len(mine)
     if written:
-        rule = ("the lineage's: the target in its visibility map (in view within 1.5 m)" if success_distance == 1.5
-                else f"in view and within {success_distance} m of the agent on the floor plane (the paper's rule at 1.0 m)")
-        LS.write_split_info(folder, {
-            "format": "tsnav-lineage-splits", "success_distance": success_distance, "success_rule": rule,
-            "per_room_type": per_room_type, "seed": seed, "action_order": ACTION_ORDER,
-            "start_horizons": "0 or 30, each with probability 1/2 per (scene, target) pair", "files": written,
-            "note": "optimal_action.json in every scene folder was made for the same success distance"})
+        rule = (
+            "the lineage's: the target in its visibility map (in view within 1.5 m)"
+            if success_distance == 1.5
+            else f"in view and within {success_distance} m of the agent on the floor plane (the paper's rule at 1.0 m)"
+        )
+        LS.write_split_info(
+            folder,
+            {
+                "format": "tsnav-lineage-splits",
+                "success_distance": success_distance,
+                "success_rule": rule,
+                "per_room_type": per_room_type,
+                "seed": seed,
+                "action_order": ACTION_ORDER,
+                "start_horizons": "0 or 30, each with probability 1/2 per (scene, target) pair",
+                "files": written,
+                "note": "optimal_action.json in every scene folder was made for the same success distance",
+            },
+        )
     return written

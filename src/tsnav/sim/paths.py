@@ -35,7 +35,9 @@ def reverse_adjacency(next_state: np.ndarray) -> sparse.csr_matrix:
     return sparse.csr_matrix((data, (src[keep], dst[keep])), shape=(n, n))
 
 
-def multi_source_bfs(next_state: np.ndarray, sources: np.ndarray, reverse: sparse.csr_matrix | None = None) -> np.ndarray:
+def multi_source_bfs(
+    next_state: np.ndarray, sources: np.ndarray, reverse: sparse.csr_matrix | None = None
+) -> np.ndarray:
     """Number of actions from every state to the nearest state in ``sources`` (bool mask or indices).
 
     Returns int32 ``(S,)``; :data:`UNREACHABLE` where no source can be reached. ``reverse`` may be passed to
@@ -101,8 +103,9 @@ def bfs_reference(next_state: np.ndarray, sources) -> np.ndarray:
 PATHS_CACHE_VERSION = 1
 
 
-def distance_fields(next_state: np.ndarray, sources: np.ndarray,
-                    reverse: sparse.csr_matrix | None = None) -> np.ndarray:
+def distance_fields(
+    next_state: np.ndarray, sources: np.ndarray, reverse: sparse.csr_matrix | None = None
+) -> np.ndarray:
     """Multi-source BFS for several source sets at once: ``(S, C)`` int32 action counts.
 
     ``sources`` is an ``(S, C)`` bool matrix, one column per source set (e.g. the success states of each of
@@ -144,8 +147,9 @@ def optimal_action(next_state: np.ndarray, dist: np.ndarray, state: np.ndarray, 
     return np.where(d_here == UNREACHABLE, -1, act).astype(np.int64)
 
 
-def optimal_action_targets(next_state: np.ndarray, dist: np.ndarray, state: np.ndarray, target: np.ndarray,
-                           done_action: int = 5) -> np.ndarray:
+def optimal_action_targets(
+    next_state: np.ndarray, dist: np.ndarray, state: np.ndarray, target: np.ndarray, done_action: int = 5
+) -> np.ndarray:
     """Like :func:`optimal_action` with a ``(S, C)`` distance table and one column (target) per row."""
     state = np.asarray(state, dtype=np.int64)
     target = np.asarray(target, dtype=np.int64)
@@ -208,8 +212,9 @@ def cached_distance_fields(next_state: np.ndarray, sources: np.ndarray, cache_fi
     return dist
 
 
-def scene_distance_fields(scene, success_distance: float = 1.0, cache: bool = True,
-                          protocol: str = "paper") -> np.ndarray:
+def scene_distance_fields(
+    scene, success_distance: float = 1.0, cache: bool = True, protocol: str = "paper"
+) -> np.ndarray:
     """``(S, 22)`` int32 optimal path lengths L* from every state of ``scene`` to the nearest success state of
     each target category under the success ``protocol`` (:mod:`tsnav.protocol`; ``paper``: target in view and
     within ``success_distance`` metres, 1.0 m in the paper; ``lineage``: listed in the visibility map).

@@ -10,7 +10,13 @@ import math
 import networkx as nx
 
 from ..constants import (
-    ACTIONS, GRID_SIZE, HORIZONS, ROTATE_STEP, SUCCESS_DISTANCE, parse_state_key, state_key,
+    ACTIONS,
+    GRID_SIZE,
+    HORIZONS,
+    ROTATE_STEP,
+    SUCCESS_DISTANCE,
+    parse_state_key,
+    state_key,
 )
 from ..data.reader import Scene
 
@@ -35,8 +41,13 @@ class ReferenceController:
     accepted when it is a graph neighbour (a failed action leaves the state unchanged).
     """
 
-    def __init__(self, scene: Scene, success_distance: float = SUCCESS_DISTANCE, graph: nx.DiGraph | None = None,
-                 protocol: str = "paper"):
+    def __init__(
+        self,
+        scene: Scene,
+        success_distance: float = SUCCESS_DISTANCE,
+        graph: nx.DiGraph | None = None,
+        protocol: str = "paper",
+    ):
         self.scene = scene
         self.graph = scene_graph(scene) if graph is None else graph
         seen = scene.visible_at_any_range()
@@ -99,5 +110,13 @@ class ReferenceController:
                 collided = name == "MoveAhead"
         truncated = (not terminated) and self.steps >= max_steps
         self.done = terminated or truncated
-        return {"state": self.state, "collided": collided, "failed": failed, "terminated": terminated,
-                "truncated": truncated, "success": success, "steps": self.steps, "path_length": self.path_length}
+        return {
+            "state": self.state,
+            "collided": collided,
+            "failed": failed,
+            "terminated": terminated,
+            "truncated": truncated,
+            "success": success,
+            "steps": self.steps,
+            "path_length": self.path_length,
+        }

@@ -50,8 +50,7 @@ class StageSwitch:
         switch_state: global state id of the switching frame (the start state while searching).
     """
 
-    def __init__(self, bank, c_target: float | None = None, confidence: np.ndarray | None = None,
-                 num_envs: int = 0):
+    def __init__(self, bank, c_target: float | None = None, confidence: np.ndarray | None = None, num_envs: int = 0):
         """Without ``c_target`` and ``confidence`` the switch applies the bank's own rule (``bank.stage_mask``:
         ``bank.stage_confidence`` above ``bank.c_target``). Either overrides the bank's for this switch (an
         evaluation at its own C_target, a test's confidence table)."""
@@ -63,8 +62,9 @@ class StageSwitch:
                 raise ValueError(f"c_target must be in [0, 1], got {c}")
             conf = bank.stage_confidence if confidence is None else np.asarray(confidence, dtype=np.float32)
             if conf.shape != (bank.num_states, bank.num_categories):
-                raise ValueError(f"confidence must have shape ({bank.num_states}, {bank.num_categories}), "
-                                 f"got {conf.shape}")
+                raise ValueError(
+                    f"confidence must have shape ({bank.num_states}, {bank.num_categories}), got {conf.shape}"
+                )
             self.switches = above_threshold(conf, c)
         self._alloc(num_envs)
 
@@ -101,8 +101,13 @@ class StageSwitch:
         self.switch_length[rows] = 0
         self.switch_state[rows] = s
 
-    def update(self, new_state: np.ndarray, steps: np.ndarray, path_length: np.ndarray | None = None,
-               active: np.ndarray | None = None) -> np.ndarray:
+    def update(
+        self,
+        new_state: np.ndarray,
+        steps: np.ndarray,
+        path_length: np.ndarray | None = None,
+        active: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Account one step that led every episode to ``new_state`` after ``steps`` actions (``path_length``
         movement actions); only ``active`` rows count. Returns the ``(B,)`` mask of episodes that switched now."""
         new_state = np.asarray(new_state, dtype=np.int64)

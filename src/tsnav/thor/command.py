@@ -29,8 +29,7 @@ from ..errors import CommandError
 from ..protocol import check_protocol
 from ..data.reader import SceneFormatError, is_complete, load_scene
 from ..sim.batch import SceneBank
-from ..sim.challenge import (CHALLENGE_SOURCE, HEADING_RULE, challenge_episodes, ratio_summary,
-                             read_challenge_episodes)
+from ..sim.challenge import CHALLENGE_SOURCE, HEADING_RULE, challenge_episodes, ratio_summary, read_challenge_episodes
 from ..sim.episodes import write_episodes
 from ..sim.lineage import episodes_from_splits
 from ..settings import add_shared
@@ -41,29 +40,51 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     imp = sub.add_parser("import", help="import AI2-THOR offline data of the SAVN/VTNet/DOA/IOM lineage")
     imp.add_argument("src", help="a lineage scene folder (holding graph.json) or a folder of them")
     imp.add_argument("--out", required=True, help="dataset folder to write (one sub-folder per scene)")
-    imp.add_argument("--copy", choices=("link", "copy", "none"), default="link",
-                     help="images / depth / features / metadata: hard-link (default), copy, or leave out")
+    imp.add_argument(
+        "--copy",
+        choices=("link", "copy", "none"),
+        default="link",
+        help="images / depth / features / metadata: hard-link (default), copy, or leave out",
+    )
     imp.add_argument("--overwrite", action="store_true", help="redo scenes that are already complete")
-    imp.add_argument("--detection-size", type=int, default=300,
-                     help="frame size the lineage's detection boxes refer to, pixels (default 300)")
+    imp.add_argument(
+        "--detection-size",
+        type=int,
+        default=300,
+        help="frame size the lineage's detection boxes refer to, pixels (default 300)",
+    )
 
     chk = sub.add_parser("check", help="check scene folders (or dataset folders) against the lineage's layout")
     chk.add_argument("scene_dirs", nargs="+", help="scene folders, or dataset folders holding scene folders")
-    chk.add_argument("--complete", action="store_true",
-                     help="require every file the lineage's trainer and evaluator read (ResNet features, DETR "
-                          "table, optimal actions, images; for a dataset folder also test_val_split/)")
+    chk.add_argument(
+        "--complete",
+        action="store_true",
+        help="require every file the lineage's trainer and evaluator read (ResNet features, DETR "
+        "table, optimal actions, images; for a dataset folder also test_val_split/)",
+    )
     chk.add_argument("--image-size", type=int, default=None, help="require images of this side (the lineage's: 300)")
 
     exl = sub.add_parser("export-lineage", help="write every file the lineage's trainer and evaluator read")
     exl.add_argument("data", help="tsnav dataset folder (scene folders); written in place")
-    exl.add_argument("--encoder", default=None,
-                     help="ResNet18 encoder for resnet18_featuremap.hdf5: a `tsnav pretrain --method resnet18-sup` "
-                          "run, resnet18:PATH (torchvision-layout weights) or untrained:resnet18")
-    exl.add_argument("--detections", default=None, help="name of the detection table (detections_<NAME>.hdf5) for "
-                                                         "detr_features_22cls.hdf5, e.g. oracle or learned")
-    exl.add_argument("--success-distance", type=float, default=1.5,
-                     help="success radius of optimal_action.json and the episode lists, metres (default 1.5, the "
-                          "lineage's visibility map; 1.0 is the paper's rule)")
+    exl.add_argument(
+        "--encoder",
+        default=None,
+        help="ResNet18 encoder for resnet18_featuremap.hdf5: a `tsnav pretrain --method resnet18-sup` "
+        "run, resnet18:PATH (torchvision-layout weights) or untrained:resnet18",
+    )
+    exl.add_argument(
+        "--detections",
+        default=None,
+        help="name of the detection table (detections_<NAME>.hdf5) for "
+        "detr_features_22cls.hdf5, e.g. oracle or learned",
+    )
+    exl.add_argument(
+        "--success-distance",
+        type=float,
+        default=1.5,
+        help="success radius of optimal_action.json and the episode lists, metres (default 1.5, the "
+        "lineage's visibility map; 1.0 is the paper's rule)",
+    )
     exl.add_argument("--per-room-type", type=int, default=1000, help="episodes per room type and split (default 1000)")
     exl.add_argument("--seed", type=int, default=0, help="seed of the episode lists (default 0)")
     exl.add_argument("--batch-size", type=int, default=16, help="frames per ResNet batch (default 16)")
@@ -75,29 +96,52 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     epi.add_argument("splits", nargs="+", help="split files, e.g. test_val_split/kitchen_test_22.pkl")
     epi.add_argument("--data", required=True, help="dataset folder; episodes of scenes not in it are dropped")
     epi.add_argument("--out", required=True, help="tsnav episode list (JSON) to write")
-    add_shared(epi, "protocol", default="paper",
-               help="success protocol: paper (in view within --success-distance; starts that already succeed "
-                          "are dropped) or lineage (the visibility map, as the lineage's evaluator; such starts are "
-                          "kept and counted, as its lists have them) (default: paper)")
-    epi.add_argument("--success-distance", type=float, default=1.0,
-                     help="success radius for the optimal lengths, metres (default 1.0, the paper's; 1.5 the lineage's)")
+    add_shared(
+        epi,
+        "protocol",
+        default="paper",
+        help="success protocol: paper (in view within --success-distance; starts that already succeed "
+        "are dropped) or lineage (the visibility map, as the lineage's evaluator; such starts are "
+        "kept and counted, as its lists have them) (default: paper)",
+    )
+    epi.add_argument(
+        "--success-distance",
+        type=float,
+        default=1.0,
+        help="success radius for the optimal lengths, metres (default 1.0, the paper's; 1.5 the lineage's)",
+    )
     epi.add_argument("--force", action="store_true", help="replace an existing episode list")
 
-    che = sub.add_parser("challenge-episodes",
-                         help="read the RoboTHOR ObjectNav challenge's episodes (*.json.gz) as a tsnav episode list")
-    che.add_argument("--challenge", required=True,
-                     help="the challenge's episode folder holding train/ and val/ (e.g. "
-                          "../shared/robothor/challenge_episodes); nothing is read unless it is given")
+    che = sub.add_parser(
+        "challenge-episodes",
+        help="read the RoboTHOR ObjectNav challenge's episodes (*.json.gz) as a tsnav episode list",
+    )
+    che.add_argument(
+        "--challenge",
+        required=True,
+        help="the challenge's episode folder holding train/ and val/ (e.g. "
+        "../shared/robothor/challenge_episodes); nothing is read unless it is given",
+    )
     che.add_argument("--split", required=True, choices=("train", "val"), help="challenge split to convert")
-    che.add_argument("--data", required=True,
-                     help="dataset folder of the RoboTHOR scenes (one folder per scene, named as the challenge "
-                          "names it, e.g. FloorPlan_Val1_1); episodes of scenes not in it are dropped and counted")
+    che.add_argument(
+        "--data",
+        required=True,
+        help="dataset folder of the RoboTHOR scenes (one folder per scene, named as the challenge "
+        "names it, e.g. FloorPlan_Val1_1); episodes of scenes not in it are dropped and counted",
+    )
     che.add_argument("--out", required=True, help="tsnav episode list (JSON) to write")
-    che.add_argument("--protocol", default="paper",
-                     help="success protocol: paper (in view within --success-distance; starts that already succeed "
-                          "are dropped) or lineage (the visibility map; such starts are kept) (default: paper)")
-    che.add_argument("--success-distance", type=float, default=1.0,
-                     help="success radius of the paper protocol, metres (default 1.0, the paper's and the challenge's)")
+    che.add_argument(
+        "--protocol",
+        default="paper",
+        help="success protocol: paper (in view within --success-distance; starts that already succeed "
+        "are dropped) or lineage (the visibility map; such starts are kept) (default: paper)",
+    )
+    che.add_argument(
+        "--success-distance",
+        type=float,
+        default=1.0,
+        help="success radius of the paper protocol, metres (default 1.0, the paper's and the challenge's)",
+    )
     che.add_argument("--force", action="store_true", help="replace an existing episode list")
 
     exd = sub.add_parser("export-detections", help="write the lineage's 22 x 264 table from a tsnav detection table")
@@ -107,16 +151,24 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     exd.add_argument("--box-size", type=int, default=300, help="frame size of the written boxes (default 300)")
 
     live = sub.add_parser("export-live", help="export scenes from a live AI2-THOR (pip install 'tsnav[thor]')")
-    live.add_argument("--scenes", required=True, help="comma-separated AI2-THOR scene names, e.g. FloorPlan1,FloorPlan2")
+    live.add_argument(
+        "--scenes", required=True, help="comma-separated AI2-THOR scene names, e.g. FloorPlan1,FloorPlan2"
+    )
     live.add_argument("--out", required=True, help="dataset folder to write (one sub-folder per scene)")
     live.add_argument("--size", type=int, default=300, help="frame side, pixels (default 300, the lineage's)")
 
 
 def run(args) -> int:
     try:
-        return {"import": _import, "check": _check, "export-detections": _export_detections,
-                "export-live": _export_live, "export-lineage": _export_lineage, "episodes": _episodes,
-                "challenge-episodes": _challenge_episodes}[args.action](args)
+        return {
+            "import": _import,
+            "check": _check,
+            "export-detections": _export_detections,
+            "export-live": _export_live,
+            "export-lineage": _export_lineage,
+            "episodes": _episodes,
+            "challenge-episodes": _challenge_episodes,
+        }[args.action](args)
     except SceneFormatError as e:
         raise CommandError(str(e)) from None
 
@@ -150,7 +202,9 @@ def _check(args) -> int:
     for d in args.scene_dirs:
         p = Path(d)
         if p.is_dir() and not (p / GRAPH_FILE).exists() and any((c / GRAPH_FILE).exists() for c in p.iterdir()):
-            report = {f"{d.rstrip('/')}/{k}": v for k, v in check_lineage_dataset(p, args.complete, args.image_size).items()}
+            report = {
+                f"{d.rstrip('/')}/{k}": v for k, v in check_lineage_dataset(p, args.complete, args.image_size).items()
+            }
         else:
             report = {d: check_lineage_layout(d, args.complete, args.image_size)}
         for name, problems in report.items():
@@ -170,8 +224,10 @@ def _export_lineage(args) -> int:
     if not data.is_dir():
         raise CommandError(f"{data}: no such dataset folder")
     if args.encoder is None and args.detections is None:
-        raise CommandError("name at least the --encoder (resnet18_featuremap.hdf5) or the --detections "
-                           "(detr_features_22cls.hdf5); the lineage's code reads both")
+        raise CommandError(
+            "name at least the --encoder (resnet18_featuremap.hdf5) or the --detections "
+            "(detr_features_22cls.hdf5); the lineage's code reads both"
+        )
     if not 0 < args.success_distance <= 10 or args.per_room_type < 1:
         raise CommandError("--success-distance must be in (0, 10] m and --per-room-type >= 1")
     encoder = None
@@ -183,21 +239,39 @@ def _export_lineage(args) -> int:
         except (FileNotFoundError, ValueError) as e:
             raise CommandError(" ".join(str(e).split())) from None
         if encoder.arch != "resnet18":
-            raise CommandError(f"--encoder {args.encoder} is a {encoder.arch}; the lineage's "
-                               f"resnet18_featuremap.hdf5 needs a ResNet18 (e.g. untrained:resnet18 or resnet18:PATH)")
+            raise CommandError(
+                f"--encoder {args.encoder} is a {encoder.arch}; the lineage's "
+                f"resnet18_featuremap.hdf5 needs a ResNet18 (e.g. untrained:resnet18 or resnet18:PATH)"
+            )
     try:
-        st = export_lineage(data, encoder, args.detections, args.success_distance, args.per_room_type, args.seed,
-                            args.batch_size, args.overwrite, splits=not args.no_splits)
+        st = export_lineage(
+            data,
+            encoder,
+            args.detections,
+            args.success_distance,
+            args.per_room_type,
+            args.seed,
+            args.batch_size,
+            args.overwrite,
+            splits=not args.no_splits,
+        )
     except ValueError as e:
         raise CommandError(" ".join(str(e).split())) from None
-    print(f"{data}: {st.scenes} scenes, {st.states} states; resnet18_featuremap.hdf5 written in {st.resnet_written}, "
-          f"detr_features_22cls.hdf5 in {st.detections_written}, optimal_action.json in {st.optimal_written}")
+    print(
+        f"{data}: {st.scenes} scenes, {st.states} states; resnet18_featuremap.hdf5 written in {st.resnet_written}, "
+        f"detr_features_22cls.hdf5 in {st.detections_written}, optimal_action.json in {st.optimal_written}"
+    )
     if st.split_files:
-        print(f"{data / 'test_val_split'}: " + ", ".join(f"{k} ({v})" for k, v in st.split_files.items())
-              + f"; made for success within {args.success_distance} m (tsnav_split_info.json)")
+        print(
+            f"{data / 'test_val_split'}: "
+            + ", ".join(f"{k} ({v})" for k, v in st.split_files.items())
+            + f"; made for success within {args.success_distance} m (tsnav_split_info.json)"
+        )
     if st.image_sizes != [300]:
-        print(f"note: images are {'/'.join(map(str, st.image_sizes))} px; the lineage's are 300 "
-              f"(tsnav world --size 300); boxes are written in 300 px either way")
+        print(
+            f"note: images are {'/'.join(map(str, st.image_sizes))} px; the lineage's are 300 "
+            f"(tsnav world --size 300); boxes are written in 300 px either way"
+        )
     return 0
 
 
@@ -217,9 +291,18 @@ def _episodes(args) -> int:
     print(st.summary())
     if not eps:
         raise CommandError(f"no episode of {', '.join(args.splits)} is in {args.data}")
-    write_episodes(out, eps, split="lineage", source=[str(Path(p)) for p in args.splits],
-                   protocol=protocol, success_distance=args.success_distance, start_horizon=None, room_targets=True,
-                   data=str(Path(args.data).resolve()), dropped=st.dropped)
+    write_episodes(
+        out,
+        eps,
+        split="lineage",
+        source=[str(Path(p)) for p in args.splits],
+        protocol=protocol,
+        success_distance=args.success_distance,
+        start_horizon=None,
+        room_targets=True,
+        data=str(Path(args.data).resolve()),
+        dropped=st.dropped,
+    )
     print(f"wrote {len(eps)} episodes to {out}")
     return 0
 
@@ -243,35 +326,54 @@ def _challenge_episodes(args) -> int:
     names = sorted({str(r["scene"]) for r in records})
     have = [n for n in names if is_complete(data / n)]
     if not have:
-        raise CommandError(f"--data {data}: holds none of the {len(names)} scenes of the challenge's {args.split} "
-                           f"split (e.g. {names[0]})")
+        raise CommandError(
+            f"--data {data}: holds none of the {len(names)} scenes of the challenge's {args.split} "
+            f"split (e.g. {names[0]})"
+        )
     scenes = [load_scene(data / n) for n in have]
     other = [s for s in scenes if s.class_set is not ROBOTHOR12]
     if other:
-        raise CommandError(f"{other[0].path}: declares class set {other[0].class_set.name}, but the challenge's 12 "
-                           f"target types are robothor12's (scene.json \"class_set\": \"robothor12\")")
+        raise CommandError(
+            f"{other[0].path}: declares class set {other[0].class_set.name}, but the challenge's 12 "
+            f'target types are robothor12\'s (scene.json "class_set": "robothor12")'
+        )
     bank = SceneBank(scenes, success_distance=args.success_distance, protocol=protocol)
     eps, st = challenge_episodes(records, bank)
     print(st.summary())
     for scene, c in sorted(st.per_scene.items()):
         lost = {k: v for k, v in c.items() if k not in ("read", "looked up", "kept")}
         if lost:
-            print(f"  {scene}: {c['kept']} of {c['read']} kept; dropped " + ", ".join(
-                f"{v} {k}" for k, v in sorted(lost.items())))
+            print(
+                f"  {scene}: {c['kept']} of {c['read']} kept; dropped "
+                + ", ".join(f"{v} {k}" for k, v in sorted(lost.items()))
+            )
     if not eps:
         raise CommandError(f"no episode of the challenge's {args.split} split could be converted on {data}")
     lengths = ratio_summary(eps)
-    write_episodes(out, eps, split=args.split, source=CHALLENGE_SOURCE.format(split=args.split),
-                   challenge=str(Path(args.challenge).resolve()), protocol=protocol,
-                   success_distance=args.success_distance, class_set=bank.class_set.name, start_horizon=30,
-                   room_targets=False, heading_rule=HEADING_RULE, data=str(data.resolve()),
-                   conversion=st.to_json(), lengths=lengths)
+    write_episodes(
+        out,
+        eps,
+        split=args.split,
+        source=CHALLENGE_SOURCE.format(split=args.split),
+        challenge=str(Path(args.challenge).resolve()),
+        protocol=protocol,
+        success_distance=args.success_distance,
+        class_set=bank.class_set.name,
+        start_horizon=30,
+        room_targets=False,
+        heading_rule=HEADING_RULE,
+        data=str(data.resolve()),
+        conversion=st.to_json(),
+        lengths=lengths,
+    )
     if lengths.get("episodes"):
-        print(f"tsnav grid metres / navmesh shortest_path_length over {lengths['episodes']} episodes: median "
-              f"{lengths['median']:.3f} (quartiles {lengths['q1']:.3f}-{lengths['q3']:.3f}), "
-              f"{100 * lengths['within_25pct']:.1f} % within +-25 %; mean L* {lengths['mean_optimal_actions']:.1f} "
-              f"actions, {lengths['mean_optimal_metres']:.2f} m on the grid, {lengths['mean_navmesh_metres']:.2f} m "
-              f"on the navmesh")
+        print(
+            f"tsnav grid metres / navmesh shortest_path_length over {lengths['episodes']} episodes: median "
+            f"{lengths['median']:.3f} (quartiles {lengths['q1']:.3f}-{lengths['q3']:.3f}), "
+            f"{100 * lengths['within_25pct']:.1f} % within +-25 %; mean L* {lengths['mean_optimal_actions']:.1f} "
+            f"actions, {lengths['mean_optimal_metres']:.2f} m on the grid, {lengths['mean_navmesh_metres']:.2f} m "
+            f"on the navmesh"
+        )
     print(f"wrote {len(eps)} episodes to {out} (protocol {protocol}, class set {bank.class_set.name})")
     return 0
 
@@ -300,8 +402,10 @@ def _export_live(args) -> int:
             if st.skipped:
                 print(f"{name}: already complete")
             else:
-                print(f"{name}: {st.states} states, {st.positions} positions, {st.objects} objects, "
-                      f"{st.steps} controller steps, {st.seconds:.0f}s")
+                print(
+                    f"{name}: {st.states} states, {st.positions} positions, {st.objects} objects, "
+                    f"{st.steps} controller steps, {st.seconds:.0f}s"
+                )
     except LiveExportError as e:
         raise CommandError(str(e)) from None
     finally:

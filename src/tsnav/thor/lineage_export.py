@@ -59,9 +59,18 @@ class LineageExportStats:
     """file name -> number of episodes."""
 
 
-def export_lineage(root: str | Path, encoder, detections: str | None, success_distance: float = LINEAGE_SUCCESS_DISTANCE,
-                   per_room_type: int = 1000, seed: int = 0, batch_size: int = 16, overwrite: bool = False,
-                   splits: bool = True, progress: bool = True) -> LineageExportStats:
+def export_lineage(
+    root: str | Path,
+    encoder,
+    detections: str | None,
+    success_distance: float = LINEAGE_SUCCESS_DISTANCE,
+    per_room_type: int = 1000,
+    seed: int = 0,
+    batch_size: int = 16,
+    overwrite: bool = False,
+    splits: bool = True,
+    progress: bool = True,
+) -> LineageExportStats:
     """Write the lineage's files into every complete scene folder of ``root`` and its episode lists (module doc).
 
     ``encoder``: a ResNet18 :class:`tsnav.pretrain.features.Encoder` (None: no ``resnet18_featuremap.hdf5``);
@@ -75,8 +84,10 @@ def export_lineage(root: str | Path, encoder, detections: str | None, success_di
     if detections is not None:
         missing = [d.name for d in dirs if not detections_path(d, detections).exists()]
         if missing:
-            raise SceneFormatError(f"{root}: scene {missing[0]} has no detections_{detections}.hdf5 "
-                                   f"(run `tsnav detect --name {detections}` first)")
+            raise SceneFormatError(
+                f"{root}: scene {missing[0]} has no detections_{detections}.hdf5 "
+                f"(run `tsnav detect --name {detections}` first)"
+            )
     if encoder is not None:
         no_img = [d.name for d in dirs if not (d / L.IMAGES_FILE).exists()]
         if no_img:
@@ -85,8 +96,13 @@ def export_lineage(root: str | Path, encoder, detections: str | None, success_di
     scenes = [load_scene(d) for d in dirs]
     stats.states = sum(s.num_states for s in scenes)
     stats.image_sizes = sorted({int(s.image_size) for s in scenes})
-    bar = tqdm(total=stats.states if encoder is not None else 0, desc="resnet18 features", unit="img",
-               disable=not progress or encoder is None, dynamic_ncols=True)
+    bar = tqdm(
+        total=stats.states if encoder is not None else 0,
+        desc="resnet18 features",
+        unit="img",
+        disable=not progress or encoder is None,
+        dynamic_ncols=True,
+    )
     try:
         for d, scene in zip(dirs, scenes):
             if encoder is not None:

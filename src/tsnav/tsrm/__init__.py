@@ -16,7 +16,21 @@ from .reward import VARIANTS, RewardConfig, TSRMReward, TSRMRewardReference
 from .terms import TERMS, VARIANT_TERMS, RewardTerm, register_term, register_variant
 
 __all__ = [
-    "AreaConfig", "AreaIndex", "BatchCoverage", "ExactSearchedRegion", "trapezoid", "bank_pose_distance",
-    "pose_distance_fields", "scene_pose_distance", "VARIANTS", "RewardConfig", "TSRMReward", "TSRMRewardReference",
-    "TERMS", "VARIANT_TERMS", "RewardTerm", "register_term", "register_variant",
+    "AreaConfig",
+    "AreaIndex",
+    "BatchCoverage",
+    "ExactSearchedRegion",
+    "trapezoid",
+    "bank_pose_distance",
+    "pose_distance_fields",
+    "scene_pose_distance",
+    "VARIANTS",
+    "RewardConfig",
+    "TSRMReward",
+    "TSRMRewardReference",
+    "TERMS",
+    "VARIANT_TERMS",
+    "RewardTerm",
+    "register_term",
+    "register_variant",
 ]

@@ -71,8 +71,9 @@ class AreaConfig:
             raise ValueError("AreaConfig: the near base must be closer than the far base")
         k = GRID_SIZE / self.sample_size
         if abs(k - round(k)) > 1e-6 or round(k) < 1:
-            raise ValueError(f"AreaConfig.sample_size {self.sample_size} must divide the {GRID_SIZE} m grid "
-                             f"(e.g. 1/16, 0.05, 1/32)")
+            raise ValueError(
+                f"AreaConfig.sample_size {self.sample_size} must divide the {GRID_SIZE} m grid (e.g. 1/16, 0.05, 1/32)"
+            )
 
     @property
     def block_size(self) -> float:
@@ -95,8 +96,9 @@ def trapezoid_vertices(x, z, rotation, horizon, config: AreaConfig = AreaConfig(
     ``rotation`` in degrees (0 faces +z, 90 faces +x), ``horizon`` 0 or 30. Order: near-left, near-right,
     far-right, far-left, where right is the side RotateRight turns to.
     """
-    x, z, rot, hor = np.broadcast_arrays(np.asarray(x, float), np.asarray(z, float),
-                                         np.asarray(rotation, float), np.asarray(horizon))
+    x, z, rot, hor = np.broadcast_arrays(
+        np.asarray(x, float), np.asarray(z, float), np.asarray(rotation, float), np.asarray(horizon)
+    )
     near = np.empty(x.shape)
     far = np.empty(x.shape)
     for h in np.unique(hor):
@@ -256,6 +258,7 @@ def _unpack_blocks(blocks: np.ndarray) -> np.ndarray:
 
 
 if hasattr(np, "bitwise_count"):
+
     def popcount(x: np.ndarray) -> np.ndarray:
         """Number of set bits of each uint64."""
         return np.bitwise_count(x)
@@ -321,8 +324,14 @@ class AreaIndex:
         floor_area: ``(num_scenes,)`` floor area at raster resolution, square metres.
     """
 
-    def __init__(self, floors: Sequence, positions: Sequence[tuple[np.ndarray, np.ndarray]],
-                 rotations: np.ndarray, horizons: np.ndarray, config: AreaConfig = AreaConfig()):
+    def __init__(
+        self,
+        floors: Sequence,
+        positions: Sequence[tuple[np.ndarray, np.ndarray]],
+        rotations: np.ndarray,
+        horizons: np.ndarray,
+        config: AreaConfig = AreaConfig(),
+    ):
         """``floors``: per scene, ``Scene.floor`` (list of polygons) or a shapely geometry; ``positions``: per
         scene the ``(x, z)`` arrays of its states; ``rotations``/``horizons``: all states concatenated."""
         if len(floors) != len(positions):
@@ -398,9 +407,13 @@ class AreaIndex:
     @classmethod
     def from_scenes(cls, scenes: Sequence, config: AreaConfig = AreaConfig()) -> "AreaIndex":
         """Index for a list of :class:`~tsnav.data.reader.Scene` whose state ids are concatenated in order."""
-        return cls([scene_floor(sc) for sc in scenes], [(sc.x, sc.z) for sc in scenes],
-                   np.concatenate([sc.rotation for sc in scenes]), np.concatenate([sc.horizon for sc in scenes]),
-                   config)
+        return cls(
+            [scene_floor(sc) for sc in scenes],
+            [(sc.x, sc.z) for sc in scenes],
+            np.concatenate([sc.rotation for sc in scenes]),
+            np.concatenate([sc.horizon for sc in scenes]),
+            config,
+        )
 
     def extent(self, scene: int) -> tuple[float, float, float, float]:
         """``(x_min, x_max, z_min, z_max)`` metres covered by ``scene``'s raster (for ``imshow``)."""
@@ -421,7 +434,7 @@ class BatchCoverage:
         self.index = index
         self.batch_size = int(batch_size)
         self._flat = np.full(index.lead + self.batch_size * index.row_len, np.iinfo(np.uint64).max, dtype=np.uint64)
-        self.covered = self._flat[index.lead:].reshape(self.batch_size, index.row_len)
+        self.covered = self._flat[index.lead :].reshape(self.batch_size, index.row_len)
         self.scene = np.zeros(self.batch_size, dtype=np.int64)
         self.samples = np.zeros(self.batch_size, dtype=np.int64)
 
@@ -450,7 +463,7 @@ class BatchCoverage:
             for g in (0, 1):  # one padded gather per horizon and chunk of episodes
                 sel_all = np.flatnonzero(group == g)
                 for c in range(0, len(sel_all), CHUNK):  # chunks keep the (n, K) temporaries in cache
-                    sel = sel_all[c:c + CHUNK]
+                    sel = sel_all[c : c + CHUNK]
                     row = idx.stencil[states[sel]]
                     cells = base[sel, None] + idx.offsets[g][row]
                     old = flat[cells]
@@ -459,7 +472,7 @@ class BatchCoverage:
                     gained[sel] = popcount(old).sum(axis=1, dtype=np.int64)
                     flat[cells] = upd
             self.samples[episodes] += gained
-        return gained * self.index.config.sample_size ** 2
+        return gained * self.index.config.sample_size**2
 
     def reset_one(self, episode: int, scene: int) -> None:
         """:meth:`reset` of the one episode ``episode`` in scene ``scene`` (scalars; the single Gymnasium env's
@@ -480,11 +493,11 @@ class BatchCoverage:
         gained = int(popcount(old).sum(dtype=np.int64))
         self._flat[cells] = upd
         self.samples[episode] += gained
-        return gained * idx.config.sample_size ** 2
+        return gained * idx.config.sample_size**2
 
     def area(self) -> np.ndarray:
         """``Area(RG_t)`` of every episode, square metres."""
-        return self.samples * self.index.config.sample_size ** 2
+        return self.samples * self.index.config.sample_size**2
 
     def region_mask(self, b: int) -> np.ndarray:
         """``(rows, cols)`` bool sample raster of episode ``b``'s searched region (row = z), see ``extent``."""

@@ -29,15 +29,22 @@ from ..sim.paths import UNREACHABLE, distance_fields
 POSE_ACTIONS = (MOVE_AHEAD, ROTATE_LEFT, ROTATE_RIGHT)
 
 
-def pose_nodes(x: np.ndarray, z: np.ndarray, rotation: np.ndarray, scene_of: np.ndarray | None = None
-               ) -> tuple[np.ndarray, int]:
+def pose_nodes(
+    x: np.ndarray, z: np.ndarray, rotation: np.ndarray, scene_of: np.ndarray | None = None
+) -> tuple[np.ndarray, int]:
     """Pose node of every state: ``(node_of (S,) int64, num_nodes)``; states sharing scene, grid position
     and rotation share a node (x, z metres on the 0.25 m grid; rotation degrees)."""
     x = np.asarray(x, np.float64)
     scene_of = np.zeros(len(x), np.int64) if scene_of is None else np.asarray(scene_of, np.int64)
-    key = np.stack([scene_of, np.round(x / GRID_SIZE).astype(np.int64),
-                    np.round(np.asarray(z, np.float64) / GRID_SIZE).astype(np.int64),
-                    (np.asarray(rotation, np.int64) % 360) // ROTATE_STEP], axis=1)
+    key = np.stack(
+        [
+            scene_of,
+            np.round(x / GRID_SIZE).astype(np.int64),
+            np.round(np.asarray(z, np.float64) / GRID_SIZE).astype(np.int64),
+            (np.asarray(rotation, np.int64) % 360) // ROTATE_STEP,
+        ],
+        axis=1,
+    )
     _, node_of = np.unique(key, axis=0, return_inverse=True)
     node_of = node_of.reshape(-1).astype(np.int64)
     return node_of, int(node_of.max()) + 1 if len(node_of) else 0
@@ -61,8 +68,15 @@ def pose_graph(next_state: np.ndarray, node_of: np.ndarray, num_nodes: int, hori
     return out
 
 
-def pose_distance_fields(next_state: np.ndarray, x: np.ndarray, z: np.ndarray, rotation: np.ndarray,
-                         horizon: np.ndarray, success: np.ndarray, scene_of: np.ndarray | None = None) -> np.ndarray:
+def pose_distance_fields(
+    next_state: np.ndarray,
+    x: np.ndarray,
+    z: np.ndarray,
+    rotation: np.ndarray,
+    horizon: np.ndarray,
+    success: np.ndarray,
+    scene_of: np.ndarray | None = None,
+) -> np.ndarray:
     """``d(p, g)`` for every state and category: ``(S, C)`` int32 pose-graph actions to the nearest success
     pose (:data:`~tsnav.sim.paths.UNREACHABLE` when none is reachable or the category is absent).
 
@@ -82,14 +96,21 @@ def pose_distance_fields(next_state: np.ndarray, x: np.ndarray, z: np.ndarray, r
 
 def bank_pose_distance(bank) -> np.ndarray:
     """:func:`pose_distance_fields` over all scenes of a :class:`~tsnav.sim.batch.SceneBank` (global ids)."""
-    return pose_distance_fields(bank.next_state, bank.x, bank.z, bank.rotation, bank.horizon, bank.success,
-                                bank.scene_of)
+    return pose_distance_fields(
+        bank.next_state, bank.x, bank.z, bank.rotation, bank.horizon, bank.success, bank.scene_of
+    )
 
 
 def scene_pose_distance(scene, success_distance: float = 1.0) -> np.ndarray:
     """:func:`pose_distance_fields` of one :class:`~tsnav.data.reader.Scene`, ``(S, 22)`` int32."""
-    return pose_distance_fields(scene.next_state, scene.x, scene.z, scene.rotation, scene.horizon,
-                                scene.category_visible_within(success_distance))
+    return pose_distance_fields(
+        scene.next_state,
+        scene.x,
+        scene.z,
+        scene.rotation,
+        scene.horizon,
+        scene.category_visible_within(success_distance),
+    )
 
 
 def pose_distance_reference(next_state, x, z, rotation, success_states) -> np.ndarray:

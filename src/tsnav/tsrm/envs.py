@@ -46,9 +46,17 @@ from .reward import VARIANTS, RewardConfig, TSRMReward
 REWARDS = VARIANTS
 
 
-def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_target: float | None,
-                     bank: SceneBank | None, scenes, data, split, success_distance: float, protocol: str | None = None
-                     ) -> tuple[SceneBank, RewardFn]:
+def _bank_and_reward(
+    reward: str | RewardConfig,
+    detections: str | None,
+    c_target: float | None,
+    bank: SceneBank | None,
+    scenes,
+    data,
+    split,
+    success_distance: float,
+    protocol: str | None = None,
+) -> tuple[SceneBank, RewardFn]:
     if not isinstance(reward, RewardConfig) and reward not in REWARDS:
         raise ValueError(f"unknown reward {reward!r} (choose from {', '.join(REWARDS)})")
     if bank is not None and c_target is not None:
@@ -56,32 +64,61 @@ def _bank_and_reward(reward: str | RewardConfig, detections: str | None, c_targe
     if bank is not None and protocol is not None and bank.protocol != protocol:
         raise ValueError(f"protocol {protocol!r} differs from the given bank's {bank.protocol!r}")
     if detections is None and (data is not None or scenes is not None) and bank is None:
-        raise ValueError("name the detection table the env reads: detections='learned' or detections='oracle' "
-                         "(`tsnav detect`); there is no fallback to ground truth")
-    bank = make_bank(bank, scenes, data, split, success_distance, c_target=C_TARGET if c_target is None else c_target,
-                     protocol=protocol or "paper")
+        raise ValueError(
+            "name the detection table the env reads: detections='learned' or detections='oracle' "
+            "(`tsnav detect`); there is no fallback to ground truth"
+        )
+    bank = make_bank(
+        bank,
+        scenes,
+        data,
+        split,
+        success_distance,
+        c_target=C_TARGET if c_target is None else c_target,
+        protocol=protocol or "paper",
+    )
     if detections is not None:
         bank.install_detections(detections)
     config = reward if isinstance(reward, RewardConfig) else RewardConfig(variant=reward)
     return bank, TSRMReward(bank, config)
 
 
-def make_objectnav(reward: str | RewardConfig = "tsrm", detections: str | None = None, c_target: float | None = None,
-                   data: str | None = None, split: str | None = "train", scenes=None, bank: SceneBank | None = None,
-                   success_distance: float = SUCCESS_DISTANCE, protocol: str | None = None, **kwargs) -> ObjectNavEnv:
+def make_objectnav(
+    reward: str | RewardConfig = "tsrm",
+    detections: str | None = None,
+    c_target: float | None = None,
+    data: str | None = None,
+    split: str | None = "train",
+    scenes=None,
+    bank: SceneBank | None = None,
+    success_distance: float = SUCCESS_DISTANCE,
+    protocol: str | None = None,
+    **kwargs,
+) -> ObjectNavEnv:
     """One episode at a time with ``reward`` (see the module docstring); other arguments as
     :class:`~tsnav.sim.gym_env.ObjectNavEnv`."""
-    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance,
-                                       protocol)
+    bank, reward_fn = _bank_and_reward(
+        reward, detections, c_target, bank, scenes, data, split, success_distance, protocol
+    )
     return ObjectNavEnv(bank=bank, reward_fn=reward_fn, **kwargs)
 
 
-def make_objectnav_vector(num_envs: int = 1, reward: str | RewardConfig = "tsrm", detections: str | None = None,
-                          c_target: float | None = None, data: str | None = None, split: str | None = "train",
-                          scenes=None, bank: SceneBank | None = None, success_distance: float = SUCCESS_DISTANCE,
-                          protocol: str | None = None, **kwargs) -> ObjectNavVectorEnv:
+def make_objectnav_vector(
+    num_envs: int = 1,
+    reward: str | RewardConfig = "tsrm",
+    detections: str | None = None,
+    c_target: float | None = None,
+    data: str | None = None,
+    split: str | None = "train",
+    scenes=None,
+    bank: SceneBank | None = None,
+    success_distance: float = SUCCESS_DISTANCE,
+    protocol: str | None = None,
+    **kwargs,
+) -> ObjectNavVectorEnv:
     """``num_envs`` episodes stepped together with ``reward``; other arguments as
     :class:`~tsnav.sim.gym_env.ObjectNavVectorEnv`."""
-    bank, reward_fn = _bank_and_reward(reward, detections, c_target, bank, scenes, data, split, success_distance,
-                                       protocol)
+    bank, reward_fn = _bank_and_reward(
+        reward, detections, c_target, bank, scenes, data, split, success_distance, protocol
+    )
     return ObjectNavVectorEnv(num_envs, bank=bank, reward_fn=reward_fn, **kwargs)

@@ -42,7 +42,9 @@ class EpisodeStages:
     searching_frames: np.ndarray
 
 
-def episode_stages(states: Sequence[int], target: int, confidence: np.ndarray, c_target: float = C_TARGET) -> EpisodeStages:
+def episode_stages(
+    states: Sequence[int], target: int, confidence: np.ndarray, c_target: float = C_TARGET
+) -> EpisodeStages:
     """Stages of the frames ``states`` (scene-local ids, start first) for ``target`` (category id)."""
     states = np.asarray(states, dtype=np.int64)
     switch = switch_frame(np.asarray(confidence)[states, int(target)], c_target)
@@ -58,25 +60,41 @@ def searched_region(scene, states: Sequence[int], config: RewardConfig = RewardC
     states = np.asarray(states, dtype=np.int64)
     if len(states) == 0:
         return shapely.Polygon()
-    traps = [trapezoid(float(scene.x[s]), float(scene.z[s]), int(scene.rotation[s]), int(scene.horizon[s]), config.area)
-             for s in np.unique(states)]
+    traps = [
+        trapezoid(float(scene.x[s]), float(scene.z[s]), int(scene.rotation[s]), int(scene.horizon[s]), config.area)
+        for s in np.unique(states)
+    ]
     return shapely.intersection(shapely.union_all(traps), scene_floor(scene))
 
 
 def _fill(ax, geom, **kw) -> None:
-    polys = [geom] if isinstance(geom, shapely.Polygon) else [g for g in getattr(geom, "geoms", []) if isinstance(g, shapely.Polygon)]
+    polys = (
+        [geom]
+        if isinstance(geom, shapely.Polygon)
+        else [g for g in getattr(geom, "geoms", []) if isinstance(g, shapely.Polygon)]
+    )
     for p in polys:
         if p.is_empty:
             continue
         rings = [np.asarray(p.exterior.coords)] + [np.asarray(r.coords) for r in p.interiors]
         verts = np.concatenate(rings)
-        codes = np.concatenate([[MplPath.MOVETO] + [MplPath.LINETO] * (len(r) - 2) + [MplPath.CLOSEPOLY] for r in rings])
+        codes = np.concatenate(
+            [[MplPath.MOVETO] + [MplPath.LINETO] * (len(r) - 2) + [MplPath.CLOSEPOLY] for r in rings]
+        )
         ax.add_patch(PathPatch(MplPath(verts, codes), **kw))
 
 
-def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Path,
-                 confidence: np.ndarray | None = None, config: RewardConfig = RewardConfig(),
-                 title: str | None = None, dpi: int = 120, c_target: float = C_TARGET) -> Path:
+def draw_episode(
+    scene,
+    states: Sequence[int],
+    target: int | str,
+    path: str | Path,
+    confidence: np.ndarray | None = None,
+    config: RewardConfig = RewardConfig(),
+    title: str | None = None,
+    dpi: int = 120,
+    c_target: float = C_TARGET,
+) -> Path:
     """Write a PNG of one episode of ``scene`` and return its path.
 
     ``states``: scene-local state ids of the frames, start first; ``target``: category name or id;
@@ -104,29 +122,59 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     _fill(ax, floor, facecolor="#f3efe6", edgecolor="#444", lw=1.5, zorder=0)
     for f in scene.meta.get("furniture", []):
         if "footprint" in f:
-            ax.add_patch(MplPolygon(np.asarray(f["footprint"]), closed=True, facecolor="#b9aa94",
-                                    edgecolor="#6b5d49", lw=0.8, zorder=1))
+            ax.add_patch(
+                MplPolygon(
+                    np.asarray(f["footprint"]), closed=True, facecolor="#b9aa94", edgecolor="#6b5d49", lw=0.8, zorder=1
+                )
+            )
     _fill(ax, region, facecolor=SEARCH_COLOR, alpha=0.18, edgecolor=SEARCH_COLOR, lw=0.6, zorder=2)
 
     px, pz = scene.x[states].astype(float), scene.z[states].astype(float)
     cut = len(states) if st.switch_frame < 0 else st.switch_frame + 1
     ax.plot(px[:cut], pz[:cut], "-", color=SEARCH_COLOR, lw=2, zorder=4, label="searching")
     if st.switch_frame >= 0:
-        ax.plot(px[st.switch_frame:], pz[st.switch_frame:], "-", color=PATH_COLOR, lw=2, zorder=4, label="pathfinding")
-        ax.scatter([px[st.switch_frame]], [pz[st.switch_frame]], marker="*", s=220, color="gold", edgecolors="k",
-                   zorder=6.5, label="stage switch")  # above the start marker, below the hollow end
+        ax.plot(
+            px[st.switch_frame :], pz[st.switch_frame :], "-", color=PATH_COLOR, lw=2, zorder=4, label="pathfinding"
+        )
+        ax.scatter(
+            [px[st.switch_frame]],
+            [pz[st.switch_frame]],
+            marker="*",
+            s=220,
+            color="gold",
+            edgecolors="k",
+            zorder=6.5,
+            label="stage switch",
+        )  # above the start marker, below the hollow end
     rad = np.deg2rad(scene.rotation[states[0]])
-    ax.annotate("", xy=(px[0] + 0.3 * np.sin(rad), pz[0] + 0.3 * np.cos(rad)), xytext=(px[0], pz[0]),
-                arrowprops=dict(arrowstyle="->", color="k", lw=1.5), zorder=6)
+    ax.annotate(
+        "",
+        xy=(px[0] + 0.3 * np.sin(rad), pz[0] + 0.3 * np.cos(rad)),
+        xytext=(px[0], pz[0]),
+        arrowprops=dict(arrowstyle="->", color="k", lw=1.5),
+        zorder=6,
+    )
     ax.scatter([px[0]], [pz[0]], marker="o", s=50, color="white", edgecolors="k", zorder=6, label="start")
-    ax.scatter([px[-1]], [pz[-1]], marker="s", s=40, facecolors="none", edgecolors="k", linewidths=1.5, zorder=7,
-               label="end")  # hollow, so a stage-switch star under it stays visible
+    ax.scatter(
+        [px[-1]], [pz[-1]], marker="s", s=40, facecolors="none", edgecolors="k", linewidths=1.5, zorder=7, label="end"
+    )  # hollow, so a stage-switch star under it stays visible
     name = scene.class_set.categories[g]
-    objs = [o for o in scene.meta.get("objects", [])
-            if o.get("objectType", str(o.get("objectId", "")).split("|")[0]) == name and "position" in o]
+    objs = [
+        o
+        for o in scene.meta.get("objects", [])
+        if o.get("objectType", str(o.get("objectId", "")).split("|")[0]) == name and "position" in o
+    ]
     if objs:
-        ax.scatter([o["position"]["x"] for o in objs], [o["position"]["z"] for o in objs], marker="X", s=120,
-                   color="#2ca02c", edgecolors="k", zorder=7, label=f"target: {name}")
+        ax.scatter(
+            [o["position"]["x"] for o in objs],
+            [o["position"]["z"] for o in objs],
+            marker="X",
+            s=120,
+            color="#2ca02c",
+            edgecolors="k",
+            zorder=7,
+            label=f"target: {name}",
+        )
 
     x0, z0, x1, z1 = floor.bounds
     xs = np.concatenate([[x0, x1], px])
@@ -137,6 +185,7 @@ def draw_episode(scene, states: Sequence[int], target: int | str, path: str | Pa
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
     fig.legend(loc="outside right upper", fontsize=7, framealpha=0.8)
-    ax.set_title(title or f"{scene.name}: target {name}, {len(states) - 1} steps, searched {region.area:.2f} m$^2$",
-                 fontsize=9)
+    ax.set_title(
+        title or f"{scene.name}: target {name}, {len(states) - 1} steps, searched {region.area:.2f} m$^2$", fontsize=9
+    )
     return atomic_save_figure(fig, path, dpi=dpi)

@@ -52,7 +52,13 @@ from ..constants import C_TARGET
 from ..sim.stage import PATHFINDING, SEARCHING, above_threshold  # noqa: F401 (the stages, re-exported)
 from .area import AreaConfig
 from .terms import (  # noqa: F401 (the registry, re-exported)
-    TERM_CLASSES, TERMS, VARIANT_TERMS, VARIANTS, RewardTerm, register_term, register_variant,
+    TERM_CLASSES,
+    TERMS,
+    VARIANT_TERMS,
+    VARIANTS,
+    RewardTerm,
+    register_term,
+    register_variant,
 )
 
 
@@ -171,8 +177,14 @@ class TSRMReward:
         t = self.term.get("explore")
         return t.searched_area() if t is not None else np.zeros(self.batch_size)
 
-    def reset(self, mask: np.ndarray, scene_idx: np.ndarray, target: np.ndarray, start_state: np.ndarray,
-              searching: np.ndarray) -> None:
+    def reset(
+        self,
+        mask: np.ndarray,
+        scene_idx: np.ndarray,
+        target: np.ndarray,
+        start_state: np.ndarray,
+        searching: np.ndarray,
+    ) -> None:
         """Start episodes where ``mask`` is True (``(B,)`` arrays; global start state ids); ``searching``: the
         env's stage of the start frames (False where the start frame already switched to pathfinding)."""
         mask = np.asarray(mask, dtype=bool)
@@ -186,8 +198,9 @@ class TSRMReward:
         for t in self.terms:
             t.reset(mask, rows, start, search)
 
-    def step(self, prev_state, action, new_state, collided, done, success, searching
-             ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def step(
+        self, prev_state, action, new_state, collided, done, success, searching
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Reward of one step of every episode: ``(reward (B,) float32, {term: (B,) float32})``; ``searching``:
         the env's ``(B,)`` stage in which this step's action was chosen (before the switch sees the new frame)."""
         prev = np.asarray(prev_state, dtype=np.int64)
@@ -216,8 +229,9 @@ class TSRMReward:
         for t in self.terms:
             t.reset_one(start_state, searching)
 
-    def step_one(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool,
-                 searching: bool) -> tuple[float, dict[str, float]]:
+    def step_one(
+        self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool, searching: bool
+    ) -> tuple[float, dict[str, float]]:
         """:meth:`step` of a batch of one episode, in Python scalars: ``(reward, {term: value})``, the float32
         values of ``step`` as Python floats, computed in the same order (terms in float64, their sum rounded to
         float32), so they are bit-identical (``tests/test_gym_fast.py``)."""
@@ -234,8 +248,10 @@ class TSRMReward:
         reward = float(np.float32(sum(values)))
         f32 = self._one_f32
         # float32 of each term: the constants looked up, zeros kept (with their sign), the rest converted
-        return reward, {k: (v if v == 0.0 else f32[v] if v in f32 else float(np.float32(v)))
-                        for k, v in zip(self._one_names_list, values)}
+        return reward, {
+            k: (v if v == 0.0 else f32[v] if v in f32 else float(np.float32(v)))
+            for k, v in zip(self._one_names_list, values)
+        }
 
 
 class TSRMRewardReference:
@@ -244,8 +260,15 @@ class TSRMRewardReference:
     poses (each term's ``reference_*`` code). Slow; the reference that :class:`TSRMReward` is tested against.
     State ids are scene-local."""
 
-    def __init__(self, scene, config: RewardConfig = RewardConfig(), confidence: np.ndarray | None = None,
-                 success_distance: float = 1.0, protocol: str = "paper", c_target: float = C_TARGET):
+    def __init__(
+        self,
+        scene,
+        config: RewardConfig = RewardConfig(),
+        confidence: np.ndarray | None = None,
+        success_distance: float = 1.0,
+        protocol: str = "paper",
+        c_target: float = C_TARGET,
+    ):
         """``confidence``: ``(S, C)`` of this scene; defaults to 1.0 where the target category is in frame.
         The reference follows its own stages (the rule of III-B at ``c_target``), independently of any env."""
         self.scene = scene
@@ -273,8 +296,9 @@ class TSRMRewardReference:
         for t in self.terms:
             t.reference_reset(self.target, int(start_state), not self.pathfinding)
 
-    def step(self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
-             ) -> tuple[float, dict[str, float]]:
+    def step(
+        self, prev_state: int, action: int, new_state: int, collided: bool, done: bool, success: bool
+    ) -> tuple[float, dict[str, float]]:
         self.steps += 1
         searching = not self.pathfinding
         terms = dict.fromkeys(TERMS, 0.0)

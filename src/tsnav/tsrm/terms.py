@@ -73,8 +73,9 @@ class RewardTerm:
     def reset_one(self, start: int, searching: bool) -> None:
         """:meth:`reset` of a batch of one (``owner.scene[0]`` / ``owner.target[0]`` are set)."""
 
-    def step_one(self, prev: int, action: int, new: int, collided: bool, done: bool, success: bool,
-                 searching: bool) -> float:
+    def step_one(
+        self, prev: int, action: int, new: int, collided: bool, done: bool, success: bool, searching: bool
+    ) -> float:
         """:meth:`step` of a batch of one, a Python float computed as ``step`` computes it."""
         raise NotImplementedError
 
@@ -86,8 +87,9 @@ class RewardTerm:
     def reference_reset(self, target: int, start: int, searching: bool) -> None:
         """A new episode of ``target`` from ``start``; ``searching``: the start frame's stage."""
 
-    def reference_step(self, prev: int, action: int, new: int, collided: bool, done: bool, success: bool,
-                       searching: bool) -> float:
+    def reference_step(
+        self, prev: int, action: int, new: int, collided: bool, done: bool, success: bool, searching: bool
+    ) -> float:
         """The term of one step, written from the paper."""
         raise NotImplementedError
 
@@ -109,8 +111,13 @@ class ExploreTerm(RewardTerm):
         self.area_index = None
         self._floors: dict[int, object] = {}
         if not cfg.exact_area:
-            self.area_index = AreaIndex([scene_floor(s) for s in bank.scenes],
-                                        [(s.x, s.z) for s in bank.scenes], bank.rotation, bank.horizon, cfg.area)
+            self.area_index = AreaIndex(
+                [scene_floor(s) for s in bank.scenes],
+                [(s.x, s.z) for s in bank.scenes],
+                bank.rotation,
+                bank.horizon,
+                cfg.area,
+            )
 
     def alloc(self, b: int) -> None:
         # States whose view is already in RG: revisiting one adds no area, skip its stencil.
@@ -134,8 +141,12 @@ class ExploreTerm(RewardTerm):
         if self.coverage is not None:
             return self.coverage.add(rows, states)
         bank = self.owner.bank
-        return np.array([self._exact[b].add(float(bank.x[s]), float(bank.z[s]), int(bank.rotation[s]),
-                                            int(bank.horizon[s])) for b, s in zip(rows, states)])
+        return np.array(
+            [
+                self._exact[b].add(float(bank.x[s]), float(bank.z[s]), int(bank.rotation[s]), int(bank.horizon[s]))
+                for b, s in zip(rows, states)
+            ]
+        )
 
     def reset(self, mask, rows, start, searching) -> None:
         if self.coverage is not None:
@@ -161,8 +172,9 @@ class ExploreTerm(RewardTerm):
         if self.coverage is not None:
             return self.coverage.add_one(0, state)
         bank = self.owner.bank
-        return self._exact[0].add(float(bank.x[state]), float(bank.z[state]), int(bank.rotation[state]),
-                                  int(bank.horizon[state]))
+        return self._exact[0].add(
+            float(bank.x[state]), float(bank.z[state]), int(bank.rotation[state]), int(bank.horizon[state])
+        )
 
     def reset_one(self, start: int, searching: bool) -> None:
         scene_idx = self.owner.scene[0]
@@ -244,8 +256,12 @@ class DistanceTerm(RewardTerm):
         if target not in self._dist_cache:  # BFS once per target
             sc = owner.scene
             self._dist_cache[target] = pose_distance_reference(
-                sc.next_state, sc.x, sc.z, sc.rotation,
-                sc.success_table(owner.protocol, owner.success_distance)[:, target])
+                sc.next_state,
+                sc.x,
+                sc.z,
+                sc.rotation,
+                sc.success_table(owner.protocol, owner.success_distance)[:, target],
+            )
         self._d = self._dist_cache[target]
 
     def reference_step(self, prev, action, new, collided, done, success, searching) -> float:
@@ -411,8 +427,9 @@ def register_variant(name: str, terms: Sequence[str]) -> None:
     """Add a reward variant: ``RewardConfig(variant=name)`` then sums ``terms`` (registered term names)."""
     unknown = [t for t in terms if t not in TERM_CLASSES]
     if unknown:
-        raise ValueError(f"unknown reward term(s) {', '.join(map(repr, unknown))} "
-                         f"(registered: {', '.join(TERM_CLASSES)})")
+        raise ValueError(
+            f"unknown reward term(s) {', '.join(map(repr, unknown))} (registered: {', '.join(TERM_CLASSES)})"
+        )
     if name in VARIANT_TERMS and VARIANT_TERMS[name] != tuple(terms):
         raise ValueError(f"reward variant {name!r} is already registered with terms {VARIANT_TERMS[name]}")
     VARIANT_TERMS[name] = tuple(terms)

@@ -22,14 +22,27 @@ from ..atomic import atomic_write_text
 from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
-from ..data.writer import (DEFAULT_COMPRESSION, DEFAULT_COMPRESSION_LEVEL, GRID_Y, MIN_PIXEL_FRACTION, FrameWriter, box_distance, min_pixels, object_stats,
-                           scene_folder, write_graph, write_json, write_states)
+from ..data.writer import (
+    DEFAULT_COMPRESSION,
+    DEFAULT_COMPRESSION_LEVEL,
+    GRID_Y,
+    MIN_PIXEL_FRACTION,
+    FrameWriter,
+    box_distance,
+    min_pixels,
+    object_stats,
+    scene_folder,
+    write_graph,
+    write_json,
+    write_states,
+)
 from ..distributed import spawn_context
 from ..render.gl import Renderer
 from ..data.names import scene_info
 from .navgrid import graph_edges, reachable_positions, state_keys, state_poses
 from .presets import PRESETS, preset_scenes, scene_spec
 from .spec import SceneSpec
+
 
 @dataclass
 class BuildConfig:
@@ -58,8 +71,12 @@ class BuildConfig:
         """The settings of ``preset`` (:data:`~tsnav.world.presets.PRESETS`: image size, compact rooms, world;
         the defaults for ``None`` or a name that is not a preset), then ``overrides`` (field values)."""
         p = PRESETS.get(preset or "", {})
-        return replace(cls(image_size=p.get("image_size", 64), compact=p.get("compact", False),
-                           world=p.get("world", "procedural")), **overrides)
+        return replace(
+            cls(
+                image_size=p.get("image_size", 64), compact=p.get("compact", False), world=p.get("world", "procedural")
+            ),
+            **overrides,
+        )
 
 
 @dataclass
@@ -109,25 +126,36 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
         boxes = np.full((V, O, 4), -1, np.int16)
         with scene_folder(final) as tmp:
             with ExitStack() as stack:
-                frames = (stack.enter_context(FrameWriter(tmp, cfg.depth_dtype, cfg.compression, cfg.compression_level))
-                          if cfg.store_images else None)
+                frames = (
+                    stack.enter_context(FrameWriter(tmp, cfg.depth_dtype, cfg.compression, cfg.compression_level))
+                    if cfg.store_images
+                    else None
+                )
                 chunk = renderer.tiles * 4
                 for start in range(0, V, chunk):
                     t1 = time.perf_counter()
-                    rgb, depth, ids = renderer.render(poses[start:start + chunk])
-                    px, bx = object_stats(ids, lut, O) if O else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
-                    pixels[start:start + len(ids)] = px
-                    boxes[start:start + len(ids)] = bx
+                    rgb, depth, ids = renderer.render(poses[start : start + chunk])
+                    px, bx = (
+                        object_stats(ids, lut, O)
+                        if O
+                        else (np.zeros((len(ids), 0), np.int32), np.zeros((len(ids), 0, 4), np.int16))
+                    )
+                    pixels[start : start + len(ids)] = px
+                    boxes[start : start + len(ids)] = bx
                     t2 = time.perf_counter()
                     stats.render_s += t2 - t1
                     if frames is not None:
-                        frames.add_many(keys[start:start + len(ids)], rgb, depth)
+                        frames.add_many(keys[start : start + len(ids)], rgb, depth)
                     stats.write_s += time.perf_counter() - t2
             t3 = time.perf_counter()
             # Distances: agent position to the nearest point of each object's footprint (floor plane); per position.
             if O:
-                dist_pos = box_distance(positions, np.array([o.center for o in objects]), np.array([o.size for o in objects]),
-                                        np.array([o.yaw for o in objects]))
+                dist_pos = box_distance(
+                    positions,
+                    np.array([o.center for o in objects]),
+                    np.array([o.size for o in objects]),
+                    np.array([o.yaw for o in objects]),
+                )
             else:
                 dist_pos = np.zeros((len(positions), 0))
             per_pos = len(ROTATIONS) * len(HORIZONS)
@@ -139,13 +167,23 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
             write_json(tmp / "grid.json", [{"x": float(x), "y": GRID_Y, "z": float(z)} for x, z in positions])
             src, dst = graph_edges(move)
             write_graph(tmp, keys_s.tolist(), zip(keys[src].tolist(), keys[dst].tolist()))
-            write_states(tmp, keys_s, object_ids, pixels_s, boxes_s, distance_s,
-                         image_size=cfg.image_size, min_pixels=min_px)
-            js.update({"image_size": cfg.image_size, "compact": cfg.compact,
-                       "visibility": {"min_pixels": min_px, "min_pixel_fraction": MIN_PIXEL_FRACTION,
-                                      "distance": VISIBILITY_DISTANCE},
-                       "num_states": len(keys), "num_positions": len(positions),
-                       "figures": scene_figures(spec, len(positions), len(keys), vis.any(axis=0))})
+            write_states(
+                tmp, keys_s, object_ids, pixels_s, boxes_s, distance_s, image_size=cfg.image_size, min_pixels=min_px
+            )
+            js.update(
+                {
+                    "image_size": cfg.image_size,
+                    "compact": cfg.compact,
+                    "visibility": {
+                        "min_pixels": min_px,
+                        "min_pixel_fraction": MIN_PIXEL_FRACTION,
+                        "distance": VISIBILITY_DISTANCE,
+                    },
+                    "num_states": len(keys),
+                    "num_positions": len(positions),
+                    "figures": scene_figures(spec, len(positions), len(keys), vis.any(axis=0)),
+                }
+            )
             write_json(tmp / "scene.json", js)
         stats.write_s += time.perf_counter() - t3
     finally:
@@ -163,18 +201,27 @@ def scene_figures(spec: SceneSpec, positions: int, states: int, seen: np.ndarray
     furniture_ids = {f.id for f in spec.furniture}
     present = sorted({o.objectType for o in spec.objects})
     seen_cats = sorted({o.objectType for o, s in zip(spec.objects, seen) if s})
-    return {"positions": int(positions), "states": int(states),
-            "objects": len(furniture_ids) + len(spec.objects),
-            "blocking_objects": len({f.id for f in spec.furniture if f.blocks})
-            + sum(o.support == "floor" for o in spec.objects),
-            "target_objects": len(spec.objects), "targets_present": present, "targets_seen": seen_cats,
-            "generator": spec.generator or {"world": "procedural"}}
+    return {
+        "positions": int(positions),
+        "states": int(states),
+        "objects": len(furniture_ids) + len(spec.objects),
+        "blocking_objects": len({f.id for f in spec.furniture if f.blocks})
+        + sum(o.support == "floor" for o in spec.objects),
+        "target_objects": len(spec.objects),
+        "targets_present": present,
+        "targets_seen": seen_cats,
+        "generator": spec.generator or {"world": "procedural"},
+    }
 
 
 def write_index(out_dir: Path, preset: str, names: list[str], cfg: BuildConfig) -> None:
     """``index.json`` of a dataset: preset, scene names and the build settings (written atomically)."""
-    atomic_write_text(out_dir / "index.json", json.dumps({"format": "tsnav-dataset", "preset": preset, "scenes": names,
-                                                         "config": asdict(cfg)}, separators=(",", ":")))
+    atomic_write_text(
+        out_dir / "index.json",
+        json.dumps(
+            {"format": "tsnav-dataset", "preset": preset, "scenes": names, "config": asdict(cfg)}, separators=(",", ":")
+        ),
+    )
 
 
 _RENDERER = None
@@ -229,15 +276,24 @@ def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
             continue  # an unreadable room is the reader's problem, not a version mismatch
         have = int(gen.get("version", 1))
         if gen.get("world", cfg.world) != cfg.world:
-            raise ValueError(f"{out / n} was built by world {gen.get('world')!r}, this build makes {cfg.world!r}: "
-                             f"use another --out")
+            raise ValueError(
+                f"{out / n} was built by world {gen.get('world')!r}, this build makes {cfg.world!r}: use another --out"
+            )
         if have != want:
-            raise ValueError(f"{out / n} was built with {cfg.world} version {have}, this build makes version {want}: "
-                             f"pass --world-version {have} to finish that world, or use another --out")
+            raise ValueError(
+                f"{out / n} was built with {cfg.world} version {have}, this build makes version {want}: "
+                f"pass --world-version {have} to finish that world, or use another --out"
+            )
 
 
-def build_dataset(out: str | Path, preset: str | None = "tiny", scenes: list[str] | None = None,
-                  cfg: BuildConfig | None = None, workers: int = 1, progress: bool = True) -> list[SceneStats]:
+def build_dataset(
+    out: str | Path,
+    preset: str | None = "tiny",
+    scenes: list[str] | None = None,
+    cfg: BuildConfig | None = None,
+    workers: int = 1,
+    progress: bool = True,
+) -> list[SceneStats]:
     """Build ``scenes`` (default: the preset's) into ``out``; finished scenes are skipped."""
     out = Path(out)
     names = list(scenes) if scenes else preset_scenes(preset or "tiny")

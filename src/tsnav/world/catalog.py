@@ -65,33 +65,90 @@ OBJECT_SIZES = {
 # ------------------------------------------------------------------------------------------- palettes
 #: role -> list of (base colour, pattern, pattern scale, second colour offset)
 PALETTES = {
-    "wood": [((0.55, 0.38, 0.22), WOOD), ((0.42, 0.28, 0.16), WOOD), ((0.7, 0.55, 0.38), WOOD),
-             ((0.3, 0.2, 0.13), WOOD), ((0.82, 0.72, 0.58), WOOD)],
-    "painted": [((0.92, 0.92, 0.9), PLAIN), ((0.25, 0.3, 0.38), PLAIN), ((0.6, 0.68, 0.62), PLAIN),
-                ((0.75, 0.62, 0.5), PLAIN), ((0.35, 0.35, 0.36), PLAIN), ((0.88, 0.85, 0.78), SPECKLE)],
-    "stone": [((0.85, 0.85, 0.83), SPECKLE), ((0.2, 0.2, 0.22), SPECKLE), ((0.6, 0.55, 0.5), SPECKLE),
-              ((0.9, 0.88, 0.82), PLAIN)],
-    "fabric": [((0.45, 0.5, 0.58), PLAIN), ((0.62, 0.3, 0.28), PLAIN), ((0.3, 0.45, 0.35), STRIPES),
-               ((0.7, 0.65, 0.55), CHECKER), ((0.2, 0.22, 0.3), PLAIN), ((0.8, 0.75, 0.6), STRIPES)],
-    "metal": [((0.75, 0.76, 0.78), PLAIN), ((0.55, 0.56, 0.58), PLAIN), ((0.15, 0.15, 0.16), PLAIN),
-              ((0.85, 0.84, 0.8), PLAIN)],
-    "plastic": [((0.9, 0.9, 0.9), PLAIN), ((0.12, 0.12, 0.13), PLAIN), ((0.8, 0.2, 0.18), PLAIN),
-                ((0.2, 0.45, 0.75), PLAIN), ((0.95, 0.8, 0.25), PLAIN), ((0.3, 0.65, 0.4), PLAIN)],
-    "ceramic": [((0.95, 0.95, 0.93), PLAIN), ((0.85, 0.9, 0.95), PLAIN), ((0.9, 0.82, 0.7), PLAIN),
-                ((0.35, 0.45, 0.6), PLAIN), ((0.7, 0.3, 0.25), PLAIN)],
+    "wood": [
+        ((0.55, 0.38, 0.22), WOOD),
+        ((0.42, 0.28, 0.16), WOOD),
+        ((0.7, 0.55, 0.38), WOOD),
+        ((0.3, 0.2, 0.13), WOOD),
+        ((0.82, 0.72, 0.58), WOOD),
+    ],
+    "painted": [
+        ((0.92, 0.92, 0.9), PLAIN),
+        ((0.25, 0.3, 0.38), PLAIN),
+        ((0.6, 0.68, 0.62), PLAIN),
+        ((0.75, 0.62, 0.5), PLAIN),
+        ((0.35, 0.35, 0.36), PLAIN),
+        ((0.88, 0.85, 0.78), SPECKLE),
+    ],
+    "stone": [
+        ((0.85, 0.85, 0.83), SPECKLE),
+        ((0.2, 0.2, 0.22), SPECKLE),
+        ((0.6, 0.55, 0.5), SPECKLE),
+        ((0.9, 0.88, 0.82), PLAIN),
+    ],
+    "fabric": [
+        ((0.45, 0.5, 0.58), PLAIN),
+        ((0.62, 0.3, 0.28), PLAIN),
+        ((0.3, 0.45, 0.35), STRIPES),
+        ((0.7, 0.65, 0.55), CHECKER),
+        ((0.2, 0.22, 0.3), PLAIN),
+        ((0.8, 0.75, 0.6), STRIPES),
+    ],
+    "metal": [
+        ((0.75, 0.76, 0.78), PLAIN),
+        ((0.55, 0.56, 0.58), PLAIN),
+        ((0.15, 0.15, 0.16), PLAIN),
+        ((0.85, 0.84, 0.8), PLAIN),
+    ],
+    "plastic": [
+        ((0.9, 0.9, 0.9), PLAIN),
+        ((0.12, 0.12, 0.13), PLAIN),
+        ((0.8, 0.2, 0.18), PLAIN),
+        ((0.2, 0.45, 0.75), PLAIN),
+        ((0.95, 0.8, 0.25), PLAIN),
+        ((0.3, 0.65, 0.4), PLAIN),
+    ],
+    "ceramic": [
+        ((0.95, 0.95, 0.93), PLAIN),
+        ((0.85, 0.9, 0.95), PLAIN),
+        ((0.9, 0.82, 0.7), PLAIN),
+        ((0.35, 0.45, 0.6), PLAIN),
+        ((0.7, 0.3, 0.25), PLAIN),
+    ],
     "screen": [((0.03, 0.03, 0.05), PLAIN), ((0.05, 0.07, 0.12), PLAIN)],
-    "paper": [((0.8, 0.15, 0.15), STRIPES), ((0.15, 0.3, 0.7), STRIPES), ((0.2, 0.55, 0.3), STRIPES),
-              ((0.9, 0.75, 0.3), STRIPES), ((0.4, 0.2, 0.5), STRIPES)],
+    "paper": [
+        ((0.8, 0.15, 0.15), STRIPES),
+        ((0.15, 0.3, 0.7), STRIPES),
+        ((0.2, 0.55, 0.3), STRIPES),
+        ((0.9, 0.75, 0.3), STRIPES),
+        ((0.4, 0.2, 0.5), STRIPES),
+    ],
     "lamp": [((0.98, 0.95, 0.8), PLAIN), ((0.95, 0.9, 0.7), PLAIN), ((0.9, 0.92, 0.95), PLAIN)],
-    "bedding": [((0.92, 0.92, 0.95), PLAIN), ((0.55, 0.65, 0.8), STRIPES), ((0.85, 0.75, 0.7), CHECKER),
-                ((0.5, 0.55, 0.45), PLAIN)],
+    "bedding": [
+        ((0.92, 0.92, 0.95), PLAIN),
+        ((0.55, 0.65, 0.8), STRIPES),
+        ((0.85, 0.75, 0.7), CHECKER),
+        ((0.5, 0.55, 0.45), PLAIN),
+    ],
 }
-WALLS = [((0.93, 0.91, 0.86), PLAIN), ((0.82, 0.86, 0.88), PLAIN), ((0.9, 0.84, 0.74), SPECKLE),
-         ((0.72, 0.78, 0.7), PLAIN), ((0.95, 0.95, 0.95), TILES), ((0.85, 0.8, 0.85), STRIPES),
-         ((0.68, 0.6, 0.55), PLAIN)]
-FLOORS = [((0.6, 0.45, 0.3), WOOD), ((0.45, 0.33, 0.22), WOOD), ((0.8, 0.8, 0.78), TILES),
-          ((0.35, 0.35, 0.37), TILES), ((0.7, 0.68, 0.6), CHECKER), ((0.55, 0.5, 0.48), SPECKLE),
-          ((0.76, 0.62, 0.45), WOOD)]
+WALLS = [
+    ((0.93, 0.91, 0.86), PLAIN),
+    ((0.82, 0.86, 0.88), PLAIN),
+    ((0.9, 0.84, 0.74), SPECKLE),
+    ((0.72, 0.78, 0.7), PLAIN),
+    ((0.95, 0.95, 0.95), TILES),
+    ((0.85, 0.8, 0.85), STRIPES),
+    ((0.68, 0.6, 0.55), PLAIN),
+]
+FLOORS = [
+    ((0.6, 0.45, 0.3), WOOD),
+    ((0.45, 0.33, 0.22), WOOD),
+    ((0.8, 0.8, 0.78), TILES),
+    ((0.35, 0.35, 0.37), TILES),
+    ((0.7, 0.68, 0.6), CHECKER),
+    ((0.55, 0.5, 0.48), SPECKLE),
+    ((0.76, 0.62, 0.45), WOOD),
+]
 
 
 def material(rng: np.random.Generator, role: str):
@@ -103,8 +160,14 @@ def material(rng: np.random.Generator, role: str):
 def jitter(rng: np.random.Generator, base, pattern):
     c = np.clip(np.asarray(base) * rng.uniform(0.85, 1.15) + rng.normal(0, 0.03, 3), 0, 1)
     c2 = np.clip(c * rng.uniform(0.6, 0.85), 0, 1) if pattern != PLAIN else c
-    scale = {PLAIN: 1.0, STRIPES: rng.uniform(0.04, 0.12), CHECKER: rng.uniform(0.05, 0.3),
-             WOOD: rng.uniform(0.03, 0.08), TILES: rng.uniform(0.2, 0.5), SPECKLE: rng.uniform(0.01, 0.03)}[pattern]
+    scale = {
+        PLAIN: 1.0,
+        STRIPES: rng.uniform(0.04, 0.12),
+        CHECKER: rng.uniform(0.05, 0.3),
+        WOOD: rng.uniform(0.03, 0.08),
+        TILES: rng.uniform(0.2, 0.5),
+        SPECKLE: rng.uniform(0.01, 0.03),
+    }[pattern]
     return tuple(float(v) for v in c), tuple(float(v) for v in c2), int(pattern), float(scale)
 
 
@@ -139,7 +202,10 @@ def _table(category, w, h, d):
 
 def _chair(category, w, h, d):
     seat = 0.46
-    out = [_box(0, seat - 0.025, 0, w, 0.05, d, "main"), _box(0, (seat + h) / 2, -d / 2 + 0.03, w, h - seat, 0.05, "main")]
+    out = [
+        _box(0, seat - 0.025, 0, w, 0.05, d, "main"),
+        _box(0, (seat + h) / 2, -d / 2 + 0.03, w, h - seat, 0.05, "main"),
+    ]
     for sx in (-1, 1):
         for sz in (-1, 1):
             out.append(_box(sx * (w / 2 - 0.03), seat / 2, sz * (d / 2 - 0.03), 0.04, seat, 0.04, "main"))
@@ -148,14 +214,22 @@ def _chair(category, w, h, d):
 
 def _sofa(category, w, h, d):
     arm = 0.18
-    return [_box(0, 0.22, 0.05, w, 0.44, d - 0.1, "main"), _box(0, h / 2, -d / 2 + 0.1, w, h, 0.2, "main"),
-            _box(-w / 2 + arm / 2, 0.3, 0.0, arm, 0.6, d, "main"), _box(w / 2 - arm / 2, 0.3, 0.0, arm, 0.6, d, "main"),
-            _box(0, 0.47, 0.08, w - 2 * arm, 0.08, d - 0.3, "accent")]
+    return [
+        _box(0, 0.22, 0.05, w, 0.44, d - 0.1, "main"),
+        _box(0, h / 2, -d / 2 + 0.1, w, h, 0.2, "main"),
+        _box(-w / 2 + arm / 2, 0.3, 0.0, arm, 0.6, d, "main"),
+        _box(w / 2 - arm / 2, 0.3, 0.0, arm, 0.6, d, "main"),
+        _box(0, 0.47, 0.08, w - 2 * arm, 0.08, d - 0.3, "accent"),
+    ]
 
 
 def _bed(category, w, h, d):
-    return [_box(0, 0.2, 0, w, 0.4, d, "main"), _box(0, h - 0.1, 0.05, w - 0.04, 0.2, d - 0.1, "accent"),
-            _box(0, 0.5, -d / 2 + 0.04, w, 1.0, 0.08, "main"), _box(0, h + 0.05, -d / 2 + 0.3, w * 0.7, 0.12, 0.35, "accent")]
+    return [
+        _box(0, 0.2, 0, w, 0.4, d, "main"),
+        _box(0, h - 0.1, 0.05, w - 0.04, 0.2, d - 0.1, "accent"),
+        _box(0, 0.5, -d / 2 + 0.04, w, 1.0, 0.08, "main"),
+        _box(0, h + 0.05, -d / 2 + 0.3, w * 0.7, 0.12, 0.35, "accent"),
+    ]
 
 
 def _counter(category, w, h, d):
@@ -170,8 +244,12 @@ def _counter(category, w, h, d):
 
 
 def _shelves(category, w, h, d):
-    out = [_box(-w / 2 + 0.02, h / 2, 0, 0.04, h, d, "main"), _box(w / 2 - 0.02, h / 2, 0, 0.04, h, d, "main"),
-           _box(0, h - 0.02, 0, w, 0.04, d, "main"), _box(0, h / 2, -d / 2 + 0.01, w, h, 0.02, "main")]
+    out = [
+        _box(-w / 2 + 0.02, h / 2, 0, 0.04, h, d, "main"),
+        _box(w / 2 - 0.02, h / 2, 0, 0.04, h, d, "main"),
+        _box(0, h - 0.02, 0, w, 0.04, d, "main"),
+        _box(0, h / 2, -d / 2 + 0.01, w, h, 0.02, "main"),
+    ]
     if category in ("Wardrobe", "Dresser", "TVStand"):
         out.append(_box(0, h / 2, d / 2 - 0.02, w - 0.06, h - 0.06, 0.03, "accent"))
     n = max(2, int(h / 0.4))
@@ -181,8 +259,11 @@ def _shelves(category, w, h, d):
 
 
 def _toilet(category, w, h, d):
-    return [_box(0, 0.2, 0.05, w * 0.8, 0.4, d * 0.7, "main"), _box(0, 0.42, 0.05, w, 0.05, d * 0.75, "main"),
-            _box(0, 0.6, -d / 2 + 0.1, w, 0.4, 0.2, "main")]
+    return [
+        _box(0, 0.2, 0.05, w * 0.8, 0.4, d * 0.7, "main"),
+        _box(0, 0.42, 0.05, w, 0.05, d * 0.75, "main"),
+        _box(0, 0.6, -d / 2 + 0.1, w, 0.4, 0.2, "main"),
+    ]
 
 
 def _bathtub(category, w, h, d):
@@ -191,33 +272,51 @@ def _bathtub(category, w, h, d):
 
 # ---- target objects
 def _fridge(category, w, h, d):
-    return [_box(0, h / 2, 0, w, h, d, "main"), _box(0, h * 0.78, d / 2 + 0.01, w - 0.04, h * 0.4, 0.02, "main"),
-            _box(w / 2 - 0.08, h * 0.6, d / 2 + 0.04, 0.03, 0.4, 0.04, "trim")]
+    return [
+        _box(0, h / 2, 0, w, h, d, "main"),
+        _box(0, h * 0.78, d / 2 + 0.01, w - 0.04, h * 0.4, 0.02, "main"),
+        _box(w / 2 - 0.08, h * 0.6, d / 2 + 0.04, 0.03, 0.4, 0.04, "trim"),
+    ]
 
 
 def _microwave(category, w, h, d):
-    return [_box(0, h / 2, 0, w, h, d, "main"), _box(-0.06, h / 2, d / 2 + 0.005, w * 0.62, h * 0.7, 0.01, "screen"),
-            _box(w / 2 - 0.07, h / 2, d / 2 + 0.005, 0.08, h * 0.7, 0.01, "trim")]
+    return [
+        _box(0, h / 2, 0, w, h, d, "main"),
+        _box(-0.06, h / 2, d / 2 + 0.005, w * 0.62, h * 0.7, 0.01, "screen"),
+        _box(w / 2 - 0.07, h / 2, d / 2 + 0.005, 0.08, h * 0.7, 0.01, "trim"),
+    ]
 
 
 def _television(category, w, h, d):
-    return [_box(0, 0.05 + h / 2, 0, w, h, d, "trim"), _box(0, 0.05 + h / 2, d / 2 + 0.003, w - 0.04, h - 0.04, 0.005, "screen"),
-            _box(0, 0.025, 0, w * 0.3, 0.05, 0.2, "trim")]
+    return [
+        _box(0, 0.05 + h / 2, 0, w, h, d, "trim"),
+        _box(0, 0.05 + h / 2, d / 2 + 0.003, w - 0.04, h - 0.04, 0.005, "screen"),
+        _box(0, 0.025, 0, w * 0.3, 0.05, 0.2, "trim"),
+    ]
 
 
 def _laptop(category, w, h, d):
-    return [_box(0, 0.01, 0.02, w, 0.02, d * 0.9, "main"), _box(0, h / 2, -d / 2 + 0.01, w, h, 0.015, "main"),
-            _box(0, h / 2, -d / 2 + 0.02, w - 0.03, h - 0.04, 0.004, "screen")]
+    return [
+        _box(0, 0.01, 0.02, w, 0.02, d * 0.9, "main"),
+        _box(0, h / 2, -d / 2 + 0.01, w, h, 0.015, "main"),
+        _box(0, h / 2, -d / 2 + 0.02, w - 0.03, h - 0.04, 0.004, "screen"),
+    ]
 
 
 def _floor_lamp(category, w, h, d):
-    return [_box(0, 0.02, 0, w * 0.8, 0.04, d * 0.8, "trim"), _box(0, h / 2, 0, 0.035, h, 0.035, "trim"),
-            _box(0, h - 0.15, 0, w, 0.3, d, "lamp")]
+    return [
+        _box(0, 0.02, 0, w * 0.8, 0.04, d * 0.8, "trim"),
+        _box(0, h / 2, 0, 0.035, h, 0.035, "trim"),
+        _box(0, h - 0.15, 0, w, 0.3, d, "lamp"),
+    ]
 
 
 def _desk_lamp(category, w, h, d):
-    return [_box(0, 0.015, 0, w, 0.03, d, "trim"), _box(0, h * 0.45, 0, 0.025, h * 0.9, 0.025, "trim"),
-            _box(0, h - 0.07, 0.03, w * 0.9, 0.14, d * 0.9, "lamp")]
+    return [
+        _box(0, 0.015, 0, w, 0.03, d, "trim"),
+        _box(0, h * 0.45, 0, 0.025, h * 0.9, 0.025, "trim"),
+        _box(0, h - 0.07, 0.03, w * 0.9, 0.14, d * 0.9, "lamp"),
+    ]
 
 
 def _garbage_can(category, w, h, d):
@@ -227,11 +326,20 @@ def _garbage_can(category, w, h, d):
 def _appliance(category, w, h, d):
     out = [_box(0, h / 2, 0, w, h, d, "main")]
     if category == "CoffeeMachine":
-        out += [_box(0, h * 0.3, d / 2 - 0.02, w * 0.6, h * 0.35, 0.06, "screen"), _box(0, h * 0.85, 0.02, w, h * 0.3, d, "trim")]
+        out += [
+            _box(0, h * 0.3, d / 2 - 0.02, w * 0.6, h * 0.35, 0.06, "screen"),
+            _box(0, h * 0.85, 0.02, w, h * 0.3, d, "trim"),
+        ]
     elif category == "Toaster":
-        out += [_box(-w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen"), _box(w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen")]
+        out += [
+            _box(-w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen"),
+            _box(w / 4, h + 0.005, 0, w * 0.3, 0.01, d * 0.6, "screen"),
+        ]
     elif category == "Kettle":
-        out += [_box(0, h + 0.03, -d / 2 + 0.03, 0.03, 0.06, 0.06, "trim"), _box(0, h * 0.7, d / 2 + 0.03, 0.04, 0.04, 0.06, "main")]
+        out += [
+            _box(0, h + 0.03, -d / 2 + 0.03, 0.03, 0.06, 0.06, "trim"),
+            _box(0, h * 0.7, d / 2 + 0.03, 0.04, 0.04, 0.06, "main"),
+        ]
     else:
         out += [_box(0, h / 2, d / 2 + 0.003, w * 0.75, h * 0.6, 0.006, "screen")]
     return out
@@ -239,11 +347,20 @@ def _appliance(category, w, h, d):
 
 def _vessel(category, w, h, d):
     wall = 0.015
-    return [_box(0, 0.01, 0, w * 0.6, 0.02, d * 0.6, "main"),
-            _box(0, h / 2, -d / 2 + wall / 2, w, h, wall, "main"), _box(0, h / 2, d / 2 - wall / 2, w, h, wall, "main"),
-            _box(-w / 2 + wall / 2, h / 2, 0, wall, h, d, "main"), _box(w / 2 - wall / 2, h / 2, 0, wall, h, d, "main")] + (
-        [_box(w / 2 + 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim"), _box(-w / 2 - 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim")]
-        if category == "Pot" else [])
+    return [
+        _box(0, 0.01, 0, w * 0.6, 0.02, d * 0.6, "main"),
+        _box(0, h / 2, -d / 2 + wall / 2, w, h, wall, "main"),
+        _box(0, h / 2, d / 2 - wall / 2, w, h, wall, "main"),
+        _box(-w / 2 + wall / 2, h / 2, 0, wall, h, d, "main"),
+        _box(w / 2 - wall / 2, h / 2, 0, wall, h, d, "main"),
+    ] + (
+        [
+            _box(w / 2 + 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim"),
+            _box(-w / 2 - 0.05, h * 0.8, 0, 0.1, 0.02, 0.03, "trim"),
+        ]
+        if category == "Pot"
+        else []
+    )
 
 
 def _pan(category, w, h, d):
@@ -251,8 +368,11 @@ def _pan(category, w, h, d):
 
 
 def _sink(category, w, h, d):
-    return [_box(0, -0.0, 0, w, 0.02, d, "trim"), _box(0, 0.12, -d / 2 - 0.03, 0.04, 0.25, 0.04, "metal"),
-            _box(0, 0.23, -d / 2 + 0.05, 0.03, 0.03, 0.14, "metal")]
+    return [
+        _box(0, -0.0, 0, w, 0.02, d, "trim"),
+        _box(0, 0.12, -d / 2 - 0.03, 0.04, 0.25, 0.04, "metal"),
+        _box(0, 0.23, -d / 2 + 0.05, 0.03, 0.03, 0.14, "metal"),
+    ]
 
 
 def _stove_burner(category, w, h, d):
@@ -278,34 +398,73 @@ def _block(category, w, h, d):
 
 #: The model of each category (:func:`shape`); a category not listed is one box.
 SHAPES = {
-    **dict.fromkeys(("DiningTable", "Desk", "CoffeeTable", "SideTable"), _table), "Chair": _chair,
-    **dict.fromkeys(("Sofa", "ArmChair"), _sofa), "Bed": _bed,
+    **dict.fromkeys(("DiningTable", "Desk", "CoffeeTable", "SideTable"), _table),
+    "Chair": _chair,
+    **dict.fromkeys(("Sofa", "ArmChair"), _sofa),
+    "Bed": _bed,
     **dict.fromkeys(("CounterTop", "Cabinet", "Vanity", "Stove", "KitchenIsland"), _counter),
-    **dict.fromkeys(("ShelvingUnit", "Wardrobe", "Dresser", "TVStand"), _shelves), "Toilet": _toilet,
-    "Bathtub": _bathtub, "Fridge": _fridge, "Microwave": _microwave, "Television": _television, "Laptop": _laptop,
-    "FloorLamp": _floor_lamp, "DeskLamp": _desk_lamp, "GarbageCan": _garbage_can,
+    **dict.fromkeys(("ShelvingUnit", "Wardrobe", "Dresser", "TVStand"), _shelves),
+    "Toilet": _toilet,
+    "Bathtub": _bathtub,
+    "Fridge": _fridge,
+    "Microwave": _microwave,
+    "Television": _television,
+    "Laptop": _laptop,
+    "FloorLamp": _floor_lamp,
+    "DeskLamp": _desk_lamp,
+    "GarbageCan": _garbage_can,
     **dict.fromkeys(("CoffeeMachine", "Toaster", "Kettle", "AlarmClock"), _appliance),
-    **dict.fromkeys(("Bowl", "Pot"), _vessel), "Pan": _pan, "Sink": _sink, "StoveBurner": _stove_burner,
-    "LightSwitch": _light_switch, **dict.fromkeys(("Book", "CellPhone", "RemoteControl", "Plate"), _flat),
+    **dict.fromkeys(("Bowl", "Pot"), _vessel),
+    "Pan": _pan,
+    "Sink": _sink,
+    "StoveBurner": _stove_burner,
+    "LightSwitch": _light_switch,
+    **dict.fromkeys(("Book", "CellPhone", "RemoteControl", "Plate"), _flat),
 }
 
 
 #: material roles per category (main, accent, trim); "screen", "lamp" and "metal" are fixed roles.
 ROLES = {
-    "CounterTop": ("painted", "stone", "painted"), "Cabinet": ("painted", "stone", "wood"),
-    "Vanity": ("painted", "stone", "wood"), "Stove": ("metal", "metal", "metal"), "KitchenIsland": ("wood", "stone", "painted"),
-    "DiningTable": ("wood",), "Desk": ("wood",), "CoffeeTable": ("wood",), "SideTable": ("wood",),
-    "ShelvingUnit": ("wood", "wood"), "Wardrobe": ("wood", "painted"), "Dresser": ("wood", "painted"),
-    "TVStand": ("wood", "painted"), "Sofa": ("fabric", "fabric"), "ArmChair": ("fabric", "fabric"),
-    "Bed": ("wood", "bedding"), "Toilet": ("ceramic",), "Bathtub": ("ceramic", "ceramic"),
-    "Chair": ("wood",), "Fridge": ("metal", "metal", "metal"), "Microwave": ("metal", "metal", "plastic"),
-    "Television": ("plastic", "plastic", "plastic"), "Laptop": ("metal",), "FloorLamp": ("metal", "metal", "metal"),
-    "DeskLamp": ("metal", "metal", "metal"), "GarbageCan": ("plastic", "plastic", "plastic"),
-    "CoffeeMachine": ("plastic", "plastic", "metal"), "Toaster": ("metal", "metal", "plastic"),
-    "Kettle": ("metal", "metal", "plastic"), "AlarmClock": ("plastic",), "Bowl": ("ceramic",), "Pot": ("metal", "metal", "plastic"),
-    "Pan": ("metal", "metal", "plastic"), "Sink": ("metal", "metal", "metal"), "StoveBurner": ("metal", "metal", "metal"),
-    "LightSwitch": ("plastic", "plastic", "plastic"), "Book": ("paper",), "CellPhone": ("plastic",),
-    "RemoteControl": ("plastic", "plastic", "plastic"), "Plate": ("ceramic",),
+    "CounterTop": ("painted", "stone", "painted"),
+    "Cabinet": ("painted", "stone", "wood"),
+    "Vanity": ("painted", "stone", "wood"),
+    "Stove": ("metal", "metal", "metal"),
+    "KitchenIsland": ("wood", "stone", "painted"),
+    "DiningTable": ("wood",),
+    "Desk": ("wood",),
+    "CoffeeTable": ("wood",),
+    "SideTable": ("wood",),
+    "ShelvingUnit": ("wood", "wood"),
+    "Wardrobe": ("wood", "painted"),
+    "Dresser": ("wood", "painted"),
+    "TVStand": ("wood", "painted"),
+    "Sofa": ("fabric", "fabric"),
+    "ArmChair": ("fabric", "fabric"),
+    "Bed": ("wood", "bedding"),
+    "Toilet": ("ceramic",),
+    "Bathtub": ("ceramic", "ceramic"),
+    "Chair": ("wood",),
+    "Fridge": ("metal", "metal", "metal"),
+    "Microwave": ("metal", "metal", "plastic"),
+    "Television": ("plastic", "plastic", "plastic"),
+    "Laptop": ("metal",),
+    "FloorLamp": ("metal", "metal", "metal"),
+    "DeskLamp": ("metal", "metal", "metal"),
+    "GarbageCan": ("plastic", "plastic", "plastic"),
+    "CoffeeMachine": ("plastic", "plastic", "metal"),
+    "Toaster": ("metal", "metal", "plastic"),
+    "Kettle": ("metal", "metal", "plastic"),
+    "AlarmClock": ("plastic",),
+    "Bowl": ("ceramic",),
+    "Pot": ("metal", "metal", "plastic"),
+    "Pan": ("metal", "metal", "plastic"),
+    "Sink": ("metal", "metal", "metal"),
+    "StoveBurner": ("metal", "metal", "metal"),
+    "LightSwitch": ("plastic", "plastic", "plastic"),
+    "Book": ("paper",),
+    "CellPhone": ("plastic",),
+    "RemoteControl": ("plastic", "plastic", "plastic"),
+    "Plate": ("ceramic",),
 }
 
 
@@ -322,8 +481,9 @@ def materials_for(category: str, rng: np.random.Generator, roles: tuple[str, ...
     return mats
 
 
-def build_parts(category: str, center, size, yaw: float, inst: int, rng: np.random.Generator,
-                mats: dict | None = None) -> list[Part]:
+def build_parts(
+    category: str, center, size, yaw: float, inst: int, rng: np.random.Generator, mats: dict | None = None
+) -> list[Part]:
     """World-space parts of one model placed with its base centre at ``center`` and rotated by ``yaw``;
     ``mats`` (from :func:`materials_for`) fixes the materials instead of drawing them from ``rng``."""
     if mats is None:

@@ -134,20 +134,31 @@ class SceneFidelity:
         return 100.0 * a / n if n else float("nan")
 
     def shares(self) -> dict[str, float]:
-        return {"positions": self.share(self.positions_kept, self.positions),
-                "moves_kept": self.share(self.moves_kept, self.moves),
-                "blocked_blocked": self.share(self.blocked_kept, self.blocked)}
+        return {
+            "positions": self.share(self.positions_kept, self.positions),
+            "moves_kept": self.share(self.moves_kept, self.moves),
+            "blocked_blocked": self.share(self.blocked_kept, self.blocked),
+        }
 
     def to_json(self) -> dict:
         g = GRID_SIZE
-        return {"scene": self.scene, **{k: round(v, 2) for k, v in self.shares().items()},
-                "counts": {"positions": self.positions, "positions_kept": self.positions_kept, "moves": self.moves,
-                           "moves_kept": self.moves_kept, "blocked": self.blocked, "blocked_kept": self.blocked_kept,
-                           "tsnav_positions": self.tsnav_positions},
-                "missing_positions": [[i * g, j * g] for i, j in self.missing],
-                "unvisited_positions": [[i * g, j * g] for i, j in self.unvisited],
-                "lost_moves": [[[a[0] * g, a[1] * g], [b[0] * g, b[1] * g]] for a, b in self.lost_moves],
-                "leaked_blocks": [[[c[0] * g, c[1] * g], r] for c, r in self.leaks]}
+        return {
+            "scene": self.scene,
+            **{k: round(v, 2) for k, v in self.shares().items()},
+            "counts": {
+                "positions": self.positions,
+                "positions_kept": self.positions_kept,
+                "moves": self.moves,
+                "moves_kept": self.moves_kept,
+                "blocked": self.blocked,
+                "blocked_kept": self.blocked_kept,
+                "tsnav_positions": self.tsnav_positions,
+            },
+            "missing_positions": [[i * g, j * g] for i, j in self.missing],
+            "unvisited_positions": [[i * g, j * g] for i, j in self.unvisited],
+            "lost_moves": [[[a[0] * g, a[1] * g], [b[0] * g, b[1] * g]] for a, b in self.lost_moves],
+            "leaked_blocks": [[[c[0] * g, c[1] * g], r] for c, r in self.leaks],
+        }
 
 
 def measure(scene: str, positions: np.ndarray, move: np.ndarray, triples: list[Triple]) -> SceneFidelity:
@@ -224,14 +235,19 @@ def summary(results: list[SceneFidelity]) -> dict:
 
 def markdown_table(results: list[SceneFidelity]) -> str:
     """The per-scene shares as a Markdown table, totals last."""
-    lines = ["| scene | positions % (kept / real) | moves kept % (kept / real) | blocked blocked % (kept / real) | "
-             "tsnav positions |", "| --- | --- | --- | --- | --- |"]
+    lines = [
+        "| scene | positions % (kept / real) | moves kept % (kept / real) | blocked blocked % (kept / real) | "
+        "tsnav positions |",
+        "| --- | --- | --- | --- | --- |",
+    ]
 
     def row(name, r: SceneFidelity):
         s = r.shares()
-        return (f"| {name} | {s['positions']:.1f} ({r.positions_kept}/{r.positions}) | {s['moves_kept']:.1f} "
-                f"({r.moves_kept}/{r.moves}) | {s['blocked_blocked']:.1f} ({r.blocked_kept}/{r.blocked}) | "
-                f"{r.tsnav_positions} |")
+        return (
+            f"| {name} | {s['positions']:.1f} ({r.positions_kept}/{r.positions}) | {s['moves_kept']:.1f} "
+            f"({r.moves_kept}/{r.moves}) | {s['blocked_blocked']:.1f} ({r.blocked_kept}/{r.blocked}) | "
+            f"{r.tsnav_positions} |"
+        )
 
     tot = SceneFidelity("all")
     for r in results:
@@ -242,11 +258,16 @@ def markdown_table(results: list[SceneFidelity]) -> str:
     return "\n".join(lines) + "\n"
 
 
-
-
 # ------------------------------------------------------------------------------------------------ picture
-def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, triples: list[Triple],
-                  drift: dict | None = None, spec: SceneSpec | None = None) -> None:
+def draw_fidelity(
+    ax,
+    meta: dict,
+    fid: SceneFidelity,
+    positions: np.ndarray,
+    triples: list[Triple],
+    drift: dict | None = None,
+    spec: SceneSpec | None = None,
+) -> None:
     """Top-down map of one scene's disagreements on ``ax``: the room (floor polygon, blocking footprints filled
     and labelled, others outlined), tsnav's positions (grey dots), real positions tsnav has (small green dots),
     real positions tsnav lacks (red crosses), tsnav positions no real agent stood on (hollow blue circles),
@@ -260,8 +281,11 @@ def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, tri
         ax.add_patch(MplPolygon(poly, closed=True, facecolor="#f6f3ec", edgecolor="#333", lw=1.4, zorder=0))
     for f in meta.get("furniture", []):
         if f.get("blocks", True):
-            ax.add_patch(MplPolygon(f["footprint"], closed=True, facecolor="#cdbfa9", edgecolor="#6b5d49", lw=0.6,
-                                    alpha=0.85, zorder=1))
+            ax.add_patch(
+                MplPolygon(
+                    f["footprint"], closed=True, facecolor="#cdbfa9", edgecolor="#6b5d49", lw=0.6, alpha=0.85, zorder=1
+                )
+            )
             c = np.mean(f["footprint"], axis=0)
             ax.text(c[0], c[1], f["category"], fontsize=4.5, ha="center", va="center", color="#3b3226", zorder=2)
         else:
@@ -272,34 +296,64 @@ def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, tri
             continue
         fp = box_footprint(b["center"], b["size"], b.get("yaw", 0.0))
         floor = o.get("support") == "floor"
-        ax.add_patch(MplPolygon(fp, closed=True, facecolor="#cdbfa9" if floor else "none",
-                                edgecolor="#6b5d49" if floor else "#b3a794", lw=0.5 if floor else 0.3, zorder=1))
+        ax.add_patch(
+            MplPolygon(
+                fp,
+                closed=True,
+                facecolor="#cdbfa9" if floor else "none",
+                edgecolor="#6b5d49" if floor else "#b3a794",
+                lw=0.5 if floor else 0.3,
+                zorder=1,
+            )
+        )
         if floor:
             ax.text(b["center"][0], b["center"][2], o["objectType"], fontsize=4.5, ha="center", va="center", zorder=2)
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     ax.scatter(pos[:, 0], pos[:, 1], s=3, c="#9a9a9a", linewidths=0, zorder=3, label=f"tsnav position ({len(pos)})")
     real = sorted({cell(*map(float, k.split("|")[:2])) for t in triples for k in (t[0], t[2])})
     kept = np.array([c for c in real if c not in set(fid.missing)], dtype=np.float64).reshape(-1, 2) * g
-    ax.scatter(kept[:, 0], kept[:, 1], s=5, c="#2e9e44", linewidths=0, zorder=4,
-               label=f"real position tsnav has ({len(kept)})")
+    ax.scatter(
+        kept[:, 0], kept[:, 1], s=5, c="#2e9e44", linewidths=0, zorder=4, label=f"real position tsnav has ({len(kept)})"
+    )
     if fid.unvisited:
         u = np.array(fid.unvisited, dtype=np.float64) * g
-        ax.scatter(u[:, 0], u[:, 1], s=9, facecolors="none", edgecolors="#5b8fd6", linewidths=0.5, zorder=4,
-                   label=f"tsnav position never reached ({len(u)})")
+        ax.scatter(
+            u[:, 0],
+            u[:, 1],
+            s=9,
+            facecolors="none",
+            edgecolors="#5b8fd6",
+            linewidths=0.5,
+            zorder=4,
+            label=f"tsnav position never reached ({len(u)})",
+        )
     for a, b in fid.lost_moves:
         ax.plot([a[0] * g, b[0] * g], [a[1] * g, b[1] * g], color="#f08c00", lw=1.4, alpha=0.9, zorder=5)
     if fid.lost_moves:
         ax.plot([], [], color="#f08c00", lw=1.4, label=f"real move not kept ({len(fid.lost_moves)})")
     for c, r in fid.leaks:
         di, dj = step(r)
-        ax.annotate("", xy=((c[0] + 0.9 * di) * g, (c[1] + 0.9 * dj) * g), xytext=(c[0] * g, c[1] * g), zorder=6,
-                    arrowprops=dict(arrowstyle="-|>", color="#d0209c", lw=1.2, mutation_scale=7))
+        ax.annotate(
+            "",
+            xy=((c[0] + 0.9 * di) * g, (c[1] + 0.9 * dj) * g),
+            xytext=(c[0] * g, c[1] * g),
+            zorder=6,
+            arrowprops=dict(arrowstyle="-|>", color="#d0209c", lw=1.2, mutation_scale=7),
+        )
     if fid.leaks:
         ax.plot([], [], color="#d0209c", lw=1.2, label=f"real blocked move let through ({len(fid.leaks)})")
     if fid.missing:
         m = np.array(fid.missing, dtype=np.float64) * g
-        ax.scatter(m[:, 0], m[:, 1], s=26, marker="x", c="#d62728", linewidths=1.3, zorder=7,
-                   label=f"real position tsnav lacks ({len(m)})")
+        ax.scatter(
+            m[:, 0],
+            m[:, 1],
+            s=26,
+            marker="x",
+            c="#d62728",
+            linewidths=1.3,
+            zorder=7,
+            label=f"real position tsnav lacks ({len(m)})",
+        )
     if drift and spec is not None:
         draw_drift(ax, drift, spec)
     pts = [pos] + [np.asarray(p, dtype=np.float64) for p in meta.get("floor", [])]
@@ -311,8 +365,11 @@ def draw_fidelity(ax, meta: dict, fid: SceneFidelity, positions: np.ndarray, tri
     ax.set_aspect("equal")
     ax.tick_params(labelsize=6)
     s = fid.shares()
-    ax.set_title(f"{fid.scene}: positions {s['positions']:.1f} %, moves kept {s['moves_kept']:.1f} %, "
-                 f"blocked {s['blocked_blocked']:.1f} %", fontsize=7.5)
+    ax.set_title(
+        f"{fid.scene}: positions {s['positions']:.1f} %, moves kept {s['moves_kept']:.1f} %, "
+        f"blocked {s['blocked_blocked']:.1f} %",
+        fontsize=7.5,
+    )
 
 
 def drift_marks(drift: dict, spec: SceneSpec) -> list[dict]:
@@ -328,10 +385,21 @@ def drift_marks(drift: dict, spec: SceneSpec) -> list[dict]:
         b = e.get("best")
         if b is None and not e.get("real_inside"):
             continue
-        polys = [list(poly.exterior.coords)[:-1] for oid in [e["id"], *e.get("parts", [])] if oid in bl
-                 for poly in bl[oid][1]]
-        what = ("no what-if" if b is None else "removed" if b["shift"] is None
-                else f"moved {b['shift'][0]:+.2f} x" if b["shift"][0] else f"moved {b['shift'][1]:+.2f} z")
+        polys = [
+            list(poly.exterior.coords)[:-1]
+            for oid in [e["id"], *e.get("parts", [])]
+            if oid in bl
+            for poly in bl[oid][1]
+        ]
+        what = (
+            "no what-if"
+            if b is None
+            else "removed"
+            if b["shift"] is None
+            else f"moved {b['shift'][0]:+.2f} x"
+            if b["shift"][0]
+            else f"moved {b['shift'][1]:+.2f} z"
+        )
         label = e["category"] + ("*" if e["id"] in applied else "") + f": {what}"
         if e.get("real_inside"):
             label += f", {e['real_inside']} real inside"
@@ -355,16 +423,36 @@ def draw_drift(ax, drift: dict, spec: SceneSpec) -> None:
         for fp in m["moved"] or []:
             ax.add_patch(MplPolygon(fp, closed=True, fill=False, edgecolor="#6a1b9a", lw=0.9, ls="--", zorder=8))
         allp = np.concatenate([np.asarray(fp) for fp in m["footprints"]])
-        ax.text(allp[:, 0].max() + 0.05, allp[:, 1].max(), m["label"], fontsize=5.5, color="#6a1b9a",
-                ha="left", va="bottom", zorder=9,
-                bbox=dict(boxstyle="round,pad=0.15", facecolor="white", edgecolor="none", alpha=0.75))
+        ax.text(
+            allp[:, 0].max() + 0.05,
+            allp[:, 1].max(),
+            m["label"],
+            fontsize=5.5,
+            color="#6a1b9a",
+            ha="left",
+            va="bottom",
+            zorder=9,
+            bbox=dict(boxstyle="round,pad=0.15", facecolor="white", edgecolor="none", alpha=0.75),
+        )
     if marks:
-        ax.plot([], [], color="#6a1b9a", lw=1.3, label=f"object a drift what-if names ({len(marks)})\n"
-                                                        f"dashed: moved; *: kept together")
+        ax.plot(
+            [],
+            [],
+            color="#6a1b9a",
+            lw=1.3,
+            label=f"object a drift what-if names ({len(marks)})\ndashed: moved; *: kept together",
+        )
 
 
-def save_fidelity_png(path: str | Path, meta: dict, fid: SceneFidelity, positions: np.ndarray,
-                      triples: list[Triple], drift: dict | None = None, spec: SceneSpec | None = None) -> Path:
+def save_fidelity_png(
+    path: str | Path,
+    meta: dict,
+    fid: SceneFidelity,
+    positions: np.ndarray,
+    triples: list[Triple],
+    drift: dict | None = None,
+    spec: SceneSpec | None = None,
+) -> Path:
     """One scene's :func:`draw_fidelity` map as a PNG (written atomically)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -397,8 +485,9 @@ def explain_missing(meta: dict, cells: list[Cell], clearance: float) -> list[dic
         causes = []
         if floor is not None and (not floor.contains(p) or floor.exterior.distance(p) < clearance - 1e-9):
             causes.append("wall")
-        causes += sorted({oid for oid, poly in obstacles
-                          if poly.distance(p) < min(clearance, own.get(oid, clearance)) - 1e-9})
+        causes += sorted(
+            {oid for oid, poly in obstacles if poly.distance(p) < min(clearance, own.get(oid, clearance)) - 1e-9}
+        )
         out.append({"position": [c[0] * GRID_SIZE, c[1] * GRID_SIZE], "causes": causes})
     return out
 
@@ -436,7 +525,8 @@ def blockers(spec: SceneSpec) -> dict[str, tuple[str, list, float]]:
     for o in spec.objects:
         if o.support == "floor":
             out.setdefault(o.objectId, (o.objectType, [], min(base, own.get(o.objectId, base))))[1].append(
-                Polygon(box_footprint(o.center, o.size, o.yaw)))
+                Polygon(box_footprint(o.center, o.size, o.yaw))
+            )
     return out
 
 
@@ -449,38 +539,51 @@ def relaid(spec: SceneSpec, remove=(), shifts: dict[str, tuple[float, float]] | 
         dx, dz = shifts.get(oid, (0.0, 0.0))
         return (c[0] + dx, c[1], c[2] + dz)
 
-    return replace(spec, furniture=[replace(f, center=moved(f.id, f.center)) for f in spec.furniture
-                                    if f.id not in remove],
-                   objects=[replace(o, center=moved(o.objectId, o.center)) for o in spec.objects
-                            if o.objectId not in remove])
+    return replace(
+        spec,
+        furniture=[replace(f, center=moved(f.id, f.center)) for f in spec.furniture if f.id not in remove],
+        objects=[replace(o, center=moved(o.objectId, o.center)) for o in spec.objects if o.objectId not in remove],
+    )
 
 
 def _figures(f: SceneFidelity, base: SceneFidelity) -> dict:
     s = f.shares()
-    return {"positions": round(s["positions"], 2), "moves_kept": round(s["moves_kept"], 2),
-            "blocked_blocked": round(s["blocked_blocked"], 2),
-            "counts": {"positions_kept": f.positions_kept, "moves_kept": f.moves_kept, "blocked_kept": f.blocked_kept},
-            "change": {"positions_kept": f.positions_kept - base.positions_kept,
-                       "moves_kept": f.moves_kept - base.moves_kept,
-                       "blocked_kept": f.blocked_kept - base.blocked_kept}}
+    return {
+        "positions": round(s["positions"], 2),
+        "moves_kept": round(s["moves_kept"], 2),
+        "blocked_blocked": round(s["blocked_blocked"], 2),
+        "counts": {"positions_kept": f.positions_kept, "moves_kept": f.moves_kept, "blocked_kept": f.blocked_kept},
+        "change": {
+            "positions_kept": f.positions_kept - base.positions_kept,
+            "moves_kept": f.moves_kept - base.moves_kept,
+            "blocked_kept": f.blocked_kept - base.blocked_kept,
+        },
+    }
 
 
 def keeps_all(f: SceneFidelity, f0: SceneFidelity) -> bool:
     """Whether ``f`` (a what-if) keeps every real position, move and blocked move that ``f0`` keeps, compared as
     sets: one that brings a real position back and loses another keeps the count but not the position."""
-    return (set(f.missing) <= set(f0.missing) and set(f.lost_moves) <= set(f0.lost_moves)
-            and set(f.leaks) <= set(f0.leaks))
+    return (
+        set(f.missing) <= set(f0.missing) and set(f.lost_moves) <= set(f0.lost_moves) and set(f.leaks) <= set(f0.leaks)
+    )
 
 
 #: What the report says of its drift what-ifs, under their table (``fidelity.md``).
-FITTED_NOTE = ("The what-ifs are fitted to these same trajectories: per object the best of {n} shifts (up to {d:g} m "
-               "along +-x or +-z) or its removal, kept when it loses no real position, move or blocked move; "
-               "the figures without drift (removals included) are the best these what-ifs reach on the trajectories "
-               "that chose them, not a measurement.")
+FITTED_NOTE = (
+    "The what-ifs are fitted to these same trajectories: per object the best of {n} shifts (up to {d:g} m "
+    "along +-x or +-z) or its removal, kept when it loses no real position, move or blocked move; "
+    "the figures without drift (removals included) are the best these what-ifs reach on the trajectories "
+    "that chose them, not a measurement."
+)
 
 
-def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict] | None = None,
-                  base: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+def drift_whatifs(
+    spec: SceneSpec,
+    triples: list[Triple],
+    flags: dict[str, dict] | None = None,
+    base: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict:
     """Which objects' poses stand between ``spec`` and the real trajectories ``triples``, by what-ifs: the scene laid
     out again without an object, or with it moved a few centimetres (:func:`relaid`). What-ifs only: no rule moves
     an object.
@@ -534,8 +637,9 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
     size = {oid: (round(shape[oid].area, 6), oid) for oid in bl}
     owner = {}
     for oid in bl:
-        hosts = [h for h in bl if size[h] > size[oid]
-                 and shape[h].intersection(shape[oid]).area >= 0.9 * shape[oid].area]
+        hosts = [
+            h for h in bl if size[h] > size[oid] and shape[h].intersection(shape[oid]).area >= 0.9 * shape[oid].area
+        ]
         owner[oid] = max(hosts, key=size.get) if hosts else oid
 
     def root(oid):
@@ -551,27 +655,41 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
     targets = {(c, r): (c[0] + step(r)[0], c[1] + step(r)[1]) for c, r in f0.leaks}
     missing_near = {o: len(near(ms, f0.missing, 0.0)) for o, ms in groups.items()}
     leaks_near = {o: sum(bool(near(ms, [t], DRIFT_SHIFTS[-1])) for t in targets.values()) for o, ms in groups.items()}
-    looked = sorted((o for o in groups if missing_near[o] or leaks_near[o]),
-                    key=lambda o: (-missing_near[o] - leaks_near[o], o))
+    looked = sorted(
+        (o for o in groups if missing_near[o] or leaks_near[o]), key=lambda o: (-missing_near[o] - leaks_near[o], o)
+    )
     objects, options = [], []
     for oid in looked:
         ms = groups[oid]
         gone = fid(relaid(spec, remove=set(ms)))
         best = None  # (score, order, shift, what-if, f): shifts, smallest first, then the removal
-        tries = [((dx, dz), {"shifts": {m: (dx, dz) for m in ms}}) for d in DRIFT_SHIFTS
-                 for dx, dz in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d))] + [(None, {"remove": set(ms)})]
+        tries = [
+            ((dx, dz), {"shifts": {m: (dx, dz) for m in ms}})
+            for d in DRIFT_SHIFTS
+            for dx, dz in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d))
+        ] + [(None, {"remove": set(ms)})]
         for n, (shift, kw) in enumerate(tries):
             f = gone if shift is None else fid(relaid(spec, **kw))
             if lossless(f) and score(f) > (0, 0) and (best is None or score(f) > best[0]):
                 best = (score(f), n, shift, kw, f)
-        e = {"id": oid, "category": bl[oid][0], "parts": ms[1:], "moveable": moveable(oid),
-             "real_inside": len({c for c in real for m in ms if dist(m, c) <= 1e-9}),
-             "missing_near": missing_near[oid], "leaks_near": leaks_near[oid],
-             "without": _figures(gone, f0) if gone is not None else None, "best": None}
+        e = {
+            "id": oid,
+            "category": bl[oid][0],
+            "parts": ms[1:],
+            "moveable": moveable(oid),
+            "real_inside": len({c for c in real for m in ms if dist(m, c) <= 1e-9}),
+            "missing_near": missing_near[oid],
+            "leaks_near": leaks_near[oid],
+            "without": _figures(gone, f0) if gone is not None else None,
+            "best": None,
+        }
         if best is not None:
             _, _, shift, kw, f = best
-            e["best"] = {"what_if": "removed" if shift is None else "moved",
-                         "shift": None if shift is None else [round(v, 3) + 0.0 for v in shift], **_figures(f, f0)}
+            e["best"] = {
+                "what_if": "removed" if shift is None else "moved",
+                "shift": None if shift is None else [round(v, 3) + 0.0 for v in shift],
+                **_figures(f, f0),
+            }
             options.append((best[0], oid, kw))
         objects.append(e)
     remove, shifts, applied, f = set(), {}, [], f0
@@ -586,14 +704,24 @@ def drift_whatifs(spec: SceneSpec, triples: list[Triple], flags: dict[str, dict]
         if (c, r) not in f.leaks:
             continue
         sus = sorted((round(dist(oid, t), 3), oid) for oid in bl if moveable(oid) and dist(oid, t) < SUSPECT_RADIUS)
-        unexplained.append({"from": [c[0] * g, c[1] * g], "heading": r, "to": [t[0] * g, t[1] * g],
-                            "suspects": [{"id": oid, "distance": d} for d, oid in sus]})
-    return {"objects": objects,
-            "without_drift": {"applied": applied, "removed": sorted(remove),
-                              "shifted": {k: [round(v, 3) + 0.0 for v in d] for k, d in sorted(shifts.items())
-                                        if k in groups},
-                              **_figures(f, f0)},
-            "unexplained_leaks": unexplained}
+        unexplained.append(
+            {
+                "from": [c[0] * g, c[1] * g],
+                "heading": r,
+                "to": [t[0] * g, t[1] * g],
+                "suspects": [{"id": oid, "distance": d} for d, oid in sus],
+            }
+        )
+    return {
+        "objects": objects,
+        "without_drift": {
+            "applied": applied,
+            "removed": sorted(remove),
+            "shifted": {k: [round(v, 3) + 0.0 for v in d] for k, d in sorted(shifts.items()) if k in groups},
+            **_figures(f, f0),
+        },
+        "unexplained_leaks": unexplained,
+    }
 
 
 def drift_total(results: list[SceneFidelity], scenes: list[dict]) -> dict:
@@ -621,9 +749,11 @@ def layout_flags(name: str) -> dict[str, dict]:
 def markdown_drift(scenes: list[dict]) -> str:
     """The ``drift`` what-ifs of the scenes of ``fidelity.json`` as a Markdown table (one row per object, then the
     scene without its drift), followed by the leaks no what-if explains."""
-    lines = ["| scene | object | moveable | real positions inside | missing / leaks near | without it (positions / "
-             "moves kept / blocked blocked %) | best what-if | its figures |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| scene | object | moveable | real positions inside | missing / leaks near | without it (positions / "
+        "moves kept / blocked blocked %) | best what-if | its figures |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     loose = []
     mv = {True: "yes", False: "no", None: "?"}
 
@@ -637,28 +767,41 @@ def markdown_drift(scenes: list[dict]) -> str:
         name = js["scene"]
         for e in d["objects"]:
             b = e["best"]
-            what = ("none" if b is None else "removed" if b["shift"] is None
-                    else f"moved ({b['shift'][0]:+.2f}, {b['shift'][1]:+.2f}) m")
+            what = (
+                "none"
+                if b is None
+                else "removed"
+                if b["shift"] is None
+                else f"moved ({b['shift'][0]:+.2f}, {b['shift'][1]:+.2f}) m"
+            )
             obj = e["id"] + (f" (+{len(e['parts'])} parts)" if e["parts"] else "")
-            lines.append(f"| {name} | {obj} | {mv[e['moveable']]} | {e['real_inside']} | {e['missing_near']} / "
-                         f"{e['leaks_near']} | {figs(e['without']) if e['without'] else '-'} | {what} | "
-                         f"{figs(b) if b else '-'} |")
+            lines.append(
+                f"| {name} | {obj} | {mv[e['moveable']]} | {e['real_inside']} | {e['missing_near']} / "
+                f"{e['leaks_near']} | {figs(e['without']) if e['without'] else '-'} | {what} | "
+                f"{figs(b) if b else '-'} |"
+            )
         w = d["without_drift"]
         if w["applied"]:
-            lines.append(f"| {name} | **without drift** ({len(w['removed'])} removed, {len(w['shifted'])} moved) | | | "
-                         f"| was {figs(js)} | | **{figs(w)}** |")
+            lines.append(
+                f"| {name} | **without drift** ({len(w['removed'])} removed, {len(w['shifted'])} moved) | | | "
+                f"| was {figs(js)} | | **{figs(w)}** |"
+            )
         for u in d["unexplained_leaks"]:
             sus = ", ".join(f"{s['id']} ({s['distance']:.2f} m)" for s in u["suspects"]) or "none"
-            loose.append(f"- {name}: ({u['from'][0]:.2f}, {u['from'][1]:.2f}) heading {u['heading']}; pickupable or "
-                         f"moveable objects within {SUSPECT_RADIUS:g} m of its target: {sus}")
+            loose.append(
+                f"- {name}: ({u['from'][0]:.2f}, {u['from'][1]:.2f}) heading {u['heading']}; pickupable or "
+                f"moveable objects within {SUSPECT_RADIUS:g} m of its target: {sus}"
+            )
     out = "\n".join(lines) + "\n"
     if loose:
         out += "\nReal blocked moves let through that no what-if explains:\n\n" + "\n".join(loose) + "\n"
     return out
 
+
 # ------------------------------------------------------------------------------------------------ report
-def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path | None = None,
-                    pictures: bool = True, drift: bool = True) -> tuple[list[SceneFidelity], Path]:
+def fidelity_report(
+    data: str | Path, trajectories: str | Path, out: str | Path | None = None, pictures: bool = True, drift: bool = True
+) -> tuple[list[SceneFidelity], Path]:
     """Measure every scene of ``trajectories`` that the dataset ``data`` holds; write ``fidelity.json``,
     ``fidelity.md`` and (with ``pictures``) ``SCENE.png`` per scene into ``out`` (default ``DATA/fidelity``).
     With ``drift``, each scene's ``drift`` holds :func:`drift_whatifs` (the scene laid out again from its
@@ -673,8 +816,9 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
     present = [s for s in triples if is_complete(data / s)]
     absent = [s for s in triples if s not in present]
     if not present:
-        raise TrajectoriesError(f"{trajectories}: none of its {len(triples)} scenes is a complete scene folder in "
-                                f"{data}")
+        raise TrajectoriesError(
+            f"{trajectories}: none of its {len(triples)} scenes is a complete scene folder in {data}"
+        )
     out = Path(out) if out is not None else data / "fidelity"
     out.mkdir(parents=True, exist_ok=True)
     results, scenes_json = [], []
@@ -702,14 +846,23 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
                 js["drift"] = drift_whatifs(spec, triples[name], flags, base=(positions, move))
             else:
                 js["drift"] = None
-                js["drift_note"] = ("scene.json does not lay out again to the scene's graph (built by other rules, or "
-                                    "incomplete)")
+                js["drift_note"] = (
+                    "scene.json does not lay out again to the scene's graph (built by other rules, or incomplete)"
+                )
         scenes_json.append(js)
         if pictures:
-            save_fidelity_png(out / f"{name}.png", scene.meta, fid, positions, triples[name],
-                              drift=js.get("drift"), spec=spec)
-    doc = {"format": "tsnav-fidelity", "version": 1, "data": str(data), "trajectories": str(trajectories),
-           "summary": summary(results), "scenes": scenes_json, "absent": absent}
+            save_fidelity_png(
+                out / f"{name}.png", scene.meta, fid, positions, triples[name], drift=js.get("drift"), spec=spec
+            )
+    doc = {
+        "format": "tsnav-fidelity",
+        "version": 1,
+        "data": str(data),
+        "trajectories": str(trajectories),
+        "summary": summary(results),
+        "scenes": scenes_json,
+        "absent": absent,
+    }
     if any(js.get("drift") for js in scenes_json):
         doc["summary"]["without_drift"] = drift_total(results, scenes_json)
     atomic_write_text(out / "fidelity.json", json.dumps(doc, indent=1))
@@ -717,18 +870,42 @@ def fidelity_report(data: str | Path, trajectories: str | Path, out: str | Path 
     if "without_drift" in doc["summary"]:
         t = doc["summary"]["without_drift"]
         none = sum(not js.get("drift") for js in scenes_json)
-        md += ("\n## Pose drift: what-ifs\n\n" + markdown_drift(scenes_json) + f"\nAll scenes without the drift above: "
-               f"positions {t['positions']:.1f} %, moves kept {t['moves_kept']:.1f} %, blocked blocked "
-               f"{t['blocked_blocked']:.1f} %" + (f" ({none} scene(s) without what-ifs counted as they are)" if none
-                                                  else "") + ".\n\n"
-               + FITTED_NOTE.format(n=4 * len(DRIFT_SHIFTS), d=DRIFT_SHIFTS[-1]) + "\n")
+        md += (
+            "\n## Pose drift: what-ifs\n\n" + markdown_drift(scenes_json) + f"\nAll scenes without the drift above: "
+            f"positions {t['positions']:.1f} %, moves kept {t['moves_kept']:.1f} %, blocked blocked "
+            f"{t['blocked_blocked']:.1f} %"
+            + (f" ({none} scene(s) without what-ifs counted as they are)" if none else "")
+            + ".\n\n"
+            + FITTED_NOTE.format(n=4 * len(DRIFT_SHIFTS), d=DRIFT_SHIFTS[-1])
+            + "\n"
+        )
     if absent:
         md += f"\nScenes of the trajectories file not in {data}: {', '.join(absent)}\n"
     atomic_write_text(out / "fidelity.md", md)
     return results, out
 
 
-__all__ = ["SceneFidelity", "TrajectoriesError", "blame", "blockers", "draw_drift", "drift_marks", "drift_total",
-           "drift_whatifs", "explain_missing", "fidelity_report", "keeps_all", "layout_flags", "load_trajectories",
-           "markdown_drift", "markdown_table", "measure", "parse_trajectories", "relaid", "save_fidelity_png",
-           "scene_moves", "step", "summary"]
+__all__ = [
+    "SceneFidelity",
+    "TrajectoriesError",
+    "blame",
+    "blockers",
+    "draw_drift",
+    "drift_marks",
+    "drift_total",
+    "drift_whatifs",
+    "explain_missing",
+    "fidelity_report",
+    "keeps_all",
+    "layout_flags",
+    "load_trajectories",
+    "markdown_drift",
+    "markdown_table",
+    "measure",
+    "parse_trajectories",
+    "relaid",
+    "save_fidelity_png",
+    "scene_moves",
+    "step",
+    "summary",
+]

@@ -46,32 +46,68 @@ def scene_seed(name: str, seed: int = 0) -> int:
 # -------------------------------------------------------------------------------------- placement
 #: Which furniture holds each target category (first fitting support wins, in random order).
 SUPPORTS = {
-    "Toaster": ("CounterTop", "KitchenIsland"), "CoffeeMachine": ("CounterTop", "KitchenIsland"),
-    "Microwave": ("CounterTop",), "Kettle": ("Stove", "CounterTop", "KitchenIsland"),
-    "Pot": ("Stove", "CounterTop"), "Pan": ("Stove", "CounterTop"),
+    "Toaster": ("CounterTop", "KitchenIsland"),
+    "CoffeeMachine": ("CounterTop", "KitchenIsland"),
+    "Microwave": ("CounterTop",),
+    "Kettle": ("Stove", "CounterTop", "KitchenIsland"),
+    "Pot": ("Stove", "CounterTop"),
+    "Pan": ("Stove", "CounterTop"),
     "Bowl": ("CounterTop", "DiningTable", "KitchenIsland", "CoffeeTable", "ShelvingUnit"),
     "Plate": ("DiningTable", "CounterTop", "KitchenIsland", "ShelvingUnit"),
     "Book": ("ShelvingUnit", "CoffeeTable", "Desk", "SideTable", "DiningTable", "Bed", "Dresser"),
     "Laptop": ("Desk", "CoffeeTable", "DiningTable", "Bed", "Sofa"),
     "RemoteControl": ("CoffeeTable", "Sofa", "SideTable", "TVStand"),
-    "CellPhone": ("Bed", "Desk", "SideTable", "Dresser", "CounterTop", "DiningTable", "KitchenIsland", "CoffeeTable",
-                  "Sofa", "TVStand"), "AlarmClock": ("SideTable", "Dresser", "Desk"),
-    "DeskLamp": ("Desk", "SideTable", "Dresser"), "Television": ("TVStand", "Dresser"),
-    "Sink": ("CounterTop", "Vanity"), "StoveBurner": ("Stove",),
+    "CellPhone": (
+        "Bed",
+        "Desk",
+        "SideTable",
+        "Dresser",
+        "CounterTop",
+        "DiningTable",
+        "KitchenIsland",
+        "CoffeeTable",
+        "Sofa",
+        "TVStand",
+    ),
+    "AlarmClock": ("SideTable", "Dresser", "Desk"),
+    "DeskLamp": ("Desk", "SideTable", "Dresser"),
+    "Television": ("TVStand", "Dresser"),
+    "Sink": ("CounterTop", "Vanity"),
+    "StoveBurner": ("Stove",),
 }
 FLOOR_OBJECTS = {"Fridge", "GarbageCan", "FloorLamp", "Chair"}
 #: Furniture per room type: (category, where, probability).
 TEMPLATES = {
-    "kitchen": [("Stove", "wall", 1.0), ("CounterTop", "wall", 1.0), ("CounterTop", "wall", 0.9),
-                ("CounterTop", "wall", 0.5), ("Cabinet", "wall", 0.5), ("ShelvingUnit", "wall", 0.5),
-                ("KitchenIsland", "center", 0.5), ("DiningTable", "center", 0.6)],
-    "living_room": [("Sofa", "wall", 1.0), ("TVStand", "wall", 1.0), ("CoffeeTable", "center", 1.0),
-                    ("ArmChair", "center", 0.6), ("ShelvingUnit", "wall", 0.8), ("ShelvingUnit", "wall", 0.4),
-                    ("SideTable", "wall", 0.7), ("Desk", "wall", 0.6), ("DiningTable", "center", 0.4)],
-    "bedroom": [("Bed", "wall", 1.0), ("SideTable", "wall", 1.0), ("Dresser", "wall", 0.9),
-                ("Desk", "wall", 0.8), ("Wardrobe", "wall", 0.6), ("ShelvingUnit", "wall", 0.5)],
-    "bathroom": [("Vanity", "wall", 1.0), ("Toilet", "wall", 1.0), ("Bathtub", "wall", 0.7),
-                 ("Cabinet", "wall", 0.3)],
+    "kitchen": [
+        ("Stove", "wall", 1.0),
+        ("CounterTop", "wall", 1.0),
+        ("CounterTop", "wall", 0.9),
+        ("CounterTop", "wall", 0.5),
+        ("Cabinet", "wall", 0.5),
+        ("ShelvingUnit", "wall", 0.5),
+        ("KitchenIsland", "center", 0.5),
+        ("DiningTable", "center", 0.6),
+    ],
+    "living_room": [
+        ("Sofa", "wall", 1.0),
+        ("TVStand", "wall", 1.0),
+        ("CoffeeTable", "center", 1.0),
+        ("ArmChair", "center", 0.6),
+        ("ShelvingUnit", "wall", 0.8),
+        ("ShelvingUnit", "wall", 0.4),
+        ("SideTable", "wall", 0.7),
+        ("Desk", "wall", 0.6),
+        ("DiningTable", "center", 0.4),
+    ],
+    "bedroom": [
+        ("Bed", "wall", 1.0),
+        ("SideTable", "wall", 1.0),
+        ("Dresser", "wall", 0.9),
+        ("Desk", "wall", 0.8),
+        ("Wardrobe", "wall", 0.6),
+        ("ShelvingUnit", "wall", 0.5),
+    ],
+    "bathroom": [("Vanity", "wall", 1.0), ("Toilet", "wall", 1.0), ("Bathtub", "wall", 0.7), ("Cabinet", "wall", 0.3)],
 }
 COUNTS = {"StoveBurner": (2, 4), "Chair": (1, 4), "Book": (1, 3), "Plate": (1, 2), "Bowl": (1, 2)}
 
@@ -150,8 +186,15 @@ class RoomBuilder:
                 self.surfaces.append((f, i * size[1] / n + 0.035, 0.06))
         return f
 
-    def add_object(self, category: str, on: Furniture | None, height: float = 0.0, inset: float = 0.05,
-                   at=None, yaw: float | None = None) -> ObjectInstance | None:
+    def add_object(
+        self,
+        category: str,
+        on: Furniture | None,
+        height: float = 0.0,
+        inset: float = 0.05,
+        at=None,
+        yaw: float | None = None,
+    ) -> ObjectInstance | None:
         size = draw_size(self.rng, OBJECT_SIZES, category)
         if at is None:
             fx, _, fz = on.center
@@ -171,9 +214,12 @@ class RoomBuilder:
                 if category not in ("Television", "Microwave", "CoffeeMachine", "Toaster"):
                     oyaw = float(on.yaw + self.rng.choice([0, 90, 180, 270]) + self.rng.uniform(-15, 15))
                 poly = Polygon(box_footprint((cx, 0, cz), size, oyaw))
-                clash = any(o.support == on.id and abs(o.center[1] - height) < 0.05 and
-                            Polygon(box_footprint(o.center, o.size, o.yaw)).buffer(0.02).intersects(poly)
-                            for o in self.spec.objects)
+                clash = any(
+                    o.support == on.id
+                    and abs(o.center[1] - height) < 0.05
+                    and Polygon(box_footprint(o.center, o.size, o.yaw)).buffer(0.02).intersects(poly)
+                    for o in self.spec.objects
+                )
                 if not clash:
                     break
             else:
@@ -290,11 +336,13 @@ def generate(name: str, seed: int = 0, compact: bool = False) -> SceneSpec:
         doors = []
     else:
         rooms, doors = _apartment_layout(rng, ox, oz, compact)
-    spec = SceneSpec(name=name, room_type=room_type, split=split, seed=seed, rooms=rooms,
-                     floor=[], doors=doors)
-    spec.light = {"direction": [float(v) for v in rng.normal(0, 1, 3) * [1, 0, 1] + [0, -2.5, 0]],
-                  "ambient": float(rng.uniform(0.45, 0.6)), "diffuse": float(rng.uniform(0.35, 0.5)),
-                  "tint": [float(v) for v in rng.uniform(0.92, 1.0, 3)]}
+    spec = SceneSpec(name=name, room_type=room_type, split=split, seed=seed, rooms=rooms, floor=[], doors=doors)
+    spec.light = {
+        "direction": [float(v) for v in rng.normal(0, 1, 3) * [1, 0, 1] + [0, -2.5, 0]],
+        "ambient": float(rng.uniform(0.45, 0.6)),
+        "diffuse": float(rng.uniform(0.35, 0.5)),
+        "tint": [float(v) for v in rng.uniform(0.92, 1.0, 3)],
+    }
     _structure(spec, rng)
     for r in rooms:
         builder = RoomBuilder(spec, r["rect"], r["type"], rng, doors)
@@ -304,19 +352,26 @@ def generate(name: str, seed: int = 0, compact: bool = False) -> SceneSpec:
 
 def _apartment_layout(rng, ox, oz, compact):
     cols, rows = (2, 2) if rng.random() < 0.6 else ((3, 1) if rng.random() < 0.5 else (3, 2))
-    types = list(rng.choice(["living_room", "kitchen", "bedroom", "bedroom", "bathroom", "living_room"],
-                            size=cols * rows, replace=True))
+    types = list(
+        rng.choice(
+            ["living_room", "kitchen", "bedroom", "bedroom", "bathroom", "living_room"], size=cols * rows, replace=True
+        )
+    )
     if "living_room" not in types:
         types[0] = "living_room"
     widths = [round(rng.uniform(3.0, 4.75 if not compact else 3.25) * 4) / 4 for _ in range(cols)]
     depths = [round(rng.uniform(3.0, 4.75 if not compact else 3.25) * 4) / 4 for _ in range(rows)]
     xs = np.concatenate([[ox], ox + np.cumsum(widths)])
     zs = np.concatenate([[oz], oz + np.cumsum(depths)])
-    rooms = [{"type": str(types[r * cols + c]), "rect": [float(xs[c]), float(zs[r]), float(xs[c + 1]), float(zs[r + 1])]}
-             for r in range(rows) for c in range(cols)]
+    rooms = [
+        {"type": str(types[r * cols + c]), "rect": [float(xs[c]), float(zs[r]), float(xs[c + 1]), float(zs[r + 1])]}
+        for r in range(rows)
+        for c in range(cols)
+    ]
     # Doors along a spanning tree of the room grid, plus one extra where possible.
-    edges = [((r, c), (r, c + 1)) for r in range(rows) for c in range(cols - 1)] + \
-            [((r, c), (r + 1, c)) for r in range(rows - 1) for c in range(cols)]
+    edges = [((r, c), (r, c + 1)) for r in range(rows) for c in range(cols - 1)] + [
+        ((r, c), (r + 1, c)) for r in range(rows - 1) for c in range(cols)
+    ]
     order = rng.permutation(len(edges))
     parent = {(r, c): (r, c) for r in range(rows) for c in range(cols)}
 
@@ -360,8 +415,10 @@ def floor_and_ceiling(rect, height: float, material, floor_inst: int, ceil_inst:
     x0, z0, x1, z1 = rect
     fc, fc2, fp, fs = material
     centre, size = ((x0 + x1) / 2, (z0 + z1) / 2), (x1 - x0, 0.1, z1 - z0)
-    return [Part((centre[0], -0.05, centre[1]), size, 0.0, fc, fc2, fp, fs, floor_inst),
-            Part((centre[0], height + 0.05, centre[1]), size, 0.0, CEILING_COLOUR, CEILING_COLOUR, 0, 1.0, ceil_inst)]
+    return [
+        Part((centre[0], -0.05, centre[1]), size, 0.0, fc, fc2, fp, fs, floor_inst),
+        Part((centre[0], height + 0.05, centre[1]), size, 0.0, CEILING_COLOUR, CEILING_COLOUR, 0, 1.0, ceil_inst),
+    ]
 
 
 def _structure(spec: SceneSpec, rng) -> None:
@@ -375,14 +432,24 @@ def _structure(spec: SceneSpec, rng) -> None:
         r["wall_material"] = jitter(rng, *WALLS[int(rng.integers(len(WALLS)))])
     for d in spec.doors:
         x0, z0, x1, z1 = d["rect"]
-        spec.parts.append(Part(((x0 + x1) / 2, -0.05, (z0 + z1) / 2), (x1 - x0, 0.1, z1 - z0), 0.0,
-                               (0.5, 0.45, 0.4), (0.5, 0.45, 0.4), 0, 1.0, floor_inst))
+        spec.parts.append(
+            Part(
+                ((x0 + x1) / 2, -0.05, (z0 + z1) / 2),
+                (x1 - x0, 0.1, z1 - z0),
+                0.0,
+                (0.5, 0.45, 0.4),
+                (0.5, 0.45, 0.4),
+                0,
+                1.0,
+                floor_inst,
+            )
+        )
     # Walls: every room edge, cut where a door crosses it; shared edges are drawn once from each side.
     door_boxes = [box(*d["rect"]) for d in spec.doors]
     for r in spec.rooms:
         x0, z0, x1, z1 = r["rect"]
         col, col2, pat, scale = r.pop("wall_material")
-        for (ax, az, bx, bz) in ((x0, z0, x1, z0), (x1, z0, x1, z1), (x0, z1, x1, z1), (x0, z0, x0, z1)):
+        for ax, az, bx, bz in ((x0, z0, x1, z0), (x1, z0, x1, z1), (x0, z1, x1, z1), (x0, z0, x0, z1)):
             horizontal = az == bz
             lo, hi = (ax, bx) if horizontal else (az, bz)
             cuts = []
@@ -400,7 +467,12 @@ def _structure(spec: SceneSpec, rng) -> None:
             if cur < hi:
                 segs.append((cur, hi))
             # Wall slab just inside the room: the room interior stays exactly its rectangle minus WALL_T/2.
-            inward = {(x0, z0, x1, z0): (0, 1), (x1, z0, x1, z1): (-1, 0), (x0, z1, x1, z1): (0, -1), (x0, z0, x0, z1): (1, 0)}
+            inward = {
+                (x0, z0, x1, z0): (0, 1),
+                (x1, z0, x1, z1): (-1, 0),
+                (x0, z1, x1, z1): (0, -1),
+                (x0, z0, x0, z1): (1, 0),
+            }
             nx, nz = inward[(ax, az, bx, bz)]
             for s0, s1 in segs:
                 if s1 - s0 < 1e-6:
@@ -415,8 +487,30 @@ def _structure(spec: SceneSpec, rng) -> None:
             # Door headers above openings.
             for c0, c1 in cuts:
                 if horizontal:
-                    spec.parts.append(Part(((c0 + c1) / 2, H - 0.2, az + nz * WALL_T / 4), (c1 - c0, 0.4, WALL_T / 2), 0.0, col, col2, pat, scale, wall_inst))
+                    spec.parts.append(
+                        Part(
+                            ((c0 + c1) / 2, H - 0.2, az + nz * WALL_T / 4),
+                            (c1 - c0, 0.4, WALL_T / 2),
+                            0.0,
+                            col,
+                            col2,
+                            pat,
+                            scale,
+                            wall_inst,
+                        )
+                    )
                 else:
-                    spec.parts.append(Part((ax + nx * WALL_T / 4, H - 0.2, (c0 + c1) / 2), (WALL_T / 2, 0.4, c1 - c0), 0.0, col, col2, pat, scale, wall_inst))
+                    spec.parts.append(
+                        Part(
+                            (ax + nx * WALL_T / 4, H - 0.2, (c0 + c1) / 2),
+                            (WALL_T / 2, 0.4, c1 - c0),
+                            0.0,
+                            col,
+                            col2,
+                            pat,
+                            scale,
+                            wall_inst,
+                        )
+                    )
     geoms = list(union.geoms) if hasattr(union, "geoms") else [union]
     spec.floor = [[[round(x, 4), round(z, 4)] for x, z in list(g.exterior.coords)[:-1]] for g in geoms]

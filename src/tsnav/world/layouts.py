@@ -128,8 +128,21 @@ def parse_object(raw, where: str) -> LayoutObject:
         if not isinstance(v, bool):
             raise LayoutError(f"{where}: {f} must be true or false, got {v!r}")
         flags[f] = v
-    return LayoutObject(oid, otype, center, size, oobb, rot, tuple(parents), flags["receptacle"],
-                        flags["pickupable"], flags["moveable"], flags["openable"], flags["isOpen"], flags["visible"])
+    return LayoutObject(
+        oid,
+        otype,
+        center,
+        size,
+        oobb,
+        rot,
+        tuple(parents),
+        flags["receptacle"],
+        flags["pickupable"],
+        flags["moveable"],
+        flags["openable"],
+        flags["isOpen"],
+        flags["visible"],
+    )
 
 
 def parse_layout(data, where: str, expect_scene: str | None = None) -> Layout:
@@ -171,16 +184,30 @@ def to_row(o: LayoutObject) -> list:
     """The packed row of one object: id, type, parents, flag bits, aabb (6), rotation (3), oobb (24 or null)."""
     bits = sum(1 << i for i, f in enumerate(FLAGS) if getattr(o, "is_open" if f == "isOpen" else f))
     oobb = None if o.oobb is None else [_r(v) for c in o.oobb for v in c]
-    return [o.object_id, o.object_type, list(o.parents), bits, [_r(v) for v in (*o.aabb_center, *o.aabb_size)],
-            [_r(v) for v in o.rotation], oobb]
+    return [
+        o.object_id,
+        o.object_type,
+        list(o.parents),
+        bits,
+        [_r(v) for v in (*o.aabb_center, *o.aabb_size)],
+        [_r(v) for v in o.rotation],
+        oobb,
+    ]
 
 
 def from_row(row, where: str) -> LayoutObject:
     try:
         oid, otype, parents, bits, box, rot, oobb = row
-        return LayoutObject(str(oid), str(otype), tuple(map(float, box[:3])), tuple(map(float, box[3:6])),
-                            None if oobb is None else tuple(tuple(map(float, oobb[3 * i:3 * i + 3])) for i in range(8)),
-                            tuple(map(float, rot)), tuple(parents), *(bool(int(bits) >> i & 1) for i in range(len(FLAGS))))
+        return LayoutObject(
+            str(oid),
+            str(otype),
+            tuple(map(float, box[:3])),
+            tuple(map(float, box[3:6])),
+            None if oobb is None else tuple(tuple(map(float, oobb[3 * i : 3 * i + 3])) for i in range(8)),
+            tuple(map(float, rot)),
+            tuple(parents),
+            *(bool(int(bits) >> i & 1) for i in range(len(FLAGS))),
+        )
     except (TypeError, ValueError, IndexError) as e:
         raise LayoutError(f"{where}: malformed packed row ({e})") from None
 
@@ -194,8 +221,20 @@ def pack_layouts(src_dir: str | Path, out: str | Path) -> int:
     for f in files:
         lay = read_layout_file(f)
         scenes[lay.scene] = [to_row(o) for o in lay.objects]
-    doc = {"format": PACKED_FORMAT, "version": 1, "columns": ["objectId", "objectType", "parentReceptacles",
-           "flags:" + ",".join(FLAGS), "aabb:center+size", "rotation", "oobbCorners"], "scenes": scenes}
+    doc = {
+        "format": PACKED_FORMAT,
+        "version": 1,
+        "columns": [
+            "objectId",
+            "objectType",
+            "parentReceptacles",
+            "flags:" + ",".join(FLAGS),
+            "aabb:center+size",
+            "rotation",
+            "oobbCorners",
+        ],
+        "scenes": scenes,
+    }
     text = json.dumps(doc, separators=(",", ":"))
     atomic_write_bytes(out, gzip.compress(text.encode(), compresslevel=9, mtime=0))
     return len(scenes)
@@ -222,13 +261,17 @@ def load_layout(scene: str) -> Layout:
     """The packaged layout of ``scene`` (e.g. ``FloorPlan22``); ``LayoutError`` when there is none."""
     rows = _packed().get(scene)
     if rows is None:
-        raise LayoutError(f"no recorded layout for scene {scene!r} (the ithor-real world has FloorPlan1-30, "
-                          f"201-230, 301-330, 401-430)")
+        raise LayoutError(
+            f"no recorded layout for scene {scene!r} (the ithor-real world has FloorPlan1-30, "
+            f"201-230, 301-330, 401-430)"
+        )
     return Layout(scene, tuple(from_row(r, f"{PACKED_NAME}: {scene}") for r in rows))
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(allow_abbrev=False, description="Pack a folder of recorded iTHOR layouts into the package-data file.")
+    p = argparse.ArgumentParser(
+        allow_abbrev=False, description="Pack a folder of recorded iTHOR layouts into the package-data file."
+    )
     p.add_argument("src", help="folder of FloorPlan*.json layout files")
     p.add_argument("--out", default=str(Path(__file__).parent / "data" / PACKED_NAME), help="packed file")
     a = p.parse_args(argv)

@@ -43,10 +43,14 @@ def real_measures(scene_dir: Path) -> dict:
     recorded = {o.object_type for o in lay.objects}
     ids = {o["objectId"]: o["objectType"] for o in meta["objects"]}
     return {
-        "room_type": rt, "floor_box_area": fx * fz, "room_area": _area(meta["floor"]), "positions": len(grid),
-        "objects_recorded": len(lay.objects) - 1, "objects": len({f["id"] for f in meta["furniture"]}) + len(ids),
-        "blocking": len({f["id"] for f in meta["furniture"] if f["blocks"]}) +
-                    sum(o["support"] == "floor" for o in meta["objects"]),
+        "room_type": rt,
+        "floor_box_area": fx * fz,
+        "room_area": _area(meta["floor"]),
+        "positions": len(grid),
+        "objects_recorded": len(lay.objects) - 1,
+        "objects": len({f["id"] for f in meta["furniture"]}) + len(ids),
+        "blocking": len({f["id"] for f in meta["furniture"] if f["blocks"]})
+        + sum(o["support"] == "floor" for o in meta["objects"]),
         "target_objects": len(ids),
         "targets_meta": sorted(c for c in ROOM_TARGETS[rt] if c in recorded),
         "targets_scene": sorted({ids[i] for i in ids} & set(ROOM_TARGETS[rt])),
@@ -60,10 +64,15 @@ def procedural_measures(name: str) -> dict:
     pos, _ = reachable_positions(spec)
     rt = spec.room_type
     present = {o.objectType for o in spec.objects}
-    return {"room_type": rt, "room_area": _area(spec.floor), "positions": len(pos),
-            "objects": len(spec.furniture) + len(spec.objects),
-            "blocking": sum(f.blocks for f in spec.furniture) + sum(o.support == "floor" for o in spec.objects),
-            "target_objects": len(spec.objects), "targets_scene": sorted(present & set(ROOM_TARGETS[rt]))}
+    return {
+        "room_type": rt,
+        "room_area": _area(spec.floor),
+        "positions": len(pos),
+        "objects": len(spec.furniture) + len(spec.objects),
+        "blocking": sum(f.blocks for f in spec.furniture) + sum(o.support == "floor" for o in spec.objects),
+        "target_objects": len(spec.objects),
+        "targets_scene": sorted(present & set(ROOM_TARGETS[rt])),
+    }
 
 
 def table(real: list[dict], proc: list[dict]) -> str:
@@ -79,11 +88,13 @@ def table(real: list[dict], proc: list[dict]) -> str:
         vals = [(f(r[key]) if isinstance(r[key], list) else r[key]) for r in rows]
         return float(np.mean(vals)) if vals else float("nan")
 
-    lines = ["| room type | scenes | floor box m² (metadata) | room m² (real / procedural) | reachable positions "
-             "(real / procedural) | objects (metadata / real / procedural) | blocking (real / procedural) | "
-             "target-class objects (real / procedural) | room-type targets present (metadata / real scene / "
-             "seen in real / procedural) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| room type | scenes | floor box m² (metadata) | room m² (real / procedural) | reachable positions "
+        "(real / procedural) | objects (metadata / real / procedural) | blocking (real / procedural) | "
+        "target-class objects (real / procedural) | room-type targets present (metadata / real scene / "
+        "seen in real / procedural) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for rt in ROOM_TYPES:
         r, p = by.get(rt, []), pby.get(rt, [])
         if not r:
@@ -94,9 +105,14 @@ def table(real: list[dict], proc: list[dict]) -> str:
             f"{mean(r, 'objects'):.0f} / {mean(p, 'objects'):.0f} | {mean(r, 'blocking'):.0f} / {mean(p, 'blocking'):.0f} | "
             f"{mean(r, 'target_objects'):.1f} / {mean(p, 'target_objects'):.1f} | {mean(r, 'targets_meta'):.1f} / "
             f"{mean(r, 'targets_scene'):.1f} / {mean(r, 'targets_seen'):.1f} / {mean(p, 'targets_scene'):.1f} "
-            f"(of {len(ROOM_TARGETS[rt])}) |")
-    lines += ["", "Scenes holding each room-type target (metadata / real scene / seen from a state in the real "
-              "scene / procedural):", ""]
+            f"(of {len(ROOM_TARGETS[rt])}) |"
+        )
+    lines += [
+        "",
+        "Scenes holding each room-type target (metadata / real scene / seen from a state in the real "
+        "scene / procedural):",
+        "",
+    ]
     for rt in ROOM_TYPES:
         r, p = by.get(rt, []), pby.get(rt, [])
         if not r:

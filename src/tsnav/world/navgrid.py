@@ -50,7 +50,8 @@ def free_space(spec: SceneSpec, radius: float = AGENT_RADIUS):
     for o in spec.objects:
         if o.support == "floor":
             groups.setdefault(min(radius, own.get(o.objectId, radius)), []).append(
-                Polygon(box_footprint(o.center, o.size, o.yaw)))
+                Polygon(box_footprint(o.center, o.size, o.yaw))
+            )
     grown = [unary_union(polys).buffer(r, quad_segs=4) for r, polys in sorted(groups.items()) if polys]
     blocked = unary_union(grown) if grown else Polygon()
     return floor.buffer(-radius + 1e-6, quad_segs=4).difference(blocked)
@@ -135,8 +136,10 @@ def keep_component(spec: SceneSpec, positions: np.ndarray, label: np.ndarray) ->
     free_thin = free_space(spec, radius=0.01)
     if targets_in_sight(spec, positions[label == largest], free_thin):
         return largest
-    score = {c: (len(targets_in_sight(spec, positions[label == c], free_thin)), int(sizes[c]), -c)
-             for c in [largest, *others]}
+    score = {
+        c: (len(targets_in_sight(spec, positions[label == c], free_thin)), int(sizes[c]), -c)
+        for c in [largest, *others]
+    }
     return max(score, key=score.get)
 
 

@@ -75,13 +75,34 @@ OUTLINE_IN, OUTLINE_OUT = 8, 25  #: pixels a side may move inwards / outwards fr
 PROFILE_MIN = 0.5  #: share of a side's span that must show a line for the side to move
 PROFILE_TIE = 0.05  #: profile values this close to the best count as tied (the nearest to the extent wins)
 EXTEND = 30  #: farthest an interior wall end is extended to a side or crossing wall, pixels (rule 5)
-RULES = {1: {"ridge_offset": RIDGE_OFFSET, "ridge_min": RIDGE_MIN, "vote_min": VOTE_MIN, "max_gap": MAX_GAP,
-             "min_run": MIN_RUN, "outer_band": OUTER_BAND, "snap": SNAP, "chroma_min": CHROMA_MIN,
-             "luma_min": LUMA_MIN, "dark_factor": DARK_FACTOR, "local_window": LOCAL_WINDOW, "min_blob": MIN_BLOB,
-             "lamp_px": LAMP_PX, "lamp_luma": LAMP_LUMA, "static_tol": STATIC_TOL, "static_share": STATIC_SHARE,
-             "outline_ridge": OUTLINE_RIDGE, "outline_step": OUTLINE_STEP, "outline_margin": OUTLINE_MARGIN,
-             "outline_in": OUTLINE_IN, "outline_out": OUTLINE_OUT, "profile_min": PROFILE_MIN,
-             "profile_tie": PROFILE_TIE, "extend": EXTEND}}
+RULES = {
+    1: {
+        "ridge_offset": RIDGE_OFFSET,
+        "ridge_min": RIDGE_MIN,
+        "vote_min": VOTE_MIN,
+        "max_gap": MAX_GAP,
+        "min_run": MIN_RUN,
+        "outer_band": OUTER_BAND,
+        "snap": SNAP,
+        "chroma_min": CHROMA_MIN,
+        "luma_min": LUMA_MIN,
+        "dark_factor": DARK_FACTOR,
+        "local_window": LOCAL_WINDOW,
+        "min_blob": MIN_BLOB,
+        "lamp_px": LAMP_PX,
+        "lamp_luma": LAMP_LUMA,
+        "static_tol": STATIC_TOL,
+        "static_share": STATIC_SHARE,
+        "outline_ridge": OUTLINE_RIDGE,
+        "outline_step": OUTLINE_STEP,
+        "outline_margin": OUTLINE_MARGIN,
+        "outline_in": OUTLINE_IN,
+        "outline_out": OUTLINE_OUT,
+        "profile_min": PROFILE_MIN,
+        "profile_tie": PROFILE_TIE,
+        "extend": EXTEND,
+    }
+}
 
 
 def pixel_to_world(row: float, col: float) -> tuple[float, float]:
@@ -108,8 +129,8 @@ def ridges(gray: np.ndarray, offset: int = RIDGE_OFFSET, min_rise: float = RIDGE
     h = np.zeros((H, W), bool)
     v = np.zeros((H, W), bool)
     o = offset
-    h[o:H - o] = g[o:H - o] - np.maximum(g[:H - 2 * o], g[2 * o:]) > min_rise
-    v[:, o:W - o] = g[:, o:W - o] - np.maximum(g[:, :W - 2 * o], g[:, 2 * o:]) > min_rise
+    h[o : H - o] = g[o : H - o] - np.maximum(g[: H - 2 * o], g[2 * o :]) > min_rise
+    v[:, o : W - o] = g[:, o : W - o] - np.maximum(g[:, : W - 2 * o], g[:, 2 * o :]) > min_rise
     return h, v
 
 
@@ -179,9 +200,12 @@ class WallPlan:
     plans: int = 0
 
     def to_json(self) -> dict:
-        return {"outline_px": list(self.outline), "plans": self.plans,
-                "interior_px": [[s.axis, s.line, s.a0, s.a1] for s in self.interior],
-                "outer_px": [[s.axis, s.line, s.a0, s.a1] for s in self.outer]}
+        return {
+            "outline_px": list(self.outline),
+            "plans": self.plans,
+            "interior_px": [[s.axis, s.line, s.a0, s.a1] for s in self.interior],
+            "outer_px": [[s.axis, s.line, s.a0, s.a1] for s in self.outer],
+        }
 
 
 def relaxed_lines(gray: np.ndarray, offset: int = RIDGE_OFFSET) -> tuple[np.ndarray, np.ndarray]:
@@ -193,10 +217,10 @@ def relaxed_lines(gray: np.ndarray, offset: int = RIDGE_OFFSET) -> tuple[np.ndar
     o = offset
     h = np.zeros((H, W), bool)
     v = np.zeros((H, W), bool)
-    up, mid, dn = g[:H - 2 * o], g[o:H - o], g[2 * o:]
-    h[o:H - o] = (mid - np.maximum(up, dn) > OUTLINE_RIDGE) | (np.abs(up - dn) > OUTLINE_STEP)
-    lf, mid, rt = g[:, :W - 2 * o], g[:, o:W - o], g[:, 2 * o:]
-    v[:, o:W - o] = (mid - np.maximum(lf, rt) > OUTLINE_RIDGE) | (np.abs(lf - rt) > OUTLINE_STEP)
+    up, mid, dn = g[: H - 2 * o], g[o : H - o], g[2 * o :]
+    h[o : H - o] = (mid - np.maximum(up, dn) > OUTLINE_RIDGE) | (np.abs(up - dn) > OUTLINE_STEP)
+    lf, mid, rt = g[:, : W - 2 * o], g[:, o : W - o], g[:, 2 * o :]
+    v[:, o : W - o] = (mid - np.maximum(lf, rt) > OUTLINE_RIDGE) | (np.abs(lf - rt) > OUTLINE_STEP)
     return h, v
 
 
@@ -234,8 +258,8 @@ def infer_walls(plans: list[np.ndarray]) -> WallPlan:
     m = OUTLINE_MARGIN
     c0, c1 = int(left) + m, int(right) - m
     r0, r1 = int(top) + m, int(bottom) - m
-    hprof = rh[:, c0:c1 + 1].mean(axis=1) if c1 > c0 else np.zeros(len(rh))
-    vprof = rv[r0:r1 + 1, :].mean(axis=0) if r1 > r0 else np.zeros(rv.shape[1])
+    hprof = rh[:, c0 : c1 + 1].mean(axis=1) if c1 > c0 else np.zeros(len(rh))
+    vprof = rv[r0 : r1 + 1, :].mean(axis=0) if r1 > r0 else np.zeros(rv.shape[1])
     top, bottom = snap_side(hprof, top, -1), snap_side(hprof, bottom, +1)
     left, right = snap_side(vprof, left, -1), snap_side(vprof, right, +1)
     outer, interior = [], []
@@ -252,7 +276,7 @@ def infer_walls(plans: list[np.ndarray]) -> WallPlan:
     for s in interior:
         lo, hi = (left, right) if s.axis == 0 else (top, bottom)
         cross = [lo, hi] + [t.line for t in interior if t.axis != s.axis and t.a0 - SNAP <= s.line <= t.a1 + SNAP]
-        seen = (anyh[int(round(s.line))] if s.axis == 0 else anyv[:, int(round(s.line))])
+        seen = anyh[int(round(s.line))] if s.axis == 0 else anyv[:, int(round(s.line))]
         a0 = _extend(s.a0, cross, SNAP, seen, -1)
         a1 = _extend(s.a1, cross, SNAP, seen, +1)
         a0, a1 = max(lo, a0), min(hi, a1)
@@ -273,7 +297,7 @@ def _extend(v: float, targets: list[float], snap: float, seen: np.ndarray, direc
     if abs(t - v) > EXTEND:
         return v
     a, b = sorted((int(round(v)), int(round(t))))
-    gap = seen[a:b + 1]
+    gap = seen[a : b + 1]
     return t if len(gap) and gap.mean() >= 0.5 else v
 
 
@@ -282,15 +306,15 @@ def wall_mask(shape: tuple[int, int], walls: WallPlan, pad: int = 1) -> np.ndarr
     m = np.zeros(shape, bool)
     t, l, b, r = (int(round(v)) for v in walls.outline)
     for row in (t, b):
-        m[max(row - pad, 0):row + pad + 1, l:r + 1] = True
+        m[max(row - pad, 0) : row + pad + 1, l : r + 1] = True
     for col in (l, r):
-        m[t:b + 1, max(col - pad, 0):col + pad + 1] = True
+        m[t : b + 1, max(col - pad, 0) : col + pad + 1] = True
     for s in walls.interior:
         c = int(round(s.line))
         if s.axis == 0:
-            m[max(c - pad, 0):c + pad + 1, s.a0:s.a1 + 1] = True
+            m[max(c - pad, 0) : c + pad + 1, s.a0 : s.a1 + 1] = True
         else:
-            m[s.a0:s.a1 + 1, max(c - pad, 0):c + pad + 1] = True
+            m[s.a0 : s.a1 + 1, max(c - pad, 0) : c + pad + 1] = True
     return m
 
 
@@ -299,7 +323,7 @@ def furniture_mask(rgb: np.ndarray, walls: WallPlan) -> np.ndarray:
     rgb = np.asarray(rgb, dtype=np.float64)
     t, l, b, r = (int(round(v)) for v in walls.outline)
     inside = np.zeros(rgb.shape[:2], bool)
-    inside[t + 2:b - 1, l + 2:r - 1] = True
+    inside[t + 2 : b - 1, l + 2 : r - 1] = True
     inside &= ~wall_mask(rgb.shape[:2], walls, pad=1)
     s = rgb.sum(axis=2) + 1e-6
     chroma = np.stack([rgb[..., 0] / s, rgb[..., 1] / s], axis=-1)
@@ -313,10 +337,10 @@ def furniture_mask(rgb: np.ndarray, walls: WallPlan) -> np.ndarray:
 
 def static_mask(plans: list[np.ndarray], tol: float = STATIC_TOL) -> np.ndarray:
     """Pixels that look the same (every channel within ``tol``) in all of ``plans`` (the variants of one
-    apartment): its fixtures, such as the ceiling lamps seen from above; no furniture of the train scenes' records
-    stands in the same place in all five variants of its apartment. A blob of :data:`LAMP_PX` pixels, green >= red >= blue
-and brighter than :data:`LAMP_LUMA` is a glass ceiling lamp (:func:`is_lamp`): of the 796 blobs of the 60 train
-plans, 74 cover no recorded object; the rule finds 59 of them and 3 of the 722 others."""
+        apartment): its fixtures, such as the ceiling lamps seen from above; no furniture of the train scenes' records
+        stands in the same place in all five variants of its apartment. A blob of :data:`LAMP_PX` pixels, green >= red >= blue
+    and brighter than :data:`LAMP_LUMA` is a glass ceiling lamp (:func:`is_lamp`): of the 796 blobs of the 60 train
+    plans, 74 cover no recorded object; the rule finds 59 of them and 3 of the 722 others."""
     a = np.stack([np.asarray(p, dtype=np.float64) for p in plans])
     spread = a.max(axis=0) - a.min(axis=0)
     return (spread.max(axis=-1) if spread.ndim == 3 else spread) <= tol
@@ -344,5 +368,19 @@ def furniture_blobs(rgb: np.ndarray, walls: WallPlan) -> list[tuple[int, int, in
     return sorted(out, key=lambda b: -b[4])
 
 
-__all__ = ["PIXEL", "PLAN_VERSION", "Segment", "WallPlan", "furniture_blobs", "furniture_mask", "infer_walls",
-           "pixel_to_world", "ridges", "runs_1d", "segments", "vote", "wall_mask", "world_to_pixel"]
+__all__ = [
+    "PIXEL",
+    "PLAN_VERSION",
+    "Segment",
+    "WallPlan",
+    "furniture_blobs",
+    "furniture_mask",
+    "infer_walls",
+    "pixel_to_world",
+    "ridges",
+    "runs_1d",
+    "segments",
+    "vote",
+    "wall_mask",
+    "world_to_pixel",
+]

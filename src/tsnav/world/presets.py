@@ -15,26 +15,75 @@ WORLDS = ("procedural", "ithor-real", "robothor-real")
 
 PRESETS = {
     # a handful of small rooms, seconds to build: for tests
-    "tiny": {"scenes": ["FloorPlan1", "FloorPlan2", "FloorPlan201", "FloorPlan21", "FloorPlan22"],
-             "compact": True, "image_size": 64},
+    "tiny": {
+        "scenes": ["FloorPlan1", "FloorPlan2", "FloorPlan201", "FloorPlan21", "FloorPlan22"],
+        "compact": True,
+        "image_size": 64,
+    },
     # three small real bathrooms (train, val, test) at 128x128, seconds to build: for tests of the real-room paths
-    "tiny-real": {"scenes": ["FloorPlan408", "FloorPlan424", "FloorPlan425"], "compact": False, "image_size": 128,
-                  "world": "ithor-real"},
+    "tiny-real": {
+        "scenes": ["FloorPlan408", "FloorPlan424", "FloorPlan425"],
+        "compact": False,
+        "image_size": 128,
+        "world": "ithor-real",
+    },
     # a few scenes of each room type (3 train, 1 val, 1 test), minutes to build
-    "demo": {"scenes": [f"FloorPlan{b + i}" for b in (0, 200, 300, 400) for i in (1, 2, 3, 21, 22)],
-             "compact": False, "image_size": 64},
+    "demo": {
+        "scenes": [f"FloorPlan{b + i}" for b in (0, 200, 300, 400) for i in (1, 2, 3, 21, 22)],
+        "compact": False,
+        "image_size": 64,
+    },
     # the demo's real rooms (tsnav demo): 4 of the smallest training rooms of each type (FloorPlan409 is left out:
     # no reachable state sees its targets), one validation and two test rooms of each type, of ithor-real at
     # 128x128 (28 rooms, 42 k states)
-    "demo-real": {"scenes": [f"FloorPlan{i}" for i in (4, 11, 17, 19, 27, 24, 30, 202, 206, 211, 217, 221, 222, 226,
-                                                         302, 310, 316, 320, 321, 322, 328, 403, 408, 412, 419, 423,
-                                                         424, 426)],
-                  "compact": False, "image_size": 128, "world": "ithor-real"},
+    "demo-real": {
+        "scenes": [
+            f"FloorPlan{i}"
+            for i in (
+                4,
+                11,
+                17,
+                19,
+                27,
+                24,
+                30,
+                202,
+                206,
+                211,
+                217,
+                221,
+                222,
+                226,
+                302,
+                310,
+                316,
+                320,
+                321,
+                322,
+                328,
+                403,
+                408,
+                412,
+                419,
+                423,
+                424,
+                426,
+            )
+        ],
+        "compact": False,
+        "image_size": 128,
+        "world": "ithor-real",
+    },
     # the quick demo's real rooms (the default of tsnav demo): of demo-real, the 2 smallest training rooms of each
     # type, its 4 validation rooms and its smaller test room of each type (16 rooms, 23.5 k states)
-    "demo-real-small": {"scenes": [f"FloorPlan{i}" for i in (11, 17, 24, 27, 206, 217, 221, 226, 302, 316, 321, 328,
-                                                               408, 419, 423, 424)],
-                        "compact": False, "image_size": 128, "world": "ithor-real"},
+    "demo-real-small": {
+        "scenes": [
+            f"FloorPlan{i}" for i in (11, 17, 24, 27, 206, 217, 221, 226, 302, 316, 321, 328, 408, 419, 423, 424)
+        ],
+        "compact": False,
+        "image_size": 128,
+        "world": "ithor-real",
+    },
     "ithor": {"scenes": ithor_scenes(), "compact": False, "image_size": 128},
     # the 120 real iTHOR scenes rebuilt from their recorded object layouts (same names and splits as ithor)
     "ithor-real": {"scenes": ithor_scenes(), "compact": False, "image_size": 128, "world": "ithor-real"},
@@ -50,8 +99,9 @@ def preset_scenes(name: str) -> list[str]:
     return list(PRESETS[name]["scenes"])
 
 
-def scene_spec(name: str, world: str = "procedural", seed: int = 0, compact: bool = False,
-               version: int | None = None) -> SceneSpec:
+def scene_spec(
+    name: str, world: str = "procedural", seed: int = 0, compact: bool = False, version: int | None = None
+) -> SceneSpec:
     """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` and ``compact`` apply to
     procedural scenes only, ``version`` (of the rules, :data:`tsnav.world.real.VERSIONS`; None: the newest) to
     ``ithor-real`` and ``robothor-real`` only."""

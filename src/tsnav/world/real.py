@@ -44,8 +44,22 @@ from .spec import Furniture, ObjectInstance, Part, SceneSpec, box_footprint
 #: Height of the agent's capsule, metres (AI2-THOR reports the agent's centre 0.9 m above the floor).
 AGENT_HEIGHT = 1.8
 #: Categories fixed to walls (or hanging from them): never obstacles, they mark where walls are.
-WALL_FIXTURES = frozenset({"LightSwitch", "Painting", "Poster", "Window", "Blinds", "Mirror", "Curtains",
-                           "ShowerHead", "ShowerCurtain", "TowelHolder", "HandTowelHolder", "ToiletPaperHanger"})
+WALL_FIXTURES = frozenset(
+    {
+        "LightSwitch",
+        "Painting",
+        "Poster",
+        "Window",
+        "Blinds",
+        "Mirror",
+        "Curtains",
+        "ShowerHead",
+        "ShowerCurtain",
+        "TowelHolder",
+        "HandTowelHolder",
+        "ToiletPaperHanger",
+    }
+)
 #: Furthest an outermost object may sit from the floor box's edge to be taken as lying against that wall, m.
 WALL_SNAP = 0.6
 #: Smallest side of a corner region cut from the room as an L-shape or alcove, metres.
@@ -53,20 +67,76 @@ MIN_ALCOVE = 1.0
 #: Deepest a counter run is taken to be, metres; a counter box deeper on both sides is an L, U or island.
 COUNTER_MAX_DEPTH = 1.2
 #: Categories drawn with the procedural catalog's model scaled to the recorded box; others are plain boxes.
-CATALOG_SHAPES = frozenset({"CounterTop", "DiningTable", "Desk", "CoffeeTable", "SideTable", "ShelvingUnit", "Sofa",
-                            "ArmChair", "TVStand", "Bed", "Dresser", "Toilet", "Bathtub", "Chair", "Fridge",
-                            "Microwave", "Television", "Laptop", "FloorLamp", "DeskLamp", "GarbageCan",
-                            "CoffeeMachine", "Toaster", "Kettle", "AlarmClock", "Bowl", "Pot", "Pan", "Book",
-                            "CellPhone", "RemoteControl", "Plate", "LightSwitch", "StoveBurner", "Sink"})
+CATALOG_SHAPES = frozenset(
+    {
+        "CounterTop",
+        "DiningTable",
+        "Desk",
+        "CoffeeTable",
+        "SideTable",
+        "ShelvingUnit",
+        "Sofa",
+        "ArmChair",
+        "TVStand",
+        "Bed",
+        "Dresser",
+        "Toilet",
+        "Bathtub",
+        "Chair",
+        "Fridge",
+        "Microwave",
+        "Television",
+        "Laptop",
+        "FloorLamp",
+        "DeskLamp",
+        "GarbageCan",
+        "CoffeeMachine",
+        "Toaster",
+        "Kettle",
+        "AlarmClock",
+        "Bowl",
+        "Pot",
+        "Pan",
+        "Book",
+        "CellPhone",
+        "RemoteControl",
+        "Plate",
+        "LightSwitch",
+        "StoveBurner",
+        "Sink",
+    }
+)
 #: Material roles of categories that the procedural catalog does not know (:data:`catalog.ROLES` covers the rest).
 EXTRA_ROLES = {
-    "Cabinet": ("painted",), "Drawer": ("painted",), "Shelf": ("wood",), "Window": ("lamp",), "Blinds": ("painted",),
-    "Curtains": ("fabric",), "Mirror": ("screen",), "Painting": ("paper",), "Poster": ("paper",),
-    "SinkBasin": ("metal",), "Faucet": ("metal",), "StoveKnob": ("plastic",), "Stool": ("wood",),
-    "Pillow": ("bedding",), "Cloth": ("fabric",), "Towel": ("fabric",), "HandTowel": ("fabric",),
-    "ShowerCurtain": ("fabric",), "ShowerDoor": ("lamp",), "ShowerGlass": ("lamp",), "BathtubBasin": ("ceramic",),
-    "HousePlant": ("fabric",), "Box": ("paper",), "Newspaper": ("paper",), "Vase": ("ceramic",),
-    "Statue": ("stone",), "Safe": ("metal",), "Ottoman": ("fabric",), "LaundryHamper": ("fabric",),
+    "Cabinet": ("painted",),
+    "Drawer": ("painted",),
+    "Shelf": ("wood",),
+    "Window": ("lamp",),
+    "Blinds": ("painted",),
+    "Curtains": ("fabric",),
+    "Mirror": ("screen",),
+    "Painting": ("paper",),
+    "Poster": ("paper",),
+    "SinkBasin": ("metal",),
+    "Faucet": ("metal",),
+    "StoveKnob": ("plastic",),
+    "Stool": ("wood",),
+    "Pillow": ("bedding",),
+    "Cloth": ("fabric",),
+    "Towel": ("fabric",),
+    "HandTowel": ("fabric",),
+    "ShowerCurtain": ("fabric",),
+    "ShowerDoor": ("lamp",),
+    "ShowerGlass": ("lamp",),
+    "BathtubBasin": ("ceramic",),
+    "HousePlant": ("fabric",),
+    "Box": ("paper",),
+    "Newspaper": ("paper",),
+    "Vase": ("ceramic",),
+    "Statue": ("stone",),
+    "Safe": ("metal",),
+    "Ottoman": ("fabric",),
+    "LaundryHamper": ("fabric",),
     "Stove": ("metal", "metal", "plastic"),
 }
 _FLOOR_TOL = 0.05
@@ -103,7 +173,7 @@ def low_clearance(top: float, clearance: float = 0.19) -> float:
         return 0.0
     if h >= clearance:
         return clearance
-    return math.sqrt(clearance ** 2 - (clearance - h) ** 2)
+    return math.sqrt(clearance**2 - (clearance - h) ** 2)
 
 
 #: A toilet box wider than this across the direction it faces holds more than the toilet (the Toilet_2 asset of
@@ -119,8 +189,9 @@ def is_floor_id(object_id: str) -> bool:
     return object_id.split("|", 1)[0] == "Floor"
 
 
-def blocks(o: LayoutObject, floor_y: float = 0.0, height: float = AGENT_HEIGHT,
-           version: int = GENERATOR_VERSION) -> bool:
+def blocks(
+    o: LayoutObject, floor_y: float = 0.0, height: float = AGENT_HEIGHT, version: int = GENERATOR_VERSION
+) -> bool:
     """Whether object ``o`` blocks the agent (AI2-THOR's reachability rule as the metadata tells it, see the
     module docstring): floor-standing or fixed, below the capsule's top, not a wall fixture. Version 1 let an
     object block when any of its receptacles was the Floor; from version 2 a pickupable object that also rests on
@@ -262,7 +333,9 @@ def _local(x: float, z: float, yaw: float) -> tuple[float, float]:
     return c * x - s * z, s * x + c * z  # inverse of (x = c lx + s lz, z = -s lx + c lz)
 
 
-def counter_boxes(layout: Layout, counter: LayoutObject, version: int = GENERATOR_VERSION) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
+def counter_boxes(
+    layout: Layout, counter: LayoutObject, version: int = GENERATOR_VERSION
+) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
     """Footprints ``((cx, cz), (sx, sz), yaw)`` of a counter whose recorded box (its top slab, without an
     oriented box) is much larger than a counter's depth: an L- or U-shaped run along the walls, or an island
     turned off the grid. Things standing on the counter and the fixed cabinets, drawers and sinks under it
@@ -286,8 +359,11 @@ def counter_boxes(layout: Layout, counter: LayoutObject, version: int = GENERATO
             continue
         ox, _, oz = o.aabb_center
         on = counter.object_id in o.parents
-        under = (not o.parents and o.object_type in ("Cabinet", "Drawer", "Sink", "SinkBasin", "StoveBurner")
-                 and o.aabb_max[1] <= top + 0.05)
+        under = (
+            not o.parents
+            and o.object_type in ("Cabinet", "Drawer", "Sink", "SinkBasin", "StoveBurner")
+            and o.aabb_max[1] <= top + 0.05
+        )
         if (on or under) and x0 <= ox <= x1 and z0 <= oz <= z1:
             sup.append(o)
     if not sup:
@@ -383,8 +459,9 @@ def toilet_box(o: LayoutObject) -> tuple[tuple[float, float], tuple[float, float
     return (px, back + fz * d / 2), (w, d), 90.0 * k
 
 
-def footprints(layout: Layout, o: LayoutObject,
-               version: int = GENERATOR_VERSION) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
+def footprints(
+    layout: Layout, o: LayoutObject, version: int = GENERATOR_VERSION
+) -> list[tuple[tuple[float, float], tuple[float, float], float]]:
     """Floor-plane boxes ``((cx, cz), (sx, sz), yaw)`` of object ``o``: :func:`oriented_box`, or for a
     large counter :func:`counter_boxes`, or (from version 2) for an oversized toilet box :func:`toilet_box`."""
     if o.object_type == "CounterTop":
@@ -400,8 +477,11 @@ def sink_top(layout: Layout, o: LayoutObject) -> float:
     """Height at which a sink's rim is drawn: the top of its box, or of the counter around it when higher
     (the counter's body is drawn solid, so a sink below its top would be hidden)."""
     x, _, z = o.aabb_center
-    tops = [c.aabb_max[1] for c in layout.objects if c.object_type == "CounterTop"
-            and c.aabb_min[0] <= x <= c.aabb_max[0] and c.aabb_min[2] <= z <= c.aabb_max[2]]
+    tops = [
+        c.aabb_max[1]
+        for c in layout.objects
+        if c.object_type == "CounterTop" and c.aabb_min[0] <= x <= c.aabb_max[0] and c.aabb_min[2] <= z <= c.aabb_max[2]
+    ]
     return max([o.aabb_max[1], *tops]) + 0.003
 
 
@@ -413,8 +493,16 @@ def _parts_for(o: LayoutObject, fp, inst: int, fy: float, layout: Layout) -> lis
     mats = _category_mats(o.object_type)
     if o.object_type == "Sink":  # the record spans the cabinet under the sink: its body, the catalog's sink on top
         col, col2, pat, scale = mats["accent"]
-        body = Part((cx, (y0 + y1) / 2, cz), (max(sx, 0.01), max(y1 - y0, 0.01), max(sz, 0.01)), yaw, col, col2,
-                    pat, scale, inst)
+        body = Part(
+            (cx, (y0 + y1) / 2, cz),
+            (max(sx, 0.01), max(y1 - y0, 0.01), max(sz, 0.01)),
+            yaw,
+            col,
+            col2,
+            pat,
+            scale,
+            inst,
+        )
         top = sink_top(layout, o)
         return [body] + build_parts("Sink", (cx, top, cz), (sx, 0.25, sz), yaw, inst, np.random.default_rng(0), mats)
     size = (max(sx, 0.01), max(y1 - y0, 0.01), max(sz, 0.01))
@@ -469,12 +557,17 @@ def spec_from_layout(layout: Layout, room_type: str, split: str, version: int | 
     poly = room_polygon(layout, version)
     x0, z0, x1, z1 = poly.bounds
     top = max(o.aabb_max[1] for o in layout.objects if o.object_type != "Floor")
-    spec = SceneSpec(name=name, room_type=room_type, split=split, seed=0,
-                     rooms=[{"type": room_type, "rect": [round(v, 4) for v in (x0, z0, x1, z1)]}],
-                     floor=[[[round(x, 4), round(z, 4)] for x, z in list(poly.exterior.coords)[:-1]]],
-                     wall_height=round(max(2.6, top + 0.1), 3),
-                     generator={"world": "ithor-real", "version": version},
-                     navigation={"clearance": CLEARANCE, "sweep_clearance": SWEEP_CLEARANCE} if version >= 2 else None)
+    spec = SceneSpec(
+        name=name,
+        room_type=room_type,
+        split=split,
+        seed=0,
+        rooms=[{"type": room_type, "rect": [round(v, 4) for v in (x0, z0, x1, z1)]}],
+        floor=[[[round(x, 4), round(z, 4)] for x, z in list(poly.exterior.coords)[:-1]]],
+        wall_height=round(max(2.6, top + 0.1), 3),
+        generator={"world": "ithor-real", "version": version},
+        navigation={"clearance": CLEARANCE, "sweep_clearance": SWEEP_CLEARANCE} if version >= 2 else None,
+    )
     spec.light = {"direction": [0.35, -2.5, 0.2], "ambient": 0.55, "diffuse": 0.42, "tint": [1.0, 0.98, 0.95]}
     rng = np.random.default_rng(zlib.crc32(f"tsnav-ithor-real|{name}".encode()))
     floor_inst, wall_inst, ceil_inst = spec.new_inst("Floor"), spec.new_inst("Wall"), spec.new_inst("Ceiling")
@@ -488,16 +581,19 @@ def spec_from_layout(layout: Layout, room_type: str, split: str, version: int | 
         inst = spec.new_inst(o.object_id)
         block = blocks(o, fy, version=version)
         if block and version >= 2:
-            c = min(low_clearance(o.aabb_max[1] - fy, CLEARANCE),
-                    SEAT_CLEARANCE if o.object_type in UPHOLSTERED else CLEARANCE)
+            c = min(
+                low_clearance(o.aabb_max[1] - fy, CLEARANCE),
+                SEAT_CLEARANCE if o.object_type in UPHOLSTERED else CLEARANCE,
+            )
             if c < CLEARANCE:
                 own[o.object_id] = round(c, 4)
         for (ox, oz), (sx, sz), yaw in footprints(layout, o, version):
             size = (round(sx, 4), round(o.aabb_size[1], 4), round(sz, 4))
             center = (round(ox, 4), round(o.aabb_min[1], 4), round(oz, 4))
             if o.object_type in TARGET_CATEGORIES:
-                support = "floor" if block else ("wall" if o.object_type in WALL_FIXTURES or not o.parents
-                                                 else o.parents[0])
+                support = (
+                    "floor" if block else ("wall" if o.object_type in WALL_FIXTURES or not o.parents else o.parents[0])
+                )
                 spec.objects.append(ObjectInstance(o.object_id, o.object_type, center, size, yaw, support, inst))
             else:  # a counter made of several runs gives several entries with its one id
                 spec.furniture.append(Furniture(o.object_id, o.object_type, center, size, yaw, block, None, inst))
@@ -509,10 +605,21 @@ def spec_from_layout(layout: Layout, room_type: str, split: str, version: int | 
         (ox, oz), (sx, sz), yaw, top = stove
         sid = f"Stove|inferred|{ox:+.2f}|{oz:+.2f}"
         inst = spec.new_inst(sid)
-        spec.furniture.append(Furniture(sid, "Stove", (round(ox, 4), 0.0, round(oz, 4)), (round(sx, 4), round(top, 4),
-                                        round(sz, 4)), yaw, True, None, inst))
-        spec.parts += build_parts("Cabinet", (ox, 0.0, oz), (sx, top, sz), yaw, inst, np.random.default_rng(0),
-                                  _category_mats("Stove"))
+        spec.furniture.append(
+            Furniture(
+                sid,
+                "Stove",
+                (round(ox, 4), 0.0, round(oz, 4)),
+                (round(sx, 4), round(top, 4), round(sz, 4)),
+                yaw,
+                True,
+                None,
+                inst,
+            )
+        )
+        spec.parts += build_parts(
+            "Cabinet", (ox, 0.0, oz), (sx, top, sz), yaw, inst, np.random.default_rng(0), _category_mats("Stove")
+        )
     return spec
 
 
@@ -520,8 +627,12 @@ def stove_body(layout: Layout, version: int = GENERATOR_VERSION):
     """The body under the stove burners, which the records lack (the burners float at counter height in
     26 of 30 kitchens): ``((cx, cz), (width, depth), yaw, height)`` of a box from the floor to the burners,
     over the burners and knobs not standing on a counter run, its front towards the knobs; None without them."""
-    counters = [Polygon(box_footprint((c[0], 0, c[1]), (sz[0], 0, sz[1]), y))
-                for o in layout.objects if o.object_type == "CounterTop" for c, sz, y in footprints(layout, o, version)]
+    counters = [
+        Polygon(box_footprint((c[0], 0, c[1]), (sz[0], 0, sz[1]), y))
+        for o in layout.objects
+        if o.object_type == "CounterTop"
+        for c, sz, y in footprints(layout, o, version)
+    ]
 
     def free(o: LayoutObject) -> bool:
         return not any(p.contains(Point(o.aabb_center[0], o.aabb_center[2])) for p in counters)
@@ -534,12 +645,24 @@ def stove_body(layout: Layout, version: int = GENERATOR_VERSION):
     x0, z0 = min(o.aabb_min[0] for o in parts), min(o.aabb_min[2] for o in parts)
     x1, z1 = max(o.aabb_max[0] for o in parts), max(o.aabb_max[2] for o in parts)
     bx, bz = np.mean([o.aabb_center[0] for o in burners]), np.mean([o.aabb_center[2] for o in burners])
-    kx, kz = (np.mean([o.aabb_center[0] for o in knobs]), np.mean([o.aabb_center[2] for o in knobs])) if knobs else (bx, bz - 1)
+    kx, kz = (
+        (np.mean([o.aabb_center[0] for o in knobs]), np.mean([o.aabb_center[2] for o in knobs]))
+        if knobs
+        else (bx, bz - 1)
+    )
     yaw = (round(math.degrees(math.atan2(kx - bx, kz - bz)) / 90) * 90) % 360  # front (local +z) to the knobs
     w, d = (x1 - x0 + 0.1, z1 - z0 + 0.1) if yaw % 180 == 0 else (z1 - z0 + 0.1, x1 - x0 + 0.1)
     top = min(o.aabb_min[1] for o in burners)
     return ((x0 + x1) / 2, (z0 + z1) / 2), (w, d), float(yaw), top
 
 
-__all__ = ["AGENT_HEIGHT", "WALL_FIXTURES", "alcoves", "blocks", "oriented_box", "outer_rect", "real_spec",
-           "room_polygon"]
+__all__ = [
+    "AGENT_HEIGHT",
+    "WALL_FIXTURES",
+    "alcoves",
+    "blocks",
+    "oriented_box",
+    "outer_rect",
+    "real_spec",
+    "room_polygon",
+]

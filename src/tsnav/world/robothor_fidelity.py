@@ -153,36 +153,56 @@ def measure_scene(scene, episodes: list[dict]) -> dict:
         ratios.append(d / L)
         rows.append([t, round(L, 4), round(d, 4) if math.isfinite(d) else None])
     distinct = {cell(float(e["initial_position"]["x"]), float(e["initial_position"]["z"])) for e in episodes}
-    return {"scene": scene.name, "episodes": starts, "starts_kept": kept,
-            "distinct_starts": len(distinct), "distinct_kept": sum(c in index for c in distinct),
-            "positions": len(positions), "zero_length": zero, "zero_length_ok": int(zero_ok),
-            "no_success_state": no_goal, "ratios": [round(r, 4) if math.isfinite(r) else None for r in ratios],
-            "missing_starts": sorted([i * GRID_SIZE, j * GRID_SIZE] for i, j in missing), "episodes_table": rows}
+    return {
+        "scene": scene.name,
+        "episodes": starts,
+        "starts_kept": kept,
+        "distinct_starts": len(distinct),
+        "distinct_kept": sum(c in index for c in distinct),
+        "positions": len(positions),
+        "zero_length": zero,
+        "zero_length_ok": int(zero_ok),
+        "no_success_state": no_goal,
+        "ratios": [round(r, 4) if math.isfinite(r) else None for r in ratios],
+        "missing_starts": sorted([i * GRID_SIZE, j * GRID_SIZE] for i, j in missing),
+        "episodes_table": rows,
+    }
 
 
 def ratio_summary(ratios: list, episodes: int, kept: int) -> dict:
     """Summary figures of ``ratios`` (None: no tsnav path), with the start shares."""
     r = np.array([np.inf if v is None else v for v in ratios], dtype=np.float64)
     fin = r[np.isfinite(r)]
-    return {"episodes": episodes, "starts_kept": kept, "starts_kept_pct": round(100.0 * kept / max(episodes, 1), 2),
-            "ratios": int(len(r)), "median": round(float(np.median(r)), 4) if len(r) else None,
-            "mean_finite": round(float(fin.mean()), 4) if len(fin) else None,
-            "p10": round(float(np.percentile(r, 10, method="lower")), 4) if len(r) else None,
-            "p90": round(float(np.percentile(r, 90, method="higher")), 4) if len(r) else None,
-            "within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2) if len(r) else None,
-            "within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2) if len(r) else None,
-            "no_path": int((~np.isfinite(r)).sum())}
+    return {
+        "episodes": episodes,
+        "starts_kept": kept,
+        "starts_kept_pct": round(100.0 * kept / max(episodes, 1), 2),
+        "ratios": int(len(r)),
+        "median": round(float(np.median(r)), 4) if len(r) else None,
+        "mean_finite": round(float(fin.mean()), 4) if len(fin) else None,
+        "p10": round(float(np.percentile(r, 10, method="lower")), 4) if len(r) else None,
+        "p90": round(float(np.percentile(r, 90, method="higher")), 4) if len(r) else None,
+        "within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2) if len(r) else None,
+        "within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2) if len(r) else None,
+        "no_path": int((~np.isfinite(r)).sum()),
+    }
 
 
 def summarise(scenes: list[dict], split: str) -> dict:
     """Totals over the scenes of one split (``train`` or ``val``)."""
     mine = [s for s in scenes if s["split"] == split]
-    out = ratio_summary([v for s in mine for v in s["ratios"]], sum(s["episodes"] for s in mine),
-                        sum(s["starts_kept"] for s in mine))
-    out.update({"scenes": len(mine), "distinct_starts": sum(s["distinct_starts"] for s in mine),
-                "distinct_kept": sum(s["distinct_kept"] for s in mine),
-                "zero_length": sum(s["zero_length"] for s in mine),
-                "zero_length_ok": sum(s["zero_length_ok"] for s in mine)})
+    out = ratio_summary(
+        [v for s in mine for v in s["ratios"]], sum(s["episodes"] for s in mine), sum(s["starts_kept"] for s in mine)
+    )
+    out.update(
+        {
+            "scenes": len(mine),
+            "distinct_starts": sum(s["distinct_starts"] for s in mine),
+            "distinct_kept": sum(s["distinct_kept"] for s in mine),
+            "zero_length": sum(s["zero_length"] for s in mine),
+            "zero_length_ok": sum(s["zero_length_ok"] for s in mine),
+        }
+    )
     return out
 
 
@@ -196,21 +216,43 @@ def draw_scene(ax, plan: np.ndarray, meta: dict, positions: np.ndarray, missing:
     from . import plans as P
 
     r = 0.5 * P.PIXEL
-    ax.imshow(plan, extent=(P.X0 - r, P.X0 + (P.PLAN_PX - 0.5) * P.PIXEL, P.Z0 + P.SPAN - (P.PLAN_PX - 0.5) * P.PIXEL,
-                            P.Z0 + P.SPAN + r), interpolation="nearest")
+    ax.imshow(
+        plan,
+        extent=(
+            P.X0 - r,
+            P.X0 + (P.PLAN_PX - 0.5) * P.PIXEL,
+            P.Z0 + P.SPAN - (P.PLAN_PX - 0.5) * P.PIXEL,
+            P.Z0 + P.SPAN + r,
+        ),
+        interpolation="nearest",
+    )
     insts = meta.get("instances", [])
     wall = {i for i, n in enumerate(insts) if n == "Wall"}
     for row in meta.get("parts", []):
         if int(row[15]) in wall:
-            ax.add_patch(MplPolygon(box_footprint(row[0:3], row[3:6], row[6]), closed=True, facecolor="cyan",
-                                    alpha=0.55, edgecolor="none"))
+            ax.add_patch(
+                MplPolygon(
+                    box_footprint(row[0:3], row[3:6], row[6]),
+                    closed=True,
+                    facecolor="cyan",
+                    alpha=0.55,
+                    edgecolor="none",
+                )
+            )
     for f in meta.get("furniture", []):
         if f.get("blocks", True):
             ax.add_patch(MplPolygon(f["footprint"], closed=True, fill=False, edgecolor="yellow", lw=0.6))
     for o in meta.get("objects", []):
         b = o["bbox"]
-        ax.add_patch(MplPolygon(box_footprint(b["center"], b["size"], b.get("yaw", 0.0)), closed=True, fill=False,
-                                edgecolor="red" if o["support"] == "floor" else "magenta", lw=0.9))
+        ax.add_patch(
+            MplPolygon(
+                box_footprint(b["center"], b["size"], b.get("yaw", 0.0)),
+                closed=True,
+                fill=False,
+                edgecolor="red" if o["support"] == "floor" else "magenta",
+                lw=0.9,
+            )
+        )
         ax.text(b["center"][0], b["center"][2], o["objectType"], color="white", fontsize=5)
     ax.plot(positions[:, 0], positions[:, 1], ".", color="lime", ms=2.5, label="tsnav positions")
     if missing:
@@ -225,8 +267,9 @@ def draw_scene(ax, plan: np.ndarray, meta: dict, positions: np.ndarray, missing:
     ax.tick_params(labelsize=6)
 
 
-def save_scene_png(path: str | Path, plan: np.ndarray, meta: dict, positions: np.ndarray, missing: list,
-                   title: str) -> Path:
+def save_scene_png(
+    path: str | Path, plan: np.ndarray, meta: dict, positions: np.ndarray, missing: list, title: str
+) -> Path:
     """One scene's :func:`draw_scene` as a PNG (written atomically)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -242,28 +285,38 @@ def save_scene_png(path: str | Path, plan: np.ndarray, meta: dict, positions: np
 
 def markdown(doc: dict) -> str:
     """The report's tables: per split, then per scene."""
-    lines = ["| split | scenes | episodes | starts kept % | distinct starts kept | ratio median | p10-p90 | "
-             "within +-25 % | within +-10 % | no tsnav path | L = 0 (tsnav 0 too) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| split | scenes | episodes | starts kept % | distinct starts kept | ratio median | p10-p90 | "
+        "within +-25 % | within +-10 % | no tsnav path | L = 0 (tsnav 0 too) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for split in ("train", "val"):
         s = doc["summary"].get(split)
         if not s or not s["scenes"]:
             continue
-        lines.append(f"| {split} | {s['scenes']} | {s['episodes']} | {s['starts_kept_pct']:.2f} | "
-                     f"{s['distinct_kept']}/{s['distinct_starts']} | {s['median']} | {s['p10']}-{s['p90']} | "
-                     f"{s['within_25_pct']} | {s['within_10_pct']} | {s['no_path']} | {s['zero_length']} "
-                     f"({s['zero_length_ok']}) |")
-    lines += ["", "| scene | positions | starts kept % | ratio median | within +-25 % | no tsnav path |",
-              "| --- | --- | --- | --- | --- | --- |"]
+        lines.append(
+            f"| {split} | {s['scenes']} | {s['episodes']} | {s['starts_kept_pct']:.2f} | "
+            f"{s['distinct_kept']}/{s['distinct_starts']} | {s['median']} | {s['p10']}-{s['p90']} | "
+            f"{s['within_25_pct']} | {s['within_10_pct']} | {s['no_path']} | {s['zero_length']} "
+            f"({s['zero_length_ok']}) |"
+        )
+    lines += [
+        "",
+        "| scene | positions | starts kept % | ratio median | within +-25 % | no tsnav path |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
     for sc in doc["scenes"]:
         s = ratio_summary(sc["ratios"], sc["episodes"], sc["starts_kept"])
-        lines.append(f"| {sc['scene']} | {sc['positions']} | {s['starts_kept_pct']:.1f} | {s['median']} | "
-                     f"{s['within_25_pct']} | {s['no_path']} |")
+        lines.append(
+            f"| {sc['scene']} | {sc['positions']} | {s['starts_kept_pct']:.1f} | {s['median']} | "
+            f"{s['within_25_pct']} | {s['no_path']} |"
+        )
     return "\n".join(lines) + "\n"
 
 
-def robothor_fidelity_report(data: str | Path, episodes: str | Path, out: str | Path | None = None,
-                             pictures: bool = True) -> tuple[dict, Path]:
+def robothor_fidelity_report(
+    data: str | Path, episodes: str | Path, out: str | Path | None = None, pictures: bool = True
+) -> tuple[dict, Path]:
     """Measure every complete scene of ``data`` that ``episodes`` has episodes for; write ``fidelity.json``,
     ``fidelity.md`` and (with ``pictures``) ``SCENE.png`` into ``out`` (default ``DATA/fidelity``)."""
     from .robothor_real import load_plan
@@ -286,18 +339,36 @@ def robothor_fidelity_report(data: str | Path, episodes: str | Path, out: str | 
         if pictures:
             positions, _ = scene_moves(scene)
             s = ratio_summary(res["ratios"], res["episodes"], res["starts_kept"])
-            title = (f"{name}: {len(positions)} positions; starts kept {s['starts_kept_pct']:.1f} %; path ratio median "
-                     f"{s['median']}, within +-25 % {s['within_25_pct']} %")
+            title = (
+                f"{name}: {len(positions)} positions; starts kept {s['starts_kept_pct']:.1f} %; path ratio median "
+                f"{s['median']}, within +-25 % {s['within_25_pct']} %"
+            )
             save_scene_png(out / f"{name}.png", load_plan(name), scene.meta, positions, res["missing_starts"], title)
     if not scenes:
         raise EpisodesError(f"{episodes}: no episodes for any complete scene of {data}")
-    doc = {"format": "tsnav-robothor-fidelity", "version": 1, "data": str(data), "episodes": str(episodes),
-           "success_distance": SUCCESS_DISTANCE, "rotations": list(ROTATIONS),
-           "summary": {split: summarise(scenes, split) for split in ("train", "val")}, "scenes": scenes}
+    doc = {
+        "format": "tsnav-robothor-fidelity",
+        "version": 1,
+        "data": str(data),
+        "episodes": str(episodes),
+        "success_distance": SUCCESS_DISTANCE,
+        "rotations": list(ROTATIONS),
+        "summary": {split: summarise(scenes, split) for split in ("train", "val")},
+        "scenes": scenes,
+    }
     atomic_write_text(out / "fidelity.json", json.dumps(doc, separators=(",", ":")))
     atomic_write_text(out / "fidelity.md", markdown(doc))
     return doc, out
 
 
-__all__ = ["EpisodesError", "load_episodes", "measure_scene", "path_lengths", "path_lengths_reference",
-           "ratio_summary", "robothor_fidelity_report", "summarise", "type_goals"]
+__all__ = [
+    "EpisodesError",
+    "load_episodes",
+    "measure_scene",
+    "path_lengths",
+    "path_lengths_reference",
+    "ratio_summary",
+    "robothor_fidelity_report",
+    "summarise",
+    "type_goals",
+]

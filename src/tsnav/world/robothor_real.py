@@ -41,8 +41,19 @@ from . import plans as P
 from .catalog import FLOORS, WALLS, build_parts, jitter
 from .house import floor_and_ceiling
 from .layouts import Layout, LayoutObject
-from .real import (CATALOG_SHAPES, SEAT_CLEARANCE, SWEEP_CLEARANCE, UPHOLSTERED, WALL_FIXTURES, _category_mats, _parts_for,
-                   _walls, blocks, footprints, low_clearance)
+from .real import (
+    CATALOG_SHAPES,
+    SEAT_CLEARANCE,
+    SWEEP_CLEARANCE,
+    UPHOLSTERED,
+    WALL_FIXTURES,
+    _category_mats,
+    _parts_for,
+    _walls,
+    blocks,
+    footprints,
+    low_clearance,
+)
 from .spec import Furniture, ObjectInstance, Part, SceneSpec
 
 #: The RoboTHOR ObjectNav challenge's 12 target types (the ``robothor12`` class set every scene of this world declares).
@@ -68,10 +79,22 @@ FLOOR_COST = 0.25  #: placement cost of a candidate on open floor (no furniture 
 NEAR_COST = 1.0  #: placement cost of a target with all its paths' earlier points within the success radius, m^2
 OFF_GRID = 5.0  #: degrees off a right angle beyond which a recorded object without oriented box is measured
 MIN_TURNED_PX = 10  #: fewest plan pixels to measure a turned object's footprint from
-RULES = {1: {"clearance": CLEARANCE, "inferred_clearance": INFERRED_CLEARANCE, "wall_thickness": WALL_THICKNESS,
-             "wall_height": WALL_HEIGHT, "furniture_height": FURNITURE_HEIGHT, "band": BAND,
-             "success_radius": SUCCESS_RADIUS, "floor_cost": FLOOR_COST, "near_cost": NEAR_COST, "off_grid": OFF_GRID,
-             "min_turned_px": MIN_TURNED_PX, "plans": P.RULES[P.PLAN_VERSION]}}
+RULES = {
+    1: {
+        "clearance": CLEARANCE,
+        "inferred_clearance": INFERRED_CLEARANCE,
+        "wall_thickness": WALL_THICKNESS,
+        "wall_height": WALL_HEIGHT,
+        "furniture_height": FURNITURE_HEIGHT,
+        "band": BAND,
+        "success_radius": SUCCESS_RADIUS,
+        "floor_cost": FLOOR_COST,
+        "near_cost": NEAR_COST,
+        "off_grid": OFF_GRID,
+        "min_turned_px": MIN_TURNED_PX,
+        "plans": P.RULES[P.PLAN_VERSION],
+    }
+}
 RECORDS = "train_objects.json.gz (ai2thor 2.7.2 metadata at reset)"
 
 
@@ -124,10 +147,21 @@ def layout_object(o: dict) -> LayoutObject:
     c, s = a["center"], a["size"]
     oobb = (o.get("objectOrientedBoundingBox") or {}).get("cornerPoints")
     r = o.get("rotation") or {"x": 0, "y": 0, "z": 0}
-    return LayoutObject(o["objectId"], o["objectType"], (c["x"], c["y"], c["z"]), (s["x"], s["y"], s["z"]),
-                        None if not oobb else tuple(tuple(map(float, p)) for p in oobb), (r["x"], r["y"], r["z"]),
-                        tuple(o.get("parentReceptacles") or ()), bool(o.get("receptacle")), bool(o.get("pickupable")),
-                        bool(o.get("moveable")), bool(o.get("openable")), bool(o.get("isOpen")), bool(o.get("visible")))
+    return LayoutObject(
+        o["objectId"],
+        o["objectType"],
+        (c["x"], c["y"], c["z"]),
+        (s["x"], s["y"], s["z"]),
+        None if not oobb else tuple(tuple(map(float, p)) for p in oobb),
+        (r["x"], r["y"], r["z"]),
+        tuple(o.get("parentReceptacles") or ()),
+        bool(o.get("receptacle")),
+        bool(o.get("pickupable")),
+        bool(o.get("moveable")),
+        bool(o.get("openable")),
+        bool(o.get("isOpen")),
+        bool(o.get("visible")),
+    )
 
 
 def scene_layout(name: str) -> Layout:
@@ -154,8 +188,12 @@ def type_stats() -> dict[str, dict]:
         size = np.median([o.aabb_size for o in objs], axis=0)
         floor = [not o.parents for o in objs]
         raised = [o.aabb_min[1] for o in objs if o.parents]
-        out[t] = {"size": [round(float(v), 3) for v in size], "floor_share": round(float(np.mean(floor)), 3),
-                  "bottom": round(float(np.median(raised)), 3) if raised else 0.0, "records": len(objs)}
+        out[t] = {
+            "size": [round(float(v), 3) for v in size],
+            "floor_share": round(float(np.mean(floor)), 3),
+            "bottom": round(float(np.median(raised)), 3) if raised else 0.0,
+            "records": len(objs),
+        }
     return out
 
 
@@ -189,7 +227,7 @@ def blob_boxes(blob: tuple[int, int, int, int, int], mask: np.ndarray) -> list[t
     out = []
     for a in range(r0, r1 + 1, BAND):
         b = min(a + BAND - 1, r1)
-        for s0, s1 in P.runs_1d(mask[a:b + 1, c0:c1 + 1].any(axis=0), max_gap=0, min_run=1):
+        for s0, s1 in P.runs_1d(mask[a : b + 1, c0 : c1 + 1].any(axis=0), max_gap=0, min_run=1):
             xa, zb = P.pixel_to_world(b + 0.5, c0 + s0 - 0.5)
             xb, za = P.pixel_to_world(a - 0.5, c0 + s1 + 0.5)
             out.append((xa, zb, xb, za))
@@ -210,7 +248,9 @@ def path_samples(path: list[dict], step: float = 0.1, stop_before: float = 0.15)
     return np.stack([np.interp(at, cum, pts[:, 0]), np.interp(at, cum, pts[:, 1])], axis=1)
 
 
-def place_target(ends: np.ndarray, before: np.ndarray, furniture: np.ndarray, inside: np.ndarray) -> tuple[float, float, float]:
+def place_target(
+    ends: np.ndarray, before: np.ndarray, furniture: np.ndarray, inside: np.ndarray
+) -> tuple[float, float, float]:
     """Where a target stands, from the challenge's episodes of its type in one scene: the plan pixel that best
     fits ``ends`` ((n, 2) x, z where the shortest paths end, about :data:`SUCCESS_RADIUS` from the target):
     cost = mean squared difference of the end distances from :data:`SUCCESS_RADIUS`, + :data:`FLOOR_COST` on a
@@ -225,7 +265,7 @@ def place_target(ends: np.ndarray, before: np.ndarray, furniture: np.ndarray, in
     if len(before):
         near = np.zeros(len(xs))
         for a in range(0, len(before), 256):  # chunks keep the (pixels, samples) table small
-            b = before[a:a + 256]
+            b = before[a : a + 256]
             near += (np.hypot(xs[:, None] - b[None, :, 0], zs[:, None] - b[None, :, 1]) < SUCCESS_RADIUS - 0.05).sum(1)
         cost += NEAR_COST * near / len(before)
     k = int(np.argmin(cost))
@@ -235,7 +275,7 @@ def place_target(ends: np.ndarray, before: np.ndarray, furniture: np.ndarray, in
 def _inside_mask(walls: P.WallPlan, shape) -> np.ndarray:
     t, l, b, r = (int(round(v)) for v in walls.outline)
     m = np.zeros(shape, bool)
-    m[t + 2:b - 1, l + 2:r - 1] = True
+    m[t + 2 : b - 1, l + 2 : r - 1] = True
     return m & ~P.wall_mask(shape, walls, pad=1)
 
 
@@ -259,22 +299,37 @@ def robothor_spec(name: str, version: int | None = None) -> SceneSpec:
     walls = apartment_walls(apartment(name))
     x0, z0, x1, z1 = floor_rect(walls)
     poly = orient(shapely_box(x0, z0, x1, z1), sign=1.0)
-    wall_src = (f"inferred from the 5 plans of {apartment(name)} (plans/FloorPlan_{apartment(name)}_1..5.png; "
-                f"tsnav.world.plans rules v{P.PLAN_VERSION})")
-    spec = SceneSpec(name=name, room_type=room_type, split=split, seed=0,
-                     rooms=[{"type": room_type, "rect": [x0, z0, x1, z1]}],
-                     floor=[[[round(x, 4), round(z, 4)] for x, z in list(poly.exterior.coords)[:-1]]],
-                     wall_height=WALL_HEIGHT,
-                     generator={"world": "robothor-real", "version": version,
-                                "walls": {"source": wall_src, **walls.to_json(),
-                                          "thickness": WALL_THICKNESS, "interior_walls": len(walls.interior)}},
-                     navigation={"clearance": CLEARANCE, "sweep_clearance": SWEEP_CLEARANCE},
-                     class_set=ROBOTHOR12.name)
+    wall_src = (
+        f"inferred from the 5 plans of {apartment(name)} (plans/FloorPlan_{apartment(name)}_1..5.png; "
+        f"tsnav.world.plans rules v{P.PLAN_VERSION})"
+    )
+    spec = SceneSpec(
+        name=name,
+        room_type=room_type,
+        split=split,
+        seed=0,
+        rooms=[{"type": room_type, "rect": [x0, z0, x1, z1]}],
+        floor=[[[round(x, 4), round(z, 4)] for x, z in list(poly.exterior.coords)[:-1]]],
+        wall_height=WALL_HEIGHT,
+        generator={
+            "world": "robothor-real",
+            "version": version,
+            "walls": {
+                "source": wall_src,
+                **walls.to_json(),
+                "thickness": WALL_THICKNESS,
+                "interior_walls": len(walls.interior),
+            },
+        },
+        navigation={"clearance": CLEARANCE, "sweep_clearance": SWEEP_CLEARANCE},
+        class_set=ROBOTHOR12.name,
+    )
     spec.light = {"direction": [0.35, -2.5, 0.2], "ambient": 0.55, "diffuse": 0.42, "tint": [1.0, 0.98, 0.95]}
     rng = np.random.default_rng(zlib.crc32(f"tsnav-robothor-real|{apartment(name)}".encode()))
     floor_inst, wall_inst, ceil_inst = spec.new_inst("Floor"), spec.new_inst("Wall"), spec.new_inst("Ceiling")
-    spec.parts += floor_and_ceiling((x0, z0, x1, z1), spec.wall_height,
-                                    jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))]), floor_inst, ceil_inst)
+    spec.parts += floor_and_ceiling(
+        (x0, z0, x1, z1), spec.wall_height, jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))]), floor_inst, ceil_inst
+    )
     wall_mat = jitter(rng, *WALLS[int(rng.integers(len(WALLS)))])
     _walls(spec, poly, wall_inst, wall_mat)
     col, col2, pat, scale = wall_mat
@@ -302,8 +357,11 @@ def turned_box(o: LayoutObject, furniture: np.ndarray):
     (x0, _, z0), (x1, _, z1) = o.aabb_min, o.aabb_max
     r_hi, c_lo = P.world_to_pixel(x0, z0)
     r_lo, c_hi = P.world_to_pixel(x1, z1)
-    rr, cc = np.nonzero(furniture[max(int(np.ceil(r_lo)), 0):int(np.floor(r_hi)) + 1,
-                                  max(int(np.ceil(c_lo)), 0):int(np.floor(c_hi)) + 1])
+    rr, cc = np.nonzero(
+        furniture[
+            max(int(np.ceil(r_lo)), 0) : int(np.floor(r_hi)) + 1, max(int(np.ceil(c_lo)), 0) : int(np.floor(c_hi)) + 1
+        ]
+    )
     if len(rr) < MIN_TURNED_PX:
         return None
     xs, zs = P.pixel_to_world(rr + max(int(np.ceil(r_lo)), 0), cc + max(int(np.ceil(c_lo)), 0))
@@ -339,8 +397,11 @@ def _drawn(o: LayoutObject, top: float | None) -> LayoutObject:
     if top is None:
         return o
     y0 = o.aabb_min[1]
-    return replace(o, aabb_center=(o.aabb_center[0], (y0 + top) / 2, o.aabb_center[2]),
-                   aabb_size=(o.aabb_size[0], top - y0, o.aabb_size[2]))
+    return replace(
+        o,
+        aabb_center=(o.aabb_center[0], (y0 + top) / 2, o.aabb_center[2]),
+        aabb_size=(o.aabb_size[0], top - y0, o.aabb_size[2]),
+    )
 
 
 def _recorded_objects(spec: SceneSpec, layout: Layout, furniture: np.ndarray) -> dict:
@@ -351,8 +412,9 @@ def _recorded_objects(spec: SceneSpec, layout: Layout, furniture: np.ndarray) ->
         inst = spec.new_inst(o.object_id)
         block = blocks(o, 0.0)
         if block:
-            c = min(low_clearance(o.aabb_max[1], CLEARANCE),
-                    SEAT_CLEARANCE if o.object_type in UPHOLSTERED else CLEARANCE)
+            c = min(
+                low_clearance(o.aabb_max[1], CLEARANCE), SEAT_CLEARANCE if o.object_type in UPHOLSTERED else CLEARANCE
+            )
             if c < CLEARANCE:
                 own[o.object_id] = round(c, 4)
         fps = footprints(layout, o)
@@ -364,18 +426,26 @@ def _recorded_objects(spec: SceneSpec, layout: Layout, furniture: np.ndarray) ->
             size = (round(sx, 4), round(o.aabb_size[1], 4), round(sz, 4))
             center = (round(ox, 4), round(o.aabb_min[1], 4), round(oz, 4))
             if o.object_type in OBJECT_TYPES:
-                support = "floor" if block else ("wall" if o.object_type in WALL_FIXTURES or not o.parents
-                                                 else o.parents[0])
+                support = (
+                    "floor" if block else ("wall" if o.object_type in WALL_FIXTURES or not o.parents else o.parents[0])
+                )
                 spec.objects.append(ObjectInstance(o.object_id, o.object_type, center, size, yaw, support, inst))
             else:
                 spec.furniture.append(Furniture(o.object_id, o.object_type, center, size, yaw, block, None, inst))
             spec.parts += _parts_for(_drawn(o, tops.get(o.object_id)), ((ox, oz), (sx, sz), yaw), inst, 0.0, layout)
     if own:
         spec.navigation["clearances"] = own
-    return {"recorded": len(layout.objects), "inferred": 0, "objects": RECORDS, "inferred_objects": {},
-            "drawn_to_surface": {i: f"drawn up to {t} m, the lowest object resting on it" for i, t in tops.items()},
-            "footprints_from_plan": {i: "recorded box and yaw, sizes along its axes from the plan's furniture pixels "
-                                        "(turned_box)" for i in turned}}
+    return {
+        "recorded": len(layout.objects),
+        "inferred": 0,
+        "objects": RECORDS,
+        "inferred_objects": {},
+        "drawn_to_surface": {i: f"drawn up to {t} m, the lowest object resting on it" for i, t in tops.items()},
+        "footprints_from_plan": {
+            i: "recorded box and yaw, sizes along its axes from the plan's furniture pixels (turned_box)"
+            for i in turned
+        },
+    }
 
 
 def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
@@ -395,7 +465,7 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
         ends = np.array([[e["shortest_path"][-1]["x"], e["shortest_path"][-1]["z"]] for e in mine])
         before = np.concatenate([path_samples(e["shortest_path"]) for e in mine] + [np.zeros((0, 2))])
         fits.append((place_target(ends, before, opened, inside)[2], t, mine, ends, before))
-    rr, cc = np.mgrid[0:plan.shape[0], 0:plan.shape[1]]
+    rr, cc = np.mgrid[0 : plan.shape[0], 0 : plan.shape[1]]
     px_x, px_z = P.pixel_to_world(rr.astype(float), cc.astype(float))
     placed: list[tuple[float, float, float]] = []  # x, z, half diagonal
     targets = []
@@ -415,9 +485,11 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
         placed.append((x, z, half))
         if on_floor:  # the blob under a floor-standing target is the target itself: it is not furniture
             opened &= ~((np.abs(px_x - x) <= size[0] / 2 + P.PIXEL) & (np.abs(px_z - z) <= size[2] / 2 + P.PIXEL))
-        inferred[oid] = (f"placed where the {len(mine)} challenge val episodes of {t} end {SUCCESS_RADIUS} m away "
-                         f"(fit cost {cost:.3f} m^2, off the targets placed before it); size and height: median of "
-                         f"{st['records']} train records of {t}{', on the floor' if on_floor else ''}")
+        inferred[oid] = (
+            f"placed where the {len(mine)} challenge val episodes of {t} end {SUCCESS_RADIUS} m away "
+            f"(fit cost {cost:.3f} m^2, off the targets placed before it); size and height: median of "
+            f"{st['records']} train records of {t}{', on the floor' if on_floor else ''}"
+        )
     lab, n = ndimage.label(opened)
     sizes = np.bincount(lab.ravel(), minlength=n + 1)
     static = apartment_static(apartment(name))
@@ -425,8 +497,9 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
     for k, sl in enumerate(ndimage.find_objects(lab), start=1):
         if sl is None or sizes[k] < P.MIN_BLOB:
             continue
-        if (static[sl][lab[sl] == k].mean() >= P.STATIC_SHARE
-                or P.is_lamp(int(sizes[k]), plan[sl][lab[sl] == k].mean(axis=0))):
+        if static[sl][lab[sl] == k].mean() >= P.STATIC_SHARE or P.is_lamp(
+            int(sizes[k]), plan[sl][lab[sl] == k].mean(axis=0)
+        ):
             fixtures += 1
             continue
         blob = (sl[0].start, sl[1].start, sl[0].stop - 1, sl[1].stop - 1, int(sizes[k]))
@@ -448,22 +521,39 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
             spec.furniture.append(Furniture(fid, "Furniture", c, s, 0.0, True, round(height, 4), inst))
             spec.parts.append(Part((c[0], height / 2, c[2]), s, 0.0, col, col2, pat, scale, inst))
         spec.navigation.setdefault("clearances", {})[fid] = INFERRED_CLEARANCE
-        inferred[fid] = (f"plan blob of {blob[4]} px (plans/{name}.png, tsnav.world.plans rules v{P.PLAN_VERSION}), "
-                         f"{len(boxes)} band boxes, height {height:.2f} m assumed")
+        inferred[fid] = (
+            f"plan blob of {blob[4]} px (plans/{name}.png, tsnav.world.plans rules v{P.PLAN_VERSION}), "
+            f"{len(boxes)} band boxes, height {height:.2f} m assumed"
+        )
     for oid, t, x, z, bottom, size, on_floor, yaw in targets:
         inst = spec.new_inst(oid)
         center = (round(x, 4), round(bottom, 4), round(z, 4))
-        spec.objects.append(ObjectInstance(oid, t, center, size, yaw, "floor" if on_floor else "inferred furniture",
-                                           inst))
+        spec.objects.append(
+            ObjectInstance(oid, t, center, size, yaw, "floor" if on_floor else "inferred furniture", inst)
+        )
         if t in CATALOG_SHAPES:
             spec.parts += build_parts(t, (x, bottom, z), size, yaw, inst, np.random.default_rng(0), _category_mats(t))
         else:
             col, col2, pat, scale = _category_mats(t)["main"]
             spec.parts.append(Part((x, bottom + size[1] / 2, z), size, yaw, col, col2, pat, scale, inst))
-    return {"recorded": 0, "inferred": len(inferred), "objects": "inferred (val scenes have no object records)",
-            "fixture_blobs_left_out": fixtures,
-            "inferred_objects": inferred}
+    return {
+        "recorded": 0,
+        "inferred": len(inferred),
+        "objects": "inferred (val scenes have no object records)",
+        "fixture_blobs_left_out": fixtures,
+        "inferred_objects": inferred,
+    }
 
 
-__all__ = ["GENERATOR_VERSION", "OBJECT_TYPES", "ROBOTHOR_TARGETS", "VERSIONS", "apartment_walls", "check_version",
-           "floor_rect", "place_target", "robothor_spec", "type_stats"]
+__all__ = [
+    "GENERATOR_VERSION",
+    "OBJECT_TYPES",
+    "ROBOTHOR_TARGETS",
+    "VERSIONS",
+    "apartment_walls",
+    "check_version",
+    "floor_rect",
+    "place_target",
+    "robothor_spec",
+    "type_stats",
+]

@@ -25,7 +25,9 @@ from ..render.gl import Renderer
 def category_colors() -> dict[str, tuple]:
     """A colour per target category (tab20, then Set1)."""
     cmap = matplotlib.colormaps["tab20"]
-    return {c: cmap(i % 20) if i < 20 else matplotlib.colormaps["Set1"](i - 20) for i, c in enumerate(TARGET_CATEGORIES)}
+    return {
+        c: cmap(i % 20) if i < 20 else matplotlib.colormaps["Set1"](i - 20) for i, c in enumerate(TARGET_CATEGORIES)
+    }
 
 
 def draw_topdown(ax, scene, show_grid: bool = True, label_objects: bool = True) -> None:
@@ -37,7 +39,9 @@ def draw_topdown(ax, scene, show_grid: bool = True, label_objects: bool = True) 
         if not f.get("blocks", True):  # small things on receptacles, wall fixtures: outline only, no label
             ax.add_patch(MplPolygon(f["footprint"], closed=True, fill=False, edgecolor="#a89a86", lw=0.4, zorder=1))
             continue
-        ax.add_patch(MplPolygon(f["footprint"], closed=True, facecolor="#b9aa94", edgecolor="#6b5d49", lw=0.8, zorder=1))
+        ax.add_patch(
+            MplPolygon(f["footprint"], closed=True, facecolor="#b9aa94", edgecolor="#6b5d49", lw=0.8, zorder=1)
+        )
         c = np.mean(f["footprint"], axis=0)
         ax.text(c[0], c[1], f["category"], fontsize=5, ha="center", va="center", color="#3b3226", zorder=2)
     if show_grid:
@@ -108,8 +112,11 @@ def show_scene(scene_dir: str | Path, out: str | Path, size: int = 128) -> Path:
     for k, (r, h) in enumerate(poses[:, 2:]):
         dx, dz = np.sin(np.deg2rad(r)), np.cos(np.deg2rad(r))
         ax.arrow(centre[0], centre[1], 0.4 * dx, 0.4 * dz, head_width=0.08, color="crimson", zorder=6)
-    ax.set_title(f"{scene.name} ({scene.room_type}, {scene.meta.get('split')}): {scene.num_states} states, "
-                 f"{len(scene.object_ids)} targets", fontsize=9)
+    ax.set_title(
+        f"{scene.name} ({scene.room_type}, {scene.meta.get('split')}): {scene.num_states} states, "
+        f"{len(scene.object_ids)} targets",
+        fontsize=9,
+    )
     for k in range(len(poses)):
         for row, (img, cmap) in enumerate(((rgb[k], None), (depth[k], "viridis"), (id_colors(ids[k]), None))):
             a = fig.add_subplot(gs[row, 2 + k])

@@ -30,8 +30,16 @@ class Part:
     inst: int = 0
 
     def row(self) -> list[float]:
-        return [*map(float, self.center), *map(float, self.size), float(self.yaw), *map(float, self.color),
-                *map(float, self.color2), float(self.pattern), float(self.scale), float(self.inst)]
+        return [
+            *map(float, self.center),
+            *map(float, self.size),
+            float(self.yaw),
+            *map(float, self.color),
+            *map(float, self.color2),
+            float(self.pattern),
+            float(self.scale),
+            float(self.inst),
+        ]
 
 
 @dataclass
@@ -66,10 +74,14 @@ class ObjectInstance:
 
     def to_json(self) -> dict:
         x, y, z = self.center
-        return {"objectId": self.objectId, "objectType": self.objectType,
-                "position": {"x": x, "y": y, "z": z},
-                "bbox": {"center": list(self.center), "size": list(self.size), "yaw": self.yaw},
-                "support": self.support, "inst": self.inst}
+        return {
+            "objectId": self.objectId,
+            "objectType": self.objectType,
+            "position": {"x": x, "y": y, "z": z},
+            "bbox": {"center": list(self.center), "size": list(self.size), "yaw": self.yaw},
+            "support": self.support,
+            "inst": self.inst,
+        }
 
 
 @dataclass
@@ -104,14 +116,38 @@ class SceneSpec:
 
     def to_json(self) -> dict:
         return {
-            "format": "tsnav-scene", "version": 1, "name": self.name, "room_type": self.room_type,
-            "split": self.split, "seed": self.seed, "rooms": self.rooms, "floor": self.floor,
-            "doors": self.doors, "wall_height": self.wall_height, "light": self.light,
+            "format": "tsnav-scene",
+            "version": 1,
+            "name": self.name,
+            "room_type": self.room_type,
+            "split": self.split,
+            "seed": self.seed,
+            "rooms": self.rooms,
+            "floor": self.floor,
+            "doors": self.doors,
+            "wall_height": self.wall_height,
+            "light": self.light,
             "furniture": [dict(asdict(f), footprint=f.footprint()) for f in self.furniture],
             "objects": [o.to_json() for o in self.objects],
             "instances": self.instances,
-            "parts_columns": ["cx", "cy", "cz", "sx", "sy", "sz", "yaw", "r", "g", "b", "r2", "g2", "b2",
-                              "pattern", "scale", "inst"],
+            "parts_columns": [
+                "cx",
+                "cy",
+                "cz",
+                "sx",
+                "sy",
+                "sz",
+                "yaw",
+                "r",
+                "g",
+                "b",
+                "r2",
+                "g2",
+                "b2",
+                "pattern",
+                "scale",
+                "inst",
+            ],
             "parts": [[round(v, 5) for v in p.row()] for p in self.parts],
             **({"generator": self.generator} if self.generator is not None else {}),
             **({"navigation": self.navigation} if self.navigation is not None else {}),
@@ -123,20 +159,53 @@ class SceneSpec:
         """The spec a ``scene.json`` (:meth:`to_json`, plus the writer's extra keys, which are ignored) describes:
         enough to lay the scene out again (:mod:`~tsnav.world.navgrid`), e.g. for a what-if without one object.
         The parts come back rounded to 10 micrometres, as written."""
-        furniture = [Furniture(f["id"], f["category"], tuple(f["center"]), tuple(f["size"]), f["yaw"],
-                               bool(f.get("blocks", True)), f.get("surface"), int(f.get("inst", 0)))
-                     for f in meta.get("furniture", [])]
-        objects = [ObjectInstance(o["objectId"], o["objectType"], tuple(o["bbox"]["center"]), tuple(o["bbox"]["size"]),
-                                  o["bbox"].get("yaw", 0.0), o["support"], int(o.get("inst", 0)))
-                   for o in meta.get("objects", [])]
-        parts = [Part(tuple(r[0:3]), tuple(r[3:6]), r[6], tuple(r[7:10]), tuple(r[10:13]), int(r[13]), r[14],
-                      int(r[15])) for r in meta.get("parts", [])]
-        return cls(name=meta["name"], room_type=meta["room_type"], split=meta["split"], seed=meta.get("seed", 0),
-                   rooms=meta.get("rooms", []), floor=meta.get("floor", []), doors=meta.get("doors", []),
-                   furniture=furniture, objects=objects, parts=parts, instances=list(meta.get("instances", [""])),
-                   light=meta.get("light", {}), wall_height=meta.get("wall_height", 2.6),
-                   generator=meta.get("generator"), navigation=meta.get("navigation"),
-                   class_set=meta.get("class_set"))
+        furniture = [
+            Furniture(
+                f["id"],
+                f["category"],
+                tuple(f["center"]),
+                tuple(f["size"]),
+                f["yaw"],
+                bool(f.get("blocks", True)),
+                f.get("surface"),
+                int(f.get("inst", 0)),
+            )
+            for f in meta.get("furniture", [])
+        ]
+        objects = [
+            ObjectInstance(
+                o["objectId"],
+                o["objectType"],
+                tuple(o["bbox"]["center"]),
+                tuple(o["bbox"]["size"]),
+                o["bbox"].get("yaw", 0.0),
+                o["support"],
+                int(o.get("inst", 0)),
+            )
+            for o in meta.get("objects", [])
+        ]
+        parts = [
+            Part(tuple(r[0:3]), tuple(r[3:6]), r[6], tuple(r[7:10]), tuple(r[10:13]), int(r[13]), r[14], int(r[15]))
+            for r in meta.get("parts", [])
+        ]
+        return cls(
+            name=meta["name"],
+            room_type=meta["room_type"],
+            split=meta["split"],
+            seed=meta.get("seed", 0),
+            rooms=meta.get("rooms", []),
+            floor=meta.get("floor", []),
+            doors=meta.get("doors", []),
+            furniture=furniture,
+            objects=objects,
+            parts=parts,
+            instances=list(meta.get("instances", [""])),
+            light=meta.get("light", {}),
+            wall_height=meta.get("wall_height", 2.6),
+            generator=meta.get("generator"),
+            navigation=meta.get("navigation"),
+            class_set=meta.get("class_set"),
+        )
 
 
 def box_footprint(center, size, yaw: float, pad: float = 0.0) -> list[list[float]]:
