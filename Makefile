@@ -6,7 +6,7 @@
 #             it before the tests (`ruff format src tests bench` formats).
 # make bench: the same set-up, then the speed benchmarks of bench/ with their defaults (figures: BENCHMARKS.md).
 # make docs : render the generated pages again (docs/COMMANDS.md from the CLI; docs/RESULTS.md and README.md's
-#             Table I from docs/results/ and the model cards); tests/test_docs_pages.py fails while one is stale.
+#             Table I from docs/results/ and the model cards); tests/project/test_docs_pages.py fails while one is stale.
 PY ?= python3
 # The exact torch build set-up installs before the package: 2.13.0 is the small CPU build that lies on this
 # disk (pip takes it from there). pyproject.toml only declares the range the code works with (torch>=2.1), so

@@ -7,10 +7,15 @@ networks run fastest on one thread and do not fight other processes for the core
 from __future__ import annotations
 
 import os
+import sys
+from pathlib import Path
 
 import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
+# The tests live in one folder per package (tests/sim, tests/rl, ...); the helpers they share (sim_helpers,
+# rl_helpers, script_helpers, thor_standin) and fixtures/ stay here, importable from every folder.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 #: Fixtures that build a world (directly or through another): a test using one is marked ``slow``
 #: (``make test-fast`` leaves it out; ``make test`` and CI run it).

@@ -4,7 +4,7 @@ Every subcommand of :data:`tsnav.cli.COMMANDS` is built exactly as ``tsnav NAME`
 ``build_parser``), and its arguments (and those of its sub-actions, e.g. ``tsnav release eval``) are written as
 one table each: the option, the value it takes, its default and its help text. Nothing is typed by hand, so the
 page follows the code: run ``python -m tsnav.cli_reference`` after changing an option; ``--check`` (and
-``tests/test_docs_pages.py``) fails when the committed page is not what this renders.
+``tests/project/test_docs_pages.py``) fails when the committed page is not what this renders.
 """
 
 from __future__ import annotations

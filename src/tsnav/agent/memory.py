@@ -141,7 +141,7 @@ class TargetMemoryAggregator(nn.Module):
     def attend(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
         """``self.attn`` with the single query ``q`` ``(B, d)`` over ``nodes`` ``(B, M, d)``, slots where ``pad``
         ``(B, M)`` is True left out: ``(B, d)``. The same function as :meth:`attend_reference` (the module's own
-        forward; ``tests/test_agent_model.py`` holds them together) with the key and value projections moved to the
+        forward; ``tests/agent/test_agent_model.py`` holds them together) with the key and value projections moved to the
         query side, so that no projection of the ``M`` nodes is computed:
 
             score_hm = (W_q,h q + b_q,h) . (W_k,h n_m + b_k,h) / sqrt(e) = (W_k,h^T Q_h) . n_m / sqrt(e) + const_h
@@ -150,7 +150,7 @@ class TargetMemoryAggregator(nn.Module):
         (the constant of each head does not change its softmax).
 
         The four products are the batched matrix products that ``torch.einsum`` makes of them (the same operands,
-        strides and results; ``tests/test_agent_model.py`` holds them to :meth:`attend_einsum` bit for bit),
+        strides and results; ``tests/agent/test_agent_model.py`` holds them to :meth:`attend_einsum` bit for bit),
         written out so that each step records a third of the autograd nodes einsum's reshapes cost."""
         qh, w_k, w_v, b_v, scale = self._query_heads(q)
         u = torch.bmm(qh.transpose(0, 1), w_k).transpose(0, 1) * scale  # [B, H, d]

@@ -7,7 +7,7 @@ A shipped agent is a folder of ``tsnav/agent/weights/<name>/`` (package data, no
 * ``best/model.safetensors`` and ``best/state.json``: the policy (LSTM actor-critic, paper III-D) chosen on
   validation episodes; no optimizer state;
 * ``encoder.safetensors``: the DE-MAE ViT encoder (paper III-C) in float16 (:data:`ENCODER_DTYPE`; it is read
-  back into float32; ``tests/test_release.py`` holds its features to those of the float32 encoder);
+  back into float32; ``tests/pipeline/test_release.py`` holds its features to those of the float32 encoder);
 * ``card.json`` and ``card.md``: the model card (world and its version, rooms, protocol, detector, budget in
   updates / episodes / env steps, validation and test figures under both success protocols, the command that
   trained it), and the version of tsnav that packed it (``tsnav_version``; cards packed before 0.2.0 have none).

@@ -11,7 +11,7 @@ One command renders the page from three sources and nothing else, so that no fig
 
 ``python -m tsnav.report.results_page`` writes the page and the short Table I of README.md (between
 :data:`README_BEGIN` and :data:`README_END`); ``--check`` exits with 1 when a committed page differs from what it
-renders (``tests/test_docs_pages.py`` runs the same comparison).
+renders (``tests/project/test_docs_pages.py`` runs the same comparison).
 """
 
 from __future__ import annotations

@@ -102,7 +102,7 @@ class RolloutCollector:
         (:meth:`ActorCritic.autocast_weights`) are cast once per rollout instead (:meth:`collect`) and handed to
         each step through :class:`CastOnce`, whose backward returns the gradient in float32 as autocast's cast
         does: the same values, the same graph shape, so the same rollout and gradients bit for bit (held
-        together with the per-step cast by ``tests/test_rl_batched.py``)."""
+        together with the per-step cast by ``tests/rl/test_rl_batched.py``)."""
         if self.precision == "fp32":
             return self.model(obs, state)
         with torch.autocast(self.device.type, dtype=torch.bfloat16):
@@ -207,7 +207,7 @@ class Policy:
     """The categorical policy of ``(B, A)`` logits: what ``torch.distributions.Categorical(logits=logits)`` computes
     for the collector (sampling, log-probabilities, entropy), by the same operators in the same order, so the same
     actions, values and gradients bit for bit, without the distribution object's argument checks and lazy
-    properties (a tenth of a small batch's step; ``tests/test_rl_batched.py`` holds the two together). Invalid
+    properties (a tenth of a small batch's step; ``tests/rl/test_rl_batched.py`` holds the two together). Invalid
     logits still fail loudly, in ``torch.multinomial``."""
 
     def __init__(self, logits: torch.Tensor):

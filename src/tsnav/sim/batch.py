@@ -53,7 +53,7 @@ Reward plug-in (stable interface; the TSRM reward of :mod:`tsnav.tsrm` implement
   with ``(1,)`` arrays, and so is one whose class overrides ``step`` (``reset``) below the class that defines
   ``step_one`` (``reset_one``), e.g. a subclass of :class:`SparseReward` that shapes ``step``: the inherited
   scalar method would skip the override (:func:`scalar_method`). The TSRM reward and :class:`SparseReward`
-  have them; ``tests/test_gym_fast.py`` holds them equal to ``reset`` / ``step``.
+  have them; ``tests/sim/test_gym_fast.py`` holds them equal to ``reset`` / ``step``.
 * A reward that follows the two stages (paper III-B) declares it with ``uses_stage = True`` (as habitat-lab's
   measures declare the measures they depend on); the env then passes the stage of its one
   :class:`~tsnav.sim.stage.StageSwitch` (:attr:`BatchEnv.stage`) as a keyword ``searching``, a ``(B,)`` bool
@@ -518,7 +518,7 @@ class BatchEnv:
     # -- one episode in scalars ---------------------------------------------------------------------------
     # The single Gymnasium env's path (tsnav.sim.gym_env): a batch of one stepped in Python scalars, where the
     # array code above costs a microsecond per operation on (1,) arrays. reset / step above are the
-    # references; tests/test_gym_fast.py holds them equal, state and outputs, bit for bit.
+    # references; tests/sim/test_gym_fast.py holds them equal, state and outputs, bit for bit.
     def reset_one(self) -> None:
         """:meth:`reset` of a batch of one (``num_envs`` = 1) with an episode from the sampler: the same draws,
         the same episode and the same state of the env, its stage switch and its reward."""

@@ -140,7 +140,7 @@ class TrainingSampler:
 
     def sample_one(self, rng: np.random.Generator) -> tuple[int, int, int]:
         """One episode as Python ints: the same draws from ``rng`` and the same episode as ``sample(1, rng)``
-        (the single Gymnasium env's path; ``tests/test_gym_fast.py`` holds them equal)."""
+        (the single Gymnasium env's path; ``tests/sim/test_gym_fast.py`` holds them equal)."""
         t = self.table
         scene = int(self.scenes[rng.integers(0, len(self.scenes), size=1)[0]])
         u0, u1 = rng.random((2, 1))[:, 0]

@@ -20,7 +20,7 @@ of ``tsnav.data.toy``.
 | Observation (``obs_layout="standard"``, default) | ``Dict`` of images ``(H, W, C)`` and 1-D vectors only, what Stable-Baselines3's ``MultiInputPolicy``, RLlib and CleanRL-style encoders take unwrapped: ``rgb`` ``Box(0, 255, (H, W, 3), uint8)`` from ``images.hdf5`` (zeros when absent); ``depth`` ``Box(0, 1000, (H, W, 1))`` metres from ``depth.hdf5`` in the dtype the files store (float16 for the worlds of this project, float32 otherwise; zeros when absent); ``target`` ``Discrete(22)`` category id; ``detections`` ``Box(-1, 10000, (132,), float32)``: the 22 per-class rows (score, label, x0, y0, x1, y1) of the detector stage flattened row by row (``reshape(22, 6)`` restores them; zeros when absent) |
 | Observation (``obs_layout="legacy"``) | the first release's: ``depth`` ``(H, W)`` float32, ``detections`` ``(22, 6)`` float32, ``rgb`` and ``target`` as above |
 | Frames (``frames=``) | ``"memory"`` (default): each scene's frames are read once, on the first visit to one of its states, into two arrays indexed by state (:class:`FrameCache`; ``H * W * 5`` bytes a state with float16 depth: 80 KiB at 128 px, 20 KiB at 64 px; the 80 training rooms of ``ithor-real`` at 128 px hold 266 k states, 21.8 GB once all are visited); ``"hdf5"``: one HDF5 dataset read per state and frame, no cache (the slow reference, for little memory) |
-| Stepping (``stepping=``, single env) | ``"scalar"`` (default): the batch of one is stepped in Python scalars (:meth:`BatchEnv.step_one <tsnav.sim.batch.BatchEnv.step_one>`, the reward's ``step_one``) and its observation read with :meth:`Observations.one`, since numpy costs about a microsecond per operation on ``(1,)`` arrays; ``"batch"``: through the ``(1,)`` arrays of :meth:`BatchEnv.step <tsnav.sim.batch.BatchEnv.step>` (the reference; the same observations, rewards and ``info`` bit for bit, ``tests/test_gym_fast.py``) |
+| Stepping (``stepping=``, single env) | ``"scalar"`` (default): the batch of one is stepped in Python scalars (:meth:`BatchEnv.step_one <tsnav.sim.batch.BatchEnv.step_one>`, the reward's ``step_one``) and its observation read with :meth:`Observations.one`, since numpy costs about a microsecond per operation on ``(1,)`` arrays; ``"batch"``: through the ``(1,)`` arrays of :meth:`BatchEnv.step <tsnav.sim.batch.BatchEnv.step>` (the reference; the same observations, rewards and ``info`` bit for bit, ``tests/sim/test_gym_fast.py``) |
 | Reward | a :class:`~tsnav.sim.batch.RewardFn`: through the registered id the paper's TSRM reward by default (:mod:`tsnav.tsrm.envs`); the classes alone default to :class:`~tsnav.sim.batch.SparseReward` (-0.01 per step, +5 on success) |
 | Start | a random training episode (scene, a reachable target present in it, a start state at horizon 0 or 30 that is not a success state), or ``reset(options={"episode": (scene_name, target_name, start_key)})`` |
 | Termination | the agent outputs Done (success when the target is in view within the success distance) |
@@ -103,7 +103,7 @@ OBS_LAYOUTS = ("standard", "legacy")
 #: How the single env steps its batch of one: ``"scalar"`` (default) in Python scalars
 #: (:meth:`BatchEnv.step_one <tsnav.sim.batch.BatchEnv.step_one>`, :meth:`Observations.one`); ``"batch"``
 #: through the ``(1,)`` arrays of :meth:`BatchEnv.step <tsnav.sim.batch.BatchEnv.step>` and
-#: :meth:`Observations.gather`, the reference (bit-identical, ``tests/test_gym_fast.py``).
+#: :meth:`Observations.gather`, the reference (bit-identical, ``tests/sim/test_gym_fast.py``).
 STEPPINGS = ("scalar", "batch")
 
 

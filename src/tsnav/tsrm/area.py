@@ -476,7 +476,7 @@ class BatchCoverage:
 
     def reset_one(self, episode: int, scene: int) -> None:
         """:meth:`reset` of the one episode ``episode`` in scene ``scene`` (scalars; the single Gymnasium env's
-        path, held equal to :meth:`reset` by ``tests/test_gym_fast.py``)."""
+        path, held equal to :meth:`reset` by ``tests/sim/test_gym_fast.py``)."""
         self.covered[episode] = self.index.off_floor[scene]
         self.scene[episode] = scene
         self.samples[episode] = 0

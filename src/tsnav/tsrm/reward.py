@@ -221,7 +221,7 @@ class TSRMReward:
     def reset_one(self, scene_idx: int, target: int, start_state: int, searching: bool) -> None:
         """:meth:`reset` of a batch of one episode, in Python scalars: the same state as
         ``reset([True], [scene_idx], [target], [start_state], searching=[searching])``
-        (``tests/test_gym_fast.py`` holds them equal)."""
+        (``tests/sim/test_gym_fast.py`` holds them equal)."""
         if self.batch_size != 1:
             self._alloc(1)
         self.scene[0] = scene_idx
@@ -234,7 +234,7 @@ class TSRMReward:
     ) -> tuple[float, dict[str, float]]:
         """:meth:`step` of a batch of one episode, in Python scalars: ``(reward, {term: value})``, the float32
         values of ``step`` as Python floats, computed in the same order (terms in float64, their sum rounded to
-        float32), so they are bit-identical (``tests/test_gym_fast.py``)."""
+        float32), so they are bit-identical (``tests/sim/test_gym_fast.py``)."""
         if self.batch_size != 1:
             raise ValueError(f"step_one needs a batch of one episode; reset was called with {self.batch_size}")
         if getattr(self, "_one_names", None) != len(TERM_CLASSES):  # per set of terms: slots, constants in float32

@@ -10,10 +10,10 @@ methods                       used by
 ``bind``, ``alloc``,          :class:`~tsnav.tsrm.reward.TSRMReward` (the trainers, the vector env): a batch of
 ``reset``, ``step``           ``(B,)`` episodes over a :class:`~tsnav.sim.batch.SceneBank`, global state ids
 ``reset_one``, ``step_one``   the same reward for a batch of one in Python scalars (the single Gymnasium env);
-                              bit-identical to ``step`` (``tests/test_gym_fast.py``)
+                              bit-identical to ``step`` (``tests/sim/test_gym_fast.py``)
 ``bind_reference``,           :class:`~tsnav.tsrm.reward.TSRMRewardReference`: one episode of one scene, written
 ``reference_reset``,          directly from the paper (shapely, Python BFS, Python sets), scene-local state ids;
-``reference_step``            the slow reference the fast code is tested against (``tests/test_tsrm_reward.py``)
+``reference_step``            the slow reference the fast code is tested against (``tests/tsrm/test_tsrm_reward.py``)
 ============================  ================================================================================
 
 Every ``step`` gets the env's stage as ``searching``: the stage in which the step's action was chosen (the

@@ -193,7 +193,7 @@ def build_graph(positions: np.ndarray, move: np.ndarray) -> tuple[list[str], lis
     """State keys and directed edges (RotateRight/Left, LookDown/Up, MoveAhead) of the state graph.
 
     Slow, obviously-correct reference of :func:`state_keys` + :func:`graph_edges` (which the build uses);
-    ``tests/test_world.py`` holds them together.
+    ``tests/world/test_world.py`` holds them together.
     """
     nodes, edges = [], []
     for p, (x, z) in enumerate(positions):

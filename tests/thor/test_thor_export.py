@@ -26,7 +26,7 @@ def small_copy(tmp_path):
     """A copy of the hand-written two-cell lineage scene with an images.hdf5."""
     from pathlib import Path
 
-    src = Path(__file__).parent / "fixtures" / "thor" / "two_cells"
+    src = Path(__file__).resolve().parents[1] / "fixtures" / "thor" / "two_cells"
     d = tmp_path / "scene"
     shutil.copytree(src, d)
     # the fixture lists the never-seen sofa with no state (for the import); the lineage's maps do not list it

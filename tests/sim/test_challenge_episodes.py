@@ -28,7 +28,7 @@ from tsnav.sim.episodes import episodes_to_arrays, read_episodes
 
 from sim_helpers import write_scene_folder
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "robothor" / "challenge_episodes"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "robothor" / "challenge_episodes"
 SCENE = "FloorPlan_Val1_1"
 
 

@@ -12,7 +12,7 @@ from tsnav.pretrain.model import MAEConfig, MaskedAutoencoderViT, load_encoder_w
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-FIX = Path(__file__).parent / "fixtures" / "pretrain"
+FIX = Path(__file__).resolve().parents[1] / "fixtures" / "pretrain"
 
 
 def test_timm_vit_weights_reproduce_timm_features():

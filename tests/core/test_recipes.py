@@ -31,7 +31,7 @@ from tsnav.tsrm.reward import RewardConfig
 
 from conftest import PIXEL_FEATURES as FEATS
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
 WEIGHTS = ROOT / "src" / "tsnav" / "agent" / "weights"
 

@@ -21,7 +21,7 @@ from tsnav.sim.paths import distance_fields, multi_source_bfs
 
 from thor_standin import detections_22x264, write_lineage_scene
 
-FIXTURE = Path(__file__).parent / "fixtures" / "thor" / "two_cells"
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "thor" / "two_cells"
 KEY = re.compile(r"^-?\d+\.\d\d\|-?\d+\.\d\d\|(0|45|90|135|180|225|270|315)\|(0|30)$")
 
 

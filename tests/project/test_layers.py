@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "tsnav"
+SRC = Path(__file__).resolve().parents[2] / "src" / "tsnav"
 
 #: Lowest first; the same list is drawn in docs/ARCHITECTURE.md ("Layers"). Packages of one layer do not
 #: import each other.

@@ -246,7 +246,7 @@ def test_cli_errors_are_one_line(tmp_path):
         env={
             "PATH": "/usr/bin:/bin",
             "LD_LIBRARY_PATH": str(tmp_path),
-            "PYTHONPATH": str(Path(__file__).parents[1] / "src"),
+            "PYTHONPATH": str(Path(__file__).parents[2] / "src"),
             "TSNAV_EGL_LIBRARY": "libEGL_missing.so.1",
         },
     )

@@ -1,7 +1,7 @@
 """The registries that name tsnav's extension points once: metrics (metrics.py), encoders (pretrain/encoders.py,
 pretrain/archs.py) and detectors (detect/registry.py). Each holds the built-in entries, refuses what it cannot run
-with a one-line error, and is what its readers read (reward terms: tests/test_tsrm_terms.py; how a user adds one
-of each: tests/test_howto_extend.py)."""
+with a one-line error, and is what its readers read (reward terms: tests/tsrm/test_tsrm_terms.py; how a user adds one
+of each: tests/project/test_howto_extend.py)."""
 
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ from script_helpers import load_script
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-FIX = Path(__file__).parent / "fixtures" / "pretrain"
+FIX = Path(__file__).resolve().parents[1] / "fixtures" / "pretrain"
 
 
 def _formula():

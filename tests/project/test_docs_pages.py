@@ -16,7 +16,7 @@ from tsnav.cli import COMMANDS
 from tsnav.report import results_page
 from tsnav.report.claims import PAPER_TABLE_II, published_figures
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_command_reference_is_current():

@@ -11,7 +11,7 @@ import pytest
 from tsnav.analyze.command import ANALYSES
 from tsnav.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_lists_the_analyses(capsys):
