@@ -20,12 +20,16 @@ from tsnav.errors import CommandError
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-@pytest.mark.parametrize("name", sorted(shipped.SHIPPED))
+ITHOR_SHIPPED = sorted(n for n in shipped.SHIPPED if n != "robothor1")
+
+
+@pytest.mark.parametrize("name", ITHOR_SHIPPED)
 def test_weights_match_their_fingerprint_and_provenance(name):
     det = shipped.shipped_detector(128, name=name)
     meta = shipped.shipped_meta(name)
     assert det.fingerprint == meta["fingerprint"] and det.fingerprint.startswith("learned-") and meta["name"] == name
     assert det.image_size == 128 and det.temperature == pytest.approx(meta["temperature"])
+    assert det.class_set == "ithor22"
     assert meta["calibration_split"] == "val" and meta["calibrated_step"] == meta["step"]
     # trained on the 80 training rooms, none of the val or test rooms
     assert sorted(meta["train_scenes"]) == sorted(ithor_scenes(split="train"))
@@ -42,6 +46,19 @@ def test_weights_match_their_fingerprint_and_provenance(name):
     assert l7["train"]["loss"]["presence_pos_weight"] == 4.0 and l7["train"]["loss"]["focal_alpha"] == 0.5
     with pytest.raises(CommandError, match="no shipped detector named 'learned9'"):
         shipped.shipped_detector(name="learned9")
+
+
+def test_robothor_detector_saw_only_the_train_apartments():
+    """robothor1: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing of the 15 val ones
+    (they are the benchmark): not calibrated, temperature 1."""
+    det = shipped.shipped_detector(128, name="robothor1")
+    meta = shipped.shipped_meta("robothor1")
+    assert det.fingerprint == meta["fingerprint"] and meta["name"] == "robothor1"
+    assert det.class_set == "robothor12" and det.num_classes == 12 and det.image_size == 128
+    train = [f"FloorPlan_Train{i}_{v}" for i in range(1, 13) for v in range(1, 6)]
+    assert sorted(meta["train_scenes"]) == sorted(train)
+    assert meta["calibration_split"] is None and meta["calibrated_step"] == -1 and det.temperature == 1.0
+    assert meta["train"]["loss"]["presence_pos_weight"] == 4.0 and meta["step"] == 5000
 
 
 def test_refuses_other_frame_sizes_and_damaged_weights(tmp_path, monkeypatch):

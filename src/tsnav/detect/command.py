@@ -130,7 +130,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         help=f"shipped: which shipped detector (default: the one --name names, if any, else "
         f"{DEFAULT_SHIPPED}; learned3 wrote the tables of the "
         "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
-        "see tsnav.detect.shipped)",
+        "robothor1: the 12 RoboTHOR targets, for robothor-real worlds; see tsnav.detect.shipped)",
     )
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")

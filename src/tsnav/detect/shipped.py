@@ -1,5 +1,7 @@
 """The detectors that ship inside the package: :class:`~tsnav.detect.learned.LearnedDetector` checkpoints trained
-here on the 80 training rooms of the ``ithor-real`` world at 128x128 and calibrated on its 20 validation rooms.
+here on the 80 training rooms of the ``ithor-real`` world at 128x128 and calibrated on its 20 validation rooms, and
+one trained on the 60 training apartments of the ``robothor-real`` world (``robothor1``, the 12 classes of
+``robothor12``).
 
 The paper's stage switch reads a DETR that was trained before, and apart from, the navigation agent; the
 shipped weights play that part for the 128-px real rooms, so that a short job (``tsnav demo``) can use a
@@ -19,7 +21,11 @@ temperature, fingerprint, provenance):
   (docs/RESULTS.md); four times the compute per frame;
 * ``learned3`` (``weights/ithor-real-128-learned3``): AP 0.713, reach 87.2 %; the tables of the medium-scale
   experiments of docs/RESULTS.md are its tables (``tsnav detect --detector shipped --shipped learned3``
-  writes them again).
+  writes them again);
+* ``robothor1`` (``weights/robothor-real-128-robothor1``): the RoboTHOR detector of the shipped RoboTHOR agent, the
+  12 challenge target types (class set ``robothor12``), ``learned6``'s architecture and loss, trained from nothing on
+  the 60 training apartments' frames at 128x128 (its ``provenance`` names the command and the steps); not
+  calibrated (temperature 1): the val apartments are the benchmark, so nothing is fitted on them.
 
 Their tables carry the same fingerprint as the ones written by ``tsnav detect --checkpoint`` with the same
 weights, so tables written from a shipped copy and from the training folder are interchangeable.
@@ -40,6 +46,7 @@ SHIPPED = {
     "learned3": _WEIGHTS / "ithor-real-128-learned3",
     "learned6": _WEIGHTS / "ithor-real-128-learned6",
     "learned7": _WEIGHTS / "ithor-real-128-learned7",
+    "robothor1": _WEIGHTS / "robothor-real-128-robothor1",
 }
 #: The one used unless another is named.
 DEFAULT_SHIPPED = "learned4"
@@ -83,8 +90,8 @@ def shipped_detector(image_size: int | None = None, name: str | None = None) -> 
         )
     if image_size is not None and image_size != det.image_size:
         raise CommandError(
-            f"the shipped detector reads {det.image_size}x{det.image_size} frames (the ithor-real "
-            f"rooms), this world has {image_size}x{image_size}: train a detector on it instead "
+            f"the shipped detector {name or DEFAULT_SHIPPED} reads {det.image_size}x{det.image_size} frames (those "
+            f"of the world it was trained on), this world has {image_size}x{image_size}: train a detector on it instead "
             f"(--detector train in tsnav demo and tsnav experiment, --detector learned in tsnav "
             f"detect)"
         )

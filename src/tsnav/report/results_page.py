@@ -94,7 +94,7 @@ def table1_rows(
             f"| {name} | published (paper's Table I) | {_pair(it, 0, 1)} | {_pair(it, 2, 3)} | "
             f"{_pair(rb, 0, 1)} | {_pair(rb, 2, 3)} |"
         )
-    robothor = {name: json.loads((results / f).read_text())["rows"] for name, f in (spec.get("robothor") or {}).items()}
+    robothor = {name: robothor_entry(v, results) for name, v in (spec.get("robothor") or {}).items()}
     ref = spec["reference_agent"]
     rows = [(name, "agent") for name in keep.get("agents", spec["agents"])] + [
         (ref, p) for p in keep.get("references", spec["references"])
@@ -103,8 +103,9 @@ def table1_rows(
         for name, policy in rows:
             card = cards[name]
             row = _card_row(card, protocol, policy)
+            rob_agent, rob_rows, rob_n = robothor.get(name, (None, [], None))
             if policy == "agent":
-                label = f"tsnav `{name}`"
+                label = f"tsnav `{name}`" + (f" (RoboTHOR: `{rob_agent}`)" if rob_agent and rob_agent != name else "")
                 if card.get("default") and protocol == "lineage":
                     label = f"**{label}** (shipped default)"
             else:
@@ -114,15 +115,26 @@ def table1_rows(
                     else policy
                 )
             n = card.get("figures", {}).get("test", {}).get("episodes", "?")
-            rob = next((r for r in robothor.get(name, []) if (r["protocol"], r["policy"]) == (protocol, policy)), None)
+            rob = next((r for r in rob_rows if (r["protocol"], r["policy"]) == (protocol, policy)), None)
             rob_cells = (
                 f"{_sr_spl(rob, 'ALL')} | {_sr_spl(rob, 'L>=5')}" if rob else "not yet measured | not yet measured"
             )
+            where = f"{n} test episodes" + (f", RoboTHOR {rob['episodes']} val episodes" if rob else "")
             lines.append(
-                f"| {label} | {n} test episodes, `{protocol}` | {_sr_spl(row, 'ALL')} | "
+                f"| {label} | {where}, `{protocol}` | {_sr_spl(row, 'ALL')} | "
                 f"{_sr_spl(row, 'L>=5')} | {rob_cells} |"
             )
     return lines
+
+
+def robothor_entry(value, results: Path) -> tuple[str | None, list[dict], int | None]:
+    """``(agent, rows, episodes)`` of one entry of the index's ``table1.robothor``: a results file of ``tsnav release
+    eval`` on RoboTHOR (``{"agent": NAME, "results": FILE}``, or just ``FILE`` for the row's own agent)."""
+    if isinstance(value, str):
+        value = {"results": value}
+    res = json.loads((results / value["results"]).read_text())
+    rows = res["rows"]
+    return value.get("agent") or res.get("agent"), rows, max((r["episodes"] for r in rows), default=None)
 
 
 def table1(index: dict, cards: dict, paper: dict, results: Path) -> list[str]:
@@ -133,7 +145,14 @@ def table1(index: dict, cards: dict, paper: dict, results: Path) -> list[str]:
             "",
             "SR / SPL in percent. The published rows are copied from the paper's Table I (each method on its own "
             "AI2-THOR and RoboTHOR test episodes, counted by the lineage's evaluator). tsnav's rows are measured here "
-            f"on {index['episodes']}, under the protocol each row names; RoboTHOR is not measured yet.",
+            f"on {index['episodes']}, under the protocol each row names; "
+            + (
+                "RoboTHOR on the RoboTHOR challenge's 1,800 val episodes in the 15 val apartments of the "
+                "`robothor-real` world (those whose start is a state of tsnav's graph), by the RoboTHOR agent the "
+                "row names, trained on the 60 train apartments (`tsnav release eval --agent NAME`)."
+                if index["table1"].get("robothor")
+                else "RoboTHOR is not measured yet."
+            ),
             "",
         ]
         + table1_rows(index, cards, paper, results=results)
