@@ -110,10 +110,14 @@ def run_convergence(
     deviations = [f"distance increase x{cfg.distance_increase_scale:g}"] if cfg.distance_increase_scale != 1.0 else []
     deviations += ["mirror"] if cfg.mirror else []
     deviations += ["blocked-action"] if agent.blocked_action else []
+    deviations += [f"lr {cfg.lr_schedule} to {cfg.lr_final:g}"] if cfg.lr_schedule != "constant" else []
+    # a learning-rate schedule decays over the whole budget, not over each chunk's
+    horizon = {"lr_decay_updates": cfg.lr_horizon} if cfg.lr_schedule != "constant" else {}
     for end in list(range(chunk, total, chunk)) + [total]:
         c = TrainConfig.from_dict(
             {
                 **cfg.to_dict(),
+                **horizon,
                 "updates": end,
                 "episodes": None,
                 "minutes": None,
