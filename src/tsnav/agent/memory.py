@@ -130,9 +130,9 @@ class TargetMemoryAggregator(nn.Module):
     ``ReLU(Linear(cat(attended, query)))`` of width ``out_dim`` (the query keeps the target identity in F_t,
     which the searching stage needs while nothing has been seen).
 
-    ``history`` (off by default): a second memory of every step's box and score (module docstring), embedded by
-    ``ReLU(Linear(cat(box 4, score 1, relative pose 5, age / M 1)))`` (the parameters ``history.*``, which only a
-    network with it has) and attended together with the first memory's nodes.
+    :meth:`add_history` (not called by default): a second memory of every step's box and score (module
+    docstring), embedded by ``ReLU(Linear(cat(box 4, score 1, relative pose 5, age / M 1)))`` (the parameters
+    ``history.*``, which only a network with it has) and attended together with the first memory's nodes.
     """
 
     def __init__(
@@ -142,7 +142,6 @@ class TargetMemoryAggregator(nn.Module):
         heads: int = 4,
         out_dim: int = 256,
         num_categories: int = 22,
-        history: bool = False,
     ):
         super().__init__()
         if dim % heads:
@@ -152,7 +151,13 @@ class TargetMemoryAggregator(nn.Module):
         self.attn = nn.MultiheadAttention(dim, heads, batch_first=True)
         self.nothing = nn.Parameter(torch.zeros(dim))
         self.out = nn.Linear(2 * dim, out_dim)
-        self.history = nn.Linear(4 + 1 + 5 + 1, dim) if history else None
+        self.history: nn.Linear | None = None
+
+    def add_history(self) -> nn.Linear:
+        """Attend also to a memory of every step's box and score: adds (and returns) its node embedding
+        ``history``."""
+        self.history = nn.Linear(4 + 1 + 5 + 1, self.node.out_features)
+        return self.history
 
     def forward(
         self, mem: MemoryState, pose: torch.Tensor, target: torch.Tensor, history: MemoryState | None = None

@@ -204,7 +204,6 @@ class ActorCritic(nn.Module):
             config.memory_heads,
             config.target_dim,
             get_class_set(class_set).size,
-            history=config.memory_history,
         )
         self.action_embed = nn.Embedding(NUM_ACTIONS + 1 + int(config.blocked_action), config.action_dim)
         self.state = nn.Linear(config.image_dim + config.target_dim + config.action_dim, config.state_dim)
@@ -215,8 +214,6 @@ class ActorCritic(nn.Module):
         gain = nn.init.calculate_gain("relu")
         for m in (self.conv, self.image, self.state, self.memory.node, self.memory.out):
             _init(m, gain)
-        if self.memory.history is not None:  # after the others: a network without it is initialised as before
-            _init(self.memory.history, gain)
         _init(self.actor, 0.01)
         _init(self.critic, 1.0)
         for name, p in self.lstm.named_parameters():
@@ -224,6 +221,8 @@ class ActorCritic(nn.Module):
                 nn.init.orthogonal_(p)
             else:
                 nn.init.zeros_(p)
+        if config.memory_history:  # made last: the other parameters are initialised as in a network without it
+            _init(self.memory.add_history(), gain)
 
     def initial_state(self, batch: int, device=None) -> AgentState:
         """Fresh recurrent state of ``batch`` episodes."""

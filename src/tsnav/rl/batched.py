@@ -62,7 +62,8 @@ from ..distributed import (
 from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, rng_state, set_rng_state, write_rng
 from .config import TrainConfig
-from .progress import RunOutput, budget_used, new_progress, resume_progress, schedule_lr  # noqa: F401 (new_progress: tests)
+from .progress import new_progress  # noqa: F401 (tests)
+from .progress import RunOutput, budget_used, resume_progress, schedule_lr
 from .rollout import RolloutCollector, collect_and_loss
 
 

@@ -38,8 +38,8 @@ nothing, because ``T_t = T_{t-1}`` is already in ``RG_{t-1}``.
 Variants (Table II of the paper): ``baseline`` keeps collision, slack and success - the paper's baseline is
 the lineage's reward with "the two-stage reward mechanism not applied", and the collision penalty is part of
 the common reward of III-D, not of TSRM; ``explore`` and ``distance`` add one TSRM term each; ``tsrm`` adds
-both; ``sparse`` keeps slack and success only; ``tsrm-regret`` (not the paper's) adds the regret term to ``tsrm``. Stages are tracked in every variant (the SSR / SSSPL / NSNPL
-metrics need them). Every term is always returned (zeros when switched off) for logging.
+both; ``sparse`` keeps slack and success only; ``tsrm-regret`` (not the paper's) adds the regret term to ``tsrm``.
+Stages are tracked in every variant (the SSR / SSSPL / NSNPL metrics need them). Every term is always returned (zeros when switched off) for logging.
 
 Each term is a class of :mod:`tsnav.tsrm.terms` holding its batched, scalar and reference code; a variant is a
 list of term names (``VARIANT_TERMS``). :class:`TSRMReward` and :class:`TSRMRewardReference` only run the terms
@@ -95,7 +95,7 @@ class RewardConfig:
     """K_r of the ``regret`` term, a deviation from the paper that only the ``tsrm-regret`` variant switches on
     (:class:`~tsnav.tsrm.terms.RegretTerm`): a pathfinding step is charged ``K_r`` per action by which it
     lengthened the shortest remaining way to the target (0 along a shortest path, 1 for a wasted action, 2 for a
-    step away)."""
+    turn the wrong way, more for a step away)."""
     area: AreaConfig = field(default_factory=AreaConfig)
     """Observable trapezoid (1/4 m at horizon 0, 0.25/3 m at horizon 30) and the fast raster's sample size."""
     exact_area: bool = False

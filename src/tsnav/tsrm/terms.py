@@ -384,8 +384,8 @@ class RegretTerm(RewardTerm):
 
     ``1 + D(s_t) - D(s_{t-1})`` is the action's *regret*: by how many actions it lengthened the shortest way from
     where the step started (the action itself plus what is left, against what was left): 0 for a step along a
-    shortest path, 1 for a step that wastes an action (a look the way does not need, a failed move, a sideways
-    move), 2 for a step away. Summed over the pathfinding stage it is ``K_r`` times the actions taken beyond the
+    shortest path, 1 for a step that leaves ``D`` as it was (a look the way does not need, a failed move), 2 for a
+    turn the wrong way, more for a MoveAhead away (coming back takes turns). Summed over the pathfinding stage it is ``K_r`` times the actions taken beyond the
     shortest path, ``L - (D(switch) - D(end))``, which NSNPL charges. The paper's distance term is a difference
     of potentials (``K_d`` per pose-graph action of progress), whose sum over the stage does not depend on the
     path: a turn the long way round (six 45-degree turns instead of two) earns what the short way earns and costs
