@@ -20,4 +20,4 @@ def linear_decay(step: int, total: int, start: float, end: float) -> float:
     """Learning rate of optimiser step ``step`` (0-based): ``start`` at step 0, falling linearly to ``end`` at step
     ``total`` (and ``end`` after it)."""
     t = min(step / max(1, total), 1.0)
-    return start + (end - start) * t
+    return (1.0 - t) * start + t * end  # exactly start at step 0 and end from step total on
