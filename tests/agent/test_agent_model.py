@@ -307,3 +307,65 @@ def test_memory_attention_products_are_einsums_bit_for_bit(dim, heads, dtype):
     assert res[0][0].dtype == dtype
     for x, y in zip(*res):
         assert torch.equal(x, y)
+
+
+def test_memory_history_keeps_every_steps_box_and_score():
+    """AgentConfig.memory_history (issue 47, a deviation, off by default): off, the network has the parameters, the
+    description and the recurrent state it had before the setting (shipped agents load and act as before); on,
+    ``memory.history.*`` is added after the others (the shared parameters are initialised as without it), the
+    history holds the box and score of each of the last ``memory_slots`` steps whatever the score (ages 0 = newest),
+    it is emptied on done, and an old step's box reaches the output."""
+    torch.manual_seed(0)
+    plain = ActorCritic(agent_config("cpu", memory_slots=3), (8, 2, 2), det_dim=8).eval()
+    torch.manual_seed(0)
+    model = ActorCritic(agent_config("cpu", memory_slots=3, memory_history=True), (8, 2, 2), det_dim=8).eval()
+    names = dict(plain.named_parameters())
+    extra = {k: v.shape for k, v in model.named_parameters() if k not in names}
+    assert extra == {"memory.history.weight": (64, 11), "memory.history.bias": (64,)}
+    assert not any("history" in k for k in names) and "memory_history" not in plain.describe()["agent"]
+    assert model.describe()["agent"]["memory_history"] is True
+    for k, v in names.items():  # initialised as without the history
+        assert torch.equal(v, dict(model.named_parameters())[k]), k
+    assert plain.initial_state(2).history is None
+    again = ActorCritic.from_description(model.describe())
+    assert again.config.memory_history and "memory.history.weight" in again.state_dict()
+    assert "memory.history.weight" in model.autocast_weights()
+
+    b = 4
+    state = model.initial_state(b)
+    seen = []
+    with torch.no_grad():
+        for t in range(5):
+            obs = _obs(b, seed=t)
+            seen.append(obs)
+            _, _, state = model(obs, state)
+            state = state.with_action(torch.zeros(b, dtype=torch.long))
+    hist = state.history
+    assert hist.valid.all() and hist.feat.shape == (b, 3, 0)
+    from tsnav.agent.memory import slot_age
+
+    age = slot_age(hist)
+    for row in range(b):  # the slot of age a holds the step 4 - a: the last three steps, scores 0 included
+        for slot in range(3):
+            step = 4 - int(age[row, slot])
+            assert torch.equal(hist.box[row, slot], seen[step].det_box[row])
+            assert hist.score[row, slot] == seen[step].det_score[row]
+            assert torch.equal(hist.pose[row, slot], seen[step].pose[row])
+    assert sorted(age[0].tolist()) == [0, 1, 2]
+    # the box of the oldest step kept after the next write (age 1 now) reaches F_t, and so the policy
+    obs = _obs(b, seed=9)
+    with torch.no_grad():
+        la, _, _ = model(obs, state)
+        oldest = (age == 1).nonzero()[0]
+        box = hist.box.clone()
+        box[oldest[0], oldest[1]] = torch.tensor([0.0, 0.0, 1.0, 1.0])
+        changed = MemoryState(box, hist.score, hist.feat, hist.pose, hist.valid, hist.ptr)
+        lb, _, _ = model(obs, AgentState(state.h, state.c, state.memory, state.prev_action, None, changed))
+    assert not torch.equal(la[oldest[0]], lb[oldest[0]])
+    rest = [r for r in range(b) if r != int(oldest[0])]
+    assert torch.equal(la[rest], lb[rest])
+    cleared = state.reset(np.array([True, False, False, False]))
+    assert not cleared.history.valid[0].any() and cleared.history.valid[1:].all()
+    assert cleared.index(torch.tensor([1, 2])).history.box.shape == (2, 3, 4)
+    with pytest.raises(ValueError, match="history"):
+        model.memory(state.memory, obs.pose, obs.target)

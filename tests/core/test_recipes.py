@@ -201,7 +201,8 @@ def test_agent_recipes_equal_the_shipped_configs(name, tmp_path):
     saved = json.loads((WEIGHTS / name / "config.json").read_text())
     reward = to_recipe(r.run[0].reward_config())  # fields added since the run are at the paper's values
     assert saved["reward"] == {k: reward[k] for k in saved["reward"]}
-    assert {k: v for k, v in reward.items() if k not in saved["reward"]} in ({}, {"distance_increase_scale": 1.0})
+    added = {k: v for k, v in reward.items() if k not in saved["reward"]}
+    assert added == {k: to_recipe(RewardConfig())[k] for k in added}  # at their defaults: the paper's reward
     assert not any(str(v).startswith("/") for v in saved["train"].values())  # no machine path ships
     card = json.loads((WEIGHTS / name / "card.json").read_text())
     assert r.detections.shipped == card["detector_shipped"] and r.world.version == card["world_version"]

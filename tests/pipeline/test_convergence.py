@@ -6,7 +6,7 @@ import json
 import pytest
 
 from tsnav.cli import main
-from tsnav.pipeline.convergence import plateaued
+from tsnav.pipeline.convergence import chunk_config, plateaued
 
 from conftest import PIXEL_FEATURES as FEATS
 
@@ -82,3 +82,17 @@ def test_convergence_curve_resumes(pixel_world, tmp_path, capsys):
 def test_plateau_rule():
     pts = [{"SR": s} for s in (0.1, 0.3, 0.5, 0.4, 0.5)]
     assert plateaued(pts, 2) and not plateaued(pts, 3) and not plateaued(pts, None)
+
+
+def test_a_chunk_keeps_the_runs_lr_schedule():
+    """A run trained in chunks (tsnav convergence, tsnav release make) with a learning-rate schedule (issue 47):
+    every chunk's configuration has the whole run's horizon, so the chunks continue one schedule and the resume
+    check finds the same run; a constant rate is left as it was."""
+    from tsnav.rl.config import TrainConfig
+
+    cfg = TrainConfig(data="w", updates=4000, lr=1e-3, lr_schedule="linear", lr_final=1e-4)
+    chunks = [chunk_config(cfg, end, 250) for end in (250, 500, 4000)]
+    assert [c.updates for c in chunks] == [250, 500, 4000] and {c.lr_horizon for c in chunks} == {4000}
+    assert {c.lr_at(1000) for c in chunks} == {cfg.lr_at(1000)} and len({str(c.identity()) for c in chunks}) == 1
+    plain = chunk_config(TrainConfig(data="w", updates=4000), 250, 250)
+    assert plain.lr_decay_updates is None and plain.lr_horizon is None and plain.milestone_every == 250

@@ -445,3 +445,82 @@ def test_distance_increase_scale_reaches_the_reward_and_the_run(world, tmp_path,
     assert main(["train", "--out", str(out), "--updates", "3", "--quiet"]) == 0
     assert "after 3 updates" in capsys.readouterr().out
     assert json.loads((out / "config.json").read_text())["train"]["distance_increase_scale"] == 2.0
+
+
+def test_lr_schedule_by_hand_and_its_checks(world):
+    """TrainConfig.lr_schedule (issue 47, off by default): the rate of each update by hand, the horizon (the updates
+    budget unless named) in the run's identity, and one-line refusals."""
+    import math
+
+    const = _cfg(world, updates=10)
+    assert [const.lr_at(u) for u in (0, 5, 50)] == [1e-3] * 3 and const.lr_horizon is None
+    lin = _cfg(world, updates=10, lr_schedule="linear", lr_final=1e-4)
+    assert lin.lr_horizon == 10 and lin.identity()["lr_decay_updates"] == 10
+    assert lin.lr_at(0) == 1e-3 and lin.lr_at(10) == lin.lr_at(25) == 1e-4
+    assert lin.lr_at(5) == pytest.approx(5.5e-4, rel=1e-12)
+    cos = _cfg(world, updates=10, lr_schedule="cosine", lr_final=1e-4, lr_decay_updates=20)
+    assert cos.lr_horizon == 20 and cos.lr_at(0) == 1e-3 and cos.lr_at(20) == 1e-4
+    assert cos.lr_at(5) == pytest.approx(1e-4 + 0.9e-3 * 0.5 * (1 + math.cos(math.pi / 4)), rel=1e-12)
+    assert const.identity().get("lr_decay_updates") is None  # a constant rate keeps the identity it had
+    for kw, msg in (
+        (dict(lr_schedule="step"), "unknown lr_schedule"),
+        (dict(lr_final=1e-4), "not constant"),
+        (dict(lr_decay_updates=5), "not constant"),
+        (dict(lr_schedule="linear", updates=None, episodes=100), "needs a horizon"),
+        (dict(lr_schedule="linear", lr_final=1e-2), "lr_final must be in"),
+    ):
+        with pytest.raises(ValueError, match=msg):
+            _cfg(world, **{"updates": 10, **kw})
+
+
+def test_levers_train_and_resume_exactly(world, tmp_path, capsys):
+    """The three levers of issue 47 together (memory_history, the tsrm-regret reward, a linear lr schedule) train,
+    are recorded in config.json, and a run interrupted and resumed equals the uninterrupted one bit for bit (the
+    scheduled rate follows the update counter); the log's ``lr`` column is the schedule; resuming a scheduled run
+    with another ``updates`` budget is refused in one line unless the horizon is named."""
+    from tsnav.cli import main
+    from tsnav.rl.train import train_run
+
+    cfg = _cfg(world, updates=6, lr_schedule="linear", lr_final=1e-4, reward="tsrm-regret")
+    agent = agent_config("cpu", memory_history=True)
+    train_run(cfg, agent, tmp_path / "a", progress_bar=False)
+
+    def kill(progress):
+        if progress["update"] == 4:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        train_batched(cfg, agent, tmp_path / "b", progress_bar=False, on_update=kill)
+    train_batched(cfg, agent, tmp_path / "b", progress_bar=False)
+    (wa, oa, _), (wb, ob, _) = _weights(tmp_path / "a"), _weights(tmp_path / "b")
+    assert "memory.history.weight" in wa and wa.keys() == wb.keys()
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    for k in oa:
+        assert torch.equal(oa[k], ob[k]), k
+    la, lb = read_log(tmp_path / "a"), read_log(tmp_path / "b")
+    assert [(r["update"], r["lr"], r["loss"]) for r in la] == [(r["update"], r["lr"], r["loss"]) for r in lb]
+    want = {
+        2: (cfg.lr_at(0) + cfg.lr_at(1)) / 2,
+        3: cfg.lr_at(2),
+        4: cfg.lr_at(3),
+        6: (cfg.lr_at(4) + cfg.lr_at(5)) / 2,
+    }
+    assert {r["update"]: r["lr"] for r in la} == pytest.approx(want, rel=1e-12)
+    assert all("reward/regret" in r for r in la if r.get("n_episodes"))
+    saved = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert saved["agent"]["memory_history"] and saved["reward"]["variant"] == "tsrm-regret"
+    assert (saved["train"]["lr_schedule"], saved["train"]["lr_final"]) == ("linear", 1e-4)
+    # a constant run logs no lr column (its log is as before)
+    train_run(_cfg(world, updates=2), agent_config("cpu"), tmp_path / "c", progress_bar=False)
+    assert not any("lr" in r for r in read_log(tmp_path / "c"))
+    # another budget would stretch the schedule: refused, unless the horizon it started with is named
+    capsys.readouterr()
+    assert main(["train", "--out", str(tmp_path / "a"), "--updates", "8", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        len(err.splitlines()) == 1 and "(lr_decay_updates): 6 saved, 8 given" in err and "--lr-decay-updates 6" in err
+    )
+    args = ["train", "--out", str(tmp_path / "a"), "--updates", "8", "--lr-decay-updates", "6", "--quiet"]
+    assert main(args) == 0 and "after 8 updates" in capsys.readouterr().out
+    assert read_log(tmp_path / "a")[-1]["lr"] == pytest.approx(1e-4, rel=1e-12)

@@ -227,7 +227,7 @@ def test_each_variant_switches_off_exactly_its_terms():
         + [ROTATE_RIGHT, MOVE_AHEAD, LOOK_DOWN, DONE]
     )
     start = sc.index("1.00|1.00|180|0")
-    full = run(TSRMReward(bank, RewardConfig(variant="tsrm")), sc, start, BOWL, acts)
+    full = run(TSRMReward(bank, RewardConfig(variant="tsrm-regret")), sc, start, BOWL, acts)  # every term
     sums = {k: sum(abs(t[k]) for _, t in full) for k in TERMS}
     assert all(v > 0 for k, v in sums.items() if k != "success")  # the walk exercises every shaping term
     for variant in VARIANTS:

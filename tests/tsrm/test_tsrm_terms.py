@@ -21,10 +21,12 @@ def two_rooms():
 
 
 def test_variants_are_lists_of_registered_terms():
-    assert TERMS == ("explore", "distance", "collision", "slack", "success")
-    assert set(VARIANTS) >= {"baseline", "explore", "distance", "tsrm", "sparse"}
+    assert TERMS == ("explore", "distance", "collision", "slack", "success", "regret")
+    assert set(VARIANTS) >= {"baseline", "explore", "distance", "tsrm", "sparse", "tsrm-regret"}
     assert all(set(v) <= set(TERMS) for v in VARIANT_TERMS.values())
-    assert VARIANT_TERMS["tsrm"] == tuple(TERMS) and VARIANT_TERMS["sparse"] == ("slack", "success")
+    assert VARIANT_TERMS["tsrm"] == ("explore", "distance", "collision", "slack", "success")  # the paper's
+    assert VARIANT_TERMS["tsrm-regret"] == tuple(TERMS) and VARIANT_TERMS["sparse"] == ("slack", "success")
+    assert not any("regret" in terms for v, terms in VARIANT_TERMS.items() if v != "tsrm-regret")  # off by default
     with pytest.raises(ValueError, match="unknown reward term"):
         term_registry.register_variant("mine", ("slack", "nope"))
     with pytest.raises(ValueError, match="not a RewardTerm"):
@@ -93,3 +95,68 @@ def test_each_term_batched_scalar_and_reference_agree(name, exact_area, monkeypa
         assert fast.stage.tolist() == [int(x.pathfinding) for x in refs]
         local = new - off
     assert nonzero > 3  # the walks exercise the term
+
+
+def test_regret_charges_each_action_beyond_a_shortest_path():
+    """The regret term (issue 47, a deviation from the paper, variant tsrm-regret): along a shortest path (the
+    oracle's actions on SceneBank.dist, SPL's L*) it is 0; a full turn in place, on which the paper's distance term
+    sums to exactly 0, costs 8 K_r; over any walk in the pathfinding stage it sums to -K_r (L - (D_start - D_end)),
+    every step is a whole number of K_r at most 0, Done is free, and the searching stage is never charged."""
+    from tsnav.constants import ROTATE_RIGHT
+    from tsnav.sim.paths import UNREACHABLE, optimal_action_targets
+
+    bank = SceneBank(two_rooms(), cache=False)
+    cfg = RewardConfig(variant="tsrm-regret", k_regret=0.05)
+    k = cfg.k_regret
+    far = [s for s in range(bank.num_states) if bank.scene_of[s] == 0 and 6 <= bank.dist[s, BOWL] < UNREACHABLE]
+    n = len(far)
+    assert n > 10
+    start = np.array(far, dtype=np.int64)
+    target = np.full(n, BOWL)
+    scene = bank.scene_of[start].astype(np.int64)
+    path = np.zeros(n, dtype=bool)  # the pathfinding stage, as the env hands it in
+
+    def fresh():
+        r = TSRMReward(bank, cfg)
+        r.reset(np.ones(n, bool), scene, target, start, searching=path)
+        return r
+
+    def walk(reward, actions_of, steps):
+        state, sums = start.copy(), {"regret": np.zeros(n), "distance": np.zeros(n)}
+        for _ in range(steps):
+            act = actions_of(state)
+            new = bank.next_state[state, act].astype(np.int64)
+            _, terms = reward.step(
+                state, act, new, (new == state) & (act == MOVE_AHEAD), act == DONE, act == DONE, path
+            )
+            for key in sums:
+                sums[key] += terms[key]
+            units = terms["regret"] / k  # minus the regret in actions: a whole number, never above 0
+            assert (units <= 0).all() and np.allclose(units, np.round(units), atol=1e-5)
+            state = new
+        return state, sums
+
+    # a shortest path: no regret, K_d per pose-graph action of progress
+    _, sums = walk(fresh(), lambda s: optimal_action_targets(bank.next_state, bank.dist, s, target), 4)
+    assert (sums["regret"] == 0).all() and (sums["distance"] >= 0).all()
+    # a full turn in place: the potential difference sums to 0, the regret to 8 actions
+    end, sums = walk(fresh(), lambda s: np.full(len(s), ROTATE_RIGHT), 8)
+    assert (end == start).all() and (sums["distance"] == 0).all()
+    np.testing.assert_allclose(sums["regret"], -8 * k, rtol=1e-6)  # terms are reported in float32
+    # any walk of movement actions: K_r times the actions beyond the shortest path
+    rng = np.random.default_rng(3)
+    end, sums = walk(fresh(), lambda s: rng.integers(0, 5, len(s)), 20)
+    d0, d1 = bank.dist[start, BOWL].astype(np.int64), bank.dist[end, BOWL].astype(np.int64)
+    np.testing.assert_allclose(sums["regret"], -k * (20 - (d0 - d1)), rtol=1e-6)  # terms are reported in float32
+    # Done is free; the searching stage is never charged
+    r = fresh()
+    done = np.full(n, DONE)
+    _, terms = r.step(start, done, start, np.zeros(n, bool), np.ones(n, bool), np.zeros(n, bool), path)
+    assert (terms["regret"] == 0).all()
+    r = TSRMReward(bank, cfg)
+    r.reset(np.ones(n, bool), scene, target, start, searching=~path)
+    away = np.full(n, ROTATE_RIGHT)
+    _, terms = r.step(start, away, bank.next_state[start, away].astype(np.int64), *[np.zeros(n, bool)] * 3, ~path)
+    assert (terms["regret"] == 0).all()
+    with pytest.raises(ValueError, match="k_regret"):
+        RewardConfig(variant="tsrm-regret", k_regret=-1.0)

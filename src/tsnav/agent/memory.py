@@ -8,6 +8,14 @@ frame, the relative yaw as sin / cos, and the horizon of that frame - so the agg
 policy where the target was seen from here. The aggregation has no positional encoding over slots, so it does
 not depend on the order of the memory. An empty memory gives a learned "nothing seen" vector.
 
+With ``history`` (``AgentConfig.memory_history``, a deviation from the paper, off by default) the aggregator also
+attends to a second FIFO memory of the same layout, written at *every* step whatever the score: the detector's box
+and score of the target in each of the last ``M`` frames (zeros where nothing was detected), with the pose of that
+frame and its age in steps. The first memory keeps the frames where the target was seen (score above the memory
+threshold) for as long as it has room; the history shows how the target's detection changed over the last steps:
+turning away, coming closer, fading. Its nodes have their own embedding (``history``) and join the first memory's
+nodes under the same attention.
+
 Memory writes are batched tensor operations (one-hot slot selection with ``torch.where``), no loop over
 episodes; the state tensors are never modified in place, so a state can be indexed, copied or kept.
 """
@@ -89,6 +97,14 @@ class MemoryState:
         return MemoryState(*(torch.cat([getattr(s, f) for s in states]) for f in MemoryState.__dataclass_fields__))
 
 
+def slot_age(mem: MemoryState) -> torch.Tensor:
+    """``(B, M)`` age in writes of every slot of a FIFO memory (0: the newest node, ``M - 1``: the oldest); only
+    meaningful where ``mem.valid``."""
+    slots = mem.valid.shape[1]
+    idx = torch.arange(slots, device=mem.ptr.device)
+    return (mem.ptr[:, None] - 1 - idx[None, :]) % slots
+
+
 def relative_pose(node_pose: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     """Pose of memory nodes relative to the current pose, in the agent's frame.
 
@@ -113,9 +129,20 @@ class TargetMemoryAggregator(nn.Module):
     empty slots; an empty memory yields the learned ``nothing`` vector instead. Output:
     ``ReLU(Linear(cat(attended, query)))`` of width ``out_dim`` (the query keeps the target identity in F_t,
     which the searching stage needs while nothing has been seen).
+
+    :meth:`add_history` (not called by default): a second memory of every step's box and score (module
+    docstring), embedded by ``ReLU(Linear(cat(box 4, score 1, relative pose 5, age / M 1)))`` (the parameters
+    ``history.*``, which only a network with it has) and attended together with the first memory's nodes.
     """
 
-    def __init__(self, feat_dim: int, dim: int = 256, heads: int = 4, out_dim: int = 256, num_categories: int = 22):
+    def __init__(
+        self,
+        feat_dim: int,
+        dim: int = 256,
+        heads: int = 4,
+        out_dim: int = 256,
+        num_categories: int = 22,
+    ):
         super().__init__()
         if dim % heads:
             raise ValueError(f"memory dim {dim} must be divisible by the number of heads {heads}")
@@ -124,19 +151,43 @@ class TargetMemoryAggregator(nn.Module):
         self.attn = nn.MultiheadAttention(dim, heads, batch_first=True)
         self.nothing = nn.Parameter(torch.zeros(dim))
         self.out = nn.Linear(2 * dim, out_dim)
+        self.history: nn.Linear | None = None
 
-    def forward(self, mem: MemoryState, pose: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """``F_t`` ``(B, out_dim)`` from the memory, the current pose ``(B, 4)`` and target ids ``(B,)``."""
+    def add_history(self) -> nn.Linear:
+        """Attend also to a memory of every step's box and score: adds (and returns) its node embedding
+        ``history``."""
+        self.history = nn.Linear(4 + 1 + 5 + 1, self.node.out_features)
+        return self.history
+
+    def forward(
+        self, mem: MemoryState, pose: torch.Tensor, target: torch.Tensor, history: MemoryState | None = None
+    ) -> torch.Tensor:
+        """``F_t`` ``(B, out_dim)`` from the memory, the current pose ``(B, 4)`` and target ids ``(B,)``; with
+        ``history`` (a network made with it), also from the memory of every step's box and score."""
         rel = relative_pose(mem.pose, pose)  # [B, M, 5]
         nodes = torch.relu(self.node(torch.cat([mem.box, mem.score[..., None], rel, mem.feat], dim=-1)))  # [B, M, d]
         q = self.query(target)  # [B, d]
-        empty = ~mem.valid.any(dim=1)  # [B]
+        valid = mem.valid
+        if self.history is not None:
+            if history is None:
+                raise ValueError("this target memory attends to a box and score history: pass it")
+            nodes, valid = self._with_history(nodes, valid, history, pose)
+        empty = ~valid.any(dim=1)  # [B]
         # An all-masked row would give NaN: unmask slot 0 there and replace the result below.
-        pad = ~mem.valid
+        pad = ~valid
         pad = pad & ~(empty[:, None] & (torch.arange(pad.shape[1], device=pad.device) == 0)[None, :])
         att = self.attend(q, nodes, pad)  # [B, d]
         att = torch.where(empty[:, None], self.nothing[None, :].expand_as(q), att)
         return torch.relu(self.out(torch.cat([att, q], dim=-1)))
+
+    def _with_history(
+        self, nodes: torch.Tensor, valid: torch.Tensor, history: MemoryState, pose: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first memory's nodes ``(B, M, d)`` and ``valid`` ``(B, M)`` followed by the history's ``(B, M', d)``."""
+        rel = relative_pose(history.pose, pose)  # [B, M', 5]
+        age = slot_age(history).to(rel.dtype)[..., None] / history.valid.shape[1]  # [B, M', 1]
+        h = torch.relu(self.history(torch.cat([history.box, history.score[..., None], rel, age], dim=-1)))
+        return torch.cat([nodes, h], dim=1), torch.cat([valid, history.valid], dim=1)
 
     def attend(self, q: torch.Tensor, nodes: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
         """``self.attn`` with the single query ``q`` ``(B, d)`` over ``nodes`` ``(B, M, d)``, slots where ``pad``

@@ -12,6 +12,12 @@ The recurrent state (:class:`AgentState`: LSTM state, target memory, previous ac
 explicitly; :meth:`AgentState.reset` clears the rows whose episode ended (LSTM state multiplied by 1 - done,
 memory emptied, previous action set to "none").
 
+``AgentConfig.memory_history`` is a deviation from the paper, off by default and in every preset: besides the frames
+where the target was detected, the target memory keeps the detector's box and score of the target at each of the
+last ``memory_slots`` steps, whatever the score, with the step's pose and age (:mod:`tsnav.agent.memory`), so that
+the policy sees how the detection changed while it walked (issue 47: what tells the agent where the target is after
+the switch). A network without it has the parameters, recurrent state and outputs it had before the setting existed.
+
 ``AgentConfig.blocked_action`` is a deviation from the paper, off by default and in every preset: the agent's
 previous-action input tells a MoveAhead that moved it from one that did not (its pose, an input of the target
 memory already, unchanged: AI2-THOR's ``lastActionSuccess``). Greedy agents without it were seen pressing MoveAhead
@@ -66,6 +72,12 @@ class AgentConfig:
     blocked_action: bool = False
     """Deviation from the paper (off by default): a MoveAhead after which the agent's position is unchanged is its
     own previous-action id (:data:`BLOCKED_MOVE`), so that the policy knows the move failed."""
+    memory_history: bool = False
+    """Deviation from the paper (off by default): the target memory also keeps the detector's box (fractions of the
+    image, x0 y0 x1 y1) and score of the target at each of the last ``memory_slots`` steps, whatever the score
+    (zeros where nothing is detected), with the pose and age of that step, as extra nodes of its attention (their
+    own embedding, parameters ``memory.history.*``). The frames where the target was seen (score above
+    ``memory_threshold``) stay in the memory's own slots as before."""
 
     def __post_init__(self):
         if not 0.0 <= self.dropout < 1.0:
@@ -75,6 +87,10 @@ class AgentConfig:
             if f.type in ("int", int) and v < 1:
                 raise ValueError(f"{f.name} must be >= 1, got {v}")
 
+
+#: Fields added to :class:`AgentConfig` after agents were shipped: a description leaves them out at their default
+#: (off), so that a network without them is described, saved and loaded as before they existed.
+ADDED_OFF = {"memory_history": False}
 
 #: Named configurations: ``paper`` (defaults) and ``cpu`` (small enough to train on two CPU cores).
 PRESETS = {
@@ -104,13 +120,15 @@ def agent_config(preset: str = "paper", **overrides) -> AgentConfig:
 class AgentState:
     """Recurrent state of ``B`` episodes: LSTM ``h``, ``c`` ``(B, hidden)``, the target memory, the
     previous action ``(B,)`` (:data:`NO_ACTION` at an episode start) and, for ``AgentConfig.blocked_action``,
-    the position ``(B, 2)`` (x, z) the previous action was taken from (None otherwise)."""
+    the position ``(B, 2)`` (x, z) the previous action was taken from (None otherwise); for
+    ``AgentConfig.memory_history``, the memory of every step's box and score (None otherwise)."""
 
     h: torch.Tensor
     c: torch.Tensor
     memory: MemoryState
     prev_action: torch.Tensor
     prev_position: torch.Tensor | None = None
+    history: MemoryState | None = None
 
     @property
     def batch_size(self) -> int:
@@ -129,15 +147,20 @@ class AgentState:
             memory=self.memory.clear(done),
             prev_action=torch.where(done, torch.full_like(self.prev_action, NO_ACTION), self.prev_action),
             prev_position=self.prev_position,
+            history=None if self.history is None else self.history.clear(done),
         )
 
     def with_action(self, action: torch.Tensor) -> "AgentState":
         """The state after ``action`` ``(B,)`` was output (the next step's previous action)."""
-        return AgentState(self.h, self.c, self.memory, action.to(self.prev_action.device).long(), self.prev_position)
+        return AgentState(
+            self.h, self.c, self.memory, action.to(self.prev_action.device).long(), self.prev_position, self.history
+        )
 
     def detach(self) -> "AgentState":
         """Cut the graph (truncated backpropagation through time at a rollout boundary)."""
-        return AgentState(self.h.detach(), self.c.detach(), self.memory, self.prev_action, self.prev_position)
+        return AgentState(
+            self.h.detach(), self.c.detach(), self.memory, self.prev_action, self.prev_position, self.history
+        )
 
     def index(self, rows) -> "AgentState":
         rows = torch.as_tensor(rows)
@@ -147,6 +170,7 @@ class AgentState:
             self.memory.index(rows),
             self.prev_action[rows],
             None if self.prev_position is None else self.prev_position[rows],
+            None if self.history is None else self.history.index(rows),
         )
 
 
@@ -175,7 +199,11 @@ class ActorCritic(nn.Module):
         self.conv = nn.Conv2d(c, config.conv_channels, 1)
         self.image = nn.Linear(config.conv_channels * h * w, config.image_dim)
         self.memory = TargetMemoryAggregator(
-            det_dim, config.memory_dim, config.memory_heads, config.target_dim, get_class_set(class_set).size
+            det_dim,
+            config.memory_dim,
+            config.memory_heads,
+            config.target_dim,
+            get_class_set(class_set).size,
         )
         self.action_embed = nn.Embedding(NUM_ACTIONS + 1 + int(config.blocked_action), config.action_dim)
         self.state = nn.Linear(config.image_dim + config.target_dim + config.action_dim, config.state_dim)
@@ -193,6 +221,8 @@ class ActorCritic(nn.Module):
                 nn.init.orthogonal_(p)
             else:
                 nn.init.zeros_(p)
+        if config.memory_history:  # made last: the other parameters are initialised as in a network without it
+            _init(self.memory.add_history(), gain)
 
     def initial_state(self, batch: int, device=None) -> AgentState:
         """Fresh recurrent state of ``batch`` episodes."""
@@ -204,6 +234,7 @@ class ActorCritic(nn.Module):
             memory=MemoryState.empty(batch, cfg.memory_slots, self.det_dim, device),
             prev_action=torch.full((batch,), NO_ACTION, dtype=torch.long, device=device),
             prev_position=torch.zeros(batch, 2, device=device) if cfg.blocked_action else None,
+            history=MemoryState.empty(batch, cfg.memory_slots, 0, device) if cfg.memory_history else None,
         )
 
     def forward(self, obs: AgentObs, state: AgentState) -> tuple[torch.Tensor, torch.Tensor, AgentState]:
@@ -212,14 +243,23 @@ class ActorCritic(nn.Module):
         memory = state.memory.write(
             obs.det_score > self.config.memory_threshold, obs.det_box, obs.det_score, obs.det_feat, obs.pose
         )
+        history = None
+        if self.config.memory_history:  # every step's box and score (no feature: the first memory has them)
+            history = state.history.write(
+                torch.ones_like(obs.det_score, dtype=torch.bool),
+                obs.det_box,
+                obs.det_score,
+                obs.det_box.new_zeros(obs.det_box.shape[0], 0),
+                obs.pose,
+            )
         x = torch.relu(self.conv(obs.image))  # [B, k, h, w]
         i_t = torch.relu(self.image(x.flatten(1)))  # [B, image_dim]
-        f_t = self.memory(memory, obs.pose, obs.target)  # [B, target_dim]
+        f_t = self.memory(memory, obs.pose, obs.target, history)  # [B, target_dim]
         pa = self.action_embed(self.previous_action_ids(obs, state))  # [B, action_dim]
         s_t = torch.relu(self.state(torch.cat([i_t, f_t, pa], dim=1)))  # [B, state_dim], eq. (10)
         h, c = self.lstm(self.dropout(s_t), (state.h, state.c))
         here = obs.pose[:, :2] if self.config.blocked_action else None  # where the next action is taken from
-        return self.actor(h), self.critic(h)[:, 0], AgentState(h, c, memory, state.prev_action, here)
+        return self.actor(h), self.critic(h)[:, 0], AgentState(h, c, memory, state.prev_action, here, history)
 
     def previous_action_ids(self, obs: AgentObs, state: AgentState) -> torch.Tensor:
         """``(B,)`` ids of the previous-action embedding: the previous action, or with ``blocked_action``
@@ -248,6 +288,7 @@ class ActorCritic(nn.Module):
             "memory.attn.in_proj_weight",
             "memory.attn.out_proj.",
             "memory.out.",
+            "memory.history.",
             "state.",
             "lstm.",
             "actor.",
@@ -256,9 +297,11 @@ class ActorCritic(nn.Module):
         return [name for name, _ in self.named_parameters() if name.startswith(keep)]
 
     def describe(self) -> dict:
-        """JSON-able description that rebuilds the network: config, feature shape, detection feature size and,
-        beyond ``ithor22`` (the meaning of a description without it), the class set."""
-        d = {"agent": asdict(self.config), "feature_shape": list(self.feature_shape), "det_dim": self.det_dim}
+        """JSON-able description that rebuilds the network: config (less the fields of :data:`ADDED_OFF` at their
+        default), feature shape, detection feature size and, beyond ``ithor22`` (the meaning of a description
+        without it), the class set."""
+        agent = {k: v for k, v in asdict(self.config).items() if not (k in ADDED_OFF and v == ADDED_OFF[k])}
+        d = {"agent": agent, "feature_shape": list(self.feature_shape), "det_dim": self.det_dim}
         if self.class_set != DEFAULT_CLASS_SET:
             d["class_set"] = self.class_set
         return d

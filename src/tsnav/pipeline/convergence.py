@@ -85,6 +85,24 @@ def plateaued(points: list[dict], patience: int | None) -> bool:
     return max(p["SR"] for p in points[-patience:]) <= best_before
 
 
+def chunk_config(cfg: TrainConfig, end: int, chunk: int) -> TrainConfig:
+    """The training configuration of the chunk that ends at update ``end``: ``cfg`` with that budget and a checkpoint
+    kept every ``chunk`` updates. A learning-rate schedule keeps the horizon of the whole run (``cfg``'s ``updates``
+    unless it names ``lr_decay_updates``), not the chunk's, so every chunk continues the same run."""
+    horizon = {"lr_decay_updates": cfg.lr_horizon} if cfg.lr_schedule != "constant" else {}
+    return TrainConfig.from_dict(
+        {
+            **cfg.to_dict(),
+            **horizon,
+            "updates": end,
+            "episodes": None,
+            "minutes": None,
+            "checkpoint_every": chunk,
+            "milestone_every": chunk,
+        }
+    )
+
+
 def run_convergence(
     cfg: TrainConfig,
     agent: AgentConfig,
@@ -110,17 +128,9 @@ def run_convergence(
     deviations = [f"distance increase x{cfg.distance_increase_scale:g}"] if cfg.distance_increase_scale != 1.0 else []
     deviations += ["mirror"] if cfg.mirror else []
     deviations += ["blocked-action"] if agent.blocked_action else []
+    deviations += [f"lr {cfg.lr_schedule} to {cfg.lr_final:g}"] if cfg.lr_schedule != "constant" else []
     for end in list(range(chunk, total, chunk)) + [total]:
-        c = TrainConfig.from_dict(
-            {
-                **cfg.to_dict(),
-                "updates": end,
-                "episodes": None,
-                "minutes": None,
-                "checkpoint_every": chunk,
-                "milestone_every": chunk,
-            }
-        )
+        c = chunk_config(cfg, end, chunk)
         train_run(c, agent, run, progress_bar=False)
         sel = select_checkpoint(run, cfg.data, val, max_steps=max_steps, progress=say)
         points = curve_points(sel)

@@ -33,7 +33,7 @@ from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import save_checkpoint
 from .config import TrainConfig
 from .logger import LogWindow
-from .progress import RunOutput, budget_used, resume_progress
+from .progress import RunOutput, budget_used, resume_progress, schedule_lr
 from .rollout import RolloutCollector, collect_and_loss
 
 
@@ -77,8 +77,11 @@ def a3c_update(
     optimizer: torch.optim.Optimizer,
     collector: RolloutCollector,
     cfg: TrainConfig,
+    update: int = 0,
 ):
-    """One worker update (steps 1-3 of the module docstring); returns ``(loss parts, rollout)``."""
+    """One worker update (steps 1-3 of the module docstring); returns ``(loss parts, rollout)``. ``update``: the
+    shared update counter when the rollout starts, which sets the learning rate of a scheduled run
+    (:attr:`TrainConfig.lr_schedule`)."""
     local.load_state_dict(shared.state_dict())
     local.train()
     ro, loss, parts = collect_and_loss(collector, cfg)
@@ -87,6 +90,7 @@ def a3c_update(
     parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(local.parameters(), cfg.max_grad_norm))
     for lp, sp in zip(local.parameters(), shared.parameters()):
         sp._grad = lp.grad
+    schedule_lr(cfg, optimizer, update, parts)
     optimizer.step()
     return parts, ro
 
@@ -114,7 +118,7 @@ def _worker(
         collector = RolloutCollector(make_train_env(bank, cfg, 1, seed=seed), observer, local, precision=cfg.precision)
         collector.start()
         while not stop.is_set():
-            parts, ro = a3c_update(local, shared, optimizer, collector, cfg)
+            parts, ro = a3c_update(local, shared, optimizer, collector, cfg, int(counters[0]))
             with counters.get_lock():
                 counters[0] += 1
                 counters[1] += ro.steps

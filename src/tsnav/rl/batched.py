@@ -62,7 +62,8 @@ from ..distributed import (
 from .assemble import load_bank, make_model, make_observer, make_train_env
 from .checkpoint import checkpoint_tmp, checkpoint_tmp_path, commit_checkpoint, rng_state, set_rng_state, write_rng
 from .config import TrainConfig
-from .progress import RunOutput, budget_used, new_progress, resume_progress  # noqa: F401 (new_progress: tests)
+from .progress import new_progress  # noqa: F401 (tests)
+from .progress import RunOutput, budget_used, resume_progress, schedule_lr
 from .rollout import RolloutCollector, collect_and_loss
 
 
@@ -135,14 +136,16 @@ def _train(
             loss.backward()
             if staggered:  # every rank's gradient in turn (each one's update as one process makes it)
                 norms = []
-                for flat in gather_gradients(model, info):
+                for i, flat in enumerate(gather_gradients(model, info)):
                     set_gradients(model, flat)
                     norms.append(float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)))
+                    schedule_lr(cfg, optimizer, progress["update"] + i, parts)
                     optimizer.step()
                 parts["grad_norm"] = sum(norms) / len(norms)
             else:
                 allreduce_gradients(model, info)
                 parts["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
+                schedule_lr(cfg, optimizer, progress["update"], parts)
                 optimizer.step()
 
             # counters over all ranks (every rank's CPU time: steps per CPU-second show how the ranks scale)

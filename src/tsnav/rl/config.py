@@ -9,6 +9,7 @@ from ..agent.model import PRESETS
 from ..constants import C_TARGET
 from ..errors import from_fields
 from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS, check_protocol
+from ..schedule import linear_decay, warmup_cosine
 from ..tsrm.reward import VARIANTS, RewardConfig
 
 ALGOS = ("a3c", "batched")
@@ -17,6 +18,8 @@ ALGOS = ("a3c", "batched")
 PRECISIONS = ("fp32", "bf16")
 #: How the processes of a batched run share its updates (:attr:`TrainConfig.ranks`).
 RANK_MODES = ("split", "staggered")
+#: Learning-rate schedules of the agent's optimiser (:attr:`TrainConfig.lr_schedule`).
+LR_SCHEDULES = ("constant", "linear", "cosine")
 #: Fields that may change when a run is resumed (its budget); every other field must match the saved config.
 BUDGET_FIELDS = ("episodes", "updates", "minutes")
 #: Paper IV-A: the agent is trained for 1.5 M episodes.
@@ -58,6 +61,7 @@ class TrainConfig:
         "ranks": RANK_MODES,
         "precision": PRECISIONS,
         "protocol": PROTOCOLS,
+        "lr_schedule": LR_SCHEDULES,
     }
 
     data: str = ""
@@ -73,7 +77,8 @@ class TrainConfig:
     algo: str = "a3c"
     """``a3c`` (the paper's asynchronous workers) or ``batched`` (synchronous A2C over many episodes)."""
     reward: str = "tsrm"
-    """Reward variant of :class:`~tsnav.tsrm.reward.RewardConfig`: tsrm, baseline, explore or distance."""
+    """Reward variant of :class:`~tsnav.tsrm.reward.RewardConfig`: tsrm, baseline, explore or distance; or
+    tsrm-regret, a deviation from the paper (tsrm plus the regret term of the pathfinding stage, ``k_regret``)."""
     preset: str = "paper"
     """Agent size preset (:data:`tsnav.agent.PRESETS`): the network sizes a recipe's ``[agent]`` section (or the
     ``--dropout``-style options) changes field by field."""
@@ -157,11 +162,23 @@ class TrainConfig:
     increases the distance to the target is multiplied by this (:attr:`RewardConfig.distance_increase_scale
     <tsnav.tsrm.reward.RewardConfig.distance_increase_scale>`), so that a detour, such as turning the long way
     round, costs more than the slack alone."""
+    lr_schedule: str = "constant"
+    """A deviation from the paper when not ``constant`` (the paper's Adam runs at one rate), off by default: the
+    learning rate of update ``u`` (0-based) falls from :attr:`lr` at update 0 to :attr:`lr_final` at update
+    :attr:`lr_decay_updates` and stays there: ``linear``, or ``cosine`` (a half cosine). It is a function of the
+    update counter, which a checkpoint holds, so a resumed run continues the same schedule (A3C: of the shared
+    update counter, read by each worker before its step)."""
+    lr_final: float = 0.0
+    """The learning rate at the end of a ``linear`` or ``cosine`` :attr:`lr_schedule` (not used by ``constant``)."""
+    lr_decay_updates: int | None = None
+    """Updates over which a ``linear`` or ``cosine`` :attr:`lr_schedule` decays; None: the ``updates`` budget. Part
+    of the run's identity: a run resumed with another ``updates`` budget and no ``lr_decay_updates`` is refused
+    (its schedule would change), so to train a scheduled run past its budget name the horizon it started with."""
     reward_settings: dict = field(default_factory=dict)
     """The reward's constants where they differ from the paper's: fields of
     :class:`~tsnav.tsrm.reward.RewardConfig` (K_e ``k_explore``, K_d ``k_distance``, ``collision_penalty``,
-    ``slack``, ``success_reward``, ``exact_area``, and ``area``: the trapezoid's distances ``near_level``,
-    ``far_level``, ``near_down``, ``far_down``) other than ``variant`` (:attr:`reward`) and
+    ``slack``, ``success_reward``, ``exact_area``, ``k_regret``, and ``area``: the trapezoid's distances
+    ``near_level``, ``far_level``, ``near_down``, ``far_down``) other than ``variant`` (:attr:`reward`) and
     ``distance_increase_scale``. A recipe's ``[reward]`` section and the ``--k-distance``-style options set
     them; kept canonical (only values that differ from the defaults), so a run without them equals one that
     names the defaults."""
@@ -198,6 +215,20 @@ class TrainConfig:
         self.reward_settings = reward_settings_of(self.reward_config())  # checks the values, canonical form
         if not self.lr > 0:
             raise ValueError(f"lr must be positive, got {self.lr}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"unknown lr_schedule {self.lr_schedule!r} (choose from {', '.join(LR_SCHEDULES)})")
+        if self.lr_schedule == "constant":
+            if self.lr_final != 0.0 or self.lr_decay_updates is not None:
+                raise ValueError("lr_final and lr_decay_updates apply to lr_schedule linear or cosine, not constant")
+        else:
+            if not 0.0 <= self.lr_final <= self.lr:
+                raise ValueError(f"lr_final must be in [0, lr = {self.lr}], got {self.lr_final}")
+            if self.lr_decay_updates is None and self.updates is None:
+                raise ValueError(
+                    f"lr_schedule {self.lr_schedule!r} needs a horizon: an updates budget or lr_decay_updates"
+                )
+            if self.lr_decay_updates is not None and self.lr_decay_updates < 1:
+                raise ValueError(f"lr_decay_updates must be >= 1, got {self.lr_decay_updates}")
         for name in ("entropy_coef", "value_coef", "max_grad_norm"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -253,6 +284,22 @@ class TrainConfig:
         ]
         return min(1.0, max(parts))
 
+    @property
+    def lr_horizon(self) -> int | None:
+        """Updates over which the learning rate decays (:attr:`lr_decay_updates`, else the ``updates`` budget);
+        None with a ``constant`` :attr:`lr_schedule`."""
+        if self.lr_schedule == "constant":
+            return None
+        return self.lr_decay_updates if self.lr_decay_updates is not None else self.updates
+
+    def lr_at(self, update: int) -> float:
+        """The learning rate of the update that follows ``update`` finished updates (:attr:`lr_schedule`)."""
+        if self.lr_schedule == "constant":
+            return self.lr
+        if self.lr_schedule == "linear":
+            return linear_decay(update, self.lr_horizon, self.lr, self.lr_final)
+        return warmup_cosine(update, self.lr_horizon, self.lr, 0, self.lr_final)
+
     def to_dict(self) -> dict:
         return asdict(self)
 
@@ -261,8 +308,12 @@ class TrainConfig:
         return from_fields(cls, d, "training config")
 
     def identity(self) -> dict:
-        """The fields that define the run (everything but the budget)."""
-        return {k: v for k, v in asdict(self).items() if k not in BUDGET_FIELDS}
+        """The fields that define the run (everything but the budget; with a learning-rate schedule its horizon,
+        :attr:`lr_horizon`, as ``lr_decay_updates``)."""
+        out = {k: v for k, v in asdict(self).items() if k not in BUDGET_FIELDS}
+        if self.lr_schedule != "constant":
+            out["lr_decay_updates"] = self.lr_horizon
+        return out
 
     def reward_config(self) -> RewardConfig:
         """The :class:`~tsnav.tsrm.reward.RewardConfig` of this run: variant ``reward``, the paper's constants

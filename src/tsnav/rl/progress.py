@@ -35,6 +35,19 @@ def resume_progress(
     return progress, found[1]
 
 
+def schedule_lr(cfg: TrainConfig, optimizer: torch.optim.Optimizer, update: int, parts: dict | None = None) -> None:
+    """Set the learning rate of the update that follows ``update`` finished updates (:meth:`TrainConfig.lr_at`)
+    in every parameter group of ``optimizer``, and record it as ``parts["lr"]`` (a log column). A ``constant``
+    schedule leaves the optimizer as it is (the rate it was made with) and adds no column."""
+    if cfg.lr_schedule == "constant":
+        return
+    lr = cfg.lr_at(update)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    if parts is not None:
+        parts["lr"] = lr
+
+
 def budget_used(cfg: TrainConfig, progress: dict, final_checkpoint: Callable[[], None]) -> bool:
     """Whether the run's budget is used up, so that there is nothing to train; a run that is not yet marked
     ``finished`` is then marked so and ``final_checkpoint()`` writes it (once: a finished run is not written

@@ -136,9 +136,13 @@ def run_recipe(cfg: TrainConfig, agent: AgentConfig) -> dict:
 
 
 def identity_recipe(cfg: TrainConfig, agent: AgentConfig) -> dict:
-    """:func:`run_recipe` without the budget (which may change when a run is resumed)."""
+    """:func:`run_recipe` without the budget (which may change when a run is resumed); with a learning-rate
+    schedule, its horizon (:attr:`TrainConfig.lr_horizon`, which the ``updates`` budget sets when
+    ``lr_decay_updates`` is None) as ``lr_decay_updates``."""
     r = run_recipe(cfg, agent)
     r["train"] = {k: v for k, v in r["train"].items() if k not in BUDGET_FIELDS}
+    if cfg.lr_schedule != "constant":
+        r["train"]["lr_decay_updates"] = cfg.lr_horizon
     return r
 
 
@@ -155,6 +159,8 @@ def refuse_other_settings(out: str | Path, stored: tuple, now: tuple) -> None:
         detail = f"trained {'with' if was else 'without'} {option}, given {'with' if new else 'without'} it"
     else:
         detail = f"{was} saved, {new} given"
+    if name == "lr_decay_updates":
+        detail += f" (a scheduled run keeps its horizon: --lr-decay-updates {was} trains it past its budget)"
     raise CommandError(
         f"{out} holds a run with another configuration ({name}): {detail}; use another --out or the run's settings"
     )

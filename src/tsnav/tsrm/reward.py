@@ -14,6 +14,10 @@ term            value                                                           
                 at horizon 0 or LookDown at 30 also fails but is no collision (``sim.batch``)
 ``slack``       -0.01 at every step, the final one included (III-D (iv))                         all
 ``success``     +5 when Done succeeds (III-D (v))                                                all
+``regret``      a deviation from the paper: ``K_r * (D(s_{t-1}) - D(s_t) - 1)`` for a movement   tsrm-
+                action taken in the pathfinding stage, ``D`` the shortest action count to a      regret
+                success state on the state graph (L*), ``K_r = k_regret`` (0.05): each action
+                beyond a shortest path costs ``K_r`` (:class:`~tsnav.tsrm.terms.RegretTerm`)
 ==============  ==============================================================================  =========
 
 Stages (III-B, "Dividing point"): an episode starts in the searching stage and enters the pathfinding stage,
@@ -34,8 +38,8 @@ nothing, because ``T_t = T_{t-1}`` is already in ``RG_{t-1}``.
 Variants (Table II of the paper): ``baseline`` keeps collision, slack and success - the paper's baseline is
 the lineage's reward with "the two-stage reward mechanism not applied", and the collision penalty is part of
 the common reward of III-D, not of TSRM; ``explore`` and ``distance`` add one TSRM term each; ``tsrm`` adds
-both; ``sparse`` keeps slack and success only. Stages are tracked in every variant (the SSR / SSSPL / NSNPL
-metrics need them). Every term is always returned (zeros when switched off) for logging.
+both; ``sparse`` keeps slack and success only; ``tsrm-regret`` (not the paper's) adds the regret term to ``tsrm``.
+Stages are tracked in every variant (the SSR / SSSPL / NSNPL metrics need them). Every term is always returned (zeros when switched off) for logging.
 
 Each term is a class of :mod:`tsnav.tsrm.terms` holding its batched, scalar and reference code; a variant is a
 list of term names (``VARIANT_TERMS``). :class:`TSRMReward` and :class:`TSRMRewardReference` only run the terms
@@ -68,8 +72,9 @@ class RewardConfig:
 
     variant: str = "tsrm"
     """Which terms are on: 'baseline' (collision, slack, success), 'explore' (+ exploration), 'distance'
-    (+ distance), 'tsrm' (all), 'sparse' (slack, success); the ablation of Table II. Any variant registered
-    with :func:`~tsnav.tsrm.terms.register_variant`."""
+    (+ distance), 'tsrm' (the paper's reward), 'sparse' (slack, success); the ablation of Table II; 'tsrm-regret'
+    (tsrm + the regret term, a deviation from the paper). Any variant registered with
+    :func:`~tsnav.tsrm.terms.register_variant`."""
     k_explore: float = 0.1
     """K_e, reward per square metre of newly searched floor (eq. ExploreReward)."""
     k_distance: float = 0.15
@@ -86,6 +91,11 @@ class RewardConfig:
     """Added at every step (III-D (iv))."""
     success_reward: float = 5.0
     """Added when Done succeeds (III-D (v))."""
+    k_regret: float = 0.05
+    """K_r of the ``regret`` term, a deviation from the paper that only the ``tsrm-regret`` variant switches on
+    (:class:`~tsnav.tsrm.terms.RegretTerm`): a pathfinding step is charged ``K_r`` per action by which it
+    lengthened the shortest remaining way to the target (0 along a shortest path, 1 for a wasted action, 2 for a
+    turn the wrong way, more for a step away)."""
     area: AreaConfig = field(default_factory=AreaConfig)
     """Observable trapezoid (1/4 m at horizon 0, 0.25/3 m at horizon 30) and the fast raster's sample size."""
     exact_area: bool = False
@@ -97,6 +107,8 @@ class RewardConfig:
             raise ValueError(f"unknown reward variant {self.variant!r} (choose from {', '.join(VARIANTS)})")
         if not self.distance_increase_scale >= 0:
             raise ValueError(f"distance_increase_scale must be >= 0, got {self.distance_increase_scale}")
+        if not self.k_regret >= 0:
+            raise ValueError(f"k_regret must be >= 0, got {self.k_regret}")
         if isinstance(self.area, dict):  # from a saved JSON config
             object.__setattr__(self, "area", AreaConfig(**self.area))
 

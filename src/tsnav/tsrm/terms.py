@@ -32,7 +32,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..sim.paths import UNREACHABLE
+from ..constants import DONE
+from ..sim.paths import UNREACHABLE, bfs_reference
 from .area import AreaIndex, BatchCoverage, ExactSearchedRegion, scene_floor
 from .distance import bank_pose_distance, distance_delta, pose_distance_reference, pose_nodes
 
@@ -374,6 +375,73 @@ class SuccessTerm(RewardTerm):
         return self.config.success_reward if success else 0.0
 
 
+class RegretTerm(RewardTerm):
+    """A deviation from the paper, off by default (in no variant of the paper; variant ``tsrm-regret``): for a
+    movement action taken in the pathfinding stage, ``K_r * (D(s_{t-1}) - D(s_t) - 1)`` with ``K_r = k_regret``,
+    ``D(s)`` the shortest number of movement actions (turns and looks included, Done not) from state ``s`` to a
+    success state of the target on the state graph: the optimal path length L* of SPL and NSNPL
+    (``SceneBank.dist``, :func:`tsnav.sim.paths.distance_fields`; 0 where either end is unreachable).
+
+    ``1 + D(s_t) - D(s_{t-1})`` is the action's *regret*: by how many actions it lengthened the shortest way from
+    where the step started (the action itself plus what is left, against what was left): 0 for a step along a
+    shortest path, 1 for a step that leaves ``D`` as it was (a look the way does not need, a failed move), 2 for a
+    turn the wrong way, more for a MoveAhead away (coming back takes turns). Summed over the pathfinding stage it is ``K_r`` times the actions taken beyond the
+    shortest path, ``L - (D(switch) - D(end))``, which NSNPL charges. The paper's distance term is a difference
+    of potentials (``K_d`` per pose-graph action of progress), whose sum over the stage does not depend on the
+    path: a turn the long way round (six 45-degree turns instead of two) earns what the short way earns and costs
+    only the slack, 0.01 per action; with this term each extra action costs ``K_r`` more. Done earns nothing here
+    (a wrong Done ends the episode without the success reward; a right one has ``D = 0``)."""
+
+    name = "regret"
+
+    def constants(self):
+        return (self.config.k_regret * -1, self.config.k_regret * -2)
+
+    def bind(self, owner) -> None:
+        super().bind(owner)
+        self.dist = owner.bank.dist
+
+    def step(self, prev, action, new, collided, done, success, searching) -> np.ndarray:
+        out = np.zeros(len(new), dtype=np.float64)
+        rows = np.flatnonzero(~np.asarray(searching, dtype=bool) & (np.asarray(action) != DONE))
+        target = self.owner.target[rows]
+        d0 = self.dist[prev[rows], target].astype(np.int64)
+        d1 = self.dist[new[rows], target].astype(np.int64)
+        ok = (d0 != UNREACHABLE) & (d1 != UNREACHABLE)
+        out[rows] = np.where(ok, self.config.k_regret * (d0 - d1 - 1), 0.0)
+        return out
+
+    def step_one(self, prev, action, new, collided, done, success, searching) -> float:
+        if searching or action == DONE:
+            return 0.0
+        target = int(self.owner.target[0])
+        d0, d1 = int(self.dist[prev, target]), int(self.dist[new, target])
+        if d0 == UNREACHABLE or d1 == UNREACHABLE:
+            return 0.0
+        return self.config.k_regret * (d0 - d1 - 1)
+
+    def bind_reference(self, owner) -> None:
+        super().bind_reference(owner)
+        self._remaining_cache: dict[int, np.ndarray] = {}
+
+    def reference_reset(self, target, start, searching) -> None:
+        owner = self.owner
+        if target not in self._remaining_cache:  # a Python BFS over the state graph, once per target
+            sc = owner.scene
+            success = sc.success_table(owner.protocol, owner.success_distance)[:, target]
+            self._remaining_cache[target] = bfs_reference(sc.next_state, success)
+        self._remaining = self._remaining_cache[target]
+
+    def reference_step(self, prev, action, new, collided, done, success, searching) -> float:
+        if searching or action == DONE:
+            return 0.0
+        before, after = int(self._remaining[prev]), int(self._remaining[new])
+        if before == UNREACHABLE or after == UNREACHABLE:
+            return 0.0
+        regret = 1 + after - before  # the action taken plus what is left, against what was left
+        return -self.config.k_regret * regret
+
+
 #: Every reward term by name, in the order they are summed and reported.
 TERM_CLASSES: dict[str, type[RewardTerm]] = {}
 #: Terms each variant switches on (Table II of the paper, and the sparse reward of the lineage).
@@ -435,10 +503,12 @@ def register_variant(name: str, terms: Sequence[str]) -> None:
     VARIANT_TERMS[name] = tuple(terms)
 
 
-for _cls in (ExploreTerm, DistanceTerm, CollisionTerm, SlackTerm, SuccessTerm):
+for _cls in (ExploreTerm, DistanceTerm, CollisionTerm, SlackTerm, SuccessTerm, RegretTerm):
     register_term(_cls)
 register_variant("baseline", ("collision", "slack", "success"))
 register_variant("explore", ("explore", "collision", "slack", "success"))
 register_variant("distance", ("distance", "collision", "slack", "success"))
 register_variant("tsrm", ("explore", "distance", "collision", "slack", "success"))
 register_variant("sparse", ("slack", "success"))
+# deviations from the paper, off unless named
+register_variant("tsrm-regret", ("explore", "distance", "collision", "slack", "success", "regret"))
