@@ -18,7 +18,11 @@ fingerprint must match the one recorded at packing.
 ``tsnav release eval`` builds the 20 real test rooms (``ithor-real`` at the card's frame size), writes the
 shipped detector's tables and the shipped encoder's features into them, draws the test episodes exactly as the
 experiments do (250 per room type, seed 0) and evaluates the agent greedily, beside the scripted explorer with
-the same stage switch and the random policy; every step is skipped when its output exists. When nothing changed
+the same stage switch and the random policy; every step is skipped when its output exists. A card that names an
+``eval_split`` and ``episodes = "challenge"`` (a RoboTHOR agent, :data:`~tsnav.pipeline.agent_steps.WORLD_EVAL`) is
+evaluated on that split by default (RoboTHOR has no test split): its rooms only (the 15 val scenes, built into
+``out/release/world-robothor-real-vN`` by default), the challenge's episodes of the split packaged with tsnav,
+converted under each protocol by :mod:`tsnav.sim.challenge` and written once beside the results. When nothing changed
 since the last evaluation into the same folder (:func:`release_inputs`: the agent's and encoder's weights, the
 rooms, detection tables and feature caches, the episode lists and the settings, recorded in ``results.json``),
 a second run prints the saved table and says so in one line; ``--force`` evaluates again. A ``--data`` folder that
@@ -590,7 +594,11 @@ def format_rows(rows: list[dict]) -> str:
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    ev = sub.add_parser("eval", help="evaluate a shipped agent on the real test rooms (builds what it needs)")
+    ev = sub.add_parser(
+        "eval",
+        help="evaluate a shipped agent on the real test rooms, a RoboTHOR agent on the val scenes' challenge "
+        "episodes (builds what it needs)",
+    )
     ev.add_argument(
         "--agent", default=None, help="shipped agent name or folder (default: the default one; `tsnav release list`)"
     )
