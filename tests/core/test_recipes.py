@@ -440,6 +440,12 @@ def test_robothor_recipe_never_scores_on_its_benchmark(tmp_path, capsys):
         resolve_agent(apply_sets(seven, ['scoring.episodes="challenge-train"'], ("scoring",)), tmp_path)
     with pytest.raises(CommandError, match="episodes must be one of val, challenge-train, none"):
         resolve_agent(apply_sets(recipe, ['scoring.episodes="test"'], ("scoring",)), tmp_path)
+    with pytest.raises(CommandError, match=r"chunks = false needs \[select\] per_room_type"):
+        resolve_agent(apply_sets(recipe, ['select.per_room_type="none"'], ("select",)), tmp_path)
+    none = resolve_agent(
+        apply_sets(recipe, ['scoring.episodes="none"', 'select.per_room_type="none"'], ("scoring", "select")), tmp_path
+    )
+    assert none.scoring.episodes == "none"  # nothing scored: the last checkpoint is packed
     work = tmp_path / "work"
     assert main(["release", "make", str(ROBOTHOR), "--work", str(work)]) == 2
     err = capsys.readouterr().err

@@ -29,7 +29,8 @@ feature cache, training in chunks (``tsnav convergence``), the second selection 
 resumes and is skipped when done. A RoboTHOR agent (``[world] preset = "robothor-real"``) is benchmarked on the
 val scenes (:data:`~tsnav.pipeline.agent_steps.WORLD_EVAL`), so its checkpoints are scored on a sample of the
 challenge's train episodes on the train scenes (``[scoring] episodes = "challenge-train"``) or not at all
-(``"none"``: the last checkpoint is packed); a recipe scoring them on its val scenes is refused. Packing and the evaluations that fill the card are :mod:`tsnav.pipeline.release`'s.
+(``"none"``: the last checkpoint is packed); a recipe scoring them on its val scenes is refused. Packing and the
+evaluations that fill the card are :mod:`tsnav.pipeline.release`'s.
 The recipe carries no machine path: the folders are the work folder's.
 """
 
@@ -198,6 +199,7 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
         raise CommandError("[card]: the model card needs at least a summary")
     world = build(WorldSettings, recipe.get("world"), "world")
     scoring = build(ScoringSettings, recipe.get("scoring"), "scoring")
+    select = build(SelectSettings, recipe.get("select"), "select")
     bench = WORLD_EVAL.get(world.preset, {}).get("eval_split", "test")
     if scoring.episodes == "val" and bench == "val":
         raise CommandError(
@@ -206,8 +208,11 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
         )
     if scoring.episodes == "challenge-train" and not world.preset.startswith("robothor"):
         raise CommandError(f'[scoring]: episodes "challenge-train" are RoboTHOR\'s, not of the {world.preset} world')
-    if scoring.episodes != "none" and not scoring.chunks and run[0].milestone_every is None:
-        raise CommandError("[scoring]: chunks = false needs train.milestone_every (the milestones [select] scores)")
+    if scoring.episodes != "none" and not scoring.chunks:
+        if run[0].milestone_every is None:
+            raise CommandError("[scoring]: chunks = false needs train.milestone_every (the milestones [select] scores)")
+        if select.per_room_type is None:
+            raise CommandError("[scoring]: chunks = false needs [select] per_room_type (nothing else scores them)")
     return AgentRecipe(
         name=name,
         world=world,
@@ -217,7 +222,7 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
         run=run,
         scoring=scoring,
         convergence=build(ConvergenceConfig, recipe.get("convergence"), "convergence"),
-        select=build(SelectSettings, recipe.get("select"), "select"),
+        select=select,
         card=dict(card),
     )
 
