@@ -389,3 +389,99 @@ def test_train_reads_its_sections_of_an_agent_recipe(capsys, tmp_path):
     (tmp_path / "r.toml").write_text(path.read_text().replace("[world]", "[wrold]"))
     with pytest.raises(CommandError, match="wrold"):
         recipe_from_args(parse("train", ["--config", str(tmp_path / "r.toml"), "--data", "d", "--out", "o"]))
+
+
+# -- the RoboTHOR agent's recipe -----------------------------------------------------------------------------------
+
+ROBOTHOR = CONFIGS / "agents" / "tsrm-demae-robothor.toml"
+
+
+def test_robothor_recipe_is_learned7s_run_on_robothor(tmp_path):
+    """configs/agents/tsrm-demae-robothor.toml: learned7's [train], [reward] and [agent] but max_steps and the
+    detection tables, on the robothor-real world with the robothor1 detector, its checkpoints scored on the
+    challenge's train episodes after training (never on the val scenes, the benchmark)."""
+    from tsnav.pipeline.agent_recipe import resolve_agent
+
+    r = resolve_agent(read_recipe(ROBOTHOR), tmp_path)
+    seven = resolve_agent(read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml"), tmp_path)
+    ours, theirs = identity_recipe(*r.run), identity_recipe(*seven.run)
+    assert (ours["train"]["max_steps"], ours["train"]["detections"]) == (100, "robothor1")
+    for d in (ours, theirs):
+        for k in ("max_steps", "detections"):
+            d["train"].pop(k)
+    assert first_difference(theirs, ours) is None
+    assert (r.world.preset, r.world.version) == ("robothor-real", 1)
+    assert (r.detections.shipped, r.detections.name) == ("robothor1", "robothor1")
+    assert r.pretrain == seven.pretrain and r.features == seven.features
+    assert (r.run[0].split, r.run[0].algo, r.run[0].reward, r.run[0].protocol) == (
+        "train",
+        "batched",
+        "tsrm",
+        "lineage",
+    )
+    assert (r.run[0].milestone_every, r.run[0].updates) == (250, 4000)
+    assert (r.scoring.episodes, r.scoring.chunks, r.scoring.challenge) == ("challenge-train", False, "")
+    assert r.select.per_room_type and not r.card.get("default")
+    assert "RoboTHOR" in r.card["summary"] and "RoboTHOR" in r.card["rooms"]
+    # the resolved recipe reads back to the same agent
+    again = resolve_agent(read_recipe_text(dump_recipe(r.to_recipe())), tmp_path)
+    assert again.to_recipe() == r.to_recipe() and again.scoring == r.scoring
+
+
+def test_robothor_recipe_never_scores_on_its_benchmark(tmp_path, capsys):
+    """The val scenes are RoboTHOR's benchmark: a recipe scoring checkpoints on them is refused, as are challenge
+    episodes for an iTHOR agent and a challenge-train scoring without the challenge's folder; all before any work."""
+    from tsnav.pipeline.agent_recipe import resolve_agent
+
+    recipe = read_recipe(ROBOTHOR)
+    with pytest.raises(CommandError, match=r'episodes "val" would choose checkpoints on the robothor-real val scenes'):
+        resolve_agent(apply_sets(recipe, ['scoring.episodes="val"'], ("scoring",)), tmp_path)
+    seven = read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml")
+    with pytest.raises(CommandError, match="RoboTHOR's, not of the ithor-real world"):
+        resolve_agent(apply_sets(seven, ['scoring.episodes="challenge-train"'], ("scoring",)), tmp_path)
+    with pytest.raises(CommandError, match="episodes must be one of val, challenge-train, none"):
+        resolve_agent(apply_sets(recipe, ['scoring.episodes="test"'], ("scoring",)), tmp_path)
+    with pytest.raises(CommandError, match=r"chunks = false needs \[select\] per_room_type"):
+        resolve_agent(apply_sets(recipe, ['select.per_room_type="none"'], ("select",)), tmp_path)
+    none = resolve_agent(
+        apply_sets(recipe, ['scoring.episodes="none"', 'select.per_room_type="none"'], ("scoring", "select")), tmp_path
+    )
+    assert none.scoring.episodes == "none"  # nothing scored: the last checkpoint is packed
+    work = tmp_path / "work"
+    assert main(["release", "make", str(ROBOTHOR), "--work", str(work)]) == 2
+    err = capsys.readouterr().err
+    assert "give their folder with --challenge DIR" in err and len(err.strip().splitlines()) == 1
+    assert main(["release", "make", str(ROBOTHOR), "--work", str(work), "--challenge", str(tmp_path)]) == 2
+    assert "no train/*.json.gz" in capsys.readouterr().err
+    assert not work.exists()
+
+
+def test_robothor_agent_card(tmp_path, monkeypatch):
+    """agent_card of the RoboTHOR recipe: its eval split and episodes, the val scenes and no test rooms (the
+    lead registers the robothor1 detector; here a stand-in's fingerprint)."""
+    from tsnav.data.names import robothor_scenes
+    from tsnav.detect import shipped
+    from tsnav.pipeline.agent_recipe import resolve_agent
+    from tsnav.pipeline.release import CARD_REQUIRED, agent_card
+
+    monkeypatch.setattr(shipped, "shipped_meta", lambda name=None: {"fingerprint": f"learned-{name}"})
+    world = tmp_path / "world"
+    for n in robothor_scenes():  # scene folders that list_scenes reads: the 75 apartments and their splits
+        (world / n).mkdir(parents=True)
+        (world / n / "scene.json").write_text(json.dumps({"split": "train" if "Train" in n else "val"}))
+        (world / n / "COMPLETE").write_text("")
+    r = resolve_agent(read_recipe(ROBOTHOR), tmp_path)
+    card = agent_card(r, world)
+    assert all(k in card for k in CARD_REQUIRED)
+    assert (card["world_preset"], card["world_version"], card["image_size"]) == ("robothor-real", 1, 128)
+    assert (card["detector_shipped"], card["detections"], card["detector_fingerprint"]) == (
+        "robothor1",
+        "robothor1",
+        "learned-robothor1",
+    )
+    assert (card["eval_split"], card["episodes"]) == ("val", "challenge")
+    assert card["val_rooms"] == robothor_scenes("val") and "test_rooms" not in card
+    assert "--challenge CHALLENGE_DIR" in card["commands"][0]
+    # an iTHOR card is written as before: no eval_split or episodes
+    seven = agent_card(resolve_agent(read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml"), tmp_path), world)
+    assert not {"eval_split", "episodes"} & set(seven) and {"val_rooms", "test_rooms"} <= set(seven)

@@ -13,6 +13,9 @@ section             what
 ``[train]``         training (:class:`~tsnav.rl.config.TrainConfig`; ``data``, ``features``, ``detections`` are
                     filled in), ``[reward]`` its reward's constants, ``[agent]`` its network
                     (:mod:`tsnav.rl.recipe`)
+``[scoring]``       which episodes score the checkpoints in ``[convergence]`` and ``[select]``: the world's
+                    val rooms, a fixed sample of the RoboTHOR challenge's train episodes, or none
+                    (:class:`ScoringSettings`)
 ``[convergence]``   training in chunks scored on validation episodes (:class:`~tsnav.pipeline.convergence.
                     ConvergenceConfig`)
 ``[select]``        the milestones scored again on more validation episodes (:class:`SelectSettings`)
@@ -23,7 +26,11 @@ section             what
 
 :func:`make_agent` runs the steps into a work folder: the world, the detector's tables, pretraining and the
 feature cache, training in chunks (``tsnav convergence``), the second selection (``tsnav select``). Every step
-resumes and is skipped when done. Packing and the evaluations that fill the card are :mod:`tsnav.pipeline.release`'s.
+resumes and is skipped when done. A RoboTHOR agent (``[world] preset = "robothor-real"``) is benchmarked on the
+val scenes (:data:`~tsnav.pipeline.agent_steps.WORLD_EVAL`), so its checkpoints are scored on a sample of the
+challenge's train episodes on the train scenes (``[scoring] episodes = "challenge-train"``) or not at all
+(``"none"``: the last checkpoint is packed); a recipe scoring them on its val scenes is refused. Packing and the
+evaluations that fill the card are :mod:`tsnav.pipeline.release`'s.
 The recipe carries no machine path: the folders are the work folder's.
 """
 
@@ -41,10 +48,11 @@ from ..rl.recipe import SECTIONS as RUN_SECTIONS
 from ..rl.recipe import resolve_run, run_recipe
 from ..settings import build, to_recipe
 from .convergence import ConvergenceConfig, run_convergence
-from .steps import EncoderSpec, ensure_encoder, ensure_episodes, ensure_features, say
+from .agent_steps import WORLD_EVAL
+from .steps import EncoderSpec, ensure_challenge_episodes, ensure_encoder, ensure_episodes, ensure_features, say
 
 #: The sections of an agent's recipe (besides ``name``).
-SECTIONS = ("world", "detections", "pretrain", "features", *RUN_SECTIONS, "convergence", "select", "card")
+SECTIONS = ("world", "detections", "pretrain", "features", *RUN_SECTIONS, "scoring", "convergence", "select", "card")
 
 
 @dataclass
@@ -53,9 +61,10 @@ class WorldSettings:
 
     preset: str = "ithor-real"
     """World preset (``tsnav world --preset``): ``ithor-real``, the 120 real iTHOR rooms rebuilt from their recorded
-    layouts (80 train, 20 val, 20 test)."""
+    layouts (80 train, 20 val, 20 test); ``robothor-real``, RoboTHOR's 75 apartments (60 train, 15 val: the
+    benchmark)."""
     version: int | None = None
-    """Rules version of the ``ithor-real`` world (``tsnav world --world-version``; None: the default)."""
+    """Rules version of the world (``tsnav world --world-version``; None: the default)."""
     workers: int = 2
     """World-building processes (the same rooms for any number)."""
 
@@ -86,6 +95,35 @@ class FeatureSettings:
     another order: the shipped encoders were pretrained and cached on one)."""
 
 
+#: Where the checkpoints' scoring episodes come from (:class:`ScoringSettings`).
+SCORING_EPISODES = ("val", "challenge-train", "none")
+
+
+@dataclass
+class ScoringSettings:
+    """Which episodes score the run's checkpoints: the ``[convergence]`` chunks and the ``[select]`` step."""
+
+    episodes: str = "val"
+    """``val``: episodes drawn on the world's val rooms (``tsnav episodes --split val``; the iTHOR agents, benchmarked
+    on the test rooms); ``challenge-train``: fixed samples of the RoboTHOR challenge's train episodes converted on
+    the train scenes (``tsnav thor challenge-episodes --split train``), ``[convergence] val_per_room_type`` of them
+    drawn with seed 0 and ``[select] per_room_type`` with ``[select] seed`` (the apartments are one room type: these
+    are the samples' sizes); ``none``: nothing scored, training runs to its budget and its last checkpoint is
+    packed."""
+    challenge: str = ""
+    """The challenge's episode folder holding ``train/`` (robothor-challenge's ``dataset/``, e.g.
+    ``../shared/robothor/challenge_episodes``; its train episodes are not packaged with tsnav), read by
+    ``challenge-train``; ``tsnav release make --challenge DIR`` gives it instead."""
+    chunks: bool = True
+    """Score every ``[convergence]`` chunk while training (its patience may stop training early); false: train to
+    the budget in one go, keeping a milestone every ``train.milestone_every`` updates, and let ``[select]`` score
+    them."""
+
+    def __post_init__(self):
+        if self.episodes not in SCORING_EPISODES:
+            raise ValueError(f"episodes must be one of {', '.join(SCORING_EPISODES)}, got {self.episodes!r}")
+
+
 @dataclass
 class SelectSettings:
     """The milestones of the run scored again on more validation episodes after training (``tsnav select`` in a
@@ -108,6 +146,7 @@ class AgentRecipe:
     features: FeatureSettings = field(default_factory=FeatureSettings)
     run: tuple = ()
     """``(TrainConfig, AgentConfig)`` of training (its data and features are the work folder's)."""
+    scoring: ScoringSettings = field(default_factory=ScoringSettings)
     convergence: ConvergenceConfig = field(default_factory=ConvergenceConfig)
     select: SelectSettings = field(default_factory=SelectSettings)
     card: dict = field(default_factory=dict)
@@ -124,6 +163,7 @@ class AgentRecipe:
             "pretrain": to_recipe(self.pretrain),
             "features": to_recipe(self.features),
             **run,
+            "scoring": to_recipe(self.scoring),
             "convergence": to_recipe(self.convergence),
             "select": to_recipe(self.select),
             "card": self.card,
@@ -157,15 +197,32 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
     card = recipe.get("card") or {}
     if not isinstance(card, dict) or not card.get("summary"):
         raise CommandError("[card]: the model card needs at least a summary")
+    world = build(WorldSettings, recipe.get("world"), "world")
+    scoring = build(ScoringSettings, recipe.get("scoring"), "scoring")
+    select = build(SelectSettings, recipe.get("select"), "select")
+    bench = WORLD_EVAL.get(world.preset, {}).get("eval_split", "test")
+    if scoring.episodes == "val" and bench == "val":
+        raise CommandError(
+            f'[scoring]: episodes "val" would choose checkpoints on the {world.preset} val scenes, its benchmark: '
+            f'use "challenge-train" (a sample of the challenge\'s train episodes) or "none" (the last checkpoint)'
+        )
+    if scoring.episodes == "challenge-train" and not world.preset.startswith("robothor"):
+        raise CommandError(f'[scoring]: episodes "challenge-train" are RoboTHOR\'s, not of the {world.preset} world')
+    if scoring.episodes != "none" and not scoring.chunks:
+        if run[0].milestone_every is None:
+            raise CommandError("[scoring]: chunks = false needs train.milestone_every (the milestones [select] scores)")
+        if select.per_room_type is None:
+            raise CommandError("[scoring]: chunks = false needs [select] per_room_type (nothing else scores them)")
     return AgentRecipe(
         name=name,
-        world=build(WorldSettings, recipe.get("world"), "world"),
+        world=world,
         detections=det,
         pretrain=build(PretrainConfig, recipe.get("pretrain"), "pretrain"),
         features=feats,
         run=run,
+        scoring=scoring,
         convergence=build(ConvergenceConfig, recipe.get("convergence"), "convergence"),
-        select=build(SelectSettings, recipe.get("select"), "select"),
+        select=select,
         card=dict(card),
     )
 
@@ -179,11 +236,44 @@ class MadeAgent:
     run: Path
     encoder_run: Path
     features: str
+    last: bool = False
+    """Pack the run's last checkpoint, not its ``best`` (``[scoring] episodes = "none"``: nothing chose one)."""
+
+    @property
+    def checkpoint(self) -> Path:
+        """The checkpoint folder to pack."""
+        if not self.last:
+            return self.run / "best"
+        from ..rl.checkpoint import latest_checkpoint
+
+        ck = latest_checkpoint(self.run)
+        if ck is None:
+            raise CommandError(f"{self.run}: no checkpoint to pack")
+        return ck
 
 
-def make_agent(r: AgentRecipe, work: Path, *, until: str = "select") -> MadeAgent:
+def challenge_folder(r: AgentRecipe, challenge: str | Path | None = None) -> Path | None:
+    """The challenge's episode folder that ``[scoring] episodes = "challenge-train"`` reads: ``challenge`` (``tsnav
+    release make --challenge``), else the recipe's ``scoring.challenge``; a one-line error when neither names a
+    folder holding ``train/*.json.gz``. None for the other scorings."""
+    if r.scoring.episodes != "challenge-train":
+        return None
+    folder = challenge or r.scoring.challenge
+    if not folder:
+        raise CommandError(
+            '[scoring]: episodes "challenge-train" reads the challenge\'s train episodes, which tsnav does not '
+            "package: give their folder with --challenge DIR (holding train/, e.g. "
+            "../shared/robothor/challenge_episodes) or scoring.challenge"
+        )
+    if not any((Path(folder) / "train").glob("*.json.gz")):
+        raise CommandError(f"--challenge {folder}: no train/*.json.gz (the challenge's episode folder holds train/)")
+    return Path(folder)
+
+
+def make_agent(r: AgentRecipe, work: Path, *, until: str = "select", challenge: str | Path | None = None) -> MadeAgent:
     """Run the steps of recipe ``r`` in ``work`` up to ``until`` (:data:`STEPS`), each resumed or skipped when
-    done."""
+    done; ``challenge``: the challenge's episode folder (:func:`challenge_folder`)."""
+    from ..data.reader import list_scenes
     from ..world.build import BuildConfig, build_dataset
 
     world = work / "world"
@@ -208,7 +298,8 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select") -> MadeAgen
         r.features.encoder, str(work / "pre" / r.features.run), pre.model, pre.patch_size, pre.img_size, pre
     )
     ensure_encoder(es, world)
-    features = ensure_features(es, world, ["train", "val", "test"], batch_size=r.features.batch_size, device=pre.device)
+    splits = [s for s in ("train", "val", "test") if list_scenes(world, s)]  # RoboTHOR has no test split
+    features = ensure_features(es, world, splits, batch_size=r.features.batch_size, device=pre.device)
     made = MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, features)
     if until == "features":
         return made
@@ -216,13 +307,43 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select") -> MadeAgen
 
     cfg, agent = r.run
     cfg = replace(cfg, features=features)
-    conv = r.convergence
-    run_convergence(
-        cfg, agent, work / "conv", chunk=conv.chunk, val_per_room_type=conv.val_per_room_type, patience=conv.patience
-    )
+    conv, sc = r.convergence, r.scoring
+    folder = challenge_folder(r, challenge)
+    if sc.episodes == "none" or not sc.chunks:
+        from ..rl.train import train_run
+
+        say(
+            f"train {r.name} -> {made.run} (to update {cfg.updates}; checkpoints scored "
+            + ("never: the last is packed)" if sc.episodes == "none" else "after training by [select])")
+        )
+        train_run(cfg, agent, made.run, progress_bar=False)
+        if sc.episodes == "none":
+            return replace(made, last=True)
+    else:
+        scored = None
+        if sc.episodes == "challenge-train":
+            scored = ensure_challenge_episodes(
+                world,
+                "train",
+                work / "conv" / f"train_challenge_{cfg.protocol}.json",
+                cfg.protocol,
+                challenge=folder,
+                per_room_type=conv.val_per_room_type,
+                seed=0,
+            )
+        run_convergence(
+            cfg,
+            agent,
+            work / "conv",
+            chunk=conv.chunk,
+            val_per_room_type=conv.val_per_room_type,
+            patience=conv.patience,
+            episodes=scored,
+        )
     if until == "train" or r.select.per_room_type is None:
         return made
-    return MadeAgent(world, select_again(made.run, world, cfg.protocol, r.select, work), made.encoder_run, features)
+    copy = select_again(made.run, world, cfg.protocol, r.select, work, folder)
+    return MadeAgent(world, copy, made.encoder_run, features)
 
 
 def ensure_shipped_tables(world: Path, det: DetectionSettings) -> None:
@@ -240,14 +361,29 @@ def ensure_shipped_tables(world: Path, det: DetectionSettings) -> None:
         )
 
 
-def select_again(run: Path, world: Path, protocol: str, sel: SelectSettings, work: Path) -> Path:
+def select_again(
+    run: Path, world: Path, protocol: str, sel: SelectSettings, work: Path, challenge: Path | None = None
+) -> Path:
     """Score every milestone of ``run`` on ``sel.per_room_type`` validation episodes per room type (seed
-    ``sel.seed``) in a copy of it, ``RUN-select`` (the run keeps the training's own selection); returns the copy."""
+    ``sel.seed``) in a copy of it, ``RUN-select`` (the run keeps the training's own selection); returns the copy.
+    With ``challenge`` (the challenge's episode folder), the episodes are a sample of the challenge's train
+    episodes on the train scenes instead (``[scoring] episodes = "challenge-train"``)."""
     from ..eval.select import select_checkpoint
 
-    episodes = ensure_episodes(
-        world, "val", work / f"val_select_{protocol}.json", sel.per_room_type, seed=sel.seed, protocol=protocol
-    )
+    if challenge is not None:
+        episodes = ensure_challenge_episodes(
+            world,
+            "train",
+            work / f"train_challenge_select_{protocol}.json",
+            protocol,
+            challenge=challenge,
+            per_room_type=sel.per_room_type,
+            seed=sel.seed,
+        )
+    else:
+        episodes = ensure_episodes(
+            world, "val", work / f"val_select_{protocol}.json", sel.per_room_type, seed=sel.seed, protocol=protocol
+        )
     copy = run.with_name(run.name + "-select")
     if not copy.exists():
         tmp = copy.with_name(copy.name + ".tmp")

@@ -113,14 +113,16 @@ def run_convergence(
     patience: int | None = None,
     max_steps: int = 100,
     say=print,
+    episodes: str | Path | None = None,
 ) -> list[dict]:
     """Train ``cfg`` (its ``updates`` the total) with network ``agent`` in chunks of ``chunk`` updates under
-    ``OUT/run``, scoring each chunk's checkpoint on validation episodes; returns the curve points. Resumes
-    whatever was done before."""
+    ``OUT/run``, scoring each chunk's checkpoint on validation episodes (``val_per_room_type`` per room type drawn
+    on the val rooms, or the list ``episodes`` when given); returns the curve points. Resumes whatever was done
+    before."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     total = int(cfg.updates)
-    val = ensure_episodes(
+    val = episodes or ensure_episodes(
         cfg.data, "val", out / episodes_name("val", cfg.protocol), val_per_room_type, protocol=cfg.protocol
     )
     run = out / "run"

@@ -18,7 +18,11 @@ fingerprint must match the one recorded at packing.
 ``tsnav release eval`` builds the 20 real test rooms (``ithor-real`` at the card's frame size), writes the
 shipped detector's tables and the shipped encoder's features into them, draws the test episodes exactly as the
 experiments do (250 per room type, seed 0) and evaluates the agent greedily, beside the scripted explorer with
-the same stage switch and the random policy; every step is skipped when its output exists. When nothing changed
+the same stage switch and the random policy; every step is skipped when its output exists. A card that names an
+``eval_split`` and ``episodes = "challenge"`` (a RoboTHOR agent, :data:`~tsnav.pipeline.agent_steps.WORLD_EVAL`) is
+evaluated on that split by default (RoboTHOR has no test split): its rooms only (the 15 val scenes, built into
+``out/release/world-robothor-real-vN`` by default), the challenge's episodes of the split packaged with tsnav,
+converted under each protocol by :mod:`tsnav.sim.challenge` and written once beside the results. When nothing changed
 since the last evaluation into the same folder (:func:`release_inputs`: the agent's and encoder's weights, the
 rooms, detection tables and feature caches, the episode lists and the settings, recorded in ``results.json``),
 a second run prints the saved table and says so in one line; ``--force`` evaluates again. A ``--data`` folder that
@@ -46,7 +50,7 @@ from ..errors import CommandError, read_json
 from ..metrics import METRICS
 from ..protocol import PROTOCOLS, check_protocol, protocol_line
 from ..settings import add_shared, apply_sets, dump_recipe, read_recipe
-from .agent_steps import STEPS
+from .agent_steps import STEPS, WORLD_EVAL
 
 if TYPE_CHECKING:  # the recipe's steps import torch: read on use, so that `release list` and a saved table need none
     from .agent_recipe import AgentRecipe
@@ -74,6 +78,39 @@ CARD_REQUIRED = (
 #: Episodes of the release evaluation per split: (per room type, seed). Test: the experiments' list (``tsnav
 #: experiment``, 250 per room type, seed 0); val: the convergence runs' list (100 per room type, seed 0).
 SPLIT_EPISODES = {"test": (250, 0), "val": (100, 0)}
+
+
+def eval_split(card: dict) -> str:
+    """The split ``tsnav release eval`` evaluates the card's agent on unless told: the card's ``eval_split``, else
+    ``test``."""
+    return card.get("eval_split") or "test"
+
+
+def challenge_card(card: dict) -> bool:
+    """Whether the card's agent is evaluated on the RoboTHOR challenge's episodes (``episodes = "challenge"``)."""
+    return card.get("episodes") == "challenge"
+
+
+def split_rooms(card: dict, split: str) -> list[str]:
+    """The rooms of ``split`` that the card's agent is evaluated on: the card's ``<split>_rooms``, else its world's
+    rooms of the split; a one-line error when the world has none (RoboTHOR has no test split)."""
+    from ..data.names import ithor_scenes, robothor_scenes
+
+    if card.get(f"{split}_rooms"):
+        return list(card[f"{split}_rooms"])
+    world = card.get("world_preset", "ithor-real")
+    names = robothor_scenes(split) if world.startswith("robothor") else ithor_scenes(split=split)
+    if not names:
+        raise CommandError(
+            f"the {world} world has no {split} rooms: evaluate this agent with --split {eval_split(card)}"
+        )
+    return names
+
+
+def rooms_text(card: dict, n: int, split: str) -> str:
+    """What the table's header calls the rooms and episodes: ``20 real test rooms``, or ``15 RoboTHOR val scenes,
+    challenge episodes``."""
+    return f"{n} RoboTHOR {split} scenes, challenge episodes" if challenge_card(card) else f"{n} real {split} rooms"
 
 
 def shipped_agents() -> dict[str, Path]:
@@ -212,6 +249,8 @@ def card_markdown(card: dict) -> str:
         figs = card.get("figures", {}).get(key)
         if not figs:
             continue
+        if challenge_card(card) and key == eval_split(card):
+            title = f"RoboTHOR {key} scenes, the challenge's episodes"
         lines += [
             "",
             f"## {title} ({figs.get('episodes', '?')} episodes, greedy)",
@@ -230,11 +269,19 @@ def card_markdown(card: dict) -> str:
                     )
     if card.get("commands"):
         lines += ["", "## How it was made", ""] + [f"    {c}" for c in card["commands"]]
-    lines += [
-        "",
-        "Evaluate it from a fresh clone: `tsnav release eval` (builds the test rooms, the detector's "
-        "tables and the features it needs, then prints this table).",
-    ]
+    if challenge_card(card):
+        lines += [
+            "",
+            f"Evaluate it from a fresh clone: `tsnav release eval --agent {card.get('name', 'NAME')}` (builds the "
+            f"{eval_split(card)} scenes, the detector's tables and the features it needs, converts the challenge's "
+            f"{eval_split(card)} episodes packaged with tsnav, then prints this table).",
+        ]
+    else:
+        lines += [
+            "",
+            "Evaluate it from a fresh clone: `tsnav release eval` (builds the test rooms, the detector's "
+            "tables and the features it needs, then prints this table).",
+        ]
     if card.get("notes"):
         lines += ["", "## Notes", ""] + [f"- {n}" for n in card["notes"]]
     return "\n".join(lines) + "\n"
@@ -249,11 +296,10 @@ def say(msg: str) -> None:
 
 def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test") -> list[str]:
     """Build the world's rooms of ``split`` into ``data`` (finished rooms are skipped); returns their names."""
-    from ..data.names import ithor_scenes
     from ..world.build import BuildConfig, build_dataset
 
     world = card.get("world_preset", "ithor-real")
-    names = list(card.get(f"{split}_rooms") or ithor_scenes(split=split))
+    names = split_rooms(card, split)
     cfg = BuildConfig.from_preset(
         world, image_size=int(card.get("image_size", 128)), world_version=card.get("world_version")
     )
@@ -270,7 +316,8 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
         ) from None
     built = sum(not s.skipped for s in stats)
     if built:
-        say(f"world: built {built} of {len(names)} test rooms in {time.perf_counter() - t0:.0f} s")
+        what = "test rooms" if world == "ithor-real" else f"{split} scenes"
+        say(f"world: built {built} of {len(names)} {what} in {time.perf_counter() - t0:.0f} s")
     return names
 
 
@@ -345,9 +392,11 @@ def protocol_kwargs(protocol: str) -> dict:
     return {"protocol": check_protocol(protocol)}
 
 
-def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") -> Path:
-    """The episode list of ``split`` drawn under ``protocol`` (:data:`SPLIT_EPISODES`), made once."""
-    from .steps import ensure_episodes
+def release_episodes(data: Path, out: Path, protocol: str, split: str = "test", card: dict | None = None) -> Path:
+    """The episode list of ``split`` under ``protocol``, made once: drawn as :data:`SPLIT_EPISODES` says, or, for a
+    card whose ``episodes`` is ``challenge``, the RoboTHOR challenge's episodes of the split packaged with tsnav,
+    converted on the card's rooms (:func:`~tsnav.pipeline.steps.ensure_challenge_episodes`)."""
+    from .steps import ensure_challenge_episodes, ensure_episodes
 
     from ..sim.episodes import read_episodes
 
@@ -359,6 +408,9 @@ def release_episodes(data: Path, out: Path, protocol: str, split: str = "test") 
             raise CommandError(
                 f"{path} was drawn on {drawn_on}, not on {Path(data).resolve()}: pass another --out (or remove {out})"
             )
+    if card is not None and challenge_card(card):
+        out.mkdir(parents=True, exist_ok=True)
+        return ensure_challenge_episodes(data, split, path, protocol, scenes=split_rooms(card, split))
     return ensure_episodes(data, split, path, per, seed=seed, protocol=protocol)
 
 
@@ -404,11 +456,9 @@ def release_inputs(
     from ..data.detections import read_fingerprint
     from ..data.reader import is_complete
 
-    from ..data.names import ithor_scenes
-
     if not data.is_dir():
         return None
-    names = list(card.get(f"{split}_rooms") or ithor_scenes(split=split))  # the rooms ensure_test_world builds
+    names = split_rooms(card, split)  # the rooms ensure_test_world builds
     rooms = {}
     for n in names:
         room = data / n
@@ -480,7 +530,7 @@ def release_rows(
     card = read_card(folder)
     rows = []
     for protocol in protocols:
-        eps = release_episodes(data, out, protocol, split)
+        eps = release_episodes(data, out, protocol, split, card)
         todo = [("agent", dict(run=str(folder), checkpoint="best"))]
         if baselines:
             todo += [
@@ -508,15 +558,18 @@ def _count(ev: Path) -> int:
 
 
 def headline(card: dict) -> str:
-    """The card's test figures in one line: the agent's SR / SPL under each protocol and its detector."""
-    rows = [r for r in card.get("figures", {}).get("test", {}).get("rows", []) if r.get("policy") == "agent"]
+    """The card's figures of its evaluation split (:func:`eval_split`) in one line: the agent's SR / SPL under each
+    protocol and its detector."""
+    split = eval_split(card)
+    rows = [r for r in card.get("figures", {}).get(split, {}).get("rows", []) if r.get("policy") == "agent"]
     if not rows:
-        return f"detector {card.get('detector_shipped', '?')}; no test figures in its card yet"
+        return f"detector {card.get('detector_shipped', '?')}; no {split} figures in its card yet"
     figs = ", ".join(
         f"{r['protocol']} {100 * r['metrics']['ALL']['SR']:.2f} / {100 * r['metrics']['ALL']['SPL']:.2f}" for r in rows
     )
-    n = card["figures"]["test"].get("episodes", "?")
-    return f"test SR / SPL ({n} episodes): {figs}; detector {card.get('detector_shipped', '?')}"
+    n = card["figures"][split].get("episodes", "?")
+    where = f"{split}, challenge episodes" if challenge_card(card) else split
+    return f"{where} SR / SPL ({n} episodes): {figs}; detector {card.get('detector_shipped', '?')}"
 
 
 def format_rows(rows: list[dict]) -> str:
@@ -541,7 +594,11 @@ def format_rows(rows: list[dict]) -> str:
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    ev = sub.add_parser("eval", help="evaluate a shipped agent on the real test rooms (builds what it needs)")
+    ev = sub.add_parser(
+        "eval",
+        help="evaluate a shipped agent on the real test rooms, a RoboTHOR agent on the val scenes' challenge "
+        "episodes (builds what it needs)",
+    )
     ev.add_argument(
         "--agent", default=None, help="shipped agent name or folder (default: the default one; `tsnav release list`)"
     )
@@ -549,7 +606,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
         "--data",
         default=None,
         help="world folder for the rooms (default out/release/world-vN, N the "
-        "rules version of the agent's card; reused; built when missing). A "
+        "rules version of the agent's card, out/release/world-PRESET-vN for an agent of another world than "
+        "ithor-real, e.g. world-robothor-real-v1; reused; built when missing). A "
         "--data folder that does not exist is refused unless --build-world",
     )
     ev.add_argument(
@@ -579,9 +637,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     ev.add_argument("--no-baselines", action="store_true", help="only the agent (no explorer / random rows)")
     ev.add_argument(
         "--split",
-        default="test",
+        default=None,
         choices=tuple(SPLIT_EPISODES),
-        help="rooms to evaluate on (default test; val: the validation rooms)",
+        help="rooms to evaluate on (default: the card's eval_split, test for the iTHOR agents; val: the "
+        "validation rooms; a RoboTHOR agent's val: the 15 val scenes and the challenge's val episodes)",
     )
     ev.add_argument(
         "--update-card",
@@ -621,6 +680,14 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
         "--until", choices=STEPS, default=STEPS[-1], help=f"stop after this step ({', '.join(STEPS)}; default: all)"
     )
     mk.add_argument(
+        "--challenge",
+        default=None,
+        metavar="DIR",
+        help="the RoboTHOR challenge's episode folder holding train/ (e.g. ../shared/robothor/challenge_episodes; "
+        "not packaged), read when the recipe scores checkpoints on its train episodes ([scoring] episodes = "
+        '"challenge-train"); instead of scoring.challenge, and not written into the resolved recipe',
+    )
+    mk.add_argument(
         "--replace-shipped",
         default=None,
         metavar="NAME",
@@ -652,17 +719,19 @@ def run(args: argparse.Namespace) -> int:
         return run_make(args)
     folder = agent_folder(args.agent)
     card = read_card(folder)
-    data, out = release_folders(card, folder.name, args.split, args.data, args.out)
+    split = args.split or eval_split(card)
+    split_rooms(card, split)  # a split the agent's world has
+    data, out = release_folders(card, folder.name, split, args.data, args.out)
     if args.data is not None and not data.is_dir() and not args.build_world:
         raise CommandError(
             f"--data {args.data}: no such world folder (--build-world builds the agent's "
-            f"{args.split} rooms there; without --data they go to "
-            f"{release_folders(card, folder.name, args.split)[0]})"
+            f"{split} rooms there; without --data they go to "
+            f"{release_folders(card, folder.name, split)[0]})"
         )
     protocols = list(PROTOCOLS) if args.protocol == "both" else [args.protocol]
     evaluate_agent(
         folder,
-        args.split,
+        split,
         data,
         out,
         protocols,
@@ -709,7 +778,7 @@ def evaluate_agent(
         times = {}
         ensure_test_world(data, card, workers, split)
         times["world"] = time.perf_counter() - t0
-        ensure_release_detections(data, card)
+        ensure_release_detections(data, card, split)
         times["detections"] = time.perf_counter() - t0 - sum(times.values())
         ensure_release_features(data, folder, card, split=split)
         times["features"] = time.perf_counter() - t0 - sum(times.values())
@@ -738,7 +807,7 @@ def evaluate_agent(
         else "steps: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items())
     )
     print(
-        f"\n{folder.name} on the {len(ensure_names(data, split))} real {split} rooms, greedy, "
+        f"\n{folder.name} on the {rooms_text(card, len(ensure_names(data, split)), split)}, greedy, "
         f"detector {card['detector_shipped']} ({when})"
     )
     trained = json.loads((folder / "config.json").read_text())["train"].get("protocol", "paper")
@@ -751,29 +820,31 @@ def evaluate_agent(
 
 def run_make(args: argparse.Namespace) -> int:
     """``tsnav release make RECIPE --work DIR``: the agent of a recipe, made, packed into ``WORK/agent/NAME`` and
-    evaluated on val and test with the figures written into its card; installed as a shipped agent only with
-    ``--replace-shipped NAME``."""
+    evaluated on val and test (a RoboTHOR agent: on its card's ``eval_split``, the val scenes' challenge episodes)
+    with the figures written into its card; installed as a shipped agent only with ``--replace-shipped NAME``."""
     work = Path(args.work)
-    from .agent_recipe import SECTIONS, make_agent, resolve_agent
+    from .agent_recipe import SECTIONS, challenge_folder, make_agent, resolve_agent
 
     r = resolve_agent(apply_sets(read_recipe(args.recipe), args.set, SECTIONS), work)
     if args.replace_shipped is not None and args.replace_shipped != r.name:
         raise CommandError(
             f"--replace-shipped {args.replace_shipped}: the recipe makes {r.name!r}; name it to replace it"
         )
+    challenge_folder(r, args.challenge)  # refused before any work when the recipe's scoring needs one
     work.mkdir(parents=True, exist_ok=True)
     header = f"The resolved recipe of {r.name} (tsnav release make)."
     atomic_write_text(work / "recipe.toml", dump_recipe(r.to_recipe(), header=header))
-    made = make_agent(r, work, until=args.until)
+    made = make_agent(r, work, until=args.until, challenge=args.challenge)
     if STEPS.index(args.until) < STEPS.index("pack"):
         say(f"stopped after step {args.until}; the run: {made.run}")
         return 0
     folder = work / "agent" / r.name
     if not (folder / "card.json").exists():
-        pack(made.run, made.run / "best", made.encoder_run, folder, agent_card(r, made.world))
+        pack(made.run, made.checkpoint, made.encoder_run, folder, agent_card(r, made.world))
         atomic_write_text(folder / "recipe.toml", dump_recipe(r.to_recipe(), header=header))
     if args.until == "eval":
-        for split in ("val", "test"):
+        card = read_card(folder)
+        for split in ("val", "test") if eval_split(card) == "test" else (eval_split(card),):
             evaluate_agent(
                 folder,
                 split,
@@ -792,9 +863,14 @@ def run_make(args: argparse.Namespace) -> int:
 
 def agent_card(r: AgentRecipe, world: Path) -> dict:
     """The card fields of the recipe's agent: its ``[card]`` texts, what the recipe names, and the val and test
-    rooms of its ``world`` (those ``tsnav release eval`` evaluates on)."""
+    rooms of its ``world`` (those ``tsnav release eval`` evaluates on). An agent of a world of :data:`WORLD_EVAL`
+    (RoboTHOR) gets its ``eval_split`` and ``episodes`` and the rooms of that split only (RoboTHOR has no test
+    split)."""
     from ..detect.shipped import shipped_meta
     from ..world.build import BuildConfig
+
+    how = WORLD_EVAL.get(r.world.preset, {})
+    splits = (how["eval_split"],) if how else ("val", "test")
 
     return {
         **r.card,
@@ -806,10 +882,12 @@ def agent_card(r: AgentRecipe, world: Path) -> dict:
         "detector_fingerprint": shipped_meta(r.detections.shipped)["fingerprint"],
         "detections": r.detections.name,
         "encoder_id": r.features.encoder,
-        **{f"{split}_rooms": ensure_names(world, split) for split in ("val", "test")},
+        **how,
+        **{f"{split}_rooms": ensure_names(world, split) for split in splits},
         "commands": [
-            f"tsnav release make configs/agents/{r.name}.toml --work WORK_DIR (recipe.toml in this "
-            f"folder: the resolved recipe)"
+            f"tsnav release make configs/agents/{r.name}.toml --work WORK_DIR"
+            + (" --challenge CHALLENGE_DIR" if r.scoring.episodes == "challenge-train" else "")
+            + " (recipe.toml in this folder: the resolved recipe)"
         ],
     }
 
@@ -830,9 +908,12 @@ def release_folders(
     card: dict, agent: str, split: str, data: str | None = None, out: str | None = None
 ) -> tuple[Path, Path]:
     """The world and evaluation folders of ``tsnav release eval``: given ones, else ``out/release/world-vN`` (the
-    card's rules version, so that agents of different versions never share rooms) and
-    ``out/release/eval/AGENT/SPLIT`` (so that agents and splits never share episode lists or results)."""
-    world = Path(data) if data else Path("out/release") / f"world-v{int(card.get('world_version') or 1)}"
+    card's rules version, so that agents of different versions never share rooms; ``world-PRESET-vN`` for a world
+    other than ``ithor-real``, e.g. ``world-robothor-real-v1``) and ``out/release/eval/AGENT/SPLIT`` (so that
+    agents and splits never share episode lists or results)."""
+    preset, version = card.get("world_preset", "ithor-real"), int(card.get("world_version") or 1)
+    name = f"world-v{version}" if preset == "ithor-real" else f"world-{preset}-v{version}"
+    world = Path(data) if data else Path("out/release") / name
     return world, Path(out) if out else Path("out/release/eval") / agent / split
 
 

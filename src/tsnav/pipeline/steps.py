@@ -143,6 +143,78 @@ def ensure_episodes(
     return path
 
 
+def ensure_challenge_episodes(
+    data: str | Path,
+    split: str,
+    path: str | Path,
+    protocol: str = DEFAULT_PROTOCOL,
+    *,
+    challenge: str | Path | None = None,
+    scenes: list[str] | None = None,
+    per_room_type: int | None = None,
+    seed: int = 0,
+    success_distance: float = 1.0,
+) -> Path:
+    """The RoboTHOR challenge's episodes of ``split`` on the scenes of ``data`` as a tsnav episode list at ``path``
+    (``tsnav thor challenge-episodes``: :mod:`tsnav.sim.challenge`'s rules, what was dropped recorded), made once
+    and reused (``ValueError`` when the file there was made under another protocol; it is never replaced).
+
+    ``challenge``: the challenge's episode folder holding ``split/`` (None: the copy packaged with tsnav, val only,
+    :func:`~tsnav.sim.challenge.packaged_challenge`); ``scenes``: the scene names of the bank (None: the scenes of
+    ``data`` of ``split``); ``per_room_type``: a fixed sample of that many converted episodes per room type drawn
+    with ``seed`` (:func:`~tsnav.sim.challenge.sample_per_room_type`; None: every converted episode)."""
+    from ..sim.challenge import (
+        CHALLENGE_SOURCE,
+        HEADING_RULE,
+        challenge_episodes,
+        packaged_challenge,
+        ratio_summary,
+        read_challenge_episodes,
+        sample_per_room_type,
+    )
+
+    path = Path(path)
+    if path.exists():
+        have = protocol_of(read_episodes(path)[1])
+        if have != protocol:
+            raise ValueError(f"{path} holds episodes drawn under the {have} protocol, not {protocol}")
+        return path
+    root = packaged_challenge() if challenge is None else Path(challenge)
+    records = read_challenge_episodes(root, split)
+    paths = [Path(data) / n for n in scenes] if scenes is not None else list_scenes(data, split)
+    if not paths:
+        raise ValueError(f"{data}: no complete scenes in split {split!r}")
+    bank = SceneBank([load_scene(p) for p in paths], success_distance=success_distance, protocol=protocol)
+    eps, st = challenge_episodes(records, bank)
+    say(f"challenge {split} episodes ({protocol}): {st.summary()}")
+    sample = {}
+    if per_room_type is not None:
+        eps = sample_per_room_type(eps, per_room_type, seed)
+        sample = {"sample": {"per_room_type": per_room_type, "seed": seed, "of": st.kept}}
+    if not eps:
+        raise ValueError(f"{data}: no episode of the challenge's {split} split could be converted")
+    write_episodes(
+        path,
+        eps,
+        split=split,
+        source=CHALLENGE_SOURCE.format(split=split),
+        challenge="packaged with tsnav (tsnav/world/data/robothor/challenge_episodes)"
+        if challenge is None
+        else str(root.resolve()),
+        protocol=protocol,
+        success_distance=success_distance,
+        class_set=bank.class_set.name,
+        start_horizon=30,
+        room_targets=False,
+        heading_rule=HEADING_RULE,
+        data=str(Path(data).resolve()),
+        conversion=st.to_json(),
+        **sample,
+        lengths=ratio_summary(eps),
+    )
+    return path
+
+
 def episodes_name(split: str, protocol: str = DEFAULT_PROTOCOL) -> str:
     """File name of a shared episode list: ``{split}_episodes.json`` under ``paper`` (as before protocols),
     ``{split}_episodes_{protocol}.json`` otherwise."""

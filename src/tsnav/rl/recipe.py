@@ -35,7 +35,7 @@ from .config import BUDGET_FIELDS, REWARD_OWN, TrainConfig, reward_settings_of
 SECTIONS = ("train", "reward", "agent")
 #: The keys of a shipped agent's recipe (configs/agents/*.toml) that other steps read (``tsnav release make``):
 #: ``tsnav train`` and ``tsnav convergence`` take such a recipe and read their own sections of it.
-AGENT_RECIPE_KEYS = ("name", "world", "detections", "pretrain", "features", "convergence", "select", "card")
+AGENT_RECIPE_KEYS = ("name", "world", "detections", "pretrain", "features", "scoring", "convergence", "select", "card")
 #: TrainConfig fields that are no setting of the recipe's ``[train]`` (the ``[reward]`` section sets them).
 TRAIN_HIDDEN = ("reward_settings",)
 

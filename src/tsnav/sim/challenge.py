@@ -316,3 +316,24 @@ def ratio_summary(episodes: list[Episode]) -> dict:
         "mean_optimal_metres": float(np.mean([e.optimal_metres for e in episodes])),
         "mean_navmesh_metres": float(np.mean([e.challenge["shortest_path_length"] for e in episodes])),
     }
+
+
+def packaged_challenge() -> Path:
+    """The challenge's episode folder packaged with tsnav (``tsnav/world/data/robothor/challenge_episodes``, the
+    layout :func:`read_challenge_episodes` reads): its ``val/`` split only, the 1,800 episodes of the 15 val scenes
+    (the 108,000 train episodes are not packaged: ``../shared/robothor/challenge_episodes`` holds them)."""
+    from importlib import resources
+
+    return Path(str(resources.files("tsnav.world") / "data" / "robothor" / "challenge_episodes"))
+
+
+def sample_per_room_type(episodes: list[Episode], per_room_type: int, seed: int) -> list[Episode]:
+    """A fixed sample of ``episodes``: at most ``per_room_type`` of each room type (RoboTHOR's apartments are one
+    room type, so that is the sample's size), drawn without replacement by ``numpy.random.default_rng(seed)``
+    over the room types in name order, kept in the list's order."""
+    rng = np.random.default_rng(seed)
+    keep: list[int] = []
+    for t in sorted({e.room_type for e in episodes}):
+        idx = [i for i, e in enumerate(episodes) if e.room_type == t]
+        keep += [idx[j] for j in rng.choice(len(idx), size=min(per_room_type, len(idx)), replace=False)]
+    return [episodes[i] for i in sorted(keep)]
