@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tsnav.world import plans as P
+from tsnav.world import robothor_fidelity as R_fid
 from tsnav.world import robothor_real as R
 from tsnav.world.robothor_fidelity import (
     load_episodes,
@@ -168,6 +169,37 @@ def test_place_target_fits_the_one_metre_circle_on_furniture():
     assert math.hypot(x - 6.0, z + 3.0) < 3 * P.PIXEL
 
 
+def test_place_footprint_fits_a_long_target_and_its_yaw():
+    """Version 2: ends END_DISTANCE from the box of a 1.2 x 0.3 m target standing with its width along z (yaw 90)
+    at (5, -3), all on its +x side (in front of a television): the fit finds the place within a couple of pixels
+    and the yaw; the centre-based version 1 puts the centre 1 m from the ends, 0.28 m too close."""
+    w, d = 1.2, 0.3
+    c = np.array([5.0, -3.0])
+    zs = np.array([-3.5, -3.25, -3.0, -2.75, -2.5])
+    front = np.stack([np.full(5, c[0] + d / 2 + R.END_DISTANCE), zs], axis=1)
+    ends = np.concatenate([front, [[c[0], c[1] - w / 2 - R.END_DISTANCE], [c[0], c[1] + w / 2 + R.END_DISTANCE]]])
+    inside = np.zeros((P.PLAN_PX, P.PLAN_PX), bool)
+    inside[40:130, 55:260] = True
+    furn = np.zeros_like(inside)
+    x, z, yaw, cost = R.place_footprint(ends, np.zeros((0, 2)), furn, inside, (w, d))
+    assert yaw == 90.0 and math.hypot(x - 5, z + 3) < 2.5 * P.PIXEL and cost < R.FLOOR_COST + 0.01
+    x1, _, _ = R.place_target(front, np.zeros((0, 2)), furn, inside)
+    assert abs(abs(front[0, 0] - x1) - 1.0) < 0.1  # version 1: centre ~1 m from the ends' column
+    # A path that passed within the success radius of the box earlier rules a place out: a second target place as
+    # good for the ends (mirror image at x = ends - ...) is never chosen when the earlier points come near it.
+    before = np.array([[c[0] + 0.2, -4.3], [c[0] + 0.2, -4.1]])  # 0.2 m off the fitted box's -z end
+    x2, z2, _, cost2 = R.place_footprint(ends, before, furn, inside, (w, d))
+    assert cost2 <= cost + R.NEAR_COST and math.hypot(x2 - 5, z2 + 3) > 0.1
+
+
+def test_type_extents_are_sides_in_the_objects_frame():
+    """A television stands either way: its median width is its long side, not the median of x and of z."""
+    ext = R.type_extents()
+    w, d = ext["Television"]
+    assert w > 1.0 and d < 0.45 and w > max(R.type_stats()["Television"]["size"][0], 0.6)
+    assert all(a >= b for a, b in ext.values())
+
+
 def test_blob_boxes_keep_a_hole_open():
     mask = np.zeros((20, 20), bool)
     mask[2:5, 2:14] = True
@@ -282,6 +314,44 @@ def test_measure_scene_on_a_hand_made_scene():
     assert res["episodes"] == 3 and res["starts_kept"] == 2 and res["missing_starts"] == [[2.0, 0.0]]
     assert res["ratios"] == [1.0, None]  # 0.5 m of path over 0.5 m; no Mug at all
     assert res["no_success_state"] == 1
+    assert res["end_ratios"] == [] and res["end_missing"] == 0  # no shortest_path: no end ratio
+
+
+def test_end_ratio_measures_to_where_the_challenge_path_ends():
+    """The end ratio leaves the success rule out: metres to the (rounded) last point of the challenge's path over its
+    length; an end that is not a tsnav position has none."""
+
+    def ep(t, x0, end, length):
+        path = [{"x": x0, "y": 0.0, "z": 0.0}, {"x": end[0], "y": 0.0, "z": end[1]}]
+        return {
+            "object_type": t,
+            "initial_position": {"x": x0, "y": 0.9, "z": 0.0},
+            "shortest_path": path,
+            "shortest_path_length": length,
+        }
+
+    eps = [
+        ep("Apple", 0.0, (0.26, 0.01), 0.2),  # ends by the middle position: 0.25 m over 0.2 m
+        ep("Apple", 0.0, (0.5, 0.0), 0.5),  # ends at the success position: both ratios 1
+        ep("Apple", 0.0, (3.0, 0.0), 2.0),  # ends off tsnav's positions
+        ep("Mug", 0.25, (0.5, 0.0), 0.25),  # no Mug: no path ratio, but an end ratio
+    ]
+    res = measure_scene(_FakeScene(), eps)
+    assert res["ratios"] == [2.5, 1.0, 0.25, None]
+    assert res["end_ratios"] == [1.25, 1.0, None, 1.0] and res["end_missing"] == 1
+    s = R_fid.end_summary(res["end_ratios"])
+    assert s["end_within_25_pct"] == 75.0 and s["end_no_path"] == 1 and s["end_median"] == pytest.approx(1.125)
+    # The fast multi-end Dijkstra agrees with the reference, end by end.
+    positions = np.array([[0.0, 0.0], [0.25, 0.0], [0.5, 0.0]])
+    move = np.full((3, 8), -1)
+    move[0, 2], move[1, 2], move[1, 6], move[2, 6] = 1, 2, 0, 1
+    d = R_fid.end_lengths(positions, move, [2, 0])
+    for e in (0, 2):
+        goal = np.zeros(3, bool)
+        goal[e] = True
+        assert [d[e][s] for s in range(3)] == pytest.approx(
+            [path_lengths_reference(positions, move, goal, s) for s in range(3)]
+        )
 
 
 # ------------------------------------------------------------------------------------------------ the world
