@@ -192,6 +192,40 @@ def test_place_footprint_fits_a_long_target_and_its_yaw():
     assert cost2 <= cost + R.NEAR_COST and math.hypot(x2 - 5, z2 + 3) > 0.1
 
 
+def test_place_footprint_keeps_a_blocking_target_off_where_agents_stood():
+    """A floor-standing target is not put where the challenge's agent stood: with a start or path end at the best
+    place, the fit moves until its footprint grown by the clearance no longer holds it."""
+    ext = (0.45, 0.4)
+    c = np.array([5.0, -3.0])
+    ang = np.deg2rad([0, 90, 180, 270])
+    ends = c + (0.2 + R.END_DISTANCE) * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    inside = np.zeros((P.PLAN_PX, P.PLAN_PX), bool)
+    inside[40:130, 55:260] = True
+    furn = np.zeros_like(inside)
+    x, z, _, _ = R.place_footprint(ends, np.zeros((0, 2)), furn, inside, ext)
+    assert math.hypot(x - 5, z + 3) < 2 * P.PIXEL
+    stood = np.array([[5.0, -3.0]])
+    x, z, yaw, _ = R.place_footprint(ends, np.zeros((0, 2)), furn, inside, ext, keep_clear=stood)
+    hx, hz = (ext[0] / 2, ext[1] / 2) if yaw % 180 == 0 else (ext[1] / 2, ext[0] / 2)
+    assert abs(x - 5) > hx + R.CLEARANCE or abs(z + 3) > hz + R.CLEARANCE
+
+
+def test_version_2_changes_val_targets_only():
+    """Version 2 builds the train scenes exactly as version 1 (only the recorded version differs); its val targets
+    are fitted by footprint, version 1's keep yaw 0 and the per-axis median size."""
+    a, b = R.robothor_spec("FloorPlan_Train5_3", 1).to_json(), R.robothor_spec("FloorPlan_Train5_3", 2).to_json()
+    assert a["generator"].pop("version") == 1 and b["generator"].pop("version") == 2
+    assert a == b
+    v1, v2 = R.robothor_spec("FloorPlan_Val2_3", 1), R.robothor_spec("FloorPlan_Val2_3", 2)
+    assert all(o.yaw == 0.0 for o in v1.objects)
+    tv1 = next(o for o in v1.objects if o.objectType == "Television")
+    tv2 = next(o for o in v2.objects if o.objectType == "Television")
+    assert list(tv1.size) == R.type_stats()["Television"]["size"]
+    assert (tv2.size[0], tv2.size[2]) == R.type_extents()["Television"] and tv2.yaw in R.FIT_YAWS
+    assert "footprint" in v2.generator["provenance"]["inferred_objects"][tv2.objectId]
+    assert v1.furniture and [f.id for f in v1.furniture if "Furniture" in f.id]  # the blobs stay inferred furniture
+
+
 def test_type_extents_are_sides_in_the_objects_frame():
     """A television stands either way: its median width is its long side, not the median of x and of z."""
     ext = R.type_extents()
@@ -365,9 +399,10 @@ def test_val_scene_records_what_it_inferred():
     assert types == sorted({e["object_type"] for e in eps})
     assert all("|inferred|" in o.objectId and o.objectId in gen["provenance"]["inferred_objects"] for o in spec.objects)
     assert all("|inferred|" in f.id for f in spec.furniture)
-    # An inferred object takes its type's median size from the train records.
+    # An inferred object takes its type's median width, depth (type_extents) and height from the train records.
     apple = next(o for o in spec.objects if o.objectType == "Apple")
-    assert list(apple.size) == R.type_stats()["Apple"]["size"]
+    assert (apple.size[0], apple.size[2]) == R.type_extents()["Apple"]
+    assert apple.size[1] == R.type_stats()["Apple"]["size"][1]
 
 
 def test_train_scene_keeps_recorded_ids_and_types():

@@ -103,9 +103,16 @@ RULES = {
 }
 #: Version 2 changes the val scenes' targets only (the train scenes are built as in version 1): each is fitted by
 #: its footprint (the type's median width and depth, at the better of :data:`FIT_YAWS`) so that its episodes' paths
-#: end :data:`END_DISTANCE` from the footprint and come no closer than the success radius before (version 1 fitted
+#: end :data:`END_DISTANCE` from the footprint and come no closer than the success radius before, and a target that
+#: stands on the floor (and blocks) keeps clear of every start and path end of the scene's episodes (version 1 fitted
 #: its centre at the success radius and took the per-axis median size at yaw 0).
-RULES[2] = {**RULES[1], "placement": "footprint", "end_distance": END_DISTANCE, "fit_yaws": list(FIT_YAWS)}
+RULES[2] = {
+    **RULES[1],
+    "placement": "footprint",
+    "end_distance": END_DISTANCE,
+    "fit_yaws": list(FIT_YAWS),
+    "blocking_targets_keep_clear": "the episodes' starts and path ends",
+}
 RECORDS = "train_objects.json.gz (ai2thor 2.7.2 metadata at reset)"
 
 
@@ -314,13 +321,16 @@ def place_footprint(
     furniture: np.ndarray,
     inside: np.ndarray,
     extent: tuple[float, float],
+    keep_clear: np.ndarray | None = None,
 ) -> tuple[float, float, float, float]:
     """Version 2 of :func:`place_target`: where a target of horizontal ``extent`` (width, depth) stands, fitted by
     its footprint. For each of :data:`FIT_YAWS` (yaw 0: the width along x) and each ``inside`` pixel: cost = mean
     squared difference of the ends' distances to the footprint from :data:`END_DISTANCE`, + :data:`FLOOR_COST` on a
     pixel that is not ``furniture``, + :data:`NEAR_COST` times the share of ``before`` within the success radius of
-    the footprint (a path that came within it earlier would have ended there). Returns ``(x, z, yaw, cost)`` of the
-    cheapest (the first yaw on a tie)."""
+    the footprint (a path that came within it earlier would have ended there). ``keep_clear`` ((n, 2) x, z, for a
+    target that blocks): places whose footprint, grown by :data:`CLEARANCE`, holds one of these points are ruled
+    out (they are positions the challenge's agent stood on). Returns ``(x, z, yaw, cost)`` of the cheapest (the first
+    yaw on a tie)."""
     rr, cc = np.nonzero(inside)
     xs, zs = P.pixel_to_world(rr.astype(float), cc.astype(float))
     w, d = extent
@@ -335,6 +345,13 @@ def place_footprint(
                 b = before[a : a + 256]
                 near += (box_distance_2d(xs, zs, b[:, 0], b[:, 1], hx, hz) < SUCCESS_RADIUS - 0.05).sum(1)
             cost += NEAR_COST * near / len(before)
+        if keep_clear is not None and len(keep_clear):
+            blocked = np.zeros(len(xs), bool)
+            for a in range(0, len(keep_clear), 256):
+                b = keep_clear[a : a + 256]
+                blocked |= (box_distance_2d(xs, zs, b[:, 0], b[:, 1], hx + CLEARANCE, hz + CLEARANCE) <= 0).any(1)
+            if not blocked.all():
+                cost[blocked] = np.inf
         k = int(np.argmin(cost))
         if best is None or cost[k] < best[3]:
             best = (float(xs[k]), float(zs[k]), float(yaw), float(cost[k]))
@@ -528,6 +545,12 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan, eps: list[d
     # Targets in order of how well their episodes fix them (lowest fit cost first); a target is not put where it
     # would overlap one placed before it (its disc, the half diagonal of its size, off theirs).
     extents = type_extents()
+    # Version 2: where the challenge's agent stood (every start and every path end of the scene's episodes): a target
+    # that blocks is not put on them.
+    stood = np.array(
+        [[e["initial_position"]["x"], e["initial_position"]["z"]] for e in eps]
+        + [[e["shortest_path"][-1]["x"], e["shortest_path"][-1]["z"]] for e in eps if e.get("shortest_path")]
+    ).reshape(-1, 2)
 
     def fit(t: str, ends: np.ndarray, before: np.ndarray, where: np.ndarray) -> tuple[float, float, float, float]:
         """(x, z, yaw, cost) of type ``t``'s target by the rules of ``version``."""
@@ -535,7 +558,8 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan, eps: list[d
             # yaw 0: the records give no hint (facing the paths' ends was tried: no closer paths)
             x, z, cost = place_target(ends, before, opened, where)
             return x, z, 0.0, cost
-        return place_footprint(ends, before, opened, where, extents.get(t, (0.2, 0.2)))
+        on_floor = stats.get(t, {}).get("floor_share", 0.0) > 0.5
+        return place_footprint(ends, before, opened, where, extents.get(t, (0.2, 0.2)), stood if on_floor else None)
 
     fits = []
     for t in sorted({e["object_type"] for e in eps}):
