@@ -14,9 +14,12 @@ holds walls or the val scenes' objects; they are inferred, and every scene says 
 * **Val scenes**: furniture footprints are the plan's non-floor blobs (:func:`~tsnav.world.plans.furniture_blobs`)
   cut into :data:`BAND`-pixel row bands, blocking, :data:`FURNITURE_HEIGHT` high (lower under an inferred object
   standing on them). Each of the 12 challenge target types present in the scene's val episodes is placed where
-  its episodes' shortest paths end about :data:`SUCCESS_RADIUS` from it (:func:`place_target`); it takes the
-  median size and height above the floor of that type's records in the train scenes, and stands on the floor
-  (blocking) when most of them do.
+  its episodes' shortest paths end: rules version 2 (the default) fits its footprint, the type's median width and
+  depth (:func:`type_extents`) at yaw 0 or 90, :data:`END_DISTANCE` from the ends (:func:`place_footprint`), and keeps
+  a floor-standing target off the episodes' starts and ends; version 1 fitted its centre :data:`SUCCESS_RADIUS` from
+  them (:func:`place_target`) at yaw 0 with the per-axis median size. It takes the median height above the floor of
+  that type's records in the train scenes, and stands on the floor (blocking) when most of them do. Version 2 builds
+  the train scenes exactly as version 1.
 """
 
 from __future__ import annotations
@@ -667,7 +670,9 @@ __all__ = [
     "apartment_walls",
     "check_version",
     "floor_rect",
+    "place_footprint",
     "place_target",
     "robothor_spec",
+    "type_extents",
     "type_stats",
 ]
