@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tsnav.world import plans as P
+from tsnav.world import robothor_fidelity as R_fid
 from tsnav.world import robothor_real as R
 from tsnav.world.robothor_fidelity import (
     load_episodes,
@@ -168,6 +169,71 @@ def test_place_target_fits_the_one_metre_circle_on_furniture():
     assert math.hypot(x - 6.0, z + 3.0) < 3 * P.PIXEL
 
 
+def test_place_footprint_fits_a_long_target_and_its_yaw():
+    """Version 2: ends END_DISTANCE from the box of a 1.2 x 0.3 m target standing with its width along z (yaw 90)
+    at (5, -3), all on its +x side (in front of a television): the fit finds the place within a couple of pixels
+    and the yaw; the centre-based version 1 puts the centre 1 m from the ends, 0.28 m too close."""
+    w, d = 1.2, 0.3
+    c = np.array([5.0, -3.0])
+    zs = np.array([-3.5, -3.25, -3.0, -2.75, -2.5])
+    front = np.stack([np.full(5, c[0] + d / 2 + R.END_DISTANCE), zs], axis=1)
+    ends = np.concatenate([front, [[c[0], c[1] - w / 2 - R.END_DISTANCE], [c[0], c[1] + w / 2 + R.END_DISTANCE]]])
+    inside = np.zeros((P.PLAN_PX, P.PLAN_PX), bool)
+    inside[40:130, 55:260] = True
+    furn = np.zeros_like(inside)
+    x, z, yaw, cost = R.place_footprint(ends, np.zeros((0, 2)), furn, inside, (w, d))
+    assert yaw == 90.0 and math.hypot(x - 5, z + 3) < 2.5 * P.PIXEL and cost < R.FLOOR_COST + 0.01
+    x1, _, _ = R.place_target(front, np.zeros((0, 2)), furn, inside)
+    assert abs(abs(front[0, 0] - x1) - 1.0) < 0.1  # version 1: centre ~1 m from the ends' column
+    # A path that passed within the success radius of the box earlier rules a place out: a second target place as
+    # good for the ends (mirror image at x = ends - ...) is never chosen when the earlier points come near it.
+    before = np.array([[c[0] + 0.2, -4.3], [c[0] + 0.2, -4.1]])  # 0.2 m off the fitted box's -z end
+    x2, z2, _, cost2 = R.place_footprint(ends, before, furn, inside, (w, d))
+    assert cost2 <= cost + R.NEAR_COST and math.hypot(x2 - 5, z2 + 3) > 0.1
+
+
+def test_place_footprint_keeps_a_blocking_target_off_where_agents_stood():
+    """A floor-standing target is not put where the challenge's agent stood: with a start or path end at the best
+    place, the fit moves until its footprint grown by the clearance no longer holds it."""
+    ext = (0.45, 0.4)
+    c = np.array([5.0, -3.0])
+    ang = np.deg2rad([0, 90, 180, 270])
+    ends = c + (0.2 + R.END_DISTANCE) * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    inside = np.zeros((P.PLAN_PX, P.PLAN_PX), bool)
+    inside[40:130, 55:260] = True
+    furn = np.zeros_like(inside)
+    x, z, _, _ = R.place_footprint(ends, np.zeros((0, 2)), furn, inside, ext)
+    assert math.hypot(x - 5, z + 3) < 2 * P.PIXEL
+    stood = np.array([[5.0, -3.0]])
+    x, z, yaw, _ = R.place_footprint(ends, np.zeros((0, 2)), furn, inside, ext, keep_clear=stood)
+    hx, hz = (ext[0] / 2, ext[1] / 2) if yaw % 180 == 0 else (ext[1] / 2, ext[0] / 2)
+    assert abs(x - 5) > hx + R.CLEARANCE or abs(z + 3) > hz + R.CLEARANCE
+
+
+def test_version_2_changes_val_targets_only():
+    """Version 2 builds the train scenes exactly as version 1 (only the recorded version differs); its val targets
+    are fitted by footprint, version 1's keep yaw 0 and the per-axis median size."""
+    a, b = R.robothor_spec("FloorPlan_Train5_3", 1).to_json(), R.robothor_spec("FloorPlan_Train5_3", 2).to_json()
+    assert a["generator"].pop("version") == 1 and b["generator"].pop("version") == 2
+    assert a == b
+    v1, v2 = R.robothor_spec("FloorPlan_Val2_3", 1), R.robothor_spec("FloorPlan_Val2_3", 2)
+    assert all(o.yaw == 0.0 for o in v1.objects)
+    tv1 = next(o for o in v1.objects if o.objectType == "Television")
+    tv2 = next(o for o in v2.objects if o.objectType == "Television")
+    assert list(tv1.size) == R.type_stats()["Television"]["size"]
+    assert (tv2.size[0], tv2.size[2]) == R.type_extents()["Television"] and tv2.yaw in R.FIT_YAWS
+    assert "footprint" in v2.generator["provenance"]["inferred_objects"][tv2.objectId]
+    assert v1.furniture and [f.id for f in v1.furniture if "Furniture" in f.id]  # the blobs stay inferred furniture
+
+
+def test_type_extents_are_sides_in_the_objects_frame():
+    """A television stands either way: its median width is its long side, not the median of x and of z."""
+    ext = R.type_extents()
+    w, d = ext["Television"]
+    assert w > 1.0 and d < 0.45 and w > max(R.type_stats()["Television"]["size"][0], 0.6)
+    assert all(a >= b for a, b in ext.values())
+
+
 def test_blob_boxes_keep_a_hole_open():
     mask = np.zeros((20, 20), bool)
     mask[2:5, 2:14] = True
@@ -282,6 +348,44 @@ def test_measure_scene_on_a_hand_made_scene():
     assert res["episodes"] == 3 and res["starts_kept"] == 2 and res["missing_starts"] == [[2.0, 0.0]]
     assert res["ratios"] == [1.0, None]  # 0.5 m of path over 0.5 m; no Mug at all
     assert res["no_success_state"] == 1
+    assert res["end_ratios"] == [] and res["end_missing"] == 0  # no shortest_path: no end ratio
+
+
+def test_end_ratio_measures_to_where_the_challenge_path_ends():
+    """The end ratio leaves the success rule out: metres to the (rounded) last point of the challenge's path over its
+    length; an end that is not a tsnav position has none."""
+
+    def ep(t, x0, end, length):
+        path = [{"x": x0, "y": 0.0, "z": 0.0}, {"x": end[0], "y": 0.0, "z": end[1]}]
+        return {
+            "object_type": t,
+            "initial_position": {"x": x0, "y": 0.9, "z": 0.0},
+            "shortest_path": path,
+            "shortest_path_length": length,
+        }
+
+    eps = [
+        ep("Apple", 0.0, (0.26, 0.01), 0.2),  # ends by the middle position: 0.25 m over 0.2 m
+        ep("Apple", 0.0, (0.5, 0.0), 0.5),  # ends at the success position: both ratios 1
+        ep("Apple", 0.0, (3.0, 0.0), 2.0),  # ends off tsnav's positions
+        ep("Mug", 0.25, (0.5, 0.0), 0.25),  # no Mug: no path ratio, but an end ratio
+    ]
+    res = measure_scene(_FakeScene(), eps)
+    assert res["ratios"] == [2.5, 1.0, 0.25, None]
+    assert res["end_ratios"] == [1.25, 1.0, None, 1.0] and res["end_missing"] == 1
+    s = R_fid.end_summary(res["end_ratios"])
+    assert s["end_within_25_pct"] == 75.0 and s["end_no_path"] == 1 and s["end_median"] == pytest.approx(1.125)
+    # The fast multi-end Dijkstra agrees with the reference, end by end.
+    positions = np.array([[0.0, 0.0], [0.25, 0.0], [0.5, 0.0]])
+    move = np.full((3, 8), -1)
+    move[0, 2], move[1, 2], move[1, 6], move[2, 6] = 1, 2, 0, 1
+    d = R_fid.end_lengths(positions, move, [2, 0])
+    for e in (0, 2):
+        goal = np.zeros(3, bool)
+        goal[e] = True
+        assert [d[e][s] for s in range(3)] == pytest.approx(
+            [path_lengths_reference(positions, move, goal, s) for s in range(3)]
+        )
 
 
 # ------------------------------------------------------------------------------------------------ the world
@@ -295,9 +399,10 @@ def test_val_scene_records_what_it_inferred():
     assert types == sorted({e["object_type"] for e in eps})
     assert all("|inferred|" in o.objectId and o.objectId in gen["provenance"]["inferred_objects"] for o in spec.objects)
     assert all("|inferred|" in f.id for f in spec.furniture)
-    # An inferred object takes its type's median size from the train records.
+    # An inferred object takes its type's median width, depth (type_extents) and height from the train records.
     apple = next(o for o in spec.objects if o.objectType == "Apple")
-    assert list(apple.size) == R.type_stats()["Apple"]["size"]
+    assert (apple.size[0], apple.size[2]) == R.type_extents()["Apple"]
+    assert apple.size[1] == R.type_stats()["Apple"]["size"][1]
 
 
 def test_train_scene_keeps_recorded_ids_and_types():

@@ -32,7 +32,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         "--world-version",
         type=int,
         default=None,
-        help="version of the ithor-real rules (default: the newest; 1 rebuilds worlds made before issue 24)",
+        help="version of the ithor-real or robothor-real rules (default: the newest; ithor-real 1 rebuilds worlds "
+        "made before issue 24, robothor-real 1 the val targets fitted by their centre)",
     )
     p.add_argument("--data", default=None, help="fidelity: a built dataset folder")
     p.add_argument(

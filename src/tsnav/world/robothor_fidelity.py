@@ -11,7 +11,13 @@ format of ``allenai/robothor-challenge`` ``dataset/{train,val}/episodes/``):
   per diagonal one; turns and looks cost no metres), over the challenge's ``shortest_path_length`` (metres along
   the navmesh to where the target is within 1 m). Episodes whose challenge length is 0 (the start already succeeds)
   are counted apart; a start that is not a state, or a type no state of the scene succeeds for, has no ratio and
-  counts as outside every band.
+  counts as outside every band;
+* **end ratio** (a diagnostic that leaves the success rule out): tsnav's shortest path from the start position to
+  the position where the challenge's shortest path ends (its last point rounded to the 0.25 m grid), over
+  ``shortest_path_length``. The challenge's paths end at a position from which the target succeeds, the one nearest
+  the start of those its episodes end at; so where the path ratio is far from 1 and the end ratio is not, the walls,
+  furniture and grid metric agree and the two worlds' success positions do not. An end that is not a tsnav position
+  has no end ratio (``end_missing``); episodes without ``shortest_path`` have none either.
 
 :func:`path_lengths` computes the lengths with a multi-source Dijkstra over the position graph (scipy);
 :func:`path_lengths_reference` is the slow reference (heap Dijkstra per start) the tests hold it to.
@@ -120,13 +126,34 @@ def type_goals(scene, positions: np.ndarray, distance: float = SUCCESS_DISTANCE)
     return out
 
 
+def end_lengths(positions: np.ndarray, move: np.ndarray, ends: list[int]) -> dict[int, np.ndarray]:
+    """Per position id of ``ends``: ``(P,)`` metres from every position to it along MoveAheads (inf when it cannot
+    be reached); one Dijkstra over the reversed graph for all of them."""
+    ends = sorted(set(ends))
+    if not ends:
+        return {}
+    g = step_lengths(positions, move).T.tocsr()
+    d = np.atleast_2d(dijkstra(g, directed=True, indices=ends))
+    return {e: np.asarray(d[k], dtype=np.float64) for k, e in enumerate(ends)}
+
+
+def path_end(e: dict) -> tuple[int, int] | None:
+    """The grid cell where the challenge episode ``e``'s shortest path ends (None when it has no path)."""
+    path = e.get("shortest_path") or []
+    if not path:
+        return None
+    return cell(float(path[-1]["x"]), float(path[-1]["z"]))
+
+
 def measure_scene(scene, episodes: list[dict]) -> dict:
     """The fidelity of one loaded scene folder against its episodes (module docstring): counts, per-episode
-    ratios, and the start positions tsnav lacks."""
+    ratios (to a success state, and to the challenge's path end), and the start positions tsnav lacks."""
     positions, move = scene_moves(scene)
     index = {cell(float(x), float(z)): n for n, (x, z) in enumerate(positions)}
     goals = type_goals(scene, positions)
     dist = {t: path_lengths(positions, move, g) for t, g in goals.items()}
+    to_end = end_lengths(positions, move, [index[c] for c in map(path_end, episodes) if c in index])
+    end_ratios, end_missing = [], 0
     starts, kept, missing = 0, 0, set()
     ratios, zero, zero_ok, no_goal = [], 0, 0, 0
     rows = []
@@ -151,7 +178,14 @@ def measure_scene(scene, episodes: list[dict]) -> dict:
             rows.append([t, L, d if math.isfinite(d) else None])
             continue
         ratios.append(d / L)
-        rows.append([t, round(L, 4), round(d, 4) if math.isfinite(d) else None])
+        k = index.get(path_end(e)) if e.get("shortest_path") else None
+        de = float(to_end[k][s]) if k is not None else math.inf
+        if e.get("shortest_path"):
+            end_missing += k is None
+            end_ratios.append(de / L)
+        rows.append(
+            [t, round(L, 4), round(d, 4) if math.isfinite(d) else None, round(de, 4) if math.isfinite(de) else None]
+        )
     distinct = {cell(float(e["initial_position"]["x"]), float(e["initial_position"]["z"])) for e in episodes}
     return {
         "scene": scene.name,
@@ -164,6 +198,8 @@ def measure_scene(scene, episodes: list[dict]) -> dict:
         "zero_length_ok": int(zero_ok),
         "no_success_state": no_goal,
         "ratios": [round(r, 4) if math.isfinite(r) else None for r in ratios],
+        "end_ratios": [round(r, 4) if math.isfinite(r) else None for r in end_ratios],
+        "end_missing": end_missing,
         "missing_starts": sorted([i * GRID_SIZE, j * GRID_SIZE] for i, j in missing),
         "episodes_table": rows,
     }
@@ -188,12 +224,28 @@ def ratio_summary(ratios: list, episodes: int, kept: int) -> dict:
     }
 
 
+def end_summary(end_ratios: list) -> dict:
+    """Figures of the end ratios (None: the end is not a tsnav position or cannot be reached): count, median,
+    shares within +-25 % and +-10 %."""
+    r = np.array([np.inf if v is None else v for v in end_ratios], dtype=np.float64)
+    if not len(r):
+        return {"end_ratios": 0}
+    return {
+        "end_ratios": int(len(r)),
+        "end_median": round(float(np.median(r)), 4),
+        "end_within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2),
+        "end_within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2),
+        "end_no_path": int((~np.isfinite(r)).sum()),
+    }
+
+
 def summarise(scenes: list[dict], split: str) -> dict:
     """Totals over the scenes of one split (``train`` or ``val``)."""
     mine = [s for s in scenes if s["split"] == split]
     out = ratio_summary(
         [v for s in mine for v in s["ratios"]], sum(s["episodes"] for s in mine), sum(s["starts_kept"] for s in mine)
     )
+    out.update(end_summary([v for s in mine for v in s.get("end_ratios", [])]))
     out.update(
         {
             "scenes": len(mine),
@@ -287,8 +339,9 @@ def markdown(doc: dict) -> str:
     """The report's tables: per split, then per scene."""
     lines = [
         "| split | scenes | episodes | starts kept % | distinct starts kept | ratio median | p10-p90 | "
-        "within +-25 % | within +-10 % | no tsnav path | L = 0 (tsnav 0 too) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "within +-25 % | within +-10 % | no tsnav path | L = 0 (tsnav 0 too) | end ratio median | "
+        "end ratio within +-25 % |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for split in ("train", "val"):
         s = doc["summary"].get(split)
@@ -298,18 +351,19 @@ def markdown(doc: dict) -> str:
             f"| {split} | {s['scenes']} | {s['episodes']} | {s['starts_kept_pct']:.2f} | "
             f"{s['distinct_kept']}/{s['distinct_starts']} | {s['median']} | {s['p10']}-{s['p90']} | "
             f"{s['within_25_pct']} | {s['within_10_pct']} | {s['no_path']} | {s['zero_length']} "
-            f"({s['zero_length_ok']}) |"
+            f"({s['zero_length_ok']}) | {s.get('end_median')} | {s.get('end_within_25_pct')} |"
         )
     lines += [
         "",
-        "| scene | positions | starts kept % | ratio median | within +-25 % | no tsnav path |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| scene | positions | starts kept % | ratio median | within +-25 % | no tsnav path | end ratio within +-25 % |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for sc in doc["scenes"]:
         s = ratio_summary(sc["ratios"], sc["episodes"], sc["starts_kept"])
+        s.update(end_summary(sc.get("end_ratios", [])))
         lines.append(
             f"| {sc['scene']} | {sc['positions']} | {s['starts_kept_pct']:.1f} | {s['median']} | "
-            f"{s['within_25_pct']} | {s['no_path']} |"
+            f"{s['within_25_pct']} | {s['no_path']} | {s.get('end_within_25_pct')} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -348,7 +402,7 @@ def robothor_fidelity_report(
         raise EpisodesError(f"{episodes}: no episodes for any complete scene of {data}")
     doc = {
         "format": "tsnav-robothor-fidelity",
-        "version": 1,
+        "version": 2,
         "data": str(data),
         "episodes": str(episodes),
         "success_distance": SUCCESS_DISTANCE,
@@ -363,6 +417,8 @@ def robothor_fidelity_report(
 
 __all__ = [
     "EpisodesError",
+    "end_lengths",
+    "end_summary",
     "load_episodes",
     "measure_scene",
     "path_lengths",

@@ -14,9 +14,12 @@ holds walls or the val scenes' objects; they are inferred, and every scene says 
 * **Val scenes**: furniture footprints are the plan's non-floor blobs (:func:`~tsnav.world.plans.furniture_blobs`)
   cut into :data:`BAND`-pixel row bands, blocking, :data:`FURNITURE_HEIGHT` high (lower under an inferred object
   standing on them). Each of the 12 challenge target types present in the scene's val episodes is placed where
-  its episodes' shortest paths end about :data:`SUCCESS_RADIUS` from it (:func:`place_target`); it takes the
-  median size and height above the floor of that type's records in the train scenes, and stands on the floor
-  (blocking) when most of them do.
+  its episodes' shortest paths end: rules version 2 (the default) fits its footprint, the type's median width and
+  depth (:func:`type_extents`) at yaw 0 or 90, :data:`END_DISTANCE` from the ends (:func:`place_footprint`), and keeps
+  a floor-standing target off the episodes' starts and ends; version 1 fitted its centre :data:`SUCCESS_RADIUS` from
+  them (:func:`place_target`) at yaw 0 with the per-axis median size. It takes the median height above the floor of
+  that type's records in the train scenes, and stands on the floor (blocking) when most of them do. Version 2 builds
+  the train scenes exactly as version 1.
 """
 
 from __future__ import annotations
@@ -61,8 +64,8 @@ ROBOTHOR_TARGETS = ROBOTHOR12.categories
 #: Object types kept as objects (visibility statistics, the visible object map): iTHOR's 22 and RoboTHOR's 12.
 OBJECT_TYPES = frozenset(TARGET_CATEGORIES) | frozenset(ROBOTHOR_TARGETS)
 #: Version of the ``robothor-real`` rules; each version's constants are in :data:`RULES`.
-GENERATOR_VERSION = 1
-VERSIONS = (1,)
+GENERATOR_VERSION = 2
+VERSIONS = (1, 2)
 WALL_THICKNESS = 0.02  #: interior walls and the outer walls' inset (half of it), metres
 #: Clearance kept between the agent's centre and walls or blocking footprints, metres (the challenge's LoCoBot
 #: agent is narrower than iTHOR's default agent: fitted to the train scenes' start positions, see docs/WORLD.md)
@@ -79,6 +82,12 @@ FLOOR_COST = 0.25  #: placement cost of a candidate on open floor (no furniture 
 NEAR_COST = 1.0  #: placement cost of a target with all its paths' earlier points within the success radius, m^2
 OFF_GRID = 5.0  #: degrees off a right angle beyond which a recorded object without oriented box is measured
 MIN_TURNED_PX = 10  #: fewest plan pixels to measure a turned object's footprint from
+#: Version 2: how far the challenge's shortest paths end from their target's box (horizontal distance to the box),
+#: metres: the median over the train scenes' episodes and recorded objects (0.87; the ends lie between 0.75 and 1.0 m
+#: of the box, the first grid position within the success radius). A val target's footprint is fitted to it.
+END_DISTANCE = 0.87
+#: Version 2: the yaws a val target's footprint is fitted at (its width along x, or along z)
+FIT_YAWS = (0.0, 90.0)
 RULES = {
     1: {
         "clearance": CLEARANCE,
@@ -94,6 +103,18 @@ RULES = {
         "min_turned_px": MIN_TURNED_PX,
         "plans": P.RULES[P.PLAN_VERSION],
     }
+}
+#: Version 2 changes the val scenes' targets only (the train scenes are built as in version 1): each is fitted by
+#: its footprint (the type's median width and depth, at the better of :data:`FIT_YAWS`) so that its episodes' paths
+#: end :data:`END_DISTANCE` from the footprint and come no closer than the success radius before, and a target that
+#: stands on the floor (and blocks) keeps clear of every start and path end of the scene's episodes (version 1 fitted
+#: its centre at the success radius and took the per-axis median size at yaw 0).
+RULES[2] = {
+    **RULES[1],
+    "placement": "footprint",
+    "end_distance": END_DISTANCE,
+    "fit_yaws": list(FIT_YAWS),
+    "blocking_targets_keep_clear": "the episodes' starts and path ends",
 }
 RECORDS = "train_objects.json.gz (ai2thor 2.7.2 metadata at reset)"
 
@@ -197,6 +218,23 @@ def type_stats() -> dict[str, dict]:
     return out
 
 
+@lru_cache(maxsize=1)
+def type_extents() -> dict[str, tuple[float, float]]:
+    """Per object type, the median ``(width, depth)`` of the train scenes' records: the larger and the smaller of the
+    box's horizontal sides (a television 1.16 x 0.33 m whichever way it faces; :func:`type_stats` takes the median of
+    x and of z, which mixes the two for a type that stands either way)."""
+    acc: dict[str, list] = {}
+    for scene in train_records().values():
+        for t, per in scene.items():
+            for o in per.values():
+                sx, sz = o["axisAlignedBoundingBox"]["size"]["x"], o["axisAlignedBoundingBox"]["size"]["z"]
+                acc.setdefault(t, []).append((max(sx, sz), min(sx, sz)))
+    return {
+        t: (round(float(np.median([w for w, _ in v])), 3), round(float(np.median([d for _, d in v])), 3))
+        for t, v in acc.items()
+    }
+
+
 # ------------------------------------------------------------------------------------------- walls
 def _wall_box(seg: P.Segment) -> tuple[float, float, float, float]:
     """``(cx, cz, sx, sz)`` of an interior wall slab on segment ``seg``."""
@@ -272,6 +310,57 @@ def place_target(
     return float(xs[k]), float(zs[k]), float(cost[k])
 
 
+def box_distance_2d(xs: np.ndarray, zs: np.ndarray, px: np.ndarray, pz: np.ndarray, hx: float, hz: float) -> np.ndarray:
+    """``(len(xs), len(px))``: horizontal distance from the points ``(px, pz)`` to the axis-aligned rectangles of half
+    sides ``hx, hz`` centred on ``(xs, zs)`` (0 inside)."""
+    dx = np.maximum(np.abs(xs[:, None] - px[None, :]) - hx, 0.0)
+    dz = np.maximum(np.abs(zs[:, None] - pz[None, :]) - hz, 0.0)
+    return np.hypot(dx, dz)
+
+
+def place_footprint(
+    ends: np.ndarray,
+    before: np.ndarray,
+    furniture: np.ndarray,
+    inside: np.ndarray,
+    extent: tuple[float, float],
+    keep_clear: np.ndarray | None = None,
+) -> tuple[float, float, float, float]:
+    """Version 2 of :func:`place_target`: where a target of horizontal ``extent`` (width, depth) stands, fitted by
+    its footprint. For each of :data:`FIT_YAWS` (yaw 0: the width along x) and each ``inside`` pixel: cost = mean
+    squared difference of the ends' distances to the footprint from :data:`END_DISTANCE`, + :data:`FLOOR_COST` on a
+    pixel that is not ``furniture``, + :data:`NEAR_COST` times the share of ``before`` within the success radius of
+    the footprint (a path that came within it earlier would have ended there). ``keep_clear`` ((n, 2) x, z, for a
+    target that blocks): places whose footprint, grown by :data:`CLEARANCE`, holds one of these points are ruled
+    out (they are positions the challenge's agent stood on). Returns ``(x, z, yaw, cost)`` of the cheapest (the first
+    yaw on a tie)."""
+    rr, cc = np.nonzero(inside)
+    xs, zs = P.pixel_to_world(rr.astype(float), cc.astype(float))
+    w, d = extent
+    best = None
+    for yaw in FIT_YAWS:
+        hx, hz = (w / 2, d / 2) if yaw % 180 == 0 else (d / 2, w / 2)
+        cost = ((box_distance_2d(xs, zs, ends[:, 0], ends[:, 1], hx, hz) - END_DISTANCE) ** 2).mean(axis=1)
+        cost += FLOOR_COST * ~furniture[rr, cc]
+        if len(before):
+            near = np.zeros(len(xs))
+            for a in range(0, len(before), 256):  # chunks keep the (pixels, samples) table small
+                b = before[a : a + 256]
+                near += (box_distance_2d(xs, zs, b[:, 0], b[:, 1], hx, hz) < SUCCESS_RADIUS - 0.05).sum(1)
+            cost += NEAR_COST * near / len(before)
+        if keep_clear is not None and len(keep_clear):
+            blocked = np.zeros(len(xs), bool)
+            for a in range(0, len(keep_clear), 256):
+                b = keep_clear[a : a + 256]
+                blocked |= (box_distance_2d(xs, zs, b[:, 0], b[:, 1], hx + CLEARANCE, hz + CLEARANCE) <= 0).any(1)
+            if not blocked.all():
+                cost[blocked] = np.inf
+        k = int(np.argmin(cost))
+        if best is None or cost[k] < best[3]:
+            best = (float(xs[k]), float(zs[k]), float(yaw), float(cost[k]))
+    return best
+
+
 def _inside_mask(walls: P.WallPlan, shape) -> np.ndarray:
     t, l, b, r = (int(round(v)) for v in walls.outline)
     m = np.zeros(shape, bool)
@@ -339,7 +428,7 @@ def robothor_spec(name: str, version: int | None = None) -> SceneSpec:
     if split == "train":
         provenance = _recorded_objects(spec, scene_layout(name), P.furniture_mask(load_plan(name), walls))
     else:
-        provenance = _inferred_objects(spec, name, walls)
+        provenance = _inferred_objects(spec, name, walls, val_episodes(name), version)
     spec.generator["provenance"] = provenance
     return spec
 
@@ -448,7 +537,7 @@ def _recorded_objects(spec: SceneSpec, layout: Layout, furniture: np.ndarray) ->
     }
 
 
-def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
+def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan, eps: list[dict], version: int) -> dict:
     plan = load_plan(name)
     mask = P.furniture_mask(plan, walls)
     opened = ndimage.binary_opening(mask, structure=np.ones((3, 3), bool))
@@ -456,40 +545,68 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan) -> dict:
     stats = type_stats()
     inferred: dict[str, str] = {}
     # Targets first: furniture under them is drawn no higher than their bottom.
-    eps = val_episodes(name)
     # Targets in order of how well their episodes fix them (lowest fit cost first); a target is not put where it
     # would overlap one placed before it (its disc, the half diagonal of its size, off theirs).
+    extents = type_extents()
+    # Version 2: where the challenge's agent stood (every start and every path end of the scene's episodes): a target
+    # that blocks is not put on them.
+    stood = np.array(
+        [[e["initial_position"]["x"], e["initial_position"]["z"]] for e in eps]
+        + [[e["shortest_path"][-1]["x"], e["shortest_path"][-1]["z"]] for e in eps if e.get("shortest_path")]
+    ).reshape(-1, 2)
+
+    def fit(t: str, ends: np.ndarray, before: np.ndarray, where: np.ndarray) -> tuple[float, float, float, float]:
+        """(x, z, yaw, cost) of type ``t``'s target by the rules of ``version``."""
+        if version == 1:
+            # yaw 0: the records give no hint (facing the paths' ends was tried: no closer paths)
+            x, z, cost = place_target(ends, before, opened, where)
+            return x, z, 0.0, cost
+        on_floor = stats.get(t, {}).get("floor_share", 0.0) > 0.5
+        return place_footprint(ends, before, opened, where, extents.get(t, (0.2, 0.2)), stood if on_floor else None)
+
     fits = []
     for t in sorted({e["object_type"] for e in eps}):
         mine = [e for e in eps if e["object_type"] == t]
         ends = np.array([[e["shortest_path"][-1]["x"], e["shortest_path"][-1]["z"]] for e in mine])
         before = np.concatenate([path_samples(e["shortest_path"]) for e in mine] + [np.zeros((0, 2))])
-        fits.append((place_target(ends, before, opened, inside)[2], t, mine, ends, before))
+        fits.append((fit(t, ends, before, inside)[3], t, mine, ends, before))
     rr, cc = np.mgrid[0 : plan.shape[0], 0 : plan.shape[1]]
     px_x, px_z = P.pixel_to_world(rr.astype(float), cc.astype(float))
     placed: list[tuple[float, float, float]] = []  # x, z, half diagonal
     targets = []
     for _, t, mine, ends, before in sorted(fits, key=lambda f: (f[0], f[1])):
         st = stats.get(t, {"size": [0.2, 0.2, 0.2], "floor_share": 0.0, "bottom": 0.5, "records": 0})
-        half = math.hypot(st["size"][0], st["size"][2]) / 2
+        if version == 1:
+            size = tuple(round(v, 4) for v in st["size"])
+        else:  # width and depth in the object's own frame (type_extents), its yaw from the fit
+            w, d = extents.get(t, (0.2, 0.2))
+            size = (round(w, 4), round(st["size"][1], 4), round(d, 4))
+        half = math.hypot(size[0], size[2]) / 2
         free = inside.copy()
         for px, pz, ph in placed:
             free &= np.hypot(px_x - px, px_z - pz) > ph + half
-        x, z, cost = place_target(ends, before, opened, free if free.any() else inside)
-        yaw = 0.0  # the records give no hint (facing the paths' ends was tried: no closer paths)
+        x, z, yaw, cost = fit(t, ends, before, free if free.any() else inside)
         on_floor = st["floor_share"] > 0.5
         bottom = 0.0 if on_floor else st["bottom"]
         oid = f"{t}|inferred|{x:+.2f}|{z:+.2f}"
-        size = tuple(round(v, 4) for v in st["size"])
         targets.append((oid, t, x, z, bottom, size, on_floor, yaw))
         placed.append((x, z, half))
+        ex, ez = (size[0], size[2]) if yaw % 180 == 0 else (size[2], size[0])
         if on_floor:  # the blob under a floor-standing target is the target itself: it is not furniture
-            opened &= ~((np.abs(px_x - x) <= size[0] / 2 + P.PIXEL) & (np.abs(px_z - z) <= size[2] / 2 + P.PIXEL))
-        inferred[oid] = (
-            f"placed where the {len(mine)} challenge val episodes of {t} end {SUCCESS_RADIUS} m away "
-            f"(fit cost {cost:.3f} m^2, off the targets placed before it); size and height: median of "
-            f"{st['records']} train records of {t}{', on the floor' if on_floor else ''}"
-        )
+            opened &= ~((np.abs(px_x - x) <= ex / 2 + P.PIXEL) & (np.abs(px_z - z) <= ez / 2 + P.PIXEL))
+        if version == 1:
+            inferred[oid] = (
+                f"placed where the {len(mine)} challenge val episodes of {t} end {SUCCESS_RADIUS} m away "
+                f"(fit cost {cost:.3f} m^2, off the targets placed before it); size and height: median of "
+                f"{st['records']} train records of {t}{', on the floor' if on_floor else ''}"
+            )
+        else:
+            inferred[oid] = (
+                f"placed so that the {len(mine)} challenge val episodes of {t} end {END_DISTANCE} m from its "
+                f"footprint, none earlier within {SUCCESS_RADIUS} m (yaw {yaw:.0f}, fit cost {cost:.3f} m^2, off the "
+                f"targets placed before it); width, depth and height: median of {st['records']} train records of "
+                f"{t}{', on the floor' if on_floor else ''}"
+            )
     lab, n = ndimage.label(opened)
     sizes = np.bincount(lab.ravel(), minlength=n + 1)
     static = apartment_static(apartment(name))
@@ -553,7 +670,9 @@ __all__ = [
     "apartment_walls",
     "check_version",
     "floor_rect",
+    "place_footprint",
     "place_target",
     "robothor_spec",
+    "type_extents",
     "type_stats",
 ]
