@@ -192,8 +192,8 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
         )
     train.update(data=str((work / "world").resolve()), features="(cached in the features step)", detections=det.name)
     run = resolve_run({**{s: recipe.get(s) or {} for s in RUN_SECTIONS}, "train": train})
-    if run[0].algo != "batched" or run[0].updates is None:
-        raise CommandError("[train]: an agent is made with algo batched and a budget in updates")
+    if run[0].algo != "batched" or (run[0].updates is None and run[0].episodes is None):
+        raise CommandError("[train]: an agent is made with algo batched and a budget in updates or episodes")
     card = recipe.get("card") or {}
     if not isinstance(card, dict) or not card.get("summary"):
         raise CommandError("[card]: the model card needs at least a summary")
@@ -208,6 +208,8 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
         )
     if scoring.episodes == "challenge-train" and not world.preset.startswith("robothor"):
         raise CommandError(f'[scoring]: episodes "challenge-train" are RoboTHOR\'s, not of the {world.preset} world')
+    if run[0].updates is None and scoring.episodes != "none" and scoring.chunks:
+        raise CommandError("[train]: training in chunks ([scoring] chunks = true) needs a budget in updates")
     if scoring.episodes != "none" and not scoring.chunks:
         if run[0].milestone_every is None:
             raise CommandError("[scoring]: chunks = false needs train.milestone_every (the milestones [select] scores)")

@@ -109,8 +109,10 @@ def table1_rows(
                 if card.get("default") and protocol == "lineage":
                     label = f"**{label}** (shipped default)"
             else:
+                rob_det = cards.get(rob_agent, {}).get("detector_shipped") if rob_agent and rob_rows else None
                 label = (
-                    f"{policy} (map + shortest path, `{card.get('detector_shipped', '?')}` switch)"
+                    f"{policy} (map + shortest path, `{card.get('detector_shipped', '?')}` switch"
+                    + (f"; RoboTHOR `{rob_det}`)" if rob_det else ")")
                     if policy == "scripted explorer"
                     else policy
                 )
@@ -266,7 +268,8 @@ def shipped_agents(cards: dict) -> list[str]:
         "percent, test episodes of Table I.",
     ]
     for name, card in cards.items():
-        test = card.get("figures", {}).get("test", {})
+        split = card.get("eval_split") or "test"  # a RoboTHOR agent's benchmark is the val split
+        test = card.get("figures", {}).get(split, {})
         ver = f" Packed with tsnav {card['tsnav_version']}." if card.get("tsnav_version") else ""
         lines += [
             "",
@@ -277,8 +280,10 @@ def shipped_agents(cards: dict) -> list[str]:
             f"[card.md](../src/tsnav/agent/weights/{name}/card.md).{ver}",
         ]
         if not test:
-            lines += ["", "No test figures in its card yet."]
+            lines += ["", f"No {split} figures in its card yet."]
             continue
+        if split != "test":
+            lines += ["", f"Its {split} figures (its benchmark: the RoboTHOR challenge's {split} episodes):"]
         lines += [
             "",
             "| protocol | policy | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
@@ -291,6 +296,38 @@ def shipped_agents(cards: dict) -> list[str]:
                 + " | ".join(_pct(a[m]) for m in METRICS)
                 + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
             )
+    return lines
+
+
+def robothor_agents(index: dict, results: Path) -> list[str]:
+    """The RoboTHOR agents' ``tsnav release eval`` tables (agent, scripted explorer with the agent's detector switch,
+    random; both protocols, ALL and L>=5), one per RoboTHOR agent the index's ``table1.robothor`` names."""
+    lines = []
+    seen = set()
+    for value in (index["table1"].get("robothor") or {}).values():
+        agent, rows, n = robothor_entry(value, results)
+        if agent in seen:
+            continue
+        seen.add(agent)
+        f = value if isinstance(value, str) else value["results"]
+        lines += [
+            f"### RoboTHOR: `{agent}` on the challenge's val episodes",
+            "",
+            f"`tsnav release eval --agent {agent}` ([{f}](results/{f})): greedy, 100 steps, in the 15 val "
+            "apartments, which neither the agent, its detector nor its checkpoint selection ever saw; the scripted "
+            "explorer switches on the agent's detector.",
+            "",
+            "| protocol | policy | episodes | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
+            "| --- | --- | ---: | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |",
+        ]
+        for r in rows:
+            a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
+            lines.append(
+                f"| {r['protocol']} | {r['policy']} | {r['episodes']} | "
+                + " | ".join(_pct(a[m]) for m in METRICS)
+                + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
+            )
+        lines.append("")
     return lines
 
 
@@ -348,6 +385,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
         "",
     ]
     lines += table1(index, cards, paper, results) + [""]
+    lines += robothor_agents(index, results)
     lines += robothor_references(index, results)
     lines += experiment_table(
         "Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []), paper, results
