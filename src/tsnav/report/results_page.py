@@ -123,8 +123,7 @@ def table1_rows(
             )
             where = f"{n} test episodes" + (f", RoboTHOR {rob['episodes']} val episodes" if rob else "")
             lines.append(
-                f"| {label} | {where}, `{protocol}` | {_sr_spl(row, 'ALL')} | "
-                f"{_sr_spl(row, 'L>=5')} | {rob_cells} |"
+                f"| {label} | {where}, `{protocol}` | {_sr_spl(row, 'ALL')} | {_sr_spl(row, 'L>=5')} | {rob_cells} |"
             )
     return lines
 
