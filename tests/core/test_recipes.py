@@ -5,7 +5,7 @@ configs they stand for, resumes with other settings refused, abbreviations refus
 import argparse
 import json
 import shlex
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -407,21 +407,33 @@ def test_robothor_recipe_is_learned7s_run_on_robothor(tmp_path):
     r = resolve_agent(read_recipe(ROBOTHOR), tmp_path)
     seven = resolve_agent(read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml"), tmp_path)
     ours, theirs = identity_recipe(*r.run), identity_recipe(*seven.run)
-    assert (ours["train"]["max_steps"], ours["train"]["detections"]) == (100, "robothor1")
+    # what the RoboTHOR run changed: longer episodes, its tables, seed 1, two staggered processes, checkpoints every
+    # 100 updates (and its budget: below)
+    changed = {
+        "max_steps": 100,
+        "detections": "robothor1",
+        "seed": 1,
+        "procs": 2,
+        "ranks": "staggered",
+        "checkpoint_every": 100,
+    }
+    assert {k: ours["train"][k] for k in changed} == changed
     for d in (ours, theirs):
-        for k in ("max_steps", "detections"):
+        for k in changed:
             d["train"].pop(k)
     assert first_difference(theirs, ours) is None
     assert (r.world.preset, r.world.version) == ("robothor-real", 1)
     assert (r.detections.shipped, r.detections.name) == ("robothor1", "robothor1")
-    assert r.pretrain == seven.pretrain and r.features == seven.features
+    # its pretraining streamed the frames (preload off); otherwise learned7's
+    assert r.pretrain.preload is False and replace(r.pretrain, preload=True) == seven.pretrain
+    assert r.features == seven.features
     assert (r.run[0].split, r.run[0].algo, r.run[0].reward, r.run[0].protocol) == (
         "train",
         "batched",
         "tsrm",
         "lineage",
     )
-    assert (r.run[0].milestone_every, r.run[0].updates) == (250, 4000)
+    assert (r.run[0].milestone_every, r.run[0].updates, r.run[0].episodes) == (250, None, 1_500_000)
     assert (r.scoring.episodes, r.scoring.chunks, r.scoring.challenge) == ("challenge-train", False, "")
     assert r.select.per_room_type and not r.card.get("default")
     assert "RoboTHOR" in r.card["summary"] and "RoboTHOR" in r.card["rooms"]

@@ -65,7 +65,10 @@ def test_results_page_reads_its_figures_from_the_files(tmp_path):
                 "protocol": "lineage",
                 "policy": "agent",
                 "episodes": 10,
-                "metrics": {"ALL": {"SR": 0.5, "SPL": 0.25}, "L>=5": {"SR": 0.4, "SPL": 0.2}},
+                "metrics": {
+                    "ALL": {"SR": 0.5, "SPL": 0.25, "SSR": 0.6, "SSSPL": 0.3, "NSNPL": 0.45},
+                    "L>=5": {"SR": 0.4, "SPL": 0.2, "SSR": 0.5, "SSSPL": 0.25, "NSNPL": 0.4},
+                },
             }
         ]
     }
