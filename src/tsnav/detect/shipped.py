@@ -25,7 +25,9 @@ temperature, fingerprint, provenance):
 * ``robothor1`` (``weights/robothor-real-128-robothor1``): the RoboTHOR detector of the shipped RoboTHOR agent, the
   12 challenge target types (class set ``robothor12``), ``learned6``'s architecture and loss, trained from nothing on
   the 60 training apartments' frames at 128x128 (its ``provenance`` names the command and the steps); not
-  calibrated (temperature 1): the val apartments are the benchmark, so nothing is fitted on them.
+  calibrated (temperature 1): the val apartments are the benchmark, so nothing is fitted on them. Val presence AP
+  0.414 (0.85 GarbageCan, 0.76 Television, under 0.2 for BasketBall, SprayBottle, Vase;
+  docs/results/robothor1_val_eval_2026-12-06.json): the limit of the RoboTHOR agent (docs/RESULTS.md).
 
 Their tables carry the same fingerprint as the ones written by ``tsnav detect --checkpoint`` with the same
 weights, so tables written from a shipped copy and from the training folder are interchangeable.
