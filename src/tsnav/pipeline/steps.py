@@ -106,6 +106,17 @@ def ensure_detections(
     return {"fingerprint": done["fingerprint"], "written": done["written"]}
 
 
+def reusable_list(path: Path, protocol: str) -> bool:
+    """Whether the episode list at ``path`` exists and was made under ``protocol`` (then it is reused); a list made
+    under the other protocol is a ``ValueError``: it is never replaced."""
+    if not path.exists():
+        return False
+    have = protocol_of(read_episodes(path)[1])
+    if have != protocol:
+        raise ValueError(f"{path} holds episodes drawn under the {have} protocol, not {protocol}")
+    return True
+
+
 def ensure_episodes(
     data: str | Path,
     split: str,
@@ -118,10 +129,7 @@ def ensure_episodes(
     """The fixed episode list of ``split`` at ``path`` drawn under the success ``protocol`` (made once; reused
     when present; ``ValueError`` when the file there was drawn under another protocol - it is never replaced)."""
     path = Path(path)
-    if path.exists():
-        have = protocol_of(read_episodes(path)[1])
-        if have != protocol:
-            raise ValueError(f"{path} holds episodes drawn under the {have} protocol, not {protocol}")
+    if reusable_list(path, protocol):
         return path
     bank = SceneBank.from_root(data, split, success_distance=success_distance, protocol=protocol)
     eps = make_episodes(bank, per_room_type, seed)
@@ -174,10 +182,7 @@ def ensure_challenge_episodes(
     )
 
     path = Path(path)
-    if path.exists():
-        have = protocol_of(read_episodes(path)[1])
-        if have != protocol:
-            raise ValueError(f"{path} holds episodes drawn under the {have} protocol, not {protocol}")
+    if reusable_list(path, protocol):
         return path
     root = packaged_challenge() if challenge is None else Path(challenge)
     records = read_challenge_episodes(root, split)
