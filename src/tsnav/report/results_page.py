@@ -257,6 +257,26 @@ def fig4(index: dict, results: Path) -> list[str]:
     return lines[:-1]
 
 
+def metrics_table(rows: list[dict], episodes: bool = False) -> list[str]:
+    """A markdown table of release-evaluation rows (``protocol``, ``policy``, ``metrics`` ALL and L>=5, and
+    ``episodes`` when asked): every metric of :data:`METRICS` over all episodes, SR and SPL at L>=5, in percent."""
+    ep = (" episodes |", " ---: |") if episodes else ("", "")
+    lines = [
+        f"| protocol | policy |{ep[0]} " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
+        f"| --- | --- |{ep[1]} " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |",
+    ]
+    for r in rows:
+        a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
+        lines.append(
+            f"| {r['protocol']} | {r['policy']} |"
+            + (f" {r['episodes']} |" if episodes else "")
+            + " "
+            + " | ".join(_pct(a[m]) for m in METRICS)
+            + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
+        )
+    return lines
+
+
 def shipped_agents(cards: dict) -> list[str]:
     """One block per shipped agent: what it is, and its test figures from its card."""
     lines = [
@@ -283,18 +303,7 @@ def shipped_agents(cards: dict) -> list[str]:
             continue
         if split != "test":
             lines += ["", f"Its {split} figures (its benchmark: the RoboTHOR challenge's {split} episodes):"]
-        lines += [
-            "",
-            "| protocol | policy | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
-            "| --- | --- | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |",
-        ]
-        for r in test["rows"]:
-            a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
-            lines.append(
-                f"| {r['protocol']} | {r['policy']} | "
-                + " | ".join(_pct(a[m]) for m in METRICS)
-                + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
-            )
+        lines += [""] + metrics_table(test["rows"])
     return lines
 
 
@@ -316,17 +325,8 @@ def robothor_agents(index: dict, results: Path) -> list[str]:
             "apartments, which neither the agent, its detector nor its checkpoint selection ever saw; the scripted "
             "explorer switches on the agent's detector.",
             "",
-            "| protocol | policy | episodes | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
-            "| --- | --- | ---: | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |",
         ]
-        for r in rows:
-            a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
-            lines.append(
-                f"| {r['protocol']} | {r['policy']} | {r['episodes']} | "
-                + " | ".join(_pct(a[m]) for m in METRICS)
-                + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
-            )
-        lines.append("")
+        lines += metrics_table(rows, episodes=True) + [""]
     return lines
 
 
@@ -346,17 +346,8 @@ def robothor_references(index: dict, results: Path) -> list[str]:
         + " (starts off tsnav's graph, targets without a success state and, under `paper`, start-success "
         "episodes dropped and counted in the file).",
         "",
-        "| protocol | policy | episodes | " + " | ".join(METRICS) + " | L>=5 SR | L>=5 SPL |",
-        "| --- | --- | ---: | " + " | ".join("---:" for _ in range(len(METRICS) + 2)) + " |",
     ]
-    for r in res["rows"]:
-        a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
-        lines.append(
-            f"| {r['protocol']} | {r['policy']} | {r['episodes']} | "
-            + " | ".join(_pct(a[m]) for m in METRICS)
-            + f" | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
-        )
-    return lines + [""]
+    return lines + metrics_table(res["rows"], episodes=True) + [""]
 
 
 def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
