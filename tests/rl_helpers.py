@@ -41,3 +41,30 @@ class RecordingTrainer:
 
     def train(self, tc, agent, run_dir):
         raise NotImplementedError
+
+
+def train_argv(data, out, features: str, *extra: str) -> list[str]:
+    """``tsnav train`` arguments of the tests' small batched runs: ``data`` and its feature cache ``features``, the
+    oracle's detection tables, 4 episodes of the ``cpu`` preset in 5-step rollouts into ``out``, quiet; ``extra``
+    adds or sets the rest (``"--updates", "4"``, ...)."""
+    return [
+        "train",
+        "--data",
+        str(data),
+        "--features",
+        features,
+        "--detections",
+        "oracle",
+        "--algo",
+        "batched",
+        "--out",
+        str(out),
+        "--num-envs",
+        "4",
+        "--preset",
+        "cpu",
+        "--rollout-steps",
+        "5",
+        *extra,
+        "--quiet",
+    ]

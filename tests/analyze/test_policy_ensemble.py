@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from rl_helpers import train_argv
 from tsnav.cli import main
 from tsnav.eval.runner import read_trajectories
 
@@ -29,34 +30,19 @@ def two_runs(pixel_world, tmp_path_factory):
         run = base / f"run{seed}"
         assert (
             main(
-                [
-                    "train",
-                    "--data",
+                train_argv(
                     str(pixel_world),
-                    "--features",
+                    str(run),
                     FEATS,
-                    "--detections",
-                    "oracle",
                     "--reward",
                     "tsrm",
-                    "--algo",
-                    "batched",
-                    "--out",
-                    str(run),
                     "--updates",
                     "3",
-                    "--num-envs",
-                    "4",
-                    "--preset",
-                    "cpu",
-                    "--rollout-steps",
-                    "5",
                     "--seed",
                     str(seed),
                     "--lr",
                     "1e-2",
-                    "--quiet",
-                ]
+                )
             )
             == 0
         )

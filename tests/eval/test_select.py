@@ -6,6 +6,7 @@ import os
 
 import pytest
 
+from rl_helpers import train_argv
 from tsnav.checkpoint import weights_digest
 from tsnav.cli import main
 from tsnav.eval import select as sel
@@ -24,34 +25,19 @@ def test_select_best_checkpoint_and_eval_uses_it(pixel_world, tmp_path, capsys, 
     world, run = pixel_world, tmp_path / "run"
     assert (
         main(
-            [
-                "train",
-                "--data",
+            train_argv(
                 str(world),
-                "--features",
-                FEATS,
-                "--detections",
-                "oracle",
-                "--algo",
-                "batched",
-                "--out",
                 str(run),
+                FEATS,
                 "--updates",
                 "6",
-                "--num-envs",
-                "4",
-                "--preset",
-                "cpu",
-                "--rollout-steps",
-                "5",
                 "--checkpoint-every",
                 "1",
                 "--milestone-every",
                 "2",
                 "--lr",
                 "3e-3",
-                "--quiet",
-            ]
+            )
         )
         == 0
     )

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from rl_helpers import train_argv
 from tsnav.cli import main
 from tsnav.eval.policies import Policy
 from tsnav.eval.runner import EvalConfig, eval_policy, evaluate
@@ -25,36 +26,21 @@ def trained(pixel_world, tmp_path_factory):
     tiny_world = pixel_world
     run = tmp_path_factory.mktemp("cmd") / "run"
     rc = main(
-        [
-            "train",
-            "--data",
+        train_argv(
             str(tiny_world),
-            "--features",
+            str(run),
             FEATS,
-            "--detections",
-            "oracle",
             "--reward",
             "tsrm",
-            "--algo",
-            "batched",
-            "--out",
-            str(run),
             "--updates",
             "4",
-            "--num-envs",
-            "4",
-            "--preset",
-            "cpu",
-            "--rollout-steps",
-            "5",
             "--checkpoint-every",
             "2",
             "--log-every",
             "1",
             "--lr",
             "1e-3",
-            "--quiet",
-        ]
+        )
     )
     assert rc == 0
     return tiny_world, run
@@ -342,34 +328,19 @@ def test_protocol_of_a_run_is_recorded_and_checked(trained, tmp_path, capsys):
     run = tmp_path / "lineage_run"
     assert (
         main(
-            [
-                "train",
-                "--data",
+            train_argv(
                 str(world),
-                "--features",
-                FEATS,
-                "--detections",
-                "oracle",
-                "--algo",
-                "batched",
-                "--out",
                 str(run),
+                FEATS,
                 "--updates",
                 "2",
-                "--num-envs",
-                "4",
-                "--preset",
-                "cpu",
-                "--rollout-steps",
-                "5",
                 "--checkpoint-every",
                 "2",
                 "--log-every",
                 "1",
                 "--protocol",
                 "lineage",
-                "--quiet",
-            ]
+            )
         )
         == 0
     )
@@ -465,28 +436,7 @@ def test_blocked_action_run(trained, tmp_path, capsys):
     run = tmp_path / "blocked"
 
     def args(out):
-        return [
-            "train",
-            "--data",
-            str(world),
-            "--features",
-            FEATS,
-            "--detections",
-            "oracle",
-            "--algo",
-            "batched",
-            "--out",
-            str(out),
-            "--num-envs",
-            "4",
-            "--preset",
-            "cpu",
-            "--rollout-steps",
-            "5",
-            "--lr",
-            "1e-3",
-            "--quiet",
-        ]
+        return train_argv(str(world), str(out), FEATS, "--lr", "1e-3")
 
     assert main(args(run) + ["--updates", "2", "--blocked-action"]) == 0
     assert json.loads((run / "config.json").read_text())["agent"]["blocked_action"] is True
