@@ -249,27 +249,30 @@ def metric_values(
     return {name: m.value(episodes) for name, m in METRIC_REGISTRY.items()}
 
 
-def _col(records: Sequence[EpisodeRecord], name: str, default=0) -> np.ndarray:
-    return np.array([default if getattr(r, name) is None else getattr(r, name) for r in records], dtype=np.float64)
+#: The :class:`EpisodeRecord` fields :func:`metric_values` reads, in its argument order.
+RECORD_COLUMNS = (
+    "success",
+    "entered_pathfinding",
+    "path_length",
+    "optimal_length",
+    "search_path_length",
+    "optimal_search_length",
+    "pathfinding_path_length",
+    "optimal_pathfinding_length",
+)
+
+
+def record_columns(records: Sequence[EpisodeRecord]) -> np.ndarray:
+    """``(8, K)`` float64: the :data:`RECORD_COLUMNS` of ``records`` (None counted 0), the arguments of
+    :func:`metric_values` in order."""
+    return np.array(
+        [[0.0 if getattr(r, c) is None else float(getattr(r, c)) for r in records] for c in RECORD_COLUMNS],
+        dtype=np.float64,
+    ).reshape(len(RECORD_COLUMNS), len(records))
 
 
 def _values(records: Sequence[EpisodeRecord], protocol: str = DEFAULT_PROTOCOL) -> dict[str, float]:
-    return metric_values(
-        *(
-            _col(records, n)
-            for n in (
-                "success",
-                "entered_pathfinding",
-                "path_length",
-                "optimal_length",
-                "search_path_length",
-                "optimal_search_length",
-                "pathfinding_path_length",
-                "optimal_pathfinding_length",
-            )
-        ),
-        protocol=protocol,
-    )
+    return metric_values(*record_columns(records), protocol=protocol)
 
 
 def sr(records: Sequence[EpisodeRecord]) -> float:

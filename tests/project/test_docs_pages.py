@@ -87,6 +87,13 @@ def test_results_page_reads_its_figures_from_the_files(tmp_path):
     res = json.loads((root / "docs" / "results" / index["table2"][0]["file"]).read_text())
     base = next(r for r in res["rows"] if r["row"] == "baseline")["metrics"]["ALL"]["SR"]
     assert f"| baseline (ResNet18, baseline reward) | 81.92 | {base['mean']:.2f} ± {base['ci95']:.2f} |" in text
+    # the lever tables: every row of every protocol, its value and interval from its file
+    for e in index.get("levers", []):
+        lev = json.loads((root / "docs" / "results" / e["file"]).read_text())
+        for t in lev["protocols"].values():
+            for r in t["rows"]:
+                lo, hi = (100 * q for q in r["ALL"]["SR"]["ci95"])
+                assert f"| {r['row']} | {100 * r['ALL']['SR']['value']:.2f} [{lo:.2f}, {hi:.2f}] |" in text
     # the README block is replaced, not duplicated, and a README without one is refused in one line
     readme = f"a\n{results_page.README_BEGIN}\nold\n{results_page.README_END}\nb\n"
     new = results_page.with_readme_table(readme, "T")

@@ -257,6 +257,47 @@ def fig4(index: dict, results: Path) -> list[str]:
     return lines[:-1]
 
 
+def _ci_cell(v: dict, signed: bool = False) -> str:
+    lo, hi = (100 * q for q in v["ci95"])
+    f = "+.2f" if signed else ".2f"
+    return f"{100 * v['value']:{f}} [{lo:{f}}, {hi:{f}}]"
+
+
+def levers(index: dict, results: Path) -> list[str]:
+    """The lever tables (``tsnav analyze lever-table``): per protocol, each row's SR, SPL and NSNPL and each
+    lever's paired difference from the base row, with their 95 % bootstrap intervals over the episodes."""
+    entries = index.get("levers") or []
+    if not entries:
+        return []
+    lines = ["## Levers on the pathfinding stage", ""]
+    for e in entries:
+        res = json.loads((results / e["file"]).read_text())
+        lines += [
+            f"{e['about']} Measured at {e['setting']}; data: [{e['file']}](results/{e['file']})"
+            + (f"; validation curves: [{e['curves']}]({e['curves']})." if e.get("curves") else "."),
+            "",
+            "```",
+            e["command"],
+            "```",
+            "",
+        ]
+        for proto, t in res["protocols"].items():
+            lines += [
+                f"Under `{proto}`, {t['episodes']} test episodes: value [95 % interval], and the difference from "
+                f"the first row on the same episodes [paired 95 % interval], in percent.",
+                "",
+                "| row | SR | SPL | NSNPL | SR diff | SPL diff | NSNPL diff |",
+                "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+            ]
+            for r in t["rows"]:
+                d = r.get("delta")
+                cells = [_ci_cell(r["ALL"][m]) for m in ("SR", "SPL", "NSNPL")]
+                cells += [_ci_cell(d[m], signed=True) if d else "-" for m in ("SR", "SPL", "NSNPL")]
+                lines.append(f"| {r['row']} | " + " | ".join(cells) + " |")
+            lines.append("")
+    return lines
+
+
 def metrics_table(rows: list[dict], episodes: bool = False) -> list[str]:
     """A markdown table of release-evaluation rows (``protocol``, ``policy``, ``metrics`` ALL and L>=5, and
     ``episodes`` when asked): every metric of :data:`METRICS` over all episodes, SR and SPL at L>=5, in percent."""
@@ -383,6 +424,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     lines += experiment_table(
         "Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []), paper, results
     ) + [""]
+    lines += levers(index, results)
     lines += fig4(index, results) + [""]
     lines += shipped_agents(cards)
     return "\n".join(lines) + "\n"
