@@ -137,3 +137,26 @@ def test_bad_input_is_one_line(world, tmp_path, capsys):
         assert main(["detect", "--data", str(world), "--detector", "learned", *flags]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and len(err.splitlines()) == 1
+
+
+def test_learned_command_fits_nothing_on_val_without_test_scenes(world, capsys):
+    """In a world without test scenes (robothor-real: its val scenes are the benchmark) the learned detector keeps
+    temperature 1 instead of being calibrated on val; --no-calibrate does the same in any world."""
+    args = ["detect", "--data", str(world), "--detector", "learned", "--quiet", "--max-states-per-scene", "16"]
+    args += ["--batch-size", "8", "--threads", "1", "--train-steps", "2", "--no-eval"]
+    assert main([*args, "--checkpoint", str(world / "ck1"), "--name", "a", "--no-calibrate"]) == 0
+    assert "no calibration (--no-calibrate)" in capsys.readouterr().out
+    from tsnav.detect.train import val_is_benchmark
+
+    test = list_scenes(world, "test")
+    assert test and not val_is_benchmark(world)
+    for p in test:
+        shutil.rmtree(p)
+    if (world / "index.json").exists():
+        (world / "index.json").unlink()
+    assert val_is_benchmark(world)
+    assert main([*args, "--checkpoint", str(world / "ck2"), "--name", "b"]) == 0
+    assert "this world has no test scenes" in capsys.readouterr().out
+    for ck in ("ck1", "ck2"):
+        meta = json.loads((world / ck / "checkpoints" / "ckpt_000000002" / "state.json").read_text())
+        assert meta["calibrated_step"] == -1 and meta["temperature"] == 1.0

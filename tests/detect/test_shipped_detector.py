@@ -20,7 +20,7 @@ from tsnav.errors import CommandError
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-ITHOR_SHIPPED = sorted(n for n in shipped.SHIPPED if n != "robothor1")
+ITHOR_SHIPPED = sorted(n for n in shipped.SHIPPED if not n.startswith("robothor"))
 
 
 @pytest.mark.parametrize("name", ITHOR_SHIPPED)
@@ -48,17 +48,21 @@ def test_weights_match_their_fingerprint_and_provenance(name):
         shipped.shipped_detector(name="learned9")
 
 
-def test_robothor_detector_saw_only_the_train_apartments():
-    """robothor1: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing of the 15 val ones
-    (they are the benchmark): not calibrated, temperature 1."""
-    det = shipped.shipped_detector(128, name="robothor1")
-    meta = shipped.shipped_meta("robothor1")
-    assert det.fingerprint == meta["fingerprint"] and meta["name"] == "robothor1"
+@pytest.mark.parametrize("name", ["robothor1", "robothor2"])
+def test_robothor_detectors_saw_only_the_train_apartments(name):
+    """robothor1 and robothor2: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing of the 15
+    val ones (they are the benchmark): not calibrated, temperature 1."""
+    det = shipped.shipped_detector(128, name=name)
+    meta = shipped.shipped_meta(name)
+    assert det.fingerprint == meta["fingerprint"] and meta["name"] == name
     assert det.class_set == "robothor12" and det.num_classes == 12 and det.image_size == 128
     train = [f"FloorPlan_Train{i}_{v}" for i in range(1, 13) for v in range(1, 6)]
     assert sorted(meta["train_scenes"]) == sorted(train)
     assert meta["calibration_split"] is None and meta["calibrated_step"] == -1 and det.temperature == 1.0
-    assert meta["train"]["loss"]["presence_pos_weight"] == 4.0 and meta["step"] == 5000
+    assert meta["train"]["loss"]["presence_pos_weight"] == 4.0 and meta["model"]["widths"] == [32, 64, 128]
+    # robothor2 is robothor1 trained on to 15,000 steps with class-balanced sampling
+    steps, repeat = {"robothor1": (5000, 0.0), "robothor2": (15000, 0.5)}[name]
+    assert meta["step"] == steps and meta["train"]["repeat_threshold"] == repeat
 
 
 def test_refuses_other_frame_sizes_and_damaged_weights(tmp_path, monkeypatch):

@@ -130,12 +130,19 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         help=f"shipped: which shipped detector (default: the one --name names, if any, else "
         f"{DEFAULT_SHIPPED}; learned3 wrote the tables of the "
         "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
-        "robothor1: the 12 RoboTHOR targets, for robothor-real worlds; see tsnav.detect.shipped)",
+        "robothor1 and robothor2 (trained longer): the 12 RoboTHOR targets, for robothor-real worlds; see "
+        "tsnav.detect.shipped)",
     )
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation")
+    p.add_argument(
+        "--no-calibrate",
+        action="store_true",
+        help="learned: keep temperature 1, fit nothing on the val scenes (the default in a world without test "
+        "scenes, such as robothor-real, whose val scenes are the benchmark)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace tables made by another detector")
     p.add_argument(
         "--mirror",

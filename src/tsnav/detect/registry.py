@@ -121,9 +121,18 @@ def _open_learned(args, root: Path, scenes: list, name: str) -> TableMaker:
 
 def _learned(args, root: Path):
     """The learned detector of ``args.checkpoint`` (default ``ROOT/detectors/learned``), trained to
-    ``--train-steps`` and calibrated on the val rooms first."""
+    ``--train-steps`` and calibrated on the val rooms first (not with ``--no-calibrate``, nor in a world without
+    test scenes: there the val scenes are the benchmark)."""
     from .model import LossWeights
-    from .train import DetectorTrainConfig, calibrate, default_train_steps, is_checkpoint, read_meta, train_detector
+    from .train import (
+        DetectorTrainConfig,
+        calibrate,
+        default_train_steps,
+        is_checkpoint,
+        read_meta,
+        train_detector,
+        val_is_benchmark,
+    )
 
     ckpt = Path(args.checkpoint) if args.checkpoint else root / "detectors" / "learned"
     if args.train_steps is not None and args.train_steps < 1:
@@ -184,11 +193,19 @@ def _learned(args, root: Path):
         )
     else:
         print(f"detector checkpoint {ckpt} at step {res.step}")
-    try:
-        t = calibrate(root, ckpt, split="val", progress=not args.quiet)
-        print(f"temperature {t:.3f} (fitted on val scenes)")
-    except ValueError as e:
-        print(f"no calibration ({e}); temperature 1")
+    if getattr(args, "no_calibrate", False):
+        print("no calibration (--no-calibrate); the checkpoint's temperature is kept")
+    elif val_is_benchmark(root):
+        print(
+            "no calibration: this world has no test scenes, so its val scenes are the benchmark and nothing is "
+            "fitted on them; the checkpoint's temperature is kept"
+        )
+    else:
+        try:
+            t = calibrate(root, ckpt, split="val", progress=not args.quiet)
+            print(f"temperature {t:.3f} (fitted on val scenes)")
+        except ValueError as e:
+            print(f"no calibration ({e}); temperature 1")
     from .learned import LearnedDetector
 
     return LearnedDetector.load(ckpt)

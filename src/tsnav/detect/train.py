@@ -648,6 +648,15 @@ def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: Dete
     return model, meta, opt_state, train_cfg, start
 
 
+def val_is_benchmark(root: str | Path) -> bool:
+    """Whether the val scenes of the world at ``root`` are its benchmark: a world without test scenes
+    (``robothor-real``, evaluated on the challenge's val episodes) is, and nothing, a detector's temperature
+    included, may be fitted on them. :func:`calibrate`'s callers check it first."""
+    from ..data.reader import list_scenes
+
+    return not list_scenes(root, "test")
+
+
 def calibrate(
     root: str | Path,
     ckpt: str | Path,
