@@ -400,7 +400,7 @@ ROBOTHOR = CONFIGS / "agents" / "tsrm-demae-robothor.toml"
 
 def test_robothor_recipe_is_learned7s_run_on_robothor(tmp_path):
     """configs/agents/tsrm-demae-robothor.toml: learned7's [train], [reward] and [agent] but max_steps and the
-    detection tables, on the robothor-real world with the robothor1 detector, its checkpoints scored on the
+    detection tables, on the robothor-real world with the robothor2 detector, its checkpoints scored on the
     challenge's train episodes after training (never on the val scenes, the benchmark)."""
     from tsnav.pipeline.agent_recipe import resolve_agent
 
@@ -411,7 +411,7 @@ def test_robothor_recipe_is_learned7s_run_on_robothor(tmp_path):
     # 100 updates (and its budget: below)
     changed = {
         "max_steps": 100,
-        "detections": "robothor1",
+        "detections": "robothor2",
         "seed": 1,
         "procs": 2,
         "ranks": "staggered",
@@ -422,8 +422,8 @@ def test_robothor_recipe_is_learned7s_run_on_robothor(tmp_path):
         for k in changed:
             d["train"].pop(k)
     assert first_difference(theirs, ours) is None
-    assert (r.world.preset, r.world.version) == ("robothor-real", 1)
-    assert (r.detections.shipped, r.detections.name) == ("robothor1", "robothor1")
+    assert (r.world.preset, r.world.version) == ("robothor-real", 2)
+    assert (r.detections.shipped, r.detections.name) == ("robothor2", "robothor2")
     # its pretraining streamed the frames (preload off); otherwise learned7's
     assert r.pretrain.preload is False and replace(r.pretrain, preload=True) == seven.pretrain
     assert r.features == seven.features
@@ -472,7 +472,7 @@ def test_robothor_recipe_never_scores_on_its_benchmark(tmp_path, capsys):
 
 def test_robothor_agent_card(tmp_path, monkeypatch):
     """agent_card of the RoboTHOR recipe: its eval split and episodes, the val scenes and no test rooms (the
-    lead registers the robothor1 detector; here a stand-in's fingerprint)."""
+    lead registers the robothor2 detector; here a stand-in's fingerprint)."""
     from tsnav.data.names import robothor_scenes
     from tsnav.detect import shipped
     from tsnav.pipeline.agent_recipe import resolve_agent
@@ -487,11 +487,11 @@ def test_robothor_agent_card(tmp_path, monkeypatch):
     r = resolve_agent(read_recipe(ROBOTHOR), tmp_path)
     card = agent_card(r, world)
     assert all(k in card for k in CARD_REQUIRED)
-    assert (card["world_preset"], card["world_version"], card["image_size"]) == ("robothor-real", 1, 128)
+    assert (card["world_preset"], card["world_version"], card["image_size"]) == ("robothor-real", 2, 128)
     assert (card["detector_shipped"], card["detections"], card["detector_fingerprint"]) == (
-        "robothor1",
-        "robothor1",
-        "learned-robothor1",
+        "robothor2",
+        "robothor2",
+        "learned-robothor2",
     )
     assert (card["eval_split"], card["episodes"]) == ("val", "challenge")
     assert card["val_rooms"] == robothor_scenes("val") and "test_rooms" not in card
