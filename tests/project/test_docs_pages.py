@@ -173,3 +173,37 @@ def test_links_of_the_user_pages_resolve(page):
         if target.startswith(("http://", "https://", "#", "mailto:")):
             continue
         assert (path.parent / target.split("#")[0]).exists(), f"{page}: broken link {target}"
+
+
+def test_fig4_section_reads_its_rows_and_the_threshold_claim(tmp_path):
+    """A threshold experiment named by the index: its rows in C_target order, each metric's best mean in bold, its
+    picture, and the paper's claim (0.7 best) read by tsnav.report.claims from the same file."""
+    from tsnav.report.tables import aggregate
+    from tsnav.pipeline.config import Row
+
+    rows = [Row(f"c{c}", f"C_target = 0.{c // 10}", "demae", "tsrm", c / 100) for c in (70, 10, 90)]
+    sr = {"c10": [40.0, 42.0], "c70": [80.0, 81.0], "c90": [60.0, 62.0]}
+    spl = {"c10": [30.0, 31.0], "c70": [35.0, 36.0], "c90": [39.0, 41.0]}
+    per_row = {
+        rid: [
+            {
+                s: {m: v / 100 for m, v in zip(("SR", "SPL", "SSR", "SSSPL", "NSNPL"), (a, b, 50, 50, 50))}
+                for s in ("ALL", "L>=5")
+            }
+            for a, b in zip(sr[rid], spl[rid])
+        ]
+        for rid in sr
+    }
+    res = aggregate(rows, per_row, ["SR", "SPL", "SSR", "SSSPL", "NSNPL"], []) | {"protocol": "lineage"}
+    (tmp_path / "fig4.json").write_text(json.dumps(res))
+    entry = {"file": "fig4.json", "setting": "a test", "command": "tsnav experiment threshold", "picture": "img/f.png"}
+    text = "\n".join(results_page.fig4({"fig4": [entry]}, tmp_path))
+    body = [line for line in text.splitlines() if line.startswith("| 0.")]
+    assert [line.split(" |")[0] for line in body] == ["| 0.1", "| 0.7", "| 0.9"]
+    assert "| 0.7 | **80.50 ±" in text and "| 0.9 | 61.00 ±" in text and "| **40.00 ±" in text
+    assert "![Fig. 4 at this setting" in text and "(img/f.png)" in text
+    assert "under `lineage`" in text and "2 seeds per threshold" in text
+    sr_line = next(line for line in text.splitlines() if line.startswith("- SR:"))
+    spl_line = next(line for line in text.splitlines() if line.startswith("- SPL:"))
+    assert "(C_target = 0.9): +19.50" in sr_line and "supported" in sr_line
+    assert "(C_target = 0.9): -4.50" in spl_line and "n.s." in spl_line

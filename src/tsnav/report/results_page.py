@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from ..atomic import atomic_write_text
-from .claims import published_figures
+from .claims import check_claims, published_figures
 
 #: Where the shipped agents' cards live (package data of ``tsnav.agent``; read as JSON files, no import).
 WEIGHTS = Path(__file__).resolve().parent.parent / "agent" / "weights"
@@ -231,28 +231,63 @@ def experiment_table(title: str, paper_key: str, entries: list[dict], paper: dic
 
 
 def fig4(index: dict, results: Path) -> list[str]:
+    """Fig. 4: for each listed threshold experiment, its picture, every metric per C_target (mean ± half-width of
+    the 95 % t-interval over the seeds, the best mean of each metric in bold) and the reading of the paper's claim
+    (C_target = 0.7 best) by :func:`tsnav.report.claims.check_claims`, as `tsnav claims` prints it."""
     lines = ["## Fig. 4: the dividing-point threshold C_target", ""]
     if not index.get("fig4"):
         return lines + [f"Fig. 4 is {index.get('fig4_not_run', 'not run yet.')}"]
     for e in index["fig4"]:
         res = json.loads((results / e["file"]).read_text())
+        rows = sorted(res["rows"], key=lambda r: (r.get("c_target") is None, r.get("c_target") or 0.0))
+        details = (
+            f"per seed, L>=5 and Welch tests: [{e['details']}](results/{e['details']}); " if e.get("details") else ""
+        )
         lines += [
-            f"Measured at {e['setting']} on validation episodes, under `{res.get('protocol', 'paper')}`; "
-            f"data: [{e['file']}](results/{e['file']}).",
+            f"Measured at {e['setting']}; {rows[0].get('n', '?')} seeds per threshold, mean ± half-width of the 95 % "
+            f"t-interval, in percent, on validation episodes under `{res.get('protocol', 'paper')}` (ALL episodes); "
+            f"{details}data: [{e['file']}](results/{e['file']}).",
             "",
             "```",
             e["command"],
             "```",
             "",
+        ]
+        if e.get("picture"):
+            lines += [
+                f"![Fig. 4 at this setting: each metric over C_target, the best mean starred]({e['picture']})",
+                "",
+            ]
+        best = {}
+        for m in METRICS:
+            means = [(r["metrics"].get("ALL", {}).get(m, {}).get("mean"), r["row"]) for r in rows]
+            means = [x for x in means if x[0] is not None]
+            if means:
+                best[m] = max(means)[1]
+        lines += [
             "| C_target | " + " | ".join(METRICS) + " |",
             "| ---: | " + " | ".join("---:" for _ in METRICS) + " |",
         ]
-        for row in res["rows"]:
-            lines.append(
-                f"| {row.get('c_target', row['label'])} | "
-                + " | ".join(_cell(row["metrics"], "ALL", m) for m in METRICS)
-                + " |"
-            )
+        for row in rows:
+            cells = []
+            for m in METRICS:
+                c = _cell(row["metrics"], "ALL", m)
+                cells.append(f"**{c}**" if best.get(m) == row["row"] and c != "-" else c)
+            label = f"{row['c_target']:.1f}" if row.get("c_target") is not None else row["label"]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        checks = check_claims({"threshold": res}, subsets=("ALL",))
+        if checks:
+            lines += ["", f"The paper's claim, {checks[0]['text']}, read by `tsnav claims` (ALL episodes):", ""]
+            for k in checks:
+                if k["diff"] is None:
+                    lines.append(f"- {k['metric']}: {k['verdict']}")
+                    continue
+                ci = f" ± {k['ci95']:.2f}" if k.get("ci95") is not None else ""
+                p = f", p = {k['p']:.3f}" if k.get("p") is not None else ""
+                lines.append(
+                    f"- {k['metric']}: **{k['verdict']}**; 0.7 against the best other threshold "
+                    f"({k['lower_label']}): {k['diff']:+.2f}{ci}{p}"
+                )
         lines.append("")
     return lines[:-1]
 
