@@ -207,3 +207,17 @@ def test_fig4_section_reads_its_rows_and_the_threshold_claim(tmp_path):
     spl_line = next(line for line in text.splitlines() if line.startswith("- SPL:"))
     assert "(C_target = 0.9): +19.50" in sr_line and "supported" in sr_line
     assert "(C_target = 0.9): -4.50" in spl_line and "n.s." in spl_line
+
+
+def test_robothor_switch_reach_section_reads_its_file():
+    """Every switch row and every cell row of the switch-reach file named by the index shows on the page."""
+    index = json.loads((ROOT / "docs" / "results" / "index.json").read_text())
+    entry = index["table1"].get("robothor_switch_reach")
+    if not entry:
+        pytest.skip("the index names no switch-reach file")
+    res = json.loads((ROOT / "docs" / "results" / entry["file"]).read_text())
+    text = "\n".join(results_page.robothor_switch_reach(index, ROOT / "docs" / "results"))
+    for r in res["rows"]:
+        assert f"| {r['switch']} | {r['episodes']} | {100 * r['metrics']['ALL']['SR']:.2f} |" in text
+    for c in res["cells"]:
+        assert f"| {c['threshold']:g} | {100 * c['precision']:.2f} | {100 * c['recall']:.2f} |" in text

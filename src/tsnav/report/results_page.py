@@ -426,6 +426,43 @@ def robothor_references(index: dict, results: Path) -> list[str]:
     return lines + metrics_table(res["rows"], episodes=True) + [""]
 
 
+def robothor_switch_reach(index: dict, results: Path) -> list[str]:
+    """The scripted explorer on RoboTHOR's val episodes with switches of known reach (``tsnav analyze switch-reach``),
+    and the learned table's cell precision and recall, from the file ``table1.robothor_switch_reach`` names."""
+    e = index["table1"].get("robothor_switch_reach")
+    if not e:
+        return []
+    res = json.loads((results / e["file"]).read_text())
+    lines = [
+        "### RoboTHOR: how soon the switch must recognise the target",
+        "",
+        f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
+        "",
+        "```",
+        e["command"],
+        "```",
+        "",
+        "| switch | episodes | SR | SPL | SSR | never switched | L>=5 SR | L>=5 SPL |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in res["rows"]:
+        a, b = r["metrics"]["ALL"], r["metrics"]["L>=5"]
+        lines.append(
+            f"| {r['switch']} | {r['episodes']} | {_pct(a['SR'])} | {_pct(a['SPL'])} | {_pct(a['SSR'])} | "
+            f"{r['never_switched']} | {_pct(b['SR'])} | {_pct(b['SPL'])} |"
+        )
+    if res.get("cells"):
+        lines += [
+            "",
+            f"`{res['table']}`'s cells (every state, each apartment's target classes):",
+            "",
+            f"| threshold | precision (class in the frame) | recall (cells showing >= {res['recall_pixels']} px) |",
+            "| ---: | ---: | ---: |",
+        ]
+        lines += [f"| {c['threshold']:g} | {_pct(c['precision'])} | {_pct(c['recall'])} |" for c in res["cells"]]
+    return lines + [""]
+
+
 def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     """The whole page, from ``root/docs/results`` (index and result files), the cards under ``weights`` and the
     paper's figures."""
@@ -453,6 +490,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     lines += table1(index, cards, paper, results) + [""]
     lines += robothor_agents(index, results)
     lines += robothor_references(index, results)
+    lines += robothor_switch_reach(index, results)
     lines += experiment_table(
         "Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []), paper, results
     ) + [""]
