@@ -288,6 +288,8 @@ def fig4(index: dict, results: Path) -> list[str]:
                     f"- {k['metric']}: **{k['verdict']}**; 0.7 against the best other threshold "
                     f"({k['lower_label']}): {k['diff']:+.2f}{ci}{p}"
                 )
+        if e.get("reading"):
+            lines += ["", e["reading"]]
         lines.append("")
     return lines[:-1]
 
