@@ -11,6 +11,7 @@ from script_helpers import load_analysis
 from tsnav.data.detections import Detections, load_detections
 from tsnav.data.reader import list_scenes, load_scene
 from tsnav.detect.quality import scene_targets
+from tsnav.errors import CommandError
 
 
 @pytest.fixture(scope="module")
@@ -101,5 +102,5 @@ def test_command_on_a_real_room(mod, tiny_real_learned4, tmp_path, capsys):
     assert a["never_switched"] <= b["never_switched"]
     assert a["metrics"]["ALL"]["episodes"] == 20 and [c["threshold"] for c in res["cells"]] == [0.5, 0.7]
     assert "presence-1: SR" in capsys.readouterr().out
-    with pytest.raises(Exception, match="no such folder"):
+    with pytest.raises(CommandError, match="no such folder"):
         mod.main(["--data", str(tmp_path / "nope"), "--episodes", str(eps), "--work", "w", "--out", str(out)])

@@ -160,3 +160,10 @@ def test_learned_command_fits_nothing_on_val_without_test_scenes(world, capsys):
     for ck in ("ck1", "ck2"):
         meta = json.loads((world / ck / "checkpoints" / "ckpt_000000002" / "state.json").read_text())
         assert meta["calibrated_step"] == -1 and meta["temperature"] == 1.0
+    # the refusal lives in calibrate itself, for every caller, and writes nothing
+    from tsnav.detect.train import BenchmarkSplit, calibrate
+
+    with pytest.raises(BenchmarkSplit, match="no test scenes"):
+        calibrate(world, world / "ck2", split="val")
+    meta = json.loads((world / "ck2" / "checkpoints" / "ckpt_000000002" / "state.json").read_text())
+    assert meta["calibrated_step"] == -1

@@ -112,7 +112,7 @@ def _row(rule: str, metrics: dict, outcomes: dict | None) -> dict:
     return {
         "switch": rule,
         "episodes": m["ALL"]["episodes"],
-        "metrics": {s: {k: v for k, v in m[s].items()} for s in ("ALL", "L>=5")},
+        "metrics": {s: dict(m[s]) for s in ("ALL", "L>=5")},
         "never_switched": (outcomes or {}).get("counts", {}).get("step limit, never switched"),
     }
 

@@ -125,13 +125,13 @@ def _learned(args, root: Path):
     test scenes: there the val scenes are the benchmark)."""
     from .model import LossWeights
     from .train import (
+        BenchmarkSplit,
         DetectorTrainConfig,
         calibrate,
         default_train_steps,
         is_checkpoint,
         read_meta,
         train_detector,
-        val_is_benchmark,
     )
 
     ckpt = Path(args.checkpoint) if args.checkpoint else root / "detectors" / "learned"
@@ -195,15 +195,12 @@ def _learned(args, root: Path):
         print(f"detector checkpoint {ckpt} at step {res.step}")
     if getattr(args, "no_calibrate", False):
         print("no calibration (--no-calibrate); the checkpoint's temperature is kept")
-    elif val_is_benchmark(root):
-        print(
-            "no calibration: this world has no test scenes, so its val scenes are the benchmark and nothing is "
-            "fitted on them; the checkpoint's temperature is kept"
-        )
     else:
         try:
             t = calibrate(root, ckpt, split="val", progress=not args.quiet)
             print(f"temperature {t:.3f} (fitted on val scenes)")
+        except BenchmarkSplit as e:
+            print(f"no calibration: {e}; the checkpoint's temperature is kept")
         except ValueError as e:
             print(f"no calibration ({e}); temperature 1")
     from .learned import LearnedDetector

@@ -651,10 +651,14 @@ def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: Dete
 def val_is_benchmark(root: str | Path) -> bool:
     """Whether the val scenes of the world at ``root`` are its benchmark: a world without test scenes
     (``robothor-real``, evaluated on the challenge's val episodes) is, and nothing, a detector's temperature
-    included, may be fitted on them. :func:`calibrate`'s callers check it first."""
+    included, may be fitted on them (:func:`calibrate` refuses with :class:`BenchmarkSplit`)."""
     from ..data.reader import list_scenes
 
     return not list_scenes(root, "test")
+
+
+class BenchmarkSplit(ValueError):
+    """:func:`calibrate` was asked to fit on the val scenes of a world whose benchmark they are."""
 
 
 def calibrate(
@@ -666,11 +670,16 @@ def calibrate(
     progress: bool = False,
 ) -> float:
     """Fit the temperature of the checkpoint on ``split`` and store it (``temperature``, ``calibrated_step``);
-    returns T. Skipped (T kept) when the checkpoint was already calibrated at its current step."""
+    returns T. Skipped (T kept) when the checkpoint was already calibrated at its current step. Refuses
+    (:class:`BenchmarkSplit`, nothing written) the val scenes of a world without test scenes (:func:`val_is_benchmark`)."""
     model, meta = load_model(ckpt)
     if meta.get("calibrated_step") == meta["step"] and frames is None:
         return float(meta["temperature"])
     if frames is None:
+        if split == "val" and val_is_benchmark(root):
+            raise BenchmarkSplit(
+                "this world has no test scenes, so its val scenes are the benchmark and nothing is fitted on them"
+            )
         frames = load_frames(root, split, progress=progress)
     logits, _, _ = predict(model, frames.images, batch_size)
     t = fit_temperature(logits, frames.present)

@@ -40,7 +40,7 @@ from ..detect.learned import LearnedDetector, write_scene_tables
 from ..detect.shipped import shipped_detector, shipped_for, shipped_meta
 from ..detect.model import DetectorConfig
 from ..detect.quality import switch_report
-from ..detect.train import DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector, val_is_benchmark
+from ..detect.train import BenchmarkSplit, DetectorTrainConfig, calibrate, is_checkpoint, read_meta, train_detector
 from ..errors import CommandError
 from .config import ScaleConfig
 from ..report.tables import quality_line
@@ -83,7 +83,7 @@ def ensure_detector(
 ) -> LearnedDetector:
     """Train (resume; nothing when finished) the learned detector in ``detector_dir`` on the train rooms of
     ``train_root`` up to ``scale.detector.steps`` steps, fit its temperature on the val rooms of ``calib_root``
-    (once per step count; not when they are the benchmark, :func:`~tsnav.detect.train.val_is_benchmark`) and load
+    (once per step count; not when they are the benchmark, :class:`~tsnav.detect.train.BenchmarkSplit`) and load
     it. A folder trained on other rooms is refused (one line)."""
     detector_dir = Path(detector_dir)
     train = list_scenes(train_root, split="train")
@@ -110,10 +110,10 @@ def ensure_detector(
                 f"    detector trained {res.start_step} -> {res.step} steps in {res.seconds:.0f} s "
                 f"(last loss {res.last.get('loss', float('nan')):.3f}) -> {detector_dir}"
             )
-        if val_is_benchmark(calib_root):
-            t, how = float(read_meta(detector_dir)["temperature"]), "kept: the val rooms are the benchmark"
-        else:
+        try:
             t, how = calibrate(calib_root, detector_dir, split="val", progress=progress), "fitted on the val rooms"
+        except BenchmarkSplit:
+            t, how = float(read_meta(detector_dir)["temperature"]), "kept: the val rooms are the benchmark"
     say(f"    detector at step {res.step}, temperature {t:.3f} ({how})")
     return LearnedDetector.load(detector_dir)
 
