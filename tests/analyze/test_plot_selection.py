@@ -1,4 +1,4 @@
-"""tsnav analyze plot-selection: a run's milestones on two validation sets, read from selection.json files; the chosen
+"""tsnav analyze plot-selection: a run's milestones on one or two validation sets, read from selection.json files; the chosen
 milestone and the episode counts come from the files; bad input is refused in one line and nothing is written."""
 
 import json
@@ -25,6 +25,9 @@ def test_reads_the_files_and_writes_a_png(tmp_path, capsys):
     out = tmp_path / "sel.png"
     assert mod.main(["--out", str(out), "--run", f"seed 0={small},{large}"]) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    one = tmp_path / "one.png"  # one list per run: the milestones on the scoring episodes alone
+    assert mod.main(["--out", str(one), "--episodes", "train", "--run", f"a={small}", "--run", f"b={large}"]) == 0
+    assert one.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):
@@ -35,7 +38,8 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     running = _selection(tmp_path / "running.json", {250: 0.7}, None, 400)  # a selection still running
     out = tmp_path / "sel.png"
     for run in (
-        f"seed 0={good}",
+        f"seed 0={good},{good},{good}",
+        "seed 0=",
         f"seed 0={good},{bad}",
         f"seed 0={good},{tmp_path / 'missing.json'}",
         f"seed 0={good},{running}",

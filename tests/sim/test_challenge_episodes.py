@@ -314,3 +314,29 @@ def test_real_challenge_files():
     # the challenge's own start-success episodes (navmesh length 0): 108 of val's, 6,172 of train's
     assert sum(r["shortest_path_length"] == 0 for r in val) == 108
     assert sum(r["shortest_path_length"] == 0 for r in train) == 6172
+
+
+def test_command_sample_is_the_pipelines_draw(tmp_path, capsys):
+    """--sample N --seed S keeps the sample tsnav release make scores checkpoints on (ensure_challenge_episodes with
+    per_room_type N and seed S), recorded in the list; a sample below 1 is refused in one line, nothing written."""
+    from tsnav.pipeline.steps import ensure_challenge_episodes
+
+    data = tmp_path / "world"
+    write_scene_folder(scene(), data / SCENE)
+    challenge = _write_challenge(tmp_path / "challenge", RECORDS)
+    args = ["thor", "challenge-episodes", "--challenge", str(challenge), "--split", "val", "--data", str(data)]
+    out = tmp_path / "sample.json"
+    assert main([*args, "--protocol", "lineage", "--sample", "2", "--seed", "1", "--out", str(out)]) == 0
+    assert "kept a sample of 2 of the 3 converted episodes (seed 1)" in capsys.readouterr().out
+    eps, meta = read_episodes(out)
+    ref, ref_meta = read_episodes(
+        ensure_challenge_episodes(
+            data, "val", tmp_path / "ref.json", "lineage", challenge=challenge, scenes=[SCENE], per_room_type=2, seed=1
+        )
+    )
+    assert [(e.scene, e.start, e.target) for e in eps] == [(e.scene, e.start, e.target) for e in ref]
+    assert meta["sample"] == ref_meta["sample"] == {"per_room_type": 2, "seed": 1, "of": 3}
+    bad = tmp_path / "bad.json"
+    assert main([*args, "--sample", "0", "--out", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--sample must be >= 1" in err and len(err.splitlines()) == 1 and not bad.exists()

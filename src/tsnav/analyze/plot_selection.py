@@ -2,7 +2,7 @@
 ``tsnav convergence`` run) for the training's own episodes beside one written by ``tsnav select`` on another list.
 
 Each ``--run LABEL=SMALL,LARGE`` names two selection files of one run (the same milestones scored on two episode
-lists); the figure has SR and SPL per update, one colour per run, dashed for SMALL and solid for LARGE, the chosen
+lists), or ``--run LABEL=SELECTION`` one; the figure has SR and SPL per update, one colour per run, dashed for SMALL and solid for LARGE, the chosen
 milestone of each ringed. The number of episodes of each list is read from the files.
 
     tsnav analyze plot-selection --out docs/X.png --title "..." \\
@@ -50,16 +50,26 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--title", default="milestones scored on two validation sets")
-    ap.add_argument("--run", action="append", required=True, metavar="LABEL=SMALL,LARGE")
+    ap.add_argument(
+        "--run",
+        action="append",
+        required=True,
+        metavar="LABEL=SMALL,LARGE",
+        help="a run's selection.json files: two (the same milestones on a small and a large list) or one",
+    )
+    ap.add_argument("--episodes", default="val", help="what the scored episodes are, for the labels (default val)")
     args = ap.parse_args(argv)
     try:
         runs = []
         for text in args.run:
             label, sep, files = text.partition("=")
             parts = files.split(",")
-            if not sep or not label or len(parts) != 2:
-                raise CommandError(f"--run {text!r}: expected LABEL=SMALL_SELECTION.json,LARGE_SELECTION.json")
-            runs.append((label, read_selection(parts[0]), read_selection(parts[1])))
+            if not sep or not label or len(parts) not in (1, 2) or not all(parts):
+                raise CommandError(
+                    f"--run {text!r}: expected LABEL=SELECTION.json or LABEL=SMALL_SELECTION.json,LARGE_SELECTION.json"
+                )
+            sels = [read_selection(f) for f in parts]
+            runs.append((label, sels[0] if len(sels) == 2 else None, sels[-1]))
     except CommandError as e:
         print(f"plot_selection: error: {e}", file=sys.stderr)
         return 2
@@ -72,14 +82,16 @@ def main(argv: list[str] | None = None) -> int:
     for i, (label, small, large) in enumerate(runs):
         colour = f"C{i}"
         for sel, style in ((small, "--"), (large, "-")):
+            if sel is None:
+                continue
             updates, sr, spl, best, n = sel
             for ax, ys in zip(axes, (sr, spl)):
-                ax.plot(updates, ys, style, color=colour, marker=".", label=f"{label}, {n} val episodes")
+                ax.plot(updates, ys, style, color=colour, marker=".", label=f"{label}, {n} {args.episodes} episodes")
                 b = updates.index(best)
                 ax.plot([updates[b]], [ys[b]], "o", ms=11, mfc="none", mec=colour)
     for ax, name in zip(axes, ("SR", "SPL")):
         ax.set_xlabel("update")
-        ax.set_ylabel(f"validation {name}, %")
+        ax.set_ylabel(f"{name} on the {args.episodes} episodes, %")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8, loc="lower right")
     fig.suptitle(args.title + " (ringed: the milestone each set chooses)")

@@ -300,13 +300,20 @@ def _ci_cell(v: dict, signed: bool = False) -> str:
     return f"{100 * v['value']:{f}} [{lo:{f}}, {hi:{f}}]"
 
 
-def levers(index: dict, results: Path) -> list[str]:
-    """The lever tables (``tsnav analyze lever-table``): per protocol, each row's SR, SPL and NSNPL and each
-    lever's paired difference from the base row, with their 95 % bootstrap intervals over the episodes."""
-    entries = index.get("levers") or []
+def levers(
+    index: dict,
+    results: Path,
+    key: str = "levers",
+    title: str = "## Levers on the pathfinding stage",
+    episodes: str = "test",
+) -> list[str]:
+    """The lever tables (``tsnav analyze lever-table``) the index lists under ``key``, under the heading ``title``:
+    per protocol, each row's SR, SPL and NSNPL and each lever's paired difference from the base row, with their
+    95 % bootstrap intervals over the ``episodes`` (test, or the RoboTHOR challenge's val) episodes."""
+    entries = index.get(key) or []
     if not entries:
         return []
-    lines = ["## Levers on the pathfinding stage", ""]
+    lines = [title, ""]
     for e in entries:
         res = json.loads((results / e["file"]).read_text())
         lines += [
@@ -320,7 +327,7 @@ def levers(index: dict, results: Path) -> list[str]:
         ]
         for proto, t in res["protocols"].items():
             lines += [
-                f"Under `{proto}`, {t['episodes']} test episodes: value [95 % interval], and the difference from "
+                f"Under `{proto}`, {t['episodes']} {episodes} episodes: value [95 % interval], and the difference from "
                 f"the first row on the same episodes [paired 95 % interval], in percent.",
                 "",
                 "| row | SR | SPL | NSNPL | SR diff | SPL diff | NSNPL diff |",
@@ -493,6 +500,9 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     lines += robothor_agents(index, results)
     lines += robothor_references(index, results)
     lines += robothor_switch_reach(index, results)
+    lines += levers(
+        index, results, "robothor_levers", "### RoboTHOR: the training threshold of the stage switch", "val"
+    )
     lines += experiment_table(
         "Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []), paper, results
     ) + [""]

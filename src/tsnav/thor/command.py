@@ -29,7 +29,14 @@ from ..errors import CommandError
 from ..protocol import check_protocol
 from ..data.reader import SceneFormatError, is_complete, load_scene
 from ..sim.batch import SceneBank
-from ..sim.challenge import CHALLENGE_SOURCE, HEADING_RULE, challenge_episodes, ratio_summary, read_challenge_episodes
+from ..sim.challenge import (
+    CHALLENGE_SOURCE,
+    HEADING_RULE,
+    challenge_episodes,
+    ratio_summary,
+    read_challenge_episodes,
+    sample_per_room_type,
+)
 from ..sim.episodes import write_episodes
 from ..sim.lineage import episodes_from_splits
 from ..settings import add_shared
@@ -142,6 +149,15 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         default=1.0,
         help="success radius of the paper protocol, metres (default 1.0, the paper's and the challenge's)",
     )
+    che.add_argument(
+        "--sample",
+        type=int,
+        default=None,
+        metavar="N",
+        help="keep a fixed sample of N converted episodes (per room type; RoboTHOR's apartments are one), drawn "
+        "with --seed as tsnav release make draws the checkpoint-scoring sample (default: every episode)",
+    )
+    che.add_argument("--seed", type=int, default=0, help="seed of --sample's draw (default 0)")
     che.add_argument("--force", action="store_true", help="replace an existing episode list")
 
     exd = sub.add_parser("export-detections", help="write the lineage's 22 x 264 table from a tsnav detection table")
@@ -281,6 +297,8 @@ def _episodes(args) -> int:
         raise CommandError(f"--data {args.data}: no such dataset folder")
     if out.exists() and not args.force:
         raise CommandError(f"{out} exists; pass --force to replace it")
+    if args.sample is not None and args.sample < 1:
+        raise CommandError(f"--sample must be >= 1, got {args.sample}")
     try:
         protocol = check_protocol(args.protocol)
         eps, st = episodes_from_splits(args.splits, args.data, args.success_distance, protocol=protocol)
@@ -315,6 +333,8 @@ def _challenge_episodes(args) -> int:
         raise CommandError(f"--challenge {args.challenge}: no such folder")
     if out.exists() and not args.force:
         raise CommandError(f"{out} exists; pass --force to replace it")
+    if args.sample is not None and args.sample < 1:
+        raise CommandError(f"--sample must be >= 1, got {args.sample}")
     try:
         protocol = check_protocol(args.protocol)
     except ValueError as e:
@@ -349,6 +369,11 @@ def _challenge_episodes(args) -> int:
             )
     if not eps:
         raise CommandError(f"no episode of the challenge's {args.split} split could be converted on {data}")
+    sample = {}
+    if args.sample is not None:
+        eps = sample_per_room_type(eps, args.sample, args.seed)
+        sample = {"sample": {"per_room_type": args.sample, "seed": args.seed, "of": st.kept}}
+        print(f"kept a sample of {len(eps)} of the {st.kept} converted episodes (seed {args.seed})")
     lengths = ratio_summary(eps)
     write_episodes(
         out,
@@ -365,6 +390,7 @@ def _challenge_episodes(args) -> int:
         data=str(data.resolve()),
         conversion=st.to_json(),
         lengths=lengths,
+        **sample,
     )
     if lengths.get("episodes"):
         print(
