@@ -469,3 +469,55 @@ def test_build_one_scene_end_to_end(tmp_path):
     doc = json.loads((tmp_path / "fid" / "fidelity.json").read_text())
     assert doc["summary"]["val"]["episodes"] == len(eps) and (tmp_path / "fid" / "FloorPlan_Val3_2.png").exists()
     assert main(["world", "fidelity", "--data", str(tmp_path), "--episodes", str(tmp_path / "nowhere")]) == 2
+
+
+def test_train_scene_rebuilt_the_val_way_infers_from_its_train_episodes(tmp_path):
+    """--infer-train-objects: a train scene's targets placed from its challenge train episodes (types, where the
+    paths end), furniture from the plan, no record used, and the scene says so; the episode sample is fixed; a
+    missing episode file is refused in one line."""
+    name = "FloorPlan_Train4_2"
+    recorded = R.robothor_spec(name)
+    by_type = {o.objectType: o for o in recorded.objects}
+    eps = []
+    for t in ("Vase", "BaseballBat"):
+        x, _, z = by_type[t].center
+        for k, (dx, dz) in enumerate(((0.75, 0.0), (-0.75, 0.0), (0.0, 0.75), (0.0, -0.75))):
+            end = {"x": x + dx, "y": 0.0, "z": z + dz}
+            start = {"x": x + 3 * dx, "y": 0.0, "z": z + 3 * dz}
+            eps.append(
+                {"id": f"{name}_{t}_{k}", "scene": name, "object_type": t, "initial_position": start,
+                 "initial_orientation": 0, "initial_horizon": 30, "shortest_path": [start, end],
+                 "shortest_path_length": math.dist((start["x"], start["z"]), (end["x"], end["z"]))}
+            )  # fmt: skip
+    (tmp_path / "train").mkdir()
+    (tmp_path / "train" / f"{name}.json.gz").write_bytes(gzip.compress(json.dumps(eps).encode()))
+    assert R.inferred_train_episodes(tmp_path, name) == R.inferred_train_episodes(tmp_path, name)
+    assert len(R.inferred_train_episodes(tmp_path, name, 3)) == 3
+    spec = R.robothor_spec(name, infer_train=tmp_path)
+    gen = spec.generator
+    assert gen["train_objects"] == "inferred" and gen["provenance"]["recorded"] == 0
+    assert "8 challenge train episodes" in gen["provenance"]["objects"]
+    assert sorted(o.objectType for o in spec.objects) == ["BaseballBat", "Vase"]
+    assert all("|inferred|" in o.objectId and o.objectId in gen["provenance"]["inferred_objects"] for o in spec.objects)
+    assert all("challenge train episodes" in gen["provenance"]["inferred_objects"][o.objectId] for o in spec.objects)
+    assert spec.furniture and all("|inferred|" in f.id for f in spec.furniture)
+    for o in spec.objects:  # placed where its episodes end, near the recorded object
+        rx, _, rz = by_type[o.objectType].center
+        assert math.dist((o.center[0], o.center[2]), (rx, rz)) < 1.5
+    assert gen["walls"] == recorded.generator["walls"]  # the walls are the plans', either way
+    with pytest.raises(ValueError, match="cannot read the challenge's train episodes of FloorPlan_Train4_3"):
+        R.robothor_spec("FloorPlan_Train4_3", infer_train=tmp_path)
+
+
+def test_infer_train_objects_refuses_bad_input_in_one_line(tmp_path, capsys):
+    from tsnav.cli import main
+
+    for preset, folder, msg in (
+        ("ithor-real", tmp_path, "applies to the robothor-real world"),
+        ("robothor-real", tmp_path / "none", "no train/ folder of challenge episodes"),
+    ):
+        args = ["world", "--preset", preset, "--infer-train-objects", str(folder), "--out", str(tmp_path / "w")]
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "w").exists()

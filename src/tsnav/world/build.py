@@ -61,6 +61,9 @@ class BuildConfig:
     #: (tsnav.world.robothor_real.VERSIONS); None: the newest; ithor-real 1 rebuilds worlds made before issue 24
     world_version: int | None = None
     seed: int = 0  #: world seed; the same name and seed give the same scene
+    #: robothor-real: the challenge's episode folder; the train scenes are then rebuilt the way the val ones are
+    #: (furniture from the plans, targets inferred from their challenge train episodes), not from their records
+    infer_train: str | None = None
     tiles: int = 16  #: views rendered per framebuffer read
 
     def min_pixels(self) -> int:
@@ -101,7 +104,9 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
         stats.skipped = True
         return stats
     t0 = time.perf_counter()
-    spec: SceneSpec = scene_spec(name, cfg.world, seed=cfg.seed, compact=cfg.compact, version=cfg.world_version)
+    spec: SceneSpec = scene_spec(
+        name, cfg.world, seed=cfg.seed, compact=cfg.compact, version=cfg.world_version, infer_train=cfg.infer_train
+    )
     positions, move = reachable_positions(spec)
     js = spec.to_json()
     objects = spec.objects
@@ -275,6 +280,12 @@ def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
         except (OSError, ValueError):
             continue  # an unreadable room is the reader's problem, not a version mismatch
         have = int(gen.get("version", 1))
+        inferred = gen.get("train_objects") == "inferred"
+        if inferred != (cfg.infer_train is not None) and scene_info(n)[1] == "train":
+            raise ValueError(
+                f"{out / n} was built with its train objects {'inferred' if inferred else 'recorded'}, this build "
+                f"{'infers' if cfg.infer_train is not None else 'records'} them: use another --out"
+            )
         if gen.get("world", cfg.world) != cfg.world:
             raise ValueError(
                 f"{out / n} was built by world {gen.get('world')!r}, this build makes {cfg.world!r}: use another --out"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from pathlib import Path
 
 from ..errors import CommandError
 from ..render.gl import RendererUnavailable
@@ -50,6 +51,14 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-pictures", action="store_true", help="fidelity: do not draw the per-scene PNGs")
     p.add_argument(
         "--no-drift", action="store_true", help="fidelity: skip the pose-drift what-ifs (about 1 s per scene)"
+    )
+    p.add_argument(
+        "--infer-train-objects",
+        default=None,
+        metavar="CHALLENGE",
+        help="robothor-real: rebuild the train scenes the way the val ones are (furniture from the plans, targets "
+        "inferred from 120 of each scene's challenge train episodes, CHALLENGE/train/SCENE.json.gz), not from their "
+        "object records: a world whose train scenes look like its val scenes",
     )
     p.add_argument("--scenes", default=None, help="comma-separated scene names instead of the preset's")
     p.add_argument("--size", type=int, default=None, help="image side in pixels (default: the preset's)")
@@ -125,7 +134,15 @@ def run(args) -> int:
         **({"image_size": args.size} if args.size else {}),
         **({"compact": True} if args.compact else {}),
         **({"world_version": args.world_version} if args.world_version is not None else {}),
+        **({"infer_train": str(Path(args.infer_train_objects).resolve())} if args.infer_train_objects else {}),
     )
+    if cfg.infer_train is not None:
+        if cfg.world != "robothor-real":
+            raise CommandError(f"--infer-train-objects applies to the robothor-real world, not preset {args.preset!r}")
+        if not (Path(cfg.infer_train) / "train").is_dir():
+            raise CommandError(
+                f"--infer-train-objects {args.infer_train_objects}: no train/ folder of challenge episodes"
+            )
     if cfg.world_version is not None and cfg.world not in ("ithor-real", "robothor-real"):
         raise CommandError(
             f"--world-version applies to the ithor-real and robothor-real worlds, not preset {args.preset!r}"

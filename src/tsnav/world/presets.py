@@ -100,11 +100,19 @@ def preset_scenes(name: str) -> list[str]:
 
 
 def scene_spec(
-    name: str, world: str = "procedural", seed: int = 0, compact: bool = False, version: int | None = None
+    name: str,
+    world: str = "procedural",
+    seed: int = 0,
+    compact: bool = False,
+    version: int | None = None,
+    infer_train: str | None = None,
 ) -> SceneSpec:
     """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` and ``compact`` apply to
     procedural scenes only, ``version`` (of the rules, :data:`tsnav.world.real.VERSIONS`; None: the newest) to
-    ``ithor-real`` and ``robothor-real`` only."""
+    ``ithor-real`` and ``robothor-real`` only; ``infer_train`` (the challenge's episode folder: train scenes rebuilt
+    the way the val ones are, :func:`~tsnav.world.robothor_real.robothor_spec`) to ``robothor-real`` only."""
+    if infer_train is not None and world != "robothor-real":
+        raise ValueError(f"inferring the train scenes' objects applies to the robothor-real world, not {world!r}")
     if world == "procedural":
         if version is not None:
             raise ValueError("a world version applies to the ithor-real world only")
@@ -112,5 +120,5 @@ def scene_spec(
     if world == "ithor-real":
         return real_spec(name, version)
     if world == "robothor-real":
-        return robothor_spec(name, version)
+        return robothor_spec(name, version, infer_train)
     raise ValueError(f"unknown world {world!r} (choose from {', '.join(WORLDS)})")

@@ -31,6 +31,7 @@ import zlib
 from dataclasses import replace
 from functools import lru_cache
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 from PIL import Image
@@ -77,6 +78,9 @@ FURNITURE_HEIGHT = 0.75  #: height of an inferred furniture blob, metres
 #: 98.7 % at 0.10 m, the path ratios unchanged)
 INFERRED_CLEARANCE = 0.10
 BAND = 3  #: rows of plan pixels per footprint box of an inferred furniture blob
+#: Challenge train episodes a train scene rebuilt the val way (``tsnav world --infer-train-objects``) infers its
+#: targets from: as many as a val scene has (1,800 val episodes over 15 scenes)
+INFER_EPISODES = 120
 SUCCESS_RADIUS = 1.0  #: the challenge's success distance: its shortest paths end this far from the target, m
 FLOOR_COST = 0.25  #: placement cost of a candidate on open floor (no furniture blob) in the plan, metres^2
 NEAR_COST = 1.0  #: placement cost of a target with all its paths' earlier points within the success radius, m^2
@@ -378,9 +382,24 @@ def check_version(version: int | None) -> int:
     return int(version)
 
 
-def robothor_spec(name: str, version: int | None = None) -> SceneSpec:
+def inferred_train_episodes(challenge: str | Path, name: str, n: int = INFER_EPISODES) -> list[dict]:
+    """The challenge's train episodes a train scene rebuilt the val way infers its targets from: ``n`` of those of
+    scene ``name`` in ``challenge/train/NAME.json.gz`` (the first after a shuffle seeded by the name; all when
+    fewer). ``ValueError`` naming the file when it is missing or unreadable."""
+    path = Path(challenge) / "train" / f"{name}.json.gz"
+    try:
+        eps = json.loads(gzip.decompress(path.read_bytes()))
+    except (OSError, ValueError, EOFError) as e:
+        raise ValueError(f"{path}: cannot read the challenge's train episodes of {name} ({e})") from None
+    order = np.random.default_rng(zlib.crc32(name.encode())).permutation(len(eps))
+    return [eps[i] for i in order[:n]]
+
+
+def robothor_spec(name: str, version: int | None = None, infer_train: str | Path | None = None) -> SceneSpec:
     """The :class:`SceneSpec` of RoboTHOR scene ``name`` (``FloorPlan_Train1_1`` ... ``FloorPlan_Val3_5``) by the
-    rules of ``version`` (module docstring)."""
+    rules of ``version`` (module docstring). ``infer_train``: the challenge's episode folder; a train scene is then
+    rebuilt the way the val ones are (furniture from the plan, targets inferred from :data:`INFER_EPISODES` of its
+    challenge train episodes, :func:`inferred_train_episodes`), its object records left out."""
     version = check_version(version)
     room_type, split = scene_info(name)
     if room_type != "apartment":
@@ -425,7 +444,12 @@ def robothor_spec(name: str, version: int | None = None) -> SceneSpec:
     for seg in walls.interior:
         cx, cz, sx, sz = _wall_box(seg)
         spec.parts.append(Part((cx, WALL_HEIGHT / 2, cz), (sx, WALL_HEIGHT, sz), 0.0, col, col2, pat, scale, wall_inst))
-    if split == "train":
+    if split == "train" and infer_train is not None:
+        provenance = _inferred_objects(
+            spec, name, walls, inferred_train_episodes(infer_train, name), version, source="train"
+        )
+        spec.generator["train_objects"] = "inferred"
+    elif split == "train":
         provenance = _recorded_objects(spec, scene_layout(name), P.furniture_mask(load_plan(name), walls))
     else:
         provenance = _inferred_objects(spec, name, walls, val_episodes(name), version)
@@ -537,7 +561,9 @@ def _recorded_objects(spec: SceneSpec, layout: Layout, furniture: np.ndarray) ->
     }
 
 
-def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan, eps: list[dict], version: int) -> dict:
+def _inferred_objects(
+    spec: SceneSpec, name: str, walls: P.WallPlan, eps: list[dict], version: int, source: str = "val"
+) -> dict:
     plan = load_plan(name)
     mask = P.furniture_mask(plan, walls)
     opened = ndimage.binary_opening(mask, structure=np.ones((3, 3), bool))
@@ -596,13 +622,13 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan, eps: list[d
             opened &= ~((np.abs(px_x - x) <= ex / 2 + P.PIXEL) & (np.abs(px_z - z) <= ez / 2 + P.PIXEL))
         if version == 1:
             inferred[oid] = (
-                f"placed where the {len(mine)} challenge val episodes of {t} end {SUCCESS_RADIUS} m away "
+                f"placed where the {len(mine)} challenge {source} episodes of {t} end {SUCCESS_RADIUS} m away "
                 f"(fit cost {cost:.3f} m^2, off the targets placed before it); size and height: median of "
                 f"{st['records']} train records of {t}{', on the floor' if on_floor else ''}"
             )
         else:
             inferred[oid] = (
-                f"placed so that the {len(mine)} challenge val episodes of {t} end {END_DISTANCE} m from its "
+                f"placed so that the {len(mine)} challenge {source} episodes of {t} end {END_DISTANCE} m from its "
                 f"footprint, none earlier within {SUCCESS_RADIUS} m (yaw {yaw:.0f}, fit cost {cost:.3f} m^2, off the "
                 f"targets placed before it); width, depth and height: median of {st['records']} train records of "
                 f"{t}{', on the floor' if on_floor else ''}"
@@ -656,7 +682,9 @@ def _inferred_objects(spec: SceneSpec, name: str, walls: P.WallPlan, eps: list[d
     return {
         "recorded": 0,
         "inferred": len(inferred),
-        "objects": "inferred (val scenes have no object records)",
+        "objects": "inferred (val scenes have no object records)"
+        if source == "val"
+        else f"inferred as a val scene's are, from {len(eps)} challenge train episodes (the records left out)",
         "fixture_blobs_left_out": fixtures,
         "inferred_objects": inferred,
     }
