@@ -88,6 +88,10 @@ def test_results_page_reads_its_figures_from_the_files(tmp_path):
     base = next(r for r in res["rows"] if r["row"] == "baseline")["metrics"]["ALL"]["SR"]
     assert f"| baseline (ResNet18, baseline reward) | 81.92 | {base['mean']:.2f} ± {base['ci95']:.2f} |" in text
     # the lever tables: every row of every protocol, its value and interval from its file
+    look = index["table1"].get("robothor_inferred_look")
+    if look:  # the inferred-look rows, from their file
+        for r in json.loads((root / "docs" / "results" / look).read_text())["rows"]:
+            assert f"| {r['policy']} | {r['episodes']} | {100 * r['metrics']['ALL']['SR']:.2f} |" in text
     if index.get("robothor_levers"):
         assert "### RoboTHOR: the training threshold of the stage switch" in text
     for e in index.get("levers", []) + index.get("robothor_levers", []):
