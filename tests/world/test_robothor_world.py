@@ -512,12 +512,42 @@ def test_train_scene_rebuilt_the_val_way_infers_from_its_train_episodes(tmp_path
 def test_infer_train_objects_refuses_bad_input_in_one_line(tmp_path, capsys):
     from tsnav.cli import main
 
+    (tmp_path / "empty" / "train").mkdir(parents=True)
     for preset, folder, msg in (
         ("ithor-real", tmp_path, "applies to the robothor-real world"),
         ("robothor-real", tmp_path / "none", "no train/ folder of challenge episodes"),
+        ("robothor-real", tmp_path / "empty", "no challenge train episodes of FloorPlan_Train1_1"),
     ):
         args = ["world", "--preset", preset, "--infer-train-objects", str(folder), "--out", str(tmp_path / "w")]
         assert main(args) == 2
         err = capsys.readouterr().err.strip()
         assert msg in err and len(err.splitlines()) == 1
     assert not (tmp_path / "w").exists()
+
+
+def test_a_folder_never_mixes_recorded_and_inferred_train_scenes(tmp_path):
+    """Any finished train scene of the folder counts, not only those of this build; val scenes and scenes built
+    before the option (no train_objects) are recorded ones."""
+    from tsnav.data.reader import COMPLETE_MARKER
+    from tsnav.world.build import BuildConfig, check_train_objects
+
+    def finished(name, gen):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "scene.json").write_text(json.dumps({"generator": gen}))
+        (tmp_path / name / COMPLETE_MARKER).write_text("")
+
+    recorded = BuildConfig.from_preset("robothor-real")
+    inferring = BuildConfig.from_preset("robothor-real", infer_train=str(tmp_path))
+    finished("FloorPlan_Val1_1", {"world": "robothor-real", "version": 2})
+    check_train_objects(tmp_path, recorded)
+    check_train_objects(tmp_path, inferring)
+    finished("FloorPlan_Train1_1", {"world": "robothor-real", "version": 2})
+    check_train_objects(tmp_path, recorded)
+    with pytest.raises(ValueError, match="built with its train objects recorded, this build infers them"):
+        check_train_objects(tmp_path, inferring)
+    (tmp_path / "FloorPlan_Train1_1" / "scene.json").write_text(
+        json.dumps({"generator": {"world": "robothor-real", "version": 2, "train_objects": "inferred"}})
+    )
+    check_train_objects(tmp_path, inferring)
+    with pytest.raises(ValueError, match="built with its train objects inferred, this build records them"):
+        check_train_objects(tmp_path, recorded)

@@ -24,7 +24,7 @@ ANALYSES = {
     "lever-table": ("lever_table", "levers against a base run on the same episodes, paired bootstrap intervals"),
     "merge-rows": ("merge_rows", "complete an experiment's table with rows of another experiment"),
     "noisy-tables": ("noisy_tables", "tables of the shipped detector on frames with Gaussian pixel noise"),
-    "plot-selection": ("plot_selection", "a run's milestones scored on two validation sets"),
+    "plot-selection": ("plot_selection", "a run's milestones scored on one or two episode lists"),
     "policy-ensemble": ("policy_ensemble", "evaluate an ensemble of trained agents"),
     "stop-signal": ("stop_signal", "can the agent's inputs tell a success state from a near miss"),
     "switch-reach": ("switch_reach", "the explorer on switches of known reach: how soon must the target be recognised"),

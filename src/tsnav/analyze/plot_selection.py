@@ -1,4 +1,4 @@
-"""Plot how a run's milestones score on two validation sets: the ``selection.json`` of ``tsnav select`` (or of a
+"""Plot how a run's milestones score on one or two episode lists: the ``selection.json`` of ``tsnav select`` (or of a
 ``tsnav convergence`` run) for the training's own episodes beside one written by ``tsnav select`` on another list.
 
 Each ``--run LABEL=SMALL,LARGE`` names two selection files of one run (the same milestones scored on two episode
@@ -49,12 +49,12 @@ def main(argv: list[str] | None = None) -> int:
         allow_abbrev=False, prog="tsnav analyze plot-selection", description=__doc__.split("\n\n")[0]
     )
     ap.add_argument("--out", required=True, help="PNG to write")
-    ap.add_argument("--title", default="milestones scored on two validation sets")
+    ap.add_argument("--title", default="milestones scored on validation episodes")
     ap.add_argument(
         "--run",
         action="append",
         required=True,
-        metavar="LABEL=SMALL,LARGE",
+        metavar="LABEL=SEL[,LARGE]",
         help="a run's selection.json files: two (the same milestones on a small and a large list) or one",
     )
     ap.add_argument("--episodes", default="val", help="what the scored episodes are, for the labels (default val)")

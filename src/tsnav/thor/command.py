@@ -297,8 +297,6 @@ def _episodes(args) -> int:
         raise CommandError(f"--data {args.data}: no such dataset folder")
     if out.exists() and not args.force:
         raise CommandError(f"{out} exists; pass --force to replace it")
-    if args.sample is not None and args.sample < 1:
-        raise CommandError(f"--sample must be >= 1, got {args.sample}")
     try:
         protocol = check_protocol(args.protocol)
         eps, st = episodes_from_splits(args.splits, args.data, args.success_distance, protocol=protocol)

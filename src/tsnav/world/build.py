@@ -219,6 +219,28 @@ def scene_figures(spec: SceneSpec, positions: int, states: int, seen: np.ndarray
     }
 
 
+def check_train_objects(out: Path, cfg: BuildConfig) -> None:
+    """Refuse to build robothor-real train scenes into a folder whose finished train scenes (any of them, not only
+    those of this build) were built the other way: recorded objects against ``--infer-train-objects``. One-line
+    ``ValueError``; a scene built before the option existed is recorded."""
+    if cfg.world != "robothor-real" or not out.is_dir():
+        return
+    for d in sorted(out.iterdir()):
+        if not (d / COMPLETE_MARKER).exists() or not (d / "scene.json").exists():
+            continue
+        try:
+            gen = json.loads((d / "scene.json").read_text()).get("generator") or {}
+            split = scene_info(d.name)[1]
+        except (OSError, ValueError):
+            continue
+        inferred = gen.get("train_objects") == "inferred"
+        if split == "train" and inferred != (cfg.infer_train is not None):
+            raise ValueError(
+                f"{d} was built with its train objects {'inferred' if inferred else 'recorded'}, this build "
+                f"{'infers' if cfg.infer_train is not None else 'records'} them: use another --out"
+            )
+
+
 def write_index(out_dir: Path, preset: str, names: list[str], cfg: BuildConfig) -> None:
     """``index.json`` of a dataset: preset, scene names and the build settings (written atomically)."""
     atomic_write_text(
@@ -280,12 +302,6 @@ def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
         except (OSError, ValueError):
             continue  # an unreadable room is the reader's problem, not a version mismatch
         have = int(gen.get("version", 1))
-        inferred = gen.get("train_objects") == "inferred"
-        if inferred != (cfg.infer_train is not None) and scene_info(n)[1] == "train":
-            raise ValueError(
-                f"{out / n} was built with its train objects {'inferred' if inferred else 'recorded'}, this build "
-                f"{'infers' if cfg.infer_train is not None else 'records'} them: use another --out"
-            )
         if gen.get("world", cfg.world) != cfg.world:
             raise ValueError(
                 f"{out / n} was built by world {gen.get('world')!r}, this build makes {cfg.world!r}: use another --out"
@@ -317,6 +333,7 @@ def build_dataset(
     for stale in out.glob(".*.partial-*"):
         shutil.rmtree(stale, ignore_errors=True)
     check_world_version(out, names, cfg)
+    check_train_objects(out, cfg)
     write_index(out, preset or "custom", names, cfg)
     todo = [(n, out, cfg) for n in names]
     results: list[SceneStats] = []

@@ -143,6 +143,14 @@ def run(args) -> int:
             raise CommandError(
                 f"--infer-train-objects {args.infer_train_objects}: no train/ folder of challenge episodes"
             )
+        from ..data.names import scene_info
+        from .presets import preset_scenes
+
+        names = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else preset_scenes(args.preset)
+        for n in names:
+            f = Path(cfg.infer_train) / "train" / f"{n}.json.gz"
+            if scene_info(n)[1] == "train" and not f.is_file():
+                raise CommandError(f"--infer-train-objects: no challenge train episodes of {n} ({f})")
     if cfg.world_version is not None and cfg.world not in ("ithor-real", "robothor-real"):
         raise CommandError(
             f"--world-version applies to the ithor-real and robothor-real worlds, not preset {args.preset!r}"
