@@ -2,8 +2,8 @@
 ``tsnav convergence`` run) for the training's own episodes beside one written by ``tsnav select`` on another list.
 
 Each ``--run LABEL=SMALL,LARGE`` names two selection files of one run (the same milestones scored on two episode
-lists), or ``--run LABEL=SELECTION`` one; the figure has SR and SPL per update, one colour per run, dashed for SMALL and solid for LARGE, the chosen
-milestone of each ringed. The number of episodes of each list is read from the files.
+lists), or ``--run LABEL=SELECTION`` one; the figure has SR and SPL per update, one colour per run, dashed for SMALL
+and solid for LARGE (or the one), the chosen milestone of each ringed. The number of episodes of each list is read from the files.
 
     tsnav analyze plot-selection --out docs/X.png --title "..." \\
         --run "seed 3=RUN/selection.json,RUN2K/selection.json" --run "seed 2=..."

@@ -178,7 +178,7 @@ def ensure_challenge_episodes(
         packaged_challenge,
         ratio_summary,
         read_challenge_episodes,
-        sample_per_room_type,
+        take_sample,
     )
 
     path = Path(path)
@@ -192,10 +192,7 @@ def ensure_challenge_episodes(
     bank = SceneBank([load_scene(p) for p in paths], success_distance=success_distance, protocol=protocol)
     eps, st = challenge_episodes(records, bank)
     say(f"challenge {split} episodes ({protocol}): {st.summary()}")
-    sample = {}
-    if per_room_type is not None:
-        eps = sample_per_room_type(eps, per_room_type, seed)
-        sample = {"sample": {"per_room_type": per_room_type, "seed": seed, "of": st.kept}}
+    eps, sample = take_sample(eps, per_room_type, seed)
     if not eps:
         raise ValueError(f"{data}: no episode of the challenge's {split} split could be converted")
     write_episodes(

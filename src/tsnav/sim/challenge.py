@@ -327,6 +327,15 @@ def packaged_challenge() -> Path:
     return Path(str(resources.files("tsnav.world") / "data" / "robothor" / "challenge_episodes"))
 
 
+def take_sample(episodes: list[Episode], per_room_type: int | None, seed: int) -> tuple[list[Episode], dict]:
+    """``episodes`` and the list metadata that records it: a :func:`sample_per_room_type` of them with its
+    ``{"sample": ...}`` record, or all of them and ``{}`` when ``per_room_type`` is None."""
+    if per_room_type is None:
+        return episodes, {}
+    kept = sample_per_room_type(episodes, per_room_type, seed)
+    return kept, {"sample": {"per_room_type": per_room_type, "seed": seed, "of": len(episodes)}}
+
+
 def sample_per_room_type(episodes: list[Episode], per_room_type: int, seed: int) -> list[Episode]:
     """A fixed sample of ``episodes``: at most ``per_room_type`` of each room type (RoboTHOR's apartments are one
     room type, so that is the sample's size), drawn without replacement by ``numpy.random.default_rng(seed)``

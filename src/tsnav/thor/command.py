@@ -35,7 +35,7 @@ from ..sim.challenge import (
     challenge_episodes,
     ratio_summary,
     read_challenge_episodes,
-    sample_per_room_type,
+    take_sample,
 )
 from ..sim.episodes import write_episodes
 from ..sim.lineage import episodes_from_splits
@@ -367,10 +367,8 @@ def _challenge_episodes(args) -> int:
             )
     if not eps:
         raise CommandError(f"no episode of the challenge's {args.split} split could be converted on {data}")
-    sample = {}
-    if args.sample is not None:
-        eps = sample_per_room_type(eps, args.sample, args.seed)
-        sample = {"sample": {"per_room_type": args.sample, "seed": args.seed, "of": st.kept}}
+    eps, sample = take_sample(eps, args.sample, args.seed)
+    if sample:
         print(f"kept a sample of {len(eps)} of the {st.kept} converted episodes (seed {args.seed})")
     lengths = ratio_summary(eps)
     write_episodes(

@@ -226,15 +226,13 @@ def check_train_objects(out: Path, cfg: BuildConfig) -> None:
     if cfg.world != "robothor-real" or not out.is_dir():
         return
     for d in sorted(out.iterdir()):
-        if not (d / COMPLETE_MARKER).exists() or not (d / "scene.json").exists():
-            continue
+        gen = finished_generator(d)
         try:
-            gen = json.loads((d / "scene.json").read_text()).get("generator") or {}
             split = scene_info(d.name)[1]
-        except (OSError, ValueError):
-            continue
-        inferred = gen.get("train_objects") == "inferred"
-        if split == "train" and inferred != (cfg.infer_train is not None):
+        except ValueError:
+            continue  # not a scene folder
+        inferred = gen is not None and gen.get("train_objects") == "inferred"
+        if gen is not None and split == "train" and inferred != (cfg.infer_train is not None):
             raise ValueError(
                 f"{d} was built with its train objects {'inferred' if inferred else 'recorded'}, this build "
                 f"{'infers' if cfg.infer_train is not None else 'records'} them: use another --out"
@@ -283,6 +281,17 @@ def check_output_dir(out: Path) -> None:
         raise PermissionError(f"cannot write to output folder {out}: {e.strerror or e}") from None
 
 
+def finished_generator(folder: Path) -> dict | None:
+    """The ``generator`` record of a finished scene folder's ``scene.json`` ({} when it has none); None when the
+    folder is not finished or its scene.json is unreadable (the reader's problem, not a build mismatch)."""
+    if not (folder / COMPLETE_MARKER).exists():
+        return None
+    try:
+        return json.loads((folder / "scene.json").read_text()).get("generator") or {}
+    except (OSError, ValueError):
+        return None
+
+
 def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
     """Refuse to add ``ithor-real`` rooms of one rules version to a folder whose finished rooms were built with
     another (finished rooms are skipped, so the world would mix versions): one-line ``ValueError``. A room
@@ -294,13 +303,9 @@ def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
 
     want = (check_ithor if cfg.world == "ithor-real" else check_robothor)(cfg.world_version)
     for n in names:
-        meta_path = out / n / "scene.json"
-        if not (out / n / COMPLETE_MARKER).exists() or not meta_path.exists():
+        gen = finished_generator(out / n)
+        if gen is None:
             continue
-        try:
-            gen = json.loads(meta_path.read_text()).get("generator") or {}
-        except (OSError, ValueError):
-            continue  # an unreadable room is the reader's problem, not a version mismatch
         have = int(gen.get("version", 1))
         if gen.get("world", cfg.world) != cfg.world:
             raise ValueError(

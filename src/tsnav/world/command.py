@@ -136,6 +136,7 @@ def run(args) -> int:
         **({"world_version": args.world_version} if args.world_version is not None else {}),
         **({"infer_train": str(Path(args.infer_train_objects).resolve())} if args.infer_train_objects else {}),
     )
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
     if cfg.infer_train is not None:
         if cfg.world != "robothor-real":
             raise CommandError(f"--infer-train-objects applies to the robothor-real world, not preset {args.preset!r}")
@@ -145,10 +146,10 @@ def run(args) -> int:
             )
         from ..data.names import scene_info
         from .presets import preset_scenes
+        from .robothor_real import train_episodes_file
 
-        names = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else preset_scenes(args.preset)
-        for n in names:
-            f = Path(cfg.infer_train) / "train" / f"{n}.json.gz"
+        for n in scenes or preset_scenes(args.preset):
+            f = train_episodes_file(cfg.infer_train, n)
             if scene_info(n)[1] == "train" and not f.is_file():
                 raise CommandError(f"--infer-train-objects: no challenge train episodes of {n} ({f})")
     if cfg.world_version is not None and cfg.world not in ("ithor-real", "robothor-real"):
@@ -169,7 +170,6 @@ def run(args) -> int:
         raise CommandError(f"--size {cfg.image_size} is out of range (16..1024)")
     if args.workers < 1:
         raise CommandError("--workers must be at least 1")
-    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
     try:
         stats = build_dataset(args.out, args.preset, scenes, cfg, workers=args.workers)
     except RendererUnavailable as e:

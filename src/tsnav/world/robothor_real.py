@@ -382,11 +382,16 @@ def check_version(version: int | None) -> int:
     return int(version)
 
 
+def train_episodes_file(challenge: str | Path, name: str) -> Path:
+    """Where the challenge's episode folder ``challenge`` holds the train episodes of scene ``name``."""
+    return Path(challenge) / "train" / f"{name}.json.gz"
+
+
 def inferred_train_episodes(challenge: str | Path, name: str, n: int = INFER_EPISODES) -> list[dict]:
     """The challenge's train episodes a train scene rebuilt the val way infers its targets from: ``n`` of those of
     scene ``name`` in ``challenge/train/NAME.json.gz`` (the first after a shuffle seeded by the name; all when
     fewer). ``ValueError`` naming the file when it is missing or unreadable."""
-    path = Path(challenge) / "train" / f"{name}.json.gz"
+    path = train_episodes_file(challenge, name)
     try:
         eps = json.loads(gzip.decompress(path.read_bytes()))
     except (OSError, ValueError, EOFError) as e:
