@@ -307,8 +307,8 @@ def levers(
     title: str = "## Levers on the pathfinding stage",
     episodes: str = "test",
 ) -> list[str]:
-    """The lever tables (``tsnav analyze lever-table``) the index lists under ``key``, under the heading ``title``:
-    per protocol, each row's SR, SPL and NSNPL and each lever's paired difference from the base row, with their
+    """The lever tables (``tsnav analyze lever-table``) the index lists under ``key``, under the heading ``title``
+    (each entry under its own ``title`` when it names one): per protocol, each row's SR, SPL and NSNPL and each lever's paired difference from the base row, with their
     95 % bootstrap intervals over the ``episodes`` (test, or the RoboTHOR challenge's val) episodes."""
     entries = index.get(key) or []
     if not entries:
@@ -316,6 +316,7 @@ def levers(
     lines = [title, ""]
     for e in entries:
         res = json.loads((results / e["file"]).read_text())
+        lines += [f"#### {e['title']}", ""] if e.get("title") else []
         lines += [
             f"{e['about']} Measured at {e['setting']}; data: [{e['file']}](results/{e['file']})"
             + (f"; validation curves: [{e['curves']}]({e['curves']})." if e.get("curves") else "."),
@@ -526,7 +527,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     lines += robothor_switch_reach(index, results)
     lines += robothor_inferred_look(index, results)
     lines += levers(
-        index, results, "robothor_levers", "### RoboTHOR: the training threshold of the stage switch", "val"
+        index, results, "robothor_levers", "### RoboTHOR: levers on the agent", "val"
     )
     lines += experiment_table(
         "Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []), paper, results
