@@ -167,3 +167,48 @@ def test_learned_command_fits_nothing_on_val_without_test_scenes(world, capsys):
         calibrate(world, world / "ck2", split="val")
     meta = json.loads((world / "ck2" / "checkpoints" / "ckpt_000000002" / "state.json").read_text())
     assert meta["calibrated_step"] == -1
+
+
+def test_finished_checkpoint_writes_tables_for_a_world_without_train_scenes(world, tmp_path, capsys):
+    """A trained checkpoint applies to a benchmark's val world (no train scenes): it keeps its own architecture and
+    writes the tables; asked to train on there, it is refused in one line naming its step."""
+    ck = tmp_path / "ck"
+    args = ["detect", "--detector", "learned", "--checkpoint", str(ck), "--quiet", "--threads", "1"]
+    args += ["--max-states-per-scene", "16", "--batch-size", "8", "--no-eval", "--no-calibrate"]
+    assert main([*args, "--data", str(world), "--train-steps", "2", "--name", "a"]) == 0
+    val_only = tmp_path / "val_only"
+    val_only.mkdir()
+    for p in list_scenes(world, "val"):
+        shutil.copytree(p, val_only / p.name)
+    assert not list_scenes(val_only, "train")
+    capsys.readouterr()
+    assert main([*args, "--data", str(val_only), "--train-steps", "2", "--name", "a"]) == 0
+    assert "detector checkpoint" in capsys.readouterr().out
+    for p in list_scenes(val_only):
+        np.testing.assert_array_equal(load_detections(p, "a").scores, load_detections(world / p.name, "a").scores)
+    assert main([*args, "--data", str(val_only), "--train-steps", "5", "--name", "b"]) == 2
+    err = capsys.readouterr().err
+    assert "no complete train scene to train the detector on" in err and "at step 2 of 5" in err
+    assert not any((p / "detections_b.hdf5").exists() for p in list_scenes(val_only))
+
+
+def test_training_on_from_a_copy_of_a_shipped_detector_uses_what_it_trained(world, tmp_path, capsys):
+    """A copy of a shipped detector (its files at the top of the folder, no optimiser state) trained on writes its
+    checkpoints under checkpoints/, and from then on the folder means the newest of those, not the copy."""
+    args = ["detect", "--data", str(world), "--detector", "learned", "--quiet", "--threads", "1"]
+    args += ["--max-states-per-scene", "16", "--batch-size", "8", "--no-eval", "--no-calibrate"]
+    assert main([*args, "--checkpoint", str(tmp_path / "ck"), "--train-steps", "2", "--name", "a"]) == 0
+    flat = tmp_path / "flat"  # the shipped layout: model.safetensors and state.json at the top
+    flat.mkdir()
+    for name in ("model.safetensors", "state.json"):
+        shutil.copy(tmp_path / "ck" / "checkpoints" / "ckpt_000000002" / name, flat / name)
+    start = json.loads((flat / "state.json").read_text())["fingerprint"]
+    capsys.readouterr()
+    assert main([*args, "--checkpoint", str(flat), "--train-steps", "4", "--name", "b"]) == 0
+    assert "trained the detector 2 -> 4 steps" in capsys.readouterr().out
+    trained = json.loads((flat / "checkpoints" / "ckpt_000000004" / "state.json").read_text())["fingerprint"]
+    assert trained != start
+    p = list_scenes(world)[0]
+    assert load_detections(p, "b").fingerprint == trained
+    assert main([*args, "--checkpoint", str(flat), "--train-steps", "4", "--name", "c"]) == 0
+    assert "at step 4" in capsys.readouterr().out and load_detections(p, "c").fingerprint == trained

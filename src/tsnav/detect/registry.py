@@ -160,13 +160,21 @@ def _learned(args, root: Path):
         raise CommandError(f"--checkpoint {ckpt} is a file; give a checkpoint folder")
     if ckpt.is_dir() and any(ckpt.iterdir()) and not is_checkpoint(ckpt):
         raise CommandError(f"--checkpoint {ckpt} is a folder that holds no detector checkpoint")
-    model_cfg = _model_config(args, root)
+    existing = is_checkpoint(ckpt)
+    # a new checkpoint takes its architecture from the train scenes; an existing one keeps its own, so a finished
+    # checkpoint writes tables for a world without train scenes (a benchmark's val world)
+    model_cfg = None if existing else _model_config(args, root)
     steps = args.train_steps
     if steps is None:  # an existing checkpoint: finish its own target (a no-op when it is finished)
         steps = (
             int(read_meta(ckpt).get("train", {}).get("steps", 0))
-            if is_checkpoint(ckpt)
+            if existing
             else default_train_steps(model_cfg.image_size)
+        )
+    if existing and steps > int(read_meta(ckpt).get("step", 0)) and not list_scenes(root, split="train"):
+        raise CommandError(
+            f"{root}: no complete train scene to train the detector on (checkpoint {ckpt} is at step "
+            f"{int(read_meta(ckpt).get('step', 0))} of {steps})"
         )
     tc = DetectorTrainConfig(
         steps=steps,

@@ -338,12 +338,13 @@ def _meta_file(c: Path) -> Path:
 
 def checkpoint_candidates(path: str | Path) -> list[Path]:
     """Checkpoints of the detector folder ``path``, newest first: ``checkpoints/ckpt_<step>`` folders, then a
-    legacy checkpoint at the top of ``path`` and its ``previous/``. A ``ckpt_<step>`` folder itself (one with a
-    ``state.json``) is its own only candidate."""
+    legacy checkpoint at the top of ``path`` and its ``previous/``. A folder with a ``state.json`` of its own (a
+    ``ckpt_<step>`` folder, or a copy of a shipped detector) is a checkpoint itself, after the ones trained on from
+    it into its ``checkpoints/`` (a ``ckpt_<step>`` folder has none)."""
     p = Path(path)
-    if (p / STATE_FILE).exists():
-        return [p]
     found = list_checkpoints(p / CHECKPOINTS)[::-1]
+    if (p / STATE_FILE).exists():
+        return found + [p]
     return found + [c for c in (p, p / LEGACY_PREVIOUS) if _is_legacy(c)]
 
 
