@@ -48,10 +48,10 @@ def test_weights_match_their_fingerprint_and_provenance(name):
         shipped.shipped_detector(name="learned9")
 
 
-@pytest.mark.parametrize("name", ["robothor1", "robothor2"])
+@pytest.mark.parametrize("name", ["robothor1", "robothor2", "robothor3"])
 def test_robothor_detectors_saw_only_the_train_apartments(name):
-    """robothor1 and robothor2: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing of the 15
-    val ones (they are the benchmark): not calibrated, temperature 1."""
+    """robothor1, robothor2 and robothor3: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing
+    of the 15 val ones (they are the benchmark): not calibrated, temperature 1."""
     det = shipped.shipped_detector(128, name=name)
     meta = shipped.shipped_meta(name)
     assert det.fingerprint == meta["fingerprint"] and meta["name"] == name
@@ -60,9 +60,11 @@ def test_robothor_detectors_saw_only_the_train_apartments(name):
     assert sorted(meta["train_scenes"]) == sorted(train)
     assert meta["calibration_split"] is None and meta["calibrated_step"] == -1 and det.temperature == 1.0
     assert meta["train"]["loss"]["presence_pos_weight"] == 4.0 and meta["model"]["widths"] == [32, 64, 128]
-    # robothor2 is robothor1 trained on to 15,000 steps with class-balanced sampling
-    steps, repeat = {"robothor1": (5000, 0.0), "robothor2": (15000, 0.5)}[name]
+    # robothor2 is robothor1 trained on to 15,000 steps with class-balanced sampling; robothor3 is robothor2 trained
+    # on to 20,000 steps in the train apartments rebuilt the val way
+    steps, repeat = {"robothor1": (5000, 0.0), "robothor2": (15000, 0.5), "robothor3": (20000, 0.5)}[name]
     assert meta["step"] == steps and meta["train"]["repeat_threshold"] == repeat
+    assert ("rebuilt the val way" in meta.get("train_world", "")) == (name == "robothor3")
 
 
 def test_refuses_other_frame_sizes_and_damaged_weights(tmp_path, monkeypatch):
