@@ -36,7 +36,8 @@ temperature, fingerprint, provenance):
 * ``robothor3`` (``weights/robothor-real-128-robothor3``): ``robothor2`` trained on to 20,000 steps on the train
   apartments rebuilt the val way (``tsnav world --infer-train-objects``: furniture from the plans, targets inferred
   from the challenge's train episodes, as the val apartments are built), same architecture, loss and sampling; not
-  calibrated. Val presence AP 0.780 against ``robothor2``'s 0.621 (docs/results/robothor3_val_eval_2026-12-06.json).
+  calibrated. Val presence AP 0.780 against ``robothor2``'s 0.639 in the same val apartments (rules v2; box AP@0.5
+  0.557 against 0.374; docs/results/robothor3_val_eval_2026-12-06.json, robothor2_val_v2_eval_2026-12-06.json).
 
 Their tables carry the same fingerprint as the ones written by ``tsnav detect --checkpoint`` with the same
 weights, so tables written from a shipped copy and from the training folder are interchangeable.
