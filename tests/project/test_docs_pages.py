@@ -93,7 +93,7 @@ def test_results_page_reads_its_figures_from_the_files(tmp_path):
         for r in json.loads((root / "docs" / "results" / look).read_text())["rows"]:
             assert f"| {r['policy']} | {r['episodes']} | {100 * r['metrics']['ALL']['SR']:.2f} |" in text
     if index.get("robothor_levers"):
-        assert "### RoboTHOR: levers on the agent" in text
+        assert "### RoboTHOR: levers on the column" in text
     for e in index.get("levers", []) + index.get("robothor_levers", []):
         assert not e.get("title") or f"#### {e['title']}\n" in text
     for e in index.get("levers", []) + index.get("robothor_levers", []):
