@@ -526,9 +526,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     lines += robothor_references(index, results)
     lines += robothor_switch_reach(index, results)
     lines += robothor_inferred_look(index, results)
-    lines += levers(
-        index, results, "robothor_levers", "### RoboTHOR: levers on the column", "val"
-    )
+    lines += levers(index, results, "robothor_levers", "### RoboTHOR: levers on the column", "val")
     lines += experiment_table(
         "Table II: ablation of the two rewards and DE-MAE", "table2", index.get("table2", []), paper, results
     ) + [""]
