@@ -212,3 +212,35 @@ def test_training_on_from_a_copy_of_a_shipped_detector_uses_what_it_trained(worl
     assert load_detections(p, "b").fingerprint == trained
     assert main([*args, "--checkpoint", str(flat), "--train-steps", "4", "--name", "c"]) == 0
     assert "at step 4" in capsys.readouterr().out and load_detections(p, "c").fingerprint == trained
+
+
+def test_a_broken_newest_checkpoint_is_set_aside_and_training_resumes(world, tmp_path, capsys):
+    """With train scenes at hand, a newest checkpoint whose JSON is broken is set aside and training resumes from
+    the one before it (the check for a world without train scenes reads nothing then)."""
+    ck = tmp_path / "ck"
+    args = ["detect", "--data", str(world), "--detector", "learned", "--checkpoint", str(ck), "--quiet"]
+    args += ["--threads", "1", "--max-states-per-scene", "16", "--batch-size", "8", "--no-eval", "--no-calibrate"]
+    assert main([*args, "--train-steps", "2", "--name", "a"]) == 0
+    assert main([*args, "--train-steps", "4", "--name", "b"]) == 0
+    (ck / "checkpoints" / "ckpt_000000004" / "state.json").write_text("{not json")
+    capsys.readouterr()
+    assert main([*args, "--train-steps", "5", "--name", "c"]) == 0
+    assert "trained the detector 2 -> 5 steps" in capsys.readouterr().out
+
+
+def test_a_shipped_detector_is_its_own_files_whatever_was_trained_from_it(world, tmp_path, monkeypatch):
+    """A shipped name means the files at the top of its folder: checkpoints trained on from that folder (say, with
+    --checkpoint pointing into an editable install) do not replace it."""
+    from tsnav.detect import shipped
+
+    folder = tmp_path / "robothor3"
+    shutil.copytree(shipped.SHIPPED["robothor3"], folder)
+    want = shipped.shipped_meta("robothor3")
+    monkeypatch.setitem(shipped.SHIPPED, "robothor3", folder)
+    args = ["detect", "--data", str(world), "--detector", "learned", "--checkpoint", str(tmp_path / "ck"), "--quiet"]
+    args += ["--threads", "1", "--max-states-per-scene", "16", "--batch-size", "8", "--no-eval", "--no-calibrate"]
+    assert main([*args, "--train-steps", "2", "--name", "a"]) == 0
+    shutil.copytree(tmp_path / "ck" / "checkpoints", folder / "checkpoints")
+    det = shipped.shipped_detector(128, name="robothor3")
+    assert det.fingerprint == want["fingerprint"] and det.meta["step"] == want["step"] == 20000
+    assert shipped.shipped_meta("robothor3")["step"] == 20000

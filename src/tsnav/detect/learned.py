@@ -38,8 +38,9 @@ class LearnedDetector:
         self.fingerprint = weights_fingerprint(model, self.temperature)
 
     @classmethod
-    def load(cls, ckpt: str | Path) -> "LearnedDetector":
-        model, meta = load_model(ckpt)
+    def load(cls, ckpt: str | Path, pinned: bool = False) -> "LearnedDetector":
+        """The detector of the newest checkpoint of ``ckpt`` (``pinned``: of the files at its top only)."""
+        model, meta = load_model(ckpt, pinned=pinned)
         if meta.get("calibrated_step", -1) != meta.get("step"):
             # Not (re)calibrated after the last training step: temperature 1 is the honest default.
             meta = dict(meta, temperature=1.0)

@@ -171,11 +171,13 @@ def _learned(args, root: Path):
             if existing
             else default_train_steps(model_cfg.image_size)
         )
-    if existing and steps > int(read_meta(ckpt).get("step", 0)) and not list_scenes(root, split="train"):
-        raise CommandError(
-            f"{root}: no complete train scene to train the detector on (checkpoint {ckpt} is at step "
-            f"{int(read_meta(ckpt).get('step', 0))} of {steps})"
-        )
+    if existing and not list_scenes(root, split="train"):
+        at = int(read_meta(ckpt).get("step", 0))
+        if steps > at:
+            raise CommandError(
+                f"{root}: no complete train scene to train the detector on (checkpoint {ckpt} is at step {at} of "
+                f"{steps})"
+            )
     tc = DetectorTrainConfig(
         steps=steps,
         threads=args.threads,

@@ -85,7 +85,7 @@ def _folder(name: str | None) -> Path:
 def shipped_meta(name: str | None = None) -> dict:
     """The JSON of the shipped checkpoint ``name`` (default :data:`DEFAULT_SHIPPED`): step, temperature, training
     rooms, provenance."""
-    return read_meta(_folder(name))
+    return read_meta(_folder(name), pinned=True)
 
 
 def shipped_detector(image_size: int | None = None, name: str | None = None) -> LearnedDetector:
@@ -95,7 +95,7 @@ def shipped_detector(image_size: int | None = None, name: str | None = None) -> 
     ``image_size``: the frames of the world it will read; a world of another size gets a one-line
     :class:`CommandError` (the detector reads 128x128 frames only)."""
     folder = _folder(name)
-    det = LearnedDetector.load(folder)
+    det = LearnedDetector.load(folder, pinned=True)  # the shipped files, never what was trained on from them
     want = det.meta.get("fingerprint")
     if det.fingerprint != want:
         raise CommandError(

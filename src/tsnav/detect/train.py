@@ -364,10 +364,11 @@ def newest_checkpoint(path: str | Path) -> Path:
     return found[0]
 
 
-def read_meta(path: str | Path) -> dict:
+def read_meta(path: str | Path, pinned: bool = False) -> dict:
     """The JSON of the newest checkpoint of a detector folder (``state.json``; legacy ``detector.json``), or of
-    the checkpoint folder ``path`` itself; one-line error when absent or malformed."""
-    return _read_meta(newest_checkpoint(path))
+    the checkpoint folder ``path`` itself (``pinned``: of the files at the top of ``path`` only, as
+    :func:`load_model`); one-line error when absent or malformed."""
+    return _read_meta(Path(path) if pinned else newest_checkpoint(path))
 
 
 def _read_meta(c: Path) -> dict:
@@ -403,10 +404,11 @@ def weights_fingerprint(model: GridDetector, temperature: float) -> str:
     return "learned-" + weights_digest(model.state_dict(), extra=repr(float(temperature)).encode())[:16]
 
 
-def load_model(path: str | Path) -> tuple[GridDetector, dict]:
+def load_model(path: str | Path, pinned: bool = False) -> tuple[GridDetector, dict]:
     """(model in eval mode, checkpoint JSON) of the newest checkpoint of a detector folder (or of a checkpoint
-    folder itself); :class:`BrokenCheckpoint` names a file that cannot be read."""
-    return _load(newest_checkpoint(path))
+    folder itself); ``pinned``: of the files at the top of ``path`` only, whatever was trained on from them (a
+    shipped detector's folder); :class:`BrokenCheckpoint` names a file that cannot be read."""
+    return _load(Path(path) if pinned else newest_checkpoint(path))
 
 
 def _load(c: Path) -> tuple[GridDetector, dict]:
@@ -440,8 +442,8 @@ def _set_aside(ckpt: Path, c: Path) -> None:
     top-level checkpoint are renamed ``*.broken`` (a legacy ``previous/`` is left as it is)."""
     if c.parent.name == CHECKPOINTS:
         set_aside(c)
-    elif c == ckpt:
-        for name in LEGACY_FILES:
+    elif c == ckpt:  # a legacy checkpoint, or a copy of a shipped detector (its state.json at the top)
+        for name in (*LEGACY_FILES, STATE_FILE):
             if (c / name).exists():
                 os.replace(c / name, c / (name + ".broken"))
 
