@@ -364,11 +364,18 @@ def newest_checkpoint(path: str | Path) -> Path:
     return found[0]
 
 
+def _pinned(path: str | Path) -> Path:
+    """The checkpoint a pinned load reads: the files at the top of ``path`` when it has them (a shipped detector's
+    layout), else its newest checkpoint (a training folder used as it is)."""
+    p = Path(path)
+    return p if _meta_file(p).exists() else newest_checkpoint(p)
+
+
 def read_meta(path: str | Path, pinned: bool = False) -> dict:
     """The JSON of the newest checkpoint of a detector folder (``state.json``; legacy ``detector.json``), or of
-    the checkpoint folder ``path`` itself (``pinned``: of the files at the top of ``path`` only, as
+    the checkpoint folder ``path`` itself (``pinned``: of the files at the top of ``path`` when it has them, as
     :func:`load_model`); one-line error when absent or malformed."""
-    return _read_meta(Path(path) if pinned else newest_checkpoint(path))
+    return _read_meta(_pinned(path) if pinned else newest_checkpoint(path))
 
 
 def _read_meta(c: Path) -> dict:
@@ -406,9 +413,9 @@ def weights_fingerprint(model: GridDetector, temperature: float) -> str:
 
 def load_model(path: str | Path, pinned: bool = False) -> tuple[GridDetector, dict]:
     """(model in eval mode, checkpoint JSON) of the newest checkpoint of a detector folder (or of a checkpoint
-    folder itself); ``pinned``: of the files at the top of ``path`` only, whatever was trained on from them (a
-    shipped detector's folder); :class:`BrokenCheckpoint` names a file that cannot be read."""
-    return _load(Path(path) if pinned else newest_checkpoint(path))
+    folder itself); ``pinned``: of the files at the top of ``path`` when it has them, whatever was trained on from
+    them (a shipped detector's folder); :class:`BrokenCheckpoint` names a file that cannot be read."""
+    return _load(_pinned(path) if pinned else newest_checkpoint(path))
 
 
 def _load(c: Path) -> tuple[GridDetector, dict]:
