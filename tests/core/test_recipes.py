@@ -207,7 +207,9 @@ def test_agent_recipes_equal_the_shipped_configs(name, tmp_path):
     assert added == {k: to_recipe(RewardConfig())[k] for k in added}  # at their defaults: the paper's reward
     assert not any(str(v).startswith("/") for v in saved["train"].values())  # no machine path ships
     card = json.loads((WEIGHTS / name / "card.json").read_text())
-    assert r.detections.shipped == card["detector_shipped"] and r.world.version == card["world_version"]
+    assert r.detections.card_shipped == card["detector_shipped"] and r.world.version == card["world_version"]
+    assert card.get("trained_detector_shipped", card["detector_shipped"]) == r.detections.shipped
+    assert saved["train"]["detections"] == r.detections.name  # the shipped run trained on the recipe's tables
 
 
 def test_every_shipped_recipe_names_no_machine_path():
@@ -423,7 +425,7 @@ def test_robothor_recipe_is_learned7s_run_on_robothor(tmp_path):
             d["train"].pop(k)
     assert first_difference(theirs, ours) is None
     assert (r.world.preset, r.world.version) == ("robothor-real", 2)
-    assert (r.detections.shipped, r.detections.name) == ("robothor2", "robothor2")
+    assert (r.detections.shipped, r.detections.name, r.detections.evaluated) == ("robothor2", "robothor2", "robothor3")
     # its pretraining streamed the frames (preload off); otherwise learned7's
     assert r.pretrain.preload is False and replace(r.pretrain, preload=True) == seven.pretrain
     assert r.features == seven.features
@@ -488,14 +490,18 @@ def test_robothor_agent_card(tmp_path, monkeypatch):
     card = agent_card(r, world)
     assert all(k in card for k in CARD_REQUIRED)
     assert (card["world_preset"], card["world_version"], card["image_size"]) == ("robothor-real", 2, 128)
+    # trained on robothor2's tables, evaluated with robothor3 swapped in ([detections] evaluated): the card's
+    # detector is the one its figures are of, and it names the one of training
     assert (card["detector_shipped"], card["detections"], card["detector_fingerprint"]) == (
-        "robothor2",
-        "robothor2",
-        "learned-robothor2",
+        "robothor3",
+        "robothor3",
+        "learned-robothor3",
     )
+    assert (card["trained_detector_shipped"], card["trained_detections"]) == ("robothor2", "robothor2")
     assert (card["eval_split"], card["episodes"]) == ("val", "challenge")
     assert card["val_rooms"] == robothor_scenes("val") and "test_rooms" not in card
     assert "--challenge CHALLENGE_DIR" in card["commands"][0]
     # an iTHOR card is written as before: no eval_split or episodes
     seven = agent_card(resolve_agent(read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml"), tmp_path), world)
     assert not {"eval_split", "episodes"} & set(seven) and {"val_rooms", "test_rooms"} <= set(seven)
+    assert not {"trained_detector_shipped", "trained_detections"} & set(seven)

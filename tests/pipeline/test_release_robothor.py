@@ -160,6 +160,54 @@ def test_release_eval_of_a_robothor_agent(robo, capsys):
     assert release.headline(card).startswith("val, challenge episodes SR / SPL (")
 
 
+def test_release_eval_with_the_detector_its_card_swaps_in(robo, tmp_path, monkeypatch):
+    """A card whose detector is another than the one of training ([detections] evaluated, as tsrm-demae-robothor
+    v2 reads robothor3 with a policy trained on robothor2's tables): release eval writes that detector's tables only,
+    the agent and the explorer read them, and the card's Markdown names both detectors."""
+    import shutil
+
+    import torch
+
+    from tsnav.detect import shipped
+    from tsnav.detect.model import DetectorConfig, GridDetector
+    from tsnav.detect.train import FORMAT, save_checkpoint
+
+    torch.manual_seed(1)  # another detector than DET's (seed 0)
+    model = GridDetector(DetectorConfig(image_size=SIZE, widths=(4, 8, 8), dim=8, class_set="robothor12"))
+    save_checkpoint(
+        tmp_path / "det2",
+        model,
+        None,
+        {"format": FORMAT, "step": 0, "calibrated_step": 0, "temperature": 1.0, "model": model.cfg.to_dict()},
+    )
+    monkeypatch.setitem(shipped.SHIPPED, "tinyrobo2", tmp_path / "det2")
+    agent = tmp_path / "tiny-robothor"
+    shutil.copytree(robo["out"], agent)
+    card = release.read_card(agent)
+    card.update(
+        detector_shipped="tinyrobo2",
+        detections="tinyrobo2",
+        trained_detector_shipped=DET,
+        trained_detections=DET,
+        detector_fingerprint=shipped.shipped_meta("tinyrobo2")["fingerprint"],
+    )
+    (agent / "card.json").write_text(json.dumps(card))
+    world, ev = tmp_path / "val_world", tmp_path / "eval"
+    args = ["release", "eval", "--agent", str(agent), "--data", str(world), "--out", str(ev), "--build-world"]
+    assert main(args + ["--workers", "1", "--threads", "1", "--protocol", "lineage", "--update-card"]) == 0
+    assert (world / VAL / "detections_tinyrobo2.hdf5").exists()
+    assert not (world / VAL / f"detections_{DET}.hdf5").exists()
+    for policy in ("agent", "explorer"):
+        assert json.loads((ev / "lineage" / policy / "metrics.json").read_text())["detections"] == "tinyrobo2"
+    assert json.loads((agent / "config.json").read_text())["train"]["detections"] == DET  # trained on DET's
+    md = (agent / "card.md").read_text()
+    assert f"| trained with | the shipped detector {DET}'s tables (evaluated with tinyrobo2's) |" in md
+    # a card whose fingerprint is not its detector's is refused in one line
+    card["detector_fingerprint"] = shipped.shipped_meta(DET)["fingerprint"]
+    (agent / "card.json").write_text(json.dumps(card))
+    assert main(args + ["--workers", "1", "--threads", "1", "--protocol", "lineage", "--force"]) == 2
+
+
 def test_release_folders_of_another_world():
     from pathlib import Path
 

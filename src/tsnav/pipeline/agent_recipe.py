@@ -7,7 +7,8 @@ section             what
 ==================  ======================================================================================
 ``name``            the agent's name (the packed folder's)
 ``[world]``         the world preset and its rules version (:class:`WorldSettings`)
-``[detections]``    the shipped detector whose tables drive the stage switch (:class:`DetectionSettings`)
+``[detections]``    the shipped detector whose tables drive the stage switch in training, and the one the packed
+                    agent is evaluated with when another (:class:`DetectionSettings`)
 ``[pretrain]``      the encoder's pretraining (:class:`~tsnav.pretrain.train.PretrainConfig`)
 ``[features]``      the feature cache and the threads of the steps (:class:`FeatureSettings`)
 ``[train]``         training (:class:`~tsnav.rl.config.TrainConfig`; ``data``, ``features``, ``detections`` are
@@ -78,6 +79,21 @@ class DetectionSettings:
     target memory."""
     name: str = "learned"
     """Name of its tables, ``detections_<name>.hdf5`` (the run's ``train.detections``)."""
+    evaluated: str = ""
+    """The shipped detector the packed agent is evaluated with (its card's detector: ``tsnav release eval`` writes
+    its tables, named after it, and the agent's target memory and the metrics' switch read them), when another than
+    ``shipped`` (empty: ``shipped``): a detector trained after the agent, swapped in without training again. The
+    card names both."""
+
+    @property
+    def card_shipped(self) -> str:
+        """The shipped detector of the card (the one the agent is evaluated with)."""
+        return self.evaluated or self.shipped
+
+    @property
+    def card_name(self) -> str:
+        """Name of the card's tables."""
+        return self.evaluated or self.name
 
 
 @dataclass

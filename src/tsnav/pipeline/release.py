@@ -235,6 +235,13 @@ def card_markdown(card: dict) -> str:
         ("rooms", card.get("rooms")),
         ("frames", card.get("frames")),
         ("detector", card.get("detector")),
+        (
+            "trained with",
+            f"the shipped detector {card['trained_detector_shipped']}'s tables (evaluated with "
+            f"{card.get('detector_shipped', '?')}'s)"
+            if card.get("trained_detector_shipped")
+            else None,
+        ),
         ("encoder", card.get("encoder_text")),
         ("policy", card.get("policy_text")),
         ("reward", card.get("reward")),
@@ -363,7 +370,7 @@ def ensure_release_detections(
     det = card["detector_shipped"]
     if shipped_meta(det).get("fingerprint") != card["detector_fingerprint"]:
         raise CommandError(
-            f"the shipped detector {det!r} is not the one this agent was trained with ({card['detector_fingerprint']})"
+            f"the shipped detector {det!r} is not the one of this agent's card ({card['detector_fingerprint']})"
         )
     from ..data.reader import load_scene
     from ..detect.shipped import shipped_detector
@@ -531,7 +538,8 @@ def release_rows(
     rows = []
     for protocol in protocols:
         eps = release_episodes(data, out, protocol, split, card)
-        todo = [("agent", dict(run=str(folder), checkpoint="best"))]
+        # the card's tables: those the agent was trained with, or the detector its card swaps in
+        todo = [("agent", dict(run=str(folder), checkpoint="best", detections=card["detections"]))]
         if baselines:
             todo += [
                 ("scripted explorer", dict(policy="explorer", detections=card["detections"])),
@@ -878,9 +886,14 @@ def agent_card(r: AgentRecipe, world: Path) -> dict:
         "world_preset": r.world.preset,
         "world_version": r.world.version,
         "image_size": BuildConfig.from_preset(r.world.preset).image_size,
-        "detector_shipped": r.detections.shipped,
-        "detector_fingerprint": shipped_meta(r.detections.shipped)["fingerprint"],
-        "detections": r.detections.name,
+        "detector_shipped": r.detections.card_shipped,
+        "detector_fingerprint": shipped_meta(r.detections.card_shipped)["fingerprint"],
+        "detections": r.detections.card_name,
+        **(
+            {"trained_detector_shipped": r.detections.shipped, "trained_detections": r.detections.name}
+            if r.detections.card_shipped != r.detections.shipped
+            else {}
+        ),
         "encoder_id": r.features.encoder,
         **how,
         **{f"{split}_rooms": ensure_names(world, split) for split in splits},
