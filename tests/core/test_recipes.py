@@ -444,6 +444,17 @@ def test_robothor_recipe_is_learned7s_run_on_robothor(tmp_path):
     assert again.to_recipe() == r.to_recipe() and again.scoring == r.scoring
 
 
+def test_recipe_names_shipped_detectors_only(tmp_path):
+    """[detections] shipped and evaluated must name detectors tsnav ships: refused in one line before any work."""
+    from tsnav.pipeline.agent_recipe import resolve_agent
+
+    recipe = read_recipe(ROBOTHOR)
+    for key in ("shipped", "evaluated"):
+        bad = {**recipe, "detections": {**recipe["detections"], key: "robothor9"}}
+        with pytest.raises(CommandError, match=rf"\[detections\]: {key} 'robothor9' is no shipped detector"):
+            resolve_agent(bad, tmp_path)
+
+
 def test_robothor_recipe_never_scores_on_its_benchmark(tmp_path, capsys):
     """The val scenes are RoboTHOR's benchmark: a recipe scoring checkpoints on them is refused, as are challenge
     episodes for an iTHOR agent and a challenge-train scoring without the challenge's folder; all before any work."""

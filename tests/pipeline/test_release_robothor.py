@@ -160,7 +160,7 @@ def test_release_eval_of_a_robothor_agent(robo, capsys):
     assert release.headline(card).startswith("val, challenge episodes SR / SPL (")
 
 
-def test_release_eval_with_the_detector_its_card_swaps_in(robo, tmp_path, monkeypatch):
+def test_release_eval_with_the_detector_its_card_swaps_in(robo, tmp_path, monkeypatch, capsys):
     """A card whose detector is another than the one of training ([detections] evaluated, as tsrm-demae-robothor
     v2 reads robothor3 with a policy trained on robothor2's tables): release eval writes that detector's tables only,
     the agent and the explorer read them, and the card's Markdown names both detectors."""
@@ -202,6 +202,16 @@ def test_release_eval_with_the_detector_its_card_swaps_in(robo, tmp_path, monkey
     assert json.loads((agent / "config.json").read_text())["train"]["detections"] == DET  # trained on DET's
     md = (agent / "card.md").read_text()
     assert f"| trained with | the shipped detector {DET}'s tables (evaluated with tinyrobo2's) |" in md
+    # tables of that name made by another detector are refused, not read
+    other = tmp_path / "other_world"
+    shutil.copytree(world, other)
+    (other / VAL / "detections_tinyrobo2.hdf5").unlink()
+    from tsnav.pipeline.detector_steps import write_learned_tables
+
+    write_learned_tables(other, "tinyrobo2", shipped.shipped_detector(SIZE, DET), progress=False)
+    argv = ["release", "eval", "--agent", str(agent), "--data", str(other), "--out", str(tmp_path / "eval2")]
+    assert main(argv + ["--workers", "1", "--threads", "1", "--protocol", "lineage"]) == 2
+    assert "tables were made by another detector" in capsys.readouterr().err
     # a card whose fingerprint is not its detector's is refused in one line
     card["detector_fingerprint"] = shipped.shipped_meta(DET)["fingerprint"]
     (agent / "card.json").write_text(json.dumps(card))

@@ -41,7 +41,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..detect.shipped import DEFAULT_SHIPPED
+from ..detect.shipped import DEFAULT_SHIPPED, SHIPPED
 from ..distributed import set_threads
 from ..errors import CommandError
 from ..pretrain.train import PretrainConfig
@@ -197,6 +197,12 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
     if not isinstance(name, str) or not name or "/" in name:
         raise CommandError('the recipe names no agent (name = "tsrm-demae-...")')
     det = build(DetectionSettings, recipe.get("detections"), "detections")
+    for key in ("shipped", "evaluated"):
+        value = getattr(det, key)
+        if value and value not in SHIPPED:
+            raise CommandError(
+                f"[detections]: {key} {value!r} is no shipped detector (shipped: {', '.join(sorted(SHIPPED))})"
+            )
     feats = build(FeatureSettings, recipe.get("features"), "features")
     train = dict(recipe.get("train") or {})
     for k in ("data", "features"):

@@ -377,7 +377,12 @@ def ensure_release_detections(
     from .detector_steps import learned_tables, write_learned_tables
     from ..scene_pool import default_workers
 
-    have, _ = learned_tables(data, card["detections"], split)
+    have, kinds = learned_tables(data, card["detections"], split)
+    if kinds and kinds[0] != card["detector_fingerprint"]:
+        raise CommandError(
+            f"{data}: its detections_{card['detections']}.hdf5 tables were made by another detector ({kinds[0]}) "
+            f"than the card's {det} ({card['detector_fingerprint']}); remove them or evaluate in another --data folder"
+        )
     if any(fp is None for fp in have.values()):
         size = load_scene(next(iter(have))).image_size
         write_learned_tables(
@@ -450,7 +455,7 @@ def release_inputs(
     when the evaluation has to run anyway. Two evaluations with equal records print the same table:
 
     * agent: the policy's and the encoder's weights (SHA-256 of ``best/model.safetensors`` and
-      ``encoder.safetensors``), the training config's feature and detection names;
+      ``encoder.safetensors``), the training config's feature name and the card's detection tables (those the agent reads);
     * data: the world folder, per room of ``split`` a hash of its layout, state graph and success map
       (:data:`ROOM_FILES`), the fingerprint of its detection table (the detector's weights and temperature) and
       the feature cache's name (the encoder's fingerprint);
