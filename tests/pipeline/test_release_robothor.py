@@ -21,21 +21,28 @@ DET = "tinyrobo"  # the module's stand-in for the lead's robothor1
 SIZE = 32
 
 
+def _save_tiny_detector(folder, seed: int):
+    """An untrained robothor12 grid detector reading 32-px frames, its weights drawn with ``seed``, saved as a
+    checkpoint into ``folder`` (returned)."""
+    import torch
+
+    from tsnav.detect.model import DetectorConfig, GridDetector
+    from tsnav.detect.train import FORMAT, save_checkpoint
+
+    torch.manual_seed(seed)
+    model = GridDetector(DetectorConfig(image_size=SIZE, widths=(4, 8, 8), dim=8, class_set="robothor12"))
+    meta = {"format": FORMAT, "step": 0, "calibrated_step": 0, "temperature": 1.0, "model": model.cfg.to_dict()}
+    save_checkpoint(folder, model, None, meta)
+    return folder
+
+
 @pytest.fixture(scope="module")
 def tiny_detector(tmp_path_factory):
     """An untrained (seeded) robothor12 grid detector reading 32-px frames, registered in tsnav.detect.shipped as
     :data:`DET` while the module runs."""
-    import torch
-
     from tsnav.detect import shipped
-    from tsnav.detect.model import DetectorConfig, GridDetector
-    from tsnav.detect.train import FORMAT, save_checkpoint
 
-    torch.manual_seed(0)
-    model = GridDetector(DetectorConfig(image_size=SIZE, widths=(4, 8, 8), dim=8, class_set="robothor12"))
-    folder = tmp_path_factory.mktemp("tinyrobo")
-    meta = {"format": FORMAT, "step": 0, "calibrated_step": 0, "temperature": 1.0, "model": model.cfg.to_dict()}
-    save_checkpoint(folder, model, None, meta)
+    folder = _save_tiny_detector(tmp_path_factory.mktemp("tinyrobo"), seed=0)
     mp = pytest.MonkeyPatch()
     mp.setitem(shipped.SHIPPED, DET, folder)
     yield folder
@@ -166,21 +173,10 @@ def test_release_eval_with_the_detector_its_card_swaps_in(robo, tmp_path, monkey
     the agent and the explorer read them, and the card's Markdown names both detectors."""
     import shutil
 
-    import torch
-
     from tsnav.detect import shipped
-    from tsnav.detect.model import DetectorConfig, GridDetector
-    from tsnav.detect.train import FORMAT, save_checkpoint
 
-    torch.manual_seed(1)  # another detector than DET's (seed 0)
-    model = GridDetector(DetectorConfig(image_size=SIZE, widths=(4, 8, 8), dim=8, class_set="robothor12"))
-    save_checkpoint(
-        tmp_path / "det2",
-        model,
-        None,
-        {"format": FORMAT, "step": 0, "calibrated_step": 0, "temperature": 1.0, "model": model.cfg.to_dict()},
-    )
-    monkeypatch.setitem(shipped.SHIPPED, "tinyrobo2", tmp_path / "det2")
+    det2 = _save_tiny_detector(tmp_path / "det2", seed=1)  # another detector than DET's (seed 0)
+    monkeypatch.setitem(shipped.SHIPPED, "tinyrobo2", det2)
     agent = tmp_path / "tiny-robothor"
     shutil.copytree(robo["out"], agent)
     card = release.read_card(agent)

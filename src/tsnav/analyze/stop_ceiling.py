@@ -21,6 +21,7 @@ from pathlib import Path
 from ..atomic import atomic_write_json
 from ..eval.runner import read_trajectories
 from ..metrics import EpisodeRecord, read_records, summarize
+from ..protocol import protocol_of
 
 
 def stopped_records(records: list[EpisodeRecord], frames: list[int]) -> list[EpisodeRecord]:
@@ -33,7 +34,7 @@ def stopped_records(records: list[EpisodeRecord], frames: list[int]) -> list[Epi
 def stop_ceiling(eval_dir: Path) -> dict:
     """``{"agent": {SR, SPL}, "stop at the first success state": {SR, SPL}, "episodes", "protocol"}`` (percent)."""
     meta = json.loads((eval_dir / "metrics.json").read_text())
-    protocol = meta.get("protocol") or "paper"
+    protocol = protocol_of(meta)
     records = read_records(eval_dir / "records.jsonl")
     traj = read_trajectories(eval_dir / "trajectories.jsonl")
     if any(t.success_frame is None for t in traj):
