@@ -27,6 +27,7 @@ ANALYSES = {
     "plot-selection": ("plot_selection", "a run's milestones scored on one or two episode lists"),
     "policy-ensemble": ("policy_ensemble", "evaluate an ensemble of trained agents"),
     "stop-signal": ("stop_signal", "can the agent's inputs tell a success state from a near miss"),
+    "stop-head": ("stop_head", "a stop head trained on the agent's inputs: would it stop sooner than the agent"),
     "stop-ceiling": ("stop_ceiling", "an evaluation's SR and SPL with Done at the first success state it reaches"),
     "switch-reach": ("switch_reach", "the explorer on switches of known reach: how soon must the target be recognised"),
     "table-ablation": ("table_ablation", "detection tables that mend one kind of a learned detector's error"),

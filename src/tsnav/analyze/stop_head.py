@@ -1,0 +1,404 @@
+"""Could a stop head stop a trained agent sooner than its own Done? A small network is trained on the agent's own
+inputs to tell a success state from the rest, and Done is then called where it says so.
+
+    tsnav analyze stop-head --run RUN --data WORLD --train TRAIN.json [TRAIN.json ...] --val VAL.json
+        --test TEST.json [TEST.json ...] [--inputs state,detection] [--checkpoint best] [--json OUT.json]
+
+1. The agent walks every episode of the lists greedily with Done taken away (the most probable of the five
+   movement actions, 100 steps): up to the step where it would have called Done this is its own walk, so a stop
+   rule applied afterwards replays what that rule would have done in a real evaluation.
+2. On the training lists' walks, the head (an MLP, 256 hidden units, on standardised inputs) learns whether each
+   step's state is a success state of the episode's target under the validation list's protocol (the label is
+   privileged: it is read to train and to score the head, never by the agent). ``--inputs`` chooses what it sees, all
+   of it what the agent sees: ``state`` (the LSTM hidden state after the step), ``detection`` (the target's box,
+   score and the camera's horizon in this frame), ``image`` (the encoder's feature map of this frame). Trained on the
+   steps up to three after the walk's first success state (at most step 40): where the stop decision is made.
+3. On the validation list each threshold of the head's probability is scored (Done at the first step above it),
+   and the one with the best SPL is kept; the test lists are scored at it, with two references on the same walks:
+   the agent's own Done, and Done at the first success state of the walk (no stop rule can do better on it).
+
+Rules: ``head`` (Done only where the head says so) and ``head or agent`` (Done where either does). Every figure is
+counted as ``tsnav eval`` counts it (SR and SPL under the list's protocol). Checked while it runs, the slow
+reference beside the replay: the agent's own Done replayed must equal a real evaluation of the agent on every list,
+and the head at the chosen threshold replayed must equal a real evaluation of the agent with the head deciding Done
+on every test list; a difference stops the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_write_json
+from ..constants import C_TARGET, DONE
+from ..protocol import protocol_of
+
+INPUTS = ("state", "detection", "image")
+#: Thresholds of the head's probability scored on the validation list.
+THRESHOLDS = (0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98)
+#: Training steps kept per episode: up to this many after the walk's first success state, and at most ``TRAIN_CAP``.
+AFTER_FIRST = 3
+TRAIN_CAP = 40
+
+
+def step_inputs(policy, obs, state, inputs) -> np.ndarray:
+    """``(B, D)`` float32: the parts of what the agent sees at this step that ``inputs`` names."""
+    import torch
+
+    parts = []
+    if "state" in inputs:
+        parts.append(state.h)
+    if "detection" in inputs or "image" in inputs:
+        o = policy.observer(obs["state"], obs["target"])
+        if "detection" in inputs:
+            parts.append(torch.cat([o.det_box, o.det_score[:, None], o.pose[:, 3:4] / 30.0], dim=1))
+        if "image" in inputs:
+            parts.append(o.image.flatten(1))
+    return torch.cat(parts, dim=1).float().cpu().numpy()
+
+
+class WalkWithoutDone:
+    """Wraps an :class:`~tsnav.rl.policy.AgentPolicy`: acts with the most probable movement action (Done taken away)
+    and records per step, for the rows ``obs["active"]``, whether the agent wanted Done, whether the state is a
+    success state (``success[state, target]``) and either the head's probability (``head`` given) or the inputs."""
+
+    def __init__(self, policy, success: np.ndarray, inputs, head=None):
+        self.policy, self.success, self.inputs, self.head = policy, success, tuple(inputs), head
+        self.active, self.wish, self.label, self.values = [], [], [], []
+
+    def reset(self, mask) -> None:
+        self.policy.reset(mask)
+
+    def act(self, obs) -> np.ndarray:
+        logits, state = self.policy.logits(obs)
+        x = step_inputs(self.policy, obs, state, self.inputs)
+        self.active.append(np.asarray(obs["active"], dtype=bool).copy())
+        self.wish.append((logits.argmax(dim=1) == DONE).cpu().numpy())
+        self.label.append(self.success[obs["state"], obs["target"]].copy())
+        self.values.append(self.head.probability(x) if self.head is not None else x.astype(np.float16))
+        action = logits[:, :DONE].argmax(dim=1)
+        self.policy.commit(state, action)
+        return action.cpu().numpy().astype(np.int64)
+
+    def arrays(self) -> dict:
+        """``active``, ``wish``, ``label`` ``(B, T)`` and ``values`` ``(B, T)`` (probabilities) or ``(B, T, D)``."""
+        return {k: np.stack(getattr(self, k), axis=1) for k in ("active", "wish", "label", "values")}
+
+
+class HeadDecidesDone:
+    """The agent with the head deciding Done (``rule`` ``head``: only there; ``head or agent``: also where the agent
+    wants it), the walk otherwise the agent's: a real policy for the evaluation runner."""
+
+    def __init__(self, policy, head, inputs, threshold: float, rule: str = "head"):
+        self.policy, self.head, self.inputs, self.threshold, self.rule = policy, head, tuple(inputs), threshold, rule
+
+    def reset(self, mask) -> None:
+        self.policy.reset(mask)
+
+    def act(self, obs) -> np.ndarray:
+        import torch
+
+        logits, state = self.policy.logits(obs)
+        stop = self.head.probability(step_inputs(self.policy, obs, state, self.inputs)) > self.threshold
+        if self.rule == "head or agent":
+            stop |= (logits.argmax(dim=1) == DONE).cpu().numpy()
+        move = logits[:, :DONE].argmax(dim=1).cpu().numpy()
+        action = np.where(stop, DONE, move).astype(np.int64)
+        self.policy.commit(state, torch.from_numpy(action))
+        return action
+
+
+@dataclass
+class Head:
+    """The stop head: standardisation, then ``Linear(D, hidden) - ReLU - Linear(hidden, 1)``."""
+
+    net: object
+    mean: np.ndarray
+    std: np.ndarray
+
+    def probability(self, x: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            z = torch.from_numpy(((x - self.mean) / self.std).astype(np.float32))
+            return torch.sigmoid(self.net(z)[:, 0]).numpy()
+
+
+def train_head(x: np.ndarray, y: np.ndarray, hidden: int = 256, epochs: int = 6, seed: int = 0) -> Head:
+    """Fit the head by binary cross-entropy (Adam, lr 1e-3, batches of 1024, dropout 0.2), seeded."""
+    import torch
+    import torch.nn as nn
+
+    if not len(x) or y.all() or not y.any():
+        raise ValueError("the training walks hold no success state or nothing else: more training episodes needed")
+    gen = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    mean = x.mean(axis=0).astype(np.float32)
+    std = (x.std(axis=0) + 1e-3).astype(np.float32)
+    xt = torch.from_numpy(((x - mean) / std).astype(np.float32))
+    yt = torch.from_numpy(y.astype(np.float32))
+    net = nn.Sequential(nn.Linear(x.shape[1], hidden), nn.ReLU(), nn.Dropout(0.2), nn.Linear(hidden, 1))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=1e-4)
+    net.train()
+    for _ in range(epochs):
+        perm = torch.randperm(len(xt), generator=gen)
+        for i in range(0, len(xt), 1024):
+            idx = perm[i : i + 1024]
+            loss = nn.functional.binary_cross_entropy_with_logits(net(xt[idx])[:, 0], yt[idx])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    net.eval()
+    return Head(net, mean, std)
+
+
+def first_fire(fire: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """``(B,)`` the first step of each row where ``fire & active``; -1 where none."""
+    f = fire & active
+    return np.where(f.any(axis=1), f.argmax(axis=1), -1)
+
+
+def first_fire_reference(fire, active) -> list[int]:
+    """Slow reference of :func:`first_fire`: a loop per row."""
+    out = []
+    for row_f, row_a in zip(np.asarray(fire), np.asarray(active)):
+        out.append(next((t for t, (f, a) in enumerate(zip(row_f, row_a)) if f and a), -1))
+    return out
+
+
+def replay(records, label: np.ndarray, stop: np.ndarray):
+    """The walk's records (Done taken away: every one a failure at the step limit) with Done at step ``stop[i]``
+    (-1: never, the record unchanged): success is the label there, the path the ``stop[i]`` movement actions before."""
+    if len(records) != len(stop):
+        raise ValueError(f"{len(records)} records for {len(stop)} stop steps")
+    out = []
+    for i, (r, t) in enumerate(zip(records, stop)):
+        t = int(t)
+        out.append(r if t < 0 else replace(r, success=bool(label[i, t]), path_length=t, steps=t + 1))
+    return out
+
+
+def sr_spl(records, protocol: str) -> dict:
+    from ..metrics import summarize
+
+    m = summarize(records, by_room_type=False, protocol=protocol)["ALL"]
+    return {"SR": 100 * m["SR"], "SPL": 100 * m["SPL"]}
+
+
+def _bank(data, episodes, protocol):
+    from ..eval.runner import load_bank_for_episodes
+
+    return load_bank_for_episodes(data, episodes, protocol=protocol, c_target=C_TARGET)
+
+
+def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None):
+    """``(arrays, records, bank, episodes)`` of the agent's walks without Done on one list (:class:`WalkWithoutDone`)."""
+    from ..eval.runner import EvalConfig, evaluate
+    from ..rl.checkpoint import load_policy
+    from ..sim.episodes import read_episodes
+
+    episodes, _ = read_episodes(episodes_file)
+    bank = _bank(data, episodes, protocol)
+    rec = WalkWithoutDone(load_policy(run, bank, checkpoint=checkpoint), bank.success, inputs, head)
+    records = evaluate(bank, episodes, rec, EvalConfig())
+    return rec.arrays(), records, bank, episodes
+
+
+def real_eval(
+    run, bank, episodes, checkpoint, protocol, head=None, inputs=(), threshold=None, rule="head", out=None, meta=None
+) -> dict:
+    """SR and SPL of a real evaluation: the agent, or the agent with the head deciding Done; with ``out``, its
+    evaluation folder (records, trajectories, outcomes, metrics.json with ``meta``) is written there."""
+    import time
+
+    from ..eval.runner import EvalConfig, record_trajectories, write_evaluation
+    from ..metrics import summarize
+    from ..rl.checkpoint import load_policy
+
+    policy = load_policy(run, bank, checkpoint=checkpoint)
+    if head is not None:
+        policy = HeadDecidesDone(policy, head, inputs, threshold, rule)
+    t0 = time.perf_counter()
+    records, trajectories = record_trajectories(bank, episodes, policy, EvalConfig())
+    if out is not None:
+        summary = summarize(records, protocol=protocol)
+        write_evaluation(Path(out), meta, summary, records, trajectories, bank, time.perf_counter() - t0)
+    return sr_spl(records, protocol)
+
+
+def _same(a: dict, b: dict) -> bool:
+    return all(abs(a[k] - b[k]) < 1e-9 for k in ("SR", "SPL"))
+
+
+def score_list(arrays, records, protocol, thresholds) -> dict:
+    """The rows of one list's walks: the agent, the first success state, and per threshold both head rules."""
+    act, lab, p, wish = arrays["active"], arrays["label"], arrays["values"], arrays["wish"]
+    rows = {
+        "agent": sr_spl(replay(records, lab, first_fire(wish, act)), protocol),
+        "Done at the first success state of the walk": sr_spl(replay(records, lab, first_fire(lab, act)), protocol),
+    }
+    sweep = []
+    for tau in thresholds:
+        sweep.append(
+            {
+                "threshold": tau,
+                "head": sr_spl(replay(records, lab, first_fire(p > tau, act)), protocol),
+                "head or agent": sr_spl(replay(records, lab, first_fire((p > tau) | wish, act)), protocol),
+            }
+        )
+    return {"episodes": len(records), "rows": rows, "sweep": sweep}
+
+
+def analyse(
+    run,
+    data,
+    train,
+    val,
+    tests,
+    inputs=("state", "detection"),
+    checkpoint="best",
+    epochs=6,
+    seed=0,
+    out=None,
+    log=print,
+):
+    """The whole analysis (module docstring); returns the results dict. ``out``: the head's evaluation of the (one)
+    test list is written as an evaluation folder into ``out/PROTOCOL`` (for `tsnav analyze lever-table`)."""
+    from ..sim.episodes import read_episodes
+
+    protocol = protocol_of(read_episodes(val)[1])
+    for t in [*train, *tests]:
+        if protocol_of(read_episodes(t)[1]) != protocol:
+            raise ValueError(f"{t}: drawn under another protocol than {val} ({protocol}): use lists of one protocol")
+    xs, ys = [], []
+    for f in train:
+        arrays, _, _, _ = walk(run, data, f, checkpoint, inputs, protocol)
+        act, lab = arrays["active"], arrays["label"]
+        first = np.where(lab.any(axis=1), lab.argmax(axis=1), lab.shape[1] - 1)
+        keep = act & (np.arange(lab.shape[1])[None, :] <= np.minimum(first + AFTER_FIRST, TRAIN_CAP)[:, None])
+        xs.append(arrays["values"][keep].astype(np.float32))
+        ys.append(lab[keep])
+        log(f"{f}: {int(keep.sum())} training steps")
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    head = train_head(x, y, epochs=epochs, seed=seed)
+    log(f"head trained on {len(x)} steps ({100 * y.mean():.1f} % success states), inputs {', '.join(inputs)}")
+    result = {
+        "format": "tsnav-stop-head",
+        "run": str(run),
+        "checkpoint": str(checkpoint),
+        "inputs": list(inputs),
+        "protocol": protocol,
+        "train": {"lists": [str(f) for f in train], "steps": int(len(x)), "success_share": float(y.mean())},
+    }
+
+    def scored(f):
+        arrays, records, bank, episodes = walk(run, data, f, checkpoint, inputs, protocol, head)
+        res = score_list(arrays, records, protocol, THRESHOLDS)
+        ref = real_eval(run, bank, episodes, checkpoint, protocol)
+        if not _same(ref, res["rows"]["agent"]):
+            raise RuntimeError(f"{f}: the replayed agent {res['rows']['agent']} differs from its evaluation {ref}")
+        return res, bank, episodes
+
+    v, _, _ = scored(val)
+    best = max(v["sweep"], key=lambda s: (s["head"]["SPL"], s["head"]["SR"]))
+    tau = best["threshold"]
+    result["val"] = {"list": str(val), **v, "chosen_threshold": tau}
+    log(f"{val}: agent {_fmt(v['rows']['agent'])}; head at {tau} (best val SPL) {_fmt(best['head'])}")
+    result["test"] = []
+    for f in tests:
+        t, bank, episodes = scored(f)
+        at = next(s for s in t["sweep"] if s["threshold"] == tau)
+        for rule in ("head", "head or agent"):
+            folder = Path(out) / protocol if out is not None and rule == "head" else None
+            meta = {
+                "policy": "stop-head (tsnav analyze stop-head; not rebuilt by tsnav eval)",
+                "run": None,
+                "agent_run": str(Path(run).resolve()),
+                "checkpoint": str(checkpoint),
+                "stop_head": {"inputs": list(inputs), "threshold": tau, "rule": rule, "train": [str(t) for t in train]},
+                "episodes_file": str(Path(f).resolve()),
+                "data": str(Path(data).resolve()),
+                "protocol": protocol,
+                "success_distance": float(bank.success_distance),
+                "config": {"max_steps": 100, "c_target": C_TARGET},
+                "label": f"agent {Path(run).name} with a stop head at {tau}",
+            }
+            ref = real_eval(run, bank, episodes, checkpoint, protocol, head, inputs, tau, rule, folder, meta)
+            if not _same(ref, at[rule]):
+                raise RuntimeError(f"{f}: the replayed {rule} rule {at[rule]} differs from its evaluation {ref}")
+        t["rows"][f"head at {tau}"] = at["head"]
+        t["rows"][f"head or agent at {tau}"] = at["head or agent"]
+        result["test"].append({"list": str(f), **t})
+        log(f"{f}: " + "; ".join(f"{k} {_fmt(r)}" for k, r in t["rows"].items()))
+    return result
+
+
+def _fmt(r: dict) -> str:
+    return f"SR {r['SR']:.2f} SPL {r['SPL']:.2f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        allow_abbrev=False, prog="tsnav analyze stop-head", description=__doc__.splitlines()[0]
+    )
+    ap.add_argument("--run", type=Path, required=True, help="a training run or shipped agent folder")
+    ap.add_argument("--data", type=Path, required=True, help="the world (scene folders with the run's features)")
+    ap.add_argument("--train", type=Path, nargs="+", required=True, help="episode lists of the training rooms")
+    ap.add_argument("--val", type=Path, required=True, help="the episode list that chooses the threshold")
+    ap.add_argument("--test", type=Path, nargs="+", required=True, help="episode lists scored at that threshold")
+    ap.add_argument("--inputs", default="state,detection", help=f"what the head sees, of {', '.join(INPUTS)}")
+    ap.add_argument("--checkpoint", default="best", help="the run's checkpoint (as tsnav eval --checkpoint)")
+    ap.add_argument("--epochs", type=int, default=6)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--out", type=Path, default=None, help="write the head's evaluation of the one --test list into OUT/PROTOCOL"
+    )
+    args = ap.parse_args(argv)
+    if args.out is not None and len(args.test) != 1:
+        print(
+            "tsnav analyze stop-head: --out takes one --test list (its evaluation goes to OUT/PROTOCOL)",
+            file=sys.stderr,
+        )
+        return 2
+    inputs = tuple(s.strip() for s in args.inputs.split(",") if s.strip())
+    bad = [s for s in inputs if s not in INPUTS]
+    if bad or not inputs:
+        print(f"tsnav analyze stop-head: --inputs {args.inputs!r}: choose from {', '.join(INPUTS)}", file=sys.stderr)
+        return 2
+    if args.epochs < 1:
+        print(f"tsnav analyze stop-head: --epochs must be >= 1, got {args.epochs}", file=sys.stderr)
+        return 2
+    for f in [*args.train, args.val, *args.test]:
+        if not f.is_file():
+            print(f"tsnav analyze stop-head: {f}: no such episode list", file=sys.stderr)
+            return 2
+    if not (args.run / "config.json").is_file():
+        print(
+            f"tsnav analyze stop-head: {args.run}: not a training run or agent folder (no config.json)", file=sys.stderr
+        )
+        return 2
+    try:
+        res = analyse(
+            args.run,
+            args.data,
+            args.train,
+            args.val,
+            args.test,
+            inputs,
+            args.checkpoint,
+            args.epochs,
+            args.seed,
+            args.out,
+        )
+    except (ValueError, RuntimeError) as e:
+        print(f"tsnav analyze stop-head: {e}", file=sys.stderr)
+        return 2
+    if args.json:
+        atomic_write_json(args.json, res, sort_keys=False)
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,130 @@
+"""``tsnav analyze stop-head`` (issue 47): the replay of a stop rule on the agent's walk without Done against real
+evaluations (the agent's own Done replayed equals ``tsnav eval --run``; the head's replay equals the agent run with the
+head deciding Done, checked inside the command), the pieces by hand, and bad input in one line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rl_helpers import train_argv
+from tsnav.analyze import stop_head as sh
+from tsnav.cli import main
+from tsnav.metrics import EpisodeRecord, read_records
+
+from conftest import PIXEL_FEATURES as FEATS
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_first_fire_matches_its_reference():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        fire = rng.random((7, 9)) < 0.2
+        active = rng.random((7, 9)) < 0.8
+        assert sh.first_fire(fire, active).tolist() == sh.first_fire_reference(fire, active)
+
+
+def test_replay_by_hand():
+    recs = [EpisodeRecord(success=False, path_length=100, optimal_length=3, steps=100) for _ in range(3)]
+    label = np.array([[0, 0, 1, 1], [0, 1, 0, 0], [0, 0, 0, 0]], dtype=bool)
+    out = sh.replay(recs, label, np.array([3, 2, -1]))
+    # Done at step 3 on a success state: a success after 3 movement actions; at step 2 on a state that is not
+    # one: a failure that stopped there; never: the record of the walk unchanged
+    assert [(r.success, r.path_length, r.steps) for r in out] == [(True, 3, 4), (False, 2, 3), (False, 100, 100)]
+    assert sh.sr_spl(out, "paper") == pytest.approx({"SR": 100 / 3, "SPL": 100 / 3})
+    with pytest.raises(ValueError, match="records for"):
+        sh.replay(recs, label, np.array([1]))
+
+
+@pytest.fixture(scope="module")
+def setting(pixel_world, tmp_path_factory):
+    base = tmp_path_factory.mktemp("stophead")
+    run = base / "run"
+    assert (
+        main(train_argv(str(pixel_world), str(run), FEATS, "--reward", "tsrm", "--updates", "3", "--lr", "1e-2")) == 0
+    )
+    lists = {}
+    for name, split, seed in (("train", "train", 0), ("val", "val", 1), ("test", "test", 2)):
+        lists[name] = base / f"{name}.json"
+        argv = ["episodes", "--data", str(pixel_world), "--split", split, "--per-room-type", "8", "--seed", str(seed)]
+        assert main([*argv, "--out", str(lists[name])]) == 0
+    return pixel_world, run, lists
+
+
+def test_command_replays_what_real_evaluations_give(setting, tmp_path, capsys):
+    world, run, lists = setting
+    out_json, out = tmp_path / "sh.json", tmp_path / "head"
+    argv = ["analyze", "stop-head", "--run", str(run), "--data", str(world), "--checkpoint", "latest"]
+    argv += ["--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lists["test"]), "--epochs", "2"]
+    assert main([*argv, "--json", str(out_json), "--out", str(out)]) == 0
+    res = json.loads(out_json.read_text())
+    assert res["format"] == "tsnav-stop-head" and res["protocol"] == "paper" and res["inputs"] == ["state", "detection"]
+    # the agent's row is what `tsnav eval --run` gives on the same list (the command also checked it against its own
+    # evaluation, and the head's replayed rows against the agent run with the head deciding Done)
+    ref = tmp_path / "ref"
+    assert (
+        main(
+            ["eval", "--data", str(world), "--episodes", str(lists["test"]), "--run", str(run)]
+            + ["--checkpoint", "latest", "--out", str(ref)]
+        )
+        == 0
+    )
+    m = json.loads((ref / "metrics.json").read_text())["metrics"]["ALL"]
+    test = res["test"][0]
+    assert test["rows"]["agent"] == pytest.approx({"SR": 100 * m["SR"], "SPL": 100 * m["SPL"]})
+    tau = res["val"]["chosen_threshold"]
+    assert tau in sh.THRESHOLDS and len(res["val"]["sweep"]) == len(sh.THRESHOLDS)
+    best = max(s["head"]["SPL"] for s in res["val"]["sweep"])
+    assert next(s for s in res["val"]["sweep"] if s["threshold"] == tau)["head"]["SPL"] == best
+    # no stop rule beats Done at the first success state of the same walk
+    ceiling = test["rows"]["Done at the first success state of the walk"]
+    assert all(s["head"]["SR"] <= ceiling["SR"] + 1e-9 for s in test["sweep"])
+    # the head's evaluation folder, for lever-table: one record per test episode, its figures the head's row
+    recs = read_records(out / "paper" / "records.jsonl")
+    meta = json.loads((out / "paper" / "metrics.json").read_text())
+    assert len(recs) == test["episodes"] and meta["protocol"] == "paper" and meta["stop_head"]["threshold"] == tau
+    assert 100 * meta["metrics"]["ALL"]["SR"] == pytest.approx(test["rows"][f"head at {tau}"]["SR"])
+    assert "head trained on" in capsys.readouterr().out
+
+
+def test_refusals(setting, tmp_path, capsys):
+    world, run, lists = setting
+    base = ["analyze", "stop-head", "--run", str(run), "--data", str(world), "--checkpoint", "latest"]
+    good = ["--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lists["test"])]
+    lineage = tmp_path / "lin.json"
+    assert (
+        main(
+            [
+                "episodes",
+                "--data",
+                str(world),
+                "--split",
+                "test",
+                "--per-room-type",
+                "4",
+                "--protocol",
+                "lineage",
+                "--out",
+                str(lineage),
+            ]
+        )
+        == 0
+    )
+    capsys.readouterr()
+    cases = [
+        ([*base, *good, "--inputs", "state,depth"], "choose from"),
+        ([*base, *good, "--test", str(lists["test"]), str(lists["val"]), "--out", str(tmp_path / "o")], "one --test"),
+        ([*base, *good[:-1], str(tmp_path / "missing.json")], "no such episode list"),
+        (["analyze", "stop-head", "--run", str(tmp_path), "--data", str(world), *good], "not a training run"),
+        (
+            [*base, "--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lineage)],
+            "another protocol",
+        ),
+    ]
+    for argv, msg in cases:
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1
