@@ -59,9 +59,11 @@ def test_command_replays_what_real_evaluations_give(setting, tmp_path, capsys):
     out_json, out = tmp_path / "sh.json", tmp_path / "head"
     argv = ["analyze", "stop-head", "--run", str(run), "--data", str(world), "--checkpoint", "latest"]
     argv += ["--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lists["test"]), "--epochs", "2"]
+    argv += ["--detections", "oracle"]  # the run's own table, named: it reaches the agent and the record
     assert main([*argv, "--json", str(out_json), "--out", str(out)]) == 0
     res = json.loads(out_json.read_text())
     assert res["format"] == "tsnav-stop-head" and res["protocol"] == "paper" and res["inputs"] == ["state", "detection"]
+    assert res["detections"] == "oracle"
     # the agent's row is what `tsnav eval --run` gives on the same list (the command also checked it against its own
     # evaluation, and the head's replayed rows against the agent run with the head deciding Done)
     ref = tmp_path / "ref"

@@ -39,3 +39,21 @@ def test_text_write_replaces_content(tmp_path):
     atomic_write_text(path, "one")
     atomic_write_text(path, "two")
     assert path.read_text() == "two"
+
+
+def test_written_files_have_the_mode_open_would_give(tmp_path):
+    import os
+    import stat
+
+    from tsnav.atomic import atomic_path, atomic_write_text, file_mode
+
+    old = os.umask(0o022)
+    try:
+        assert file_mode() == 0o644
+        atomic_write_text(tmp_path / "a.json", "{}")
+        with atomic_path(tmp_path / "b.bin") as tmp:
+            tmp.write_bytes(b"x")
+        for name in ("a.json", "b.bin"):
+            assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644  # not mkstemp's 0o600
+    finally:
+        os.umask(old)

@@ -195,7 +195,7 @@ def _bank(data, episodes, protocol):
     return load_bank_for_episodes(data, episodes, protocol=protocol, c_target=C_TARGET)
 
 
-def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None):
+def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None, detections=None):
     """``(arrays, records, bank, episodes)`` of the agent's walks without Done on one list (:class:`WalkWithoutDone`)."""
     from ..eval.runner import EvalConfig, evaluate
     from ..rl.checkpoint import load_policy
@@ -203,13 +203,26 @@ def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None):
 
     episodes, _ = read_episodes(episodes_file)
     bank = _bank(data, episodes, protocol)
-    rec = WalkWithoutDone(load_policy(run, bank, checkpoint=checkpoint), bank.success, inputs, head)
-    records = evaluate(bank, episodes, rec, EvalConfig())
+    rec = WalkWithoutDone(
+        load_policy(run, bank, checkpoint=checkpoint, detections=detections), bank.success, inputs, head
+    )
+    records = evaluate(bank, episodes, rec, EvalConfig(batch_size=len(episodes)))  # one chunk: (B, T) arrays
     return rec.arrays(), records, bank, episodes
 
 
 def real_eval(
-    run, bank, episodes, checkpoint, protocol, head=None, inputs=(), threshold=None, rule="head", out=None, meta=None
+    run,
+    bank,
+    episodes,
+    checkpoint,
+    protocol,
+    head=None,
+    inputs=(),
+    threshold=None,
+    rule="head",
+    out=None,
+    meta=None,
+    detections=None,
 ) -> dict:
     """SR and SPL of a real evaluation: the agent, or the agent with the head deciding Done; with ``out``, its
     evaluation folder (records, trajectories, outcomes, metrics.json with ``meta``) is written there."""
@@ -219,11 +232,11 @@ def real_eval(
     from ..metrics import summarize
     from ..rl.checkpoint import load_policy
 
-    policy = load_policy(run, bank, checkpoint=checkpoint)
+    policy = load_policy(run, bank, checkpoint=checkpoint, detections=detections)
     if head is not None:
         policy = HeadDecidesDone(policy, head, inputs, threshold, rule)
     t0 = time.perf_counter()
-    records, trajectories = record_trajectories(bank, episodes, policy, EvalConfig())
+    records, trajectories = record_trajectories(bank, episodes, policy, EvalConfig(batch_size=len(episodes)))
     if out is not None:
         summary = summarize(records, protocol=protocol)
         write_evaluation(Path(out), meta, summary, records, trajectories, bank, time.perf_counter() - t0)
@@ -264,6 +277,7 @@ def analyse(
     epochs=6,
     seed=0,
     out=None,
+    detections=None,
     log=print,
 ):
     """The whole analysis (module docstring); returns the results dict. ``out``: the head's evaluation of the (one)
@@ -276,7 +290,7 @@ def analyse(
             raise ValueError(f"{t}: drawn under another protocol than {val} ({protocol}): use lists of one protocol")
     xs, ys = [], []
     for f in train:
-        arrays, _, _, _ = walk(run, data, f, checkpoint, inputs, protocol)
+        arrays, _, _, _ = walk(run, data, f, checkpoint, inputs, protocol, detections=detections)
         act, lab = arrays["active"], arrays["label"]
         first = np.where(lab.any(axis=1), lab.argmax(axis=1), lab.shape[1] - 1)
         keep = act & (np.arange(lab.shape[1])[None, :] <= np.minimum(first + AFTER_FIRST, TRAIN_CAP)[:, None])
@@ -290,15 +304,16 @@ def analyse(
         "format": "tsnav-stop-head",
         "run": str(run),
         "checkpoint": str(checkpoint),
+        "detections": detections,
         "inputs": list(inputs),
         "protocol": protocol,
         "train": {"lists": [str(f) for f in train], "steps": int(len(x)), "success_share": float(y.mean())},
     }
 
     def scored(f):
-        arrays, records, bank, episodes = walk(run, data, f, checkpoint, inputs, protocol, head)
+        arrays, records, bank, episodes = walk(run, data, f, checkpoint, inputs, protocol, head, detections)
         res = score_list(arrays, records, protocol, THRESHOLDS)
-        ref = real_eval(run, bank, episodes, checkpoint, protocol)
+        ref = real_eval(run, bank, episodes, checkpoint, protocol, detections=detections)
         if not _same(ref, res["rows"]["agent"]):
             raise RuntimeError(f"{f}: the replayed agent {res['rows']['agent']} differs from its evaluation {ref}")
         return res, bank, episodes
@@ -320,6 +335,7 @@ def analyse(
                 "agent_run": str(Path(run).resolve()),
                 "checkpoint": str(checkpoint),
                 "stop_head": {"inputs": list(inputs), "threshold": tau, "rule": rule, "train": [str(t) for t in train]},
+                "detections": detections,
                 "episodes_file": str(Path(f).resolve()),
                 "data": str(Path(data).resolve()),
                 "protocol": protocol,
@@ -327,7 +343,9 @@ def analyse(
                 "config": {"max_steps": 100, "c_target": C_TARGET},
                 "label": f"agent {Path(run).name} with a stop head at {tau}",
             }
-            ref = real_eval(run, bank, episodes, checkpoint, protocol, head, inputs, tau, rule, folder, meta)
+            ref = real_eval(
+                run, bank, episodes, checkpoint, protocol, head, inputs, tau, rule, folder, meta, detections
+            )
             if not _same(ref, at[rule]):
                 raise RuntimeError(f"{f}: the replayed {rule} rule {at[rule]} differs from its evaluation {ref}")
         t["rows"][f"head at {tau}"] = at["head"]
@@ -352,6 +370,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--test", type=Path, nargs="+", required=True, help="episode lists scored at that threshold")
     ap.add_argument("--inputs", default="state,detection", help=f"what the head sees, of {', '.join(INPUTS)}")
     ap.add_argument("--checkpoint", default="best", help="the run's checkpoint (as tsnav eval --checkpoint)")
+    ap.add_argument(
+        "--detections", default=None, help="the detection table the agent reads (default: its training one)"
+    )
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None)
@@ -393,7 +414,8 @@ def main(argv: list[str] | None = None) -> int:
             args.checkpoint,
             args.epochs,
             args.seed,
-            args.out,
+            out=args.out,
+            detections=args.detections,
         )
     except (ValueError, RuntimeError) as e:
         print(f"tsnav analyze stop-head: {e}", file=sys.stderr)
