@@ -2,7 +2,8 @@
 inputs to tell a success state from the rest, and Done is then called where it says so.
 
     tsnav analyze stop-head --run RUN --data WORLD --train TRAIN.json [TRAIN.json ...] --val VAL.json
-        --test TEST.json [TEST.json ...] [--inputs state,detection] [--checkpoint best] [--json OUT.json]
+        --test TEST.json [TEST.json ...] [--inputs state,detection] [--checkpoint best] [--detections NAME]
+        [--json OUT.json] [--out DIR]
 
 1. The agent walks every episode of the lists greedily with Done taken away (the most probable of the five
    movement actions, 100 steps): up to the step where it would have called Done this is its own walk, so a stop
@@ -13,6 +14,8 @@ inputs to tell a success state from the rest, and Done is then called where it s
    of it what the agent sees: ``state`` (the LSTM hidden state after the step), ``detection`` (the target's box,
    score and the camera's horizon in this frame), ``image`` (the encoder's feature map of this frame). Trained on the
    steps up to three after the walk's first success state (at most step 40): where the stop decision is made.
+   (The walks' inputs are held in memory, float16: ``image`` at 4x4 tokens of 192 channels takes about 2.5 GB per
+   4000 training episodes.)
 3. On the validation list each threshold of the head's probability is scored (Done at the first step above it),
    and the one with the best SPL is kept; the test lists are scored at it, with two references on the same walks:
    the agent's own Done, and Done at the first success state of the walk (no stop rule can do better on it).
@@ -21,7 +24,8 @@ Rules: ``head`` (Done only where the head says so) and ``head or agent`` (Done w
 counted as ``tsnav eval`` counts it (SR and SPL under the list's protocol). Checked while it runs, the slow
 reference beside the replay: the agent's own Done replayed must equal a real evaluation of the agent on every list,
 and the head at the chosen threshold replayed must equal a real evaluation of the agent with the head deciding Done
-on every test list; a difference stops the command.
+on every test list; a difference stops the command. ``--out DIR`` writes the latter evaluation (one test list) into
+``DIR/PROTOCOL`` as an evaluation folder, for `tsnav analyze lever-table`.
 """
 
 from __future__ import annotations
