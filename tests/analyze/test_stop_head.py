@@ -130,3 +130,25 @@ def test_refusals(setting, tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert msg in err and len(err.splitlines()) == 1
+
+
+def test_true_depth_in_the_box_by_hand():
+    depth = object.__new__(sh.BankDepth)
+    depth.depth = np.full((2, sh.DEPTH_GRID, sh.DEPTH_GRID), 5.0, dtype=np.float16)
+    depth.depth[1, 0:4, 8:16] = np.arange(32, dtype=np.float16).reshape(4, 8) / 8  # 0 ... 3.875 m
+    boxes = np.array([[0.25, 0.0, 0.5, 0.125], [0.25, 0.0, 0.5, 0.125], [0.99, 0.99, 1.0, 1.0]])
+    out = depth.in_box(np.array([1, 0, 1]), boxes, np.array([0.9, 0.0, 0.8]))
+    vals = np.arange(32) / 8
+    assert out[0] == pytest.approx([np.median(vals), 0.0, np.percentile(vals, 10)], abs=1e-3)
+    assert out[1].tolist() == [9.0, 9.0, 9.0]  # nothing detected
+    assert out[2] == pytest.approx([5.0, 5.0, 5.0])  # a box at the edge still reads one cell
+
+
+def test_true_depth_is_recorded_as_a_diagnostic(setting, tmp_path):
+    world, run, lists = setting
+    out_json = tmp_path / "d.json"
+    argv = ["analyze", "stop-head", "--run", str(run), "--data", str(world), "--checkpoint", "latest"]
+    argv += ["--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lists["test"]), "--epochs", "1"]
+    assert main([*argv, "--inputs", "state,detection,true-depth", "--json", str(out_json)]) == 0
+    res = json.loads(out_json.read_text())
+    assert res["inputs"][-1] == "true-depth" and res["diagnostic_inputs"] == ["true-depth"]

@@ -12,7 +12,10 @@ inputs to tell a success state from the rest, and Done is then called where it s
    step's state is a success state of the episode's target under the validation list's protocol (the label is
    privileged: it is read to train and to score the head, never by the agent). ``--inputs`` chooses what it sees, all
    of it what the agent sees: ``state`` (the LSTM hidden state after the step), ``detection`` (the target's box,
-   score and the camera's horizon in this frame), ``image`` (the encoder's feature map of this frame). Trained on the
+   score and the camera's horizon in this frame), ``image`` (the encoder's feature map of this frame). One input is
+   not the agent's, a diagnostic of what a signal would be worth: ``true-depth``, the world's ground-truth depth
+   inside the target's box (median, minimum, 10th percentile; ``depth.hdf5`` averaged to 32x32), which no agent may
+   read at test time; figures with it bound what an estimate of that depth could give. Trained on the
    steps up to three after the walk's first success state (at most step 40): where the stop decision is made.
    (The walks' inputs are held in memory, float16: ``image`` at 4x4 tokens of 192 channels takes about 2.5 GB per
    4000 training episodes.)
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import weakref
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -41,7 +45,11 @@ from ..atomic import atomic_write_json
 from ..constants import C_TARGET, DONE
 from ..protocol import protocol_of
 
-INPUTS = ("state", "detection", "image")
+INPUTS = ("state", "detection", "image", "true-depth")
+#: Inputs that are not what the agent sees (diagnostics: what such a signal would be worth).
+DIAGNOSTIC_INPUTS = ("true-depth",)
+#: Side of the depth map ``true-depth`` reads (the world's depth frames averaged down to it).
+DEPTH_GRID = 32
 #: Thresholds of the head's probability scored on the validation list.
 THRESHOLDS = (0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98)
 #: Training steps kept per episode: up to this many after the walk's first success state, and at most ``TRAIN_CAP``.
@@ -49,19 +57,71 @@ AFTER_FIRST = 3
 TRAIN_CAP = 40
 
 
-def step_inputs(policy, obs, state, inputs) -> np.ndarray:
-    """``(B, D)`` float32: the parts of what the agent sees at this step that ``inputs`` names."""
+class BankDepth:
+    """The ground-truth depth frames of a bank's states (``depth.hdf5`` of each scene), averaged down to
+    :data:`DEPTH_GRID` squared, for the ``true-depth`` diagnostic input."""
+
+    def __init__(self, bank):
+        import h5py
+
+        self.depth = np.zeros((bank.num_states, DEPTH_GRID, DEPTH_GRID), dtype=np.float16)
+        for i, scene in enumerate(bank.scenes):
+            path = scene.depth_path()
+            if path is None:
+                raise ValueError(f"{scene.path}: no depth.hdf5 (true-depth needs the world's depth frames)")
+            with h5py.File(path, "r") as f:
+                for j, key in enumerate(scene.keys):
+                    d = np.asarray(f[str(key)], dtype=np.float32)
+                    if d.ndim != 2 or d.shape[0] != d.shape[1] or d.shape[0] % DEPTH_GRID:
+                        raise ValueError(
+                            f"{path}: depth frames of shape {d.shape}; true-depth reads square frames "
+                            f"whose side is a multiple of {DEPTH_GRID}"
+                        )
+                    k = d.shape[0] // DEPTH_GRID
+                    self.depth[bank.offsets[i] + j] = d.reshape(DEPTH_GRID, k, DEPTH_GRID, k).mean(axis=(1, 3))
+
+    def in_box(self, states, boxes, scores) -> np.ndarray:
+        """``(B, 3)``: median, minimum and 10th percentile of the depth (metres) inside each row's box (fractions of
+        the frame, at least one cell); 9, 9, 9 where nothing is detected (score 0)."""
+        out = np.full((len(states), 3), 9.0, dtype=np.float32)
+        cells = np.clip(np.round(np.asarray(boxes) * DEPTH_GRID).astype(np.int64), 0, DEPTH_GRID)
+        for r in np.flatnonzero(np.asarray(scores) > 0):
+            x0, y0, x1, y1 = cells[r]
+            x0, y0 = min(x0, DEPTH_GRID - 1), min(y0, DEPTH_GRID - 1)
+            patch = self.depth[states[r], y0 : max(y1, y0 + 1), x0 : max(x1, x0 + 1)].astype(np.float32).ravel()
+            out[r] = (np.median(patch), patch.min(), np.percentile(patch, 10))
+        return out
+
+
+_DEPTHS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def depth_for(bank, inputs) -> BankDepth | None:
+    """The bank's :class:`BankDepth` when ``inputs`` asks for ``true-depth`` (read once per bank), else None."""
+    if "true-depth" not in inputs:
+        return None
+    if bank not in _DEPTHS:
+        _DEPTHS[bank] = BankDepth(bank)
+    return _DEPTHS[bank]
+
+
+def step_inputs(policy, obs, state, inputs, depth: BankDepth | None = None) -> np.ndarray:
+    """``(B, D)`` float32: the parts of what the agent sees at this step that ``inputs`` names (and, for the
+    diagnostic ``true-depth``, the ground-truth depth inside the target's box, from ``depth``)."""
     import torch
 
     parts = []
     if "state" in inputs:
         parts.append(state.h)
-    if "detection" in inputs or "image" in inputs:
+    if "detection" in inputs or "image" in inputs or "true-depth" in inputs:
         o = policy.observer(obs["state"], obs["target"])
         if "detection" in inputs:
             parts.append(torch.cat([o.det_box, o.det_score[:, None], o.pose[:, 3:4] / 30.0], dim=1))
         if "image" in inputs:
             parts.append(o.image.flatten(1))
+        if "true-depth" in inputs:
+            box = depth.in_box(np.asarray(obs["state"]), o.det_box.cpu().numpy(), o.det_score.cpu().numpy())
+            parts.append(torch.from_numpy(box))
     return torch.cat(parts, dim=1).float().cpu().numpy()
 
 
@@ -70,8 +130,8 @@ class WalkWithoutDone:
     and records per step, for the rows ``obs["active"]``, whether the agent wanted Done, whether the state is a
     success state (``success[state, target]``) and either the head's probability (``head`` given) or the inputs."""
 
-    def __init__(self, policy, success: np.ndarray, inputs, head=None):
-        self.policy, self.success, self.inputs, self.head = policy, success, tuple(inputs), head
+    def __init__(self, policy, success: np.ndarray, inputs, head=None, depth=None):
+        self.policy, self.success, self.inputs, self.head, self.depth = policy, success, tuple(inputs), head, depth
         self.active, self.wish, self.label, self.values = [], [], [], []
 
     def reset(self, mask) -> None:
@@ -79,7 +139,7 @@ class WalkWithoutDone:
 
     def act(self, obs) -> np.ndarray:
         logits, state = self.policy.logits(obs)
-        x = step_inputs(self.policy, obs, state, self.inputs)
+        x = step_inputs(self.policy, obs, state, self.inputs, self.depth)
         self.active.append(np.asarray(obs["active"], dtype=bool).copy())
         self.wish.append((logits.argmax(dim=1) == DONE).cpu().numpy())
         self.label.append(self.success[obs["state"], obs["target"]].copy())
@@ -97,8 +157,9 @@ class HeadDecidesDone:
     """The agent with the head deciding Done (``rule`` ``head``: only there; ``head or agent``: also where the agent
     wants it), the walk otherwise the agent's: a real policy for the evaluation runner."""
 
-    def __init__(self, policy, head, inputs, threshold: float, rule: str = "head"):
+    def __init__(self, policy, head, inputs, threshold: float, rule: str = "head", depth=None):
         self.policy, self.head, self.inputs, self.threshold, self.rule = policy, head, tuple(inputs), threshold, rule
+        self.depth = depth
 
     def reset(self, mask) -> None:
         self.policy.reset(mask)
@@ -107,7 +168,7 @@ class HeadDecidesDone:
         import torch
 
         logits, state = self.policy.logits(obs)
-        stop = self.head.probability(step_inputs(self.policy, obs, state, self.inputs)) > self.threshold
+        stop = self.head.probability(step_inputs(self.policy, obs, state, self.inputs, self.depth)) > self.threshold
         if self.rule == "head or agent":
             stop |= (logits.argmax(dim=1) == DONE).cpu().numpy()
         move = logits[:, :DONE].argmax(dim=1).cpu().numpy()
@@ -208,7 +269,11 @@ def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None, dete
     episodes, _ = read_episodes(episodes_file)
     bank = _bank(data, episodes, protocol)
     rec = WalkWithoutDone(
-        load_policy(run, bank, checkpoint=checkpoint, detections=detections), bank.success, inputs, head
+        load_policy(run, bank, checkpoint=checkpoint, detections=detections),
+        bank.success,
+        inputs,
+        head,
+        depth_for(bank, inputs),
     )
     records = evaluate(bank, episodes, rec, EvalConfig(batch_size=len(episodes)))  # one chunk: (B, T) arrays
     return rec.arrays(), records, bank, episodes
@@ -238,7 +303,7 @@ def real_eval(
 
     policy = load_policy(run, bank, checkpoint=checkpoint, detections=detections)
     if head is not None:
-        policy = HeadDecidesDone(policy, head, inputs, threshold, rule)
+        policy = HeadDecidesDone(policy, head, inputs, threshold, rule, depth_for(bank, inputs))
     t0 = time.perf_counter()
     records, trajectories = record_trajectories(bank, episodes, policy, EvalConfig(batch_size=len(episodes)))
     if out is not None:
@@ -310,6 +375,7 @@ def analyse(
         "checkpoint": str(checkpoint),
         "detections": detections,
         "inputs": list(inputs),
+        "diagnostic_inputs": [i for i in inputs if i in DIAGNOSTIC_INPUTS],
         "protocol": protocol,
         "train": {"lists": [str(f) for f in train], "steps": int(len(x)), "success_share": float(y.mean())},
     }
