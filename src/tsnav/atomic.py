@@ -17,12 +17,29 @@ from pathlib import Path
 from typing import Iterator
 
 
-def file_mode() -> int:
-    """The mode a plain ``open(path, "w")`` would give a new file (0o666 less the umask): the temp files of
-    :func:`tempfile.mkstemp` are 0o600, which a rename would leave readable by their owner only."""
-    mask = os.umask(0)
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux tells it (``/proc/self/status``); elsewhere set
+    and restored at once."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
     os.umask(mask)
-    return 0o666 & ~mask
+    return mask
+
+
+def file_mode(path: str | Path | None = None) -> int:
+    """The mode a plain ``open(path, "w")`` would leave ``path`` with: an existing file's own, else 0o666 less the
+    umask. The temp files of :func:`tempfile.mkstemp` are 0o600, which a rename would otherwise carry over."""
+    if path is not None:
+        try:
+            return os.stat(path).st_mode & 0o7777
+        except OSError:
+            pass
+    return 0o666 & ~_umask()
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -33,7 +50,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-        os.chmod(tmp, file_mode())
+        os.chmod(tmp, file_mode(path))
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -72,7 +89,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp
         if tmp.exists():
-            os.chmod(tmp, file_mode())
+            os.chmod(tmp, file_mode(path))
         os.replace(tmp, path)
     finally:
         if tmp.exists():

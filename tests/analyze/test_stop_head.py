@@ -152,3 +152,47 @@ def test_true_depth_is_recorded_as_a_diagnostic(setting, tmp_path):
     assert main([*argv, "--inputs", "state,detection,true-depth", "--json", str(out_json)]) == 0
     res = json.loads(out_json.read_text())
     assert res["inputs"][-1] == "true-depth" and res["diagnostic_inputs"] == ["true-depth"]
+
+
+def test_check_same_names_the_first_episode_that_differs():
+    a = [EpisodeRecord(success=True, path_length=4, optimal_length=3, steps=5) for _ in range(3)]
+    b = [*a[:2], EpisodeRecord(success=False, path_length=4, optimal_length=3, steps=5)]
+    sh.check_same(a, list(a), "same")
+    with pytest.raises(RuntimeError, match="episode 2"):
+        sh.check_same(a, b, "x")
+
+
+def test_detections_reach_the_agent(setting, tmp_path, monkeypatch):
+    import tsnav.rl.checkpoint as ck
+
+    world, run, lists = setting
+    seen, original = [], ck.load_policy
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("detections"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(ck, "load_policy", spy)
+    argv = ["--run", str(run), "--data", str(world), "--checkpoint", "latest", "--detections", "oracle"]
+    argv += ["--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lists["test"]), "--epochs", "1"]
+    assert sh.main(argv) == 0
+    # the training walk; the val walk and its real evaluation; the test walk, its real evaluation and the two rules'
+    assert seen == ["oracle"] * 7
+
+
+def test_bank_depth_reads_the_world_frames(setting):
+    import h5py
+
+    from tsnav.eval.runner import load_bank_for_episodes
+    from tsnav.sim.episodes import read_episodes
+
+    world, _, lists = setting
+    episodes, _ = read_episodes(lists["test"])
+    bank = load_bank_for_episodes(world, episodes[:1])
+    depth = sh.BankDepth(bank)
+    scene = bank.scenes[0]
+    with h5py.File(scene.depth_path(), "r") as f:
+        frame = np.asarray(f[str(scene.keys[3])], dtype=np.float32)
+    k = frame.shape[0] // sh.DEPTH_GRID
+    want = frame.reshape(sh.DEPTH_GRID, k, sh.DEPTH_GRID, k).mean(axis=(1, 3))
+    assert np.allclose(depth.depth[bank.offsets[0] + 3].astype(np.float32), want, atol=1e-2)

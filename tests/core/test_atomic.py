@@ -55,5 +55,8 @@ def test_written_files_have_the_mode_open_would_give(tmp_path):
             tmp.write_bytes(b"x")
         for name in ("a.json", "b.bin"):
             assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644  # not mkstemp's 0o600
+        os.chmod(tmp_path / "a.json", 0o640)  # a file replaced keeps its own mode, as open() would
+        atomic_write_text(tmp_path / "a.json", "[]")
+        assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o640
     finally:
         os.umask(old)

@@ -25,9 +25,9 @@ inputs to tell a success state from the rest, and Done is then called where it s
 
 Rules: ``head`` (Done only where the head says so) and ``head or agent`` (Done where either does). Every figure is
 counted as ``tsnav eval`` counts it (SR and SPL under the list's protocol). Checked while it runs, the slow
-reference beside the replay: the agent's own Done replayed must equal a real evaluation of the agent on every list,
-and the head at the chosen threshold replayed must equal a real evaluation of the agent with the head deciding Done
-on every test list; a difference stops the command. ``--out DIR`` writes the latter evaluation (one test list) into
+reference beside the replay: the agent's own Done replayed must give every episode of every list the success, path
+and steps of a real evaluation of the agent, and both head rules at the chosen threshold those of a real evaluation of
+the agent with the head deciding Done on every test list; a difference stops the command. ``--out DIR`` writes the latter evaluation (one test list) into
 ``DIR/PROTOCOL`` as an evaluation folder, for `tsnav analyze lever-table`.
 """
 
@@ -71,6 +71,8 @@ class BankDepth:
                 raise ValueError(f"{scene.path}: no depth.hdf5 (true-depth needs the world's depth frames)")
             with h5py.File(path, "r") as f:
                 for j, key in enumerate(scene.keys):
+                    if str(key) not in f:
+                        raise ValueError(f"{path}: no depth frame of state {key}")
                     d = np.asarray(f[str(key)], dtype=np.float32)
                     if d.ndim != 2 or d.shape[0] != d.shape[1] or d.shape[0] % DEPTH_GRID:
                         raise ValueError(
@@ -133,6 +135,8 @@ class WalkWithoutDone:
     def __init__(self, policy, success: np.ndarray, inputs, head=None, depth=None):
         self.policy, self.success, self.inputs, self.head, self.depth = policy, success, tuple(inputs), head, depth
         self.active, self.wish, self.label, self.values = [], [], [], []
+        # inputs (no head: a training walk) are kept for the steps the head is trained on only
+        self.keep_values = None if head is not None else TRAIN_CAP + 1
 
     def reset(self, mask) -> None:
         self.policy.reset(mask)
@@ -143,13 +147,17 @@ class WalkWithoutDone:
         self.active.append(np.asarray(obs["active"], dtype=bool).copy())
         self.wish.append((logits.argmax(dim=1) == DONE).cpu().numpy())
         self.label.append(self.success[obs["state"], obs["target"]].copy())
-        self.values.append(self.head.probability(x) if self.head is not None else x.astype(np.float16))
+        if self.head is not None:
+            self.values.append(self.head.probability(x))
+        elif len(self.values) < self.keep_values:
+            self.values.append(x.astype(np.float16))
         action = logits[:, :DONE].argmax(dim=1)
         self.policy.commit(state, action)
         return action.cpu().numpy().astype(np.int64)
 
     def arrays(self) -> dict:
-        """``active``, ``wish``, ``label`` ``(B, T)`` and ``values`` ``(B, T)`` (probabilities) or ``(B, T, D)``."""
+        """``active``, ``wish``, ``label`` ``(B, T)`` and ``values`` ``(B, T)`` (probabilities) or, for a training
+        walk, ``(B, min(T, TRAIN_CAP + 1), D)`` (the inputs)."""
         return {k: np.stack(getattr(self, k), axis=1) for k in ("active", "wish", "label", "values")}
 
 
@@ -254,10 +262,12 @@ def sr_spl(records, protocol: str) -> dict:
     return {"SR": 100 * m["SR"], "SPL": 100 * m["SPL"]}
 
 
-def _bank(data, episodes, protocol):
+def _bank(data, episodes, meta, protocol):
+    """The list's bank, as `tsnav eval` builds it (the list's success distance, C_target 0.7)."""
     from ..eval.runner import load_bank_for_episodes
 
-    return load_bank_for_episodes(data, episodes, protocol=protocol, c_target=C_TARGET)
+    distance = float(meta.get("success_distance", 1.0))
+    return load_bank_for_episodes(data, episodes, success_distance=distance, protocol=protocol, c_target=C_TARGET)
 
 
 def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None, detections=None):
@@ -266,8 +276,8 @@ def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None, dete
     from ..rl.checkpoint import load_policy
     from ..sim.episodes import read_episodes
 
-    episodes, _ = read_episodes(episodes_file)
-    bank = _bank(data, episodes, protocol)
+    episodes, meta = read_episodes(episodes_file)
+    bank = _bank(data, episodes, meta, protocol)
     rec = WalkWithoutDone(
         load_policy(run, bank, checkpoint=checkpoint, detections=detections),
         bank.success,
@@ -293,7 +303,7 @@ def real_eval(
     meta=None,
     detections=None,
 ) -> dict:
-    """SR and SPL of a real evaluation: the agent, or the agent with the head deciding Done; with ``out``, its
+    """The records of a real evaluation: the agent, or the agent with the head deciding Done; with ``out``, its
     evaluation folder (records, trajectories, outcomes, metrics.json with ``meta``) is written there."""
     import time
 
@@ -309,11 +319,26 @@ def real_eval(
     if out is not None:
         summary = summarize(records, protocol=protocol)
         write_evaluation(Path(out), meta, summary, records, trajectories, bank, time.perf_counter() - t0)
-    return sr_spl(records, protocol)
+    return records
 
 
-def _same(a: dict, b: dict) -> bool:
-    return all(abs(a[k] - b[k]) < 1e-9 for k in ("SR", "SPL"))
+def check_same(replayed, real, what: str) -> None:
+    """Raise when a replayed rule and its real evaluation differ in any episode's success, path or steps."""
+    key = [(r.success, r.path_length, r.steps) for r in replayed]
+    ref = [(r.success, r.path_length, r.steps) for r in real]
+    if key != ref:
+        bad = next(i for i, (a, b) in enumerate(zip(key, ref)) if a != b) if len(key) == len(ref) else None
+        raise RuntimeError(
+            f"{what}: the replay differs from its real evaluation (episode {bad}: {key[bad] if bad is not None else len(key)} against {ref[bad] if bad is not None else len(ref)})"
+        )
+
+
+def rule_stops(arrays, rule: str, tau: float | None = None) -> np.ndarray:
+    """The step where ``rule`` (``agent``, ``first success``, ``head``, ``head or agent``) calls Done on each walk."""
+    act, lab, p, wish = arrays["active"], arrays["label"], arrays["values"], arrays["wish"]
+    fire = {"agent": lambda: wish, "first success": lambda: lab, "head": lambda: p > tau}
+    fire["head or agent"] = lambda: (p > tau) | wish
+    return first_fire(fire[rule](), act)
 
 
 def score_list(arrays, records, protocol, thresholds) -> dict:
@@ -360,7 +385,8 @@ def analyse(
     xs, ys = [], []
     for f in train:
         arrays, _, _, _ = walk(run, data, f, checkpoint, inputs, protocol, detections=detections)
-        act, lab = arrays["active"], arrays["label"]
+        width = arrays["values"].shape[1]  # the steps whose inputs were kept
+        act, lab = arrays["active"][:, :width], arrays["label"][:, :width]
         first = np.where(lab.any(axis=1), lab.argmax(axis=1), lab.shape[1] - 1)
         keep = act & (np.arange(lab.shape[1])[None, :] <= np.minimum(first + AFTER_FIRST, TRAIN_CAP)[:, None])
         xs.append(arrays["values"][keep].astype(np.float32))
@@ -377,25 +403,26 @@ def analyse(
         "inputs": list(inputs),
         "diagnostic_inputs": [i for i in inputs if i in DIAGNOSTIC_INPUTS],
         "protocol": protocol,
+        "epochs": epochs,
+        "seed": seed,
         "train": {"lists": [str(f) for f in train], "steps": int(len(x)), "success_share": float(y.mean())},
     }
 
     def scored(f):
         arrays, records, bank, episodes = walk(run, data, f, checkpoint, inputs, protocol, head, detections)
         res = score_list(arrays, records, protocol, THRESHOLDS)
-        ref = real_eval(run, bank, episodes, checkpoint, protocol, detections=detections)
-        if not _same(ref, res["rows"]["agent"]):
-            raise RuntimeError(f"{f}: the replayed agent {res['rows']['agent']} differs from its evaluation {ref}")
-        return res, bank, episodes
+        real = real_eval(run, bank, episodes, checkpoint, protocol, detections=detections)
+        check_same(replay(records, arrays["label"], rule_stops(arrays, "agent")), real, f"{f}, the agent's own Done")
+        return res, bank, episodes, arrays, records
 
-    v, _, _ = scored(val)
+    v, _, _, _, _ = scored(val)
     best = max(v["sweep"], key=lambda s: (s["head"]["SPL"], s["head"]["SR"]))
     tau = best["threshold"]
     result["val"] = {"list": str(val), **v, "chosen_threshold": tau}
     log(f"{val}: agent {_fmt(v['rows']['agent'])}; head at {tau} (best val SPL) {_fmt(best['head'])}")
     result["test"] = []
     for f in tests:
-        t, bank, episodes = scored(f)
+        t, bank, episodes, arrays, records = scored(f)
         at = next(s for s in t["sweep"] if s["threshold"] == tau)
         for rule in ("head", "head or agent"):
             folder = Path(out) / protocol if out is not None and rule == "head" else None
@@ -413,11 +440,10 @@ def analyse(
                 "config": {"max_steps": 100, "c_target": C_TARGET},
                 "label": f"agent {Path(run).name} with a stop head at {tau}",
             }
-            ref = real_eval(
+            real = real_eval(
                 run, bank, episodes, checkpoint, protocol, head, inputs, tau, rule, folder, meta, detections
             )
-            if not _same(ref, at[rule]):
-                raise RuntimeError(f"{f}: the replayed {rule} rule {at[rule]} differs from its evaluation {ref}")
+            check_same(replay(records, arrays["label"], rule_stops(arrays, rule, tau)), real, f"{f}, {rule} at {tau}")
         t["rows"][f"head at {tau}"] = at["head"]
         t["rows"][f"head or agent at {tau}"] = at["head or agent"]
         result["test"].append({"list": str(f), **t})
