@@ -302,7 +302,7 @@ def real_eval(
     out=None,
     meta=None,
     detections=None,
-) -> dict:
+) -> list:
     """The records of a real evaluation: the agent, or the agent with the head deciding Done; with ``out``, its
     evaluation folder (records, trajectories, outcomes, metrics.json with ``meta``) is written there."""
     import time
@@ -326,11 +326,11 @@ def check_same(replayed, real, what: str) -> None:
     """Raise when a replayed rule and its real evaluation differ in any episode's success, path or steps."""
     key = [(r.success, r.path_length, r.steps) for r in replayed]
     ref = [(r.success, r.path_length, r.steps) for r in real]
-    if key != ref:
-        bad = next(i for i, (a, b) in enumerate(zip(key, ref)) if a != b) if len(key) == len(ref) else None
-        raise RuntimeError(
-            f"{what}: the replay differs from its real evaluation (episode {bad}: {key[bad] if bad is not None else len(key)} against {ref[bad] if bad is not None else len(ref)})"
-        )
+    if len(key) != len(ref):
+        raise RuntimeError(f"{what}: {len(key)} replayed episodes against {len(ref)} evaluated")
+    for i, (a, b) in enumerate(zip(key, ref)):
+        if a != b:
+            raise RuntimeError(f"{what}: the replay differs from its real evaluation (episode {i}: {a} against {b})")
 
 
 def rule_stops(arrays, rule: str, tau: float | None = None) -> np.ndarray:
@@ -343,20 +343,16 @@ def rule_stops(arrays, rule: str, tau: float | None = None) -> np.ndarray:
 
 def score_list(arrays, records, protocol, thresholds) -> dict:
     """The rows of one list's walks: the agent, the first success state, and per threshold both head rules."""
-    act, lab, p, wish = arrays["active"], arrays["label"], arrays["values"], arrays["wish"]
-    rows = {
-        "agent": sr_spl(replay(records, lab, first_fire(wish, act)), protocol),
-        "Done at the first success state of the walk": sr_spl(replay(records, lab, first_fire(lab, act)), protocol),
-    }
-    sweep = []
-    for tau in thresholds:
-        sweep.append(
-            {
-                "threshold": tau,
-                "head": sr_spl(replay(records, lab, first_fire(p > tau, act)), protocol),
-                "head or agent": sr_spl(replay(records, lab, first_fire((p > tau) | wish, act)), protocol),
-            }
-        )
+    lab = arrays["label"]
+
+    def scored(rule, tau=None):
+        return sr_spl(replay(records, lab, rule_stops(arrays, rule, tau)), protocol)
+
+    rows = {"agent": scored("agent"), "Done at the first success state of the walk": scored("first success")}
+    sweep = [
+        {"threshold": tau, "head": scored("head", tau), "head or agent": scored("head or agent", tau)}
+        for tau in thresholds
+    ]
     return {"episodes": len(records), "rows": rows, "sweep": sweep}
 
 
@@ -431,7 +427,7 @@ def analyse(
                 "run": None,
                 "agent_run": str(Path(run).resolve()),
                 "checkpoint": str(checkpoint),
-                "stop_head": {"inputs": list(inputs), "threshold": tau, "rule": rule, "train": [str(t) for t in train]},
+                "stop_head": {"inputs": list(inputs), "threshold": tau, "rule": rule, "train": [str(x) for x in train]},
                 "detections": detections,
                 "episodes_file": str(Path(f).resolve()),
                 "data": str(Path(data).resolve()),
