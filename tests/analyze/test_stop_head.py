@@ -39,6 +39,17 @@ def test_replay_by_hand():
         sh.replay(recs, label, np.array([1]))
 
 
+def _episodes_argv(world, split: str, per_room_type: int, seed: int, out, protocol: str = "paper") -> list[str]:
+    return ["episodes", "--data", str(world), "--split", split, "--per-room-type", str(per_room_type)] + [
+        "--seed",
+        str(seed),
+        "--protocol",
+        protocol,
+        "--out",
+        str(out),
+    ]
+
+
 @pytest.fixture(scope="module")
 def setting(pixel_world, tmp_path_factory):
     base = tmp_path_factory.mktemp("stophead")
@@ -49,8 +60,7 @@ def setting(pixel_world, tmp_path_factory):
     lists = {}
     for name, split, seed in (("train", "train", 0), ("val", "val", 1), ("test", "test", 2)):
         lists[name] = base / f"{name}.json"
-        argv = ["episodes", "--data", str(pixel_world), "--split", split, "--per-room-type", "8", "--seed", str(seed)]
-        assert main([*argv, "--out", str(lists[name])]) == 0
+        assert main(_episodes_argv(pixel_world, split, 8, seed, lists[name])) == 0
     return pixel_world, run, lists
 
 
@@ -97,24 +107,7 @@ def test_refusals(setting, tmp_path, capsys):
     base = ["analyze", "stop-head", "--run", str(run), "--data", str(world), "--checkpoint", "latest"]
     good = ["--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lists["test"])]
     lineage = tmp_path / "lin.json"
-    assert (
-        main(
-            [
-                "episodes",
-                "--data",
-                str(world),
-                "--split",
-                "test",
-                "--per-room-type",
-                "4",
-                "--protocol",
-                "lineage",
-                "--out",
-                str(lineage),
-            ]
-        )
-        == 0
-    )
+    assert main(_episodes_argv(world, "test", 4, 0, lineage, "lineage")) == 0
     capsys.readouterr()
     cases = [
         ([*base, *good, "--inputs", "state,depth"], "choose from"),
@@ -142,6 +135,12 @@ def test_true_depth_in_the_box_by_hand():
     assert out[0] == pytest.approx([np.median(vals), 0.0, np.percentile(vals, 10)], abs=1e-3)
     assert out[1].tolist() == [9.0, 9.0, 9.0]  # nothing detected
     assert out[2] == pytest.approx([5.0, 5.0, 5.0])  # a box at the edge still reads one cell
+    rng = np.random.default_rng(0)  # the batch code against the loop, on random boxes and scores
+    depth.depth = rng.uniform(0.2, 6.0, (5, sh.DEPTH_GRID, sh.DEPTH_GRID)).astype(np.float16)
+    corners = np.sort(rng.random((200, 2, 2)), axis=1)
+    boxes = corners.transpose(0, 2, 1).reshape(200, 4)[:, [0, 2, 1, 3]]  # x0 y0 x1 y1, x0 <= x1 and y0 <= y1
+    states, scores = rng.integers(0, 5, 200), np.where(rng.random(200) < 0.2, 0.0, rng.random(200))
+    assert np.allclose(depth.in_box(states, boxes, scores), depth.in_box_reference(states, boxes, scores), atol=1e-5)
 
 
 def test_true_depth_is_recorded_as_a_diagnostic(setting, tmp_path):

@@ -24,11 +24,23 @@ from ..metrics import EpisodeRecord, read_records, summarize
 from ..protocol import protocol_of
 
 
-def stopped_records(records: list[EpisodeRecord], frames: list[int]) -> list[EpisodeRecord]:
-    """The records with Done at ``frames[i]`` (the first success frame; < 0: none reached, the record unchanged)."""
+def stopped_records(records: list[EpisodeRecord], frames, success=None) -> list[EpisodeRecord]:
+    """The records with Done output at frame ``frames[i]`` (after that many movement actions; < 0: no Done there, the
+    record unchanged), a success where ``success[i]`` says so (None: every stop succeeds, as at a first success
+    frame). Shared by stop-ceiling and stop-head's replays."""
     if len(records) != len(frames):
         raise ValueError(f"{len(records)} records for {len(frames)} trajectories")
-    return [r if f < 0 else replace(r, success=True, path_length=int(f)) for r, f in zip(records, frames)]
+    ok = [True] * len(records) if success is None else success
+    return [
+        r if int(f) < 0 else replace(r, success=bool(s), path_length=int(f), steps=int(f) + 1)
+        for r, f, s in zip(records, frames, ok)
+    ]
+
+
+def sr_spl(records: list[EpisodeRecord], protocol: str) -> dict:
+    """``{"SR", "SPL"}`` in percent over all the records, counted as `tsnav eval` counts them under ``protocol``."""
+    m = summarize(records, by_room_type=False, protocol=protocol)["ALL"]
+    return {"SR": 100 * m["SR"], "SPL": 100 * m["SPL"]}
 
 
 def stop_ceiling(eval_dir: Path) -> dict:
@@ -39,13 +51,10 @@ def stop_ceiling(eval_dir: Path) -> dict:
     traj = read_trajectories(eval_dir / "trajectories.jsonl")
     if any(t.success_frame is None for t in traj):
         raise ValueError(f"{eval_dir}: trajectories without success_frame (evaluated by an older tsnav)")
-    rows = {}
-    for label, recs in (
-        ("agent", records),
-        ("stop at the first success state", stopped_records(records, [t.success_frame for t in traj])),
-    ):
-        m = summarize(recs, by_room_type=False, protocol=protocol)["ALL"]
-        rows[label] = {"SR": 100 * m["SR"], "SPL": 100 * m["SPL"]}
+    rows = {
+        "agent": sr_spl(records, protocol),
+        "stop at the first success state": sr_spl(stopped_records(records, [t.success_frame for t in traj]), protocol),
+    }
     return {"eval": str(eval_dir), "protocol": protocol, "episodes": len(records), "rows": rows}
 
 

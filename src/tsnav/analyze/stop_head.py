@@ -36,7 +36,7 @@ from __future__ import annotations
 import argparse
 import sys
 import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ import numpy as np
 from ..atomic import atomic_write_json
 from ..constants import C_TARGET, DONE
 from ..protocol import protocol_of
+from .stop_ceiling import sr_spl, stopped_records
 
 INPUTS = ("state", "detection", "image", "true-depth")
 #: Inputs that are not what the agent sees (diagnostics: what such a signal would be worth).
@@ -82,16 +83,38 @@ class BankDepth:
                     k = d.shape[0] // DEPTH_GRID
                     self.depth[bank.offsets[i] + j] = d.reshape(DEPTH_GRID, k, DEPTH_GRID, k).mean(axis=(1, 3))
 
+    def _cells(self, boxes) -> np.ndarray:
+        """``(B, 4)`` cell bounds x0, y0, x1, y1 of boxes given as fractions of the frame, at least one cell each."""
+        c = np.clip(np.round(np.asarray(boxes) * DEPTH_GRID).astype(np.int64), 0, DEPTH_GRID)
+        c[:, :2] = np.minimum(c[:, :2], DEPTH_GRID - 1)
+        c[:, 2:] = np.maximum(c[:, 2:], c[:, :2] + 1)
+        return c
+
     def in_box(self, states, boxes, scores) -> np.ndarray:
         """``(B, 3)``: median, minimum and 10th percentile of the depth (metres) inside each row's box (fractions of
-        the frame, at least one cell); 9, 9, 9 where nothing is detected (score 0)."""
+        the frame, at least one cell); 9, 9, 9 where nothing is detected (score 0). Array code over the batch; the
+        loop of :meth:`in_box_reference` beside it."""
         out = np.full((len(states), 3), 9.0, dtype=np.float32)
-        cells = np.clip(np.round(np.asarray(boxes) * DEPTH_GRID).astype(np.int64), 0, DEPTH_GRID)
-        for r in np.flatnonzero(np.asarray(scores) > 0):
-            x0, y0, x1, y1 = cells[r]
-            x0, y0 = min(x0, DEPTH_GRID - 1), min(y0, DEPTH_GRID - 1)
-            patch = self.depth[states[r], y0 : max(y1, y0 + 1), x0 : max(x1, x0 + 1)].astype(np.float32).ravel()
-            out[r] = (np.median(patch), patch.min(), np.percentile(patch, 10))
+        rows = np.flatnonzero(np.asarray(scores) > 0)
+        if not len(rows):
+            return out
+        c = self._cells(np.asarray(boxes)[rows])
+        grid = np.arange(DEPTH_GRID)
+        inside_x = (grid[None, :] >= c[:, 0:1]) & (grid[None, :] < c[:, 2:3])
+        inside_y = (grid[None, :] >= c[:, 1:2]) & (grid[None, :] < c[:, 3:4])
+        d = self.depth[np.asarray(states)[rows]].astype(np.float32)
+        d = np.where(inside_y[:, :, None] & inside_x[:, None, :], d, np.nan).reshape(len(rows), -1)
+        out[rows] = np.stack([np.nanmedian(d, axis=1), np.nanmin(d, axis=1), np.nanpercentile(d, 10, axis=1)], axis=1)
+        return out
+
+    def in_box_reference(self, states, boxes, scores) -> np.ndarray:
+        """Slow reference of :meth:`in_box`: one box at a time."""
+        out = np.full((len(states), 3), 9.0, dtype=np.float32)
+        for r in range(len(states)):
+            if scores[r] > 0:
+                x0, y0, x1, y1 = self._cells(np.asarray(boxes)[r : r + 1])[0]
+                patch = self.depth[states[r], y0:y1, x0:x1].astype(np.float32).ravel()
+                out[r] = (np.median(patch), patch.min(), np.percentile(patch, 10))
         return out
 
 
@@ -245,21 +268,13 @@ def first_fire_reference(fire, active) -> list[int]:
 
 def replay(records, label: np.ndarray, stop: np.ndarray):
     """The walk's records (Done taken away: every one a failure at the step limit) with Done at step ``stop[i]``
-    (-1: never, the record unchanged): success is the label there, the path the ``stop[i]`` movement actions before."""
+    (-1: never, the record unchanged): success is the label there, the path the ``stop[i]`` movement actions before
+    (:func:`~tsnav.analyze.stop_ceiling.stopped_records`)."""
     if len(records) != len(stop):
         raise ValueError(f"{len(records)} records for {len(stop)} stop steps")
-    out = []
-    for i, (r, t) in enumerate(zip(records, stop)):
-        t = int(t)
-        out.append(r if t < 0 else replace(r, success=bool(label[i, t]), path_length=t, steps=t + 1))
-    return out
-
-
-def sr_spl(records, protocol: str) -> dict:
-    from ..metrics import summarize
-
-    m = summarize(records, by_room_type=False, protocol=protocol)["ALL"]
-    return {"SR": 100 * m["SR"], "SPL": 100 * m["SPL"]}
+    stop = np.asarray(stop, dtype=np.int64)
+    success = label[np.arange(len(stop)), np.maximum(stop, 0)]
+    return stopped_records(records, stop, success)
 
 
 def _bank(data, episodes, meta, protocol):
