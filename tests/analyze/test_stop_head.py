@@ -195,3 +195,31 @@ def test_bank_depth_reads_the_world_frames(setting):
     k = frame.shape[0] // sh.DEPTH_GRID
     want = frame.reshape(sh.DEPTH_GRID, k, sh.DEPTH_GRID, k).mean(axis=(1, 3))
     assert np.allclose(depth.depth[bank.offsets[0] + 3].astype(np.float32), want, atol=1e-2)
+
+
+def test_depth_readout_command_and_est_depth(setting, tmp_path, capsys):
+    world, run, lists = setting
+    readout, scores = tmp_path / "readout.safetensors", tmp_path / "scores.json"
+    argv = ["analyze", "depth-readout", "--data", str(world), "--features", FEATS, "--out", str(readout)]
+    assert main([*argv, "--epochs", "1", "--json", str(scores)]) == 0
+    res = json.loads(scores.read_text())
+    assert res["features"] == FEATS and res["scores"]["val"]["frames"] > 0
+    out_json = tmp_path / "head.json"
+    argv = ["analyze", "stop-head", "--run", str(run), "--data", str(world), "--checkpoint", "latest"]
+    argv += ["--train", str(lists["train"]), "--val", str(lists["val"]), "--test", str(lists["test"]), "--epochs", "1"]
+    assert main([*argv, "--inputs", "state,est-depth", "--depth-readout", str(readout), "--json", str(out_json)]) == 0
+    head = json.loads(out_json.read_text())
+    assert head["inputs"] == ["state", "est-depth"] and head["diagnostic_inputs"] == []
+    assert head["depth_readout"]["features"] == FEATS
+    capsys.readouterr()
+    # est-depth without a readout, and a file that is not one: one line each
+    assert main([*argv, "--inputs", "state,est-depth"]) == 2
+    assert "needs a depth readout" in capsys.readouterr().err
+    assert main([*argv, "--inputs", "state,est-depth", "--depth-readout", str(scores)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "broken" in err and len(err.splitlines()) == 1
+    missing = tmp_path / "none"
+    assert main(["analyze", "depth-readout", "--data", str(missing), "--features", FEATS, "--out", str(readout)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no such dataset folder" in err and len(err.splitlines()) == 1
+    assert readout.is_file()  # a failed run leaves the existing file alone

@@ -18,6 +18,10 @@ ANALYSES = {
     "collect-runs": ("collect_runs", "convergence runs and their test evaluations into one results JSON"),
     "compare-curves": ("compare_curves", "validation curves of several convergence folders in one picture"),
     "demo-factor": ("demo_factor", "one factor at the demo's scale, trained over seeds and tabulated"),
+    "depth-readout": (
+        "depth_readout",
+        "a depth decoder on a frozen encoder's feature map (an input the agent may read)",
+    ),
     "detector-tta": ("detector_tta", "flip test-time augmentation of a shipped detector on a split's rooms"),
     "detector-zoom": ("detector_zoom", "zoomed crops at test time for a shipped detector's small objects"),
     "done-collapse": ("done_collapse", "which reward term makes the agent stop taking Done"),

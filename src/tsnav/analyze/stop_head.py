@@ -3,7 +3,7 @@ inputs to tell a success state from the rest, and Done is then called where it s
 
     tsnav analyze stop-head --run RUN --data WORLD --train TRAIN.json [TRAIN.json ...] --val VAL.json
         --test TEST.json [TEST.json ...] [--inputs state,detection] [--checkpoint best] [--detections NAME]
-        [--json OUT.json] [--out DIR]
+        [--depth-readout FILE] [--json OUT.json] [--out DIR]
 
 1. The agent walks every episode of the lists greedily with Done taken away (the most probable of the five
    movement actions, 100 steps): up to the step where it would have called Done this is its own walk, so a stop
@@ -12,11 +12,13 @@ inputs to tell a success state from the rest, and Done is then called where it s
    step's state is a success state of the episode's target under the validation list's protocol (the label is
    privileged: it is read to train and to score the head, never by the agent). ``--inputs`` chooses what it sees, all
    of it what the agent sees: ``state`` (the LSTM hidden state after the step), ``detection`` (the target's box,
-   score and the camera's horizon in this frame), ``image`` (the encoder's feature map of this frame). One input is
-   not the agent's, a diagnostic of what a signal would be worth: ``true-depth``, the world's ground-truth depth
-   inside the target's box (median, minimum, 10th percentile; ``depth.hdf5`` averaged to 32x32), which no agent may
-   read at test time; figures with it bound what an estimate of that depth could give. Trained on the
-   steps up to three after the walk's first success state (at most step 40): where the stop decision is made.
+   score and the camera's horizon in this frame), ``image`` (the encoder's feature map of this frame), ``est-depth``
+   (the depth inside the target's box, median, minimum and 10th percentile, as a readout of the encoder's feature
+   map estimates it: ``--depth-readout``, from `tsnav analyze depth-readout`). One input is not the agent's, a
+   diagnostic of what a signal would be worth: ``true-depth``, the world's ground-truth depth inside the target's
+   box (the same statistics; ``depth.hdf5`` averaged to 32x32), which no agent may read at test time; figures with
+   it bound what an estimate of that depth could give. Trained on the steps up to three after the walk's first
+   success state (at most step 40): where the stop decision is made.
    (The walks' inputs are held in memory, float16: ``image`` at 4x4 tokens of 192 channels takes about 2.5 GB per
    4000 training episodes.)
 3. On the validation list each threshold of the head's probability is scored (Done at the first step above it),
@@ -34,6 +36,7 @@ the agent with the head deciding Done on every test list; a difference stops the
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import weakref
 from dataclasses import dataclass
@@ -44,13 +47,12 @@ import numpy as np
 from ..atomic import atomic_write_json
 from ..constants import C_TARGET, DONE
 from ..protocol import protocol_of
+from .depth_readout import GRID as DEPTH_GRID  # side of the depth maps both depth inputs read
 from .stop_ceiling import sr_spl, stopped_records
 
-INPUTS = ("state", "detection", "image", "true-depth")
+INPUTS = ("state", "detection", "image", "est-depth", "true-depth")
 #: Inputs that are not what the agent sees (diagnostics: what such a signal would be worth).
 DIAGNOSTIC_INPUTS = ("true-depth",)
-#: Side of the depth map ``true-depth`` reads (the world's depth frames averaged down to it).
-DEPTH_GRID = 32
 #: Thresholds of the head's probability scored on the validation list.
 THRESHOLDS = (0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98)
 #: Training steps kept per episode: up to this many after the walk's first success state, and at most ``TRAIN_CAP``.
@@ -83,70 +85,99 @@ class BankDepth:
                     k = d.shape[0] // DEPTH_GRID
                     self.depth[bank.offsets[i] + j] = d.reshape(DEPTH_GRID, k, DEPTH_GRID, k).mean(axis=(1, 3))
 
-    def _cells(self, boxes) -> np.ndarray:
-        """``(B, 4)`` cell bounds x0, y0, x1, y1 of boxes given as fractions of the frame, at least one cell each."""
-        c = np.clip(np.round(np.asarray(boxes) * DEPTH_GRID).astype(np.int64), 0, DEPTH_GRID)
-        c[:, :2] = np.minimum(c[:, :2], DEPTH_GRID - 1)
-        c[:, 2:] = np.maximum(c[:, 2:], c[:, :2] + 1)
-        return c
-
     def in_box(self, states, boxes, scores) -> np.ndarray:
-        """``(B, 3)``: median, minimum and 10th percentile of the depth (metres) inside each row's box (fractions of
-        the frame, at least one cell); 9, 9, 9 where nothing is detected (score 0). Array code over the batch; the
-        loop of :meth:`in_box_reference` beside it."""
-        out = np.full((len(states), 3), 9.0, dtype=np.float32)
-        rows = np.flatnonzero(np.asarray(scores) > 0)
-        if not len(rows):
-            return out
-        c = self._cells(np.asarray(boxes)[rows])
-        grid = np.arange(DEPTH_GRID)
-        inside_x = (grid[None, :] >= c[:, 0:1]) & (grid[None, :] < c[:, 2:3])
-        inside_y = (grid[None, :] >= c[:, 1:2]) & (grid[None, :] < c[:, 3:4])
-        d = self.depth[np.asarray(states)[rows]].astype(np.float32)
-        d = np.where(inside_y[:, :, None] & inside_x[:, None, :], d, np.nan).reshape(len(rows), -1)
-        out[rows] = np.stack([np.nanmedian(d, axis=1), np.nanmin(d, axis=1), np.nanpercentile(d, 10, axis=1)], axis=1)
-        return out
+        """:func:`box_depth` of the states' depth maps."""
+        return box_depth(self.depth[np.asarray(states)], boxes, scores)
 
     def in_box_reference(self, states, boxes, scores) -> np.ndarray:
-        """Slow reference of :meth:`in_box`: one box at a time."""
-        out = np.full((len(states), 3), 9.0, dtype=np.float32)
-        for r in range(len(states)):
-            if scores[r] > 0:
-                x0, y0, x1, y1 = self._cells(np.asarray(boxes)[r : r + 1])[0]
-                patch = self.depth[states[r], y0:y1, x0:x1].astype(np.float32).ravel()
-                out[r] = (np.median(patch), patch.min(), np.percentile(patch, 10))
+        """:func:`box_depth_reference` of the states' depth maps."""
+        return box_depth_reference(self.depth[np.asarray(states)], boxes, scores)
+
+
+def _cells(boxes) -> np.ndarray:
+    """``(B, 4)`` cell bounds x0, y0, x1, y1 of boxes given as fractions of the frame, at least one cell each."""
+    c = np.clip(np.round(np.asarray(boxes) * DEPTH_GRID).astype(np.int64), 0, DEPTH_GRID)
+    c[:, :2] = np.minimum(c[:, :2], DEPTH_GRID - 1)
+    c[:, 2:] = np.maximum(c[:, 2:], c[:, :2] + 1)
+    return c
+
+
+def box_depth(depth, boxes, scores) -> np.ndarray:
+    """``(B, 3)``: median, minimum and 10th percentile of each row's depth map ``depth (B, DEPTH_GRID, DEPTH_GRID)``
+    (metres) inside its box (fractions of the frame, at least one cell); 9, 9, 9 where nothing is detected (score
+    0). Array code over the batch; the loop of :func:`box_depth_reference` beside it."""
+    out = np.full((len(depth), 3), 9.0, dtype=np.float32)
+    rows = np.flatnonzero(np.asarray(scores) > 0)
+    if not len(rows):
         return out
+    c = _cells(np.asarray(boxes)[rows])
+    grid = np.arange(DEPTH_GRID)
+    inside_x = (grid[None, :] >= c[:, 0:1]) & (grid[None, :] < c[:, 2:3])
+    inside_y = (grid[None, :] >= c[:, 1:2]) & (grid[None, :] < c[:, 3:4])
+    d = np.asarray(depth)[rows].astype(np.float32)
+    d = np.where(inside_y[:, :, None] & inside_x[:, None, :], d, np.nan).reshape(len(rows), -1)
+    out[rows] = np.stack([np.nanmedian(d, axis=1), np.nanmin(d, axis=1), np.nanpercentile(d, 10, axis=1)], axis=1)
+    return out
+
+
+def box_depth_reference(depth, boxes, scores) -> np.ndarray:
+    """Slow reference of :func:`box_depth`: one box at a time."""
+    out = np.full((len(depth), 3), 9.0, dtype=np.float32)
+    for r in range(len(depth)):
+        if scores[r] > 0:
+            x0, y0, x1, y1 = _cells(np.asarray(boxes)[r : r + 1])[0]
+            patch = np.asarray(depth[r])[y0:y1, x0:x1].astype(np.float32).ravel()
+            out[r] = (np.median(patch), patch.min(), np.percentile(patch, 10))
+    return out
 
 
 _DEPTHS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
-def depth_for(bank, inputs) -> BankDepth | None:
-    """The bank's :class:`BankDepth` when ``inputs`` asks for ``true-depth`` (read once per bank), else None."""
-    if "true-depth" not in inputs:
-        return None
-    if bank not in _DEPTHS:
-        _DEPTHS[bank] = BankDepth(bank)
-    return _DEPTHS[bank]
+@dataclass
+class Depths:
+    """Where the depth inputs come from: ``true`` the bank's ground truth (``true-depth``), ``readout`` a
+    :class:`~tsnav.analyze.depth_readout.DepthReadout` of the agent's feature map (``est-depth``)."""
+
+    true: BankDepth | None = None
+    readout: object | None = None
 
 
-def step_inputs(policy, obs, state, inputs, depth: BankDepth | None = None) -> np.ndarray:
-    """``(B, D)`` float32: the parts of what the agent sees at this step that ``inputs`` names (and, for the
-    diagnostic ``true-depth``, the ground-truth depth inside the target's box, from ``depth``)."""
+def depth_for(bank, inputs, readout=None) -> Depths:
+    """The depth sources ``inputs`` asks for: the bank's :class:`BankDepth` for ``true-depth`` (read once per bank),
+    ``readout`` for ``est-depth`` (``ValueError`` when it is asked for and not given)."""
+    true = None
+    if "true-depth" in inputs:
+        if bank not in _DEPTHS:
+            _DEPTHS[bank] = BankDepth(bank)
+        true = _DEPTHS[bank]
+    if "est-depth" in inputs and readout is None:
+        raise ValueError("est-depth needs a depth readout (--depth-readout, from `tsnav analyze depth-readout`)")
+    return Depths(true, readout if "est-depth" in inputs else None)
+
+
+def step_inputs(policy, obs, state, inputs, depth: Depths | None = None) -> np.ndarray:
+    """``(B, D)`` float32: the parts of what the agent sees at this step that ``inputs`` names: ``est-depth`` the
+    readout's depth of the agent's feature map inside the target's box; the diagnostic ``true-depth`` the
+    ground-truth depth there (both from ``depth``)."""
     import torch
 
     parts = []
     if "state" in inputs:
         parts.append(state.h)
-    if "detection" in inputs or "image" in inputs or "true-depth" in inputs:
+    if any(i in inputs for i in ("detection", "image", "est-depth", "true-depth")):
         o = policy.observer(obs["state"], obs["target"])
+        box, score = o.det_box.cpu().numpy(), o.det_score.cpu().numpy()
         if "detection" in inputs:
             parts.append(torch.cat([o.det_box, o.det_score[:, None], o.pose[:, 3:4] / 30.0], dim=1))
         if "image" in inputs:
             parts.append(o.image.flatten(1))
+        if "est-depth" in inputs:
+            with torch.no_grad():
+                maps = depth.readout(o.image.float().cpu()).numpy()
+            parts.append(torch.from_numpy(box_depth(maps, box, score)))
         if "true-depth" in inputs:
-            box = depth.in_box(np.asarray(obs["state"]), o.det_box.cpu().numpy(), o.det_score.cpu().numpy())
-            parts.append(torch.from_numpy(box))
+            parts.append(torch.from_numpy(depth.true.in_box(np.asarray(obs["state"]), box, score)))
     return torch.cat(parts, dim=1).float().cpu().numpy()
 
 
@@ -285,7 +316,7 @@ def _bank(data, episodes, meta, protocol):
     return load_bank_for_episodes(data, episodes, success_distance=distance, protocol=protocol, c_target=C_TARGET)
 
 
-def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None, detections=None):
+def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None, detections=None, readout=None):
     """``(arrays, records, bank, episodes)`` of the agent's walks without Done on one list (:class:`WalkWithoutDone`)."""
     from ..eval.runner import EvalConfig, evaluate
     from ..rl.checkpoint import load_policy
@@ -298,7 +329,7 @@ def walk(run, data, episodes_file, checkpoint, inputs, protocol, head=None, dete
         bank.success,
         inputs,
         head,
-        depth_for(bank, inputs),
+        depth_for(bank, inputs, readout),
     )
     records = evaluate(bank, episodes, rec, EvalConfig(batch_size=len(episodes)))  # one chunk: (B, T) arrays
     return rec.arrays(), records, bank, episodes
@@ -317,6 +348,7 @@ def real_eval(
     out=None,
     meta=None,
     detections=None,
+    readout=None,
 ) -> list:
     """The records of a real evaluation: the agent, or the agent with the head deciding Done; with ``out``, its
     evaluation folder (records, trajectories, outcomes, metrics.json with ``meta``) is written there."""
@@ -328,7 +360,7 @@ def real_eval(
 
     policy = load_policy(run, bank, checkpoint=checkpoint, detections=detections)
     if head is not None:
-        policy = HeadDecidesDone(policy, head, inputs, threshold, rule, depth_for(bank, inputs))
+        policy = HeadDecidesDone(policy, head, inputs, threshold, rule, depth_for(bank, inputs, readout))
     t0 = time.perf_counter()
     records, trajectories = record_trajectories(bank, episodes, policy, EvalConfig(batch_size=len(episodes)))
     if out is not None:
@@ -383,6 +415,7 @@ def analyse(
     seed=0,
     out=None,
     detections=None,
+    readout=None,
     log=print,
 ):
     """The whole analysis (module docstring); returns the results dict. ``out``: the head's evaluation of the (one)
@@ -395,7 +428,7 @@ def analyse(
             raise ValueError(f"{t}: drawn under another protocol than {val} ({protocol}): use lists of one protocol")
     xs, ys = [], []
     for f in train:
-        arrays, _, _, _ = walk(run, data, f, checkpoint, inputs, protocol, detections=detections)
+        arrays, _, _, _ = walk(run, data, f, checkpoint, inputs, protocol, detections=detections, readout=readout)
         width = arrays["values"].shape[1]  # the steps whose inputs were kept
         act, lab = arrays["active"][:, :width], arrays["label"][:, :width]
         first = np.where(lab.any(axis=1), lab.argmax(axis=1), lab.shape[1] - 1)
@@ -420,7 +453,7 @@ def analyse(
     }
 
     def scored(f):
-        arrays, records, bank, episodes = walk(run, data, f, checkpoint, inputs, protocol, head, detections)
+        arrays, records, bank, episodes = walk(run, data, f, checkpoint, inputs, protocol, head, detections, readout)
         res = score_list(arrays, records, protocol, THRESHOLDS)
         real = real_eval(run, bank, episodes, checkpoint, protocol, detections=detections)
         check_same(replay(records, arrays["label"], rule_stops(arrays, "agent")), real, f"{f}, the agent's own Done")
@@ -452,7 +485,7 @@ def analyse(
                 "label": f"agent {Path(run).name} with a stop head at {tau}",
             }
             real = real_eval(
-                run, bank, episodes, checkpoint, protocol, head, inputs, tau, rule, folder, meta, detections
+                run, bank, episodes, checkpoint, protocol, head, inputs, tau, rule, folder, meta, detections, readout
             )
             check_same(replay(records, arrays["label"], rule_stops(arrays, rule, tau)), real, f"{f}, {rule} at {tau}")
         t["rows"][f"head at {tau}"] = at["head"]
@@ -479,6 +512,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint", default="best", help="the run's checkpoint (as tsnav eval --checkpoint)")
     ap.add_argument(
         "--detections", default=None, help="the detection table the agent reads (default: its training one)"
+    )
+    ap.add_argument(
+        "--depth-readout",
+        type=Path,
+        default=None,
+        help="for --inputs est-depth: a readout of the agent's feature map (`tsnav analyze depth-readout`)",
     )
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
@@ -511,6 +550,11 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     try:
+        readout = None
+        if args.depth_readout is not None:
+            from .depth_readout import load_readout
+
+            readout, readout_meta = load_readout(args.depth_readout)
         res = analyse(
             args.run,
             args.data,
@@ -523,7 +567,14 @@ def main(argv: list[str] | None = None) -> int:
             args.seed,
             out=args.out,
             detections=args.detections,
+            readout=readout,
         )
+        if readout is not None:
+            res["depth_readout"] = {
+                "file": str(args.depth_readout),
+                **{k: readout_meta.get(k) for k in ("features", "fingerprint", "epochs", "seed")},
+                "scores": json.loads(readout_meta.get("scores", "{}")),
+            }
     except (ValueError, RuntimeError) as e:
         print(f"tsnav analyze stop-head: {e}", file=sys.stderr)
         return 2
