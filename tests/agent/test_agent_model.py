@@ -369,3 +369,50 @@ def test_memory_history_keeps_every_steps_box_and_score():
     assert cleared.index(torch.tensor([1, 2])).history.box.shape == (2, 3, 4)
     with pytest.raises(ValueError, match="history"):
         model.memory(state.memory, obs.pose, obs.target)
+
+
+def test_box_depth_stats_match_their_reference():
+    from tsnav.agent.observe import FAR, box_depth_stats, box_depth_stats_reference
+
+    rng = np.random.default_rng(0)
+    maps = torch.from_numpy(rng.uniform(0.2, 7.0, (300, 32, 32)).astype(np.float32))
+    corners = np.sort(rng.random((300, 2, 2)), axis=1)
+    box = torch.from_numpy(corners.transpose(0, 2, 1).reshape(300, 4)[:, [0, 2, 1, 3]].astype(np.float32))
+    score = torch.from_numpy(np.where(rng.random(300) < 0.2, 0.0, rng.random(300)).astype(np.float32))
+    fast = box_depth_stats(maps, box, score).numpy()
+    assert np.allclose(fast, box_depth_stats_reference(maps, box, score), atol=1e-6)
+    # by hand: one cell holds 1 m, the box covers 2 x 2 cells (1, 2, 3, 9 m): median (lower) 2, minimum 1, p10 1
+    m = torch.full((1, 32, 32), 9.0)
+    m[0, 0, 0], m[0, 0, 1], m[0, 1, 0] = 1.0, 2.0, 3.0
+    out = box_depth_stats(m, torch.tensor([[0.0, 0.0, 2 / 32, 2 / 32]]), torch.tensor([0.9]))
+    assert out[0].tolist() == pytest.approx([2 / FAR, 1 / FAR, 1 / FAR, 1.0])
+    nothing = box_depth_stats(m, torch.zeros(1, 4), torch.zeros(1))
+    assert nothing[0].tolist() == [1.0, 1.0, 1.0, 0.0]
+
+
+def test_target_depth_is_added_last_and_reaches_the_output():
+    """AgentConfig.target_depth (issue 47, a deviation, off by default): ``depth_in.*`` is made after the other
+    parameters (initialised as without it), the description names it, a network without it describes itself as
+    before, and the depth input changes the output; an observation without it is refused in one line."""
+    torch.manual_seed(0)
+    plain = ActorCritic(agent_config("cpu"), (8, 2, 2), det_dim=8).eval()
+    torch.manual_seed(0)
+    model = ActorCritic(agent_config("cpu", target_depth="r.safetensors"), (8, 2, 2), det_dim=8).eval()
+    names = dict(plain.named_parameters())
+    extra = {k: v.shape for k, v in model.named_parameters() if k not in names}
+    assert extra == {"depth_in.weight": (128, 4), "depth_in.bias": (128,)}
+    for k, v in names.items():
+        assert torch.equal(v, dict(model.named_parameters())[k]), k
+    assert "target_depth" not in plain.describe()["agent"]
+    assert ActorCritic.from_description(model.describe()).config.target_depth == "r.safetensors"
+    assert "depth_in.weight" in model.autocast_weights()
+    obs = _obs(3)
+    with pytest.raises(ValueError, match="needs a TargetDepth"):
+        model(obs, model.initial_state(3))
+    near, far = [], []
+    for d, out in ((0.1, near), (1.0, far)):
+        o = _obs(3)
+        o.det_depth = torch.tensor([[d, d, d, 1.0]] * 3)
+        with torch.no_grad():
+            out.append(model(o, model.initial_state(3))[0])
+    assert not torch.allclose(near[0], far[0])

@@ -223,3 +223,40 @@ def test_depth_readout_command_and_est_depth(setting, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "no such dataset folder" in err and len(err.splitlines()) == 1
     assert readout.is_file()  # a failed run leaves the existing file alone
+
+
+def test_an_agent_reading_the_target_depth_trains_and_evaluates(setting, tmp_path):
+    """AgentConfig.target_depth end to end: a readout of the world's features, an agent trained with it (recorded
+    in its config), its observations carry the readout's depth in the target's box, and `tsnav eval` runs it."""
+    import torch
+
+    from tsnav.agent.observe import box_depth_stats
+    from tsnav.eval.runner import load_bank_for_episodes
+    from tsnav.rl.checkpoint import load_policy
+    from tsnav.sim.episodes import read_episodes
+
+    world, _, lists = setting
+    readout = tmp_path / "readout.safetensors"
+    assert main(["analyze", "depth-readout", "--data", str(world), "--features", FEATS, "--out", str(readout)]) == 0
+    run = tmp_path / "run"
+    argv = train_argv(str(world), str(run), FEATS, "--updates", "2", "--target-depth", str(readout))
+    assert main(argv) == 0
+    assert json.loads((run / "config.json").read_text())["agent"]["target_depth"] == str(readout)
+    episodes, _ = read_episodes(lists["test"])
+    bank = load_bank_for_episodes(world, episodes)
+    policy = load_policy(run, bank, checkpoint="latest")
+    states = np.arange(min(50, bank.num_states))
+    targets = np.zeros_like(states)
+    obs = policy.observer(states, targets)
+    from tsnav.analyze.depth_readout import load_readout
+
+    model, _ = load_readout(readout)
+    with torch.no_grad():
+        maps = model(policy.observer.features[states].float())
+    assert np.allclose(obs.det_depth.numpy(), box_depth_stats(maps, obs.det_box, obs.det_score).numpy(), atol=2e-3)
+    out = tmp_path / "eval"
+    assert (
+        main(["eval", "--data", str(world), "--episodes", str(lists["test"]), "--run", str(run), "--out", str(out)])
+        == 0
+    )
+    assert (out / "metrics.json").is_file()

@@ -18,6 +18,10 @@ last ``memory_slots`` steps, whatever the score, with the step's pose and age (:
 the policy sees how the detection changed while it walked (issue 47: what tells the agent where the target is after
 the switch). A network without it has the parameters, recurrent state and outputs it had before the setting existed.
 
+``AgentConfig.target_depth`` is a deviation from the paper, off by default and in every preset: the depth a readout of
+the encoder's feature map estimates inside the target's box (:class:`~tsnav.agent.observe.TargetDepth`) is added to
+s_t before its ReLU, ``s_t = ReLU(cat(i_t, F_t, PA) W + D_t W_d)`` (issue 47: the stop lacks how far the target is).
+
 ``AgentConfig.blocked_action`` is a deviation from the paper, off by default and in every preset: the agent's
 previous-action input tells a MoveAhead that moved it from one that did not (its pose, an input of the target
 memory already, unchanged: AI2-THOR's ``lastActionSuccess``). Greedy agents without it were seen pressing MoveAhead
@@ -40,6 +44,8 @@ from .observe import AgentObs
 NO_ACTION = NUM_ACTIONS
 #: Previous-action id of a MoveAhead that left the agent where it was (``AgentConfig.blocked_action`` only).
 BLOCKED_MOVE = NUM_ACTIONS + 1
+#: Width of the target-depth input (``AgentConfig.target_depth``): :func:`~tsnav.agent.observe.box_depth_stats`.
+DEPTH_INPUTS = 4
 
 
 @dataclass
@@ -78,6 +84,12 @@ class AgentConfig:
     (zeros where nothing is detected), with the pose and age of that step, as extra nodes of its attention (their
     own embedding, parameters ``memory.history.*``). The frames where the target was seen (score above
     ``memory_threshold``) stay in the memory's own slots as before."""
+    target_depth: str | None = None
+    """Deviation from the paper (off by default): a depth readout file (``tsnav analyze depth-readout``: a decoder of
+    the frozen encoder's feature map, trained on the training rooms' depth frames). The network also reads the depth
+    it estimates inside the target's box in the current frame (median, minimum and 10th percentile, clipped to 5 m,
+    and whether anything is detected), added to the state representation s_t through its own linear map
+    (parameters ``depth_in.*``): how far the target is, which the paper's inputs tell only through the box."""
 
     def __post_init__(self):
         if not 0.0 <= self.dropout < 1.0:
@@ -90,7 +102,7 @@ class AgentConfig:
 
 #: Fields added to :class:`AgentConfig` after agents were shipped: a description leaves them out at their default
 #: (off), so that a network without them is described, saved and loaded as before they existed.
-ADDED_OFF = {"memory_history": False}
+ADDED_OFF = {"memory_history": False, "target_depth": None}
 
 #: Named configurations: ``paper`` (defaults) and ``cpu`` (small enough to train on two CPU cores).
 PRESETS = {
@@ -223,6 +235,9 @@ class ActorCritic(nn.Module):
                 nn.init.zeros_(p)
         if config.memory_history:  # made last: the other parameters are initialised as in a network without it
             _init(self.memory.add_history(), gain)
+        if config.target_depth:  # made last, as memory history
+            self.depth_in = nn.Linear(DEPTH_INPUTS, config.state_dim)
+            _init(self.depth_in, gain)
 
     def initial_state(self, batch: int, device=None) -> AgentState:
         """Fresh recurrent state of ``batch`` episodes."""
@@ -256,7 +271,12 @@ class ActorCritic(nn.Module):
         i_t = torch.relu(self.image(x.flatten(1)))  # [B, image_dim]
         f_t = self.memory(memory, obs.pose, obs.target, history)  # [B, target_dim]
         pa = self.action_embed(self.previous_action_ids(obs, state))  # [B, action_dim]
-        s_t = torch.relu(self.state(torch.cat([i_t, f_t, pa], dim=1)))  # [B, state_dim], eq. (10)
+        s_t = self.state(torch.cat([i_t, f_t, pa], dim=1))  # [B, state_dim], eq. (10)
+        if self.config.target_depth:
+            if obs.det_depth is None:
+                raise ValueError("this agent reads the target's depth: its observer needs a TargetDepth")
+            s_t = s_t + self.depth_in(obs.det_depth)
+        s_t = torch.relu(s_t)
         h, c = self.lstm(self.dropout(s_t), (state.h, state.c))
         here = obs.pose[:, :2] if self.config.blocked_action else None  # where the next action is taken from
         return self.actor(h), self.critic(h)[:, 0], AgentState(h, c, memory, state.prev_action, here, history)
@@ -289,6 +309,7 @@ class ActorCritic(nn.Module):
             "memory.attn.out_proj.",
             "memory.out.",
             "memory.history.",
+            "depth_in.",
             "state.",
             "lstm.",
             "actor.",

@@ -35,6 +35,8 @@ class AgentObs:
             (zeros when nothing is detected).
         det_feat: ``(B, D)`` float32 feature of that detection.
         pose: ``(B, 4)`` float32 ``(x m, z m, rotation deg, horizon deg)`` of the agent (AI2-THOR conventions).
+        det_depth: ``(B, 4)`` float32 estimated depth inside the target's box (:class:`TargetDepth`), for an agent
+            with ``AgentConfig.target_depth``; None otherwise.
     """
 
     image: torch.Tensor
@@ -43,11 +45,14 @@ class AgentObs:
     det_box: torch.Tensor
     det_feat: torch.Tensor
     pose: torch.Tensor
+    det_depth: torch.Tensor | None = None
 
     def index(self, rows) -> "AgentObs":
         """The sub-batch ``rows`` (tensor / array of row ids or bool mask)."""
         rows = torch.as_tensor(rows)
-        return AgentObs(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+        return AgentObs(
+            *(None if getattr(self, f) is None else getattr(self, f)[rows] for f in self.__dataclass_fields__)
+        )
 
 
 def load_bank_features(bank, name: str) -> torch.Tensor:
@@ -132,6 +137,82 @@ def roi_pool(image: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
     return torch.einsum("bchw,bhw->bc", image, wgt)
 
 
+#: Depth (metres) an estimate is clipped to, and the value of every statistic where nothing is detected.
+FAR = 5.0
+
+
+def _box_cells(box: torch.Tensor, grid: int) -> torch.Tensor:
+    """``(B, 4)`` cell bounds x0, y0, x1, y1 (int64) of boxes given as fractions of the frame, at least one cell."""
+    c = torch.clamp(torch.round(box * grid).long(), 0, grid)
+    lo = torch.minimum(c[:, :2], torch.full_like(c[:, :2], grid - 1))
+    hi = torch.maximum(c[:, 2:], lo + 1)
+    return torch.cat([lo, hi], dim=1)
+
+
+def box_depth_stats(maps: torch.Tensor, box: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
+    """``(B, 4)``: the median, minimum and 10th percentile (the lower element: ``np.quantile(..., method="lower")``)
+    of each depth map ``maps (B, G, G)`` inside its box (fractions of the frame, at least one cell), clipped to
+    :data:`FAR` and divided by it, and a 1 where something is detected (``score > 0``); ``1, 1, 1, 0`` where
+    nothing is. One sort over the batch; :func:`box_depth_stats_reference` is the loop beside it."""
+    b, g, _ = maps.shape
+    c = _box_cells(box, g)
+    idx = torch.arange(g, device=maps.device)
+    inx = (idx[None, :] >= c[:, 0:1]) & (idx[None, :] < c[:, 2:3])
+    iny = (idx[None, :] >= c[:, 1:2]) & (idx[None, :] < c[:, 3:4])
+    inside = (iny[:, :, None] & inx[:, None, :]).reshape(b, -1)
+    vals = torch.where(inside, maps.reshape(b, -1).float(), torch.full_like(inside, float("inf"), dtype=torch.float32))
+    srt = vals.sort(dim=1).values
+    n = inside.sum(dim=1)
+    pick = torch.stack([(n - 1) // 2, torch.zeros_like(n), torch.floor(0.1 * (n - 1)).long()], dim=1)
+    stats = srt.gather(1, pick).clamp(max=FAR) / FAR
+    seen = score > 0
+    far = torch.ones_like(stats)
+    return torch.cat([torch.where(seen[:, None], stats, far), seen[:, None].float()], dim=1)
+
+
+def box_depth_stats_reference(maps, box, score) -> np.ndarray:
+    """Slow reference of :func:`box_depth_stats`: one box at a time, with numpy's quantiles."""
+    maps, box, score = np.asarray(maps, dtype=np.float32), np.asarray(box), np.asarray(score)
+    g = maps.shape[1]
+    out = np.tile(np.array([1.0, 1.0, 1.0, 0.0], dtype=np.float32), (len(maps), 1))
+    for r in range(len(maps)):
+        if score[r] <= 0:
+            continue
+        x0, y0, x1, y1 = _box_cells(torch.as_tensor(box[r : r + 1], dtype=torch.float32), g)[0].tolist()
+        patch = maps[r, y0:y1, x0:x1].ravel()
+        q = [np.quantile(patch, 0.5, method="lower"), patch.min(), np.quantile(patch, 0.1, method="lower")]
+        out[r, :3] = np.minimum(q, FAR) / FAR
+        out[r, 3] = 1.0
+    return out
+
+
+class TargetDepth:
+    """The depth a readout of the encoder's feature map estimates for every state of a bank
+    (:mod:`tsnav.analyze.depth_readout`), kept as ``(S, G, G)`` float16 maps; called with states and the target's
+    boxes and scores it gives :func:`box_depth_stats`. Read by agents with ``AgentConfig.target_depth`` (a
+    deviation from the paper)."""
+
+    def __init__(self, maps: torch.Tensor, source: str = ""):
+        self.maps, self.source = maps, source
+
+    @classmethod
+    def from_readout(cls, path, features: torch.Tensor, batch: int = 4096) -> "TargetDepth":
+        """The readout file ``path`` run over the bank's feature maps ``features (S, C, h, w)``."""
+        from ..analyze.depth_readout import load_readout
+
+        model, _ = load_readout(path)
+        maps = torch.empty(
+            (features.shape[0],) + (model.ph * features.shape[2], model.pw * features.shape[3]), dtype=torch.float16
+        )
+        with torch.no_grad():
+            for i in range(0, features.shape[0], batch):
+                maps[i : i + batch] = model(features[i : i + batch].float()).half()
+        return cls(maps, str(path))
+
+    def __call__(self, state: torch.Tensor, box: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
+        return box_depth_stats(self.maps[state].to(box.device), box, score)
+
+
 class Observer:
     """Gathers :class:`AgentObs` for global state ids of ``bank`` (array operations only).
 
@@ -141,7 +222,12 @@ class Observer:
     """
 
     def __init__(
-        self, bank, features: torch.Tensor, detections: DetectionTable | None = None, device: str | torch.device = "cpu"
+        self,
+        bank,
+        features: torch.Tensor,
+        detections: DetectionTable | None = None,
+        device: str | torch.device = "cpu",
+        target_depth: TargetDepth | None = None,
     ):
         if features.shape[0] != bank.num_states:
             raise ValueError(f"features cover {features.shape[0]} states but the bank has {bank.num_states}")
@@ -149,6 +235,9 @@ class Observer:
         self.features = features
         self.detections = detections or DetectionTable(bank)
         self.device = torch.device(device)
+        if target_depth is not None and target_depth.maps.shape[0] != bank.num_states:
+            raise ValueError(f"depth maps cover {target_depth.maps.shape[0]} states but the bank has {bank.num_states}")
+        self.target_depth = target_depth
         self._score = torch.from_numpy(self.detections.score)
         self._box = torch.from_numpy(self.detections.box)
         self._pose = torch.from_numpy(
@@ -190,4 +279,5 @@ class Observer:
             det_box=box,
             det_feat=feat,
             pose=self._pose[s].to(self.device),
+            det_depth=None if self.target_depth is None else self.target_depth(s, box, score),
         )

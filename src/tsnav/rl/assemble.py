@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic, AgentConfig
-from ..agent.observe import NO_DETECTIONS, DetectionTable, Observer, load_bank_features
+from ..agent.observe import NO_DETECTIONS, DetectionTable, Observer, TargetDepth, load_bank_features
 from ..data.reader import list_scenes, load_scene
 from ..sim.batch import BatchEnv, SceneBank, SimConfig
 from ..sim.episodes import make_env
@@ -46,11 +46,16 @@ def make_observer(
     features: torch.Tensor | None = None,
     det_features: np.ndarray | None = None,
     device="cpu",
+    agent: AgentConfig | None = None,
 ) -> Observer:
-    """Observer over the feature caches ``cfg.features`` of the bank's scenes (or the given tensor)."""
+    """Observer over the feature caches ``cfg.features`` of the bank's scenes (or the given tensor); with
+    ``agent.target_depth``, its readout's depth maps of those features too."""
     if features is None:
         features = load_bank_features(bank, cfg.features)
-    return Observer(bank, features, DetectionTable(bank, det_features), device=device)
+    depth = None
+    if agent is not None and agent.target_depth:
+        depth = TargetDepth.from_readout(agent.target_depth, features)
+    return Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
 
 
 def make_reward(bank: SceneBank, cfg: TrainConfig) -> TSRMReward:

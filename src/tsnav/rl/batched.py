@@ -101,7 +101,7 @@ def _train(
     info, device = _join(cfg)
     set_threads(cfg.threads)
     bank, det_features = load_bank(cfg, scenes)
-    observer = make_observer(bank, cfg, det_features=det_features, device=device)
+    observer = make_observer(bank, cfg, det_features=det_features, device=device, agent=agent)
     model = make_model(agent, observer, cfg.seed).to(device)
     broadcast_model(model, info)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from ..agent.model import ActorCritic
-from ..agent.observe import DetectionTable, Observer, load_bank_features
+from ..agent.observe import DetectionTable, Observer, TargetDepth, load_bank_features
 from ..data.detections import load_scene_detections
 from .. import checkpoint as ckpt
 from ..checkpoint import (
@@ -305,7 +305,10 @@ def load_policy(
             f"features_{cfg.features} of these scenes have shape {tuple(features.shape[1:])} but the "
             f"agent of {run_dir} was trained on {model.feature_shape}"
         )
-    observer = Observer(bank, features, DetectionTable(bank, det_features), device=device)
+    depth = None
+    if model.config.target_depth:
+        depth = TargetDepth.from_readout(model.config.target_depth, features)
+    observer = Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
     if observer.det_dim != model.det_dim:
         raise ValueError(f"detection features of size {observer.det_dim} do not match the agent's {model.det_dim}")
     return AgentPolicy(model.to(device), observer, greedy=greedy, seed=seed)
