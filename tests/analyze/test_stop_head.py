@@ -248,7 +248,7 @@ def test_an_agent_reading_the_target_depth_trains_and_evaluates(setting, tmp_pat
     states = np.arange(min(50, bank.num_states))
     targets = np.zeros_like(states)
     obs = policy.observer(states, targets)
-    from tsnav.analyze.depth_readout import load_readout
+    from tsnav.pretrain.depth_readout import load_readout
 
     model, _ = load_readout(readout)
     with torch.no_grad():

@@ -198,7 +198,7 @@ class TargetDepth:
     @classmethod
     def from_readout(cls, path, features: torch.Tensor, batch: int = 4096) -> "TargetDepth":
         """The readout file ``path`` run over the bank's feature maps ``features (S, C, h, w)``."""
-        from ..analyze.depth_readout import load_readout
+        from ..pretrain.depth_readout import load_readout
 
         model, _ = load_readout(path)
         maps = torch.empty(

@@ -47,7 +47,7 @@ import numpy as np
 from ..atomic import atomic_write_json
 from ..constants import C_TARGET, DONE
 from ..protocol import protocol_of
-from .depth_readout import GRID as DEPTH_GRID  # side of the depth maps both depth inputs read
+from ..pretrain.depth_readout import GRID as DEPTH_GRID  # side of the depth maps both depth inputs read
 from .stop_ceiling import sr_spl, stopped_records
 
 INPUTS = ("state", "detection", "image", "est-depth", "true-depth")
@@ -552,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         readout = None
         if args.depth_readout is not None:
-            from .depth_readout import load_readout
+            from ..pretrain.depth_readout import load_readout
 
             readout, readout_meta = load_readout(args.depth_readout)
         res = analyse(

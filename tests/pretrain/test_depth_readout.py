@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tsnav.analyze import depth_readout as dr
+from tsnav.pretrain import depth_readout as dr
 from tsnav.analyze import stop_head as sh
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
