@@ -260,3 +260,29 @@ def test_an_agent_reading_the_target_depth_trains_and_evaluates(setting, tmp_pat
         == 0
     )
     assert (out / "metrics.json").is_file()
+
+
+def test_a_relative_readout_path_is_read_from_the_run_folder(setting, tmp_path, monkeypatch):
+    """A run trained with a relative --target-depth path: loading reads the run folder's file of that name first (a
+    packed agent carries its readout), else the working directory's, else names the missing file."""
+    import shutil
+
+    from tsnav.eval.runner import load_bank_for_episodes
+    from tsnav.rl.checkpoint import load_policy
+    from tsnav.sim.episodes import read_episodes
+
+    world, _, lists = setting
+    monkeypatch.chdir(tmp_path)
+    assert main(["analyze", "depth-readout", "--data", str(world), "--features", FEATS, "--out", "r.safetensors"]) == 0
+    run = tmp_path / "run"
+    assert main(train_argv(str(world), str(run), FEATS, "--updates", "1", "--target-depth", "r.safetensors")) == 0
+    episodes, _ = read_episodes(lists["test"])
+    bank = load_bank_for_episodes(world, episodes[:2])
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.move(tmp_path / "r.safetensors", run / "r.safetensors")
+    monkeypatch.chdir(elsewhere)
+    assert load_policy(run, bank, checkpoint="latest").observer.target_depth.source == str(run / "r.safetensors")
+    (run / "r.safetensors").unlink()
+    with pytest.raises(ValueError, match="r.safetensors: no such depth readout file"):
+        load_policy(run, bank, checkpoint="latest")
