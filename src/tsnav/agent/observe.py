@@ -141,7 +141,7 @@ def roi_pool(image: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
 FAR = 5.0
 
 
-def _box_cells(box: torch.Tensor, grid: int) -> torch.Tensor:
+def box_cells(box: torch.Tensor, grid: int) -> torch.Tensor:
     """``(B, 4)`` cell bounds x0, y0, x1, y1 (int64) of boxes given as fractions of the frame, at least one cell."""
     c = torch.clamp(torch.round(box * grid).long(), 0, grid)
     lo = torch.minimum(c[:, :2], torch.full_like(c[:, :2], grid - 1))
@@ -155,7 +155,7 @@ def box_depth_stats(maps: torch.Tensor, box: torch.Tensor, score: torch.Tensor) 
     :data:`FAR` and divided by it, and a 1 where something is detected (``score > 0``); ``1, 1, 1, 0`` where
     nothing is. One sort over the batch; :func:`box_depth_stats_reference` is the loop beside it."""
     b, g, _ = maps.shape
-    c = _box_cells(box, g)
+    c = box_cells(box, g)
     idx = torch.arange(g, device=maps.device)
     inx = (idx[None, :] >= c[:, 0:1]) & (idx[None, :] < c[:, 2:3])
     iny = (idx[None, :] >= c[:, 1:2]) & (idx[None, :] < c[:, 3:4])
@@ -178,7 +178,7 @@ def box_depth_stats_reference(maps, box, score) -> np.ndarray:
     for r in range(len(maps)):
         if score[r] <= 0:
             continue
-        x0, y0, x1, y1 = _box_cells(torch.as_tensor(box[r : r + 1], dtype=torch.float32), g)[0].tolist()
+        x0, y0, x1, y1 = box_cells(torch.as_tensor(box[r : r + 1], dtype=torch.float32), g)[0].tolist()
         patch = maps[r, y0:y1, x0:x1].ravel()
         q = [np.quantile(patch, 0.5, method="lower"), patch.min(), np.quantile(patch, 0.1, method="lower")]
         out[r, :3] = np.minimum(q, FAR) / FAR
@@ -188,7 +188,7 @@ def box_depth_stats_reference(maps, box, score) -> np.ndarray:
 
 class TargetDepth:
     """The depth a readout of the encoder's feature map estimates for every state of a bank
-    (:mod:`tsnav.analyze.depth_readout`), kept as ``(S, G, G)`` float16 maps; called with states and the target's
+    (:mod:`tsnav.pretrain.depth_readout`), kept as ``(S, G, G)`` float16 maps; called with states and the target's
     boxes and scores it gives :func:`box_depth_stats`. Read by agents with ``AgentConfig.target_depth`` (a
     deviation from the paper)."""
 

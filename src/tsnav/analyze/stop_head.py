@@ -95,17 +95,20 @@ class BankDepth:
 
 
 def _cells(boxes) -> np.ndarray:
-    """``(B, 4)`` cell bounds x0, y0, x1, y1 of boxes given as fractions of the frame, at least one cell each."""
-    c = np.clip(np.round(np.asarray(boxes) * DEPTH_GRID).astype(np.int64), 0, DEPTH_GRID)
-    c[:, :2] = np.minimum(c[:, :2], DEPTH_GRID - 1)
-    c[:, 2:] = np.maximum(c[:, 2:], c[:, :2] + 1)
-    return c
+    """``(B, 4)`` cell bounds x0, y0, x1, y1 of boxes given as fractions of the frame, at least one cell each (the
+    agent's :func:`~tsnav.agent.observe.box_cells`)."""
+    import torch
+
+    from ..agent.observe import box_cells
+
+    return box_cells(torch.as_tensor(np.asarray(boxes), dtype=torch.float32), DEPTH_GRID).numpy()
 
 
 def box_depth(depth, boxes, scores) -> np.ndarray:
     """``(B, 3)``: median, minimum and 10th percentile of each row's depth map ``depth (B, DEPTH_GRID, DEPTH_GRID)``
     (metres) inside its box (fractions of the frame, at least one cell); 9, 9, 9 where nothing is detected (score
-    0). Array code over the batch; the loop of :func:`box_depth_reference` beside it."""
+    0). Array code over the batch; the loop of :func:`box_depth_reference` beside it. (An agent's own depth input,
+    :func:`~tsnav.agent.observe.box_depth_stats`, takes the lower element for its quantiles and clips to 5 m.)"""
     out = np.full((len(depth), 3), 9.0, dtype=np.float32)
     rows = np.flatnonzero(np.asarray(scores) > 0)
     if not len(rows):
