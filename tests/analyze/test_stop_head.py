@@ -286,3 +286,35 @@ def test_a_relative_readout_path_is_read_from_the_run_folder(setting, tmp_path, 
     (run / "r.safetensors").unlink()
     with pytest.raises(ValueError, match="r.safetensors: no such depth readout file"):
         load_policy(run, bank, checkpoint="latest")
+
+
+def test_the_ground_truth_depth_diagnostic_reads_the_world_frames(setting, tmp_path):
+    """target_depth ``ground-truth`` (a diagnostic): the agent's depth input is the world's depth frames averaged to
+    the readout's grid, and such a run is refused by `tsnav release pack` in one line."""
+    import h5py
+    import torch
+
+    from tsnav.agent.observe import GROUND_TRUTH, box_depth_stats
+    from tsnav.errors import CommandError
+    from tsnav.eval.runner import load_bank_for_episodes
+    from tsnav.pipeline.release import pack
+    from tsnav.pretrain.depth_readout import average_depth
+    from tsnav.rl.checkpoint import load_policy
+    from tsnav.sim.episodes import read_episodes
+
+    world, _, lists = setting
+    run = tmp_path / "run"
+    assert main(train_argv(str(world), str(run), FEATS, "--updates", "1", "--target-depth", GROUND_TRUTH)) == 0
+    episodes, _ = read_episodes(lists["test"])
+    bank = load_bank_for_episodes(world, episodes[:2])
+    policy = load_policy(run, bank, checkpoint="latest")
+    scene = bank.scenes[0]
+    with h5py.File(scene.depth_path(), "r") as f:
+        frames = np.stack([average_depth(f[str(k)][()]) for k in scene.keys[:20]])
+    states = np.arange(20) + int(bank.offsets[0])
+    obs = policy.observer(states, np.full(20, 1))
+    want = box_depth_stats(torch.from_numpy(frames).half(), obs.det_box, obs.det_score)
+    assert torch.equal(obs.det_depth, want)
+    with pytest.raises(CommandError, match="reads a target depth"):
+        pack(run, run / "checkpoints", tmp_path, tmp_path / "out", {})
+    assert not (tmp_path / "out").exists()

@@ -89,7 +89,9 @@ class AgentConfig:
     the frozen encoder's feature map, trained on the training rooms' depth frames). The network also reads the depth
     it estimates inside the target's box in the current frame (median, minimum and 10th percentile, clipped to 5 m,
     and whether anything is detected), added to the state representation s_t through its own linear map
-    (parameters ``depth_in.*``): how far the target is, which the paper's inputs tell only through the box."""
+    (parameters ``depth_in.*``): how far the target is, which the paper's inputs tell only through the box. The value
+    ``ground-truth`` reads the world's true depth frames instead: a privileged diagnostic that bounds what a better
+    estimate could give, never an agent to ship."""
 
     def __post_init__(self):
         if not 0.0 <= self.dropout < 1.0:

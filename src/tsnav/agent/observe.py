@@ -16,6 +16,7 @@ batch of global state ids of a :class:`~tsnav.sim.batch.SceneBank`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -137,6 +138,10 @@ def roi_pool(image: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
     return torch.einsum("bchw,bhw->bc", image, wgt)
 
 
+#: ``AgentConfig.target_depth`` value of the diagnostic that reads the world's true depth frames instead of an
+#: estimate: privileged, so never an agent to ship; it bounds what a better estimate could give.
+GROUND_TRUTH = "ground-truth"
+
 #: Depth (metres) an estimate is clipped to, and the value of every statistic where nothing is detected.
 FAR = 5.0
 
@@ -208,6 +213,39 @@ class TargetDepth:
             for i in range(0, features.shape[0], batch):
                 maps[i : i + batch] = model(features[i : i + batch].float()).half()
         return cls(maps, str(path))
+
+    @classmethod
+    def from_world(cls, bank) -> "TargetDepth":
+        """The world's true depth frames (``depth.hdf5`` of each scene) averaged to the readout's grid: the
+        :data:`GROUND_TRUTH` diagnostic."""
+        import h5py
+
+        from ..data.reader import read_stack
+        from ..pretrain.depth_readout import GRID, average_depth
+
+        maps = torch.empty((bank.num_states, GRID, GRID), dtype=torch.float16)
+        for i, scene in enumerate(bank.scenes):
+            path = scene.depth_path()
+            if path is None:
+                raise ValueError(f"{scene.path}: no depth.hdf5 (target_depth {GROUND_TRUTH!r} reads the depth frames)")
+            with h5py.File(path, "r") as f:
+                frames = read_stack(f, scene.keys)
+            start = int(bank.offsets[i])
+            for j, d in enumerate(frames):
+                maps[start + j] = torch.from_numpy(average_depth(d))
+        return cls(maps, GROUND_TRUTH)
+
+    @classmethod
+    def of(cls, spec: str, bank, features: torch.Tensor, run_dir=None) -> "TargetDepth":
+        """``AgentConfig.target_depth`` made real: :data:`GROUND_TRUTH` (:meth:`from_world`) or a readout file
+        (:meth:`from_readout`); a relative path is looked up in ``run_dir`` first (a packed agent carries its
+        readout), then in the working directory."""
+        if spec == GROUND_TRUTH:
+            return cls.from_world(bank)
+        path = Path(spec)
+        if run_dir is not None and not path.is_absolute() and (Path(run_dir) / path).is_file():
+            path = Path(run_dir) / path
+        return cls.from_readout(path, features)
 
     def __call__(self, state: torch.Tensor, box: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
         return box_depth_stats(self.maps[state].to(box.device), box, score)

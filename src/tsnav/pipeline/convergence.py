@@ -27,6 +27,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..agent.model import AgentConfig
+from ..agent.observe import GROUND_TRUTH
 from ..atomic import atomic_save_figure, atomic_write_json, atomic_write_text
 from ..errors import CommandError
 from ..metrics import curve_metrics
@@ -131,6 +132,8 @@ def run_convergence(
     deviations += ["mirror"] if cfg.mirror else []
     deviations += ["blocked-action"] if agent.blocked_action else []
     deviations += [f"lr {cfg.lr_schedule} to {cfg.lr_final:g}"] if cfg.lr_schedule != "constant" else []
+    if agent.target_depth:
+        deviations += ["TRUE target depth (a diagnostic)" if agent.target_depth == GROUND_TRUTH else "target depth"]
     for end in list(range(chunk, total, chunk)) + [total]:
         c = chunk_config(cfg, end, chunk)
         train_run(c, agent, run, progress_bar=False)

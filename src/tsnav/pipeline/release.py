@@ -187,6 +187,11 @@ def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: 
     cfg = json.loads((run / "config.json").read_text())
     if cfg.get("format") != "tsnav-train-run":
         raise CommandError(f"{run}: not a training run (config.json)")
+    if cfg.get("agent", {}).get("target_depth"):
+        raise CommandError(
+            f"{run}: reads a target depth ({cfg['agent']['target_depth']}); such agents are a measured lever, not "
+            "packed (a readout would have to ship beside the encoder; the ground truth never ships)"
+        )
     tmp = out.with_name(f".{out.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "best").mkdir(parents=True)

@@ -54,7 +54,7 @@ def make_observer(
         features = load_bank_features(bank, cfg.features)
     depth = None
     if agent is not None and agent.target_depth:
-        depth = TargetDepth.from_readout(agent.target_depth, features)
+        depth = TargetDepth.of(agent.target_depth, bank, features)
     return Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
 
 

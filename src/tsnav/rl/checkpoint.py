@@ -306,11 +306,8 @@ def load_policy(
             f"agent of {run_dir} was trained on {model.feature_shape}"
         )
     depth = None
-    if model.config.target_depth:  # a relative path: the run folder's file first (a packed agent carries its own)
-        path = Path(model.config.target_depth)
-        if not path.is_absolute() and (Path(run_dir) / path).is_file():
-            path = Path(run_dir) / path
-        depth = TargetDepth.from_readout(path, features)
+    if model.config.target_depth:
+        depth = TargetDepth.of(model.config.target_depth, bank, features, run_dir)
     observer = Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
     if observer.det_dim != model.det_dim:
         raise ValueError(f"detection features of size {observer.det_dim} do not match the agent's {model.det_dim}")
