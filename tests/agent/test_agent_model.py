@@ -381,10 +381,12 @@ def test_box_depth_stats_match_their_reference():
     score = torch.from_numpy(np.where(rng.random(300) < 0.2, 0.0, rng.random(300)).astype(np.float32))
     fast = box_depth_stats(maps, box, score).numpy()
     assert np.allclose(fast, box_depth_stats_reference(maps, box, score), atol=1e-6)
-    # by hand: one cell holds 1 m, the box covers 2 x 2 cells (1, 2, 3, 9 m): median (lower) 2, minimum 1, p10 1
+    # by hand: a box 3 cells wide (x) and 1 high (y) over row 0: 1, 2, 3 m (median 2, minimum 1, p10 1); the
+    # cells below them (row 1) hold 0.5 m and stay outside, as do those right of them
     m = torch.full((1, 32, 32), 9.0)
-    m[0, 0, 0], m[0, 0, 1], m[0, 1, 0] = 1.0, 2.0, 3.0
-    out = box_depth_stats(m, torch.tensor([[0.0, 0.0, 2 / 32, 2 / 32]]), torch.tensor([0.9]))
+    m[0, 0, :3] = torch.tensor([1.0, 2.0, 3.0])
+    m[0, 1, :3] = 0.5
+    out = box_depth_stats(m, torch.tensor([[0.0, 0.0, 3 / 32, 1 / 32]]), torch.tensor([0.9]))
     assert out[0].tolist() == pytest.approx([2 / FAR, 1 / FAR, 1 / FAR, 1.0])
     nothing = box_depth_stats(m, torch.zeros(1, 4), torch.zeros(1))
     assert nothing[0].tolist() == [1.0, 1.0, 1.0, 0.0]

@@ -214,7 +214,9 @@ def test_depth_readout_command_and_est_depth(setting, tmp_path, capsys):
     capsys.readouterr()
     # est-depth without a readout, and a file that is not one: one line each
     assert main([*argv, "--inputs", "state,est-depth"]) == 2
-    assert "needs a depth readout" in capsys.readouterr().err
+    assert "--depth-readout goes with --inputs ...,est-depth" in capsys.readouterr().err
+    assert main([*argv, "--inputs", "state", "--depth-readout", str(readout)]) == 2
+    assert "and only with it" in capsys.readouterr().err
     assert main([*argv, "--inputs", "state,est-depth", "--depth-readout", str(scores)]) == 2
     err = capsys.readouterr().err.strip()
     assert "broken" in err and len(err.splitlines()) == 1
@@ -225,13 +227,24 @@ def test_depth_readout_command_and_est_depth(setting, tmp_path, capsys):
     assert readout.is_file()  # a failed run leaves the existing file alone
 
 
-def test_an_agent_reading_the_target_depth_trains_and_evaluates(setting, tmp_path):
+def _detected(observer, n=200):
+    """Up to ``n`` (state, target) pairs the observer's detection table has a box for (score above 0)."""
+    states, targets = np.nonzero(observer.detections.score > 0)
+    pick = np.linspace(0, len(states) - 1, min(n, len(states))).astype(int)
+    assert len(pick) >= 10
+    return states[pick], targets[pick]
+
+
+def test_an_agent_reading_the_target_depth_trains_and_evaluates(setting, tmp_path, capsys):
     """AgentConfig.target_depth end to end: a readout of the world's features, an agent trained with it (recorded
-    in its config), its observations carry the readout's depth in the target's box, and `tsnav eval` runs it."""
+    in its config), its observations carry the readout's depth in the target's box (on detected targets), `tsnav eval`
+    runs it, and a readout of another encoder's features is refused in one line."""
     import torch
 
     from tsnav.agent.observe import box_depth_stats
+    from tsnav.checkpoint import load_tensors, save_tensors
     from tsnav.eval.runner import load_bank_for_episodes
+    from tsnav.pretrain.depth_readout import load_readout
     from tsnav.rl.checkpoint import load_policy
     from tsnav.sim.episodes import read_episodes
 
@@ -245,28 +258,28 @@ def test_an_agent_reading_the_target_depth_trains_and_evaluates(setting, tmp_pat
     episodes, _ = read_episodes(lists["test"])
     bank = load_bank_for_episodes(world, episodes)
     policy = load_policy(run, bank, checkpoint="latest")
-    states = np.arange(min(50, bank.num_states))
-    targets = np.zeros_like(states)
+    states, targets = _detected(policy.observer)
     obs = policy.observer(states, targets)
-    from tsnav.pretrain.depth_readout import load_readout
-
+    assert (obs.det_depth[:, 3] == 1).all() and (obs.det_depth[:, :3] < 1).any()
     model, _ = load_readout(readout)
     with torch.no_grad():
-        maps = model(policy.observer.features[states].float())
-    assert np.allclose(obs.det_depth.numpy(), box_depth_stats(maps, obs.det_box, obs.det_score).numpy(), atol=2e-3)
+        maps = model(policy.observer.features[states].float()).half()
+    assert torch.equal(obs.det_depth, box_depth_stats(maps, obs.det_box, obs.det_score))
     out = tmp_path / "eval"
-    assert (
-        main(["eval", "--data", str(world), "--episodes", str(lists["test"]), "--run", str(run), "--out", str(out)])
-        == 0
-    )
-    assert (out / "metrics.json").is_file()
+    argv = ["eval", "--data", str(world), "--episodes", str(lists["test"]), "--run", str(run), "--out", str(out)]
+    assert main(argv) == 0 and (out / "metrics.json").is_file()
+    # the same readout said to come from another encoder: refused when the agent is loaded
+    tensors, meta = load_tensors(readout)
+    save_tensors(readout, tensors, {**meta, "fingerprint": "0123456789abcdef"})
+    capsys.readouterr()
+    assert main([*argv[:-1], str(tmp_path / "eval2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "a readout of the features of encoder 0123456789abcdef" in err and len(err.splitlines()) == 1
 
 
-def test_a_relative_readout_path_is_read_from_the_run_folder(setting, tmp_path, monkeypatch):
-    """A run trained with a relative --target-depth path: loading reads the run folder's file of that name first (a
-    packed agent carries its readout), else the working directory's, else names the missing file."""
-    import shutil
-
+def test_a_relative_readout_path_is_read_from_the_working_directory(setting, tmp_path, monkeypatch):
+    """A run trained with a relative --target-depth path reads that path from the working directory when loaded, and
+    names the file when it is not there."""
     from tsnav.eval.runner import load_bank_for_episodes
     from tsnav.rl.checkpoint import load_policy
     from tsnav.sim.episodes import read_episodes
@@ -278,43 +291,50 @@ def test_a_relative_readout_path_is_read_from_the_run_folder(setting, tmp_path, 
     assert main(train_argv(str(world), str(run), FEATS, "--updates", "1", "--target-depth", "r.safetensors")) == 0
     episodes, _ = read_episodes(lists["test"])
     bank = load_bank_for_episodes(world, episodes[:2])
+    assert load_policy(run, bank, checkpoint="latest").observer.target_depth.source == "r.safetensors"
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    shutil.move(tmp_path / "r.safetensors", run / "r.safetensors")
     monkeypatch.chdir(elsewhere)
-    assert load_policy(run, bank, checkpoint="latest").observer.target_depth.source == str(run / "r.safetensors")
-    (run / "r.safetensors").unlink()
     with pytest.raises(ValueError, match="r.safetensors: no such depth readout file"):
         load_policy(run, bank, checkpoint="latest")
 
 
 def test_the_ground_truth_depth_diagnostic_reads_the_world_frames(setting, tmp_path):
     """target_depth ``ground-truth`` (a diagnostic): the agent's depth input is the world's depth frames averaged to
-    the readout's grid, and such a run is refused by `tsnav release pack` in one line."""
+    the readout's grid (flipped in a mirrored room, as its frames are), and such a run is refused by `tsnav release
+    pack` in one line."""
     import h5py
     import torch
 
-    from tsnav.agent.observe import GROUND_TRUTH, box_depth_stats
+    from tsnav.agent.observe import GROUND_TRUTH, TargetDepth, box_depth_stats
     from tsnav.errors import CommandError
     from tsnav.eval.runner import load_bank_for_episodes
     from tsnav.pipeline.release import pack
     from tsnav.pretrain.depth_readout import average_depth
     from tsnav.rl.checkpoint import load_policy
+    from tsnav.sim.batch import SceneBank
     from tsnav.sim.episodes import read_episodes
 
     world, _, lists = setting
     run = tmp_path / "run"
     assert main(train_argv(str(world), str(run), FEATS, "--updates", "1", "--target-depth", GROUND_TRUTH)) == 0
     episodes, _ = read_episodes(lists["test"])
-    bank = load_bank_for_episodes(world, episodes[:2])
+    bank = load_bank_for_episodes(world, episodes)
     policy = load_policy(run, bank, checkpoint="latest")
+    states, targets = _detected(policy.observer)
+    obs = policy.observer(states, targets)
+    frames = []
+    for s in states:
+        i = int(np.searchsorted(bank.offsets, s, side="right")) - 1
+        scene = bank.scenes[i]
+        with h5py.File(scene.depth_path(), "r") as f:
+            frames.append(average_depth(f[str(scene.keys[s - int(bank.offsets[i])])][()]))
+    want = box_depth_stats(torch.from_numpy(np.stack(frames)).half(), obs.det_box, obs.det_score)
+    assert torch.equal(obs.det_depth, want) and (obs.det_depth[:, 3] == 1).all()
     scene = bank.scenes[0]
-    with h5py.File(scene.depth_path(), "r") as f:
-        frames = np.stack([average_depth(f[str(k)][()]) for k in scene.keys[:20]])
-    states = np.arange(20) + int(bank.offsets[0])
-    obs = policy.observer(states, np.full(20, 1))
-    want = box_depth_stats(torch.from_numpy(frames).half(), obs.det_box, obs.det_score)
-    assert torch.equal(obs.det_depth, want)
+    mirrored = TargetDepth.from_world(SceneBank([scene.mirrored()]))
+    plain = policy.observer.target_depth.maps[: scene.num_states]
+    assert torch.equal(mirrored.maps, plain.flip(-1)) and not torch.equal(mirrored.maps, plain)
     with pytest.raises(CommandError, match="reads a target depth"):
         pack(run, run / "checkpoints", tmp_path, tmp_path / "out", {})
     assert not (tmp_path / "out").exists()

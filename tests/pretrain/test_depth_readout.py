@@ -53,7 +53,7 @@ def test_training_beats_the_mean_map_and_the_file_round_trips(tmp_path):
     feat = rng.normal(size=(600, 8, 4, 4)).astype(np.float16)
     level = 1.0 + 0.8 * np.tanh(feat[:, 0].astype(np.float32))  # (N, 4, 4) in metres
     depth = np.repeat(np.repeat(level, dr.GRID // 4, axis=1), dr.GRID // 4, axis=2).astype(np.float16)
-    model = dr.train_readout(feat, depth, epochs=8, batch=32, log=lambda *_: None)
+    model = dr.train_readout(feat, depth, epochs=8, batch=32)
     s = dr.score(model, feat, depth)
     mean_map_mae = float(np.abs(depth.astype(np.float32) - depth.astype(np.float32).mean(axis=0)).mean())
     assert s["mae_m"] < 0.5 * mean_map_mae
@@ -68,6 +68,10 @@ def test_training_beats_the_mean_map_and_the_file_round_trips(tmp_path):
         dr.load_readout(bad)
     with pytest.raises(ValueError, match="no such depth readout"):
         dr.load_readout(tmp_path / "missing.safetensors")
+    with pytest.raises(ValueError, match="no frames"):
+        dr.train_readout(feat[:0], depth[:0])
+    few = dr.train_readout(feat[:10], depth[:10], epochs=1)  # fewer frames than a batch: one step on all of them
+    assert not torch.equal(few.pred.weight, dr.DepthReadout(8, 4, 4).pred.weight)
 
 
 def test_box_depth_of_maps_matches_its_reference():

@@ -118,3 +118,28 @@ def test_two_worker_run_resume_and_finish(world, tmp_path):
     p2 = train_a3c(_cfg(world, updates=p1["update"] + 6), agent, run, progress_bar=False, poll_seconds=0.05)
     assert p2["update"] >= p1["update"] + 6 and p2["sessions"] == 2
     assert p2["env_steps"] == 8 * p2["update"]
+
+
+def test_workers_share_the_target_depth_maps(world, tmp_path, monkeypatch):
+    """An agent with ``target_depth`` trains under A3C: the depth maps are made once, in the parent, and handed to
+    the workers in shared memory (as the features are), and a worker's observer takes them as they are."""
+    import tsnav.rl.a3c as a3c
+    from tsnav.agent.observe import GROUND_TRUTH, TargetDepth
+    from tsnav.checkpoint import load_tensors
+
+    handed, original = [], a3c._Workers.__init__
+
+    def spy(self, cfg, agent, scenes, shared, optimizer, features, depth, progress, session):
+        handed.append(depth)
+        original(self, cfg, agent, scenes, shared, optimizer, features, depth, progress, session)
+
+    monkeypatch.setattr(a3c._Workers, "__init__", spy)
+    agent = agent_config("cpu", target_depth=GROUND_TRUTH)
+    p = train_a3c(_cfg(world, updates=4), agent, tmp_path / "run", progress_bar=False, poll_seconds=0.05)
+    assert p["finished"] and p["update"] >= 4
+    assert len(handed) == 1 and isinstance(handed[0], TargetDepth) and handed[0].maps.is_shared()
+    w, _ = load_tensors(latest_checkpoint(tmp_path / "run") / "model.safetensors")
+    assert "depth_in.weight" in w
+    cfg = _cfg(world)
+    bank, det = load_bank(cfg)
+    assert make_observer(bank, cfg, det_features=det, agent=agent, target_depth=handed[0]).target_depth is handed[0]

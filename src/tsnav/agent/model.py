@@ -94,6 +94,8 @@ class AgentConfig:
     estimate could give, never an agent to ship."""
 
     def __post_init__(self):
+        if self.target_depth == "":
+            self.target_depth = None  # off, described as a network without it
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
         for f in fields(self):

@@ -201,11 +201,17 @@ class TargetDepth:
         self.maps, self.source = maps, source
 
     @classmethod
-    def from_readout(cls, path, features: torch.Tensor, batch: int = 4096) -> "TargetDepth":
-        """The readout file ``path`` run over the bank's feature maps ``features (S, C, h, w)``."""
+    def from_readout(cls, path, features: torch.Tensor, batch: int = 4096, fingerprint: str | None = None):
+        """The readout file ``path`` run over the bank's feature maps ``features (S, C, h, w)``; ``fingerprint``
+        (the feature caches' encoder) must be the one the readout was trained on (``ValueError`` otherwise)."""
         from ..pretrain.depth_readout import load_readout
 
-        model, _ = load_readout(path)
+        model, meta = load_readout(path)
+        if fingerprint and meta.get("fingerprint") and meta["fingerprint"] != fingerprint:
+            raise ValueError(
+                f"{path}: a readout of the features of encoder {meta['fingerprint']} (features_{meta.get('features')}"
+                f"), not of these ({fingerprint})"
+            )
         maps = torch.empty(
             (features.shape[0],) + (model.ph * features.shape[2], model.pw * features.shape[3]), dtype=torch.float16
         )
@@ -230,22 +236,27 @@ class TargetDepth:
                 raise ValueError(f"{scene.path}: no depth.hdf5 (target_depth {GROUND_TRUTH!r} reads the depth frames)")
             with h5py.File(path, "r") as f:
                 frames = read_stack(f, scene.keys)
+            if scene.mirror:  # the frames of a mirrored room are flipped left to right (its features are)
+                frames = frames[:, :, ::-1]
             start = int(bank.offsets[i])
             for j, d in enumerate(frames):
                 maps[start + j] = torch.from_numpy(average_depth(d))
         return cls(maps, GROUND_TRUTH)
 
     @classmethod
-    def of(cls, spec: str, bank, features: torch.Tensor, run_dir=None) -> "TargetDepth":
+    def of(cls, spec: str, bank, features: torch.Tensor, features_name: str | None = None) -> "TargetDepth":
         """``AgentConfig.target_depth`` made real: :data:`GROUND_TRUTH` (:meth:`from_world`) or a readout file
-        (:meth:`from_readout`); a relative path is looked up in ``run_dir`` first (a packed agent carries its
-        readout), then in the working directory."""
+        (:meth:`from_readout`, a relative path read from the working directory), checked against the encoder of
+        the bank's feature caches ``features_<features_name>.hdf5`` when named."""
         if spec == GROUND_TRUTH:
             return cls.from_world(bank)
-        path = Path(spec)
-        if run_dir is not None and not path.is_absolute() and (Path(run_dir) / path).is_file():
-            path = Path(run_dir) / path
-        return cls.from_readout(path, features)
+        fingerprint = None
+        if features_name:
+            from ..pretrain.features import feature_fingerprint
+
+            scene = bank.scenes[0]
+            fingerprint = feature_fingerprint(scene.path, scene.cache_name(features_name))
+        return cls.from_readout(Path(spec), features, fingerprint=fingerprint)
 
     def __call__(self, state: torch.Tensor, box: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
         return box_depth_stats(self.maps[state].to(box.device), box, score)

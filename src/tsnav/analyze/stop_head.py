@@ -140,7 +140,7 @@ _DEPTHS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 @dataclass
 class Depths:
     """Where the depth inputs come from: ``true`` the bank's ground truth (``true-depth``), ``readout`` a
-    :class:`~tsnav.analyze.depth_readout.DepthReadout` of the agent's feature map (``est-depth``)."""
+    :class:`~tsnav.pretrain.depth_readout.DepthReadout` of the agent's feature map (``est-depth``)."""
 
     true: BankDepth | None = None
     readout: object | None = None
@@ -498,6 +498,21 @@ def analyse(
     return result
 
 
+def check_readout(meta: dict, run, data, path) -> None:
+    """``ValueError`` when the readout was trained on the features of another encoder than the run reads."""
+    from ..data.reader import list_scenes
+    from ..pretrain.features import feature_fingerprint
+    from ..rl.checkpoint import read_run_config
+
+    name = read_run_config(run)["train"]["features"]
+    scenes = [s for s in list_scenes(data) if (s / f"features_{name}.hdf5").exists()]
+    if not scenes:
+        raise ValueError(f"{data}: no scene has the run's features_{name}.hdf5")
+    fp = feature_fingerprint(scenes[0], name)
+    if meta.get("fingerprint") and fp and meta["fingerprint"] != fp:
+        raise ValueError(f"{path}: a readout of the features of encoder {meta['fingerprint']}, the run reads {fp}")
+
+
 def _fmt(r: dict) -> str:
     return f"SR {r['SR']:.2f} SPL {r['SPL']:.2f}"
 
@@ -552,12 +567,19 @@ def main(argv: list[str] | None = None) -> int:
             f"tsnav analyze stop-head: {args.run}: not a training run or agent folder (no config.json)", file=sys.stderr
         )
         return 2
+    if (args.depth_readout is not None) != ("est-depth" in inputs):
+        print(
+            "tsnav analyze stop-head: --depth-readout goes with --inputs ...,est-depth, and only with it",
+            file=sys.stderr,
+        )
+        return 2
     try:
         readout = None
         if args.depth_readout is not None:
             from ..pretrain.depth_readout import load_readout
 
             readout, readout_meta = load_readout(args.depth_readout)
+            check_readout(readout_meta, args.run, args.data, args.depth_readout)
         res = analyse(
             args.run,
             args.data,
@@ -572,7 +594,7 @@ def main(argv: list[str] | None = None) -> int:
             detections=args.detections,
             readout=readout,
         )
-        if readout is not None:
+        if "est-depth" in inputs:
             res["depth_readout"] = {
                 "file": str(args.depth_readout),
                 **{k: readout_meta.get(k) for k in ("features", "fingerprint", "epochs", "seed")},

@@ -103,6 +103,7 @@ def _worker(
     shared: ActorCritic,
     optimizer: SharedAdam,
     features: torch.Tensor,
+    depth,
     counters,
     out_queue,
     stop,
@@ -114,7 +115,7 @@ def _worker(
         torch.manual_seed(seed)
         bank, det = load_bank(cfg, scenes)
         agent = AgentConfig(**agent_d)
-        observer = make_observer(bank, cfg, features=features, det_features=det, agent=agent)
+        observer = make_observer(bank, cfg, features=features, det_features=det, agent=agent, target_depth=depth)
         local = make_model(agent, observer, seed)
         collector = RolloutCollector(make_train_env(bank, cfg, 1, seed=seed), observer, local, precision=cfg.precision)
         collector.start()
@@ -146,6 +147,9 @@ def train_a3c(
     bank, det = load_bank(cfg, scenes)
     observer = make_observer(bank, cfg, det_features=det, agent=agent)
     features = observer.features.share_memory_()
+    depth = observer.target_depth  # the depth maps, made once and shared as the features are
+    if depth is not None:
+        depth.maps.share_memory_()
     shared = make_model(agent, observer, cfg.seed)
     shared.share_memory()
     optimizer = SharedAdam(shared.parameters(), lr=cfg.lr, amsgrad=cfg.amsgrad)
@@ -163,7 +167,7 @@ def train_a3c(
     session = progress["sessions"]
     progress["sessions"] += 1
 
-    workers = _Workers(cfg, agent, scenes, shared, optimizer, features, progress, session)
+    workers = _Workers(cfg, agent, scenes, shared, optimizer, features, depth, progress, session)
     out = RunOutput(run_dir, cfg, progress, progress_bar=progress_bar)
     t_start, seconds0 = time.perf_counter(), progress["seconds"]
     last_log = progress["update"] // cfg.log_every
@@ -211,6 +215,7 @@ class _Workers:
         shared: ActorCritic,
         optimizer: SharedAdam,
         features: torch.Tensor,
+        depth,
         progress: dict,
         session: int,
     ):
@@ -231,6 +236,7 @@ class _Workers:
                     shared,
                     optimizer,
                     features,
+                    depth,
                     self.counters,
                     self.queue,
                     self.stop,

@@ -47,14 +47,16 @@ def make_observer(
     det_features: np.ndarray | None = None,
     device="cpu",
     agent: AgentConfig | None = None,
+    target_depth: TargetDepth | None = None,
 ) -> Observer:
     """Observer over the feature caches ``cfg.features`` of the bank's scenes (or the given tensor); with
-    ``agent.target_depth``, its readout's depth maps of those features too."""
+    ``agent.target_depth``, the depth maps it names (or the given :class:`TargetDepth`, made once for A3C's
+    workers)."""
     if features is None:
         features = load_bank_features(bank, cfg.features)
-    depth = None
-    if agent is not None and agent.target_depth:
-        depth = TargetDepth.of(agent.target_depth, bank, features)
+    depth = target_depth
+    if depth is None and agent is not None and agent.target_depth:
+        depth = TargetDepth.of(agent.target_depth, bank, features, cfg.features)
     return Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
 
 

@@ -307,7 +307,7 @@ def load_policy(
         )
     depth = None
     if model.config.target_depth:
-        depth = TargetDepth.of(model.config.target_depth, bank, features, run_dir)
+        depth = TargetDepth.of(model.config.target_depth, bank, features, cfg.features)
     observer = Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
     if observer.det_dim != model.det_dim:
         raise ValueError(f"detection features of size {observer.det_dim} do not match the agent's {model.det_dim}")
