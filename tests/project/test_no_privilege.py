@@ -26,7 +26,8 @@ def _all_obs(observer, bank):
     s = np.repeat(np.arange(bank.num_states), 22)
     g = np.tile(np.arange(22), bank.num_states)
     obs = observer(s, g)
-    return {f: getattr(obs, f).numpy().copy() for f in obs.__dataclass_fields__}
+    assert obs.det_depth is None  # no depth input by default (AgentConfig.target_depth is off)
+    return {f: getattr(obs, f).numpy().copy() for f in obs.__dataclass_fields__ if getattr(obs, f) is not None}
 
 
 def test_agent_observation_ignores_privileged_sources(pixel_world):
