@@ -81,3 +81,34 @@ def test_box_depth_of_maps_matches_its_reference():
     boxes = corners.transpose(0, 2, 1).reshape(50, 4)[:, [0, 2, 1, 3]]
     scores = np.where(rng.random(50) < 0.2, 0.0, rng.random(50))
     assert np.allclose(sh.box_depth(maps, boxes, scores), sh.box_depth_reference(maps, boxes, scores), atol=1e-5)
+
+
+def test_scene_depth_maps_match_the_frame_by_frame_reference(tmp_path):
+    """The whole scene at once (read_stack, one average over the stack) against one frame at a time, clipped and
+    unclipped, flipped for a mirrored room; a missing frame or file is one line naming it."""
+    import h5py
+
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(0.1, 8.0, (6, 64, 64)).astype(np.float16)
+    frames[2, :3, :5] = np.inf
+    path = tmp_path / "depth.hdf5"
+    keys = [f"k{i}" for i in range(6)]
+    with h5py.File(path, "w") as f:
+        for k, d in zip(keys, frames):
+            f[k] = d
+    for max_depth in (dr.MAX_DEPTH, None):
+        for flip in (False, True):
+            got = dr.scene_depth_maps(path, keys[::-1], max_depth=max_depth, flip=flip)
+            ref = []
+            for d in frames[::-1]:
+                d = np.asarray(d, dtype=np.float32)
+                d = d[:, ::-1] if flip else d
+                if max_depth is not None:
+                    d = np.clip(np.nan_to_num(d, nan=max_depth, posinf=max_depth), 0.0, max_depth)
+                ref.append(d.reshape(dr.GRID, 2, dr.GRID, 2).mean(axis=(1, 3)))
+            assert np.array_equal(got, np.stack(ref).astype(np.float16))
+    with pytest.raises(ValueError, match="no dataset 'nope'") as e:
+        dr.scene_depth_maps(path, ["k0", "nope"])
+    assert len(str(e.value).splitlines()) == 1
+    with pytest.raises(ValueError, match="no such depth file"):
+        dr.scene_depth_maps(tmp_path / "none.hdf5", keys)

@@ -224,23 +224,16 @@ class TargetDepth:
     def from_world(cls, bank) -> "TargetDepth":
         """The world's true depth frames (``depth.hdf5`` of each scene) averaged to the readout's grid: the
         :data:`GROUND_TRUTH` diagnostic."""
-        import h5py
-
-        from ..data.reader import read_stack
-        from ..pretrain.depth_readout import GRID, average_depth
+        from ..pretrain.depth_readout import GRID, scene_depth_maps
 
         maps = torch.empty((bank.num_states, GRID, GRID), dtype=torch.float16)
         for i, scene in enumerate(bank.scenes):
             path = scene.depth_path()
             if path is None:
                 raise ValueError(f"{scene.path}: no depth.hdf5 (target_depth {GROUND_TRUTH!r} reads the depth frames)")
-            with h5py.File(path, "r") as f:
-                frames = read_stack(f, scene.keys)
-            if scene.mirror:  # the frames of a mirrored room are flipped left to right (its features are)
-                frames = frames[:, :, ::-1]
-            start = int(bank.offsets[i])
-            for j, d in enumerate(frames):
-                maps[start + j] = torch.from_numpy(average_depth(d))
+            # the frames of a mirrored room are flipped left to right (its features are)
+            d = scene_depth_maps(path, scene.keys, flip=scene.mirror)
+            maps[int(bank.offsets[i]) : int(bank.offsets[i + 1])] = torch.from_numpy(d)
         return cls(maps, GROUND_TRUTH)
 
     @classmethod

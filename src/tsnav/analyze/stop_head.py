@@ -65,25 +65,16 @@ class BankDepth:
     :data:`DEPTH_GRID` squared, for the ``true-depth`` diagnostic input."""
 
     def __init__(self, bank):
-        import h5py
+        from ..pretrain.depth_readout import scene_depth_maps
 
         self.depth = np.zeros((bank.num_states, DEPTH_GRID, DEPTH_GRID), dtype=np.float16)
         for i, scene in enumerate(bank.scenes):
             path = scene.depth_path()
             if path is None:
                 raise ValueError(f"{scene.path}: no depth.hdf5 (true-depth needs the world's depth frames)")
-            with h5py.File(path, "r") as f:
-                for j, key in enumerate(scene.keys):
-                    if str(key) not in f:
-                        raise ValueError(f"{path}: no depth frame of state {key}")
-                    d = np.asarray(f[str(key)], dtype=np.float32)
-                    if d.ndim != 2 or d.shape[0] != d.shape[1] or d.shape[0] % DEPTH_GRID:
-                        raise ValueError(
-                            f"{path}: depth frames of shape {d.shape}; true-depth reads square frames "
-                            f"whose side is a multiple of {DEPTH_GRID}"
-                        )
-                    k = d.shape[0] // DEPTH_GRID
-                    self.depth[bank.offsets[i] + j] = d.reshape(DEPTH_GRID, k, DEPTH_GRID, k).mean(axis=(1, 3))
+            # averaged as they are, unclipped (the figures of the true-depth rows were made so)
+            d = scene_depth_maps(path, scene.keys, max_depth=None, flip=scene.mirror)
+            self.depth[int(bank.offsets[i]) : int(bank.offsets[i + 1])] = d
 
     def in_box(self, states, boxes, scores) -> np.ndarray:
         """:func:`box_depth` of the states' depth maps."""

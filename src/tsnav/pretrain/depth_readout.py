@@ -60,14 +60,40 @@ class DepthReadout(nn.Module):
         return p.reshape(b, GRID, GRID)
 
 
-def average_depth(d: np.ndarray) -> np.ndarray:
-    """A square depth frame (side a multiple of :data:`GRID`) averaged to ``(GRID, GRID)``, clipped to
-    ``[0, MAX_DEPTH]`` (NaN and infinity read as :data:`MAX_DEPTH`)."""
-    d = np.nan_to_num(np.asarray(d, dtype=np.float32), nan=MAX_DEPTH, posinf=MAX_DEPTH, neginf=0.0)
-    if d.ndim != 2 or d.shape[0] != d.shape[1] or d.shape[0] % GRID:
+def average_depth(d: np.ndarray, max_depth: float | None = MAX_DEPTH) -> np.ndarray:
+    """Square depth frames ``(..., H, H)`` (side a multiple of :data:`GRID`) averaged to ``(..., GRID, GRID)``,
+    clipped to ``[0, max_depth]`` first (NaN and infinity read as ``max_depth``; None: averaged as they are)."""
+    d = np.asarray(d, dtype=np.float32)
+    if d.ndim < 2 or d.shape[-1] != d.shape[-2] or d.shape[-1] % GRID:
         raise ValueError(f"depth frames of shape {d.shape}; square frames whose side is a multiple of {GRID} needed")
-    k = d.shape[0] // GRID
-    return np.clip(d, 0.0, MAX_DEPTH).reshape(GRID, k, GRID, k).mean(axis=(1, 3))
+    if max_depth is not None:
+        d = np.clip(np.nan_to_num(d, nan=max_depth, posinf=max_depth, neginf=0.0), 0.0, max_depth)
+    k = d.shape[-1] // GRID
+    return d.reshape(*d.shape[:-2], GRID, k, GRID, k).mean(axis=(-3, -1))
+
+
+def scene_depth_maps(path: str | Path, keys, max_depth: float | None = MAX_DEPTH, flip: bool = False) -> np.ndarray:
+    """``(len(keys), GRID, GRID)`` float16: the frames ``keys`` of a scene's ``depth.hdf5`` at ``path``
+    (:func:`~tsnav.data.reader.read_stack`), flipped left to right when ``flip`` (a mirrored room), averaged by
+    :func:`average_depth`; ``ValueError`` naming the file for a missing file, frame or a frame of another shape."""
+    import h5py
+
+    from ..data.reader import SceneFormatError, read_stack
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such depth file (the world's depth frames are read here)")
+    try:
+        with h5py.File(path, "r") as f:
+            frames = read_stack(f, keys)
+    except (KeyError, SceneFormatError) as e:
+        raise ValueError(str(e.args[0])) from None
+    if flip:
+        frames = frames[..., ::-1]
+    try:
+        return average_depth(frames, max_depth).astype(np.float16)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
 
 
 @torch.no_grad()

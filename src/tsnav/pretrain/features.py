@@ -318,22 +318,24 @@ def h5py_str(x) -> str:
     return x.decode() if isinstance(x, bytes) else str(x)
 
 
-def feature_fingerprint(scene_dir: str | Path, name: str) -> str | None:
-    """The ``fingerprint`` attribute (the encoder's weights) of a scene's feature cache, or None when it has none;
-    ``FileNotFoundError`` when the cache is missing."""
+def _cache_file(scene_dir: str | Path, name: str) -> Path:
+    """A scene's feature cache ``features_<name>.hdf5``; ``FileNotFoundError`` when it is missing."""
     f = Path(scene_dir) / f"features_{name}.hdf5"
     if not f.exists():
         raise FileNotFoundError(f"{f}: no feature cache (run `tsnav features`)")
-    with h5py.File(f, "r") as h:
+    return f
+
+
+def feature_fingerprint(scene_dir: str | Path, name: str) -> str | None:
+    """The ``fingerprint`` attribute (the encoder's weights) of a scene's feature cache, or None when it has none;
+    ``FileNotFoundError`` when the cache is missing."""
+    with h5py.File(_cache_file(scene_dir, name), "r") as h:
         return h5py_str(h.attrs["fingerprint"]) if "fingerprint" in h.attrs else None
 
 
 def read_features(scene_dir: str | Path, name: str) -> tuple[np.ndarray, np.ndarray, dict]:
     """``(features (S, C, h, w) float16, keys (S,) str, attrs)`` of a scene's feature cache."""
-    f = Path(scene_dir) / f"features_{name}.hdf5"
-    if not f.exists():
-        raise FileNotFoundError(f"{f}: no feature cache (run `tsnav features`)")
-    with h5py.File(f, "r") as h:
+    with h5py.File(_cache_file(scene_dir, name), "r") as h:
         return (
             h["features"][()],
             h["keys"][()].astype(str),
