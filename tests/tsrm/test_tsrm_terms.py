@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sim_helpers import StagedReward
-from tsnav.constants import CATEGORY_INDEX, DONE, MOVE_AHEAD, NUM_CATEGORIES
+from tsnav.constants import CATEGORY_INDEX, DONE, MOVE_AHEAD, NUM_CATEGORIES, ROTATE_RIGHT
 from tsnav.data.toy import toy_scene
 from tsnav.sim.batch import SceneBank
 from tsnav.tsrm import terms as term_registry
@@ -102,7 +102,6 @@ def test_regret_charges_each_action_beyond_a_shortest_path():
     oracle's actions on SceneBank.dist, SPL's L*) it is 0; a full turn in place, on which the paper's distance term
     sums to exactly 0, costs 8 K_r; over any walk in the pathfinding stage it sums to -K_r (L - (D_start - D_end)),
     every step is a whole number of K_r at most 0, Done is free, and the searching stage is never charged."""
-    from tsnav.constants import ROTATE_RIGHT
     from tsnav.sim.paths import UNREACHABLE, optimal_action_targets
 
     bank = SceneBank(two_rooms(), cache=False)
@@ -160,3 +159,44 @@ def test_regret_charges_each_action_beyond_a_shortest_path():
     assert (terms["regret"] == 0).all()
     with pytest.raises(ValueError, match="k_regret"):
         RewardConfig(variant="tsrm-regret", k_regret=-1.0)
+
+
+def test_failed_done_charges_a_done_that_fails_only():
+    """``failed_done`` (issue 47, a deviation from the paper, 0 by default): a Done that fails is charged it in every
+    variant, a Done that succeeds earns the success reward, any other action neither; batched, scalar and reference
+    agree."""
+    scenes = two_rooms()
+    bank = SceneBank(scenes, cache=False)
+    n = 6
+    act = np.array([DONE, DONE, MOVE_AHEAD, ROTATE_RIGHT, DONE, MOVE_AHEAD])
+    success = np.array([True, False, False, False, False, False])
+    start = bank.offsets[np.zeros(n, int)] + np.arange(n)
+    new = bank.next_state[start, act].astype(np.int64)
+    for variant in ("tsrm", "sparse", "tsrm-regret"):
+        for penalty, want in ((0.0, [5.0, 0, 0, 0, 0, 0]), (-1.5, [5.0, -1.5, 0, 0, -1.5, 0])):
+            cfg = RewardConfig(variant=variant, failed_done=penalty)
+            fast = TSRMReward(bank, cfg)
+            searching = np.ones(n, bool)
+            fast.reset(np.ones(n, bool), np.zeros(n, int), np.full(n, BOWL), start, searching=searching)
+            _, terms = fast.step(start, act, new, np.zeros(n, bool), act == DONE, success, searching=searching)
+            assert terms["success"].tolist() == want
+            ref = TSRMRewardReference(scenes[0], cfg, confidence=np.zeros((scenes[0].num_states, NUM_CATEGORIES)))
+            for i in range(n):
+                ref.reset(BOWL, int(start[i]))
+                _, tr = ref.step(int(start[i]), int(act[i]), int(new[i]), False, bool(act[i] == DONE), bool(success[i]))
+                assert tr["success"] == want[i]
+                one = TSRMReward(bank, cfg)
+                one.reset_one(0, BOWL, int(start[i]), searching=True)
+                _, t1 = one.step_one(
+                    int(start[i]),
+                    int(act[i]),
+                    int(new[i]),
+                    False,
+                    bool(act[i] == DONE),
+                    bool(success[i]),
+                    searching=True,
+                )
+                assert t1["success"] == want[i]
+    assert RewardConfig().failed_done == 0.0  # the paper's reward by default
+    with pytest.raises(ValueError, match="failed_done"):
+        RewardConfig(failed_done=0.5)

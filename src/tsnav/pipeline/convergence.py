@@ -130,6 +130,9 @@ def run_convergence(
     points: list[dict] = []
     deviations = [f"distance increase x{cfg.distance_increase_scale:g}"] if cfg.distance_increase_scale != 1.0 else []
     deviations += ["mirror"] if cfg.mirror else []
+    reward = cfg.reward_config()
+    deviations += [f"K_r {reward.k_regret:g}"] if reward.uses("regret") else []
+    deviations += [f"failed Done {reward.failed_done:g}"] if reward.failed_done else []
     deviations += ["blocked-action"] if agent.blocked_action else []
     deviations += [f"lr {cfg.lr_schedule} to {cfg.lr_final:g}"] if cfg.lr_schedule != "constant" else []
     if agent.target_depth:

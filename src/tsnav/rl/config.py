@@ -177,7 +177,7 @@ class TrainConfig:
     reward_settings: dict = field(default_factory=dict)
     """The reward's constants where they differ from the paper's: fields of
     :class:`~tsnav.tsrm.reward.RewardConfig` (K_e ``k_explore``, K_d ``k_distance``, ``collision_penalty``,
-    ``slack``, ``success_reward``, ``exact_area``, ``k_regret``, and ``area``: the trapezoid's distances
+    ``slack``, ``success_reward``, ``failed_done``, ``exact_area``, ``k_regret``, and ``area``: the trapezoid's distances
     ``near_level``, ``far_level``, ``near_down``, ``far_down``) other than ``variant`` (:attr:`reward`) and
     ``distance_increase_scale``. A recipe's ``[reward]`` section and the ``--k-distance``-style options set
     them; kept canonical (only values that differ from the defaults), so a run without them equals one that

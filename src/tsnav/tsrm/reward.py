@@ -13,7 +13,8 @@ term            value                                                           
                 already had a failed MoveAhead; the first there is free (III-D (iii)). A LookUp  sparse
                 at horizon 0 or LookDown at 30 also fails but is no collision (``sim.batch``)
 ``slack``       -0.01 at every step, the final one included (III-D (iv))                         all
-``success``     +5 when Done succeeds (III-D (v))                                                all
+``success``     +5 when Done succeeds (III-D (v)); ``failed_done`` (0: a deviation from the paper   all
+                when not) when Done fails
 ``regret``      a deviation from the paper: ``K_r * (D(s_{t-1}) - D(s_t) - 1)`` for a movement   tsrm-
                 action taken in the pathfinding stage, ``D`` the shortest action count to a      regret
                 success state on the state graph (L*), ``K_r = k_regret`` (0.05): each action
@@ -91,6 +92,9 @@ class RewardConfig:
     """Added at every step (III-D (iv))."""
     success_reward: float = 5.0
     """Added when Done succeeds (III-D (v))."""
+    failed_done: float = 0.0
+    """Added when Done fails: a deviation from the paper when not 0 (the paper's failed Done only ends the episode,
+    without the success reward). At most 0."""
     k_regret: float = 0.05
     """K_r of the ``regret`` term, a deviation from the paper that only the ``tsrm-regret`` variant switches on
     (:class:`~tsnav.tsrm.terms.RegretTerm`): a pathfinding step is charged ``K_r`` per action by which it
@@ -109,6 +113,8 @@ class RewardConfig:
             raise ValueError(f"distance_increase_scale must be >= 0, got {self.distance_increase_scale}")
         if not self.k_regret >= 0:
             raise ValueError(f"k_regret must be >= 0, got {self.k_regret}")
+        if not self.failed_done <= 0:
+            raise ValueError(f"failed_done must be <= 0, got {self.failed_done}")
         if isinstance(self.area, dict):  # from a saved JSON config
             object.__setattr__(self, "area", AreaConfig(**self.area))
 

@@ -356,23 +356,31 @@ class SlackTerm(RewardTerm):
 
 
 class SuccessTerm(RewardTerm):
-    """``success_reward`` (+5) when Done succeeds (III-D (v))."""
+    """``success_reward`` (+5) when Done succeeds (III-D (v)); ``failed_done`` (0, the paper's: a Done that fails
+    only ends the episode) when it fails, a deviation from the paper when not 0."""
 
     name = "success"
 
     def constants(self):
-        return (self.config.success_reward,)
+        return (self.config.success_reward, self.config.failed_done)
 
     def step(self, prev, action, new, collided, done, success, searching) -> np.ndarray:
         out = np.zeros(len(prev), dtype=np.float64)
+        out[(np.asarray(action) == DONE) & ~np.asarray(success, dtype=bool)] = self.config.failed_done
         out[success] = self.config.success_reward
         return out
 
     def step_one(self, prev, action, new, collided, done, success, searching) -> float:
-        return self.config.success_reward if success else 0.0
+        if success:
+            return self.config.success_reward
+        return self.config.failed_done if action == DONE else 0.0
 
     def reference_step(self, prev, action, new, collided, done, success, searching) -> float:
-        return self.config.success_reward if success else 0.0
+        if success:
+            return self.config.success_reward
+        if action == DONE:
+            return self.config.failed_done
+        return 0.0
 
 
 class RegretTerm(RewardTerm):
