@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import torch
 
 from tsnav.agent.model import ActorCritic
@@ -68,3 +70,30 @@ def train_argv(data, out, features: str, *extra: str) -> list[str]:
         *extra,
         "--quiet",
     ]
+
+
+class StandInTrainer(RecordingTrainer):
+    """Writes a loadable run folder (config.json, one checkpoint of an untrained agent, a short log)."""
+
+    def train(self, tc, agent, run_dir):
+        import torch
+
+        from tsnav.rl.checkpoint import save_checkpoint
+        from tsnav.rl.assemble import load_bank, make_model, make_observer
+
+        run_dir.mkdir(parents=True, exist_ok=True)
+        bank, det = load_bank(tc)
+        model = make_model(agent, make_observer(bank, tc, det_features=det), tc.seed)
+        with torch.no_grad():  # mostly turn on the spot, so that some episodes see their target
+            model.actor.bias.copy_(torch.tensor([1.0, 0.0, 4.0, 0.0, 0.0, -2.0]))
+        (run_dir / "config.json").write_text(
+            json.dumps({"format": "tsnav-train-run", "train": tc.to_dict(), "agent": agent.__dict__})
+        )
+        with open(run_dir / "log.jsonl", "w") as f:
+            for u in range(1, 4):
+                f.write(
+                    json.dumps({"update": u, "env_steps": 100 * u, "return": 0.1 * u + tc.seed, "SR": 0.1 * u}) + "\n"
+                )
+        save_checkpoint(
+            run_dir, {"update": 3, "env_steps": 300, "episodes": 10, "seconds": 1.0, "finished": True}, model
+        )

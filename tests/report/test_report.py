@@ -199,7 +199,7 @@ def test_report_command_errors(tmp_path, capsys):
 def test_report_rerolls_a_trained_agent(tmp_path, tiny_world, episodes):
     """`tsnav eval --run` keeps no trajectories: the report re-rolls the agent (sampled actions, same seed) and
     gets the very same episodes."""
-    from test_experiment import StandInTrainer
+    from rl_helpers import StandInTrainer
     from tsnav.agent import agent_config
     from tsnav.pipeline.steps import ensure_oracle_detections
     from tsnav.pretrain.pixels import cache_pixel_features
