@@ -184,7 +184,14 @@ def test_demo_recipe_equals_the_demo():
 
 
 @pytest.mark.parametrize(
-    "name", ["tsrm-demae-learned7", "tsrm-demae-learned6", "tsrm-demae-learned4-v2", "tsrm-demae-robothor"]
+    "name",
+    [
+        "tsrm-demae-learned7",
+        "tsrm-demae-learned6",
+        "tsrm-demae-learned4-v2",
+        "tsrm-demae-robothor",
+        "tsrm-demae-paper-protocol",
+    ],
 )
 def test_agent_recipes_equal_the_shipped_configs(name, tmp_path):
     """The recipe's [train], [reward] and [agent] are the shipped run's config.json, but the budget, the data and
