@@ -76,8 +76,6 @@ class StandInTrainer(RecordingTrainer):
     """Writes a loadable run folder (config.json, one checkpoint of an untrained agent, a short log)."""
 
     def train(self, tc, agent, run_dir):
-        import torch
-
         from tsnav.rl.checkpoint import save_checkpoint
         from tsnav.rl.assemble import load_bank, make_model, make_observer
 

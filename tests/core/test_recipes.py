@@ -183,19 +183,10 @@ def test_demo_recipe_equals_the_demo():
     assert read_recipe(path) == read_recipe_text(dump_recipe(demo_recipe(plain)))
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        "tsrm-demae-learned7",
-        "tsrm-demae-learned6",
-        "tsrm-demae-learned4-v2",
-        "tsrm-demae-robothor",
-        "tsrm-demae-paper-protocol",
-    ],
-)
+@pytest.mark.parametrize("name", sorted(p.name for p in WEIGHTS.iterdir() if (p / "card.json").exists()))
 def test_agent_recipes_equal_the_shipped_configs(name, tmp_path):
-    """The recipe's [train], [reward] and [agent] are the shipped run's config.json, but the budget, the data and
-    the features (the work folder's)."""
+    """Every shipped agent has its recipe, configs/agents/NAME.toml, whose [train], [reward] and [agent] are the
+    shipped run's config.json, but the budget, the data and the features (the work folder's)."""
     from tsnav.pipeline.agent_recipe import resolve_agent
     from tsnav.rl.train import stored_config
 

@@ -124,6 +124,9 @@ def test_pack_writes_a_loadable_agent_folder(packed):
     assert {v.dtype for v in sd.values() if v.is_floating_point()} == {torch.float16}
     assert meta["stored_dtype"] == "float16"
     assert release.agent_folder(str(out)) == out
+    # packed again from a packed agent (as tsrm-demae-paper-protocol from learned7's encoder): the same file
+    release.pack_encoder(out / "encoder.safetensors", packed["root"] / "again.safetensors")
+    assert (packed["root"] / "again.safetensors").read_bytes() == (out / "encoder.safetensors").read_bytes()
 
 
 def test_float16_encoder_features_match_float32(packed, tiny_real):

@@ -160,7 +160,8 @@ def read_card(folder: str | Path) -> dict:
 
 
 def pack_encoder(src: str | Path, dst: str | Path) -> None:
-    """Copy a ``tsnav`` encoder file with its floating-point tensors stored as :data:`ENCODER_DTYPE`."""
+    """Copy a ``tsnav`` encoder file with its floating-point tensors stored as :data:`ENCODER_DTYPE`; a file stored
+    so already (a shipped agent's encoder) is copied byte for byte, so that agents sharing an encoder ship one file."""
     import torch
 
     from ..checkpoint import load_tensors, save_tensors
@@ -168,6 +169,9 @@ def pack_encoder(src: str | Path, dst: str | Path) -> None:
     sd, meta = load_tensors(src)
     if meta.get("format") != "tsnav-encoder":
         raise CommandError(f"{src}: not a tsnav encoder file")
+    if meta.get("stored_dtype") == ENCODER_DTYPE:
+        shutil.copyfile(src, dst)
+        return
     dtype = getattr(torch, ENCODER_DTYPE)
     small = {k: (v.to(dtype) if v.is_floating_point() else v).contiguous() for k, v in sd.items()}
     save_tensors(dst, small, {**meta, "stored_dtype": ENCODER_DTYPE})
