@@ -13,10 +13,10 @@ the source of the value):
   ``--protocol``, ``--detections``, ``--threads``, ...) are declared once in :data:`SHARED` and added with
   :func:`add_shared`; a generated option of the same name takes the shared declaration.
 - A *recipe* is a TOML file of sections, one per config (``[train]``, ``[reward]``, ``[agent]``, ...):
-  :func:`read_recipe` reads it, :func:`apply_sets` applies ``--set section.key=value`` on top, :func:`build`
-  turns a section into its dataclass (unknown keys and bad values are refused in one line naming them), and
-  :func:`dump_recipe` writes the resolved recipe beside an output. TOML has no null: a value of ``"none"`` is
-  None.
+  :func:`read_recipe` reads it (one recipe may build on another: ``extends = "OTHER.toml"``), :func:`apply_sets`
+  applies ``--set section.key=value`` on top, :func:`build` turns a section into its dataclass (unknown keys and
+  bad values are refused in one line naming them), and :func:`dump_recipe` writes the resolved recipe beside an
+  output. TOML has no null: a value of ``"none"`` is None.
 - :func:`first_difference` names the first setting where two resolved recipes differ (a resume with other
   settings is refused with it).
 
@@ -343,9 +343,11 @@ def refuse_abbreviations(p: argparse.ArgumentParser) -> None:
 # ------------------------------------------------------------------------------------------------------------
 
 
-def read_recipe(path: str | Path) -> dict:
-    """The recipe in TOML file ``path`` as nested dicts; a one-line CommandError naming the file and the problem."""
-    p = Path(path)
+#: The top-level recipe key naming the recipe a recipe builds on: a path relative to the recipe's own folder.
+EXTENDS = "extends"
+
+
+def _load_toml(p: Path) -> dict:
     try:
         with open(p, "rb") as f:
             return tomllib.load(f)
@@ -355,6 +357,33 @@ def read_recipe(path: str | Path) -> dict:
         raise CommandError(f"{p}: not a valid TOML recipe ({e})") from None
     except OSError as e:
         raise CommandError(f"{p}: cannot read: {e}") from None
+
+
+def read_recipe(path: str | Path) -> dict:
+    """The recipe in TOML file ``path`` as nested dicts; a one-line CommandError naming the file and the problem.
+
+    A recipe may build on another: ``extends = "OTHER.toml"`` (top level; relative to the recipe's folder) reads
+    OTHER first (itself perhaps extending a third) and lays this file's settings over it, section by section and
+    key by key (:func:`merge`); the result has no ``extends`` key. A recipe cannot take a base's setting or section
+    away, only set it; a chain that comes back to a file it passed through is refused."""
+    return _read_recipe(Path(path), ())
+
+
+def _read_recipe(p: Path, chain: tuple[Path, ...]) -> dict:
+    recipe = _load_toml(p)
+    base = recipe.pop(EXTENDS, None)
+    if base is None:
+        return recipe
+    if not isinstance(base, str) or not base.strip():
+        raise CommandError(f"{p}: {EXTENDS} must name a recipe file (a path relative to {p.parent}), got {base!r}")
+    here = p.resolve()
+    target = p.parent / base
+    if target.resolve() in (*chain, here):
+        loop = " -> ".join(str(x) for x in (*chain, here, target.resolve()))
+        raise CommandError(f"{p}: {EXTENDS} = {base!r} comes back to a recipe it passed through ({loop})")
+    if not target.exists():
+        raise CommandError(f"{p}: {EXTENDS} = {base!r}: no such recipe file ({target})")
+    return merge(_read_recipe(target, (*chain, here)), recipe)
 
 
 def parse_value(text: str):

@@ -208,6 +208,53 @@ def test_agent_recipes_equal_the_shipped_configs(name, tmp_path):
     assert r.detections.card_shipped == card["detector_shipped"] and r.world.version == card["world_version"]
     assert card.get("trained_detector_shipped", card["detector_shipped"]) == r.detections.shipped
     assert saved["train"]["detections"] == r.detections.name  # the shipped run trained on the recipe's tables
+    assert r.card.get("default", False) == card.get("default", False)  # one default agent, as its card says
+
+
+def test_a_recipe_extends_another(tmp_path):
+    """``extends`` lays a recipe over another (relative to its own folder; chains too), key by key; a missing or
+    circular base, or one that is not a path, is refused in one line naming the file."""
+    (tmp_path / "base").mkdir()
+    (tmp_path / "base" / "a.toml").write_text(
+        'name = "a"\n[train]\nlr = 0.001\nseed = 1\n[reward]\nk_distance = 0.15\n[reward.area]\nnear_level = 1.0\nfar_level = 4.0\n'
+    )
+    (tmp_path / "base" / "b.toml").write_text('extends = "a.toml"\nname = "b"\n[train]\nseed = 2\n')
+    (tmp_path / "c.toml").write_text(
+        'extends = "base/b.toml"\n[reward.area]\nnear_level = 0.5\n[card]\nsummary = "c"\n'
+    )
+    assert read_recipe(tmp_path / "c.toml") == {
+        "name": "b",
+        "train": {"lr": 0.001, "seed": 2},
+        "reward": {"k_distance": 0.15, "area": {"near_level": 0.5, "far_level": 4.0}},
+        "card": {"summary": "c"},
+    }
+    assert read_recipe(tmp_path / "base" / "a.toml")["train"] == {"lr": 0.001, "seed": 1}  # the base is unchanged
+    (tmp_path / "base" / "a.toml").write_text('extends = "../c.toml"\n')
+    with pytest.raises(CommandError, match="comes back to a recipe it passed through") as e:
+        read_recipe(tmp_path / "c.toml")
+    assert "\n" not in str(e.value)
+    (tmp_path / "d.toml").write_text('extends = "nothere.toml"\n')
+    with pytest.raises(CommandError, match=r"d.toml: extends = 'nothere.toml': no such recipe file"):
+        read_recipe(tmp_path / "d.toml")
+    (tmp_path / "e.toml").write_text("extends = 3\n")
+    with pytest.raises(CommandError, match="extends must name a recipe file"):
+        read_recipe(tmp_path / "e.toml")
+    (tmp_path / "f.toml").write_text('extends = "f.toml"\n')
+    with pytest.raises(CommandError, match="comes back"):
+        read_recipe(tmp_path / "f.toml")
+
+
+def test_shipped_recipes_that_extend_resolve_to_their_settings(tmp_path):
+    """The recipes written as another's plus their differences resolve to a whole recipe: no ``extends`` key left,
+    every section of the base, their own values on top."""
+    seven = read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml")
+    paper = read_recipe(CONFIGS / "agents" / "tsrm-demae-paper-protocol.toml")
+    assert "extends" not in paper and set(paper) == set(seven)
+    assert paper["train"]["protocol"] == "paper" and seven["train"]["protocol"] == "lineage"
+    assert paper["reward"]["k_regret"] == 0.15 and "k_regret" not in seven["reward"]
+    assert paper["agent"] == seven["agent"]
+    six = read_recipe(CONFIGS / "agents" / "tsrm-demae-learned6.toml")
+    assert six["detections"] == {"shipped": "learned6", "name": "learned6"} and six["card"]["default"] is False
 
 
 def test_every_shipped_recipe_names_no_machine_path():
