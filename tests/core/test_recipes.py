@@ -528,6 +528,45 @@ def test_robothor_recipe_never_scores_on_its_benchmark(tmp_path, capsys):
     assert not work.exists()
 
 
+def test_recipe_builds_train_apartments_the_val_way(tmp_path, monkeypatch):
+    """[world] infer_train_objects builds the robothor-real train apartments the way the val ones are, from the
+    challenge's folder that scores the checkpoints; refused for another world, without that folder, and (in one line,
+    before any scene is built) when a train scene has no episodes there."""
+    import gzip
+
+    import tsnav.world.build as world_build
+    from tsnav.pipeline.agent_recipe import make_agent, resolve_agent
+    from tsnav.world.presets import preset_scenes
+
+    recipe = apply_sets(read_recipe(ROBOTHOR), ["world.infer_train_objects=true"], ("world",))
+    seven = read_recipe(CONFIGS / "agents" / "tsrm-demae-learned7.toml")
+    with pytest.raises(CommandError, match="infer_train_objects applies to the robothor-real world, not 'ithor-real'"):
+        resolve_agent(apply_sets(seven, ["world.infer_train_objects=true"], ("world",)), tmp_path)
+    with pytest.raises(CommandError, match='goes with \\[scoring\\] episodes = "challenge-train"'):
+        resolve_agent(
+            apply_sets(recipe, ['scoring.episodes="none"', 'select.per_room_type="none"'], ("scoring", "select")),
+            tmp_path,
+        )
+    r = resolve_agent(recipe, tmp_path)
+    assert r.world.infer_train_objects and not resolve_agent(read_recipe(ROBOTHOR), tmp_path).world.infer_train_objects
+    built = []
+    monkeypatch.setattr(world_build, "build_dataset", lambda out, preset, names, cfg, workers: built.append(cfg))
+    challenge = tmp_path / "challenge"
+    (challenge / "train").mkdir(parents=True)
+    train = [n for n in preset_scenes("robothor-real") if "_Train" in n]
+    for n in train[:-1]:
+        (challenge / "train" / f"{n}.json.gz").write_bytes(gzip.compress(b"[]"))
+    with pytest.raises(CommandError, match=rf"infer_train_objects: no challenge train episodes of {train[-1]}"):
+        make_agent(r, tmp_path / "work", until="world", challenge=challenge)
+    assert not built
+    (challenge / "train" / f"{train[-1]}.json.gz").write_bytes(gzip.compress(b"[]"))
+    make_agent(r, tmp_path / "work", until="world", challenge=challenge)
+    assert built[0].infer_train == str(challenge.resolve()) and built[0].world == "robothor-real"
+    built.clear()
+    make_agent(resolve_agent(read_recipe(ROBOTHOR), tmp_path), tmp_path / "work2", until="world", challenge=challenge)
+    assert built[0].infer_train is None  # the recipe's default: train apartments from their records
+
+
 def test_robothor_agent_card(tmp_path, monkeypatch):
     """agent_card of the RoboTHOR recipe: its eval split and episodes, the val scenes and no test rooms (the
     lead registers the robothor2 detector; here a stand-in's fingerprint)."""

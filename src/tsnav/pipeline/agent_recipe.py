@@ -68,6 +68,11 @@ class WorldSettings:
     """Rules version of the world (``tsnav world --world-version``; None: the default)."""
     workers: int = 2
     """World-building processes (the same rooms for any number)."""
+    infer_train_objects: bool = False
+    """``robothor-real`` only: build the train apartments the way the val ones are (furniture from the plans,
+    targets inferred from the challenge's train episodes; ``tsnav world --infer-train-objects``), so that the agent
+    learns in apartments that look like its benchmark's. Reads the challenge's episode folder (``tsnav release make
+    --challenge DIR`` or ``[scoring] challenge``)."""
 
 
 @dataclass
@@ -228,6 +233,13 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
             f'[scoring]: episodes "val" would choose checkpoints on the {world.preset} val scenes, its benchmark: '
             f'use "challenge-train" (a sample of the challenge\'s train episodes) or "none" (the last checkpoint)'
         )
+    if world.infer_train_objects and world.preset != "robothor-real":
+        raise CommandError(f"[world]: infer_train_objects applies to the robothor-real world, not {world.preset!r}")
+    if world.infer_train_objects and scoring.episodes != "challenge-train":
+        raise CommandError(
+            "[world]: infer_train_objects reads the challenge's train episodes: it goes with [scoring] episodes = "
+            '"challenge-train", which names their folder'
+        )
     if scoring.episodes == "challenge-train" and not world.preset.startswith("robothor"):
         raise CommandError(f'[scoring]: episodes "challenge-train" are RoboTHOR\'s, not of the {world.preset} world')
     if run[0].updates is None and scoring.episodes != "none" and scoring.chunks:
@@ -303,14 +315,17 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select", challenge: 
     world = work / "world"
     set_threads(r.features.threads)
     say(f"world {r.world.preset} -> {world}")
+    overrides: dict = {"world_version": r.world.version} if r.world.version is not None else {}
+    if r.world.infer_train_objects:
+        from ..world.presets import preset_scenes
+        from ..world.robothor_real import missing_train_episodes
+
+        overrides["infer_train"] = str(challenge_folder(r, challenge).resolve())
+        why = missing_train_episodes(overrides["infer_train"], preset_scenes(r.world.preset))
+        if why:
+            raise CommandError(f"[world] infer_train_objects: {why}")
     build_dataset(
-        world,
-        r.world.preset,
-        None,
-        BuildConfig.from_preset(
-            r.world.preset, **({"world_version": r.world.version} if r.world.version is not None else {})
-        ),
-        workers=r.world.workers,
+        world, r.world.preset, None, BuildConfig.from_preset(r.world.preset, **overrides), workers=r.world.workers
     )
     if until == "world":
         return MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, "")

@@ -140,18 +140,12 @@ def run(args) -> int:
     if cfg.infer_train is not None:
         if cfg.world != "robothor-real":
             raise CommandError(f"--infer-train-objects applies to the robothor-real world, not preset {args.preset!r}")
-        if not (Path(cfg.infer_train) / "train").is_dir():
-            raise CommandError(
-                f"--infer-train-objects {args.infer_train_objects}: no train/ folder of challenge episodes"
-            )
-        from ..data.names import scene_info
         from .presets import preset_scenes
-        from .robothor_real import train_episodes_file
+        from .robothor_real import missing_train_episodes
 
-        for n in scenes or preset_scenes(args.preset):
-            f = train_episodes_file(cfg.infer_train, n)
-            if scene_info(n)[1] == "train" and not f.is_file():
-                raise CommandError(f"--infer-train-objects: no challenge train episodes of {n} ({f})")
+        why = missing_train_episodes(cfg.infer_train, scenes or preset_scenes(args.preset))
+        if why:
+            raise CommandError(f"--infer-train-objects {args.infer_train_objects}: {why}")
     if cfg.world_version is not None and cfg.world not in ("ithor-real", "robothor-real"):
         raise CommandError(
             f"--world-version applies to the ithor-real and robothor-real worlds, not preset {args.preset!r}"

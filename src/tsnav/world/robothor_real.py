@@ -387,6 +387,20 @@ def train_episodes_file(challenge: str | Path, name: str) -> Path:
     return Path(challenge) / "train" / f"{name}.json.gz"
 
 
+def missing_train_episodes(challenge: str | Path, names) -> str | None:
+    """Why the train scenes among ``names`` cannot be rebuilt the val way from the challenge's episode folder
+    ``challenge`` (no ``train/`` folder, or a scene without its episode file), in one line; None when they can."""
+    from ..data.names import scene_info
+
+    if not (Path(challenge) / "train").is_dir():
+        return f"{challenge}: no train/ folder of challenge episodes"
+    for n in names:
+        f = train_episodes_file(challenge, n)
+        if scene_info(n)[1] == "train" and not f.is_file():
+            return f"no challenge train episodes of {n} ({f})"
+    return None
+
+
 def inferred_train_episodes(challenge: str | Path, name: str, n: int = INFER_EPISODES) -> list[dict]:
     """The challenge's train episodes a train scene rebuilt the val way infers its targets from: ``n`` of those of
     scene ``name`` in ``challenge/train/NAME.json.gz`` (the first after a shuffle seeded by the name; all when
