@@ -373,6 +373,7 @@ def test_end_ratio_measures_to_where_the_challenge_path_ends():
     res = measure_scene(_FakeScene(), eps)
     assert res["ratios"] == [2.5, 1.0, 0.25, None]
     assert res["end_ratios"] == [1.25, 1.0, None, 1.0] and res["end_missing"] == 1
+    assert res["generator_ratios"] == [2.5, 1.0, 0.25, None]  # one success position: the same as the path ratio
     s = R_fid.end_summary(res["end_ratios"])
     assert s["end_within_25_pct"] == 75.0 and s["end_no_path"] == 1 and s["end_median"] == pytest.approx(1.125)
     # The fast multi-end Dijkstra agrees with the reference, end by end.
@@ -386,6 +387,58 @@ def test_end_ratio_measures_to_where_the_challenge_path_ends():
         assert [d[e][s] for s in range(3)] == pytest.approx(
             [path_lengths_reference(positions, move, goal, s) for s in range(3)]
         )
+
+
+def _grid(cells):
+    """Positions and 8-connected moves (every move between two positions of ``cells`` is free)."""
+    index = {c: k for k, c in enumerate(cells)}
+    steps = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
+    move = np.full((len(cells), 8), -1)
+    for k, (i, j) in enumerate(cells):
+        for r, (di, dj) in enumerate(steps):
+            move[k, r] = index.get((i + di, j + dj), -1)
+    return np.array(cells, float) * 0.25, move, index
+
+
+def test_generator_ends_follow_the_challenge_generators_search():
+    """AI2-THOR's path generator ends at the first success position of a breadth-first search over axis moves
+    (+x, +z, -x, -z), not at the nearest one by metres: a position 2 axis moves away beats one diagonal step
+    (also 2 axis moves) only by the order; one 3 axis moves away beats a nearer one 4 away; the start itself comes
+    first; a type the search cannot reach is left out."""
+    cells = [(i, j) for i in range(-3, 4) for j in range(-3, 4)]
+    pos, move, index = _grid(cells)
+    start = index[(0, 0)]
+
+    def goals(*cs):
+        g = np.zeros(len(cells), bool)
+        g[[index[c] for c in cs]] = True
+        return g
+
+    ends = R_fid.generator_ends(
+        pos,
+        move,
+        {
+            "Diagonal": goals((1, 1), (0, -2)),  # both 2 axis moves away: (1, 1) is reached through +x first
+            "Straight": goals((0, 2), (-1, -1)),  # (0, 2) comes through +z, (-1, -1) through -x: +z is earlier
+            "Far": goals((2, 2), (0, 3)),  # (2, 2): 0.71 m but 4 axis moves; (0, 3): 0.75 m, 3 moves
+            "Here": goals((0, 0), (1, 0)),
+            "None": np.zeros(len(cells), bool),
+        },
+        start,
+    )
+    assert ends == {"Diagonal": index[(1, 1)], "Straight": index[(0, 2)], "Far": index[(0, 3)], "Here": start}
+    # A wall: the cells x = 1 missing but (1, 3); the search goes round through (1, 3).
+    walled = [c for c in cells if c[0] != 1 or c[1] == 3]
+    pos_w, move_w, index_w = _grid(walled)
+    g = np.zeros(len(walled), bool)
+    g[index_w[(2, 0)]] = True
+    assert R_fid.generator_ends(pos_w, move_w, {"Apple": g}, index_w[(0, 0)]) == {"Apple": index_w[(2, 0)]}
+    # A neighbour is looked at once: a blocked move there marks it, and no other neighbour reaches it afterwards.
+    pos_b, move_b, index_b = _grid([(0, 0), (1, 0), (0, 1), (1, 1)])
+    move_b[index_b[(0, 0)], 2] = -1  # (0, 0) -> (1, 0) blocked (say, a table corner); (1, 1) -> (1, 0) is free
+    g = np.zeros(4, bool)
+    g[index_b[(1, 0)]] = True
+    assert R_fid.generator_ends(pos_b, move_b, {"Apple": g}, index_b[(0, 0)]) == {}
 
 
 # ------------------------------------------------------------------------------------------------ the world

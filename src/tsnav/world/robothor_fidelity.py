@@ -18,6 +18,14 @@ format of ``allenai/robothor-challenge`` ``dataset/{train,val}/episodes/``):
   the start of those its episodes end at; so where the path ratio is far from 1 and the end ratio is not, the walls,
   furniture and grid metric agree and the two worlds' success positions do not. An end that is not a tsnav position
   has no end ratio (``end_missing``); episodes without ``shortest_path`` have none either.
+* **generator ratio** (a diagnostic of which success position the challenge measured to): AI2-THOR's
+  ``GetShortestPath`` to an object does not head for the nearest position from which it succeeds. It searches
+  breadth-first from the start over 0.25 m moves along the world axes (+x, +z, -x, -z, in that order; a point is
+  tested when taken from the queue, a neighbour is considered once, whether its move is free or not) and ends at
+  the first point from which the object is visible, then measures the navmesh path there. :func:`generator_ends`
+  runs that search on tsnav's positions and success positions; the ratio is tsnav's metres to the position it
+  ends at over ``shortest_path_length``. Close to the path ratio, it says the rule that chose the challenge's ends
+  is not what separates the two worlds' lengths.
 
 :func:`path_lengths` computes the lengths with a multi-source Dijkstra over the position graph (scipy);
 :func:`path_lengths_reference` is the slow reference (heap Dijkstra per start) the tests hold it to.
@@ -137,6 +145,48 @@ def end_lengths(positions: np.ndarray, move: np.ndarray, ends: list[int]) -> dic
     return {e: np.asarray(d[k], dtype=np.float64) for k, e in enumerate(ends)}
 
 
+#: The order in which AI2-THOR's search for a path's end takes a point's neighbours: +x, +z, -x, -z (grid cells).
+GENERATOR_ORDER = ((1, 0), (0, 1), (-1, 0), (0, -1))
+
+
+def generator_ends(positions: np.ndarray, move: np.ndarray, goals: dict[str, np.ndarray], start: int) -> dict[str, int]:
+    """Per type of ``goals`` (``(P,)`` bool success positions): the position AI2-THOR's shortest-path generator ends
+    at from ``start`` (module docstring, generator ratio): a breadth-first search over moves along the world axes in
+    :data:`GENERATOR_ORDER`, each point tested when taken from the queue (the start first), each neighbour cell
+    considered once (marked when first looked at, even when the move there is blocked). Types with no success
+    position the search reaches are left out."""
+    cells = np.round(positions / GRID_SIZE).astype(np.int64)
+    axis: dict[tuple[int, int], dict[tuple[int, int], int]] = {}
+    src, k = np.nonzero(move >= 0)
+    for a, b in zip(src.tolist(), move[src, k].tolist()):
+        d = (int(cells[b, 0] - cells[a, 0]), int(cells[b, 1] - cells[a, 1]))
+        if d in GENERATOR_ORDER:
+            axis.setdefault(a, {})[d] = b
+    left = {t: g for t, g in goals.items() if g.any()}
+    found: dict[str, int] = {}
+    queue, done, seen = [start], set(), set()
+    head = 0
+    while head < len(queue) and left:
+        p = queue[head]
+        head += 1
+        if p in done:
+            continue
+        done.add(p)
+        for t in [t for t, g in left.items() if g[p]]:
+            found[t] = p
+            del left[t]
+        c = (int(cells[p, 0]), int(cells[p, 1]))
+        for d in GENERATOR_ORDER:
+            q = (c[0] + d[0], c[1] + d[1])
+            if q in seen:
+                continue
+            seen.add(q)
+            n = axis.get(p, {}).get(d)
+            if n is not None:
+                queue.append(n)
+    return found
+
+
 def path_end(e: dict) -> tuple[int, int] | None:
     """The grid cell where the challenge episode ``e``'s shortest path ends (None when it has no path)."""
     path = e.get("shortest_path") or []
@@ -153,6 +203,17 @@ def measure_scene(scene, episodes: list[dict]) -> dict:
     goals = type_goals(scene, positions)
     dist = {t: path_lengths(positions, move, g) for t, g in goals.items()}
     to_end = end_lengths(positions, move, [index[c] for c in map(path_end, episodes) if c in index])
+    kept_starts = sorted(
+        {
+            index[c]
+            for c in (cell(float(e["initial_position"]["x"]), float(e["initial_position"]["z"])) for e in episodes)
+            if c in index
+        }
+    )
+    metres = dijkstra(step_lengths(positions, move), directed=True, indices=kept_starts) if kept_starts else []
+    from_start = dict(zip(kept_starts, np.atleast_2d(metres)))
+    gen_ends = {s: generator_ends(positions, move, goals, s) for s in kept_starts}
+    gen_ratios = []
     end_ratios, end_missing = [], 0
     starts, kept, missing = 0, 0, set()
     ratios, zero, zero_ok, no_goal = [], 0, 0, 0
@@ -178,6 +239,8 @@ def measure_scene(scene, episodes: list[dict]) -> dict:
             rows.append([t, L, d if math.isfinite(d) else None])
             continue
         ratios.append(d / L)
+        g = gen_ends[s].get(t)
+        gen_ratios.append(float(from_start[s][g]) / L if g is not None else math.inf)
         k = index.get(path_end(e)) if e.get("shortest_path") else None
         de = float(to_end[k][s]) if k is not None else math.inf
         if e.get("shortest_path"):
@@ -199,6 +262,7 @@ def measure_scene(scene, episodes: list[dict]) -> dict:
         "no_success_state": no_goal,
         "ratios": [round(r, 4) if math.isfinite(r) else None for r in ratios],
         "end_ratios": [round(r, 4) if math.isfinite(r) else None for r in end_ratios],
+        "generator_ratios": [round(r, 4) if math.isfinite(r) else None for r in gen_ratios],
         "end_missing": end_missing,
         "missing_starts": sorted([i * GRID_SIZE, j * GRID_SIZE] for i, j in missing),
         "episodes_table": rows,
@@ -239,6 +303,20 @@ def end_summary(end_ratios: list) -> dict:
     }
 
 
+def generator_summary(ratios: list) -> dict:
+    """Figures of the generator ratios (None: the search reaches no success position): median, shares within
+    +-25 % and +-10 %."""
+    r = np.array([np.inf if v is None else v for v in ratios], dtype=np.float64)
+    if not len(r):
+        return {"generator_ratios": 0}
+    return {
+        "generator_ratios": int(len(r)),
+        "generator_median": round(float(np.median(r)), 4),
+        "generator_within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2),
+        "generator_within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2),
+    }
+
+
 def summarise(scenes: list[dict], split: str) -> dict:
     """Totals over the scenes of one split (``train`` or ``val``)."""
     mine = [s for s in scenes if s["split"] == split]
@@ -246,6 +324,7 @@ def summarise(scenes: list[dict], split: str) -> dict:
         [v for s in mine for v in s["ratios"]], sum(s["episodes"] for s in mine), sum(s["starts_kept"] for s in mine)
     )
     out.update(end_summary([v for s in mine for v in s.get("end_ratios", [])]))
+    out.update(generator_summary([v for s in mine for v in s.get("generator_ratios", [])]))
     out.update(
         {
             "scenes": len(mine),
@@ -340,8 +419,8 @@ def markdown(doc: dict) -> str:
     lines = [
         "| split | scenes | episodes | starts kept % | distinct starts kept | ratio median | p10-p90 | "
         "within +-25 % | within +-10 % | no tsnav path | L = 0 (tsnav 0 too) | end ratio median | "
-        "end ratio within +-25 % |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "end ratio within +-25 % | generator ratio median | generator ratio within +-25 % |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for split in ("train", "val"):
         s = doc["summary"].get(split)
@@ -351,7 +430,8 @@ def markdown(doc: dict) -> str:
             f"| {split} | {s['scenes']} | {s['episodes']} | {s['starts_kept_pct']:.2f} | "
             f"{s['distinct_kept']}/{s['distinct_starts']} | {s['median']} | {s['p10']}-{s['p90']} | "
             f"{s['within_25_pct']} | {s['within_10_pct']} | {s['no_path']} | {s['zero_length']} "
-            f"({s['zero_length_ok']}) | {s.get('end_median')} | {s.get('end_within_25_pct')} |"
+            f"({s['zero_length_ok']}) | {s.get('end_median')} | {s.get('end_within_25_pct')} | "
+            f"{s.get('generator_median')} | {s.get('generator_within_25_pct')} |"
         )
     lines += [
         "",
@@ -402,7 +482,7 @@ def robothor_fidelity_report(
         raise EpisodesError(f"{episodes}: no episodes for any complete scene of {data}")
     doc = {
         "format": "tsnav-robothor-fidelity",
-        "version": 2,
+        "version": 3,
         "data": str(data),
         "episodes": str(episodes),
         "success_distance": SUCCESS_DISTANCE,
@@ -418,6 +498,7 @@ def robothor_fidelity_report(
 __all__ = [
     "EpisodesError",
     "end_lengths",
+    "generator_ends",
     "end_summary",
     "load_episodes",
     "measure_scene",
