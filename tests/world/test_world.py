@@ -190,6 +190,52 @@ def test_determinism_two_builds_identical(tmp_path):
         assert filecmp.cmp(tmp_path / "a" / "FloorPlan401" / f, tmp_path / "b" / "FloorPlan401" / f, shallow=False), f
 
 
+def test_camera_height_renders_from_another_eye(tmp_path, capsys):
+    """``camera_height`` (``tsnav world --camera-height``) renders the frames and visibility tables from another
+    height, recorded in scene.json; a folder of finished scenes from another height is refused in one line, and so
+    is a height out of range, before anything is built."""
+    from tsnav.cli import main
+    from tsnav.world.build import BuildConfig, build_dataset
+
+    low = BuildConfig(image_size=32, compact=True, camera_height=0.88)
+    build_dataset(tmp_path / "low", scenes=["FloorPlan401"], cfg=low, progress=False)
+    build_dataset(
+        tmp_path / "std", scenes=["FloorPlan401"], cfg=BuildConfig(image_size=32, compact=True), progress=False
+    )
+    meta = json.loads((tmp_path / "low" / "FloorPlan401" / "scene.json").read_text())
+    assert meta["camera"] == {"height": 0.88, "field_of_view": 90.0}
+    a, b = load_scene(tmp_path / "low" / "FloorPlan401"), load_scene(tmp_path / "std" / "FloorPlan401")
+    assert (a.x == b.x).all() and (a.z == b.z).all()  # the same states and graph
+    with (
+        h5py.File(tmp_path / "low" / "FloorPlan401" / "depth.hdf5") as fa,
+        h5py.File(tmp_path / "std" / "FloorPlan401" / "depth.hdf5") as fb,
+    ):
+        k = sorted(fa.keys())[0]
+        da, db = np.asarray(fa[k], np.float32), np.asarray(fb[k], np.float32)
+    assert not np.array_equal(da, db)  # another eye, another frame
+    from tsnav.world.show import render_views
+
+    pose = np.array([[a.x[0], a.z[0], a.rotation[0], a.horizon[0]]], np.float64)
+    key = state_key(float(a.x[0]), float(a.z[0]), int(a.rotation[0]), int(a.horizon[0]))
+    with h5py.File(tmp_path / "low" / "FloorPlan401" / "depth.hdf5") as fa:
+        stored = np.asarray(fa[key], np.float32)
+    again = render_views(a, pose, size=32)[1][0]  # drawn again from the scene's own camera height
+    assert np.allclose(again, stored, atol=0.01)
+    with pytest.raises(
+        ValueError, match=r"rendered from a camera 0.88 m high, this build from 1.5 m: use another --out"
+    ):
+        build_dataset(
+            tmp_path / "low", scenes=["FloorPlan402"], cfg=BuildConfig(image_size=32, compact=True), progress=False
+        )
+    assert not (tmp_path / "low" / "FloorPlan402").exists()
+    with pytest.raises(ValueError, match="camera_height must be between 0.1 and 3.0 metres"):
+        BuildConfig(camera_height=5.0)
+    assert main(["world", "--preset", "tiny", "--camera-height", "0", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--camera-height: camera_height must be between 0.1 and 3.0 metres, got 0.0" in err and "\n" not in err
+    assert not (tmp_path / "x").exists()
+
+
 def test_interrupted_build_resumes(tmp_path):
     """A build killed mid-way leaves no complete-looking partial scene; rerunning finishes the rest."""
     out = tmp_path / "w"

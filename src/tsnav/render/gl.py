@@ -231,8 +231,8 @@ class Renderer:
         self.prog["u_diffuse"].value = float(light.get("diffuse", 0.45))
         self.prog["u_tint"].value = tuple(light.get("tint", (1.0, 1.0, 1.0)))
 
-    def render(self, poses: np.ndarray):
-        """Render ``poses`` (V, 4) rows of (x, z, rotation, horizon).
+    def render(self, poses: np.ndarray, height: float = CAMERA_HEIGHT):
+        """Render ``poses`` (V, 4) rows of (x, z, rotation, horizon) from a camera ``height`` m above the floor.
 
         Returns ``rgb`` (V, S, S, 3) uint8, ``depth`` (V, S, S) float32 metres, ``ids`` (V, S, S) int32,
         image row 0 at the top.
@@ -253,10 +253,10 @@ class Renderer:
             for i, (x, z, r, h) in enumerate(chunk):
                 col, row = i % self.cols, i // self.cols
                 self.fbo.viewport = (col * S, row * S, S, S)
-                view, vp = camera_matrices(x, z, r, h)
+                view, vp = camera_matrices(x, z, r, h, height=height)
                 self.prog["u_viewproj"].write(vp.T.tobytes())
                 self.prog["u_view"].write(view.T.tobytes())
-                self.prog["u_eye"].value = (float(x), 1.5, float(z))
+                self.prog["u_eye"].value = (float(x), float(height), float(z))
                 self.vao.render(instances=self.n_inst)
             W = self.cols * S
             c = np.frombuffer(self.fbo.read(components=3, attachment=0), np.uint8).reshape(self.rows * S, W, 3)

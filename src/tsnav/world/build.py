@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
-from ..constants import HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
+from ..constants import CAMERA_HEIGHT, FIELD_OF_VIEW, HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
 from ..data.writer import (
@@ -65,6 +65,13 @@ class BuildConfig:
     #: (furniture from the plans, targets inferred from their challenge train episodes), not from their records
     infer_train: str | None = None
     tiles: int = 16  #: views rendered per framebuffer read
+    #: height of the camera above the floor, metres (the lineage's 1.5 m; the RoboTHOR challenge's LoCoBot sees from
+    #: about 0.87 m): the frames and the visibility tables are rendered from it
+    camera_height: float = CAMERA_HEIGHT
+
+    def __post_init__(self):
+        if not 0.1 <= self.camera_height <= 3.0:
+            raise ValueError(f"camera_height must be between 0.1 and 3.0 metres, got {self.camera_height}")
 
     def min_pixels(self) -> int:
         return min_pixels(self.image_size)
@@ -139,7 +146,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
                 chunk = renderer.tiles * 4
                 for start in range(0, V, chunk):
                     t1 = time.perf_counter()
-                    rgb, depth, ids = renderer.render(poses[start : start + chunk])
+                    rgb, depth, ids = renderer.render(poses[start : start + chunk], height=cfg.camera_height)
                     px, bx = (
                         object_stats(ids, lut, O)
                         if O
@@ -179,6 +186,7 @@ def build_scene(name: str, out_dir: str | Path, cfg: BuildConfig, renderer: Rend
                 {
                     "image_size": cfg.image_size,
                     "compact": cfg.compact,
+                    "camera": {"height": cfg.camera_height, "field_of_view": FIELD_OF_VIEW},
                     "visibility": {
                         "min_pixels": min_px,
                         "min_pixel_fraction": MIN_PIXEL_FRACTION,
@@ -292,6 +300,21 @@ def finished_generator(folder: Path) -> dict | None:
         return None
 
 
+def check_camera(out: Path, cfg: BuildConfig) -> None:
+    """Refuse to build into a folder whose finished scenes were rendered from another camera height (finished
+    scenes are skipped, so the world would mix them): one-line ``ValueError``. A scene that records no camera was
+    rendered from :data:`~tsnav.constants.CAMERA_HEIGHT`."""
+    for d in sorted(p for p in out.iterdir() if p.is_dir() and (p / COMPLETE_MARKER).exists()):
+        try:
+            have = float((json.loads((d / "scene.json").read_text()).get("camera") or {}).get("height", CAMERA_HEIGHT))
+        except (OSError, ValueError, TypeError, AttributeError):
+            continue  # unreadable: the reader's problem, not a build mismatch
+        if abs(have - cfg.camera_height) > 1e-6:
+            raise ValueError(
+                f"{d} was rendered from a camera {have} m high, this build from {cfg.camera_height} m: use another --out"
+            )
+
+
 def check_world_version(out: Path, names: list[str], cfg: BuildConfig) -> None:
     """Refuse to add ``ithor-real`` rooms of one rules version to a folder whose finished rooms were built with
     another (finished rooms are skipped, so the world would mix versions): one-line ``ValueError``. A room
@@ -339,6 +362,7 @@ def build_dataset(
         shutil.rmtree(stale, ignore_errors=True)
     check_world_version(out, names, cfg)
     check_train_objects(out, cfg)
+    check_camera(out, cfg)
     write_index(out, preset or "custom", names, cfg)
     todo = [(n, out, cfg) for n in names]
     results: list[SceneStats] = []

@@ -60,6 +60,14 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         "inferred from 120 of each scene's challenge train episodes, CHALLENGE/train/SCENE.json.gz), not from their "
         "object records: a world whose train scenes look like its val scenes",
     )
+    p.add_argument(
+        "--camera-height",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="camera height above the floor the frames and visibility tables are rendered from (default 1.5, the "
+        "lineage's; the RoboTHOR challenge's LoCoBot sees from about 0.87)",
+    )
     p.add_argument("--scenes", default=None, help="comma-separated scene names instead of the preset's")
     p.add_argument("--size", type=int, default=None, help="image side in pixels (default: the preset's)")
     p.add_argument("--no-images", action="store_true", help="do not store images.hdf5 / depth.hdf5")
@@ -126,16 +134,20 @@ def run(args) -> int:
         raise CommandError("--out DIR is required to build a dataset")
     if args.preset not in PRESETS:
         raise CommandError(f"unknown preset {args.preset!r} (choose from {', '.join(PRESETS)})")
-    cfg = BuildConfig.from_preset(
-        args.preset,
-        store_images=not args.no_images,
-        seed=args.seed,
-        **({"compression": None} if args.no_compression else {}),
-        **({"image_size": args.size} if args.size else {}),
-        **({"compact": True} if args.compact else {}),
-        **({"world_version": args.world_version} if args.world_version is not None else {}),
-        **({"infer_train": str(Path(args.infer_train_objects).resolve())} if args.infer_train_objects else {}),
-    )
+    try:
+        cfg = BuildConfig.from_preset(
+            args.preset,
+            **({"camera_height": args.camera_height} if args.camera_height is not None else {}),
+            store_images=not args.no_images,
+            seed=args.seed,
+            **({"compression": None} if args.no_compression else {}),
+            **({"image_size": args.size} if args.size else {}),
+            **({"compact": True} if args.compact else {}),
+            **({"world_version": args.world_version} if args.world_version is not None else {}),
+            **({"infer_train": str(Path(args.infer_train_objects).resolve())} if args.infer_train_objects else {}),
+        )
+    except ValueError as e:
+        raise CommandError(f"--camera-height: {e}") from None
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
     if cfg.infer_train is not None:
         if cfg.world != "robothor-real":

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Polygon as MplPolygon
 
 from ..atomic import atomic_save_figure
-from ..constants import TARGET_CATEGORIES
+from ..constants import CAMERA_HEIGHT, TARGET_CATEGORIES
 from ..data.reader import SceneFormatError, load_scene
 from ..errors import CommandError
 from ..render.gl import Renderer
@@ -64,11 +64,12 @@ def draw_topdown(ax, scene, show_grid: bool = True, label_objects: bool = True) 
 
 
 def render_views(scene, poses: np.ndarray, size: int = 128):
-    """Render ``poses`` (V, 4: x, z, rotation, horizon) of a tsnav scene folder with the scene's parts."""
+    """Render ``poses`` (V, 4: x, z, rotation, horizon) of a tsnav scene folder with the scene's parts, from the
+    camera height it was built with."""
     r = Renderer(size, tiles=max(1, len(poses)))
     try:
         r.set_scene(np.array(scene.meta["parts"], dtype=np.float32), scene.meta.get("light"))
-        return r.render(poses)
+        return r.render(poses, height=float((scene.meta.get("camera") or {}).get("height", CAMERA_HEIGHT)))
     finally:
         r.release()
 
