@@ -365,7 +365,8 @@ def read_recipe(path: str | Path) -> dict:
     A recipe may build on another: ``extends = "OTHER.toml"`` (top level; relative to the recipe's folder) reads
     OTHER first (itself perhaps extending a third) and lays this file's settings over it, section by section and
     key by key (:func:`merge`); the result has no ``extends`` key. A recipe cannot take a base's setting or section
-    away, only set it; a chain that comes back to a file it passed through is refused."""
+    away, only set it; it must set its own ``name`` when the base has one, and ``[card] default`` (the default
+    agent) is never inherited. A chain that comes back to a file it passed through is refused."""
     return _read_recipe(Path(path), ())
 
 
@@ -383,7 +384,15 @@ def _read_recipe(p: Path, chain: tuple[Path, ...]) -> dict:
         raise CommandError(f"{p}: {EXTENDS} = {base!r} comes back to a recipe it passed through ({loop})")
     if not target.exists():
         raise CommandError(f"{p}: {EXTENDS} = {base!r}: no such recipe file ({target})")
-    return merge(_read_recipe(target, (*chain, here)), recipe)
+    inherited = _read_recipe(target, (*chain, here))
+    if "name" in inherited and "name" not in recipe:
+        raise CommandError(
+            f"{p}: extends {base!r} but sets no name of its own (it would make the agent {base!r} makes)"
+        )
+    card = inherited.get("card")
+    if isinstance(card, dict):
+        card.pop("default", None)  # which agent is the default is said by its own recipe, never inherited
+    return merge(inherited, recipe)
 
 
 def parse_value(text: str):

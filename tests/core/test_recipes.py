@@ -220,15 +220,24 @@ def test_a_recipe_extends_another(tmp_path):
     )
     (tmp_path / "base" / "b.toml").write_text('extends = "a.toml"\nname = "b"\n[train]\nseed = 2\n')
     (tmp_path / "c.toml").write_text(
-        'extends = "base/b.toml"\n[reward.area]\nnear_level = 0.5\n[card]\nsummary = "c"\n'
+        'extends = "base/b.toml"\nname = "c"\n[reward.area]\nnear_level = 0.5\n[card]\nsummary = "c"\n'
     )
     assert read_recipe(tmp_path / "c.toml") == {
-        "name": "b",
+        "name": "c",
         "train": {"lr": 0.001, "seed": 2},
         "reward": {"k_distance": 0.15, "area": {"near_level": 0.5, "far_level": 4.0}},
         "card": {"summary": "c"},
     }
     assert read_recipe(tmp_path / "base" / "a.toml")["train"] == {"lr": 0.001, "seed": 1}  # the base is unchanged
+    # the default agent is never inherited, and an extending recipe names its own agent
+    (tmp_path / "base" / "default.toml").write_text('name = "d"\n[card]\ndefault = true\nsummary = "d"\n')
+    (tmp_path / "mine.toml").write_text('extends = "base/default.toml"\nname = "mine"\n')
+    assert read_recipe(tmp_path / "mine.toml")["card"] == {"summary": "d"}
+    (tmp_path / "own.toml").write_text('extends = "base/default.toml"\nname = "own"\n[card]\ndefault = true\n')
+    assert read_recipe(tmp_path / "own.toml")["card"]["default"] is True
+    (tmp_path / "noname.toml").write_text('extends = "base/default.toml"\n')
+    with pytest.raises(CommandError, match=r"noname.toml: extends 'base/default.toml' but sets no name of its own"):
+        read_recipe(tmp_path / "noname.toml")
     (tmp_path / "base" / "a.toml").write_text('extends = "../c.toml"\n')
     with pytest.raises(CommandError, match="comes back to a recipe it passed through") as e:
         read_recipe(tmp_path / "c.toml")

@@ -206,6 +206,7 @@ def test_camera_height_renders_from_another_eye(tmp_path, capsys):
     assert meta["camera"] == {"height": 0.88, "field_of_view": 90.0}
     a, b = load_scene(tmp_path / "low" / "FloorPlan401"), load_scene(tmp_path / "std" / "FloorPlan401")
     assert (a.x == b.x).all() and (a.z == b.z).all()  # the same states and graph
+    assert not np.array_equal(a.pixels, b.pixels)  # the visibility tables are rendered from the camera too
     with (
         h5py.File(tmp_path / "low" / "FloorPlan401" / "depth.hdf5") as fa,
         h5py.File(tmp_path / "std" / "FloorPlan401" / "depth.hdf5") as fb,

@@ -289,26 +289,34 @@ def check_output_dir(out: Path) -> None:
         raise PermissionError(f"cannot write to output folder {out}: {e.strerror or e}") from None
 
 
-def finished_generator(folder: Path) -> dict | None:
-    """The ``generator`` record of a finished scene folder's ``scene.json`` ({} when it has none); None when the
-    folder is not finished or its scene.json is unreadable (the reader's problem, not a build mismatch)."""
+def finished_meta(folder: Path) -> dict | None:
+    """A finished scene folder's ``scene.json``; None when the folder is not finished or its scene.json is
+    unreadable (the reader's problem, not a build mismatch)."""
     if not (folder / COMPLETE_MARKER).exists():
         return None
     try:
-        return json.loads((folder / "scene.json").read_text()).get("generator") or {}
+        meta = json.loads((folder / "scene.json").read_text())
     except (OSError, ValueError):
         return None
+    return meta if isinstance(meta, dict) else None
+
+
+def finished_generator(folder: Path) -> dict | None:
+    """The ``generator`` record of a finished scene folder's ``scene.json`` ({} when it has none); None as
+    :func:`finished_meta`."""
+    meta = finished_meta(folder)
+    return None if meta is None else meta.get("generator") or {}
 
 
 def check_camera(out: Path, cfg: BuildConfig) -> None:
     """Refuse to build into a folder whose finished scenes were rendered from another camera height (finished
     scenes are skipped, so the world would mix them): one-line ``ValueError``. A scene that records no camera was
     rendered from :data:`~tsnav.constants.CAMERA_HEIGHT`."""
-    for d in sorted(p for p in out.iterdir() if p.is_dir() and (p / COMPLETE_MARKER).exists()):
-        try:
-            have = float((json.loads((d / "scene.json").read_text()).get("camera") or {}).get("height", CAMERA_HEIGHT))
-        except (OSError, ValueError, TypeError, AttributeError):
-            continue  # unreadable: the reader's problem, not a build mismatch
+    for d in sorted(p for p in out.iterdir() if p.is_dir()):
+        meta = finished_meta(d)
+        if meta is None:
+            continue
+        have = float((meta.get("camera") or {}).get("height", CAMERA_HEIGHT))
         if abs(have - cfg.camera_height) > 1e-6:
             raise ValueError(
                 f"{d} was rendered from a camera {have} m high, this build from {cfg.camera_height} m: use another --out"

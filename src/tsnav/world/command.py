@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from dataclasses import replace
 from pathlib import Path
 
 from ..errors import CommandError
@@ -134,20 +135,21 @@ def run(args) -> int:
         raise CommandError("--out DIR is required to build a dataset")
     if args.preset not in PRESETS:
         raise CommandError(f"unknown preset {args.preset!r} (choose from {', '.join(PRESETS)})")
-    try:
-        cfg = BuildConfig.from_preset(
-            args.preset,
-            **({"camera_height": args.camera_height} if args.camera_height is not None else {}),
-            store_images=not args.no_images,
-            seed=args.seed,
-            **({"compression": None} if args.no_compression else {}),
-            **({"image_size": args.size} if args.size else {}),
-            **({"compact": True} if args.compact else {}),
-            **({"world_version": args.world_version} if args.world_version is not None else {}),
-            **({"infer_train": str(Path(args.infer_train_objects).resolve())} if args.infer_train_objects else {}),
-        )
-    except ValueError as e:
-        raise CommandError(f"--camera-height: {e}") from None
+    cfg = BuildConfig.from_preset(
+        args.preset,
+        store_images=not args.no_images,
+        seed=args.seed,
+        **({"compression": None} if args.no_compression else {}),
+        **({"image_size": args.size} if args.size else {}),
+        **({"compact": True} if args.compact else {}),
+        **({"world_version": args.world_version} if args.world_version is not None else {}),
+        **({"infer_train": str(Path(args.infer_train_objects).resolve())} if args.infer_train_objects else {}),
+    )
+    if args.camera_height is not None:
+        try:
+            cfg = replace(cfg, camera_height=args.camera_height)
+        except ValueError as e:  # BuildConfig's own check
+            raise CommandError(f"--camera-height: {e}") from None
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
     if cfg.infer_train is not None:
         if cfg.world != "robothor-real":

@@ -149,19 +149,32 @@ def end_lengths(positions: np.ndarray, move: np.ndarray, ends: list[int]) -> dic
 GENERATOR_ORDER = ((1, 0), (0, 1), (-1, 0), (0, -1))
 
 
-def generator_ends(positions: np.ndarray, move: np.ndarray, goals: dict[str, np.ndarray], start: int) -> dict[str, int]:
-    """Per type of ``goals`` (``(P,)`` bool success positions): the position AI2-THOR's shortest-path generator ends
-    at from ``start`` (module docstring, generator ratio): a breadth-first search over moves along the world axes in
-    :data:`GENERATOR_ORDER`, each point tested when taken from the queue (the start first), each neighbour cell
-    considered once (marked when first looked at, even when the move there is blocked). Types with no success
-    position the search reaches are left out."""
+def axis_moves(positions: np.ndarray, move: np.ndarray) -> dict[int, dict[tuple[int, int], int]]:
+    """Per position id: its free moves along the world axes, ``{(di, dj) grid step: position id}``."""
     cells = np.round(positions / GRID_SIZE).astype(np.int64)
-    axis: dict[tuple[int, int], dict[tuple[int, int], int]] = {}
+    axis: dict[int, dict[tuple[int, int], int]] = {}
     src, k = np.nonzero(move >= 0)
     for a, b in zip(src.tolist(), move[src, k].tolist()):
         d = (int(cells[b, 0] - cells[a, 0]), int(cells[b, 1] - cells[a, 1]))
         if d in GENERATOR_ORDER:
             axis.setdefault(a, {})[d] = b
+    return axis
+
+
+def generator_ends(
+    positions: np.ndarray,
+    move: np.ndarray,
+    goals: dict[str, np.ndarray],
+    start: int,
+    axis: dict[int, dict[tuple[int, int], int]] | None = None,
+) -> dict[str, int]:
+    """Per type of ``goals`` (``(P,)`` bool success positions): the position AI2-THOR's shortest-path generator ends
+    at from ``start`` (module docstring, generator ratio): a breadth-first search over moves along the world axes in
+    :data:`GENERATOR_ORDER`, each point tested when taken from the queue (the start first), each neighbour cell
+    considered once (marked when first looked at, even when the move there is blocked). Types with no success
+    position the search reaches are left out. ``axis``: :func:`axis_moves` of the scene, when already made."""
+    cells = np.round(positions / GRID_SIZE).astype(np.int64)
+    axis = axis_moves(positions, move) if axis is None else axis
     left = {t: g for t, g in goals.items() if g.any()}
     found: dict[str, int] = {}
     queue, done, seen = [start], set(), set()
@@ -212,7 +225,8 @@ def measure_scene(scene, episodes: list[dict]) -> dict:
     )
     metres = dijkstra(step_lengths(positions, move), directed=True, indices=kept_starts) if kept_starts else []
     from_start = dict(zip(kept_starts, np.atleast_2d(metres)))
-    gen_ends = {s: generator_ends(positions, move, goals, s) for s in kept_starts}
+    axis = axis_moves(positions, move)
+    gen_ends = {s: generator_ends(positions, move, goals, s, axis) for s in kept_starts}
     gen_ratios = []
     end_ratios, end_missing = [], 0
     starts, kept, missing = 0, 0, set()
@@ -288,33 +302,29 @@ def ratio_summary(ratios: list, episodes: int, kept: int) -> dict:
     }
 
 
-def end_summary(end_ratios: list) -> dict:
-    """Figures of the end ratios (None: the end is not a tsnav position or cannot be reached): count, median,
-    shares within +-25 % and +-10 %."""
-    r = np.array([np.inf if v is None else v for v in end_ratios], dtype=np.float64)
+def band_summary(ratios: list, prefix: str) -> dict:
+    """Figures of a diagnostic ratio (None: no tsnav path), each key ``PREFIX_...``: count, median, shares within
+    +-25 % and +-10 %, and how many have no path."""
+    r = np.array([np.inf if v is None else v for v in ratios], dtype=np.float64)
     if not len(r):
-        return {"end_ratios": 0}
+        return {f"{prefix}_ratios": 0}
     return {
-        "end_ratios": int(len(r)),
-        "end_median": round(float(np.median(r)), 4),
-        "end_within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2),
-        "end_within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2),
-        "end_no_path": int((~np.isfinite(r)).sum()),
+        f"{prefix}_ratios": int(len(r)),
+        f"{prefix}_median": round(float(np.median(r)), 4),
+        f"{prefix}_within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2),
+        f"{prefix}_within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2),
+        f"{prefix}_no_path": int((~np.isfinite(r)).sum()),
     }
+
+
+def end_summary(end_ratios: list) -> dict:
+    """Figures of the end ratios (None: the end is not a tsnav position or cannot be reached)."""
+    return band_summary(end_ratios, "end")
 
 
 def generator_summary(ratios: list) -> dict:
-    """Figures of the generator ratios (None: the search reaches no success position): median, shares within
-    +-25 % and +-10 %."""
-    r = np.array([np.inf if v is None else v for v in ratios], dtype=np.float64)
-    if not len(r):
-        return {"generator_ratios": 0}
-    return {
-        "generator_ratios": int(len(r)),
-        "generator_median": round(float(np.median(r)), 4),
-        "generator_within_25_pct": round(100.0 * float((np.abs(r - 1) <= BAND).mean()), 2),
-        "generator_within_10_pct": round(100.0 * float((np.abs(r - 1) <= 0.10).mean()), 2),
-    }
+    """Figures of the generator ratios (None: the search reaches no success position)."""
+    return band_summary(ratios, "generator")
 
 
 def summarise(scenes: list[dict], split: str) -> dict:
@@ -435,15 +445,18 @@ def markdown(doc: dict) -> str:
         )
     lines += [
         "",
-        "| scene | positions | starts kept % | ratio median | within +-25 % | no tsnav path | end ratio within +-25 % |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| scene | positions | starts kept % | ratio median | within +-25 % | no tsnav path | end ratio within +-25 % | "
+        "generator ratio within +-25 % |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for sc in doc["scenes"]:
         s = ratio_summary(sc["ratios"], sc["episodes"], sc["starts_kept"])
         s.update(end_summary(sc.get("end_ratios", [])))
+        s.update(generator_summary(sc.get("generator_ratios", [])))
         lines.append(
             f"| {sc['scene']} | {sc['positions']} | {s['starts_kept_pct']:.1f} | {s['median']} | "
-            f"{s['within_25_pct']} | {s['no_path']} | {s.get('end_within_25_pct')} |"
+            f"{s['within_25_pct']} | {s['no_path']} | {s.get('end_within_25_pct')} | "
+            f"{s.get('generator_within_25_pct')} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -497,6 +510,8 @@ def robothor_fidelity_report(
 
 __all__ = [
     "EpisodesError",
+    "axis_moves",
+    "band_summary",
     "end_lengths",
     "generator_ends",
     "end_summary",

@@ -393,7 +393,7 @@ def missing_train_episodes(challenge: str | Path, names) -> str | None:
     from ..data.names import scene_info
 
     if not (Path(challenge) / "train").is_dir():
-        return f"{challenge}: no train/ folder of challenge episodes"
+        return "no train/ folder of challenge episodes"
     for n in names:
         f = train_episodes_file(challenge, n)
         if scene_info(n)[1] == "train" and not f.is_file():
