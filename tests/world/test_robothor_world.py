@@ -441,6 +441,48 @@ def test_generator_ends_follow_the_challenge_generators_search():
     assert R_fid.generator_ends(pos_b, move_b, {"Apple": g}, index_b[(0, 0)]) == {}
 
 
+class _GridScene:
+    """A 3 x 4 room of positions (x 0..0.5, z 0..0.75), 8 headings, every 0.25 m move free; one Apple seen (and
+    within 1 m) from the positions of ``goal_cells`` only."""
+
+    def __init__(self, goal_cells):
+        from tsnav.constants import MOVE_AHEAD, ROTATIONS
+
+        self.name = "FloorPlan_Val1_1"
+        cells = [(i, j) for i in range(3) for j in range(4)]
+        states = [(c, r) for c in cells for r in ROTATIONS]
+        index = {s: k for k, s in enumerate(states)}
+        self.x = np.array([c[0] * 0.25 for c, _ in states], np.float32)
+        self.z = np.array([c[1] * 0.25 for c, _ in states], np.float32)
+        self.rotation = np.array([r for _, r in states], np.int16)
+        self.horizon = np.zeros(len(states), np.int16)
+        self.num_states = len(states)
+        nxt = np.repeat(np.arange(len(states))[:, None], 6, axis=1)
+        for k, ((i, j), r) in enumerate(states):
+            d = (round(math.sin(math.radians(r))), round(math.cos(math.radians(r))))  # rotation 0 faces +z
+            if (i + d[0], j + d[1]) in set(cells):
+                nxt[k, MOVE_AHEAD] = index[((i + d[0], j + d[1]), r)]
+        self.next_state = nxt
+        self.object_ids = np.array(["Apple|+01.00|+00.80|+00.00"])
+        seen = np.array([[c in goal_cells] for c, _ in states])
+        self.pixels = np.where(seen, 50, 0)
+        self.distance = np.where(seen, 0.5, 2.0).astype(np.float32)
+        self.meta = {"visibility": {"min_pixels": 17}}
+
+    def visible_at_any_range(self):
+        return self.pixels >= 17
+
+
+def test_measure_scene_generator_ratio_differs_from_the_path_ratio():
+    """From (0, 0) the nearest success position by metres is (2, 2) (two diagonal moves, 0.71 m), but the
+    generator's search reaches (0, 3) first (3 axis moves against 4; 0.75 m): the path ratio measures to the one,
+    the generator ratio to the other."""
+    eps = [{"object_type": "Apple", "initial_position": {"x": 0.0, "y": 0.9, "z": 0.0}, "shortest_path_length": 0.75}]
+    res = measure_scene(_GridScene({(2, 2), (0, 3)}), eps)
+    assert res["ratios"] == [pytest.approx(round(0.5 * math.sqrt(2) / 0.75, 4))]
+    assert res["generator_ratios"] == [1.0]
+
+
 # ------------------------------------------------------------------------------------------------ the world
 def test_val_scene_records_what_it_inferred():
     spec = R.robothor_spec("FloorPlan_Val2_3")
