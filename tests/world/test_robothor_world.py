@@ -291,17 +291,22 @@ def _line_graph(n: int):
     return pos, move
 
 
-def test_path_lengths_agree_with_the_reference():
-    rng = np.random.default_rng(0)
-    # A 6 x 6 grid with random holes, 8-connected moves where both ends exist.
-    cells = [(i, j) for i in range(6) for j in range(6) if rng.random() > 0.2]
+def _grid(cells):
+    """Positions and 8-connected moves (every move between two positions of ``cells`` is free)."""
     index = {c: k for k, c in enumerate(cells)}
-    pos = np.array(cells, float) * 0.25
     steps = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
     move = np.full((len(cells), 8), -1)
     for k, (i, j) in enumerate(cells):
         for r, (di, dj) in enumerate(steps):
             move[k, r] = index.get((i + di, j + dj), -1)
+    return np.array(cells, float) * 0.25, move, index
+
+
+def test_path_lengths_agree_with_the_reference():
+    rng = np.random.default_rng(0)
+    # A 6 x 6 grid with random holes, 8-connected moves where both ends exist.
+    cells = [(i, j) for i in range(6) for j in range(6) if rng.random() > 0.2]
+    pos, move, _ = _grid(cells)
     goals = np.zeros(len(cells), bool)
     goals[[0, len(cells) // 2]] = True
     fast = path_lengths(pos, move, goals)
@@ -389,17 +394,6 @@ def test_end_ratio_measures_to_where_the_challenge_path_ends():
         )
 
 
-def _grid(cells):
-    """Positions and 8-connected moves (every move between two positions of ``cells`` is free)."""
-    index = {c: k for k, c in enumerate(cells)}
-    steps = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
-    move = np.full((len(cells), 8), -1)
-    for k, (i, j) in enumerate(cells):
-        for r, (di, dj) in enumerate(steps):
-            move[k, r] = index.get((i + di, j + dj), -1)
-    return np.array(cells, float) * 0.25, move, index
-
-
 def test_generator_ends_follow_the_challenge_generators_search():
     """AI2-THOR's path generator ends at the first success position of a breadth-first search over axis moves
     (+x, +z, -x, -z), not at the nearest one by metres: a position 2 axis moves away beats one diagonal step
@@ -458,9 +452,10 @@ class _GridScene:
         self.horizon = np.zeros(len(states), np.int16)
         self.num_states = len(states)
         nxt = np.repeat(np.arange(len(states))[:, None], 6, axis=1)
+        free = set(cells)
         for k, ((i, j), r) in enumerate(states):
             d = (round(math.sin(math.radians(r))), round(math.cos(math.radians(r))))  # rotation 0 faces +z
-            if (i + d[0], j + d[1]) in set(cells):
+            if (i + d[0], j + d[1]) in free:
                 nxt[k, MOVE_AHEAD] = index[((i + d[0], j + d[1]), r)]
         self.next_state = nxt
         self.object_ids = np.array(["Apple|+01.00|+00.80|+00.00"])
