@@ -92,3 +92,59 @@ def test_switch_misses_by_hand(diag, tmp_path, capsys):
     )  # equal "B only": most A misses first
     with pytest.raises(SystemExit, match="no trajectories.jsonl"):
         diag.main(["switches", str(tmp_path / "A"), str(tmp_path)])
+
+
+def test_switch_distance_bands_by_hand(diag):
+    from tsnav.metrics import EpisodeRecord
+
+    def rec(opt_nav, nav, success, switched=True):
+        return EpisodeRecord(
+            success=success,
+            path_length=nav,
+            optimal_length=opt_nav,
+            entered_pathfinding=switched,
+            pathfinding_path_length=nav if switched else None,
+            optimal_pathfinding_length=opt_nav if switched else None,
+        )
+
+    records = [
+        rec(0, 0, True),  # began at the goal: a success without a ratio
+        rec(2, 4, True),  # ratio 2
+        rec(4, 4, False),
+        rec(7, 14, True),  # ratio 2, band 5-9
+        rec(31, 40, False),  # the open-ended band
+        rec(45, 90, True),  # ratio 2, the same band
+        rec(3, 3, True, switched=False),  # never switched: not counted
+    ]
+    rows = diag.switch_distance_figures(records, band=5, last=30)
+    assert [(r["from"], r["to"], r["episodes"], r["successes"]) for r in rows] == [
+        (0, 5, 3, 2),
+        (5, 10, 1, 1),
+        (30, None, 2, 1),
+    ]
+    assert rows[0]["success_share"] == pytest.approx(2 / 3) and rows[0]["median_ratio"] == pytest.approx(2.0)
+    assert rows[2]["median_ratio"] == pytest.approx(2.0)
+    only_goal = diag.switch_distance_figures([rec(0, 0, True)])
+    assert only_goal[0]["median_ratio"] is None
+    with pytest.raises(ValueError, match="multiple of --band"):
+        diag.switch_distance_figures(records, band=4, last=30)
+
+
+def test_switch_distance_command(diag, tiny_world, tmp_path, capsys):
+    eps = tmp_path / "eps.json"
+    assert (
+        main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "4", "--out", str(eps)]) == 0
+    )
+    ev = tmp_path / "eval"
+    assert (
+        main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "explorer", "--out", str(ev)]) == 0
+    )
+    capsys.readouterr()
+    assert diag.main(["switch-distance", str(ev), "--band", "2", "--last", "4"]) == 0
+    out = capsys.readouterr().out
+    from tsnav.metrics import read_records
+
+    switched = sum(r.entered_pathfinding for r in read_records(ev / "records.jsonl"))
+    assert f"{switched} episodes switched" in out and "LNav/L*Nav" in out
+    with pytest.raises(SystemExit, match="no records.jsonl"):
+        diag.main(["switch-distance", str(tmp_path)])

@@ -1,4 +1,4 @@
-"""Four diagnostics behind docs/RESULTS.md's issue 23 sections (analysis only: nothing here reaches an agent).
+"""Five diagnostics behind docs/RESULTS.md's agent sections (analysis only: nothing here reaches an agent).
 
 ``rotations EVAL_DIR ...``: how an evaluated agent turns. Per ``tsnav eval`` folder (its ``trajectories.jsonl``):
 the share of each rotation among all actions, and the runs of one rotation repeated 5-7 times in a row. With
@@ -23,10 +23,17 @@ only).
 oracle's), per target the episodes, those whose switch never fired in each, and those that fired only in B (what
 A's table misses where B's finds the target).
 
+``switch-distance EVAL_DIR ...``: how far from its target the pathfinding stage begins, and what that costs. Per
+``tsnav eval`` folder (its ``records.jsonl``): the episodes whose switch fired, grouped by the shortest path left
+at the switch (L*Nav, in movement actions; bands of ``--band`` actions, the last open-ended from ``--last``), each
+band's episodes, successes and success share, and the median ratio LNav / L*Nav of its successes (how much longer
+the walk after the switch was than the shortest; bands whose successes all began at the goal show none).
+
     tsnav analyze agent-diagnostics rotations EVAL_A EVAL_B
     tsnav analyze agent-diagnostics reach --data WORLD --episodes TEST.json --detections learned4 oracle
     tsnav analyze agent-diagnostics outcomes EVAL_A EVAL_B [--data WORLD]
     tsnav analyze agent-diagnostics switches EVAL_A EVAL_B
+    tsnav analyze agent-diagnostics switch-distance EVAL_A EVAL_B [--band 5] [--last 30]
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ from ..constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, MOVE_AHEAD
 from ..data.detections import load_detections
 from ..data.reader import load_scene
 from ..eval.runner import read_trajectories
+from ..metrics import read_records
 from ..sim.episodes import read_episodes
 
 LEFT, RIGHT = ACTIONS.index("RotateLeft"), ACTIONS.index("RotateRight")
@@ -170,6 +178,39 @@ def switch_misses(a, b) -> dict:
     return out
 
 
+def switch_distance_figures(records, band: int = 5, last: int = 30) -> list[dict]:
+    """The ``switch-distance`` rows (module docstring) of :class:`~tsnav.metrics.EpisodeRecord` objects: one per
+    band ``[lo, lo + band)`` of L*Nav up to ``last``, then ``[last, inf)``; bands without episodes are left out."""
+    if band < 1 or last < band or last % band:
+        raise ValueError(
+            f"switch-distance: --band {band} and --last {last} must be positive, --last a multiple of --band"
+        )
+    groups: dict[int, list] = {}
+    for r in records:
+        if not r.entered_pathfinding or r.optimal_pathfinding_length is None:
+            continue
+        lo = min(r.optimal_pathfinding_length // band * band, last)
+        groups.setdefault(lo, []).append(r)
+    rows = []
+    for lo in sorted(groups):
+        rs = groups[lo]
+        wins = [r for r in rs if r.success]
+        ratios = [
+            r.pathfinding_path_length / r.optimal_pathfinding_length for r in wins if r.optimal_pathfinding_length
+        ]
+        rows.append(
+            {
+                "from": lo,
+                "to": None if lo == last else lo + band,
+                "episodes": len(rs),
+                "successes": len(wins),
+                "success_share": len(wins) / len(rs),
+                "median_ratio": float(np.median(ratios)) if ratios else None,
+            }
+        )
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         allow_abbrev=False, prog="tsnav analyze agent-diagnostics", description=__doc__.splitlines()[0]
@@ -187,7 +228,28 @@ def main(argv=None) -> int:
     w = sub.add_parser("switches", help="where the switch fires in one evaluation and not in another, by target")
     w.add_argument("eval_a")
     w.add_argument("eval_b")
+    d = sub.add_parser("switch-distance", help="success after the switch by the shortest path left at the switch")
+    d.add_argument("evals", nargs="+", help="tsnav eval output folders")
+    d.add_argument("--band", type=int, default=5, help="band width in movement actions (default 5)")
+    d.add_argument("--last", type=int, default=30, help="the open-ended last band starts here (default 30)")
     a = p.parse_args(argv)
+    if a.cmd == "switch-distance":
+        for f in a.evals:
+            path = Path(f) / "records.jsonl"
+            if not path.exists():
+                raise SystemExit(f"{f}: no records.jsonl (a `tsnav eval` output folder?)")
+            try:
+                rows = switch_distance_figures(read_records(path), a.band, a.last)
+            except ValueError as e:
+                raise SystemExit(str(e)) from None
+            n = sum(r["episodes"] for r in rows)
+            print(f"{f}: {n} episodes switched")
+            print(f"  {'L*Nav':>9s} {'episodes':>8s} {'successes':>9s} {'success %':>9s} {'LNav/L*Nav':>10s}")
+            for r in rows:
+                span = f"{r['from']}-{r['to'] - 1}" if r["to"] is not None else f">={r['from']}"
+                ratio = f"{r['median_ratio']:10.2f}" if r["median_ratio"] is not None else f"{'-':>10s}"
+                print(f"  {span:>9s} {r['episodes']:8d} {r['successes']:9d} {100 * r['success_share']:9.1f} {ratio}")
+        return 0
     if a.cmd == "switches":
         runs = []
         for f in (a.eval_a, a.eval_b):
