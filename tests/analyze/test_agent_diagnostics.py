@@ -140,11 +140,16 @@ def test_switch_distance_command(diag, tiny_world, tmp_path, capsys):
         main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "explorer", "--out", str(ev)]) == 0
     )
     capsys.readouterr()
-    assert diag.main(["switch-distance", str(ev), "--band", "2", "--last", "4"]) == 0
+    js = tmp_path / "sd.json"
+    assert diag.main(["switch-distance", f"explorer={ev}", "--band", "2", "--last", "4", "--json", str(js)]) == 0
     out = capsys.readouterr().out
     from tsnav.metrics import read_records
 
-    switched = sum(r.entered_pathfinding for r in read_records(ev / "records.jsonl"))
-    assert f"{switched} episodes switched" in out and "LNav/L*Nav" in out
+    records = read_records(ev / "records.jsonl")
+    switched = sum(r.entered_pathfinding for r in records)
+    assert f"explorer: {switched} of {len(records)} episodes switched" in out and "LNav/L*Nav" in out
+    written = json.loads(js.read_text())["evaluations"][0]
+    assert written["label"] == "explorer" and written["switched"] == switched
+    assert sum(b["episodes"] for b in written["bands"]) == switched
     with pytest.raises(SystemExit, match="no records.jsonl"):
         diag.main(["switch-distance", str(tmp_path)])

@@ -27,13 +27,14 @@ A's table misses where B's finds the target).
 ``tsnav eval`` folder (its ``records.jsonl``): the episodes whose switch fired, grouped by the shortest path left
 at the switch (L*Nav, in movement actions; bands of ``--band`` actions, the last open-ended from ``--last``), each
 band's episodes, successes and success share, and the median ratio LNav / L*Nav of its successes (how much longer
-the walk after the switch was than the shortest; bands whose successes all began at the goal show none).
+the walk after the switch was than the shortest; bands whose successes all began at the goal show none). An
+argument ``LABEL=EVAL_DIR`` names the folder in the output; ``--json OUT`` also writes the rows (atomically).
 
     tsnav analyze agent-diagnostics rotations EVAL_A EVAL_B
     tsnav analyze agent-diagnostics reach --data WORLD --episodes TEST.json --detections learned4 oracle
     tsnav analyze agent-diagnostics outcomes EVAL_A EVAL_B [--data WORLD]
     tsnav analyze agent-diagnostics switches EVAL_A EVAL_B
-    tsnav analyze agent-diagnostics switch-distance EVAL_A EVAL_B [--band 5] [--last 30]
+    tsnav analyze agent-diagnostics switch-distance [LABEL=]EVAL_A [LABEL=]EVAL_B [--band 5] [--last 30] [--json OUT]
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from ..constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, MOVE_AHEAD
 from ..data.detections import load_detections
 from ..data.reader import load_scene
 from ..eval.runner import read_trajectories
-from ..metrics import read_records
+from ..metrics import read_records, write_json
 from ..sim.episodes import read_episodes
 
 LEFT, RIGHT = ACTIONS.index("RotateLeft"), ACTIONS.index("RotateRight")
@@ -229,26 +230,35 @@ def main(argv=None) -> int:
     w.add_argument("eval_a")
     w.add_argument("eval_b")
     d = sub.add_parser("switch-distance", help="success after the switch by the shortest path left at the switch")
-    d.add_argument("evals", nargs="+", help="tsnav eval output folders")
+    d.add_argument("evals", nargs="+", help="tsnav eval output folders, each as EVAL_DIR or LABEL=EVAL_DIR")
     d.add_argument("--band", type=int, default=5, help="band width in movement actions (default 5)")
     d.add_argument("--last", type=int, default=30, help="the open-ended last band starts here (default 30)")
+    d.add_argument("--json", default=None, help="also write the rows of every folder to this JSON file")
     a = p.parse_args(argv)
     if a.cmd == "switch-distance":
-        for f in a.evals:
+        out = []
+        for arg in a.evals:
+            label, _, f = arg.rpartition("=")
+            label = label or f
             path = Path(f) / "records.jsonl"
             if not path.exists():
                 raise SystemExit(f"{f}: no records.jsonl (a `tsnav eval` output folder?)")
             try:
-                rows = switch_distance_figures(read_records(path), a.band, a.last)
+                records = read_records(path)
+                rows = switch_distance_figures(records, a.band, a.last)
             except ValueError as e:
                 raise SystemExit(str(e)) from None
             n = sum(r["episodes"] for r in rows)
-            print(f"{f}: {n} episodes switched")
+            out.append({"label": label, "folder": f, "episodes": len(records), "switched": n, "bands": rows})
+            print(f"{label}: {n} of {len(records)} episodes switched")
             print(f"  {'L*Nav':>9s} {'episodes':>8s} {'successes':>9s} {'success %':>9s} {'LNav/L*Nav':>10s}")
             for r in rows:
                 span = f"{r['from']}-{r['to'] - 1}" if r["to"] is not None else f">={r['from']}"
                 ratio = f"{r['median_ratio']:10.2f}" if r["median_ratio"] is not None else f"{'-':>10s}"
                 print(f"  {span:>9s} {r['episodes']:8d} {r['successes']:9d} {100 * r['success_share']:9.1f} {ratio}")
+        if a.json:
+            write_json(a.json, {"band": a.band, "last": a.last, "evaluations": out})
+            print(f"wrote {a.json}")
         return 0
     if a.cmd == "switches":
         runs = []
