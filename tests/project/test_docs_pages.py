@@ -229,3 +229,20 @@ def test_robothor_switch_reach_section_reads_its_file():
         assert f"| {r['switch']} | {r['episodes']} | {100 * r['metrics']['ALL']['SR']:.2f} |" in text
     for c in res["cells"]:
         assert f"| {c['threshold']:g} | {100 * c['precision']:.2f} | {100 * c['recall']:.2f} |" in text
+
+
+def test_switch_distance_section_reads_its_file():
+    """Every evaluation of the switch-distance file shows on the page with each band's share and the far losses."""
+    index = json.loads((ROOT / "docs" / "results" / "index.json").read_text())
+    entry = index.get("switch_distance")
+    if not entry:
+        pytest.skip("the index names no switch-distance file")
+    res = json.loads((ROOT / "docs" / "results" / entry["file"]).read_text())
+    text = "\n".join(results_page.switch_distance(index, ROOT / "docs" / "results"))
+    for ev in res["evaluations"]:
+        row = next(line for line in text.splitlines() if line.startswith(f"| {ev['label']} | {ev['episodes']} |"))
+        for b in ev["bands"]:
+            assert f"{100 * b['success_share']:.2f} ({b['episodes']})" in row
+        lost = sum(b["episodes"] - b["successes"] for b in ev["bands"] if b["from"] >= entry.get("far_from", 15))
+        assert row.endswith(f"| {lost} ({100 * lost / ev['episodes']:.2f}) |")
+        assert sum(b["episodes"] for b in ev["bands"]) == ev["switched"]

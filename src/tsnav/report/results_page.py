@@ -497,6 +497,60 @@ def robothor_switch_reach(index: dict, results: Path) -> list[str]:
     return lines + [""]
 
 
+def switch_distance(index: dict, results: Path) -> list[str]:
+    """Success after the stage switch by the shortest path left at the switch (``tsnav analyze agent-diagnostics
+    switch-distance``), one row per evaluation, from the file the index's ``switch_distance`` names."""
+    e = index.get("switch_distance")
+    if not e:
+        return []
+    res = json.loads((results / e["file"]).read_text())
+    evals = res["evaluations"]
+    spans = sorted({(b["from"], b["to"]) for ev in evals for b in ev["bands"]}, key=lambda t: t[0])
+    name = lambda lo, hi: f"{lo}-{hi - 1}" if hi is not None else f">={lo}"  # noqa: E731
+    far = e.get("far_from", 15)
+    head = "| evaluation | episodes | switched | " + " | ".join(name(*t) for t in spans)
+    head += f" | L*Nav >= {far}: lost, % of all episodes |"
+    lines = [
+        f"## {e['title']}",
+        "",
+        f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
+        "",
+        "```",
+        e["command"],
+        "```",
+        "",
+        "Success after the switch, in percent of the switched episodes in each band of L*Nav (the shortest path "
+        "left at the switch, movement actions), the band's episodes in brackets:",
+        "",
+        head,
+        "| --- | ---: | ---: | " + " | ".join("---:" for _ in spans) + " | ---: |",
+    ]
+    for ev in evals:
+        by = {(b["from"], b["to"]): b for b in ev["bands"]}
+        cells = [f"{_pct(by[t]['success_share'])} ({by[t]['episodes']})" if t in by else "-" for t in spans]
+        lost = sum(b["episodes"] - b["successes"] for b in ev["bands"] if b["from"] >= far)
+        lines.append(
+            f"| {ev['label']} | {ev['episodes']} | {ev['switched']} | "
+            + " | ".join(cells)
+            + f" | {lost} ({_pct(lost / ev['episodes'])}) |"
+        )
+    lines += [
+        "",
+        "The median LNav / L*Nav of the successes in each band (how much longer the walk after the switch was than "
+        "the shortest):",
+        "",
+        "| evaluation | " + " | ".join(name(*t) for t in spans) + " |",
+        "| --- | " + " | ".join("---:" for _ in spans) + " |",
+    ]
+    for ev in evals:
+        by = {(b["from"], b["to"]): b for b in ev["bands"]}
+        cells = [
+            f"{by[t]['median_ratio']:.2f}" if t in by and by[t]["median_ratio"] is not None else "-" for t in spans
+        ]
+        lines.append(f"| {ev['label']} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
 def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     """The whole page, from ``root/docs/results`` (index and result files), the cards under ``weights`` and the
     paper's figures."""
@@ -533,6 +587,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     lines += experiment_table(
         "Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []), paper, results
     ) + [""]
+    lines += switch_distance(index, results)
     lines += levers(index, results)
     lines += fig4(index, results) + [""]
     lines += shipped_agents(cards)
