@@ -3,6 +3,8 @@ hand-made trajectories, and the command on a real evaluation folder of the tiny 
 
 import json
 
+import numpy as np
+
 import pytest
 
 from tsnav.cli import main
@@ -153,3 +155,29 @@ def test_switch_distance_command(diag, tiny_world, tmp_path, capsys):
     assert sum(b["episodes"] for b in written["bands"]) == switched
     with pytest.raises(SystemExit, match="no records.jsonl"):
         diag.main(["switch-distance", str(tmp_path)])
+
+
+def test_reach_share_reads_the_tables_class_set(diag, tmp_path):
+    """A RoboTHOR table's columns are robothor12's: the share looks the target up there, not in iTHOR's 22."""
+    from tsnav.constants import class_set
+    from tsnav.data.detections import Detections, write_detections
+    from tsnav.sim.episodes import Episode
+
+    robo = class_set("robothor12")
+    S, C = 3, robo.size
+    scores = np.zeros((S, C), np.float32)
+    scores[1, robo.index["Vase"]] = 0.9  # seen above C_target at one state
+    scores[2, robo.index["Apple"]] = 0.6  # never above it
+    labels = np.where(scores > 0, np.arange(C, dtype=np.int16)[None, :], -1).astype(np.int16)
+    det = Detections(
+        keys=["a", "b", "c"],
+        scores=scores,
+        labels=labels,
+        boxes=np.full((S, C, 4), -1, np.float32),
+        features=np.zeros((S, C, 2), np.float16),
+        class_set="robothor12",
+    )
+    (tmp_path / "Room").mkdir()
+    write_detections(tmp_path / "Room", "t", det)
+    eps = [Episode(scene="Room", target=t, start="a", optimal_length=1) for t in ("Vase", "Apple", "Vase", "Mug")]
+    assert diag.reach_share(tmp_path, eps, "t") == pytest.approx(2 / 4)

@@ -45,7 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..constants import ACTIONS, C_TARGET, CATEGORY_INDEX, DONE, MOVE_AHEAD
+from ..constants import ACTIONS, C_TARGET, DONE, MOVE_AHEAD
+from ..constants import class_set as get_class_set
 from ..data.detections import load_detections
 from ..data.reader import load_scene
 from ..eval.runner import read_trajectories
@@ -128,7 +129,7 @@ def switch_truth(data: Path, trajectories) -> dict:
             scene = load_scene(data / t.scene)
             seen[t.scene] = (scene, scene.visible_at_any_range())
         scene, visible = seen[t.scene]
-        objs = np.flatnonzero(scene.object_category == CATEGORY_INDEX[t.target])
+        objs = np.flatnonzero(scene.object_category == scene.class_set.index[t.target])  # the scene's class set
         true = bool(visible[scene.index(t.keys[t.switch_frame]), objs].any())
         out["true" if true else "false"][outcome(t)] += 1
     return out
@@ -148,12 +149,14 @@ def read_actions(folder: Path) -> list[list[int]]:
 def reach_share(data: Path, episodes, name: str, c_target: float = C_TARGET) -> float:
     """Share of ``episodes`` (:class:`~tsnav.sim.episodes.Episode`) whose target scores above ``c_target``
     somewhere in its room's ``name`` table."""
-    best: dict[str, np.ndarray] = {}
+    best: dict[str, tuple] = {}
     hit = 0
     for e in episodes:
         if e.scene not in best:
-            best[e.scene] = load_detections(data / e.scene, name).scores.max(axis=0)
-        hit += bool(best[e.scene][CATEGORY_INDEX[e.target]] > c_target)
+            det = load_detections(data / e.scene, name)
+            best[e.scene] = (det.scores.max(axis=0), get_class_set(det.class_set).index)  # the table's columns
+        scores, index = best[e.scene]
+        hit += bool(scores[index[e.target]] > c_target)
     return hit / len(episodes)
 
 
