@@ -80,3 +80,13 @@ def test_identity_and_written_tables(mod, world, tmp_path, capsys):
     assert "--name must differ" in capsys.readouterr().err
     assert mod.main(["--data", str(world / "nope")]) == 2
     assert "no such dataset folder" in capsys.readouterr().err
+
+
+def test_maps_have_one_row_per_class_of_the_set(mod):
+    """The maps follow the world's class set (RoboTHOR's 12 classes, not iTHOR's 22); a fold without rooms keeps
+    the identity for every class."""
+    from tsnav.constants import class_set
+
+    robo = class_set("robothor12")
+    maps = mod.fit_maps([], [], min_positives=1, prior=1.0, size=robo.size)
+    assert maps.shape == (12, 2) and np.array_equal(maps, np.tile([1.0, 0.0], (12, 1)))

@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_json
-from ..constants import NUM_CATEGORIES, TARGET_CATEGORIES
 from ..data.detections import detections_path, load_detections, write_detections
 from ..data.reader import list_scenes, load_scene
 from ..detect.oracle import ground_truth
@@ -85,10 +84,11 @@ def fit_platt_reference(z, y, prior: float = 1.0) -> tuple[float, float]:
     return float(r.x[0]), float(r.x[1])
 
 
-def collect(scenes, tables) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per class: (logits, in-view flags) over the states of the rooms that can ask for it."""
-    zs = [[] for _ in range(NUM_CATEGORIES)]
-    ys = [[] for _ in range(NUM_CATEGORIES)]
+def collect(scenes, tables, size: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per class of the scenes' class set (``size`` classes): (logits, in-view flags) over the states of the rooms
+    that can ask for it."""
+    zs = [[] for _ in range(size)]
+    ys = [[] for _ in range(size)]
     for s, d in zip(scenes, tables):
         present = ground_truth(s).present
         tgt = scene_targets(s)
@@ -100,10 +100,11 @@ def collect(scenes, tables) -> list[tuple[np.ndarray, np.ndarray]]:
     ]
 
 
-def fit_maps(scenes, tables, min_positives: int, prior: float) -> np.ndarray:
-    """``(22, 2)``: per class ``(a, b)``; the identity where the fit rooms hold too few positives."""
-    maps = np.tile([1.0, 0.0], (NUM_CATEGORIES, 1))
-    for c, (z, y) in enumerate(collect(scenes, tables)):
+def fit_maps(scenes, tables, min_positives: int, prior: float, size: int) -> np.ndarray:
+    """``(size, 2)`` (the classes of the scenes' class set): per class ``(a, b)``; the identity where the fit rooms
+    hold too few positives (or none: an empty fold)."""
+    maps = np.tile([1.0, 0.0], (size, 1))
+    for c, (z, y) in enumerate(collect(scenes, tables, size)):
         if int(y.sum()) >= min_positives and int((~y).sum()) >= min_positives:
             maps[c] = fit_platt(z, y, prior)
     return maps
@@ -119,14 +120,14 @@ def apply_maps(det, maps: np.ndarray, min_score: float):
     return replace(det, scores=new, labels=labels, boxes=boxes)
 
 
-def _figures(rep) -> dict:
+def _figures(rep, categories) -> dict:
     return {
         "reach": [rep.reached, rep.pairs],
         "episode_reach": [rep.episode_reached, rep.episode_pairs],
         "fp_state_target": {str(k): v for k, v in rep.fp_state_target.items()},
         "class_reached": {
-            TARGET_CATEGORIES[c]: [int(rep.class_reached[c]), int(rep.class_pairs[c])]
-            for c in range(NUM_CATEGORIES)
+            name: [int(rep.class_reached[c]), int(rep.class_pairs[c])]
+            for c, name in enumerate(categories)
             if rep.class_pairs[c]
         },
     }
@@ -174,28 +175,41 @@ def main(argv=None) -> int:
     except (OSError, ValueError) as e:
         print(f"class_calibration: {e}", file=sys.stderr)
         return 2
-    out = {"source": a.source, "fit_split": a.fit_split, "prior": a.prior, "min_positives": a.min_positives}
-    out[f"{a.fit_split}_before"] = _figures(switch_report(fit_scenes, fit_tables))
+    classes = fit_scenes[0].class_set
+    if any(t.class_set != classes.name for t in fit_tables):
+        print(f"class_calibration: {a.source}'s tables are not for class set {classes.name}", file=sys.stderr)
+        return 2
+    out = {
+        "source": a.source,
+        "fit_split": a.fit_split,
+        "class_set": classes.name,
+        "prior": a.prior,
+        "min_positives": a.min_positives,
+    }
+    out[f"{a.fit_split}_before"] = _figures(switch_report(fit_scenes, fit_tables), classes.categories)
     print(_line(f"{a.fit_split}, {a.source}", out[f"{a.fit_split}_before"]))
     folds = [list(range(0, len(fit_dirs), 2)), list(range(1, len(fit_dirs), 2))]
     crossed = [None] * len(fit_dirs)
     for k, fold in enumerate(folds):
         other = folds[1 - k]
-        maps = fit_maps([fit_scenes[i] for i in other], [fit_tables[i] for i in other], a.min_positives, a.prior)
+        maps = fit_maps(
+            [fit_scenes[i] for i in other], [fit_tables[i] for i in other], a.min_positives, a.prior, classes.size
+        )
         for i in fold:
             crossed[i] = apply_maps(fit_tables[i], maps, a.min_score)
-    out[f"{a.fit_split}_crossfit"] = _figures(switch_report(fit_scenes, crossed))
+    out[f"{a.fit_split}_crossfit"] = _figures(switch_report(fit_scenes, crossed), classes.categories)
     print(_line(f"{a.fit_split}, per-class maps (two folds, each fitted on the other)", out[f"{a.fit_split}_crossfit"]))
-    maps = fit_maps(fit_scenes, fit_tables, a.min_positives, a.prior)
+    maps = fit_maps(fit_scenes, fit_tables, a.min_positives, a.prior, classes.size)
     out["maps"] = {
-        TARGET_CATEGORIES[c]: [round(float(maps[c, 0]), 4), round(float(maps[c, 1]), 4)] for c in range(NUM_CATEGORIES)
+        name: [round(float(maps[c, 0]), 4), round(float(maps[c, 1]), 4)] for c, name in enumerate(classes.categories)
     }
     for split in a.report_split:
         dirs = list_scenes(a.data, split)
         sc = [load_scene(p) for p in dirs]
         tb = [load_detections(p, a.source) for p in dirs]
-        out[f"{split}_before"] = _figures(switch_report(sc, tb))
-        out[f"{split}_after"] = _figures(switch_report(sc, [apply_maps(t, maps, a.min_score) for t in tb]))
+        out[f"{split}_before"] = _figures(switch_report(sc, tb), classes.categories)
+        after = [apply_maps(t, maps, a.min_score) for t in tb]
+        out[f"{split}_after"] = _figures(switch_report(sc, after), classes.categories)
         print(_line(f"{split}, {a.source}", out[f"{split}_before"]))
         print(_line(f"{split}, per-class maps fitted on {a.fit_split}", out[f"{split}_after"]))
     if a.name:
