@@ -9,7 +9,7 @@ import pytest
 
 from tsnav.cli import main
 from tsnav.constants import DONE, MOVE_AHEAD, ROTATE_LEFT
-from tsnav.eval.runner import Trajectory
+from tsnav.eval.runner import Trajectory, read_trajectories
 from script_helpers import load_analysis
 
 
@@ -126,6 +126,11 @@ def test_switch_distance_bands_by_hand(diag):
     ]
     assert rows[0]["success_share"] == pytest.approx(2 / 3) and rows[0]["median_ratio"] == pytest.approx(2.0)
     assert rows[2]["median_ratio"] == pytest.approx(2.0)
+    truth = {i: i != 1 for i in range(len(records))}  # episode 1 (band 0-4, a success) switched on a false positive
+    for i, r in enumerate(records):
+        r.episode = i
+    rows = diag.switch_distance_figures(records, band=5, last=30, truth=truth)
+    assert [(r["false_switches"], r["false_successes"]) for r in rows] == [(1, 1), (0, 0), (0, 0)]
     only_goal = diag.switch_distance_figures([rec(0, 0, True)])
     assert only_goal[0]["median_ratio"] is None
     with pytest.raises(ValueError, match="multiple of --band"):
@@ -143,7 +148,8 @@ def test_switch_distance_command(diag, tiny_world, tmp_path, capsys):
     )
     capsys.readouterr()
     js = tmp_path / "sd.json"
-    assert diag.main(["switch-distance", f"explorer={ev}", "--band", "2", "--last", "4", "--json", str(js)]) == 0
+    args = ["switch-distance", f"explorer={ev}", "--band", "2", "--last", "4", "--json", str(js), "--false-switches"]
+    assert diag.main(args) == 0
     out = capsys.readouterr().out
     from tsnav.metrics import read_records
 
@@ -153,6 +159,9 @@ def test_switch_distance_command(diag, tiny_world, tmp_path, capsys):
     written = json.loads(js.read_text())["evaluations"][0]
     assert written["label"] == "explorer" and written["switched"] == switched
     assert sum(b["episodes"] for b in written["bands"]) == switched
+    truth = diag.true_switches(tiny_world, read_trajectories(ev / "trajectories.jsonl"))
+    assert len(truth) == switched
+    assert sum(b["false_switches"] for b in written["bands"]) == sum(not v for v in truth.values())
     with pytest.raises(SystemExit, match="no records.jsonl"):
         diag.main(["switch-distance", str(tmp_path)])
 

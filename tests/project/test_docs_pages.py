@@ -246,3 +246,9 @@ def test_switch_distance_section_reads_its_file():
         lost = sum(b["episodes"] - b["successes"] for b in ev["bands"] if b["from"] >= entry.get("far_from", 15))
         assert row.endswith(f"| {lost} ({100 * lost / ev['episodes']:.2f}) |")
         assert sum(b["episodes"] for b in ev["bands"]) == ev["switched"]
+        if "false_switches" in ev["bands"][0]:
+            n, won = (sum(b[k] for b in ev["bands"]) for k in ("false_switches", "false_successes"))
+            assert any(
+                line.startswith(f"| {ev['label']} |") and line.endswith(f"| {n} ({won}) |")
+                for line in text.splitlines()
+            )

@@ -28,18 +28,22 @@ A's table misses where B's finds the target).
 at the switch (L*Nav, in movement actions; bands of ``--band`` actions, the last open-ended from ``--last``), each
 band's episodes, successes and success share, and the median ratio LNav / L*Nav of its successes (how much longer
 the walk after the switch was than the shortest; bands whose successes all began at the goal show none). An
-argument ``LABEL=EVAL_DIR`` names the folder in the output; ``--json OUT`` also writes the rows (atomically).
+argument ``LABEL=EVAL_DIR`` names the folder in the output; ``--json OUT`` also writes the rows (atomically);
+``--false-switches`` also counts, per band, the switches made where the target was not in the frame and their
+successes (ground truth of the world each folder's ``metrics.json`` names, read for analysis only).
 
     tsnav analyze agent-diagnostics rotations EVAL_A EVAL_B
     tsnav analyze agent-diagnostics reach --data WORLD --episodes TEST.json --detections learned4 oracle
     tsnav analyze agent-diagnostics outcomes EVAL_A EVAL_B [--data WORLD]
     tsnav analyze agent-diagnostics switches EVAL_A EVAL_B
     tsnav analyze agent-diagnostics switch-distance [LABEL=]EVAL_A [LABEL=]EVAL_B [--band 5] [--last 30] [--json OUT]
+        [--false-switches]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import itertools
 from pathlib import Path
 
@@ -117,10 +121,10 @@ def outcome_figures(trajectories) -> dict:
     }
 
 
-def switch_truth(data: Path, trajectories) -> dict:
-    """Switched episodes by outcome, split by whether the target was in the frame where the switch fired:
-    ``{"true": {outcome: n}, "false": {outcome: n}}``."""
-    out = {k: {"success": 0, "done": 0, "limit": 0} for k in ("true", "false")}
+def true_switches(data: Path, trajectories) -> dict[int, bool]:
+    """Per switched episode (its index in the list): whether some instance of the target was in the frame (at any
+    range) at the state where the switch fired (ground truth, read for analysis only)."""
+    out: dict[int, bool] = {}
     seen: dict[str, tuple] = {}
     for t in trajectories:
         if t.switch_frame < 0:
@@ -130,8 +134,18 @@ def switch_truth(data: Path, trajectories) -> dict:
             seen[t.scene] = (scene, scene.visible_at_any_range())
         scene, visible = seen[t.scene]
         objs = np.flatnonzero(scene.object_category == scene.class_set.index[t.target])  # the scene's class set
-        true = bool(visible[scene.index(t.keys[t.switch_frame]), objs].any())
-        out["true" if true else "false"][outcome(t)] += 1
+        out[t.episode] = bool(visible[scene.index(t.keys[t.switch_frame]), objs].any())
+    return out
+
+
+def switch_truth(data: Path, trajectories) -> dict:
+    """Switched episodes by outcome, split by whether the target was in the frame where the switch fired:
+    ``{"true": {outcome: n}, "false": {outcome: n}}``."""
+    out = {k: {"success": 0, "done": 0, "limit": 0} for k in ("true", "false")}
+    truth = true_switches(data, trajectories)
+    for t in trajectories:
+        if t.episode in truth:
+            out["true" if truth[t.episode] else "false"][outcome(t)] += 1
     return out
 
 
@@ -182,9 +196,11 @@ def switch_misses(a, b) -> dict:
     return out
 
 
-def switch_distance_figures(records, band: int = 5, last: int = 30) -> list[dict]:
+def switch_distance_figures(records, band: int = 5, last: int = 30, truth: dict[int, bool] | None = None) -> list[dict]:
     """The ``switch-distance`` rows (module docstring) of :class:`~tsnav.metrics.EpisodeRecord` objects: one per
-    band ``[lo, lo + band)`` of L*Nav up to ``last``, then ``[last, inf)``; bands without episodes are left out."""
+    band ``[lo, lo + band)`` of L*Nav up to ``last``, then ``[last, inf)``; bands without episodes are left out.
+    With ``truth`` (:func:`true_switches`, by episode index) each row also counts its false switches (the target
+    not in the frame where the switch fired) and their successes."""
     if band < 1 or last < band or last % band:
         raise ValueError(
             f"switch-distance: --band {band} and --last {last} must be positive, --last a multiple of --band"
@@ -212,6 +228,10 @@ def switch_distance_figures(records, band: int = 5, last: int = 30) -> list[dict
                 "median_ratio": float(np.median(ratios)) if ratios else None,
             }
         )
+        if truth is not None:
+            false = [r for r in rs if not truth[r.episode]]
+            rows[-1]["false_switches"] = len(false)
+            rows[-1]["false_successes"] = sum(r.success for r in false)
     return rows
 
 
@@ -237,6 +257,11 @@ def main(argv=None) -> int:
     d.add_argument("--band", type=int, default=5, help="band width in movement actions (default 5)")
     d.add_argument("--last", type=int, default=30, help="the open-ended last band starts here (default 30)")
     d.add_argument("--json", default=None, help="also write the rows of every folder to this JSON file")
+    d.add_argument(
+        "--false-switches",
+        action="store_true",
+        help="also count each band's false switches (the target not in view), reading each folder's world",
+    )
     a = p.parse_args(argv)
     if a.cmd == "switch-distance":
         out = []
@@ -248,17 +273,27 @@ def main(argv=None) -> int:
                 raise SystemExit(f"{f}: no records.jsonl (a `tsnav eval` output folder?)")
             try:
                 records = read_records(path)
-                rows = switch_distance_figures(records, a.band, a.last)
+                truth = None
+                if a.false_switches:
+                    world = Path(json.loads((Path(f) / "metrics.json").read_text())["data"])
+                    if not world.is_dir():
+                        raise ValueError(f"{f}: its world {world} is not here (the evaluated world is needed)")
+                    truth = true_switches(world, read_trajectories(Path(f) / "trajectories.jsonl"))
+                rows = switch_distance_figures(records, a.band, a.last, truth)
             except ValueError as e:
                 raise SystemExit(str(e)) from None
             n = sum(r["episodes"] for r in rows)
             out.append({"label": label, "folder": f, "episodes": len(records), "switched": n, "bands": rows})
             print(f"{label}: {n} of {len(records)} episodes switched")
-            print(f"  {'L*Nav':>9s} {'episodes':>8s} {'successes':>9s} {'success %':>9s} {'LNav/L*Nav':>10s}")
+            extra = f" {'false':>6s} {'their successes':>15s}" if truth is not None else ""
+            print(f"  {'L*Nav':>9s} {'episodes':>8s} {'successes':>9s} {'success %':>9s} {'LNav/L*Nav':>10s}{extra}")
             for r in rows:
                 span = f"{r['from']}-{r['to'] - 1}" if r["to"] is not None else f">={r['from']}"
                 ratio = f"{r['median_ratio']:10.2f}" if r["median_ratio"] is not None else f"{'-':>10s}"
-                print(f"  {span:>9s} {r['episodes']:8d} {r['successes']:9d} {100 * r['success_share']:9.1f} {ratio}")
+                extra = f" {r['false_switches']:6d} {r['false_successes']:15d}" if truth is not None else ""
+                print(
+                    f"  {span:>9s} {r['episodes']:8d} {r['successes']:9d} {100 * r['success_share']:9.1f} {ratio}{extra}"
+                )
         if a.json:
             write_json(a.json, {"band": a.band, "last": a.last, "evaluations": out})
             print(f"wrote {a.json}")

@@ -548,6 +548,21 @@ def switch_distance(index: dict, results: Path) -> list[str]:
             f"{by[t]['median_ratio']:.2f}" if t in by and by[t]["median_ratio"] is not None else "-" for t in spans
         ]
         lines.append(f"| {ev['label']} | " + " | ".join(cells) + " |")
+    if all("false_switches" in b for ev in evals for b in ev["bands"]):
+        lines += [
+            "",
+            "Of each band's switches, those made where the target was not in the frame (a false positive of the "
+            "detector; ground truth read for this analysis only), their successes in brackets:",
+            "",
+            "| evaluation | " + " | ".join(name(*t) for t in spans) + " | all |",
+            "| --- | " + " | ".join("---:" for _ in spans) + " | ---: |",
+        ]
+        for ev in evals:
+            by = {(b["from"], b["to"]): b for b in ev["bands"]}
+            cells = [f"{by[t]['false_switches']} ({by[t]['false_successes']})" if t in by else "-" for t in spans]
+            n = sum(b["false_switches"] for b in ev["bands"])
+            won = sum(b["false_successes"] for b in ev["bands"])
+            lines.append(f"| {ev['label']} | " + " | ".join(cells) + f" | {n} ({won}) |")
     return lines + [""]
 
 
