@@ -135,6 +135,11 @@ def test_switch_distance_bands_by_hand(diag):
     assert only_goal[0]["median_ratio"] is None
     with pytest.raises(ValueError, match="multiple of --band"):
         diag.switch_distance_figures(records, band=4, last=30)
+    edges = [rec(4, 4, True), rec(5, 5, True), rec(29, 29, False), rec(30, 30, False)]
+    spans = [(r["from"], r["to"], r["episodes"]) for r in diag.switch_distance_figures(edges, band=5, last=30)]
+    assert spans == [(0, 5, 1), (5, 10, 1), (25, 30, 1), (30, None, 1)]
+    with pytest.raises(ValueError, match="not in the trajectories"):
+        diag.switch_distance_figures(records, truth={0: True})
 
 
 def test_switch_distance_command(diag, tiny_world, tmp_path, capsys):
@@ -190,3 +195,37 @@ def test_reach_share_reads_the_tables_class_set(diag, tmp_path):
     write_detections(tmp_path / "Room", "t", det)
     eps = [Episode(scene="Room", target=t, start="a", optimal_length=1) for t in ("Vase", "Apple", "Vase", "Mug")]
     assert diag.reach_share(tmp_path, eps, "t") == pytest.approx(2 / 4)
+
+
+def test_true_switches_read_the_frame_where_the_switch_fired(diag, tiny_world):
+    """A switch at a state where an instance of the target is in view is true, one where none is, false; an episode
+    that never switched is not listed."""
+    from tsnav.data.reader import list_scenes, load_scene
+
+    folder = list_scenes(tiny_world)[0]
+    scene = load_scene(folder)
+    visible = scene.visible_at_any_range()
+    for target in scene.class_set.categories:
+        objs = np.flatnonzero(scene.object_category == scene.class_set.index[target])
+        seen = visible[:, objs].any(axis=1) if len(objs) else np.zeros(len(scene.keys), bool)
+        if seen.any() and not seen.all():
+            break
+    else:
+        pytest.skip("no target of the tiny scene is in view at some states and out of view at others")
+    inside, outside = scene.keys[int(np.flatnonzero(seen)[0])], scene.keys[int(np.flatnonzero(~seen)[0])]
+
+    def traj(episode, key, switch):
+        return Trajectory(
+            episode=episode, scene=folder.name, target=target, keys=[key, key], actions=[DONE], switch_frame=switch
+        )
+
+    truth = diag.true_switches(tiny_world, [traj(3, inside, 0), traj(5, outside, 0), traj(7, outside, -1)])
+    assert truth == {3: True, 5: False}
+
+
+def test_switch_distance_refuses_missing_files_in_one_line(diag, tmp_path):
+    (tmp_path / "records.jsonl").write_text("")
+    with pytest.raises(SystemExit, match="no metrics.json"):
+        diag.main(["switch-distance", str(tmp_path), "--false-switches"])
+    with pytest.raises(SystemExit, match="multiple of --band"):
+        diag.main(["switch-distance", str(tmp_path), "--band", "4"])

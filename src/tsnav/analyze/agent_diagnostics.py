@@ -196,15 +196,27 @@ def switch_misses(a, b) -> dict:
     return out
 
 
-def switch_distance_figures(records, band: int = 5, last: int = 30, truth: dict[int, bool] | None = None) -> list[dict]:
-    """The ``switch-distance`` rows (module docstring) of :class:`~tsnav.metrics.EpisodeRecord` objects: one per
-    band ``[lo, lo + band)`` of L*Nav up to ``last``, then ``[last, inf)``; bands without episodes are left out.
-    With ``truth`` (:func:`true_switches`, by episode index) each row also counts its false switches (the target
-    not in the frame where the switch fired) and their successes."""
+def check_bands(band: int, last: int) -> None:
+    """``ValueError`` in one line unless ``band`` >= 1 and ``last`` is a positive multiple of it."""
     if band < 1 or last < band or last % band:
         raise ValueError(
             f"switch-distance: --band {band} and --last {last} must be positive, --last a multiple of --band"
         )
+
+
+def switch_distance_figures(records, band: int = 5, last: int = 30, truth: dict[int, bool] | None = None) -> list[dict]:
+    """The ``switch-distance`` rows (module docstring) of :class:`~tsnav.metrics.EpisodeRecord` objects: one per
+    band ``[lo, lo + band)`` of L*Nav up to ``last``, then ``[last, inf)``; bands without episodes are left out.
+    With ``truth`` (:func:`true_switches`, by episode index) each row also counts its false switches (the target
+    not in the frame where the switch fired) and their successes; a switched episode it does not hold is refused."""
+    check_bands(band, last)
+    if truth is not None:
+        missing = [r.episode for r in records if r.entered_pathfinding and r.episode not in truth]
+        if missing:
+            raise ValueError(
+                f"switch-distance: episode {missing[0]} switched in the records but not in the trajectories "
+                "(records.jsonl and trajectories.jsonl of different evaluations?)"
+            )
     groups: dict[int, list] = {}
     for r in records:
         if not r.entered_pathfinding or r.optimal_pathfinding_length is None:
@@ -264,21 +276,26 @@ def main(argv=None) -> int:
     )
     a = p.parse_args(argv)
     if a.cmd == "switch-distance":
+        try:
+            check_bands(a.band, a.last)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
         out = []
         for arg in a.evals:
             label, _, f = arg.rpartition("=")
             label = label or f
-            path = Path(f) / "records.jsonl"
-            if not path.exists():
-                raise SystemExit(f"{f}: no records.jsonl (a `tsnav eval` output folder?)")
+            needed = ["records.jsonl"] + (["metrics.json", "trajectories.jsonl"] if a.false_switches else [])
+            for name in needed:
+                if not (Path(f) / name).exists():
+                    raise SystemExit(f"{f}: no {name} (a `tsnav eval` output folder?)")
             try:
-                records = read_records(path)
+                records = read_records(Path(f) / "records.jsonl")
                 truth = None
                 if a.false_switches:
-                    world = Path(json.loads((Path(f) / "metrics.json").read_text())["data"])
-                    if not world.is_dir():
-                        raise ValueError(f"{f}: its world {world} is not here (the evaluated world is needed)")
-                    truth = true_switches(world, read_trajectories(Path(f) / "trajectories.jsonl"))
+                    data = json.loads((Path(f) / "metrics.json").read_text()).get("data")
+                    if not data or not Path(data).is_dir():
+                        raise ValueError(f"{f}: its world ({data or 'not named in metrics.json'}) is not here")
+                    truth = true_switches(Path(data), read_trajectories(Path(f) / "trajectories.jsonl"))
                 rows = switch_distance_figures(records, a.band, a.last, truth)
             except ValueError as e:
                 raise SystemExit(str(e)) from None

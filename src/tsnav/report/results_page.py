@@ -532,7 +532,7 @@ def switch_distance(index: dict, results: Path) -> list[str]:
         lines.append(
             f"| {ev['label']} | {ev['episodes']} | {ev['switched']} | "
             + " | ".join(cells)
-            + f" | {lost} ({_pct(lost / ev['episodes'])}) |"
+            + f" | {lost} ({_pct(lost / max(ev['episodes'], 1))}) |"
         )
     lines += [
         "",
