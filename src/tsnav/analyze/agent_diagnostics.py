@@ -43,8 +43,8 @@ successes (ground truth of the world each folder's ``metrics.json`` names, read 
 from __future__ import annotations
 
 import argparse
-import json
 import itertools
+import json
 from pathlib import Path
 
 import numpy as np

@@ -525,13 +525,18 @@ def switch_distance(index: dict, results: Path) -> list[str]:
         head,
         "| --- | ---: | ---: | " + " | ".join("---:" for _ in spans) + " | ---: |",
     ]
-    for ev in evals:
+
+    def cells(ev: dict, cell) -> list[str]:
+        """One cell per band of ``spans``: ``cell(band)`` where the evaluation has that band, else ``-``."""
         by = {(b["from"], b["to"]): b for b in ev["bands"]}
-        cells = [f"{_pct(by[t]['success_share'])} ({by[t]['episodes']})" if t in by else "-" for t in spans]
+        return [cell(by[t]) if t in by else "-" for t in spans]
+
+    for ev in evals:
+        shares = cells(ev, lambda b: f"{_pct(b['success_share'])} ({b['episodes']})")
         lost = sum(b["episodes"] - b["successes"] for b in ev["bands"] if b["from"] >= far)
         lines.append(
             f"| {ev['label']} | {ev['episodes']} | {ev['switched']} | "
-            + " | ".join(cells)
+            + " | ".join(shares)
             + f" | {lost} ({_pct(lost / max(ev['episodes'], 1))}) |"
         )
     lines += [
@@ -543,11 +548,8 @@ def switch_distance(index: dict, results: Path) -> list[str]:
         "| --- | " + " | ".join("---:" for _ in spans) + " |",
     ]
     for ev in evals:
-        by = {(b["from"], b["to"]): b for b in ev["bands"]}
-        cells = [
-            f"{by[t]['median_ratio']:.2f}" if t in by and by[t]["median_ratio"] is not None else "-" for t in spans
-        ]
-        lines.append(f"| {ev['label']} | " + " | ".join(cells) + " |")
+        ratios = cells(ev, lambda b: f"{b['median_ratio']:.2f}" if b["median_ratio"] is not None else "-")
+        lines.append(f"| {ev['label']} | " + " | ".join(ratios) + " |")
     if all("false_switches" in b for ev in evals for b in ev["bands"]):
         lines += [
             "",
@@ -558,11 +560,10 @@ def switch_distance(index: dict, results: Path) -> list[str]:
             "| --- | " + " | ".join("---:" for _ in spans) + " | ---: |",
         ]
         for ev in evals:
-            by = {(b["from"], b["to"]): b for b in ev["bands"]}
-            cells = [f"{by[t]['false_switches']} ({by[t]['false_successes']})" if t in by else "-" for t in spans]
+            false = cells(ev, lambda b: f"{b['false_switches']} ({b['false_successes']})")
             n = sum(b["false_switches"] for b in ev["bands"])
             won = sum(b["false_successes"] for b in ev["bands"])
-            lines.append(f"| {ev['label']} | " + " | ".join(cells) + f" | {n} ({won}) |")
+            lines.append(f"| {ev['label']} | " + " | ".join(false) + f" | {n} ({won}) |")
     return lines + [""]
 
 
