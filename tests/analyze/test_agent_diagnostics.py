@@ -42,15 +42,16 @@ def test_outcome_figures_by_hand(diag):
     assert diag.outcome(found) == "success" and diag.outcome(wrong) == "done" and diag.outcome(walk) == "limit"
 
 
+def _evaluate(world, folder, policy: str):
+    """``tsnav eval`` of ``policy`` on 4 test episodes per room type of ``world``; the evaluation folder."""
+    eps, ev = folder / "eps.json", folder / "eval"
+    assert main(["episodes", "--data", str(world), "--split", "test", "--per-room-type", "4", "--out", str(eps)]) == 0
+    assert main(["eval", "--data", str(world), "--episodes", str(eps), "--policy", policy, "--out", str(ev)]) == 0
+    return ev
+
+
 def test_outcomes_command_on_an_evaluation(diag, tiny_world, tmp_path, capsys):
-    eps = tmp_path / "eps.json"
-    assert (
-        main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "4", "--out", str(eps)]) == 0
-    )
-    ev = tmp_path / "eval"
-    assert (
-        main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "random", "--out", str(ev)]) == 0
-    )
+    ev = _evaluate(tiny_world, tmp_path, "random")
     capsys.readouterr()
     assert diag.main(["outcomes", str(ev)]) == 0
     out = capsys.readouterr().out
@@ -143,14 +144,7 @@ def test_switch_distance_bands_by_hand(diag):
 
 
 def test_switch_distance_command(diag, tiny_world, tmp_path, capsys):
-    eps = tmp_path / "eps.json"
-    assert (
-        main(["episodes", "--data", str(tiny_world), "--split", "test", "--per-room-type", "4", "--out", str(eps)]) == 0
-    )
-    ev = tmp_path / "eval"
-    assert (
-        main(["eval", "--data", str(tiny_world), "--episodes", str(eps), "--policy", "explorer", "--out", str(ev)]) == 0
-    )
+    ev = _evaluate(tiny_world, tmp_path, "explorer")
     capsys.readouterr()
     js = tmp_path / "sd.json"
     args = ["switch-distance", f"explorer={ev}", "--band", "2", "--last", "4", "--json", str(js), "--false-switches"]

@@ -506,10 +506,17 @@ def switch_distance(index: dict, results: Path) -> list[str]:
     res = json.loads((results / e["file"]).read_text())
     evals = res["evaluations"]
     spans = sorted({(b["from"], b["to"]) for ev in evals for b in ev["bands"]}, key=lambda t: t[0])
-    name = lambda lo, hi: f"{lo}-{hi - 1}" if hi is not None else f">={lo}"  # noqa: E731
     far = e.get("far_from", 15)
-    head = "| evaluation | episodes | switched | " + " | ".join(name(*t) for t in spans)
-    head += f" | L*Nav >= {far}: lost, % of all episodes |"
+
+    def header(first: str, last: str = "") -> list[str]:
+        """A band table's two header lines: ``first`` columns, one per band of ``spans``, then ``last`` if any."""
+        bands = [f"{lo}-{hi - 1}" if hi is not None else f">={lo}" for lo, hi in spans]
+        right = ["---:"] * (first.count("|") + len(bands) + bool(last))
+        return [
+            "| " + " | ".join([first, *bands] + ([last] if last else [])) + " |",
+            "| --- | " + " | ".join(right) + " |",
+        ]
+
     lines = [
         f"## {e['title']}",
         "",
@@ -522,8 +529,7 @@ def switch_distance(index: dict, results: Path) -> list[str]:
         "Success after the switch, in percent of the switched episodes in each band of L*Nav (the shortest path "
         "left at the switch, movement actions), the band's episodes in brackets:",
         "",
-        head,
-        "| --- | ---: | ---: | " + " | ".join("---:" for _ in spans) + " | ---: |",
+        *header("evaluation | episodes | switched", f"L*Nav >= {far}: lost, % of all episodes"),
     ]
 
     def cells(ev: dict, cell) -> list[str]:
@@ -544,8 +550,7 @@ def switch_distance(index: dict, results: Path) -> list[str]:
         "The median LNav / L*Nav of the successes in each band (how much longer the walk after the switch was than "
         "the shortest):",
         "",
-        "| evaluation | " + " | ".join(name(*t) for t in spans) + " |",
-        "| --- | " + " | ".join("---:" for _ in spans) + " |",
+        *header("evaluation"),
     ]
     for ev in evals:
         ratios = cells(ev, lambda b: f"{b['median_ratio']:.2f}" if b["median_ratio"] is not None else "-")
@@ -556,8 +561,7 @@ def switch_distance(index: dict, results: Path) -> list[str]:
             "Of each band's switches, those made where the target was not in the frame (a false positive of the "
             "detector; ground truth read for this analysis only), their successes in brackets:",
             "",
-            "| evaluation | " + " | ".join(name(*t) for t in spans) + " | all |",
-            "| --- | " + " | ".join("---:" for _ in spans) + " | ---: |",
+            *header("evaluation", "all"),
         ]
         for ev in evals:
             false = cells(ev, lambda b: f"{b['false_switches']} ({b['false_successes']})")
