@@ -40,6 +40,11 @@ def repo_root() -> Path:
     return Path(__file__).resolve().parents[3]
 
 
+def _code(command: str) -> list[str]:
+    """The lines of a fenced block holding ``command`` (the commands that made an entry's figures)."""
+    return ["```", command, "```"]
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.2f}"
 
@@ -191,9 +196,7 @@ def experiment_table(title: str, paper_key: str, entries: list[dict], paper: dic
             f"Per seed, L>=5, Welch tests and claim checks: [{e['details']}](results/{e['details']}); "
             f"data: [{e['file']}](results/{e['file']}).",
             "",
-            "```",
-            e["command"],
-            "```",
+            *_code(e["command"]),
             "",
             "| row | " + " | ".join(f"{m} paper | {m} tsnav `{proto}`" for m in cols) + " |",
             "| --- | " + " | ".join("---: | ---:" for _ in cols) + " |",
@@ -248,9 +251,7 @@ def fig4(index: dict, results: Path) -> list[str]:
             f"t-interval, in percent, on validation episodes under `{res.get('protocol', 'paper')}` (ALL episodes); "
             f"{details}data: [{e['file']}](results/{e['file']}).",
             "",
-            "```",
-            e["command"],
-            "```",
+            *_code(e["command"]),
             "",
         ]
         if e.get("picture"):
@@ -321,9 +322,7 @@ def levers(
             f"{e['about']} Measured at {e['setting']}; data: [{e['file']}](results/{e['file']})"
             + (f"; validation curves: [{e['curves']}]({e['curves']})." if e.get("curves") else "."),
             "",
-            "```",
-            e["command"],
-            "```",
+            *_code(e["command"]),
             "",
         ]
         for proto, t in res["protocols"].items():
@@ -452,9 +451,7 @@ def robothor_inferred_look(index: dict, results: Path) -> list[str]:
         f"records. Rebuilt the val way, train apartments cost the shipped agent {100 * (a - b):.1f} points of SR on "
         f"their own episodes ([{name}](results/{name})): {res['what']}. {res['note']} {res.get('reading', '')}",
         "",
-        "```",
-        res["command"],
-        "```",
+        *_code(res["command"]),
         "",
     ]
     return lines + metrics_table(res["rows"], episodes=True) + [""]
@@ -472,9 +469,7 @@ def robothor_switch_reach(index: dict, results: Path) -> list[str]:
         "",
         f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
         "",
-        "```",
-        e["command"],
-        "```",
+        *_code(e["command"]),
         "",
         "| switch | episodes | SR | SPL | SSR | never switched | L>=5 SR | L>=5 SPL |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
@@ -522,9 +517,7 @@ def switch_distance(index: dict, results: Path) -> list[str]:
         "",
         f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
         "",
-        "```",
-        e["command"],
-        "```",
+        *_code(e["command"]),
         "",
         "Success after the switch, in percent of the switched episodes in each band of L*Nav (the shortest path "
         "left at the switch, movement actions), the band's episodes in brackets:",
