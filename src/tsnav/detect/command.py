@@ -3,6 +3,7 @@
     tsnav detect --data DIR --detector oracle
     tsnav detect --data DIR --detector learned [--checkpoint CKPT] [--train-steps N]
     tsnav detect --data DIR --detector shipped
+    tsnav detect --data DIR --detector learned --checkpoint CKPT_I --fold I/K --name NAME   (once per fold I)
 
 The detectors are those of :mod:`tsnav.detect.registry`. ``oracle`` reads the renderer's instance statistics (:mod:`tsnav.detect.oracle`). ``learned`` trains the
 grid detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/learned``) is missing or
@@ -11,7 +12,9 @@ temperature on the VAL scenes, then detects in every scene. ``shipped`` detects 
 comes with tsnav (:mod:`tsnav.detect.shipped`; 128-px ithor-real rooms). Each scene gets
 ``detections_<name>.hdf5`` (name: ``--name``, default the detector kind, ``learned`` for ``shipped``); scenes
 whose table was made by the same detector are skipped, a table made by another detector is only replaced with
-``--overwrite``. Finally the detector is evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
+``--overwrite``. ``--fold I/K`` cross-fits: the detector trains only on the train apartments outside fold I
+(:mod:`tsnav.data.folds`) and writes fold I's train tables alone, so that an agent trained on the K folds' tables
+meets the errors the detector makes in rooms it never saw. Finally the detector is evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
 and saved as ``DIR/detectors/<name>_eval_<split>.json``.
 """
 
@@ -27,6 +30,7 @@ from tqdm import tqdm
 
 from ..atomic import atomic_write_text
 from ..data.detections import check_name, load_detections, read_fingerprint
+from ..data.folds import assign_folds, parse_fold
 from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene
 from ..distributed import set_threads
 from ..errors import CommandError
@@ -136,6 +140,16 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--name", default=None, help="table name detections_<name>.hdf5 (default: the detector kind)")
     p.add_argument("--split", default=None, help="only write tables for scenes of this split (default: all)")
+    p.add_argument(
+        "--fold",
+        default=None,
+        metavar="I/K",
+        help="learned: cross-fitting; train only on the train apartments outside fold I of K (the apartments, "
+        "sorted by name, dealt to the folds in turn; a RoboTHOR apartment's five variants stay together) and "
+        "write the tables of fold I's train scenes alone, so that no train table is the detector's own "
+        "training data; run once per fold with one --name and a --checkpoint per fold; the evaluation "
+        "then scores fold I's scenes",
+    )
     p.add_argument("--eval-split", default="val", help="split to evaluate on (default val)")
     p.add_argument("--no-eval", action="store_true", help="skip the evaluation")
     p.add_argument(
@@ -161,6 +175,27 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         "(e.g. 2 on a 2-core machine; the same tables for any value; default 1: this process)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _fold_scenes(args: argparse.Namespace, root: Path) -> tuple[list[Path], list[str], str]:
+    """``--fold I/K``: (fold I's train scene folders, whose tables are written; the names of the other folds' train
+    scenes, the detector's training data; "I/K"), with one-line errors for what cannot be cross-fitted."""
+    try:
+        i, k = parse_fold(args.fold)
+    except ValueError as e:
+        raise CommandError(f"--fold: {e}") from None
+    if args.detector != "learned":
+        raise CommandError(
+            f"--fold cross-fits a detector trained here: it needs --detector learned, not {args.detector}"
+        )
+    if args.split not in (None, "train"):
+        raise CommandError(f"--fold writes the tables of train scenes only; --split {args.split} cannot go with it")
+    train = list_scenes(root, split="train")
+    try:
+        folds = assign_folds([p.name for p in train], k)
+    except ValueError as e:
+        raise CommandError(f"--fold {args.fold}: {root}'s train scenes: {e}") from None
+    return [p for p in train if folds[p.name] == i], [p.name for p in train if folds[p.name] != i], f"{i}/{k}"
 
 
 def _sigterm_interrupts() -> None:
@@ -195,6 +230,9 @@ def run(args: argparse.Namespace) -> int:
     scenes = list_scenes(root, split=args.split)
     if not scenes:
         raise CommandError(f"{root}: no complete scene folder" + (f" of split {args.split}" if args.split else ""))
+    fold = None
+    if args.fold is not None:
+        scenes, args.train_scenes, fold = _fold_scenes(args, root)
     maker = kind.open(args, root, scenes, name)  # the detector, ready to write tables (trained first if needed)
     fingerprint = maker.fingerprint
 
@@ -228,15 +266,19 @@ def run(args: argparse.Namespace) -> int:
     )
 
     if not args.no_eval:
-        eval_scenes = [_load(p, args.mirror) for p in list_scenes(root, split=args.eval_split)]
+        if fold is not None:  # the fold's scenes: held out from this detector's training
+            where, eval_paths = f"fold {fold}", scenes
+        else:
+            where, eval_paths = args.eval_split, list_scenes(root, split=args.eval_split)
+        eval_scenes = [_load(p, args.mirror) for p in eval_paths]
         eval_scenes = [s for s in eval_scenes if (s.path / f"detections_{own}.hdf5").exists()]
         if not eval_scenes:
-            print(f"no {args.eval_split} scene with detections_{own}.hdf5: nothing to evaluate")
+            print(f"no {where} scene with detections_{own}.hdf5: nothing to evaluate")
             return 0
         report = evaluate_detections(eval_scenes, [load_detections(s.path, own) for s in eval_scenes])
-        print(f"evaluation of {own} on {args.eval_split} scenes:")
+        print(f"evaluation of {own} on {where} scenes:")
         print(report.format())
-        out = root / "detectors" / f"{own}_eval_{args.eval_split}.json"
+        out = root / "detectors" / f"{own}_eval_{where.replace('fold ', 'fold').replace('/', 'of')}.json"
         atomic_write_text(
             out,
             json.dumps(

@@ -9,6 +9,7 @@ only and calibrated on VAL.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,13 +100,20 @@ def _pad(parts: list[np.ndarray], width: int, fill) -> np.ndarray:
 
 
 def load_frames(
-    root: str | Path, split: str, max_states_per_scene: int | None = None, seed: int = 0, progress: bool = False
+    root: str | Path,
+    split: str,
+    max_states_per_scene: int | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    scenes: Collection[str] | None = None,
 ) -> FrameSet:
     """Frames and targets of every complete scene of ``split`` under ``root`` (optionally a random subset of
-    at most ``max_states_per_scene`` states per scene, drawn with ``seed``)."""
-    paths = [p for p in list_scenes(root, split=split)]
+    at most ``max_states_per_scene`` states per scene, drawn with ``seed``; optionally only the scenes named in
+    ``scenes``, as if the world held no others)."""
+    paths = [p for p in list_scenes(root, split=split) if scenes is None or p.name in scenes]
     if not paths:
-        raise ValueError(f"{root}: no complete scene of split {split!r}")
+        only = " among the scenes asked for" if scenes is not None else ""
+        raise ValueError(f"{root}: no complete scene of split {split!r}{only}")
     images, targets, names, sizes = [], [], [], []
     size, classes = None, None
     for p in tqdm(paths, desc=f"frames {split}", unit="scene", disable=not progress, dynamic_ncols=True):

@@ -195,7 +195,9 @@ def _learned(args, root: Path):
         if args.focal_alpha is not None:
             loss.focal_alpha = args.focal_alpha
         tc.loss = loss
-    res = train_detector(root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet)
+    res = train_detector(
+        root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet, scenes=getattr(args, "train_scenes", None)
+    )
     if res.step > res.start_step:
         print(
             f"trained the detector {res.start_step} -> {res.step} steps in {res.seconds:.0f}s "
@@ -203,6 +205,14 @@ def _learned(args, root: Path):
         )
     else:
         print(f"detector checkpoint {ckpt} at step {res.step}")
+    allowed = getattr(args, "train_scenes", None)
+    if allowed is not None:  # cross-fitting: the checkpoint's last training must not have seen the fold it writes
+        seen = sorted(set(read_meta(ckpt).get("train_scenes", [])) - set(allowed))
+        if seen:
+            raise CommandError(
+                f"--checkpoint {ckpt} was last trained on scenes of fold {args.fold} ({', '.join(seen[:3])}"
+                f"{', ...' if len(seen) > 3 else ''}), whose tables it would write; give each fold its own checkpoint"
+            )
     if getattr(args, "no_calibrate", False):
         print("no calibration (--no-calibrate); the checkpoint's temperature is kept")
     else:

@@ -31,6 +31,7 @@ import hashlib
 import math
 import os
 import time
+from collections.abc import Collection
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -527,10 +528,12 @@ def train_detector(
     model_cfg: DetectorConfig | None = None,
     frames: FrameSet | None = None,
     progress: bool = True,
+    scenes: Collection[str] | None = None,
 ) -> TrainResult:
     """Train (or resume training of) the detector in checkpoint folder ``ckpt`` on the TRAIN scenes of
-    ``root`` up to ``train_cfg.steps``. An existing checkpoint keeps its model and training settings except
-    ``steps``; a finished one returns at once. ``frames`` may pass preloaded training frames."""
+    ``root`` (only those named in ``scenes``, when given: cross-fitting) up to ``train_cfg.steps``. An existing
+    checkpoint keeps its model and training settings except ``steps``; a finished one returns at once. ``frames``
+    may pass preloaded training frames."""
     ckpt = Path(ckpt)
     train_cfg = train_cfg or DetectorTrainConfig()
     if not train_cfg.repeat_threshold >= 0:
@@ -544,7 +547,7 @@ def train_detector(
     if start >= train_cfg.steps:
         return TrainResult(ckpt, start, start, 0.0, meta["history"][-1] if meta["history"] else {})
     if frames is None:
-        frames = load_frames(root, "train", train_cfg.max_states_per_scene, train_cfg.seed, progress)
+        frames = load_frames(root, "train", train_cfg.max_states_per_scene, train_cfg.seed, progress, scenes=scenes)
     if frames.images.shape[1] != model.cfg.image_size:
         raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
     if frames.present.shape[1] != model.cfg.num_classes:
