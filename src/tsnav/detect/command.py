@@ -134,7 +134,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         help=f"shipped: which shipped detector (default: the one --name names, if any, else "
         f"{DEFAULT_SHIPPED}; learned3 wrote the tables of the "
         "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
-        "robothor1, robothor2 (trained longer) and robothor3 (trained on in train apartments rebuilt the val way): "
+        "robothor1, robothor2 (trained longer), robothor3 (trained on in train apartments rebuilt the val way) and "
+        "robothor4 (robothor3 trained longer): "
         "the 12 RoboTHOR targets, for robothor-real worlds; see "
         "tsnav.detect.shipped)",
     )
