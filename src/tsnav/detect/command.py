@@ -268,9 +268,9 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.no_eval:
         if fold is not None:  # the fold's scenes: held out from this detector's training
-            where, eval_paths = f"fold {fold}", scenes
+            where, tag, eval_paths = f"fold {fold}", "fold" + fold.replace("/", "of"), scenes
         else:
-            where, eval_paths = args.eval_split, list_scenes(root, split=args.eval_split)
+            where, tag, eval_paths = args.eval_split, args.eval_split, list_scenes(root, split=args.eval_split)
         eval_scenes = [_load(p, args.mirror) for p in eval_paths]
         eval_scenes = [s for s in eval_scenes if (s.path / f"detections_{own}.hdf5").exists()]
         if not eval_scenes:
@@ -279,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
         report = evaluate_detections(eval_scenes, [load_detections(s.path, own) for s in eval_scenes])
         print(f"evaluation of {own} on {where} scenes:")
         print(report.format())
-        out = root / "detectors" / f"{own}_eval_{where.replace('fold ', 'fold').replace('/', 'of')}.json"
+        out = root / "detectors" / f"{own}_eval_{tag}.json"
         atomic_write_text(
             out,
             json.dumps(
