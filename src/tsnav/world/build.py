@@ -60,7 +60,9 @@ class BuildConfig:
     #: version of the ithor-real rules (tsnav.world.real.VERSIONS) or of the robothor-real rules
     #: (tsnav.world.robothor_real.VERSIONS); None: the newest; ithor-real 1 rebuilds worlds made before issue 24
     world_version: int | None = None
-    seed: int = 0  #: world seed; the same name and seed give the same scene
+    #: world seed; the same name and seed give the same scene (robothor-real: the floor and wall materials' draw,
+    #: 0 the benchmark's; ithor-real: 0 only)
+    seed: int = 0
     #: robothor-real: the challenge's episode folder; the train scenes are then rebuilt the way the val ones are
     #: (furniture from the plans, targets inferred from their challenge train episodes), not from their records
     infer_train: str | None = None
@@ -247,6 +249,20 @@ def check_train_objects(out: Path, cfg: BuildConfig) -> None:
             )
 
 
+def check_surface_seed(out: Path, cfg: BuildConfig) -> None:
+    """Refuse to build robothor-real scenes into a folder whose finished scenes drew their floor and wall materials
+    with another seed (finished scenes are skipped, so the world would mix them): one-line ``ValueError``."""
+    if cfg.world != "robothor-real" or not out.is_dir():
+        return
+    for d in sorted(out.iterdir()):
+        gen = finished_generator(d)
+        have = int((gen or {}).get("surface_seed", 0))
+        if gen is not None and have != cfg.seed:
+            raise ValueError(
+                f"{d} was built with surface seed {have}, this build with --seed {cfg.seed}: use another --out"
+            )
+
+
 def write_index(out_dir: Path, preset: str, names: list[str], cfg: BuildConfig) -> None:
     """``index.json`` of a dataset: preset, scene names and the build settings (written atomically)."""
     atomic_write_text(
@@ -370,6 +386,7 @@ def build_dataset(
         shutil.rmtree(stale, ignore_errors=True)
     check_world_version(out, names, cfg)
     check_train_objects(out, cfg)
+    check_surface_seed(out, cfg)
     check_camera(out, cfg)
     write_index(out, preset or "custom", names, cfg)
     todo = [(n, out, cfg) for n in names]

@@ -78,7 +78,14 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         help="store frames raw (default: gzip level 1, about 4.5x smaller at 128 px; stock h5py reads both)",
     )
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
-    p.add_argument("--seed", type=int, default=0, help="world seed (same name + seed = same scene)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="world seed (same name + seed = same scene). robothor-real: any seed but 0 redraws the floor and wall "
+        "materials, per scene instead of per apartment (a training world for a detector that must not learn the "
+        "apartments' surfaces; the benchmark is seed 0); ithor-real: 0 only",
+    )
     p.add_argument("--compact", action="store_true", default=None, help="small rooms (default: the preset's)")
 
 
@@ -151,6 +158,12 @@ def run(args) -> int:
         except ValueError as e:  # BuildConfig's own check
             raise CommandError(f"--camera-height: {e}") from None
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None
+    if args.seed < 0:
+        raise CommandError(f"--seed must be 0 or more, got {args.seed}")
+    if args.seed and cfg.world == "ithor-real":
+        raise CommandError(
+            "--seed applies to the procedural and robothor-real worlds; ithor-real rooms are their records"
+        )
     if cfg.infer_train is not None:
         if cfg.world != "robothor-real":
             raise CommandError(f"--infer-train-objects applies to the robothor-real world, not preset {args.preset!r}")

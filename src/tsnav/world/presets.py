@@ -107,8 +107,9 @@ def scene_spec(
     version: int | None = None,
     infer_train: str | None = None,
 ) -> SceneSpec:
-    """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` and ``compact`` apply to
-    procedural scenes only, ``version`` (of the rules, :data:`tsnav.world.real.VERSIONS`; None: the newest) to
+    """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` draws a procedural scene and a
+    ``robothor-real`` scene's floor and wall materials (:func:`~tsnav.world.robothor_real.surface_rng`), ``ithor-real``
+    refuses any but 0; ``compact`` applies to procedural scenes only, ``version`` (of the rules, :data:`tsnav.world.real.VERSIONS`; None: the newest) to
     ``ithor-real`` and ``robothor-real`` only; ``infer_train`` (the challenge's episode folder: train scenes rebuilt
     the way the val ones are, :func:`~tsnav.world.robothor_real.robothor_spec`) to ``robothor-real`` only."""
     if infer_train is not None and world != "robothor-real":
@@ -118,7 +119,9 @@ def scene_spec(
             raise ValueError("a world version applies to the ithor-real world only")
         return generate(name, seed=seed, compact=compact)
     if world == "ithor-real":
+        if seed:
+            raise ValueError(f"the ithor-real world has no seed (its rooms are their records), got seed {seed}")
         return real_spec(name, version)
     if world == "robothor-real":
-        return robothor_spec(name, version, infer_train)
+        return robothor_spec(name, version, infer_train, seed)
     raise ValueError(f"unknown world {world!r} (choose from {', '.join(WORLDS)})")

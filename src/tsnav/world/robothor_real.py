@@ -414,11 +414,26 @@ def inferred_train_episodes(challenge: str | Path, name: str, n: int = INFER_EPI
     return [eps[i] for i in order[:n]]
 
 
-def robothor_spec(name: str, version: int | None = None, infer_train: str | Path | None = None) -> SceneSpec:
+def surface_rng(name: str, seed: int = 0) -> np.random.Generator:
+    """The generator that draws scene ``name``'s floor and wall materials. Seed 0 is the benchmark's draw: one per
+    apartment, so its five variants share their surfaces. Any other seed draws them per scene (the variants then
+    differ): more surfaces for a detector to learn than the twelve train apartments' draws, which a detector
+    otherwise learns as part of what a target is."""
+    if seed < 0:
+        raise ValueError(f"the surface seed must be 0 or more, got {seed}")
+    key = f"tsnav-robothor-real|{apartment(name)}" if seed == 0 else f"tsnav-robothor-real|{name}|surfaces {seed}"
+    return np.random.default_rng(zlib.crc32(key.encode()))
+
+
+def robothor_spec(
+    name: str, version: int | None = None, infer_train: str | Path | None = None, seed: int = 0
+) -> SceneSpec:
     """The :class:`SceneSpec` of RoboTHOR scene ``name`` (``FloorPlan_Train1_1`` ... ``FloorPlan_Val3_5``) by the
     rules of ``version`` (module docstring). ``infer_train``: the challenge's episode folder; a train scene is then
     rebuilt the way the val ones are (furniture from the plan, targets inferred from :data:`INFER_EPISODES` of its
-    challenge train episodes, :func:`inferred_train_episodes`), its object records left out."""
+    challenge train episodes, :func:`inferred_train_episodes`), its object records left out. ``seed``: the draw of
+    the floor and wall materials (:func:`surface_rng`; 0, the benchmark's, is the only one the Table I worlds use);
+    nothing else depends on it."""
     version = check_version(version)
     room_type, split = scene_info(name)
     if room_type != "apartment":
@@ -452,7 +467,9 @@ def robothor_spec(name: str, version: int | None = None, infer_train: str | Path
         class_set=ROBOTHOR12.name,
     )
     spec.light = {"direction": [0.35, -2.5, 0.2], "ambient": 0.55, "diffuse": 0.42, "tint": [1.0, 0.98, 0.95]}
-    rng = np.random.default_rng(zlib.crc32(f"tsnav-robothor-real|{apartment(name)}".encode()))
+    rng = surface_rng(name, seed)
+    if seed:
+        spec.generator["surface_seed"] = int(seed)
     floor_inst, wall_inst, ceil_inst = spec.new_inst("Floor"), spec.new_inst("Wall"), spec.new_inst("Ceiling")
     spec.parts += floor_and_ceiling(
         (x0, z0, x1, z1), spec.wall_height, jitter(rng, *FLOORS[int(rng.integers(len(FLOORS)))]), floor_inst, ceil_inst
