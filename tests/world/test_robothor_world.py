@@ -641,3 +641,60 @@ def test_a_folder_never_mixes_recorded_and_inferred_train_scenes(tmp_path):
     check_train_objects(tmp_path, inferring)
     with pytest.raises(ValueError, match="built with its train objects inferred, this build records them"):
         check_train_objects(tmp_path, recorded)
+
+
+def _surfaces(spec):
+    """The floor's and the walls' material rows (colours, pattern, scale) of a spec."""
+    js = spec.to_json()
+    names = js["instances"]
+    return {k: tuple(next(p for p in js["parts"] if names[int(p[15])] == k)[7:15]) for k in ("Floor", "Wall")}
+
+
+def test_surface_seed_redraws_floor_and_walls_only():
+    """Seed 0 is the benchmark's draw, one per apartment (its variants share it); another seed draws per scene, so
+    the variants differ, and leaves the geometry, objects and furniture as they are."""
+    base = [R.robothor_spec(f"FloorPlan_Train6_{k}") for k in (1, 2)]
+    assert _surfaces(base[0]) == _surfaces(base[1])
+    assert "surface_seed" not in base[0].generator
+    s1 = [R.robothor_spec(f"FloorPlan_Train6_{k}", seed=1) for k in (1, 2)]
+    assert _surfaces(s1[0]) != _surfaces(s1[1])
+    assert _surfaces(s1[0]) != _surfaces(base[0])
+    assert s1[0].generator["surface_seed"] == 1
+    assert _surfaces(R.robothor_spec("FloorPlan_Train6_1", seed=1)) == _surfaces(s1[0])  # deterministic
+    a, b = base[0].to_json(), s1[0].to_json()
+    for key in ("objects", "furniture", "floor", "rooms", "navigation", "instances"):
+        assert a[key] == b[key], key
+    geometry = lambda js: [p[:7] for p in js["parts"]]  # noqa: E731
+    assert geometry(a) == geometry(b)
+    with pytest.raises(ValueError, match="surface seed must be 0 or more"):
+        R.robothor_spec("FloorPlan_Train6_1", seed=-1)
+
+
+def test_surface_seed_refused_where_it_means_nothing_or_would_mix(tmp_path):
+    from tsnav.data.reader import COMPLETE_MARKER
+    from tsnav.world.build import BuildConfig, check_surface_seed
+    from tsnav.world.presets import scene_spec
+
+    with pytest.raises(ValueError, match="ithor-real world has no seed"):
+        scene_spec("FloorPlan1", "ithor-real", seed=2)
+    (tmp_path / "FloorPlan_Train1_1").mkdir()
+    (tmp_path / "FloorPlan_Train1_1" / "scene.json").write_text(
+        json.dumps({"generator": {"world": "robothor-real", "version": 2, "surface_seed": 1}})
+    )
+    (tmp_path / "FloorPlan_Train1_1" / COMPLETE_MARKER).write_text("")
+    check_surface_seed(tmp_path, BuildConfig.from_preset("robothor-real", seed=1))
+    with pytest.raises(ValueError, match="built with surface seed 1, this build with --seed 0"):
+        check_surface_seed(tmp_path, BuildConfig.from_preset("robothor-real"))
+
+
+def test_world_seed_bad_input_in_one_line(tmp_path, capsys):
+    from tsnav.cli import main
+
+    for preset, seed, msg in (
+        ("robothor-real", "-1", "--seed must be 0 or more"),
+        ("ithor-real", "2", "ithor-real rooms are their records"),
+    ):
+        assert main(["world", "--preset", preset, "--seed", seed, "--out", str(tmp_path / "w")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "w").exists()
