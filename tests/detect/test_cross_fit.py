@@ -100,7 +100,7 @@ def test_cross_fitting_refuses_what_would_leak_or_cannot_work(world, tmp_path, c
     capsys.readouterr()
     assert _detect(world, tmp_path / "ck0", "--name", "cf", "--fold", "1/2", "--no-eval") == 2
     err = capsys.readouterr().err
-    assert "was last trained on scenes of fold 1/2" in err and "its own checkpoint" in err
+    assert "was trained on scenes of fold 1/2" in err and "its own checkpoint" in err
     assert main(["detect", "--data", str(world), "--detector", "oracle", "--fold", "0/2"]) == 2
     assert "needs --detector learned" in capsys.readouterr().err
     assert _detect(world, tmp_path / "x", "--fold", "0/2", "--split", "val") == 2
@@ -109,3 +109,33 @@ def test_cross_fitting_refuses_what_would_leak_or_cannot_work(world, tmp_path, c
     assert "--fold: fold '2/2'" in capsys.readouterr().err
     assert _detect(world, tmp_path / "x", "--fold", "0/9") == 2
     assert "cannot fill 9 folds" in capsys.readouterr().err
+
+
+def test_a_checkpoint_that_saw_the_fold_in_any_earlier_segment_is_refused(world, tmp_path, capsys):
+    """Trained outside fold 0 (so on fold 1), then on fold 0 alone: its last segment never saw fold 1, its history
+    did; ``--fold 1/2`` is refused before it trains, and nothing is written."""
+    train = [p.name for p in list_scenes(world, split="train")]
+    folds = assign_folds(train, 2)
+    ck = tmp_path / "ck"
+    assert _detect(world, ck, "--name", "cf", "--fold", "0/2", "--no-eval") == 0
+    view = tmp_path / "fold0"
+    view.mkdir()
+    for n in train:
+        if folds[n] == 0:
+            os.symlink(world / n, view / n)
+
+    def run(data, steps, *extra):
+        args = ["detect", "--data", str(data), "--detector", "learned", "--checkpoint", str(ck), "--quiet"]
+        args += ["--max-states-per-scene", "16", "--batch-size", "8", "--threads", "1", "--train-steps", str(steps)]
+        return main([*args, "--no-calibrate", *extra])
+
+    assert run(view, 5, "--name", "seg2", "--no-eval") == 0
+    meta = read_meta(ck)
+    assert sorted(meta["train_scenes"]) == sorted(n for n in train if folds[n] == 0)
+    assert sorted(meta["seen_scenes"]) == sorted(train)
+    capsys.readouterr()
+    assert run(world, 6, "--name", "cf1", "--fold", "1/2") == 2
+    err = capsys.readouterr().err
+    assert "was trained on scenes of fold 1/2" in err and len(err.strip().splitlines()) == 1
+    assert read_meta(ck)["step"] == 5  # refused before training
+    assert not any((world / n / "detections_cf1.hdf5").exists() for n in train)

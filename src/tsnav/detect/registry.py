@@ -119,6 +119,20 @@ def _open_learned(args, root: Path, scenes: list, name: str) -> TableMaker:
     return _network_maker(_same_classes(_learned(args, root), "the learned detector", root, scenes))
 
 
+def _check_fold(args, ckpt: Path, read_meta, seen_scenes) -> None:
+    """Cross-fitting: refuse a checkpoint that was ever trained on a scene of the fold whose tables it would write
+    (every training segment it records, :func:`~tsnav.detect.train.seen_scenes`)."""
+    allowed = getattr(args, "train_scenes", None)
+    if allowed is None:
+        return
+    seen = sorted(set(seen_scenes(read_meta(ckpt))) - set(allowed))
+    if seen:
+        raise CommandError(
+            f"--checkpoint {ckpt} was trained on scenes of fold {args.fold} ({', '.join(seen[:3])}"
+            f"{', ...' if len(seen) > 3 else ''}), whose tables it would write; give each fold its own checkpoint"
+        )
+
+
 def _learned(args, root: Path):
     """The learned detector of ``args.checkpoint`` (default ``ROOT/detectors/learned``), trained to
     ``--train-steps`` and calibrated on the val rooms first (not with ``--no-calibrate``, nor in a world without
@@ -131,6 +145,7 @@ def _learned(args, root: Path):
         default_train_steps,
         is_checkpoint,
         read_meta,
+        seen_scenes,
         train_detector,
     )
 
@@ -195,6 +210,8 @@ def _learned(args, root: Path):
         if args.focal_alpha is not None:
             loss.focal_alpha = args.focal_alpha
         tc.loss = loss
+    if is_checkpoint(ckpt):
+        _check_fold(args, ckpt, read_meta, seen_scenes)  # before training: refused without spending the steps
     res = train_detector(
         root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet, scenes=getattr(args, "train_scenes", None)
     )
@@ -205,14 +222,7 @@ def _learned(args, root: Path):
         )
     else:
         print(f"detector checkpoint {ckpt} at step {res.step}")
-    allowed = getattr(args, "train_scenes", None)
-    if allowed is not None:  # cross-fitting: the checkpoint's last training must not have seen the fold it writes
-        seen = sorted(set(read_meta(ckpt).get("train_scenes", [])) - set(allowed))
-        if seen:
-            raise CommandError(
-                f"--checkpoint {ckpt} was last trained on scenes of fold {args.fold} ({', '.join(seen[:3])}"
-                f"{', ...' if len(seen) > 3 else ''}), whose tables it would write; give each fold its own checkpoint"
-            )
+    _check_fold(args, ckpt, read_meta, seen_scenes)
     if getattr(args, "no_calibrate", False):
         print("no calibration (--no-calibrate); the checkpoint's temperature is kept")
     else:

@@ -18,7 +18,8 @@ trainer (:mod:`tsnav.checkpoint`; the newest two kept, a broken newest one named
 * ``optimizer.safetensors``: AdamW moment tensors (``state.<param index>.<name>``);
 * ``state.json``: ``format``, ``model`` (:class:`~tsnav.detect.model.DetectorConfig`), ``train``
   (:class:`DetectorTrainConfig`), ``step``, ``temperature``, ``calibrated_step``, ``min_score``, ``history`` (loss
-  terms every ``log_every`` steps), ``param_groups`` of the optimiser, ``fingerprint``.
+  terms every ``log_every`` steps), ``param_groups`` of the optimiser, ``fingerprint``, ``train_scenes`` (the scenes of
+  the last training segment) and ``seen_scenes`` (every segment's, :func:`seen_scenes`).
 
 Detector folders written before that layout (the three files at the top of ``DIR``, JSON ``detector.json``,
 the checkpoint before in ``DIR/previous/``) are still read, resumed and calibrated; new checkpoints go to
@@ -372,6 +373,13 @@ def _pinned(path: str | Path) -> Path:
     return p if _meta_file(p).exists() else newest_checkpoint(p)
 
 
+def seen_scenes(meta: dict) -> list[str]:
+    """The scene names a checkpoint's ``state.json`` says it was ever trained on: ``seen_scenes``, the union over
+    its training segments; a checkpoint written before that record holds only its last segment's ``train_scenes``
+    (what it saw before that is unknown)."""
+    return list(meta.get("seen_scenes", meta.get("train_scenes", [])))
+
+
 def read_meta(path: str | Path, pinned: bool = False) -> dict:
     """The JSON of the newest checkpoint of a detector folder (``state.json``; legacy ``detector.json``), or of
     the checkpoint folder ``path`` itself (``pinned``: of the files at the top of ``path`` when it has them, as
@@ -568,6 +576,7 @@ def train_detector(
     if start > 0 and opt_state is not None:
         opt.load_state_dict({"state": opt_state, "param_groups": meta["param_groups"]})
     meta["train"] = asdict(train_cfg)
+    meta["seen_scenes"] = sorted(set(seen_scenes(meta)) | set(frames.scenes))
     meta["train_scenes"] = frames.scenes
     model.train()
     t0 = time.perf_counter()
