@@ -25,6 +25,7 @@ ANALYSES = {
     "detector-tta": ("detector_tta", "flip test-time augmentation of a shipped detector on a split's rooms"),
     "detector-zoom": ("detector_zoom", "zoomed crops at test time for a shipped detector's small objects"),
     "done-collapse": ("done_collapse", "which reward term makes the agent stop taking Done"),
+    "false-boxes": ("false_boxes", "what lies under a detector's boxes on targets that are not in view"),
     "lever-table": ("lever_table", "levers against a base run on the same episodes, paired bootstrap intervals"),
     "merge-rows": ("merge_rows", "complete an experiment's table with rows of another experiment"),
     "noisy-tables": ("noisy_tables", "tables of the shipped detector on frames with Gaussian pixel noise"),
