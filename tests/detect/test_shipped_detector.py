@@ -48,9 +48,9 @@ def test_weights_match_their_fingerprint_and_provenance(name):
         shipped.shipped_detector(name="learned9")
 
 
-@pytest.mark.parametrize("name", ["robothor1", "robothor2", "robothor3", "robothor4"])
+@pytest.mark.parametrize("name", ["robothor1", "robothor2", "robothor3", "robothor4", "robothor5"])
 def test_robothor_detectors_saw_only_the_train_apartments(name):
-    """robothor1 to robothor4: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing
+    """robothor1 to robothor5: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing
     of the 15 val ones (they are the benchmark): not calibrated, temperature 1."""
     det = shipped.shipped_detector(128, name=name)
     meta = shipped.shipped_meta(name)
@@ -61,15 +61,18 @@ def test_robothor_detectors_saw_only_the_train_apartments(name):
     assert meta["calibration_split"] is None and meta["calibrated_step"] == -1 and det.temperature == 1.0
     assert meta["train"]["loss"]["presence_pos_weight"] == 4.0 and meta["model"]["widths"] == [32, 64, 128]
     # robothor2 is robothor1 trained on to 15,000 steps with class-balanced sampling; robothor3 is robothor2 trained
-    # on to 20,000 steps in the train apartments rebuilt the val way, robothor4 robothor3 on to 25,000 there
+    # on to 20,000 steps in the train apartments rebuilt the val way, robothor4 robothor3 on to 25,000 there, robothor5
+    # the same with the surfaces redrawn
     steps, repeat = {
         "robothor1": (5000, 0.0),
         "robothor2": (15000, 0.5),
         "robothor3": (20000, 0.5),
         "robothor4": (25000, 0.5),
+        "robothor5": (25000, 0.5),
     }[name]
     assert meta["step"] == steps and meta["train"]["repeat_threshold"] == repeat
-    assert ("rebuilt the val way" in meta.get("train_world", "")) == (name in ("robothor3", "robothor4"))
+    assert ("rebuilt the val way" in meta.get("train_world", "")) == (name in ("robothor3", "robothor4", "robothor5"))
+    assert ("redrawn per scene" in meta.get("train_world", "")) == (name == "robothor5")
 
 
 def test_refuses_other_frame_sizes_and_damaged_weights(tmp_path, monkeypatch):

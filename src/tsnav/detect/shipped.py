@@ -1,11 +1,11 @@
 """The detectors that ship inside the package: :class:`~tsnav.detect.learned.LearnedDetector` checkpoints trained
 here on the 80 training rooms of the ``ithor-real`` world at 128x128 and calibrated on its 20 validation rooms, and
-four trained on the 60 training apartments of the ``robothor-real`` world (``robothor1`` to
-``robothor4``, the 12 classes of ``robothor12``).
+five trained on the 60 training apartments of the ``robothor-real`` world (``robothor1`` to
+``robothor5``, the 12 classes of ``robothor12``).
 
 The paper's stage switch reads a DETR that was trained before, and apart from, the navigation agent; the
 shipped weights play that part for the 128-px real rooms, so that a short job (``tsnav demo``) can use a
-detector that took two to three hours of one CPU core to train. Nothing is downloaded. Eight are kept (1.9 MB of
+detector that took two to three hours of one CPU core to train. Nothing is downloaded. Nine are kept (1.9 MB of
 float32 each, 6.8 MB for the wider ``learned7``) with their checkpoint JSON (training configuration and rooms,
 temperature, fingerprint, provenance):
 
@@ -40,8 +40,12 @@ temperature, fingerprint, provenance):
   0.557 against 0.374; docs/results/robothor3_val_eval_2026-12-06.json, robothor2_val_v2_eval_2026-12-06.json).
 * ``robothor4`` (``weights/robothor-real-128-robothor4``): ``robothor3`` trained on to 25,000 steps in the same
   apartments, same settings; not calibrated. Val presence AP 0.802, box AP@0.5 0.586 (docs/results/
-  robothor4_val_eval_2026-12-07.json). The detector ``tsrm-demae-robothor-paper-protocol`` is evaluated with (it
-  was trained on ``robothor3``'s tables): a gain within the val episodes' noise, docs/RESULTS.md.
+  robothor4_val_eval_2026-12-07.json): a gain within the val episodes' noise for the agent, docs/RESULTS.md.
+* ``robothor5`` (``weights/robothor-real-128-robothor5``): ``robothor4``'s 5,000 steps from ``robothor3``, in the
+  same apartments with their floor and wall materials redrawn per scene (``tsnav world --seed 1``); not calibrated.
+  Val presence AP 0.849, box AP@0.5 0.630 (docs/results/robothor5_val_eval_2026-12-07.json), and a third of
+  ``robothor4``'s boxes on targets out of view. The detector ``tsrm-demae-robothor-paper-protocol`` is evaluated
+  with (it was trained on ``robothor3``'s tables), docs/RESULTS.md.
 
 Their tables carry the same fingerprint as the ones written by ``tsnav detect --checkpoint`` with the same
 weights, so tables written from a shipped copy and from the training folder are interchangeable.
@@ -66,6 +70,7 @@ SHIPPED = {
     "robothor2": _WEIGHTS / "robothor-real-128-robothor2",
     "robothor3": _WEIGHTS / "robothor-real-128-robothor3",
     "robothor4": _WEIGHTS / "robothor-real-128-robothor4",
+    "robothor5": _WEIGHTS / "robothor-real-128-robothor5",
 }
 #: The one used unless another is named.
 DEFAULT_SHIPPED = "learned4"
