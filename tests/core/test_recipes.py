@@ -574,6 +574,17 @@ def test_recipe_builds_train_apartments_the_val_way(tmp_path, monkeypatch):
     built.clear()
     make_agent(resolve_agent(read_recipe(ROBOTHOR), tmp_path), tmp_path / "work2", until="world", challenge=challenge)
     assert built[0].infer_train is None  # the recipe's default: train apartments from their records
+    built.clear()
+    make_agent(
+        resolve_agent(apply_sets(recipe, ["world.seed=1"], ("world",)), tmp_path),
+        tmp_path / "w3",
+        challenge=challenge,
+        until="world",
+    )
+    assert built[0].seed == 1 and built[0].infer_train == str(challenge.resolve())  # redrawn train surfaces
+    for bad, where in (("world.seed=2", seven), ("world.seed=-1", recipe)):
+        with pytest.raises(CommandError, match=r"\[world\]: seed"):
+            resolve_agent(apply_sets(where, [bad], ("world",)), tmp_path)
 
 
 def test_robothor_agent_card(tmp_path, monkeypatch):

@@ -668,6 +668,9 @@ def test_surface_seed_redraws_floor_and_walls_only():
     assert geometry(a) == geometry(b)
     with pytest.raises(ValueError, match="surface seed must be 0 or more"):
         R.robothor_spec("FloorPlan_Train6_1", seed=-1)
+    # the val apartments are the benchmark: their surfaces are seed 0's whatever the seed
+    val = R.robothor_spec("FloorPlan_Val2_3", seed=1)
+    assert _surfaces(val) == _surfaces(R.robothor_spec("FloorPlan_Val2_3")) and "surface_seed" not in val.generator
 
 
 def test_surface_seed_refused_where_it_means_nothing_or_would_mix(tmp_path):
@@ -682,6 +685,9 @@ def test_surface_seed_refused_where_it_means_nothing_or_would_mix(tmp_path):
         json.dumps({"generator": {"world": "robothor-real", "version": 2, "surface_seed": 1}})
     )
     (tmp_path / "FloorPlan_Train1_1" / COMPLETE_MARKER).write_text("")
+    (tmp_path / "FloorPlan_Val1_1").mkdir()  # a val scene (always seed 0's surfaces) mixes with any seed
+    (tmp_path / "FloorPlan_Val1_1" / "scene.json").write_text(json.dumps({"generator": {"world": "robothor-real"}}))
+    (tmp_path / "FloorPlan_Val1_1" / COMPLETE_MARKER).write_text("")
     check_surface_seed(tmp_path, BuildConfig.from_preset("robothor-real", seed=1))
     with pytest.raises(ValueError, match="built with surface seed 1, this build with --seed 0"):
         check_surface_seed(tmp_path, BuildConfig.from_preset("robothor-real"))

@@ -73,6 +73,9 @@ class WorldSettings:
     targets inferred from the challenge's train episodes; ``tsnav world --infer-train-objects``), so that the agent
     learns in apartments that look like its benchmark's. Reads the challenge's episode folder (``tsnav release make
     --challenge DIR`` or ``[scoring] challenge``)."""
+    seed: int = 0
+    """``robothor-real`` only: the draw of the train apartments' floor and wall materials (``tsnav world --seed``; 0,
+    the benchmark's, one per apartment; any other seed draws them per scene). The val apartments keep 0's."""
 
 
 @dataclass
@@ -233,6 +236,10 @@ def resolve_agent(recipe: dict, work: Path) -> AgentRecipe:
             f'[scoring]: episodes "val" would choose checkpoints on the {world.preset} val scenes, its benchmark: '
             f'use "challenge-train" (a sample of the challenge\'s train episodes) or "none" (the last checkpoint)'
         )
+    if world.seed < 0 or (world.seed and world.preset != "robothor-real"):
+        raise CommandError(
+            f"[world]: seed {world.seed}: a seed of 0 or more, and one other than 0 for robothor-real only"
+        )
     if world.infer_train_objects and world.preset != "robothor-real":
         raise CommandError(f"[world]: infer_train_objects applies to the robothor-real world, not {world.preset!r}")
     if world.infer_train_objects and scoring.episodes != "challenge-train":
@@ -316,6 +323,8 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select", challenge: 
     set_threads(r.features.threads)
     say(f"world {r.world.preset} -> {world}")
     overrides: dict = {"world_version": r.world.version} if r.world.version is not None else {}
+    if r.world.seed:
+        overrides["seed"] = r.world.seed
     if r.world.infer_train_objects:
         from ..world.presets import preset_scenes
         from ..world.robothor_real import missing_train_episodes

@@ -60,8 +60,8 @@ class BuildConfig:
     #: version of the ithor-real rules (tsnav.world.real.VERSIONS) or of the robothor-real rules
     #: (tsnav.world.robothor_real.VERSIONS); None: the newest; ithor-real 1 rebuilds worlds made before issue 24
     world_version: int | None = None
-    #: world seed; the same name and seed give the same scene (robothor-real: the floor and wall materials' draw,
-    #: 0 the benchmark's; ithor-real: 0 only)
+    #: world seed; the same name and seed give the same scene (robothor-real: the train apartments' floor and wall
+    #: materials' draw, 0 the benchmark's, the val apartments always 0's; ithor-real: 0 only)
     seed: int = 0
     #: robothor-real: the challenge's episode folder; the train scenes are then rebuilt the way the val ones are
     #: (furniture from the plans, targets inferred from their challenge train episodes), not from their records
@@ -250,14 +250,19 @@ def check_train_objects(out: Path, cfg: BuildConfig) -> None:
 
 
 def check_surface_seed(out: Path, cfg: BuildConfig) -> None:
-    """Refuse to build robothor-real scenes into a folder whose finished scenes drew their floor and wall materials
-    with another seed (finished scenes are skipped, so the world would mix them): one-line ``ValueError``."""
+    """Refuse to build robothor-real scenes into a folder whose finished train scenes drew their floor and wall
+    materials with another seed (finished scenes are skipped, so the world would mix them): one-line
+    ``ValueError``. Val scenes always draw with 0 (:func:`~tsnav.world.robothor_real.surface_seed`)."""
     if cfg.world != "robothor-real" or not out.is_dir():
         return
     for d in sorted(out.iterdir()):
         gen = finished_generator(d)
+        try:
+            split = scene_info(d.name)[1]
+        except ValueError:
+            continue  # not a scene folder
         have = int((gen or {}).get("surface_seed", 0))
-        if gen is not None and have != cfg.seed:
+        if gen is not None and split == "train" and have != cfg.seed:
             raise ValueError(
                 f"{d} was built with surface seed {have}, this build with --seed {cfg.seed}: use another --out"
             )

@@ -82,9 +82,10 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         "--seed",
         type=int,
         default=0,
-        help="world seed (same name + seed = same scene). robothor-real: any seed but 0 redraws the floor and wall "
-        "materials, per scene instead of per apartment (a training world for a detector that must not learn the "
-        "apartments' surfaces; the benchmark is seed 0); ithor-real: 0 only",
+        help="world seed (same name + seed = same scene). robothor-real: any seed but 0 redraws the train "
+        "apartments' floor and wall materials, per scene instead of per apartment (training frames for a detector or an "
+        "agent that must not learn the apartments' surfaces); the val apartments, the benchmark, keep seed 0's; "
+        "ithor-real: 0 only",
     )
     p.add_argument("--compact", action="store_true", default=None, help="small rooms (default: the preset's)")
 

@@ -414,11 +414,19 @@ def inferred_train_episodes(challenge: str | Path, name: str, n: int = INFER_EPI
     return [eps[i] for i in order[:n]]
 
 
+def surface_seed(name: str, seed: int = 0) -> int:
+    """The seed scene ``name`` draws its floor and wall materials with: ``seed`` for a train apartment, 0 for a val
+    one (the val apartments are the benchmark: their surfaces never change)."""
+    if seed < 0:
+        raise ValueError(f"the surface seed must be 0 or more, got {seed}")
+    return seed if scene_info(name)[1] == "train" else 0
+
+
 def surface_rng(name: str, seed: int = 0) -> np.random.Generator:
-    """The generator that draws scene ``name``'s floor and wall materials. Seed 0 is the benchmark's draw: one per
-    apartment, so its five variants share their surfaces. Any other seed draws them per scene (the variants then
-    differ): more surfaces for a detector to learn than the twelve train apartments' draws, which a detector
-    otherwise learns as part of what a target is."""
+    """The generator that draws scene ``name``'s floor and wall materials (``seed``: :func:`surface_seed`'s). Seed 0
+    is the benchmark's draw: one per apartment, so its five variants share their surfaces. Any other seed draws them
+    per scene (the variants then differ): more surfaces for a detector to learn than the twelve train apartments'
+    draws, which a detector otherwise learns as part of what a target is."""
     if seed < 0:
         raise ValueError(f"the surface seed must be 0 or more, got {seed}")
     key = f"tsnav-robothor-real|{apartment(name)}" if seed == 0 else f"tsnav-robothor-real|{name}|surfaces {seed}"
@@ -432,7 +440,7 @@ def robothor_spec(
     rules of ``version`` (module docstring). ``infer_train``: the challenge's episode folder; a train scene is then
     rebuilt the way the val ones are (furniture from the plan, targets inferred from :data:`INFER_EPISODES` of its
     challenge train episodes, :func:`inferred_train_episodes`), its object records left out. ``seed``: the draw of
-    the floor and wall materials (:func:`surface_rng`; 0, the benchmark's, is the only one the Table I worlds use);
+    a train apartment's floor and wall materials (:func:`surface_seed`; the val apartments keep 0's, the benchmark's);
     nothing else depends on it."""
     version = check_version(version)
     room_type, split = scene_info(name)
@@ -467,6 +475,7 @@ def robothor_spec(
         class_set=ROBOTHOR12.name,
     )
     spec.light = {"direction": [0.35, -2.5, 0.2], "ambient": 0.55, "diffuse": 0.42, "tint": [1.0, 0.98, 0.95]}
+    seed = surface_seed(name, seed)
     rng = surface_rng(name, seed)
     if seed:
         spec.generator["surface_seed"] = int(seed)
