@@ -116,7 +116,20 @@ def test_planted_false_boxes_come_back_as_planted(mod, world, tmp_path, capsys):
     )
     write_detections(folder, "planted", table)
     out = tmp_path / "fb.json"
-    assert mod.main(["--data", str(world), "--from", "planted", "--scenes", folder.name, "--json", str(out)]) == 0
+    png = tmp_path / "fb.png"
+    argv = [
+        "--data",
+        str(world),
+        "--from",
+        "planted",
+        "--scenes",
+        folder.name,
+        "--json",
+        str(out),
+        "--picture",
+        str(png),
+    ]
+    assert mod.main(argv) == 0
     doc = json.loads(out.read_text())
     s = doc["scenes"][folder.name]
     assert (s["false"], s["true"], s["sampled"]) == (1, 1, 1)
@@ -125,6 +138,10 @@ def test_planted_false_boxes_come_back_as_planted(mod, world, tmp_path, capsys):
     assert s["confusions"] == {f"{names[c]} on {names[c2]}": 1}
     assert doc["total"]["kinds_pct"] == {"another target class": 100.0}
     assert "1 false boxes (50.0 % of the boxes" in capsys.readouterr().out
+    from PIL import Image
+
+    with Image.open(png) as im:  # one example: one tile of the frame at twice its size, its caption below
+        assert im.size == (2 * scene.image_size, 2 * scene.image_size + 30)
 
 
 def test_bad_input_is_one_line(mod, world, tmp_path, capsys):
@@ -132,6 +149,7 @@ def test_bad_input_is_one_line(mod, world, tmp_path, capsys):
         (["--data", str(tmp_path / "none"), "--from", "x"], "no such folder"),
         (["--data", str(world), "--from", "x", "--c-target", "1.5"], "--c-target must be in (0, 1)"),
         (["--data", str(world), "--from", "x", "--scenes", "Nope"], "Nope not a complete scene"),
+        (["--data", str(world), "--from", "x", "--picture", str(tmp_path / "p.png"), "--examples", "0"], "1 to 64"),
         (["--data", str(world), "--from", "nosuchtable"], "nosuchtable"),
     ):
         assert mod.main(argv) == 2

@@ -10,11 +10,12 @@ again with instance ids and the box's pixels say what the detector fired on:
 * ``nothing``: the box lies on no geometry.
 
     tsnav analyze false-boxes --data WORLD --from TABLE [--split val] [--scenes A,B] [--c-target 0.7] \\
-        [--sample 300] [--seed 0] [--json OUT]
+        [--sample 300] [--seed 0] [--json OUT] [--picture PNG] [--examples 12]
 
 Only the classes a scene can ask for count (:func:`tsnav.detect.quality.scene_targets`), as in the switch report.
 At most ``--sample`` false (state, class) pairs of each scene are rendered (drawn with ``--seed``); the shares are
-weighted back to each scene's count. The world must render as it was built: before classifying, the states where a
+weighted back to each scene's count. ``--picture`` draws ``--examples`` of the rendered false boxes (spread over
+each scene's sample, scenes in turn) on their frames, each captioned with its scene, class and kind. The world must render as it was built: before classifying, the states where a
 target shows are rendered and their pixel counts checked against the scene's own (a world built by another renderer
 or from another camera is refused in one line). Ground truth is read here for analysis only.
 """
@@ -114,8 +115,11 @@ def check_render(renderer, scene, inst: list[str], height: float, n: int = 16) -
             )
 
 
-def scene_anatomy(renderer, folder: Path, source: str, c_target: float, sample: int, rng) -> dict:
-    """One scene's false boxes, classified (a sample of at most ``sample`` rendered, the rest weighted back)."""
+def scene_anatomy(
+    renderer, folder: Path, source: str, c_target: float, sample: int, rng, examples: list | None = None, keep: int = 0
+) -> dict:
+    """One scene's false boxes, classified (a sample of at most ``sample`` rendered, the rest weighted back); ``keep``
+    of them, spread evenly over the sample, are appended to ``examples`` as (scene, class, kind, frame, box)."""
     scene = load_scene(folder)
     js = json.loads((folder / "scene.json").read_text())
     table = load_detections(folder, source)
@@ -137,11 +141,16 @@ def scene_anatomy(renderer, folder: Path, source: str, c_target: float, sample: 
     by_class: Counter = Counter()
     confusions: Counter = Counter()
     poses = _poses(scene)
+    shown = (
+        set(np.linspace(0, len(picked) - 1, min(keep, len(picked))).round().astype(int).tolist()) if picked else set()
+    )
     for start in range(0, len(picked), 64):
         chunk = picked[start : start + 64]
-        _, _, ids = renderer.render(poses[[r for r, _ in chunk]], height=height)
-        for (r, c), frame in zip(chunk, ids):
+        rgb, _, ids = renderer.render(poses[[r for r, _ in chunk]], height=height)
+        for i, ((r, c), frame, image) in enumerate(zip(chunk, ids, rgb), start):
             kind = classify_box(frame, table.boxes[r, c], names[c], types, set(names))
+            if examples is not None and i in shown:
+                examples.append((scene.name, names[c], kind, image, table.boxes[r, c].copy()))
             kinds[kind] += 1
             by_class[names[c]] += 1
             if kind == "another target class":
@@ -157,6 +166,34 @@ def scene_anatomy(renderer, folder: Path, source: str, c_target: float, sample: 
         "classes": dict(by_class),
         "confusions": dict(confusions),
     }
+
+
+def draw_examples(examples: list, path: Path, cols: int = 4, scale: int = 2) -> None:
+    """A grid of false boxes on their frames (``examples``: (scene, class, kind, frame, box)), each captioned."""
+    from PIL import Image, ImageDraw
+
+    from ..eval.video import _font
+
+    S = examples[0][3].shape[0] * scale
+    cols = min(cols, len(examples))
+    cap = 30
+    rows = (len(examples) + cols - 1) // cols
+    sheet = Image.new("RGB", (cols * S, rows * (S + cap)), "white")
+    font = _font(11)
+    for i, (scene, cls, kind, frame, box) in enumerate(examples):
+        x, y = (i % cols) * S, (i // cols) * (S + cap)
+        tile = Image.fromarray(frame).resize((S, S), Image.NEAREST)
+        d = ImageDraw.Draw(tile)
+        x0, y0, x1, y1 = (float(v) * scale for v in box)
+        d.rectangle([x0, y0, x1 + scale - 1, y1 + scale - 1], outline=(255, 0, 0), width=2)
+        sheet.paste(tile, (x, y))
+        d = ImageDraw.Draw(sheet)
+        d.text((x + 3, y + S + 2), f"{scene.replace('FloorPlan_', '')}: {cls}", fill="black", font=font)
+        d.text((x + 3, y + S + 15), kind, fill=(90, 90, 90), font=font)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial.png")
+    sheet.save(tmp)
+    tmp.replace(path)
 
 
 def summarise(per_scene: dict) -> dict:
@@ -196,6 +233,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sample", type=int, default=300, help="false boxes rendered per scene at most (default 300)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the sample")
     ap.add_argument("--json", type=Path, default=None, help="write the per-scene and summed figures here")
+    ap.add_argument("--picture", type=Path, default=None, help="draw examples of the false boxes into this PNG")
+    ap.add_argument("--examples", type=int, default=12, help="false boxes in the picture (default 12)")
     a = ap.parse_args(argv)
 
     def fail(msg: str) -> int:
@@ -206,6 +245,8 @@ def main(argv=None) -> int:
         return fail(f"--c-target must be in (0, 1), got {a.c_target}")
     if a.sample < 1:
         return fail(f"--sample must be at least 1, got {a.sample}")
+    if a.picture is not None and not 1 <= a.examples <= 64:
+        return fail(f"--examples must be 1 to 64, got {a.examples}")
     if not a.data.is_dir():
         return fail(f"--data {a.data}: no such folder")
     folders = list_scenes(a.data, a.split)
@@ -226,9 +267,11 @@ def main(argv=None) -> int:
         return fail(str(e))
     rng = np.random.default_rng(a.seed)
     per_scene = {}
+    examples: list = []
+    keep = -(-a.examples // len(folders)) if a.picture is not None else 0  # per scene, rounded up
     try:
         for p in folders:
-            per_scene[p.name] = scene_anatomy(renderer, p, a.source, a.c_target, a.sample, rng)
+            per_scene[p.name] = scene_anatomy(renderer, p, a.source, a.c_target, a.sample, rng, examples, keep)
             s = per_scene[p.name]
             print(f"{p.name}: {s['false']} false of {s['false'] + s['true']} boxes above {a.c_target}", flush=True)
     except (OSError, ValueError, KeyError) as e:
@@ -242,6 +285,9 @@ def main(argv=None) -> int:
     )
     for kind, pct in total["kinds_pct"].items():
         print(f"  {kind:<30} {pct:6.2f} %")
+    if a.picture is not None and examples:
+        draw_examples(examples[: a.examples], a.picture)
+        print(f"wrote {a.picture}")
     if a.json:
         doc = {
             "source": a.source,
