@@ -14,8 +14,8 @@ again with instance ids and the box's pixels say what the detector fired on:
 
 Only the classes a scene can ask for count (:func:`tsnav.detect.quality.scene_targets`), as in the switch report.
 At most ``--sample`` false (state, class) pairs of each scene are rendered (drawn with ``--seed``); the shares are
-weighted back to each scene's count. ``--picture`` draws ``--examples`` of the rendered false boxes (spread over
-each scene's sample, scenes in turn) on their frames, each captioned with its scene, class and kind. The world must render as it was built: before classifying, the states where a
+weighted back to each scene's count. ``--picture`` draws ``--examples`` of the rendered false boxes (drawn at
+random from the scenes' samples, spread over the scenes) on their frames, each captioned with its scene, class and kind. The world must render as it was built: before classifying, the states where a
 target shows are rendered and their pixel counts checked against the scene's own (a world built by another renderer
 or from another camera is refused in one line). Ground truth is read here for analysis only.
 """
@@ -116,10 +116,19 @@ def check_render(renderer, scene, inst: list[str], height: float, n: int = 16) -
 
 
 def scene_anatomy(
-    renderer, folder: Path, source: str, c_target: float, sample: int, rng, examples: list | None = None, keep: int = 0
+    renderer,
+    folder: Path,
+    source: str,
+    c_target: float,
+    sample: int,
+    rng,
+    examples: list | None = None,
+    keep: int = 0,
+    show_rng=None,
 ) -> dict:
     """One scene's false boxes, classified (a sample of at most ``sample`` rendered, the rest weighted back); ``keep``
-    of them, spread evenly over the sample, are appended to ``examples`` as (scene, class, kind, frame, box)."""
+    of them, drawn from the sample with ``show_rng``, are appended to ``examples`` as (scene, class, kind, frame,
+    box)."""
     scene = load_scene(folder)
     js = json.loads((folder / "scene.json").read_text())
     table = load_detections(folder, source)
@@ -141,9 +150,7 @@ def scene_anatomy(
     by_class: Counter = Counter()
     confusions: Counter = Counter()
     poses = _poses(scene)
-    shown = (
-        set(np.linspace(0, len(picked) - 1, min(keep, len(picked))).round().astype(int).tolist()) if picked else set()
-    )
+    shown = set(show_rng.choice(len(picked), min(keep, len(picked)), replace=False).tolist()) if picked else set()
     for start in range(0, len(picked), 64):
         chunk = picked[start : start + 64]
         rgb, _, ids = renderer.render(poses[[r for r, _ in chunk]], height=height)
@@ -269,9 +276,12 @@ def main(argv=None) -> int:
     per_scene = {}
     examples: list = []
     keep = -(-a.examples // len(folders)) if a.picture is not None else 0  # per scene, rounded up
+    show_rng = np.random.default_rng([a.seed, 1])  # apart from the sample's draws: a picture changes no figure
     try:
         for p in folders:
-            per_scene[p.name] = scene_anatomy(renderer, p, a.source, a.c_target, a.sample, rng, examples, keep)
+            per_scene[p.name] = scene_anatomy(
+                renderer, p, a.source, a.c_target, a.sample, rng, examples, keep, show_rng
+            )
             s = per_scene[p.name]
             print(f"{p.name}: {s['false']} false of {s['false'] + s['true']} boxes above {a.c_target}", flush=True)
     except (OSError, ValueError, KeyError) as e:
@@ -286,7 +296,8 @@ def main(argv=None) -> int:
     for kind, pct in total["kinds_pct"].items():
         print(f"  {kind:<30} {pct:6.2f} %")
     if a.picture is not None and examples:
-        draw_examples(examples[: a.examples], a.picture)
+        pick = np.linspace(0, len(examples) - 1, min(a.examples, len(examples))).round().astype(int)
+        draw_examples([examples[i] for i in pick], a.picture)
         print(f"wrote {a.picture}")
     if a.json:
         doc = {
