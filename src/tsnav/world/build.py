@@ -229,20 +229,30 @@ def scene_figures(spec: SceneSpec, positions: int, states: int, seen: np.ndarray
     }
 
 
-def check_train_objects(out: Path, cfg: BuildConfig) -> None:
-    """Refuse to build robothor-real train scenes into a folder whose finished train scenes (any of them, not only
-    those of this build) were built the other way: recorded objects against ``--infer-train-objects``. One-line
-    ``ValueError``; a scene built before the option existed is recorded."""
-    if cfg.world != "robothor-real" or not out.is_dir():
-        return
-    for d in sorted(out.iterdir()):
+def finished_train_generators(out: Path) -> list[tuple[Path, dict]]:
+    """``(folder, generator)`` of every finished train scene of a robothor-real folder (a scene built before
+    generators were recorded gives {})."""
+    found = []
+    for d in sorted(out.iterdir()) if out.is_dir() else []:
         gen = finished_generator(d)
         try:
             split = scene_info(d.name)[1]
         except ValueError:
             continue  # not a scene folder
-        inferred = gen is not None and gen.get("train_objects") == "inferred"
-        if gen is not None and split == "train" and inferred != (cfg.infer_train is not None):
+        if gen is not None and split == "train":
+            found.append((d, gen))
+    return found
+
+
+def check_train_objects(out: Path, cfg: BuildConfig) -> None:
+    """Refuse to build robothor-real train scenes into a folder whose finished train scenes (any of them, not only
+    those of this build) were built the other way: recorded objects against ``--infer-train-objects``. One-line
+    ``ValueError``; a scene built before the option existed is recorded."""
+    if cfg.world != "robothor-real":
+        return
+    for d, gen in finished_train_generators(out):
+        inferred = gen.get("train_objects") == "inferred"
+        if inferred != (cfg.infer_train is not None):
             raise ValueError(
                 f"{d} was built with its train objects {'inferred' if inferred else 'recorded'}, this build "
                 f"{'infers' if cfg.infer_train is not None else 'records'} them: use another --out"
@@ -253,16 +263,11 @@ def check_surface_seed(out: Path, cfg: BuildConfig) -> None:
     """Refuse to build robothor-real scenes into a folder whose finished train scenes drew their floor and wall
     materials with another seed (finished scenes are skipped, so the world would mix them): one-line
     ``ValueError``. Val scenes always draw with 0 (:func:`~tsnav.world.robothor_real.surface_seed`)."""
-    if cfg.world != "robothor-real" or not out.is_dir():
+    if cfg.world != "robothor-real":
         return
-    for d in sorted(out.iterdir()):
-        gen = finished_generator(d)
-        try:
-            split = scene_info(d.name)[1]
-        except ValueError:
-            continue  # not a scene folder
-        have = int((gen or {}).get("surface_seed", 0))
-        if gen is not None and split == "train" and have != cfg.seed:
+    for d, gen in finished_train_generators(out):
+        have = int(gen.get("surface_seed", 0))
+        if have != cfg.seed:
             raise ValueError(
                 f"{d} was built with surface seed {have}, this build with --seed {cfg.seed}: use another --out"
             )
