@@ -5,6 +5,7 @@ again with instance ids and the box's pixels say what the detector fired on:
 * ``target in the box`` / ``target elsewhere``: an instance of the class shows, fewer pixels than the pixel rule asks;
 * ``another target class``: most of the box is an object of another class of the class set (a Mug for an Apple);
 * ``another object``: most of the box is an object outside the class set (furniture, a plan's furniture blob);
+  for both, ``confusions`` counts the pairs (``"Sink on CounterTop"``: a Sink box on a CounterTop);
 * ``floor`` / ``wall`` / ``ceiling``: most of the box is the room's surface, split by whether any object shows in
   the box at all (``, an object in the box``) or none (``, bare``);
 * ``nothing``: the box lies on no geometry.
@@ -160,7 +161,7 @@ def scene_anatomy(
                 examples.append((scene.name, names[c], kind, image, table.boxes[r, c].copy()))
             kinds[kind] += 1
             by_class[names[c]] += 1
-            if kind == "another target class":
+            if kind in ("another target class", "another object"):
                 b = [int(np.clip(round(float(v)), 0, frame.shape[0] - 1)) for v in table.boxes[r, c]]
                 vals, counts = np.unique(frame[b[1] : b[3] + 1, b[0] : b[2] + 1], return_counts=True)
                 confusions[f"{names[c]} on {types[int(vals[np.argmax(counts)])]}"] += 1
