@@ -108,9 +108,9 @@ def scene_spec(
     infer_train: str | None = None,
 ) -> SceneSpec:
     """The scene description of ``name`` in ``world`` (:data:`WORLDS`); ``seed`` draws a procedural scene and a
-    ``robothor-real`` train scene's floor and wall materials (:func:`~tsnav.world.robothor_real.surface_rng`), ``ithor-real``
-    refuses any but 0; ``compact`` applies to procedural scenes only, ``version`` (of the rules, :data:`tsnav.world.real.VERSIONS`; None: the newest) to
-    ``ithor-real`` and ``robothor-real`` only; ``infer_train`` (the challenge's episode folder: train scenes rebuilt
+    ``robothor-real`` train scene's floor and wall materials (:func:`~tsnav.world.robothor_real.surface_rng`);
+    ``ithor-real`` refuses any but 0; ``compact`` applies to procedural scenes only, ``version`` (of the rules,
+    :data:`tsnav.world.real.VERSIONS`; None: the newest) to ``ithor-real`` and ``robothor-real`` only; ``infer_train`` (the challenge's episode folder: train scenes rebuilt
     the way the val ones are, :func:`~tsnav.world.robothor_real.robothor_spec`) to ``robothor-real`` only."""
     if infer_train is not None and world != "robothor-real":
         raise ValueError(f"inferring the train scenes' objects applies to the robothor-real world, not {world!r}")
