@@ -44,8 +44,8 @@ temperature, fingerprint, provenance):
 * ``robothor5`` (``weights/robothor-real-128-robothor5``): ``robothor4``'s 5,000 steps from ``robothor3``, in the
   same apartments with their floor and wall materials redrawn per scene (``tsnav world --seed 1``); not calibrated.
   Val presence AP 0.849, box AP@0.5 0.630 (docs/results/robothor5_val_eval_2026-12-07.json), and a third of
-  ``robothor4``'s boxes on targets out of view. The detector ``tsrm-demae-robothor-paper-protocol`` is evaluated
-  with (it was trained on ``robothor3``'s tables), docs/RESULTS.md.
+  ``robothor4``'s boxes on targets out of view. The detector of ``tsrm-demae-robothor-paper-protocol``, in training
+  (on the redrawn apartments' tables) and evaluation, docs/RESULTS.md.
 
 Their tables carry the same fingerprint as the ones written by ``tsnav detect --checkpoint`` with the same
 weights, so tables written from a shipped copy and from the training folder are interchangeable.
