@@ -16,9 +16,10 @@ again with instance ids and the box's pixels say what the detector fired on:
 Only the classes a scene can ask for count (:func:`tsnav.detect.quality.scene_targets`), as in the switch report.
 At most ``--sample`` false (state, class) pairs of each scene are rendered (drawn with ``--seed``); the shares are
 weighted back to each scene's count. ``--picture`` draws ``--examples`` of the rendered false boxes (drawn at
-random from the scenes' samples, spread over the scenes) on their frames, each captioned with its scene, class and kind. The world must render as it was built: before classifying, the states where a
-target shows are rendered and their pixel counts checked against the scene's own (a world built by another renderer
-or from another camera is refused in one line). Ground truth is read here for analysis only.
+random from the scenes' samples, spread over the scenes) on their frames, each captioned with its scene, class and
+kind. The world must render as it was built: before classifying, the states where a target shows are rendered and
+their pixel counts checked against the scene's own (a world built by another renderer or from another camera is
+refused in one line). Ground truth is read here for analysis only.
 """
 
 from __future__ import annotations
