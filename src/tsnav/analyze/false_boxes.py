@@ -60,21 +60,31 @@ def instance_types(instances: list[str]) -> list[str]:
     return [str(n).split("|")[0] for n in instances]
 
 
+def box_pixels(ids: np.ndarray, box) -> np.ndarray:
+    """The instance ids inside box ``[x0, y0, x1, y1]`` (inclusive pixels, clipped to the frame)."""
+    S = ids.shape[0]
+    x0, y0, x1, y1 = (int(np.clip(round(float(v)), 0, S - 1)) for v in box)
+    return ids[min(y0, y1) : max(y0, y1) + 1, min(x0, x1) : max(x0, x1) + 1]
+
+
+def majority_type(sub: np.ndarray, types: list[str]) -> str:
+    """The type of the instance that shows the most pixels of ``sub`` (ties to the smaller id)."""
+    vals, counts = np.unique(sub, return_counts=True)
+    return types[int(vals[np.argmax(counts)])]
+
+
 def classify_box(ids: np.ndarray, box, cls: str, types: list[str], classes: set[str]) -> str:
     """The kind (:data:`KINDS`) of one false box ``[x0, y0, x1, y1]`` (inclusive pixels) of class ``cls`` on the
     instance-id frame ``ids``; ``types``: each instance id's type; ``classes``: the class set's names."""
-    S = ids.shape[0]
-    x0, y0, x1, y1 = (int(np.clip(round(float(v)), 0, S - 1)) for v in box)
-    sub = ids[min(y0, y1) : max(y0, y1) + 1, min(x0, x1) : max(x0, x1) + 1]
+    sub = box_pixels(ids, box)
     own = np.array([t == cls for t in types])
     if own[sub].any():
         return "target in the box"
     if own[ids].any():
         return "target elsewhere"
-    vals, counts = np.unique(sub, return_counts=True)
-    top = types[int(vals[np.argmax(counts)])]
+    top = majority_type(sub, types)
     if top in SURFACES:
-        objects = [v for v in vals if types[int(v)] not in SURFACES and int(v) != 0]
+        objects = [v for v in np.unique(sub) if types[int(v)] not in SURFACES and int(v) != 0]
         return f"{SURFACES[top]}, {'an object in the box' if objects else 'bare'}"
     if top == "":
         return "nothing"
@@ -163,9 +173,7 @@ def scene_anatomy(
             kinds[kind] += 1
             by_class[names[c]] += 1
             if kind in ("another target class", "another object"):
-                b = [int(np.clip(round(float(v)), 0, frame.shape[0] - 1)) for v in table.boxes[r, c]]
-                vals, counts = np.unique(frame[b[1] : b[3] + 1, b[0] : b[2] + 1], return_counts=True)
-                confusions[f"{names[c]} on {types[int(vals[np.argmax(counts)])]}"] += 1
+                confusions[f"{names[c]} on {majority_type(box_pixels(frame, table.boxes[r, c]), types)}"] += 1
     return {
         "pairs": int(scene.num_states * int(scene_targets(scene).sum())),
         "false": len(false),
