@@ -22,6 +22,14 @@ HORIZONS = (0, 30)
 FIELD_OF_VIEW = 90.0
 #: Camera height above the floor, metres.
 CAMERA_HEIGHT = 1.5
+
+
+def camera_height_of(meta: dict) -> float:
+    """The camera height a scene was rendered from: its ``scene.json``'s ``camera.height`` (:data:`CAMERA_HEIGHT`
+    when it records none: every scene built before the height was recorded)."""
+    return float((meta.get("camera") or {}).get("height", CAMERA_HEIGHT))
+
+
 #: AI2-THOR's visibility distance used by `visible_object_map_1.5.json`, metres.
 VISIBILITY_DISTANCE = 1.5
 #: Success distance of the paper (section III-A), metres.

@@ -12,6 +12,7 @@ from tsnav.data.detections import Detections, write_detections
 from tsnav.data.reader import list_scenes, load_scene
 from tsnav.detect.oracle import ground_truth
 from tsnav.detect.quality import scene_targets
+from tsnav.world.show import scene_poses
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +62,7 @@ def test_kinds_match_the_pixel_reference(mod, world):
     r = Renderer(scene.image_size, 16)
     try:
         r.set_scene(np.array(js["parts"], np.float32), js.get("light"))
-        _, _, ids = r.render(mod._poses(scene)[:: max(1, scene.num_states // 24)][:24])
+        _, _, ids = r.render(scene_poses(scene)[:: max(1, scene.num_states // 24)][:24])
     finally:
         r.release()
     rng = np.random.default_rng(0)

@@ -25,7 +25,6 @@ refused in one line). Ground truth is read here for analysis only.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import Counter
 from pathlib import Path
@@ -33,11 +32,12 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_json
-from ..constants import CAMERA_HEIGHT
+from ..constants import camera_height_of
 from ..data.detections import load_detections
 from ..data.reader import list_scenes, load_scene
 from ..detect.oracle import ground_truth
 from ..detect.quality import scene_targets
+from ..world.show import scene_poses
 
 SURFACES = {"Floor": "floor", "Wall": "wall", "Ceiling": "ceiling"}
 KINDS = (
@@ -91,10 +91,10 @@ def classify_box(ids: np.ndarray, box, cls: str, types: list[str], classes: set[
     return "another target class" if top in classes else "another object"
 
 
-def false_pairs(scene, table, c_target: float) -> tuple[list[tuple[int, int]], int]:
+def false_pairs(scene, table, c_target: float, gt=None) -> tuple[list[tuple[int, int]], int]:
     """The false (state, class) pairs of a scene's table (score above ``c_target``, no instance in view, a class
-    the scene can ask for) and the number of true ones."""
-    gt = ground_truth(scene)
+    the scene can ask for) and the number of true ones (``gt``: the scene's ground truth, computed when None)."""
+    gt = ground_truth(scene) if gt is None else gt
     false, true = [], 0
     for c in np.flatnonzero(scene_targets(scene)):
         hi = table.scores[:, c] > c_target
@@ -103,18 +103,13 @@ def false_pairs(scene, table, c_target: float) -> tuple[list[tuple[int, int]], i
     return false, true
 
 
-def _poses(scene) -> np.ndarray:
-    return np.stack([scene.x, scene.z, scene.rotation, scene.horizon], 1).astype(np.float64)
-
-
-def check_render(renderer, scene, inst: list[str], height: float, n: int = 16) -> None:
-    """Refuse a world that does not render as it was built: the stored pixel counts of the target shown in ``n``
-    states must come back from the renderer (within 2 pixels)."""
-    gt = ground_truth(scene)
+def check_render(renderer, scene, gt, inst: list[str], height: float, n: int = 16) -> None:
+    """Refuse a world that does not render as it was built: the stored pixel counts (``gt``, the scene's ground
+    truth) of the target shown in ``n`` states must come back from the renderer (within 2 pixels)."""
     rows = np.flatnonzero(gt.present.any(1))[:n]
     if rows.size == 0:
         return
-    _, _, ids = renderer.render(_poses(scene)[rows], height=height)
+    _, _, ids = renderer.render(scene_poses(scene, rows), height=height)
     index = {name: k for k, name in enumerate(inst)}
     for r, frame in zip(rows, ids):
         c = int(np.flatnonzero(gt.present[r])[0])
@@ -142,32 +137,34 @@ def scene_anatomy(
     of them, drawn from the sample with ``show_rng``, are appended to ``examples`` as (scene, class, kind, frame,
     box)."""
     scene = load_scene(folder)
-    js = json.loads((folder / "scene.json").read_text())
+    js = scene.meta
     table = load_detections(folder, source)
     if table.class_set != scene.class_set.name:
         raise ValueError(
             f"{folder}: {source}'s table is for class set {table.class_set}, the scene {scene.class_set.name}"
         )
-    height = float((scene.meta.get("camera") or {}).get("height", CAMERA_HEIGHT))
+    height = camera_height_of(js)
     inst = [str(n) for n in js["instances"]]
     types = instance_types(inst)
     names = list(scene.class_set.categories)
     renderer.set_scene(np.array(js["parts"], dtype=np.float32), js.get("light"))
-    check_render(renderer, scene, inst, height)
-    false, true = false_pairs(scene, table, c_target)
+    gt = ground_truth(scene)
+    check_render(renderer, scene, gt, inst, height)
+    false, true = false_pairs(scene, table, c_target, gt)
     picked = (
         false if len(false) <= sample else [false[i] for i in sorted(rng.choice(len(false), sample, replace=False))]
     )
     kinds: Counter = Counter()
     by_class: Counter = Counter()
     confusions: Counter = Counter()
-    poses = _poses(scene)
+    poses = scene_poses(scene)
+    classes = set(names)
     shown = set(show_rng.choice(len(picked), min(keep, len(picked)), replace=False).tolist()) if picked else set()
     for start in range(0, len(picked), 64):
         chunk = picked[start : start + 64]
         rgb, _, ids = renderer.render(poses[[r for r, _ in chunk]], height=height)
         for i, ((r, c), frame, image) in enumerate(zip(chunk, ids, rgb), start):
-            kind = classify_box(frame, table.boxes[r, c], names[c], types, set(names))
+            kind = classify_box(frame, table.boxes[r, c], names[c], types, classes)
             if examples is not None and i in shown:
                 examples.append((scene.name, names[c], kind, image, table.boxes[r, c].copy()))
             kinds[kind] += 1

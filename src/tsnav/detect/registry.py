@@ -119,9 +119,11 @@ def _open_learned(args, root: Path, scenes: list, name: str) -> TableMaker:
     return _network_maker(_same_classes(_learned(args, root), "the learned detector", root, scenes))
 
 
-def _check_fold(args, ckpt: Path, read_meta, seen_scenes) -> None:
+def _check_fold(args, ckpt: Path) -> None:
     """Cross-fitting: refuse a checkpoint that was ever trained on a scene of the fold whose tables it would write
     (every training segment it records, :func:`~tsnav.detect.train.seen_scenes`)."""
+    from .train import read_meta, seen_scenes
+
     allowed = getattr(args, "train_scenes", None)
     if allowed is None:
         return
@@ -145,7 +147,6 @@ def _learned(args, root: Path):
         default_train_steps,
         is_checkpoint,
         read_meta,
-        seen_scenes,
         train_detector,
     )
 
@@ -211,7 +212,7 @@ def _learned(args, root: Path):
             loss.focal_alpha = args.focal_alpha
         tc.loss = loss
     if is_checkpoint(ckpt):
-        _check_fold(args, ckpt, read_meta, seen_scenes)  # before training: refused without spending the steps
+        _check_fold(args, ckpt)  # before training: refused without spending the steps
     res = train_detector(
         root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet, scenes=getattr(args, "train_scenes", None)
     )
@@ -222,7 +223,7 @@ def _learned(args, root: Path):
         )
     else:
         print(f"detector checkpoint {ckpt} at step {res.step}")
-    _check_fold(args, ckpt, read_meta, seen_scenes)
+    _check_fold(args, ckpt)
     if getattr(args, "no_calibrate", False):
         print("no calibration (--no-calibrate); the checkpoint's temperature is kept")
     else:

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
-from ..constants import CAMERA_HEIGHT, FIELD_OF_VIEW, HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
+from ..constants import CAMERA_HEIGHT, FIELD_OF_VIEW, camera_height_of, HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
 from ..data.writer import (
@@ -342,7 +342,7 @@ def check_camera(out: Path, cfg: BuildConfig) -> None:
         meta = finished_meta(d)
         if meta is None:
             continue
-        have = float((meta.get("camera") or {}).get("height", CAMERA_HEIGHT))
+        have = camera_height_of(meta)
         if abs(have - cfg.camera_height) > 1e-6:
             raise ValueError(
                 f"{d} was rendered from a camera {have} m high, this build from {cfg.camera_height} m: use another --out"

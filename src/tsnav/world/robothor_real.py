@@ -427,8 +427,6 @@ def surface_rng(name: str, seed: int = 0) -> np.random.Generator:
     is the benchmark's draw: one per apartment, so its five variants share their surfaces. Any other seed draws them
     per scene (the variants then differ): more surfaces for a detector to learn than the twelve train apartments'
     draws, which a detector otherwise learns as part of what a target is."""
-    if seed < 0:
-        raise ValueError(f"the surface seed must be 0 or more, got {seed}")
     key = f"tsnav-robothor-real|{apartment(name)}" if seed == 0 else f"tsnav-robothor-real|{name}|surfaces {seed}"
     return np.random.default_rng(zlib.crc32(key.encode()))
 

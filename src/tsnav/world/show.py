@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Polygon as MplPolygon
 
 from ..atomic import atomic_save_figure
-from ..constants import CAMERA_HEIGHT, TARGET_CATEGORIES
+from ..constants import TARGET_CATEGORIES, camera_height_of
 from ..data.reader import SceneFormatError, load_scene
 from ..errors import CommandError
 from ..render.gl import Renderer
@@ -63,13 +63,20 @@ def draw_topdown(ax, scene, show_grid: bool = True, label_objects: bool = True) 
     ax.set_ylabel("z (m)")
 
 
+def scene_poses(scene, idx=None) -> np.ndarray:
+    """``(V, 4)`` rows ``(x, z, rotation, horizon)`` of a scene's states (``idx``: those rows only; default all),
+    what :meth:`tsnav.render.gl.Renderer.render` takes."""
+    sel = slice(None) if idx is None else np.asarray(idx)
+    return np.stack([scene.x[sel], scene.z[sel], scene.rotation[sel], scene.horizon[sel]], 1).astype(np.float64)
+
+
 def render_views(scene, poses: np.ndarray, size: int = 128):
     """Render ``poses`` (V, 4: x, z, rotation, horizon) of a tsnav scene folder with the scene's parts, from the
     camera height it was built with."""
     r = Renderer(size, tiles=max(1, len(poses)))
     try:
         r.set_scene(np.array(scene.meta["parts"], dtype=np.float32), scene.meta.get("light"))
-        return r.render(poses, height=float((scene.meta.get("camera") or {}).get("height", CAMERA_HEIGHT)))
+        return r.render(poses, height=camera_height_of(scene.meta))
     finally:
         r.release()
 
@@ -84,9 +91,7 @@ def frame_images(scene, keys: Sequence[str]) -> np.ndarray:
     if "parts" not in scene.meta:
         raise ValueError(f"{scene.path}: no images.hdf5 and no render parts: no first-person frames")
 
-    idx = scene.indices(list(keys))
-    poses = np.stack([scene.x[idx], scene.z[idx], scene.rotation[idx], scene.horizon[idx]], 1).astype(np.float32)
-    rgb, _, _ = render_views(scene, poses, size=scene.image_size or 128)
+    rgb, _, _ = render_views(scene, scene_poses(scene, scene.indices(list(keys))), size=scene.image_size or 128)
     return np.asarray(rgb, dtype=np.uint8)
 
 
