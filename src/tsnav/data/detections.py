@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -151,6 +151,27 @@ class Detections:
             image_size=p0.image_size,
             class_set=p0.class_set,
         )
+
+
+def rescale_detections(det: Detections, image_size: int) -> Detections:
+    """``det`` with its boxes in the pixels of ``image_size``-px frames: a table written from frames of another side
+    of the same states (``tsnav detect --frames``). Corners are inclusive pixels (``[x0, y0, x1, y1]`` covers the
+    columns ``x0 .. x1``), so a box is scaled as the continuous box ``[x0, y0, x1 + 1, y1 + 1]`` and stays at least
+    one pixel wide, inside the frame; rows without a detection (label -1) keep their -1 box. Scores, labels and
+    features are unchanged; ``config`` records the side the detector saw (``frames_size``)."""
+    if det.image_size <= 0:
+        raise ValueError("detections: the table records no frame size to rescale from")
+    if image_size <= 0:
+        raise ValueError(f"detections: cannot rescale to {image_size}px frames")
+    f = float(image_size) / float(det.image_size)
+    b = det.boxes.astype(np.float64)
+    x0, y0 = b[..., 0] * f, b[..., 1] * f
+    x1 = np.maximum((b[..., 2] + 1) * f - 1, x0)
+    y1 = np.maximum((b[..., 3] + 1) * f - 1, y0)
+    scaled = np.clip(np.stack([x0, y0, x1, y1], axis=-1), 0, image_size - 1)
+    boxes = np.where((det.labels >= 0)[..., None], scaled, det.boxes).astype(np.float32)
+    config = {**det.config, "frames_size": int(det.config.get("frames_size", det.image_size))}
+    return replace(det, boxes=boxes, image_size=int(image_size), config=config)
 
 
 def _attr_str(x) -> str:

@@ -4,6 +4,7 @@
     tsnav detect --data DIR --detector learned [--checkpoint CKPT] [--train-steps N]
     tsnav detect --data DIR --detector shipped
     tsnav detect --data DIR --detector learned --checkpoint CKPT_I --fold I/K --name NAME   (once per fold I)
+    tsnav detect --data DIR --frames DIR256 --detector learned --checkpoint CKPT [--retarget] --name NAME
 
 The detectors are those of :mod:`tsnav.detect.registry`. ``oracle`` reads the renderer's instance statistics (:mod:`tsnav.detect.oracle`). ``learned`` trains the
 grid detector on the TRAIN scenes if the checkpoint (default ``DIR/detectors/learned``) is missing or
@@ -14,7 +15,10 @@ comes with tsnav (:mod:`tsnav.detect.shipped`; 128-px ithor-real rooms). Each sc
 whose table was made by the same detector are skipped, a table made by another detector is only replaced with
 ``--overwrite``. ``--fold I/K`` cross-fits: the detector trains only on the train apartments outside fold I
 (:mod:`tsnav.data.folds`) and writes fold I's train tables alone, so that an agent trained on the K folds' tables
-meets the errors the detector makes in rooms it never saw. Finally the detector is evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
+meets the errors the detector makes in rooms it never saw. ``--frames DIR256`` gives the detector finer frames than
+the agent's: it trains and detects on DIR256, a build of the same scenes at another side (``tsnav world --size``),
+and DIR's tables get its boxes scaled to DIR's frames (:func:`tsnav.data.detections.rescale_detections`);
+``--retarget`` lets a checkpoint trained at one side go on at another (:func:`tsnav.detect.train.retarget_model`). Finally the detector is evaluated on the VAL scenes (per-class AP, reliability table) unless ``--no-eval``; the report is printed
 and saved as ``DIR/detectors/<name>_eval_<split>.json``.
 """
 
@@ -26,10 +30,17 @@ import signal
 import threading
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
-from ..data.detections import check_name, load_detections, read_fingerprint
+from ..data.detections import (
+    check_name,
+    load_detections,
+    read_fingerprint,
+    rescale_detections,
+    write_detections,
+)
 from ..data.folds import assign_folds, parse_fold
 from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene
 from ..distributed import set_threads
@@ -128,6 +139,21 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         "or more)",
     )
     p.add_argument(
+        "--retarget",
+        action="store_true",
+        help="learned, existing checkpoint: train it on in train scenes whose frames have another side than those "
+        "it learned on (its weights carry over, the network being convolutional; recorded in the checkpoint's "
+        "size_changes), e.g. a 128-px detector going on at 256 px with --frames",
+    )
+    p.add_argument(
+        "--frames",
+        default=None,
+        metavar="DIR",
+        help="learned: train and detect on the frames of DIR, a build of the same scenes at another side "
+        "(tsnav world --size; the same states), and write DATA's tables with the boxes scaled to DATA's frames: a "
+        "detector that sees finer frames than the agent (DIR's scenes keep the tables at their own side too)",
+    )
+    p.add_argument(
         "--shipped",
         choices=sorted(SHIPPED),
         default=None,
@@ -199,6 +225,34 @@ def _fold_scenes(args: argparse.Namespace, root: Path) -> tuple[list[Path], list
     return [p for p in train if folds[p.name] == i], [p.name for p in train if folds[p.name] != i], f"{i}/{k}"
 
 
+def _frame_scenes(args: argparse.Namespace, root: Path, scenes: list[Path]) -> tuple[Path, list[Path]]:
+    """``--frames DIR``: (DIR, DIR's folder of each of ``scenes``), with a one-line error for a detector, an option or
+    a folder that cannot go with it: every scene must be a complete scene of DIR with the same states."""
+    frames = Path(args.frames)
+    if args.detector != "learned":
+        raise CommandError(
+            f"--frames trains the detector on DIR's frames: it needs --detector learned, not {args.detector}"
+        )
+    if args.mirror or args.fold is not None:
+        raise CommandError(f"--frames does not go with {'--mirror' if args.mirror else '--fold'}")
+    if not frames.is_dir():
+        raise CommandError(f"--frames {frames}: no such dataset folder")
+    if frames.resolve() == root.resolve():
+        raise CommandError(f"--frames {frames} is --data itself; give a build of the same scenes at another --size")
+    have = {p.name: p for p in list_scenes(frames)}
+    out = []
+    for p in scenes:
+        q = have.get(p.name)
+        if q is None:
+            raise CommandError(f"--frames {frames}: no complete scene {p.name} (build it with tsnav world --size)")
+        if not np.array_equal(load_scene(q).keys, load_scene(p).keys):
+            raise CommandError(
+                f"--frames {frames}: {p.name} has other states than in {root} (not a build of that scene)"
+            )
+        out.append(q)
+    return frames, out
+
+
 def _sigterm_interrupts() -> None:
     """Turn SIGTERM into KeyboardInterrupt so that training saves a checkpoint before the process ends
     (background jobs ignore SIGINT)."""
@@ -234,22 +288,29 @@ def run(args: argparse.Namespace) -> int:
     fold = None
     if args.fold is not None:
         scenes, args.train_scenes, fold = _fold_scenes(args, root)
-    maker = kind.open(args, root, scenes, name)  # the detector, ready to write tables (trained first if needed)
+    frames_root, source = None, scenes  # the scene folders the detector reads (--frames: DIR's)
+    if args.frames is not None:
+        frames_root, source = _frame_scenes(args, root, scenes)
+    # the detector, ready to write tables (trained first if needed, on the frames it reads)
+    maker = kind.open(args, frames_root or root, source, name)
     fingerprint = maker.fingerprint
 
     own = name + MIRROR_SUFFIX if args.mirror else name  # the tables' file name
     todo, done = [], 0
-    for p in scenes:
+    for p, q in zip(scenes, source):
         fp = read_fingerprint(p, own)
         if fp == fingerprint:
             done += 1
-        elif fp is not None and not args.overwrite:
-            raise CommandError(
-                f"{p / f'detections_{own}.hdf5'} was made by another detector ({fp}); use --overwrite or another --name"
-            )
-        else:
-            todo.append(p)
-    loaded = [_load(p, args.mirror) for p in todo]
+            continue
+        for folder in {p, q}:
+            other = read_fingerprint(folder, own)
+            if other not in (None, fingerprint) and not args.overwrite:
+                raise CommandError(
+                    f"{folder / f'detections_{own}.hdf5'} was made by another detector ({other}); use --overwrite or "
+                    "another --name"
+                )
+        todo.append((p, q))
+    loaded = [_load(q, args.mirror) for _, q in todo]
     bar = tqdm(
         total=sum(s.num_states for s in loaded),
         desc=f"detect {own}",
@@ -261,6 +322,9 @@ def run(args: argparse.Namespace) -> int:
         maker.write(loaded, name, own, bar, args.workers)
     finally:
         bar.close()
+    if frames_root is not None:  # DATA's tables: the boxes in DATA's pixels
+        for (p, _), s in zip(todo, loaded):
+            write_detections(p, own, rescale_detections(load_detections(s.path, own), load_scene(p).image_size))
     print(
         f"detections_{own}.hdf5: {len(loaded)} scenes written, {done} already done "
         f"({sum(s.num_states for s in loaded)} states)"

@@ -213,8 +213,17 @@ def _learned(args, root: Path):
         tc.loss = loss
     if is_checkpoint(ckpt):
         _check_fold(args, ckpt)  # before training: refused without spending the steps
+    retarget = bool(getattr(args, "retarget", False))
+    if retarget and not existing:
+        raise CommandError(f"--retarget goes on with an existing checkpoint at another frame size; {ckpt} holds none")
     res = train_detector(
-        root, ckpt, tc, model_cfg=model_cfg, progress=not args.quiet, scenes=getattr(args, "train_scenes", None)
+        root,
+        ckpt,
+        tc,
+        model_cfg=model_cfg,
+        progress=not args.quiet,
+        scenes=getattr(args, "train_scenes", None),
+        retarget=retarget,
     )
     if res.step > res.start_step:
         print(

@@ -537,11 +537,13 @@ def train_detector(
     frames: FrameSet | None = None,
     progress: bool = True,
     scenes: Collection[str] | None = None,
+    retarget: bool = False,
 ) -> TrainResult:
     """Train (or resume training of) the detector in checkpoint folder ``ckpt`` on the TRAIN scenes of
     ``root`` (only those named in ``scenes``, when given: cross-fitting) up to ``train_cfg.steps``. An existing
     checkpoint keeps its model and training settings except ``steps``; a finished one returns at once. ``frames``
-    may pass preloaded training frames."""
+    may pass preloaded training frames. ``retarget``: an existing checkpoint trained on frames of another side goes
+    on at the train frames' side (:func:`retarget_model`); without it such frames are refused."""
     ckpt = Path(ckpt)
     train_cfg = train_cfg or DetectorTrainConfig()
     if not train_cfg.repeat_threshold >= 0:
@@ -557,7 +559,12 @@ def train_detector(
     if frames is None:
         frames = load_frames(root, "train", train_cfg.max_states_per_scene, train_cfg.seed, progress, scenes=scenes)
     if frames.images.shape[1] != model.cfg.image_size:
-        raise ValueError(f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px")
+        if not (retarget and start > 0):
+            raise ValueError(
+                f"frames are {frames.images.shape[1]}px but the detector takes {model.cfg.image_size}px"
+                + ("" if start == 0 else " (--retarget continues the checkpoint at the frames' size)")
+            )
+        model = retarget_model(model, meta, int(frames.images.shape[1]), start)
     if frames.present.shape[1] != model.cfg.num_classes:
         raise ValueError(
             f"the train scenes have {frames.present.shape[1]} target classes but the detector scores "
@@ -622,6 +629,25 @@ def train_detector(
     save()
     model.eval()
     return TrainResult(ckpt, start, step, time.perf_counter() - t0, last)
+
+
+def retarget_model(model: GridDetector, meta: dict, image_size: int, step: int) -> GridDetector:
+    """``model`` for frames of ``image_size`` px: the same weights in a model whose output grid is the new side's
+    (the network is convolutional, so its weights take any side that is a multiple of 8 x stem). The presence logit
+    is a logsumexp over the cells plus a class bias; with ``k`` times as many cells the bias is lowered by
+    ``log k``, so that cells firing as before give the presence logit they gave. ``meta`` gets the new ``model``
+    config and a ``size_changes`` entry ``{"step", "from", "to"}``; the parameters keep their order and shapes,
+    so an optimiser state still fits. ``ValueError`` in one line for a side the stem cannot take."""
+    old = model.cfg
+    cfg = DetectorConfig.from_dict({**old.to_dict(), "image_size": int(image_size)})
+    new = GridDetector(cfg)  # validates the side against the stem
+    state = model.state_dict()
+    with torch.no_grad():
+        state["class_bias"] = state["class_bias"] - 2.0 * math.log(cfg.grid / old.grid)
+    new.load_state_dict(state)
+    meta["model"] = cfg.to_dict()
+    meta.setdefault("size_changes", []).append({"step": int(step), "from": int(old.image_size), "to": int(image_size)})
+    return new.train(model.training)
 
 
 def _resume_or_start(ckpt: Path, train_cfg: DetectorTrainConfig, model_cfg: DetectorConfig | None):
