@@ -310,7 +310,8 @@ def levers(
 ) -> list[str]:
     """The lever tables (``tsnav analyze lever-table``) the index lists under ``key``, under the heading ``title``
     (each entry under its own ``title`` when it names one): per protocol, each row's SR, SPL and NSNPL and each lever's paired difference from the base row, with their
-    95 % bootstrap intervals over the ``episodes`` (test, or the RoboTHOR challenge's val) episodes."""
+    95 % bootstrap intervals over the ``episodes`` (test, or the RoboTHOR challenge's val) episodes; an entry's own
+    ``episodes`` names the list it was read on when that is another (``validation``)."""
     entries = index.get(key) or []
     if not entries:
         return []
@@ -327,7 +328,7 @@ def levers(
         ]
         for proto, t in res["protocols"].items():
             lines += [
-                f"Under `{proto}`, {t['episodes']} {episodes} episodes: value [95 % interval], and the difference from "
+                f"Under `{proto}`, {t['episodes']} {e.get('episodes', episodes)} episodes: value [95 % interval], and the difference from "
                 f"the first row on the same episodes [paired 95 % interval], in percent.",
                 "",
                 "| row | SR | SPL | NSNPL | SR diff | SPL diff | NSNPL diff |",
