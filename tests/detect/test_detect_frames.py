@@ -136,6 +136,17 @@ def test_frames_trains_on_the_finer_frames_and_writes_the_worlds_tables_in_its_p
     assert json.loads((low / "detectors" / "hi_eval_val.json").read_text())["name"] == "hi"
     assert main(args + ["--no-eval"]) == 0
     assert "0 scenes written, 5 already done" in capsys.readouterr().out
+    # Interrupted after DIR's tables: they are rescaled, not made again
+    native = {p.name: (high / p.name / "detections_hi.hdf5").stat().st_mtime_ns for p in list_scenes(low)}
+    for p in list_scenes(low)[:2]:
+        (p / "detections_hi.hdf5").unlink()
+    assert main(args + ["--no-eval"]) == 0
+    assert "2 scenes written, 3 already done (0 states)" in capsys.readouterr().out
+    for p in list_scenes(low):
+        assert (high / p.name / "detections_hi.hdf5").stat().st_mtime_ns == native[p.name]
+        np.testing.assert_allclose(
+            load_detections(p, "hi").boxes, rescale_reference(load_detections(high / p.name, "hi"), 64), atol=1e-4
+        )
 
 
 def test_retarget_goes_on_at_the_new_side_and_is_needed_for_it(worlds, tmp_path, capsys):

@@ -310,7 +310,9 @@ def run(args: argparse.Namespace) -> int:
                     "another --name"
                 )
         todo.append((p, q))
-    loaded = [_load(q, args.mirror) for _, q in todo]
+    # --frames: a table of DIR's that this detector already wrote (an interrupted run) is rescaled, not made again
+    fresh = [q for _, q in todo if frames_root is None or read_fingerprint(q, own) != fingerprint]
+    loaded = [_load(q, args.mirror) for q in fresh]
     bar = tqdm(
         total=sum(s.num_states for s in loaded),
         desc=f"detect {own}",
@@ -323,10 +325,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     if frames_root is not None:  # DATA's tables: the boxes in DATA's pixels
-        for (p, _), s in zip(todo, loaded):
-            write_detections(p, own, rescale_detections(load_detections(s.path, own), load_scene(p).image_size))
+        for p, q in todo:
+            write_detections(p, own, rescale_detections(load_detections(q, own), load_scene(p).image_size))
     print(
-        f"detections_{own}.hdf5: {len(loaded)} scenes written, {done} already done "
+        f"detections_{own}.hdf5: {len(todo)} scenes written, {done} already done "
         f"({sum(s.num_states for s in loaded)} states)"
     )
 
