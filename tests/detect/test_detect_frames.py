@@ -184,22 +184,19 @@ def test_retarget_goes_on_at_the_new_side_and_is_needed_for_it(worlds, tmp_path,
 
 
 @pytest.mark.parametrize(
-    "extra, message",
+    "extra, frames, message",
     [
-        (["--detector", "oracle"], "needs --detector learned"),
-        (["--detector", "learned", "--mirror"], "does not go with --mirror"),
-        (["--detector", "learned", "--frames-missing"], "no such dataset folder"),
-        (["--detector", "learned", "--frames-self"], "is --data itself"),
-        (["--detector", "learned", "--frames-other"], "other states"),
+        (["--detector", "oracle"], "high", "needs --detector learned"),
+        (["--detector", "learned", "--mirror"], "high", "does not go with --mirror"),
+        (["--detector", "learned"], "missing", "no such dataset folder"),
+        (["--detector", "learned"], "self", "is --data itself"),
+        (["--detector", "learned"], "other", "other states"),
     ],
 )
-def test_frames_refuses_what_cannot_go_with_it(worlds, tmp_path, capsys, extra, message):
+def test_frames_refuses_what_cannot_go_with_it(worlds, tmp_path, capsys, extra, frames, message):
     low, high, other = worlds
-    frames = {"--frames-missing": tmp_path / "nope", "--frames-self": low, "--frames-other": other}
-    given = [e for e in extra if e in frames]
-    rest = [e for e in extra if e not in frames]
-    where = frames[given[0]] if given else high
-    args = ["detect", "--data", str(low), "--frames", str(where), "--quiet", "--no-eval", "--name", "x"] + rest
+    where = {"high": high, "missing": tmp_path / "nope", "self": low, "other": other}[frames]
+    args = ["detect", "--data", str(low), "--frames", str(where), "--quiet", "--no-eval", "--name", "x"] + extra
     assert main(args + ["--checkpoint", str(tmp_path / "ck")]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1

@@ -153,22 +153,32 @@ class Detections:
         )
 
 
+def pixel_to_unit(boxes: np.ndarray, image_size: int) -> np.ndarray:
+    """Inclusive pixel boxes ``[x0, y0, x1, y1]`` -> continuous boxes normalised to [0, 1]."""
+    b = np.asarray(boxes, dtype=np.float32)
+    out = np.stack([b[..., 0], b[..., 1], b[..., 2] + 1, b[..., 3] + 1], axis=-1) / float(image_size)
+    return out.astype(np.float32)
+
+
+def unit_to_pixel(boxes: np.ndarray, image_size: int) -> np.ndarray:
+    """Inverse of :func:`pixel_to_unit` (float pixels, inclusive corners; at least one pixel wide)."""
+    b = np.asarray(boxes, dtype=np.float32) * float(image_size)
+    x1 = np.maximum(b[..., 2] - 1, b[..., 0])  # a box narrower than a pixel still covers one column
+    y1 = np.maximum(b[..., 3] - 1, b[..., 1])
+    return np.stack([b[..., 0], b[..., 1], x1, y1], axis=-1).astype(np.float32)
+
+
 def rescale_detections(det: Detections, image_size: int) -> Detections:
     """``det`` with its boxes in the pixels of ``image_size``-px frames: a table written from frames of another side
-    of the same states (``tsnav detect --frames``). Corners are inclusive pixels (``[x0, y0, x1, y1]`` covers the
-    columns ``x0 .. x1``), so a box is scaled as the continuous box ``[x0, y0, x1 + 1, y1 + 1]`` and stays at least
-    one pixel wide, inside the frame; rows without a detection (label -1) keep their -1 box. Scores, labels and
-    features are unchanged; ``config`` records the side the detector saw (``frames_size``)."""
+    of the same states (``tsnav detect --frames``). Each box goes through its continuous form
+    (:func:`pixel_to_unit`, :func:`unit_to_pixel`), so it stays at least one pixel wide, inside the frame; rows
+    without a detection (label -1) keep their -1 box. Scores, labels and features are unchanged; ``config`` records
+    the side the detector saw (``frames_size``)."""
     if det.image_size <= 0:
         raise ValueError("detections: the table records no frame size to rescale from")
     if image_size <= 0:
         raise ValueError(f"detections: cannot rescale to {image_size}px frames")
-    f = float(image_size) / float(det.image_size)
-    b = det.boxes.astype(np.float64)
-    x0, y0 = b[..., 0] * f, b[..., 1] * f
-    x1 = np.maximum((b[..., 2] + 1) * f - 1, x0)
-    y1 = np.maximum((b[..., 3] + 1) * f - 1, y0)
-    scaled = np.clip(np.stack([x0, y0, x1, y1], axis=-1), 0, image_size - 1)
+    scaled = np.clip(unit_to_pixel(pixel_to_unit(det.boxes, det.image_size), image_size), 0, image_size - 1)
     boxes = np.where((det.labels >= 0)[..., None], scaled, det.boxes).astype(np.float32)
     config = {**det.config, "frames_size": int(det.config.get("frames_size", det.image_size))}
     return replace(det, boxes=boxes, image_size=int(image_size), config=config)

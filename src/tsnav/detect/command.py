@@ -225,9 +225,10 @@ def _fold_scenes(args: argparse.Namespace, root: Path) -> tuple[list[Path], list
     return [p for p in train if folds[p.name] == i], [p.name for p in train if folds[p.name] != i], f"{i}/{k}"
 
 
-def _frame_scenes(args: argparse.Namespace, root: Path, scenes: list[Path]) -> tuple[Path, list[Path]]:
-    """``--frames DIR``: (DIR, DIR's folder of each of ``scenes``), with a one-line error for a detector, an option or
-    a folder that cannot go with it: every scene must be a complete scene of DIR with the same states."""
+def _frame_scenes(args: argparse.Namespace, root: Path, scenes: list[Path]) -> tuple[Path, list[Path], list[int]]:
+    """``--frames DIR``: (DIR, DIR's folder of each of ``scenes``, each of ``scenes``' frame side), with a one-line
+    error for a detector, an option or a folder that cannot go with it: every scene must be a complete scene of DIR
+    with the same states."""
     frames = Path(args.frames)
     if args.detector != "learned":
         raise CommandError(
@@ -240,17 +241,19 @@ def _frame_scenes(args: argparse.Namespace, root: Path, scenes: list[Path]) -> t
     if frames.resolve() == root.resolve():
         raise CommandError(f"--frames {frames} is --data itself; give a build of the same scenes at another --size")
     have = {p.name: p for p in list_scenes(frames)}
-    out = []
+    out, sizes = [], []
     for p in scenes:
         q = have.get(p.name)
         if q is None:
             raise CommandError(f"--frames {frames}: no complete scene {p.name} (build it with tsnav world --size)")
-        if not np.array_equal(load_scene(q).keys, load_scene(p).keys):
+        scene = load_scene(p)
+        if not np.array_equal(load_scene(q).keys, scene.keys):
             raise CommandError(
                 f"--frames {frames}: {p.name} has other states than in {root} (not a build of that scene)"
             )
         out.append(q)
-    return frames, out
+        sizes.append(scene.image_size)
+    return frames, out, sizes
 
 
 def _sigterm_interrupts() -> None:
@@ -288,16 +291,17 @@ def run(args: argparse.Namespace) -> int:
     fold = None
     if args.fold is not None:
         scenes, args.train_scenes, fold = _fold_scenes(args, root)
-    frames_root, source = None, scenes  # the scene folders the detector reads (--frames: DIR's)
+    # the scene folders the detector reads and each scene's frame side (only --frames reads them: DIR's folders)
+    frames_root, source, sizes = None, scenes, [0] * len(scenes)
     if args.frames is not None:
-        frames_root, source = _frame_scenes(args, root, scenes)
+        frames_root, source, sizes = _frame_scenes(args, root, scenes)
     # the detector, ready to write tables (trained first if needed, on the frames it reads)
     maker = kind.open(args, frames_root or root, source, name)
     fingerprint = maker.fingerprint
 
     own = name + MIRROR_SUFFIX if args.mirror else name  # the tables' file name
     todo, done = [], 0
-    for p, q in zip(scenes, source):
+    for p, q, size in zip(scenes, source, sizes):
         fp = read_fingerprint(p, own)
         if fp == fingerprint:
             done += 1
@@ -309,9 +313,9 @@ def run(args: argparse.Namespace) -> int:
                     f"{folder / f'detections_{own}.hdf5'} was made by another detector ({other}); use --overwrite or "
                     "another --name"
                 )
-        todo.append((p, q))
+        todo.append((p, q, size))
     # --frames: a table of DIR's that this detector already wrote (an interrupted run) is rescaled, not made again
-    fresh = [q for _, q in todo if frames_root is None or read_fingerprint(q, own) != fingerprint]
+    fresh = [q for _, q, _ in todo if frames_root is None or read_fingerprint(q, own) != fingerprint]
     loaded = [_load(q, args.mirror) for q in fresh]
     bar = tqdm(
         total=sum(s.num_states for s in loaded),
@@ -325,8 +329,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     if frames_root is not None:  # DATA's tables: the boxes in DATA's pixels
-        for p, q in todo:
-            write_detections(p, own, rescale_detections(load_detections(q, own), load_scene(p).image_size))
+        for p, q, size in todo:
+            write_detections(p, own, rescale_detections(load_detections(q, own), size))
     print(
         f"detections_{own}.hdf5: {len(todo)} scenes written, {done} already done "
         f"({sum(s.num_states for s in loaded)} states)"

@@ -3,7 +3,7 @@
 Frames come from each scene's ``images.hdf5`` (one uint8 ``H x W x 3`` dataset per state key, the lineage
 layout); targets from :func:`tsnav.detect.oracle.ground_truth` (present when an instance shows at least
 ``min_pixels``; the box of the visible instance with most pixels), boxes normalised to [0, 1] as continuous
-``[x0, y0, x1, y1]`` (:func:`tsnav.detect.model.pixel_to_unit`). The detector is trained on the TRAIN split
+``[x0, y0, x1, y1]`` (:func:`tsnav.data.detections.pixel_to_unit`). The detector is trained on the TRAIN split
 only and calibrated on VAL.
 """
 
@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..data.detections import pixel_to_unit
 from ..data.reader import Scene, SceneFormatError, list_scenes, load_scene, read_stack
-from .model import pixel_to_unit
 from .oracle import ground_truth, min_pixels
 
 

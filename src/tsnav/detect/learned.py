@@ -17,8 +17,8 @@ import numpy as np
 from ..constants import check_same_class_set
 from ..data.reader import Scene, load_scene
 from .data import read_images
-from .model import GridDetector, unit_to_pixel
-from ..data.detections import Detections, write_detections
+from .model import GridDetector
+from ..data.detections import Detections, unit_to_pixel, write_detections
 from ..scene_pool import as_is, map_scenes
 from .train import load_model, predict, weights_fingerprint
 

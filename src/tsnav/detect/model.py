@@ -42,6 +42,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..constants import DEFAULT_CLASS_SET, NUM_CATEGORIES, class_set as get_class_set
+from ..data.detections import pixel_to_unit, unit_to_pixel  # noqa: F401  (the box conversions, kept importable here)
 
 
 @dataclass
@@ -378,19 +379,3 @@ def detection_loss(
     total = w.cells * cells + w.presence * bce + w.l1 * l1 + w.giou * giou
     terms = {"loss": total, "cells": cells, "bce": bce, "l1": l1, "giou": giou}
     return total, {k: float(v.detach()) for k, v in terms.items()}
-
-
-# ---------------------------------------------------------------------------------------------- boxes
-def pixel_to_unit(boxes: np.ndarray, image_size: int) -> np.ndarray:
-    """Inclusive pixel boxes ``[x0, y0, x1, y1]`` -> continuous boxes normalised to [0, 1]."""
-    b = np.asarray(boxes, dtype=np.float32)
-    out = np.stack([b[..., 0], b[..., 1], b[..., 2] + 1, b[..., 3] + 1], axis=-1) / float(image_size)
-    return out.astype(np.float32)
-
-
-def unit_to_pixel(boxes: np.ndarray, image_size: int) -> np.ndarray:
-    """Inverse of :func:`pixel_to_unit` (float pixels, inclusive corners; at least one pixel wide)."""
-    b = np.asarray(boxes, dtype=np.float32) * float(image_size)
-    x1 = np.maximum(b[..., 2] - 1, b[..., 0])  # a box narrower than a pixel still covers one column
-    y1 = np.maximum(b[..., 3] - 1, b[..., 1])
-    return np.stack([b[..., 0], b[..., 1], x1, y1], axis=-1).astype(np.float32)

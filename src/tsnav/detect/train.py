@@ -642,8 +642,7 @@ def retarget_model(model: GridDetector, meta: dict, image_size: int, step: int) 
     cfg = DetectorConfig.from_dict({**old.to_dict(), "image_size": int(image_size)})
     new = GridDetector(cfg)  # validates the side against the stem
     state = model.state_dict()
-    with torch.no_grad():
-        state["class_bias"] = state["class_bias"] - 2.0 * math.log(cfg.grid / old.grid)
+    state["class_bias"] = state["class_bias"] - 2.0 * math.log(cfg.grid / old.grid)
     new.load_state_dict(state)
     meta["model"] = cfg.to_dict()
     meta.setdefault("size_changes", []).append({"step": int(step), "from": int(old.image_size), "to": int(image_size)})

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
-from ..constants import CAMERA_HEIGHT, FIELD_OF_VIEW, camera_height_of, HORIZONS, ROTATIONS, VISIBILITY_DISTANCE
+from ..constants import CAMERA_HEIGHT, FIELD_OF_VIEW, HORIZONS, ROTATIONS, VISIBILITY_DISTANCE, camera_height_of
 from ..data.lineage import visible_object_map
 from ..data.reader import COMPLETE_MARKER
 from ..data.writer import (
