@@ -587,6 +587,38 @@ def test_recipe_builds_train_apartments_the_val_way(tmp_path, monkeypatch):
             resolve_agent(apply_sets(where, [bad], ("world",)), tmp_path)
 
 
+def test_recipe_builds_the_rooms_again_for_a_detector_of_finer_frames(tmp_path, monkeypatch):
+    """A recipe whose shipped detector reads finer frames than its world's (tsnav detect --frames) builds the rooms a
+    second time at the detector's side in WORK/world-<side>px, with the same rules (seed, inferred objects); a
+    detector of the world's side builds nothing more."""
+    import gzip
+
+    import tsnav.pipeline.agent_recipe as agent_recipe
+    import tsnav.world.build as world_build
+    from tsnav.pipeline.agent_recipe import make_agent, resolve_agent
+    from tsnav.world.presets import preset_scenes
+
+    challenge = tmp_path / "challenge"
+    (challenge / "train").mkdir(parents=True)
+    for n in preset_scenes("robothor-real"):
+        if "_Train" in n:
+            (challenge / "train" / f"{n}.json.gz").write_bytes(gzip.compress(b"[]"))
+    recipe = apply_sets(read_recipe(ROBOTHOR), ["world.infer_train_objects=true", "world.seed=1"], ("world",))
+    built = []
+    monkeypatch.setattr(world_build, "build_dataset", lambda out, preset, names, cfg, workers: built.append((out, cfg)))
+    r = resolve_agent(recipe, tmp_path)
+    monkeypatch.setattr(agent_recipe, "shipped_side", lambda name=None: 256)
+    make_agent(r, tmp_path / "work", until="world", challenge=challenge)
+    (world, cfg), (fine, fine_cfg) = built
+    assert world == tmp_path / "work" / "world" and fine == tmp_path / "work" / "world-256px"
+    assert (cfg.image_size, fine_cfg.image_size) == (128, 256)
+    assert fine_cfg.seed == cfg.seed == 1 and fine_cfg.infer_train == cfg.infer_train == str(challenge.resolve())
+    built.clear()
+    monkeypatch.setattr(agent_recipe, "shipped_side", lambda name=None: 128)
+    make_agent(r, tmp_path / "work2", until="world", challenge=challenge)
+    assert [out for out, _ in built] == [tmp_path / "work2" / "world"]
+
+
 def test_robothor_agent_card(tmp_path, monkeypatch):
     """agent_card of the RoboTHOR recipe: its eval split and episodes, the val scenes and no test rooms (the
     lead registers the robothor2 detector; here a stand-in's fingerprint)."""

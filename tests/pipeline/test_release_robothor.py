@@ -21,18 +21,18 @@ DET = "tinyrobo"  # the module's stand-in for the lead's robothor1
 SIZE = 32
 
 
-def _save_tiny_detector(folder, seed: int):
-    """An untrained robothor12 grid detector reading 32-px frames, its weights drawn with ``seed``, saved as a
-    checkpoint into ``folder`` (returned)."""
+def _save_tiny_detector(folder, seed: int, size: int = SIZE, min_score: float = 0.05):
+    """An untrained robothor12 grid detector reading ``size``-px frames, its weights drawn with ``seed``, keeping
+    boxes scored above ``min_score``, saved as a checkpoint into ``folder`` (returned)."""
     import torch
 
     from tsnav.detect.model import DetectorConfig, GridDetector
     from tsnav.detect.train import FORMAT, save_checkpoint
 
     torch.manual_seed(seed)
-    model = GridDetector(DetectorConfig(image_size=SIZE, widths=(4, 8, 8), dim=8, class_set="robothor12"))
+    model = GridDetector(DetectorConfig(image_size=size, widths=(4, 8, 8), dim=8, class_set="robothor12"))
     meta = {"format": FORMAT, "step": 0, "calibrated_step": 0, "temperature": 1.0, "model": model.cfg.to_dict()}
-    save_checkpoint(folder, model, None, meta)
+    save_checkpoint(folder, model, None, {**meta, "min_score": min_score})
     return folder
 
 
@@ -333,3 +333,65 @@ def test_convergence_chunks_scored_on_a_given_list(robo, tmp_path):
     sel = json.loads((tmp_path / "conv" / "run" / "selection.json").read_text())
     assert sel["episodes_file"] == str(eps.resolve())
     assert not list((tmp_path / "conv").glob("val_episodes*.json"))
+
+
+def test_release_eval_of_an_agent_whose_detector_reads_finer_frames(robo, tmp_path, monkeypatch, capsys):
+    """A card whose shipped detector reads 64-px frames while the agent's rooms have 32-px ones (``tsnav detect
+    --frames``): release eval builds the val scene again at 64 px beside --data, the detector writes its table
+    there, and --data's scene gets it with the boxes scaled to 32 px; a second run reads the saved table."""
+    import shutil
+
+    from tsnav.data.detections import load_detections, rescale_detections
+    from tsnav.detect import shipped
+
+    monkeypatch.setitem(shipped.SHIPPED, "tinyrobohr", _save_tiny_detector(tmp_path / "dethr", 2, 2 * SIZE, 0.0))
+    agent = tmp_path / "tiny-robothor"
+    shutil.copytree(robo["out"], agent)
+    card = release.read_card(agent)
+    card.update(
+        detector_shipped="tinyrobohr",
+        detections="tinyrobohr",
+        trained_detector_shipped=DET,
+        trained_detections=DET,
+        detector_fingerprint=shipped.shipped_meta("tinyrobohr")["fingerprint"],
+    )
+    (agent / "card.json").write_text(json.dumps(card))
+    assert release.detector_frames(card) == 2 * SIZE
+    world, ev = tmp_path / "val_world", tmp_path / "eval"
+    argv = ["release", "eval", "--agent", str(agent), "--data", str(world), "--out", str(ev), "--build-world"]
+    argv += ["--workers", "1", "--threads", "1", "--protocol", "lineage"]
+    assert main(argv) == 0
+    assert f"at {2 * SIZE} px (the detector's frames)" in capsys.readouterr().out
+    fine = tmp_path / f"val_world-{2 * SIZE}px" / VAL
+    assert load_scene(fine).image_size == 2 * SIZE and load_scene(world / VAL).image_size == SIZE
+    native = load_detections(fine, "tinyrobohr")
+    scaled = load_detections(world / VAL, "tinyrobohr")
+    assert native.image_size == 2 * SIZE and scaled.image_size == SIZE
+    assert (native.labels >= 0).any()
+    ref = rescale_detections(native, SIZE)
+    np.testing.assert_array_equal(scaled.boxes, ref.boxes)
+    np.testing.assert_array_equal(scaled.scores, native.scores)
+    assert scaled.config["frames_size"] == 2 * SIZE
+    assert json.loads((ev / "lineage" / "agent" / "metrics.json").read_text())["detections"] == "tinyrobohr"
+    assert main(argv) == 0  # nothing changed: the saved table
+    assert "nothing changed since the evaluation" in capsys.readouterr().out
+
+
+def test_frames_tables_refuse_rooms_that_are_not_the_detectors_build(robo, tmp_path):
+    """write_frames_tables: one-line errors for a frames folder without the scene, and for one whose frames are not
+    the detector's side; nothing is written into the rooms."""
+    import shutil
+
+    from tsnav.detect.learned import LearnedDetector
+    from tsnav.errors import CommandError
+    from tsnav.pipeline.detector_steps import write_frames_tables
+
+    data = tmp_path / "world"
+    shutil.copytree(robo["data"] / TRAIN, data / TRAIN, ignore=shutil.ignore_patterns("detections_*"))
+    det = LearnedDetector.load(_save_tiny_detector(tmp_path / "dethr", 2, 2 * SIZE, 0.0))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CommandError, match=f"no complete scene {TRAIN}"):
+        write_frames_tables(data, tmp_path / "empty", "x", det, progress=False)
+    with pytest.raises(CommandError, match=f"its frames are {SIZE} px"):
+        write_frames_tables(data, robo["data"], "x", det, progress=False)
+    assert not list(data.rglob("detections_x.hdf5"))

@@ -98,6 +98,12 @@ def shipped_meta(name: str | None = None) -> dict:
     return read_meta(_folder(name), pinned=True)
 
 
+def shipped_side(name: str | None = None) -> int:
+    """The side of the frames the shipped detector ``name`` reads (its checkpoint's ``model.image_size``): the
+    world's frames, or finer ones for a detector trained with ``tsnav detect --frames``."""
+    return int(shipped_meta(name)["model"]["image_size"])
+
+
 def shipped_detector(image_size: int | None = None, name: str | None = None) -> LearnedDetector:
     """Load the shipped detector ``name`` (default :data:`DEFAULT_SHIPPED`); its weights are checked against the
     fingerprint recorded beside them.

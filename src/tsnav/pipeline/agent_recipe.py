@@ -41,7 +41,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..detect.shipped import DEFAULT_SHIPPED, SHIPPED
+from ..detect.shipped import DEFAULT_SHIPPED, SHIPPED, shipped_side
 from ..distributed import set_threads
 from ..errors import CommandError
 from ..pretrain.train import PretrainConfig
@@ -333,12 +333,17 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select", challenge: 
         why = missing_train_episodes(overrides["infer_train"], preset_scenes(r.world.preset))
         if why:
             raise CommandError(f"[world] infer_train_objects: {why}")
-    build_dataset(
-        world, r.world.preset, None, BuildConfig.from_preset(r.world.preset, **overrides), workers=r.world.workers
-    )
+    cfg = BuildConfig.from_preset(r.world.preset, **overrides)
+    build_dataset(world, r.world.preset, None, cfg, workers=r.world.workers)
+    side, frames = shipped_side(r.detections.shipped), None
+    if side != cfg.image_size:  # a detector that reads finer frames: the same rooms at its side, for it alone
+        frames = work / f"world-{side}px"
+        say(f"world at {side} px (the frames of the shipped detector {r.detections.shipped}) -> {frames}")
+        at = BuildConfig.from_preset(r.world.preset, image_size=side, **overrides)
+        build_dataset(frames, r.world.preset, None, at, workers=r.world.workers)
     if until == "world":
         return MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, "")
-    ensure_shipped_tables(world, r.detections)
+    ensure_shipped_tables(world, r.detections, frames)
     if until == "detections":
         return MadeAgent(world, work / "conv" / "run", work / "pre" / r.features.run, "")
     pre = r.pretrain
@@ -394,19 +399,23 @@ def make_agent(r: AgentRecipe, work: Path, *, until: str = "select", challenge: 
     return MadeAgent(world, copy, made.encoder_run, features)
 
 
-def ensure_shipped_tables(world: Path, det: DetectionSettings) -> None:
+def ensure_shipped_tables(world: Path, det: DetectionSettings, frames: Path | None = None) -> None:
     """The shipped detector's tables in every room of ``world`` (those made already by it are kept; a table of
-    another detector under the name is refused)."""
+    another detector under the name is refused). A detector that reads other frames than ``world``'s reads the
+    rooms built at its side in ``frames``, and its boxes are scaled to ``world``'s frames."""
     from ..data.reader import list_scenes, load_scene
     from ..detect.shipped import shipped_detector
-    from .detector_steps import learned_tables, write_learned_tables
+    from .detector_steps import learned_tables, write_frames_tables, write_learned_tables
 
     have, _ = learned_tables(world, det.name)
     if any(fp is None for fp in have.values()):
+        source = f"the shipped detector {det.shipped}"
+        if frames is not None:
+            model = shipped_detector(shipped_side(det.shipped), det.shipped)
+            write_frames_tables(world, frames, det.name, model, say=say, source=source)
+            return
         size = load_scene(list_scenes(world)[0]).image_size
-        write_learned_tables(
-            world, det.name, shipped_detector(size, det.shipped), say=say, source=f"the shipped detector {det.shipped}"
-        )
+        write_learned_tables(world, det.name, shipped_detector(size, det.shipped), say=say, source=source)
 
 
 def select_again(

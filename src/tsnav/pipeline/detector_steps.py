@@ -27,14 +27,21 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
 from ..atomic import atomic_write_json
 from ..distributed import set_threads
 from ..constants import C_TARGET, DEFAULT_CLASS_SET
-from ..data.detections import detections_path, load_detections, read_fingerprint
-from ..data.reader import list_scenes, load_scene
+from ..data.detections import (
+    detections_path,
+    load_detections,
+    read_fingerprint,
+    rescale_detections,
+    write_detections,
+)
+from ..data.reader import is_complete, list_scenes, load_scene
 from ..detect.evaluate import evaluate_detections
 from ..detect.learned import LearnedDetector, write_scene_tables
 from ..detect.shipped import shipped_detector, shipped_for, shipped_meta
@@ -246,6 +253,74 @@ def write_learned_tables(
         bar.close()
     say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
     return {"fingerprint": det.fingerprint, "written": len(scenes)}
+
+
+def write_frames_tables(
+    data: str | Path,
+    frames: str | Path,
+    name: str,
+    det: LearnedDetector,
+    progress: bool = True,
+    say: Callable[[str], None] = print,
+    source: str = "the given detector",
+    workers: int = 1,
+    split: str | None = None,
+) -> dict:
+    """:func:`write_learned_tables` for a detector that reads finer (or coarser) frames than ``data``'s: ``frames``
+    holds a build of the same scenes at ``det``'s side with the same states (``tsnav world --size``). ``det`` writes
+    its tables into ``frames``' scenes (kept, in its own pixels; a table it wrote there before is not made again),
+    and each scene of ``data`` (of ``split`` only, when given) lacking ``detections_<name>.hdf5`` gets that table
+    with the boxes scaled to its frames (:func:`~tsnav.data.detections.rescale_detections`), as ``tsnav detect
+    --frames`` writes them. One-line errors for a scene missing from ``frames`` or built with other states, and for
+    tables of another detector (never overwritten). Returns ``{"fingerprint", "written"}``."""
+    data, frames = Path(data), Path(frames)
+    have, kinds = learned_tables(data, name, split)
+    if kinds and det.fingerprint != kinds[0]:
+        odd = next(p for p, fp in have.items() if fp is not None)
+        raise CommandError(
+            f"{detections_path(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
+            f"{source} ({det.fingerprint}); it is not overwritten: remove it, or evaluate in another folder"
+        )
+    todo = [p for p, fp in have.items() if fp is None]
+    if not todo:
+        return {"fingerprint": det.fingerprint, "written": 0}
+    pairs = []
+    for p in todo:
+        q = frames / p.name
+        if not is_complete(q):
+            raise CommandError(f"{frames}: no complete scene {p.name} (the {det.image_size}-px build of {data}'s)")
+        scene, twin = load_scene(p), load_scene(q)
+        if twin.image_size != det.image_size:
+            raise CommandError(f"{q}: its frames are {twin.image_size} px, {source} reads {det.image_size}-px frames")
+        if not np.array_equal(twin.keys, scene.keys):
+            raise CommandError(f"{q} has other states than {p} (not a build of the same scene)")
+        pairs.append((p, q, scene.image_size))
+    fresh = [load_scene(q) for _, q, _ in pairs if read_fingerprint(q, name) != det.fingerprint]
+    stale = [q for _, q, _ in pairs if read_fingerprint(q, name) not in (None, det.fingerprint)]
+    if stale:
+        raise CommandError(
+            f"{detections_path(stale[0], name)} was made by another detector ({read_fingerprint(stale[0], name)}) "
+            f"than {source} ({det.fingerprint}); it is not overwritten: remove it"
+        )
+    bar = tqdm(
+        total=sum(s.num_states for s in fresh),
+        desc=f"detect {name} ({det.image_size} px)",
+        unit="state",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
+    try:
+        with one_thread():
+            write_scene_tables(det, fresh, name, bar, workers)
+    finally:
+        bar.close()
+    for p, q, size in pairs:
+        write_detections(p, name, rescale_detections(load_detections(q, name), size))
+    say(
+        f"    detections_{name}.hdf5 written into {len(pairs)} scenes ({det.fingerprint}, read on "
+        f"{det.image_size}-px frames in {frames}, boxes scaled)"
+    )
+    return {"fingerprint": det.fingerprint, "written": len(pairs)}
 
 
 def detection_quality(data: str | Path, name: str, split: str = "val", c_target: float = C_TARGET) -> dict:

@@ -27,7 +27,9 @@ since the last evaluation into the same folder (:func:`release_inputs`: the agen
 rooms, detection tables and feature caches, the episode lists and the settings, recorded in ``results.json``),
 a second run prints the saved table and says so in one line; ``--force`` evaluates again. A ``--data`` folder that
 does not exist is refused unless ``--build-world`` asks for the rooms to be built there (without ``--data`` the
-default folder is built). ``tsnav release pack`` makes such a folder from a training run and a pretraining run; ``tsnav release make
+default folder is built). An agent whose detector reads finer frames than its rooms (``tsnav detect --frames``; the
+shipped detector's own frame side) gets the rooms built again at that side beside ``--data`` (``DATA-256px``),
+the detector's tables written there and scaled into ``--data``'s rooms. ``tsnav release pack`` makes such a folder from a training run and a pretraining run; ``tsnav release make
 RECIPE --work DIR`` makes a whole agent from its recipe (``configs/agents/NAME.toml``,
 :mod:`tsnav.pipeline.agent_recipe`) into ``DIR/agent/NAME``, and writes into the package only when asked by name
 (``--replace-shipped NAME``). A packed ``config.json`` holds no machine path.
@@ -310,15 +312,32 @@ def say(msg: str) -> None:
     print(f"[release] {msg}", flush=True)
 
 
-def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test") -> list[str]:
-    """Build the world's rooms of ``split`` into ``data`` (finished rooms are skipped); returns their names."""
+def detector_frames(card: dict) -> int | None:
+    """The frame side of the card's shipped detector when it is not the world's (a detector that reads finer frames
+    than the agent, ``tsnav detect --frames``), else None."""
+    from ..detect.shipped import shipped_side
+
+    side = shipped_side(card["detector_shipped"])
+    return side if side != int(card.get("image_size", 128)) else None
+
+
+def frames_folder(data: Path, side: int) -> Path:
+    """Where ``tsnav release eval`` builds the rooms again at ``side`` px for a detector of :func:`detector_frames`:
+    beside ``data``, named after it."""
+    return data.with_name(f"{data.name}-{side}px")
+
+
+def ensure_test_world(
+    data: Path, card: dict, workers: int, split: str = "test", image_size: int | None = None
+) -> list[str]:
+    """Build the world's rooms of ``split`` into ``data`` (finished rooms are skipped), with frames of the card's
+    side or of ``image_size``; returns their names."""
     from ..world.build import BuildConfig, build_dataset
 
     world = card.get("world_preset", "ithor-real")
     names = split_rooms(card, split)
-    cfg = BuildConfig.from_preset(
-        world, image_size=int(card.get("image_size", 128)), world_version=card.get("world_version")
-    )
+    side = int(image_size or card.get("image_size", 128))
+    cfg = BuildConfig.from_preset(world, image_size=side, world_version=card.get("world_version"))
     t0 = time.perf_counter()
     try:
         stats = build_dataset(data, preset=world, scenes=names, cfg=cfg, workers=workers)
@@ -333,7 +352,8 @@ def ensure_test_world(data: Path, card: dict, workers: int, split: str = "test")
     built = sum(not s.skipped for s in stats)
     if built:
         what = "test rooms" if world == "ithor-real" else f"{split} scenes"
-        say(f"world: built {built} of {len(names)} {what} in {time.perf_counter() - t0:.0f} s")
+        at = f" at {side} px (the detector's frames)" if image_size else ""
+        say(f"world: built {built} of {len(names)} {what}{at} in {time.perf_counter() - t0:.0f} s")
     return names
 
 
@@ -370,10 +390,18 @@ def ensure_release_features(
 
 
 def ensure_release_detections(
-    data: Path, card: dict, split: str | None = None, say=say, progress: bool = True, workers: int | None = None
+    data: Path,
+    card: dict,
+    split: str | None = None,
+    say=say,
+    progress: bool = True,
+    workers: int | None = None,
+    frames: Path | None = None,
 ) -> str:
     """Write the card's shipped detector's tables into the rooms of ``data`` (of ``split`` only, when given),
-    refusing tables of another detector; ``workers`` processes (None: one per core)."""
+    refusing tables of another detector; ``workers`` processes (None: one per core). A detector of
+    :func:`detector_frames` reads the rooms built at its side in ``frames`` and its boxes are scaled to ``data``'s
+    frames (:func:`~tsnav.pipeline.detector_steps.write_frames_tables`)."""
     from ..detect.shipped import shipped_meta
 
     det = card["detector_shipped"]
@@ -383,7 +411,7 @@ def ensure_release_detections(
         )
     from ..data.reader import load_scene
     from ..detect.shipped import shipped_detector
-    from .detector_steps import learned_tables, write_learned_tables
+    from .detector_steps import learned_tables, write_frames_tables, write_learned_tables
     from ..scene_pool import default_workers
 
     have, kinds = learned_tables(data, card["detections"], split)
@@ -392,7 +420,22 @@ def ensure_release_detections(
             f"{data}: its detections_{card['detections']}.hdf5 tables were made by another detector ({kinds[0]}) "
             f"than the card's {det} ({card['detector_fingerprint']}); remove them or evaluate in another --data folder"
         )
-    if any(fp is None for fp in have.values()):
+    side = detector_frames(card)
+    if side and any(fp is None for fp in have.values()):
+        if frames is None:
+            raise CommandError(f"the shipped detector {det} reads {side}-px frames: give the rooms built at {side} px")
+        write_frames_tables(
+            data,
+            frames,
+            card["detections"],
+            shipped_detector(side, det),
+            say=say,
+            progress=progress,
+            source=f"the shipped detector {det}",
+            workers=workers or default_workers(),
+            split=split,
+        )
+    elif any(fp is None for fp in have.values()):
         size = load_scene(next(iter(have))).image_size
         write_learned_tables(
             data,
@@ -630,7 +673,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
         help="world folder for the rooms (default out/release/world-vN, N the "
         "rules version of the agent's card, out/release/world-PRESET-vN for an agent of another world than "
         "ithor-real, e.g. world-robothor-real-v1; reused; built when missing). A "
-        "--data folder that does not exist is refused unless --build-world",
+        "--data folder that does not exist is refused unless --build-world. A detector that reads finer frames "
+        "than the rooms' gets them built at its side in DATA-<side>px beside it",
     )
     ev.add_argument(
         "--build-world",
@@ -799,8 +843,12 @@ def evaluate_agent(
         t0 = time.perf_counter()
         times = {}
         ensure_test_world(data, card, workers, split)
+        side = detector_frames(card)  # a detector reading finer frames: the rooms again at its side, beside data
+        frames = frames_folder(data, side) if side else None
+        if side:
+            ensure_test_world(frames, card, workers, split, image_size=side)
         times["world"] = time.perf_counter() - t0
-        ensure_release_detections(data, card, split)
+        ensure_release_detections(data, card, split, frames=frames)
         times["detections"] = time.perf_counter() - t0 - sum(times.values())
         ensure_release_features(data, folder, card, split=split)
         times["features"] = time.perf_counter() - t0 - sum(times.values())
