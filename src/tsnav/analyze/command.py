@@ -31,6 +31,7 @@ ANALYSES = {
     "noisy-tables": ("noisy_tables", "tables of the shipped detector on frames with Gaussian pixel noise"),
     "plot-selection": ("plot_selection", "a run's milestones scored on one or two episode lists"),
     "policy-ensemble": ("policy_ensemble", "evaluate an ensemble of trained agents"),
+    "recall-by-size": ("recall_by_size", "tables' recall at C_target by the target's pixels in view, per class"),
     "stop-signal": ("stop_signal", "can the agent's inputs tell a success state from a near miss"),
     "stop-head": ("stop_head", "a stop head trained on the agent's inputs: would it stop sooner than the agent"),
     "stop-ceiling": ("stop_ceiling", "an evaluation's SR and SPL with Done at the first success state it reaches"),
