@@ -187,7 +187,9 @@ def draw(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="tsnav analyze recall-by-size", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="tsnav analyze recall-by-size", description=__doc__.split("\n\n")[0], allow_abbrev=False
+    )
     ap.add_argument("--data", type=Path, required=True, help="world folder holding the tables")
     ap.add_argument("--split", default="val", help="the scenes measured (default val)")
     ap.add_argument("--tables", nargs="+", required=True, help="detection table names (detections_NAME.hdf5)")
