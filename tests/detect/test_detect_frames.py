@@ -186,7 +186,7 @@ def test_retarget_goes_on_at_the_new_side_and_is_needed_for_it(worlds, tmp_path,
 @pytest.mark.parametrize(
     "extra, frames, message",
     [
-        (["--detector", "oracle"], "high", "needs --detector learned"),
+        (["--detector", "oracle"], "high", "needs --detector learned or shipped"),
         (["--detector", "learned", "--mirror"], "high", "does not go with --mirror"),
         (["--detector", "learned"], "missing", "no such dataset folder"),
         (["--detector", "learned"], "self", "is --data itself"),
@@ -200,3 +200,27 @@ def test_frames_refuses_what_cannot_go_with_it(worlds, tmp_path, capsys, extra, 
     assert main(args + ["--checkpoint", str(tmp_path / "ck")]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_shipped_detector_of_finer_frames_reads_them_through_frames(worlds, tmp_path, monkeypatch, capsys):
+    """A shipped detector that reads 128-px frames writes a 64-px world's tables through --frames (boxes scaled, as
+    a learned one's); without --frames it is refused in one line that names the way."""
+    from tsnav.detect import shipped
+
+    low, high, _ = worlds
+    ck = tmp_path / "ck"
+    args = ["detect", "--data", str(low), "--frames", str(high), "--detector", "learned", "--checkpoint", str(ck)]
+    args += ["--quiet", "--no-eval", "--max-states-per-scene", "16", "--batch-size", "4", "--train-steps", "2"]
+    assert main(args + ["--name", "trained"]) == 0
+    monkeypatch.setitem(shipped.SHIPPED, "tinyhi", ck)
+    base = ["detect", "--data", str(low), "--detector", "shipped", "--shipped", "tinyhi", "--quiet", "--no-eval"]
+    capsys.readouterr()
+    assert main(base + ["--name", "sh"]) == 2
+    err = capsys.readouterr().err
+    assert "reads 128x128 frames" in err and "--frames DIR" in err and len(err.strip().splitlines()) == 1
+    assert main(base + ["--name", "sh", "--frames", str(high)]) == 0
+    for p in list_scenes(low):
+        det, native = load_detections(p, "sh"), load_detections(high / p.name, "sh")
+        assert det.image_size == 64 and native.image_size == 128
+        np.testing.assert_array_equal(det.scores, load_detections(p, "trained").scores)  # the same weights
+        np.testing.assert_allclose(det.boxes, rescale_reference(native, 64), atol=1e-4)

@@ -149,7 +149,7 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         "--frames",
         default=None,
         metavar="DIR",
-        help="learned: train and detect on the frames of DIR, a build of the same scenes at another side "
+        help="learned, shipped: train and detect on the frames of DIR, a build of the same scenes at another side "
         "(tsnav world --size; the same states), and write DATA's tables with the boxes scaled to DATA's frames: a "
         "detector that sees finer frames than the agent (DIR's scenes keep the tables at their own side too)",
     )
@@ -230,9 +230,10 @@ def _frame_scenes(args: argparse.Namespace, root: Path, scenes: list[Path]) -> t
     error for a detector, an option or a folder that cannot go with it: every scene must be a complete scene of DIR
     with the same states."""
     frames = Path(args.frames)
-    if args.detector != "learned":
+    if args.detector not in ("learned", "shipped"):
         raise CommandError(
-            f"--frames trains the detector on DIR's frames: it needs --detector learned, not {args.detector}"
+            f"--frames gives a network detector DIR's frames: it needs --detector learned or shipped, not "
+            f"{args.detector}"
         )
     if args.mirror or args.fold is not None:
         raise CommandError(f"--frames does not go with {'--mirror' if args.mirror else '--fold'}")

@@ -121,8 +121,12 @@ def shipped_detector(image_size: int | None = None, name: str | None = None) -> 
     if image_size is not None and image_size != det.image_size:
         raise CommandError(
             f"the shipped detector {name or DEFAULT_SHIPPED} reads {det.image_size}x{det.image_size} frames (those "
-            f"of the world it was trained on), this world has {image_size}x{image_size}: train a detector on it instead "
-            f"(--detector train in tsnav demo and tsnav experiment, --detector learned in tsnav "
-            f"detect)"
+            f"of the world it was trained on), this world has {image_size}x{image_size}: "
+            + (
+                f"give it the same rooms built at {det.image_size} px (tsnav detect --frames DIR)"
+                if det.image_size > image_size
+                else "train a detector on it instead (--detector train in tsnav demo and tsnav experiment, "
+                "--detector learned in tsnav detect)"
+            )
         )
     return det
