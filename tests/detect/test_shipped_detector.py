@@ -48,14 +48,16 @@ def test_weights_match_their_fingerprint_and_provenance(name):
         shipped.shipped_detector(name="learned9")
 
 
-@pytest.mark.parametrize("name", ["robothor1", "robothor2", "robothor3", "robothor4", "robothor5"])
+@pytest.mark.parametrize("name", ["robothor1", "robothor2", "robothor3", "robothor4", "robothor5", "robothor5hr"])
 def test_robothor_detectors_saw_only_the_train_apartments(name):
-    """robothor1 to robothor5: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing
-    of the 15 val ones (they are the benchmark): not calibrated, temperature 1."""
-    det = shipped.shipped_detector(128, name=name)
+    """robothor1 to robothor5hr: the 12 RoboTHOR targets, trained on the 60 train apartments and on nothing
+    of the 15 val ones (they are the benchmark): not calibrated, temperature 1. robothor5hr reads 256-px frames."""
+    side = 256 if name == "robothor5hr" else 128
+    assert shipped.shipped_side(name) == side
+    det = shipped.shipped_detector(side, name=name)
     meta = shipped.shipped_meta(name)
     assert det.fingerprint == meta["fingerprint"] and meta["name"] == name
-    assert det.class_set == "robothor12" and det.num_classes == 12 and det.image_size == 128
+    assert det.class_set == "robothor12" and det.num_classes == 12 and det.image_size == side
     train = [f"FloorPlan_Train{i}_{v}" for i in range(1, 13) for v in range(1, 6)]
     assert sorted(meta["train_scenes"]) == sorted(train)
     assert meta["calibration_split"] is None and meta["calibrated_step"] == -1 and det.temperature == 1.0
@@ -69,10 +71,14 @@ def test_robothor_detectors_saw_only_the_train_apartments(name):
         "robothor3": (20000, 0.5),
         "robothor4": (25000, 0.5),
         "robothor5": (25000, 0.5),
+        "robothor5hr": (30000, 0.5),
     }[name]
     assert meta["step"] == steps and meta["train"]["repeat_threshold"] == repeat
-    assert ("rebuilt the val way" in meta.get("train_world", "")) == (name in ("robothor3", "robothor4", "robothor5"))
-    assert ("redrawn per scene" in meta.get("train_world", "")) == (name == "robothor5")
+    later = ("robothor3", "robothor4", "robothor5", "robothor5hr")
+    assert ("rebuilt the val way" in meta.get("train_world", "")) == (name in later)
+    assert ("redrawn per scene" in meta.get("train_world", "")) == (name in ("robothor5", "robothor5hr"))
+    # robothor5hr: robothor5's weights carried over to 256-px frames at step 25,000
+    assert meta.get("size_changes", []) == ([{"from": 128, "step": 25000, "to": 256}] if side == 256 else [])
 
 
 def test_refuses_other_frame_sizes_and_damaged_weights(tmp_path, monkeypatch):

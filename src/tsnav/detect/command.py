@@ -161,7 +161,8 @@ def build_parser(p: argparse.ArgumentParser) -> None:
         f"{DEFAULT_SHIPPED}; learned3 wrote the tables of the "
         "medium-scale experiments; learned6 favours recall; learned7, twice as wide, ranks better; "
         "robothor1, robothor2 (trained longer), robothor3 (trained on in train apartments rebuilt the val way) and "
-        "robothor4 (robothor3 trained longer), robothor5 (the same steps on redrawn surfaces): "
+        "robothor4 (robothor3 trained longer), robothor5 (the same steps on redrawn surfaces), robothor5hr "
+        "(robothor5 trained on at 256 px: give it --frames): "
         "the 12 RoboTHOR targets, for robothor-real worlds; see "
         "tsnav.detect.shipped)",
     )

@@ -1,11 +1,11 @@
 """The detectors that ship inside the package: :class:`~tsnav.detect.learned.LearnedDetector` checkpoints trained
 here on the 80 training rooms of the ``ithor-real`` world at 128x128 and calibrated on its 20 validation rooms, and
-five trained on the 60 training apartments of the ``robothor-real`` world (``robothor1`` to
-``robothor5``, the 12 classes of ``robothor12``).
+six trained on the 60 training apartments of the ``robothor-real`` world (``robothor1`` to
+``robothor5`` at 128x128, ``robothor5hr`` at 256x256; the 12 classes of ``robothor12``).
 
 The paper's stage switch reads a DETR that was trained before, and apart from, the navigation agent; the
 shipped weights play that part for the 128-px real rooms, so that a short job (``tsnav demo``) can use a
-detector that took two to three hours of one CPU core to train. Nothing is downloaded. Nine are kept (1.9 MB of
+detector that took two to three hours of one CPU core to train. Nothing is downloaded. Ten are kept (1.9 MB of
 float32 each, 6.8 MB for the wider ``learned7``) with their checkpoint JSON (training configuration and rooms,
 temperature, fingerprint, provenance):
 
@@ -46,6 +46,12 @@ temperature, fingerprint, provenance):
   Val presence AP 0.849, box AP@0.5 0.630 (docs/results/robothor5_val_eval_2026-12-07.json), and a third of
   ``robothor4``'s boxes on targets out of view. The detector of ``tsrm-demae-robothor-paper-protocol``, in training
   (on the redrawn apartments' tables) and evaluation, docs/RESULTS.md.
+* ``robothor5hr`` (``weights/robothor-real-256-robothor5hr``): ``robothor5`` trained on to 30,000 steps on the
+  256-px frames of the same apartments (``tsnav world --size 256``: the same states), its weights carried over
+  (``tsnav detect --retarget``); not calibrated. It reads 256-px frames: a 128-px world's tables are written through
+  a build of the same rooms at 256 px (``tsnav detect --detector shipped --shipped robothor5hr --frames DIR256``;
+  ``tsnav release eval`` builds it), the boxes scaled to the world's frames. Val presence AP 0.928, box AP@0.5 0.770,
+  SprayBottle's presence AP 0.644 against ``robothor5``'s 0.337 (docs/results/robothor5hr_val_eval_2026-12-07.json).
 
 Their tables carry the same fingerprint as the ones written by ``tsnav detect --checkpoint`` with the same
 weights, so tables written from a shipped copy and from the training folder are interchangeable.
@@ -71,6 +77,7 @@ SHIPPED = {
     "robothor3": _WEIGHTS / "robothor-real-128-robothor3",
     "robothor4": _WEIGHTS / "robothor-real-128-robothor4",
     "robothor5": _WEIGHTS / "robothor-real-128-robothor5",
+    "robothor5hr": _WEIGHTS / "robothor-real-256-robothor5hr",
 }
 #: The one used unless another is named.
 DEFAULT_SHIPPED = "learned4"
