@@ -230,6 +230,16 @@ def write_learned_tables(
     (one torch thread per scene; ``workers`` processes share the scenes, :func:`tsnav.scene_pool.map_scenes`: the
     same tables for every value); a table made by another detector is refused in one line and never overwritten
     (``source`` names ``det`` in that line). Returns ``{"fingerprint", "written"}``."""
+    have = _tables_of(data, name, split, det, source)
+    scenes = [load_scene(p) for p, fp in have.items() if fp is None]
+    _detect(det, scenes, name, progress, workers)
+    say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
+    return {"fingerprint": det.fingerprint, "written": len(scenes)}
+
+
+def _tables_of(data, name: str, split: str | None, det: LearnedDetector, source: str) -> dict[Path, str | None]:
+    """:func:`learned_tables`'s fingerprints of ``data``'s scenes, refusing in one line tables of another detector
+    than ``det`` (named ``source``): they are never overwritten."""
     have, kinds = learned_tables(data, name, split)
     if kinds and det.fingerprint != kinds[0]:
         odd = next(p for p, fp in have.items() if fp is not None)
@@ -238,10 +248,14 @@ def write_learned_tables(
             f"{source} ({det.fingerprint}); it is not overwritten: remove it, or write the "
             f"missing tables with its own detector (tsnav detect)"
         )
-    scenes = [load_scene(p) for p, fp in have.items() if fp is None]
+    return have
+
+
+def _detect(det: LearnedDetector, scenes: list, name: str, progress: bool, workers: int) -> None:
+    """``det``'s tables into ``scenes`` on one torch thread per scene (``workers`` processes), with a progress bar."""
     bar = tqdm(
         total=sum(s.num_states for s in scenes),
-        desc=f"detect {name}",
+        desc=f"detect {name} ({det.image_size} px)",
         unit="state",
         disable=not progress,
         dynamic_ncols=True,
@@ -251,8 +265,6 @@ def write_learned_tables(
             write_scene_tables(det, scenes, name, bar, workers)
     finally:
         bar.close()
-    say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
-    return {"fingerprint": det.fingerprint, "written": len(scenes)}
 
 
 def write_frames_tables(
@@ -274,13 +286,7 @@ def write_frames_tables(
     --frames`` writes them. One-line errors for a scene missing from ``frames`` or built with other states, and for
     tables of another detector (never overwritten). Returns ``{"fingerprint", "written"}``."""
     data, frames = Path(data), Path(frames)
-    have, kinds = learned_tables(data, name, split)
-    if kinds and det.fingerprint != kinds[0]:
-        odd = next(p for p, fp in have.items() if fp is not None)
-        raise CommandError(
-            f"{detections_path(odd, name)} was made by another learned detector ({kinds[0]}) than the one in "
-            f"{source} ({det.fingerprint}); it is not overwritten: remove it, or evaluate in another folder"
-        )
+    have = _tables_of(data, name, split, det, source)
     todo = [p for p, fp in have.items() if fp is None]
     if not todo:
         return {"fingerprint": det.fingerprint, "written": 0}
@@ -302,18 +308,7 @@ def write_frames_tables(
             f"{detections_path(stale[0], name)} was made by another detector ({read_fingerprint(stale[0], name)}) "
             f"than {source} ({det.fingerprint}); it is not overwritten: remove it"
         )
-    bar = tqdm(
-        total=sum(s.num_states for s in fresh),
-        desc=f"detect {name} ({det.image_size} px)",
-        unit="state",
-        disable=not progress,
-        dynamic_ncols=True,
-    )
-    try:
-        with one_thread():
-            write_scene_tables(det, fresh, name, bar, workers)
-    finally:
-        bar.close()
+    _detect(det, fresh, name, progress, workers)
     for p, q, size in pairs:
         write_detections(p, name, rescale_detections(load_detections(q, name), size))
     say(

@@ -420,33 +420,22 @@ def ensure_release_detections(
             f"{data}: its detections_{card['detections']}.hdf5 tables were made by another detector ({kinds[0]}) "
             f"than the card's {det} ({card['detector_fingerprint']}); remove them or evaluate in another --data folder"
         )
-    side = detector_frames(card)
-    if side and any(fp is None for fp in have.values()):
-        if frames is None:
+    if any(fp is None for fp in have.values()):
+        side = detector_frames(card)
+        if side and frames is None:
             raise CommandError(f"the shipped detector {det} reads {side}-px frames: give the rooms built at {side} px")
-        write_frames_tables(
-            data,
-            frames,
-            card["detections"],
-            shipped_detector(side, det),
+        how = dict(
             say=say,
             progress=progress,
             source=f"the shipped detector {det}",
             workers=workers or default_workers(),
             split=split,
         )
-    elif any(fp is None for fp in have.values()):
-        size = load_scene(next(iter(have))).image_size
-        write_learned_tables(
-            data,
-            card["detections"],
-            shipped_detector(size, det),
-            say=say,
-            progress=progress,
-            source=f"the shipped detector {det}",
-            workers=workers or default_workers(),
-            split=split,
-        )
+        if side:
+            write_frames_tables(data, frames, card["detections"], shipped_detector(side, det), **how)
+        else:
+            size = load_scene(next(iter(have))).image_size
+            write_learned_tables(data, card["detections"], shipped_detector(size, det), **how)
     return card["detections"]
 
 
