@@ -44,14 +44,16 @@ temperature, fingerprint, provenance):
 * ``robothor5`` (``weights/robothor-real-128-robothor5``): ``robothor4``'s 5,000 steps from ``robothor3``, in the
   same apartments with their floor and wall materials redrawn per scene (``tsnav world --seed 1``); not calibrated.
   Val presence AP 0.849, box AP@0.5 0.630 (docs/results/robothor5_val_eval_2026-12-07.json), and a third of
-  ``robothor4``'s boxes on targets out of view. The detector of ``tsrm-demae-robothor-paper-protocol``, in training
-  (on the redrawn apartments' tables) and evaluation, docs/RESULTS.md.
+  ``robothor4``'s boxes on targets out of view. The detector of ``tsrm-demae-robothor-paper-protocol`` until
+  ``robothor5hr``'s agent replaced it, docs/RESULTS.md.
 * ``robothor5hr`` (``weights/robothor-real-256-robothor5hr``): ``robothor5`` trained on to 30,000 steps on the
   256-px frames of the same apartments (``tsnav world --size 256``: the same states), its weights carried over
   (``tsnav detect --retarget``); not calibrated. It reads 256-px frames: a 128-px world's tables are written through
   a build of the same rooms at 256 px (``tsnav detect --detector shipped --shipped robothor5hr --frames DIR256``;
   ``tsnav release eval`` builds it), the boxes scaled to the world's frames. Val presence AP 0.928, box AP@0.5 0.770,
   SprayBottle's presence AP 0.644 against ``robothor5``'s 0.337 (docs/results/robothor5hr_val_eval_2026-12-07.json).
+  The detector of ``tsrm-demae-robothor-paper-protocol``, in training (its tables of the redrawn train apartments)
+  and evaluation, docs/RESULTS.md.
 
 Their tables carry the same fingerprint as the ones written by ``tsnav detect --checkpoint`` with the same
 weights, so tables written from a shipped copy and from the training folder are interchangeable.
