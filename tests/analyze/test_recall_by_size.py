@@ -103,6 +103,10 @@ def test_a_banded_table_end_to_end(mod, world, totals, tmp_path, capsys):
         assert im.size == (2 * 256, 3 * (256 + 30))
 
 
+def totals_class(totals) -> str:
+    return max(totals, key=lambda k: totals[k][1])
+
+
 def test_bad_input_is_one_line(mod, world, totals, tmp_path):
     from tsnav.errors import CommandError
 
@@ -116,6 +120,11 @@ def test_bad_input_is_one_line(mod, world, totals, tmp_path):
         (base + ["--frames", "other=" + str(world)], "TABLE one of --tables"),
         (base + ["--frames", "banded=" + str(tmp_path / "no")], "no such folder"),
         (base + ["--picture", str(tmp_path / "p.png"), "--class", "Nothing"], "not a class"),
+        (
+            base
+            + ["--picture", str(tmp_path / "p.png"), "--class", totals_class(totals), "--frames", f"banded={tmp_path}"],
+            "no complete scene",
+        ),
     ):
         with pytest.raises(CommandError, match=msg):
             mod.main(argv)

@@ -128,8 +128,8 @@ def draw(
     """The picture of ``--picture`` (module docstring); returns the number of states drawn."""
     from PIL import Image, ImageDraw
 
-    from ..data.detections import load_detections
-    from ..data.reader import load_scene
+    from ..data.detections import detections_path, load_detections
+    from ..data.reader import is_complete, load_scene
     from ..detect.oracle import ground_truth
     from ..eval.video import _font
     from ..world.show import frame_images
@@ -155,6 +155,10 @@ def draw(
         scene = load_scene(p)
         gt = ground_truth(scene)
         for col, t in enumerate(tables):
+            if t in frames:
+                q = frames[t] / p.name
+                if not is_complete(q) or not detections_path(q, t).exists():
+                    raise CommandError(f"--frames {t}={frames[t]}: no complete scene {p.name} with detections_{t}.hdf5")
             src = load_scene(frames[t] / p.name) if t in frames else scene
             if not np.array_equal(src.keys, scene.keys):
                 raise CommandError(f"--frames {t}={frames[t]}: {p.name} has other states there than in {p.parent}")
