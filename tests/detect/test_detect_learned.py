@@ -214,6 +214,12 @@ def test_frames_and_targets(tiny_world, tiny_frames, tiny_scenes):
     onehot = fs.obj_category[..., None] == np.arange(NUM_CATEGORIES)
     np.testing.assert_array_equal(fs.present, ((fs.obj_state == 2)[..., None] & onehot).any(1))
     assert ((fs.obj_state > 0) <= (fs.obj_category >= 0)).all()
+    # Each scene's slice holds the frames of its drawn states, read one scene at a time (the reference)
+    by_name = {x.name: x for x in tiny_scenes}
+    for i, name in enumerate(fs.scenes):
+        sc = by_name[name]
+        rows = np.sort(np.random.default_rng([0, i]).choice(sc.num_states, 24, replace=False))
+        np.testing.assert_array_equal(fs.images[fs.offsets[i] : fs.offsets[i + 1]], read_images(sc.path, sc.keys[rows]))
     s = next(x for x in tiny_scenes if x.name == fs.scenes[0])
     full = read_images(s.path, s.keys[:3])
     assert full.shape == (3, 64, 64, 3)

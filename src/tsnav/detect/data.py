@@ -114,9 +114,9 @@ def load_frames(
     if not paths:
         only = " among the scenes asked for" if scenes is not None else ""
         raise ValueError(f"{root}: no complete scene of split {split!r}{only}")
-    images, targets, names, sizes = [], [], [], []
+    picked, targets, names, sizes = [], [], [], []
     size, classes = None, None
-    for p in tqdm(paths, desc=f"frames {split}", unit="scene", disable=not progress, dynamic_ncols=True):
+    for p in paths:  # the states of each scene first, then the frames straight into one array (no second copy)
         s = load_scene(p)
         if size is None:
             size, classes = s.image_size, s.class_set
@@ -128,20 +128,26 @@ def load_frames(
         if max_states_per_scene is not None and s.num_states > max_states_per_scene:
             rng = np.random.default_rng([seed, len(names)])
             rows = np.sort(rng.choice(s.num_states, max_states_per_scene, replace=False))
-        images.append(read_images(p, s.keys[rows]))
+        picked.append((p, s.keys[rows]))
         targets.append(scene_targets(s, rows))
         names.append(s.name)
         sizes.append(len(rows))
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    images = np.empty((int(offsets[-1]), size, size, 3), np.uint8)
+    bar = tqdm(picked, desc=f"frames {split}", unit="scene", disable=not progress, dynamic_ncols=True)
+    for i, (p, keys) in enumerate(bar):
+        if len(keys):
+            images[offsets[i] : offsets[i + 1]] = read_images(p, keys)
     K = max(1, max(t["obj_category"].shape[1] for t in targets))
     return FrameSet(
-        images=np.concatenate(images),
+        images=images,
         present=np.concatenate([t["present"] for t in targets]),
         boxes=np.concatenate([t["boxes"] for t in targets]),
         obj_boxes=_pad([t["obj_boxes"] for t in targets], K, 0.0),
         obj_category=_pad([t["obj_category"] for t in targets], K, -1),
         obj_state=_pad([t["obj_state"] for t in targets], K, 0),
         scenes=names,
-        offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+        offsets=offsets,
     )
 
 
