@@ -167,6 +167,27 @@ def test_release_eval_of_a_robothor_agent(robo, capsys):
     assert release.headline(card).startswith("val, challenge episodes SR / SPL (")
 
 
+def _agent_evaluated_with(robo, tmp_path, det: str):
+    """A copy of the packed agent in ``tmp_path`` whose card swaps in the shipped detector ``det`` ([detections]
+    evaluated; trained on DET's tables); (its folder, its card)."""
+    import shutil
+
+    from tsnav.detect import shipped
+
+    agent = tmp_path / "tiny-robothor"
+    shutil.copytree(robo["out"], agent)
+    card = release.read_card(agent)
+    card.update(
+        detector_shipped=det,
+        detections=det,
+        trained_detector_shipped=DET,
+        trained_detections=DET,
+        detector_fingerprint=shipped.shipped_meta(det)["fingerprint"],
+    )
+    (agent / "card.json").write_text(json.dumps(card))
+    return agent, card
+
+
 def test_release_eval_with_the_detector_its_card_swaps_in(robo, tmp_path, monkeypatch, capsys):
     """A card whose detector is another than the one of training ([detections] evaluated, as tsrm-demae-robothor
     v2 reads robothor3 with a policy trained on robothor2's tables): release eval writes that detector's tables only,
@@ -177,17 +198,7 @@ def test_release_eval_with_the_detector_its_card_swaps_in(robo, tmp_path, monkey
 
     det2 = _save_tiny_detector(tmp_path / "det2", seed=1)  # another detector than DET's (seed 0)
     monkeypatch.setitem(shipped.SHIPPED, "tinyrobo2", det2)
-    agent = tmp_path / "tiny-robothor"
-    shutil.copytree(robo["out"], agent)
-    card = release.read_card(agent)
-    card.update(
-        detector_shipped="tinyrobo2",
-        detections="tinyrobo2",
-        trained_detector_shipped=DET,
-        trained_detections=DET,
-        detector_fingerprint=shipped.shipped_meta("tinyrobo2")["fingerprint"],
-    )
-    (agent / "card.json").write_text(json.dumps(card))
+    agent, card = _agent_evaluated_with(robo, tmp_path, "tinyrobo2")
     world, ev = tmp_path / "val_world", tmp_path / "eval"
     args = ["release", "eval", "--agent", str(agent), "--data", str(world), "--out", str(ev), "--build-world"]
     assert main(args + ["--workers", "1", "--threads", "1", "--protocol", "lineage", "--update-card"]) == 0
@@ -339,23 +350,12 @@ def test_release_eval_of_an_agent_whose_detector_reads_finer_frames(robo, tmp_pa
     """A card whose shipped detector reads 64-px frames while the agent's rooms have 32-px ones (``tsnav detect
     --frames``): release eval builds the val scene again at 64 px beside --data, the detector writes its table
     there, and --data's scene gets it with the boxes scaled to 32 px; a second run reads the saved table."""
-    import shutil
 
     from tsnav.data.detections import load_detections, rescale_detections
     from tsnav.detect import shipped
 
     monkeypatch.setitem(shipped.SHIPPED, "tinyrobohr", _save_tiny_detector(tmp_path / "dethr", 2, 2 * SIZE, 0.0))
-    agent = tmp_path / "tiny-robothor"
-    shutil.copytree(robo["out"], agent)
-    card = release.read_card(agent)
-    card.update(
-        detector_shipped="tinyrobohr",
-        detections="tinyrobohr",
-        trained_detector_shipped=DET,
-        trained_detections=DET,
-        detector_fingerprint=shipped.shipped_meta("tinyrobohr")["fingerprint"],
-    )
-    (agent / "card.json").write_text(json.dumps(card))
+    agent, card = _agent_evaluated_with(robo, tmp_path, "tinyrobohr")
     assert release.detector_frames(card) == 2 * SIZE
     world, ev = tmp_path / "val_world", tmp_path / "eval"
     argv = ["release", "eval", "--agent", str(agent), "--data", str(world), "--out", str(ev), "--build-world"]

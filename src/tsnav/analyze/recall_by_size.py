@@ -129,7 +129,8 @@ def draw(
     from PIL import Image, ImageDraw
 
     from ..data.detections import detections_path, load_detections
-    from ..data.reader import is_complete, load_scene
+    from ..data.reader import load_scene
+    from ..detect.data import frame_twins
     from ..detect.oracle import ground_truth
     from ..eval.video import _font
     from ..world.show import frame_images
@@ -155,14 +156,13 @@ def draw(
         scene = load_scene(p)
         gt = ground_truth(scene)
         for col, t in enumerate(tables):
-            if t in frames:
-                q = frames[t] / p.name
-                if not is_complete(q) or not detections_path(q, t).exists():
-                    raise CommandError(f"--frames {t}={frames[t]}: no complete scene {p.name} with detections_{t}.hdf5")
-            src = load_scene(frames[t] / p.name) if t in frames else scene
-            if not np.array_equal(src.keys, scene.keys):
-                raise CommandError(f"--frames {t}={frames[t]}: {p.name} has other states there than in {p.parent}")
-            det = load_detections(src.path, t) if t in frames else load_detections(p, t)
+            src = scene
+            if t in frames:  # the frames and boxes its detector read: the same states at another side
+                ((_, q, _, _),) = frame_twins([p], frames[t], f"--frames {t}={frames[t]}")
+                if not detections_path(q, t).exists():
+                    raise CommandError(f"--frames {t}={frames[t]}: {p.name} has no detections_{t}.hdf5 there")
+                src = load_scene(q)
+            det = load_detections(src.path, t)
             frame = frame_images(src, [scene.keys[s]])[0]
             k = side / frame.shape[0]
             tile = Image.fromarray(frame).resize((side, side), Image.NEAREST)

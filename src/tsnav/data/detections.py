@@ -184,6 +184,12 @@ def rescale_detections(det: Detections, image_size: int) -> Detections:
     return replace(det, boxes=boxes, image_size=int(image_size), config=config)
 
 
+def write_rescaled(src_dir: str | Path, dst_dir: str | Path, name: str, image_size: int) -> Path:
+    """Write ``src_dir``'s table ``detections_<name>.hdf5`` into ``dst_dir`` with its boxes in the pixels of
+    ``image_size``-px frames (:func:`rescale_detections`): the same states built at another side."""
+    return write_detections(dst_dir, name, rescale_detections(load_detections(src_dir, name), image_size))
+
+
 def _attr_str(x) -> str:
     return x.decode() if isinstance(x, bytes) else str(x)
 

@@ -30,21 +30,15 @@ import signal
 import threading
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from ..atomic import atomic_write_text
-from ..data.detections import (
-    check_name,
-    load_detections,
-    read_fingerprint,
-    rescale_detections,
-    write_detections,
-)
+from ..data.detections import check_name, load_detections, read_fingerprint, write_rescaled
 from ..data.folds import assign_folds, parse_fold
 from ..data.reader import MIRROR_SUFFIX, list_scenes, load_scene
 from ..distributed import set_threads
 from ..errors import CommandError
+from .data import frame_twins
 from .evaluate import evaluate_detections
 from .registry import DETECTORS, detector_kind
 from .shipped import DEFAULT_SHIPPED, SHIPPED
@@ -242,19 +236,8 @@ def _frame_scenes(args: argparse.Namespace, root: Path, scenes: list[Path]) -> t
         raise CommandError(f"--frames {frames}: no such dataset folder")
     if frames.resolve() == root.resolve():
         raise CommandError(f"--frames {frames} is --data itself; give a build of the same scenes at another --size")
-    have = {p.name: p for p in list_scenes(frames)}
-    out, sizes = [], []
-    for p in scenes:
-        q = have.get(p.name)
-        if q is None:
-            raise CommandError(f"--frames {frames}: no complete scene {p.name} (build it with tsnav world --size)")
-        scene = load_scene(p)
-        if not np.array_equal(load_scene(q).keys, scene.keys):
-            raise CommandError(
-                f"--frames {frames}: {p.name} has other states than in {root} (not a build of that scene)"
-            )
-        out.append(q)
-        sizes.append(scene.image_size)
+    twins = frame_twins(scenes, frames, f"--frames {frames}")
+    out, sizes = [q for _, q, _, _ in twins], [size for _, _, size, _ in twins]
     return frames, out, sizes
 
 
@@ -332,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     if frames_root is not None:  # DATA's tables: the boxes in DATA's pixels
         for p, q, size in todo:
-            write_detections(p, own, rescale_detections(load_detections(q, own), size))
+            write_rescaled(q, p, own, size)
     print(
         f"detections_{own}.hdf5: {len(todo)} scenes written, {done} already done "
         f"({sum(s.num_states for s in loaded)} states)"

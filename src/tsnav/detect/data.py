@@ -19,7 +19,8 @@ import torch
 from tqdm import tqdm
 
 from ..data.detections import pixel_to_unit
-from ..data.reader import Scene, SceneFormatError, list_scenes, load_scene, read_stack
+from ..data.reader import Scene, SceneFormatError, is_complete, list_scenes, load_scene, read_stack
+from ..errors import CommandError
 from .oracle import ground_truth, min_pixels
 
 
@@ -39,6 +40,22 @@ def read_images(scene_dir: str | Path, keys) -> np.ndarray:
             out = read_stack(f, keys).astype(np.uint8, copy=False)
     except OSError as e:
         raise SceneFormatError(f"{path}: unreadable ({e})") from None
+    return out
+
+
+def frame_twins(scenes: list[Path], frames: Path, what: str) -> list[tuple[Path, Path, int, int]]:
+    """Each scene folder of ``scenes`` with its twin in ``frames``, a build of the same scenes at another side
+    (``tsnav world --size``): ``(scene, twin, scene's frame side, twin's frame side)``. One-line error, prefixed
+    ``what``, for a scene that ``frames`` lacks or holds with other states."""
+    out = []
+    for p in scenes:
+        q = Path(frames) / p.name
+        if not is_complete(q):
+            raise CommandError(f"{what}: no complete scene {p.name} (build it with tsnav world --size)")
+        scene, twin = load_scene(p), load_scene(q)
+        if not np.array_equal(twin.keys, scene.keys):
+            raise CommandError(f"{what}: {p.name} has other states than in {p.parent} (not a build of that scene)")
+        out.append((p, q, scene.image_size, twin.image_size))
     return out
 
 

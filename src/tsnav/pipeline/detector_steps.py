@@ -27,21 +27,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
 from ..atomic import atomic_write_json
 from ..distributed import set_threads
 from ..constants import C_TARGET, DEFAULT_CLASS_SET
-from ..data.detections import (
-    detections_path,
-    load_detections,
-    read_fingerprint,
-    rescale_detections,
-    write_detections,
-)
-from ..data.reader import is_complete, list_scenes, load_scene
+from ..data.detections import detections_path, load_detections, read_fingerprint, write_rescaled
+from ..data.reader import list_scenes, load_scene
+from ..detect.data import frame_twins
 from ..detect.evaluate import evaluate_detections
 from ..detect.learned import LearnedDetector, write_scene_tables
 from ..detect.shipped import shipped_detector, shipped_for, shipped_meta
@@ -290,27 +284,20 @@ def write_frames_tables(
     todo = [p for p, fp in have.items() if fp is None]
     if not todo:
         return {"fingerprint": det.fingerprint, "written": 0}
-    pairs = []
-    for p in todo:
-        q = frames / p.name
-        if not is_complete(q):
-            raise CommandError(f"{frames}: no complete scene {p.name} (the {det.image_size}-px build of {data}'s)")
-        scene, twin = load_scene(p), load_scene(q)
-        if twin.image_size != det.image_size:
-            raise CommandError(f"{q}: its frames are {twin.image_size} px, {source} reads {det.image_size}-px frames")
-        if not np.array_equal(twin.keys, scene.keys):
-            raise CommandError(f"{q} has other states than {p} (not a build of the same scene)")
-        pairs.append((p, q, scene.image_size))
-    fresh = [load_scene(q) for _, q, _ in pairs if read_fingerprint(q, name) != det.fingerprint]
-    stale = [q for _, q, _ in pairs if read_fingerprint(q, name) not in (None, det.fingerprint)]
+    pairs = frame_twins(todo, frames, str(frames))
+    for _, q, _, side in pairs:
+        if side != det.image_size:
+            raise CommandError(f"{q}: its frames are {side} px, {source} reads {det.image_size}-px frames")
+    made = {q: read_fingerprint(q, name) for _, q, _, _ in pairs}
+    stale = [q for q, fp in made.items() if fp not in (None, det.fingerprint)]
     if stale:
         raise CommandError(
-            f"{detections_path(stale[0], name)} was made by another detector ({read_fingerprint(stale[0], name)}) "
+            f"{detections_path(stale[0], name)} was made by another detector ({made[stale[0]]}) "
             f"than {source} ({det.fingerprint}); it is not overwritten: remove it"
         )
-    _detect(det, fresh, name, progress, workers)
-    for p, q, size in pairs:
-        write_detections(p, name, rescale_detections(load_detections(q, name), size))
+    _detect(det, [load_scene(q) for q, fp in made.items() if fp is None], name, progress, workers)
+    for p, q, size, _ in pairs:
+        write_rescaled(q, p, name, size)
     say(
         f"    detections_{name}.hdf5 written into {len(pairs)} scenes ({det.fingerprint}, read on "
         f"{det.image_size}-px frames in {frames}, boxes scaled)"
