@@ -378,20 +378,20 @@ def test_release_eval_of_an_agent_whose_detector_reads_finer_frames(robo, tmp_pa
 
 
 def test_frames_tables_refuse_rooms_that_are_not_the_detectors_build(robo, tmp_path):
-    """write_frames_tables: one-line errors for a frames folder without the scene, and for one whose frames are not
+    """write_learned_tables with frames: one-line errors for a frames folder without the scene, and for one whose frames are not
     the detector's side; nothing is written into the rooms."""
     import shutil
 
     from tsnav.detect.learned import LearnedDetector
     from tsnav.errors import CommandError
-    from tsnav.pipeline.detector_steps import write_frames_tables
+    from tsnav.pipeline.detector_steps import write_learned_tables
 
     data = tmp_path / "world"
     shutil.copytree(robo["data"] / TRAIN, data / TRAIN, ignore=shutil.ignore_patterns("detections_*"))
     det = LearnedDetector.load(_save_tiny_detector(tmp_path / "dethr", 2, 2 * SIZE, 0.0))
     (tmp_path / "empty").mkdir()
     with pytest.raises(CommandError, match=f"no complete scene {TRAIN}"):
-        write_frames_tables(data, tmp_path / "empty", "x", det, progress=False)
+        write_learned_tables(data, "x", det, progress=False, frames=tmp_path / "empty")
     with pytest.raises(CommandError, match=f"its frames are {SIZE} px"):
-        write_frames_tables(data, robo["data"], "x", det, progress=False)
+        write_learned_tables(data, "x", det, progress=False, frames=robo["data"])
     assert not list(data.rglob("detections_x.hdf5"))

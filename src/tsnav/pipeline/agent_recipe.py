@@ -405,17 +405,15 @@ def ensure_shipped_tables(world: Path, det: DetectionSettings, frames: Path | No
     rooms built at its side in ``frames``, and its boxes are scaled to ``world``'s frames."""
     from ..data.reader import list_scenes, load_scene
     from ..detect.shipped import shipped_detector
-    from .detector_steps import learned_tables, write_frames_tables, write_learned_tables
+    from .detector_steps import learned_tables, write_learned_tables
 
     have, _ = learned_tables(world, det.name)
     if any(fp is None for fp in have.values()):
-        source = f"the shipped detector {det.shipped}"
-        if frames is not None:
-            model = shipped_detector(shipped_side(det.shipped), det.shipped)
-            write_frames_tables(world, frames, det.name, model, say=say, source=source)
-            return
-        size = load_scene(list_scenes(world)[0]).image_size
-        write_learned_tables(world, det.name, shipped_detector(size, det.shipped), say=say, source=source)
+        size = shipped_side(det.shipped) if frames is not None else load_scene(list_scenes(world)[0]).image_size
+        model = shipped_detector(size, det.shipped)
+        write_learned_tables(
+            world, det.name, model, say=say, source=f"the shipped detector {det.shipped}", frames=frames
+        )
 
 
 def select_again(

@@ -218,17 +218,26 @@ def write_learned_tables(
     source: str = "the given detector",
     workers: int = 1,
     split: str | None = None,
+    frames: str | Path | None = None,
 ) -> dict:
     """Write the tables of detector ``det`` into the scenes of ``data`` (of ``split`` only, when given) that lack
     ``detections_<name>.hdf5``
     (one torch thread per scene; ``workers`` processes share the scenes, :func:`tsnav.scene_pool.map_scenes`: the
     same tables for every value); a table made by another detector is refused in one line and never overwritten
-    (``source`` names ``det`` in that line). Returns ``{"fingerprint", "written"}``."""
+    (``source`` names ``det`` in that line). Returns ``{"fingerprint", "written"}``.
+
+    ``frames``: for a detector that reads other frames than ``data``'s, a build of the same scenes at ``det``'s side
+    with the same states (``tsnav world --size``). ``det`` then writes its tables into ``frames``' scenes (kept, in
+    its own pixels; a table it wrote there before is not made again) and ``data``'s scenes get them with the boxes
+    scaled to their frames (:func:`~tsnav.data.detections.rescale_detections`), as ``tsnav detect --frames`` writes
+    them; one-line errors for a scene ``frames`` lacks or holds with other states or at another side."""
     have = _tables_of(data, name, split, det, source)
-    scenes = [load_scene(p) for p, fp in have.items() if fp is None]
-    _detect(det, scenes, name, progress, workers)
-    say(f"    detections_{name}.hdf5 written into {len(scenes)} scenes ({det.fingerprint})")
-    return {"fingerprint": det.fingerprint, "written": len(scenes)}
+    todo = [p for p, fp in have.items() if fp is None]
+    if frames is not None:
+        return _write_through_frames(todo, Path(frames), name, det, progress, say, source, workers)
+    _detect(det, [load_scene(p) for p in todo], name, progress, workers)
+    say(f"    detections_{name}.hdf5 written into {len(todo)} scenes ({det.fingerprint})")
+    return {"fingerprint": det.fingerprint, "written": len(todo)}
 
 
 def _tables_of(data, name: str, split: str | None, det: LearnedDetector, source: str) -> dict[Path, str | None]:
@@ -261,27 +270,11 @@ def _detect(det: LearnedDetector, scenes: list, name: str, progress: bool, worke
         bar.close()
 
 
-def write_frames_tables(
-    data: str | Path,
-    frames: str | Path,
-    name: str,
-    det: LearnedDetector,
-    progress: bool = True,
-    say: Callable[[str], None] = print,
-    source: str = "the given detector",
-    workers: int = 1,
-    split: str | None = None,
+def _write_through_frames(
+    todo: list[Path], frames: Path, name: str, det: LearnedDetector, progress, say, source: str, workers: int
 ) -> dict:
-    """:func:`write_learned_tables` for a detector that reads finer (or coarser) frames than ``data``'s: ``frames``
-    holds a build of the same scenes at ``det``'s side with the same states (``tsnav world --size``). ``det`` writes
-    its tables into ``frames``' scenes (kept, in its own pixels; a table it wrote there before is not made again),
-    and each scene of ``data`` (of ``split`` only, when given) lacking ``detections_<name>.hdf5`` gets that table
-    with the boxes scaled to its frames (:func:`~tsnav.data.detections.rescale_detections`), as ``tsnav detect
-    --frames`` writes them. One-line errors for a scene missing from ``frames`` or built with other states, and for
-    tables of another detector (never overwritten). Returns ``{"fingerprint", "written"}``."""
-    data, frames = Path(data), Path(frames)
-    have = _tables_of(data, name, split, det, source)
-    todo = [p for p, fp in have.items() if fp is None]
+    """:func:`write_learned_tables` with ``frames``: the scene folders ``todo`` get ``det``'s tables of their twins
+    in ``frames``, rescaled."""
     if not todo:
         return {"fingerprint": det.fingerprint, "written": 0}
     pairs = frame_twins(todo, frames, str(frames))

@@ -401,7 +401,7 @@ def ensure_release_detections(
     """Write the card's shipped detector's tables into the rooms of ``data`` (of ``split`` only, when given),
     refusing tables of another detector; ``workers`` processes (None: one per core). A detector of
     :func:`detector_frames` reads the rooms built at its side in ``frames`` and its boxes are scaled to ``data``'s
-    frames (:func:`~tsnav.pipeline.detector_steps.write_frames_tables`)."""
+    frames (:func:`~tsnav.pipeline.detector_steps.write_learned_tables` with ``frames``)."""
     from ..detect.shipped import shipped_meta
 
     det = card["detector_shipped"]
@@ -411,7 +411,7 @@ def ensure_release_detections(
         )
     from ..data.reader import load_scene
     from ..detect.shipped import shipped_detector
-    from .detector_steps import learned_tables, write_frames_tables, write_learned_tables
+    from .detector_steps import learned_tables, write_learned_tables
     from ..scene_pool import default_workers
 
     have, kinds = learned_tables(data, card["detections"], split)
@@ -424,18 +424,17 @@ def ensure_release_detections(
         side = detector_frames(card)
         if side and frames is None:
             raise CommandError(f"the shipped detector {det} reads {side}-px frames: give the rooms built at {side} px")
-        how = dict(
+        write_learned_tables(
+            data,
+            card["detections"],
+            shipped_detector(side or load_scene(next(iter(have))).image_size, det),
             say=say,
             progress=progress,
             source=f"the shipped detector {det}",
             workers=workers or default_workers(),
             split=split,
+            frames=frames if side else None,
         )
-        if side:
-            write_frames_tables(data, frames, card["detections"], shipped_detector(side, det), **how)
-        else:
-            size = load_scene(next(iter(have))).image_size
-            write_learned_tables(data, card["detections"], shipped_detector(size, det), **how)
     return card["detections"]
 
 
