@@ -29,6 +29,7 @@ ANALYSES = {
     "lever-table": ("lever_table", "levers against a base run on the same episodes, paired bootstrap intervals"),
     "merge-rows": ("merge_rows", "complete an experiment's table with rows of another experiment"),
     "noisy-tables": ("noisy_tables", "tables of the shipped detector on frames with Gaussian pixel noise"),
+    "pathfinding-steps": ("pathfinding_steps", "what each action after the switch did to the distance to the target"),
     "plot-selection": ("plot_selection", "a run's milestones scored on one or two episode lists"),
     "policy-ensemble": ("policy_ensemble", "evaluate an ensemble of trained agents"),
     "recall-by-size": ("recall_by_size", "tables' recall at C_target by the target's pixels in view, per class"),

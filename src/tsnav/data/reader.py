@@ -168,6 +168,10 @@ class Scene:
         min_px = int(self.meta.get("visibility", {}).get("min_pixels", 1))
         return self.pixels >= min_px if (self.pixels >= 0).any() else self.visible
 
+    def category_in_frame(self) -> np.ndarray:
+        """``(S, C)`` bool: some instance of the category shows in the frame at any range (:meth:`visible_at_any_range`)."""
+        return self._per_category(self.visible_at_any_range())
+
     def success_mask(self, category: str | int, distance: float = SUCCESS_DISTANCE) -> np.ndarray:
         """``(S,)`` bool: Done in this state succeeds for ``category`` (name or index)."""
         c = self.class_set.index[category] if isinstance(category, str) else int(category)

@@ -565,6 +565,53 @@ def switch_distance(index: dict, results: Path) -> list[str]:
     return lines + [""]
 
 
+def pathfinding_steps(index: dict, results: Path) -> list[str]:
+    """What each action after the stage switch did to the distance to the target (``tsnav analyze
+    pathfinding-steps``), one row per evaluation, from the file the index's ``pathfinding_steps`` names."""
+    e = index.get("pathfinding_steps")
+    if not e:
+        return []
+    res = json.loads((results / e["file"]).read_text())["results"]
+    lines = [
+        f"## {e['title']}",
+        "",
+        f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
+        "",
+        *_code(e["command"]),
+        "",
+        "Per evaluation: the switched episodes and their pose actions (MoveAhead, RotateLeft, RotateRight) from the "
+        "switch on, then in percent: the actions wasted (beyond the shortest walk) per pose action, the share of that "
+        "waste made with the target out of the frame and in failed episodes, the pose actions taken with the target "
+        "out of the frame, the MoveAheads that were blocked, and the MoveAheads with the target out of the frame that "
+        "took the agent farther; last, the turns each way:",
+        "",
+        "| evaluation | switched | pose actions after the switch | wasted | wasted with the target out of view "
+        "| wasted in failed episodes | target out of view | MoveAhead blocked | MoveAhead out of view: farther "
+        "| RotateLeft / RotateRight |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+
+    def total(view: dict, rows=None) -> int:
+        return sum(
+            n for k, row in view.items() if k != "LookUp/LookDown" and (rows is None or k in rows) for n in row.values()
+        )
+
+    for r in res:
+        c, w = r["counts"], r["wasted"]
+        pose = total(c["in view"]) + total(c["out of view"])
+        wasted = w["in view"] + w["out of view"]
+        moves = {k: c["in view"]["MoveAhead"][k] + c["out of view"]["MoveAhead"][k] for k in c["in view"]["MoveAhead"]}
+        away = c["out of view"]["MoveAhead"]
+        turns = [total(c["in view"], (a,)) + total(c["out of view"], (a,)) for a in ("RotateLeft", "RotateRight")]
+        lines.append(
+            f"| {r['label']} | {r['episodes']} | {pose} | {_pct(wasted / max(pose, 1))} "
+            f"| {_pct(w['out of view'] / max(wasted, 1))} | {_pct(r['wasted_failures'] / max(wasted, 1))} "
+            f"| {_pct(total(c['out of view']) / max(pose, 1))} | {_pct(moves['blocked'] / max(sum(moves.values()), 1))} "
+            f"| {_pct(away['farther'] / max(sum(away.values()), 1))} | {turns[0]} / {turns[1]} |"
+        )
+    return lines + ["", e.get("reading", ""), ""] if e.get("reading") else lines + [""]
+
+
 def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
     """The whole page, from ``root/docs/results`` (index and result files), the cards under ``weights`` and the
     paper's figures."""
@@ -602,6 +649,7 @@ def render(root: Path | None = None, weights: Path = WEIGHTS) -> str:
         "Table III: pretraining methods (baseline reward)", "table3", index.get("table3", []), paper, results
     ) + [""]
     lines += switch_distance(index, results)
+    lines += pathfinding_steps(index, results)
     lines += levers(index, results)
     lines += fig4(index, results) + [""]
     lines += shipped_agents(cards)
