@@ -9,6 +9,7 @@ import pytest
 
 from tsnav.cli import main
 from tsnav.constants import DONE, MOVE_AHEAD, ROTATE_LEFT
+from tsnav.constants import ROTATE_RIGHT as ACTIONS_RIGHT
 from tsnav.eval.runner import Trajectory, read_trajectories
 from script_helpers import load_analysis
 
@@ -223,3 +224,26 @@ def test_switch_distance_refuses_missing_files_in_one_line(diag, tmp_path):
         diag.main(["switch-distance", str(tmp_path), "--false-switches"])
     with pytest.raises(SystemExit, match="multiple of --band"):
         diag.main(["switch-distance", str(tmp_path), "--band", "4"])
+
+
+def test_short_turn_spl_by_hand(diag, tmp_path):
+    from tsnav.eval.runner import write_trajectories
+    from tsnav.metrics import EpisodeRecord, write_records
+
+    L, R, M = ROTATE_LEFT, ACTIONS_RIGHT, MOVE_AHEAD
+    # a success with a run of 6 turns left (2 right would do: saves 4) and one of 3 (saves nothing); a failure with a
+    # run of 7 turns right (kept: failures keep their path); a success without long runs
+    acts = [[L] * 6 + [M, M] + [L] * 3 + [M, DONE], [R] * 7 + [M] * 3, [M, M, DONE]]
+    records = [
+        EpisodeRecord(success=True, path_length=12, optimal_length=4, scene="S", target="Bowl", start="0|0|0|0"),
+        EpisodeRecord(success=False, path_length=10, optimal_length=3, scene="S", target="Bowl", start="1|0|0|0"),
+        EpisodeRecord(success=True, path_length=2, optimal_length=2, scene="S", target="Bowl", start="2|0|0|0"),
+    ]
+    assert [diag.saved_turns(a) for a in acts] == [4, 6, 0]
+    write_records(tmp_path / "records.jsonl", records)
+    write_trajectories(tmp_path / "trajectories.jsonl", [_traj(["k"] * (len(a) + 1), a) for a in acts])
+    (tmp_path / "metrics.json").write_text(json.dumps({"protocol": "paper"}))
+    before, after = diag.short_turn_spl(tmp_path)
+    # paper: L* / max(L, L*) over all episodes
+    assert before == pytest.approx(100 * (4 / 12 + 0 + 1) / 3)
+    assert after == pytest.approx(100 * (4 / 8 + 0 + 1) / 3)

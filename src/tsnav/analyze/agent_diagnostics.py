@@ -4,7 +4,8 @@
 the share of each rotation among all actions, and the runs of one rotation repeated 5-7 times in a row. With
 45-degree turns, k turns one way reach what 8 - k turns the other way reach, so such a run of length L could have
 been 8 - L turns the other way: "steps in them" is the share of all steps inside such runs, and "saved steps" the
-sum of 2 L - 8 over them, what turning the other way would have saved.
+sum of 2 L - 8 over them, what turning the other way would have saved; and the folder's SPL with every successful
+episode's path shortened by its saved steps (nothing else changed: a lower bound of what two-way turning buys).
 
 ``reach --data WORLD --episodes LIST --detections NAME ...``: the share of an episode list whose target's score
 in the named detection table passes C_target (0.7) at some state of the episode's room, the ceiling of the stage
@@ -74,7 +75,7 @@ def rotation_figures(actions_per_episode) -> dict:
             if a in (LEFT, RIGHT) and TURNS // 2 < n < TURNS:
                 long_runs += 1
                 in_runs += n
-                saved += 2 * n - TURNS
+        saved += saved_turns(actions)
     return {
         "steps": steps,
         "RotateLeft": left / steps if steps else 0.0,
@@ -84,6 +85,38 @@ def rotation_figures(actions_per_episode) -> dict:
         "saved_steps": saved,
         "saved_share": saved / steps if steps else 0.0,
     }
+
+
+def saved_turns(actions) -> int:
+    """The steps turning the other way would save in one episode: ``2 L - 8`` over its runs of ``L`` = 5-7 turns one
+    way (:func:`rotation_figures`)."""
+    saved = 0
+    for a, run in itertools.groupby(actions):
+        n = len(list(run))
+        if a in (LEFT, RIGHT) and TURNS // 2 < n < TURNS:
+            saved += 2 * n - TURNS
+    return saved
+
+
+def short_turn_spl(folder: Path) -> tuple[float, float]:
+    """``(SPL, SPL with the long turns taken the short way)`` of a ``tsnav eval`` folder, in percent, under its
+    protocol: each successful episode's path shortened by :func:`saved_turns`, nothing else changed (the failures
+    keep failing, although the steps saved might have let some of them succeed)."""
+    from dataclasses import replace
+
+    from ..metrics import summarize
+    from ..protocol import protocol_of
+
+    protocol = protocol_of(json.loads((folder / "metrics.json").read_text()))
+    records = read_records(folder / "records.jsonl")
+    actions = read_actions(folder)
+    if len(records) != len(actions):
+        raise SystemExit(f"{folder}: {len(records)} records but {len(actions)} trajectories")
+    short = [
+        replace(r, path_length=r.path_length - saved_turns(a)) if r.success else r for r, a in zip(records, actions)
+    ]
+    spl = [100 * summarize(x, by_room_type=False, protocol=protocol)["ALL"]["SPL"] for x in (records, short)]
+    return spl[0], spl[1]
 
 
 def outcome(t) -> str:
@@ -358,13 +391,15 @@ def main(argv=None) -> int:
     if a.cmd == "rotations":
         print(
             f"{'eval':56s} {'left %':>7s} {'right %':>8s} {'runs 5-7':>9s} {'steps in them':>14s} {'saved steps':>12s}"
+            "  SPL -> turning the short way"
         )
         for f in a.evals:
             r = rotation_figures(read_actions(Path(f)))
+            spl = short_turn_spl(Path(f)) if (Path(f) / "records.jsonl").exists() else None
             print(
                 f"{f[-56:]:56s} {100 * r['RotateLeft']:7.1f} {100 * r['RotateRight']:8.1f} {r['runs_5_to_7']:9d} "
                 f"{100 * r['in_runs_share']:12.1f} % {r['saved_steps']:6d} ({100 * r['saved_share']:.1f} % of "
-                f"{r['steps']})"
+                f"{r['steps']})" + (f"  {spl[0]:.2f} -> {spl[1]:.2f}" if spl else "")
             )
         return 0
     data = Path(a.data)
