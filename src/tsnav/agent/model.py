@@ -22,6 +22,14 @@ the switch). A network without it has the parameters, recurrent state and output
 the encoder's feature map estimates inside the target's box (:class:`~tsnav.agent.observe.TargetDepth`) is added to
 s_t before its ReLU, ``s_t = ReLU(cat(i_t, F_t, PA) W + D_t W_d)`` (issue 47: the stop lacks how far the target is).
 
+``AgentConfig.mirror_policy`` is a deviation from the paper, off by default and in every preset: a policy that is
+mirror-symmetric by construction. The network runs twice per step, on the observation and on its mirror image (the
+frames flipped left to right, the detector's table of the flipped frames, the mirrored pose), each stream with its
+own recurrent state, and the logits are ``(l(o) + P l(m(o))) / 2`` with ``P`` swapping RotateLeft and RotateRight
+(the value the mean of the two). So ``pi(a | m(o)) = pi(P a | o)`` exactly: a policy that turns left wherever it is
+cannot be expressed, since in the mirror of the same room it must then turn right (issue 47: the shipped iTHOR agent
+never turns right after the switch, and training on mirrored rooms alone did not change that).
+
 ``AgentConfig.blocked_action`` is a deviation from the paper, off by default and in every preset: the agent's
 previous-action input tells a MoveAhead that moved it from one that did not (its pose, an input of the target
 memory already, unchanged: AI2-THOR's ``lastActionSuccess``). Greedy agents without it were seen pressing MoveAhead
@@ -36,7 +44,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..constants import DEFAULT_CLASS_SET, MOVE_AHEAD, NUM_ACTIONS, class_set as get_class_set
+from ..constants import DEFAULT_CLASS_SET, MOVE_AHEAD, NUM_ACTIONS, ROTATE_LEFT, ROTATE_RIGHT
+from ..constants import class_set as get_class_set
 from .memory import MemoryState, TargetMemoryAggregator
 from .observe import AgentObs
 
@@ -44,6 +53,11 @@ from .observe import AgentObs
 NO_ACTION = NUM_ACTIONS
 #: Previous-action id of a MoveAhead that left the agent where it was (``AgentConfig.blocked_action`` only).
 BLOCKED_MOVE = NUM_ACTIONS + 1
+#: Action permutation of the mirror image: RotateLeft and RotateRight trade places (the same as
+#: :data:`tsnav.data.reader.MIRROR_ACTIONS`, which a test holds it to).
+MIRROR_ACTIONS = tuple(
+    ROTATE_RIGHT if a == ROTATE_LEFT else ROTATE_LEFT if a == ROTATE_RIGHT else a for a in range(NUM_ACTIONS)
+)
 #: Width of the target-depth input (``AgentConfig.target_depth``): :func:`~tsnav.agent.observe.box_depth_stats`.
 DEPTH_INPUTS = 4
 
@@ -78,6 +92,13 @@ class AgentConfig:
     blocked_action: bool = False
     """Deviation from the paper (off by default): a MoveAhead after which the agent's position is unchanged is its
     own previous-action id (:data:`BLOCKED_MOVE`), so that the policy knows the move failed."""
+    mirror_policy: bool = False
+    """Deviation from the paper (off by default): a mirror-symmetric policy. The network also runs on the mirror image
+    of each observation (frames flipped left to right: the feature and detection caches of ``tsnav features
+    --mirror`` and ``tsnav detect --mirror``; the mirrored pose) with its own recurrent state, and its logits are the
+    mean of the two streams' with RotateLeft and RotateRight swapped in the mirror's, so that the policy in a room's
+    mirror image is the policy in the room with the two turns traded (the value is the mean of the two). Twice the
+    network's compute per step; no parameters of its own."""
     memory_history: bool = False
     """Deviation from the paper (off by default): the target memory also keeps the detector's box (fractions of the
     image, x0 y0 x1 y1) and score of the target at each of the last ``memory_slots`` steps, whatever the score
@@ -106,7 +127,7 @@ class AgentConfig:
 
 #: Fields added to :class:`AgentConfig` after agents were shipped: a description leaves them out at their default
 #: (off), so that a network without them is described, saved and loaded as before they existed.
-ADDED_OFF = {"memory_history": False, "target_depth": None}
+ADDED_OFF = {"memory_history": False, "target_depth": None, "mirror_policy": False}
 
 #: Named configurations: ``paper`` (defaults) and ``cpu`` (small enough to train on two CPU cores).
 PRESETS = {
@@ -137,7 +158,9 @@ class AgentState:
     """Recurrent state of ``B`` episodes: LSTM ``h``, ``c`` ``(B, hidden)``, the target memory, the
     previous action ``(B,)`` (:data:`NO_ACTION` at an episode start) and, for ``AgentConfig.blocked_action``,
     the position ``(B, 2)`` (x, z) the previous action was taken from (None otherwise); for
-    ``AgentConfig.memory_history``, the memory of every step's box and score (None otherwise)."""
+    ``AgentConfig.memory_history``, the memory of every step's box and score (None otherwise); for
+    ``AgentConfig.mirror_policy``, the state of the stream that reads the mirror images (None otherwise), whose
+    previous action is the mirror of the one taken (RotateLeft and RotateRight traded)."""
 
     h: torch.Tensor
     c: torch.Tensor
@@ -145,6 +168,7 @@ class AgentState:
     prev_action: torch.Tensor
     prev_position: torch.Tensor | None = None
     history: MemoryState | None = None
+    mirror: "AgentState | None" = None
 
     @property
     def batch_size(self) -> int:
@@ -164,18 +188,40 @@ class AgentState:
             prev_action=torch.where(done, torch.full_like(self.prev_action, NO_ACTION), self.prev_action),
             prev_position=self.prev_position,
             history=None if self.history is None else self.history.clear(done),
+            mirror=None if self.mirror is None else self.mirror.reset(done),
         )
 
     def with_action(self, action: torch.Tensor) -> "AgentState":
-        """The state after ``action`` ``(B,)`` was output (the next step's previous action)."""
-        return AgentState(
-            self.h, self.c, self.memory, action.to(self.prev_action.device).long(), self.prev_position, self.history
-        )
+        """The state after ``action`` ``(B,)`` was output (the next step's previous action; the mirror stream's is
+        its mirror)."""
+        action = action.to(self.prev_action.device).long()
+        mirror = None
+        if self.mirror is not None:
+            mirror = self.mirror.with_action(torch.as_tensor(MIRROR_ACTIONS, device=action.device)[action])
+        return AgentState(self.h, self.c, self.memory, action, self.prev_position, self.history, mirror)
 
     def detach(self) -> "AgentState":
         """Cut the graph (truncated backpropagation through time at a rollout boundary)."""
         return AgentState(
-            self.h.detach(), self.c.detach(), self.memory, self.prev_action, self.prev_position, self.history
+            self.h.detach(),
+            self.c.detach(),
+            self.memory,
+            self.prev_action,
+            self.prev_position,
+            self.history,
+            None if self.mirror is None else self.mirror.detach(),
+        )
+
+    def float(self) -> "AgentState":
+        """The LSTM states (the mirror stream's too) in float32 (after a step in another precision)."""
+        return AgentState(
+            self.h.float(),
+            self.c.float(),
+            self.memory,
+            self.prev_action,
+            self.prev_position,
+            self.history,
+            None if self.mirror is None else self.mirror.float(),
         )
 
     def index(self, rows) -> "AgentState":
@@ -187,6 +233,7 @@ class AgentState:
             self.prev_action[rows],
             None if self.prev_position is None else self.prev_position[rows],
             None if self.history is None else self.history.index(rows),
+            None if self.mirror is None else self.mirror.index(rows),
         )
 
 
@@ -243,8 +290,8 @@ class ActorCritic(nn.Module):
             self.depth_in = nn.Linear(DEPTH_INPUTS, config.state_dim)
             _init(self.depth_in, gain)
 
-    def initial_state(self, batch: int, device=None) -> AgentState:
-        """Fresh recurrent state of ``batch`` episodes."""
+    def initial_state(self, batch: int, device=None, _stream: bool = False) -> AgentState:
+        """Fresh recurrent state of ``batch`` episodes (with ``mirror_policy``, the mirror stream's inside)."""
         device = device or next(self.parameters()).device
         cfg = self.config
         return AgentState(
@@ -254,11 +301,29 @@ class ActorCritic(nn.Module):
             prev_action=torch.full((batch,), NO_ACTION, dtype=torch.long, device=device),
             prev_position=torch.zeros(batch, 2, device=device) if cfg.blocked_action else None,
             history=MemoryState.empty(batch, cfg.memory_slots, 0, device) if cfg.memory_history else None,
+            mirror=self.initial_state(batch, device, _stream=True) if cfg.mirror_policy and not _stream else None,
         )
 
     def forward(self, obs: AgentObs, state: AgentState) -> tuple[torch.Tensor, torch.Tensor, AgentState]:
         """One step: ``(logits (B, 6), value (B,), new state)``. The new state holds the updated LSTM state
-        and memory and still the old previous action: set it with :meth:`AgentState.with_action`."""
+        and memory and still the old previous action: set it with :meth:`AgentState.with_action`. With
+        ``mirror_policy`` the step runs on ``obs`` and on ``obs.mirror``, each with its own state (module
+        docstring)."""
+        if not self.config.mirror_policy:
+            return self._stream(obs, state)
+        if obs.mirror is None or state.mirror is None:
+            raise ValueError(
+                "this agent is mirror-symmetric (mirror_policy): its observer must give the mirror images "
+                "(obs.mirror) and its state the mirror stream's (made by initial_state)"
+            )
+        la, va, sa = self._stream(obs, state)
+        lb, vb, sb = self._stream(obs.mirror, state.mirror)
+        logits = 0.5 * (la + lb[:, torch.as_tensor(MIRROR_ACTIONS, device=lb.device)])
+        sa.mirror = sb
+        return logits, 0.5 * (va + vb), sa
+
+    def _stream(self, obs: AgentObs, state: AgentState) -> tuple[torch.Tensor, torch.Tensor, AgentState]:
+        """One step of one stream: the paper's network."""
         memory = state.memory.write(
             obs.det_score > self.config.memory_threshold, obs.det_box, obs.det_score, obs.det_feat, obs.pose
         )

@@ -38,6 +38,9 @@ class AgentObs:
         pose: ``(B, 4)`` float32 ``(x m, z m, rotation deg, horizon deg)`` of the agent (AI2-THOR conventions).
         det_depth: ``(B, 4)`` float32 estimated depth inside the target's box (:class:`TargetDepth`), for an agent
             with ``AgentConfig.target_depth``; None otherwise.
+        mirror: the observation of the same states in the rooms' mirror images (frames flipped left to right, the
+            detector's table of the flipped frames, mirrored poses), for an agent with ``AgentConfig.mirror_policy``;
+            None otherwise.
     """
 
     image: torch.Tensor
@@ -47,12 +50,18 @@ class AgentObs:
     det_feat: torch.Tensor
     pose: torch.Tensor
     det_depth: torch.Tensor | None = None
+    mirror: "AgentObs | None" = None
 
     def index(self, rows) -> "AgentObs":
         """The sub-batch ``rows`` (tensor / array of row ids or bool mask)."""
         rows = torch.as_tensor(rows)
         return AgentObs(
-            *(None if getattr(self, f) is None else getattr(self, f)[rows] for f in self.__dataclass_fields__)
+            *(
+                None
+                if getattr(self, f) is None
+                else (getattr(self, f).index(rows) if f == "mirror" else getattr(self, f)[rows])
+                for f in self.__dataclass_fields__
+            )
         )
 
 
@@ -260,7 +269,9 @@ class Observer:
 
     ``features`` is the ``(total_S, C, h, w)`` float16 tensor of :func:`load_bank_features` (may live in
     shared memory for A3C workers); ``detections`` defaults to ``DetectionTable(bank)`` (which needs a
-    detection table installed in ``bank``).
+    detection table installed in ``bank``). ``mirror``: the observer of the bank's mirror image (:func:`mirror_bank`:
+    the same state ids), whose observation of the same states each observation carries as ``mirror``
+    (``AgentConfig.mirror_policy``).
     """
 
     def __init__(
@@ -270,6 +281,7 @@ class Observer:
         detections: DetectionTable | None = None,
         device: str | torch.device = "cpu",
         target_depth: TargetDepth | None = None,
+        mirror: "Observer | None" = None,
     ):
         if features.shape[0] != bank.num_states:
             raise ValueError(f"features cover {features.shape[0]} states but the bank has {bank.num_states}")
@@ -280,6 +292,11 @@ class Observer:
         if target_depth is not None and target_depth.maps.shape[0] != bank.num_states:
             raise ValueError(f"depth maps cover {target_depth.maps.shape[0]} states but the bank has {bank.num_states}")
         self.target_depth = target_depth
+        if mirror is not None and mirror.bank.num_states != bank.num_states:
+            raise ValueError(
+                f"the mirror observer covers {mirror.bank.num_states} states but the bank has {bank.num_states}"
+            )
+        self.mirror = mirror
         self._score = torch.from_numpy(self.detections.score)
         self._box = torch.from_numpy(self.detections.box)
         self._pose = torch.from_numpy(
@@ -322,4 +339,5 @@ class Observer:
             det_feat=feat,
             pose=self._pose[s].to(self.device),
             det_depth=None if self.target_depth is None else self.target_depth(s, box, score),
+            mirror=None if self.mirror is None else self.mirror(state, target),
         )

@@ -134,6 +134,8 @@ def run_convergence(
     deviations += [f"K_r {reward.k_regret:g}"] if reward.uses("regret") else []
     deviations += [f"failed Done {reward.failed_done:g}"] if reward.failed_done else []
     deviations += ["blocked-action"] if agent.blocked_action else []
+    deviations += ["mirror-symmetric policy"] if agent.mirror_policy else []
+    deviations += ["memory history"] if agent.memory_history else []
     deviations += [f"lr {cfg.lr_schedule} to {cfg.lr_final:g}"] if cfg.lr_schedule != "constant" else []
     if agent.target_depth:
         deviations += ["TRUE target depth (a diagnostic)" if agent.target_depth == GROUND_TRUTH else "target depth"]

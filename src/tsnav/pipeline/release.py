@@ -198,6 +198,11 @@ def pack(run: str | Path, checkpoint: str | Path, encoder_run: str | Path, out: 
             f"{run}: reads a target depth ({cfg['agent']['target_depth']}); such agents are a measured lever, not "
             "packed (a readout would have to ship beside the encoder; the ground truth never ships)"
         )
+    if cfg.get("agent", {}).get("mirror_policy"):
+        raise CommandError(
+            f"{run}: a mirror-symmetric agent (mirror_policy) is a measured lever, not packed: `tsnav release eval` "
+            "does not build the caches of the flipped frames it reads"
+        )
     tmp = out.with_name(f".{out.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "best").mkdir(parents=True)

@@ -143,6 +143,8 @@ def train_a3c(
 ) -> dict:
     """Train (or resume) the A3C run in ``run_dir`` with ``cfg.workers`` processes; returns the progress."""
     run_dir = Path(run_dir)
+    if agent.mirror_policy:
+        raise ValueError("a mirror-symmetric agent (mirror_policy) trains with the batched trainer (--algo batched)")
     set_threads(cfg.threads)
     bank, det = load_bank(cfg, scenes)
     observer = make_observer(bank, cfg, det_features=det, agent=agent)

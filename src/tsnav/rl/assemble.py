@@ -57,7 +57,27 @@ def make_observer(
     depth = target_depth
     if depth is None and agent is not None and agent.target_depth:
         depth = TargetDepth.of(agent.target_depth, bank, features, cfg.features)
-    return Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
+    mirror = None
+    if agent is not None and agent.mirror_policy:
+        mirror = mirror_observer(bank, cfg.features, cfg.detections, device, agent.target_depth)
+    return Observer(
+        bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth, mirror=mirror
+    )
+
+
+def mirror_observer(
+    bank: SceneBank, features: str, detections: str | None, device="cpu", target_depth: str | None = None
+) -> Observer:
+    """The observer of the mirror images of the bank's scenes, in the bank's state ids, for a mirror-symmetric agent
+    (``AgentConfig.mirror_policy``): the caches of the flipped frames, ``features_<features>-mirror.hdf5`` and
+    ``detections_<detections>-mirror.hdf5`` (``tsnav features --mirror``, ``tsnav detect --mirror``; a missing one
+    is a ``FileNotFoundError`` naming the command), and, with ``target_depth``, its depth maps of them."""
+    scenes = [s.mirrored() for s in bank.scenes]
+    mb = SceneBank(scenes, success_distance=bank.success_distance, c_target=bank.c_target, protocol=bank.protocol)
+    det = install(mb, detections)
+    feats = load_bank_features(mb, features)
+    depth = TargetDepth.of(target_depth, mb, feats, features) if target_depth else None
+    return Observer(mb, feats, DetectionTable(mb, det), device=device, target_depth=depth)
 
 
 def make_reward(bank: SceneBank, cfg: TrainConfig) -> TSRMReward:

@@ -308,7 +308,14 @@ def load_policy(
     depth = None
     if model.config.target_depth:
         depth = TargetDepth.of(model.config.target_depth, bank, features, cfg.features)
-    observer = Observer(bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth)
+    mirror = None
+    if model.config.mirror_policy:
+        from .assemble import mirror_observer
+
+        mirror = mirror_observer(bank, cfg.features, name, device, model.config.target_depth)
+    observer = Observer(
+        bank, features, DetectionTable(bank, det_features), device=device, target_depth=depth, mirror=mirror
+    )
     if observer.det_dim != model.det_dim:
         raise ValueError(f"detection features of size {observer.det_dim} do not match the agent's {model.det_dim}")
     return AgentPolicy(model.to(device), observer, greedy=greedy, seed=seed)

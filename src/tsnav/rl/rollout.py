@@ -114,7 +114,7 @@ class RolloutCollector:
         return (
             logits.float(),
             value.float(),
-            AgentState(new.h.float(), new.c.float(), new.memory, new.prev_action, new.prev_position, new.history),
+            new.float(),
         )
 
     def start(self) -> None:
