@@ -78,6 +78,17 @@ def _empty() -> dict:
     }
 
 
+def _result(episodes: int, counts: dict, wasted: dict, wasted_fail: int, skipped: int) -> dict:
+    """The counts of :func:`step_classes` and its reference, as both return them."""
+    return {
+        "episodes": episodes,
+        "counts": counts,
+        "wasted": wasted,
+        "wasted_failures": wasted_fail,
+        "skipped": skipped,
+    }
+
+
 def step_classes(data: Path, trajectories, protocol: str, success_distance: float = 1.0) -> dict:
     """Counts of the switched episodes' steps (module docstring): ``{"in view" | "out of view": {row: {class: n}}}``
     plus ``episodes`` (switched), ``wasted`` (in view / out of view), ``wasted_failures`` (in failed episodes),
@@ -113,13 +124,7 @@ def step_classes(data: Path, trajectories, protocol: str, success_distance: floa
                 wasted[key] += w
                 if not t.success:
                     wasted_fail += w
-    return {
-        "episodes": episodes,
-        "counts": counts,
-        "wasted": wasted,
-        "wasted_failures": wasted_fail,
-        "skipped": skipped,
-    }
+    return _result(episodes, counts, wasted, wasted_fail, skipped)
 
 
 def step_classes_reference(data: Path, trajectories, protocol: str, success_distance: float = 1.0) -> dict:
@@ -166,13 +171,7 @@ def step_classes_reference(data: Path, trajectories, protocol: str, success_dist
             wasted[key] += w
             if not t.success:
                 wasted_fail += w
-    return {
-        "episodes": episodes,
-        "counts": counts,
-        "wasted": wasted,
-        "wasted_failures": wasted_fail,
-        "skipped": skipped,
-    }
+    return _result(episodes, counts, wasted, wasted_fail, skipped)
 
 
 def read_eval(folder: Path) -> tuple[list, dict]:

@@ -45,6 +45,18 @@ def _code(command: str) -> list[str]:
     return ["```", command, "```"]
 
 
+def _section_head(e: dict) -> list[str]:
+    """The first lines of an index entry's section: its title, its text with a link to its data, its commands."""
+    return [
+        f"## {e['title']}",
+        "",
+        f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
+        "",
+        *_code(e["command"]),
+        "",
+    ]
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.2f}"
 
@@ -514,12 +526,7 @@ def switch_distance(index: dict, results: Path) -> list[str]:
         ]
 
     lines = [
-        f"## {e['title']}",
-        "",
-        f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
-        "",
-        *_code(e["command"]),
-        "",
+        *_section_head(e),
         "Success after the switch, in percent of the switched episodes in each band of L*Nav (the shortest path "
         "left at the switch, movement actions), the band's episodes in brackets:",
         "",
@@ -573,12 +580,7 @@ def pathfinding_steps(index: dict, results: Path) -> list[str]:
         return []
     res = json.loads((results / e["file"]).read_text())["results"]
     lines = [
-        f"## {e['title']}",
-        "",
-        f"{e['about']} Data: [{e['file']}](results/{e['file']}).",
-        "",
-        *_code(e["command"]),
-        "",
+        *_section_head(e),
         "Per evaluation: the switched episodes and their pose actions (MoveAhead, RotateLeft, RotateRight) from the "
         "switch on, then in percent: the actions wasted (beyond the shortest walk) per pose action, the share of that "
         "waste made with the target out of the frame and in failed episodes, the pose actions taken with the target "
